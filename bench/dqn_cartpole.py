@@ -1,0 +1,168 @@
+"""DQN on CartPole: relayrl against Stable-Baselines3 in the same run, as wall-clock ratios.
+
+    python bench/dqn_cartpole.py --peer-python bench/.venv-peers/bin/python [--settings tutorial zoo]
+        [--seeds 0 1 2]
+
+Each (setting, seed) runs relayrl and SB3 one after the other in fresh processes, so both
+see the same machine load; the table reports learn() wall-clock (evaluations included,
+process start-up excluded), evaluation time, final greedy return and relayrl/SB3.
+Peers live only in the bench venv: `bash bench/setup_peers.sh`.
+
+Settings:
+  tutorial  TF-Agents' DQN tutorial: CartPole-v0, (100, 50), Adam 1e-3, batch 64, squared
+            loss, no clipping, 100 random steps, 1 collect + 1 gradient step per iteration,
+            20,000 iterations, eval every 1,000 steps over 10 episodes, epsilon 0.1.
+  zoo       RL-Zoo's CartPole-v1 DQN: lr 2.3e-3, batch 64, buffer 100k, learning_starts 1000,
+            gamma 0.99, target update every 10 env steps, train_freq 256, gradient_steps 128,
+            exploration 1.0 -> 0.04 over 16% of 50,000 steps, (256, 256), eval every 5,000.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+
+# relayrl --set overrides that express each setting on top of the dqn-cartpole preset.
+RELAYRL = {
+    "tutorial": [],
+    "zoo": [
+        "env.id=CartPole-v1", "train.total_steps=50000", "train.initial_collect_steps=1000",
+        "train.collect_steps=256", "train.gradient_steps=128", "eval.interval=5000",
+        "agent.hidden=[256,256]", "agent.init='torch'", "agent.lr=2.3e-3", "agent.adam_eps=1e-8",
+        "agent.gamma=0.99", "agent.loss='huber'", "agent.grad_clip=10.0",
+        # SB3 copies the target every 10 env steps, i.e. between bursts of 128 gradient steps.
+        "agent.target_update_period=128", "agent.tau=1.0",
+        "agent.epsilon_start=1.0", "agent.epsilon_end=0.04", "agent.epsilon_decay_steps=8000",
+        "train.checkpoint_interval=0", "train.policy_save_interval=0",
+    ],
+}
+
+
+def run_relayrl(setting: str, seed: int) -> dict:
+    import tempfile
+
+    import relayrl
+
+    config = relayrl.load_config("dqn-cartpole", RELAYRL[setting], seed=seed)
+    with tempfile.TemporaryDirectory() as d:
+        t0 = time.perf_counter()
+        result = relayrl.train(config, os.path.join(d, "run"), progress=False)
+        wall = time.perf_counter() - t0
+        rows = relayrl.training.run_dir.RunDir(result.run_dir).read_metrics()
+    eval_s = sum(r.get("eval_s", 0.0) for r in rows)
+    return {"wall_s": wall, "eval_s": eval_s, "final": result.final["average_return"],
+            "curve": [(r["step"], r["average_return"]) for r in rows]}
+
+
+def run_sb3(setting: str, seed: int) -> dict:
+    import gymnasium as gym
+    import numpy as np
+    import torch
+    from stable_baselines3 import DQN
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    if setting == "tutorial":
+        env_id, total, eval_every = "CartPole-v0", 20_100, 1_000
+        kwargs = dict(learning_rate=1e-3, batch_size=64, buffer_size=100_000, learning_starts=100,
+                      gamma=1.0, target_update_interval=1, train_freq=1, gradient_steps=1,
+                      exploration_fraction=1e-9, exploration_initial_eps=0.1, exploration_final_eps=0.1,
+                      max_grad_norm=1e9, policy_kwargs=dict(net_arch=[100, 50],
+                      optimizer_kwargs=dict(eps=1e-7)))
+    else:
+        env_id, total, eval_every = "CartPole-v1", 50_000, 5_000
+        kwargs = dict(learning_rate=2.3e-3, batch_size=64, buffer_size=100_000, learning_starts=1000,
+                      gamma=0.99, target_update_interval=10, train_freq=256, gradient_steps=128,
+                      exploration_fraction=0.16, exploration_final_eps=0.04,
+                      policy_kwargs=dict(net_arch=[256, 256]))
+    eval_env = gym.make(env_id)
+
+    class Eval(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.eval_s, self.curve = 0.0, []
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps % eval_every == 0:
+                t0 = time.perf_counter()
+                rets = []
+                for k in range(10):
+                    obs, _ = eval_env.reset(seed=seed * 1000 + len(self.curve) * 10 + k)
+                    done, ret = False, 0.0
+                    while not done:
+                        action, _ = self.model.predict(obs, deterministic=True)
+                        obs, r, term, trunc, _ = eval_env.step(action)
+                        ret += r
+                        done = term or trunc
+                    rets.append(ret)
+                self.curve.append((self.num_timesteps, float(np.mean(rets))))
+                self.eval_s += time.perf_counter() - t0
+            return True
+
+    model = DQN("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs)
+    if setting == "tutorial":
+        # TF-Agents' tutorial uses the element-wise squared loss: SB3 hard-codes Huber, so swap it.
+        import stable_baselines3.dqn.dqn as sb3_dqn
+
+        sb3_dqn.F.smooth_l1_loss = torch.nn.functional.mse_loss  # mean (x - y)^2, no 1/2
+    cb = Eval()
+    t0 = time.perf_counter()
+    model.learn(total_timesteps=total, callback=cb)
+    wall = time.perf_counter() - t0
+    return {"wall_s": wall, "eval_s": cb.eval_s, "final": cb.curve[-1][1] if cb.curve else float("nan"),
+            "curve": cb.curve}
+
+
+def worker(argv: list[str]) -> None:
+    which, setting, seed = argv[0], argv[1], int(argv[2])
+    out = run_relayrl(setting, seed) if which == "relayrl" else run_sb3(setting, seed)
+    print("RESULT " + json.dumps(out), flush=True)
+
+
+def spawn(python: str, which: str, setting: str, seed: int) -> dict:
+    proc = subprocess.run([python, __file__, "--worker", which, setting, str(seed)],
+                          capture_output=True, text=True, check=False)
+    for line in proc.stdout.splitlines():
+        if line.startswith("RESULT "):
+            return json.loads(line[7:])
+    raise RuntimeError(f"{which} worker failed:\n{proc.stderr[-3000:]}")
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--worker":
+        worker(sys.argv[2:])
+        return
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--peer-python", default="bench/.venv-peers/bin/python")
+    p.add_argument("--settings", nargs="+", default=["tutorial", "zoo"], choices=sorted(RELAYRL))
+    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    p.add_argument("--json", help="also write every result here")
+    args = p.parse_args()
+    rows, results = [], {}
+    print("| setting | seed | relayrl s (eval s) | SB3 s (eval s) | relayrl / SB3 | final return relayrl | SB3 |")
+    print("|---|---|---|---|---|---|---|")
+    for setting in args.settings:
+        ratios = []
+        for seed in args.seeds:
+            ours = spawn(sys.executable, "relayrl", setting, seed)
+            peer = spawn(args.peer_python, "sb3", setting, seed)
+            ratio = ours["wall_s"] / peer["wall_s"]
+            ratios.append(ratio)
+            results[f"{setting}/{seed}"] = {"relayrl": ours, "sb3": peer}
+            print(f"| {setting} | {seed} | {ours['wall_s']:.1f} ({ours['eval_s']:.1f}) | "
+                  f"{peer['wall_s']:.1f} ({peer['eval_s']:.1f}) | {ratio:.2f} | {ours['final']:.1f} | "
+                  f"{peer['final']:.1f} |", flush=True)
+        rows.append((setting, statistics.mean(ratios)))
+    for setting, r in rows:
+        print(f"mean relayrl/SB3 wall-clock, {setting}: {r:.2f}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,101 @@
+"""Where a DQN iteration's time goes on this CPU: one table of per-call costs.
+
+    python bench/dqn_update.py [--hidden 256 256] [--batch 64]
+
+Rows compare each relayrl piece with the plain-PyTorch way of doing the same thing, measured
+in the same process one after the other (ratios, not absolute times, are what carry over).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from relayrl.agents.dqn import DQNAgent, DQNConfig
+from relayrl.envs import make_env
+from relayrl.policies import GreedyPolicy
+from relayrl.replay import UniformReplay
+from relayrl.specs import ArraySpec, DiscreteSpec
+from relayrl.types import Transition
+
+
+def per_call_us(fn, n: int = 2000) -> float:
+    for _ in range(n // 10):
+        fn()
+    t0 = time.perf_counter()
+    for _ in range(n):
+        fn()
+    return (time.perf_counter() - t0) / n * 1e6
+
+
+def plain_update(hidden: list[int], batch: int):
+    """SB3-style eager update: nn.Sequential of nn.Linear, torch.optim.Adam, separate target."""
+    layers, sizes = [], [4, *hidden]
+    for a, b in zip(sizes[:-1], sizes[1:], strict=False):
+        layers += [nn.Linear(a, b), nn.ReLU()]
+    net = nn.Sequential(*layers, nn.Linear(sizes[-1], 2))
+    target = copy.deepcopy(net)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    obs, nobs = torch.randn(batch, 4), torch.randn(batch, 4)
+    act, rew, disc = torch.randint(2, (batch, 1)), torch.randn(batch), torch.rand(batch)
+
+    def step() -> None:
+        with torch.no_grad():
+            y = rew + disc * target(nobs).max(1).values
+        q = net(obs).gather(1, act).squeeze(1)
+        loss = F.smooth_l1_loss(q, y)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+
+    return step
+
+
+def main() -> None:
+    p = argparse.ArgumentParser()
+    p.add_argument("--hidden", type=int, nargs="+", default=[256, 256])
+    p.add_argument("--batch", type=int, default=64)
+    p.add_argument("--threads", type=int, default=1)
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    h, b = args.hidden, args.batch
+    obs_spec, act_spec = ArraySpec((4,), torch.float32), DiscreteSpec(2)
+    cfg = DQNConfig(hidden=h, batch_size=b, target_update_period=100)
+    agent = DQNAgent(obs_spec, act_spec, cfg, torch.device("cpu"), np.random.default_rng(0))
+    replay = UniformReplay(100_000, obs_spec, act_spec, 0.99, seed=0)
+    for _i in range(100):
+        x = torch.randn(1000, 4)
+        replay(Transition(x, torch.randint(2, (1000,)), torch.randn(1000), x, torch.zeros(1000, dtype=torch.bool),
+                          torch.zeros(1000, dtype=torch.bool)))
+    batch = replay.sample(b)
+    x = torch.randn(b, h[0])
+    w = torch.randn(h[-1] if len(h) > 1 else h[0], h[0])
+    env = make_env("CartPole-v1")
+    env.reset(seed=0)
+    a0 = torch.zeros(1, dtype=torch.long)
+    one = torch.randn(1, 4)
+    greedy = GreedyPolicy(agent.online, torch.device("cpu"))
+    rows = [
+        ("matmul alone: one [B,h]x[h,h] (of 4 per update)", per_call_us(lambda: x @ w.T)),
+        ("plain PyTorch update (nn.Sequential, optim.Adam)", per_call_us(plain_update(h, b))),
+        ("relayrl agent.train (MLP, FastAdam, pure loss)", per_call_us(lambda: agent.train(batch))),
+        ("replay.sample", per_call_us(lambda: replay.sample(b))),
+        ("env.step, batch of 1 (CartPole-v1)", per_call_us(lambda: env.step(a0))),
+        ("greedy action, 1 obs, torch forward", per_call_us(lambda: agent.online(one).argmax(1), 5000)),
+        ("greedy action, 1 obs, relayrl (NumPy views)", per_call_us(lambda: greedy(one), 5000)),
+    ]
+    print(f"hidden={h} batch={b} torch_threads={args.threads} torch={torch.__version__}")
+    print("| piece | us per call |")
+    print("|---|---|")
+    for name, us in rows:
+        print(f"| {name} | {us:.0f} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,8 @@
+#!/usr/bin/env bash
+# Peers for benchmarks only, in their own venv (never project dependencies).
+set -euo pipefail
+cd "$(dirname "$0")"
+python3 -m venv .venv-peers
+.venv-peers/bin/pip install -q torch==2.13.0
+.venv-peers/bin/pip install -q "stable-baselines3==2.*" "gymnasium[classic-control]>=1.0"
+echo "peers installed in bench/.venv-peers"

@@ -1,0 +1,45 @@
+"""relayrl: deep reinforcement learning on PyTorch and Gymnasium.
+
+Notebook use mirrors the CLI:
+
+    config = relayrl.load_config("dqn-cartpole-fast")
+    config.train.total_steps = 20_000
+    result = relayrl.train(config, "runs/mine")
+    relayrl.plot_run("runs/mine"); relayrl.record_video("runs/mine")
+    policy = relayrl.load_policy("runs/mine")
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+__version__ = "0.1.0"
+
+__all__ = ["load_config", "list_presets", "train", "load_policy", "plot_run", "record_video", "Config"]
+
+_LAZY = {
+    "load_config": "relayrl.presets",
+    "list_presets": "relayrl.presets",
+    "train": "relayrl.training.loop",
+    "load_policy": "relayrl.export",
+    "plot_run": "relayrl.plot",
+    "record_video": "relayrl.video",
+    "Config": "relayrl.config",
+}
+
+if TYPE_CHECKING:
+    from relayrl.config import Config
+    from relayrl.export import load_policy
+    from relayrl.plot import plot_run
+    from relayrl.presets import list_presets, load_config
+    from relayrl.training.loop import train
+    from relayrl.video import record_video
+
+
+def __getattr__(name: str) -> Any:
+    # Lazy imports keep `relayrl presets` and error messages fast (no torch import needed).
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'relayrl' has no attribute {name!r}")

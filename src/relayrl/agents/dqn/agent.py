@@ -1,0 +1,105 @@
+"""DQN agent: owns the networks, optimizer, target updates and counters; the loss is pure."""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+from relayrl.agents.dqn.config import DQNConfig
+from relayrl.agents.dqn.losses import dqn_loss
+from relayrl.agents.dqn.networks import q_network
+from relayrl.optim import FastAdam
+from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy, linear_schedule
+from relayrl.specs import DiscreteSpec, Spec
+from relayrl.types import Batch
+
+
+class DQNAgent:
+    def __init__(self, obs_spec: Spec, action_spec: Spec, cfg: DQNConfig, device: torch.device,
+                 rng: np.random.Generator, total_steps: int = 0) -> None:
+        self.cfg = cfg
+        self.obs_spec = obs_spec
+        self.action_spec = action_spec
+        self.device = device
+        self.rng = rng  # exploration randomness, checkpointed with the agent
+        self.online = q_network(obs_spec, action_spec, cfg).to(device)
+        # A target updated by a full copy after every step equals the online net at every
+        # loss evaluation: keep none and let the loss share one forward pass.
+        self.target = (None if cfg.target_update_period == 1 and cfg.tau >= 1.0
+                       else copy.deepcopy(self.online).requires_grad_(False))
+        self.optimizer = FastAdam(self.online.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
+        self._train_step = 0
+        self._lr_at = (linear_schedule(cfg.lr, cfg.lr_end, total_steps)
+                       if cfg.lr_end >= 0 and total_steps > 0 else None)
+        self._online_params = list(self.online.parameters())
+        self._target_params = list(self.target.parameters()) if self.target is not None else []
+
+    @property
+    def train_step(self) -> int:
+        return self._train_step
+
+    def collect_policy(self, env_step: Callable[[], int]) -> EpsilonGreedyPolicy:
+        assert isinstance(self.action_spec, DiscreteSpec)
+        eps = linear_schedule(self.cfg.epsilon_start, self.cfg.epsilon_end, self.cfg.epsilon_decay_steps)
+        return EpsilonGreedyPolicy(self.eval_policy(), self.action_spec.n, eps, env_step, self.rng)
+
+    def eval_policy(self) -> GreedyPolicy:
+        return GreedyPolicy(self.online, self.device)
+
+    def set_progress(self, env_steps: int) -> None:
+        """Follow schedules that run on env steps (the learning-rate decay)."""
+        if self._lr_at is not None:
+            self.optimizer.lr = self._lr_at(env_steps)
+
+    def train(self, batch: Batch) -> dict[str, torch.Tensor]:
+        cfg = self.cfg
+        loss, metrics = dqn_loss(self.online, self.target, batch, double=cfg.double,
+                                 loss=cfg.loss, huber_delta=cfg.huber_delta)
+        self.optimizer.zero_grad()
+        loss.backward()
+        if cfg.grad_clip > 0:
+            metrics["grad_norm"] = torch.nn.utils.clip_grad_norm_(self._online_params, cfg.grad_clip)
+        self.optimizer.step()
+        self._train_step += 1
+        if self.target is not None and self._train_step % cfg.target_update_period == 0:
+            self._update_target()
+        return metrics
+
+    @torch.no_grad()
+    def _update_target(self) -> None:
+        if self.cfg.tau >= 1.0:
+            torch._foreach_copy_(self._target_params, self._online_params)
+        else:
+            # Polyak: target <- target + tau * (online - target), fused over all tensors.
+            torch._foreach_lerp_(self._target_params, self._online_params, self.cfg.tau)
+
+    def policy_state(self) -> dict[str, Any]:
+        return {
+            "kind": "q_greedy",
+            "obs_dim": self.online.layers[0].in_features,
+            "hidden": list(self.cfg.hidden),
+            "num_actions": self.online.layers[-1].out_features,
+            "activation": self.cfg.activation,
+            "state_dict": {k: v.detach().cpu() for k, v in self.online.state_dict().items()},
+        }
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "online": self.online.state_dict(),
+            "target": self.target.state_dict() if self.target is not None else None,
+            "optimizer": self.optimizer.state_dict(),
+            "train_step": self._train_step,
+            "rng": self.rng.bit_generator.state,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.online.load_state_dict(state["online"])
+        if self.target is not None:
+            self.target.load_state_dict(state["target"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self._train_step = int(state["train_step"])
+        self.rng.bit_generator.state = state["rng"]

@@ -1,0 +1,46 @@
+"""DQN hyperparameters (Double DQN is a flag)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from relayrl.errors import ConfigError
+
+
+@dataclass
+class DQNConfig:
+    hidden: list[int] = field(default_factory=lambda: [256, 256])
+    activation: str = "relu"  # relu | tanh | elu
+    init: str = "torch"  # torch | tf-agents (VarianceScaling hidden, small uniform head, bias -0.2)
+    lr: float = 1e-3
+    lr_end: float = -1.0  # < 0: constant lr; else linear decay to lr_end over train.total_steps
+    adam_eps: float = 1e-8
+    batch_size: int = 64
+    gamma: float = 0.99
+    loss: str = "huber"  # huber | mse (element-wise squared error, no 1/2)
+    huber_delta: float = 1.0
+    double: bool = False
+    target_update_period: int = 1  # gradient steps between target updates
+    tau: float = 1.0  # 1.0: hard copy; < 1: Polyak averaging
+    grad_clip: float = 0.0  # max global grad norm; 0 disables
+    epsilon_start: float = 1.0
+    epsilon_end: float = 0.05
+    epsilon_decay_steps: int = 10_000  # env steps for the linear decay; 0: constant epsilon_end
+
+    def validate(self) -> None:
+        choices = {"activation": ("relu", "tanh", "elu"), "init": ("torch", "tf-agents"),
+                   "loss": ("huber", "mse")}
+        for key, valid in choices.items():
+            if getattr(self, key) not in valid:
+                raise ConfigError(f"agent.{key}={getattr(self, key)!r} is not valid; valid: {', '.join(valid)}")
+        if not self.hidden or any(h < 1 for h in self.hidden):
+            raise ConfigError(f"agent.hidden={self.hidden} is not valid; give one or more positive sizes")
+        if not 0.0 < self.tau <= 1.0:
+            raise ConfigError(f"agent.tau={self.tau} is not valid; it must be in (0, 1]")
+        if self.target_update_period < 1 or self.batch_size < 1:
+            raise ConfigError("agent.target_update_period and agent.batch_size must be >= 1")
+        for key in ("epsilon_start", "epsilon_end"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                raise ConfigError(f"agent.{key} must be in [0, 1]")
+        if self.lr <= 0 or not 0.0 <= self.gamma <= 1.0:
+            raise ConfigError("agent.lr must be > 0 and agent.gamma in [0, 1]")

@@ -1,0 +1,121 @@
+"""The `relayrl` command: presets | train | eval | plot | video. Thin: parse, build, call."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import NoReturn
+
+from relayrl.errors import UserError
+
+EXIT_USAGE = 2
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse that reports bad usage in one line (no usage dump), exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        print(f"relayrl: error: {message} (see 'relayrl {self.prog.split()[-1]} --help')"
+              if " " in self.prog else f"relayrl: error: {message} (see 'relayrl --help')",
+              file=sys.stderr)
+        sys.exit(EXIT_USAGE)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="relayrl", description="Deep RL on PyTorch and Gymnasium.")
+    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    sub.add_parser("presets", help="list preset names with a short description")
+    t = sub.add_parser("train", help="train a preset or a config TOML into a run directory")
+    t.add_argument("config", metavar="PRESET|CONFIG.toml")
+    t.add_argument("--run-dir", help="where to write the run (default: runs/<algo>-<env>-s<seed>-<time>)")
+    t.add_argument("--seed", type=int)
+    t.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config key, e.g. --set train.total_steps=20000 (repeatable)")
+    t.add_argument("--resume", action="store_true", help="continue the run in --run-dir from its last checkpoint")
+    t.add_argument("--no-progress", action="store_true", help="no progress bar")
+    e = sub.add_parser("eval", help="evaluate a run's saved policy; prints one JSON object")
+    e.add_argument("run_dir", metavar="RUN_DIR")
+    e.add_argument("--episodes", type=int, default=10)
+    e.add_argument("--seed", type=int, default=0)
+    pl = sub.add_parser("plot", help="PNG of average return against env steps")
+    pl.add_argument("run_dir", metavar="RUN_DIR")
+    pl.add_argument("--out", metavar="PNG")
+    v = sub.add_parser("video", help="MP4 of the greedy policy")
+    v.add_argument("run_dir", metavar="RUN_DIR")
+    v.add_argument("--out", metavar="MP4")
+    v.add_argument("--episodes", type=int, default=1)
+    v.add_argument("--seed", type=int, default=0)
+    return p
+
+
+def _train(args: argparse.Namespace) -> None:
+    from relayrl.presets import load_config
+    from relayrl.training.loop import train
+    from relayrl.training.run_dir import RunDir
+
+    if args.resume:
+        if not args.run_dir:
+            raise UserError("--resume needs --run-dir DIR (the run to continue)")
+        rd = RunDir(args.run_dir)
+        rd.require()
+        config = load_config(str(rd.config), args.overrides, args.seed)
+    else:
+        config = load_config(args.config, args.overrides, args.seed)
+    result = train(config, args.run_dir, resume=args.resume, progress=not args.no_progress)
+    final = result.final
+    print(f"run directory: {result.run_dir}")
+    print(f"final evaluation: average_return={final.get('average_return')} "
+          f"at step {final.get('step')} ({final.get('wall_time_s')} s)")
+
+
+def _eval(args: argparse.Namespace) -> None:
+    from relayrl.envs import make_env
+    from relayrl.export import load_policy
+    from relayrl.presets import load_config
+    from relayrl.training.evaluate import evaluate
+    from relayrl.training.run_dir import RunDir
+
+    if args.episodes < 1:
+        raise UserError(f"--episodes {args.episodes} is not valid; it must be >= 1")
+    rd = RunDir(args.run_dir)
+    rd.require()
+    config = load_config(str(rd.config))
+    policy = load_policy(rd.root)
+    env = make_env(config.env.id, min(args.episodes, 16), config.env.max_episode_steps)
+    print(json.dumps(evaluate(env, policy, args.episodes, seed=args.seed)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        if args.command == "presets":
+            from relayrl.presets import list_presets
+
+            for name, desc in list_presets().items():
+                print(f"{name}\t{desc}")
+        elif args.command == "train":
+            _train(args)
+        elif args.command == "eval":
+            _eval(args)
+        elif args.command == "plot":
+            from relayrl.plot import plot_run
+
+            print(plot_run(args.run_dir, args.out))
+        elif args.command == "video":
+            from relayrl.video import record_video
+
+            if args.episodes < 1:
+                raise UserError(f"--episodes {args.episodes} is not valid; it must be >= 1")
+            print(record_video(args.run_dir, args.out, args.episodes, args.seed))
+    except UserError as e:
+        print(f"relayrl: error: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("relayrl: interrupted; resume with --resume from the last checkpoint", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

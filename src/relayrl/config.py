@@ -1,0 +1,184 @@
+"""One config object per run: nested dataclasses, saved as TOML, overridable with --set.
+
+Unknown keys and wrong types fail loudly with a ConfigError naming the valid choices.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from relayrl.agents.dqn.config import DQNConfig
+from relayrl.errors import ConfigError
+
+AGENT_CONFIGS: dict[str, type] = {"dqn": DQNConfig}
+
+
+@dataclass
+class EnvConfig:
+    id: str = "CartPole-v1"
+    num_envs: int = 1
+    max_episode_steps: int = 0  # 0: the env's own time limit
+
+
+@dataclass
+class TrainConfig:
+    total_steps: int = 50_000  # env steps
+    initial_collect_steps: int = 1_000  # env steps with the random policy before learning
+    collect_steps: int = 1  # env steps per iteration
+    gradient_steps: int = 1  # gradient steps per iteration
+    replay_size: int = 100_000
+    checkpoint_interval: int = 10_000  # env steps; 0 disables
+    policy_save_interval: int = 5_000  # env steps; 0 disables
+    log_interval: int = 1_000  # env steps between progress / TensorBoard scalars
+    torch_threads: int = 1  # 0 keeps torch's default; small nets run fastest on one
+
+
+@dataclass
+class EvalConfig:
+    interval: int = 5_000  # env steps
+    episodes: int = 10
+
+
+@dataclass
+class Config:
+    seed: int = 0
+    device: str = "cpu"  # cpu | cuda | auto
+    algo: str = "dqn"
+    env: EnvConfig = field(default_factory=EnvConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    agent: Any = field(default_factory=DQNConfig)
+
+    def validate(self) -> None:
+        """Cross-field checks that types alone cannot express."""
+        if self.device not in ("cpu", "cuda", "auto") and not self.device.startswith("cuda:"):
+            raise ConfigError(f"device={self.device!r} is not valid; valid: cpu, cuda, cuda:N, auto")
+        positive = {
+            "env.num_envs": self.env.num_envs,
+            "train.total_steps": self.train.total_steps,
+            "train.collect_steps": self.train.collect_steps,
+            "train.replay_size": self.train.replay_size,
+            "eval.interval": self.eval.interval,
+            "eval.episodes": self.eval.episodes,
+        }
+        for key, value in positive.items():
+            if value < 1:
+                raise ConfigError(f"{key}={value} is not valid; it must be >= 1")
+        for key in ("initial_collect_steps", "gradient_steps", "checkpoint_interval",
+                    "policy_save_interval", "log_interval", "torch_threads"):
+            if getattr(self.train, key) < 0:
+                raise ConfigError(f"train.{key} must be >= 0")
+        self.agent.validate()
+
+
+def to_dict(config: Config) -> dict[str, Any]:
+    return dataclasses.asdict(config)
+
+
+def from_dict(data: dict[str, Any]) -> Config:
+    """Build a Config from nested dicts (e.g. parsed TOML); every key is checked."""
+    data = dict(data)
+    algo = data.get("algo", "dqn")
+    if algo not in AGENT_CONFIGS:
+        raise ConfigError(f"algo={algo!r} is not known; valid: {', '.join(sorted(AGENT_CONFIGS))}")
+    config = Config(agent=AGENT_CONFIGS[algo]())
+    _merge(config, data, prefix="")
+    config.validate()
+    return config
+
+
+def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
+    names = {f.name: f for f in dataclasses.fields(obj)}
+    hints = typing.get_type_hints(type(obj))
+    for key, value in data.items():
+        path = prefix + key
+        if key not in names:
+            raise ConfigError(f"unknown config key {path!r}; valid: {', '.join(prefix + n for n in names)}")
+        current = getattr(obj, key)
+        if dataclasses.is_dataclass(current):
+            if not isinstance(value, dict):
+                example = dataclasses.fields(current)[0].name
+                raise ConfigError(f"{path} is a section; set its keys, e.g. {path}.{example}")
+            _merge(current, value, path + ".")
+        else:
+            setattr(obj, key, _coerce(value, hints[key], path))
+
+
+def _coerce(value: Any, hint: Any, path: str) -> Any:
+    """Check `value` against the field's type; ints are accepted where floats are expected."""
+    origin = typing.get_origin(hint)
+    if origin in (types.UnionType, typing.Union):
+        for arg in typing.get_args(hint):
+            if arg is type(None) and value is None:
+                return None
+            try:
+                return _coerce(value, arg, path)
+            except ConfigError:
+                continue
+        raise ConfigError(f"{path}={value!r} has the wrong type; expected {_type_name(hint)}")
+    if origin in (list, tuple):
+        (item,) = typing.get_args(hint)[:1]
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{path}={value!r} has the wrong type; expected a list of {_type_name(item)}")
+        return [_coerce(v, item, f"{path}[{i}]") for i, v in enumerate(value)]
+    if hint is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if hint is Any or (isinstance(value, hint) and not (hint is int and isinstance(value, bool))):
+        return value
+    raise ConfigError(f"{path}={value!r} has the wrong type; expected {_type_name(hint)}")
+
+
+def _type_name(hint: Any) -> str:
+    return getattr(hint, "__name__", str(hint))
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """Parse `key.sub=value`; the value is read as a TOML literal, else taken as a string."""
+    if "=" not in text:
+        raise ConfigError(f"--set {text!r} is not KEY=VALUE (e.g. --set train.total_steps=20000)")
+    key, raw = text.split("=", 1)
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw  # bare words such as CartPole-v1 are strings
+    return key.strip().split("."), value
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    """Apply --set overrides to a nested dict before it is checked by `from_dict`."""
+    for text in overrides:
+        keys, value = parse_override(text)
+        node = data
+        for k in keys[:-1]:
+            node = node.setdefault(k, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"--set {text!r}: {k!r} is not a section")
+        node[keys[-1]] = value
+    return data
+
+
+def load_toml(path: str | Path) -> dict[str, Any]:
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise ConfigError(f"config file {str(path)!r} does not exist") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"config file {str(path)!r} is not valid TOML: {e}") from None
+
+
+def save_toml(config: Config, path: str | Path) -> None:
+    import tomli_w
+
+    Path(path).write_text(tomli_w.dumps(_drop_none(to_dict(config))))
+
+
+def _drop_none(d: dict[str, Any]) -> dict[str, Any]:
+    # TOML has no null; a None field is written as absent and read back as its default.
+    return {k: _drop_none(v) if isinstance(v, dict) else v for k, v in d.items() if v is not None}

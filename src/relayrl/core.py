@@ -1,0 +1,72 @@
+"""The protocols every layer speaks. Kept tiny on purpose, like Acme's core.py."""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, runtime_checkable
+
+import torch
+
+from relayrl.specs import Spec
+from relayrl.types import Batch, StepOutput, Transition
+
+
+@runtime_checkable
+class Saveable(Protocol):
+    """Anything whose state goes into a checkpoint as a plain dict."""
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+class BatchedEnv(Protocol):
+    """An environment that always works on a batch of `num_envs` >= 1 copies."""
+
+    num_envs: int
+    observation_spec: Spec
+    action_spec: Spec
+
+    def reset(self, seed: int | None = None) -> torch.Tensor:
+        """Reset every copy; return observations [B, *obs_shape]."""
+        ...
+
+    def step(self, action: torch.Tensor) -> StepOutput:
+        """Step every copy; copies whose episode ended are reset automatically."""
+        ...
+
+    def close(self) -> None: ...
+
+
+class Policy(Protocol):
+    """Maps a batch of observations to a batch of actions."""
+
+    def __call__(self, obs: torch.Tensor) -> torch.Tensor: ...
+
+
+class Observer(Protocol):
+    """Sees every batched transition the actor produces (metrics, replay writers)."""
+
+    def __call__(self, transition: Transition) -> None: ...
+
+
+class Agent(Saveable, Protocol):
+    """What the train loop knows of an algorithm."""
+
+    def collect_policy(self) -> Policy:
+        """The exploring policy; reads the agent's counters (e.g. for epsilon schedules)."""
+        ...
+
+    def eval_policy(self) -> Policy:
+        """The greedy / deterministic policy."""
+        ...
+
+    def train(self, batch: Batch) -> dict[str, torch.Tensor]:
+        """One gradient step; returns scalar metrics as tensors (no host sync forced)."""
+        ...
+
+    def policy_state(self) -> dict[str, Any]:
+        """What `relayrl.load_policy` needs to rebuild the eval policy without the agent."""
+        ...
+
+    @property
+    def train_step(self) -> int: ...

@@ -1,0 +1,122 @@
+"""Gymnasium envs as a batched env: by registered id or as a user's `package.module:Class`.
+
+We step the copies ourselves rather than through `gymnasium.vector.SyncVectorEnv` because we
+need the true final observation of an episode as a plain array (`next_obs`) beside the reset
+observation (`obs`); Gymnasium's vector autoreset modes either delay the reset by one step
+(a step whose transition must be dropped) or put the final observation in per-env info dicts.
+"""
+
+from __future__ import annotations
+
+import difflib
+import importlib
+from collections.abc import Callable
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from relayrl.errors import UserError
+from relayrl.specs import DiscreteSpec, Spec, spec_from_space
+from relayrl.types import StepOutput
+
+EnvFn = Callable[[], gym.Env]
+
+
+def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | None = None) -> EnvFn:
+    """A factory for one env: a Gymnasium id (`CartPole-v1`) or `package.module:Class`."""
+    kwargs: dict = {}
+    if render_mode is not None:
+        kwargs["render_mode"] = render_mode
+    if ":" in env_id and "/" not in env_id.split(":", 1)[0]:
+        module_name, class_name = env_id.split(":", 1)
+        try:
+            cls = getattr(importlib.import_module(module_name), class_name)
+        except (ImportError, AttributeError) as e:
+            raise UserError(f"env.id={env_id!r}: cannot import {class_name} from {module_name} ({e})") from None
+        if not (isinstance(cls, type) and issubclass(cls, gym.Env)):
+            raise UserError(f"env.id={env_id!r} is not a gymnasium.Env subclass")
+
+        def make_custom() -> gym.Env:
+            env = cls(**kwargs)
+            if max_episode_steps > 0:
+                env = gym.wrappers.TimeLimit(env, max_episode_steps)
+            return env
+
+        return make_custom
+    if env_id not in gym.registry:
+        close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
+        hint = f"; did you mean {', '.join(close)}?" if close else ""
+        raise UserError(
+            f"env.id={env_id!r} is not a registered Gymnasium id{hint} "
+            "(valid: a Gymnasium id such as CartPole-v1, relayrl/..., or package.module:Class)"
+        )
+    if max_episode_steps > 0:
+        kwargs["max_episode_steps"] = max_episode_steps
+
+    # disable_env_checker: the passive checker costs ~10% per step on tiny envs and only warns.
+    return lambda: gym.make(env_id, disable_env_checker=True, **kwargs)
+
+
+class GymBatchEnv:
+    """`num_envs` Gymnasium envs stepped in this process, as one batched env."""
+
+    def __init__(self, env_fns: list[EnvFn]) -> None:
+        if not env_fns:
+            raise UserError("env.num_envs must be >= 1")
+        self.envs = [fn() for fn in env_fns]
+        self.num_envs = len(self.envs)
+        first = self.envs[0]
+        self.observation_spec: Spec = spec_from_space(first.observation_space)
+        self.action_spec: Spec = spec_from_space(first.action_space)
+        obs_dtype = torch.empty((), dtype=self.observation_spec.dtype).numpy().dtype
+        self._obs_dtype = obs_dtype
+        self._discrete = isinstance(self.action_spec, DiscreteSpec)
+
+    def reset(self, seed: int | None = None) -> torch.Tensor:
+        obs = []
+        for i, env in enumerate(self.envs):
+            o, _ = env.reset(seed=None if seed is None else seed + i)
+            if seed is not None:
+                env.action_space.seed(seed + i)
+            obs.append(o)
+        return torch.from_numpy(np.stack(obs).astype(self._obs_dtype, copy=False))
+
+    def step(self, action: torch.Tensor) -> StepOutput:
+        # tolist() gives Python ints for discrete actions: what Gymnasium envs compare against.
+        actions = action.tolist() if self._discrete else action.numpy()
+        b = self.num_envs
+        next_obs = np.empty((b, *self.observation_spec.shape), self._obs_dtype)
+        reward = np.empty(b, np.float32)
+        terminated = np.empty(b, np.bool_)
+        truncated = np.empty(b, np.bool_)
+        obs = next_obs  # shared until some copy is reset
+        for i, env in enumerate(self.envs):
+            o, r, term, trunc, _ = env.step(actions[i])
+            next_obs[i] = o
+            reward[i] = r
+            terminated[i] = term
+            truncated[i] = trunc
+            if term or trunc:
+                if obs is next_obs:
+                    obs = next_obs.copy()
+                obs[i] = env.reset()[0]
+        return StepOutput(torch.from_numpy(next_obs), torch.from_numpy(reward), torch.from_numpy(terminated),
+                          torch.from_numpy(truncated), torch.from_numpy(obs))
+
+    def render(self) -> np.ndarray | None:
+        return self.envs[0].render()
+
+    def close(self) -> None:
+        for env in self.envs:
+            env.close()
+
+
+def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0,
+             render_mode: str | None = None) -> GymBatchEnv:
+    """A batched env of `num_envs` copies of `env_id`."""
+    fn = resolve_env_fn(env_id, max_episode_steps, render_mode)
+    try:
+        return GymBatchEnv([fn] * num_envs)
+    except gym.error.Error as e:
+        raise UserError(f"env.id={env_id!r} could not be made: {e}") from None

@@ -1,0 +1,38 @@
+"""`relayrl plot`: average evaluation return against env steps, from metrics.jsonl."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from relayrl.errors import UserError
+from relayrl.training.run_dir import RunDir
+
+
+def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
+    rd = RunDir(run_dir)
+    rd.require()
+    rows = [r for r in rd.read_metrics() if r.get("average_return") is not None]
+    if not rows:
+        raise UserError(f"{str(rd.metrics)!r} has no evaluations yet; train first")
+    import matplotlib
+
+    matplotlib.use("Agg")  # no display needed
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    steps = [r["step"] for r in rows]
+    ax.plot(steps, [r["average_return"] for r in rows], marker="o", ms=3, label="eval (greedy)")
+    train_rows = [r for r in rows if r.get("train/average_return") is not None]
+    if train_rows:
+        ax.plot([r["step"] for r in train_rows], [r["train/average_return"] for r in train_rows],
+                alpha=0.6, label="train (collect policy)")
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("average return")
+    ax.set_title(rd.root.name)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    path = Path(out) if out else rd.root / "returns.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -1,0 +1,1 @@
+"""The Actor–Learner loop, triggers, evaluation, checkpoints and the run directory."""

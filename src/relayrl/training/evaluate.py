@@ -1,0 +1,46 @@
+"""Average return of a policy over whole episodes, run as one batch of env copies."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from relayrl.core import BatchedEnv, Policy
+
+
+def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = None,
+             max_steps: int = 1_000_000) -> dict[str, float]:
+    """Run `episodes` full episodes and average their return and length.
+
+    Copy i of the batch runs a fixed quota of episodes, so short episodes are not
+    over-represented (stopping at the first `episodes` finishers would bias the mean).
+    """
+    b = env.num_envs
+    quota = np.full(b, episodes // b) + (np.arange(b) < episodes % b)
+    done_count = np.zeros(b, np.int64)
+    ret = np.zeros(b, np.float64)
+    length = np.zeros(b, np.int64)
+    returns: list[float] = []
+    lengths: list[int] = []
+    obs = env.reset(seed=seed)
+    for _ in range(max_steps):
+        if (done_count >= quota).all():
+            break
+        with torch.inference_mode():
+            out = env.step(policy(obs))
+        ret += out.reward.numpy()
+        length += 1
+        done = (out.terminated | out.truncated).numpy()
+        for i in np.flatnonzero(done):
+            if done_count[i] < quota[i]:
+                returns.append(float(ret[i]))
+                lengths.append(int(length[i]))
+            done_count[i] += 1
+        ret[done] = 0.0
+        length[done] = 0
+        obs = out.obs
+    return {
+        "average_return": float(np.mean(returns)) if returns else float("nan"),
+        "average_episode_length": float(np.mean(lengths)) if lengths else float("nan"),
+        "episodes": len(returns),
+    }

@@ -1,0 +1,235 @@
+"""The local trainer: one process, Actor + Learner + triggers, writing a run directory."""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from relayrl.agents import make_agent
+from relayrl.config import Config, from_dict, save_toml, to_dict
+from relayrl.envs import make_env
+from relayrl.errors import UserError
+from relayrl.metrics import EnvironmentSteps, EpisodeStats
+from relayrl.policies import RandomPolicy
+from relayrl.replay import UniformReplay
+from relayrl.training.actor import Actor
+from relayrl.training.checkpoint import atomic_torch_save, load_latest_checkpoint, save_checkpoint
+from relayrl.training.evaluate import evaluate
+from relayrl.training.learner import Learner
+from relayrl.training.run_dir import MetricsLog, RunDir
+from relayrl.training.triggers import IntervalTrigger, Progress, StepsPerSecond
+
+EVAL_BATCH = 16  # eval episodes run as one batch of at most this many env copies
+
+
+@dataclass
+class RunResult:
+    run_dir: Path
+    final: dict[str, Any]  # the last evaluation row of metrics.jsonl
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError(f"device={name!r} but CUDA is not available here; valid: cpu, auto")
+    return torch.device(name)
+
+
+def default_run_dir(config: Config) -> Path:
+    name = config.env.id.replace("/", "_").replace(":", "_")
+    return Path("runs") / f"{config.algo}-{name}-s{config.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+class LocalRun:
+    """Builds every part from a Config and runs collect / train / trigger iterations."""
+
+    def __init__(self, config: Config, run_dir: RunDir, progress: bool = True) -> None:
+        self.config = config
+        self.rd = run_dir
+        self.show_progress = progress
+        c = config
+        if c.train.torch_threads > 0:
+            torch.set_num_threads(c.train.torch_threads)
+        torch.manual_seed(c.seed)  # network initialisation
+        self.device = resolve_device(c.device)
+        self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps)
+        self.eval_env = make_env(c.env.id, min(c.eval.episodes, EVAL_BATCH), c.env.max_episode_steps)
+        obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
+        self.agent = make_agent(c.algo, c.agent, obs_spec, act_spec, self.device,
+                                np.random.default_rng(c.seed + 1), c.train.total_steps)
+        self.replay = UniformReplay(c.train.replay_size, obs_spec, act_spec, c.agent.gamma, c.seed + 2)
+        self.random_rng = np.random.default_rng(c.seed + 3)
+        self.stats = EpisodeStats()
+        self.steps = EnvironmentSteps()
+        self.actor = Actor(self.env, RandomPolicy(act_spec, self.random_rng),
+                           [self.steps, self.stats, self.replay], seed=c.seed)
+        self.collect_policy = self.agent.collect_policy(lambda: self.actor.env_steps)
+        self.learner = Learner(self.agent, self.replay, c.agent.batch_size, self.device)
+        self.eval_count = 0
+        self.wall_offset = 0.0
+        self.last_eval: dict[str, Any] = {}
+        self.sps = StepsPerSecond()
+        self.triggers = [
+            IntervalTrigger(c.eval.interval, self.run_eval),
+            IntervalTrigger(c.train.policy_save_interval, self.save_policy),
+            IntervalTrigger(c.train.checkpoint_interval, self.save_checkpoint),
+            IntervalTrigger(c.train.log_interval, self.log_progress),
+        ]
+
+    # ---- progress -------------------------------------------------------------------
+    def progress(self) -> Progress:
+        return Progress(self.actor.env_steps, self.agent.train_step)
+
+    def wall_time(self) -> float:
+        return self.wall_offset + time.perf_counter() - self.t0
+
+    def say(self, text: str) -> None:
+        if self.bar is not None and not self.bar.disable:
+            self.bar.write(text)
+        else:
+            print(text, file=sys.stderr, flush=True)
+
+    def log_progress(self, p: Progress) -> None:
+        env_sps, grad_sps = self.sps(p)
+        scalars = {"perf/sps": env_sps, "perf/grad_sps": grad_sps, **self.learner.scalar_metrics()}
+        if self.stats.returns:
+            scalars["charts/episodic_return"] = sum(self.stats.returns) / len(self.stats.returns)
+        for k, v in scalars.items():
+            self.tb.add_scalar(k, v, p.env_steps)
+        if self.bar is not None:
+            self.bar.update(p.env_steps - self.bar.n)
+            last = self.last_eval.get("average_return")
+            self.bar.set_postfix(sps=f"{env_sps:.0f}", eval=f"{last:.1f}" if last is not None else "-")
+
+    # ---- triggers -------------------------------------------------------------------
+    def run_eval(self, p: Progress) -> None:
+        seed = self.config.seed + 10_000 * (self.eval_count + 1)
+        t0 = time.perf_counter()
+        result = evaluate(self.eval_env, self.agent.eval_policy(), self.config.eval.episodes, seed=seed)
+        self.eval_count += 1
+        row = {"step": p.env_steps, "train_step": p.train_step, **result,
+               "wall_time_s": round(self.wall_time(), 3), "eval_s": round(time.perf_counter() - t0, 3),
+               "train/average_return": (sum(self.stats.returns) / len(self.stats.returns)
+                                        if self.stats.returns else float("nan")),
+               "train/episodes": self.stats.episodes,
+               **self.learner.scalar_metrics()}
+        self.metrics_log.write(row)
+        self.tb.add_scalar("eval/average_return", result["average_return"], p.env_steps)
+        self.tb.add_scalar("eval/average_episode_length", result["average_episode_length"], p.env_steps)
+        self.last_eval = row
+        self.say(f"step {p.env_steps:>9,} | eval return {result['average_return']:8.2f} "
+                 f"| length {result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
+
+    def save_policy(self, p: Progress) -> None:
+        state = {**self.agent.policy_state(), "env_steps": p.env_steps, "env_id": self.config.env.id}
+        atomic_torch_save(state, self.rd.policy / "policy.pt")
+
+    def save_checkpoint(self, p: Progress) -> None:
+        state = {
+            "version": 1,
+            "env_steps": p.env_steps,
+            "config": to_dict(self.config),
+            "agent": self.agent.state_dict(),
+            "replay": self.replay.state_dict(),
+            "episode_stats": self.stats.state_dict(),
+            "random_rng": self.random_rng.bit_generator.state,
+            "eval_count": self.eval_count,
+            "wall_time_s": self.wall_time(),
+        }
+        save_checkpoint(self.rd.checkpoints, p.env_steps, state)
+
+    def restore(self) -> None:
+        state = load_latest_checkpoint(self.rd.checkpoints)
+        self.agent.load_state_dict(state["agent"])
+        self.replay.load_state_dict(state["replay"])
+        self.stats.load_state_dict(state["episode_stats"])
+        self.random_rng.bit_generator.state = state["random_rng"]
+        self.eval_count = int(state["eval_count"])
+        self.wall_offset = float(state["wall_time_s"])
+        steps = int(state["env_steps"])
+        self.actor.env_steps = self.steps.value = steps
+        # Env internals cannot be checkpointed in general: start fresh episodes, seeded so a
+        # resumed run is itself reproducible.
+        self.actor._obs = self.env.reset(seed=self.config.seed + steps)
+        self.rd.truncate_metrics(after_step=steps)
+        for trigger in self.triggers:
+            trigger.start_at(steps)
+        self.say(f"resumed from env step {steps:,} (train step {self.agent.train_step:,})")
+
+    # ---- the loop -------------------------------------------------------------------
+    def run(self, resume: bool = False) -> RunResult:
+        c = self.config
+        self.t0 = time.perf_counter()
+        self.bar = None
+        from torch.utils.tensorboard import SummaryWriter
+
+        if resume:
+            self.restore()  # rewrites metrics.jsonl: open the log only afterwards
+        self.tb = SummaryWriter(str(self.rd.tb))
+        self.metrics_log = MetricsLog(self.rd.metrics)
+        try:
+            self.bar = tqdm(total=c.train.total_steps, unit="step", disable=None if self.show_progress else True,
+                            dynamic_ncols=True, initial=self.actor.env_steps)
+            if self.actor.env_steps == 0:
+                self.run_eval(Progress(0, 0))  # the untrained policy, before any collection
+                self.actor.run(c.train.initial_collect_steps)
+            self.sps.reset(self.progress())
+            self.actor.policy = self.collect_policy
+            self._iterate()
+            return RunResult(self.rd.root, self.last_eval)
+        finally:
+            if self.bar is not None:
+                self.bar.close()
+            self.tb.close()
+            self.metrics_log.close()
+            self.env.close()
+            self.eval_env.close()
+
+    def _iterate(self) -> None:
+        c = self.config
+        total = c.train.total_steps
+        while self.actor.env_steps < total:
+            self.actor.run(min(c.train.collect_steps, total - self.actor.env_steps))
+            self.agent.set_progress(self.actor.env_steps)
+            self.learner.run(c.train.gradient_steps)
+            p = self.progress()
+            for trigger in self.triggers:
+                trigger(p)
+        p = self.progress()
+        if self.last_eval.get("step") != p.env_steps:
+            self.run_eval(p)
+        self.save_policy(p)
+        if c.train.checkpoint_interval > 0:
+            self.save_checkpoint(p)
+        self.log_progress(p)
+
+
+def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, resume: bool = False,
+          progress: bool = True) -> RunResult:
+    """Train from a Config (or a nested dict of config values) into a run directory.
+
+    A new run refuses a directory that already holds a run; `resume=True` continues the
+    run in `run_dir` from its latest checkpoint, with the config saved there.
+    """
+    if isinstance(config, dict):
+        config = from_dict(config)
+    config.validate()
+    rd = RunDir(run_dir if run_dir is not None else default_run_dir(config))
+    if resume:
+        rd.require()
+    elif rd.metrics.exists() or rd.config.exists():
+        raise UserError(f"run directory {str(rd.root)!r} already holds a run; "
+                        "pass --resume to continue it or choose another --run-dir")
+    run = LocalRun(config, rd, progress)  # builds envs and agent: bad input fails before any write
+    rd.create()
+    if not resume:
+        save_toml(config, rd.config)
+    return run.run(resume=resume)

@@ -1,0 +1,63 @@
+"""The run directory contract: config.toml, metrics.jsonl, tb/, checkpoints/, policy/."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from relayrl.errors import UserError
+
+
+class RunDir:
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+        self.config = self.root / "config.toml"
+        self.metrics = self.root / "metrics.jsonl"
+        self.tb = self.root / "tb"
+        self.checkpoints = self.root / "checkpoints"
+        self.policy = self.root / "policy"
+
+    def create(self) -> None:
+        for d in (self.root, self.tb, self.checkpoints, self.policy):
+            d.mkdir(parents=True, exist_ok=True)
+
+    def require(self) -> None:
+        """Fail with a clear message unless this is an existing run directory."""
+        if not self.root.is_dir():
+            raise UserError(f"run directory {str(self.root)!r} does not exist")
+        if not self.config.is_file():
+            raise UserError(f"{str(self.root)!r} is not a relayrl run directory (no config.toml)")
+
+    def read_metrics(self) -> list[dict[str, Any]]:
+        if not self.metrics.is_file():
+            return []
+        rows = []
+        for line in self.metrics.read_text().splitlines():
+            try:
+                rows.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue  # a line cut short by a crash; the rest is intact
+        return rows
+
+    def truncate_metrics(self, after_step: int) -> None:
+        """Drop rows logged after `after_step` (a resumed run logs them again)."""
+        rows = [r for r in self.read_metrics() if r.get("step", 0) <= after_step]
+        tmp = self.metrics.with_suffix(".jsonl.tmp")
+        tmp.write_text("".join(json.dumps(r) + "\n" for r in rows))
+        tmp.replace(self.metrics)
+
+
+class MetricsLog:
+    """Appends one JSON object per evaluation to metrics.jsonl, flushed line by line."""
+
+    def __init__(self, path: Path) -> None:
+        self.file = open(path, "a", buffering=1)
+
+    def write(self, row: dict[str, Any]) -> None:
+        clean = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+        self.file.write(json.dumps(clean) + "\n")
+
+    def close(self) -> None:
+        self.file.close()

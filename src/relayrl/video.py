@@ -1,0 +1,45 @@
+"""`relayrl video`: an MP4 of the saved greedy policy, from Gymnasium `rgb_array` frames."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from relayrl.envs import make_env
+from relayrl.errors import UserError
+from relayrl.export import load_policy
+from relayrl.presets import load_config
+
+
+def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: int = 1,
+                 seed: int = 0, max_steps: int = 10_000) -> Path:
+    from relayrl.training.run_dir import RunDir
+
+    rd = RunDir(run_dir)
+    rd.require()
+    config = load_config(str(rd.config))
+    policy = load_policy(rd.root)
+    env = make_env(config.env.id, 1, config.env.max_episode_steps, render_mode="rgb_array")
+    fps = int(env.envs[0].metadata.get("render_fps", 30))
+    frames = []
+    obs = env.reset(seed=seed)
+    finished = 0
+    for _ in range(max_steps):
+        frames.append(env.render())
+        with torch.inference_mode():
+            out_step = env.step(policy(obs))
+        if bool((out_step.terminated | out_step.truncated)[0]):
+            finished += 1
+            if finished >= episodes:
+                break
+        obs = out_step.obs
+    env.close()
+    if not frames or frames[0] is None:
+        raise UserError(f"env {config.env.id!r} does not render rgb_array frames")
+    import imageio.v2 as imageio
+
+    path = Path(out) if out else rd.root / "video.mp4"
+    # macro_block_size=1 keeps odd frame sizes as they are instead of resizing with a warning.
+    imageio.mimwrite(path, frames, fps=fps, macro_block_size=1)
+    return path

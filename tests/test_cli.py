@@ -1,0 +1,93 @@
+"""The `relayrl` command: bad input gives one line and exit 2; the quick start works."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+RELAYRL = [sys.executable, "-m", "relayrl.cli"]
+
+
+def run(args, env, cwd=None):
+    return subprocess.run(RELAYRL + args, capture_output=True, text=True, env=env, cwd=cwd, timeout=300)
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["train", "no-such-preset"], "unknown preset 'no-such-preset'; valid: dqn-cartpole"),
+    (["train", "dqn-cartpole", "--set", "env.id=CartPool-v9"], "is not a registered Gymnasium id"),
+    (["train", "dqn-cartpole", "--set", "agent.nope=1"], "unknown config key 'agent.nope'"),
+    (["train", "dqn-cartpole", "--set", "train.total_steps=ten"], "expected int"),
+    (["train", "dqn-cartpole", "--seed", "x"], "invalid int value"),
+    (["train", "missing.toml"], "config file 'missing.toml' does not exist"),
+    (["eval", "/no/such/run"], "run directory '/no/such/run' does not exist"),
+    (["plot", "/no/such/run"], "does not exist"),
+    (["video", "/no/such/run"], "does not exist"),
+    (["train", "dqn-cartpole", "--resume"], "--resume needs --run-dir"),
+    (["frobnicate"], "invalid choice"),
+])
+def test_bad_input_is_one_line_and_exit_2(args, fragment, cli_env, tmp_path):
+    r = run(args, cli_env, cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("relayrl: error:"), r.stderr
+    assert fragment in lines[0]
+    assert "Traceback" not in r.stderr
+    assert not (tmp_path / "runs").exists()  # nothing written for bad input
+
+
+def test_presets_lists_one_per_line(cli_env):
+    r = run(["presets"], cli_env)
+    assert r.returncode == 0
+    names = [line.split("\t")[0] for line in r.stdout.splitlines()]
+    assert "dqn-cartpole" in names and "dqn-cartpole-fast" in names
+
+
+def test_existing_run_is_never_overwritten(cli_env, tmp_path):
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "metrics.jsonl").write_text('{"step": 1}\n')
+    r = run(["train", "dqn-cartpole", "--run-dir", str(tmp_path / "run")], cli_env)
+    assert r.returncode == 2 and "already holds a run" in r.stderr
+    assert (tmp_path / "run" / "metrics.jsonl").read_text() == '{"step": 1}\n'
+
+
+def test_quick_start_commands_at_small_size(cli_env, tmp_path):
+    """The README's train command, shrunk: train, plot, video, eval on one run directory."""
+    rd = str(tmp_path / "quick")
+    r = run(["train", "dqn-cartpole-fast", "--run-dir", rd, "--set", "train.total_steps=1200",
+             "--set", "eval.interval=600", "--set", "eval.episodes=2", "--set", "train.initial_collect_steps=100",
+             "--no-progress"], cli_env)
+    assert r.returncode == 0, r.stderr
+    for name in ("config.toml", "metrics.jsonl", "tb", "checkpoints", "policy/policy.pt"):
+        assert (tmp_path / "quick" / name).exists(), name
+    rows = [json.loads(line) for line in (tmp_path / "quick" / "metrics.jsonl").read_text().splitlines()]
+    assert [row["step"] for row in rows] == [0, 600, 1200]
+    for key in ("step", "train_step", "average_return", "average_episode_length", "wall_time_s"):
+        assert key in rows[-1]
+    assert run(["plot", rd], cli_env).returncode == 0
+    assert (tmp_path / "quick" / "returns.png").stat().st_size > 1000
+    v = run(["video", rd, "--out", str(tmp_path / "a.mp4")], cli_env)
+    assert v.returncode == 0, v.stderr
+    assert (tmp_path / "a.mp4").read_bytes()[4:8] == b"ftyp"  # an MP4 container
+    e = run(["eval", rd, "--episodes", "3"], cli_env)
+    assert e.returncode == 0, e.stderr
+    result = json.loads(e.stdout)
+    assert result["episodes"] == 3 and result["average_return"] > 0
+
+
+def test_example_runs_a_few_hundred_steps(cli_env):
+    import pathlib
+
+    example = pathlib.Path(__file__).parents[1] / "examples" / "dqn_cartpole.py"
+    r = subprocess.run([sys.executable, str(example), "--iterations", "300", "--eval-interval", "300"],
+                       capture_output=True, text=True, env=cli_env, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "iteration 300: eval return" in r.stdout
+
+
+def test_ci_runs_the_readme_test_command():
+    import pathlib
+
+    root = pathlib.Path(__file__).parents[1]
+    ci = (root / ".ci" / "run").read_text().strip().splitlines()[-1]
+    assert ci in (root / "README.md").read_text()

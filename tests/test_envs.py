@@ -1,0 +1,66 @@
+"""The batched Gymnasium adapter: specs, auto-reset boundaries, custom classes, errors."""
+
+import pytest
+import torch
+
+from relayrl.envs import make_env
+from relayrl.errors import UserError
+from relayrl.specs import ArraySpec, DiscreteSpec
+
+
+def test_specs_from_spaces_and_batch_shapes():
+    env = make_env("CartPole-v1", num_envs=3)
+    assert env.observation_spec == ArraySpec((4,), torch.float32, env.observation_spec.low,
+                                             env.observation_spec.high)
+    assert env.action_spec == DiscreteSpec(2)
+    obs = env.reset(seed=0)
+    assert obs.shape == (3, 4) and obs.dtype == torch.float32
+    out = env.step(torch.zeros(3, dtype=torch.long))
+    assert out.next_obs.shape == (3, 4) and out.reward.shape == (3,) and out.terminated.dtype == torch.bool
+
+
+def test_auto_reset_never_pairs_reset_obs_with_the_last_action():
+    env = make_env("toy_envs:Countdown", num_envs=1)  # terminates after 3 steps
+    obs = env.reset(seed=0)
+    seen = []
+    for _ in range(4):
+        out = env.step(torch.zeros(1, dtype=torch.long))
+        seen.append((obs[0].tolist(), out.next_obs[0].tolist(), bool(out.terminated[0])))
+        obs = out.obs
+    # [t, episode]: the third step ends episode 0 with its true final obs [3, 0] ...
+    assert seen[2] == ([2.0, 0.0], [3.0, 0.0], True)
+    # ... and the next transition starts from the reset obs of episode 1.
+    assert seen[3] == ([0.0, 1.0], [1.0, 1.0], False)
+
+
+def test_truncation_is_kept_apart_from_termination():
+    env = make_env("toy_envs:Truncating")
+    env.reset(seed=0)
+    env.step(torch.zeros(1, dtype=torch.long))
+    out = env.step(torch.zeros(1, dtype=torch.long))
+    assert bool(out.truncated[0]) and not bool(out.terminated[0])
+
+
+def test_max_episode_steps_truncates_gymnasium_ids():
+    env = make_env("CartPole-v1", max_episode_steps=2)
+    env.reset(seed=0)
+    env.step(torch.zeros(1, dtype=torch.long))
+    out = env.step(torch.zeros(1, dtype=torch.long))
+    assert bool(out.truncated[0])
+
+
+def test_reset_with_seed_reproduces():
+    a = make_env("CartPole-v1", 2).reset(seed=5)
+    b = make_env("CartPole-v1", 2).reset(seed=5)
+    assert torch.equal(a, b) and not torch.equal(a[0], a[1])
+
+
+@pytest.mark.parametrize("env_id, fragment", [
+    ("CartPool-v1", "did you mean CartPole-v1"),
+    ("toy_envs:Missing", "cannot import Missing"),
+    ("no_such_module:Env", "cannot import Env"),
+    ("toy_envs:NotAnEnv", "not a gymnasium.Env subclass"),
+])
+def test_bad_env_ids_say_what_is_valid(env_id, fragment):
+    with pytest.raises(UserError, match=fragment):
+        make_env(env_id)

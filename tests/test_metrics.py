@@ -1,0 +1,68 @@
+"""Batch-aware metrics at batch sizes 1 and 7, against hand-computed values."""
+
+import math
+
+import pytest
+import torch
+
+from relayrl.metrics import (
+    AverageEpisodeLength,
+    AverageReturn,
+    EnvironmentSteps,
+    EpisodeStats,
+    NumberOfEpisodes,
+)
+from relayrl.types import Transition
+
+
+def step(rewards, terminated, truncated=None):
+    b = len(rewards)
+    z = torch.zeros(b, 1)
+    return Transition(z, torch.zeros(b, dtype=torch.long), torch.tensor(rewards, dtype=torch.float32), z,
+                      torch.tensor(terminated), torch.tensor(truncated or [False] * b))
+
+
+def make():
+    stats = EpisodeStats(buffer_size=10)
+    return stats, EnvironmentSteps(), AverageReturn(stats), AverageEpisodeLength(stats), NumberOfEpisodes(stats)
+
+
+def test_batch_of_one():
+    stats, steps, ret, length, n = make()
+    assert math.isnan(ret.result())
+    for r, done in [(1.0, False), (2.0, False), (3.0, True), (10.0, True)]:
+        t = step([r], [done])
+        stats(t)
+        steps(t)
+    assert steps.result() == 4
+    assert n.result() == 2
+    assert ret.result() == pytest.approx((6.0 + 10.0) / 2)
+    assert length.result() == pytest.approx((3 + 1) / 2)
+
+
+def test_batch_of_seven_without_being_told_the_size():
+    stats, steps, ret, length, n = make()
+    # env i gets reward i every step; env i ends its episode at step i+1 (i < 3), by
+    # termination for even i and truncation for odd i; envs 3..6 never end.
+    for s in range(3):
+        done = [i == s for i in range(7)]
+        term = [d and i % 2 == 0 for i, d in enumerate(done)]
+        trunc = [d and i % 2 == 1 for i, d in enumerate(done)]
+        t = step([float(i) for i in range(7)], term, trunc)
+        stats(t)
+        steps(t)
+    assert steps.result() == 21
+    assert n.result() == 3
+    # env 0: 1 step * 0 = 0; env 1: 2 steps * 1 = 2; env 2: 3 steps * 2 = 6
+    assert ret.result() == pytest.approx((0 + 2 + 6) / 3)
+    assert length.result() == pytest.approx((1 + 2 + 3) / 3)
+
+
+def test_window_keeps_the_last_episodes_and_state_round_trips():
+    stats = EpisodeStats(buffer_size=2)
+    for r in (1.0, 2.0, 3.0):
+        stats(step([r], [True]))
+    assert list(stats.returns) == [2.0, 3.0]
+    other = EpisodeStats(buffer_size=2)
+    other.load_state_dict(stats.state_dict())
+    assert list(other.returns) == [2.0, 3.0] and other.episodes == 3

@@ -1,0 +1,37 @@
+"""FastAdam makes the same updates as torch.optim.Adam and round-trips its state."""
+
+import torch
+
+from relayrl.networks import MLP
+from relayrl.optim import FastAdam
+
+
+def train(opt_factory, steps=20, state=None):
+    torch.manual_seed(0)
+    net = MLP(3, [8], 2)
+    opt = opt_factory(net.parameters())
+    if state is not None:
+        opt.load_state_dict(state)
+    x = torch.randn(16, 3)
+    for _ in range(steps):
+        opt.zero_grad()
+        net(x).square().mean().backward()
+        opt.step()
+    return net, opt
+
+
+def test_same_updates_as_torch_adam():
+    ours, _ = train(lambda p: FastAdam(p, lr=1e-2, eps=1e-7))
+    ref, _ = train(lambda p: torch.optim.Adam(p, lr=1e-2, eps=1e-7))
+    for a, b in zip(ours.parameters(), ref.parameters(), strict=False):
+        assert torch.allclose(a, b, atol=1e-6)
+
+
+def test_state_dict_round_trip():
+    net, opt = train(lambda p: FastAdam(p, lr=1e-2))
+    state = opt.state_dict()
+    other = FastAdam(MLP(3, [8], 2).parameters(), lr=0.5)
+    other.load_state_dict(state)
+    assert other.lr == 1e-2
+    assert all(torch.equal(a, b) for a, b in zip(other.exp_avg, opt.exp_avg, strict=False))
+    assert all(torch.equal(a, b) for a, b in zip(other.steps, opt.steps, strict=False))

@@ -1,0 +1,55 @@
+"""Policies: schedules, epsilon-greedy rates, random actions, the NumPy inference path."""
+
+import numpy as np
+import pytest
+import torch
+
+from relayrl.networks import MLP
+from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy, RandomPolicy, linear_schedule
+from relayrl.specs import ArraySpec, DiscreteSpec
+
+
+def test_linear_schedule_end_points_and_constant():
+    f = linear_schedule(1.0, 0.1, 100)
+    assert f(0) == 1.0 and f(50) == pytest.approx(0.55) and f(100) == pytest.approx(0.1) and f(10**6) == 0.1
+    assert linear_schedule(1.0, 0.2, 0)(0) == 0.2
+
+
+@pytest.mark.parametrize("activation", ["relu", "tanh", "elu"])
+def test_numpy_inference_matches_torch(activation):
+    torch.manual_seed(0)
+    net = MLP(4, [32, 16], 3, activation)
+    obs = torch.randn(50, 4)
+    greedy = GreedyPolicy(net, torch.device("cpu"))
+    assert greedy._numpy is not None
+    with torch.no_grad():
+        assert torch.equal(greedy(obs), net(obs).argmax(1))
+    # the NumPy views follow in-place weight updates
+    with torch.no_grad():
+        net.layers[-1].bias.add_(torch.tensor([0.0, 0.0, 1e6]))
+    assert (greedy(obs) == 2).all()
+
+
+def test_epsilon_greedy_explores_at_the_scheduled_rate_per_batch_element():
+    net = MLP(4, [8], 4)
+    with torch.no_grad():
+        net.layers[-1].bias.copy_(torch.tensor([0.0, 0.0, 0.0, 100.0]))  # greedy action is 3
+    step = [0]
+    policy = EpsilonGreedyPolicy(GreedyPolicy(net, torch.device("cpu")), 4, linear_schedule(1.0, 0.2, 1000),
+                                 lambda: step[0], np.random.default_rng(0))
+    obs = torch.zeros(7, 4)
+    actions = torch.cat([policy(obs) for _ in range(2000)])
+    assert abs((actions != 3).float().mean().item() - 0.75) < 0.02  # eps 1: 3 of 4 random differ
+    step[0] = 10_000
+    actions = torch.cat([policy(obs) for _ in range(2000)])
+    assert abs((actions != 3).float().mean().item() - 0.2 * 0.75) < 0.02
+
+
+def test_random_policy_respects_specs():
+    rng = np.random.default_rng(0)
+    a = RandomPolicy(DiscreteSpec(3), rng)(torch.zeros(500, 1))
+    assert a.shape == (500,) and set(a.tolist()) == {0, 1, 2}
+    spec = ArraySpec((2,), torch.float32, np.array([-1.0, 0.0]), np.array([1.0, 5.0]))
+    c = RandomPolicy(spec, rng)(torch.zeros(500, 1))
+    assert c.shape == (500, 2) and c.dtype == torch.float32
+    assert (c[:, 0] >= -1).all() and (c[:, 1] <= 5).all() and c[:, 1].max() > 4

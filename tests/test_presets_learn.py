@@ -1,0 +1,28 @@
+"""Every preset meets its promise on seeds 0, 1, 2. Minutes each: `pytest -m slow`."""
+
+import pytest
+
+import relayrl
+from relayrl.training.run_dir import RunDir
+
+
+def evals(config, run_dir):
+    relayrl.train(config, run_dir, progress=False)
+    return RunDir(run_dir).read_metrics()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_dqn_cartpole_fast_solves_within_50k_and_stays_solved(tmp_path, seed):
+    rows = evals(relayrl.load_config("dqn-cartpole-fast", seed=seed), tmp_path / "r")
+    assert any(r["average_return"] >= 475 and r["step"] <= 50_000 for r in rows), rows
+    assert rows[-1]["average_return"] >= 475, rows
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_dqn_cartpole_reproduces_the_tutorial(tmp_path, seed):
+    """200 (the maximum) by iteration 5,000 (env step 5,100) and still 200 at the end."""
+    rows = evals(relayrl.load_config("dqn-cartpole", seed=seed), tmp_path / "r")
+    assert any(r["average_return"] >= 200 and r["step"] <= 5_100 for r in rows), rows
+    assert rows[-1]["average_return"] >= 200, rows

@@ -1,0 +1,109 @@
+"""The local loop: determinism, checkpoints, resume, and short learning tests."""
+
+import json
+import warnings
+
+import pytest
+import torch
+
+import relayrl
+from relayrl.errors import CheckpointError, UserError
+from relayrl.training.checkpoint import list_checkpoints, load_latest_checkpoint, save_checkpoint
+from relayrl.training.run_dir import RunDir
+
+SMALL = ["env.id=CartPole-v1", "train.total_steps=1500", "train.initial_collect_steps=200",
+         "eval.interval=500", "eval.episodes=3", "train.checkpoint_interval=500"]
+
+
+def rows(run_dir):
+    return RunDir(run_dir).read_metrics()
+
+
+def test_same_seed_same_run_on_cpu(tmp_path):
+    for name in ("a", "b"):
+        relayrl.train(relayrl.load_config("dqn-cartpole-fast", SMALL, seed=4), tmp_path / name, progress=False)
+    a, b = rows(tmp_path / "a"), rows(tmp_path / "b")
+    drop = ("wall_time_s", "eval_s")
+    assert [{k: v for k, v in r.items() if k not in drop} for r in a] == \
+           [{k: v for k, v in r.items() if k not in drop} for r in b]
+    c = relayrl.train(relayrl.load_config("dqn-cartpole-fast", SMALL, seed=5), tmp_path / "c", progress=False)
+    assert rows(c.run_dir)[-1]["losses/loss"] != a[-1]["losses/loss"]
+
+
+def test_resume_continues_from_the_last_checkpoint(tmp_path):
+    first = relayrl.load_config("dqn-cartpole-fast", SMALL[:1] + ["train.total_steps=1000"] + SMALL[2:])
+    relayrl.train(first, tmp_path / "r", progress=False)
+    ckpt = load_latest_checkpoint(tmp_path / "r" / "checkpoints")
+    assert ckpt["env_steps"] == 1000
+    # a later crash would have left rows past the checkpoint: resume drops and redoes them
+    with open(tmp_path / "r" / "metrics.jsonl", "a") as f:
+        f.write(json.dumps({"step": 1200, "average_return": -1}) + "\n")
+    longer = relayrl.load_config("dqn-cartpole-fast", SMALL)
+    result = relayrl.train(longer, tmp_path / "r", resume=True, progress=False)
+    steps = [r["step"] for r in rows(tmp_path / "r")]
+    assert steps == [0, 500, 1000, 1500]
+    assert result.final["train_step"] > ckpt["agent"]["train_step"]
+
+
+def test_resume_needs_a_checkpoint(tmp_path):
+    cfg = relayrl.load_config("dqn-cartpole-fast", SMALL)
+    RunDir(tmp_path / "r").create()
+    (tmp_path / "r" / "config.toml").write_text("")
+    with pytest.raises(CheckpointError, match="no checkpoint"):
+        relayrl.train(cfg, tmp_path / "r", resume=True, progress=False)
+
+
+def test_checkpoints_are_atomic_and_fall_back_past_a_corrupt_one(tmp_path):
+    folder = tmp_path / "ck"
+    save_checkpoint(folder, 100, {"x": torch.ones(3), "env_steps": 100})
+    save_checkpoint(folder, 200, {"x": torch.zeros(3), "env_steps": 200})
+    save_checkpoint(folder, 300, {"x": torch.zeros(3), "env_steps": 300})
+    assert [p.name for p in list_checkpoints(folder)] == ["ckpt-000000000200.pt", "ckpt-000000000300.pt"]
+    (folder / "ckpt-000000000400.pt.tmp").write_bytes(b"partial")  # a write killed midway
+    (folder / "ckpt-000000000300.pt").write_bytes(b"garbage")  # a corrupt newest file
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        state = load_latest_checkpoint(folder)
+    assert state["env_steps"] == 200 and "unreadable" in str(w[0].message)
+    (folder / "ckpt-000000000200.pt").write_bytes(b"")
+    with pytest.raises(CheckpointError, match="every checkpoint"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        load_latest_checkpoint(folder)
+
+
+def test_dqn_refuses_continuous_actions(tmp_path):
+    with pytest.raises(UserError, match="DQN needs a discrete action space"):
+        relayrl.train(relayrl.load_config("dqn-cartpole-fast", ["env.id=Pendulum-v1"]), tmp_path / "p",
+                      progress=False)
+    assert not (tmp_path / "p").exists()
+
+
+def test_policy_round_trip_gives_the_agents_actions(tmp_path):
+    result = relayrl.train(relayrl.load_config("dqn-cartpole-fast", SMALL), tmp_path / "r", progress=False)
+    policy = relayrl.load_policy(result.run_dir)
+    state = torch.load(tmp_path / "r" / "policy" / "policy.pt", weights_only=False)
+    from relayrl.networks import MLP
+
+    net = MLP(state["obs_dim"], state["hidden"], state["num_actions"], state["activation"])
+    net.load_state_dict(state["state_dict"])
+    obs = torch.randn(64, 4)
+    with torch.no_grad():
+        assert torch.equal(policy(obs), net(obs).argmax(1))
+
+
+@pytest.mark.parametrize("double", [False, True])
+def test_dqn_learns_a_bandit(tmp_path, double):
+    cfg = relayrl.load_config("dqn-cartpole-fast", [
+        "env.id=toy_envs:BetterAction", "train.total_steps=600", "train.initial_collect_steps=100",
+        "eval.interval=600", "eval.episodes=20", "agent.epsilon_decay_steps=300", f"agent.double={str(double).lower()}",
+        "agent.target_update_period=20"])
+    result = relayrl.train(cfg, tmp_path / "b", progress=False)
+    assert result.final["average_return"] == 1.0
+
+
+def test_tutorial_preset_learns_cartpole_quickly(tmp_path):
+    """TF-Agents' tutorial settings: at least one evaluation of 150+ within 4,000 iterations."""
+    cfg = relayrl.load_config("dqn-cartpole", ["train.total_steps=4100", "train.checkpoint_interval=0"])
+    result = relayrl.train(cfg, tmp_path / "t", progress=False)
+    best = max(r["average_return"] for r in rows(result.run_dir))
+    assert best >= 150, rows(result.run_dir)

@@ -1,0 +1,69 @@
+"""Tiny envs with known episode structure, importable as `toy_envs:Class` in tests."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+
+
+class Countdown(gym.Env):
+    """obs = [steps taken, episode index]; reward 1 per step; terminates after `length` steps.
+
+    With `truncate_at` < length the episode is cut by a time limit (truncated) instead.
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, length: int = 3, truncate_at: int = 0, render_mode: str | None = None) -> None:
+        self.length = length
+        self.truncate_at = truncate_at
+        self.render_mode = render_mode
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)
+        self.action_space = gym.spaces.Discrete(2)
+        self.t = 0
+        self.episode = -1
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        self.t = 0
+        self.episode += 1
+        return np.array([self.t, self.episode], np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        obs = np.array([self.t, self.episode], np.float32)
+        terminated = self.t >= self.length
+        truncated = bool(self.truncate_at) and self.t >= self.truncate_at and not terminated
+        return obs, 1.0, terminated, truncated, {}
+
+    def render(self):
+        return np.full((16, 16, 3), 40 * self.t % 255, np.uint8)
+
+
+class Truncating(Countdown):
+    """Episodes of 2 steps cut by a time limit, never terminated."""
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        super().__init__(length=100, truncate_at=2, render_mode=render_mode)
+
+
+class BetterAction(gym.Env):
+    """One-step bandit with a 4-dim observation: action 1 pays 1, action 0 pays 0.
+
+    Any working DQN learns it in a few hundred steps; a broken one does not.
+    """
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        self.observation_space = gym.spaces.Box(-1, 1, (4,), np.float32)
+        self.action_space = gym.spaces.Discrete(2)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        return self.np_random.uniform(-1, 1, 4).astype(np.float32), {}
+
+    def step(self, action):
+        return self.np_random.uniform(-1, 1, 4).astype(np.float32), float(action == 1), True, False, {}
+
+
+class NotAnEnv:
+    pass
