@@ -56,7 +56,7 @@ def test_quick_start_commands_at_small_size(cli_env, tmp_path):
     rd = str(tmp_path / "quick")
     r = run(["train", "dqn-cartpole-fast", "--run-dir", rd, "--set", "train.total_steps=1200",
              "--set", "eval.interval=600", "--set", "eval.episodes=2", "--set", "train.initial_collect_steps=100",
-             "--no-progress"], cli_env)
+             "--set", "train.collect_steps=100", "--set", "train.gradient_steps=10", "--no-progress"], cli_env)
     assert r.returncode == 0, r.stderr
     for name in ("config.toml", "metrics.jsonl", "tb", "checkpoints", "policy/policy.pt"):
         assert (tmp_path / "quick" / name).exists(), name

@@ -12,7 +12,8 @@ from relayrl.training.checkpoint import list_checkpoints, load_latest_checkpoint
 from relayrl.training.run_dir import RunDir
 
 SMALL = ["env.id=CartPole-v1", "train.total_steps=1500", "train.initial_collect_steps=200",
-         "eval.interval=500", "eval.episodes=3", "train.checkpoint_interval=500"]
+         "eval.interval=500", "eval.episodes=3", "train.checkpoint_interval=500",
+         "train.collect_steps=100", "train.gradient_steps=20", "agent.hidden=[64,64]"]
 
 
 def rows(run_dir):
@@ -95,6 +96,7 @@ def test_policy_round_trip_gives_the_agents_actions(tmp_path):
 def test_dqn_learns_a_bandit(tmp_path, double):
     cfg = relayrl.load_config("dqn-cartpole-fast", [
         "env.id=toy_envs:BetterAction", "train.total_steps=600", "train.initial_collect_steps=100",
+        "train.collect_steps=1", "train.gradient_steps=1", "agent.hidden=[64,64]", "agent.lr=1e-3",
         "eval.interval=600", "eval.episodes=20", "agent.epsilon_decay_steps=300", f"agent.double={str(double).lower()}",
         "agent.target_update_period=20"])
     result = relayrl.train(cfg, tmp_path / "b", progress=False)
