@@ -1,6 +1,11 @@
 """Where a DQN iteration's time goes on this CPU: one table of per-call costs.
 
-    python bench/dqn_update.py [--hidden 256 256] [--batch 64]
+    python bench/dqn_update.py [--hidden 256 256] [--batch 64] [--threads 1]
+
+Agent rows use the RL-Zoo CartPole settings (Huber, grad clip 10, target copied every 128
+steps); "autograd" rows run the same agent with `manual_grads = False` (dqn_loss + backward),
+the others the hand-written gradients of agents/dqn/fast.py. The burst row is what the
+trainer does after every 256 env steps: 128 x (replay.sample + agent.train), per step.
 
 Rows compare each relayrl piece with the plain-PyTorch way of doing the same thing, measured
 in the same process one after the other (ratios, not absolute times, are what carry over).
@@ -66,8 +71,15 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     h, b = args.hidden, args.batch
     obs_spec, act_spec = ArraySpec((4,), torch.float32), DiscreteSpec(2)
-    cfg = DQNConfig(hidden=h, batch_size=b, target_update_period=100)
-    agent = DQNAgent(obs_spec, act_spec, cfg, torch.device("cpu"), np.random.default_rng(0))
+
+    def make_agent(double: bool, manual: bool) -> DQNAgent:
+        cfg = DQNConfig(hidden=h, batch_size=b, lr=2.3e-3, target_update_period=128, grad_clip=10.0,
+                        double=double)
+        agent = DQNAgent(obs_spec, act_spec, cfg, torch.device("cpu"), np.random.default_rng(0))
+        agent.manual_grads = manual and agent.manual_grads
+        return agent
+
+    agent = make_agent(False, True)
     replay = UniformReplay(100_000, obs_spec, act_spec, 0.99, seed=0)
     for _i in range(100):
         x = torch.randn(1000, 4)
@@ -81,10 +93,24 @@ def main() -> None:
     a0 = torch.zeros(1, dtype=torch.long)
     one = torch.randn(1, 4)
     greedy = GreedyPolicy(agent.online, torch.device("cpu"))
+
+    def burst(agent: DQNAgent) -> None:
+        for _ in range(128):
+            agent.train(replay.sample(b))
+
     rows = [
         ("matmul alone: one [B,h]x[h,h] (of 4 per update)", per_call_us(lambda: x @ w.T)),
         ("plain PyTorch update (nn.Sequential, optim.Adam)", per_call_us(plain_update(h, b))),
-        ("relayrl agent.train (MLP, FastAdam, pure loss)", per_call_us(lambda: agent.train(batch))),
+    ]
+    for double in (False, True):
+        name = "Double DQN" if double else "DQN"
+        for manual in (False, True):
+            how = "hand-written grads" if manual else "autograd"
+            rows.append((f"relayrl agent.train, {name}, {how}",
+                         per_call_us(lambda a=make_agent(double, manual): a.train(batch))))
+        rows.append((f"relayrl {name} burst: 128 x (sample + train), per step",
+                     per_call_us(lambda a=make_agent(double, True): burst(a), 20) / 128))
+    rows += [
         ("replay.sample", per_call_us(lambda: replay.sample(b))),
         ("env.step, batch of 1 (CartPole-v1)", per_call_us(lambda: env.step(a0))),
         ("greedy action, 1 obs, torch forward", per_call_us(lambda: agent.online(one).argmax(1), 5000)),

@@ -17,7 +17,7 @@ from relayrl.agents.dqn import DQNAgent, DQNConfig
 from relayrl.envs import make_env
 from relayrl.metrics import AverageReturn, EpisodeStats
 from relayrl.policies import RandomPolicy
-from relayrl.replay import UniformReplay
+from relayrl.replay import Fifo, SampleToInsertRatio, Table, TransitionWriter, Uniform
 from relayrl.training.actor import Actor
 from relayrl.training.evaluate import evaluate
 from relayrl.training.learner import Learner
@@ -43,19 +43,23 @@ def main() -> None:
     agent = DQNAgent(env.observation_spec, env.action_spec, cfg, torch.device("cpu"),
                      np.random.default_rng(args.seed))
 
-    # Replay and metrics observe every transition the actor produces.
-    replay = UniformReplay(100_000, env.observation_spec, env.action_spec, cfg.gamma, seed=args.seed)
+    # Replay: a Reverb-style table. The rate limiter keeps 64 samples (one batch) per insert
+    # (one env step), within one batch either way, once 100 items are in.
+    table = Table("replay", max_size=100_000, sampler=Uniform(), remover=Fifo(),
+                  rate_limiter=SampleToInsertRatio(64, min_size_to_sample=100, error_buffer=64), seed=args.seed)
+    # The writer (TF-Agents' "observer"/adder) cuts the actor's stream into transitions.
+    writer = TransitionWriter(table, env.num_envs, env.observation_spec, env.action_spec, gamma=cfg.gamma)
     stats = EpisodeStats()
     random_policy = RandomPolicy(env.action_spec, np.random.default_rng(args.seed + 1))
-    actor = Actor(env, random_policy, [replay, stats], seed=args.seed)
-    learner = Learner(agent, replay, cfg.batch_size, torch.device("cpu"))
+    actor = Actor(env, random_policy, [writer, stats], seed=args.seed)
+    learner = Learner(agent, table, cfg.batch_size, torch.device("cpu"))
 
     print("random policy:", evaluate(eval_env, random_policy, 10, seed=1)["average_return"])
     actor.run(100)  # initial collection with the random policy
     actor.policy = agent.collect_policy(lambda: actor.env_steps)
     for iteration in range(1, args.iterations + 1):
         actor.run(1)  # one collect step ...
-        learner.run(1)  # ... and one gradient step per iteration
+        learner.run(learner.available_steps())  # ... and the gradient steps the rate limiter allows
         if iteration % args.eval_interval == 0:
             result = evaluate(eval_env, agent.eval_policy(), 10, seed=iteration)
             print(f"iteration {iteration}: eval return {result['average_return']:.1f}, "

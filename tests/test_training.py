@@ -109,3 +109,44 @@ def test_tutorial_preset_learns_cartpole_quickly(tmp_path):
     result = relayrl.train(cfg, tmp_path / "t", progress=False)
     best = max(r["average_return"] for r in rows(result.run_dir))
     assert best >= 150, rows(result.run_dir)
+
+
+def test_rate_limiter_gives_the_configured_gradient_steps(tmp_path):
+    # 1,300 collected after 200 initial steps, in iterations of 100: 20 gradient steps each,
+    # plus one iteration's worth of Reverb's error buffer, granted once min size is reached.
+    cfg = relayrl.load_config("dqn-cartpole-fast", SMALL + ["train.checkpoint_interval=0"])
+    result = relayrl.train(cfg, tmp_path / "g", progress=False)
+    assert result.final["train_step"] == 13 * 20 + 20 - 1  # the writer's one-step lag: 199 items at 200
+
+
+@pytest.mark.parametrize("extra", [["replay.sampler='prioritized'", "replay.n_step=3"], ["replay.n_step=2"]])
+def test_dqn_learns_a_bandit_with_prioritized_and_n_step_replay(tmp_path, extra):
+    cfg = relayrl.load_config("dqn-cartpole-fast", [
+        "env.id=toy_envs:BetterAction", "train.total_steps=600", "train.initial_collect_steps=100",
+        "train.collect_steps=1", "train.gradient_steps=1", "agent.hidden=[64,64]", "agent.lr=1e-3",
+        "eval.interval=600", "eval.episodes=20", "agent.epsilon_decay_steps=300", "agent.target_update_period=20",
+        *extra])
+    result = relayrl.train(cfg, tmp_path / "b", progress=False)
+    assert result.final["average_return"] == 1.0
+
+
+def test_memmap_replay_run_resumes_from_its_files(tmp_path):
+    over = SMALL + ["replay.storage='memmap'"]
+    relayrl.train(relayrl.load_config("dqn-cartpole-fast", over + ["train.total_steps=1000"]),
+                  tmp_path / "m", progress=False)
+    assert (tmp_path / "m" / "replay" / "frame.npy").exists()
+    ckpt = load_latest_checkpoint(tmp_path / "m" / "checkpoints")
+    assert "memmap" in ckpt["replay"]["storage"]["store"]["columns"]  # the checkpoint refers to the files
+    result = relayrl.train(relayrl.load_config("dqn-cartpole-fast", over), tmp_path / "m", resume=True,
+                           progress=False)
+    assert result.final["step"] == 1500
+
+
+@pytest.mark.parametrize("setting, message", [
+    ("replay.sampler='sumtree'", "replay.sampler='sumtree' is not valid; valid: uniform, prioritized"),
+    ("replay.error_buffer=10.0", "replay.error_buffer=10 is too small"),
+])
+def test_bad_replay_settings_fail_before_anything_is_written(tmp_path, setting, message):
+    with pytest.raises(UserError, match=message.replace("(", r"\(")):
+        relayrl.train(relayrl.load_config("dqn-cartpole-fast", SMALL + [setting]), tmp_path / "x", progress=False)
+    assert not (tmp_path / "x").exists()

@@ -32,11 +32,25 @@ class TrainConfig:
     initial_collect_steps: int = 1_000  # env steps with the random policy before learning
     collect_steps: int = 1  # env steps per iteration
     gradient_steps: int = 1  # gradient steps per iteration
-    replay_size: int = 100_000
     checkpoint_interval: int = 10_000  # env steps; 0 disables
     policy_save_interval: int = 5_000  # env steps; 0 disables
     log_interval: int = 1_000  # env steps between progress / TensorBoard scalars
     torch_threads: int = 1  # 0 keeps torch's default; small nets run fastest on one
+
+
+@dataclass
+class ReplayConfig:
+    size: int = 100_000  # items (transitions) kept; the oldest are removed first
+    sampler: str = "uniform"  # uniform | prioritized
+    priority_exponent: float = 0.6  # prioritized: P(i) ~ priority_i ** priority_exponent
+    importance_exponent: float = 0.4  # prioritized: IS weight exponent, annealed to 1 by the end
+    priority_eps: float = 1e-6  # prioritized: new priority = |td error| + priority_eps
+    n_step: int = 1  # n-step returns; bootstrap through truncation, not termination
+    samples_per_insert: float = 0.0  # 0: gradient_steps * batch_size / collect_steps
+    error_buffer: float = 0.0  # samples; 0: one collect iteration's worth
+    min_size_to_sample: int = 0  # 0: train.initial_collect_steps (at least one batch)
+    storage: str = "ram"  # ram | memmap
+    path: str = ""  # memmap directory; "": <run_dir>/replay
 
 
 @dataclass
@@ -53,6 +67,7 @@ class Config:
     env: EnvConfig = field(default_factory=EnvConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    replay: ReplayConfig = field(default_factory=ReplayConfig)
     agent: Any = field(default_factory=DQNConfig)
 
     def validate(self) -> None:
@@ -63,7 +78,8 @@ class Config:
             "env.num_envs": self.env.num_envs,
             "train.total_steps": self.train.total_steps,
             "train.collect_steps": self.train.collect_steps,
-            "train.replay_size": self.train.replay_size,
+            "replay.size": self.replay.size,
+            "replay.n_step": self.replay.n_step,
             "eval.interval": self.eval.interval,
             "eval.episodes": self.eval.episodes,
         }
@@ -74,6 +90,15 @@ class Config:
                     "policy_save_interval", "log_interval", "torch_threads"):
             if getattr(self.train, key) < 0:
                 raise ConfigError(f"train.{key} must be >= 0")
+        r = self.replay
+        choices = {"sampler": ("uniform", "prioritized"), "storage": ("ram", "memmap")}
+        for key, valid in choices.items():
+            if getattr(r, key) not in valid:
+                raise ConfigError(f"replay.{key}={getattr(r, key)!r} is not valid; valid: {', '.join(valid)}")
+        for key in ("priority_exponent", "importance_exponent", "priority_eps", "samples_per_insert",
+                    "error_buffer", "min_size_to_sample"):
+            if getattr(r, key) < 0:
+                raise ConfigError(f"replay.{key}={getattr(r, key)} is not valid; it must be >= 0")
         self.agent.validate()
 
 

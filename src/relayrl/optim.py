@@ -26,8 +26,14 @@ class FastAdam:
         self._data = [p.detach() for p in self.params]
         self.exp_avg = [torch.zeros_like(p) for p in self._data]
         self.exp_avg_sq = [torch.zeros_like(p) for p in self._data]
-        # One step counter per tensor, as the kernel expects (on the params' device).
-        self.steps = [torch.zeros((), dtype=torch.float32, device=p.device) for p in self._data]
+        # One step counter per tensor, as the kernel expects (on the params' device); where
+        # all params share a device the counters are views of one tensor, so counting a step
+        # is one op (torch._foreach_add_ on CPU loops over the tensors: ~30 us vs ~7 us).
+        devices = {p.device for p in self._data}
+        self._steps_flat = (torch.zeros(len(self._data), dtype=torch.float32, device=devices.pop())
+                            if len(devices) == 1 else None)
+        self.steps = (list(self._steps_flat.unbind(0)) if self._steps_flat is not None else
+                      [torch.zeros((), dtype=torch.float32, device=p.device) for p in self._data])
         self._fallback = None if _HAS_FUSED else torch.optim.Adam(self.params, lr=lr, betas=betas, eps=eps)
 
     def zero_grad(self) -> None:
@@ -35,16 +41,27 @@ class FastAdam:
             p.grad = None
 
     @torch.no_grad()
-    def step(self) -> None:
+    def step(self, grads: list[torch.Tensor] | None = None) -> None:
+        """One Adam step from the params' `.grad`, or from `grads` (same order as the params)
+        when the caller computed gradients without autograd."""
         if self._fallback is not None:
+            if grads is not None:
+                for p, g in zip(self.params, grads, strict=True):
+                    p.grad = g
             for group in self._fallback.param_groups:
                 group["lr"] = self.lr
             self._fallback.step()
             return
-        grads = [p.grad for p in self.params]
+        if grads is None:
+            grads = [p.grad for p in self.params]
+        elif len(grads) != len(self.params):
+            raise ValueError(f"FastAdam.step() got {len(grads)} gradients for {len(self.params)} parameters")
         if any(g is None for g in grads):
             raise RuntimeError("FastAdam.step() called before backward(): a parameter has no grad")
-        torch._foreach_add_(self.steps, 1.0)
+        if self._steps_flat is not None:
+            self._steps_flat.add_(1.0)
+        else:
+            torch._foreach_add_(self.steps, 1.0)
         torch._fused_adam_(self._data, grads, self.exp_avg, self.exp_avg_sq, [], self.steps,
                            amsgrad=False, lr=self.lr, beta1=self.betas[0], beta2=self.betas[1],
                            weight_decay=0.0, eps=self.eps, maximize=False)

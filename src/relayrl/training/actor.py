@@ -11,7 +11,10 @@ from relayrl.types import Transition
 
 
 class Actor:
-    """env + policy + observers. `run(n)` takes at least `n` env steps (B per batched step)."""
+    """env + policy + observers. `run(n)` takes at least `n` env steps (B per batched step).
+
+    Observers with a `flush()` (replay writers) are flushed at the end of every run.
+    """
 
     def __init__(self, env: BatchedEnv, policy: Policy, observers: Sequence[Observer],
                  seed: int | None = None) -> None:
@@ -34,3 +37,7 @@ class Actor:
             self._obs = out.obs
             taken += b
         self.env_steps += taken
+        for observer in self.observers:
+            flush = getattr(observer, "flush", None)
+            if flush is not None:
+                flush()  # staged steps reach the replay before anyone samples

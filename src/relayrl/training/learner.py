@@ -1,30 +1,50 @@
-"""Learner: samples batches from replay and runs the agent's gradient steps."""
+"""Learner: samples batches from a replay Table and runs the agent's gradient steps."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from relayrl.core import Agent
-from relayrl.replay import UniformReplay
+from relayrl.replay import Table
 from relayrl.types import Batch
 
 
 class Learner:
-    """agent + replay. `run(k)` takes k gradient steps; `last_metrics` holds the latest scalars."""
+    """agent + table. `run(k)` takes k gradient steps; `last_metrics` holds the latest scalars.
 
-    def __init__(self, agent: Agent, replay: UniformReplay, batch_size: int, device: torch.device) -> None:
+    With a prioritized table (`prioritized=True`) each batch carries importance weights
+    w_i = (N * P(i)) ** -importance_exponent / max_j w_j (Schaul et al. 2016, normalised by
+    the batch maximum), and the sampled items get |td error| + priority_eps as new priorities.
+    """
+
+    def __init__(self, agent: Agent, table: Table, batch_size: int, device: torch.device,
+                 prioritized: bool = False, importance_exponent: float = 0.4, priority_eps: float = 1e-6) -> None:
         self.agent = agent
-        self.replay = replay
+        self.table = table
         self.batch_size = batch_size
         self.device = device
+        self.prioritized = prioritized
+        self.importance_exponent = importance_exponent
+        self.priority_eps = priority_eps
         self.last_metrics: dict[str, torch.Tensor] = {}
+
+    def available_steps(self) -> int:
+        """Gradient steps the table's rate limiter allows now."""
+        return self.table.samples_available() // self.batch_size
 
     def run(self, iterations: int) -> None:
         for _ in range(iterations):
-            batch = self.replay.sample(self.batch_size)
+            batch, info = self.table.sample(self.batch_size)
+            if self.prioritized:
+                w = np.power(info.table_size * info.probability, -self.importance_exponent)  # [N]
+                batch = batch._replace(weight=torch.from_numpy((w / w.max()).astype(np.float32)))
             if self.device.type != "cpu":
                 batch = Batch(*(None if x is None else x.to(self.device, non_blocking=True) for x in batch))
             self.last_metrics = self.agent.train(batch)
+            if self.prioritized:
+                td = self.last_metrics["td_error"].abs().cpu().numpy().astype(np.float64)
+                self.table.update_priorities(info.key, td + self.priority_eps)
 
     def scalar_metrics(self) -> dict[str, float]:
         """Latest training scalars as floats, named like CleanRL's `losses/...`."""

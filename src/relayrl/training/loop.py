@@ -17,12 +17,12 @@ from relayrl.config import Config, from_dict, save_toml, to_dict
 from relayrl.envs import make_env
 from relayrl.errors import UserError
 from relayrl.metrics import EnvironmentSteps, EpisodeStats
-from relayrl.policies import RandomPolicy
-from relayrl.replay import UniformReplay
+from relayrl.policies import RandomPolicy, linear_schedule
 from relayrl.training.actor import Actor
 from relayrl.training.checkpoint import atomic_torch_save, load_latest_checkpoint, save_checkpoint
 from relayrl.training.evaluate import evaluate
 from relayrl.training.learner import Learner
+from relayrl.training.replay import build_replay
 from relayrl.training.run_dir import MetricsLog, RunDir
 from relayrl.training.triggers import IntervalTrigger, Progress, StepsPerSecond
 
@@ -65,14 +65,18 @@ class LocalRun:
         obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
         self.agent = make_agent(c.algo, c.agent, obs_spec, act_spec, self.device,
                                 np.random.default_rng(c.seed + 1), c.train.total_steps)
-        self.replay = UniformReplay(c.train.replay_size, obs_spec, act_spec, c.agent.gamma, c.seed + 2)
+        self.replay, self.writer = build_replay(c, obs_spec, act_spec, run_dir.root)
         self.random_rng = np.random.default_rng(c.seed + 3)
         self.stats = EpisodeStats()
         self.steps = EnvironmentSteps()
         self.actor = Actor(self.env, RandomPolicy(act_spec, self.random_rng),
-                           [self.steps, self.stats, self.replay], seed=c.seed)
+                           [self.steps, self.stats, self.writer], seed=c.seed)
         self.collect_policy = self.agent.collect_policy(lambda: self.actor.env_steps)
-        self.learner = Learner(self.agent, self.replay, c.agent.batch_size, self.device)
+        self.learner = Learner(self.agent, self.replay, c.agent.batch_size, self.device,
+                               prioritized=c.replay.sampler == "prioritized",
+                               importance_exponent=c.replay.importance_exponent,
+                               priority_eps=c.replay.priority_eps)
+        self._beta_at = linear_schedule(c.replay.importance_exponent, 1.0, c.train.total_steps)
         self.eval_count = 0
         self.wall_offset = 0.0
         self.last_eval: dict[str, Any] = {}
@@ -199,7 +203,8 @@ class LocalRun:
         while self.actor.env_steps < total:
             self.actor.run(min(c.train.collect_steps, total - self.actor.env_steps))
             self.agent.set_progress(self.actor.env_steps)
-            self.learner.run(c.train.gradient_steps)
+            self.learner.importance_exponent = self._beta_at(self.actor.env_steps)
+            self.learner.run(self.learner.available_steps())  # the rate limiter decides
             p = self.progress()
             for trigger in self.triggers:
                 trigger(p)

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from relayrl.agents.dqn import fast
 from relayrl.agents.dqn.config import DQNConfig
 from relayrl.agents.dqn.losses import dqn_loss
 from relayrl.agents.dqn.networks import q_network
@@ -37,6 +38,13 @@ class DQNAgent:
                        if cfg.lr_end >= 0 and total_steps > 0 else None)
         self._online_params = list(self.online.parameters())
         self._target_params = list(self.target.parameters()) if self.target is not None else []
+        # Gradients by hand for MLPs (same values as autograd's, half the per-update overhead
+        # on CPU; see fast.py). Tests set it to False to compare against the autograd path.
+        self.manual_grads = fast.supports(self.online)
+        if self.manual_grads:
+            self._online_view = fast.MLPView(self.online)
+            self._target_view = fast.MLPView(self.target) if self.target is not None else None
+            self._flat_grad, self._grads = fast.grad_buffers(self.online)
 
     @property
     def train_step(self) -> int:
@@ -57,13 +65,21 @@ class DQNAgent:
 
     def train(self, batch: Batch) -> dict[str, torch.Tensor]:
         cfg = self.cfg
-        loss, metrics = dqn_loss(self.online, self.target, batch, double=cfg.double,
-                                 loss=cfg.loss, huber_delta=cfg.huber_delta)
-        self.optimizer.zero_grad()
-        loss.backward()
-        if cfg.grad_clip > 0:
-            metrics["grad_norm"] = torch.nn.utils.clip_grad_norm_(self._online_params, cfg.grad_clip)
-        self.optimizer.step()
+        if self.manual_grads:
+            _, metrics, grads = fast.dqn_loss_and_grads(
+                self._online_view, self._target_view, batch, double=cfg.double, loss=cfg.loss,
+                huber_delta=cfg.huber_delta, out=self._grads)
+            if cfg.grad_clip > 0:
+                metrics["grad_norm"] = fast.clip_flat_grad_norm_(self._flat_grad, cfg.grad_clip)
+            self.optimizer.step(grads)
+        else:
+            loss, metrics = dqn_loss(self.online, self.target, batch, double=cfg.double,
+                                     loss=cfg.loss, huber_delta=cfg.huber_delta)
+            self.optimizer.zero_grad()
+            loss.backward()
+            if cfg.grad_clip > 0:
+                metrics["grad_norm"] = torch.nn.utils.clip_grad_norm_(self._online_params, cfg.grad_clip)
+            self.optimizer.step()
         self._train_step += 1
         if self.target is not None and self._train_step % cfg.target_update_period == 0:
             self._update_target()

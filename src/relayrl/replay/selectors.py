@@ -1,0 +1,278 @@
+"""Item selectors, used as a Table's sampler or its remover (as in Reverb).
+
+A selector tracks the table's live items by slot. The table tells it about inserts,
+priority updates and deletes, and asks it to `select` items to sample or `pop` items to
+remove. Each selector keeps only what its order needs: a dense slot list (Uniform), a sum
+tree (Prioritized), a key queue (Fifo, Lifo) or a heap (MaxHeap, MinHeap). Queues and heaps
+delete lazily: stale entries are skipped when they reach the front, and the structure is
+compacted when stale entries outnumber live ones.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from relayrl.replay.sumtree import SumTree
+
+
+class Selector:
+    """Base class. `slot_key[slot]` is the live key in a slot (-1 when empty)."""
+
+    deterministic = False  # True: select() returns the same front item until it changes
+
+    def bind(self, capacity: int, slot_key: np.ndarray, priority: np.ndarray) -> None:
+        self.capacity = capacity
+        self.slot_key = slot_key
+        self.priority = priority
+        self.size = 0
+
+    def insert(self, slots: np.ndarray, keys: np.ndarray) -> None:
+        self.size += len(slots)
+
+    def replace(self, slots: np.ndarray, keys: np.ndarray) -> None:
+        """Slots whose old items were deleted and immediately refilled (a full table's insert)."""
+        self.delete(slots)
+        self.insert(slots, keys)
+
+    def update(self, slots: np.ndarray) -> None:
+        """Priorities of `slots` changed (already written to `self.priority`)."""
+
+    def delete(self, slots: np.ndarray) -> None:
+        self.size -= len(slots)
+
+    def select(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """n slots (with repetition) and the probability each had of being selected."""
+        raise NotImplementedError
+
+    def pop(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """n distinct slots to remove (the table deletes them afterwards)."""
+        raise NotImplementedError
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}
+
+    def load_state_dict(self, state: dict[str, Any], live_slots: np.ndarray) -> None:
+        """Rebuild from the table's live slots (in key order) and any saved order state."""
+        self.size = 0
+        self.insert(live_slots, self.slot_key[live_slots])
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}()"
+
+
+class Uniform(Selector):
+    """Every live item equally likely. O(1) insert, delete and sample."""
+
+    def bind(self, capacity: int, slot_key: np.ndarray, priority: np.ndarray) -> None:
+        super().bind(capacity, slot_key, priority)
+        self.dense = np.zeros(capacity, dtype=np.int64)  # live slots in [0, size)
+        self.where = np.full(capacity, -1, dtype=np.int64)  # slot -> index into dense
+
+    def insert(self, slots: np.ndarray, keys: np.ndarray) -> None:
+        n = len(slots)
+        self.dense[self.size:self.size + n] = slots
+        self.where[slots] = np.arange(self.size, self.size + n)
+        self.size += n
+
+    def replace(self, slots: np.ndarray, keys: np.ndarray) -> None:
+        pass  # same slots, still live: the dense list does not change
+
+    def delete(self, slots: np.ndarray) -> None:
+        for slot in np.asarray(slots).tolist():  # swap-remove, one slot at a time
+            i = self.where[slot]
+            last = self.dense[self.size - 1]
+            self.dense[i] = last
+            self.where[last] = i
+            self.where[slot] = -1
+            self.size -= 1
+
+    def select(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        slots = self.dense[rng.integers(0, self.size, n)]
+        return slots, np.full(n, 1.0 / self.size)
+
+    def pop(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        return self.dense[rng.choice(self.size, n, replace=False)]
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"dense": self.dense[: self.size].copy()}
+
+    def load_state_dict(self, state: dict[str, Any], live_slots: np.ndarray) -> None:
+        dense = np.asarray(state.get("dense", live_slots), dtype=np.int64)
+        self.size = 0
+        self.where[:] = -1
+        self.insert(dense, self.slot_key[dense])
+
+
+class Prioritized(Selector):
+    """P(i) = p_i^a / sum_k p_k^a (Schaul et al. 2016), a = `priority_exponent`. O(log n)."""
+
+    def __init__(self, priority_exponent: float = 0.6) -> None:
+        if priority_exponent < 0:
+            raise ValueError(f"priority_exponent={priority_exponent} is not valid; it must be >= 0")
+        self.priority_exponent = priority_exponent
+
+    def bind(self, capacity: int, slot_key: np.ndarray, priority: np.ndarray) -> None:
+        super().bind(capacity, slot_key, priority)
+        self.tree = SumTree(capacity)
+
+    def _mass(self, slots: np.ndarray) -> np.ndarray:
+        return np.power(self.priority[slots], self.priority_exponent)
+
+    def insert(self, slots: np.ndarray, keys: np.ndarray) -> None:
+        self.tree.set(slots, self._mass(slots))
+        self.size += len(slots)
+
+    def replace(self, slots: np.ndarray, keys: np.ndarray) -> None:
+        self.tree.set(slots, self._mass(slots))
+
+    def update(self, slots: np.ndarray) -> None:
+        self.tree.set(slots, self._mass(slots))
+
+    def delete(self, slots: np.ndarray) -> None:
+        self.tree.set(slots, np.zeros(len(slots)))
+        self.size -= len(slots)
+
+    def select(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        total = self.tree.total
+        if total <= 0.0:  # every priority is zero: fall back to uniform over live items
+            live = np.flatnonzero(self.slot_key >= 0)
+            return live[rng.integers(0, live.size, n)], np.full(n, 1.0 / live.size)
+        slots = self.tree.find(rng.random(n) * total)
+        return slots, self.tree.get(slots) / total
+
+    def pop(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        chosen: list[int] = []
+        while len(chosen) < n:  # distinct slots: draw, remove, draw again
+            slot = int(self.select(1, rng)[0][0])
+            chosen.append(slot)
+            self.tree.set(np.array([slot]), np.zeros(1))
+        self.tree.set(np.array(chosen), self._mass(np.array(chosen)))  # the table deletes them
+        return np.array(chosen, dtype=np.int64)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}  # rebuilt from the table's priorities
+
+    def __repr__(self) -> str:
+        return f"Prioritized(priority_exponent={self.priority_exponent})"
+
+
+class _KeyQueue(Selector):
+    """Items ordered by key (insertion order); `front` is the oldest (Fifo) or newest (Lifo)."""
+
+    deterministic = True
+    newest_first = False
+
+    def bind(self, capacity: int, slot_key: np.ndarray, priority: np.ndarray) -> None:
+        super().bind(capacity, slot_key, priority)
+        self.keys: deque[int] = deque()
+
+    def insert(self, slots: np.ndarray, keys: np.ndarray) -> None:
+        self.keys.extend(np.asarray(keys).tolist())
+        self.size += len(slots)
+
+    def delete(self, slots: np.ndarray) -> None:
+        self.size -= len(slots)  # queue entries go stale; skipped at the front
+        if len(self.keys) > 2 * self.size + 1024:
+            live = [k for k in self.keys if self.slot_key[k % self.capacity] == k]
+            self.keys = deque(live)
+
+    def _live(self, key: int) -> bool:
+        return bool(self.slot_key[key % self.capacity] == key)
+
+    def _front(self) -> int:
+        keys = self.keys
+        if self.newest_first:
+            while not self._live(keys[-1]):
+                keys.pop()
+            return keys[-1]
+        while not self._live(keys[0]):
+            keys.popleft()
+        return keys[0]
+
+    def select(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        slot = self._front() % self.capacity
+        return np.full(n, slot, dtype=np.int64), np.ones(n)
+
+    def pop(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        out = []
+        for _ in range(n):
+            key = self._front()
+            (self.keys.pop if self.newest_first else self.keys.popleft)()
+            out.append(key % self.capacity)
+        return np.array(out, dtype=np.int64)
+
+
+class Fifo(_KeyQueue):
+    """The oldest item first."""
+
+
+class Lifo(_KeyQueue):
+    """The newest item first."""
+
+    newest_first = True
+
+
+class _Heap(Selector):
+    """Items ordered by priority (ties: oldest first). O(log n) insert and update."""
+
+    deterministic = True
+    sign = 1.0  # +1: smallest priority at the front (MinHeap); -1: largest (MaxHeap)
+
+    def bind(self, capacity: int, slot_key: np.ndarray, priority: np.ndarray) -> None:
+        super().bind(capacity, slot_key, priority)
+        self.heap: list[tuple[float, int]] = []
+
+    def _push(self, slots: np.ndarray) -> None:
+        for slot in np.asarray(slots).tolist():
+            heapq.heappush(self.heap, (self.sign * float(self.priority[slot]), int(self.slot_key[slot])))
+
+    def insert(self, slots: np.ndarray, keys: np.ndarray) -> None:
+        self._push(slots)
+        self.size += len(slots)
+
+    def update(self, slots: np.ndarray) -> None:
+        self._push(slots)  # the old entry goes stale: its priority no longer matches
+        self._maybe_compact()
+
+    def delete(self, slots: np.ndarray) -> None:
+        self.size -= len(slots)
+        self._maybe_compact()
+
+    def _maybe_compact(self) -> None:
+        if len(self.heap) > 2 * self.size + 1024:
+            self.heap = [e for e in self.heap if self._live(e)]
+            heapq.heapify(self.heap)
+
+    def _live(self, entry: tuple[float, int]) -> bool:
+        value, key = entry
+        slot = key % self.capacity
+        return bool(self.slot_key[slot] == key and self.sign * self.priority[slot] == value)
+
+    def _front(self) -> int:
+        while not self._live(self.heap[0]):
+            heapq.heappop(self.heap)
+        return self.heap[0][1] % self.capacity
+
+    def select(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        return np.full(n, self._front(), dtype=np.int64), np.ones(n)
+
+    def pop(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        out = []
+        for _ in range(n):
+            out.append(self._front())
+            heapq.heappop(self.heap)
+        return np.array(out, dtype=np.int64)
+
+
+class MinHeap(_Heap):
+    """The item with the smallest priority first."""
+
+
+class MaxHeap(_Heap):
+    """The item with the largest priority first."""
+
+    sign = -1.0

@@ -1,0 +1,141 @@
+"""StepStore: the steps of B parallel episodes, each observation stored once.
+
+Env b writes its steps into its own ring of T rows. A row holds the observation an action
+was taken from, the action and the reward; when an episode ends, one more row holds its
+final observation (no action). A transition's next observation is simply a later row of
+the same ring, so observations are never stored twice, and n-step windows and sequences
+are gathers. With `frame_stack=k`, observations are [k, *frame] stacks and a row stores
+only the newest frame; stacks are rebuilt at read time from the previous k-1 rows of the
+same episode, repeating its first frame before the start (Gymnasium's
+`FrameStackObservation(padding_type="reset")`).
+
+Positions are absolute (they only grow); row = position % T. A row's `stamp` is position+1,
+so a reader can tell a row that was overwritten, or written after a checkpoint, from the
+one it expects.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from relayrl.replay.storage import Columns
+
+
+class StepStore:
+    def __init__(self, num_envs: int, rows: int, obs_shape: tuple[int, ...], obs_dtype: np.dtype,
+                 action_shape: tuple[int, ...], action_dtype: np.dtype, frame_stack: int = 1,
+                 path: str | Path | None = None) -> None:
+        if frame_stack < 1:
+            raise ValueError(f"frame_stack={frame_stack} is not valid; it must be >= 1")
+        if frame_stack > 1 and (len(obs_shape) < 2 or obs_shape[0] != frame_stack):
+            raise ValueError(f"frame_stack={frame_stack} needs observations shaped [{frame_stack}, ...], "
+                             f"got {list(obs_shape)}")
+        self.B, self.T, self.k = num_envs, rows, frame_stack
+        frame_shape = obs_shape[1:] if frame_stack > 1 else obs_shape
+        sig = {
+            "frame": (frame_shape, obs_dtype), "action": (action_shape, action_dtype),
+            "reward": ((), np.float32), "stamp": ((), np.int64), "start": ((), np.int64),
+            "last": ((), np.bool_), "terminated": ((), np.bool_), "item_key": ((), np.int64),
+            # Filled by the transition writer when an item's n-step window closes.
+            "ret": ((), np.float32), "disc": ((), np.float32), "nlen": ((), np.int16),
+        }
+        self.cols = Columns(sig, (num_envs, rows), path=path)
+        c = self.cols.arrays
+        self.frame, self.action, self.reward, self.stamp = c["frame"], c["action"], c["reward"], c["stamp"]
+        self.start, self.last, self.terminated, self.item_key = c["start"], c["last"], c["terminated"], c["item_key"]
+        self.ret, self.disc, self.nlen = c["ret"], c["disc"], c["nlen"]
+        self._flat = {k: a.reshape((num_envs * rows,) + a.shape[2:]) for k, a in c.items()}
+        self.head = np.zeros(num_envs, dtype=np.int64)  # next position per env
+        self.ep_start = np.zeros(num_envs, dtype=np.int64)  # first position of the running episode
+        self.envs = np.arange(num_envs)
+
+    def nbytes(self) -> int:
+        return self.cols.nbytes()
+
+    def evictable(self, envs: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        """Keys of items that writing `pos` would corrupt (-1 where none).
+
+        An item at p reads rows p-k+1 .. p+n; writing q overwrites q-T, which the item at
+        q-T+k-1 is the newest to need. Older ones were evicted by earlier writes.
+        """
+        p = pos - self.T + self.k - 1
+        ok = p >= 0
+        keys = np.full(len(envs), -1, dtype=np.int64)
+        if ok.any():
+            e, r = envs[ok], p[ok] % self.T
+            keys[ok] = np.where(self.stamp[e, r] == p[ok] + 1, self.item_key[e, r], -1)
+        return keys
+
+    def flat(self, name: str) -> np.ndarray:
+        """A column as [B * T, ...] (a view), so (env, row) is one flat index."""
+        return self._flat[name]
+
+    def write_chunk(self, frames: np.ndarray, actions: np.ndarray, rewards: np.ndarray, done: np.ndarray,
+                    terminated: np.ndarray, final_frames: np.ndarray) -> None:
+        """Append C batched steps: frames/actions [C, B, ...], rewards/done/terminated [C, B];
+        final_frames [D, ...] are the final observations where `done`, in (step, env) order.
+
+        Each step is one row per env, plus a final-observation row where the episode ended.
+        """
+        c, b = done.shape
+        rows = 1 + done.astype(np.int64)  # [C, B]
+        pos = self.head + np.cumsum(rows, axis=0) - rows  # [C, B] position of each step's row
+        # The episode each step belongs to starts after the latest earlier final row.
+        after_final = np.where(done, pos + 2, -1)  # [C, B]
+        start = np.maximum.accumulate(np.vstack([self.ep_start[None], after_final[:-1]]), axis=0)  # [C, B]
+        envs = np.broadcast_to(self.envs, (c, b))
+        i = (envs * self.T + pos % self.T).reshape(-1)  # [C*B] flat rows
+        self.flat("frame")[i] = frames.reshape((c * b,) + frames.shape[2:])
+        self.flat("action")[i] = actions.reshape((c * b,) + actions.shape[2:])
+        self.flat("reward")[i] = rewards.reshape(-1)
+        self.flat("stamp")[i] = pos.reshape(-1) + 1
+        self.flat("start")[i] = start.reshape(-1)
+        self.flat("last")[i] = False
+        self.flat("terminated")[i] = False
+        self.flat("item_key")[i] = -1
+        if done.any():
+            ce, be = np.nonzero(done)  # (step, env) order, as final_frames
+            fp = pos[ce, be] + 1
+            j = be * self.T + fp % self.T
+            self.flat("frame")[j] = final_frames
+            self.flat("reward")[j] = 0.0
+            self.flat("stamp")[j] = fp + 1
+            self.flat("start")[j] = start[ce, be]
+            self.flat("last")[j] = True
+            self.flat("terminated")[j] = terminated[ce, be]
+            self.flat("item_key")[j] = -1
+            self.ep_start = np.maximum(self.ep_start, after_final.max(axis=0))
+        self.head = self.head + rows.sum(axis=0)
+
+    def stacks(self, envs: np.ndarray, pos: np.ndarray, start: np.ndarray) -> np.ndarray:
+        """Observations at `pos`: [N, *obs_shape], stacks rebuilt from frames when k > 1."""
+        if self.k == 1:
+            return self.frame[envs, pos % self.T]
+        back = np.arange(self.k - 1, -1, -1)  # [k] oldest first
+        idx = np.maximum(pos[:, None] - back, start[:, None]) % self.T  # [N, k]
+        return self.frame[envs[:, None], idx]  # [N, k, *frame]
+
+    def valid(self, envs: np.ndarray, pos: np.ndarray, ahead: np.ndarray) -> np.ndarray:
+        """Whether rows pos-k+1 (or the episode start) .. pos+ahead still hold what an item read."""
+        r = pos % self.T
+        ok = self.stamp[envs, r] == pos + 1
+        start = self.start[envs, r]
+        span = int(ahead.max(initial=0)) + self.k
+        for j in range(-(self.k - 1), span):
+            p = pos + j
+            need = (p >= start) & (p <= pos + ahead) & ok
+            ok &= ~need | (self.stamp[envs, p % self.T] == p + 1)
+        return ok
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"columns": self.cols.state_dict(), "head": self.head.copy()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.cols.load_state_dict(state["columns"])
+        self.head[:] = state["head"]
+        # Env state is not checkpointed: a resumed actor starts fresh episodes, so the
+        # steps of the interrupted ones are never joined to new ones.
+        self.ep_start[:] = self.head

@@ -1,0 +1,149 @@
+"""Column storage: preallocated arrays in RAM, on a torch device, or memory-mapped files.
+
+`Columns` is a fixed set of named arrays with a leading capacity dimension. RAM columns are
+NumPy arrays because indexing them costs several times less per call than torch indexing on
+CPU; device columns are torch tensors so gathers stay on the GPU; memmap columns are `.npy`
+files (with headers) so a table can be reopened from disk without copying.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+Signature = dict[str, tuple[tuple[int, ...], np.dtype]]  # name -> (shape per row, dtype)
+
+
+def to_numpy(x: Any) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        try:
+            return x.numpy()  # CPU tensors without grad: a view, no copy
+        except (RuntimeError, TypeError):
+            return x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+class Columns:
+    def __init__(self, signature: Signature, leading: tuple[int, ...], path: str | Path | None = None,
+                 device: str | torch.device | None = None) -> None:
+        self.signature = {k: (tuple(s), np.dtype(d)) for k, (s, d) in signature.items()}
+        self.leading = tuple(leading)
+        self.path = Path(path) if path is not None else None
+        self.device = torch.device(device) if device is not None else None
+        if self.path is not None and self.device is not None and self.device.type != "cpu":
+            raise ValueError("memmap storage lives on disk; it cannot also live on a device")
+        self.arrays: dict[str, Any] = {}
+        if self.path is not None:
+            self.path.mkdir(parents=True, exist_ok=True)
+            meta = {"leading": list(self.leading),
+                    "signature": {k: [list(s), d.str] for k, (s, d) in self.signature.items()}}
+            meta_file = self.path / "columns.json"
+            reopen = meta_file.exists() and json.loads(meta_file.read_text()) == meta
+            for name, (shape, dtype) in self.signature.items():
+                file = self.path / f"{name}.npy"
+                if reopen and file.exists():  # reopen without copying
+                    self.arrays[name] = np.load(file, mmap_mode="r+")
+                else:
+                    self.arrays[name] = np.lib.format.open_memmap(file, mode="w+", dtype=dtype,
+                                                                  shape=self.leading + shape)
+            meta_file.write_text(json.dumps(meta))
+        elif self.device is not None and self.device.type != "cpu":
+            for name, (shape, dtype) in self.signature.items():
+                tdtype = torch.from_numpy(np.zeros(0, dtype)).dtype
+                self.arrays[name] = torch.zeros(self.leading + shape, dtype=tdtype, device=self.device)
+        else:
+            for name, (shape, dtype) in self.signature.items():
+                self.arrays[name] = np.zeros(self.leading + shape, dtype=dtype)
+
+    @property
+    def on_device(self) -> bool:
+        return self.device is not None and self.device.type != "cpu"
+
+    def nbytes(self) -> int:
+        return sum(int(np.prod(self.leading + s)) * d.itemsize for s, d in self.signature.values())
+
+    def flush(self) -> None:
+        for a in self.arrays.values():
+            if isinstance(a, np.memmap):
+                a.flush()
+
+    def state_dict(self) -> dict[str, Any]:
+        if self.path is not None:
+            self.flush()  # the checkpoint refers to the files
+            return {"memmap": str(self.path)}
+        return {"arrays": {k: (v.cpu().clone() if isinstance(v, torch.Tensor) else v.copy())
+                           for k, v in self.arrays.items()}}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if "memmap" in state:
+            if self.path is None or Path(state["memmap"]).resolve() != self.path.resolve():
+                raise ValueError(f"checkpoint refers to memmap storage at {state['memmap']!r}, "
+                                 f"this table's storage is {self.path!r}")
+            return  # the files were reopened in __init__
+        for k, v in state["arrays"].items():
+            if isinstance(self.arrays[k], torch.Tensor):
+                self.arrays[k].copy_(torch.as_tensor(v))
+            else:
+                self.arrays[k][...] = to_numpy(v)
+
+
+class ItemStorage:
+    """A table's storage for items inserted directly: one row per slot and field."""
+
+    def __init__(self, capacity: int, path: str | Path | None = None,
+                 device: str | torch.device | None = None) -> None:
+        self.capacity = capacity
+        self.path = path
+        self.device = device
+        self.columns: Columns | None = None  # built from the first item's structure
+        self.single = False  # items are one array rather than a dict of arrays
+
+    def _build(self, item: Any) -> None:
+        self.single = not isinstance(item, dict)
+        fields = {"item": item} if self.single else item
+        sig = {k: (to_numpy(v).shape[1:], to_numpy(v).dtype) for k, v in fields.items()}
+        self.columns = Columns(sig, (self.capacity,), self.path, self.device)
+
+    def write(self, slots: np.ndarray, items: Any) -> None:
+        """Write a batch of items (leading dim = len(slots)) into `slots`."""
+        if self.columns is None:
+            self._build(items)
+        assert self.columns is not None
+        fields = {"item": items} if self.single else items
+        if set(fields) != set(self.columns.signature):
+            raise ValueError(f"item fields {sorted(fields)} differ from the table's {sorted(self.columns.signature)}")
+        for name, value in fields.items():
+            col = self.columns.arrays[name]
+            if self.columns.on_device:
+                col[torch.from_numpy(slots).to(col.device)] = torch.as_tensor(value).to(col.device, col.dtype)
+            else:
+                col[slots] = to_numpy(value)
+
+    def read(self, slots: np.ndarray) -> Any:
+        assert self.columns is not None
+        out = {}
+        for name, col in self.columns.arrays.items():
+            if self.columns.on_device:
+                out[name] = col[torch.from_numpy(slots).to(col.device)]
+            else:
+                out[name] = torch.from_numpy(np.ascontiguousarray(col[slots]))
+        return out["item"] if self.single else out
+
+    def state_dict(self) -> dict[str, Any]:
+        if self.columns is None:
+            return {}
+        return {"single": self.single,
+                "signature": {k: (s, d.str) for k, (s, d) in self.columns.signature.items()},
+                "columns": self.columns.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if not state:
+            return
+        self.single = bool(state["single"])
+        sig = {k: (tuple(s), np.dtype(d)) for k, (s, d) in state["signature"].items()}
+        self.columns = Columns(sig, (self.capacity,), self.path, self.device)
+        self.columns.load_state_dict(state["columns"])

@@ -1,0 +1,311 @@
+"""Table: Reverb's replay table (sampler, remover, max size, rate limiter) in one process.
+
+Items live in slots [0, max_size). A key is `insert_count * max_size + slot`, so a key
+names its slot and a stale key (its slot since reused) is recognised in O(1). Every public
+method holds one lock, so actors and learners in different threads can share a table;
+`insert` and `sample` block on the rate limiter, with an optional timeout.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, NamedTuple, Protocol
+
+import numpy as np
+
+from relayrl.replay.rate_limiters import MinSize, RateLimiter
+from relayrl.replay.selectors import Fifo, Selector, Uniform
+from relayrl.replay.storage import ItemStorage
+
+
+class RateLimiterTimeout(TimeoutError):
+    """An insert or sample waited longer than its timeout for the rate limiter."""
+
+
+class SampleInfo(NamedTuple):
+    key: np.ndarray  # [N] int64
+    probability: np.ndarray  # [N] float64, the chance this item had of being sampled
+    table_size: int
+    priority: np.ndarray  # [N] float64
+
+
+class Storage(Protocol):
+    def write(self, slots: np.ndarray, items: Any) -> None: ...
+    def read(self, slots: np.ndarray) -> Any: ...
+    def state_dict(self) -> dict[str, Any]: ...
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+class Table:
+    def __init__(self, name: str, max_size: int, sampler: Selector | None = None, remover: Selector | None = None,
+                 rate_limiter: RateLimiter | None = None, max_times_sampled: int = 0, seed: int | None = None,
+                 storage: Storage | None = None) -> None:
+        if max_size < 1:
+            raise ValueError(f"Table {name!r}: max_size={max_size} is not valid; it must be >= 1")
+        sampler = sampler if sampler is not None else Uniform()
+        remover = remover if remover is not None else Fifo()
+        if sampler is remover:
+            raise ValueError(f"Table {name!r}: sampler and remover must be separate selector objects")
+        self.name = name
+        self.max_size = max_size
+        self.sampler = sampler
+        self.remover = remover
+        self.rate_limiter = rate_limiter if rate_limiter is not None else MinSize(1)
+        self.max_times_sampled = max_times_sampled
+        self.storage: Storage = storage if storage is not None else ItemStorage(max_size)
+        self.rng = np.random.default_rng(seed)
+        self.slot_key = np.full(max_size, -1, dtype=np.int64)
+        self.priority = np.zeros(max_size, dtype=np.float64)
+        self.times_sampled = np.zeros(max_size, dtype=np.int32)
+        self.max_priority = 1.0  # given to items inserted without a priority
+        self._free = np.arange(max_size - 1, -1, -1, dtype=np.int64)  # a stack; pop from the end
+        self._num_free = max_size
+        self._inserted = 0
+        self._cv = threading.Condition()
+        for selector in (sampler, remover):
+            selector.bind(max_size, self.slot_key, self.priority)
+
+    # ---- introspection ------------------------------------------------------------------
+    @property
+    def size(self) -> int:
+        return self.max_size - self._num_free
+
+    def __len__(self) -> int:
+        return self.size
+
+    def can_sample(self, n: int = 1) -> bool:
+        return self.size > 0 and self.rate_limiter.can_sample(n)
+
+    def samples_available(self) -> int:
+        return self.rate_limiter.samples_available() if self.size > 0 else 0
+
+    def __repr__(self) -> str:
+        return (f"Table(name={self.name!r}, max_size={self.max_size}, sampler={self.sampler!r}, "
+                f"remover={self.remover!r}, rate_limiter={self.rate_limiter!r}, size={self.size})")
+
+    # ---- writes ---------------------------------------------------------------------
+    def insert(self, item: Any, priority: float | None = None, timeout: float | None = None) -> int:
+        """Insert one item (a dict of arrays, or an array); returns its key."""
+        items = {k: _unsqueeze(v) for k, v in item.items()} if isinstance(item, dict) else _unsqueeze(item)
+        prio = None if priority is None else np.array([priority], dtype=np.float64)
+        return int(self.insert_batch(items, prio, timeout=timeout)[0])
+
+    def insert_batch(self, items: Any, priorities: np.ndarray | None = None, n: int | None = None,
+                     timeout: float | None = None) -> np.ndarray:
+        """Insert n items given with a leading batch dimension; returns their keys."""
+        if n is None:
+            first = next(iter(items.values())) if isinstance(items, dict) else items
+            n = len(first)
+        if priorities is not None:
+            priorities = np.asarray(priorities, dtype=np.float64).reshape(-1)
+            if priorities.size != n or (priorities < 0).any() or not np.isfinite(priorities).all():
+                raise ValueError(f"Table {self.name!r}: need {n} finite priorities >= 0")
+        keys = np.empty(n, dtype=np.int64)
+        done = 0
+        with self._cv:
+            while done < n:
+                allowed = self._wait(lambda: self.rate_limiter.inserts_available(), timeout, "insert")
+                k = min(n - done, allowed, self.max_size)
+                part = slice(done, done + k)
+                sub = items if (done == 0 and k == n) else _slice(items, part)
+                keys[part] = self._insert_locked(sub, None if priorities is None else priorities[part], k)
+                done += k
+            self._cv.notify_all()
+        return keys
+
+    def _insert_locked(self, items: Any, priorities: np.ndarray | None, n: int) -> np.ndarray:
+        n_free = min(n, self._num_free)
+        free = self._free[self._num_free - n_free:self._num_free][::-1].copy()
+        self._num_free -= n_free
+        victims = self.remover.pop(n - n_free, self.rng) if n > n_free else np.zeros(0, dtype=np.int64)
+        slots = np.concatenate([free, victims]) if victims.size else free
+        keys = (self._inserted + np.arange(n, dtype=np.int64)) * self.max_size + slots
+        self._inserted += n
+        self.slot_key[slots] = keys
+        if priorities is None:
+            self.priority[slots] = self.max_priority
+        else:
+            self.priority[slots] = priorities
+            self.max_priority = max(self.max_priority, float(priorities.max()))
+        self.times_sampled[slots] = 0
+        self.storage.write(slots, items)
+        for selector in (self.sampler, self.remover):
+            if n_free:
+                selector.insert(free, keys[:n_free])
+            if victims.size:
+                selector.replace(victims, keys[n_free:])
+        limiter = self.rate_limiter
+        limiter.inserts += n
+        limiter.deletes += victims.size
+        return keys
+
+    def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
+        """Set new priorities; keys of items no longer in the table are ignored (as in Reverb)."""
+        keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+        priorities = np.asarray(priorities, dtype=np.float64).reshape(-1)
+        if (priorities < 0).any() or not np.isfinite(priorities).all():
+            raise ValueError(f"Table {self.name!r}: priorities must be finite and >= 0")
+        with self._cv:
+            slots = keys % self.max_size
+            live = self.slot_key[slots] == keys
+            slots, priorities = slots[live], priorities[live]
+            if slots.size == 0:
+                return
+            self.priority[slots] = priorities
+            self.max_priority = max(self.max_priority, float(priorities.max()))
+            self.sampler.update(slots)
+            self.remover.update(slots)
+
+    def delete(self, keys: np.ndarray) -> int:
+        """Remove items by key; returns how many were still in the table."""
+        keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+        with self._cv:
+            slots = keys % self.max_size
+            slots = np.unique(slots[self.slot_key[slots] == keys])
+            if slots.size:
+                self._delete_slots(slots)
+                self._cv.notify_all()
+            return int(slots.size)
+
+    def _delete_slots(self, slots: np.ndarray) -> None:
+        self.sampler.delete(slots)
+        self.remover.delete(slots)
+        self.slot_key[slots] = -1
+        self._free[self._num_free:self._num_free + slots.size] = slots
+        self._num_free += slots.size
+        self.rate_limiter.deletes += slots.size
+
+    # ---- reads ----------------------------------------------------------------------
+    def sample(self, batch_size: int, timeout: float | None = None) -> tuple[Any, SampleInfo]:
+        """Sample `batch_size` items (with replacement), blocking on the rate limiter."""
+        if batch_size < 1:
+            raise ValueError(f"batch_size={batch_size} is not valid; it must be >= 1")
+        parts: list[tuple[Any, SampleInfo]] = []
+        got = 0
+        with self._cv:
+            while got < batch_size:
+                allowed = self._wait(self.samples_available, timeout, "sample")
+                k = min(batch_size - got, allowed)
+                parts.append(self._sample_locked(k))
+                got += k
+            self._cv.notify_all()
+        return parts[0] if len(parts) == 1 else _concat(parts)
+
+    def _sample_locked(self, n: int) -> tuple[Any, SampleInfo]:
+        size = self.size
+        if self.max_times_sampled > 0:
+            return self._sample_counted(n)
+        slots, probs = self.sampler.select(n, self.rng)
+        self.rate_limiter.samples += n
+        info = SampleInfo(self.slot_key[slots], probs, size, self.priority[slots])  # gathers are copies
+        return self.storage.read(slots), info
+
+    def _sample_counted(self, n: int) -> tuple[Any, SampleInfo]:
+        # One item at a time, as Reverb does, so an item is never handed out more often
+        # than max_times_sampled, even within one batch.
+        slots = np.empty(n, dtype=np.int64)
+        probs = np.empty(n)
+        keys = np.empty(n, dtype=np.int64)
+        prios = np.empty(n)
+        data = []
+        for i in range(n):
+            (slot,), (prob,) = self.sampler.select(1, self.rng)
+            slots[i], probs[i], keys[i], prios[i] = slot, prob, self.slot_key[slot], self.priority[slot]
+            data.append(self.storage.read(np.array([slot])))  # read before the slot can be reused
+            self.times_sampled[slot] += 1
+            self.rate_limiter.samples += 1
+            if self.times_sampled[slot] >= self.max_times_sampled:
+                self._delete_slots(np.array([slot]))
+        merged = _concat([(d, None) for d in data])[0] if n > 1 else data[0]
+        return merged, SampleInfo(keys, probs, self.size, prios)
+
+    def _wait(self, available: Callable[[], int], timeout: float | None, what: str) -> int:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            allowed = available()
+            if allowed > 0:
+                return allowed
+            remaining = None if deadline is None else deadline - time.monotonic()
+            if remaining is not None and remaining <= 0:
+                lim = self.rate_limiter
+                raise RateLimiterTimeout(
+                    f"table {self.name!r}: {what} waited {timeout}s for the rate limiter "
+                    f"(size {self.size}, inserts {lim.inserts}, samples {lim.samples}, {lim!r}); "
+                    f"nothing is {'sampling' if what == 'insert' else 'inserting'} fast enough")
+            self._cv.wait(remaining)
+
+    # ---- checkpoints ----------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        with self._cv:
+            live = np.flatnonzero(self.slot_key >= 0)
+            live = live[np.argsort(self.slot_key[live], kind="stable")]  # key order = insertion order
+            return {
+                "name": self.name, "max_size": self.max_size, "live": live,
+                "slot_key": self.slot_key[live].copy(), "priority": self.priority[live].copy(),
+                "times_sampled": self.times_sampled[live].copy(), "max_priority": self.max_priority,
+                "inserted": self._inserted, "rng": self.rng.bit_generator.state,
+                "rate_limiter": self.rate_limiter.state_dict(),
+                "sampler": self.sampler.state_dict(), "remover": self.remover.state_dict(),
+                "storage": self.storage.state_dict(),
+            }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if int(state["max_size"]) != self.max_size:
+            raise ValueError(f"checkpointed table {state['name']!r} has max_size {state['max_size']}, "
+                             f"this table {self.max_size}")
+        with self._cv:
+            self.storage.load_state_dict(state["storage"])
+            live = np.asarray(state["live"], dtype=np.int64)
+            self.slot_key[:] = -1
+            self.slot_key[live] = state["slot_key"]
+            self.priority[:] = 0.0
+            self.priority[live] = state["priority"]
+            self.times_sampled[:] = 0
+            self.times_sampled[live] = state["times_sampled"]
+            free = np.setdiff1d(np.arange(self.max_size), live)[::-1]
+            self._num_free = free.size
+            self._free[: free.size] = free
+            self.max_priority = float(state["max_priority"])
+            self._inserted = int(state["inserted"])
+            self.rng.bit_generator.state = state["rng"]
+            self.rate_limiter.load_state_dict(state["rate_limiter"])
+            self.sampler.load_state_dict(state["sampler"], live)
+            self.remover.load_state_dict(state["remover"], live)
+            stale = getattr(self.storage, "stale", None)
+            if stale is not None and live.size:
+                # Memmap rows written after this checkpoint no longer hold what these items read.
+                gone = live[stale(live)]
+                if gone.size:
+                    self._delete_slots(gone)
+
+
+def _unsqueeze(x: Any) -> Any:
+    return np.asarray(x)[None] if not hasattr(x, "unsqueeze") else x.unsqueeze(0)
+
+
+def _slice(items: Any, part: slice) -> Any:
+    if isinstance(items, dict):
+        return {k: v[part] for k, v in items.items()}
+    return items[part]
+
+
+def _concat(parts: list[tuple[Any, SampleInfo | None]]) -> tuple[Any, SampleInfo]:
+    import torch
+
+    datas = [d for d, _ in parts]
+    first = datas[0]
+    if isinstance(first, dict):
+        data: Any = {k: torch.cat([d[k] for d in datas]) for k in first}
+    elif isinstance(first, tuple) and hasattr(first, "_fields"):
+        data = type(first)(*(None if getattr(first, f) is None else torch.cat([getattr(d, f) for d in datas])
+                             for f in first._fields))
+    else:
+        data = torch.cat(datas)
+    infos = [i for _, i in parts if i is not None]
+    if not infos:
+        return data, None  # type: ignore[return-value]
+    info = SampleInfo(np.concatenate([i.key for i in infos]), np.concatenate([i.probability for i in infos]),
+                      infos[-1].table_size, np.concatenate([i.priority for i in infos]))
+    return data, info

@@ -1,0 +1,104 @@
+"""Hand-written DQN gradients (agents/dqn/fast.py) against dqn_loss + autograd."""
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+
+from relayrl.agents.dqn import DQNAgent, DQNConfig, dqn_loss, fast
+from relayrl.networks import MLP
+from relayrl.specs import ArraySpec, DiscreteSpec
+from relayrl.types import Batch
+
+
+def make_batch(n=32, obs_dim=5, actions=3, weighted=False, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return Batch(
+        obs=torch.randn(n, obs_dim, generator=g),
+        action=torch.randint(actions, (n,), generator=g),
+        reward=torch.randn(n, generator=g) * 3,  # large TD errors: both Huber branches
+        next_obs=torch.randn(n, obs_dim, generator=g),
+        discount=(torch.rand(n, generator=g) > 0.2).float() * 0.99,
+        weight=torch.rand(n, generator=g) + 0.5 if weighted else None,
+    )
+
+
+def nets(activation, with_target, hidden=(16, 8)):
+    torch.manual_seed(1)
+    online = MLP(5, list(hidden), 3, activation)
+    target = None
+    if with_target:
+        target = copy.deepcopy(online).requires_grad_(False)
+        with torch.no_grad():
+            for p in target.parameters():
+                p.add_(torch.randn_like(p) * 0.1)  # a stale target differs from the online net
+    return online, target
+
+
+@pytest.mark.parametrize("activation", ["relu", "tanh", "elu"])
+@pytest.mark.parametrize("loss", ["mse", "huber"])
+@pytest.mark.parametrize("weighted", [False, True])
+@pytest.mark.parametrize("mode", ["dqn", "double", "no_target"])
+def test_gradients_equal_autograd(activation, loss, weighted, mode):
+    online, target = nets(activation, with_target=mode != "no_target")
+    batch = make_batch(weighted=weighted)
+    kw = dict(double=mode == "double", loss=loss, huber_delta=0.7)
+    ref_loss, ref_metrics = dqn_loss(online, target, batch, **kw)
+    ref_loss.backward()
+    value, metrics, grads = fast.dqn_loss_and_grads(online, target, batch, **kw)
+    assert torch.allclose(value, ref_loss, rtol=1e-6, atol=1e-7)
+    for key in ("loss", "q", "td_error"):
+        assert torch.allclose(metrics[key], ref_metrics[key], rtol=1e-6, atol=1e-6), key
+    params = list(online.parameters())
+    assert len(grads) == len(params)
+    for g, p in zip(grads, params, strict=True):
+        assert g.shape == p.shape
+        assert torch.allclose(g, p.grad, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("max_norm", [1e-3, 1e3])  # clipping active / inactive
+def test_clipping_equals_torch(max_norm):
+    online, target = nets("relu", with_target=True)
+    batch = make_batch()
+    dqn_loss(online, target, batch, double=False)[0].backward()
+    ref_norm = torch.nn.utils.clip_grad_norm_(online.parameters(), max_norm)
+    flat, views = fast.grad_buffers(online)
+    _, _, grads = fast.dqn_loss_and_grads(online, target, batch, double=False, out=views)
+    assert all(g is v for g, v in zip(grads, views, strict=True))
+    norm = fast.clip_flat_grad_norm_(flat, max_norm)
+    assert torch.allclose(norm, ref_norm, rtol=1e-6)
+    for g, p in zip(grads, online.parameters(), strict=True):
+        assert torch.allclose(g, p.grad, rtol=1e-5, atol=1e-8)
+
+
+def train_agent(manual, double, steps=30, seed=0):
+    torch.manual_seed(seed)
+    cfg = DQNConfig(hidden=[32, 32], lr=1e-3, double=double, target_update_period=7, grad_clip=1.0)
+    agent = DQNAgent(ArraySpec((5,), torch.float32), DiscreteSpec(3), cfg, torch.device("cpu"),
+                     np.random.default_rng(seed))
+    agent.manual_grads = manual
+    metrics = [agent.train(make_batch(weighted=i % 2 == 1, seed=i)) for i in range(steps)]
+    return agent, metrics
+
+
+@pytest.mark.parametrize("double", [False, True])
+def test_agent_updates_equal_autograd_path(double):
+    fast_agent, fast_metrics = train_agent(True, double)
+    ref_agent, ref_metrics = train_agent(False, double)
+    assert set(fast_metrics[-1]) == set(ref_metrics[-1]) >= {"loss", "q", "td_error", "grad_norm"}
+    for a, b in zip(fast_agent.online.parameters(), ref_agent.online.parameters(), strict=True):
+        assert torch.allclose(a, b, rtol=1e-4, atol=1e-6)
+    assert torch.allclose(fast_metrics[-1]["td_error"], ref_metrics[-1]["td_error"], rtol=1e-4, atol=1e-5)
+
+
+def test_agent_is_deterministic():
+    _, a = train_agent(True, True)
+    _, b = train_agent(True, True)
+    for x, y in zip(a, b, strict=True):
+        assert all(torch.equal(x[k], y[k]) for k in x)
+
+
+def test_only_plain_mlps_take_the_fast_path():
+    assert fast.supports(MLP(4, [8], 2, "elu"))
+    assert not fast.supports(torch.nn.Sequential(torch.nn.Linear(4, 2)))

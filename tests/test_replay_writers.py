@@ -1,0 +1,198 @@
+"""Writers, table-driven (as Acme's adder tests): a stream of steps and the exact items it gives."""
+
+import numpy as np
+import pytest
+import torch
+
+from relayrl.replay import Fifo, MinSize, SequenceWriter, Table, TransitionWriter, Uniform
+from relayrl.specs import ArraySpec, DiscreteSpec
+from relayrl.types import Transition
+
+OBS = ArraySpec((1,), torch.float32)
+ACT = DiscreteSpec(5)
+G = 0.5
+
+
+def step(obs, action, reward, next_obs, terminated=None, truncated=None):
+    """One batched step; obs/next_obs/... are lists over envs."""
+    b = len(obs)
+    f = lambda xs: torch.tensor(xs, dtype=torch.float32).reshape(b, -1)  # noqa: E731
+    return Transition(f(obs), torch.tensor(action), torch.tensor(reward, dtype=torch.float32), f(next_obs),
+                      torch.tensor(terminated or [False] * b), torch.tensor(truncated or [False] * b))
+
+
+def episode(obs_values, end="terminated"):
+    """Steps of one env: obs o_i, action i, reward 10 + i; ends after the last obs."""
+    steps = []
+    for i in range(len(obs_values) - 1):
+        last = i == len(obs_values) - 2
+        steps.append(step([obs_values[i]], [i], [10.0 + i], [obs_values[i + 1]],
+                          [last and end == "terminated"], [last and end == "truncated"]))
+    return steps
+
+
+def items(table):
+    table.storage.flush()  # the writer stages steps until a chunk is full or the actor's run ends
+    live = np.flatnonzero(table.slot_key >= 0)
+    live = live[np.argsort(table.slot_key[live])]
+    b = table.storage.read(live)
+    return b
+
+
+def transition_rows(table):
+    b = items(table)
+    return [(o[0], a, round(r, 4), n[0], round(d, 4)) for o, a, r, n, d in zip(
+        b.obs.tolist(), b.action.tolist(), b.reward.tolist(), b.next_obs.tolist(), b.discount.tolist(), strict=True)]
+
+
+def writer(n_step=1, num_envs=1, max_size=100, **kw):
+    t = Table("t", max_size, Uniform(), Fifo(), MinSize(1), seed=0)
+    return t, TransitionWriter(t, num_envs, OBS, ACT, gamma=G, n_step=n_step, **kw)
+
+
+@pytest.mark.parametrize("n, end, expected", [
+    (1, "terminated", [(0, 0, 10.0, 1, G), (1, 1, 11.0, 2, G), (2, 2, 12.0, 3, 0.0)]),
+    (1, "truncated", [(0, 0, 10.0, 1, G), (1, 1, 11.0, 2, G), (2, 2, 12.0, 3, G)]),
+    # 2-step: r_t + G r_{t+1}, next obs two rows on; the tail shortens at the end.
+    (2, "terminated", [(0, 0, 10 + G * 11, 2, G**2), (1, 1, 11 + G * 12, 3, 0.0), (2, 2, 12.0, 3, 0.0)]),
+    (2, "truncated", [(0, 0, 10 + G * 11, 2, G**2), (1, 1, 11 + G * 12, 3, G**2), (2, 2, 12.0, 3, G)]),
+    # Window longer than the episode: every item bootstraps from the final obs, or not at all.
+    (5, "truncated", [(0, 0, 10 + G * 11 + G * G * 12, 3, G**3), (1, 1, 11 + G * 12, 3, G**2),
+                      (2, 2, 12.0, 3, G)]),
+])
+def test_n_step_items_of_one_episode(n, end, expected):
+    t, w = writer(n)
+    for s in episode([0, 1, 2, 3], end):
+        w(s)
+    assert transition_rows(t) == [tuple(float(x) if i != 1 else x for i, x in enumerate(e)) for e in expected]
+
+
+def test_items_never_pair_the_reset_obs_with_the_last_action():
+    # Episode [0, 1, 2(final)] then the env auto-resets to 50: the step after the end starts at 50.
+    t, w = writer(2)
+    w(step([0], [0], [1.0], [1]))
+    w(step([1], [1], [1.0], [2], terminated=[True]))
+    w(step([50], [2], [1.0], [51]))
+    w(step([51], [3], [1.0], [52]))
+    w(step([52], [4], [1.0], [53]))
+    rows = transition_rows(t)
+    assert (0.0, 0, 1.5, 2.0, 0.0) in rows and (1.0, 1, 1.0, 2.0, 0.0) in rows
+    assert (50.0, 2, 1.5, 52.0, G * G) in rows
+    assert all(not (o < 50 <= n) for o, _, _, n, _ in rows)
+    assert len(rows) == 3  # 51 -> 53 is still open
+
+
+def test_batched_envs_keep_separate_streams():
+    t, w = writer(1, num_envs=2)
+    w(step([0, 100], [0, 1], [1.0, 2.0], [1, 101], terminated=[False, True]))
+    w(step([1, 200], [2, 3], [3.0, 4.0], [2, 201], truncated=[True, False]))
+    rows = set(transition_rows(t))
+    assert rows == {(100.0, 1, 2.0, 101.0, 0.0), (0.0, 0, 1.0, 1.0, G), (1.0, 2, 3.0, 2.0, G)}
+
+
+def test_observations_are_stored_once_per_step():
+    t, w = writer(3, max_size=1_000)
+    for s in episode(list(range(20))):
+        w(s)
+    w.flush()
+    assert t.size == 19
+    # One row per step plus one final-observation row: 20 observation rows for 19 items.
+    assert int((w.store.stamp[0] > 0).sum()) == 20
+    assert not hasattr(w.store, "next_obs")
+
+
+@pytest.mark.parametrize("length, stride, starts", [(2, 1, [0, 1, 2]), (3, 2, [0]), (2, 2, [0, 2]), (5, 1, [])])
+def test_sequence_items(length, stride, starts):
+    t = Table("t", 100, seed=0)
+    w = SequenceWriter(t, 1, OBS, ACT, sequence_length=length, stride_length=stride)
+    for s in episode([0, 1, 2, 3]):  # 4 rows: obs 0, 1, 2 and the final obs 3
+        w(s)
+    if not starts:
+        w.flush()
+        assert t.size == 0  # episodes shorter than the sequence give none
+        return
+    seq = items(t)
+    assert seq.obs[:, 0, 0].tolist() == [float(s) for s in starts]
+    assert seq.obs.shape == (len(starts), length, 1)
+    for row, s in enumerate(starts):
+        assert seq.obs[row, :, 0].tolist() == [float(s + j) for j in range(length)]
+        assert seq.last[row].tolist() == [s + j == 3 for j in range(length)]
+    if length == 2 and stride == 1:  # TF-Agents' DQN sequences: the last one ends at the final obs
+        assert seq.reward[:, 0].tolist() == [10.0, 11.0, 12.0] and seq.terminated[2].tolist() == [False, True]
+
+
+def test_frame_stacks_are_rebuilt_from_single_frames():
+    k = 3
+    spec = ArraySpec((k, 2), torch.uint8)
+    t = Table("t", 100, seed=0)
+    w = TransitionWriter(t, 1, spec, ACT, gamma=G, frame_stack=k)
+    assert w.store.frame.shape[2:] == (2,)  # one frame per row, not a stack
+    frames = [np.full(2, 10 * i, np.uint8) for i in range(6)]
+
+    def stack(i):  # reset padding: repeat the first frame
+        return np.stack([frames[max(0, j)] for j in range(i - k + 1, i + 1)])
+
+    for i in range(5):
+        w(Transition(torch.from_numpy(stack(i))[None], torch.tensor([i]), torch.tensor([1.0]),
+                     torch.from_numpy(stack(i + 1))[None], torch.tensor([i == 4]), torch.tensor([False])))
+    b = items(t)
+    for i in range(5):
+        assert np.array_equal(b.obs[i].numpy(), stack(i))
+        assert np.array_equal(b.next_obs[i].numpy(), stack(i + 1))
+
+
+def test_reused_rows_evict_their_items_instead_of_returning_wrong_data():
+    t = Table("t", 100, seed=0)  # far larger than the 6-row ring below
+    w = TransitionWriter(t, 1, OBS, ACT, gamma=G, n_step=2, rows=6)
+    for s in episode(list(range(30)), "truncated"):
+        w(s)
+    rows = transition_rows(t)
+    assert 0 < len(rows) <= 6
+    for o, a, r, n, _d in rows:
+        assert a == o and n == min(o + 2, 29) and r == (10 + o) + (G * (11 + o) if o < 28 else 0)
+
+
+def test_memmap_table_reopens_from_disk_and_drops_items_written_over_later(tmp_path):
+    def make():
+        t = Table("t", 50, Uniform(), Fifo(), MinSize(1), seed=0)
+        return t, TransitionWriter(t, 1, OBS, ACT, gamma=G, path=tmp_path / "replay", rows=40)
+
+    t, w = make()
+    for s in episode(list(range(21)), "truncated"):
+        w(s)
+    state = t.state_dict()
+    assert "arrays" not in str(state["storage"]["store"]["columns"])  # files, not copies
+    before = transition_rows(t)
+    for s in episode(list(range(100, 121)), "truncated"):  # after the checkpoint: overwrites rows
+        w(s)
+    t2, w2 = make()
+    t2.load_state_dict(state)
+    after = transition_rows(t2)
+    assert set(after) <= set(before)  # nothing from after the checkpoint, nothing mixed
+    assert 0 < len(after) < len(before)  # items whose rows were overwritten are gone
+    assert t2.size == len(after)
+
+
+def test_state_dict_round_trip_of_a_ram_writer():
+    t, w = writer(3, num_envs=2, max_size=20)
+    for i in range(15):
+        w(step([i, 100 + i], [i % 5, 1], [float(i), 1.0], [i + 1, 101 + i], terminated=[i % 7 == 6, False]))
+    t2, w2 = writer(3, num_envs=2, max_size=20)
+    t2.load_state_dict(t.state_dict())
+    assert transition_rows(t2) == transition_rows(t)
+
+
+@pytest.mark.parametrize("n_step", [1, 3])
+def test_flushing_every_step_or_once_gives_the_same_items(n_step):
+    rng = np.random.default_rng(0)
+    stream = [step(list(rng.random(3)), list(rng.integers(0, 5, 3)), list(rng.random(3)), list(rng.random(3)),
+                   list(rng.random(3) < 0.1), list(rng.random(3) < 0.05)) for _ in range(60)]
+    rows = []
+    for per_step in (True, False):
+        t, w = writer(n_step, num_envs=3, max_size=1_000, chunk_length=10_000)
+        for s in stream:
+            w(s)
+            if per_step:
+                w.flush()
+        rows.append(sorted(transition_rows(t)))
+    assert rows[0] == rows[1] and len(rows[0]) > 100
