@@ -77,12 +77,16 @@ class MLPView:
         """
         back = _BACKWARD[self.activation]
         for i in range(len(self.weight) - 1, -1, -1):
-            x = inputs[i][:rows]  # [N, in]
+            x = inputs[i]
+            if x.shape[0] != rows:
+                x = x[:rows]  # [N, in]
             torch.mm(g.t(), x, out=out[2 * i])  # [out, in]
             torch.sum(g, 0, out=out[2 * i + 1])  # [out]
             if i > 0:
                 z = pre[i - 1]
-                g = back(torch.mm(g, self.weight[i]), None if z is None else z[:rows], x)  # [N, in]
+                if z is not None and z.shape[0] != rows:
+                    z = z[:rows]
+                g = back(torch.mm(g, self.weight[i]), z, x)  # [N, in]
 
 
 def grad_buffers(net: MLP) -> tuple[Tensor, list[Tensor]]:
@@ -118,12 +122,12 @@ def dqn_loss_and_grads(
     x = torch.cat([batch.obs, batch.next_obs]) if both else batch.obs  # [2N or N, *obs_shape]
     q_all, inputs, pre = online.forward(x)  # [2N or N, A]
     if target is None:
-        next_v = q_all[n:].max(dim=1).values  # [N]
+        next_v = q_all[n:].amax(dim=1)  # [N]
     elif double:
         best = q_all[n:].argmax(dim=1, keepdim=True)  # [N, 1]
         next_v = target.forward(batch.next_obs)[0].gather(1, best).squeeze(1)  # [N]
     else:
-        next_v = target.forward(batch.next_obs)[0].max(dim=1).values  # [N]
+        next_v = target.forward(batch.next_obs)[0].amax(dim=1)  # [N]
     y = torch.addcmul(batch.reward, batch.discount, next_v)  # [N]
     action = batch.action.long().unsqueeze(1)  # [N, 1]
     q_all = q_all[:n]
