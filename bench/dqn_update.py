@@ -106,10 +106,11 @@ def main() -> None:
         name = "Double DQN" if double else "DQN"
         for manual in (False, True):
             how = "hand-written grads" if manual else "autograd"
-            rows.append((f"relayrl agent.train, {name}, {how}",
-                         per_call_us(lambda a=make_agent(double, manual): a.train(batch))))
+            a = make_agent(double, manual)
+            rows.append((f"relayrl agent.train, {name}, {how}", per_call_us(lambda a=a: a.train(batch))))
+        a = make_agent(double, True)
         rows.append((f"relayrl {name} burst: 128 x (sample + train), per step",
-                     per_call_us(lambda a=make_agent(double, True): burst(a), 20) / 128))
+                     per_call_us(lambda a=a: burst(a), 20) / 128))
     rows += [
         ("replay.sample", per_call_us(lambda: replay.sample(b))),
         ("env.step, batch of 1 (CartPole-v1)", per_call_us(lambda: env.step(a0))),

@@ -130,7 +130,8 @@ def dqn_loss_and_grads(
         next_v = target.forward(batch.next_obs)[0].amax(dim=1)  # [N]
     y = torch.addcmul(batch.reward, batch.discount, next_v)  # [N]
     action = batch.action.long().unsqueeze(1)  # [N, 1]
-    q_all = q_all[:n]
+    if both:
+        q_all = q_all[:n]  # [N, A]
     q = q_all.gather(1, action).squeeze(1)  # [N]
     td = q - y  # [N]
     w = batch.weight
