@@ -25,9 +25,9 @@ from torch import nn
 from relayrl.agents.dqn import DQNAgent, DQNConfig
 from relayrl.envs import make_env
 from relayrl.policies import GreedyPolicy
-from relayrl.replay import UniformReplay
+from relayrl.replay import Table, TransitionWriter
 from relayrl.specs import ArraySpec, DiscreteSpec
-from relayrl.types import Transition
+from relayrl.types import Batch, Transition
 
 
 def per_call_us(fn, n: int = 2000) -> float:
@@ -80,12 +80,19 @@ def main() -> None:
         return agent
 
     agent = make_agent(False, True)
-    replay = UniformReplay(100_000, obs_spec, act_spec, 0.99, seed=0)
-    for _i in range(100):
+    # The trainer's replay: a uniform Table fed by a TransitionWriter, 100,000 transitions.
+    table = Table("replay", 100_000, seed=0)
+    writer = TransitionWriter(table, 1000, obs_spec, act_spec, gamma=0.99)
+    for _i in range(101):
         x = torch.randn(1000, 4)
-        replay(Transition(x, torch.randint(2, (1000,)), torch.randn(1000), x, torch.zeros(1000, dtype=torch.bool),
+        writer(Transition(x, torch.randint(2, (1000,)), torch.randn(1000), x, torch.zeros(1000, dtype=torch.bool),
                           torch.zeros(1000, dtype=torch.bool)))
-    batch = replay.sample(b)
+    writer.flush()
+
+    def sample() -> Batch:
+        return table.sample(b)[0]
+
+    batch = sample()
     x = torch.randn(b, h[0])
     w = torch.randn(h[-1] if len(h) > 1 else h[0], h[0])
     env = make_env("CartPole-v1")
@@ -96,7 +103,7 @@ def main() -> None:
 
     def burst(agent: DQNAgent) -> None:
         for _ in range(128):
-            agent.train(replay.sample(b))
+            agent.train(sample())
 
     rows = [
         ("matmul alone: one [B,h]x[h,h] (of 4 per update)", per_call_us(lambda: x @ w.T)),
@@ -112,7 +119,7 @@ def main() -> None:
         rows.append((f"relayrl {name} burst: 128 x (sample + train), per step",
                      per_call_us(lambda a=a: burst(a), 20) / 128))
     rows += [
-        ("replay.sample", per_call_us(lambda: replay.sample(b))),
+        ("Table.sample (uniform, 100k)", per_call_us(sample)),
         ("env.step, batch of 1 (CartPole-v1)", per_call_us(lambda: env.step(a0))),
         ("greedy action, 1 obs, torch forward", per_call_us(lambda: agent.online(one).argmax(1), 5000)),
         ("greedy action, 1 obs, relayrl (NumPy views)", per_call_us(lambda: greedy(one), 5000)),

@@ -11,11 +11,10 @@ from relayrl.replay.rate_limiters import MinSize, Queue, RateLimiter, SampleToIn
 from relayrl.replay.selectors import Fifo, Lifo, MaxHeap, MinHeap, Prioritized, Selector, Uniform
 from relayrl.replay.storage import ItemStorage
 from relayrl.replay.table import RateLimiterTimeout, SampleInfo, Table
-from relayrl.replay.uniform import UniformReplay
 from relayrl.replay.writers import Sequence, SequenceWriter, TransitionWriter
 
 __all__ = [
     "Fifo", "ItemStorage", "Lifo", "MaxHeap", "MinHeap", "MinSize", "Prioritized", "Queue", "RateLimiter",
     "RateLimiterTimeout", "SampleInfo", "SampleToInsertRatio", "Selector", "Sequence", "SequenceWriter", "Table",
-    "TransitionWriter", "Uniform", "UniformReplay",
+    "TransitionWriter", "Uniform",
 ]
