@@ -88,32 +88,39 @@ class StepStore:
         start = np.maximum.accumulate(np.vstack([self.ep_start[None], after_final[:-1]]), axis=0)  # [C, B]
         envs = np.broadcast_to(self.envs, (c, b))
         i = (envs * self.T + pos % self.T).reshape(-1)  # [C*B] flat rows
-        self.flat("frame")[i] = frames.reshape((c * b,) + frames.shape[2:])
-        self.flat("action")[i] = actions.reshape((c * b,) + actions.shape[2:])
-        self.flat("reward")[i] = rewards.reshape(-1)
-        self.flat("stamp")[i] = pos.reshape(-1) + 1
-        self.flat("start")[i] = start.reshape(-1)
-        self.flat("last")[i] = False
-        self.flat("terminated")[i] = False
-        self.flat("item_key")[i] = -1
+        self._write_rows(i, pos.reshape(-1), start.reshape(-1), frames.reshape((c * b,) + frames.shape[2:]),
+                         actions.reshape((c * b,) + actions.shape[2:]), rewards.reshape(-1))
         if done.any():
             ce, be = np.nonzero(done)  # (step, env) order, as final_frames
             fp = pos[ce, be] + 1
             j = be * self.T + fp % self.T
-            self.flat("frame")[j] = final_frames
-            self.flat("reward")[j] = 0.0
-            self.flat("stamp")[j] = fp + 1
-            self.flat("start")[j] = start[ce, be]
-            self.flat("last")[j] = True
-            self.flat("terminated")[j] = terminated[ce, be]
-            self.flat("item_key")[j] = -1
+            self._write_rows(j, fp, start[ce, be], final_frames, None, 0.0, last=True, terminated=terminated[ce, be])
             self.ep_start = np.maximum(self.ep_start, after_final.max(axis=0))
         self.head = self.head + rows.sum(axis=0)
 
+    def write_step(self, frames: np.ndarray, actions: np.ndarray, rewards: np.ndarray) -> np.ndarray:
+        """Append one batched step in which no episode ended; returns its positions [B]."""
+        pos = self.head.copy()
+        self._write_rows(self.envs * self.T + pos % self.T, pos, self.ep_start, frames, actions, rewards)
+        self.head += 1
+        return pos
+
+    def _write_rows(self, i: np.ndarray, pos: np.ndarray, start: np.ndarray, frames: np.ndarray,
+                    actions: np.ndarray | None, rewards: np.ndarray | float, last: bool = False,
+                    terminated: np.ndarray | bool = False) -> None:
+        """Fill flat rows `i` (positions `pos`); a final-observation row has no action."""
+        self.flat("frame")[i] = frames
+        if actions is not None:
+            self.flat("action")[i] = actions
+        self.flat("reward")[i] = rewards
+        self.flat("stamp")[i] = pos + 1
+        self.flat("start")[i] = start
+        self.flat("last")[i] = last
+        self.flat("terminated")[i] = terminated
+        self.flat("item_key")[i] = -1
+
     def stacks(self, envs: np.ndarray, pos: np.ndarray, start: np.ndarray) -> np.ndarray:
-        """Observations at `pos`: [N, *obs_shape], stacks rebuilt from frames when k > 1."""
-        if self.k == 1:
-            return self.frame[envs, pos % self.T]
+        """Stacked observations at `pos`: [N, k, *frame], rebuilt from single frames (k > 1)."""
         back = np.arange(self.k - 1, -1, -1)  # [k] oldest first
         idx = np.maximum(pos[:, None] - back, start[:, None]) % self.T  # [N, k]
         return self.frame[envs[:, None], idx]  # [N, k, *frame]

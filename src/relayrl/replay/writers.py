@@ -136,29 +136,20 @@ class _Writer:
         envs = np.broadcast_to(s.envs[:, None], (s.B, j.size))
         pos = s.head[:, None] + j  # [B, R]
         mask = j < new_rows[:, None]
-        keys = s.evictable(envs[mask], pos[mask])
-        if (keys >= 0).any():
-            self.table.delete(keys[keys >= 0])
+        self._evict(envs[mask], pos[mask])
         s.write_chunk(frames, actions, rewards, done, term, finals)
         self._close_items()
 
     def _step_fast(self, frame: np.ndarray, action: np.ndarray, reward: np.ndarray) -> None:
         s = self.store
-        pos = s.head.copy()  # [B]
-        keys = s.evictable(s.envs, pos)
+        self._evict(s.envs, s.head)
+        self._close_newest(s.write_step(frame, action, reward))
+
+    def _evict(self, envs: np.ndarray, pos: np.ndarray) -> None:
+        """Drop the items that read the rows about to be reused for `pos`."""
+        keys = self.store.evictable(envs, pos)
         if (keys >= 0).any():
             self.table.delete(keys[keys >= 0])
-        i = s.envs * s.T + pos % s.T
-        s.flat("frame")[i] = frame
-        s.flat("action")[i] = action
-        s.flat("reward")[i] = reward
-        s.flat("stamp")[i] = pos + 1
-        s.flat("start")[i] = s.ep_start
-        s.flat("last")[i] = False
-        s.flat("terminated")[i] = False
-        s.flat("item_key")[i] = -1
-        s.head += 1
-        self._close_newest(pos)
 
     def _close_newest(self, pos: np.ndarray) -> None:
         """After one step without episode ends: close items that this row completes."""
