@@ -23,9 +23,10 @@ import argparse
 import json
 import os
 import statistics
-import subprocess
 import sys
 import time
+
+from _workers import report, run_worker  # bench/ is on sys.path when a script runs
 
 # relayrl --set overrides that express each setting on top of the dqn-cartpole preset.
 RELAYRL = {
@@ -120,15 +121,13 @@ def run_sb3(setting: str, seed: int) -> dict:
 def worker(argv: list[str]) -> None:
     which, setting, seed = argv[0], argv[1], int(argv[2])
     out = run_relayrl(setting, seed) if which == "relayrl" else run_sb3(setting, seed)
-    print("RESULT " + json.dumps(out), flush=True)
+    report(out)
 
 
 def spawn(python: str, which: str, setting: str, seed: int) -> dict:
-    proc = subprocess.run([python, __file__, "--worker", which, setting, str(seed)],
-                          capture_output=True, text=True, check=False)
-    for line in proc.stdout.splitlines():
-        if line.startswith("RESULT "):
-            return json.loads(line[7:])
+    result, proc = run_worker(python, __file__, [which, setting, str(seed)])
+    if result is not None:
+        return result
     raise RuntimeError(f"{which} worker failed:\n{proc.stderr[-3000:]}")
 
 

@@ -37,11 +37,12 @@ import json
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import time
 from collections.abc import Callable
 from typing import Any
+
+from _workers import report, run_worker  # bench/ is on sys.path when a script runs
 
 N, BATCH, EP_LEN, ITEM_BYTES = 1_000_000, 256, 200, 33
 PIXEL_N, PIXEL_STACK_BYTES = 100_000, 4 * 84 * 84
@@ -249,15 +250,13 @@ def worker(which: str, task: str, seconds: float) -> None:
         out = floor_task()
     else:
         out = {"relayrl": relayrl_task, "sb3": sb3_task, "torchrl": torchrl_task}[which](task, seconds)
-    print("RESULT " + json.dumps(out), flush=True)
+    report(out)
 
 
 def spawn(python: str, which: str, task: str, seconds: float) -> dict:
-    proc = subprocess.run([python, __file__, "--worker", which, task, str(seconds)],
-                          capture_output=True, text=True, check=False)
-    for line in proc.stdout.splitlines():
-        if line.startswith("RESULT "):
-            return json.loads(line[7:])
+    result, proc = run_worker(python, __file__, [which, task, str(seconds)])
+    if result is not None:
+        return result
     return {"error": f"worker failed (rc {proc.returncode}): {proc.stderr.strip().splitlines()[-1:]}"}
 
 
@@ -265,7 +264,7 @@ def cell(r: dict, floor: float) -> str:
     return f"{r['rate']:,.0f} ({100 * r['rate'] / floor:.2g}% floor)" if "rate" in r else r["error"]
 
 
-def report(res: dict[str, dict[str, dict]], pix: dict, floor: dict) -> tuple[list[str], dict, dict]:
+def report_table(res: dict[str, dict[str, dict]], pix: dict, floor: dict) -> tuple[list[str], dict, dict]:
     """Markdown lines, floors (ops/s) and targets (text, met) for the table."""
     # (bytes per op, random rows per op, unit) for the floor; see the module docstring.
     shape = {"insert-1": (ITEM_BYTES, 0, "inserts/s"), "insert-32": (ITEM_BYTES, 0, "transitions/s"),
@@ -322,7 +321,7 @@ def main() -> None:
         print(f"{task}: " + ", ".join(f"{k} {v.get('rate', v.get('error'))}" for k, v in res[task].items()),
               file=sys.stderr, flush=True)
     pix = spawn(sys.executable, "relayrl", "pixel", args.seconds)
-    lines, floors, targets = report(res, pix, floor)
+    lines, floors, targets = report_table(res, pix, floor)
     print("\n".join(lines))
     if args.json:
         meta = {"started": started, "command": " ".join([os.path.relpath(sys.executable), *sys.argv]),
