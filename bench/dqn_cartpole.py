@@ -32,7 +32,8 @@ from _workers import report, run_worker  # bench/ is on sys.path when a script r
 RELAYRL = {
     "tutorial": [],
     "zoo": [
-        "env.id=CartPole-v1", "train.total_steps=50000", "train.initial_collect_steps=1000",
+        "env.id=CartPole-v1", "env.time_limit_terminates=false", "train.total_steps=50000",
+        "train.initial_collect_steps=1000",
         "train.collect_steps=256", "train.gradient_steps=128", "eval.interval=5000",
         "agent.hidden=[256,256]", "agent.init='torch'", "agent.lr=2.3e-3", "agent.adam_eps=1e-8",
         "agent.gamma=0.99", "agent.loss='huber'", "agent.grad_clip=10.0",

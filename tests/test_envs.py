@@ -41,6 +41,14 @@ def test_truncation_is_kept_apart_from_termination():
     assert bool(out.truncated[0]) and not bool(out.terminated[0])
 
 
+def test_time_limit_terminates_turns_truncation_into_termination():
+    env = make_env("toy_envs:Truncating", time_limit_terminates=True)
+    env.reset(seed=0)
+    env.step(torch.zeros(1, dtype=torch.long))
+    out = env.step(torch.zeros(1, dtype=torch.long))
+    assert bool(out.terminated[0]) and not bool(out.truncated[0])
+
+
 def test_max_episode_steps_truncates_gymnasium_ids():
     env = make_env("CartPole-v1", max_episode_steps=2)
     env.reset(seed=0)

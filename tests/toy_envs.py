@@ -67,3 +67,26 @@ class BetterAction(gym.Env):
 
 class NotAnEnv:
     pass
+
+
+class Reach(gym.Env):
+    """One-step continuous task: obs t ~ U(-1, 1)^2, action a in [-2, 2]^2, reward -|a - 1.5 t|^2.
+
+    The best action is 1.5 t (return 0); a uniform random policy averages about -2.8. Bounds
+    other than [-1, 1] check that SAC rescales its tanh output.
+    """
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        self.observation_space = gym.spaces.Box(-1, 1, (2,), np.float32)
+        self.action_space = gym.spaces.Box(-2, 2, (2,), np.float32)
+        self._t = np.zeros(2, np.float32)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        self._t = self.np_random.uniform(-1, 1, 2).astype(np.float32)
+        return self._t, {}
+
+    def step(self, action):
+        reward = -float(np.sum((np.asarray(action) - 1.5 * self._t) ** 2))
+        self._t = self.np_random.uniform(-1, 1, 2).astype(np.float32)
+        return self._t, reward, True, False, {}

@@ -15,13 +15,14 @@ from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
-__all__ = ["load_config", "list_presets", "train", "load_policy", "plot_run", "record_video", "Config"]
+__all__ = ["load_config", "list_presets", "train", "load_policy", "export_policy", "plot_run", "record_video", "Config"]
 
 _LAZY = {
     "load_config": "relayrl.presets",
     "list_presets": "relayrl.presets",
     "train": "relayrl.training.loop",
     "load_policy": "relayrl.export",
+    "export_policy": "relayrl.export",
     "plot_run": "relayrl.plot",
     "record_video": "relayrl.video",
     "Config": "relayrl.config",
@@ -29,7 +30,7 @@ _LAZY = {
 
 if TYPE_CHECKING:
     from relayrl.config import Config
-    from relayrl.export import load_policy
+    from relayrl.export import export_policy, load_policy
     from relayrl.plot import plot_run
     from relayrl.presets import list_presets, load_config
     from relayrl.training.loop import train

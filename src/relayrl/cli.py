@@ -1,4 +1,4 @@
-"""The `relayrl` command: presets | train | eval | plot | video. Thin: parse, build, call."""
+"""The `relayrl` command: presets | train | eval | plot | video | export. Thin: parse, build, call."""
 
 from __future__ import annotations
 
@@ -46,6 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--out", metavar="MP4")
     v.add_argument("--episodes", type=int, default=1)
     v.add_argument("--seed", type=int, default=0)
+    x = sub.add_parser("export", help="write RUN_DIR/policy/policy.pt2, the policy for plain PyTorch (torch.export)")
+    x.add_argument("run_dir", metavar="RUN_DIR")
+    x.add_argument("--out", metavar="PT2")
     return p
 
 
@@ -108,6 +111,10 @@ def main(argv: list[str] | None = None) -> int:
             if args.episodes < 1:
                 raise UserError(f"--episodes {args.episodes} is not valid; it must be >= 1")
             print(record_video(args.run_dir, args.out, args.episodes, args.seed))
+        elif args.command == "export":
+            from relayrl.export import export_policy
+
+            print(export_policy(args.run_dir, args.out))
     except UserError as e:
         print(f"relayrl: error: {e}", file=sys.stderr)
         return EXIT_USAGE

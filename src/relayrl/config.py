@@ -14,9 +14,10 @@ from pathlib import Path
 from typing import Any
 
 from relayrl.agents.dqn.config import DQNConfig
+from relayrl.agents.sac.config import SACConfig
 from relayrl.errors import ConfigError
 
-AGENT_CONFIGS: dict[str, type] = {"dqn": DQNConfig}
+AGENT_CONFIGS: dict[str, type] = {"dqn": DQNConfig, "sac": SACConfig}
 
 
 @dataclass
@@ -24,6 +25,8 @@ class EnvConfig:
     id: str = "CartPole-v1"
     num_envs: int = 1
     max_episode_steps: int = 0  # 0: the env's own time limit
+    # true: a time-limit cut counts as termination (no bootstrap), as in old gym / TF-Agents
+    time_limit_terminates: bool = False
 
 
 @dataclass
@@ -35,6 +38,7 @@ class TrainConfig:
     checkpoint_interval: int = 10_000  # env steps; 0 disables
     policy_save_interval: int = 5_000  # env steps; 0 disables
     log_interval: int = 1_000  # env steps between progress / TensorBoard scalars
+    pull_interval: int = 0  # env steps between the actor's weight pulls; 0: every collect iteration
     torch_threads: int = 1  # 0 keeps torch's default; small nets run fastest on one
 
 
@@ -87,7 +91,7 @@ class Config:
             if value < 1:
                 raise ConfigError(f"{key}={value} is not valid; it must be >= 1")
         for key in ("initial_collect_steps", "gradient_steps", "checkpoint_interval",
-                    "policy_save_interval", "log_interval", "torch_threads"):
+                    "policy_save_interval", "log_interval", "pull_interval", "torch_threads"):
             if getattr(self.train, key) < 0:
                 raise ConfigError(f"train.{key} must be >= 0")
         r = self.replay

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any, Protocol, runtime_checkable
 
 import torch
+from torch import nn
 
 from relayrl.specs import Spec
 from relayrl.types import Batch, StepOutput, Transition
@@ -52,8 +54,14 @@ class Observer(Protocol):
 class Agent(Saveable, Protocol):
     """What the train loop knows of an algorithm."""
 
-    def collect_policy(self) -> Policy:
-        """The exploring policy; reads the agent's counters (e.g. for epsilon schedules)."""
+    def collect_policy(self, env_step: Callable[[], int], network: nn.Module | None = None) -> Policy:
+        """The exploring policy. `env_step` drives schedules (epsilon); `network` is the copy
+        of `policy_network()` it runs (an actor's, kept fresh from a VariableContainer);
+        None runs the agent's own network."""
+        ...
+
+    def policy_network(self) -> nn.Module:
+        """The network whose weights actors need (Q-network, SAC actor)."""
         ...
 
     def eval_policy(self) -> Policy:

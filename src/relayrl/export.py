@@ -1,15 +1,29 @@
-"""Load a saved policy as a batched callable `obs -> action`, without the agent or replay."""
+"""Saved policies: load one as a batched callable, or export it for plain PyTorch.
+
+`policy/policy.pt` holds a plain dict (network sizes, weights, action bounds) that
+`load_policy` rebuilds without the agent or replay. `export_policy` (`relayrl export RUN_DIR`;
+a few seconds, so not done on every save) writes `policy.pt2`, a
+`torch.export` program of the deterministic policy with a dynamic batch dimension, which
+runs with nothing but PyTorch:
+
+    program = torch.export.load("run/policy/policy.pt2").module()
+    actions = program(obs)  # [B, *obs_shape] float32 -> [B] (discrete) or [B, A]
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
+from torch import nn
 
 from relayrl.errors import UserError
 from relayrl.networks import MLP
-from relayrl.policies import GreedyPolicy
+from relayrl.policies import GreedyPolicy, TanhGaussianPolicy
+
+KINDS = ("q_greedy", "tanh_gaussian")
 
 
 def _policy_file(path: str | Path) -> Path:
@@ -23,20 +37,70 @@ def _policy_file(path: str | Path) -> Path:
 def load_policy_state(path: str | Path) -> dict[str, Any]:
     f = _policy_file(path)
     try:
-        return torch.load(f, map_location="cpu", weights_only=False)
+        state = torch.load(f, map_location="cpu", weights_only=False)
     except Exception as e:
         raise UserError(f"policy file {str(f)!r} is unreadable: {e}") from None
+    if state.get("kind") not in KINDS:
+        raise UserError(f"policy kind {state.get('kind')!r} is not supported by this relayrl version; "
+                        f"valid: {', '.join(KINDS)}")
+    return state
 
 
-def load_policy(path: str | Path, device: str = "cpu") -> GreedyPolicy:
-    """A run directory, its `policy/` folder or the file itself -> greedy batched policy.
+def _network(state: dict[str, Any]) -> MLP:
+    out_dim = state["num_actions"] if state["kind"] == "q_greedy" else 2 * state["action_dim"]
+    net = MLP(state["obs_dim"], state["hidden"], out_dim, state["activation"])
+    net.load_state_dict(state["state_dict"])
+    return net.eval()
 
-    The policy takes observations [B, *obs_shape] and returns actions [B].
+
+def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = True,
+                seed: int | None = None) -> GreedyPolicy | TanhGaussianPolicy:
+    """A run directory, its `policy/` folder or the file itself -> batched policy.
+
+    The policy takes observations [B, *obs_shape] and returns actions: [B] for discrete
+    (greedy in Q), [B, A] for continuous (tanh(mean), or sampled with `deterministic=False`).
     """
     state = load_policy_state(path)
-    if state.get("kind") != "q_greedy":
-        raise UserError(f"policy kind {state.get('kind')!r} is not supported by this relayrl version")
-    net = MLP(state["obs_dim"], state["hidden"], state["num_actions"], state["activation"])
-    net.load_state_dict(state["state_dict"])
     dev = torch.device(device)
-    return GreedyPolicy(net.to(dev).eval(), dev)
+    net = _network(state).to(dev)
+    if state["kind"] == "q_greedy":
+        if not deterministic:
+            raise UserError("a Q-network policy is greedy; deterministic=False applies to SAC policies")
+        return GreedyPolicy(net, dev)
+    return TanhGaussianPolicy(net, np.asarray(state["action_low"]), np.asarray(state["action_high"]), dev,
+                              deterministic, np.random.default_rng(seed),
+                              state["log_std_min"], state["log_std_max"])
+
+
+class _DeterministicPolicy(nn.Module):
+    """The eval policy as one traceable module: argmax Q, or loc + scale * tanh(mean)."""
+
+    def __init__(self, state: dict[str, Any]) -> None:
+        super().__init__()
+        self.net = _network(state)
+        self.discrete = state["kind"] == "q_greedy"
+        if not self.discrete:
+            low, high = np.asarray(state["action_low"]), np.asarray(state["action_high"])
+            self.register_buffer("loc", torch.as_tensor((high + low) / 2.0, dtype=torch.float32))
+            self.register_buffer("scale", torch.as_tensor((high - low) / 2.0, dtype=torch.float32))
+            self.action_dim = int(state["action_dim"])
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        out = self.net(obs)
+        if self.discrete:
+            return out.argmax(dim=1)  # [B]
+        return self.loc + self.scale * torch.tanh(out[:, : self.action_dim])  # [B, A]
+
+
+def export_policy(path: str | Path, out: str | Path | None = None) -> Path:
+    """Write the deterministic policy as a `torch.export` program (`policy.pt2`)."""
+    state = load_policy_state(path)
+    module = _DeterministicPolicy(state).requires_grad_(False)
+    example = torch.zeros(2, state["obs_dim"])
+    batch = torch.export.Dim("batch", min=1)
+    program = torch.export.export(module, (example,), dynamic_shapes=({0: batch},))
+    target = Path(out) if out is not None else _policy_file(path).with_suffix(".pt2")
+    tmp = target.with_name(".tmp-" + target.name)  # torch.export wants the .pt2 suffix
+    torch.export.save(program, tmp)
+    tmp.replace(target)  # never a half-written program under the real name
+    return target

@@ -89,3 +89,38 @@ class EpsilonGreedyPolicy:
         if n_explore == b:
             return random_actions  # skip the network when every element explores
         return torch.where(torch.from_numpy(explore), random_actions, self.greedy(obs))
+
+
+class TanhGaussianPolicy:
+    """SAC's policy: a = low + (tanh(u) + 1) / 2 * (high - low), u ~ N(mean(s), std(s)).
+
+    `deterministic=True` takes u = mean (the eval policy). The actor MLP outputs
+    [mean, log_std] per action dim; log_std is clipped to [log_std_min, log_std_max].
+    Actions come back as float32 CPU tensors [B, A]; noise comes from a NumPy generator.
+    """
+
+    def __init__(self, actor: nn.Module, low: np.ndarray, high: np.ndarray, device: torch.device,
+                 deterministic: bool, rng: np.random.Generator | None = None,
+                 log_std_min: float = -20.0, log_std_max: float = 2.0) -> None:
+        self.actor = actor
+        self.device = device
+        self.deterministic = deterministic
+        self.rng = rng if rng is not None else np.random.default_rng()
+        self.log_std_bounds = (log_std_min, log_std_max)
+        self.loc = ((high + low) / 2.0).astype(np.float32)  # [A]
+        self.half = ((high - low) / 2.0).astype(np.float32)  # [A]
+        self._numpy = (NumpyMLP(actor) if isinstance(actor, MLP) and device.type == "cpu"
+                       and all(p.dtype == torch.float32 for p in actor.parameters()) else None)
+
+    def __call__(self, obs: torch.Tensor) -> torch.Tensor:
+        if self._numpy is not None:
+            out = self._numpy(obs.numpy())  # [B, 2A]
+        else:
+            with torch.no_grad():
+                out = self.actor(obs.to(self.device, non_blocking=True)).cpu().numpy()
+        a_dim = out.shape[1] // 2
+        u = out[:, :a_dim]  # [B, A]
+        if not self.deterministic:
+            log_std = np.clip(out[:, a_dim:], *self.log_std_bounds)
+            u = u + np.exp(log_std) * self.rng.standard_normal(u.shape, dtype=np.float32)
+        return torch.from_numpy((self.loc + self.half * np.tanh(u)).astype(np.float32, copy=False))

@@ -17,4 +17,8 @@ def make_agent(algo: str, agent_cfg: Any, obs_spec: Spec, action_spec: Spec, dev
         from relayrl.agents.dqn import DQNAgent
 
         return DQNAgent(obs_spec, action_spec, agent_cfg, device, rng, total_steps)
+    if algo == "sac":
+        from relayrl.agents.sac import SACAgent
+
+        return SACAgent(obs_spec, action_spec, agent_cfg, device, rng, total_steps)
     raise ValueError(f"unknown algo {algo!r}")

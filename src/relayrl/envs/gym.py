@@ -61,7 +61,7 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
 class GymBatchEnv:
     """`num_envs` Gymnasium envs stepped in this process, as one batched env."""
 
-    def __init__(self, env_fns: list[EnvFn]) -> None:
+    def __init__(self, env_fns: list[EnvFn], time_limit_terminates: bool = False) -> None:
         if not env_fns:
             raise UserError("env.num_envs must be >= 1")
         self.envs = [fn() for fn in env_fns]
@@ -72,6 +72,9 @@ class GymBatchEnv:
         obs_dtype = torch.empty((), dtype=self.observation_spec.dtype).numpy().dtype
         self._obs_dtype = obs_dtype
         self._discrete = isinstance(self.action_spec, DiscreteSpec)
+        # Old gym (and so the TF-Agents tutorials) reported a time-limit cut as `done`, a
+        # termination: targets do not bootstrap through it. Some presets reproduce that.
+        self.time_limit_terminates = time_limit_terminates
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
         obs = []
@@ -95,6 +98,8 @@ class GymBatchEnv:
             o, r, term, trunc, _ = env.step(actions[i])
             next_obs[i] = o
             reward[i] = r
+            if self.time_limit_terminates:
+                term, trunc = term or trunc, False
             terminated[i] = term
             truncated[i] = trunc
             if term or trunc:
@@ -113,10 +118,10 @@ class GymBatchEnv:
 
 
 def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0,
-             render_mode: str | None = None) -> GymBatchEnv:
+             render_mode: str | None = None, time_limit_terminates: bool = False) -> GymBatchEnv:
     """A batched env of `num_envs` copies of `env_id`."""
     fn = resolve_env_fn(env_id, max_episode_steps, render_mode)
     try:
-        return GymBatchEnv([fn] * num_envs)
+        return GymBatchEnv([fn] * num_envs, time_limit_terminates)
     except gym.error.Error as e:
         raise UserError(f"env.id={env_id!r} could not be made: {e}") from None

@@ -7,24 +7,29 @@ from collections.abc import Sequence
 import torch
 
 from relayrl.core import BatchedEnv, Observer, Policy
+from relayrl.training.variables import WeightPuller
 from relayrl.types import Transition
 
 
 class Actor:
     """env + policy + observers. `run(n)` takes at least `n` env steps (B per batched step).
 
-    Observers with a `flush()` (replay writers) are flushed at the end of every run.
+    Observers with a `flush()` (replay writers) are flushed at the end of every run. With a
+    `puller`, each run starts by pulling newer policy weights (every `interval` env steps).
     """
 
     def __init__(self, env: BatchedEnv, policy: Policy, observers: Sequence[Observer],
-                 seed: int | None = None) -> None:
+                 seed: int | None = None, puller: WeightPuller | None = None) -> None:
         self.env = env
         self.policy = policy
+        self.puller = puller  # refreshes the policy's weights from a VariableContainer
         self.observers = list(observers)
         self.env_steps = 0
         self._obs: torch.Tensor = env.reset(seed=seed)
 
     def run(self, num_steps: int) -> None:
+        if self.puller is not None:
+            self.puller.maybe_pull(self.env_steps)
         b = self.env.num_envs
         taken = 0
         while taken < num_steps:

@@ -7,11 +7,13 @@ import torch
 
 from relayrl.core import Agent
 from relayrl.replay import Table
+from relayrl.training.variables import VariableContainer
 from relayrl.types import Batch
 
 
 class Learner:
-    """agent + table. `run(k)` takes k gradient steps; `last_metrics` holds the latest scalars.
+    """agent + table. `run(k)` takes k gradient steps, then pushes the policy weights to the
+    VariableContainer if it has one; `last_metrics` holds the latest scalars.
 
     With a prioritized table (`prioritized=True`) each batch carries importance weights
     w_i = (N * P(i)) ** -importance_exponent / max_j w_j (Schaul et al. 2016, normalised by
@@ -19,8 +21,11 @@ class Learner:
     """
 
     def __init__(self, agent: Agent, table: Table, batch_size: int, device: torch.device,
-                 prioritized: bool = False, importance_exponent: float = 0.4, priority_eps: float = 1e-6) -> None:
+                 prioritized: bool = False, importance_exponent: float = 0.4, priority_eps: float = 1e-6,
+                 variables: VariableContainer | None = None) -> None:
         self.agent = agent
+        self.variables = variables  # receives the policy weights after every run with a step
+        self._policy_params = list(agent.policy_network().parameters())
         self.table = table
         self.batch_size = batch_size
         self.device = device
@@ -45,6 +50,8 @@ class Learner:
             if self.prioritized:
                 td = self.last_metrics["td_error"].abs().cpu().numpy().astype(np.float64)
                 self.table.update_priorities(info.key, td + self.priority_eps)
+        if iterations > 0 and self.variables is not None:
+            self.variables.push(self._policy_params)
 
     def scalar_metrics(self) -> dict[str, float]:
         """Latest training scalars as floats, named like CleanRL's `losses/...`."""

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import sys
 import time
 from dataclasses import dataclass
@@ -25,6 +26,7 @@ from relayrl.training.learner import Learner
 from relayrl.training.replay import build_replay
 from relayrl.training.run_dir import MetricsLog, RunDir
 from relayrl.training.triggers import IntervalTrigger, Progress, StepsPerSecond
+from relayrl.training.variables import VariableContainer, WeightPuller
 
 EVAL_BATCH = 16  # eval episodes run as one batch of at most this many env copies
 
@@ -60,7 +62,8 @@ class LocalRun:
             torch.set_num_threads(c.train.torch_threads)
         torch.manual_seed(c.seed)  # network initialisation
         self.device = resolve_device(c.device)
-        self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps)
+        self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
+                            time_limit_terminates=c.env.time_limit_terminates)
         self.eval_env = make_env(c.env.id, min(c.eval.episodes, EVAL_BATCH), c.env.max_episode_steps)
         obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
         self.agent = make_agent(c.algo, c.agent, obs_spec, act_spec, self.device,
@@ -71,11 +74,16 @@ class LocalRun:
         self.steps = EnvironmentSteps()
         self.actor = Actor(self.env, RandomPolicy(act_spec, self.random_rng),
                            [self.steps, self.stats, self.writer], seed=c.seed)
-        self.collect_policy = self.agent.collect_policy(lambda: self.actor.env_steps)
+        # The actor acts with its own copy of the policy network, refreshed from the variable
+        # container the learner pushes to: the same wiring as on Ray, where it is remote.
+        self.variables = VariableContainer()
+        acting_net = copy.deepcopy(self.agent.policy_network()).requires_grad_(False)
+        self.actor.puller = WeightPuller(self.variables, acting_net, c.train.pull_interval)
+        self.collect_policy = self.agent.collect_policy(lambda: self.actor.env_steps, acting_net)
         self.learner = Learner(self.agent, self.replay, c.agent.batch_size, self.device,
                                prioritized=c.replay.sampler == "prioritized",
                                importance_exponent=c.replay.importance_exponent,
-                               priority_eps=c.replay.priority_eps)
+                               priority_eps=c.replay.priority_eps, variables=self.variables)
         self._beta_at = linear_schedule(c.replay.importance_exponent, 1.0, c.train.total_steps)
         self.eval_count = 0
         self.wall_offset = 0.0
@@ -186,6 +194,7 @@ class LocalRun:
                 self.run_eval(Progress(0, 0))  # the untrained policy, before any collection
                 self.actor.run(c.train.initial_collect_steps)
             self.sps.reset(self.progress())
+            self.variables.push(list(self.agent.policy_network().parameters()))  # fresh or restored weights
             self.actor.policy = self.collect_policy
             self._iterate()
             return RunResult(self.rd.root, self.last_eval)

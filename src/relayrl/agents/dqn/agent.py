@@ -50,10 +50,15 @@ class DQNAgent:
     def train_step(self) -> int:
         return self._train_step
 
-    def collect_policy(self, env_step: Callable[[], int]) -> EpsilonGreedyPolicy:
+    def collect_policy(self, env_step: Callable[[], int], network: torch.nn.Module | None = None
+                       ) -> EpsilonGreedyPolicy:
         assert isinstance(self.action_spec, DiscreteSpec)
         eps = linear_schedule(self.cfg.epsilon_start, self.cfg.epsilon_end, self.cfg.epsilon_decay_steps)
-        return EpsilonGreedyPolicy(self.eval_policy(), self.action_spec.n, eps, env_step, self.rng)
+        greedy = GreedyPolicy(network if network is not None else self.online, self.device)
+        return EpsilonGreedyPolicy(greedy, self.action_spec.n, eps, env_step, self.rng)
+
+    def policy_network(self) -> torch.nn.Module:
+        return self.online
 
     def eval_policy(self) -> GreedyPolicy:
         return GreedyPolicy(self.online, self.device)

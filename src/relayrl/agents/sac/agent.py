@@ -1,0 +1,153 @@
+"""SAC agent: owns the actor, twin critics, their targets, alpha, optimizers and counters.
+
+One `train(batch)` is: critic step on soft TD targets, actor step through the freshly
+updated critics, alpha step towards the target entropy, Polyak update of the target critics
+(the order of SB3 and TF-Agents). The losses are the pure functions of `losses.py`.
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+from relayrl.agents.sac.config import SACConfig
+from relayrl.agents.sac.losses import actor_loss, alpha_loss, critic_loss, critic_targets, tanh_gaussian
+from relayrl.agents.sac.networks import actor_network, check_action_spec, critic_network
+from relayrl.optim import FastAdam
+from relayrl.policies import TanhGaussianPolicy
+from relayrl.specs import Spec
+from relayrl.types import Batch
+
+
+class SACAgent:
+    def __init__(self, obs_spec: Spec, action_spec: Spec, cfg: SACConfig, device: torch.device,
+                 rng: np.random.Generator, total_steps: int = 0) -> None:
+        self.cfg = cfg
+        self.action_spec = check_action_spec(action_spec)
+        self.device = device
+        self.rng = rng  # collect-policy noise, checkpointed with the agent
+        self.actor = actor_network(obs_spec, self.action_spec, cfg.actor_hidden, cfg.activation).to(device)
+        self.critic = critic_network(obs_spec, self.action_spec, cfg.critic_hidden, cfg.activation).to(device)
+        self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
+        self.log_alpha = torch.tensor(float(np.log(cfg.init_alpha)), device=device, requires_grad=True)
+        self.actor_opt = FastAdam(self.actor.parameters(), lr=cfg.actor_lr)
+        self.critic_opt = FastAdam(self.critic.parameters(), lr=cfg.critic_lr)
+        self.alpha_opt = FastAdam([self.log_alpha], lr=cfg.alpha_lr)
+        a_dim = int(np.prod(self.action_spec.shape))
+        self.target_entropy = float(-a_dim if cfg.target_entropy is None else cfg.target_entropy)
+        low, high = self.action_spec.low, self.action_spec.high
+        # Replay holds env-scale actions; the critics see them rescaled to [-1, 1].
+        self._loc = torch.as_tensor((high + low) / 2.0, dtype=torch.float32, device=device)
+        self._half = torch.as_tensor((high - low) / 2.0, dtype=torch.float32, device=device)
+        # Training noise from its own generator, so a checkpoint restores it exactly.
+        self.gen = torch.Generator(device=device)
+        self.gen.manual_seed(int(rng.integers(2**62)))
+        self._critic_params = list(self.critic.parameters())
+        self._target_params = list(self.target_critic.parameters())
+        self._actor_params = list(self.actor.parameters())
+        self._train_step = 0
+
+    @property
+    def train_step(self) -> int:
+        return self._train_step
+
+    @property
+    def alpha(self) -> float:
+        return float(self.log_alpha.exp())
+
+    def _policy(self, deterministic: bool, network: torch.nn.Module | None = None) -> TanhGaussianPolicy:
+        s = self.action_spec
+        return TanhGaussianPolicy(network if network is not None else self.actor, s.low, s.high, self.device,
+                                  deterministic, self.rng, self.cfg.log_std_min, self.cfg.log_std_max)
+
+    def collect_policy(self, env_step: Callable[[], int] | None = None,
+                       network: torch.nn.Module | None = None) -> TanhGaussianPolicy:
+        return self._policy(deterministic=False, network=network)
+
+    def policy_network(self) -> torch.nn.Module:
+        return self.actor
+
+    def eval_policy(self) -> TanhGaussianPolicy:
+        return self._policy(deterministic=True)
+
+    def set_progress(self, env_steps: int) -> None:
+        """SAC has no env-step schedules; kept for the Agent protocol."""
+
+    def _sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.actor(obs)  # [N, 2A]
+        mean, log_std = out.chunk(2, dim=-1)
+        log_std = log_std.clamp(self.cfg.log_std_min, self.cfg.log_std_max)
+        noise = torch.randn(mean.shape, generator=self.gen, device=mean.device)
+        return tanh_gaussian(mean, log_std, noise)  # actions in [-1, 1]: [N, A], [N]
+
+    def train(self, batch: Batch) -> dict[str, torch.Tensor]:
+        cfg = self.cfg
+        alpha = self.log_alpha.detach().exp()
+        with torch.no_grad():
+            next_a, next_logp = self._sample(batch.next_obs)
+            y = critic_targets(batch.reward, batch.discount, self.target_critic(batch.next_obs, next_a),
+                               next_logp, alpha, cfg.reward_scale)  # [N]
+        action = (batch.action.reshape(batch.action.shape[0], -1) - self._loc) / self._half  # [N, A]
+        q = self.critic(batch.obs, action)  # [2, N]
+        c_loss, td = critic_loss(q, y, batch.weight)
+        self._step(self.critic_opt, self._critic_params, c_loss)
+
+        a_pi, logp = self._sample(batch.obs)
+        q_pi = self.critic(batch.obs, a_pi, detach_params=True)  # [2, N]: updated critics, grads to a only
+        a_loss = actor_loss(logp, q_pi, alpha, batch.weight)
+        self._step(self.actor_opt, self._actor_params, a_loss)
+
+        if cfg.autotune_alpha:
+            self._step(self.alpha_opt, [self.log_alpha], alpha_loss(self.log_alpha, logp, self.target_entropy))
+        self._train_step += 1
+        if self._train_step % cfg.target_update_period == 0:
+            with torch.no_grad():  # Polyak, fused over every tensor
+                torch._foreach_lerp_(self._target_params, self._critic_params, cfg.tau)
+        return {"critic_loss": c_loss.detach(), "actor_loss": a_loss.detach(), "alpha": alpha,
+                "entropy": -logp.detach().mean(), "q": q[0].detach(), "td_error": td}
+
+    def _step(self, opt: FastAdam, params: list[torch.Tensor], loss: torch.Tensor) -> None:
+        opt.zero_grad()
+        loss.backward()
+        if self.cfg.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(params, self.cfg.grad_clip)
+        opt.step()
+
+    def policy_state(self) -> dict[str, Any]:
+        s = self.action_spec
+        return {
+            "kind": "tanh_gaussian",
+            "obs_dim": self.actor.layers[0].in_features,
+            "hidden": list(self.cfg.actor_hidden),
+            "action_dim": self.actor.layers[-1].out_features // 2,
+            "activation": self.cfg.activation,
+            "action_low": np.asarray(s.low, np.float32), "action_high": np.asarray(s.high, np.float32),
+            "log_std_min": self.cfg.log_std_min, "log_std_max": self.cfg.log_std_max,
+            "state_dict": {k: v.detach().cpu() for k, v in self.actor.state_dict().items()},
+        }
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
+            "target_critic": self.target_critic.state_dict(), "log_alpha": self.log_alpha.detach().clone(),
+            "actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict(),
+            "alpha_opt": self.alpha_opt.state_dict(), "train_step": self._train_step,
+            "rng": self.rng.bit_generator.state, "gen": self.gen.get_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.target_critic.load_state_dict(state["target_critic"])
+        with torch.no_grad():
+            self.log_alpha.copy_(state["log_alpha"])
+        self.actor_opt.load_state_dict(state["actor_opt"])
+        self.critic_opt.load_state_dict(state["critic_opt"])
+        self.alpha_opt.load_state_dict(state["alpha_opt"])
+        self._train_step = int(state["train_step"])
+        self.rng.bit_generator.state = state["rng"]
+        self.gen.set_state(state["gen"])

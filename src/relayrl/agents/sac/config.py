@@ -1,0 +1,47 @@
+"""SAC hyperparameters (Haarnoja et al. 2018, with automatic entropy tuning)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from relayrl.errors import ConfigError
+
+
+@dataclass
+class SACConfig:
+    actor_hidden: list[int] = field(default_factory=lambda: [256, 256])
+    critic_hidden: list[int] = field(default_factory=lambda: [256, 256])
+    activation: str = "relu"  # relu | tanh | elu
+    actor_lr: float = 3e-4
+    critic_lr: float = 3e-4
+    alpha_lr: float = 3e-4
+    batch_size: int = 256
+    gamma: float = 0.99
+    tau: float = 0.005  # Polyak factor for the target critics
+    target_update_period: int = 1  # gradient steps between target updates
+    reward_scale: float = 1.0
+    init_alpha: float = 1.0
+    autotune_alpha: bool = True  # false: alpha stays init_alpha
+    target_entropy: float | None = None  # None: -|A| (the SAC paper's heuristic)
+    grad_clip: float = 0.0  # max global grad norm per network; 0 disables
+    log_std_min: float = -20.0
+    log_std_max: float = 2.0
+
+    def validate(self) -> None:
+        if self.activation not in ("relu", "tanh", "elu"):
+            raise ConfigError(f"agent.activation={self.activation!r} is not valid; valid: relu, tanh, elu")
+        for key in ("actor_hidden", "critic_hidden"):
+            sizes = getattr(self, key)
+            if not sizes or any(h < 1 for h in sizes):
+                raise ConfigError(f"agent.{key}={sizes} is not valid; give one or more positive sizes")
+        for key in ("actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale"):
+            if getattr(self, key) <= 0:
+                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be > 0")
+        if not 0.0 < self.tau <= 1.0:
+            raise ConfigError(f"agent.tau={self.tau} is not valid; it must be in (0, 1]")
+        if not 0.0 <= self.gamma <= 1.0:
+            raise ConfigError(f"agent.gamma={self.gamma} is not valid; it must be in [0, 1]")
+        if self.target_update_period < 1 or self.batch_size < 1:
+            raise ConfigError("agent.target_update_period and agent.batch_size must be >= 1")
+        if self.grad_clip < 0 or self.log_std_min >= self.log_std_max:
+            raise ConfigError("agent.grad_clip must be >= 0 and agent.log_std_min < agent.log_std_max")

@@ -1,0 +1,75 @@
+"""VariableContainer: versioned policy weights the learner pushes and actors pull.
+
+TF-Agents' actors read their policy's variables from a (Reverb) variable container; ours is
+the same idea as a plain object, and the Ray layer puts one in a Ray actor. Weights travel
+as a list of CPU tensors in `network.parameters()` order, so applying them is one fused copy.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import torch
+from torch import nn
+
+
+class VariableContainer:
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._version = 0
+        self._weights: list[torch.Tensor] | None = None
+
+    @property
+    def version(self) -> int:
+        return self._version
+
+    def push(self, weights: list[torch.Tensor]) -> int:
+        """Store a snapshot (later in-place updates of `weights` do not leak in); returns its version."""
+        snapshot = [w.detach().to("cpu", copy=True) for w in weights]
+        with self._lock:
+            self._weights = snapshot
+            self._version += 1
+            return self._version
+
+    def pull(self, newer_than: int = 0) -> tuple[int, list[torch.Tensor] | None]:
+        """(version, weights), or (version, None) when nothing newer than `newer_than` exists."""
+        with self._lock:
+            if self._version <= newer_than:
+                return self._version, None
+            return self._version, self._weights
+
+    def state_dict(self) -> dict:
+        return {"version": self._version, "weights": self._weights}
+
+    def load_state_dict(self, state: dict) -> None:
+        with self._lock:
+            self._version, self._weights = int(state["version"]), state["weights"]
+
+
+class WeightPuller:
+    """Keeps an actor's copy of the policy network in step with a container.
+
+    `maybe_pull()` copies the newest weights in place (so NumPy views of the parameters used
+    for fast CPU inference stay valid) at most once every `interval` calls' worth of env steps.
+    """
+
+    def __init__(self, container: VariableContainer, network: nn.Module, interval: int = 0) -> None:
+        self.container = container
+        self.params = [p.detach() for p in network.parameters()]
+        self.interval = interval
+        self.version = 0
+        self._last_pull_step = -(10**18)
+
+    def maybe_pull(self, env_steps: int) -> bool:
+        if env_steps - self._last_pull_step < self.interval:
+            return False
+        self._last_pull_step = env_steps
+        version, weights = self.container.pull(newer_than=self.version)
+        if weights is None:
+            return False
+        devices = {p.device for p in self.params}
+        if devices != {torch.device("cpu")}:
+            weights = [w.to(p.device) for w, p in zip(weights, self.params, strict=True)]
+        torch._foreach_copy_(self.params, weights)
+        self.version = version
+        return True
