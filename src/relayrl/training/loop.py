@@ -76,7 +76,8 @@ class LocalRun:
                            [self.steps, self.stats, self.writer], seed=c.seed)
         # The actor acts with its own copy of the policy network, refreshed from the variable
         # container the learner pushes to: the same wiring as on Ray, where it is remote.
-        self.variables = VariableContainer()
+        # Learner and actor take turns in this process, so the container may keep references.
+        self.variables = VariableContainer(copy=False)
         acting_net = copy.deepcopy(self.agent.policy_network()).requires_grad_(False)
         self.actor.puller = WeightPuller(self.variables, acting_net, c.train.pull_interval)
         self.collect_policy = self.agent.collect_policy(lambda: self.actor.env_steps, acting_net)

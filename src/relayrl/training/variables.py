@@ -14,7 +14,12 @@ from torch import nn
 
 
 class VariableContainer:
-    def __init__(self) -> None:
+    """`copy=False` keeps references instead of snapshots: right only where nothing updates
+    the weights between a push and the pulls that follow it (the one-process loop, where the
+    learner and the actor take turns), and it saves one copy of the weights per iteration."""
+
+    def __init__(self, copy: bool = True) -> None:
+        self.copy = copy
         self._lock = threading.Lock()
         self._version = 0
         self._weights: list[torch.Tensor] | None = None
@@ -25,7 +30,7 @@ class VariableContainer:
 
     def push(self, weights: list[torch.Tensor]) -> int:
         """Store a snapshot (later in-place updates of `weights` do not leak in); returns its version."""
-        snapshot = [w.detach().to("cpu", copy=True) for w in weights]
+        snapshot = [w.detach().to("cpu", copy=self.copy) for w in weights]
         with self._lock:
             self._weights = snapshot
             self._version += 1
