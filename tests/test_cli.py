@@ -85,6 +85,18 @@ def test_example_runs_a_few_hundred_steps(cli_env):
     assert "iteration 300: eval return" in r.stdout
 
 
+def test_sac_actor_learner_example_runs_a_few_hundred_steps(cli_env, tmp_path):
+    import pathlib
+
+    example = pathlib.Path(__file__).parents[1] / "examples" / "sac_actor_learner.py"
+    r = subprocess.run([sys.executable, str(example), "--iterations", "100", "--initial-steps", "100",
+                        "--eval-interval", "50", "--hidden", "32", "--batch-size", "32",
+                        "--out", str(tmp_path / "out")],
+                       capture_output=True, text=True, env=cli_env, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "train step 100: eval return" in r.stdout
+
+
 def test_ci_runs_the_readme_test_command():
     import pathlib
 

@@ -27,3 +27,40 @@ def test_batched_steps_fire_once_per_crossing_never_twice():
 def test_zero_interval_never_fires_and_resume_skips_passed_boundaries():
     assert fired_at(0, range(100)) == []
     assert fired_at(10, [25, 30, 41], start=25) == [30, 41]
+
+
+def test_train_step_triggers_fire_inside_learner_run(tmp_path):
+    import numpy as np
+    import torch
+
+    from relayrl.agents.dqn import DQNAgent, DQNConfig
+    from relayrl.envs import make_env
+    from relayrl.export import load_policy
+    from relayrl.policies import RandomPolicy
+    from relayrl.replay import Fifo, MinSize, Table, TransitionWriter, Uniform
+    from relayrl.training.actor import Actor
+    from relayrl.training.checkpoint import list_checkpoints
+    from relayrl.training.learner import Learner
+    from relayrl.training.triggers import Checkpointer, Evaluate, PolicySaver, StepsPerSecondLog
+
+    env = make_env("CartPole-v1")
+    agent = DQNAgent(env.observation_spec, env.action_spec, DQNConfig(hidden=[8], batch_size=4),
+                     torch.device("cpu"), np.random.default_rng(0))
+    table = Table("t", 100, Uniform(), Fifo(), MinSize(4), seed=0)
+    actor = Actor(env, RandomPolicy(env.action_spec, np.random.default_rng(0)),
+                  [TransitionWriter(table, 1, env.observation_spec, env.action_spec, gamma=0.99)], seed=0)
+    actor.run(20)
+    logs, evals = [], []
+    triggers = [
+        PolicySaver(5, agent, tmp_path / "policy", unit="train_steps"),
+        Checkpointer(4, lambda: {"agent": agent.state_dict()}, tmp_path / "ck", unit="train_steps"),
+        Evaluate(6, make_env("CartPole-v1", 2), agent.eval_policy, episodes=2, unit="train_steps",
+                 on_result=lambda p, r: evals.append((p.train_step, r["episodes"]))),
+        StepsPerSecondLog(3, unit="train_steps", log=logs.append),
+    ]
+    learner = Learner(agent, table, 4, torch.device("cpu"), triggers=triggers, env_steps=lambda: actor.env_steps)
+    learner.run(12)
+    assert evals == [(6, 2), (12, 2)]
+    assert len(logs) == 4 and logs[0].startswith("step 20 | train step 3 |")
+    assert [p.name for p in list_checkpoints(tmp_path / "ck")] == ["ckpt-000000000020.pt"]  # same env step
+    assert load_policy(tmp_path)(torch.zeros(3, 4)).shape == (3,)

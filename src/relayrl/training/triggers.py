@@ -1,12 +1,19 @@
-"""Triggers: actions the loop fires every `interval` env steps (eval, policy save,
-checkpoint, steps/s log). Batched envs advance by B steps, so a trigger fires once per
-interval boundary crossed, never more."""
+"""Triggers: actions fired every `interval` env steps or gradient steps (eval, policy save,
+checkpoint, steps/s log), as TF-Agents' learner triggers. Batched envs advance by B steps,
+so a trigger fires once per interval boundary crossed, never more.
+
+The local loop fires them after each collect/train iteration; a `Learner` given triggers
+fires them after each gradient step (TF-Agents' `Learner(..., triggers=[...])`).
+"""
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 
 @dataclass
@@ -16,24 +23,86 @@ class Progress:
 
 
 class IntervalTrigger:
-    """Calls `fn(progress)` each time env steps cross a multiple of `interval` (0: never)."""
+    """Calls `fn(progress)` each time the counter crosses a multiple of `interval` (0: never).
 
-    def __init__(self, interval: int, fn: Callable[[Progress], None]) -> None:
+    `unit` picks the counter: "env_steps" (the default, as the config's intervals) or
+    "train_steps" (gradient steps, as TF-Agents' learner triggers count).
+    """
+
+    def __init__(self, interval: int, fn: Callable[[Progress], None], unit: str = "env_steps") -> None:
+        if unit not in ("env_steps", "train_steps"):
+            raise ValueError(f"unit={unit!r} is not valid; valid: env_steps, train_steps")
         self.interval = interval
         self.fn = fn
+        self.unit = unit
         self._next = interval
 
-    def start_at(self, env_steps: int) -> None:
+    def _count(self, progress: Progress) -> int:
+        return progress.env_steps if self.unit == "env_steps" else progress.train_step
+
+    def start_at(self, count: int) -> None:
         """Skip the boundaries already passed (after a resume)."""
         if self.interval > 0:
-            self._next = (env_steps // self.interval + 1) * self.interval
+            self._next = (count // self.interval + 1) * self.interval
 
     def __call__(self, progress: Progress) -> bool:
-        if self.interval <= 0 or progress.env_steps < self._next:
+        n = self._count(progress)
+        if self.interval <= 0 or n < self._next:
             return False
-        self._next = (progress.env_steps // self.interval + 1) * self.interval
+        self._next = (n // self.interval + 1) * self.interval
         self.fn(progress)
         return True
+
+
+class PolicySaver(IntervalTrigger):
+    """Writes `folder/policy.pt` (what `relayrl.load_policy` reads), atomically."""
+
+    def __init__(self, interval: int, agent: Any, folder: str | Path, unit: str = "env_steps",
+                 extra: dict[str, Any] | None = None) -> None:
+        super().__init__(interval, self.save, unit)
+        self.agent, self.folder, self.extra = agent, Path(folder), dict(extra or {})
+
+    def save(self, progress: Progress) -> None:
+        from relayrl.training.checkpoint import atomic_torch_save
+
+        self.folder.mkdir(parents=True, exist_ok=True)
+        state = {**self.agent.policy_state(), "env_steps": progress.env_steps, **self.extra}
+        atomic_torch_save(state, self.folder / "policy.pt")
+
+
+class Checkpointer(IntervalTrigger):
+    """Writes `state_fn()` as `folder/ckpt-<env steps>.pt` atomically, keeping the last `keep`."""
+
+    def __init__(self, interval: int, state_fn: Callable[[], dict[str, Any]], folder: str | Path,
+                 unit: str = "env_steps", keep: int = 2) -> None:
+        super().__init__(interval, self.save, unit)
+        self.state_fn, self.folder, self.keep = state_fn, Path(folder), keep
+
+    def save(self, progress: Progress) -> None:
+        from relayrl.training.checkpoint import save_checkpoint
+
+        save_checkpoint(self.folder, progress.env_steps, {"env_steps": progress.env_steps, **self.state_fn()},
+                        keep=self.keep)
+
+
+class Evaluate(IntervalTrigger):
+    """Runs `episodes` episodes of `policy_fn()` on `env`; results go to `results` and `on_result`."""
+
+    def __init__(self, interval: int, env: Any, policy_fn: Callable[[], Any], episodes: int = 10,
+                 unit: str = "env_steps", seed: int = 0,
+                 on_result: Callable[[Progress, dict[str, float]], None] | None = None) -> None:
+        super().__init__(interval, self.evaluate, unit)
+        self.env, self.policy_fn, self.episodes, self.seed = env, policy_fn, episodes, seed
+        self.on_result = on_result
+        self.results: list[tuple[Progress, dict[str, float]]] = []
+
+    def evaluate(self, progress: Progress) -> None:
+        from relayrl.training.evaluate import evaluate
+
+        result = evaluate(self.env, self.policy_fn(), self.episodes, seed=self.seed + 10_000 * len(self.results))
+        self.results.append((progress, result))
+        if self.on_result is not None:
+            self.on_result(progress, result)
 
 
 class StepsPerSecond:
@@ -55,3 +124,17 @@ class StepsPerSecond:
         rates = ((progress.env_steps - self._env) / dt, (progress.train_step - self._train) / dt)
         self._t, self._env, self._train = now, progress.env_steps, progress.train_step
         return rates
+
+
+class StepsPerSecondLog(IntervalTrigger):
+    """Logs env steps/s and gradient steps/s since the previous log (TF-Agents' StepPerSecondLogTrigger)."""
+
+    def __init__(self, interval: int, unit: str = "env_steps", log: Callable[[str], None] | None = None) -> None:
+        super().__init__(interval, self.log_rates, unit)
+        self.rates = StepsPerSecond()
+        self.log = log or (lambda text: print(text, file=sys.stderr, flush=True))
+
+    def log_rates(self, progress: Progress) -> None:
+        env_sps, grad_sps = self.rates(progress)
+        self.log(f"step {progress.env_steps:,} | train step {progress.train_step:,} | "
+                 f"{env_sps:.1f} env steps/s | {grad_sps:.1f} grad steps/s")
