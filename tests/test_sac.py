@@ -184,3 +184,18 @@ def test_saved_policy_loads_and_exports_for_plain_pytorch(tmp_path):
             "assert 'relayrl' not in sys.modules; numpy.save(sys.argv[1], a.detach().numpy())")
     subprocess.run([sys.executable, "-c", code, str(tmp_path / "out.npy")], check=True, cwd=tmp_path)
     assert np.allclose(np.load(tmp_path / "out.npy"), live.numpy(), atol=1e-6)
+
+
+def test_sac_run_is_deterministic_and_resumes(tmp_path):
+    short = REACH + ["train.total_steps=400", "train.initial_collect_steps=100", "eval.interval=200",
+                     "train.checkpoint_interval=200", "agent.actor_hidden=[16]", "agent.critic_hidden=[16]"]
+    for name in ("a", "b"):
+        relayrl.train(relayrl.load_config("sac-pendulum", short, seed=2), tmp_path / name, progress=False)
+    a, b = (relayrl.training.run_dir.RunDir(tmp_path / n).read_metrics() for n in ("a", "b"))
+    assert [(r["average_return"], r.get("losses/critic_loss")) for r in a] == \
+           [(r["average_return"], r.get("losses/critic_loss")) for r in b]
+    assert a[-1]["losses/critic_loss"] > 0
+    longer = relayrl.load_config("sac-pendulum", short + ["train.total_steps=600"], seed=2)
+    result = relayrl.train(longer, tmp_path / "a", resume=True, progress=False)
+    steps = [r["step"] for r in relayrl.training.run_dir.RunDir(tmp_path / "a").read_metrics()]
+    assert steps == [0, 200, 400, 600] and result.final["train_step"] > a[-1]["train_step"]
