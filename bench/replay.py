@@ -19,8 +19,8 @@ Every worker runs with torch.set_num_threads(1): no replay op here is big enough
              (before vs after creating + filling, fresh process) and sample-of-32 batches/s
 
 Memory floor. A `floor` process measures this machine's copy bandwidth (np.copyto of 256 MB;
-bytes copied per second) and random-gather time (fancy-index 256 random rows of a [1M, 16]
-uint8 array; numpy's per-call overhead included). An op's floor time is
+bytes copied per second) and random-gather time (np.take of 256 random rows of a [1M, 16]
+uint8 array, NumPy's cheapest gather; its per-call overhead included). An op's floor time is
     bytes / copy_bandwidth + (random_rows / 256) * gather_256_time
 bytes: the logical bytes the op must move, 33 per transition (obs 12, next_obs 12, action 4,
 reward 4, done 1), for a pixel sample 2 * 4*84*84 per item; random_rows: items read plus
@@ -235,7 +235,7 @@ def floor_task() -> dict:
     idx = np.random.default_rng(1).integers(0, N, (2000, 256))
     t0 = time.perf_counter()
     for k in range(2000):
-        rows[idx[k]]
+        rows.take(idx[k], axis=0)
     gather_s = (time.perf_counter() - t0) / 2000
     return {"copy_gb_s": src.nbytes / statistics.median(copy_s) / 1e9, "gather_256_us": gather_s * 1e6}
 

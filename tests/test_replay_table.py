@@ -202,3 +202,86 @@ def test_items_can_be_dicts_and_keep_their_structure():
     assert batch["obs"].shape == (2, 2, 3) and batch["a"].tolist() == [1, 1]
     with pytest.raises(ValueError, match="fields"):
         t.insert({"obs": np.ones((2, 3), np.float32)})
+
+
+# ---- fast paths against the general ones -----------------------------------------------------
+@pytest.mark.parametrize("remover", [Fifo, Lifo, MinHeap, MaxHeap, Uniform])
+@pytest.mark.parametrize("sampler", [Uniform, lambda: Prioritized(0.5)])
+def test_inserting_one_item_on_the_scalar_path_matches_the_array_path(remover, sampler):
+    # One item takes a scalar path; force the array path on a twin table and compare keys,
+    # slots, priorities and what both sample, also once each insert removes an item.
+    rng = np.random.default_rng(0)
+    prios = rng.uniform(0.1, 5.0, 40)
+    a, b = (Table("t", 8, sampler(), remover(), MinSize(1), seed=0) for _ in range(2))
+    b._insert_one_locked = lambda items, p: b._insert_many_locked(items, p, 1)
+    for i in range(40):
+        assert a.insert(np.int64(i), priority=prios[i]) == b.insert(np.int64(i), priority=prios[i])
+        if i % 7 == 6:  # deletes leave holes the next inserts fill
+            assert a.delete(a.slot_key[[i % 8]]) == b.delete(b.slot_key[[i % 8]])
+    assert np.array_equal(a.slot_key, b.slot_key) and np.array_equal(a.priority, b.priority)
+    assert contents(a) == contents(b)
+    xa, ia = a.sample(64)
+    xb, ib = b.sample(64)
+    assert xa.tolist() == xb.tolist() and np.array_equal(ia.probability, ib.probability)
+
+
+@pytest.mark.parametrize("queue", [Fifo, Lifo])
+def test_queue_removers_skip_deleted_items_like_a_deque(queue):
+    # The queue is a NumPy array popped in batches; check it against a plain list model.
+    rng = np.random.default_rng(1)
+    t = Table("t", 50, Uniform(), queue(), MinSize(1), seed=0)
+    model: list[int] = []  # live keys, oldest first
+    for _ in range(60):
+        n = int(rng.integers(1, 30))
+        full = max(0, len(model) + n - 50)
+        removed = (model[:full] if queue is Fifo else model[::-1][:full]) if full else []
+        keys = t.insert_batch(np.arange(n), n=n).tolist()
+        model = [k for k in model if k not in removed] + keys
+        if rng.random() < 0.5 and model:
+            gone = rng.choice(model, size=min(len(model), int(rng.integers(1, 10))), replace=False).tolist()
+            assert t.delete(np.array(gone)) == len(gone)
+            model = [k for k in model if k not in gone]
+        assert sorted(model) == sorted(t.slot_key[t.slot_key >= 0].tolist())
+        assert t.sampler.size == t.remover.size == len(model)
+
+
+def test_uniform_sampling_skips_the_dense_list_only_while_it_is_the_identity():
+    t = filled(10, 25)  # filled in order and refilled by FIFO: dense[:size] is arange(size)
+    assert t.sampler.identity
+    t.delete(t.slot_key[[2, 7]])
+    assert not t.sampler.identity
+    items, info = t.sample(2_000)
+    assert set((info.key % 10).tolist()) == set(np.flatnonzero(t.slot_key >= 0).tolist())
+    assert all(t.storage.read(np.array([k % 10]))[0] == x for k, x in zip(info.key, items.tolist(), strict=True))
+    b = Table("t", 10, Uniform(), Fifo(), MinSize(1), seed=0)
+    b.load_state_dict(t.state_dict())
+    assert not b.sampler.identity and b.sample(50)[0].tolist() == t.sample(50)[0].tolist()
+
+
+@pytest.mark.parametrize("top_size", [4, 40, 32768])  # two grouped levels, one, none
+def test_sum_tree_levels_find_what_a_flat_cumulative_sum_finds(top_size):
+    rng = np.random.default_rng(2)
+    n = 5_000
+    tree = SumTree(n, fanout=8, top_size=top_size)
+    values = rng.random(n) * (rng.random(n) < 0.3)  # most leaves empty
+    tree.set(np.arange(n), values)
+    for _ in range(30):  # updates with repeated indices: the last value wins
+        idx = rng.integers(0, n, 300)
+        new = rng.random(300) * (rng.random(300) < 0.5)
+        tree.set(idx, new)
+        for i, v in zip(idx.tolist(), new.tolist(), strict=True):
+            values[i] = v
+    assert np.array_equal(tree.get(np.arange(n)), values)
+    assert np.isclose(tree.total, values.sum())
+    u = rng.random(20_000) * tree.total
+    found, mass = tree.find_with_mass(u)
+    assert (mass > 0).all() and np.array_equal(mass, values[found])
+    expected = np.searchsorted(np.cumsum(values), u, side="right")
+    assert (found != expected).sum() <= 2  # the two sums round differently only at boundaries
+
+
+def test_sum_tree_moves_a_query_off_an_empty_leaf():
+    tree = SumTree(100, fanout=4, top_size=4)
+    tree.set(np.array([10, 50]), np.array([1.0, 2.0]))
+    node, mass = tree._nonempty(np.array([10, 30, 5, 70]), tree.get(np.array([10, 30, 5, 70])))
+    assert node.tolist() == [10, 10, 10, 50] and mass.tolist() == [1.0, 1.0, 1.0, 2.0]

@@ -196,3 +196,131 @@ def test_flushing_every_step_or_once_gives_the_same_items(n_step):
                 w.flush()
         rows.append(sorted(transition_rows(t)))
     assert rows[0] == rows[1] and len(rows[0]) > 100
+
+
+# ---- fast paths against the general path ---------------------------------------------------
+def _writer_state(t, w):
+    """Everything a TransitionWriter and its table hold, as plain arrays."""
+    w.flush()
+    state = {f"store.{k}": v.copy() for k, v in w.store.cols.arrays.items()}
+    state.update(head=w.store.head.copy(), ep_start=w.store.ep_start.copy(), open_from=w._open_from.copy(),
+                 slot_ref=w.slot_ref.copy(), slot_rows=w.slot_rows.copy(),
+                 slot_key=t.slot_key.copy(), priority=t.priority.copy(), dense=t.sampler.dense[: t.size].copy())
+    return state
+
+
+def _stream(rng, num_envs, steps, obs_shape=(1,), action=None, p_end=0.1):
+    """Random batched steps; `action(rng)` makes one batch of actions (discrete by default)."""
+    out = []
+    for _ in range(steps):
+        obs = torch.from_numpy(rng.random((num_envs, *obs_shape)).astype(np.float32))
+        nxt = torch.from_numpy(rng.random((num_envs, *obs_shape)).astype(np.float32))
+        act = action(rng) if action else torch.from_numpy(rng.integers(0, 5, num_envs))
+        out.append(Transition(obs, act, torch.from_numpy(rng.random(num_envs).astype(np.float32)), nxt,
+                              torch.from_numpy(rng.random(num_envs) < p_end),
+                              torch.from_numpy(rng.random(num_envs) < p_end / 2)))
+    return out
+
+
+def _run(stream, flush_every_step, general_only=False, **kw):
+    t, w = writer(**kw)
+    if general_only:
+        w._flush_one = lambda step: False  # every flush takes the general path
+    for s in stream:
+        w(s)
+        if flush_every_step:
+            w.flush()
+    return _writer_state(t, w)
+
+
+def _assert_same(a, b):
+    assert a.keys() == b.keys()
+    for k in a:
+        assert np.array_equal(a[k], b[k]), k
+
+
+@pytest.mark.parametrize("num_envs", [1, 3])
+@pytest.mark.parametrize("n_step", [1, 3])
+@pytest.mark.parametrize("max_size", [1_000, 40])  # 40: full, so inserts also remove (FIFO)
+def test_one_step_flush_paths_leave_exactly_the_general_paths_state(num_envs, n_step, max_size):
+    # A flush of one staged step takes a short path: Python scalars for one env (one_step.py),
+    # vectorised over envs otherwise. Both must leave the general path's state bit for bit.
+    stream = _stream(np.random.default_rng(1), num_envs, 120)
+    kw = dict(n_step=n_step, num_envs=num_envs, max_size=max_size, chunk_length=10_000)
+    fast = _run(stream, True, **kw)
+    _assert_same(fast, _run(stream, True, general_only=True, **kw))
+    if num_envs == 1 and max_size == 1_000:
+        # One env, no row reused: per-step flushes also insert in one chunk's order. (Else
+        # evictions free slots in a different order: other slots, same items.)
+        _assert_same(fast, _run(stream, False, **kw))
+
+
+@pytest.mark.parametrize("num_envs", [1, 2])
+@pytest.mark.parametrize("action_shape", [(1,), (3,)])
+def test_float_vector_actions_round_trip(num_envs, action_shape):
+    # SAC-style continuous actions [B, A]; A = 1 also goes through the scalar one-env path.
+    spec = ArraySpec(action_shape, torch.float32)
+
+    def actions(rng):
+        return torch.from_numpy(rng.standard_normal((num_envs, *action_shape)).astype(np.float32))
+
+    stream = _stream(np.random.default_rng(2), num_envs, 50, action=actions)
+    for per_step in (True, False):
+        t = Table("t", 1_000, Uniform(), Fifo(), MinSize(1), seed=0)
+        w = TransitionWriter(t, num_envs, OBS, spec, gamma=G, n_step=2)
+        assert w.store.action.dtype == np.float32 and w.store.action.shape[2:] == action_shape
+        for s in stream:
+            w(s)
+            if per_step:
+                w.flush()
+        b = items(t)
+        assert b.action.dtype == torch.float32 and b.action.shape == (t.size, *action_shape)
+        sent = {tuple(np.round(s.obs[e].numpy(), 6)) + tuple(np.round(s.action[e].numpy(), 6))
+                for s in stream for e in range(num_envs)}
+        got = {tuple(np.round(o, 6)) + tuple(np.round(a, 6))
+               for o, a in zip(b.obs.numpy(), b.action.numpy(), strict=True)}
+        assert got <= sent and len(got) == t.size > 40
+
+
+@pytest.mark.parametrize("max_size", [1_000, 30])
+def test_frame_stack_one_step_flushes_match_the_general_path(max_size):
+    k = 3
+    spec = ArraySpec((k, 2, 2), torch.uint8)
+    rng = np.random.default_rng(3)
+    stream = []
+    for i in range(60):
+        end = rng.random() < 0.1
+        o = torch.from_numpy(rng.integers(0, 255, (1, k, 2, 2), dtype=np.uint8))
+        stream.append(Transition(o, torch.tensor([i % 5]), torch.tensor([1.0]), o.roll(1, 1), torch.tensor([end]),
+                                 torch.tensor([False])))
+
+    def run(per_step, general_only=False):
+        t = Table("t", max_size, Uniform(), Fifo(), MinSize(1), seed=0)
+        w = TransitionWriter(t, 1, spec, ACT, gamma=G, n_step=2, frame_stack=k, chunk_length=10_000)
+        if general_only:
+            w._flush_one = lambda step: False
+        for s in stream:
+            w(s)
+            if per_step:
+                w.flush()
+        return _writer_state(t, w)
+
+    _assert_same(run(True), run(True, general_only=True))
+    if max_size == 1_000:
+        _assert_same(run(True), run(False))
+
+
+def test_sampled_batches_read_the_rows_items_were_written_from():
+    # Table.sample -> TransitionWriter.read goes through per-slot row indices (slot_rows):
+    # check a sample against the rows its items' positions name.
+    t, w = writer(2, num_envs=2, max_size=64)
+    for s in _stream(np.random.default_rng(4), 2, 100):
+        w(s)
+    w.flush()
+    batch, info = t.sample(200)
+    slots = info.key % t.max_size
+    env, pos = w.slot_ref[slots] % 2, w.slot_ref[slots] // 2
+    nlen = w.store.nlen[env, pos % w.rows]
+    assert np.array_equal(batch.obs.numpy(), w.store.frame[env, pos % w.rows])
+    assert np.array_equal(batch.next_obs.numpy(), w.store.frame[env, (pos + nlen) % w.rows])
+    assert np.array_equal(batch.reward.numpy(), w.store.ret[env, pos % w.rows])

@@ -11,7 +11,6 @@ compacted when stale entries outnumber live ones.
 from __future__ import annotations
 
 import heapq
-from collections import deque
 from typing import Any
 
 import numpy as np
@@ -71,17 +70,29 @@ class Uniform(Selector):
         super().bind(capacity, slot_key, priority)
         self.dense = np.zeros(capacity, dtype=np.int64)  # live slots in [0, size)
         self.where = np.full(capacity, -1, dtype=np.int64)  # slot -> index into dense
+        # dense[:size] == arange(size), as it stays while a table fills its free slots in order
+        # and a FIFO remover refills them: a sample then needs no gather through `dense`.
+        self.identity = True
 
     def insert(self, slots: np.ndarray, keys: np.ndarray) -> None:
-        n = len(slots)
-        self.dense[self.size:self.size + n] = slots
-        self.where[slots] = np.arange(self.size, self.size + n)
-        self.size += n
+        n, size = len(slots), self.size
+        if n == 1:
+            slot = int(slots[0])
+            self.dense[size] = slot
+            self.where[slot] = size
+            self.identity = self.identity and slot == size
+        else:
+            self.dense[size:size + n] = slots
+            self.where[slots] = np.arange(size, size + n)
+            if self.identity and n:
+                self.identity = bool(slots[0] == size and (np.diff(slots) == 1).all())
+        self.size = size + n
 
     def replace(self, slots: np.ndarray, keys: np.ndarray) -> None:
         pass  # same slots, still live: the dense list does not change
 
     def delete(self, slots: np.ndarray) -> None:
+        self.identity = False
         for slot in np.asarray(slots).tolist():  # swap-remove, one slot at a time
             i = self.where[slot]
             last = self.dense[self.size - 1]
@@ -91,8 +102,8 @@ class Uniform(Selector):
             self.size -= 1
 
     def select(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-        slots = self.dense[rng.integers(0, self.size, n)]
-        return slots, np.full(n, 1.0 / self.size)
+        idx = rng.integers(0, self.size, n)
+        return (idx if self.identity else self.dense.take(idx)), np.full(n, 1.0 / self.size)
 
     def pop(self, n: int, rng: np.random.Generator) -> np.ndarray:
         return self.dense[rng.choice(self.size, n, replace=False)]
@@ -104,6 +115,7 @@ class Uniform(Selector):
         dense = np.asarray(state.get("dense", live_slots), dtype=np.int64)
         self.size = 0
         self.where[:] = -1
+        self.identity = True
         self.insert(dense, self.slot_key[dense])
 
 
@@ -120,7 +132,7 @@ class Prioritized(Selector):
         self.tree = SumTree(capacity)
 
     def _mass(self, slots: np.ndarray) -> np.ndarray:
-        return np.power(self.priority[slots], self.priority_exponent)
+        return np.power(self.priority.take(slots), self.priority_exponent)
 
     def insert(self, slots: np.ndarray, keys: np.ndarray) -> None:
         self.tree.set(slots, self._mass(slots))
@@ -141,8 +153,8 @@ class Prioritized(Selector):
         if total <= 0.0:  # every priority is zero: fall back to uniform over live items
             live = np.flatnonzero(self.slot_key >= 0)
             return live[rng.integers(0, live.size, n)], np.full(n, 1.0 / live.size)
-        slots = self.tree.find(rng.random(n) * total)
-        return slots, self.tree.get(slots) / total
+        slots, mass = self.tree.find_with_mass(rng.random(n) * total)
+        return slots, mass / total
 
     def pop(self, n: int, rng: np.random.Generator) -> np.ndarray:
         chosen: list[int] = []
@@ -161,49 +173,94 @@ class Prioritized(Selector):
 
 
 class _KeyQueue(Selector):
-    """Items ordered by key (insertion order); `front` is the oldest (Fifo) or newest (Lifo)."""
+    """Items ordered by key (insertion order); `front` is the oldest (Fifo) or newest (Lifo).
+
+    Keys wait in a NumPy array between `head` and `tail`; a popped batch is checked for
+    stale (deleted) keys with one gather, so removing 1,024 items is a few array calls.
+    """
 
     deterministic = True
     newest_first = False
 
     def bind(self, capacity: int, slot_key: np.ndarray, priority: np.ndarray) -> None:
         super().bind(capacity, slot_key, priority)
-        self.keys: deque[int] = deque()
+        self.queue = np.zeros(1024, dtype=np.int64)
+        self.head = self.tail = 0
 
     def insert(self, slots: np.ndarray, keys: np.ndarray) -> None:
-        self.keys.extend(np.asarray(keys).tolist())
+        n = len(keys)
+        if self.tail + n > self.queue.size:
+            self._compact(n)
+        if n == 1:
+            self.queue[self.tail] = keys[0]
+        else:
+            self.queue[self.tail:self.tail + n] = keys
+        self.tail += n
         self.size += len(slots)
+
+    def _compact(self, extra: int = 0) -> None:
+        """Drop stale keys and popped space; grow so that `extra` more keys fit."""
+        q = self.queue[self.head:self.tail]
+        q = q[self.slot_key.take(q % self.capacity) == q]
+        size = max(1024, 2 * (q.size + extra))
+        if size > self.queue.size or size < self.queue.size // 4:
+            self.queue = np.zeros(size, dtype=np.int64)
+        self.queue[:q.size] = q
+        self.head, self.tail = 0, q.size
 
     def delete(self, slots: np.ndarray) -> None:
         self.size -= len(slots)  # queue entries go stale; skipped at the front
-        if len(self.keys) > 2 * self.size + 1024:
-            live = [k for k in self.keys if self.slot_key[k % self.capacity] == k]
-            self.keys = deque(live)
+        if self.tail - self.head > 2 * self.size + 1024:
+            self._compact()
 
     def _live(self, key: int) -> bool:
         return bool(self.slot_key[key % self.capacity] == key)
 
     def _front(self) -> int:
-        keys = self.keys
+        q = self.queue
         if self.newest_first:
-            while not self._live(keys[-1]):
-                keys.pop()
-            return keys[-1]
-        while not self._live(keys[0]):
-            keys.popleft()
-        return keys[0]
+            while not self._live(int(q[self.tail - 1])):
+                self.tail -= 1
+            return int(q[self.tail - 1])
+        while not self._live(int(q[self.head])):
+            self.head += 1
+        return int(q[self.head])
 
     def select(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         slot = self._front() % self.capacity
         return np.full(n, slot, dtype=np.int64), np.ones(n)
 
     def pop(self, n: int, rng: np.random.Generator) -> np.ndarray:
-        out = []
-        for _ in range(n):
+        """The n front keys' slots, front first; stale keys on the way are dropped."""
+        if n == 1:  # a per-step insert into a full table: scalars
             key = self._front()
-            (self.keys.pop if self.newest_first else self.keys.popleft)()
-            out.append(key % self.capacity)
-        return np.array(out, dtype=np.int64)
+            if self.newest_first:
+                self.tail -= 1
+            else:
+                self.head += 1
+            return np.array([key % self.capacity])
+        out: list[np.ndarray] = []
+        need = n
+        while need > 0:
+            if self.newest_first:
+                lo = max(self.head, self.tail - need)
+                keys = self.queue[lo:self.tail][::-1]
+                self.tail = lo
+            else:
+                hi = min(self.tail, self.head + need)
+                keys = self.queue[self.head:hi]
+                self.head = hi
+            if keys.size == 0:
+                raise IndexError("pop from an empty queue")
+            slots = keys % self.capacity
+            live = self.slot_key.take(slots) == keys
+            out.append(slots if np.count_nonzero(live) == live.size else slots[live])
+            need -= out[-1].size
+        return out[0] if len(out) == 1 else np.concatenate(out)
+
+    def load_state_dict(self, state: dict[str, Any], live_slots: np.ndarray) -> None:
+        self.head = self.tail = 0
+        super().load_state_dict(state, live_slots)
 
 
 class Fifo(_KeyQueue):

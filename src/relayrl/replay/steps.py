@@ -48,6 +48,9 @@ class StepStore:
         self.start, self.last, self.terminated, self.item_key = c["start"], c["last"], c["terminated"], c["item_key"]
         self.ret, self.disc, self.nlen = c["ret"], c["disc"], c["nlen"]
         self._flat = {k: a.reshape((num_envs * rows,) + a.shape[2:]) for k, a in c.items()}
+        # Columns with a row shape (frames, vector actions) as one opaque element per row:
+        # assigning rows by index is then a 1-D scatter, ~2.5x cheaper than a 2-D one.
+        self._rows = {k: _row_view(a) for k, a in self._flat.items() if a.ndim > 1 and a[0].nbytes > 0}
         self.head = np.zeros(num_envs, dtype=np.int64)  # next position per env
         self.ep_start = np.zeros(num_envs, dtype=np.int64)  # first position of the running episode
         self.envs = np.arange(num_envs)
@@ -63,11 +66,15 @@ class StepStore:
         """
         p = pos - self.T + self.k - 1
         ok = p >= 0
-        keys = np.full(len(envs), -1, dtype=np.int64)
-        if ok.any():
-            e, r = envs[ok], p[ok] % self.T
-            keys[ok] = np.where(self.stamp[e, r] == p[ok] + 1, self.item_key[e, r], -1)
-        return keys
+        n_ok = np.count_nonzero(ok)
+        if n_ok < len(p):  # the ring's first lap: nothing to evict before row 0
+            if n_ok == 0:
+                return np.full(len(p), -1, dtype=np.int64)
+            keys = np.full(len(p), -1, dtype=np.int64)
+            keys[ok] = self.evictable(envs[ok], pos[ok])
+            return keys
+        i = envs * self.T + p % self.T
+        return np.where(self._flat["stamp"].take(i) == p + 1, self._flat["item_key"].take(i), -1)
 
     def flat(self, name: str) -> np.ndarray:
         """A column as [B * T, ...] (a view), so (env, row) is one flat index."""
@@ -81,22 +88,28 @@ class StepStore:
         Each step is one row per env, plus a final-observation row where the episode ended.
         """
         c, b = done.shape
-        rows = 1 + done.astype(np.int64)  # [C, B]
-        pos = self.head + np.cumsum(rows, axis=0) - rows  # [C, B] position of each step's row
-        # The episode each step belongs to starts after the latest earlier final row.
-        after_final = np.where(done, pos + 2, -1)  # [C, B]
-        start = np.maximum.accumulate(np.vstack([self.ep_start[None], after_final[:-1]]), axis=0)  # [C, B]
-        envs = np.broadcast_to(self.envs, (c, b))
-        i = (envs * self.T + pos % self.T).reshape(-1)  # [C*B] flat rows
+        any_done = np.count_nonzero(done) > 0
+        if any_done:
+            rows = 1 + done.astype(np.int64)  # [C, B]
+            pos = self.head + np.cumsum(rows, axis=0) - rows  # [C, B] position of each step's row
+            # The episode each step belongs to starts after the latest earlier final row.
+            after_final = np.where(done, pos + 2, -1)  # [C, B]
+            start = np.maximum.accumulate(np.vstack([self.ep_start[None], after_final[:-1]]), axis=0)  # [C, B]
+        else:  # the same, without episode ends: one row per step
+            pos = self.head + np.arange(c)[:, None]
+            start = np.repeat(self.ep_start[None], c, axis=0)
+        i = ((self.envs * self.T) + pos % self.T).reshape(-1)  # [C*B] flat rows
         self._write_rows(i, pos.reshape(-1), start.reshape(-1), frames.reshape((c * b,) + frames.shape[2:]),
                          actions.reshape((c * b,) + actions.shape[2:]), rewards.reshape(-1))
-        if done.any():
+        if any_done:
             ce, be = np.nonzero(done)  # (step, env) order, as final_frames
             fp = pos[ce, be] + 1
             j = be * self.T + fp % self.T
             self._write_rows(j, fp, start[ce, be], final_frames, None, 0.0, last=True, terminated=terminated[ce, be])
             self.ep_start = np.maximum(self.ep_start, after_final.max(axis=0))
-        self.head = self.head + rows.sum(axis=0)
+            self.head = self.head + rows.sum(axis=0)
+        else:
+            self.head = self.head + c
 
     def write_step(self, frames: np.ndarray, actions: np.ndarray, rewards: np.ndarray) -> np.ndarray:
         """Append one batched step in which no episode ended; returns its positions [B]."""
@@ -109,15 +122,30 @@ class StepStore:
                     actions: np.ndarray | None, rewards: np.ndarray | float, last: bool = False,
                     terminated: np.ndarray | bool = False) -> None:
         """Fill flat rows `i` (positions `pos`); a final-observation row has no action."""
-        self.flat("frame")[i] = frames
+        f = self._flat
+        self._put("frame", i, frames)
         if actions is not None:
-            self.flat("action")[i] = actions
-        self.flat("reward")[i] = rewards
-        self.flat("stamp")[i] = pos + 1
-        self.flat("start")[i] = start
-        self.flat("last")[i] = last
-        self.flat("terminated")[i] = terminated
-        self.flat("item_key")[i] = -1
+            self._put("action", i, actions)
+        f["reward"][i] = rewards
+        f["stamp"][i] = pos + 1
+        f["start"][i] = start
+        f["last"][i] = last
+        f["terminated"][i] = terminated
+        f["item_key"][i] = -1
+
+    def _put(self, name: str, i: np.ndarray, values: np.ndarray) -> None:
+        """flat(name)[i] = values, through the row view where the column has one."""
+        rows = self._rows.get(name)
+        if rows is None:
+            self._flat[name][i] = values
+            return
+        col = self._flat[name]
+        if len(i) == 0:
+            return
+        shape = (len(i),) + col.shape[1:]
+        if np.shape(values) != shape:
+            values = np.broadcast_to(values, shape)
+        rows[i] = np.ascontiguousarray(values, dtype=col.dtype).reshape(len(i), -1).view(rows.dtype).reshape(-1)
 
     def stacks(self, envs: np.ndarray, pos: np.ndarray, start: np.ndarray) -> np.ndarray:
         """Stacked observations at `pos`: [N, k, *frame], rebuilt from single frames (k > 1)."""
@@ -146,3 +174,9 @@ class StepStore:
         # Env state is not checkpointed: a resumed actor starts fresh episodes, so the
         # steps of the interrupted ones are never joined to new ones.
         self.ep_start[:] = self.head
+
+
+def _row_view(a: np.ndarray) -> np.ndarray:
+    """[N, ...] (C-contiguous) as [N] elements of one opaque row each (a view)."""
+    row = int(np.prod(a.shape[1:])) * a.itemsize
+    return a.reshape(a.shape[0], -1).view(np.dtype((np.void, row))).reshape(-1)

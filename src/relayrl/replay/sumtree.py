@@ -1,90 +1,140 @@
-"""A sum tree with a wide fan-out, vectorised over batches of leaves in NumPy.
+"""A sum tree for prioritized sampling, vectorised over batches of queries in NumPy.
 
-A binary tree over 1,000,000 leaves is 20 levels deep, and each level costs a few NumPy
-calls for the whole batch; with 32 children per node the same tree is 4 levels deep and
-sampling 256 leaves costs about a fifth as many calls. Sums are float64, updated by adding
-deltas up the tree, and rebuilt from the leaves every `capacity` updates so rounding never
-accumulates.
+Leaves are grouped `fanout` at a time, the group totals again, until at most `top_size`
+nodes remain (one grouped level for 1,000,000 leaves: 31,250 groups of 32). A batch of
+queries finds its top nodes with one cumulative sum and one `searchsorted`, then descends a
+grouped level with one row gather, one row-wise cumsum, one compare and one argmax, for all
+queries at once. An update writes the leaves and recomputes the totals of the groups it
+touched, level by level, from their children: sums never drift, so nothing is rebuilt.
+
+Prefix sums are left-to-right, so a child with zero mass has an empty interval and is never
+found. A group's stored total (a NumPy sum) may differ from its children's prefix by rounding,
+which can only put a query past the row's end: it then takes the last child. `find` checks
+the leaves it returns; should one ever be empty, the query moves to the nearest non-empty
+leaf before it.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import torch
+
+
+def _cumsum(x: np.ndarray, axis: int) -> np.ndarray:
+    """Left-to-right cumulative sums (torch's CPU scan: ~4x faster than NumPy's here)."""
+    return torch.cumsum(torch.from_numpy(x), axis).numpy()
 
 
 class SumTree:
-    def __init__(self, capacity: int, fanout: int = 32) -> None:
+    def __init__(self, capacity: int, fanout: int = 32, top_size: int = 32768) -> None:
         if capacity < 1:
             raise ValueError("SumTree capacity must be >= 1")
+        if fanout < 2:
+            raise ValueError("SumTree fanout must be >= 2")
         self.capacity = capacity
         self.fanout = f = fanout
-        # levels[0] holds the leaves; levels[i + 1][j] = sum(levels[i][j*f:(j+1)*f]).
-        # Every level is padded to a multiple of f so it reshapes to [nodes, f].
-        self.levels: list[np.ndarray] = []
-        n = capacity
-        while True:
-            padded = -(-n // f) * f
-            self.levels.append(np.zeros(padded))
-            n = padded // f
-            if n == 1:
-                break
-        self._updates = 0
+        top, depth = capacity, 0
+        while top > top_size:
+            top, depth = -(-top // f), depth + 1
+        self.leaves = np.zeros(top * f**depth)
+        # sums[0] is the leaves, sums[d + 1][g] the total of group g of sums[d]; sums[-1] is the top.
+        self.sums = [self.leaves]
+        for d in range(depth):
+            self.sums.append(np.zeros(self.sums[d].size // f))
+        self._top_cs = np.zeros(top + 1)  # [0, cumsum(top)], recomputed lazily after writes
+        self._top_stale = False
+        self._offsets: dict[int, np.ndarray] = {}
 
     @property
     def total(self) -> float:
-        return float(self.levels[-1].sum())
+        return float(self._top_prefix()[-1])
 
     def get(self, idx: np.ndarray) -> np.ndarray:
-        return self.levels[0][idx]
+        return self.leaves.take(idx)
 
     def set(self, idx: np.ndarray, values: np.ndarray) -> None:
-        idx = np.asarray(idx, dtype=np.int64)
-        values = np.asarray(values, dtype=np.float64)
-        if idx.size > 1:
-            # With repeated indices the last value wins, as with plain assignment.
-            rev_unique, rev_pos = np.unique(idx[::-1], return_index=True)
-            idx, values = rev_unique, values[::-1][rev_pos]
-        leaves = self.levels[0]
-        delta = values - leaves[idx]
+        idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+        values = np.asarray(values, dtype=np.float64).reshape(-1)
+        if values.size != idx.size:
+            values = np.full(idx.size, values[0]) if values.size == 1 else values.reshape(idx.shape)
+        leaves = self.leaves
         leaves[idx] = values
-        for level in self.levels[1:]:
-            idx = idx // self.fanout
-            np.add.at(level, idx, delta)
-        self._updates += idx.size
-        if self._updates >= self.capacity:
-            self.rebuild()
+        if idx.size > 1 and np.count_nonzero(leaves.take(idx) != values):
+            # Repeated indices with different values: the last one wins, as with plain assignment.
+            last = idx.size - 1 - np.unique(idx[::-1], return_index=True)[1]
+            leaves[idx.take(last)] = values.take(last)
+        f = self.fanout
+        for d in range(len(self.sums) - 1):
+            # Repeated parents are harmless: the same total is written twice.
+            idx = idx // f
+            self.sums[d + 1][idx] = self.sums[d].reshape(-1, f).take(idx, axis=0).sum(axis=1)
+        self._top_stale = True
 
     def rebuild(self) -> None:
+        """Recompute every total from the leaves."""
         f = self.fanout
-        for lower, upper in zip(self.levels[:-1], self.levels[1:], strict=True):
-            upper[: lower.size // f] = lower.reshape(-1, f).sum(axis=1)
-        self._updates = 0
+        for d in range(len(self.sums) - 1):
+            self.sums[d + 1][:] = self.sums[d].reshape(-1, f).sum(axis=1)
+        self._top_stale = True
+
+    def _top_prefix(self) -> np.ndarray:
+        if self._top_stale:
+            torch.cumsum(torch.from_numpy(self.sums[-1]), 0, out=torch.from_numpy(self._top_cs[1:]))
+            self._top_stale = False
+        return self._top_cs
 
     def find(self, u: np.ndarray) -> np.ndarray:
         """Leaf indices i with prefix(i) <= u < prefix(i) + leaf(i), for u in [0, total)."""
+        return self.find_with_mass(u)[0]
+
+    def find_with_mass(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`find(u)` and the values of the leaves found."""
         f = self.fanout
-        u = np.array(u, dtype=np.float64)  # [n], a copy: it is consumed level by level
-        node = np.zeros(u.shape, dtype=np.int64)
-        rows = np.arange(u.size)
-        for level in reversed(self.levels):
-            children = level.reshape(-1, f)[node]  # [n, f]
-            csum = np.cumsum(children, axis=1)  # [n, f]
-            j = (csum <= u[:, None]).sum(axis=1)  # [n] first child whose cumsum exceeds u
-            over = j >= f
-            if over.any():
-                # Rounding put u past the last child: take the last child with any mass.
-                last = f - 1 - np.argmax(children[over, ::-1] > 0, axis=1)
-                j[over] = last
-                u[over] = np.minimum(u[over], csum[over, -1])
-            u -= np.where(j > 0, csum[rows, np.maximum(j - 1, 0)], 0.0)
-            node = node * f + j
-        return node
+        u = np.array(u, dtype=np.float64).reshape(-1)  # a copy: it is consumed level by level
+        cs = self._top_prefix()
+        node = cs.searchsorted(u, side="right") - 1  # the last top node whose prefix is <= u
+        np.minimum(node, cs.size - 2, out=node)  # u >= total (rounding): the last node
+        u -= cs.take(node)
+        for d in range(len(self.sums) - 2, -1, -1):
+            rows = self.sums[d].reshape(-1, f).take(node, axis=0)  # [n, f] children
+            inc = _cumsum(rows, 1)  # [n, f] inclusive prefix sums
+            child = (inc > u[:, None]).argmax(axis=1)  # the first child whose interval ends above u
+            over = inc[:, -1] <= u  # rounding put u past the group's total: the last child
+            if np.count_nonzero(over):
+                child[over] = f - 1
+            if d:  # on to the child's own children: subtract the children before it
+                before = inc.take(self._offset(u.size) + child - 1, mode="wrap")
+                before[child == 0] = 0.0
+                u -= before
+            node = node * f + child
+        mass = self.leaves.take(node)
+        if np.count_nonzero(mass <= 0):
+            node, mass = self._nonempty(node, mass)
+        return node, mass
+
+    def _offset(self, n: int) -> np.ndarray:
+        """Flat index of row r of an [n, fanout] array: r * fanout."""
+        off = self._offsets.get(n)
+        if off is None:
+            off = self._offsets[n] = np.arange(n, dtype=np.int64) * self.fanout
+        return off
+
+    def _nonempty(self, node: np.ndarray, mass: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Move queries that rounding sent to an empty leaf to the nearest non-empty leaf
+        before it (or the first one). Never seen; here so that it cannot happen."""
+        live = np.flatnonzero(self.leaves > 0)
+        if live.size == 0:
+            return node, mass
+        bad = mass <= 0
+        node = node.copy()
+        node[bad] = live[np.maximum(np.searchsorted(live, node[bad], side="right") - 1, 0)]
+        return node, self.leaves.take(node)
 
     def state_dict(self) -> dict[str, np.ndarray]:
-        return {"leaves": self.levels[0][: self.capacity].copy()}
+        return {"leaves": self.leaves[: self.capacity].copy()}
 
     def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
         leaves = np.asarray(state["leaves"], dtype=np.float64)
-        self.levels[0][:] = 0.0
-        self.levels[0][: leaves.size] = leaves
+        self.leaves[:] = 0.0
+        self.leaves[: leaves.size] = leaves
         self.rebuild()

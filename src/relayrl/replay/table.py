@@ -64,6 +64,7 @@ class Table:
         self._num_free = max_size
         self._inserted = 0
         self._cv = threading.Condition()
+        self._waiting = 0  # threads blocked on the rate limiter: only then does a write need notify_all()
         for selector in (sampler, remover):
             selector.bind(max_size, self.slot_key, self.priority)
 
@@ -100,28 +101,46 @@ class Table:
             n = len(first)
         if priorities is not None:
             priorities = np.asarray(priorities, dtype=np.float64).reshape(-1)
-            if priorities.size != n or (priorities < 0).any() or not np.isfinite(priorities).all():
+            if priorities.size != n or not _valid_priorities(priorities):
                 raise ValueError(f"Table {self.name!r}: need {n} finite priorities >= 0")
+        with self._cv:
+            if n <= self.max_size and self.rate_limiter.inserts_available() >= n:
+                keys = self._insert_locked(items, priorities, n)  # the usual case: no split, no wait
+            else:
+                keys = self._insert_parts(items, priorities, n, timeout)
+            if self._waiting:
+                self._cv.notify_all()
+        return keys
+
+    def _insert_parts(self, items: Any, priorities: np.ndarray | None, n: int, timeout: float | None) -> np.ndarray:
+        """Insert in as many parts as the rate limiter and max_size allow, waiting in between."""
         keys = np.empty(n, dtype=np.int64)
         done = 0
-        with self._cv:
-            while done < n:
-                allowed = self._wait(lambda: self.rate_limiter.inserts_available(), timeout, "insert")
-                k = min(n - done, allowed, self.max_size)
-                part = slice(done, done + k)
-                sub = items if (done == 0 and k == n) else _slice(items, part)
-                keys[part] = self._insert_locked(sub, None if priorities is None else priorities[part], k)
-                done += k
-            self._cv.notify_all()
+        while done < n:
+            allowed = self._wait(self.rate_limiter.inserts_available, timeout, "insert")
+            k = min(n - done, allowed, self.max_size)
+            part = slice(done, done + k)
+            sub = items if (done == 0 and k == n) else _slice(items, part)
+            keys[part] = self._insert_locked(sub, None if priorities is None else priorities[part], k)
+            done += k
+            if self._waiting:
+                self._cv.notify_all()  # a sampler may be waiting for what was just inserted
         return keys
 
     def _insert_locked(self, items: Any, priorities: np.ndarray | None, n: int) -> np.ndarray:
+        if n == 1:
+            return self._insert_one_locked(items, priorities)
+        return self._insert_many_locked(items, priorities, n)
+
+    def _insert_many_locked(self, items: Any, priorities: np.ndarray | None, n: int) -> np.ndarray:
         n_free = min(n, self._num_free)
         free = self._free[self._num_free - n_free:self._num_free][::-1].copy()
         self._num_free -= n_free
         victims = self.remover.pop(n - n_free, self.rng) if n > n_free else np.zeros(0, dtype=np.int64)
         slots = np.concatenate([free, victims]) if victims.size else free
-        keys = (self._inserted + np.arange(n, dtype=np.int64)) * self.max_size + slots
+        keys = np.arange(self._inserted, self._inserted + n, dtype=np.int64)
+        keys *= self.max_size
+        keys += slots
         self._inserted += n
         self.slot_key[slots] = keys
         if priorities is None:
@@ -141,20 +160,54 @@ class Table:
         limiter.deletes += victims.size
         return keys
 
+    def _insert_one_locked(self, items: Any, priorities: np.ndarray | None) -> np.ndarray:
+        """`_insert_many_locked` for one item, in Python scalars (a per-step writer's insert)."""
+        if self._num_free:
+            self._num_free -= 1
+            slot = int(self._free[self._num_free])
+            victim = False
+        else:
+            slot = int(self.remover.pop(1, self.rng)[0])
+            victim = True
+        key = self._inserted * self.max_size + slot
+        self._inserted += 1
+        self.slot_key[slot] = key
+        if priorities is None:
+            self.priority[slot] = self.max_priority
+        else:
+            p = float(priorities[0])
+            self.priority[slot] = p
+            self.max_priority = max(self.max_priority, p)
+        self.times_sampled[slot] = 0
+        slots, keys = np.array([slot]), np.array([key])
+        self.storage.write(slots, items)
+        for selector in (self.sampler, self.remover):
+            (selector.replace if victim else selector.insert)(slots, keys)
+        self.rate_limiter.inserts += 1
+        self.rate_limiter.deletes += victim
+        return keys
+
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
         """Set new priorities; keys of items no longer in the table are ignored (as in Reverb)."""
         keys = np.asarray(keys, dtype=np.int64).reshape(-1)
         priorities = np.asarray(priorities, dtype=np.float64).reshape(-1)
-        if (priorities < 0).any() or not np.isfinite(priorities).all():
+        if priorities.size != keys.size:
+            raise ValueError(f"Table {self.name!r}: {keys.size} keys but {priorities.size} priorities")
+        if priorities.size == 0:
+            return
+        top = float(priorities.max())
+        if not (top < np.inf and priorities.min() >= 0.0):  # a NaN fails both comparisons
             raise ValueError(f"Table {self.name!r}: priorities must be finite and >= 0")
         with self._cv:
             slots = keys % self.max_size
-            live = self.slot_key[slots] == keys
-            slots, priorities = slots[live], priorities[live]
-            if slots.size == 0:
-                return
+            live = self.slot_key.take(slots) == keys
+            if np.count_nonzero(live) < live.size:
+                slots, priorities = slots[live], priorities[live]
+                if slots.size == 0:
+                    return
+                top = float(priorities.max())
             self.priority[slots] = priorities
-            self.max_priority = max(self.max_priority, float(priorities.max()))
+            self.max_priority = max(self.max_priority, top)
             self.sampler.update(slots)
             self.remover.update(slots)
 
@@ -166,7 +219,8 @@ class Table:
             slots = np.unique(slots[self.slot_key[slots] == keys])
             if slots.size:
                 self._delete_slots(slots)
-                self._cv.notify_all()
+                if self._waiting:
+                    self._cv.notify_all()
             return int(slots.size)
 
     def _delete_slots(self, slots: np.ndarray) -> None:
@@ -182,24 +236,34 @@ class Table:
         """Sample `batch_size` items (with replacement), blocking on the rate limiter."""
         if batch_size < 1:
             raise ValueError(f"batch_size={batch_size} is not valid; it must be >= 1")
+        with self._cv:
+            if self.max_times_sampled == 0 and self.samples_available() >= batch_size:
+                out = self._sample_locked(batch_size)  # the usual case: one part, no wait
+            else:
+                out = self._sample_parts(batch_size, timeout)
+            if self._waiting:
+                self._cv.notify_all()
+        return out
+
+    def _sample_parts(self, batch_size: int, timeout: float | None) -> tuple[Any, SampleInfo]:
         parts: list[tuple[Any, SampleInfo]] = []
         got = 0
-        with self._cv:
-            while got < batch_size:
-                allowed = self._wait(self.samples_available, timeout, "sample")
-                k = min(batch_size - got, allowed)
-                parts.append(self._sample_locked(k))
-                got += k
-            self._cv.notify_all()
+        while got < batch_size:
+            allowed = self._wait(self.samples_available, timeout, "sample")
+            k = min(batch_size - got, allowed)
+            parts.append(self._sample_locked(k))
+            got += k
+            if self._waiting:
+                self._cv.notify_all()  # an inserter may be waiting for these samples
         return parts[0] if len(parts) == 1 else _concat(parts)
 
     def _sample_locked(self, n: int) -> tuple[Any, SampleInfo]:
-        size = self.size
         if self.max_times_sampled > 0:
             return self._sample_counted(n)
+        size = self.size
         slots, probs = self.sampler.select(n, self.rng)
         self.rate_limiter.samples += n
-        info = SampleInfo(self.slot_key[slots], probs, size, self.priority[slots])  # gathers are copies
+        info = SampleInfo(self.slot_key.take(slots), probs, size, self.priority.take(slots))
         return self.storage.read(slots), info
 
     def _sample_counted(self, n: int) -> tuple[Any, SampleInfo]:
@@ -234,7 +298,11 @@ class Table:
                     f"table {self.name!r}: {what} waited {timeout}s for the rate limiter "
                     f"(size {self.size}, inserts {lim.inserts}, samples {lim.samples}, {lim!r}); "
                     f"nothing is {'sampling' if what == 'insert' else 'inserting'} fast enough")
-            self._cv.wait(remaining)
+            self._waiting += 1
+            try:
+                self._cv.wait(remaining)
+            finally:
+                self._waiting -= 1
 
     # ---- checkpoints ----------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
@@ -279,6 +347,11 @@ class Table:
                 gone = live[stale(live)]
                 if gone.size:
                     self._delete_slots(gone)
+
+
+def _valid_priorities(p: np.ndarray) -> bool:
+    """All finite and >= 0 (a NaN fails both comparisons), in two reductions."""
+    return p.size == 0 or bool(p.min() >= 0.0 and p.max() < np.inf)
 
 
 def _unsqueeze(x: Any) -> Any:
