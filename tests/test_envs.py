@@ -72,3 +72,41 @@ def test_reset_with_seed_reproduces():
 def test_bad_env_ids_say_what_is_valid(env_id, fragment):
     with pytest.raises(UserError, match=fragment):
         make_env(env_id)
+
+
+@pytest.mark.parametrize("env_id", ["CartPole-v1", "toy_envs:Countdown"])
+def test_async_workers_give_the_same_transitions_as_in_process(env_id):
+    sync, asyn = make_env(env_id, 3), make_env(env_id, 3, vectorization="async")
+    try:
+        assert torch.equal(sync.reset(seed=4), asyn.reset(seed=4))
+        gen = torch.Generator().manual_seed(0)
+        for _ in range(30):  # CartPole episodes end within 30 steps of constant-ish pushes; Countdown every 3
+            action = torch.randint(0, 2, (3,), generator=gen)
+            a, b = sync.step(action), asyn.step(action)
+            for x, y in zip(a, b, strict=True):
+                assert torch.equal(x, y)
+    finally:
+        asyn.close()
+
+
+def test_unknown_vectorization_is_a_config_error():
+    import relayrl
+    from relayrl.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="env.vectorization='threads' is not valid; valid: sync, async"):
+        relayrl.load_config("dqn-cartpole", ["env.vectorization=threads"])
+
+
+def test_a_reset_in_one_copy_leaves_the_other_copies_observations_alone():
+    # CartPole copies end at different steps; a reset of one used to copy unwritten rows of others.
+    env = make_env("CartPole-v1", 3)
+    obs = env.reset(seed=4)
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(40):
+        out = env.step(torch.randint(0, 2, (3,), generator=gen))
+        done = out.terminated | out.truncated
+        # where a copy goes on, the next action's obs is the obs it just reached
+        assert torch.equal(out.obs[~done], out.next_obs[~done])
+        assert not torch.equal(out.obs[done], out.next_obs[done]) or not bool(done.any())
+        obs = out.obs
+    assert obs.shape == (3, 4)

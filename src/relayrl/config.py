@@ -27,6 +27,7 @@ class EnvConfig:
     max_episode_steps: int = 0  # 0: the env's own time limit
     # true: a time-limit cut counts as termination (no bootstrap), as in old gym / TF-Agents
     time_limit_terminates: bool = False
+    vectorization: str = "sync"  # sync: copies stepped in this process | async: one worker process each
 
 
 @dataclass
@@ -94,6 +95,8 @@ class Config:
                     "policy_save_interval", "log_interval", "pull_interval", "torch_threads"):
             if getattr(self.train, key) < 0:
                 raise ConfigError(f"train.{key} must be >= 0")
+        if self.env.vectorization not in ("sync", "async"):
+            raise ConfigError(f"env.vectorization={self.env.vectorization!r} is not valid; valid: sync, async")
         r = self.replay
         choices = {"sampler": ("uniform", "prioritized"), "storage": ("ram", "memmap")}
         for key, valid in choices.items():

@@ -93,7 +93,7 @@ class GymBatchEnv:
         reward = np.empty(b, np.float32)
         terminated = np.empty(b, np.bool_)
         truncated = np.empty(b, np.bool_)
-        obs = next_obs  # shared until some copy is reset
+        ended = []
         for i, env in enumerate(self.envs):
             o, r, term, trunc, _ = env.step(actions[i])
             next_obs[i] = o
@@ -103,9 +103,14 @@ class GymBatchEnv:
             terminated[i] = term
             truncated[i] = trunc
             if term or trunc:
-                if obs is next_obs:
-                    obs = next_obs.copy()
-                obs[i] = env.reset()[0]
+                ended.append(i)
+        obs = next_obs  # shared unless some copy is reset
+        if ended:
+            # Copy only once every row of next_obs is written (copying at the first reset
+            # would carry unwritten rows of later copies into obs).
+            obs = next_obs.copy()
+            for i in ended:
+                obs[i] = self.envs[i].reset()[0]
         return StepOutput(torch.from_numpy(next_obs), torch.from_numpy(reward), torch.from_numpy(terminated),
                           torch.from_numpy(truncated), torch.from_numpy(obs))
 
@@ -117,11 +122,16 @@ class GymBatchEnv:
             env.close()
 
 
-def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0,
-             render_mode: str | None = None, time_limit_terminates: bool = False) -> GymBatchEnv:
-    """A batched env of `num_envs` copies of `env_id`."""
+def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_mode: str | None = None,
+             time_limit_terminates: bool = False, vectorization: str = "sync") -> GymBatchEnv:
+    """A batched env of `num_envs` copies of `env_id`: stepped in this process ("sync") or
+    in one worker process per copy ("async", see envs/vector.py)."""
     fn = resolve_env_fn(env_id, max_episode_steps, render_mode)
     try:
+        if vectorization == "async" and num_envs > 1:
+            from relayrl.envs.vector import AsyncGymBatchEnv
+
+            return AsyncGymBatchEnv([fn] * num_envs, time_limit_terminates)  # type: ignore[return-value]
         return GymBatchEnv([fn] * num_envs, time_limit_terminates)
     except gym.error.Error as e:
         raise UserError(f"env.id={env_id!r} could not be made: {e}") from None

@@ -63,7 +63,7 @@ class LocalRun:
         torch.manual_seed(c.seed)  # network initialisation
         self.device = resolve_device(c.device)
         self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
-                            time_limit_terminates=c.env.time_limit_terminates)
+                            time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization)
         self.eval_env = make_env(c.env.id, min(c.eval.episodes, EVAL_BATCH), c.env.max_episode_steps)
         obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
         self.agent = make_agent(c.algo, c.agent, obs_spec, act_spec, self.device,
