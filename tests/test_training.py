@@ -119,6 +119,19 @@ def test_rate_limiter_gives_the_configured_gradient_steps(tmp_path):
     assert result.final["train_step"] == 13 * 20 + 20 - 1  # the writer's one-step lag: 199 items at 200
 
 
+@pytest.mark.parametrize("num_envs", [1, 7])
+def test_update_to_data_ratio_does_not_change_with_num_envs(tmp_path, num_envs):
+    # 1 gradient step per collected env step; with 7 envs an iteration collects 7 steps and
+    # must be followed by 7 gradient steps, not 1.
+    cfg = relayrl.load_config("dqn-cartpole", [f"env.num_envs={num_envs}", "env.id=CartPole-v1",
+                                               "train.total_steps=800", "train.initial_collect_steps=100",
+                                               "eval.interval=800", "eval.episodes=2", "agent.hidden=[16]",
+                                               "train.checkpoint_interval=0", "agent.batch_size=8"])
+    result = relayrl.train(cfg, tmp_path / "u", progress=False)
+    trained_on = result.final["step"] - 100
+    assert abs(result.final["train_step"] - trained_on) <= 2 * num_envs, result.final
+
+
 @pytest.mark.parametrize("extra", [["replay.sampler='prioritized'", "replay.n_step=3"], ["replay.n_step=2"]])
 def test_dqn_learns_a_bandit_with_prioritized_and_n_step_replay(tmp_path, extra):
     cfg = relayrl.load_config("dqn-cartpole-fast", [

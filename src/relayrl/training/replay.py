@@ -1,9 +1,9 @@
 """Builds a run's replay (Table + TransitionWriter) from its config.
 
 The rate limiter is what decides how many gradient steps follow each collect iteration, in
-one process as on Ray: samples_per_insert defaults to gradient_steps * batch_size per
-collect iteration's env steps, and the error buffer to one iteration's worth of samples, so
-`collect_steps` / `gradient_steps` in a preset mean what they say.
+one process as on Ray: samples_per_insert defaults to gradient_steps * batch_size /
+collect_steps, and the error buffer to one iteration's worth of samples, so
+`collect_steps` / `gradient_steps` in a preset mean what they say at any env.num_envs.
 """
 
 from __future__ import annotations
@@ -36,7 +36,10 @@ def rate_limiter(c: Config) -> RateLimiter:
     if min_size > r.size:
         raise ConfigError(f"replay.min_size_to_sample={min_size} is more than replay.size={r.size}")
     per_iter = env_steps_per_iteration(c)
-    spi = r.samples_per_insert or c.train.gradient_steps * c.agent.batch_size / per_iter
+    # The nominal ratio (gradient_steps per collect_steps env steps), not per actual
+    # iteration: with N envs an iteration may take more env steps than collect_steps (all
+    # copies step together), and the update-to-data ratio must not change with N.
+    spi = r.samples_per_insert or c.train.gradient_steps * c.agent.batch_size / c.train.collect_steps
     if spi == 0:
         return MinSize(min_size)  # gradient_steps = 0: collect only
     burst = spi * per_iter
