@@ -26,3 +26,10 @@ def test_dqn_cartpole_reproduces_the_tutorial(tmp_path, seed):
     rows = evals(relayrl.load_config("dqn-cartpole", seed=seed), tmp_path / "r")
     assert any(r["average_return"] >= 200 and r["step"] <= 5_100 for r in rows), rows
     assert rows[-1]["average_return"] >= 200, rows
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sac_pendulum_reaches_minus_200_within_20k(tmp_path, seed):
+    rows = evals(relayrl.load_config("sac-pendulum", seed=seed), tmp_path / "r")
+    assert any(r["average_return"] >= -200 and r["step"] <= 20_000 for r in rows), rows
