@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import torch
@@ -18,6 +19,10 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
 
     rd = RunDir(run_dir)
     rd.require()
+    # Off-screen rendering needs no display or sound: without these, pygame-based envs
+    # (Pendulum) print an SDL "XDG_RUNTIME_DIR is invalid" error on headless machines.
+    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
+    os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
     config = load_config(str(rd.config))
     policy = load_policy(rd.root)
     env = make_env(config.env.id, 1, config.env.max_episode_steps, render_mode="rgb_array")
