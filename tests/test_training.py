@@ -46,6 +46,18 @@ def test_resume_continues_from_the_last_checkpoint(tmp_path):
     assert result.final["train_step"] > ckpt["agent"]["train_step"]
 
 
+def test_checkpoints_can_leave_the_replay_out_and_resume_refills_it(tmp_path, capsys):
+    no_replay = ["train.checkpoint_replay=false"]
+    first = relayrl.load_config("dqn-cartpole-fast", SMALL[:1] + ["train.total_steps=1000"] + SMALL[2:] + no_replay)
+    relayrl.train(first, tmp_path / "r", progress=False)
+    assert load_latest_checkpoint(tmp_path / "r" / "checkpoints")["replay"] is None
+    longer = relayrl.load_config("dqn-cartpole-fast", SMALL + no_replay)
+    result = relayrl.train(longer, tmp_path / "r", resume=True, progress=False)
+    assert result.final["step"] == 1500
+    err = capsys.readouterr().err
+    assert "checkpoints leave the replay out" in err and "the replay refills" in err
+
+
 def test_resume_needs_a_checkpoint(tmp_path):
     cfg = relayrl.load_config("dqn-cartpole-fast", SMALL)
     RunDir(tmp_path / "r").create()

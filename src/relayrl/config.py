@@ -37,6 +37,7 @@ class TrainConfig:
     collect_steps: int = 1  # env steps per iteration
     gradient_steps: int = 1  # gradient steps per iteration
     checkpoint_interval: int = 10_000  # env steps; 0 disables
+    checkpoint_replay: bool = True  # false: checkpoints leave the replay out (huge tables)
     policy_save_interval: int = 5_000  # env steps; 0 disables
     log_interval: int = 1_000  # env steps between progress / TensorBoard scalars
     pull_interval: int = 0  # env steps between the actor's weight pulls; 0: every collect iteration

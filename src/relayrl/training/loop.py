@@ -151,7 +151,9 @@ class LocalRun:
             "env_steps": p.env_steps,
             "config": to_dict(self.config),
             "agent": self.agent.state_dict(),
-            "replay": self.replay.state_dict(),
+            # Very large tables may be left out (train.checkpoint_replay = false): a resumed
+            # run then refills its replay before learning again.
+            "replay": self.replay.state_dict() if self.config.train.checkpoint_replay else None,
             "episode_stats": self.stats.state_dict(),
             "random_rng": self.random_rng.bit_generator.state,
             "eval_count": self.eval_count,
@@ -162,7 +164,11 @@ class LocalRun:
     def restore(self) -> None:
         state = load_latest_checkpoint(self.rd.checkpoints)
         self.agent.load_state_dict(state["agent"])
-        self.replay.load_state_dict(state["replay"])
+        if state["replay"] is not None:
+            self.replay.load_state_dict(state["replay"])
+        else:
+            self.say("the checkpoint has no replay contents (train.checkpoint_replay = false): "
+                     "the replay refills from the resumed policy before learning continues")
         self.stats.load_state_dict(state["episode_stats"])
         self.random_rng.bit_generator.state = state["random_rng"]
         self.eval_count = int(state["eval_count"])
@@ -184,6 +190,8 @@ class LocalRun:
         self.bar = None
         from torch.utils.tensorboard import SummaryWriter
 
+        if not c.train.checkpoint_replay and c.train.checkpoint_interval > 0:
+            self.say("train.checkpoint_replay = false: checkpoints leave the replay out; a resumed run refills it")
         if resume:
             self.restore()  # rewrites metrics.jsonl: open the log only afterwards
         self.tb = SummaryWriter(str(self.rd.tb))
