@@ -20,12 +20,12 @@ from relayrl.errors import UserError
 from relayrl.metrics import EnvironmentSteps, EpisodeStats
 from relayrl.policies import RandomPolicy, linear_schedule
 from relayrl.training.actor import Actor
-from relayrl.training.checkpoint import atomic_torch_save, load_latest_checkpoint, save_checkpoint
+from relayrl.training.checkpoint import load_latest_checkpoint
 from relayrl.training.evaluate import evaluate
 from relayrl.training.learner import Learner
 from relayrl.training.replay import build_replay
 from relayrl.training.run_dir import MetricsLog, RunDir
-from relayrl.training.triggers import IntervalTrigger, Progress, StepsPerSecond
+from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver, Progress, StepsPerSecond
 from relayrl.training.variables import VariableContainer, WeightPuller
 
 EVAL_BATCH = 16  # eval episodes run as one batch of at most this many env copies
@@ -90,10 +90,13 @@ class LocalRun:
         self.wall_offset = 0.0
         self.last_eval: dict[str, Any] = {}
         self.sps = StepsPerSecond()
+        self.policy_saver = PolicySaver(c.train.policy_save_interval, self.agent, run_dir.policy,
+                                        extra={"env_id": c.env.id})
+        self.checkpointer = Checkpointer(c.train.checkpoint_interval, self.checkpoint_state, run_dir.checkpoints)
         self.triggers = [
             IntervalTrigger(c.eval.interval, self.run_eval),
-            IntervalTrigger(c.train.policy_save_interval, self.save_policy),
-            IntervalTrigger(c.train.checkpoint_interval, self.save_checkpoint),
+            self.policy_saver,
+            self.checkpointer,
             IntervalTrigger(c.train.log_interval, self.log_progress),
         ]
 
@@ -141,14 +144,10 @@ class LocalRun:
         self.say(f"step {p.env_steps:>9,} | eval return {result['average_return']:8.2f} "
                  f"| length {result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
 
-    def save_policy(self, p: Progress) -> None:
-        state = {**self.agent.policy_state(), "env_steps": p.env_steps, "env_id": self.config.env.id}
-        atomic_torch_save(state, self.rd.policy / "policy.pt")
-
-    def save_checkpoint(self, p: Progress) -> None:
-        state = {
+    def checkpoint_state(self) -> dict[str, Any]:
+        """Everything a resume needs besides the env step, which the Checkpointer adds."""
+        return {
             "version": 1,
-            "env_steps": p.env_steps,
             "config": to_dict(self.config),
             "agent": self.agent.state_dict(),
             # Very large tables may be left out (train.checkpoint_replay = false): a resumed
@@ -159,7 +158,6 @@ class LocalRun:
             "eval_count": self.eval_count,
             "wall_time_s": self.wall_time(),
         }
-        save_checkpoint(self.rd.checkpoints, p.env_steps, state)
 
     def restore(self) -> None:
         state = load_latest_checkpoint(self.rd.checkpoints)
@@ -229,9 +227,9 @@ class LocalRun:
         p = self.progress()
         if self.last_eval.get("step") != p.env_steps:
             self.run_eval(p)
-        self.save_policy(p)
+        self.policy_saver.save(p)
         if c.train.checkpoint_interval > 0:
-            self.save_checkpoint(p)
+            self.checkpointer.save(p)
         self.log_progress(p)
 
 
