@@ -30,6 +30,22 @@ def test_numpy_inference_matches_torch(activation):
     assert (greedy(obs) == 2).all()
 
 
+def test_numpy_path_serves_small_batches_and_torch_large_ones():
+    from relayrl.networks import NumpyMLP
+
+    wide = NumpyMLP(MLP(3, [256, 256], 2))  # ~67k multiply-adds per row
+    assert wide.suits(1) and wide.suits(7) and not wide.suits(8) and not wide.suits(32)
+    narrow = NumpyMLP(MLP(4, [64, 64], 2))
+    assert narrow.suits(64) and not narrow.suits(1024)
+    torch.manual_seed(0)
+    net = MLP(4, [256, 256], 3)
+    greedy = GreedyPolicy(net, torch.device("cpu"))
+    for rows in (1, 7, 8, 64):  # both sides of the switch give the network's argmax
+        obs = torch.randn(rows, 4)
+        with torch.no_grad():
+            assert torch.equal(greedy(obs), net(obs).argmax(1))
+
+
 def test_epsilon_greedy_explores_at_the_scheduled_rate_per_batch_element():
     net = MLP(4, [8], 4)
     with torch.no_grad():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 import numpy as np
+from gymnasium.envs.classic_control import CartPoleEnv
 
 
 class Countdown(gym.Env):
@@ -90,3 +91,10 @@ class Reach(gym.Env):
         reward = -float(np.sum((np.asarray(action) - 1.5 * self._t) ** 2))
         self._t = self.np_random.uniform(-1, 1, 2).astype(np.float32)
         return self._t, reward, True, False, {}
+
+
+class Unpicklable(CartPoleEnv):
+    """CartPole that refuses to be pickled, like envs holding simulator handles."""
+
+    def __getstate__(self):
+        raise TypeError("holds a simulator handle")

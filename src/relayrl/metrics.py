@@ -69,15 +69,22 @@ class EpisodeStats:
         self._len = None
 
     def state_dict(self) -> dict[str, Any]:
-        return {"returns": list(self.returns), "lengths": list(self.lengths), "episodes": self.episodes}
+        running = None if self._ret is None else (self._ret.copy(), self._len.copy())  # type: ignore[union-attr]
+        return {"returns": list(self.returns), "lengths": list(self.lengths), "episodes": self.episodes,
+                "running": running}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restores episodes in progress too; call `reset_running()` after if the envs were
+        reset rather than restored."""
         self.returns.clear()
         self.returns.extend(state["returns"])
         self.lengths.clear()
         self.lengths.extend(state["lengths"])
         self.episodes = int(state["episodes"])
         self.reset_running()
+        if state.get("running") is not None:
+            ret, length = state["running"]
+            self._ret, self._len = np.array(ret, np.float64), np.array(length, np.int64)
 
 
 class AverageReturn:

@@ -42,7 +42,7 @@ class RandomPolicy:
 class GreedyPolicy:
     """argmax_a Q(obs, a). Runs the network on its device and returns CPU actions.
 
-    A float32 MLP on the CPU runs through NumPy views of its weights (see NumpyMLP).
+    A float32 MLP on the CPU runs small batches through NumPy views of its weights (see NumpyMLP).
     """
 
     def __init__(self, q_net: nn.Module, device: torch.device) -> None:
@@ -52,7 +52,7 @@ class GreedyPolicy:
                        and all(p.dtype == torch.float32 for p in q_net.parameters()) else None)
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
-        if self._numpy is not None:
+        if self._numpy is not None and self._numpy.suits(obs.shape[0]):
             return torch.from_numpy(self._numpy(obs.numpy()).argmax(axis=1))
         with torch.no_grad():
             return self.q_net(obs.to(self.device, non_blocking=True)).argmax(dim=1).cpu()
@@ -113,7 +113,7 @@ class TanhGaussianPolicy:
                        and all(p.dtype == torch.float32 for p in actor.parameters()) else None)
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
-        if self._numpy is not None:
+        if self._numpy is not None and self._numpy.suits(obs.shape[0]):
             out = self._numpy(obs.numpy())  # [B, 2A]
         else:
             with torch.no_grad():

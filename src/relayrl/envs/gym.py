@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import difflib
 import importlib
+import pickle
 from collections.abc import Callable
 
 import gymnasium as gym
@@ -21,6 +22,31 @@ from relayrl.specs import DiscreteSpec, Spec, spec_from_space
 from relayrl.types import StepOutput
 
 EnvFn = Callable[[], gym.Env]
+
+
+def env_snapshot(env: gym.Env) -> bytes | None:
+    """The env's whole state (dynamics, episode step count, RNGs) pickled, or None for envs
+    that cannot be pickled (simulator handles such as pybullet's; an env may also opt out
+    by raising TypeError from `__getstate__`)."""
+    try:
+        return pickle.dumps(env)
+    except Exception:  # pickling runs arbitrary user code: any failure means "not checkpointable"
+        return None
+
+
+class BatchEnvBase:
+    """Specs and flags shared by the in-process and the worker-process batched envs."""
+
+    def _init_specs(self, num_envs: int, observation_space: gym.Space, action_space: gym.Space,
+                    time_limit_terminates: bool) -> None:
+        self.num_envs = num_envs
+        self.observation_spec: Spec = spec_from_space(observation_space)
+        self.action_spec: Spec = spec_from_space(action_space)
+        self._obs_dtype = torch.empty((), dtype=self.observation_spec.dtype).numpy().dtype
+        self._discrete = isinstance(self.action_spec, DiscreteSpec)
+        # Old gym (and so the TF-Agents tutorials) reported a time-limit cut as `done`, a
+        # termination: targets do not bootstrap through it. Some presets reproduce that.
+        self.time_limit_terminates = time_limit_terminates
 
 
 def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | None = None) -> EnvFn:
@@ -58,23 +84,28 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
     return lambda: gym.make(env_id, disable_env_checker=True, **kwargs)
 
 
-class GymBatchEnv:
+class GymBatchEnv(BatchEnvBase):
     """`num_envs` Gymnasium envs stepped in this process, as one batched env."""
 
     def __init__(self, env_fns: list[EnvFn], time_limit_terminates: bool = False) -> None:
         if not env_fns:
             raise UserError("env.num_envs must be >= 1")
         self.envs = [fn() for fn in env_fns]
-        self.num_envs = len(self.envs)
         first = self.envs[0]
-        self.observation_spec: Spec = spec_from_space(first.observation_space)
-        self.action_spec: Spec = spec_from_space(first.action_space)
-        obs_dtype = torch.empty((), dtype=self.observation_spec.dtype).numpy().dtype
-        self._obs_dtype = obs_dtype
-        self._discrete = isinstance(self.action_spec, DiscreteSpec)
-        # Old gym (and so the TF-Agents tutorials) reported a time-limit cut as `done`, a
-        # termination: targets do not bootstrap through it. Some presets reproduce that.
-        self.time_limit_terminates = time_limit_terminates
+        self._init_specs(len(self.envs), first.observation_space, first.action_space, time_limit_terminates)
+
+    def get_state(self) -> list[bytes] | None:
+        """Every copy's state, for checkpoints that resume mid-episode; None if any copy
+        cannot be pickled (a resumed run then starts new episodes)."""
+        states = [env_snapshot(env) for env in self.envs]
+        return None if any(s is None for s in states) else states  # type: ignore[return-value]
+
+    def set_state(self, states: list[bytes]) -> None:
+        if len(states) != self.num_envs:
+            raise ValueError(f"env state for {len(states)} copies, but this env has {self.num_envs}")
+        for env in self.envs:
+            env.close()
+        self.envs = [pickle.loads(s) for s in states]
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
         obs = []

@@ -10,28 +10,61 @@ simulators such as Minitaur, not CartPole.
 
 from __future__ import annotations
 
+import pickle
+
 import gymnasium as gym
 import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode
 
-from relayrl.envs.gym import EnvFn
+from relayrl.envs.gym import BatchEnvBase, EnvFn, env_snapshot
 from relayrl.errors import UserError
-from relayrl.specs import DiscreteSpec, Spec, spec_from_space
 from relayrl.types import StepOutput
 
 
-class AsyncGymBatchEnv:
+class _Snapshot(gym.Wrapper):
+    """Hands a worker's env state out (pickled) and takes one in, through the vector env's
+    `call` / `set_attr` (which can only reach the env's own attributes)."""
+
+    relayrl_state_in: bytes = b""
+
+    def relayrl_get_state(self) -> bytes | None:
+        return env_snapshot(self.env)
+
+    def relayrl_set_state(self) -> None:
+        self.env.close()
+        self.env = pickle.loads(self.relayrl_state_in)
+        self.relayrl_state_in = b""
+
+
+class _Wrapped:
+    """A picklable env factory (the workers get it through cloudpickle) adding `_Snapshot`."""
+
+    def __init__(self, fn: EnvFn) -> None:
+        self.fn = fn
+
+    def __call__(self) -> gym.Env:
+        return _Snapshot(self.fn())
+
+
+class AsyncGymBatchEnv(BatchEnvBase):
     def __init__(self, env_fns: list[EnvFn], time_limit_terminates: bool = False) -> None:
         if not env_fns:
             raise UserError("env.num_envs must be >= 1")
-        self.vec = gym.vector.AsyncVectorEnv(env_fns, autoreset_mode=AutoresetMode.SAME_STEP)
-        self.num_envs = len(env_fns)
-        self.observation_spec: Spec = spec_from_space(self.vec.single_observation_space)
-        self.action_spec: Spec = spec_from_space(self.vec.single_action_space)
-        self._obs_dtype = torch.empty((), dtype=self.observation_spec.dtype).numpy().dtype
-        self._discrete = isinstance(self.action_spec, DiscreteSpec)
-        self.time_limit_terminates = time_limit_terminates  # see GymBatchEnv
+        self.vec = gym.vector.AsyncVectorEnv([_Wrapped(fn) for fn in env_fns], autoreset_mode=AutoresetMode.SAME_STEP)
+        self._init_specs(len(env_fns), self.vec.single_observation_space, self.vec.single_action_space,
+                         time_limit_terminates)
+
+    def get_state(self) -> list[bytes] | None:
+        """As `GymBatchEnv.get_state`, pickled in each worker."""
+        states = list(self.vec.call("relayrl_get_state"))
+        return None if any(s is None for s in states) else states
+
+    def set_state(self, states: list[bytes]) -> None:
+        if len(states) != self.num_envs:
+            raise ValueError(f"env state for {len(states)} copies, but this env has {self.num_envs}")
+        self.vec.set_attr("relayrl_state_in", list(states))
+        self.vec.call("relayrl_set_state")
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
         obs, _ = self.vec.reset(seed=None if seed is None else [seed + i for i in range(self.num_envs)])

@@ -166,13 +166,14 @@ class StepStore:
         return ok
 
     def state_dict(self) -> dict[str, Any]:
-        return {"columns": self.cols.state_dict(), "head": self.head.copy()}
+        return {"columns": self.cols.state_dict(), "head": self.head.copy(), "ep_start": self.ep_start.copy()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.cols.load_state_dict(state["columns"])
         self.head[:] = state["head"]
-        # Env state is not checkpointed: a resumed actor starts fresh episodes, so the
-        # steps of the interrupted ones are never joined to new ones.
+        # By default a resumed actor starts fresh episodes, so the steps of the interrupted
+        # ones are never joined to new ones; a writer whose env state was restored too
+        # continues them (`_Writer.continue_episodes`).
         self.ep_start[:] = self.head
 
 

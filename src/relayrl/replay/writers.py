@@ -87,6 +87,7 @@ class _Writer:
         self._stage_limit = min(self._max_staged, max(1, -(-chunk_length // num_envs)))
         self._staged: list[Transition] = []
         self._open_from = np.zeros(num_envs, dtype=np.int64)  # first position that may still become an item
+        self._saved_episodes: tuple[Any, Any] = (None, None)  # see continue_episodes
         f = self.store.flat
         self._frame, self._action, self._reward, self._stamp = f("frame"), f("action"), f("reward"), f("stamp")
         self._start, self._last, self._terminated = f("start"), f("last"), f("terminated")
@@ -125,7 +126,8 @@ class _Writer:
 
     def state_dict(self) -> dict[str, Any]:
         self.flush()
-        return {"store": self.store.state_dict(), "slot_ref": self.slot_ref.copy()}
+        return {"store": self.store.state_dict(), "slot_ref": self.slot_ref.copy(),
+                "open_from": self._open_from.copy()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.store.load_state_dict(state["store"])
@@ -134,7 +136,18 @@ class _Writer:
         self.slot_rows[0] = envs * self.rows + pos % self.rows
         self.slot_rows[1] = envs * self.rows + self._next_pos(envs, pos) % self.rows
         self._staged.clear()
-        self._open_from = self.store.head.copy()  # resumed actors start new episodes
+        self._open_from = self.store.head.copy()  # resumed actors start new episodes...
+        # ...unless their envs resume mid-episode too: then `continue_episodes()`.
+        self._saved_episodes = (state.get("open_from"), state["store"].get("ep_start"))
+
+    def continue_episodes(self) -> None:
+        """After `load_state_dict`, when the actor's envs were restored mid-episode as well:
+        the next step continues the interrupted episodes (their last steps become items)."""
+        open_from, ep_start = self._saved_episodes
+        if open_from is None or ep_start is None:
+            raise ValueError("this writer state predates episode continuation; resumed envs must start new episodes")
+        self._open_from = np.asarray(open_from, dtype=np.int64).copy()
+        self.store.ep_start[:] = ep_start
 
     # ---- the observer ---------------------------------------------------------------
     def __call__(self, t: Transition) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 
@@ -46,3 +47,27 @@ class Actor:
             flush = getattr(observer, "flush", None)
             if flush is not None:
                 flush()  # staged steps reach the replay before anyone samples
+
+    def state_dict(self) -> dict[str, Any]:
+        """Env steps, the observation the next step acts on, and the envs' own state (None
+        when the env cannot be pickled: see `envs.gym.env_snapshot`)."""
+        get_state = getattr(self.env, "get_state", None)
+        return {"env_steps": self.env_steps, "obs": self._obs.clone(),
+                "env": get_state() if get_state is not None else None,
+                "puller": self.puller.state_dict() if self.puller is not None else None}
+
+    def load_state_dict(self, state: dict[str, Any], reset_seed: int | None = None) -> bool:
+        """Restore; True when the envs continue their episodes, False when they could not be
+        restored and were reset instead (seeded with `reset_seed`, so a resumed run is itself
+        reproducible): observers must then forget the episodes in progress."""
+        self.env_steps = int(state["env_steps"])
+        if self.puller is not None and state.get("puller") is not None:
+            self.puller.load_state_dict(state["puller"])
+        env_state = state.get("env")
+        set_state = getattr(self.env, "set_state", None)
+        if env_state is not None and set_state is not None and len(env_state) == self.env.num_envs:
+            set_state(env_state)
+            self._obs = state["obs"].clone()
+            return True
+        self._obs = self.env.reset(seed=reset_seed)
+        return False

@@ -47,6 +47,8 @@ def save_checkpoint(folder: Path, env_steps: int, state: dict[str, Any], keep: i
     atomic_torch_save(state, path)
     for old in list_checkpoints(folder)[:-keep]:
         old.unlink(missing_ok=True)
+    for partial in folder.glob("ckpt-*.pt.tmp"):  # left by writes that a kill interrupted
+        partial.unlink(missing_ok=True)
     return path
 
 

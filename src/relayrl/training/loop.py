@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import random
 import sys
 import time
 from dataclasses import dataclass
@@ -147,7 +148,7 @@ class LocalRun:
     def checkpoint_state(self) -> dict[str, Any]:
         """Everything a resume needs besides the env step, which the Checkpointer adds."""
         return {
-            "version": 1,
+            "version": 2,
             "config": to_dict(self.config),
             "agent": self.agent.state_dict(),
             # Very large tables may be left out (train.checkpoint_replay = false): a resumed
@@ -157,10 +158,22 @@ class LocalRun:
             "random_rng": self.random_rng.bit_generator.state,
             "eval_count": self.eval_count,
             "wall_time_s": self.wall_time(),
+            # Mid-episode state, so that a resumed run is the uninterrupted run bit for bit:
+            # the envs (pickled, where they can be), the pending observation, the acting copy
+            # of the policy, the global RNGs a user's env may draw from, the latest losses.
+            "actor": self.actor.state_dict(),
+            "variables_version": self.variables.version,
+            "global_rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
+                           "python": random.getstate()},
+            "last_metrics": {k: v.detach().cpu() for k, v in self.learner.last_metrics.items()},
         }
 
     def restore(self) -> None:
         state = load_latest_checkpoint(self.rd.checkpoints)
+        saved_envs = state["config"]["env"]["num_envs"]
+        if saved_envs != self.config.env.num_envs:
+            raise UserError(f"env.num_envs={self.config.env.num_envs} but the run being resumed has "
+                            f"{saved_envs} (its replay and envs are laid out per copy); resume with {saved_envs}")
         self.agent.load_state_dict(state["agent"])
         if state["replay"] is not None:
             self.replay.load_state_dict(state["replay"])
@@ -172,11 +185,30 @@ class LocalRun:
         self.eval_count = int(state["eval_count"])
         self.wall_offset = float(state["wall_time_s"])
         steps = int(state["env_steps"])
-        self.actor.env_steps = self.steps.value = steps
-        # Env internals cannot be checkpointed in general: start fresh episodes, seeded so a
-        # resumed run is itself reproducible.
-        self.actor._obs = self.env.reset(seed=self.config.seed + steps)
+        self.steps.value = steps
+        continued = False
+        if "actor" in state:  # checkpoints before mid-episode state (version 1) lack it
+            self.variables.load_state_dict({"version": state["variables_version"], "weights": None})
+            continued = self.actor.load_state_dict(state["actor"], reset_seed=self.config.seed + steps)
+            rng = state["global_rng"]
+            torch.set_rng_state(rng["torch"])
+            np.random.set_state(rng["numpy"])
+            random.setstate(rng["python"])
+            self.learner.last_metrics = dict(state["last_metrics"])
+        else:
+            self.actor.load_state_dict({"env_steps": steps, "env": None}, reset_seed=self.config.seed + steps)
+        if continued and state["replay"] is not None:
+            self.writer.continue_episodes()
+        elif not continued:
+            # Env internals that cannot be pickled (simulator handles): fresh episodes, seeded
+            # so that a resumed run is itself reproducible; the interrupted ones are dropped.
+            self.stats.reset_running()
+            self.say("env state is not checkpointable (the env cannot be pickled): "
+                     "the resumed run starts new episodes")
         self.rd.truncate_metrics(after_step=steps)
+        kept = self.rd.read_metrics()
+        if kept and kept[-1].get("step") == steps:
+            self.last_eval = kept[-1]  # a finished run resumed again needs no second final eval
         for trigger in self.triggers:
             trigger.start_at(steps)
         self.say(f"resumed from env step {steps:,} (train step {self.agent.train_step:,})")

@@ -78,3 +78,14 @@ class WeightPuller:
         torch._foreach_copy_(self.params, weights)
         self.version = version
         return True
+
+    def state_dict(self) -> dict:
+        """The acting copy and when it was pulled: with `interval` > 0 it may be older than the
+        learner's weights, and a resumed run must act with the same one."""
+        return {"version": self.version, "last_pull_step": self._last_pull_step,
+                "params": [p.cpu().clone() for p in self.params]}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.version = int(state["version"])
+        self._last_pull_step = int(state["last_pull_step"])
+        torch._foreach_copy_(self.params, [w.to(p.device) for w, p in zip(state["params"], self.params, strict=True)])

@@ -1,0 +1,124 @@
+"""Collection throughput of SAC's actor on Pendulum-v1 against Gymnasium's raw vector envs, same run.
+
+    .venv/bin/python bench/collect.py [--envs 1 8 32 128] [--seconds 2] [--json bench/results/collect.json]
+
+For each N and each vectorization (sync: in this process; async: one worker process per copy):
+
+  raw    Gymnasium's SyncVectorEnv / AsyncVectorEnv stepped with random actions drawn before
+         timing (so the figure is the env alone), same-step autoreset
+  ours   relayrl's Actor: SAC's collect policy (a (256, 256) tanh-Gaussian actor, the sac-batched
+         preset's) + our batched env + EnvironmentSteps and EpisodeStats metrics + the
+         TransitionWriter inserting into a 1,000,000-item Table (flushed every step, as the
+         sac-batched loop does)
+
+Overhead = ours' time per env step minus raw's, as a % of raw's: the actor loop's cost on top of
+the env. The issue's target: under 25% at N = 32. Figures are env steps/s, the median of 3
+repeats of `--seconds`, raw and ours alternating so they see the same load (the machine is
+shared). torch runs on 1 thread: at these batch sizes inference is too small to split.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import datetime
+import json
+import platform
+import statistics
+import time
+from collections.abc import Callable
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from relayrl.agents import make_agent
+from relayrl.envs import make_env
+from relayrl.metrics import EnvironmentSteps, EpisodeStats
+from relayrl.presets import load_config
+from relayrl.training.actor import Actor
+from relayrl.training.replay import build_replay
+
+ENV = "Pendulum-v1"
+
+
+def rate(step_batch: Callable[[], None], n: int, seconds: float) -> float:
+    """Env steps/s of calling `step_batch` (n env steps each) for about `seconds`."""
+    for _ in range(20):
+        step_batch()  # warm-up: first-call costs, caches
+    calls, t0 = 0, time.perf_counter()
+    while (elapsed := time.perf_counter() - t0) < seconds:
+        for _ in range(10):
+            step_batch()
+        calls += 10
+    return calls * n / elapsed
+
+
+def raw(n: int, vectorization: str) -> tuple[Callable[[], None], Callable[[], None]]:
+    fns = [lambda: gym.make(ENV, disable_env_checker=True)] * n
+    cls = gym.vector.AsyncVectorEnv if vectorization == "async" else gym.vector.SyncVectorEnv
+    vec = cls(fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+    vec.reset(seed=0)
+    actions = np.random.default_rng(0).uniform(-2, 2, (1024, n, 1)).astype(np.float32)
+    i = 0
+
+    def step() -> None:
+        nonlocal i
+        vec.step(actions[i % 1024])
+        i += 1
+
+    return step, vec.close
+
+
+def ours(n: int, vectorization: str) -> tuple[Callable[[], None], Callable[[], None]]:
+    c = load_config("sac-batched", [f"env.num_envs={n}", f"env.vectorization={vectorization}",
+                                    "train.gradient_steps=0", "device=cpu"])
+    env = make_env(ENV, n, vectorization=vectorization)
+    agent = make_agent("sac", c.agent, env.observation_spec, env.action_spec, torch.device("cpu"),
+                       np.random.default_rng(0), c.train.total_steps)
+    table, writer = build_replay(c, env.observation_spec, env.action_spec, run_root=None)  # type: ignore[arg-type]
+    acting = copy.deepcopy(agent.policy_network()).requires_grad_(False)
+    actor = Actor(env, agent.collect_policy(lambda: 0, acting), [EnvironmentSteps(), EpisodeStats(), writer], seed=0)
+    return (lambda: actor.run(n)), env.close
+
+
+def measure(n: int, vectorization: str, seconds: float) -> dict[str, float]:
+    figures: dict[str, list[float]] = {"raw": [], "ours": []}
+    for _ in range(3):
+        for name, build in (("raw", raw), ("ours", ours)):
+            step, close = build(n, vectorization)
+            try:
+                figures[name].append(rate(step, n, seconds))
+            finally:
+                close()
+    r, o = statistics.median(figures["raw"]), statistics.median(figures["ours"])
+    return {"n": n, "vectorization": vectorization, "raw_sps": r, "ours_sps": o, "overhead_pct": 100 * (r / o - 1)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--envs", type=int, nargs="+", default=[1, 8, 32, 128])
+    ap.add_argument("--vectorization", nargs="+", default=["sync", "async"], choices=["sync", "async"])
+    ap.add_argument("--seconds", type=float, default=2.0)
+    ap.add_argument("--json")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    rows = []
+    print(f"{'N':>5} {'vectorization':>13} {'raw steps/s':>12} {'ours steps/s':>13} {'overhead':>9}")
+    for vec in args.vectorization:
+        for n in args.envs:
+            if vec == "async" and n == 1:
+                continue  # one copy always steps in process
+            row = measure(n, vec, args.seconds)
+            rows.append(row)
+            print(f"{n:>5} {vec:>13} {row['raw_sps']:>12,.0f} {row['ours_sps']:>13,.0f} {row['overhead_pct']:>8.1f}%",
+                  flush=True)
+    if args.json:
+        meta = {"date": datetime.date.today().isoformat(), "machine": platform.platform(),
+                "cpus": __import__("os").cpu_count(), "torch": torch.__version__, "gymnasium": gym.__version__}
+        with open(args.json, "w") as f:
+            json.dump({"meta": meta, "rows": rows}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,136 @@
+"""Whole-run checkpoints: a run resumed from a checkpoint is the uninterrupted run, bit for bit."""
+
+import random
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import warnings
+
+import pytest
+import torch
+
+import relayrl
+from relayrl.training.checkpoint import list_checkpoints, load_latest_checkpoint
+from relayrl.training.run_dir import RunDir
+
+DQN = ["env.id=CartPole-v1", "train.total_steps=1500", "train.initial_collect_steps=200",
+       "eval.interval=500", "eval.episodes=3", "train.checkpoint_interval=500",
+       "train.collect_steps=100", "train.gradient_steps=20", "agent.hidden=[32,32]"]
+SAC = ["env.id=Pendulum-v1", "train.total_steps=900", "train.initial_collect_steps=200",
+       "eval.interval=300", "eval.episodes=2", "train.checkpoint_interval=300", "train.collect_steps=30",
+       "train.gradient_steps=3", "agent.actor_hidden=[16]", "agent.critic_hidden=[16]", "agent.batch_size=32",
+       "train.torch_threads=1"]
+TIMES = ("wall_time_s", "eval_s")
+
+
+def comparable(run_dir):
+    return [{k: v for k, v in r.items() if k not in TIMES} for r in RunDir(run_dir).read_metrics()]
+
+
+def cut_back(src, dst):
+    """A copy of finished run `src` as a crash just before its final checkpoint would have
+    left it: resuming starts from the checkpoint before (two are kept)."""
+    shutil.copytree(src, dst)
+    *older, final = list_checkpoints(dst / "checkpoints")
+    assert older, "the run wrote only one checkpoint"
+    final.unlink()
+
+
+def assert_same_state(a, b):
+    sa, sb = (load_latest_checkpoint(d / "checkpoints") for d in (a, b))
+    assert sa["env_steps"] == sb["env_steps"]
+    for key, ta in sa["agent"].items():
+        if isinstance(ta, dict):
+            for name, t in ta.items():
+                if torch.is_tensor(t):
+                    assert torch.equal(t, sb["agent"][key][name]), f"agent.{key}.{name} differs"
+
+
+@pytest.mark.parametrize("preset,over", [
+    ("dqn-cartpole-fast", DQN),
+    ("dqn-cartpole-fast", DQN + ["env.num_envs=3", "env.vectorization=async", "replay.n_step=3"]),
+    ("sac-pendulum", SAC),
+    ("sac-pendulum", SAC + ["env.num_envs=7", "train.collect_steps=7", "train.gradient_steps=1",
+                            "train.pull_interval=28"]),  # the checkpoint at 602 falls between pulls
+], ids=["dqn", "dqn-3async-nstep", "sac", "sac-7envs-stale-actor"])
+def test_resumed_run_is_bit_identical_to_the_uninterrupted_one(tmp_path, preset, over):
+    cfg = relayrl.load_config(preset, over, seed=3)
+    relayrl.train(cfg, tmp_path / "full", progress=False)
+    cut_back(tmp_path / "full", tmp_path / "resumed")
+    assert load_latest_checkpoint(tmp_path / "resumed" / "checkpoints")["actor"]["env"] is not None
+    relayrl.train(cfg, tmp_path / "resumed", resume=True, progress=False)
+    assert comparable(tmp_path / "resumed") == comparable(tmp_path / "full")
+    assert_same_state(tmp_path / "full", tmp_path / "resumed")
+
+
+def test_env_that_cannot_be_pickled_resumes_with_new_episodes(tmp_path, capsys):
+    over = DQN + ["env.id=toy_envs:Unpicklable", "env.max_episode_steps=50"]
+    cfg = relayrl.load_config("dqn-cartpole-fast", over, seed=3)
+    relayrl.train(cfg, tmp_path / "full", progress=False)
+    cut_back(tmp_path / "full", tmp_path / "resumed")
+    assert load_latest_checkpoint(tmp_path / "resumed" / "checkpoints")["actor"]["env"] is None
+    result = relayrl.train(cfg, tmp_path / "resumed", resume=True, progress=False)
+    assert result.final["step"] == 1500
+    assert "the resumed run starts new episodes" in capsys.readouterr().err
+
+
+def test_resume_refuses_another_number_of_envs(tmp_path):
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    more = relayrl.load_config("dqn-cartpole-fast", DQN + ["env.num_envs=2"])
+    with pytest.raises(relayrl.errors.UserError, match="env.num_envs=2 but the run being resumed has 1"):
+        relayrl.train(more, tmp_path / "r", resume=True, progress=False)
+
+
+WRITER = """
+import sys, torch
+from pathlib import Path
+from relayrl.training.checkpoint import list_checkpoints, save_checkpoint
+folder = Path(sys.argv[1])
+x = torch.arange(2_000_000, dtype=torch.float32)  # 8 MB: each write takes a while
+done = list_checkpoints(folder)
+i = int(done[-1].stem.split("-")[1]) if done else 0
+print("ready", flush=True)
+while True:
+    i += 1
+    save_checkpoint(folder, i, {"env_steps": i, "x": x + i})
+"""
+
+
+def test_sigkill_at_any_moment_leaves_a_readable_checkpoint(tmp_path):
+    folder = tmp_path / "ck"
+    rng = random.Random(0)
+    x = torch.arange(2_000_000, dtype=torch.float32)
+    mid_write = 0
+    for _ in range(12):
+        p = subprocess.Popen([sys.executable, "-c", WRITER, str(folder)], stdout=subprocess.PIPE, text=True)
+        assert p.stdout is not None and p.stdout.readline() == "ready\n"
+        time.sleep(rng.uniform(0.05, 0.5))
+        p.send_signal(signal.SIGKILL)
+        p.wait()
+        mid_write += any(folder.glob("*.tmp"))
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # a warning here means an unreadable checkpoint
+            for ckpt in list_checkpoints(folder):
+                state = torch.load(ckpt, weights_only=False)
+                assert torch.equal(state["x"], x + state["env_steps"])
+    assert mid_write > 0, "no kill landed inside a write; the test proved nothing"
+
+
+def test_run_killed_at_a_random_moment_resumes_to_the_uninterrupted_result(tmp_path):
+    over = DQN[:1] + ["train.total_steps=3000", "train.torch_threads=1"] + DQN[2:]
+    relayrl.train(relayrl.load_config("dqn-cartpole-fast", over, seed=3), tmp_path / "full", progress=False)
+    cmd = [sys.executable, "-m", "relayrl", "train", "dqn-cartpole-fast", "--run-dir", str(tmp_path / "killed"),
+           "--no-progress"]
+    sets = [a for o in over for a in ("--set", o)]
+    p = subprocess.Popen(cmd + sets + ["--seed", "3"], stderr=subprocess.DEVNULL)
+    while not list_checkpoints(tmp_path / "killed" / "checkpoints") and p.poll() is None:
+        time.sleep(0.02)
+    time.sleep(random.Random(1).uniform(0.0, 1.0))
+    p.send_signal(signal.SIGKILL)
+    assert p.wait() == -signal.SIGKILL, "the run ended before the kill"
+    done = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert comparable(tmp_path / "killed") == comparable(tmp_path / "full")
