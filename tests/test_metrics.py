@@ -1,4 +1,4 @@
-"""Batch-aware metrics at batch sizes 1 and 7, against hand-computed values."""
+"""Batch-aware metrics at batch sizes 1, 7 and 32, against hand-computed values."""
 
 import math
 
@@ -66,3 +66,25 @@ def test_window_keeps_the_last_episodes_and_state_round_trips():
     other = EpisodeStats(buffer_size=2)
     other.load_state_dict(stats.state_dict())
     assert list(other.returns) == [2.0, 3.0] and other.episodes == 3
+
+
+def test_batch_of_32_with_episodes_ending_at_different_steps_and_a_mid_episode_round_trip():
+    # env i: reward i + 1 per step, episodes of (i % 5) + 1 steps, over 12 batched steps; the
+    # stats are checkpointed after step 5 (most envs mid-episode) and continued in a copy.
+    def run(stats, steps_range):
+        for s in steps_range:
+            done = [(s + 1) % (i % 5 + 1) == 0 for i in range(32)]
+            stats(step([float(i + 1) for i in range(32)], done))
+
+    stats = EpisodeStats(buffer_size=1000)
+    run(stats, range(5))
+    resumed = EpisodeStats(buffer_size=1000)
+    resumed.load_state_dict(stats.state_dict())
+    run(stats, range(5, 12))
+    run(resumed, range(5, 12))
+    lengths = [i % 5 + 1 for i in range(32) for _ in range(12 // (i % 5 + 1))]
+    returns = [(i % 5 + 1) * (i + 1) for i in range(32) for _ in range(12 // (i % 5 + 1))]
+    for s in (stats, resumed):
+        assert NumberOfEpisodes(s).result() == len(lengths)
+        assert AverageReturn(s).result() == pytest.approx(sum(returns) / len(returns))
+        assert AverageEpisodeLength(s).result() == pytest.approx(sum(lengths) / len(lengths))

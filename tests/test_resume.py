@@ -1,5 +1,6 @@
 """Whole-run checkpoints: a run resumed from a checkpoint is the uninterrupted run, bit for bit."""
 
+import json
 import random
 import shutil
 import signal
@@ -134,3 +135,31 @@ def test_run_killed_at_a_random_moment_resumes_to_the_uninterrupted_result(tmp_p
     done = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert comparable(tmp_path / "killed") == comparable(tmp_path / "full")
+
+
+def test_policy_loads_and_evaluates_at_any_moment_of_a_run(tmp_path):
+    over = DQN[:1] + ["train.total_steps=100000", "train.policy_save_interval=100", "train.torch_threads=1"] + DQN[2:]
+    run = tmp_path / "live"
+    cmd = [sys.executable, "-m", "relayrl", "train", "dqn-cartpole-fast", "--run-dir", str(run), "--no-progress"]
+    p = subprocess.Popen(cmd + [a for o in over for a in ("--set", o)], stderr=subprocess.DEVNULL)
+    try:
+        seen = []
+        while len(set(seen)) < 5:  # loads race the run's atomic replacements of policy.pt
+            assert p.poll() is None, "the run ended early"
+            if (run / "policy" / "policy.pt").exists():
+                seen.append(relayrl.load_policy(run).env_steps)
+        assert seen == sorted(seen) and seen[0] is not None
+        r = subprocess.run([sys.executable, "-m", "relayrl", "eval", str(run), "--episodes", "2"],
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        assert json.loads(r.stdout)["policy_env_steps"] >= seen[-1]
+    finally:
+        p.kill()
+        p.wait()
+
+
+def test_eval_before_a_run_saved_any_policy_says_so(tmp_path):
+    RunDir(tmp_path / "r").create()
+    (tmp_path / "r" / "config.toml").write_text("")
+    with pytest.raises(relayrl.errors.UserError, match="has not saved a policy yet"):
+        relayrl.load_policy(tmp_path / "r")

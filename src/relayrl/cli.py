@@ -86,7 +86,7 @@ def _eval(args: argparse.Namespace) -> None:
     config = load_config(str(rd.config))
     policy = load_policy(rd.root)
     env = make_env(config.env.id, min(args.episodes, 16), config.env.max_episode_steps)
-    print(json.dumps(evaluate(env, policy, args.episodes, seed=args.seed)))
+    print(json.dumps({**evaluate(env, policy, args.episodes, seed=args.seed), "policy_env_steps": policy.env_steps}))
 
 
 def main(argv: list[str] | None = None) -> int:

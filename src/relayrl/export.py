@@ -31,6 +31,9 @@ def _policy_file(path: str | Path) -> Path:
     for candidate in (p / "policy" / "policy.pt", p / "policy.pt", p):
         if candidate.is_file():
             return candidate
+    if (p / "config.toml").is_file():
+        raise UserError(f"run {str(p)!r} has not saved a policy yet (a run saves one when it starts, then every "
+                        "train.policy_save_interval env steps)")
     raise UserError(f"no saved policy at {str(p)!r} (expected RUN_DIR/policy/policy.pt)")
 
 
@@ -59,17 +62,23 @@ def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = Tru
 
     The policy takes observations [B, *obs_shape] and returns actions: [B] for discrete
     (greedy in Q), [B, A] for continuous (tanh(mean), or sampled with `deterministic=False`).
+    Its `env_steps` is the run's env step when the policy was saved. During a run the file is
+    replaced atomically, so a policy can be loaded at any moment.
     """
     state = load_policy_state(path)
     dev = torch.device(device)
     net = _network(state).to(dev)
+    policy: GreedyPolicy | TanhGaussianPolicy
     if state["kind"] == "q_greedy":
         if not deterministic:
             raise UserError("a Q-network policy is greedy; deterministic=False applies to SAC policies")
-        return GreedyPolicy(net, dev)
-    return TanhGaussianPolicy(net, np.asarray(state["action_low"]), np.asarray(state["action_high"]), dev,
-                              deterministic, np.random.default_rng(seed),
-                              state["log_std_min"], state["log_std_max"])
+        policy = GreedyPolicy(net, dev)
+    else:
+        policy = TanhGaussianPolicy(net, np.asarray(state["action_low"]), np.asarray(state["action_high"]), dev,
+                                    deterministic, np.random.default_rng(seed),
+                                    state["log_std_min"], state["log_std_max"])
+    policy.env_steps = state.get("env_steps")
+    return policy
 
 
 class _DeterministicPolicy(nn.Module):

@@ -45,6 +45,8 @@ class GreedyPolicy:
     A float32 MLP on the CPU runs small batches through NumPy views of its weights (see NumpyMLP).
     """
 
+    env_steps: int | None = None  # when a loaded policy was saved (see relayrl.load_policy)
+
     def __init__(self, q_net: nn.Module, device: torch.device) -> None:
         self.q_net = q_net
         self.device = device
@@ -98,6 +100,8 @@ class TanhGaussianPolicy:
     [mean, log_std] per action dim; log_std is clipped to [log_std_min, log_std_max].
     Actions come back as float32 CPU tensors [B, A]; noise comes from a NumPy generator.
     """
+
+    env_steps: int | None = None  # when a loaded policy was saved (see relayrl.load_policy)
 
     def __init__(self, actor: nn.Module, low: np.ndarray, high: np.ndarray, device: torch.device,
                  deterministic: bool, rng: np.random.Generator | None = None,

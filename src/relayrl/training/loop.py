@@ -231,6 +231,7 @@ class LocalRun:
                             dynamic_ncols=True, initial=self.actor.env_steps)
             if self.actor.env_steps == 0:
                 self.run_eval(Progress(0, 0))  # the untrained policy, before any collection
+                self.policy_saver.save(Progress(0, 0))  # `relayrl eval` works from the start
                 self.actor.run(c.train.initial_collect_steps)
             self.sps.reset(self.progress())
             self.variables.push(list(self.agent.policy_network().parameters()))  # fresh or restored weights
