@@ -66,8 +66,10 @@ def test_resumed_run_is_bit_identical_to_the_uninterrupted_one(tmp_path, preset,
     assert_same_state(tmp_path / "full", tmp_path / "resumed")
 
 
-def test_env_that_cannot_be_pickled_resumes_with_new_episodes(tmp_path, capsys):
-    over = DQN + ["env.id=toy_envs:Unpicklable", "env.max_episode_steps=50"]
+@pytest.mark.parametrize("envs", [["env.num_envs=1"], ["env.num_envs=3", "env.vectorization=async"]],
+                         ids=["1", "3async"])
+def test_env_that_cannot_be_pickled_resumes_with_new_episodes(tmp_path, capsys, envs):
+    over = DQN + ["env.id=toy_envs:Unpicklable", "env.max_episode_steps=50"] + envs
     cfg = relayrl.load_config("dqn-cartpole-fast", over, seed=3)
     relayrl.train(cfg, tmp_path / "full", progress=False)
     cut_back(tmp_path / "full", tmp_path / "resumed")
