@@ -18,3 +18,43 @@ def run_worker(python: str, script: str, args: list[str]) -> tuple[dict | None, 
         if line.startswith("RESULT "):
             return json.loads(line[len("RESULT "):]), proc
     return None, proc
+
+
+def sb3_eval_callback(env_id: str, every: int, episodes: int, seed: int):  # -> BaseCallback (SB3, peer venv only)
+    """An SB3 callback evaluating the deterministic policy for `episodes` episodes every `every`
+    env steps, from seeded start states; `.curve` holds (env steps, mean return), `.eval_s` the
+    time spent, and `.evaluate()` runs one more evaluation (e.g. at the end)."""
+    import time
+
+    import gymnasium as gym
+    import numpy as np
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    eval_env = gym.make(env_id)
+
+    class Eval(BaseCallback):
+        def __init__(self) -> None:
+            super().__init__()
+            self.eval_s, self.curve = 0.0, []
+
+        def evaluate(self) -> None:
+            t0 = time.perf_counter()
+            rets = []
+            for k in range(episodes):
+                obs, _ = eval_env.reset(seed=seed * 1000 + len(self.curve) * 10 + k)
+                done, ret = False, 0.0
+                while not done:
+                    action, _ = self.model.predict(obs, deterministic=True)
+                    obs, r, term, trunc, _ = eval_env.step(action)
+                    ret += float(r)
+                    done = term or trunc
+                rets.append(ret)
+            self.curve.append((self.num_timesteps, float(np.mean(rets))))
+            self.eval_s += time.perf_counter() - t0
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps % every == 0:
+                self.evaluate()
+            return True
+
+    return Eval()

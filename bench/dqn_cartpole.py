@@ -26,7 +26,7 @@ import statistics
 import sys
 import time
 
-from _workers import report, run_worker  # bench/ is on sys.path when a script runs
+from _workers import report, run_worker, sb3_eval_callback  # bench/ is on sys.path when a script runs
 
 # relayrl --set overrides that express each setting on top of the dqn-cartpole preset.
 RELAYRL = {
@@ -63,10 +63,8 @@ def run_relayrl(setting: str, seed: int) -> dict:
 
 def run_sb3(setting: str, seed: int) -> dict:
     import gymnasium as gym
-    import numpy as np
     import torch
     from stable_baselines3 import DQN
-    from stable_baselines3.common.callbacks import BaseCallback
 
     if setting == "tutorial":
         env_id, total, eval_every = "CartPole-v0", 20_100, 1_000
@@ -81,37 +79,13 @@ def run_sb3(setting: str, seed: int) -> dict:
                       gamma=0.99, target_update_interval=10, train_freq=256, gradient_steps=128,
                       exploration_fraction=0.16, exploration_final_eps=0.04,
                       policy_kwargs=dict(net_arch=[256, 256]))
-    eval_env = gym.make(env_id)
-
-    class Eval(BaseCallback):
-        def __init__(self) -> None:
-            super().__init__()
-            self.eval_s, self.curve = 0.0, []
-
-        def _on_step(self) -> bool:
-            if self.num_timesteps % eval_every == 0:
-                t0 = time.perf_counter()
-                rets = []
-                for k in range(10):
-                    obs, _ = eval_env.reset(seed=seed * 1000 + len(self.curve) * 10 + k)
-                    done, ret = False, 0.0
-                    while not done:
-                        action, _ = self.model.predict(obs, deterministic=True)
-                        obs, r, term, trunc, _ = eval_env.step(action)
-                        ret += r
-                        done = term or trunc
-                    rets.append(ret)
-                self.curve.append((self.num_timesteps, float(np.mean(rets))))
-                self.eval_s += time.perf_counter() - t0
-            return True
-
     model = DQN("MlpPolicy", gym.make(env_id), seed=seed, verbose=0, **kwargs)
     if setting == "tutorial":
         # TF-Agents' tutorial uses the element-wise squared loss: SB3 hard-codes Huber, so swap it.
         import stable_baselines3.dqn.dqn as sb3_dqn
 
         sb3_dqn.F.smooth_l1_loss = torch.nn.functional.mse_loss  # mean (x - y)^2, no 1/2
-    cb = Eval()
+    cb = sb3_eval_callback(env_id, eval_every, 10, seed)
     t0 = time.perf_counter()
     model.learn(total_timesteps=total, callback=cb)
     wall = time.perf_counter() - t0

@@ -19,7 +19,7 @@ import sys
 import tempfile
 import time
 
-from _workers import report, run_worker
+from _workers import report, run_worker, sb3_eval_callback
 
 EVAL_EVERY, EVAL_EPISODES = 2_000, 10
 
@@ -44,39 +44,10 @@ def run_relayrl(seed: int, steps: int) -> dict:
 
 def run_sb3(seed: int, steps: int) -> dict:
     import gymnasium as gym
-    import numpy as np
     from stable_baselines3 import SAC
-    from stable_baselines3.common.callbacks import BaseCallback
-
-    eval_env = gym.make("Pendulum-v1")
-
-    class Eval(BaseCallback):
-        def __init__(self) -> None:
-            super().__init__()
-            self.eval_s, self.curve = 0.0, []
-
-        def evaluate(self) -> None:
-            t0 = time.perf_counter()
-            rets = []
-            for k in range(EVAL_EPISODES):
-                obs, _ = eval_env.reset(seed=seed * 1000 + len(self.curve) * 10 + k)
-                done, ret = False, 0.0
-                while not done:
-                    action, _ = self.model.predict(obs, deterministic=True)
-                    obs, r, term, trunc, _ = eval_env.step(action)
-                    ret += float(r)
-                    done = term or trunc
-                rets.append(ret)
-            self.curve.append((self.num_timesteps, float(np.mean(rets))))
-            self.eval_s += time.perf_counter() - t0
-
-        def _on_step(self) -> bool:
-            if self.num_timesteps % EVAL_EVERY == 0:
-                self.evaluate()
-            return True
 
     model = SAC("MlpPolicy", gym.make("Pendulum-v1"), seed=seed, verbose=0)
-    cb = Eval()
+    cb = sb3_eval_callback("Pendulum-v1", EVAL_EVERY, EVAL_EPISODES, seed)
     t0 = time.perf_counter()
     model.learn(total_timesteps=steps, callback=cb)
     if not cb.curve or cb.curve[-1][0] != steps:
