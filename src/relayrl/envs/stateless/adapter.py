@@ -1,0 +1,88 @@
+"""Any stateless env as a relayrl batched env (`relayrl.core.BatchedEnv`) for the train loop.
+
+`StatelessBatchEnv` holds the state the stateless env does not: the current state of
+`num_envs` rows and one generator. Rows whose episode ended are reset inside `step`, and
+`StepOutput` keeps the true final observation (`next_obs`) apart from the observation the
+next action is taken from (`obs`), as `envs/gym.py` does. Every tensor stays on the adapter's
+device, so env, policy and replay can share one GPU. Stepping runs under `no_grad`: this is
+for RL loops; differentiate through `rollout` instead.
+"""
+
+from __future__ import annotations
+
+import pickle
+from typing import Any
+
+import torch
+
+from relayrl.envs.stateless.base import DeviceLike, StatelessEnv, tree_map, tree_where
+from relayrl.errors import UserError
+from relayrl.specs import ArraySpec
+from relayrl.types import StepOutput
+
+
+class StatelessBatchEnv:
+    """`num_envs` rows of `env` as one BatchedEnv; the observation is `obs[obs_key]`."""
+
+    def __init__(self, env: StatelessEnv, num_envs: int, device: DeviceLike = None, obs_key: str = "observation",
+                 seed: int | None = None, time_limit_terminates: bool = False) -> None:
+        if num_envs < 1:
+            raise UserError("env.num_envs must be >= 1")
+        if obs_key not in env.observation_spec:
+            raise UserError(f"the env observes {sorted(env.observation_spec)}, not {obs_key!r} "
+                            "(wrap it in a TransformedEnv that builds one tensor, e.g. make_pendulum())")
+        self.env, self.num_envs, self.obs_key = env, num_envs, obs_key
+        self.device = torch.device(device) if device is not None else env.device
+        self.observation_spec: ArraySpec = env.observation_spec[obs_key]
+        self.action_spec: ArraySpec = env.action_spec
+        # Old gym reported a time-limit cut as a termination; some presets reproduce that.
+        self.time_limit_terminates = time_limit_terminates
+        # A CPU generator: the same seed gives the same episodes on every device.
+        self._gen = torch.Generator()
+        if seed is None:
+            self._gen.seed()
+        else:
+            self._gen.manual_seed(seed)
+        self._state: Any = None
+
+    def reset(self, seed: int | None = None) -> torch.Tensor:
+        """Reset every row; observations [B, *obs_shape]."""
+        if seed is not None:
+            self._gen.manual_seed(seed)
+        self._state, obs = self.env.reset((self.num_envs,), self._gen, self.device)
+        return obs[self.obs_key]
+
+    @torch.no_grad()
+    def step(self, action: torch.Tensor) -> StepOutput:
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        out = self.env.step(self._state, action.to(self.device))
+        next_obs = out.obs[self.obs_key]  # [B, *obs_shape]
+        terminated, truncated = out.terminated, out.truncated
+        done = terminated | truncated  # [B]
+        state, obs = out.state, next_obs
+        if bool(done.any()):
+            fresh_state, fresh_obs = self.env.reset((self.num_envs,), self._gen, self.device)
+            state = tree_where(done, fresh_state, out.state)
+            obs = torch.where(done.view(-1, *([1] * (next_obs.dim() - 1))), fresh_obs[self.obs_key], next_obs)
+        self._state = state
+        if self.time_limit_terminates:
+            terminated, truncated = done, torch.zeros_like(done)
+        return StepOutput(next_obs, out.reward.to(torch.float32), terminated, truncated, obs)
+
+    def get_state(self) -> list[bytes]:
+        """One pickled row per env copy (the generator's state rides with row 0), for
+        checkpoints that resume mid-episode (see training/actor.py)."""
+        rng = self._gen.get_state()
+        return [pickle.dumps((tree_map(lambda x, i=i: x[i].detach().cpu().clone(), self._state),
+                              rng if i == 0 else None)) for i in range(self.num_envs)]
+
+    def set_state(self, states: list[bytes]) -> None:
+        if len(states) != self.num_envs:
+            raise ValueError(f"env state for {len(states)} copies, but this env has {self.num_envs}")
+        rows = [pickle.loads(s) for s in states]
+        self._state = tree_map(lambda *xs: torch.stack(xs).to(self.device), *(r[0] for r in rows))
+        self._gen.set_state(rows[0][1])
+
+    def close(self) -> None:
+        pass
