@@ -354,6 +354,27 @@ def test_adapter_trains_sac_a_few_hundred_steps():
     assert metrics and all(bool(torch.isfinite(torch.as_tensor(v)).all()) for v in metrics.values())
 
 
+@pytest.mark.filterwarnings("ignore:.*symmetric and normalized")
+def test_make_batch_env_and_the_gymnasium_view():
+    from relayrl.envs.stateless.adapter import StatelessGymEnv, make_batch_env
+
+    env = make_batch_env("relayrl/StatelessPendulum-v0", 16, seed=0)
+    assert env.reset(seed=0).shape == (16, 3)
+    with pytest.raises(Exception, match="not a stateless env"):
+        make_batch_env("Pendulum-v1", 4)
+    genv = StatelessGymEnv(render_mode="rgb_array")
+    from gymnasium.utils.env_checker import check_env as gym_check_env
+
+    gym_check_env(genv, skip_render_check=True)
+    obs, _ = genv.reset(seed=0)
+    assert genv.observation_space.contains(obs)
+    for _ in range(200):
+        obs, reward, terminated, truncated, _ = genv.step(genv.action_space.sample())
+    assert truncated and not terminated and reward <= 0
+    frame = genv.render()
+    assert frame.shape == (500, 500, 3) and frame.dtype == np.uint8
+
+
 @pytest.mark.slow
 def test_bptt_pendulum_learns_like_the_tutorial():
     """Issue 6 target: seeds 0-2, each averaged over its final 50 iterations, then over the seeds

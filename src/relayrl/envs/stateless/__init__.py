@@ -1,6 +1,7 @@
 """Stateless torch envs: reset/step as pure functions of (state, action, params), any batch
 shape and device, differentiable rollouts (issue 6; TorchRL's Pendulum tutorial)."""
 
+from relayrl.envs.stateless.adapter import STATELESS_ENVS, StatelessBatchEnv, StatelessGymEnv, make_batch_env
 from relayrl.envs.stateless.base import (
     Obs,
     ObsSpec,
@@ -40,7 +41,8 @@ from relayrl.envs.stateless.transforms import (
 __all__ = [
     "BpttConfig", "BpttLog", "BpttResult", "Cat", "Cos", "Obs", "ObsSpec", "ObservationNorm", "Pendulum",
     "PendulumParams", "PendulumState", "RescaleAction", "RewardScale", "Rollout", "RunningObservationNorm",
-    "Select", "Sin", "SpecError", "StatelessEnv", "StepResult", "Transform", "TransformedEnv", "Unsqueeze",
-    "bounded", "check_env", "make_generator", "make_pendulum", "make_policy", "pendulum_mlp_rewards",
-    "pendulum_params", "pendulum_transforms", "rollout", "train_bptt", "tree_leaves", "tree_map", "tree_where",
+    "STATELESS_ENVS", "Select", "Sin", "SpecError", "StatelessBatchEnv", "StatelessEnv", "StatelessGymEnv",
+    "StepResult", "Transform", "TransformedEnv", "Unsqueeze", "bounded", "check_env", "make_batch_env",
+    "make_generator", "make_pendulum", "make_policy", "pendulum_mlp_rewards", "pendulum_params",
+    "pendulum_transforms", "rollout", "train_bptt", "tree_leaves", "tree_map", "tree_where",
 ]

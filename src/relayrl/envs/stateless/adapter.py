@@ -1,4 +1,6 @@
-"""Any stateless env as a relayrl batched env (`relayrl.core.BatchedEnv`) for the train loop.
+"""Stateless envs for the rest of relayrl: as a batched env for the train loop
+(`StatelessBatchEnv`, `make_batch_env`), and as a single Gymnasium env (`StatelessGymEnv`) for
+tools that go through Gymnasium (video, `gymnasium.make`).
 
 `StatelessBatchEnv` holds the state the stateless env does not: the current state of
 `num_envs` rows and one generator. Rows whose episode ended are reset inside `step`, and
@@ -11,11 +13,15 @@ for RL loops; differentiate through `rollout` instead.
 from __future__ import annotations
 
 import pickle
+from collections.abc import Callable
 from typing import Any
 
+import gymnasium as gym
+import numpy as np
 import torch
 
 from relayrl.envs.stateless.base import DeviceLike, StatelessEnv, tree_map, tree_where
+from relayrl.envs.stateless.pendulum import make_pendulum
 from relayrl.errors import UserError
 from relayrl.specs import ArraySpec
 from relayrl.types import StepOutput
@@ -86,3 +92,58 @@ class StatelessBatchEnv:
 
     def close(self) -> None:
         pass
+
+
+# Stateless envs by id: a factory taking (max_episode_steps, device); 0 steps = the env's default.
+STATELESS_ENVS: dict[str, Callable[[int, DeviceLike], StatelessEnv]] = {
+    "relayrl/StatelessPendulum-v0": lambda steps, device: make_pendulum(steps or 200, device=device),
+}
+
+
+def make_batch_env(env_id: str, num_envs: int, device: DeviceLike = "cpu", seed: int | None = None,
+                   max_episode_steps: int = 0, time_limit_terminates: bool = False) -> StatelessBatchEnv:
+    """The batched env for a stateless env id (a key of STATELESS_ENVS)."""
+    if env_id not in STATELESS_ENVS:
+        raise UserError(f"env.id={env_id!r} is not a stateless env; valid: {sorted(STATELESS_ENVS)}")
+    env = STATELESS_ENVS[env_id](max_episode_steps, device)
+    return StatelessBatchEnv(env, num_envs, device, seed=seed, time_limit_terminates=time_limit_terminates)
+
+
+class StatelessGymEnv(gym.Env):
+    """One copy (batch shape `()`) of a stateless env as a Gymnasium env, on the CPU, with
+    NumPy observations. Rendering borrows Gymnasium's Pendulum-v1 renderer (pendulum only)."""
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 30}
+
+    def __init__(self, env_id: str = "relayrl/StatelessPendulum-v0", render_mode: str | None = None,
+                 max_episode_steps: int = 0) -> None:
+        self.env = STATELESS_ENVS[env_id](max_episode_steps, "cpu")
+        spec = self.env.observation_spec["observation"]
+        act = self.env.action_spec
+        self.observation_space = gym.spaces.Box(spec.low.astype(np.float32), spec.high.astype(np.float32),
+                                                dtype=np.float32)
+        self.action_space = gym.spaces.Box(act.low.astype(np.float32), act.high.astype(np.float32), dtype=np.float32)
+        self.render_mode = render_mode
+        self._gen, self._state, self._last_u = torch.Generator(), None, None
+        self._renderer = gym.make("Pendulum-v1", render_mode="rgb_array").unwrapped if render_mode else None
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        if seed is not None:
+            self._gen.manual_seed(seed)
+        self._state, obs = self.env.reset((), self._gen)
+        self._last_u = None
+        return obs["observation"].numpy(), {}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        action_t = torch.as_tensor(np.asarray(action, dtype=np.float32)).reshape(self.env.action_spec.shape)
+        out = self.env.step(self._state, action_t)
+        self._state, self._last_u = out.state, float(action_t.clamp(-2, 2)[0])
+        return out.obs["observation"].numpy(), float(out.reward), bool(out.terminated), bool(out.truncated), {}
+
+    def render(self) -> np.ndarray | None:
+        if self._renderer is None or self._state is None:
+            return None
+        self._renderer.state = np.array([float(self._state.th), float(self._state.thdot)])
+        self._renderer.last_u = self._last_u
+        return self._renderer.render()
