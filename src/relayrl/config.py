@@ -13,11 +13,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from relayrl.agents.bptt.config import BpttAgentConfig
 from relayrl.agents.dqn.config import DQNConfig
 from relayrl.agents.sac.config import SACConfig
 from relayrl.errors import ConfigError
 
-AGENT_CONFIGS: dict[str, type] = {"dqn": DQNConfig, "sac": SACConfig}
+AGENT_CONFIGS: dict[str, type] = {"dqn": DQNConfig, "sac": SACConfig, "bptt": BpttAgentConfig}
 
 
 @dataclass

@@ -21,9 +21,9 @@ from torch import nn
 
 from relayrl.errors import UserError
 from relayrl.networks import MLP
-from relayrl.policies import GreedyPolicy, TanhGaussianPolicy
+from relayrl.policies import ClampedPolicy, GreedyPolicy, TanhGaussianPolicy
 
-KINDS = ("q_greedy", "tanh_gaussian")
+KINDS = ("q_greedy", "tanh_gaussian", "clamped_mlp")  # DQN, SAC, BPTT
 
 
 def _policy_file(path: str | Path) -> Path:
@@ -50,14 +50,15 @@ def load_policy_state(path: str | Path) -> dict[str, Any]:
 
 
 def _network(state: dict[str, Any]) -> MLP:
-    out_dim = state["num_actions"] if state["kind"] == "q_greedy" else 2 * state["action_dim"]
+    out_dim = {"q_greedy": state.get("num_actions"), "tanh_gaussian": 2 * state.get("action_dim", 0),
+               "clamped_mlp": state.get("action_dim")}[state["kind"]]
     net = MLP(state["obs_dim"], state["hidden"], out_dim, state["activation"])
     net.load_state_dict(state["state_dict"])
     return net.eval()
 
 
 def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = True,
-                seed: int | None = None) -> GreedyPolicy | TanhGaussianPolicy:
+                seed: int | None = None) -> GreedyPolicy | TanhGaussianPolicy | ClampedPolicy:
     """A run directory, its `policy/` folder or the file itself -> batched policy.
 
     The policy takes observations [B, *obs_shape] and returns actions: [B] for discrete
@@ -68,11 +69,13 @@ def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = Tru
     state = load_policy_state(path)
     dev = torch.device(device)
     net = _network(state).to(dev)
-    policy: GreedyPolicy | TanhGaussianPolicy
+    policy: GreedyPolicy | TanhGaussianPolicy | ClampedPolicy
+    if state["kind"] in ("q_greedy", "clamped_mlp") and not deterministic:
+        raise UserError(f"a {state['kind']} policy is deterministic; deterministic=False applies to SAC policies")
     if state["kind"] == "q_greedy":
-        if not deterministic:
-            raise UserError("a Q-network policy is greedy; deterministic=False applies to SAC policies")
         policy = GreedyPolicy(net, dev)
+    elif state["kind"] == "clamped_mlp":
+        policy = ClampedPolicy(net, np.asarray(state["action_low"]), np.asarray(state["action_high"]), dev)
     else:
         policy = TanhGaussianPolicy(net, np.asarray(state["action_low"]), np.asarray(state["action_high"]), dev,
                                     deterministic, np.random.default_rng(seed),
@@ -88,6 +91,7 @@ class _DeterministicPolicy(nn.Module):
         super().__init__()
         self.net = _network(state)
         self.discrete = state["kind"] == "q_greedy"
+        self.clamped = state["kind"] == "clamped_mlp"
         if not self.discrete:
             low, high = np.asarray(state["action_low"]), np.asarray(state["action_high"])
             self.register_buffer("loc", torch.as_tensor((high + low) / 2.0, dtype=torch.float32))
@@ -98,6 +102,8 @@ class _DeterministicPolicy(nn.Module):
         out = self.net(obs)
         if self.discrete:
             return out.argmax(dim=1)  # [B]
+        if self.clamped:
+            return torch.minimum(torch.maximum(out, self.loc - self.scale), self.loc + self.scale)  # [B, A]
         return self.loc + self.scale * torch.tanh(out[:, : self.action_dim])  # [B, A]
 
 

@@ -47,14 +47,14 @@ class EpisodeStats:
         self._len: np.ndarray | None = None
 
     def __call__(self, t: Transition) -> None:
-        reward = t.reward.numpy()
+        reward = t.reward.cpu().numpy()  # .cpu(): a no-op for CPU envs
         if self._ret is None or self._ret.shape[0] != reward.shape[0]:
             self._ret = np.zeros(reward.shape[0], np.float64)
             self._len = np.zeros(reward.shape[0], np.int64)
         assert self._len is not None
         self._ret += reward
         self._len += 1
-        done = t.terminated.numpy() | t.truncated.numpy()  # NumPy: a tiny torch op costs ~5x more
+        done = t.terminated.cpu().numpy() | t.truncated.cpu().numpy()  # NumPy: a tiny torch op costs ~5x more
         if done.any():
             for i in np.flatnonzero(done):
                 self.returns.append(float(self._ret[i]))

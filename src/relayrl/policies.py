@@ -128,3 +128,21 @@ class TanhGaussianPolicy:
             log_std = np.clip(out[:, a_dim:], *self.log_std_bounds)
             u = u + np.exp(log_std) * self.rng.standard_normal(u.shape, dtype=np.float32)
         return torch.from_numpy((self.loc + self.half * np.tanh(u)).astype(np.float32, copy=False))
+
+
+class ClampedPolicy:
+    """a = clamp(net(obs), low, high): a deterministic policy whose env clamps its actions
+    (the BPTT Pendulum policy, trained through the clamp). CPU float32 actions [B, A]."""
+
+    env_steps: int | None = None  # when a loaded policy was saved (see relayrl.load_policy)
+
+    def __init__(self, net: nn.Module, low: np.ndarray, high: np.ndarray, device: torch.device) -> None:
+        self.net = net
+        self.device = device
+        self.low = torch.as_tensor(low, dtype=torch.float32, device=device)
+        self.high = torch.as_tensor(high, dtype=torch.float32, device=device)
+
+    def __call__(self, obs: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            a = self.net(obs.to(self.device, non_blocking=True))
+            return torch.minimum(torch.maximum(a, self.low), self.high).cpu()

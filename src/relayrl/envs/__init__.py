@@ -10,4 +10,10 @@ if "relayrl/MinitaurBullet-v0" not in gymnasium.registry:
         "relayrl/MinitaurBullet-v0", entry_point="relayrl.envs.minitaur:MinitaurEnv", max_episode_steps=1000
     )
 
+# A stateless torch env as one Gymnasium env (videos, gym.make); the train loop batches it
+# directly (envs/stateless/adapter.py) instead.
+if "relayrl/StatelessPendulum-v0" not in gymnasium.registry:
+    gymnasium.register("relayrl/StatelessPendulum-v0",  # truncates itself at 200 steps
+                       entry_point="relayrl.envs.stateless.adapter:StatelessGymEnv")
+
 __all__ = ["GymBatchEnv", "make_env", "resolve_env_fn"]

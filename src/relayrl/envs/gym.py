@@ -154,9 +154,16 @@ class GymBatchEnv(BatchEnvBase):
 
 
 def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_mode: str | None = None,
-             time_limit_terminates: bool = False, vectorization: str = "sync") -> GymBatchEnv:
+             time_limit_terminates: bool = False, vectorization: str = "sync",
+             device: str | torch.device = "cpu") -> GymBatchEnv:
     """A batched env of `num_envs` copies of `env_id`: stepped in this process ("sync") or
-    in one worker process per copy ("async", see envs/vector.py)."""
+    in one worker process per copy ("async", see envs/vector.py). A stateless torch env id
+    (`relayrl/StatelessPendulum-v0`) gives all copies as one batch of tensors on `device`."""
+    from relayrl.envs.stateless.adapter import STATELESS_ENVS, make_batch_env
+
+    if env_id in STATELESS_ENVS and render_mode is None:
+        return make_batch_env(env_id, num_envs, device, max_episode_steps=max_episode_steps,  # type: ignore[return-value]
+                              time_limit_terminates=time_limit_terminates)
     fn = resolve_env_fn(env_id, max_episode_steps, render_mode)
     try:
         if vectorization == "async" and num_envs > 1:

@@ -28,9 +28,9 @@ def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = 
             break
         with torch.inference_mode():
             out = env.step(policy(obs))
-        ret += out.reward.numpy()
+        ret += out.reward.cpu().numpy()
         length += 1
-        done = (out.terminated | out.truncated).numpy()
+        done = (out.terminated | out.truncated).cpu().numpy()
         for i in np.flatnonzero(done):
             if done_count[i] < quota[i]:
                 returns.append(float(ret[i]))

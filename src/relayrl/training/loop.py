@@ -63,9 +63,12 @@ class LocalRun:
             torch.set_num_threads(c.train.torch_threads)
         torch.manual_seed(c.seed)  # network initialisation
         self.device = resolve_device(c.device)
+        # Stateless torch envs live on the agent's device; Gymnasium envs on the CPU.
         self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
-                            time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization)
-        self.eval_env = make_env(c.env.id, min(c.eval.episodes, EVAL_BATCH), c.env.max_episode_steps)
+                            time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
+                            device=self.device)
+        self.eval_env = make_env(c.env.id, min(c.eval.episodes, EVAL_BATCH), c.env.max_episode_steps,
+                                 device=self.device)
         obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
         self.agent = make_agent(c.algo, c.agent, obs_spec, act_spec, self.device,
                                 np.random.default_rng(c.seed + 1), c.train.total_steps)
@@ -282,6 +285,15 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     elif rd.metrics.exists() or rd.config.exists():
         raise UserError(f"run directory {str(rd.root)!r} already holds a run; "
                         "pass --resume to continue it or choose another --run-dir")
+    if config.algo == "bptt":
+        from relayrl.training.bptt_run import check_bptt_config, run_bptt
+
+        if resume:
+            raise UserError("algo='bptt' runs are not checkpointed (they take minutes): start a new run instead")
+        check_bptt_config(config)  # bad input fails before any write
+        rd.create()
+        save_toml(config, rd.config)
+        return RunResult(rd.root, run_bptt(config, rd, progress))
     run = LocalRun(config, rd, progress)  # builds envs and agent: bad input fails before any write
     rd.create()
     if not resume:

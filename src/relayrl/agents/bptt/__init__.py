@@ -1,0 +1,1 @@
+"""BPTT: a policy trained by backpropagating the reward through stateless-env rollouts."""
