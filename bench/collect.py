@@ -1,6 +1,7 @@
 """Collection throughput of SAC's actor on Pendulum-v1 against Gymnasium's raw vector envs, same run.
 
-    .venv/bin/python bench/collect.py [--envs 1 8 32 128] [--seconds 2] [--json bench/results/collect.json]
+    .venv/bin/python bench/collect.py [--envs 1 8 32 128] [--seconds 2] [--steps-per-run 1] [--threads 1]
+        [--json bench/results/collect.json]
 
 For each N and each vectorization (sync: in this process; async: one worker process per copy):
 
@@ -8,13 +9,16 @@ For each N and each vectorization (sync: in this process; async: one worker proc
          timing (so the figure is the env alone), same-step autoreset
   ours   relayrl's Actor: SAC's collect policy (a (256, 256) tanh-Gaussian actor, the sac-batched
          preset's) + our batched env + EnvironmentSteps and EpisodeStats metrics + the
-         TransitionWriter inserting into a 1,000,000-item Table (flushed every step, as the
-         sac-batched loop does)
+         TransitionWriter inserting into a 1,000,000-item Table. `Actor.run` takes
+         `--steps-per-run` batched steps per call and the writer flushes at the end of each
+         call: 1 (the default) is the sac-batched loop, which trains after every batched step;
+         larger values are an actor that only collects (a rollout worker), whose writer
+         stages steps and inserts them in chunks
 
 Overhead = ours' time per env step minus raw's, as a % of raw's: the actor loop's cost on top of
 the env. The issue's target: under 25% at N = 32. Figures are env steps/s, the median of 3
 repeats of `--seconds`, raw and ours alternating so they see the same load (the machine is
-shared). torch runs on 1 thread: at these batch sizes inference is too small to split.
+shared). torch runs on `--threads` threads (1 by default; the env is single-threaded too).
 """
 
 from __future__ import annotations
@@ -70,7 +74,7 @@ def raw(n: int, vectorization: str) -> tuple[Callable[[], None], Callable[[], No
     return step, vec.close
 
 
-def ours(n: int, vectorization: str) -> tuple[Callable[[], None], Callable[[], None]]:
+def ours(n: int, vectorization: str, steps_per_run: int = 1) -> tuple[Callable[[], None], Callable[[], None]]:
     c = load_config("sac-batched", [f"env.num_envs={n}", f"env.vectorization={vectorization}",
                                     "train.gradient_steps=0", "device=cpu"])
     env = make_env(ENV, n, vectorization=vectorization)
@@ -79,16 +83,17 @@ def ours(n: int, vectorization: str) -> tuple[Callable[[], None], Callable[[], N
     table, writer = build_replay(c, env.observation_spec, env.action_spec, run_root=None)  # type: ignore[arg-type]
     acting = copy.deepcopy(agent.policy_network()).requires_grad_(False)
     actor = Actor(env, agent.collect_policy(lambda: 0, acting), [EnvironmentSteps(), EpisodeStats(), writer], seed=0)
-    return (lambda: actor.run(n)), env.close
+    return (lambda: actor.run(n * steps_per_run)), env.close
 
 
-def measure(n: int, vectorization: str, seconds: float) -> dict[str, float]:
+def measure(n: int, vectorization: str, seconds: float, steps_per_run: int) -> dict[str, float]:
     figures: dict[str, list[float]] = {"raw": [], "ours": []}
     for _ in range(3):
-        for name, build in (("raw", raw), ("ours", ours)):
-            step, close = build(n, vectorization)
+        for name in ("raw", "ours"):
+            step, close = raw(n, vectorization) if name == "raw" else ours(n, vectorization, steps_per_run)
+            per_call = n if name == "raw" else n * steps_per_run
             try:
-                figures[name].append(rate(step, n, seconds))
+                figures[name].append(rate(step, per_call, seconds))
             finally:
                 close()
     r, o = statistics.median(figures["raw"]), statistics.median(figures["ours"])
@@ -100,21 +105,25 @@ def main() -> None:
     ap.add_argument("--envs", type=int, nargs="+", default=[1, 8, 32, 128])
     ap.add_argument("--vectorization", nargs="+", default=["sync", "async"], choices=["sync", "async"])
     ap.add_argument("--seconds", type=float, default=2.0)
+    ap.add_argument("--steps-per-run", type=int, default=1)
+    ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json")
     args = ap.parse_args()
-    torch.set_num_threads(1)
+    torch.set_num_threads(args.threads)
+    print(f"torch threads {args.threads}, batched steps per Actor.run {args.steps_per_run}")
     rows = []
     print(f"{'N':>5} {'vectorization':>13} {'raw steps/s':>12} {'ours steps/s':>13} {'overhead':>9}")
     for vec in args.vectorization:
         for n in args.envs:
             if vec == "async" and n == 1:
                 continue  # one copy always steps in process
-            row = measure(n, vec, args.seconds)
+            row = measure(n, vec, args.seconds, args.steps_per_run)
             rows.append(row)
             print(f"{n:>5} {vec:>13} {row['raw_sps']:>12,.0f} {row['ours_sps']:>13,.0f} {row['overhead_pct']:>8.1f}%",
                   flush=True)
     if args.json:
         meta = {"date": datetime.date.today().isoformat(), "machine": platform.platform(),
+                "threads": args.threads, "steps_per_run": args.steps_per_run,
                 "cpus": __import__("os").cpu_count(), "torch": torch.__version__, "gymnasium": gym.__version__}
         with open(args.json, "w") as f:
             json.dump({"meta": meta, "rows": rows}, f, indent=1)
