@@ -26,6 +26,7 @@ def test_bptt_run_writes_rows_a_loadable_policy_and_improves(tmp_path):
     assert actions.shape == (7, 1) and actions.abs().max() <= 2.0 and policy.env_steps == 96000
     program = torch.export.load(relayrl.export_policy(tmp_path / "b")).module()
     assert torch.allclose(program(obs), actions, atol=1e-6)
+    assert relayrl.plot_run(tmp_path / "b").stat().st_size > 10_000  # two panels, like the tutorial's
 
 
 def test_bptt_refuses_other_envs_and_resume(tmp_path):
