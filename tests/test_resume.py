@@ -9,6 +9,7 @@ import sys
 import time
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
@@ -166,3 +167,29 @@ def test_eval_before_a_run_saved_any_policy_says_so(tmp_path):
     (tmp_path / "r" / "config.toml").write_text("")
     with pytest.raises(relayrl.errors.UserError, match="has not saved a policy yet"):
         relayrl.load_policy(tmp_path / "r")
+
+
+@pytest.mark.parametrize("size, wraps", [(800, False), (300, True)])
+def test_memmap_replay_resumed_from_an_older_checkpoint(tmp_path, capsys, size, wraps):
+    # 500 steps between checkpoints: a ring of ~850 rows (size 800) still holds the episodes
+    # open at the older checkpoint, one of ~320 (size 300) has overwritten every row since
+    over = DQN + ["replay.storage='memmap'", f"replay.size={size}", "train.initial_collect_steps=100"]
+    cfg = relayrl.load_config("dqn-cartpole-fast", over, seed=3)
+    run_dir = tmp_path / "m"
+    relayrl.train(cfg, run_dir, progress=False)
+    list_checkpoints(run_dir / "checkpoints")[-1].unlink()  # as if killed while writing it
+    from relayrl.training.loop import LocalRun
+
+    run = LocalRun(cfg, RunDir(run_dir), False)
+    run.bar = None
+    run.restore()
+    live = np.flatnonzero(run.replay.slot_key >= 0)
+    assert not run.writer.stale(live).any() and (live.size == 0) == wraps
+    said = "the replay files were overwritten after this checkpoint" in capsys.readouterr().err
+    assert said == wraps
+    run.actor.run(5)  # continued (or new) episodes insert only items whose rows hold their steps
+    live = np.flatnonzero(run.replay.slot_key >= 0)
+    assert live.size > 0 and not run.writer.stale(live).any()
+    run.env.close()
+    run.eval_env.close()
+    assert relayrl.train(cfg, run_dir, resume=True, progress=False).final["step"] == 1500

@@ -140,6 +140,19 @@ class _Writer:
         # ...unless their envs resume mid-episode too: then `continue_episodes()`.
         self._saved_episodes = (state.get("open_from"), state["store"].get("ep_start"))
 
+    def saved_episodes_intact(self) -> bool:
+        """After `load_state_dict`: whether the rows of the episodes open at the checkpoint still
+        hold what it saw (memmap files reopened after the run went on may not)."""
+        open_from, _ = self._saved_episodes
+        if open_from is None:
+            return False
+        s = self.store
+        for env, first in enumerate(np.asarray(open_from, dtype=np.int64).tolist()):
+            pos = np.arange(max(first - s.k + 1, 0), int(s.head[env]))  # open rows and their stacking look-back
+            if pos.size and not (s.stamp[env, pos % s.T] == pos + 1).all():
+                return False
+        return True
+
     def continue_episodes(self) -> None:
         """After `load_state_dict`, when the actor's envs were restored mid-episode as well:
         the next step continues the interrupted episodes (their last steps become items)."""

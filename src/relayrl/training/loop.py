@@ -178,8 +178,15 @@ class LocalRun:
             raise UserError(f"env.num_envs={self.config.env.num_envs} but the run being resumed has "
                             f"{saved_envs} (its replay and envs are laid out per copy); resume with {saved_envs}")
         self.agent.load_state_dict(state["agent"])
+        files_moved_on = False
         if state["replay"] is not None:
-            self.replay.load_state_dict(state["replay"])
+            self.replay.load_state_dict(state["replay"])  # drops items whose memmap rows were overwritten
+            # A memmap replay reopens its files as they are now: if the run went on for more
+            # than a ring's worth of steps after this checkpoint, even the open episodes' rows
+            # hold newer steps, and the envs must start new episodes.
+            files_moved_on = not self.writer.saved_episodes_intact()
+            if files_moved_on:
+                self.say("the replay files were overwritten after this checkpoint: the envs start new episodes")
         else:
             self.say("the checkpoint has no replay contents (train.checkpoint_replay = false): "
                      "the replay refills from the resumed policy before learning continues")
@@ -192,7 +199,8 @@ class LocalRun:
         continued = False
         if "actor" in state:  # checkpoints before mid-episode state (version 1) lack it
             self.variables.load_state_dict({"version": state["variables_version"], "weights": None})
-            continued = self.actor.load_state_dict(state["actor"], reset_seed=self.config.seed + steps)
+            actor_state = {**state["actor"], "env": None} if files_moved_on else state["actor"]
+            continued = self.actor.load_state_dict(actor_state, reset_seed=self.config.seed + steps)
             rng = state["global_rng"]
             torch.set_rng_state(rng["torch"])
             np.random.set_state(rng["numpy"])
@@ -206,8 +214,9 @@ class LocalRun:
             # Env internals that cannot be pickled (simulator handles): fresh episodes, seeded
             # so that a resumed run is itself reproducible; the interrupted ones are dropped.
             self.stats.reset_running()
-            self.say("env state is not checkpointable (the env cannot be pickled): "
-                     "the resumed run starts new episodes")
+            if not files_moved_on:
+                self.say("env state is not checkpointable (the env cannot be pickled): "
+                         "the resumed run starts new episodes")
         self.rd.truncate_metrics(after_step=steps)
         kept = self.rd.read_metrics()
         if kept and kept[-1].get("step") == steps:
