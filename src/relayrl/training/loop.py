@@ -184,7 +184,7 @@ class LocalRun:
             # A memmap replay reopens its files as they are now: if the run went on for more
             # than a ring's worth of steps after this checkpoint, even the open episodes' rows
             # hold newer steps, and the envs must start new episodes.
-            files_moved_on = not self.writer.saved_episodes_intact()
+            files_moved_on = "actor" in state and not self.writer.saved_episodes_intact()
             if files_moved_on:
                 self.say("the replay files were overwritten after this checkpoint: the envs start new episodes")
         else:
@@ -196,6 +196,17 @@ class LocalRun:
         self.wall_offset = float(state["wall_time_s"])
         steps = int(state["env_steps"])
         self.steps.value = steps
+        self._restore_episodes(state, steps, files_moved_on)
+        self.rd.truncate_metrics(after_step=steps)
+        kept = self.rd.read_metrics()
+        if kept and kept[-1].get("step") == steps:
+            self.last_eval = kept[-1]  # a finished run resumed again needs no second final eval
+        for trigger in self.triggers:
+            trigger.start_at(steps)
+        self.say(f"resumed from env step {steps:,} (train step {self.agent.train_step:,})")
+
+    def _restore_episodes(self, state: dict[str, Any], steps: int, files_moved_on: bool) -> None:
+        """The actor, its envs mid-episode where they can be, and what observes them."""
         continued = False
         if "actor" in state:  # checkpoints before mid-episode state (version 1) lack it
             self.variables.load_state_dict({"version": state["variables_version"], "weights": None})
@@ -214,16 +225,11 @@ class LocalRun:
             # Env internals that cannot be pickled (simulator handles): fresh episodes, seeded
             # so that a resumed run is itself reproducible; the interrupted ones are dropped.
             self.stats.reset_running()
-            if not files_moved_on:
+            if "actor" not in state:
+                self.say("this checkpoint (format 1) holds no env state: the resumed run starts new episodes")
+            elif not files_moved_on:
                 self.say("env state is not checkpointable (the env cannot be pickled): "
                          "the resumed run starts new episodes")
-        self.rd.truncate_metrics(after_step=steps)
-        kept = self.rd.read_metrics()
-        if kept and kept[-1].get("step") == steps:
-            self.last_eval = kept[-1]  # a finished run resumed again needs no second final eval
-        for trigger in self.triggers:
-            trigger.start_at(steps)
-        self.say(f"resumed from env step {steps:,} (train step {self.agent.train_step:,})")
 
     # ---- the loop -------------------------------------------------------------------
     def run(self, resume: bool = False) -> RunResult:
