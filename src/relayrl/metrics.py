@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from relayrl.replay.storage import to_numpy
 from relayrl.types import Transition
 
 
@@ -47,14 +48,14 @@ class EpisodeStats:
         self._len: np.ndarray | None = None
 
     def __call__(self, t: Transition) -> None:
-        reward = t.reward.cpu().numpy()  # .cpu(): a no-op for CPU envs
+        reward = to_numpy(t.reward)  # a view for CPU tensors; device tensors are copied
         if self._ret is None or self._ret.shape[0] != reward.shape[0]:
             self._ret = np.zeros(reward.shape[0], np.float64)
             self._len = np.zeros(reward.shape[0], np.int64)
         assert self._len is not None
         self._ret += reward
         self._len += 1
-        done = t.terminated.cpu().numpy() | t.truncated.cpu().numpy()  # NumPy: a tiny torch op costs ~5x more
+        done = to_numpy(t.terminated) | to_numpy(t.truncated)  # NumPy: a tiny torch op costs ~5x more
         if done.any():
             for i in np.flatnonzero(done):
                 self.returns.append(float(self._ret[i]))

@@ -6,6 +6,7 @@ import numpy as np
 import torch
 
 from relayrl.core import BatchedEnv, Policy
+from relayrl.replay.storage import to_numpy
 
 
 def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = None,
@@ -28,9 +29,9 @@ def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = 
             break
         with torch.inference_mode():
             out = env.step(policy(obs))
-        ret += out.reward.cpu().numpy()
+        ret += to_numpy(out.reward)
         length += 1
-        done = (out.terminated | out.truncated).cpu().numpy()
+        done = to_numpy(out.terminated | out.truncated)
         for i in np.flatnonzero(done):
             if done_count[i] < quota[i]:
                 returns.append(float(ret[i]))

@@ -197,8 +197,7 @@ class LocalRun:
         steps = int(state["env_steps"])
         self.steps.value = steps
         self._restore_episodes(state, steps, files_moved_on)
-        self.rd.truncate_metrics(after_step=steps)
-        kept = self.rd.read_metrics()
+        kept = self.rd.truncate_metrics(after_step=steps)
         if kept and kept[-1].get("step") == steps:
             self.last_eval = kept[-1]  # a finished run resumed again needs no second final eval
         for trigger in self.triggers:

@@ -41,12 +41,13 @@ class RunDir:
                 continue  # a line cut short by a crash; the rest is intact
         return rows
 
-    def truncate_metrics(self, after_step: int) -> None:
-        """Drop rows logged after `after_step` (a resumed run logs them again)."""
+    def truncate_metrics(self, after_step: int) -> list[dict[str, Any]]:
+        """Drop rows logged after `after_step` (a resumed run logs them again); returns the rows kept."""
         rows = [r for r in self.read_metrics() if r.get("step", 0) <= after_step]
         tmp = self.metrics.with_suffix(".jsonl.tmp")
         tmp.write_text("".join(json.dumps(r) + "\n" for r in rows))
         tmp.replace(self.metrics)
+        return rows
 
 
 class MetricsLog:
