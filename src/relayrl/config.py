@@ -67,6 +67,18 @@ class EvalConfig:
 
 
 @dataclass
+class DistributedConfig:
+    num_actors: int = 0  # rollout actors on Ray; 0: the one-process loop
+    address: str = ""  # an existing Ray cluster ("auto" or host:port); "": start a local Ray instance
+    pull_interval: int = 1_000  # env steps between a rollout actor's weight pulls
+    push_interval: int = 50  # gradient steps between the learner's weight pushes
+    chunk_steps: int = 256  # env steps per replay insert RPC, per actor
+    num_eval_actors: int = 1  # eval runs in these Ray actors, beside training
+    max_restarts: int = 5  # times Ray restarts a rollout or eval actor that died
+    actor_cpus: float = 1.0  # CPUs Ray reserves per rollout actor (spreads them over a cluster)
+
+
+@dataclass
 class Config:
     seed: int = 0
     device: str = "cpu"  # cpu | cuda | auto
@@ -75,6 +87,7 @@ class Config:
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     replay: ReplayConfig = field(default_factory=ReplayConfig)
+    distributed: DistributedConfig = field(default_factory=DistributedConfig)
     agent: Any = field(default_factory=DQNConfig)
 
     def validate(self) -> None:
@@ -108,6 +121,15 @@ class Config:
                     "error_buffer", "min_size_to_sample"):
             if getattr(r, key) < 0:
                 raise ConfigError(f"replay.{key}={getattr(r, key)} is not valid; it must be >= 0")
+        d = self.distributed
+        for key in ("num_actors", "max_restarts"):
+            if getattr(d, key) < 0:
+                raise ConfigError(f"distributed.{key}={getattr(d, key)} is not valid; it must be >= 0")
+        for key in ("pull_interval", "push_interval", "chunk_steps", "num_eval_actors"):
+            if getattr(d, key) < 1:
+                raise ConfigError(f"distributed.{key}={getattr(d, key)} is not valid; it must be >= 1")
+        if d.actor_cpus < 0:
+            raise ConfigError(f"distributed.actor_cpus={d.actor_cpus} is not valid; it must be >= 0")
         self.agent.validate()
 
 

@@ -40,7 +40,7 @@ class EpisodeStats:
     The four episode metrics read from one instance, so each batched step is accumulated once.
     """
 
-    def __init__(self, buffer_size: int = 10) -> None:
+    def __init__(self, buffer_size: int | None = 10) -> None:  # None: keep all
         self.returns: deque[float] = deque(maxlen=buffer_size)
         self.lengths: deque[int] = deque(maxlen=buffer_size)
         self.episodes = 0

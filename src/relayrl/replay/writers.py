@@ -58,6 +58,34 @@ def _stack(xs: list[Any]) -> np.ndarray:
     return np.stack([to_numpy(x) for x in xs])
 
 
+class StepChunk(NamedTuple):
+    """C batched steps as plain arrays, what a writer appends at a flush: small enough to
+    ship between processes (one newest frame per step when observations are stacked)."""
+
+    frames: np.ndarray  # [C, B, *frame]
+    actions: np.ndarray  # [C, B, *act_shape]
+    rewards: np.ndarray  # [C, B]
+    done: np.ndarray  # [C, B] bool: terminated or truncated
+    terminated: np.ndarray  # [C, B] bool
+    finals: np.ndarray  # [D, *frame]: final observations where `done`, in (step, env) order
+
+    @property
+    def env_steps(self) -> int:
+        return int(self.done.size)
+
+
+def stack_steps(staged: list[Transition], frame_stack: int = 1) -> StepChunk:
+    """Stack batched Transitions into a StepChunk."""
+    k = frame_stack
+    frames = _stack([t.obs[:, -1] for t in staged] if k > 1 else [t.obs for t in staged])
+    actions, rewards = _stack([t.action for t in staged]), _stack([t.reward for t in staged])
+    term = _stack([t.terminated for t in staged])
+    done = term | _stack([t.truncated for t in staged])
+    finals = [to_numpy(staged[c].next_obs)[done[c]] for c in np.flatnonzero(done.any(axis=1)).tolist()]
+    final = np.concatenate(finals) if finals else frames[:0, 0]
+    return StepChunk(frames, actions, rewards, done, term, final[:, -1] if finals and k > 1 else final)
+
+
 class _Writer:
     """StepStore plumbing shared by both writers; subclasses say when windows close."""
 
@@ -180,15 +208,22 @@ class _Writer:
         if len(staged) == 1 and self._flush_one(staged[0]):
             staged.clear()
             return
-        k = self.store.k
-        frames = _stack([t.obs[:, -1] for t in staged] if k > 1 else [t.obs for t in staged])
-        actions, rewards = _stack([t.action for t in staged]), _stack([t.reward for t in staged])
-        term = _stack([t.terminated for t in staged])
-        done = term | _stack([t.truncated for t in staged])
-        finals = [to_numpy(staged[c].next_obs)[done[c]] for c in np.flatnonzero(done.any(axis=1)).tolist()]
+        chunk = stack_steps(staged, self.store.k)
         staged.clear()
-        final = np.concatenate(finals) if finals else frames[:0, 0]
-        self._write(frames, actions, rewards, done, term, final[:, -1] if finals and k > 1 else final)
+        self.write_chunk(chunk)
+
+    def write_chunk(self, chunk: StepChunk) -> None:
+        """Append steps stacked by `stack_steps` (possibly in another process: the replay
+        server's writers take chunks from remote actors) and insert the items they close."""
+        self.flush()  # steps staged here come first
+        self._write(chunk.frames, chunk.actions, chunk.rewards, chunk.done, chunk.terminated, chunk.finals)
+
+    def restart_episodes(self) -> None:
+        """Forget the episodes in progress: the next steps start new ones. For an actor that
+        died mid-episode and was restarted: its last steps never become items."""
+        self._staged.clear()
+        self._open_from = self.store.head.copy()
+        self.store.ep_start[:] = self.store.head
 
     def _flush_one(self, t: Transition) -> bool:
         """One staged step (a 1:1 collect/train loop flushes every step): write it on a short

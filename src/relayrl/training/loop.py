@@ -51,7 +51,67 @@ def default_run_dir(config: Config) -> Path:
     return Path("runs") / f"{config.algo}-{name}-s{config.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
-class LocalRun:
+class RunLog:
+    """What a run shows and writes as it goes (console, progress bar, TensorBoard, the eval
+    rows of metrics.jsonl), shared by the one-process and the distributed run. Subclasses
+    set config, stats, learner, sps, bar, tb, metrics_log, t0, wall_offset, last_eval."""
+
+    config: Config
+    stats: EpisodeStats
+    learner: Learner
+    sps: StepsPerSecond
+    bar: Any
+    tb: Any
+    metrics_log: MetricsLog
+    t0: float
+    wall_offset: float
+    last_eval: dict[str, Any]
+
+    def wall_time(self) -> float:
+        return self.wall_offset + time.perf_counter() - self.t0
+
+    def say(self, text: str) -> None:
+        if self.bar is not None and not self.bar.disable:
+            self.bar.write(text)
+        else:
+            print(text, file=sys.stderr, flush=True)
+
+    def postfix(self) -> dict[str, str]:
+        """Extra fields for the progress bar."""
+        return {}
+
+    def log_progress(self, p: Progress) -> None:
+        env_sps, grad_sps = self.sps(p)
+        scalars = {"perf/sps": env_sps, "perf/grad_sps": grad_sps, **self.learner.scalar_metrics()}
+        if self.stats.returns:
+            scalars["charts/episodic_return"] = sum(self.stats.returns) / len(self.stats.returns)
+        for k, v in scalars.items():
+            self.tb.add_scalar(k, v, p.env_steps)
+        if self.bar is not None:
+            self.bar.update(p.env_steps - self.bar.n)
+            last = self.last_eval.get("average_return")
+            self.bar.set_postfix(sps=f"{env_sps:.0f}", eval=f"{last:.1f}" if last is not None else "-",
+                                 **self.postfix())
+
+    def record_eval(self, p: Progress, result: dict[str, Any], eval_s: float, wall_time_s: float | None = None,
+                    extra: dict[str, Any] | None = None) -> None:
+        """One metrics.jsonl row (and TensorBoard scalars, and a console line) for an evaluation."""
+        wall = self.wall_time() if wall_time_s is None else wall_time_s
+        row = {"step": p.env_steps, "train_step": p.train_step, **result,
+               "wall_time_s": round(wall, 3), "eval_s": round(eval_s, 3),
+               "train/average_return": (sum(self.stats.returns) / len(self.stats.returns)
+                                        if self.stats.returns else float("nan")),
+               "train/episodes": self.stats.episodes,
+               **self.learner.scalar_metrics(), **(extra or {})}
+        self.metrics_log.write(row)
+        self.tb.add_scalar("eval/average_return", result["average_return"], p.env_steps)
+        self.tb.add_scalar("eval/average_episode_length", result["average_episode_length"], p.env_steps)
+        self.last_eval = row
+        self.say(f"step {p.env_steps:>9,} | eval return {result['average_return']:8.2f} "
+                 f"| length {result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
+
+
+class LocalRun(RunLog):
     """Builds every part from a Config and runs collect / train / trigger iterations."""
 
     def __init__(self, config: Config, run_dir: RunDir, progress: bool = True) -> None:
@@ -104,49 +164,16 @@ class LocalRun:
             IntervalTrigger(c.train.log_interval, self.log_progress),
         ]
 
-    # ---- progress -------------------------------------------------------------------
+    # ---- triggers -------------------------------------------------------------------
     def progress(self) -> Progress:
         return Progress(self.actor.env_steps, self.agent.train_step)
 
-    def wall_time(self) -> float:
-        return self.wall_offset + time.perf_counter() - self.t0
-
-    def say(self, text: str) -> None:
-        if self.bar is not None and not self.bar.disable:
-            self.bar.write(text)
-        else:
-            print(text, file=sys.stderr, flush=True)
-
-    def log_progress(self, p: Progress) -> None:
-        env_sps, grad_sps = self.sps(p)
-        scalars = {"perf/sps": env_sps, "perf/grad_sps": grad_sps, **self.learner.scalar_metrics()}
-        if self.stats.returns:
-            scalars["charts/episodic_return"] = sum(self.stats.returns) / len(self.stats.returns)
-        for k, v in scalars.items():
-            self.tb.add_scalar(k, v, p.env_steps)
-        if self.bar is not None:
-            self.bar.update(p.env_steps - self.bar.n)
-            last = self.last_eval.get("average_return")
-            self.bar.set_postfix(sps=f"{env_sps:.0f}", eval=f"{last:.1f}" if last is not None else "-")
-
-    # ---- triggers -------------------------------------------------------------------
     def run_eval(self, p: Progress) -> None:
         seed = self.config.seed + 10_000 * (self.eval_count + 1)
         t0 = time.perf_counter()
         result = evaluate(self.eval_env, self.agent.eval_policy(), self.config.eval.episodes, seed=seed)
         self.eval_count += 1
-        row = {"step": p.env_steps, "train_step": p.train_step, **result,
-               "wall_time_s": round(self.wall_time(), 3), "eval_s": round(time.perf_counter() - t0, 3),
-               "train/average_return": (sum(self.stats.returns) / len(self.stats.returns)
-                                        if self.stats.returns else float("nan")),
-               "train/episodes": self.stats.episodes,
-               **self.learner.scalar_metrics()}
-        self.metrics_log.write(row)
-        self.tb.add_scalar("eval/average_return", result["average_return"], p.env_steps)
-        self.tb.add_scalar("eval/average_episode_length", result["average_episode_length"], p.env_steps)
-        self.last_eval = row
-        self.say(f"step {p.env_steps:>9,} | eval return {result['average_return']:8.2f} "
-                 f"| length {result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
+        self.record_eval(p, result, time.perf_counter() - t0)
 
     def checkpoint_state(self) -> dict[str, Any]:
         """Everything a resume needs besides the env step, which the Checkpointer adds."""
@@ -308,7 +335,12 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         rd.create()
         save_toml(config, rd.config)
         return RunResult(rd.root, run_bptt(config, rd, progress))
-    run = LocalRun(config, rd, progress)  # builds envs and agent: bad input fails before any write
+    if config.distributed.num_actors > 0:
+        from relayrl.distributed.run import DistributedRun
+
+        run: LocalRun | DistributedRun = DistributedRun(config, rd, progress)
+    else:
+        run = LocalRun(config, rd, progress)  # builds envs and agent: bad input fails before any write
     rd.create()
     if not resume:
         save_toml(config, rd.config)

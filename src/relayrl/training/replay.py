@@ -22,6 +22,7 @@ from relayrl.replay import (
     TransitionWriter,
     Uniform,
 )
+from relayrl.replay.group import WriterGroup
 from relayrl.specs import Spec
 
 
@@ -30,12 +31,14 @@ def env_steps_per_iteration(c: Config) -> int:
     return -(-c.train.collect_steps // b) * b  # the actor steps all envs together
 
 
-def rate_limiter(c: Config) -> RateLimiter:
+def rate_limiter(c: Config, burst_steps: int | None = None) -> RateLimiter:
+    """`burst_steps`: env steps one insert call may bring at once (default: one collect
+    iteration of the one-process loop); the error buffer must hold their samples."""
     r = c.replay
     min_size = r.min_size_to_sample or max(1, c.train.initial_collect_steps or c.agent.batch_size)
     if min_size > r.size:
         raise ConfigError(f"replay.min_size_to_sample={min_size} is more than replay.size={r.size}")
-    per_iter = env_steps_per_iteration(c)
+    per_iter = env_steps_per_iteration(c) if burst_steps is None else burst_steps
     # The nominal ratio (gradient_steps per collect_steps env steps), not per actual
     # iteration: with N envs an iteration may take more env steps than collect_steps (all
     # copies step together), and the update-to-data ratio must not change with N.
@@ -44,19 +47,49 @@ def rate_limiter(c: Config) -> RateLimiter:
         return MinSize(min_size)  # gradient_steps = 0: collect only
     burst = spi * per_iter
     buffer = r.error_buffer or burst
-    if buffer < burst:
+    if buffer < burst and burst_steps is None:
         raise ConfigError(f"replay.error_buffer={r.error_buffer:g} is too small for one process: one collect "
                           f"iteration inserts {per_iter} items worth {burst:g} samples; use >= {burst:g} or 0")
-    return SampleToInsertRatio(spi, min_size, buffer)
+    return SampleToInsertRatio(spi, min_size, max(buffer, spi, 1.0))
+
+
+def build_table(c: Config, burst_steps: int | None = None) -> Table:
+    r = c.replay
+    sampler = Prioritized(r.priority_exponent) if r.sampler == "prioritized" else Uniform()
+    return Table("replay", r.size, sampler=sampler, remover=Fifo(), rate_limiter=rate_limiter(c, burst_steps),
+                 seed=c.seed + 2)
+
+
+def replay_path(c: Config, run_root: Path) -> Path | None:
+    if c.replay.storage != "memmap":
+        return None
+    return Path(c.replay.path) if c.replay.path else run_root / "replay"
 
 
 def build_replay(c: Config, obs_spec: Spec, action_spec: Spec, run_root: Path) -> tuple[Table, TransitionWriter]:
-    r = c.replay
-    sampler = Prioritized(r.priority_exponent) if r.sampler == "prioritized" else Uniform()
-    table = Table("replay", r.size, sampler=sampler, remover=Fifo(), rate_limiter=rate_limiter(c), seed=c.seed + 2)
-    path = None
-    if r.storage == "memmap":
-        path = Path(r.path) if r.path else run_root / "replay"
+    table = build_table(c)
     writer = TransitionWriter(table, c.env.num_envs, obs_spec, action_spec, gamma=c.agent.gamma,
-                              n_step=r.n_step, path=path)
+                              n_step=c.replay.n_step, path=replay_path(c, run_root))
     return table, writer
+
+
+def build_shared_replay(c: Config, obs_spec: Spec, action_spec: Spec, run_root: Path,
+                        num_writers: int) -> tuple[Table, WriterGroup]:
+    """The replay server's Table, with one writer per rollout actor (see `WriterGroup`).
+
+    Inserts come `distributed.chunk_steps` env steps at a time from each of the actors, so
+    the error buffer (when not set) holds all of their chunks: collection may run that far
+    ahead of the learner before an actor blocks, and the learner that far behind.
+    """
+    burst = c.distributed.chunk_steps * num_writers
+    table = build_table(c, burst_steps=burst)
+    # Each writer's share of the rows, with room for actors that run faster than the rest
+    # (a writer whose rows wrap early evicts its oldest items: correct, just not exact FIFO).
+    b = c.env.num_envs
+    rows = -(-c.replay.size // (num_writers * b)) * 3 // 2 + c.replay.n_step + 3
+
+    def make_writer(t: Table, index: int, path: Path | None) -> TransitionWriter:
+        return TransitionWriter(t, b, obs_spec, action_spec, gamma=c.agent.gamma, n_step=c.replay.n_step,
+                                path=path, rows=rows)
+
+    return table, WriterGroup(table, num_writers, make_writer, replay_path(c, run_root))

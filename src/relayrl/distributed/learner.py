@@ -1,0 +1,78 @@
+"""The learner's two remote ends, shaped like what `Learner` uses in one process: a table it
+samples from and a variable container it pushes to. The Learner itself is unchanged."""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+import numpy as np
+import torch
+
+from relayrl.core import Agent
+from relayrl.replay import SampleInfo
+
+SAMPLE_TIMEOUT_S = 0.5  # how long one sample RPC may wait on the rate limiter before returning empty
+
+
+class RemoteTable:
+    """Batches from the replay server, a group per RPC (up to `max_batches`); the next group
+    is requested as soon as one arrives, so the server samples while the learner trains."""
+
+    def __init__(self, server: Any, batch_size: int, max_batches: int = 16) -> None:
+        self.server, self.batch_size, self.max_batches = server, batch_size, max_batches
+        self._queue: deque[tuple[Any, SampleInfo]] = deque()
+        self.pending: Any = None  # the outstanding sample RPC
+        self.last_empty = False  # the latest reply held no batch: the rate limiter allowed none
+        self.requests = 0  # sample requests sent
+        self.answered = 0  # the number of the latest request answered
+
+    def _request(self) -> None:
+        self.pending = self.server.sample.remote(self.batch_size, self.max_batches, SAMPLE_TIMEOUT_S)
+        self.requests += 1
+
+    def poll(self) -> int:
+        """Take in a reply if one came; returns the batches ready to train on."""
+        import ray
+
+        if self.pending is None:
+            self._request()
+        ready, _ = ray.wait([self.pending], timeout=0)
+        if ready:
+            got = ray.get(self.pending)
+            self.answered = self.requests
+            self.last_empty = not got
+            self._queue.extend(got)
+            self._request()
+        return len(self._queue)
+
+    def samples_available(self) -> int:
+        return len(self._queue) * self.batch_size
+
+    def sample(self, batch_size: int, timeout: float | None = None) -> tuple[Any, SampleInfo]:
+        if not self._queue:
+            raise RuntimeError("RemoteTable.sample: no batch fetched; call poll() first")
+        return self._queue.popleft()
+
+    def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
+        self.server.update_priorities.remote(keys, priorities)  # no need to wait
+
+
+class RemotePusher:
+    """`push()` to the VariableContainer actor, at most once per `interval` gradient steps
+    (each push ships the policy's weights), unless forced (before an evaluation)."""
+
+    def __init__(self, handle: Any, agent: Agent, interval: int) -> None:
+        self.handle, self.agent, self.interval = handle, agent, interval
+        self.params = list(agent.policy_network().parameters())
+        self._last = -(10**18)
+        self.pushes = 0
+
+    def push(self, weights: list[torch.Tensor] | None = None, force: bool = False) -> None:
+        step = self.agent.train_step
+        if not force and step - self._last < self.interval:
+            return
+        self._last = step
+        # Ray serializes the arguments now, so later in-place updates do not leak in.
+        self.handle.push.remote([w.detach().cpu() for w in (weights or self.params)])
+        self.pushes += 1

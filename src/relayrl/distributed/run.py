@@ -1,0 +1,370 @@
+"""The distributed run: the learner in the driver, everything else in Ray actors.
+
+    replay server (Table + a writer per actor) ◀─ chunks ─ K rollout actors ◀─ pull ─┐
+        │ sample (a group of batches per RPC)                                          │
+        ▼                                                                              │
+    Learner (driver, GPU if any) ─ push ─▶ VariableContainer actor ─ pull ─▶ eval actors
+
+The driver hands each rollout actor collect calls of a few chunks (two queued per actor, so
+none waits for the driver), trains on whatever batches the server's rate limiter releases,
+and fires the same triggers as the one-process loop. metrics.jsonl has the same schema.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import random
+import sys
+import time
+import uuid
+from collections import deque
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from relayrl.agents import make_agent
+from relayrl.config import Config, to_dict
+from relayrl.distributed import require_ray
+from relayrl.distributed.learner import RemotePusher, RemoteTable
+from relayrl.distributed.server import ReplayServer
+from relayrl.distributed.workers import ActorNames, EvalWorker, RolloutWorker
+from relayrl.envs import make_env
+from relayrl.errors import UserError
+from relayrl.metrics import EpisodeStats
+from relayrl.policies import linear_schedule
+from relayrl.training.checkpoint import load_latest_checkpoint
+from relayrl.training.learner import Learner
+from relayrl.training.loop import RunLog, RunResult, resolve_device
+from relayrl.training.run_dir import MetricsLog, RunDir
+from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver, Progress, StepsPerSecond
+from relayrl.training.variables import VariableContainer
+
+CALL_CHUNKS = 4  # chunks per collect call: long enough that a call's RPC costs little
+CALLS_QUEUED = 2  # collect calls queued per actor: the next one starts without the driver
+
+
+class DistributedRun(RunLog):
+    def __init__(self, config: Config, run_dir: RunDir, progress: bool = True) -> None:
+        self.ray = require_ray()
+        c, d = config, config.distributed
+        if c.algo not in ("dqn", "sac"):
+            raise UserError(f"algo={c.algo!r} runs in one process only; distributed.num_actors works with dqn and sac")
+        self.config, self.rd, self.show_progress = config, run_dir, progress
+        self.K = d.num_actors
+        if c.train.torch_threads > 0:
+            torch.set_num_threads(c.train.torch_threads)
+        torch.manual_seed(c.seed)
+        self.device = resolve_device(c.device)
+        probe = make_env(c.env.id, 1, c.env.max_episode_steps)  # specs (and a bad env id fails here)
+        obs_spec, act_spec = probe.observation_spec, probe.action_spec
+        probe.close()
+        self.agent = make_agent(c.algo, c.agent, obs_spec, act_spec, self.device,
+                                np.random.default_rng(c.seed + 1), c.train.total_steps)
+        self.stats = EpisodeStats()
+        self.sps = StepsPerSecond()
+        self.bar: Any = None
+        self.last_eval: dict[str, Any] = {}
+        self.eval_count = 0
+        self.wall_offset = 0.0
+        self.t0 = time.perf_counter()
+        self.accepted = [0] * self.K  # env steps the replay server took from each actor
+        self.failures = [0] * self.K
+        self.restarting: set[int] = set()
+        self.dead: set[int] = set()
+        self.inflight: dict[Any, tuple[int, int]] = {}  # collect call -> (actor, env steps asked)
+        self.evals: deque[tuple[Any, Progress, float, float, int]] = deque()  # in flight, oldest first
+        self._owns_ray = False
+        self.workers: list[Any] = []
+        self.eval_workers: list[Any] = []
+        try:
+            self._start_actors(obs_spec, act_spec)
+        except BaseException:
+            self.shutdown()
+            raise
+        self.table = RemoteTable(self.server, c.agent.batch_size)
+        self.pusher = RemotePusher(self.variables, self.agent, d.push_interval)
+        self.learner = Learner(self.agent, self.table, c.agent.batch_size, self.device,  # type: ignore[arg-type]
+                               prioritized=c.replay.sampler == "prioritized",
+                               importance_exponent=c.replay.importance_exponent,
+                               priority_eps=c.replay.priority_eps, variables=self.pusher)  # type: ignore[arg-type]
+        self._beta_at = linear_schedule(c.replay.importance_exponent, 1.0, c.train.total_steps)
+        self.policy_saver = PolicySaver(c.train.policy_save_interval, self.agent, run_dir.policy,
+                                        extra={"env_id": c.env.id})
+        self.checkpointer = Checkpointer(c.train.checkpoint_interval, self.checkpoint_state, run_dir.checkpoints)
+        self.triggers = [
+            IntervalTrigger(c.eval.interval, self._interval_eval),
+            self.policy_saver,
+            self.checkpointer,
+            IntervalTrigger(c.train.log_interval, self.log_progress),
+        ]
+
+    # ---- actors -------------------------------------------------------------------------
+    def _start_actors(self, obs_spec: Any, act_spec: Any) -> None:
+        ray, c, d = self.ray, self.config, self.config.distributed
+        if not ray.is_initialized():
+            kw: dict[str, Any] = {"include_dashboard": False, "logging_level": "ERROR"}
+            if d.address:
+                ray.init(address=d.address, **kw)
+            else:  # a local instance with room for every actor's CPU reservation
+                ray.init(num_cpus=max(os.cpu_count() or 1, math.ceil(self.K * d.actor_cpus) + 1), **kw)
+            self._owns_ray = True
+        cfg = to_dict(c)
+        path = list(sys.path)
+        # Restartable actors find the server and the container by name: Ray cannot promise to
+        # keep actor handles passed as constructor arguments alive for a restart.
+        names = ActorNames(f"relayrl-{uuid.uuid4().hex[:12]}")
+        self.server = ray.remote(num_cpus=0, max_concurrency=self.K + 8)(ReplayServer).options(
+            name=names.server).remote(cfg, obs_spec, act_spec, str(self.rd.root), self.K)
+        self.variables = ray.remote(num_cpus=0, max_concurrency=self.K + 8)(VariableContainer).options(
+            name=names.variables).remote(copy=True)
+        worker = ray.remote(num_cpus=d.actor_cpus, max_restarts=d.max_restarts, max_task_retries=0)(RolloutWorker)
+        self.workers = [worker.remote(cfg, i, c.seed + 1000 * (i + 1), names, path) for i in range(self.K)]
+        evaluator = ray.remote(num_cpus=0, max_restarts=d.max_restarts, max_task_retries=0)(EvalWorker)
+        self.eval_workers = [evaluator.remote(cfg, names, path) for _ in range(d.num_eval_actors)]
+        ray.get([w.pid.remote() for w in self.workers + self.eval_workers])  # env errors surface here
+
+    def shutdown(self) -> None:
+        """Stop every actor (and the local Ray instance this run started): no orphan processes."""
+        ray = self.ray
+        if not ray.is_initialized():
+            return
+        for handle in [*self.workers, *self.eval_workers, getattr(self, "server", None),
+                       getattr(self, "variables", None)]:
+            if handle is not None:
+                try:
+                    ray.kill(handle, no_restart=True)
+                except Exception:  # already gone
+                    pass
+        if self._owns_ray:
+            ray.shutdown()
+
+    def env_steps(self) -> int:
+        return sum(self.accepted)
+
+    def progress(self) -> Progress:
+        return Progress(self.env_steps(), self.agent.train_step)
+
+    def postfix(self) -> dict[str, str]:
+        alive = self.K - len(self.dead) - len(self.restarting)
+        return {"actors": f"{alive}/{self.K}"}
+
+    def _call_steps(self) -> int:
+        b = self.config.env.num_envs
+        return -(-CALL_CHUNKS * self.config.distributed.chunk_steps // b) * b
+
+    def _submit(self, i: int) -> None:
+        """Queue a collect call on actor i for its share of the steps still to take."""
+        if i in self.dead:
+            return
+        c = self.config
+        asked = sum(n for _, n in self.inflight.values())
+        remaining = c.train.total_steps - self.env_steps() - asked
+        if remaining <= 0:
+            return
+        b = c.env.num_envs
+        n = -(-min(self._call_steps(), remaining) // b) * b
+        explore = self.env_steps() + asked < c.train.initial_collect_steps
+        ref = self.workers[i].collect.remote(n, self.env_steps(), explore)
+        self.inflight[ref] = (i, n)
+
+    def _poll_workers(self) -> bool:
+        ray = self.ray
+        if not self.inflight:
+            return False
+        ready, _ = ray.wait(list(self.inflight), num_returns=len(self.inflight), timeout=0)
+        for ref in ready:
+            if ref not in self.inflight:  # dropped with its actor's failure below
+                continue
+            i, _ = self.inflight.pop(ref)
+            try:
+                r = ray.get(ref)
+            except ray.exceptions.RayActorError as e:
+                self._on_actor_death(i, e)
+                continue
+            self.restarting.discard(i)
+            self.accepted[i] = max(self.accepted[i], int(r["accepted"]))
+            self.stats.returns.extend(r["returns"])
+            self.stats.lengths.extend(r["lengths"])
+            self.stats.episodes += len(r["returns"])
+            self._submit(i)
+        return bool(ready)
+
+    def _on_actor_death(self, i: int, error: Exception) -> None:
+        ray, d = self.ray, self.config.distributed
+        for ref in [r for r, (j, _) in self.inflight.items() if j == i]:
+            del self.inflight[ref]  # queued behind the call that died: they fail too
+        shipped = ray.get(self.server.info.remote())["shipped"]
+        self.accepted[i] = max(self.accepted[i], int(shipped[i]))
+        self.failures[i] += 1
+        if self.failures[i] > d.max_restarts:
+            self.dead.add(i)
+            self.restarting.discard(i)
+            self.say(f"rollout actor {i} died and is not restarted again (distributed.max_restarts={d.max_restarts})")
+            if len(self.dead) == self.K:
+                raise RuntimeError("every rollout actor died; continue from the last checkpoint with --resume")
+            return
+        self.restarting.add(i)
+        self.say(f"rollout actor {i} died ({type(error).__name__}); Ray restarts it and it goes on from the "
+                 f"latest weights (restart {self.failures[i]} of at most {d.max_restarts})")
+        for _ in range(CALLS_QUEUED):
+            self._submit(i)
+
+    # ---- evaluation ---------------------------------------------------------------------
+    def _interval_eval(self, p: Progress) -> None:
+        # The last collect call can cross the final interval while the learner still has
+        # steps to take; the final evaluation, after them, covers that boundary.
+        if p.env_steps < self.config.train.total_steps:
+            self.submit_eval(p)
+
+    def submit_eval(self, p: Progress) -> None:
+        n = len(self.eval_workers)
+        self._finish_evals(until=n - 1)  # one in flight per eval actor; rows stay in step order
+        self.pusher.push(force=True)  # the eval actor evaluates these weights (or newer)
+        seed = self.config.seed + 10_000 * (self.eval_count + 1)
+        w = self.eval_count % n
+        self.evals.append((self.eval_workers[w].evaluate.remote(seed), p, time.perf_counter(), self.wall_time(), w))
+        self.eval_count += 1
+
+    def _finish_evals(self, until: int | None = None) -> None:
+        """Record finished evaluations, oldest first; wait for them while more than `until`
+        are in flight (None: never wait)."""
+        ray = self.ray
+        while self.evals:
+            ref, p, t0, wall, w = self.evals[0]
+            must = until is not None and len(self.evals) > until
+            if not must and not ray.wait([ref], timeout=0)[0]:
+                return
+            try:
+                result = ray.get(ref)
+            except ray.exceptions.RayActorError as e:  # restarted by Ray: evaluate again
+                self.say(f"eval actor {w} died ({type(e).__name__}); Ray restarts it and the evaluation is repeated")
+                self.evals[0] = (self.eval_workers[w].evaluate.remote(self.config.seed + 10_000 * self.eval_count),
+                                 p, t0, wall, w)
+                continue
+            self.evals.popleft()
+            version = result.pop("policy_version")
+            self.record_eval(p, result, time.perf_counter() - t0, wall_time_s=wall,
+                             extra={"policy_version": version, "actors_alive": self.K - len(self.dead)})
+
+    # ---- checkpoints ----------------------------------------------------------------------
+    def checkpoint_state(self) -> dict[str, Any]:
+        c = self.config
+        server = self.ray.get(self.server.state_dict.remote(c.train.checkpoint_replay))
+        return {
+            "version": 2,
+            "distributed": {"num_actors": self.K},
+            "config": to_dict(c),
+            "agent": self.agent.state_dict(),
+            "replay": server["table"],
+            "shipped": server["shipped"] if server["table"] is not None else list(self.accepted),
+            "episode_stats": self.stats.state_dict(),
+            "eval_count": self.eval_count,
+            "wall_time_s": self.wall_time(),
+            "global_rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
+                           "python": random.getstate()},
+            "last_metrics": {k: v.detach().cpu() for k, v in self.learner.last_metrics.items()},
+        }
+
+    def restore(self) -> None:
+        c = self.config
+        state = load_latest_checkpoint(self.rd.checkpoints)
+        saved = state.get("distributed")
+        if saved is None:
+            raise UserError("this run was trained in one process; resume it with distributed.num_actors=0 "
+                            "(its replay is laid out for one actor)")
+        if saved["num_actors"] != self.K or state["config"]["env"]["num_envs"] != c.env.num_envs:
+            raise UserError(f"the run being resumed has distributed.num_actors={saved['num_actors']} and "
+                            f"env.num_envs={state['config']['env']['num_envs']} (its replay is laid out per actor "
+                            f"and env copy); resume with the same")
+        self.agent.load_state_dict(state["agent"])
+        self.ray.get(self.server.load_state_dict.remote({"table": state["replay"], "shipped": state["shipped"]}))
+        if state["replay"] is None:
+            self.say("the checkpoint has no replay contents (train.checkpoint_replay = false): "
+                     "the replay refills from the resumed policy before learning continues")
+        self.accepted = [int(x) for x in state["shipped"]]
+        self.stats.load_state_dict(state["episode_stats"])
+        self.stats.reset_running()
+        self.eval_count = int(state["eval_count"])
+        self.wall_offset = float(state["wall_time_s"])
+        rng = state["global_rng"]
+        torch.set_rng_state(rng["torch"])
+        np.random.set_state(rng["numpy"])
+        random.setstate(rng["python"])
+        self.learner.last_metrics = dict(state["last_metrics"])
+        steps = self.env_steps()
+        kept = self.rd.truncate_metrics(after_step=steps)
+        if kept and kept[-1].get("step") == steps:
+            self.last_eval = kept[-1]
+        for trigger in self.triggers:
+            trigger.start_at(steps)
+        self.say(f"resumed from env step {steps:,} (train step {self.agent.train_step:,}); "
+                 f"the {self.K} rollout actors start new episodes")
+
+    # ---- the loop -------------------------------------------------------------------------
+    def run(self, resume: bool = False) -> RunResult:
+        from torch.utils.tensorboard import SummaryWriter
+
+        c = self.config
+        self.t0 = time.perf_counter()
+        try:
+            if resume:
+                self.restore()
+            self.tb = SummaryWriter(str(self.rd.tb))
+            self.metrics_log = MetricsLog(self.rd.metrics)
+            self.bar = tqdm(total=c.train.total_steps, unit="step", disable=None if self.show_progress else True,
+                            dynamic_ncols=True, initial=self.env_steps())
+            self.say(f"distributed: {self.K} rollout actors x {c.env.num_envs} envs, "
+                     f"{len(self.eval_workers)} eval actors, learner on {self.device}")
+            if self.env_steps() == 0:
+                self.submit_eval(Progress(0, 0))
+                self.policy_saver.save(Progress(0, 0))
+            self.pusher.push(force=True)
+            self.sps.reset(self.progress())
+            self._iterate()
+            return RunResult(self.rd.root, self.last_eval)
+        finally:
+            if self.bar is not None:
+                self.bar.close()
+            for log in (getattr(self, "tb", None), getattr(self, "metrics_log", None)):
+                if log is not None:
+                    log.close()
+            self.shutdown()
+
+    def _iterate(self) -> None:
+        ray = self.ray
+        for i in range(self.K):
+            for _ in range(CALLS_QUEUED):
+                self._submit(i)
+        collected_at = None  # the sample request current when collection ended
+        while True:
+            moved = self._poll_workers()
+            n = self.table.poll()
+            if n:
+                steps = self.env_steps()
+                self.agent.set_progress(steps)
+                self.learner.importance_exponent = self._beta_at(steps)
+                self.learner.run(n)
+            p = self.progress()
+            for trigger in self.triggers:
+                trigger(p)
+            self._finish_evals()
+            if not self.inflight:
+                if collected_at is None:
+                    collected_at = self.table.requests
+                # Collection is over: stop once a sample request sent after it found the rate
+                # limiter allowing nothing more (the one-process loop's last `available_steps`).
+                if not n and self.table.last_empty and self.table.answered > collected_at:
+                    break
+            if not n and not moved:  # nothing to do: sleep until an actor or the server answers
+                ray.wait([*self.inflight, self.table.pending], num_returns=1, timeout=1.0)
+        p = self.progress()
+        if self.last_eval.get("step") != p.env_steps:
+            self.submit_eval(p)
+        self._finish_evals(until=0)
+        self.policy_saver.save(p)
+        if self.config.train.checkpoint_interval > 0:
+            self.checkpointer.save(p)
+        self.log_progress(p)

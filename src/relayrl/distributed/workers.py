@@ -1,0 +1,192 @@
+"""Rollout and eval workers: plain classes the distributed run turns into Ray actors.
+
+A rollout worker is the one-process loop's `Actor` with two different observers: a
+`ChunkShipper` in place of the replay writer (its steps go to the replay server, a chunk per
+RPC) and an `EpisodeLog` whose finished episodes go back to the driver with each call. Its
+acting network pulls weights from the VariableContainer actor through `RemoteVariables`, so
+`WeightPuller` is the same as in one process.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import uuid
+import warnings
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+
+from relayrl.agents import make_agent
+from relayrl.config import Config, from_dict
+from relayrl.envs import make_env
+from relayrl.metrics import EpisodeStats
+from relayrl.policies import RandomPolicy
+from relayrl.replay.writers import stack_steps
+from relayrl.training.actor import Actor
+from relayrl.training.evaluate import evaluate
+from relayrl.training.variables import WeightPuller
+from relayrl.types import Transition
+
+EVAL_BATCH = 16  # as the local loop: eval episodes run as one batch of at most this many copies
+
+
+def _setup(config: dict[str, Any], sys_path: list[str]) -> Config:
+    # Local Ray workers do not inherit the driver's sys.path; a user's `package.module:Class`
+    # env (or a test's) must import in the worker as it did in the driver.
+    for p in reversed(sys_path):
+        if p not in sys.path:
+            sys.path.insert(0, p)
+    c = from_dict(config)
+    torch.set_num_threads(max(1, c.train.torch_threads))
+    return c
+
+
+class ActorNames(NamedTuple):
+    """Names of a run's replay server and variable container actors."""
+
+    prefix: str
+
+    @property
+    def server(self) -> str:
+        return f"{self.prefix}-replay"
+
+    @property
+    def variables(self) -> str:
+        return f"{self.prefix}-variables"
+
+    def handles(self) -> tuple[Any, Any]:
+        import ray
+
+        return ray.get_actor(self.server), ray.get_actor(self.variables)
+
+
+def _reconstructed() -> bool:
+    import ray
+
+    with warnings.catch_warnings():  # Ray deprecates an internal call behind this public API
+        warnings.simplefilter("ignore")
+        return bool(ray.get_runtime_context().was_current_actor_reconstructed)
+
+
+class RemoteVariables:
+    """`pull()` of a VariableContainer living in a Ray actor (what WeightPuller calls)."""
+
+    def __init__(self, handle: Any) -> None:
+        self.handle = handle
+
+    def pull(self, newer_than: int = 0) -> tuple[int, list[torch.Tensor] | None]:
+        import ray
+
+        return ray.get(self.handle.pull.remote(newer_than))
+
+
+class ChunkShipper:
+    """Observer: stages batched steps and ships them to the replay server as one StepChunk
+    per flush (the Actor flushes at the end of each run). One insert stays in flight while
+    the next chunk is collected; waiting for it is how the server's rate limiter slows
+    collection down when the learner lags."""
+
+    def __init__(self, server: Any, index: int, token: str, frame_stack: int = 1) -> None:
+        self.server, self.index, self.token, self.k = server, index, token, frame_stack
+        self._staged: list[Transition] = []
+        self._pending: Any = None
+        self.accepted = 0  # env steps the server has accepted from this actor (all incarnations)
+
+    def __call__(self, t: Transition) -> None:
+        self._staged.append(t)
+
+    def flush(self) -> None:
+        if not self._staged:
+            return
+        chunk = stack_steps(self._staged, self.k)  # fresh arrays: the env may reuse its buffers
+        self._staged.clear()
+        self.wait()
+        self._pending = self.server.ingest.remote(self.index, self.token, chunk)
+
+    def wait(self) -> None:
+        import ray
+
+        if self._pending is not None:
+            self.accepted = ray.get(self._pending)
+            self._pending = None
+
+
+class EpisodeLog(EpisodeStats):
+    """EpisodeStats keeping every finished episode until `take()` (the driver aggregates)."""
+
+    def __init__(self) -> None:
+        super().__init__(buffer_size=None)
+
+    def take(self) -> tuple[list[float], list[int]]:
+        out = (list(self.returns), list(self.lengths))
+        self.returns.clear()
+        self.lengths.clear()
+        return out
+
+
+class RolloutWorker:
+    """Env (batched, `env.num_envs` copies), acting policy and shipper; `collect(n)` per call."""
+
+    def __init__(self, config: dict[str, Any], index: int, seed: int, names: ActorNames, sys_path: list[str]) -> None:
+        import ray
+
+        c = _setup(config, sys_path)
+        server, variables = names.handles()
+        if _reconstructed():
+            seed += int.from_bytes(os.urandom(3), "little")  # a restarted actor must not replay its episodes
+        torch.manual_seed(seed)
+        self.index, self.num_actors = index, c.distributed.num_actors
+        self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
+                            time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization)
+        agent = make_agent(c.algo, c.agent, self.env.observation_spec, self.env.action_spec, torch.device("cpu"),
+                           np.random.default_rng(seed), c.train.total_steps)
+        net = agent.policy_network().requires_grad_(False)
+        self.global_steps = 0  # the run's env steps, for env-step schedules (DQN's epsilon)
+        self.collect_policy = agent.collect_policy(lambda: self.global_steps, net)
+        self.random_policy = RandomPolicy(self.env.action_spec, np.random.default_rng(seed + 1))
+        token = uuid.uuid4().hex
+        ray.get(server.register.remote(index, token))
+        self.shipper = ChunkShipper(server, index, token)
+        self.episodes = EpisodeLog()
+        self.puller = WeightPuller(RemoteVariables(variables), net, c.distributed.pull_interval)
+        self.actor = Actor(self.env, self.random_policy, [self.episodes, self.shipper], seed=seed, puller=self.puller)
+        self.chunk_steps = c.distributed.chunk_steps
+
+    def collect(self, steps: int, global_steps: int, random: bool) -> dict[str, Any]:
+        """Take at least `steps` env steps (with the random policy while `random`), shipping
+        a chunk every `distributed.chunk_steps`; returns what the driver aggregates."""
+        self.actor.policy = self.random_policy if random else self.collect_policy
+        start = self.actor.env_steps
+        while (taken := self.actor.env_steps - start) < steps:
+            self.global_steps = global_steps + taken * self.num_actors
+            self.actor.run(min(self.chunk_steps, steps - taken))
+        self.shipper.wait()
+        returns, lengths = self.episodes.take()
+        return {"index": self.index, "env_steps": self.actor.env_steps - start, "accepted": self.shipper.accepted,
+                "returns": returns, "lengths": lengths, "policy_version": self.puller.version}
+
+    def pid(self) -> int:
+        return os.getpid()
+
+
+class EvalWorker:
+    """Evaluates the newest weights in the VariableContainer on its own envs."""
+
+    def __init__(self, config: dict[str, Any], names: ActorNames, sys_path: list[str]) -> None:
+        c = _setup(config, sys_path)
+        _, variables = names.handles()
+        self.episodes = c.eval.episodes
+        self.env = make_env(c.env.id, min(c.eval.episodes, EVAL_BATCH), c.env.max_episode_steps)
+        self.agent = make_agent(c.algo, c.agent, self.env.observation_spec, self.env.action_spec,
+                                torch.device("cpu"), np.random.default_rng(c.seed), c.train.total_steps)
+        self.puller = WeightPuller(RemoteVariables(variables), self.agent.policy_network().requires_grad_(False))
+
+    def evaluate(self, seed: int) -> dict[str, Any]:
+        self.puller.maybe_pull(0)
+        result = evaluate(self.env, self.agent.eval_policy(), self.episodes, seed=seed)
+        return {**result, "policy_version": self.puller.version}
+
+    def pid(self) -> int:
+        return os.getpid()

@@ -1,0 +1,112 @@
+"""One Table fed by several writers: the replay server's storage.
+
+A writer takes whole batched steps of its own envs. Actors on other machines step out of
+phase with each other, so the replay server gives each one its own writer (its own
+StepStore rows) and lets all of them insert into one Table, whose sampler, remover and rate
+limiter then see every actor's items together, as Reverb's server does. The group is the
+Table's storage: it remembers which writer owns each slot and routes reads to it.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from relayrl.replay.table import Table
+from relayrl.replay.writers import StepChunk, _Writer
+
+
+def split_chunk(chunk: StepChunk, max_steps: int) -> list[StepChunk]:
+    """Cut a chunk into pieces of at most `max_steps` batched steps (finals follow their steps)."""
+    c = chunk.done.shape[0]
+    if c <= max_steps:
+        return [chunk]
+    pieces = []
+    f = 0
+    for a in range(0, c, max_steps):
+        b = min(a + max_steps, c)
+        nf = int(np.count_nonzero(chunk.done[a:b]))
+        pieces.append(StepChunk(chunk.frames[a:b], chunk.actions[a:b], chunk.rewards[a:b], chunk.done[a:b],
+                                chunk.terminated[a:b], chunk.finals[f:f + nf]))
+        f += nf
+    return pieces
+
+
+class WriterGroup:
+    """`make_writer(table, index, path)` builds writer `index`; every writer inserts into `table`.
+
+    `write_chunk(index, chunk)` is thread-safe (one chunk at a time: a chunk's inserts may
+    block on the rate limiter, and the next actor's chunk waits behind it, as it would for
+    the limiter anyway). Reads and inserts meet only under the Table's own lock.
+    """
+
+    def __init__(self, table: Table, num_writers: int,
+                 make_writer: Callable[[Table, int, Path | None], _Writer], path: str | Path | None = None) -> None:
+        if num_writers < 1:
+            raise ValueError(f"num_writers={num_writers} is not valid; it must be >= 1")
+        self.table = table
+        root = Path(path) if path is not None else None
+        self.writers = [make_writer(table, i, None if root is None else root / f"writer{i}")
+                        for i in range(num_writers)]
+        self.owner = np.zeros(table.max_size, dtype=np.int32)  # slot -> writer
+        self._active = 0  # the writer whose inserts are in progress
+        self._lock = threading.Lock()
+        table.storage = self  # each writer made itself the storage; the group routes to them
+
+    def write_chunk(self, index: int, chunk: StepChunk) -> None:
+        writer = self.writers[index]
+        with self._lock:
+            self._active = index
+            for piece in split_chunk(chunk, writer._max_staged):  # rows reused mid-chunk would corrupt it
+                writer.write_chunk(piece)
+
+    def restart_episodes(self, index: int) -> None:
+        """Writer `index` forgets its open episodes (its actor died and was restarted)."""
+        with self._lock:
+            self.writers[index].restart_episodes()
+
+    # ---- the Table's storage interface ---------------------------------------------------
+    def write(self, slots: np.ndarray, items: np.ndarray) -> None:
+        self.owner[slots] = self._active
+        self.writers[self._active].write(slots, items)
+
+    def _groups(self, slots: np.ndarray) -> list[tuple[int, np.ndarray]]:
+        owner = self.owner.take(slots)
+        first = int(owner[0]) if len(owner) else 0
+        if not len(owner) or (owner == first).all():
+            return [(first, np.arange(len(slots)))]
+        return [(int(w), np.flatnonzero(owner == w)) for w in np.unique(owner)]
+
+    def read(self, slots: np.ndarray) -> Any:
+        groups = self._groups(slots)
+        if len(groups) == 1:
+            return self.writers[groups[0][0]].read(slots)
+        parts = [self.writers[w].read(slots[idx]) for w, idx in groups]
+        inverse = torch.from_numpy(np.argsort(np.concatenate([idx for _, idx in groups]), kind="stable"))
+        fields = [None if f[0] is None else torch.cat(f).index_select(0, inverse) for f in zip(*parts, strict=True)]
+        return type(parts[0])(*fields)
+
+    def stale(self, slots: np.ndarray) -> np.ndarray:
+        out = np.zeros(len(slots), dtype=bool)
+        for w, idx in self._groups(slots):
+            out[idx] = self.writers[w].stale(slots[idx])
+        return out
+
+    def state_dict(self) -> dict[str, Any]:
+        # Called by Table.state_dict under the Table's lock, never under the group's: a chunk
+        # whose inserts wait on the rate limiter holds the group lock until someone samples.
+        return {"writers": [w.state_dict() for w in self.writers], "owner": self.owner.copy()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if len(state["writers"]) != len(self.writers):
+            raise ValueError(f"the saved replay has {len(state['writers'])} writers (actors), this one "
+                             f"{len(self.writers)}")
+        with self._lock:
+            self.owner[:] = state["owner"]
+            for w, s in zip(self.writers, state["writers"], strict=True):
+                w.load_state_dict(s)  # resumed actors start new episodes
