@@ -152,6 +152,23 @@ def test_reused_rows_evict_their_items_instead_of_returning_wrong_data():
         assert a == o and n == min(o + 2, 29) and r == (10 + o) + (G * (11 + o) if o < 28 else 0)
 
 
+@pytest.mark.parametrize("end", ["truncated", "none"])
+def test_reused_rows_evict_their_items_when_flushed_in_chunks(end):
+    # A 16-row ring flushed 5 steps at a time: each flush reuses 5 rows (6 with an episode
+    # end), and the items of all of them must go, not just those of the first.
+    t = Table("t", 100, seed=0)
+    w = TransitionWriter(t, 1, OBS, ACT, gamma=G, n_step=2, rows=16)
+    steps = [s for k in range(4) for s in episode(list(range(100 * k, 100 * k + 15)), end)]
+    if end == "none":  # one long episode
+        steps = episode(list(range(60)), "truncated")[:-1]
+    for s in steps:
+        w(s)
+    rows = transition_rows(t)
+    assert 0 < len(rows) <= 16
+    for o, a, r, n, _d in rows:
+        assert a == o % 100 and n - o in (1, 2) and r >= 10 + o % 100, (o, a, r, n)
+
+
 def test_memmap_table_reopens_from_disk_and_drops_items_written_over_later(tmp_path):
     def make():
         t = Table("t", 50, Uniform(), Fifo(), MinSize(1), seed=0)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import gymnasium as gym
 import numpy as np
 from gymnasium.envs.classic_control import CartPoleEnv
@@ -98,3 +100,25 @@ class Unpicklable(CartPoleEnv):
 
     def __getstate__(self):
         raise TypeError("holds a simulator handle")
+
+
+class CrashOnce(CartPoleEnv):
+    """CartPole whose process dies (os._exit, as a segfaulting simulator would) at its 150th
+    step, once per marker file named by $RELAYRL_CRASH_MARKER: the first env to create the
+    file crashes, every later one (a restarted actor's) runs normally."""
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        super().__init__(render_mode=render_mode)
+        self.steps = 0
+
+    def step(self, action):
+        self.steps += 1
+        marker = os.environ.get("RELAYRL_CRASH_MARKER")
+        if marker and self.steps == 150:
+            try:
+                os.close(os.open(marker, os.O_CREAT | os.O_EXCL))
+            except FileExistsError:
+                pass
+            else:
+                os._exit(1)
+        return super().step(action)

@@ -38,6 +38,7 @@ from relayrl.policies import linear_schedule
 from relayrl.training.checkpoint import load_latest_checkpoint
 from relayrl.training.learner import Learner
 from relayrl.training.loop import RunLog, RunResult, resolve_device
+from relayrl.training.replay import collect_only
 from relayrl.training.run_dir import MetricsLog, RunDir
 from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver, Progress, StepsPerSecond
 from relayrl.training.variables import VariableContainer
@@ -91,6 +92,7 @@ class DistributedRun(RunLog):
                                importance_exponent=c.replay.importance_exponent,
                                priority_eps=c.replay.priority_eps, variables=self.pusher)  # type: ignore[arg-type]
         self._beta_at = linear_schedule(c.replay.importance_exponent, 1.0, c.train.total_steps)
+        self.collect_only = collect_only(c)
         self.policy_saver = PolicySaver(c.train.policy_save_interval, self.agent, run_dir.policy,
                                         extra={"env_id": c.env.id})
         self.checkpointer = Checkpointer(c.train.checkpoint_interval, self.checkpoint_state, run_dir.checkpoints)
@@ -341,7 +343,7 @@ class DistributedRun(RunLog):
         collected_at = None  # the sample request current when collection ended
         while True:
             moved = self._poll_workers()
-            n = self.table.poll()
+            n = 0 if self.collect_only else self.table.poll()
             if n:
                 steps = self.env_steps()
                 self.agent.set_progress(steps)
@@ -356,10 +358,11 @@ class DistributedRun(RunLog):
                     collected_at = self.table.requests
                 # Collection is over: stop once a sample request sent after it found the rate
                 # limiter allowing nothing more (the one-process loop's last `available_steps`).
-                if not n and self.table.last_empty and self.table.answered > collected_at:
+                if self.collect_only or (not n and self.table.last_empty and self.table.answered > collected_at):
                     break
             if not n and not moved:  # nothing to do: sleep until an actor or the server answers
-                ray.wait([*self.inflight, self.table.pending], num_returns=1, timeout=1.0)
+                waiting = [*self.inflight] if self.collect_only else [*self.inflight, self.table.pending]
+                ray.wait(waiting, num_returns=1, timeout=1.0)
         p = self.progress()
         if self.last_eval.get("step") != p.env_steps:
             self.submit_eval(p)

@@ -241,7 +241,7 @@ class _Writer:
         """The general path: C steps [C, B, ...] and the final observations where `done`."""
         s = self.store
         # Rows about to be reused: drop the items that read them first.
-        new_rows = 1 + done.sum(axis=0)  # [B]
+        new_rows = done.shape[0] + done.sum(axis=0)  # [B]: a row per step, one more per episode end
         j = np.arange(int(new_rows.max()))
         envs = np.repeat(s.envs, j.size).reshape(s.B, j.size)
         pos = s.head[:, None] + j  # [B, R]

@@ -24,7 +24,7 @@ from relayrl.training.actor import Actor
 from relayrl.training.checkpoint import load_latest_checkpoint
 from relayrl.training.evaluate import evaluate
 from relayrl.training.learner import Learner
-from relayrl.training.replay import build_replay
+from relayrl.training.replay import build_replay, collect_only
 from relayrl.training.run_dir import MetricsLog, RunDir
 from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver, Progress, StepsPerSecond
 from relayrl.training.variables import VariableContainer, WeightPuller
@@ -150,6 +150,7 @@ class LocalRun(RunLog):
                                importance_exponent=c.replay.importance_exponent,
                                priority_eps=c.replay.priority_eps, variables=self.variables)
         self._beta_at = linear_schedule(c.replay.importance_exponent, 1.0, c.train.total_steps)
+        self.collect_only = collect_only(c)
         self.eval_count = 0
         self.wall_offset = 0.0
         self.last_eval: dict[str, Any] = {}
@@ -297,7 +298,8 @@ class LocalRun(RunLog):
             self.actor.run(min(c.train.collect_steps, total - self.actor.env_steps))
             self.agent.set_progress(self.actor.env_steps)
             self.learner.importance_exponent = self._beta_at(self.actor.env_steps)
-            self.learner.run(self.learner.available_steps())  # the rate limiter decides
+            if not self.collect_only:
+                self.learner.run(self.learner.available_steps())  # the rate limiter decides
             p = self.progress()
             for trigger in self.triggers:
                 trigger(p)

@@ -31,6 +31,12 @@ def env_steps_per_iteration(c: Config) -> int:
     return -(-c.train.collect_steps // b) * b  # the actor steps all envs together
 
 
+def collect_only(c: Config) -> bool:
+    """train.gradient_steps = 0 with no replay.samples_per_insert: a run that only collects
+    (its MinSize limiter would let a learner sample without end)."""
+    return c.replay.samples_per_insert == 0 and c.train.gradient_steps == 0
+
+
 def rate_limiter(c: Config, burst_steps: int | None = None) -> RateLimiter:
     """`burst_steps`: env steps one insert call may bring at once (default: one collect
     iteration of the one-process loop); the error buffer must hold their samples."""

@@ -1,0 +1,342 @@
+"""Distributed training: the replay server's pieces in one process, then real Ray runs.
+
+The Ray tests start a local Ray instance each (~10-20 s with actor start-up); they are
+skipped where Ray is not installed, and one test checks the error a user then gets.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+import relayrl
+from relayrl.config import from_dict, to_dict
+from relayrl.errors import UserError
+from relayrl.replay import Fifo, MinSize, Table, TransitionWriter, Uniform
+from relayrl.replay.group import WriterGroup, split_chunk
+from relayrl.replay.writers import StepChunk
+from relayrl.specs import ArraySpec
+
+OBS = ArraySpec((1,), torch.float32)
+ACT = ArraySpec((1,), torch.float32)
+B = 2
+
+
+class Stream:
+    """Steps of B envs for one writer: obs x, action x, reward x, next obs x + 1; an episode
+    ends every `every` steps (truncated) and the next one starts 100 higher, so an item
+    pairing two episodes shows as next_obs - obs != 1."""
+
+    def __init__(self, base: float, every: int = 5) -> None:
+        self.x = base + 1000.0 * np.arange(B)
+        self.t = np.zeros(B, np.int64)
+        self.every = every
+
+    def chunk(self, steps: int) -> StepChunk:
+        frames, done, finals = [], [], []
+        for _ in range(steps):
+            frames.append(self.x.copy())
+            self.t += 1
+            d = self.t % self.every == 0
+            done.append(d)
+            finals.extend(self.x[d] + 1)
+            self.x = np.where(d, self.x + 100, self.x + 1)
+        f = np.array(frames, np.float32)[..., None]  # [C, B, 1]
+        d = np.array(done)
+        return StepChunk(f, f.copy(), f[..., 0].copy(), d, np.zeros_like(d),
+                         np.array(finals, np.float32).reshape(-1, 1))
+
+    def jump(self, by: float) -> None:
+        """Start over mid-episode (an actor restarted without ending its episodes)."""
+        self.x = self.x + by
+
+
+def group_table(size: int = 200, writers: int = 2) -> tuple[Table, WriterGroup]:
+    table = Table("t", size, Uniform(), Fifo(), MinSize(1), seed=0)
+
+    def make(t: Table, index: int, path: Path | None) -> TransitionWriter:
+        return TransitionWriter(t, B, OBS, ACT, gamma=0.9, rows=64)
+
+    return table, WriterGroup(table, writers, make)
+
+
+def assert_items_consistent(batch) -> None:
+    obs, action, reward, nxt = (x.numpy().reshape(-1) for x in (batch.obs, batch.action, batch.reward, batch.next_obs))
+    assert np.array_equal(action, obs) and np.array_equal(reward, obs), "a read mixed up rows of different items"
+    assert np.array_equal(nxt - obs, np.ones_like(obs)), "an item spans two episodes"
+
+
+def test_writer_group_feeds_one_table_from_writers_out_of_phase():
+    table, group = group_table()
+    a, b = Stream(0.0), Stream(10_000.0, every=7)
+    for steps in (3, 5, 1, 8, 4):  # chunks of different lengths, interleaved
+        group.write_chunk(0, a.chunk(steps))
+        group.write_chunk(1, b.chunk(steps + 2))
+    batch, _ = table.sample(150)
+    assert_items_consistent(batch)
+    owners = set((batch.obs.numpy().reshape(-1) // 10_000).astype(int).tolist())
+    assert owners == {0, 1}, "both writers' items are sampled from the one table"
+    # Every step of both streams is an item, but each env's newest, whose next row is unwritten.
+    assert table.size == (21 + 31) * B - 2 * B
+
+
+def test_writer_group_restart_drops_the_dead_actors_open_episodes():
+    table, group = group_table()
+    s = Stream(0.0, every=1000)
+    group.write_chunk(0, s.chunk(6))  # episodes still open
+    group.restart_episodes(0)
+    s.jump(50)  # the restarted actor's envs start new episodes without ending the old ones
+    group.write_chunk(0, s.chunk(6))
+    batch, _ = table.sample(200)
+    assert_items_consistent(batch)
+    # Without the restart the two streams would be joined by one item per env.
+    assert table.size == 2 * 5 * B
+
+
+def test_writer_group_evicts_its_own_items_when_its_rows_wrap():
+    table, group = group_table(size=1000)
+    s = Stream(0.0)
+    for _ in range(30):
+        group.write_chunk(0, s.chunk(10))  # 300 steps per env into 64 rows: the ring wraps
+    batch, _ = table.sample(500)
+    assert_items_consistent(batch)
+    assert not group.stale(np.flatnonzero(table.slot_key >= 0)).any()
+
+
+def test_writer_group_checkpoint_round_trip():
+    table, group = group_table()
+    a, b = Stream(0.0), Stream(10_000.0)
+    for _ in range(4):
+        group.write_chunk(0, a.chunk(6))
+        group.write_chunk(1, b.chunk(3))
+    state = table.state_dict()
+    table2, group2 = group_table()
+    table2.load_state_dict(state)
+    x, _ = table.sample(64)
+    y, _ = table2.sample(64)
+    for f, g in zip(x, y, strict=True):
+        assert (f is None and g is None) or torch.equal(f, g)
+    group2.write_chunk(1, b.chunk(5))  # resumed writers start new episodes and go on
+    assert_items_consistent(table2.sample(100)[0])
+
+
+def test_split_chunk_keeps_final_observations_with_their_steps():
+    chunk = Stream(0.0, every=3).chunk(10)
+    pieces = split_chunk(chunk, 4)
+    assert [p.done.shape[0] for p in pieces] == [4, 4, 2]
+    assert sum(len(p.finals) for p in pieces) == len(chunk.finals)
+    table, group = group_table()
+    for p in pieces:
+        group.writers[0].write_chunk(p)
+    assert_items_consistent(table.sample(40)[0])
+
+
+def server_config(**replay) -> dict:
+    c = from_dict({"algo": "sac", "env": {"id": "Pendulum-v1", "num_envs": B}, "agent": {"batch_size": 8},
+                   "distributed": {"chunk_steps": 16},
+                   "replay": {"size": 2000, "min_size_to_sample": 40, **replay}})
+    return to_dict(c)
+
+
+def test_replay_server_drops_chunks_of_a_dead_incarnation(tmp_path):
+    from relayrl.distributed.server import ReplayServer
+
+    server = ReplayServer(server_config(), OBS, ACT, str(tmp_path), 1)
+    s = Stream(0.0)
+    server.register(0, "first")
+    assert server.ingest(0, "first", s.chunk(4)) == 4 * B
+    server.register(0, "second")  # the actor was restarted
+    assert server.ingest(0, "first", s.chunk(4)) == 4 * B, "a chunk from the dead incarnation was taken"
+    assert server.ingest(0, "second", s.chunk(4)) == 8 * B
+
+
+def test_rate_limiter_holds_across_clients(tmp_path):
+    """Two actors insert and a learner samples, each in its own thread, as in the threaded
+    Ray actor: inserts * spi - samples stays in Reverb's window, and both sides block."""
+    from relayrl.distributed.server import ReplayServer
+
+    server = ReplayServer(server_config(samples_per_insert=2.0, error_buffer=48.0), OBS, ACT, str(tmp_path), 2)
+    lim = server.table.rate_limiter
+    seen: list[float] = []
+    stop = threading.Event()
+
+    def actor(i: int) -> None:
+        server.register(i, "t")
+        s = Stream(10_000.0 * i)
+        for _ in range(30):
+            server.ingest(i, "t", s.chunk(3))
+
+    def monitor() -> None:
+        while not stop.is_set():
+            with server.table._cv:
+                if lim.inserts - lim.deletes >= lim.min_size_to_sample:
+                    seen.append(lim.inserts * lim.samples_per_insert - lim.samples)
+            time.sleep(0.0005)
+
+    threads = [threading.Thread(target=actor, args=(i,)) for i in range(2)] + [threading.Thread(target=monitor)]
+    for t in threads:
+        t.start()
+    sampled = 0
+    while any(t.is_alive() for t in threads[:2]) or server.table.samples_available() >= 8:
+        got = server.sample(8, 1, timeout=0.2)
+        sampled += 8 * len(got)
+        time.sleep(0.002)  # a learner slower than the actors: their inserts must wait
+    stop.set()
+    threads[2].join()
+    assert lim.inserts == 2 * 30 * 3 * B
+    assert seen and min(seen) >= lim.min_diff - 1e-9 and max(seen) <= lim.max_diff + 1e-9
+    assert max(seen) > lim.max_diff - 2 * 3 * B * 2, "the actors never ran into the limiter: the test proved nothing"
+    assert sampled == lim.samples
+    assert lim.samples >= lim.inserts * 2.0 - lim.max_diff - 8  # the learner got what the ratio allows
+
+
+# ---- without Ray ---------------------------------------------------------------------------
+
+def test_distributed_without_ray_is_one_clear_error(tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` now raises ImportError
+    import relayrl.distributed.run  # noqa: F401  (importable without Ray)
+
+    config = relayrl.load_config("dqn-cartpole-fast", ["distributed.num_actors=2"])
+    with pytest.raises(UserError, match=r"pip install 'relayrl\[ray\]'"):
+        relayrl.train(config, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run" / "config.toml").exists()
+    from relayrl.cli import main
+
+    assert main(["train", "dqn-cartpole-fast", "--run-dir", str(tmp_path / "r2"),
+                 "--set", "distributed.num_actors=2"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "relayrl[ray]" in err
+
+
+def test_bad_distributed_config_is_refused():
+    with pytest.raises(UserError, match="distributed.num_actors"):
+        relayrl.load_config("sac-pendulum", ["distributed.num_actors=-1"])
+    with pytest.raises(UserError, match="distributed.chunk_steps"):
+        relayrl.load_config("sac-pendulum", ["distributed.chunk_steps=0"])
+
+
+# ---- real Ray runs ----------------------------------------------------------------------------
+
+needs_ray = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
+                               reason="distributed runs need Ray (pip install 'relayrl[ray]')")
+
+SAC_SMALL = ["agent.actor_hidden=[32, 32]", "agent.critic_hidden=[32, 32]", "agent.batch_size=32",
+             "train.total_steps=800", "train.initial_collect_steps=200", "train.checkpoint_interval=400",
+             "train.policy_save_interval=400", "eval.interval=400", "eval.episodes=2", "replay.size=2000",
+             "distributed.chunk_steps=50", "distributed.pull_interval=100", "train.torch_threads=1"]
+
+
+def rows(run: Path) -> list[dict]:
+    return [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+
+
+def process_tree(root: int) -> set[int]:
+    """`root` and every process below it (from /proc, no psutil)."""
+    children: dict[int, list[int]] = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                ppid = int(Path(f"/proc/{d}/stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                continue
+            children.setdefault(ppid, []).append(int(d))
+    out, todo = set(), [root]
+    while todo:
+        p = todo.pop()
+        out.add(p)
+        todo.extend(children.get(p, []))
+    return out
+
+
+def alive(pids: set[int]) -> set[int]:
+    live = set()
+    for p in pids:
+        try:
+            state = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()[0]
+        except OSError:
+            continue
+        if state != "Z":
+            live.add(p)
+    return live
+
+
+@needs_ray
+def test_two_rollout_actors_train_sac_and_write_the_run_directory(tmp_path):
+    config = relayrl.load_config("sac-pendulum", SAC_SMALL + ["distributed.num_actors=2"])
+    result = relayrl.train(config, tmp_path / "run", progress=False)
+    r = rows(tmp_path / "run")
+    local_keys = {"step", "train_step", "average_return", "average_episode_length", "episodes", "wall_time_s",
+                  "eval_s", "train/average_return", "train/episodes"}
+    assert all(local_keys <= row.keys() for row in r)
+    assert [row["step"] for row in r][0] == 0 and r[-1]["step"] == 800 == result.final["step"]
+    # The rate limiter (1 sample per insert at batch 32) decides the learner's steps: every
+    # item after min_size gives one gradient step, within the error buffer.
+    assert 0.8 * 600 <= r[-1]["train_step"] <= 600 + 2 * 50 + 1
+    assert r[-1]["train/episodes"] >= 2 and r[-1]["actors_alive"] == 2
+    assert (tmp_path / "run" / "policy" / "policy.pt").exists()
+    assert relayrl.load_policy(tmp_path / "run").env_steps == 800
+    assert list((tmp_path / "run" / "checkpoints").glob("ckpt-*.pt"))
+    import ray
+
+    assert not ray.is_initialized(), "the run left its Ray instance running"
+
+
+@needs_ray
+def test_a_killed_rollout_actor_is_restarted_and_the_run_finishes(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("RELAYRL_CRASH_MARKER", str(tmp_path / "crashed"))
+    over = ["env.id=toy_envs:CrashOnce", "train.total_steps=1200", "train.initial_collect_steps=200",
+            "eval.interval=600", "eval.episodes=2", "distributed.num_actors=2", "distributed.chunk_steps=50",
+            "train.checkpoint_interval=0"]
+    config = relayrl.load_config("dqn-cartpole-fast", over)
+    relayrl.train(config, tmp_path / "run", progress=False)
+    assert (tmp_path / "crashed").exists(), "no actor crashed: the test proved nothing"
+    err = capsys.readouterr().err
+    assert "died" in err and "restarts it" in err
+    r = rows(tmp_path / "run")
+    assert r[-1]["step"] == 1200 and r[-1]["train_step"] > 0
+
+
+@needs_ray
+def test_ctrl_c_stops_every_actor_and_the_run_resumes(tmp_path, cli_env):
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "relayrl", "train", "sac-pendulum", "--run-dir", str(run), "--no-progress"]
+    sets = [a for o in SAC_SMALL + ["distributed.num_actors=2", "train.total_steps=1600",
+                                    "train.checkpoint_interval=200"] for a in ("--set", o)]
+    p = subprocess.Popen(cmd + sets, env=cli_env, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 240
+        while not list((run / "checkpoints").glob("ckpt-*.pt")) and p.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert p.poll() is None, f"the run ended before the interrupt: {p.stderr.read() if p.stderr else ''}"
+        tree = process_tree(p.pid)
+        assert len(tree) > 3, "no Ray processes were seen under the run"
+        p.send_signal(signal.SIGINT)  # Ctrl-C
+        _, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130, err
+    assert "resume with --resume" in err
+    deadline = time.monotonic() + 30
+    while alive(tree - {p.pid}) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert not alive(tree - {p.pid}), "processes of the interrupted run are still alive"
+    steps_at_interrupt = max(row["step"] for row in rows(run))
+    done = subprocess.run(cmd + ["--resume"], env=cli_env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert "resumed from env step" in done.stderr
+    r = rows(run)
+    steps = [row["step"] for row in r]
+    assert steps == sorted(set(steps)), "metrics.jsonl has repeated or unordered rows after the resume"
+    assert steps[-1] == 1600 and steps_at_interrupt < 1600
