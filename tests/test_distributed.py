@@ -62,11 +62,11 @@ class Stream:
         self.x = self.x + by
 
 
-def group_table(size: int = 200, writers: int = 2) -> tuple[Table, WriterGroup]:
+def group_table(size: int = 200, writers: int = 2, n_step: int = 1) -> tuple[Table, WriterGroup]:
     table = Table("t", size, Uniform(), Fifo(), MinSize(1), seed=0)
 
     def make(t: Table, index: int, path: Path | None) -> TransitionWriter:
-        return TransitionWriter(t, B, OBS, ACT, gamma=0.9, rows=64)
+        return TransitionWriter(t, B, OBS, ACT, gamma=0.9, n_step=n_step, rows=64)
 
     return table, WriterGroup(table, writers, make)
 
@@ -115,20 +115,29 @@ def test_writer_group_evicts_its_own_items_when_its_rows_wrap():
 
 
 def test_writer_group_checkpoint_round_trip():
-    table, group = group_table()
-    a, b = Stream(0.0), Stream(10_000.0)
+    # 3-step items and episodes of different lengths per writer: the writers' n-step
+    # windows (and so their items' next-observation rows) differ at the same positions.
+    table, group = group_table(n_step=3)
+    a, b = Stream(0.0, every=4), Stream(10_000.0, every=7)
     for _ in range(4):
         group.write_chunk(0, a.chunk(6))
         group.write_chunk(1, b.chunk(3))
     state = table.state_dict()
-    table2, group2 = group_table()
+    assert "slot_ref" not in state["storage"]["writers"][0], "the shared slot map is saved once"
+    table2, group2 = group_table(n_step=3)
     table2.load_state_dict(state)
     x, _ = table.sample(64)
     y, _ = table2.sample(64)
     for f, g in zip(x, y, strict=True):
         assert (f is None and g is None) or torch.equal(f, g)
-    group2.write_chunk(1, b.chunk(5))  # resumed writers start new episodes and go on
-    assert_items_consistent(table2.sample(100)[0])
+    table3, group3 = group_table()
+    a, b = Stream(0.0), Stream(10_000.0)
+    group3.write_chunk(0, a.chunk(6))
+    group3.write_chunk(1, b.chunk(6))
+    table4, group4 = group_table()
+    table4.load_state_dict(table3.state_dict())
+    group4.write_chunk(1, b.chunk(5))  # resumed writers start new episodes and go on
+    assert_items_consistent(table4.sample(100)[0])
 
 
 def test_split_chunk_keeps_final_observations_with_their_steps():

@@ -42,7 +42,8 @@ class RemoteTable:
             got = ray.get(self.pending)
             self.answered = self.requests
             self.last_empty = not got
-            self._queue.extend(got)
+            self._queue.extend((type(b)(*(None if x is None else torch.from_numpy(x) for x in b)), info)
+                               for b, info in got)
             self._request()
         return len(self._queue)
 

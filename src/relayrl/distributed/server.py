@@ -53,7 +53,9 @@ class ReplayServer:
             return []
         while len(out) < max_batches and self.table.samples_available() >= batch_size:
             out.append(self.table.sample(batch_size))
-        return out
+        # As NumPy: Ray pickles torch tensors through torch's own path, ~10x slower than arrays
+        # (bench/distributed.py --part server); RemoteTable turns them back into tensors.
+        return [(type(b)(*(None if x is None else x.numpy() for x in b)), info) for b, info in out]
 
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
         self.table.update_priorities(keys, priorities)

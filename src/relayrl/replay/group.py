@@ -53,6 +53,10 @@ class WriterGroup:
         root = Path(path) if path is not None else None
         self.writers = [make_writer(table, i, None if root is None else root / f"writer{i}")
                         for i in range(num_writers)]
+        # Each slot belongs to one writer at a time, so one slot map serves them all (24 bytes
+        # per slot, shared instead of once per actor).
+        for w in self.writers[1:]:
+            w.slot_ref, w.slot_rows = self.writers[0].slot_ref, self.writers[0].slot_rows
         self.owner = np.zeros(table.max_size, dtype=np.int32)  # slot -> writer
         self._active = 0  # the writer whose inserts are in progress
         self._lock = threading.Lock()
@@ -100,7 +104,11 @@ class WriterGroup:
     def state_dict(self) -> dict[str, Any]:
         # Called by Table.state_dict under the Table's lock, never under the group's: a chunk
         # whose inserts wait on the rate limiter holds the group lock until someone samples.
-        return {"writers": [w.state_dict() for w in self.writers], "owner": self.owner.copy()}
+        states = [w.state_dict() for w in self.writers]
+        slot_ref = states[0]["slot_ref"]
+        for st in states:
+            del st["slot_ref"]  # the shared map, saved once
+        return {"writers": states, "owner": self.owner.copy(), "slot_ref": slot_ref}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if len(state["writers"]) != len(self.writers):
@@ -109,4 +117,8 @@ class WriterGroup:
         with self._lock:
             self.owner[:] = state["owner"]
             for w, s in zip(self.writers, state["writers"], strict=True):
-                w.load_state_dict(s)  # resumed actors start new episodes
+                w.load_state_dict({**s, "slot_ref": state["slot_ref"]})  # resumed actors start new episodes
+            # Each load rewrote the whole shared map with its own n-step lengths; each writer's
+            # own slots read its own store.
+            for i, w in enumerate(self.writers):
+                w.refresh_slot_rows(np.flatnonzero(self.owner == i))

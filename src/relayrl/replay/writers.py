@@ -160,13 +160,19 @@ class _Writer:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.store.load_state_dict(state["store"])
         self.slot_ref[:] = state["slot_ref"]
-        envs, pos = self.slot_ref % self.num_envs, self.slot_ref // self.num_envs
-        self.slot_rows[0] = envs * self.rows + pos % self.rows
-        self.slot_rows[1] = envs * self.rows + self._next_pos(envs, pos) % self.rows
+        self.refresh_slot_rows()
         self._staged.clear()
         self._open_from = self.store.head.copy()  # resumed actors start new episodes...
         # ...unless their envs resume mid-episode too: then `continue_episodes()`.
         self._saved_episodes = (state.get("open_from"), state["store"].get("ep_start"))
+
+    def refresh_slot_rows(self, slots: np.ndarray | None = None) -> None:
+        """Recompute the flat rows of `slots` (default: all) from `slot_ref`."""
+        ref = self.slot_ref if slots is None else self.slot_ref[slots]
+        envs, pos = ref % self.num_envs, ref // self.num_envs
+        at = slice(None) if slots is None else slots
+        self.slot_rows[0, at] = envs * self.rows + pos % self.rows
+        self.slot_rows[1, at] = envs * self.rows + self._next_pos(envs, pos) % self.rows
 
     def saved_episodes_intact(self) -> bool:
         """After `load_state_dict`: whether the rows of the episodes open at the checkpoint still
