@@ -364,7 +364,9 @@ OPS = ("ingest", "sample", "sample_np")
 
 def numpy_batches(out: list[tuple[Any, Any]]) -> list[tuple[Any, Any]]:
     """Sampled batches with NumPy arrays in place of torch tensors (zero-copy views)."""
-    return [(type(batch)(*(None if x is None else x.numpy() for x in batch)), info) for batch, info in out]
+    # The server answers NumPy itself since 02cf508; tensors only from an in-process Table.
+    return [(type(batch)(*(x.numpy() if isinstance(x, torch.Tensor) else x for x in batch)), info)
+            for batch, info in out]
 
 
 class MeteredServer:
@@ -466,7 +468,7 @@ def part_server(args: argparse.Namespace) -> dict[str, float]:
     finally:
         ray.shutdown()
     print(f"\n### server: ReplayServer throughput ({args.seconds:g} s per figure; obs {OBS} float32, act {ACT}; "
-          f"sample_np: sample answering NumPy arrays)\n")
+          f"sample and sample_np both answer NumPy arrays since commit 02cf508)\n")
     print("| op | b | in-process items/s (us/call) | Ray from driver items/s (us/call) | in-process / Ray "
           "| Ray, 2 client actors items/s | server CPU us/call (Ray) |")
     print("|---|---|---|---|---|---|---|")
@@ -476,15 +478,17 @@ def part_server(args: argparse.Namespace) -> dict[str, float]:
             lo_us, ray_us, two_us = res[op, "local", b], res[op, "driver", b], res[op, "2 clients", b]
             print(f"| {op} | {b} | {1e6 * b / lo_us:,.0f} ({lo_us:,.0f}) | {1e6 * b / ray_us:,.0f} ({ray_us:,.0f}) | "
                   f"{ray_us / lo_us:.1f} | {1e6 * b / two_us:,.0f} | {cpu[op, b]:,.0f} |")
-    torch_d, torch_l = pickle_us(batch)
-    np_d, np_l = pickle_us(numpy_batches([batch])[0])
+    batch_np, info = numpy_batches([batch])[0]
+    batch_torch = type(batch_np)(*(torch.from_numpy(x) if isinstance(x, np.ndarray) else x for x in batch_np))
+    torch_d, torch_l = pickle_us((batch_torch, info))
+    np_d, np_l = pickle_us((batch_np, info))
     print(f"\npickle 5 of one sampled batch of {BATCH}: torch tensors {torch_d:,.0f} us dumps + {torch_l:,.0f} us "
           f"loads; as NumPy {np_d:,.0f} + {np_l:,.0f} us")
     # The model's constants: server CPU per call = rpc (an empty call) + fixed work + b x per-item
     # work; the per-item slopes from the in-process figures (less noisy), the rest from the Ray ones.
     lo, hi = min(args.batches), max(args.batches)
     rpc = cpu["noop", 0]
-    fit = {"rpc_us": rpc, "rtt_us": res["noop", "driver", 0], "recv_us": torch_l}
+    fit = {"rpc_us": rpc, "rtt_us": res["noop", "driver", 0], "recv_us": np_l}  # the learner unpickles NumPy
     for op, fixed, item in (("ingest", "chunk_us", "ingest_us"), ("sample", "batch_us", "sample_us"),
                             ("sample_np", "batch_np_us", None)):
         slope = (res[op, "local", hi] - res[op, "local", lo]) / (hi - lo) if hi > lo else 0.0
