@@ -31,6 +31,10 @@ class ArraySpec:
     dtype: torch.dtype
     low: np.ndarray | None = None
     high: np.ndarray | None = None
+    # k > 1: each observation is a stack of k frames along dim 0 whose older frames are the
+    # previous steps' frames (Gymnasium's FrameStackObservation, padding "reset"), so a
+    # replay may store only each step's newest frame. Set by the env adapters, not by spaces.
+    frame_stack: int = 1
 
     def zeros(self, batch: int) -> torch.Tensor:
         return torch.zeros((batch, *self.shape), dtype=self.dtype)

@@ -8,6 +8,7 @@ observation (`obs`); Gymnasium's vector autoreset modes either delay the reset b
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import importlib
 import pickle
@@ -17,8 +18,9 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
-from relayrl.specs import DiscreteSpec, Spec, spec_from_space
+from relayrl.specs import ArraySpec, DiscreteSpec, Spec, spec_from_space
 from relayrl.types import StepOutput
 
 EnvFn = Callable[[], gym.Env]
@@ -38,9 +40,12 @@ class BatchEnvBase:
     """Specs and flags shared by the in-process and the worker-process batched envs."""
 
     def _init_specs(self, num_envs: int, observation_space: gym.Space, action_space: gym.Space,
-                    time_limit_terminates: bool) -> None:
+                    time_limit_terminates: bool, frame_stack: int = 1) -> None:
         self.num_envs = num_envs
         self.observation_spec: Spec = spec_from_space(observation_space)
+        if frame_stack > 1 and isinstance(self.observation_spec, ArraySpec):
+            # Stacked frames (FrameStackObservation): the replay stores one frame per step.
+            self.observation_spec = dataclasses.replace(self.observation_spec, frame_stack=frame_stack)
         self.action_spec: Spec = spec_from_space(action_space)
         self._obs_dtype = torch.empty((), dtype=self.observation_spec.dtype).numpy().dtype
         self._discrete = isinstance(self.action_spec, DiscreteSpec)
@@ -70,6 +75,7 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
             return env
 
         return make_custom
+    _register_on_demand(env_id)
     if env_id not in gym.registry:
         close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
         hint = f"; did you mean {', '.join(close)}?" if close else ""
@@ -80,8 +86,22 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
     if max_episode_steps > 0:
         kwargs["max_episode_steps"] = max_episode_steps
 
-    # disable_env_checker: the passive checker costs ~10% per step on tiny envs and only warns.
-    return lambda: gym.make(env_id, disable_env_checker=True, **kwargs)
+    def make_registered() -> gym.Env:
+        _register_on_demand(env_id)  # again in a worker process that starts with a fresh registry
+        # disable_env_checker: the passive checker costs ~10% per step on tiny envs and only warns.
+        return gym.make(env_id, disable_env_checker=True, **kwargs)
+
+    return make_registered
+
+
+def _register_on_demand(env_id: str) -> None:
+    """Ids registered only when used: `ALE/...` (importing ale-py registers them) and
+    `relayrl/Atari-<Game>-v0` (see envs/atari.py)."""
+    from relayrl.envs.atari import import_ale, register_atari_id
+
+    if env_id.startswith("ALE/") and env_id not in gym.registry:
+        import_ale(env_id)
+    register_atari_id(env_id)
 
 
 class GymBatchEnv(BatchEnvBase):
@@ -92,7 +112,8 @@ class GymBatchEnv(BatchEnvBase):
             raise UserError("env.num_envs must be >= 1")
         self.envs = [fn() for fn in env_fns]
         first = self.envs[0]
-        self._init_specs(len(self.envs), first.observation_space, first.action_space, time_limit_terminates)
+        self._init_specs(len(self.envs), first.observation_space, first.action_space, time_limit_terminates,
+                         frame_stack_of(first))
 
     def get_state(self) -> list[bytes] | None:
         """Every copy's state, for checkpoints that resume mid-episode; None if any copy

@@ -18,6 +18,7 @@ import torch
 from gymnasium.vector import AutoresetMode
 
 from relayrl.envs.gym import BatchEnvBase, EnvFn, env_snapshot
+from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
 from relayrl.types import StepOutput
 
@@ -30,6 +31,9 @@ class _Snapshot(gym.Wrapper):
 
     def relayrl_get_state(self) -> bytes | None:
         return env_snapshot(self.env)
+
+    def relayrl_frame_stack(self) -> int:
+        return frame_stack_of(self.env)
 
     def relayrl_set_state(self) -> None:
         self.env.close()
@@ -53,7 +57,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
             raise UserError("env.num_envs must be >= 1")
         self.vec = gym.vector.AsyncVectorEnv([_Wrapped(fn) for fn in env_fns], autoreset_mode=AutoresetMode.SAME_STEP)
         self._init_specs(len(env_fns), self.vec.single_observation_space, self.vec.single_action_space,
-                         time_limit_terminates)
+                         time_limit_terminates, int(self.vec.call("relayrl_frame_stack")[0]))
 
     def get_state(self) -> list[bytes] | None:
         """As `GymBatchEnv.get_state`, pickled in each worker."""

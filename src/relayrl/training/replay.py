@@ -10,6 +10,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import torch
+
 from relayrl.config import Config
 from relayrl.errors import ConfigError
 from relayrl.replay import (
@@ -72,10 +74,19 @@ def replay_path(c: Config, run_root: Path) -> Path | None:
     return Path(c.replay.path) if c.replay.path else run_root / "replay"
 
 
+def frame_stack(obs_spec: Spec) -> int:
+    """k for stacked uint8 frames [k, H, W] (FrameStackObservation's; see ArraySpec.frame_stack),
+    stored one frame per step; else 1 (whole observations)."""
+    k = getattr(obs_spec, "frame_stack", 1)
+    ok = k > 1 and obs_spec.dtype == torch.uint8 and len(obs_spec.shape) >= 2 and obs_spec.shape[0] == k
+    return k if ok else 1
+
+
 def build_replay(c: Config, obs_spec: Spec, action_spec: Spec, run_root: Path) -> tuple[Table, TransitionWriter]:
     table = build_table(c)
     writer = TransitionWriter(table, c.env.num_envs, obs_spec, action_spec, gamma=c.agent.gamma,
-                              n_step=c.replay.n_step, path=replay_path(c, run_root))
+                              n_step=c.replay.n_step, frame_stack=frame_stack(obs_spec),
+                              path=replay_path(c, run_root))
     return table, writer
 
 
@@ -94,6 +105,8 @@ def build_shared_replay(c: Config, obs_spec: Spec, action_spec: Spec, run_root: 
     b = c.env.num_envs
     rows = -(-c.replay.size // (num_writers * b)) * 3 // 2 + c.replay.n_step + 3
 
+    # Whole observations, even stacked frames: the rollout actors' ChunkShippers send whole
+    # stacks (distributed/workers.py builds them without frame_stack).
     def make_writer(t: Table, index: int, path: Path | None) -> TransitionWriter:
         return TransitionWriter(t, b, obs_spec, action_spec, gamma=c.agent.gamma, n_step=c.replay.n_step,
                                 path=path, rows=rows)
