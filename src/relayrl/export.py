@@ -7,7 +7,7 @@ a few seconds, so not done on every save) writes `policy.pt2`, a
 runs with nothing but PyTorch:
 
     program = torch.export.load("run/policy/policy.pt2").module()
-    actions = program(obs)  # [B, *obs_shape] float32 -> [B] (discrete) or [B, A]
+    actions = program(obs)  # [B, *obs_shape] float32 (uint8 frames for conv nets) -> [B] or [B, A]
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from relayrl.errors import UserError
-from relayrl.networks import MLP
+from relayrl.networks import CONV_NETWORKS, MLP, ConvQNet
 from relayrl.policies import ClampedPolicy, GreedyPolicy, TanhGaussianPolicy
 
 KINDS = ("q_greedy", "tanh_gaussian", "clamped_mlp")  # DQN, SAC, BPTT
@@ -49,7 +49,11 @@ def load_policy_state(path: str | Path) -> dict[str, Any]:
     return state
 
 
-def _network(state: dict[str, Any]) -> MLP:
+def _network(state: dict[str, Any]) -> nn.Module:
+    if state.get("network") in CONV_NETWORKS:  # DQN on frames: uint8 [B, C, H, W] in
+        conv = ConvQNet(tuple(state["obs_shape"]), state["num_actions"])
+        conv.load_state_dict(state["state_dict"])
+        return conv.eval()
     out_dim = {"q_greedy": state.get("num_actions"), "tanh_gaussian": 2 * state.get("action_dim", 0),
                "clamped_mlp": state.get("action_dim")}[state["kind"]]
     net = MLP(state["obs_dim"], state["hidden"], out_dim, state["activation"])
@@ -111,7 +115,8 @@ def export_policy(path: str | Path, out: str | Path | None = None) -> Path:
     """Write the deterministic policy as a `torch.export` program (`policy.pt2`)."""
     state = load_policy_state(path)
     module = _DeterministicPolicy(state).requires_grad_(False)
-    example = torch.zeros(2, state["obs_dim"])
+    example = (torch.zeros(2, *state["obs_shape"], dtype=torch.uint8) if "obs_shape" in state
+               else torch.zeros(2, state["obs_dim"]))
     batch = torch.export.Dim("batch", min=1)
     program = torch.export.export(module, (example,), dynamic_shapes=({0: batch},))
     target = Path(out) if out is not None else _policy_file(path).with_suffix(".pt2")

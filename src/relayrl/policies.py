@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -19,6 +20,17 @@ def linear_schedule(start: float, end: float, steps: int) -> Callable[[int], flo
 
     def value(t: int) -> float:
         return end + (start - end) * max(0.0, 1.0 - t / steps)
+
+    return value
+
+
+def exponential_schedule(start: float, end: float, decay: float) -> Callable[[int], float]:
+    """start * decay ** t, floored at `end`: the Mario tutorial's epsilon, multiplied by
+    `decay` once per env step (t = env steps so far, so it is the same at any env.num_envs)."""
+    log_decay = math.log(decay)
+
+    def value(t: int) -> float:
+        return max(end, start * math.exp(log_decay * t))
 
     return value
 

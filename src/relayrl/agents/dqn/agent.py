@@ -13,8 +13,9 @@ from relayrl.agents.dqn import fast
 from relayrl.agents.dqn.config import DQNConfig
 from relayrl.agents.dqn.losses import dqn_loss
 from relayrl.agents.dqn.networks import q_network
+from relayrl.networks import ConvQNet
 from relayrl.optim import FastAdam
-from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy, linear_schedule
+from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy, exponential_schedule, linear_schedule
 from relayrl.specs import DiscreteSpec, Spec
 from relayrl.types import Batch
 
@@ -53,7 +54,10 @@ class DQNAgent:
     def collect_policy(self, env_step: Callable[[], int], network: torch.nn.Module | None = None
                        ) -> EpsilonGreedyPolicy:
         assert isinstance(self.action_spec, DiscreteSpec)
-        eps = linear_schedule(self.cfg.epsilon_start, self.cfg.epsilon_end, self.cfg.epsilon_decay_steps)
+        c = self.cfg
+        eps = (exponential_schedule(c.epsilon_start, c.epsilon_end, c.epsilon_decay)
+               if c.epsilon_schedule == "exponential"
+               else linear_schedule(c.epsilon_start, c.epsilon_end, c.epsilon_decay_steps))
         greedy = GreedyPolicy(network if network is not None else self.online, self.device)
         return EpsilonGreedyPolicy(greedy, self.action_spec.n, eps, env_step, self.rng)
 
@@ -99,13 +103,17 @@ class DQNAgent:
             torch._foreach_lerp_(self._target_params, self._online_params, self.cfg.tau)
 
     def policy_state(self) -> dict[str, Any]:
+        weights = {k: v.detach().cpu() for k, v in self.online.state_dict().items()}
+        if isinstance(self.online, ConvQNet):
+            return {"kind": "q_greedy", "network": self.cfg.network, "obs_shape": list(self.online.obs_shape),
+                    "num_actions": self.online.head[-1].out_features, "state_dict": weights}
         return {
             "kind": "q_greedy",
             "obs_dim": self.online.layers[0].in_features,
             "hidden": list(self.cfg.hidden),
             "num_actions": self.online.layers[-1].out_features,
             "activation": self.cfg.activation,
-            "state_dict": {k: v.detach().cpu() for k, v in self.online.state_dict().items()},
+            "state_dict": weights,
         }
 
     def state_dict(self) -> dict[str, Any]:

@@ -12,6 +12,9 @@ class DQNConfig:
     hidden: list[int] = field(default_factory=lambda: [256, 256])
     activation: str = "relu"  # relu | tanh | elu
     init: str = "torch"  # torch | tf-agents (VarianceScaling hidden, small uniform head, bias -0.2)
+    # mlp: hidden/activation/init above | nature_cnn: Mnih et al. 2015's conv net for uint8
+    # [k, H, W] frame stacks | mario_cnn: the Mario tutorial's net (the same layers)
+    network: str = "mlp"
     lr: float = 1e-3
     lr_end: float = -1.0  # < 0: constant lr; else linear decay to lr_end over train.total_steps
     adam_eps: float = 1e-8
@@ -26,10 +29,15 @@ class DQNConfig:
     epsilon_start: float = 1.0
     epsilon_end: float = 0.05
     epsilon_decay_steps: int = 10_000  # env steps for the linear decay; 0: constant epsilon_end
+    # linear: start -> end over epsilon_decay_steps | exponential: start * epsilon_decay ** t,
+    # floored at epsilon_end (the Mario tutorial: 0.99999975 per env step, down to 0.1)
+    epsilon_schedule: str = "linear"
+    epsilon_decay: float = 0.99999975
 
     def validate(self) -> None:
         choices = {"activation": ("relu", "tanh", "elu"), "init": ("torch", "tf-agents"),
-                   "loss": ("huber", "mse")}
+                   "loss": ("huber", "mse"), "network": ("mlp", "nature_cnn", "mario_cnn"),
+                   "epsilon_schedule": ("linear", "exponential")}
         for key, valid in choices.items():
             if getattr(self, key) not in valid:
                 raise ConfigError(f"agent.{key}={getattr(self, key)!r} is not valid; valid: {', '.join(valid)}")
@@ -42,5 +50,7 @@ class DQNConfig:
         for key in ("epsilon_start", "epsilon_end"):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 raise ConfigError(f"agent.{key} must be in [0, 1]")
+        if not 0.0 < self.epsilon_decay <= 1.0:
+            raise ConfigError(f"agent.epsilon_decay={self.epsilon_decay} is not valid; it must be in (0, 1]")
         if self.lr <= 0 or not 0.0 <= self.gamma <= 1.0:
             raise ConfigError("agent.lr must be > 0 and agent.gamma in [0, 1]")
