@@ -1,0 +1,76 @@
+"""Atari through ale-py (the `[atari]` extra, which ships its ROMs) and the ddqn-pong preset."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+
+import pytest
+import torch
+
+import relayrl
+from relayrl.envs import make_env
+from relayrl.envs.atari import import_ale
+from relayrl.errors import UserError
+from relayrl.presets import list_presets, load_config
+
+needs_ale = pytest.mark.skipif(
+    importlib.util.find_spec("ale_py") is None or importlib.util.find_spec("cv2") is None,
+    reason="ale-py and OpenCV are not installed (pip install 'relayrl[atari]')")
+
+
+def test_a_missing_ale_py_is_one_line_naming_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "ale_py", None)  # `import ale_py` now raises ImportError
+    with pytest.raises(UserError, match=r"needs ale-py: pip install 'relayrl\[atari\]'"):
+        import_ale("relayrl/Atari-Pong-v0")
+
+
+def test_ddqn_pong_preset_is_listed_with_standard_settings():
+    assert "ddqn-pong" in list_presets()
+    c = load_config("ddqn-pong")
+    a = c.agent
+    assert (c.env.id, a.network, a.double, a.loss, a.batch_size, c.replay.size) == (
+        "relayrl/Atari-Pong-v0", "nature_cnn", True, "huber", 32, 100_000)
+    assert (c.train.collect_steps, c.train.gradient_steps, a.target_update_period) == (4, 1, 1_000)
+
+
+@needs_ale
+def test_atari_ids_give_uint8_frame_stacks_and_render_the_full_screen():
+    env = make_env("relayrl/Atari-Pong-v0", 2, render_mode="rgb_array")
+    spec = env.observation_spec
+    assert (spec.shape, spec.dtype, spec.frame_stack, env.action_spec.n) == ((4, 84, 84), torch.uint8, 4, 6)
+    obs = env.reset(seed=0)
+    assert obs.shape == (2, 4, 84, 84) and obs.dtype == torch.uint8
+    assert torch.equal(obs[:, 0], obs[:, 3])  # reset padding repeats the first frame
+    out = env.step(torch.zeros(2, dtype=torch.int64))
+    assert torch.equal(out.obs[:, :3], obs[:, 1:])  # the stack slides by one frame per step
+    assert env.render().shape == (210, 160, 3)  # videos show the game, not the 84x84 stack
+    assert env.envs[0].metadata["render_fps"] == 15  # 60 frames/s, 4 frames a step
+    env.close()
+
+
+@needs_ale
+def test_ale_ids_work_and_unknown_games_say_so():
+    assert make_env("ALE/Breakout-v5").observation_spec.shape == (210, 160, 3)
+    with pytest.raises(UserError, match="no game 'NoSuchGame'"):
+        make_env("relayrl/Atari-NoSuchGame-v0")
+
+
+@needs_ale
+def test_ddqn_pong_runs_a_few_hundred_steps(tmp_path):
+    config = load_config("ddqn-pong", [
+        "train.total_steps=300", "train.initial_collect_steps=100", "replay.size=1000", "agent.batch_size=8",
+        "agent.target_update_period=10", "eval.interval=300", "eval.episodes=1", "env.max_episode_steps=60",
+        "train.checkpoint_interval=0", "train.policy_save_interval=300", "device=cpu"])
+    result = relayrl.train(config, tmp_path / "run", progress=False)
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [0, 300]
+    assert abs(rows[-1]["train_step"] - 200 // 4) <= 1  # one per 4 env steps after the first 100
+    assert "losses/loss" in rows[-1] and "losses/q" in rows[-1]
+    assert result.final["average_episode_length"] == 60
+    policy = relayrl.load_policy(tmp_path / "run")
+    assert policy(torch.zeros(3, 4, 84, 84, dtype=torch.uint8)).shape == (3,)
+    assert relayrl.plot_run(tmp_path / "run").stat().st_size > 10_000
+    video = relayrl.record_video(tmp_path / "run", max_steps=20)
+    assert video.stat().st_size > 0
