@@ -26,6 +26,7 @@ from relayrl.policies import RandomPolicy
 from relayrl.replay.writers import stack_steps
 from relayrl.training.actor import Actor
 from relayrl.training.evaluate import evaluate
+from relayrl.training.replay import frame_stack
 from relayrl.training.variables import WeightPuller
 from relayrl.types import Transition
 
@@ -148,7 +149,7 @@ class RolloutWorker:
         self.random_policy = RandomPolicy(self.env.action_spec, np.random.default_rng(seed + 1))
         token = uuid.uuid4().hex
         ray.get(server.register.remote(index, token))
-        self.shipper = ChunkShipper(server, index, token)
+        self.shipper = ChunkShipper(server, index, token, frame_stack(self.env.observation_spec))
         self.episodes = EpisodeLog()
         self.puller = WeightPuller(RemoteVariables(variables), net, c.distributed.pull_interval)
         self.actor = Actor(self.env, self.random_policy, [self.episodes, self.shipper], seed=seed, puller=self.puller)

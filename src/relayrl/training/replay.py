@@ -103,12 +103,11 @@ def build_shared_replay(c: Config, obs_spec: Spec, action_spec: Spec, run_root: 
     # Each writer's share of the rows, with room for actors that run faster than the rest
     # (a writer whose rows wrap early evicts its oldest items: correct, just not exact FIFO).
     b = c.env.num_envs
-    rows = -(-c.replay.size // (num_writers * b)) * 3 // 2 + c.replay.n_step + 3
+    k = frame_stack(obs_spec)  # stacked frames: the actors ship, and the writers store, one frame per step
+    rows = -(-c.replay.size // (num_writers * b)) * 3 // 2 + c.replay.n_step + k + 2
 
-    # Whole observations, even stacked frames: the rollout actors' ChunkShippers send whole
-    # stacks (distributed/workers.py builds them without frame_stack).
     def make_writer(t: Table, index: int, path: Path | None) -> TransitionWriter:
         return TransitionWriter(t, b, obs_spec, action_spec, gamma=c.agent.gamma, n_step=c.replay.n_step,
-                                path=path, rows=rows)
+                                frame_stack=k, path=path, rows=rows)
 
     return table, WriterGroup(table, num_writers, make_writer, replay_path(c, run_root))
