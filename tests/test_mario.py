@@ -23,9 +23,6 @@ needs_mario = pytest.mark.skipif(
     importlib.util.find_spec("nes_py") is None or importlib.util.find_spec("gym_super_mario_bros") is None,
     reason="the [mario] extra is not installed: pip install 'relayrl[mario]'")
 
-# Until relayrl.envs registers it, register it here the same way (by entry-point string).
-if ENV_ID not in gym.registry:
-    gym.register(ENV_ID, entry_point="relayrl.envs.mario:MarioEnv", max_episode_steps=mario.MAX_EPISODE_FRAMES)
 
 
 @pytest.fixture(scope="module")
@@ -152,3 +149,14 @@ def test_preprocessed_is_the_tutorials_stack():
         assert env.render().shape == (240, 256, 3)  # full RGB frames for videos
     finally:
         env.close()
+
+
+@needs_mario
+def test_ddqn_mario_preset_runs_a_few_hundred_steps(tmp_path):
+    import relayrl
+
+    over = ["train.total_steps=300", "train.initial_collect_steps=100", "replay.size=1000", "eval.interval=300",
+            "eval.episodes=1", "train.checkpoint_interval=0", "device=cpu", "env.max_episode_steps=100"]
+    result = relayrl.train(relayrl.load_config("ddqn-mario", over), tmp_path / "run", progress=False)
+    assert result.final["step"] == 300 and result.final["train_step"] > 0
+    assert relayrl.load_policy(tmp_path / "run").env_steps == 300

@@ -285,3 +285,16 @@ def test_sum_tree_moves_a_query_off_an_empty_leaf():
     tree.set(np.array([10, 50]), np.array([1.0, 2.0]))
     node, mass = tree._nonempty(np.array([10, 30, 5, 70]), tree.get(np.array([10, 30, 5, 70])))
     assert node.tolist() == [10, 10, 10, 50] and mass.tolist() == [1.0, 1.0, 1.0, 2.0]
+
+
+def test_inserts_that_would_wait_go_through_when_inserts_do_not_wait():
+    # The one-process loop's table: its thread cannot sample while an insert waits.
+    t = Table("t", 100, rate_limiter=SampleToInsertRatio(2.0, min_size_to_sample=4, error_buffer=4.0), seed=0)
+    t.inserts_wait = False
+    t.insert_batch(np.zeros((20, 1)))  # 16 items past what the limiter allows before a sample
+    lim = t.rate_limiter
+    assert t.size == 20 and lim.inserts_available() == 0
+    assert t.samples_available() == 20 * 2 - lim.min_diff  # the samples that restore the ratio
+    t.inserts_wait = True
+    with pytest.raises(RateLimiterTimeout):
+        t.insert_batch(np.zeros((1, 1)), timeout=0.01)

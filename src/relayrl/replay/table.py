@@ -65,6 +65,10 @@ class Table:
         self._inserted = 0
         self._cv = threading.Condition()
         self._waiting = 0  # threads blocked on the rate limiter: only then does a write need notify_all()
+        # False: inserts never wait on the rate limiter (samples still do). For one thread that
+        # both inserts and samples (the one-process loop): it cannot sample while its insert
+        # waits, and the samples it then takes (`samples_available`) restore the ratio anyway.
+        self.inserts_wait = True
         for selector in (sampler, remover):
             selector.bind(max_size, self.slot_key, self.priority)
 
@@ -104,7 +108,7 @@ class Table:
             if priorities.size != n or not _valid_priorities(priorities):
                 raise ValueError(f"Table {self.name!r}: need {n} finite priorities >= 0")
         with self._cv:
-            if n <= self.max_size and self.rate_limiter.inserts_available() >= n:
+            if n <= self.max_size and (not self.inserts_wait or self.rate_limiter.inserts_available() >= n):
                 keys = self._insert_locked(items, priorities, n)  # the usual case: no split, no wait
             else:
                 keys = self._insert_parts(items, priorities, n, timeout)
@@ -117,7 +121,7 @@ class Table:
         keys = np.empty(n, dtype=np.int64)
         done = 0
         while done < n:
-            allowed = self._wait(self.rate_limiter.inserts_available, timeout, "insert")
+            allowed = self._wait(self.rate_limiter.inserts_available, timeout, "insert") if self.inserts_wait else n
             k = min(n - done, allowed, self.max_size)
             part = slice(done, done + k)
             sub = items if (done == 0 and k == n) else _slice(items, part)

@@ -133,6 +133,10 @@ class LocalRun(RunLog):
         self.agent = make_agent(c.algo, c.agent, obs_spec, act_spec, self.device,
                                 np.random.default_rng(c.seed + 1), c.train.total_steps)
         self.replay, self.writer = build_replay(c, obs_spec, act_spec, run_dir.root)
+        # One thread collects and learns in turn: an insert waiting on the rate limiter could
+        # never be released (after a resume that dropped stale items, it was); the learner's
+        # `available_steps` after each collect call keeps the ratio.
+        self.replay.inserts_wait = False
         self.random_rng = np.random.default_rng(c.seed + 3)
         self.stats = EpisodeStats()
         self.steps = EnvironmentSteps()
