@@ -349,3 +349,42 @@ def test_ctrl_c_stops_every_actor_and_the_run_resumes(tmp_path, cli_env):
     steps = [row["step"] for row in r]
     assert steps == sorted(set(steps)), "metrics.jsonl has repeated or unordered rows after the resume"
     assert steps[-1] == 1600 and steps_at_interrupt < 1600
+
+
+def test_server_stores_stacked_frames_once_and_rebuilds_the_stacks(tmp_path):
+    """Pixel runs on Ray: actors ship the newest frame per step (`stack_steps`), the server's
+    writers store it once and sampled stacks equal the env's own (padding with the first frame)."""
+    from relayrl.distributed.server import ReplayServer
+    from relayrl.replay.writers import stack_steps
+    from relayrl.types import Transition
+
+    k, every = 2, 4
+    obs_spec = ArraySpec((k, 3, 3), torch.uint8, frame_stack=k)
+    server = ReplayServer(server_config(), obs_spec, ACT, str(tmp_path), 1)
+    server.register(0, "t")
+    frame = lambda v: torch.full((B, 3, 3), v, dtype=torch.uint8)  # noqa: E731  all envs alike
+    t, ep, staged = 0, 0, []
+    hist = [frame(1)] * k  # the stack at an episode's start: its first frame repeated
+    for _ in range(23):
+        t += 1
+        done = t % every == 0
+        nxt = hist[1:] + [frame(1 + 10 * ep + t % every if not done else 1 + 10 * ep + every)]
+        term = torch.full((B,), done)
+        staged.append(Transition(torch.stack(hist, 1), torch.zeros(B, 1), torch.ones(B), torch.stack(nxt, 1),
+                                 term, torch.zeros(B, dtype=torch.bool)))
+        if done:
+            ep += 1
+            hist = [frame(1 + 10 * ep)] * k
+        else:
+            hist = nxt
+        if len(staged) == 5:
+            server.ingest(0, "t", stack_steps(staged, k))
+            staged = []
+    live = np.flatnonzero(server.table.slot_key >= 0)
+    batch = server.table.storage.read(live)
+    obs, nxt = batch.obs.numpy()[:, :, 0, 0].astype(int), batch.next_obs.numpy()[:, :, 0, 0].astype(int)
+    assert obs.shape[1] == k and len(live) > 10
+    step = obs[:, 1] % 10  # 1 + position in the episode
+    assert np.array_equal(obs[:, 0], np.where(step == 1, obs[:, 1], obs[:, 1] - 1)), "a stack crossed an episode start"
+    assert np.array_equal(nxt[:, 1], obs[:, 1] + 1) and np.array_equal(nxt[:, 0], obs[:, 1])
+    assert server.group.writers[0].store.frame.shape[-2:] == (3, 3)  # one frame per row, not a stack
