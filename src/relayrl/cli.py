@@ -73,10 +73,9 @@ def _train(args: argparse.Namespace) -> None:
 
 
 def _eval(args: argparse.Namespace) -> None:
-    from relayrl.envs import make_env
     from relayrl.export import load_policy
     from relayrl.presets import load_config
-    from relayrl.training.evaluate import evaluate
+    from relayrl.training.evaluate import evaluate, make_eval_env
     from relayrl.training.run_dir import RunDir
 
     if args.episodes < 1:
@@ -85,7 +84,7 @@ def _eval(args: argparse.Namespace) -> None:
     rd.require()
     config = load_config(str(rd.config))
     policy = load_policy(rd.root)
-    env = make_env(config.env.id, min(args.episodes, 16), config.env.max_episode_steps)
+    env = make_eval_env(config.env.id, args.episodes, config.env.max_episode_steps)
     print(json.dumps({**evaluate(env, policy, args.episodes, seed=args.seed), "policy_env_steps": policy.env_steps}))
 
 

@@ -67,7 +67,6 @@ class RemotePusher:
         self.handle, self.agent, self.interval = handle, agent, interval
         self.params = list(agent.policy_network().parameters())
         self._last = -(10**18)
-        self.pushes = 0
 
     def push(self, weights: list[torch.Tensor] | None = None, force: bool = False) -> None:
         step = self.agent.train_step
@@ -76,4 +75,3 @@ class RemotePusher:
         self._last = step
         # Ray serializes the arguments now, so later in-place updates do not leak in.
         self.handle.push.remote([w.detach().cpu() for w in (weights or self.params)])
-        self.pushes += 1

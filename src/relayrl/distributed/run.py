@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 import os
-import random
 import sys
 import time
 import uuid
@@ -76,7 +75,7 @@ class DistributedRun(RunLog):
         self.restarting: set[int] = set()
         self.dead: set[int] = set()
         self.inflight: dict[Any, tuple[int, int]] = {}  # collect call -> (actor, env steps asked)
-        self.evals: deque[tuple[Any, Progress, float, float, int]] = deque()  # in flight, oldest first
+        self.evals: deque[tuple[Any, Progress, float, float, int, int]] = deque()  # in flight, oldest first
         self._owns_ray = False
         self.workers: list[Any] = []
         self.eval_workers: list[Any] = []
@@ -227,7 +226,8 @@ class DistributedRun(RunLog):
         self.pusher.push(force=True)  # the eval actor evaluates these weights (or newer)
         seed = self.config.seed + 10_000 * (self.eval_count + 1)
         w = self.eval_count % n
-        self.evals.append((self.eval_workers[w].evaluate.remote(seed), p, time.perf_counter(), self.wall_time(), w))
+        self.evals.append((self.eval_workers[w].evaluate.remote(seed), p, time.perf_counter(), self.wall_time(), w,
+                           seed))
         self.eval_count += 1
 
     def _finish_evals(self, until: int | None = None) -> None:
@@ -235,7 +235,7 @@ class DistributedRun(RunLog):
         are in flight (None: never wait)."""
         ray = self.ray
         while self.evals:
-            ref, p, t0, wall, w = self.evals[0]
+            ref, p, t0, wall, w, seed = self.evals[0]
             must = until is not None and len(self.evals) > until
             if not must and not ray.wait([ref], timeout=0)[0]:
                 return
@@ -243,8 +243,7 @@ class DistributedRun(RunLog):
                 result = ray.get(ref)
             except ray.exceptions.RayActorError as e:  # restarted by Ray: evaluate again
                 self.say(f"eval actor {w} died ({type(e).__name__}); Ray restarts it and the evaluation is repeated")
-                self.evals[0] = (self.eval_workers[w].evaluate.remote(self.config.seed + 10_000 * self.eval_count),
-                                 p, t0, wall, w)
+                self.evals[0] = (self.eval_workers[w].evaluate.remote(seed), p, t0, wall, w, seed)
                 continue
             self.evals.popleft()
             version = result.pop("policy_version")
@@ -265,9 +264,7 @@ class DistributedRun(RunLog):
             "episode_stats": self.stats.state_dict(),
             "eval_count": self.eval_count,
             "wall_time_s": self.wall_time(),
-            "global_rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
-                           "python": random.getstate()},
-            "last_metrics": {k: v.detach().cpu() for k, v in self.learner.last_metrics.items()},
+            **self.process_state(),
         }
 
     def restore(self) -> None:
@@ -291,17 +288,9 @@ class DistributedRun(RunLog):
         self.stats.reset_running()
         self.eval_count = int(state["eval_count"])
         self.wall_offset = float(state["wall_time_s"])
-        rng = state["global_rng"]
-        torch.set_rng_state(rng["torch"])
-        np.random.set_state(rng["numpy"])
-        random.setstate(rng["python"])
-        self.learner.last_metrics = dict(state["last_metrics"])
+        self.load_process_state(state)
         steps = self.env_steps()
-        kept = self.rd.truncate_metrics(after_step=steps)
-        if kept and kept[-1].get("step") == steps:
-            self.last_eval = kept[-1]
-        for trigger in self.triggers:
-            trigger.start_at(steps)
+        self.resume_at(steps)
         self.say(f"resumed from env step {steps:,} (train step {self.agent.train_step:,}); "
                  f"the {self.K} rollout actors start new episodes")
 

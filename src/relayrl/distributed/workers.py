@@ -25,12 +25,10 @@ from relayrl.metrics import EpisodeStats
 from relayrl.policies import RandomPolicy
 from relayrl.replay.writers import stack_steps
 from relayrl.training.actor import Actor
-from relayrl.training.evaluate import evaluate
+from relayrl.training.evaluate import evaluate, make_eval_env
 from relayrl.training.replay import frame_stack
 from relayrl.training.variables import WeightPuller
 from relayrl.types import Transition
-
-EVAL_BATCH = 16  # as the local loop: eval episodes run as one batch of at most this many copies
 
 
 def _setup(config: dict[str, Any], sys_path: list[str]) -> Config:
@@ -179,7 +177,7 @@ class EvalWorker:
         c = _setup(config, sys_path)
         _, variables = names.handles()
         self.episodes = c.eval.episodes
-        self.env = make_env(c.env.id, min(c.eval.episodes, EVAL_BATCH), c.env.max_episode_steps)
+        self.env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps)
         self.agent = make_agent(c.algo, c.agent, self.env.observation_spec, self.env.action_spec,
                                 torch.device("cpu"), np.random.default_rng(c.seed), c.train.total_steps)
         self.puller = WeightPuller(RemoteVariables(variables), self.agent.policy_network().requires_grad_(False))

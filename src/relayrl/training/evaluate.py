@@ -6,7 +6,16 @@ import numpy as np
 import torch
 
 from relayrl.core import BatchedEnv, Policy
+from relayrl.envs import make_env
 from relayrl.replay.storage import to_numpy
+
+EVAL_BATCH = 16  # eval episodes run as one batch of at most this many env copies
+
+
+def make_eval_env(env_id: str, episodes: int, max_episode_steps: int = 0,
+                  device: str | torch.device = "cpu") -> BatchedEnv:
+    """The env `evaluate` runs `episodes` episodes on: min(episodes, EVAL_BATCH) copies."""
+    return make_env(env_id, min(episodes, EVAL_BATCH), max_episode_steps, device=device)
 
 
 def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = None,

@@ -22,14 +22,12 @@ from relayrl.metrics import EnvironmentSteps, EpisodeStats
 from relayrl.policies import RandomPolicy, linear_schedule
 from relayrl.training.actor import Actor
 from relayrl.training.checkpoint import load_latest_checkpoint
-from relayrl.training.evaluate import evaluate
+from relayrl.training.evaluate import evaluate, make_eval_env
 from relayrl.training.learner import Learner
 from relayrl.training.replay import build_replay, collect_only
 from relayrl.training.run_dir import MetricsLog, RunDir
 from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver, Progress, StepsPerSecond
 from relayrl.training.variables import VariableContainer, WeightPuller
-
-EVAL_BATCH = 16  # eval episodes run as one batch of at most this many env copies
 
 
 @dataclass
@@ -54,9 +52,11 @@ def default_run_dir(config: Config) -> Path:
 class RunLog:
     """What a run shows and writes as it goes (console, progress bar, TensorBoard, the eval
     rows of metrics.jsonl), shared by the one-process and the distributed run. Subclasses
-    set config, stats, learner, sps, bar, tb, metrics_log, t0, wall_offset, last_eval."""
+    set config, rd, stats, learner, triggers, sps, bar, tb, metrics_log, t0, wall_offset, last_eval."""
 
     config: Config
+    rd: RunDir
+    triggers: list[IntervalTrigger]
     stats: EpisodeStats
     learner: Learner
     sps: StepsPerSecond
@@ -69,6 +69,27 @@ class RunLog:
 
     def wall_time(self) -> float:
         return self.wall_offset + time.perf_counter() - self.t0
+
+    def process_state(self) -> dict[str, Any]:
+        """The global RNGs (a user's env may draw from them) and the latest losses."""
+        return {"global_rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
+                               "python": random.getstate()},
+                "last_metrics": {k: v.detach().cpu() for k, v in self.learner.last_metrics.items()}}
+
+    def load_process_state(self, state: dict[str, Any]) -> None:
+        rng = state["global_rng"]
+        torch.set_rng_state(rng["torch"])
+        np.random.set_state(rng["numpy"])
+        random.setstate(rng["python"])
+        self.learner.last_metrics = dict(state["last_metrics"])
+
+    def resume_at(self, steps: int) -> None:
+        """Drop metrics rows past the checkpoint and let the triggers carry on from it."""
+        kept = self.rd.truncate_metrics(after_step=steps)
+        if kept and kept[-1].get("step") == steps:
+            self.last_eval = kept[-1]  # a finished run resumed again needs no second final eval
+        for trigger in self.triggers:
+            trigger.start_at(steps)
 
     def say(self, text: str) -> None:
         if self.bar is not None and not self.bar.disable:
@@ -127,8 +148,7 @@ class LocalRun(RunLog):
         self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
                             time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
                             device=self.device)
-        self.eval_env = make_env(c.env.id, min(c.eval.episodes, EVAL_BATCH), c.env.max_episode_steps,
-                                 device=self.device)
+        self.eval_env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, self.device)
         obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
         self.agent = make_agent(c.algo, c.agent, obs_spec, act_spec, self.device,
                                 np.random.default_rng(c.seed + 1), c.train.total_steps)
@@ -198,9 +218,7 @@ class LocalRun(RunLog):
             # of the policy, the global RNGs a user's env may draw from, the latest losses.
             "actor": self.actor.state_dict(),
             "variables_version": self.variables.version,
-            "global_rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
-                           "python": random.getstate()},
-            "last_metrics": {k: v.detach().cpu() for k, v in self.learner.last_metrics.items()},
+            **self.process_state(),
         }
 
     def restore(self) -> None:
@@ -229,11 +247,7 @@ class LocalRun(RunLog):
         steps = int(state["env_steps"])
         self.steps.value = steps
         self._restore_episodes(state, steps, files_moved_on)
-        kept = self.rd.truncate_metrics(after_step=steps)
-        if kept and kept[-1].get("step") == steps:
-            self.last_eval = kept[-1]  # a finished run resumed again needs no second final eval
-        for trigger in self.triggers:
-            trigger.start_at(steps)
+        self.resume_at(steps)
         self.say(f"resumed from env step {steps:,} (train step {self.agent.train_step:,})")
 
     def _restore_episodes(self, state: dict[str, Any], steps: int, files_moved_on: bool) -> None:
@@ -243,11 +257,7 @@ class LocalRun(RunLog):
             self.variables.load_state_dict({"version": state["variables_version"], "weights": None})
             actor_state = {**state["actor"], "env": None} if files_moved_on else state["actor"]
             continued = self.actor.load_state_dict(actor_state, reset_seed=self.config.seed + steps)
-            rng = state["global_rng"]
-            torch.set_rng_state(rng["torch"])
-            np.random.set_state(rng["numpy"])
-            random.setstate(rng["python"])
-            self.learner.last_metrics = dict(state["last_metrics"])
+            self.load_process_state(state)
         else:
             self.actor.load_state_dict({"env_steps": steps, "env": None}, reset_seed=self.config.seed + steps)
         if continued and state["replay"] is not None:
