@@ -160,3 +160,6 @@ def test_ddqn_mario_preset_runs_a_few_hundred_steps(tmp_path):
     result = relayrl.train(relayrl.load_config("ddqn-mario", over), tmp_path / "run", progress=False)
     assert result.final["step"] == 300 and result.final["train_step"] > 0
     assert relayrl.load_policy(tmp_path / "run").env_steps == 300
+    # the preset's info_keys: how far Mario got per episode (he starts at x = 40, moving right)
+    assert result.final["eval/x_pos"] > 40 and result.final["train/x_pos"] > 40
+    assert result.final["eval/flag_get"] == 0.0

@@ -43,6 +43,15 @@ class Countdown(gym.Env):
         return np.full((16, 16, 3), 40 * self.t % 255, np.uint8)
 
 
+class Travel(Countdown):
+    """Countdown whose info has `x` = 10 * episode index + steps taken (so each episode ends at
+    x = 10 * episode + length) and a non-numeric `name`. The episode index counts per copy."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, _ = super().step(action)
+        return obs, reward, terminated, truncated, {"x": 10 * self.episode + self.t, "name": "travel"}
+
+
 class Truncating(Countdown):
     """Episodes of 2 steps cut by a time limit, never terminated."""
 

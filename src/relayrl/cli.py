@@ -84,7 +84,8 @@ def _eval(args: argparse.Namespace) -> None:
     rd.require()
     config = load_config(str(rd.config))
     policy = load_policy(rd.root)
-    env = make_eval_env(config.env.id, args.episodes, config.env.max_episode_steps)
+    env = make_eval_env(config.env.id, args.episodes, config.env.max_episode_steps,
+                        info_keys=config.env.info_keys)
     print(json.dumps({**evaluate(env, policy, args.episodes, seed=args.seed), "policy_env_steps": policy.env_steps}))
 
 

@@ -29,6 +29,9 @@ class EnvConfig:
     # true: a time-limit cut counts as termination (no bootstrap), as in old gym / TF-Agents
     time_limit_terminates: bool = False
     vectorization: str = "sync"  # sync: copies stepped in this process | async: one worker process each
+    # info values read at each episode's end and averaged like returns (metrics.jsonl
+    # `train/<key>` and `eval/<key>`, TensorBoard, `relayrl plot`): e.g. Mario's ["x_pos"]
+    info_keys: list[str] = field(default_factory=list)
 
 
 @dataclass

@@ -43,6 +43,7 @@ class EpisodeStats:
     def __init__(self, buffer_size: int | None = 10) -> None:  # None: keep all
         self.returns: deque[float] = deque(maxlen=buffer_size)
         self.lengths: deque[int] = deque(maxlen=buffer_size)
+        self.info: dict[str, deque[float]] = {}  # env.info_keys values at episode ends, same window
         self.episodes = 0
         self._ret: np.ndarray | None = None
         self._len: np.ndarray | None = None
@@ -57,12 +58,28 @@ class EpisodeStats:
         self._len += 1
         done = to_numpy(t.terminated) | to_numpy(t.truncated)  # NumPy: a tiny torch op costs ~5x more
         if done.any():
-            for i in np.flatnonzero(done):
+            ended = np.flatnonzero(done)
+            for i in ended:
                 self.returns.append(float(self._ret[i]))
                 self.lengths.append(int(self._len[i]))
+            for key, values in (t.episode_info or {}).items():
+                window = self.info.setdefault(key, deque(maxlen=self.returns.maxlen))
+                window.extend(float(values[i]) for i in ended)
             self.episodes += int(done.sum())
             self._ret[done] = 0.0
             self._len[done] = 0
+
+    def add_finished(self, returns: list[float], lengths: list[int], info: dict[str, list[float]]) -> None:
+        """Count episodes that finished elsewhere (a remote actor's `EpisodeLog.take()`)."""
+        self.returns.extend(returns)
+        self.lengths.extend(lengths)
+        for key, values in info.items():
+            self.info.setdefault(key, deque(maxlen=self.returns.maxlen)).extend(values)
+        self.episodes += len(returns)
+
+    def info_means(self) -> dict[str, float]:
+        """Mean of each info key over its window (keys with no finished episode left out)."""
+        return {k: float(np.mean(w)) for k, w in self.info.items() if w}
 
     def reset_running(self) -> None:
         """Forget episodes in progress (after an env reset that the stats did not see)."""
@@ -72,7 +89,7 @@ class EpisodeStats:
     def state_dict(self) -> dict[str, Any]:
         running = None if self._ret is None else (self._ret.copy(), self._len.copy())  # type: ignore[union-attr]
         return {"returns": list(self.returns), "lengths": list(self.lengths), "episodes": self.episodes,
-                "running": running}
+                "running": running, "info": {k: list(w) for k, w in self.info.items()}}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restores episodes in progress too; call `reset_running()` after if the envs were
@@ -82,6 +99,7 @@ class EpisodeStats:
         self.lengths.clear()
         self.lengths.extend(state["lengths"])
         self.episodes = int(state["episodes"])
+        self.info = {k: deque(w, maxlen=self.returns.maxlen) for k, w in state.get("info", {}).items()}
         self.reset_running()
         if state.get("running") is not None:
             ret, length = state["running"]

@@ -1,6 +1,6 @@
 """`relayrl plot`: average evaluation return against env steps, from metrics.jsonl (and, for BPTT
 runs, the rollout's last-step reward beside it; for DQN runs, episode length, loss and mean Q,
-the four curves of the Mario tutorial's logger)."""
+the four curves of the Mario tutorial's logger; a panel per `env.info_keys` key)."""
 
 from __future__ import annotations
 
@@ -28,17 +28,28 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
     # tutorial, they get a second panel with the reward at the rollout's last step.
     bptt = rows[0].get("bptt/last_reward") is not None
     q_learning = not bptt and any(r.get("losses/q") is not None for r in rows)
-    shape = (1, 2) if bptt else (2, 2) if q_learning else (1, 1)
+    curves: list[tuple[str, str]] = []  # (metrics key, axis label) after the returns panel
+    if bptt:
+        curves.append(("bptt/last_reward", "reward at the rollout's last step"))
+    if q_learning:
+        curves += [("average_episode_length", "average episode length (eval)"),
+                   ("losses/loss", "loss (latest batch)"), ("losses/q", "mean Q of the batch's actions")]
+    # env.info_keys (Mario's x_pos): eval/<key> per evaluation, train/<key> over the episode window
+    info_keys = sorted({k[5:] for r in rows for k in r if k.startswith("eval/")})
+    panels_n = 1 + len(curves) + len(info_keys)
+    shape = (1, 1) if panels_n == 1 else ((panels_n + 1) // 2, 2)
     fig, axes = plt.subplots(*shape, figsize=(7 * shape[1] ** 0.8, 4 * shape[0]), squeeze=False)
     panels = axes.ravel()
     _returns(panels[0], rows, bptt)
     panels[0].set_title(rd.root.name)
-    if bptt:
-        _curve(panels[1], rows, "bptt/last_reward", "reward at the rollout's last step", color="C2")
-    if q_learning:
-        _curve(panels[1], rows, "average_episode_length", "average episode length (eval)", color="C2")
-        _curve(panels[2], rows, "losses/loss", "loss (latest batch)", color="C3")
-        _curve(panels[3], rows, "losses/q", "mean Q of the batch's actions", color="C4")
+    for i, (key, label) in enumerate(curves, start=1):
+        _curve(panels[i], rows, key, label, color=f"C{i + 1}")
+    for i, key in enumerate(info_keys, start=1 + len(curves)):
+        _curve(panels[i], rows, f"eval/{key}", f"{key} at episode end", color="C0", legend="eval (greedy)")
+        _curve(panels[i], rows, f"train/{key}", f"{key} at episode end", color="C1", legend="train (collect policy)")
+        panels[i].legend()
+    for ax in panels[panels_n:]:
+        ax.set_visible(False)
     fig.tight_layout()
     path = Path(out) if out else rd.root / "returns.png"
     fig.savefig(path, dpi=100)
@@ -59,9 +70,9 @@ def _returns(ax: Any, rows: Rows, bptt: bool) -> None:
     ax.legend()
 
 
-def _curve(ax: Any, rows: Rows, key: str, label: str, color: str) -> None:
+def _curve(ax: Any, rows: Rows, key: str, label: str, color: str, legend: str | None = None) -> None:
     points = [(r["step"], r[key]) for r in rows if r.get(key) is not None]
-    ax.plot([s for s, _ in points], [v for _, v in points], marker="o", ms=3, color=color)
+    ax.plot([s for s, _ in points], [v for _, v in points], marker="o", ms=3, color=color, label=legend)
     ax.set_xlabel("environment steps")
     ax.set_ylabel(label)
     ax.grid(alpha=0.3)

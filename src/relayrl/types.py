@@ -4,7 +4,12 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numpy as np
 import torch
+
+# `env.info_keys` values at episode ends: key -> float64 [B], NaN for copies whose episode
+# did not end this step. None when no keys are asked for (the common case costs nothing).
+EpisodeInfo = dict[str, np.ndarray]
 
 
 class StepOutput(NamedTuple):
@@ -21,6 +26,7 @@ class StepOutput(NamedTuple):
     terminated: torch.Tensor  # [B] bool: the MDP ended, do not bootstrap
     truncated: torch.Tensor  # [B] bool: cut by a time limit, bootstrap from next_obs
     obs: torch.Tensor  # [B, *obs_shape]
+    episode_info: EpisodeInfo | None = None
 
 
 class Transition(NamedTuple):
@@ -32,6 +38,7 @@ class Transition(NamedTuple):
     next_obs: torch.Tensor  # [B, *obs_shape]
     terminated: torch.Tensor  # [B] bool
     truncated: torch.Tensor  # [B] bool
+    episode_info: EpisodeInfo | None = None  # for metrics; writers ignore it
 
 
 class Batch(NamedTuple):

@@ -187,9 +187,7 @@ class DistributedRun(RunLog):
                 continue
             self.restarting.discard(i)
             self.accepted[i] = max(self.accepted[i], int(r["accepted"]))
-            self.stats.returns.extend(r["returns"])
-            self.stats.lengths.extend(r["lengths"])
-            self.stats.episodes += len(r["returns"])
+            self.stats.add_finished(r["returns"], r["lengths"], r["info"])
             self._submit(i)
         return bool(ready)
 

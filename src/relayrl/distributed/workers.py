@@ -118,10 +118,11 @@ class EpisodeLog(EpisodeStats):
     def __init__(self) -> None:
         super().__init__(buffer_size=None)
 
-    def take(self) -> tuple[list[float], list[int]]:
-        out = (list(self.returns), list(self.lengths))
+    def take(self) -> tuple[list[float], list[int], dict[str, list[float]]]:
+        out = (list(self.returns), list(self.lengths), {k: list(w) for k, w in self.info.items()})
         self.returns.clear()
         self.lengths.clear()
+        self.info.clear()
         return out
 
 
@@ -138,7 +139,8 @@ class RolloutWorker:
         torch.manual_seed(seed)
         self.index, self.num_actors = index, c.distributed.num_actors
         self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
-                            time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization)
+                            time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
+                            info_keys=c.env.info_keys)
         agent = make_agent(c.algo, c.agent, self.env.observation_spec, self.env.action_spec, torch.device("cpu"),
                            np.random.default_rng(seed), c.train.total_steps)
         net = agent.policy_network().requires_grad_(False)
@@ -162,9 +164,9 @@ class RolloutWorker:
             self.global_steps = global_steps + taken * self.num_actors
             self.actor.run(min(self.chunk_steps, steps - taken))
         self.shipper.wait()
-        returns, lengths = self.episodes.take()
+        returns, lengths, info = self.episodes.take()
         return {"index": self.index, "env_steps": self.actor.env_steps - start, "accepted": self.shipper.accepted,
-                "returns": returns, "lengths": lengths, "policy_version": self.puller.version}
+                "returns": returns, "lengths": lengths, "info": info, "policy_version": self.puller.version}
 
     def pid(self) -> int:
         return os.getpid()
@@ -177,7 +179,7 @@ class EvalWorker:
         c = _setup(config, sys_path)
         _, variables = names.handles()
         self.episodes = c.eval.episodes
-        self.env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps)
+        self.env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, info_keys=c.env.info_keys)
         self.agent = make_agent(c.algo, c.agent, self.env.observation_spec, self.env.action_spec,
                                 torch.device("cpu"), np.random.default_rng(c.seed), c.train.total_steps)
         self.puller = WeightPuller(RemoteVariables(variables), self.agent.policy_network().requires_grad_(False))

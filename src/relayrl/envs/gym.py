@@ -21,9 +21,32 @@ import torch
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
 from relayrl.specs import ArraySpec, DiscreteSpec, Spec, spec_from_space
-from relayrl.types import StepOutput
+from relayrl.types import EpisodeInfo, StepOutput
 
 EnvFn = Callable[[], gym.Env]
+
+
+def episode_info(keys: tuple[str, ...], num_envs: int, ended: list[int],
+                 info_of: Callable[[int], dict]) -> EpisodeInfo | None:
+    """`env.info_keys` values from the last info of each episode that ended (None if none did).
+
+    A key missing at an episode's end is a config error, not a silent NaN: a typo in
+    `info_keys` would otherwise log nothing for a whole run.
+    """
+    if not keys or not ended:
+        return None
+    out = {k: np.full(num_envs, np.nan) for k in keys}
+    for i in ended:
+        info = info_of(i)
+        for k in keys:
+            if k not in info:
+                raise UserError(f"env.info_keys: {k!r} is not in the env's info at an episode's end; "
+                                f"keys there: {sorted(info)}")
+            try:
+                out[k][i] = float(info[k])
+            except (TypeError, ValueError):
+                raise UserError(f"env.info_keys: info[{k!r}] = {info[k]!r} is not a number") from None
+    return out
 
 
 def env_snapshot(env: gym.Env) -> bytes | None:
@@ -52,6 +75,7 @@ class BatchEnvBase:
         # Old gym (and so the TF-Agents tutorials) reported a time-limit cut as `done`, a
         # termination: targets do not bootstrap through it. Some presets reproduce that.
         self.time_limit_terminates = time_limit_terminates
+        self.info_keys: tuple[str, ...] = ()  # set by make_env: info values logged per episode
 
 
 def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | None = None) -> EnvFn:
@@ -146,8 +170,9 @@ class GymBatchEnv(BatchEnvBase):
         terminated = np.empty(b, np.bool_)
         truncated = np.empty(b, np.bool_)
         ended = []
+        infos: dict[int, dict] = {}
         for i, env in enumerate(self.envs):
-            o, r, term, trunc, _ = env.step(actions[i])
+            o, r, term, trunc, info = env.step(actions[i])
             next_obs[i] = o
             reward[i] = r
             if self.time_limit_terminates:
@@ -156,6 +181,7 @@ class GymBatchEnv(BatchEnvBase):
             truncated[i] = trunc
             if term or trunc:
                 ended.append(i)
+                infos[i] = info
         obs = next_obs  # shared unless some copy is reset
         if ended:
             # Copy only once every row of next_obs is written (copying at the first reset
@@ -164,7 +190,8 @@ class GymBatchEnv(BatchEnvBase):
             for i in ended:
                 obs[i] = self.envs[i].reset()[0]
         return StepOutput(torch.from_numpy(next_obs), torch.from_numpy(reward), torch.from_numpy(terminated),
-                          torch.from_numpy(truncated), torch.from_numpy(obs))
+                          torch.from_numpy(truncated), torch.from_numpy(obs),
+                          episode_info(self.info_keys, b, ended, infos.__getitem__))
 
     def render(self) -> np.ndarray | None:
         return self.envs[0].render()
@@ -176,21 +203,28 @@ class GymBatchEnv(BatchEnvBase):
 
 def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_mode: str | None = None,
              time_limit_terminates: bool = False, vectorization: str = "sync",
-             device: str | torch.device = "cpu") -> GymBatchEnv:
+             device: str | torch.device = "cpu", info_keys: tuple[str, ...] | list[str] = ()) -> GymBatchEnv:
     """A batched env of `num_envs` copies of `env_id`: stepped in this process ("sync") or
     in one worker process per copy ("async", see envs/vector.py). A stateless torch env id
-    (`relayrl/StatelessPendulum-v0`) gives all copies as one batch of tensors on `device`."""
+    (`relayrl/StatelessPendulum-v0`) gives all copies as one batch of tensors on `device`.
+    `info_keys`: info values to report at each episode's end (`StepOutput.episode_info`)."""
     from relayrl.envs.stateless.adapter import STATELESS_ENVS, make_batch_env
 
     if env_id in STATELESS_ENVS and render_mode is None:
+        if info_keys:
+            raise UserError(f"env.info_keys is not supported by stateless envs ({env_id!r} has no info dict)")
         return make_batch_env(env_id, num_envs, device, max_episode_steps=max_episode_steps,  # type: ignore[return-value]
                               time_limit_terminates=time_limit_terminates)
     fn = resolve_env_fn(env_id, max_episode_steps, render_mode)
     try:
+        env: BatchEnvBase
         if vectorization == "async" and num_envs > 1:
             from relayrl.envs.vector import AsyncGymBatchEnv
 
-            return AsyncGymBatchEnv([fn] * num_envs, time_limit_terminates)  # type: ignore[return-value]
-        return GymBatchEnv([fn] * num_envs, time_limit_terminates)
+            env = AsyncGymBatchEnv([fn] * num_envs, time_limit_terminates)
+        else:
+            env = GymBatchEnv([fn] * num_envs, time_limit_terminates)
     except gym.error.Error as e:
         raise UserError(f"env.id={env_id!r} could not be made: {e}") from None
+    env.info_keys = tuple(info_keys)
+    return env  # type: ignore[return-value]

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode
 
-from relayrl.envs.gym import BatchEnvBase, EnvFn, env_snapshot
+from relayrl.envs.gym import BatchEnvBase, EnvFn, env_snapshot, episode_info
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
 from relayrl.types import StepOutput
@@ -84,11 +84,17 @@ class AsyncGymBatchEnv(BatchEnvBase):
             next_obs = obs.copy()
             for i in np.flatnonzero(done):
                 next_obs[i] = info["final_obs"][i]
+        ended_info = None
+        if self.info_keys and done.any():
+            final = info["final_info"]  # the ended episodes' last infos (the top level has the resets')
+            ended_info = episode_info(self.info_keys, self.num_envs, np.flatnonzero(done).tolist(),
+                                      lambda i: {k: v[i] for k, v in final.items()
+                                                 if not k.startswith("_") and final[f"_{k}"][i]})
         if self.time_limit_terminates:
             terminated, truncated = done, np.zeros_like(truncated)
         return StepOutput(torch.from_numpy(next_obs), torch.from_numpy(reward.astype(np.float32)),
                           torch.from_numpy(terminated.astype(np.bool_)), torch.from_numpy(truncated.astype(np.bool_)),
-                          torch.from_numpy(obs))
+                          torch.from_numpy(obs), ended_info)
 
     def render(self) -> np.ndarray | None:
         raise UserError("rendering needs env.vectorization = 'sync' (the video command uses one in-process env)")

@@ -37,7 +37,7 @@ class Actor:
             obs = self._obs
             action = self.policy(obs)
             out = self.env.step(action)
-            t = Transition(obs, action, out.reward, out.next_obs, out.terminated, out.truncated)
+            t = Transition(obs, action, out.reward, out.next_obs, out.terminated, out.truncated, out.episode_info)
             for observer in self.observers:
                 observer(t)
             self._obs = out.obs

@@ -13,14 +13,15 @@ EVAL_BATCH = 16  # eval episodes run as one batch of at most this many env copie
 
 
 def make_eval_env(env_id: str, episodes: int, max_episode_steps: int = 0,
-                  device: str | torch.device = "cpu") -> BatchedEnv:
+                  device: str | torch.device = "cpu", info_keys: tuple[str, ...] | list[str] = ()) -> BatchedEnv:
     """The env `evaluate` runs `episodes` episodes on: min(episodes, EVAL_BATCH) copies."""
-    return make_env(env_id, min(episodes, EVAL_BATCH), max_episode_steps, device=device)
+    return make_env(env_id, min(episodes, EVAL_BATCH), max_episode_steps, device=device, info_keys=info_keys)
 
 
 def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = None,
              max_steps: int = 1_000_000) -> dict[str, float]:
-    """Run `episodes` full episodes and average their return and length.
+    """Run `episodes` full episodes and average their return and length (and, as `eval/<key>`,
+    each `env.info_keys` value at the episodes' ends).
 
     Copy i of the batch runs a fixed quota of episodes, so short episodes are not
     over-represented (stopping at the first `episodes` finishers would bias the mean).
@@ -32,6 +33,7 @@ def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = 
     length = np.zeros(b, np.int64)
     returns: list[float] = []
     lengths: list[int] = []
+    info: dict[str, list[float]] = {}
     obs = env.reset(seed=seed)
     for _ in range(max_steps):
         if (done_count >= quota).all():
@@ -45,6 +47,8 @@ def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = 
             if done_count[i] < quota[i]:
                 returns.append(float(ret[i]))
                 lengths.append(int(length[i]))
+                for key, values in (out.episode_info or {}).items():
+                    info.setdefault(key, []).append(float(values[i]))
             done_count[i] += 1
         ret[done] = 0.0
         length[done] = 0
@@ -53,4 +57,5 @@ def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = 
         "average_return": float(np.mean(returns)) if returns else float("nan"),
         "average_episode_length": float(np.mean(lengths)) if lengths else float("nan"),
         "episodes": len(returns),
+        **{f"eval/{key}": float(np.mean(values)) for key, values in info.items()},
     }

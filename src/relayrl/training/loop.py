@@ -106,6 +106,7 @@ class RunLog:
         scalars = {"perf/sps": env_sps, "perf/grad_sps": grad_sps, **self.learner.scalar_metrics()}
         if self.stats.returns:
             scalars["charts/episodic_return"] = sum(self.stats.returns) / len(self.stats.returns)
+        scalars.update({f"charts/{k}": v for k, v in self.stats.info_means().items()})
         for k, v in scalars.items():
             self.tb.add_scalar(k, v, p.env_steps)
         if self.bar is not None:
@@ -123,10 +124,14 @@ class RunLog:
                "train/average_return": (sum(self.stats.returns) / len(self.stats.returns)
                                         if self.stats.returns else float("nan")),
                "train/episodes": self.stats.episodes,
+               **{f"train/{k}": v for k, v in self.stats.info_means().items()},
                **self.learner.scalar_metrics(), **(extra or {})}
         self.metrics_log.write(row)
         self.tb.add_scalar("eval/average_return", result["average_return"], p.env_steps)
         self.tb.add_scalar("eval/average_episode_length", result["average_episode_length"], p.env_steps)
+        for k, v in result.items():
+            if k.startswith("eval/"):
+                self.tb.add_scalar(k, v, p.env_steps)
         self.last_eval = row
         self.say(f"step {p.env_steps:>9,} | eval return {result['average_return']:8.2f} "
                  f"| length {result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
@@ -147,8 +152,9 @@ class LocalRun(RunLog):
         # Stateless torch envs live on the agent's device; Gymnasium envs on the CPU.
         self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
                             time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
-                            device=self.device)
-        self.eval_env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, self.device)
+                            device=self.device, info_keys=c.env.info_keys)
+        self.eval_env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, self.device,
+                                      c.env.info_keys)
         obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
         self.agent = make_agent(c.algo, c.agent, obs_spec, act_spec, self.device,
                                 np.random.default_rng(c.seed + 1), c.train.total_steps)
