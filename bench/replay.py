@@ -13,7 +13,9 @@ Every worker runs with torch.set_num_threads(1): no replay op here is big enough
   insert-1   single-transition inserts/s (relayrl num_envs=1, SB3 n_envs=1, TorchRL add)
   insert-32  transitions/s in batches of 32 (num_envs=32, SB3 n_envs=32, TorchRL extend of 32)
   sample     uniform sample of 256 from a full 1,000,000-item buffer, batches/s (fill untimed)
-  per        prioritized sample 256 + update_priorities 256 from 1,000,000, iterations/s
+  per        prioritized sample 256 + update_priorities 256 from 1,000,000, iterations/s, with
+             the compiled sum tree when numba is installed (relayrl[fast]); `per-numpy` (relayrl
+             only) is the same with RELAYRL_NUMBA=0, the NumPy tree every install has
   pixel      relayrl only: frame_stack=4, uint8 [4,84,84] obs, max_size 100,000, filled with
              100,000 transitions in episodes of ~500 steps ending terminated; VmRSS growth
              (before vs after creating + filling, fresh process) and sample-of-32 batches/s
@@ -95,6 +97,9 @@ def relayrl_task(task: str, seconds: float) -> dict:
     torch.set_num_threads(1)
     if task == "pixel":
         return relayrl_pixel(seconds)
+    if task == "per-numpy":
+        os.environ["RELAYRL_NUMBA"] = "0"  # read when the table's sampler builds its tree
+        task = "per"
     f32 = ArraySpec((3,), torch.float32), ArraySpec((1,), torch.float32)
 
     def steps(b: int, count: int, ep_len: int = EP_LEN) -> list[Transition]:
@@ -118,7 +123,8 @@ def relayrl_task(task: str, seconds: float) -> dict:
     if task == "sample":
         return timed(lambda: (table.sample(BATCH), 1)[1], seconds)
     prios = list(np.random.default_rng(0).uniform(0.01, 2.0, (64, BATCH)))
-    return timed(cycling(lambda p: table.update_priorities(table.sample(BATCH)[1].key, p), prios, 1), seconds)
+    out = timed(cycling(lambda p: table.update_priorities(table.sample(BATCH)[1].key, p), prios, 1), seconds)
+    return {**out, "tree": type(table.sampler.tree).__name__}
 
 
 def relayrl_pixel(seconds: float) -> dict:
@@ -320,8 +326,12 @@ def main() -> None:
                      for lib in LIBS}
         print(f"{task}: " + ", ".join(f"{k} {v.get('rate', v.get('error'))}" for k, v in res[task].items()),
               file=sys.stderr, flush=True)
+    per_numpy = spawn(sys.executable, "relayrl", "per-numpy", args.seconds)
     pix = spawn(sys.executable, "relayrl", "pixel", args.seconds)
     lines, floors, targets = report_table(res, pix, floor)
+    lines.insert(lines.index("|---|---|---|---|---|---|---|---|---|") + 1 + TASKS.index("per") + 1,
+                 f"| per, NumPy tree (RELAYRL_NUMBA=0; relayrl's per row: {res['per']['relayrl'].get('tree')}) | "
+                 f"{cell(per_numpy, floors['per'])} | - | - | - | - | - | - | {floors['per']:,.0f} |")
     print("\n".join(lines))
     if args.json:
         meta = {"started": started, "command": " ".join([os.path.relpath(sys.executable), *sys.argv]),
@@ -329,6 +339,7 @@ def main() -> None:
                 "seconds_per_repeat": args.seconds}
         with open(args.json, "w") as f:
             json.dump({"meta": meta, "floor": floor, "floor_rates": floors, "results": res, "pixel": pix,
+                       "per_numpy": per_numpy,
                        "targets": targets, "table": lines}, f, indent=1)
 
 

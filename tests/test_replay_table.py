@@ -19,7 +19,7 @@ from relayrl.replay import (
     Table,
     Uniform,
 )
-from relayrl.replay.sumtree import SumTree
+from relayrl.replay.sumtree import SumTree, make_sum_tree
 
 
 def filled(max_size, n, sampler=None, remover=None, limiter=None, prios=None, **kw):
@@ -118,6 +118,15 @@ def test_sum_tree_find_matches_a_cumulative_sum():
     expected = np.searchsorted(np.cumsum(values), u, side="right")
     assert np.array_equal(tree.find(u), expected)
     assert np.isclose(tree.total, values.sum())
+
+
+def test_without_numba_prioritized_tables_use_the_numpy_tree(monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "relayrl.replay.sumtree_jit", None)  # its import now fails
+    assert type(make_sum_tree(10)) is SumTree
+    t = filled(3, 3, sampler=Prioritized(1.0), prios=[1.0, 0.0, 3.0])
+    assert type(t.sampler.tree) is SumTree and set(t.sample(50)[1].priority.tolist()) == {1.0, 3.0}
 
 
 def test_sum_tree_repeated_indices_take_the_last_value():

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from relayrl.replay.sumtree import SumTree
+from relayrl.replay.sumtree import make_sum_tree
 
 
 class Selector:
@@ -129,20 +129,17 @@ class Prioritized(Selector):
 
     def bind(self, capacity: int, slot_key: np.ndarray, priority: np.ndarray) -> None:
         super().bind(capacity, slot_key, priority)
-        self.tree = SumTree(capacity)
-
-    def _mass(self, slots: np.ndarray) -> np.ndarray:
-        return np.power(self.priority.take(slots), self.priority_exponent)
+        self.tree = make_sum_tree(capacity)
 
     def insert(self, slots: np.ndarray, keys: np.ndarray) -> None:
-        self.tree.set(slots, self._mass(slots))
+        self.tree.set_power(slots, self.priority, self.priority_exponent)
         self.size += len(slots)
 
     def replace(self, slots: np.ndarray, keys: np.ndarray) -> None:
-        self.tree.set(slots, self._mass(slots))
+        self.tree.set_power(slots, self.priority, self.priority_exponent)
 
     def update(self, slots: np.ndarray) -> None:
-        self.tree.set(slots, self._mass(slots))
+        self.tree.set_power(slots, self.priority, self.priority_exponent)
 
     def delete(self, slots: np.ndarray) -> None:
         self.tree.set(slots, np.zeros(len(slots)))
@@ -153,8 +150,7 @@ class Prioritized(Selector):
         if total <= 0.0:  # every priority is zero: fall back to uniform over live items
             live = np.flatnonzero(self.slot_key >= 0)
             return live[rng.integers(0, live.size, n)], np.full(n, 1.0 / live.size)
-        slots, mass = self.tree.find_with_mass(rng.random(n) * total)
-        return slots, mass / total
+        return self.tree.sample(rng.random(n))
 
     def pop(self, n: int, rng: np.random.Generator) -> np.ndarray:
         chosen: list[int] = []
@@ -162,7 +158,7 @@ class Prioritized(Selector):
             slot = int(self.select(1, rng)[0][0])
             chosen.append(slot)
             self.tree.set(np.array([slot]), np.zeros(1))
-        self.tree.set(np.array(chosen), self._mass(np.array(chosen)))  # the table deletes them
+        self.tree.set_power(np.array(chosen), self.priority, self.priority_exponent)  # the table deletes them
         return np.array(chosen, dtype=np.int64)
 
     def state_dict(self) -> dict[str, Any]:

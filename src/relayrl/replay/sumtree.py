@@ -16,8 +16,25 @@ leaf before it.
 
 from __future__ import annotations
 
+import os
+from typing import Any
+
 import numpy as np
 import torch
+
+
+def make_sum_tree(capacity: int) -> Any:
+    """The compiled tree (`sumtree_jit.CompiledSumTree`) when numba is installed
+    (`pip install relayrl[fast]`), else this module's NumPy `SumTree`: same interface, same
+    leaves found. `RELAYRL_NUMBA=0` forces the NumPy tree (tests, benchmarks)."""
+    if os.environ.get("RELAYRL_NUMBA", "1") != "0":
+        try:
+            from relayrl.replay.sumtree_jit import CompiledSumTree
+        except ImportError:  # no numba: the NumPy tree is correct, only slower per call
+            pass
+        else:
+            return CompiledSumTree(capacity)
+    return SumTree(capacity)
 
 
 def _cumsum(x: np.ndarray, axis: int) -> np.ndarray:
@@ -69,6 +86,17 @@ class SumTree:
             idx = idx // f
             self.sums[d + 1][idx] = self.sums[d].reshape(-1, f).take(idx, axis=0).sum(axis=1)
         self._top_stale = True
+
+    def set_power(self, idx: np.ndarray, priority: np.ndarray, exponent: float) -> None:
+        """`set(idx, priority[idx] ** exponent)`."""
+        self.set(idx, np.power(priority.take(idx), exponent))
+
+    def sample(self, uniform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`find_with_mass(uniform * total)` for `uniform` in [0, 1), and each leaf's
+        probability (mass / total). The total must be > 0."""
+        total = self.total
+        node, mass = self.find_with_mass(uniform * total)
+        return node, mass / total
 
     def rebuild(self) -> None:
         """Recompute every total from the leaves."""

@@ -1,0 +1,82 @@
+"""The compiled sum tree (relayrl[fast]) against a flat cumulative sum and the NumPy tree."""
+
+import numpy as np
+import pytest
+
+from relayrl.replay import Fifo, MinSize, Prioritized, Table
+from relayrl.replay.sumtree import SumTree, make_sum_tree
+
+jit = pytest.importorskip("relayrl.replay.sumtree_jit", reason="numba is not installed (pip install relayrl[fast])")
+CompiledSumTree = jit.CompiledSumTree
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 1_000, 5_000])
+def test_find_matches_a_flat_cumulative_sum_after_updates(n):
+    rng = np.random.default_rng(n)
+    tree = CompiledSumTree(n)
+    values = rng.random(n) * (rng.random(n) < 0.3)  # most leaves empty
+    values[rng.integers(0, n)] = 1.0  # at least one with mass
+    tree.set(np.arange(n), values)
+    for _ in range(30):  # updates with repeated indices: the last value wins
+        idx = rng.integers(0, n, 300)
+        new = rng.random(300) * (rng.random(300) < 0.5)
+        tree.set(idx, new)
+        for i, v in zip(idx.tolist(), new.tolist(), strict=True):
+            values[i] = v
+    assert np.array_equal(tree.get(np.arange(n)), values)
+    assert np.isclose(tree.total, values.sum())
+    if values.sum() == 0:
+        return
+    u = rng.random(20_000) * tree.total
+    found, mass = tree.find_with_mass(u)
+    assert (mass > 0).all() and np.array_equal(mass, values[found])  # never an empty leaf
+    expected = np.searchsorted(np.cumsum(values), u, side="right")
+    assert (found != expected).sum() <= 2  # the two sums round differently only at boundaries
+
+
+def test_a_query_at_the_total_lands_on_the_last_leaf_with_mass():
+    tree = CompiledSumTree(8)
+    tree.set(np.array([1, 5]), np.array([1.0, 2.0]))  # leaves 6, 7 empty
+    found, mass = tree.find_with_mass(np.array([0.0, 0.999, 1.0, 2.999, 3.0, 7.0]))
+    assert found.tolist() == [1, 1, 5, 5, 5, 5] and mass.tolist() == [1.0, 1.0, 2.0, 2.0, 2.0, 2.0]
+
+
+def test_set_power_sample_and_state_round_trip_match_the_numpy_tree():
+    rng = np.random.default_rng(0)
+    priority = rng.uniform(0.01, 2.0, 1_000)
+    a, b = SumTree(1_000), CompiledSumTree(1_000)
+    for tree in (a, b):
+        tree.set_power(np.arange(1_000), priority, 0.6)
+    assert np.allclose(a.leaves[:1_000], b.leaves) and np.isclose(a.total, b.total)
+    u = rng.random(4_096)
+    (na, pa), (nb, pb) = a.sample(u), b.sample(u)
+    assert np.array_equal(na, nb) and np.allclose(pa, pb) and np.allclose(pb, priority[nb] ** 0.6 / b.total)
+    c = CompiledSumTree(1_000)
+    c.load_state_dict(b.state_dict())
+    assert np.array_equal(c.tree, b.tree)
+
+
+def test_tables_sample_the_same_items_with_either_tree(monkeypatch):
+    def run(numba: str) -> tuple[list[int], type]:
+        monkeypatch.setenv("RELAYRL_NUMBA", numba)
+        t = Table("t", 500, Prioritized(0.6), Fifo(), MinSize(1), seed=3)
+        rng = np.random.default_rng(1)
+        for i in range(700):  # wraps: FIFO removals zero leaves
+            t.insert(np.int64(i), priority=float(rng.uniform(0.1, 2.0)))
+        keys = []
+        for _ in range(20):
+            info = t.sample(64)[1]
+            keys += info.key.tolist()
+            t.update_priorities(info.key, rng.uniform(0.0, 2.0, 64))
+        return keys, type(t.sampler.tree)
+
+    (compiled, ctype), (plain, ptype) = run("1"), run("0")
+    assert ctype is CompiledSumTree and ptype is SumTree
+    assert compiled == plain
+
+
+def test_without_numba_the_numpy_tree_is_used(monkeypatch):
+    monkeypatch.setenv("RELAYRL_NUMBA", "0")
+    assert type(make_sum_tree(10)) is SumTree
+    monkeypatch.setenv("RELAYRL_NUMBA", "1")
+    assert type(make_sum_tree(10)) is CompiledSumTree
