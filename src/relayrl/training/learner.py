@@ -2,16 +2,18 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 import torch
 
 from relayrl.core import Agent
-from relayrl.replay import Table
+from relayrl.replay import SampleInfo, Table
 from relayrl.training.triggers import IntervalTrigger, Progress
 from relayrl.training.variables import VariableContainer
 from relayrl.types import Batch
+
+SAMPLE_CHUNK_BATCHES = 128  # batches drawn per `Table.sample` call in a uniform burst
 
 
 class Learner:
@@ -40,14 +42,37 @@ class Learner:
         self.importance_exponent = importance_exponent
         self.priority_eps = priority_eps
         self.last_metrics: dict[str, torch.Tensor] = {}
+        self._chunk: int | None = None  # batches per `sample` call in a uniform burst, set at the first
 
     def available_steps(self) -> int:
         """Gradient steps the table's rate limiter allows now."""
         return self.table.samples_available() // self.batch_size
 
+    def _batches(self, iterations: int) -> Iterator[tuple[Batch, SampleInfo]]:
+        """`iterations` sampled batches. From a uniform local table, a burst is drawn with one
+        `sample` call per chunk and sliced: the same items as one call per batch (the same
+        RNG draws, and nothing is inserted or reprioritised in between), at a third of the
+        cost per batch of 64 (the table's fixed cost per call is ~50 us). Prioritized
+        batches depend on the priorities the previous step set, so they are drawn one by one."""
+        if self.prioritized or iterations == 1 or not isinstance(self.table, Table) or self.table.max_times_sampled:
+            for _ in range(iterations):
+                yield self.table.sample(self.batch_size)
+            return
+        n = self.batch_size
+        while iterations > 0:
+            k = min(iterations, self._chunk or 1)  # the first call learns the batch's size
+            batch, info = self.table.sample(k * n)
+            if self._chunk is None:  # at most ~32 MB a call: bursts of pixel batches stay small
+                nbytes = sum(x.nbytes for x in batch if isinstance(x, torch.Tensor))
+                self._chunk = max(1, min(SAMPLE_CHUNK_BATCHES, (32 << 20) // max(1, nbytes)))
+            for j in range(k):
+                rows = slice(j * n, (j + 1) * n)
+                yield (type(batch)(*(x[rows] if isinstance(x, torch.Tensor) else x for x in batch)),
+                       SampleInfo(info.key[rows], info.probability[rows], info.table_size, info.priority[rows]))
+            iterations -= k
+
     def run(self, iterations: int) -> None:
-        for _ in range(iterations):
-            batch, info = self.table.sample(self.batch_size)
+        for batch, info in self._batches(iterations):
             if self.prioritized:
                 w = np.power(info.table_size * info.probability, -self.importance_exponent)  # [N]
                 batch = batch._replace(weight=torch.from_numpy((w / w.max()).astype(np.float32)))

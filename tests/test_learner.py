@@ -1,0 +1,63 @@
+"""The learner's sampling: a uniform burst drawn in chunks gives the batches of one call each."""
+
+import torch
+
+from relayrl.replay import Fifo, MinSize, Table, TransitionWriter, Uniform
+from relayrl.specs import ArraySpec, DiscreteSpec
+from relayrl.training.learner import Learner
+from relayrl.types import Transition
+
+
+class Recorder:
+    """An agent that only records the batches it is given."""
+
+    def __init__(self) -> None:
+        self.batches = []
+        self.net = torch.nn.Linear(1, 1)
+
+    def policy_network(self):
+        return self.net
+
+    def train(self, batch):
+        self.batches.append(batch)
+        return {"loss": torch.zeros(())}
+
+    @property
+    def train_step(self) -> int:
+        return len(self.batches)
+
+
+def table(obs_shape=(3,), dtype=torch.float32, n=500):
+    t = Table("t", 1_000, Uniform(), Fifo(), MinSize(1), seed=7)
+    w = TransitionWriter(t, 1, ArraySpec(obs_shape, dtype), DiscreteSpec(2), gamma=0.9, n_step=1, frame_stack=1)
+    g = torch.Generator().manual_seed(0)
+    no = torch.zeros(1, dtype=torch.bool)
+    for i in range(n):
+        obs = (torch.rand(1, *obs_shape, generator=g) * 255).to(dtype)
+        w(Transition(obs, torch.tensor([i % 2]), torch.tensor([float(i)]), obs, no, no | (i % 50 == 49)))
+    w.flush()
+    return t
+
+
+def test_a_uniform_burst_gives_the_batches_of_one_sample_call_each():
+    agent = Recorder()
+    Learner(agent, table(), batch_size=16, device=torch.device("cpu")).run(300)  # chunks of 1, 128, 128, 43
+    reference = table()
+    expected = [reference.sample(16)[0] for _ in range(300)]
+    assert len(agent.batches) == 300
+    for got, want in zip(agent.batches, expected, strict=True):
+        assert all(torch.equal(a, b) for a, b in zip(got[:5], want[:5], strict=True))
+        assert got.obs.shape == (16, 3) and got.obs.is_contiguous()
+
+
+def test_bursts_of_large_observations_are_drawn_in_small_chunks():
+    t = table(obs_shape=(4, 84, 84), dtype=torch.uint8, n=200)
+    calls = []
+    sample = t.sample
+    t.sample = lambda n, timeout=None: (calls.append(n), sample(n, timeout))[1]
+    learner = Learner(Recorder(), t, batch_size=32, device=torch.device("cpu"))
+    learner.run(40)
+    per_batch = 32 * 2 * 4 * 84 * 84  # obs and next_obs dominate
+    assert learner._chunk == (32 << 20) // (per_batch + 32 * (8 + 4 + 4))
+    assert calls[0] == 32 and set(calls[1:]) <= {32 * learner._chunk, 32 * (39 % learner._chunk)}
+    assert sum(calls) == 40 * 32
