@@ -50,10 +50,12 @@ class Learner:
 
     def _batches(self, iterations: int) -> Iterator[tuple[Batch, SampleInfo]]:
         """`iterations` sampled batches. From a uniform local table, a burst is drawn with one
-        `sample` call per chunk and sliced: the same items as one call per batch (the same
-        RNG draws, and nothing is inserted or reprioritised in between), at a third of the
-        cost per batch of 64 (the table's fixed cost per call is ~50 us). Prioritized
-        batches depend on the priorities the previous step set, so they are drawn one by one."""
+        `sample` call per chunk and sliced, at a third of the cost per batch of 64 (the
+        table's fixed cost per call is ~50 us). In the one-process loop nothing is inserted
+        during a burst, so these are the items of one call per batch (the same RNG draws);
+        where another thread inserts meanwhile, its items become sampleable at the next chunk
+        instead of the next batch. Prioritized batches depend on the priorities the previous
+        step set, so they are drawn one by one."""
         if self.prioritized or iterations == 1 or not isinstance(self.table, Table) or self.table.max_times_sampled:
             for _ in range(iterations):
                 yield self.table.sample(self.batch_size)
