@@ -5,6 +5,7 @@ import time
 
 import numpy as np
 import pytest
+from tree_checks import check_updates_and_finds
 
 from relayrl.replay import (
     Fifo,
@@ -269,24 +270,7 @@ def test_uniform_sampling_skips_the_dense_list_only_while_it_is_the_identity():
 
 @pytest.mark.parametrize("top_size", [4, 40, 32768])  # two grouped levels, one, none
 def test_sum_tree_levels_find_what_a_flat_cumulative_sum_finds(top_size):
-    rng = np.random.default_rng(2)
-    n = 5_000
-    tree = SumTree(n, fanout=8, top_size=top_size)
-    values = rng.random(n) * (rng.random(n) < 0.3)  # most leaves empty
-    tree.set(np.arange(n), values)
-    for _ in range(30):  # updates with repeated indices: the last value wins
-        idx = rng.integers(0, n, 300)
-        new = rng.random(300) * (rng.random(300) < 0.5)
-        tree.set(idx, new)
-        for i, v in zip(idx.tolist(), new.tolist(), strict=True):
-            values[i] = v
-    assert np.array_equal(tree.get(np.arange(n)), values)
-    assert np.isclose(tree.total, values.sum())
-    u = rng.random(20_000) * tree.total
-    found, mass = tree.find_with_mass(u)
-    assert (mass > 0).all() and np.array_equal(mass, values[found])
-    expected = np.searchsorted(np.cumsum(values), u, side="right")
-    assert (found != expected).sum() <= 2  # the two sums round differently only at boundaries
+    check_updates_and_finds(SumTree(5_000, fanout=8, top_size=top_size), 5_000, seed=2)
 
 
 def test_sum_tree_moves_a_query_off_an_empty_leaf():

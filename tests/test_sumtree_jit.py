@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from tree_checks import check_updates_and_finds
 
 from relayrl.replay import Fifo, MinSize, Prioritized, Table
 from relayrl.replay.sumtree import SumTree, make_sum_tree
@@ -12,26 +13,7 @@ CompiledSumTree = jit.CompiledSumTree
 
 @pytest.mark.parametrize("n", [1, 2, 3, 1_000, 5_000])
 def test_find_matches_a_flat_cumulative_sum_after_updates(n):
-    rng = np.random.default_rng(n)
-    tree = CompiledSumTree(n)
-    values = rng.random(n) * (rng.random(n) < 0.3)  # most leaves empty
-    values[rng.integers(0, n)] = 1.0  # at least one with mass
-    tree.set(np.arange(n), values)
-    for _ in range(30):  # updates with repeated indices: the last value wins
-        idx = rng.integers(0, n, 300)
-        new = rng.random(300) * (rng.random(300) < 0.5)
-        tree.set(idx, new)
-        for i, v in zip(idx.tolist(), new.tolist(), strict=True):
-            values[i] = v
-    assert np.array_equal(tree.get(np.arange(n)), values)
-    assert np.isclose(tree.total, values.sum())
-    if values.sum() == 0:
-        return
-    u = rng.random(20_000) * tree.total
-    found, mass = tree.find_with_mass(u)
-    assert (mass > 0).all() and np.array_equal(mass, values[found])  # never an empty leaf
-    expected = np.searchsorted(np.cumsum(values), u, side="right")
-    assert (found != expected).sum() <= 2  # the two sums round differently only at boundaries
+    check_updates_and_finds(CompiledSumTree(n), n, seed=n)
 
 
 def test_a_query_at_the_total_lands_on_the_last_leaf_with_mass():

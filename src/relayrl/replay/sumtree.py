@@ -37,6 +37,16 @@ def make_sum_tree(capacity: int) -> Any:
     return SumTree(capacity)
 
 
+def flat_updates(idx: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`set`'s arguments as contiguous int64 indices and float64 values of the same length
+    (one value broadcasts)."""
+    idx = np.ascontiguousarray(idx, dtype=np.int64).reshape(-1)
+    values = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
+    if values.size != idx.size:
+        values = np.full(idx.size, values[0]) if values.size == 1 else values.reshape(idx.shape)
+    return idx, values
+
+
 def _cumsum(x: np.ndarray, axis: int) -> np.ndarray:
     """Left-to-right cumulative sums (torch's CPU scan: ~4x faster than NumPy's here)."""
     return torch.cumsum(torch.from_numpy(x), axis).numpy()
@@ -70,10 +80,7 @@ class SumTree:
         return self.leaves.take(idx)
 
     def set(self, idx: np.ndarray, values: np.ndarray) -> None:
-        idx = np.asarray(idx, dtype=np.int64).reshape(-1)
-        values = np.asarray(values, dtype=np.float64).reshape(-1)
-        if values.size != idx.size:
-            values = np.full(idx.size, values[0]) if values.size == 1 else values.reshape(idx.shape)
+        idx, values = flat_updates(idx, values)
         leaves = self.leaves
         leaves[idx] = values
         if idx.size > 1 and np.count_nonzero(leaves.take(idx) != values):

@@ -20,6 +20,8 @@ from typing import Any
 import numba
 import numpy as np
 
+from relayrl.replay.sumtree import flat_updates
+
 
 def _compile(fn: Callable[..., Any]) -> Any:
     """numba.njit, cached on disk (~0.7 s of compiling saved per process) where numba finds
@@ -95,11 +97,7 @@ class CompiledSumTree:
         return self.leaves.take(idx)
 
     def set(self, idx: np.ndarray, values: np.ndarray) -> None:
-        idx = np.ascontiguousarray(idx, dtype=np.int64).reshape(-1)
-        values = np.ascontiguousarray(values, dtype=np.float64).reshape(-1)
-        if values.size != idx.size:
-            values = np.full(idx.size, values[0]) if values.size == 1 else values.reshape(idx.shape)
-        _set(self.tree, self.base, idx, values)
+        _set(self.tree, self.base, *flat_updates(idx, values))
 
     def set_power(self, idx: np.ndarray, priority: np.ndarray, exponent: float) -> None:
         """`set(idx, priority[idx] ** exponent)` in one pass."""
