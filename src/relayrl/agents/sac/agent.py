@@ -58,7 +58,7 @@ class SACAgent:
             self._actor_view = MLPView(self.actor)
             self._critic_view = fast.TwinView(self.critic)
             self._target_view = fast.TwinView(self.target_critic)
-            self._actor_flat, self._actor_grads = grad_buffers(self.actor)
+            self._actor_grads = grad_buffers(self.actor)[1]  # views of one flat buffer
 
     @property
     def train_step(self) -> int:
