@@ -317,7 +317,8 @@ def test_a_killed_rollout_actor_is_restarted_and_the_run_finishes(tmp_path, monk
 
 
 @needs_ray
-def test_ctrl_c_stops_every_actor_and_the_run_resumes(tmp_path, cli_env):
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])  # Ctrl-C; kill / preemption
+def test_ctrl_c_stops_every_actor_and_the_run_resumes(tmp_path, cli_env, sig, code):
     run = tmp_path / "run"
     cmd = [sys.executable, "-m", "relayrl", "train", "sac-pendulum", "--run-dir", str(run), "--no-progress"]
     sets = [a for o in SAC_SMALL + ["distributed.num_actors=2", "train.total_steps=1600",
@@ -330,12 +331,12 @@ def test_ctrl_c_stops_every_actor_and_the_run_resumes(tmp_path, cli_env):
         assert p.poll() is None, f"the run ended before the interrupt: {p.stderr.read() if p.stderr else ''}"
         tree = process_tree(p.pid)
         assert len(tree) > 3, "no Ray processes were seen under the run"
-        p.send_signal(signal.SIGINT)  # Ctrl-C
+        p.send_signal(sig)
         _, err = p.communicate(timeout=120)
     finally:
         if p.poll() is None:
             p.kill()
-    assert p.returncode == 130, err
+    assert p.returncode == code, err
     assert "resume with --resume" in err
     deadline = time.monotonic() + 30
     while alive(tree - {p.pid}) and time.monotonic() < deadline:

@@ -141,6 +141,23 @@ def test_run_killed_at_a_random_moment_resumes_to_the_uninterrupted_result(tmp_p
     assert comparable(tmp_path / "killed") == comparable(tmp_path / "full")
 
 
+def test_sigterm_stops_a_run_like_ctrl_c_and_it_resumes(tmp_path):
+    over = DQN[:1] + ["train.total_steps=3000", "train.torch_threads=1"] + DQN[2:]
+    cmd = [sys.executable, "-m", "relayrl", "train", "dqn-cartpole-fast", "--run-dir", str(tmp_path / "run"),
+           "--no-progress", *[a for o in over for a in ("--set", o)]]
+    p = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    while not list_checkpoints(tmp_path / "run" / "checkpoints") and p.poll() is None:
+        time.sleep(0.02)
+    p.send_signal(signal.SIGTERM)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 143, err  # 128 + SIGTERM: handled, not killed (-15)
+    assert "relayrl: terminated; resume with --resume from the last checkpoint" in err
+    assert "Traceback" not in err
+    done = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert RunDir(tmp_path / "run").read_metrics()[-1]["step"] == 3000
+
+
 def test_policy_loads_and_evaluates_at_any_moment_of_a_run(tmp_path):
     over = DQN[:1] + ["train.total_steps=100000", "train.policy_save_interval=100", "train.torch_threads=1"] + DQN[2:]
     run = tmp_path / "live"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
 from typing import NoReturn
 
@@ -89,6 +90,15 @@ def _eval(args: argparse.Namespace) -> None:
     print(json.dumps({**evaluate(env, policy, args.episodes, seed=args.seed), "policy_env_steps": policy.env_steps}))
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (`kill`, a cluster scheduler's preemption) during `train`: the run stops as on
+    Ctrl-C, so Ray actors and env worker processes are shut down instead of orphaned."""
+
+
+def _on_sigterm(signum: int, frame: object) -> NoReturn:
+    raise Terminated
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -98,7 +108,11 @@ def main(argv: list[str] | None = None) -> int:
             for name, desc in list_presets().items():
                 print(f"{name}\t{desc}")
         elif args.command == "train":
-            _train(args)
+            previous = signal.signal(signal.SIGTERM, _on_sigterm)
+            try:
+                _train(args)
+            finally:
+                signal.signal(signal.SIGTERM, previous)
         elif args.command == "eval":
             _eval(args)
         elif args.command == "plot":
@@ -118,9 +132,10 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as e:
         print(f"relayrl: error: {e}", file=sys.stderr)
         return EXIT_USAGE
-    except KeyboardInterrupt:
-        print("relayrl: interrupted; resume with --resume from the last checkpoint", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as e:
+        what = "terminated" if isinstance(e, Terminated) else "interrupted"
+        print(f"relayrl: {what}; resume with --resume from the last checkpoint", file=sys.stderr)
+        return 143 if isinstance(e, Terminated) else 130  # 128 + the signal's number, as shells report
     return 0
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import os
+import signal
 import sys
 import time
 import uuid
@@ -107,10 +108,15 @@ class DistributedRun(RunLog):
         ray, c, d = self.ray, self.config, self.config.distributed
         if not ray.is_initialized():
             kw: dict[str, Any] = {"include_dashboard": False, "logging_level": "ERROR"}
+            on_sigterm = signal.getsignal(signal.SIGTERM)
             if d.address:
                 ray.init(address=d.address, **kw)
             else:  # a local instance with room for every actor's CPU reservation
                 ray.init(num_cpus=max(os.cpu_count() or 1, math.ceil(self.K * d.actor_cpus) + 1), **kw)
+            if callable(on_sigterm):
+                # Ray's core replaces SIGTERM's handler in the driver with one that dumps a
+                # stack and exits; the CLI's (stop like Ctrl-C: actors shut down) goes back.
+                signal.signal(signal.SIGTERM, on_sigterm)
             self._owns_ray = True
         cfg = to_dict(c)
         path = list(sys.path)
