@@ -16,6 +16,18 @@ def test_find_matches_a_flat_cumulative_sum_after_updates(n):
     check_updates_and_finds(CompiledSumTree(n), n, seed=n)
 
 
+@pytest.mark.parametrize("tree_class", [SumTree, CompiledSumTree])
+def test_empty_updates_and_queries_change_nothing(tree_class):
+    # The compiled loops read the tree's depth from their first index: an empty batch once
+    # read past the array and never ended.
+    tree = tree_class(1_000)
+    tree.set(np.arange(10), np.ones(10))
+    tree.set(np.array([], np.int64), np.array([]))
+    tree.set_power(np.array([], np.int64), np.ones(1_000), 0.6)
+    found, mass = tree.find_with_mass(np.array([]))
+    assert found.size == 0 and mass.size == 0 and tree.total == 10.0
+
+
 def test_a_query_at_the_total_lands_on_the_last_leaf_with_mass():
     tree = CompiledSumTree(8)
     tree.set(np.array([1, 5]), np.array([1.0, 2.0]))  # leaves 6, 7 empty

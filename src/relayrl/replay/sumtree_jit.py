@@ -52,6 +52,10 @@ def _set_power(tree: np.ndarray, base: int, idx: np.ndarray, priority: np.ndarra
 def _update_parents(tree: np.ndarray, node: np.ndarray) -> None:
     # Level by level across the batch, not index by index: the loads of one level are
     # independent, so the CPU overlaps their cache misses (a 1M-leaf tree is 16 MB).
+    # The depth is read from node[0]: an empty batch must not reach it (numba does not
+    # bounds-check, and a stray read there never reaches the root).
+    if node.size == 0:
+        return
     while node[0] > 1:
         for j in range(node.size):
             p = node[j] >> 1
@@ -61,6 +65,8 @@ def _update_parents(tree: np.ndarray, node: np.ndarray) -> None:
 
 @_compile
 def _find(tree: np.ndarray, base: int, u: np.ndarray, scale: float, node: np.ndarray, mass: np.ndarray) -> None:
+    if u.size == 0:  # as in `_update_parents`: node[0] below must exist
+        return
     x = u * scale
     node[:] = 1
     while node[0] < base:  # every leaf is at the same depth; level by level, as in `_set`
@@ -122,8 +128,9 @@ class CompiledSumTree:
     def sample(self, uniform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """`find_with_mass(uniform * total)` for `uniform` in [0, 1), and each leaf's
         probability (mass / total). The total must be > 0."""
-        node, mass = self._find(uniform, self.total)
-        return node, mass / self.total
+        total = self.total
+        node, mass = self._find(uniform, total)
+        return node, mass / total
 
     def _find(self, u: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
         node = np.empty(u.size, np.int64)
