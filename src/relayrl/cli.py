@@ -133,9 +133,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"relayrl: error: {e}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt as e:
-        what = "terminated" if isinstance(e, Terminated) else "interrupted"
+        # 128 + the signal's number, as shells report it
+        what, code = ("terminated", 143) if isinstance(e, Terminated) else ("interrupted", 130)
         print(f"relayrl: {what}; resume with --resume from the last checkpoint", file=sys.stderr)
-        return 143 if isinstance(e, Terminated) else 130  # 128 + the signal's number, as shells report
+        return code
     return 0
 
 

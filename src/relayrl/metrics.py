@@ -63,8 +63,7 @@ class EpisodeStats:
                 self.returns.append(float(self._ret[i]))
                 self.lengths.append(int(self._len[i]))
             for key, values in (t.episode_info or {}).items():
-                window = self.info.setdefault(key, deque(maxlen=self.returns.maxlen))
-                window.extend(float(values[i]) for i in ended)
+                self._info_window(key).extend(float(values[i]) for i in ended)
             self.episodes += int(done.sum())
             self._ret[done] = 0.0
             self._len[done] = 0
@@ -74,8 +73,15 @@ class EpisodeStats:
         self.returns.extend(returns)
         self.lengths.extend(lengths)
         for key, values in info.items():
-            self.info.setdefault(key, deque(maxlen=self.returns.maxlen)).extend(values)
+            self._info_window(key).extend(values)
         self.episodes += len(returns)
+
+    def _info_window(self, key: str) -> deque[float]:
+        """The window of `key`'s values, as long as the returns' window."""
+        window = self.info.get(key)
+        if window is None:
+            window = self.info[key] = deque(maxlen=self.returns.maxlen)
+        return window
 
     def info_means(self) -> dict[str, float]:
         """Mean of each info key over its window (keys with no finished episode left out)."""
@@ -99,7 +105,9 @@ class EpisodeStats:
         self.lengths.clear()
         self.lengths.extend(state["lengths"])
         self.episodes = int(state["episodes"])
-        self.info = {k: deque(w, maxlen=self.returns.maxlen) for k, w in state.get("info", {}).items()}
+        self.info = {}
+        for key, values in state.get("info", {}).items():
+            self._info_window(key).extend(values)
         self.reset_running()
         if state.get("running") is not None:
             ret, length = state["running"]

@@ -114,12 +114,17 @@ class SACAgent:
 
         if cfg.autotune_alpha:
             self._step(self.alpha_opt, [self.log_alpha], alpha_loss(self.log_alpha, logp, self.target_entropy))
-        self._train_step += 1
-        if self._train_step % cfg.target_update_period == 0:
-            with torch.no_grad():  # Polyak, fused over every tensor
-                torch._foreach_lerp_(self._target_params, self._critic_params, cfg.tau)
+        self._count_step()
         return {"critic_loss": c_loss.detach(), "actor_loss": a_loss.detach(), "alpha": alpha,
                 "entropy": -logp.detach().mean(), "q": q[0].detach(), "td_error": td}
+
+    @torch.no_grad()
+    def _count_step(self) -> None:
+        """One more train step; the target critics follow by Polyak averaging every
+        `target_update_period` steps (one fused op over every tensor)."""
+        self._train_step += 1
+        if self._train_step % self.cfg.target_update_period == 0:
+            torch._foreach_lerp_(self._target_params, self._critic_params, self.cfg.tau)
 
     @torch.no_grad()
     def _train_fast(self, batch: Batch) -> dict[str, torch.Tensor]:
@@ -156,9 +161,7 @@ class SACAgent:
 
         if cfg.autotune_alpha:  # d alpha_loss / d log_alpha
             self._fast_step(self.alpha_opt, [-(logp.mean() + self.target_entropy).reshape(self.log_alpha.shape)])
-        self._train_step += 1
-        if self._train_step % cfg.target_update_period == 0:
-            torch._foreach_lerp_(self._target_params, self._critic_params, cfg.tau)
+        self._count_step()
         return {"critic_loss": c_loss, "actor_loss": a_loss, "alpha": alpha, "entropy": -logp.mean(),
                 "q": q[0], "td_error": td}
 
