@@ -12,17 +12,14 @@ Shapes: N batch rows, A action dims, critics' weights [2, in, out] (`TwinCritic`
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from relayrl.agents.dqn.fast import _BACKWARD, _FORWARD, MLPView
+from relayrl.agents.sac.losses import tanh_gaussian
 from relayrl.agents.sac.networks import TwinCritic
 from relayrl.networks import MLP
 
 Tensor = torch.Tensor
-_LOG2 = math.log(2.0)
-_HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 
 
 def supports(actor: torch.nn.Module, critic: torch.nn.Module) -> bool:
@@ -88,12 +85,8 @@ def sample_and_log_prob(actor: MLPView, obs: Tensor, noise: Tensor, log_std_min:
     out, inputs, pre = actor.forward(obs)  # [N, 2A]
     mean, raw = out.chunk(2, dim=-1)
     log_std = raw.clamp(log_std_min, log_std_max)
-    std = log_std.exp()
-    u = torch.addcmul(mean, std, noise)  # [N, A]
-    log_normal = -0.5 * noise.square() - log_std - _HALF_LOG_2PI
-    log_det = 2.0 * (_LOG2 - u - torch.nn.functional.softplus(-2.0 * u))
-    a = torch.tanh(u)
-    return a, (log_normal - log_det).sum(-1), (inputs, pre, raw, std, noise, a)
+    a, log_prob = tanh_gaussian(mean, log_std, noise)
+    return a, log_prob, (inputs, pre, raw, log_std.exp(), noise, a)
 
 
 def actor_head_grad(g_a: Tensor, g_logp: Tensor, saved: tuple, log_std_min: float, log_std_max: float) -> Tensor:
