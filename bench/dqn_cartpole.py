@@ -6,7 +6,10 @@
 Each (setting, seed) runs relayrl and SB3 one after the other in fresh processes, so both
 see the same machine load; the table reports learn() wall-clock (evaluations included,
 process start-up excluded), evaluation time, final greedy return and relayrl/SB3.
-Peers live only in the bench venv: `bash bench/setup_peers.sh`.
+Peers live only in the bench venv: `bash bench/setup_peers.sh`. With `--tfagents-python`
+(a venv from `bash bench/setup_tfagents.sh`), the tutorial setting also runs TF-Agents' own
+tutorial code (bench/tfagents_dqn_tutorial.py) for each seed, after SB3: its wall-clock is its
+training loop plus evaluations, as for the other two.
 
 Settings:
   tutorial  TF-Agents' DQN tutorial: CartPole-v0, (100, 50), Adam 1e-3, batch 64, squared
@@ -106,6 +109,23 @@ def spawn(python: str, which: str, setting: str, seed: int) -> dict:
     raise RuntimeError(f"{which} worker failed:\n{proc.stderr[-3000:]}")
 
 
+def run_tfagents(python: str, seed: int) -> dict:
+    """TF-Agents' tutorial (bench/tfagents_dqn_tutorial.py) in its own venv, one thread."""
+    import subprocess
+    import tempfile
+
+    script = os.path.join(os.path.dirname(os.path.abspath(__file__)), "tfagents_dqn_tutorial.py")
+    with tempfile.TemporaryDirectory() as d:
+        out = os.path.join(d, "tfa.json")
+        proc = subprocess.run([python, script, "--seed", str(seed), "--json", out], capture_output=True, text=True)
+        if proc.returncode != 0:
+            raise RuntimeError(f"TF-Agents tutorial failed:\n{proc.stderr[-3000:]}")
+        with open(out) as f:
+            r = json.load(f)
+    return {"wall_s": r["train_seconds"] + r["eval_seconds"], "eval_s": r["eval_seconds"],
+            "final": r["evals"][-1][1], "curve": r["evals"]}
+
+
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--worker":
         worker(sys.argv[2:])
@@ -114,6 +134,7 @@ def main() -> None:
     p.add_argument("--peer-python", default="bench/.venv-peers/bin/python")
     p.add_argument("--settings", nargs="+", default=["tutorial", "zoo"], choices=sorted(RELAYRL))
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    p.add_argument("--tfagents-python", help="a TF-Agents venv's python: adds TF-Agents to the tutorial setting")
     p.add_argument("--json", help="also write every result here")
     args = p.parse_args()
     rows, results = [], {}
@@ -130,6 +151,11 @@ def main() -> None:
             print(f"| {setting} | {seed} | {ours['wall_s']:.1f} ({ours['eval_s']:.1f}) | "
                   f"{peer['wall_s']:.1f} ({peer['eval_s']:.1f}) | {ratio:.2f} | {ours['final']:.1f} | "
                   f"{peer['final']:.1f} |", flush=True)
+            if setting == "tutorial" and args.tfagents_python:
+                tfa = run_tfagents(args.tfagents_python, seed)
+                results[f"{setting}/{seed}"]["tf_agents"] = tfa
+                print(f"|   TF-Agents | {seed} | relayrl / TF-Agents {ours['wall_s'] / tfa['wall_s']:.2f} | "
+                      f"TF-Agents {tfa['wall_s']:.1f} s ({tfa['eval_s']:.1f}) | final {tfa['final']:.1f} |", flush=True)
         rows.append((setting, statistics.mean(ratios)))
     for setting, r in rows:
         print(f"mean relayrl/SB3 wall-clock, {setting}: {r:.2f}")

@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/stateless_step.py [--device cpu] [--batches 1,32,4096,65536]
         [--seconds 1.0] [--torchrl-python /work/benchvenv/bin/python] [--learn]
-        [--json bench/results/stateless.json]
+        [--torchrl-learn SEED [SEED ...]] [--json bench/results/stateless.json]
 
 Stepping (issue 6). Env steps/s = batch size x batched steps/s, random actions, no autograd
 (`torch.inference_mode`), one thread (`torch.set_num_threads(1)`; 2 with `--threads 2`):
@@ -25,6 +25,12 @@ iterations/s of `train_bptt` (fused and, slower, generic autograd through `rollo
 transforms and loop as the tutorial writes them, TorchRL 0.14 spec names) in a fresh process
 of `--torchrl-python`, when that interpreter has torchrl. `--learn` also runs the full
 625-iteration training for seeds 0, 1, 2 and prints the final-50-iteration means.
+
+`--torchrl-learn 0 1 2` runs, instead of all the above, the tutorial's own full training (625
+iterations, seeded as the tutorial seeds it: `torch.manual_seed(seed)`, `env.set_seed(seed)`)
+in a fresh `--torchrl-python` process per seed, and prints per seed the final-50-iteration means
+of the tutorial's two logged figures (mean reward over the rollout, mean last-step reward), its
+iterations/s (one thread) and the process's wall time: the reference for `--learn`'s figures.
 """
 
 from __future__ import annotations
@@ -122,9 +128,10 @@ def bench_bptt(iterations: int, fused: bool, device: str, threads: int) -> float
                                  torch_threads=threads)).iterations_per_s
 
 
-def torchrl_tutorial(iterations: int) -> float:
-    """The TorchRL Pendulum tutorial's env, transforms and training loop (TorchRL 0.14 names);
-    iterations/s over `iterations` iterations after 3 untimed ones."""
+def tutorial_trainer(seed: int) -> Callable[[], tuple[float, float]]:
+    """The TorchRL Pendulum tutorial's env, transforms, policy and optimiser (TorchRL 0.14 names),
+    seeded as the tutorial seeds them; returns one training iteration, which gives the
+    tutorial's two logged figures: mean reward over the rollout and mean last-step reward."""
     import torch
     from tensordict import TensorDict, TensorDictBase
     from tensordict.nn import TensorDictModule
@@ -208,15 +215,15 @@ def torchrl_tutorial(iterations: int) -> float:
     env.append_transform(SinCos(torch.sin, ["th"], ["sin"]))
     env.append_transform(SinCos(torch.cos, ["th"], ["cos"]))
     env.append_transform(CatTensors(in_keys=["sin", "cos", "thdot"], dim=-1, out_key="observation", del_keys=False))
-    torch.manual_seed(0)
+    torch.manual_seed(seed)
+    env.set_seed(seed)
     net = nn.Sequential(nn.LazyLinear(64), nn.Tanh(), nn.LazyLinear(64), nn.Tanh(), nn.LazyLinear(64), nn.Tanh(),
                         nn.LazyLinear(1))
     policy = TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
-    env.rollout(2, policy)  # materialise the lazy layers
     optim = torch.optim.Adam(policy.parameters(), lr=2e-3)
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optim, 20_000)
 
-    def iteration():
+    def iteration() -> tuple[float, float]:
         init_td = env.reset(env.gen_params(batch_size=[32]))
         rollout = env.rollout(100, policy, tensordict=init_td, auto_reset=False)
         traj_return = rollout["next", "reward"].mean()
@@ -227,12 +234,56 @@ def torchrl_tutorial(iterations: int) -> float:
         scheduler.step()
         return traj_return.item(), rollout[..., -1]["next", "reward"].mean().item()
 
+    return iteration
+
+
+def torchrl_tutorial(iterations: int) -> float:
+    """Iterations/s of the tutorial's training over `iterations` iterations after 3 untimed ones."""
+    iteration = tutorial_trainer(0)
     for _ in range(3):
         iteration()
     t0 = time.perf_counter()
     for _ in range(iterations):
         iteration()
     return iterations / (time.perf_counter() - t0)
+
+
+def torchrl_tutorial_learn(seed: int, iterations: int = 20_000 // 32) -> dict:
+    """The tutorial's full training (625 iterations) for one seed: final-50-iteration means of its
+    two logged figures, and iterations/s over the whole run."""
+    import tensordict
+    import torch
+    import torchrl
+
+    iteration = tutorial_trainer(seed)
+    t0 = time.perf_counter()
+    logs = [iteration() for _ in range(iterations)]
+    rate = iterations / (time.perf_counter() - t0)
+    return {"seed": seed, "mean_reward_final50": statistics.mean(r for r, _ in logs[-50:]),
+            "last_reward_final50": statistics.mean(last for _, last in logs[-50:]), "it_per_s": rate,
+            "iterations": iterations, "torch": torch.__version__, "torchrl": torchrl.__version__,
+            "tensordict": tensordict.__version__}
+
+
+def torchrl_learn(python: str, seeds: list[int]) -> list[dict]:
+    """`torchrl_tutorial_learn` for each seed, each in a fresh process of `python`; prints a table."""
+    print(f"TorchRL tutorial training ({python}), 625 iterations, final-50 means:")
+    print(f"{'seed':>6} {'mean reward':>12} {'last-step reward':>17} {'it/s':>7} {'wall s':>8}")
+    out = []
+    for seed in seeds:
+        t0 = time.perf_counter()
+        res, proc = run_worker(python, os.path.abspath(__file__), ["--torchrl-learn", str(seed)])
+        wall = time.perf_counter() - t0
+        if res is None:
+            print(f"torchrl worker failed (seed {seed}):\n{proc.stderr[-2000:]}")
+            continue
+        out.append({**res, "wall_s": wall})
+        print(f"{seed:>6} {res['mean_reward_final50']:>12.3f} {res['last_reward_final50']:>17.3f} "
+              f"{res['it_per_s']:>7.2f} {wall:>8.1f}", flush=True)
+    if out:
+        print(f"{'mean':>6} {statistics.mean(o['mean_reward_final50'] for o in out):>12.3f} "
+              f"{statistics.mean(o['last_reward_final50'] for o in out):>17.3f}   (targets >= -3.0, >= -0.7)")
+    return out
 
 
 def learn(device: str) -> list[dict]:
@@ -261,11 +312,13 @@ def main() -> None:
     p.add_argument("--torchrl-python", default=DEFAULT_TORCHRL if os.path.exists(DEFAULT_TORCHRL) else "")
     p.add_argument("--torchrl-iterations", type=int, default=20)
     p.add_argument("--learn", action="store_true")
+    p.add_argument("--torchrl-learn", type=int, nargs="+", default=[], metavar="SEED")
     p.add_argument("--json", default="")
     p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     a = p.parse_args()
     if a.worker:
-        report({"it_per_s": torchrl_tutorial(a.torchrl_iterations)})
+        report(torchrl_tutorial_learn(a.torchrl_learn[0]) if a.torchrl_learn
+               else {"it_per_s": torchrl_tutorial(a.torchrl_iterations)})
         return
 
     import torch
@@ -276,6 +329,15 @@ def main() -> None:
     dev = torch.cuda.get_device_name() if a.device.startswith("cuda") else f"{cpu}, {os.cpu_count()} cores"
     print(f"# stateless Pendulum, {datetime.date.today()}, {dev}, torch {torch.__version__}, "
           f"threads {a.threads}, device {a.device}")
+    if a.torchrl_learn:  # the TorchRL learning reference alone
+        if not a.torchrl_python:
+            sys.exit("--torchrl-learn needs --torchrl-python")
+        learned = torchrl_learn(a.torchrl_python, a.torchrl_learn)
+        if a.json:
+            with open(a.json, "w") as f:
+                json.dump({"date": str(datetime.date.today()), "machine": dev, "torchrl_python": a.torchrl_python,
+                           "torchrl_learn": learned}, f, indent=1)
+        return
     rows = []
     print(f"{'batch':>8} {'stateless steps/s':>18} {'adapter steps/s':>16} {'gymnasium steps/s':>18} {'ratio':>8}")
     for b in [int(x) for x in a.batches.split(",")]:

@@ -47,6 +47,15 @@ class Selector:
         """n slots (with repetition) and the probability each had of being selected."""
         raise NotImplementedError
 
+    def select_items(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """`select`, plus the key and priority in each slot selected."""
+        slots, probs = self.select(n, rng)
+        return slots, probs, self.slot_key.take(slots), self.priority.take(slots)
+
+    # Set by a selector that can do a table's whole update_priorities in one compiled pass:
+    # (keys, priorities) -> the largest priority written, -1.0 if no key was live.
+    update_keys: Any = None
+
     def pop(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """n distinct slots to remove (the table deletes them afterwards)."""
         raise NotImplementedError
@@ -130,6 +139,9 @@ class Prioritized(Selector):
     def bind(self, capacity: int, slot_key: np.ndarray, priority: np.ndarray) -> None:
         super().bind(capacity, slot_key, priority)
         self.tree = make_sum_tree(capacity)
+        self.compiled = hasattr(self.tree, "update_live")
+        if self.compiled:
+            self.update_keys = self._update_keys_compiled
 
     def insert(self, slots: np.ndarray, keys: np.ndarray) -> None:
         self.tree.set_power(slots, self.priority, self.priority_exponent)
@@ -151,6 +163,15 @@ class Prioritized(Selector):
             live = np.flatnonzero(self.slot_key >= 0)
             return live[rng.integers(0, live.size, n)], np.full(n, 1.0 / live.size)
         return self.tree.sample(rng.random(n))
+
+    def select_items(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        if not self.compiled or self.tree.total <= 0.0:
+            return super().select_items(n, rng)
+        return self.tree.sample_items(rng.random(n), self.slot_key, self.priority)
+
+    def _update_keys_compiled(self, keys: np.ndarray, priorities: np.ndarray) -> float:
+        """Priorities and leaves of the keys still live, in one pass (the table's lock held)."""
+        return self.tree.update_live(self.slot_key, self.priority, keys, priorities, self.priority_exponent)
 
     def pop(self, n: int, rng: np.random.Generator) -> np.ndarray:
         chosen: list[int] = []

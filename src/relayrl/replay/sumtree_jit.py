@@ -64,6 +64,36 @@ def _update_parents(tree: np.ndarray, node: np.ndarray) -> None:
 
 
 @_compile
+def _update_live(tree: np.ndarray, base: int, slot_key: np.ndarray, priority: np.ndarray, keys: np.ndarray,
+                 prios: np.ndarray, exponent: float, node: np.ndarray) -> float:
+    """A table's `update_priorities` in one pass: for each key still live in its slot, write
+    its priority and its leaf, then fix the ancestors. Returns the largest priority written,
+    -1.0 when no key was live, or -2.0 (nothing written) when a priority is not finite and >= 0."""
+    for j in range(prios.size):
+        p = prios[j]
+        if not (p >= 0.0 and p < np.inf):  # NaN fails both
+            return -2.0
+    capacity = slot_key.size
+    top = -1.0
+    n = 0
+    for j in range(keys.size):  # in order, so a repeated key keeps its last priority
+        key = keys[j]
+        if key < 0:
+            continue
+        slot = key % capacity
+        if slot_key[slot] != key:  # deleted, or its slot reused since it was sampled
+            continue
+        p = prios[j]
+        priority[slot] = p
+        tree[base + slot] = p ** exponent
+        node[n] = base + slot
+        n += 1
+        top = max(top, p)
+    _update_parents(tree, node[:n])
+    return top
+
+
+@_compile
 def _find(tree: np.ndarray, base: int, u: np.ndarray, scale: float, node: np.ndarray, mass: np.ndarray) -> None:
     if u.size == 0:  # as in `_update_parents`: node[0] below must exist
         return
@@ -82,6 +112,19 @@ def _find(tree: np.ndarray, base: int, u: np.ndarray, scale: float, node: np.nda
     for j in range(x.size):
         mass[j] = tree[node[j]]
         node[j] -= base
+
+
+@_compile
+def _find_items(tree: np.ndarray, base: int, u: np.ndarray, node: np.ndarray, prob: np.ndarray,
+                slot_key: np.ndarray, priority: np.ndarray, key: np.ndarray, prio: np.ndarray) -> None:
+    """`_find` for u in [0, 1), with each leaf's probability, and the table's key and priority
+    of each slot found, gathered here while the loop's loads overlap."""
+    total = tree[1]
+    _find(tree, base, u, total, node, prob)
+    for j in range(u.size):
+        prob[j] /= total
+        key[j] = slot_key[node[j]]
+        prio[j] = priority[node[j]]
 
 
 class CompiledSumTree:
@@ -131,6 +174,31 @@ class CompiledSumTree:
         total = self.total
         node, mass = self._find(uniform, total)
         return node, mass / total
+
+    def update_live(self, slot_key: np.ndarray, priority: np.ndarray, keys: np.ndarray, prios: np.ndarray,
+                    exponent: float) -> float:
+        """For each key still live in its slot (`slot_key[key % size] == key`), set
+        `priority[slot] = p` and the leaf to `p ** exponent`. Returns the largest priority
+        written (-1.0: no key was live); raises, writing nothing, on a priority not finite
+        and >= 0. One compiled pass: a Table's `update_priorities` for a prioritized sampler."""
+        keys = np.ascontiguousarray(keys, dtype=np.int64)
+        prios = np.ascontiguousarray(prios, dtype=np.float64)
+        if keys.size != prios.size:  # the loop reads prios[j] for every key, unchecked
+            raise ValueError(f"{keys.size} keys but {prios.size} priorities")
+        top = _update_live(self.tree, self.base, slot_key, priority, keys, prios, float(exponent),
+                           np.empty(keys.size, np.int64))
+        if top == -2.0:
+            raise ValueError("priorities must be finite and >= 0")
+        return top
+
+    def sample_items(self, uniform: np.ndarray, slot_key: np.ndarray,
+                     priority: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """`sample(uniform)` plus `slot_key` and `priority` at the leaves found. The total must be > 0."""
+        n = uniform.size
+        node, prob = np.empty(n, np.int64), np.empty(n, np.float64)
+        key, prio = np.empty(n, np.int64), np.empty(n, np.float64)
+        _find_items(self.tree, self.base, uniform, node, prob, slot_key, priority, key, prio)
+        return node, prob, key, prio
 
     def _find(self, u: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
         node = np.empty(u.size, np.int64)

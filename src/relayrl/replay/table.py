@@ -71,6 +71,10 @@ class Table:
         self.inserts_wait = True
         for selector in (sampler, remover):
             selector.bind(max_size, self.slot_key, self.priority)
+        # A compiled prioritized sampler updates keys in one pass, when the remover has no
+        # use for priorities (Fifo, Lifo, Uniform); otherwise both are told in NumPy.
+        fused = sampler.update_keys if type(remover).update is Selector.update else None
+        self._update_keys: Callable[[np.ndarray, np.ndarray], float] = fused or self._update_slots
 
     # ---- introspection ------------------------------------------------------------------
     @property
@@ -199,21 +203,29 @@ class Table:
             raise ValueError(f"Table {self.name!r}: {keys.size} keys but {priorities.size} priorities")
         if priorities.size == 0:
             return
-        top = float(priorities.max())
-        if not (top < np.inf and priorities.min() >= 0.0):  # a NaN fails both comparisons
-            raise ValueError(f"Table {self.name!r}: priorities must be finite and >= 0")
         with self._cv:
-            slots = keys % self.max_size
-            live = self.slot_key.take(slots) == keys
-            if np.count_nonzero(live) < live.size:
-                slots, priorities = slots[live], priorities[live]
-                if slots.size == 0:
-                    return
-                top = float(priorities.max())
-            self.priority[slots] = priorities
-            self.max_priority = max(self.max_priority, top)
-            self.sampler.update(slots)
-            self.remover.update(slots)
+            try:
+                top = self._update_keys(keys, priorities)
+            except ValueError:
+                raise ValueError(f"Table {self.name!r}: priorities must be finite and >= 0") from None
+            if top >= 0.0:
+                self.max_priority = max(self.max_priority, top)
+
+    def _update_slots(self, keys: np.ndarray, priorities: np.ndarray) -> float:
+        """update_priorities in NumPy, telling both selectors; returns the largest priority
+        written (-1.0: no key was live)."""
+        if not _valid_priorities(priorities):
+            raise ValueError("priorities must be finite and >= 0")
+        slots = keys % self.max_size
+        live = (self.slot_key.take(slots) == keys) & (keys >= 0)  # key -1 would match an empty slot
+        if np.count_nonzero(live) < live.size:
+            slots, priorities = slots[live], priorities[live]
+            if slots.size == 0:
+                return -1.0
+        self.priority[slots] = priorities
+        self.sampler.update(slots)
+        self.remover.update(slots)
+        return float(priorities.max())
 
     def delete(self, keys: np.ndarray) -> int:
         """Remove items by key; returns how many were still in the table."""
@@ -265,10 +277,9 @@ class Table:
         if self.max_times_sampled > 0:
             return self._sample_counted(n)
         size = self.size
-        slots, probs = self.sampler.select(n, self.rng)
+        slots, probs, keys, prios = self.sampler.select_items(n, self.rng)
         self.rate_limiter.samples += n
-        info = SampleInfo(self.slot_key.take(slots), probs, size, self.priority.take(slots))
-        return self.storage.read(slots), info
+        return self.storage.read(slots), SampleInfo(keys, probs, size, prios)
 
     def _sample_counted(self, n: int) -> tuple[Any, SampleInfo]:
         # One item at a time, as Reverb does, so an item is never handed out more often
