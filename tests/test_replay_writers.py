@@ -272,6 +272,44 @@ def test_one_step_flush_paths_leave_exactly_the_general_paths_state(num_envs, n_
         _assert_same(fast, _run(stream, False, **kw))
 
 
+@pytest.mark.parametrize("num_envs", [3, 7])
+@pytest.mark.parametrize("n_step", [1, 3])
+@pytest.mark.parametrize("max_size", [1_000, 40])
+@pytest.mark.parametrize("frame_stack", [1, 3])
+def test_compiled_batched_step_leaves_the_numpy_paths_state(num_envs, n_step, max_size, frame_stack):
+    # relayrl[fast]: a one-step flush of B > 1 envs without episode ends runs in two numba
+    # loops (step_jit.py). Rare episode ends, so most steps take it; the rest fall back.
+    pytest.importorskip("numba", reason="the compiled step needs numba (pip install relayrl[fast])")
+    rng = np.random.default_rng(num_envs + n_step)
+    shape, spec = ((frame_stack, 2, 2), ArraySpec((frame_stack, 2, 2), torch.float32)) if frame_stack > 1 \
+        else ((1,), OBS)
+
+    def actions(rng):
+        return torch.from_numpy(rng.standard_normal((num_envs, 2)).astype(np.float32))
+
+    stream = _stream(rng, num_envs, 150, obs_shape=shape, action=actions, p_end=0.03)
+
+    def run(compiled):
+        t = Table("t", max_size, Uniform(), Fifo(), MinSize(1), seed=0)
+        w = TransitionWriter(t, num_envs, spec, ArraySpec((2,), torch.float32), gamma=G, n_step=n_step,
+                             frame_stack=frame_stack, chunk_length=10_000)
+        assert (w._batched_step is not None) is True
+        if not compiled:
+            w._batched_step = None  # the vectorised NumPy path
+        for st in stream:
+            w(st)
+            w.flush()
+        return _writer_state(t, w)
+
+    _assert_same(run(True), run(False))
+
+
+def test_without_numba_the_batched_step_is_numpy(monkeypatch):
+    monkeypatch.setenv("RELAYRL_NUMBA", "0")
+    t = Table("t", 100, Uniform(), Fifo(), MinSize(1), seed=0)
+    assert TransitionWriter(t, 4, OBS, ACT, gamma=G)._batched_step is None
+
+
 @pytest.mark.parametrize("num_envs", [1, 2])
 @pytest.mark.parametrize("action_shape", [(1,), (3,)])
 def test_float_vector_actions_round_trip(num_envs, action_shape):

@@ -15,6 +15,7 @@ turns sampled references into training data. No item ever spans an episode bound
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -41,6 +42,18 @@ class Sequence(NamedTuple):
 
 
 _NEVER = np.iinfo(np.int64).max // 2  # "no final row yet"
+
+
+def _compiled_batched_step() -> Any:
+    """step_jit.batched_step when numba imports (relayrl[fast]) and RELAYRL_NUMBA is not 0."""
+    if os.environ.get("RELAYRL_NUMBA", "1") == "0":
+        return None
+    try:
+        from relayrl.replay.step_jit import batched_step
+    except ImportError:  # no numba: the NumPy path writes the same rows and items
+        return None
+    return batched_step
+
 
 
 def _np_dtype(spec: Spec) -> np.dtype:
@@ -325,6 +338,7 @@ class TransitionWriter(_Writer):
         self.lookahead = n_step
         self.gamma = gamma
         self.powers = gamma ** np.arange(n_step + 1, dtype=np.float64)  # [n+1]
+        self._batched_step = _compiled_batched_step() if num_envs > 1 else None
         super().__init__(table, num_envs, obs_spec, action_spec, frame_stack, path, rows, pin_memory, chunk_length)
 
     def _close_items(self) -> None:
@@ -374,6 +388,10 @@ class TransitionWriter(_Writer):
     def _flush_one(self, t: Transition) -> bool:
         if self.num_envs == 1:
             one_env_step(self, t)
+            return True
+        if self._batched_step is not None and not (np.count_nonzero(to_numpy(t.terminated))
+                                                   or np.count_nonzero(to_numpy(t.truncated))):
+            self._batched_step(self, t)
             return True
         return super()._flush_one(t)
 
