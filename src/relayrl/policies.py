@@ -137,7 +137,8 @@ class TanhGaussianPolicy:
         a_dim = out.shape[1] // 2
         u = out[:, :a_dim]  # [B, A]
         if not self.deterministic:
-            log_std = np.clip(out[:, a_dim:], *self.log_std_bounds)
+            lo, hi = self.log_std_bounds
+            log_std = np.minimum(np.maximum(out[:, a_dim:], lo), hi)  # np.clip's values; its wrapper costs ~7 us
             u = u + np.exp(log_std) * self.rng.standard_normal(u.shape, dtype=np.float32)
         return torch.from_numpy((self.loc + self.half * np.tanh(u)).astype(np.float32, copy=False))
 
