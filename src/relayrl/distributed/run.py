@@ -45,6 +45,10 @@ from relayrl.training.variables import VariableContainer
 
 CALL_CHUNKS = 4  # chunks per collect call: long enough that a call's RPC costs little
 CALLS_QUEUED = 2  # collect calls queued per actor: the next one starts without the driver
+# An actor Ray reports unavailable (restarting, or too slow to answer on a busy machine) is
+# asked again after RETRY_S; only this many such answers in a row count as a death.
+RETRY_S = 0.2
+UNAVAILABLE_LIMIT = 150
 
 
 class DistributedRun(RunLog):
@@ -73,6 +77,10 @@ class DistributedRun(RunLog):
         self.t0 = time.perf_counter()
         self.accepted = [0] * self.K  # env steps the replay server took from each actor
         self.failures = [0] * self.K
+        self.unavailable = [0] * self.K  # ActorUnavailableError answers in a row
+        self.tokens: list[str | None] = [None] * self.K  # each actor's incarnation, from its last answer
+        self.restart_counted = [False] * self.K  # this spell of "unavailable" already counted a restart
+        self.retry_at = [0.0] * self.K  # monotonic time before which actor i is not asked again
         self.restarting: set[int] = set()
         self.dead: set[int] = set()
         self.inflight: dict[Any, tuple[int, int]] = {}  # collect call -> (actor, env steps asked)
@@ -164,7 +172,7 @@ class DistributedRun(RunLog):
 
     def _submit(self, i: int) -> None:
         """Queue a collect call on actor i for its share of the steps still to take."""
-        if i in self.dead:
+        if i in self.dead or time.monotonic() < self.retry_at[i]:
             return
         c = self.config
         asked = sum(n for _, n in self.inflight.values())
@@ -188,21 +196,74 @@ class DistributedRun(RunLog):
             i, _ = self.inflight.pop(ref)
             try:
                 r = ray.get(ref)
+            except ray.exceptions.ActorUnavailableError as e:  # a RayActorError, but maybe not a death
+                self._on_actor_unavailable(i, e)
+                continue
             except ray.exceptions.RayActorError as e:
                 self._on_actor_death(i, e)
                 continue
+            self.unavailable[i] = 0
+            if self.tokens[i] is not None and r["token"] != self.tokens[i] and not self.restart_counted[i]:
+                # A new incarnation after "unavailable" answers only: Ray restarted a crashed actor.
+                self._count_restart(i, "it crashed")
+            self.tokens[i] = r["token"]
+            self.restart_counted[i] = False
             self.restarting.discard(i)
             self.accepted[i] = max(self.accepted[i], int(r["accepted"]))
             self.stats.add_finished(r["returns"], r["lengths"], r["info"])
             self._submit(i)
+        self._top_up()
         return bool(ready)
 
-    def _on_actor_death(self, i: int, error: Exception) -> None:
-        ray, d = self.ray, self.config.distributed
+    def _top_up(self) -> None:
+        """Give every live actor its CALLS_QUEUED calls while steps remain. Steps that a failed
+        actor's calls had asked for are free again: the other actors must take them, or a run
+        whose calls all ended before a failure would stop short of total_steps."""
+        queued = [0] * self.K
+        for i, _ in self.inflight.values():
+            queued[i] += 1
+        for i in range(self.K):
+            for _ in range(CALLS_QUEUED - queued[i]):
+                self._submit(i)
+
+    def _retry_pending(self) -> bool:
+        """An actor waits out RETRY_S before it is asked again, with steps still to take."""
+        now = time.monotonic()
+        return any(i not in self.dead and now < self.retry_at[i] for i in range(self.K)) and \
+            self.env_steps() < self.config.train.total_steps
+
+    def _drop_calls(self, i: int) -> None:
+        """Forget actor i's calls in flight (queued behind the one that failed: they fail too);
+        count the steps the replay server already took from it."""
         for ref in [r for r, (j, _) in self.inflight.items() if j == i]:
-            del self.inflight[ref]  # queued behind the call that died: they fail too
-        shipped = ray.get(self.server.info.remote())["shipped"]
+            del self.inflight[ref]
+        shipped = self.ray.get(self.server.info.remote())["shipped"]
         self.accepted[i] = max(self.accepted[i], int(shipped[i]))
+
+    def _on_actor_unavailable(self, i: int, error: Exception) -> None:
+        # Ray says the actor may come back: it crashed and is being restarted, or it did not
+        # answer in time on a busy machine. Ask again shortly. A restart is counted once per
+        # spell: when Ray says it is restarting, when its next answer comes from a new
+        # incarnation (`_poll_workers`), or when it stays away UNAVAILABLE_LIMIT times.
+        self.unavailable[i] += 1
+        if self.unavailable[i] > UNAVAILABLE_LIMIT:
+            self.unavailable[i] = 0
+            self._on_actor_death(i, error)
+            return
+        self._drop_calls(i)
+        self.restarting.add(i)
+        self.retry_at[i] = time.monotonic() + RETRY_S
+        if not self.restart_counted[i] and "restarting" in str(error):  # Ray: "The actor is restarting."
+            self.restart_counted[i] = True
+            self._count_restart(i, "it crashed")
+
+    def _on_actor_death(self, i: int, error: Exception) -> None:
+        self._drop_calls(i)
+        self.tokens[i] = None  # its next incarnation is this restart, counted here
+        self._count_restart(i, type(error).__name__)
+
+    def _count_restart(self, i: int, why: str) -> None:
+        d = self.config.distributed
         self.failures[i] += 1
         if self.failures[i] > d.max_restarts:
             self.dead.add(i)
@@ -212,10 +273,9 @@ class DistributedRun(RunLog):
                 raise RuntimeError("every rollout actor died; continue from the last checkpoint with --resume")
             return
         self.restarting.add(i)
-        self.say(f"rollout actor {i} died ({type(error).__name__}); Ray restarts it and it goes on from the "
+        self.say(f"rollout actor {i} died ({why}); Ray restarts it and it goes on from the "
                  f"latest weights (restart {self.failures[i]} of at most {d.max_restarts})")
-        for _ in range(CALLS_QUEUED):
-            self._submit(i)
+        self._top_up()
 
     # ---- evaluation ---------------------------------------------------------------------
     def _interval_eval(self, p: Progress) -> None:
@@ -346,7 +406,7 @@ class DistributedRun(RunLog):
             for trigger in self.triggers:
                 trigger(p)
             self._finish_evals()
-            if not self.inflight:
+            if not self.inflight and not self._retry_pending():
                 if collected_at is None:
                     collected_at = self.table.requests
                 # Collection is over: stop once a sample request sent after it found the rate
@@ -355,7 +415,10 @@ class DistributedRun(RunLog):
                     break
             if not n and not moved:  # nothing to do: sleep until an actor or the server answers
                 waiting = [*self.inflight] if self.collect_only else [*self.inflight, self.table.pending]
-                ray.wait(waiting, num_returns=1, timeout=1.0)
+                if waiting:
+                    ray.wait(waiting, num_returns=1, timeout=RETRY_S if self._retry_pending() else 1.0)
+                else:
+                    time.sleep(RETRY_S)  # only an actor waiting to be asked again
         p = self.progress()
         if self.last_eval.get("step") != p.env_steps:
             self.submit_eval(p)

@@ -147,7 +147,7 @@ class RolloutWorker:
         self.global_steps = 0  # the run's env steps, for env-step schedules (DQN's epsilon)
         self.collect_policy = agent.collect_policy(lambda: self.global_steps, net)
         self.random_policy = RandomPolicy(self.env.action_spec, np.random.default_rng(seed + 1))
-        token = uuid.uuid4().hex
+        token = self.token = uuid.uuid4().hex  # one per incarnation: the driver tells restarts by it
         ray.get(server.register.remote(index, token))
         self.shipper = ChunkShipper(server, index, token, frame_stack(self.env.observation_spec))
         self.episodes = EpisodeLog()
@@ -165,7 +165,8 @@ class RolloutWorker:
             self.actor.run(min(self.chunk_steps, steps - taken))
         self.shipper.wait()
         returns, lengths, info = self.episodes.take()
-        return {"index": self.index, "env_steps": self.actor.env_steps - start, "accepted": self.shipper.accepted,
+        return {"index": self.index, "token": self.token, "env_steps": self.actor.env_steps - start,
+                "accepted": self.shipper.accepted,
                 "returns": returns, "lengths": lengths, "info": info, "policy_version": self.puller.version}
 
     def pid(self) -> int:

@@ -53,7 +53,7 @@ class WriterGroup:
         root = Path(path) if path is not None else None
         self.writers = [make_writer(table, i, None if root is None else root / f"writer{i}")
                         for i in range(num_writers)]
-        # Each slot belongs to one writer at a time, so one slot map serves them all (24 bytes
+        # Each slot belongs to one writer at a time, so one slot map serves them all (32 bytes
         # per slot, shared instead of once per actor).
         for w in self.writers[1:]:
             w.slot_ref, w.slot_rows = self.writers[0].slot_ref, self.writers[0].slot_rows
