@@ -196,7 +196,7 @@ class DistributedRun(RunLog):
             i, _ = self.inflight.pop(ref)
             try:
                 r = ray.get(ref)
-            except ray.exceptions.ActorUnavailableError as e:  # a RayActorError, but maybe not a death
+            except getattr(ray.exceptions, "ActorUnavailableError", ()) as e:  # Ray >= 2.2x; maybe not a death
                 self._on_actor_unavailable(i, e)
                 continue
             except ray.exceptions.RayActorError as e:

@@ -59,7 +59,6 @@ def _compiled_batched_step() -> Any:
     return batched_step
 
 
-
 def _np_dtype(spec: Spec) -> np.dtype:
     return torch.zeros((), dtype=spec.dtype).numpy().dtype
 
