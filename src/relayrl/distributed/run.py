@@ -45,8 +45,8 @@ from relayrl.training.variables import VariableContainer
 
 CALL_CHUNKS = 4  # chunks per collect call: long enough that a call's RPC costs little
 CALLS_QUEUED = 2  # collect calls queued per actor: the next one starts without the driver
-# An actor Ray reports unavailable (restarting, or too slow to answer on a busy machine) is
-# asked again after RETRY_S; only this many such answers in a row count as a death.
+# An actor Ray reports unavailable (restarting after a crash, or its connection lost) is asked
+# again every RETRY_S; this many such answers in a row count as a second failure.
 RETRY_S = 0.2
 UNAVAILABLE_LIMIT = 150
 
@@ -204,7 +204,7 @@ class DistributedRun(RunLog):
                 continue
             self.unavailable[i] = 0
             if self.tokens[i] is not None and r["token"] != self.tokens[i] and not self.restart_counted[i]:
-                # A new incarnation after "unavailable" answers only: Ray restarted a crashed actor.
+                # A new incarnation that no failed call announced: it crashed while idle.
                 self._count_restart(i, "it crashed")
             self.tokens[i] = r["token"]
             self.restart_counted[i] = False
@@ -241,10 +241,11 @@ class DistributedRun(RunLog):
         self.accepted[i] = max(self.accepted[i], int(shipped[i]))
 
     def _on_actor_unavailable(self, i: int, error: Exception) -> None:
-        # Ray says the actor may come back: it crashed and is being restarted, or it did not
-        # answer in time on a busy machine. Ask again shortly. A restart is counted once per
-        # spell: when Ray says it is restarting, when its next answer comes from a new
-        # incarnation (`_poll_workers`), or when it stays away UNAVAILABLE_LIMIT times.
+        # Ray says the actor may come back: it crashed and Ray is restarting it, or the
+        # connection dropped. Count one restart for the whole spell (its queued calls and
+        # those sent while it restarts fail the same way: each used to count, so one crash
+        # used up every restart) and ask again every RETRY_S until it answers; UNAVAILABLE_LIMIT
+        # answers in a row count as a death of their own.
         self.unavailable[i] += 1
         if self.unavailable[i] > UNAVAILABLE_LIMIT:
             self.unavailable[i] = 0
@@ -253,9 +254,9 @@ class DistributedRun(RunLog):
         self._drop_calls(i)
         self.restarting.add(i)
         self.retry_at[i] = time.monotonic() + RETRY_S
-        if not self.restart_counted[i] and "restarting" in str(error):  # Ray: "The actor is restarting."
+        if not self.restart_counted[i]:
             self.restart_counted[i] = True
-            self._count_restart(i, "it crashed")
+            self._count_restart(i, type(error).__name__)
 
     def _on_actor_death(self, i: int, error: Exception) -> None:
         self._drop_calls(i)
