@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from relayrl.replay import Fifo, MinSize, SequenceWriter, Table, TransitionWriter, Uniform
+from relayrl.replay.sumtree import compiled
 from relayrl.specs import ArraySpec, DiscreteSpec
 from relayrl.types import Transition
 
@@ -279,7 +280,8 @@ def test_one_step_flush_paths_leave_exactly_the_general_paths_state(num_envs, n_
 def test_compiled_batched_step_leaves_the_numpy_paths_state(num_envs, n_step, max_size, frame_stack):
     # relayrl[fast]: a one-step flush of B > 1 envs without episode ends runs in two numba
     # loops (step_jit.py). Rare episode ends, so most steps take it; the rest fall back.
-    pytest.importorskip("numba", reason="the compiled step needs numba (pip install relayrl[fast])")
+    if compiled("step_jit", "bind_batched_step") is None:
+        pytest.skip("the compiled step needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
     rng = np.random.default_rng(num_envs + n_step)
     shape, spec = ((frame_stack, 2, 2), ArraySpec((frame_stack, 2, 2), torch.float32)) if frame_stack > 1 \
         else ((1,), OBS)
@@ -289,12 +291,12 @@ def test_compiled_batched_step_leaves_the_numpy_paths_state(num_envs, n_step, ma
 
     stream = _stream(rng, num_envs, 150, obs_shape=shape, action=actions, p_end=0.03)
 
-    def run(compiled):
+    def run(jit):
         t = Table("t", max_size, Uniform(), Fifo(), MinSize(1), seed=0)
         w = TransitionWriter(t, num_envs, spec, ArraySpec((2,), torch.float32), gamma=G, n_step=n_step,
                              frame_stack=frame_stack, chunk_length=10_000)
         assert (w._batched_step is not None) is True
-        if not compiled:
+        if not jit:
             w._batched_step = None  # the vectorised NumPy path
         for st in stream:
             w(st)

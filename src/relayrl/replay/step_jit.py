@@ -10,6 +10,8 @@ tests/test_replay_writers.py checks that both give the same store, items and tab
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -92,24 +94,26 @@ def _write_and_close(frame: np.ndarray, action: np.ndarray, reward: np.ndarray, 
     return m
 
 
-def _columns(w: TransitionWriter) -> tuple[np.ndarray, ...]:
-    """The writer's flat columns as plain 2-D/1-D ndarrays (views; memmap columns too), made once."""
-    cols = getattr(w, "_step_columns", None)
-    if cols is None:
-        frame, action = np.asarray(w._frame), np.asarray(w._action)
-        cols = w._step_columns = (frame.reshape(frame.shape[0], -1), action.reshape(action.shape[0], -1),
-                                  *(np.asarray(c) for c in (w._reward, w._stamp, w._start, w._last, w._terminated,
-                                                            w._item_key, w._ret, w._disc, w._nlen)))
-    return cols
+def bind_batched_step(w: TransitionWriter) -> Callable[[TransitionWriter, Transition], None]:
+    """`batched_step` for writer `w`, with its columns bound once (when the writer is built)."""
+    return partial(batched_step, columns=_flat_columns(w))
 
 
-def batched_step(w: TransitionWriter, t: Transition) -> None:
+def _flat_columns(w: TransitionWriter) -> tuple[np.ndarray, ...]:
+    """The writer's flat columns as the loops take them: plain 2-D/1-D ndarrays (views, memmap
+    columns too), in `_write_and_close`'s order."""
+    frame, action = np.asarray(w._frame), np.asarray(w._action)
+    return (frame.reshape(frame.shape[0], -1), action.reshape(action.shape[0], -1),
+            *(np.asarray(c) for c in (w._reward, w._stamp, w._start, w._last, w._terminated, w._item_key,
+                                      w._ret, w._disc, w._nlen)))
+
+
+def batched_step(w: TransitionWriter, t: Transition, columns: tuple[np.ndarray, ...]) -> None:
     """Append step `t` of a B-env TransitionWriter in which no episode ended, and insert the
-    items it closes: `_Writer._flush_one`'s NumPy path, compiled."""
+    items it closes: `_Writer._flush_one`'s NumPy path, compiled. `columns`: `_flat_columns(w)`."""
     s, table = w.store, w.table
     b = s.B
-    cols = _columns(w)
-    stamp, item_key = cols[3], cols[7]
+    stamp, item_key = columns[3], columns[7]
     evict = np.empty(b, np.int64)
     count = _evictable(stamp, item_key, table.slot_key, s.head, s.T, s.k, evict)
     if count:
@@ -117,7 +121,7 @@ def batched_step(w: TransitionWriter, t: Transition) -> None:
     obs = to_numpy(t.obs)
     frames = obs[:, -1] if s.k > 1 else obs
     items = np.empty((b, 3), np.int64)
-    m = _write_and_close(*cols, s.head, s.ep_start, w._open_from, s.T, w.n, w.powers,
+    m = _write_and_close(*columns, s.head, s.ep_start, w._open_from, s.T, w.n, w.powers,
                          np.ascontiguousarray(frames).reshape(b, -1),
                          np.ascontiguousarray(to_numpy(t.action)).reshape(b, -1),
                          np.ascontiguousarray(to_numpy(t.reward)).reshape(b), items)

@@ -16,6 +16,7 @@ leaf before it.
 
 from __future__ import annotations
 
+import importlib
 import os
 from typing import Any
 
@@ -23,18 +24,23 @@ import numpy as np
 import torch
 
 
+def compiled(module: str, name: str) -> Any:
+    """`relayrl.replay.<module>.<name>` from a numba module (the `relayrl[fast]` extra), or None
+    without numba or with `RELAYRL_NUMBA=0` (tests, benchmarks): the caller then takes its
+    NumPy path, which gives the same results, only slower per call."""
+    if os.environ.get("RELAYRL_NUMBA", "1") == "0":
+        return None
+    try:
+        return getattr(importlib.import_module(f"relayrl.replay.{module}"), name)
+    except ImportError:  # no numba
+        return None
+
+
 def make_sum_tree(capacity: int) -> Any:
-    """The compiled tree (`sumtree_jit.CompiledSumTree`) when numba is installed
-    (`pip install relayrl[fast]`), else this module's NumPy `SumTree`: same interface, same
-    leaves found. `RELAYRL_NUMBA=0` forces the NumPy tree (tests, benchmarks)."""
-    if os.environ.get("RELAYRL_NUMBA", "1") != "0":
-        try:
-            from relayrl.replay.sumtree_jit import CompiledSumTree
-        except ImportError:  # no numba: the NumPy tree is correct, only slower per call
-            pass
-        else:
-            return CompiledSumTree(capacity)
-    return SumTree(capacity)
+    """The compiled tree (`sumtree_jit.CompiledSumTree`) when `compiled` finds it, else this
+    module's NumPy `SumTree`: same interface, same leaves found."""
+    tree_class = compiled("sumtree_jit", "CompiledSumTree")
+    return tree_class(capacity) if tree_class is not None else SumTree(capacity)
 
 
 def flat_updates(idx: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -15,7 +15,6 @@ turns sampled references into training data. No item ever spans an episode bound
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -25,6 +24,7 @@ import torch
 from relayrl.replay.one_step import one_env_step
 from relayrl.replay.steps import StepStore
 from relayrl.replay.storage import to_numpy
+from relayrl.replay.sumtree import compiled
 from relayrl.replay.table import Table
 from relayrl.specs import Spec
 from relayrl.types import Batch, Transition
@@ -46,17 +46,6 @@ _NEVER = np.iinfo(np.int64).max // 2  # "no final row yet"
 # A slot's record: the item's flat row, its next observation's row, and (transition items)
 # its n-step return and discount, copied from the rows when the item is inserted.
 SLOT_RECORD = np.dtype([("row", np.int64), ("next", np.int64), ("ret", np.float32), ("disc", np.float32)])
-
-
-def _compiled_batched_step() -> Any:
-    """step_jit.batched_step when numba imports (relayrl[fast]) and RELAYRL_NUMBA is not 0."""
-    if os.environ.get("RELAYRL_NUMBA", "1") == "0":
-        return None
-    try:
-        from relayrl.replay.step_jit import batched_step
-    except ImportError:  # no numba: the NumPy path writes the same rows and items
-        return None
-    return batched_step
 
 
 def _np_dtype(spec: Spec) -> np.dtype:
@@ -350,8 +339,10 @@ class TransitionWriter(_Writer):
         self.lookahead = n_step
         self.gamma = gamma
         self.powers = gamma ** np.arange(n_step + 1, dtype=np.float64)  # [n+1]
-        self._batched_step = _compiled_batched_step() if num_envs > 1 else None
         super().__init__(table, num_envs, obs_spec, action_spec, frame_stack, path, rows, pin_memory, chunk_length)
+        # B > 1 one-step flushes in compiled loops (step_jit) when numba is there; else NumPy.
+        bind = compiled("step_jit", "bind_batched_step")
+        self._batched_step = bind(self) if bind is not None and num_envs > 1 else None
 
     def _close_items(self) -> None:
         s, n = self.store, self.n
