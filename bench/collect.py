@@ -2,6 +2,8 @@
 
     .venv/bin/python bench/collect.py [--envs 1 8 32 128] [--seconds 2] [--steps-per-run 1] [--threads 1]
         [--json bench/results/collect.json]
+    .venv/bin/python bench/collect.py --env relayrl/StatelessPendulum-v0 --envs 256 4096 \
+        --vectorization sync --replay-device numpy cpu [--device cuda]
 
 For each N and each vectorization (sync: in this process; async: one worker process per copy):
 
@@ -14,6 +16,11 @@ For each N and each vectorization (sync: in this process; async: one worker proc
          call: 1 (the default) is the sac-batched loop, which trains after every batched step;
          larger values are an actor that only collects (a rollout worker), whose writer
          stages steps and inserts them in chunks
+
+With `--env relayrl/StatelessPendulum-v0` the env is the stateless torch Pendulum (all copies
+one batch of tensors on `--device`), raw is that env stepped with random actions, and
+`--replay-device` compares where the writer keeps frames and actions (numpy: host arrays;
+cpu / cuda: torch tensors there; see `replay.device`).
 
 Overhead = ours' time per env step minus raw's, as a % of raw's: the actor loop's cost on top of
 the env. The issue's target: under 25% at N = 32. Figures are env steps/s, the median of 3
@@ -42,8 +49,10 @@ from relayrl.metrics import EnvironmentSteps, EpisodeStats
 from relayrl.presets import load_config
 from relayrl.training.actor import Actor
 from relayrl.training.replay import build_replay
+from relayrl.training.replay import replay_device as replay_device_of
 
 ENV = "Pendulum-v1"
+STATELESS = "relayrl/StatelessPendulum-v0"
 
 
 def rate(step_batch: Callable[[], None], n: int, seconds: float) -> float:
@@ -58,7 +67,20 @@ def rate(step_batch: Callable[[], None], n: int, seconds: float) -> float:
     return calls * n / elapsed
 
 
-def raw(n: int, vectorization: str) -> tuple[Callable[[], None], Callable[[], None]]:
+def raw(n: int, vectorization: str, env_id: str = ENV,
+        device: str = "cpu") -> tuple[Callable[[], None], Callable[[], None]]:
+    if env_id == STATELESS:
+        env = make_env(env_id, n, device=device)
+        env.reset(seed=0)
+        acts = torch.rand((1024, n, 1), generator=torch.Generator().manual_seed(0)).mul(4).sub(2).to(device)
+        j = 0
+
+        def step_stateless() -> None:
+            nonlocal j
+            env.step(acts[j % 1024])
+            j += 1
+
+        return step_stateless, env.close
     fns = [lambda: gym.make(ENV, disable_env_checker=True)] * n
     cls = gym.vector.AsyncVectorEnv if vectorization == "async" else gym.vector.SyncVectorEnv
     vec = cls(fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
@@ -74,30 +96,36 @@ def raw(n: int, vectorization: str) -> tuple[Callable[[], None], Callable[[], No
     return step, vec.close
 
 
-def ours(n: int, vectorization: str, steps_per_run: int = 1) -> tuple[Callable[[], None], Callable[[], None]]:
+def ours(n: int, vectorization: str, steps_per_run: int = 1, env_id: str = ENV, device: str = "cpu",
+         replay_device: str = "numpy") -> tuple[Callable[[], None], Callable[[], None]]:
     c = load_config("sac-batched", [f"env.num_envs={n}", f"env.vectorization={vectorization}",
-                                    "train.gradient_steps=0", "device=cpu"])
-    env = make_env(ENV, n, vectorization=vectorization)
-    agent = make_agent("sac", c.agent, env.observation_spec, env.action_spec, torch.device("cpu"),
+                                    "train.gradient_steps=0", f"device={device}", f"replay.device={replay_device}"])
+    dev = torch.device(device)
+    env = make_env(env_id, n, vectorization=vectorization, device=dev)
+    agent = make_agent("sac", c.agent, env.observation_spec, env.action_spec, dev,
                        np.random.default_rng(0), c.train.total_steps)
-    table, writer = build_replay(c, env.observation_spec, env.action_spec, run_root=None)  # type: ignore[arg-type]
+    table, writer = build_replay(c, env.observation_spec, env.action_spec, run_root=None,  # type: ignore[arg-type]
+                                 device=replay_device_of(c, dev, env_id == STATELESS))
     acting = copy.deepcopy(agent.policy_network()).requires_grad_(False)
     actor = Actor(env, agent.collect_policy(lambda: 0, acting), [EnvironmentSteps(), EpisodeStats(), writer], seed=0)
     return (lambda: actor.run(n * steps_per_run)), env.close
 
 
-def measure(n: int, vectorization: str, seconds: float, steps_per_run: int) -> dict[str, float]:
+def measure(n: int, vectorization: str, seconds: float, steps_per_run: int, env_id: str = ENV,
+            device: str = "cpu", replay_device: str = "numpy") -> dict[str, float]:
     figures: dict[str, list[float]] = {"raw": [], "ours": []}
     for _ in range(3):
         for name in ("raw", "ours"):
-            step, close = raw(n, vectorization) if name == "raw" else ours(n, vectorization, steps_per_run)
+            step, close = (raw(n, vectorization, env_id, device) if name == "raw"
+                           else ours(n, vectorization, steps_per_run, env_id, device, replay_device))
             per_call = n if name == "raw" else n * steps_per_run
             try:
                 figures[name].append(rate(step, per_call, seconds))
             finally:
                 close()
     r, o = statistics.median(figures["raw"]), statistics.median(figures["ours"])
-    return {"n": n, "vectorization": vectorization, "raw_sps": r, "ours_sps": o, "overhead_pct": 100 * (r / o - 1)}
+    return {"n": n, "vectorization": vectorization, "env": env_id, "replay_device": replay_device,
+            "raw_sps": r, "ours_sps": o, "overhead_pct": 100 * (r / o - 1)}
 
 
 def main() -> None:
@@ -107,20 +135,25 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=2.0)
     ap.add_argument("--steps-per-run", type=int, default=1)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--env", default=ENV, choices=[ENV, STATELESS])
+    ap.add_argument("--device", default="cpu", help="the stateless env's and the policy's device")
+    ap.add_argument("--replay-device", nargs="+", default=["numpy"], help="numpy | cpu | cuda (replay.device)")
     ap.add_argument("--json")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     print(f"torch threads {args.threads}, batched steps per Actor.run {args.steps_per_run}")
     rows = []
-    print(f"{'N':>5} {'vectorization':>13} {'raw steps/s':>12} {'ours steps/s':>13} {'overhead':>9}")
+    print(f"env {args.env}, device {args.device}")
+    print(f"{'N':>5} {'vectorization':>13} {'replay':>7} {'raw steps/s':>12} {'ours steps/s':>13} {'overhead':>9}")
     for vec in args.vectorization:
         for n in args.envs:
-            if vec == "async" and n == 1:
-                continue  # one copy always steps in process
-            row = measure(n, vec, args.seconds, args.steps_per_run)
-            rows.append(row)
-            print(f"{n:>5} {vec:>13} {row['raw_sps']:>12,.0f} {row['ours_sps']:>13,.0f} {row['overhead_pct']:>8.1f}%",
-                  flush=True)
+            if vec == "async" and (n == 1 or args.env == STATELESS):
+                continue  # one copy always steps in process; a stateless env is one batch of tensors
+            for rd in args.replay_device:
+                row = measure(n, vec, args.seconds, args.steps_per_run, args.env, args.device, rd)
+                rows.append(row)
+                print(f"{n:>5} {vec:>13} {rd:>7} {row['raw_sps']:>12,.0f} {row['ours_sps']:>13,.0f} "
+                      f"{row['overhead_pct']:>8.1f}%", flush=True)
     if args.json:
         meta = {"date": datetime.date.today().isoformat(), "machine": platform.platform(),
                 "threads": args.threads, "steps_per_run": args.steps_per_run,

@@ -24,6 +24,7 @@ def run(args, env, cwd=None):
     (["plot", "/no/such/run"], "does not exist"),
     (["video", "/no/such/run"], "does not exist"),
     (["train", "dqn-cartpole", "--resume"], "--resume needs --run-dir"),
+    (["train"], "train needs PRESET|CONFIG.toml (see `relayrl presets`), or --run-dir DIR --resume"),
     (["frobnicate"], "invalid choice"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, fragment, cli_env, tmp_path):

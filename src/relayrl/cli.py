@@ -28,7 +28,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     sub.add_parser("presets", help="list preset names with a short description")
     t = sub.add_parser("train", help="train a preset or a config TOML into a run directory")
-    t.add_argument("config", metavar="PRESET|CONFIG.toml")
+    t.add_argument("config", metavar="PRESET|CONFIG.toml", nargs="?",
+                   help="what to train (with --resume it may be left out: the run's own config.toml is used)")
     t.add_argument("--run-dir", help="where to write the run (default: runs/<algo>-<env>-s<seed>-<time>)")
     t.add_argument("--seed", type=int)
     t.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -64,6 +65,8 @@ def _train(args: argparse.Namespace) -> None:
         rd = RunDir(args.run_dir)
         rd.require()
         config = load_config(str(rd.config), args.overrides, args.seed)
+    elif not args.config:
+        raise UserError("train needs PRESET|CONFIG.toml (see `relayrl presets`), or --run-dir DIR --resume")
     else:
         config = load_config(args.config, args.overrides, args.seed)
     result = train(config, args.run_dir, resume=args.resume, progress=not args.no_progress)

@@ -61,6 +61,10 @@ class ReplayConfig:
     min_size_to_sample: int = 0  # 0: train.initial_collect_steps (at least one batch)
     storage: str = "ram"  # ram | memmap
     path: str = ""  # memmap directory; "": <run_dir>/replay
+    # Where frames and actions live: numpy (host arrays) or a torch device (cpu, cuda, cuda:N);
+    # auto: the run's device for a stateless torch env on a GPU (env, policy and replay on one
+    # device), else numpy, whose indexing from Python is cheapest on the CPU.
+    device: str = "auto"
 
 
 @dataclass
@@ -120,11 +124,19 @@ class Config:
         for key, valid in choices.items():
             if getattr(r, key) not in valid:
                 raise ConfigError(f"replay.{key}={getattr(r, key)!r} is not valid; valid: {', '.join(valid)}")
+        if r.device not in ("auto", "numpy", "cpu", "cuda") and not r.device.startswith("cuda:"):
+            raise ConfigError(f"replay.device={r.device!r} is not valid; valid: auto, numpy, cpu, cuda, cuda:N")
+        if r.storage == "memmap" and r.device not in ("auto", "numpy"):
+            raise ConfigError(f"replay.device={r.device!r} with replay.storage='memmap': memmap tables live on "
+                              "disk; use replay.device=numpy (or auto)")
         for key in ("priority_exponent", "importance_exponent", "priority_eps", "samples_per_insert",
                     "error_buffer", "min_size_to_sample"):
             if getattr(r, key) < 0:
                 raise ConfigError(f"replay.{key}={getattr(r, key)} is not valid; it must be >= 0")
         d = self.distributed
+        if d.num_actors > 0 and r.device not in ("auto", "numpy"):
+            raise ConfigError(f"replay.device={r.device!r} applies to the one-process loop; the replay server of "
+                              "distributed.num_actors > 0 keeps NumPy arrays (use auto or numpy)")
         for key in ("num_actors", "max_restarts"):
             if getattr(d, key) < 0:
                 raise ConfigError(f"distributed.{key}={getattr(d, key)} is not valid; it must be >= 0")

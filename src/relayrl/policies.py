@@ -110,7 +110,10 @@ class TanhGaussianPolicy:
 
     `deterministic=True` takes u = mean (the eval policy). The actor MLP outputs
     [mean, log_std] per action dim; log_std is clipped to [log_std_min, log_std_max].
-    Actions come back as float32 CPU tensors [B, A]; noise comes from a NumPy generator.
+    Actions come back as float32 CPU tensors [B, A], noise from a NumPy generator; except
+    where the observations come on the policy's (non-CPU) device, as from a stateless env on
+    a GPU: then the actions stay on that device, noise from a torch generator seeded from
+    `rng`, so env, policy and replay never copy through the host.
     """
 
     env_steps: int | None = None  # when a loaded policy was saved (see relayrl.load_policy)
@@ -127,8 +130,11 @@ class TanhGaussianPolicy:
         self.half = ((high - low) / 2.0).astype(np.float32)  # [A]
         self._numpy = (NumpyMLP(actor) if isinstance(actor, MLP) and device.type == "cpu"
                        and all(p.dtype == torch.float32 for p in actor.parameters()) else None)
+        self._gen: torch.Generator | None = None  # noise on the device (see act_on_device)
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
+        if obs.device.type != "cpu" and obs.device.type == self.device.type:  # ("cuda" is "cuda:0" here)
+            return self.act_on_device(obs)
         if self._numpy is not None and self._numpy.suits(obs.shape[0]):
             out = self._numpy(obs.numpy())  # [B, 2A]
         else:
@@ -141,6 +147,20 @@ class TanhGaussianPolicy:
             log_std = np.minimum(np.maximum(out[:, a_dim:], lo), hi)  # np.clip's values; its wrapper costs ~7 us
             u = u + np.exp(log_std) * self.rng.standard_normal(u.shape, dtype=np.float32)
         return torch.from_numpy((self.loc + self.half * np.tanh(u)).astype(np.float32, copy=False))
+
+    def act_on_device(self, obs: torch.Tensor) -> torch.Tensor:
+        """The same policy in torch ops on the observations' device: actions [B, A] there."""
+        with torch.no_grad():
+            out = self.actor(obs)  # [B, 2A]
+            u, log_std = out.chunk(2, dim=-1)
+            if not self.deterministic:
+                if self._gen is None:
+                    self._gen = torch.Generator(device=obs.device)
+                    self._gen.manual_seed(int(self.rng.integers(1 << 62)))
+                noise = torch.randn(u.shape, generator=self._gen, device=obs.device, dtype=u.dtype)
+                u = u + log_std.clamp(*self.log_std_bounds).exp() * noise
+            loc, half = (torch.from_numpy(x).to(obs.device) for x in (self.loc, self.half))
+            return loc + half * torch.tanh(u)
 
 
 class ClampedPolicy:

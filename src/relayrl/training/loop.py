@@ -17,6 +17,7 @@ from tqdm import tqdm
 from relayrl.agents import make_agent
 from relayrl.config import Config, from_dict, save_toml, to_dict
 from relayrl.envs import make_env
+from relayrl.envs.stateless.adapter import StatelessBatchEnv
 from relayrl.errors import UserError
 from relayrl.metrics import EnvironmentSteps, EpisodeStats
 from relayrl.policies import RandomPolicy, linear_schedule
@@ -24,7 +25,7 @@ from relayrl.training.actor import Actor
 from relayrl.training.checkpoint import load_latest_checkpoint
 from relayrl.training.evaluate import evaluate, make_eval_env
 from relayrl.training.learner import Learner
-from relayrl.training.replay import build_replay, collect_only
+from relayrl.training.replay import build_replay, collect_only, replay_device
 from relayrl.training.run_dir import MetricsLog, RunDir
 from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver, Progress, StepsPerSecond
 from relayrl.training.variables import VariableContainer, WeightPuller
@@ -158,7 +159,9 @@ class LocalRun(RunLog):
         obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
         self.agent = make_agent(c.algo, c.agent, obs_spec, act_spec, self.device,
                                 np.random.default_rng(c.seed + 1), c.train.total_steps)
-        self.replay, self.writer = build_replay(c, obs_spec, act_spec, run_dir.root)
+        stateless = isinstance(self.env, StatelessBatchEnv)
+        self.replay, self.writer = build_replay(c, obs_spec, act_spec, run_dir.root,
+                                                replay_device(c, self.device, stateless))
         # One thread collects and learns in turn: an insert waiting on the rate limiter could
         # never be released (after a resume that dropped stale items, it was); the learner's
         # `available_steps` after each collect call keeps the ratio.

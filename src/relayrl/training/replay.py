@@ -82,11 +82,25 @@ def frame_stack(obs_spec: Spec) -> int:
     return k if ok else 1
 
 
-def build_replay(c: Config, obs_spec: Spec, action_spec: Spec, run_root: Path) -> tuple[Table, TransitionWriter]:
+def replay_device(c: Config, run_device: torch.device, stateless_env: bool) -> torch.device | None:
+    """Where the writer keeps frames and actions (`replay.device`); None: NumPy arrays."""
+    d = c.replay.device
+    if d == "auto":
+        return run_device if stateless_env and run_device.type != "cpu" else None
+    if d == "numpy":
+        return None
+    if d.startswith("cuda") and not torch.cuda.is_available():
+        raise ConfigError(f"replay.device={d!r} but CUDA is not available here; valid: auto, numpy, cpu")
+    return torch.device(d)
+
+
+def build_replay(c: Config, obs_spec: Spec, action_spec: Spec, run_root: Path,
+                 device: torch.device | None = None) -> tuple[Table, TransitionWriter]:
+    """`device`: where frames and actions live (see `replay_device`); None: NumPy arrays."""
     table = build_table(c)
     writer = TransitionWriter(table, c.env.num_envs, obs_spec, action_spec, gamma=c.agent.gamma,
                               n_step=c.replay.n_step, frame_stack=frame_stack(obs_spec),
-                              path=replay_path(c, run_root))
+                              path=replay_path(c, run_root), device=device)
     return table, writer
 
 

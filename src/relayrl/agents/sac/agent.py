@@ -66,7 +66,7 @@ class SACAgent:
 
     @property
     def alpha(self) -> float:
-        return float(self.log_alpha.exp())
+        return float(self.log_alpha.detach().exp())
 
     def _policy(self, deterministic: bool, network: torch.nn.Module | None = None) -> TanhGaussianPolicy:
         s = self.action_spec
