@@ -101,8 +101,12 @@ def bind_batched_step(w: TransitionWriter) -> Callable[[TransitionWriter, Transi
 
 def _flat_columns(w: TransitionWriter) -> tuple[np.ndarray, ...]:
     """The writer's flat columns as the loops take them: plain 2-D/1-D ndarrays (views, memmap
-    columns too), in `_write_and_close`'s order."""
-    frame, action = np.asarray(w._frame), np.asarray(w._action)
+    columns too), in `_write_and_close`'s order. Frames and actions on a torch device are
+    written apart (`batched_step`): the loops get empty rows for them."""
+    if w.store.on_device:
+        frame = action = np.empty((w.store.B * w.store.T, 0), np.float32)
+    else:
+        frame, action = np.asarray(w._frame), np.asarray(w._action)
     return (frame.reshape(frame.shape[0], -1), action.reshape(action.shape[0], -1),
             *(np.asarray(c) for c in (w._reward, w._stamp, w._start, w._last, w._terminated, w._item_key,
                                       w._ret, w._disc, w._nlen)))
@@ -118,12 +122,17 @@ def batched_step(w: TransitionWriter, t: Transition, columns: tuple[np.ndarray, 
     count = _evictable(stamp, item_key, table.slot_key, s.head, s.T, s.k, evict)
     if count:
         table.delete(evict[:count])
-    obs = to_numpy(t.obs)
-    frames = obs[:, -1] if s.k > 1 else obs
+    frames = t.obs[:, -1] if s.k > 1 else t.obs
     items = np.empty((b, 3), np.int64)
-    m = _write_and_close(*columns, s.head, s.ep_start, w._open_from, s.T, w.n, w.powers,
-                         np.ascontiguousarray(frames).reshape(b, -1),
-                         np.ascontiguousarray(to_numpy(t.action)).reshape(b, -1),
+    if s.on_device:  # the rows this step takes; the loops write the bookkeeping, torch the data
+        rows = s.envs * s.T + s.head % s.T
+        s._put("frame", rows, frames)
+        s._put("action", rows, t.action)
+        frames_np = actions_np = np.empty((b, 0), np.float32)
+    else:
+        frames_np = np.ascontiguousarray(to_numpy(frames)).reshape(b, -1)
+        actions_np = np.ascontiguousarray(to_numpy(t.action)).reshape(b, -1)
+    m = _write_and_close(*columns, s.head, s.ep_start, w._open_from, s.T, w.n, w.powers, frames_np, actions_np,
                          np.ascontiguousarray(to_numpy(t.reward)).reshape(b), items)
     if m:
         item_key[items[:m, 1]] = table.insert_batch(items[:m], n=m)

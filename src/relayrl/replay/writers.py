@@ -238,8 +238,7 @@ class _Writer:
         staged = self._staged
         if not staged:
             return
-        # The one-step paths write NumPy rows; a store on a device takes the general path.
-        if len(staged) == 1 and not self.store.on_device and self._flush_one(staged[0]):
+        if len(staged) == 1 and self._flush_one(staged[0]):
             staged.clear()
             return
         chunk = stack_steps(staged, self.store.k, keep_tensors=self.store.on_device)
@@ -261,7 +260,10 @@ class _Writer:
 
     def _flush_one(self, t: Transition) -> bool:
         """One staged step (a 1:1 collect/train loop flushes every step): write it on a short
-        path if there is one; False leaves it to the general path."""
+        path if there is one; False leaves it to the general path (always, for a store on a
+        device: this path writes NumPy rows)."""
+        if self.store.on_device:
+            return False
         if np.count_nonzero(to_numpy(t.terminated)) or np.count_nonzero(to_numpy(t.truncated)):
             return False
         obs = to_numpy(t.obs)
@@ -358,7 +360,7 @@ class TransitionWriter(_Writer):
                          device)
         # B > 1 one-step flushes in compiled loops (step_jit) when numba is there; else NumPy.
         bind = compiled("step_jit", "bind_batched_step")
-        self._batched_step = bind(self) if bind is not None and num_envs > 1 and not self.store.on_device else None
+        self._batched_step = bind(self) if bind is not None and num_envs > 1 else None
 
     def _close_items(self) -> None:
         s, n = self.store, self.n
@@ -405,7 +407,7 @@ class TransitionWriter(_Writer):
         self._insert(e, q, q + n)
 
     def _flush_one(self, t: Transition) -> bool:
-        if self.num_envs == 1:
+        if self.num_envs == 1 and not self.store.on_device:  # (Python scalars: host rows only)
             one_env_step(self, t)
             return True
         if self._batched_step is not None and not (np.count_nonzero(to_numpy(t.terminated))
