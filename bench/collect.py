@@ -38,6 +38,7 @@ import platform
 import statistics
 import time
 from collections.abc import Callable
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -67,33 +68,31 @@ def rate(step_batch: Callable[[], None], n: int, seconds: float) -> float:
     return calls * n / elapsed
 
 
+def cycle(step: Callable[[Any], Any], actions: Any) -> Callable[[], None]:
+    """A no-argument step that feeds `step` the pre-drawn `actions` in turn."""
+    i = 0
+
+    def step_next() -> None:
+        nonlocal i
+        step(actions[i % len(actions)])
+        i += 1
+
+    return step_next
+
+
 def raw(n: int, vectorization: str, env_id: str = ENV,
         device: str = "cpu") -> tuple[Callable[[], None], Callable[[], None]]:
     if env_id == STATELESS:
         env = make_env(env_id, n, device=device)
         env.reset(seed=0)
         acts = torch.rand((1024, n, 1), generator=torch.Generator().manual_seed(0)).mul(4).sub(2).to(device)
-        j = 0
-
-        def step_stateless() -> None:
-            nonlocal j
-            env.step(acts[j % 1024])
-            j += 1
-
-        return step_stateless, env.close
+        return cycle(env.step, acts), env.close
     fns = [lambda: gym.make(ENV, disable_env_checker=True)] * n
     cls = gym.vector.AsyncVectorEnv if vectorization == "async" else gym.vector.SyncVectorEnv
     vec = cls(fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
     vec.reset(seed=0)
     actions = np.random.default_rng(0).uniform(-2, 2, (1024, n, 1)).astype(np.float32)
-    i = 0
-
-    def step() -> None:
-        nonlocal i
-        vec.step(actions[i % 1024])
-        i += 1
-
-    return step, vec.close
+    return cycle(vec.step, actions), vec.close
 
 
 def ours(n: int, vectorization: str, steps_per_run: int = 1, env_id: str = ENV, device: str = "cpu",
