@@ -131,6 +131,7 @@ class TanhGaussianPolicy:
         self._numpy = (NumpyMLP(actor) if isinstance(actor, MLP) and device.type == "cpu"
                        and all(p.dtype == torch.float32 for p in actor.parameters()) else None)
         self._gen: torch.Generator | None = None  # noise on the device (see act_on_device)
+        self._bounds: tuple[torch.Tensor, torch.Tensor] | None = None  # loc, half there
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
         if obs.device.type != "cpu" and obs.device.type == self.device.type:  # ("cuda" is "cuda:0" here)
@@ -159,7 +160,9 @@ class TanhGaussianPolicy:
                     self._gen.manual_seed(int(self.rng.integers(1 << 62)))
                 noise = torch.randn(u.shape, generator=self._gen, device=obs.device, dtype=u.dtype)
                 u = u + log_std.clamp(*self.log_std_bounds).exp() * noise
-            loc, half = (torch.from_numpy(x).to(obs.device) for x in (self.loc, self.half))
+            if self._bounds is None or self._bounds[0].device != obs.device:  # moved once, not every step
+                self._bounds = (torch.from_numpy(self.loc).to(obs.device), torch.from_numpy(self.half).to(obs.device))
+            loc, half = self._bounds
             return loc + half * torch.tanh(u)
 
 
