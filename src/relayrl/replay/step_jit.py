@@ -125,7 +125,7 @@ def batched_step(w: TransitionWriter, t: Transition, columns: tuple[np.ndarray, 
     frames = t.obs[:, -1] if s.k > 1 else t.obs
     items = np.empty((b, 3), np.int64)
     if s.on_device:  # the rows this step takes; the loops write the bookkeeping, torch the data
-        rows = s.envs * s.T + s.head % s.T
+        rows = s.head_rows()
         s._put("frame", rows, frames)
         s._put("action", rows, t.action)
         frames_np = actions_np = np.empty((b, 0), np.float32)

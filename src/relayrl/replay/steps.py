@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from relayrl.replay.storage import Columns, to_numpy
+from relayrl.replay.storage import Columns, to_numpy, torch_dtype
 
 DATA = ("frame", "action")  # the columns that live on `device` when the store has one
 
@@ -56,7 +56,7 @@ class StepStore:
         if self.device is not None:
             for name in DATA:
                 shape, dtype = sig.pop(name)
-                self.data[name] = torch.zeros((num_envs, rows, *shape), dtype=_torch_dtype(dtype), device=self.device)
+                self.data[name] = torch.zeros((num_envs, rows, *shape), dtype=torch_dtype(dtype), device=self.device)
         self.cols = Columns(sig, (num_envs, rows), path=path)
         c = {**self.cols.arrays, **self.data}
         self.frame, self.action, self.reward, self.stamp = c["frame"], c["action"], c["reward"], c["stamp"]
@@ -131,10 +131,14 @@ class StepStore:
         else:
             self.head = self.head + c
 
+    def head_rows(self) -> np.ndarray:
+        """The flat rows each env's next step takes: [B]."""
+        return self.envs * self.T + self.head % self.T
+
     def write_step(self, frames: np.ndarray, actions: np.ndarray, rewards: np.ndarray) -> np.ndarray:
         """Append one batched step in which no episode ended; returns its positions [B]."""
         pos = self.head.copy()
-        self._write_rows(self.envs * self.T + pos % self.T, pos, self.ep_start, frames, actions, rewards)
+        self._write_rows(self.head_rows(), pos, self.ep_start, frames, actions, rewards)
         self.head += 1
         return pos
 
@@ -221,10 +225,6 @@ class StepStore:
         # ones are never joined to new ones; a writer whose env state was restored too
         # continues them (`_Writer.continue_episodes`).
         self.ep_start[:] = self.head
-
-
-def _torch_dtype(dtype: np.dtype) -> torch.dtype:
-    return torch.from_numpy(np.zeros(0, dtype)).dtype
 
 
 def _row_view(a: np.ndarray) -> np.ndarray:

@@ -18,6 +18,11 @@ import torch
 Signature = dict[str, tuple[tuple[int, ...], np.dtype]]  # name -> (shape per row, dtype)
 
 
+def torch_dtype(dtype: np.dtype) -> torch.dtype:
+    """The torch dtype of a NumPy dtype (for columns allocated as tensors)."""
+    return torch.from_numpy(np.zeros(0, dtype)).dtype
+
+
 def to_numpy(x: Any) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         try:
@@ -53,8 +58,7 @@ class Columns:
             meta_file.write_text(json.dumps(meta))
         elif self.device is not None and self.device.type != "cpu":
             for name, (shape, dtype) in self.signature.items():
-                tdtype = torch.from_numpy(np.zeros(0, dtype)).dtype
-                self.arrays[name] = torch.zeros(self.leading + shape, dtype=tdtype, device=self.device)
+                self.arrays[name] = torch.zeros(self.leading + shape, dtype=torch_dtype(dtype), device=self.device)
         else:
             for name, (shape, dtype) in self.signature.items():
                 self.arrays[name] = np.zeros(self.leading + shape, dtype=dtype)
