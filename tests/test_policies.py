@@ -1,4 +1,4 @@
-"""Policies: schedules, epsilon-greedy rates, random actions, the NumPy inference path."""
+"""Policies: schedules, epsilon-greedy rates, random actions, the lean CPU inference paths."""
 
 import numpy as np
 import pytest
@@ -16,18 +16,37 @@ def test_linear_schedule_end_points_and_constant():
 
 
 @pytest.mark.parametrize("activation", ["relu", "tanh", "elu"])
-def test_numpy_inference_matches_torch(activation):
+@pytest.mark.parametrize("rows", [7, 50])  # the NumPy path and the addmm path (see CpuMLP)
+def test_cpu_inference_matches_the_module(activation, rows):
+    from relayrl.networks import CpuMLP
+
     torch.manual_seed(0)
-    net = MLP(4, [32, 16], 3, activation)
-    obs = torch.randn(50, 4)
-    greedy = GreedyPolicy(net, torch.device("cpu"))
-    assert greedy._numpy is not None
+    net = MLP(4, [256, 256], 3, activation)
+    obs = torch.randn(rows, 4)
+    cpu = CpuMLP(net)
+    assert cpu.numpy.suits(rows) == (rows == 7)
     with torch.no_grad():
-        assert torch.equal(greedy(obs), net(obs).argmax(1))
-    # the NumPy views follow in-place weight updates
+        np.testing.assert_allclose(cpu(obs), net(obs).numpy(), rtol=1e-5, atol=1e-6)
+        assert torch.equal(GreedyPolicy(net, torch.device("cpu"))(obs), net(obs).argmax(1))
+    # both paths read the parameters' memory: they follow in-place weight updates
+    greedy = GreedyPolicy(net, torch.device("cpu"))
     with torch.no_grad():
         net.layers[-1].bias.add_(torch.tensor([0.0, 0.0, 1e6]))
     assert (greedy(obs) == 2).all()
+    with torch.no_grad():
+        net.load_state_dict({k: torch.zeros_like(v) for k, v in net.state_dict().items()})
+    assert (cpu(obs) == 0).all()
+
+
+def test_cpu_inference_leaves_the_parameters_alone():
+    from relayrl.networks import CpuMLP
+
+    net = MLP(4, [256, 256], 2)  # requires_grad on: the lean path must neither fail nor build a graph
+    before = [p.detach().clone() for p in net.parameters()]
+    out = CpuMLP(net)(torch.randn(64, 4))
+    assert out.shape == (64, 2) and out.dtype == np.float32
+    assert all(torch.equal(a, p) for a, p in zip(before, net.parameters(), strict=True))
+    assert all(p.grad is None for p in net.parameters())
 
 
 def test_numpy_path_serves_small_batches_and_torch_large_ones():

@@ -143,3 +143,42 @@ class NumpyMLP:
             if i < last:
                 x = self._act(x)
         return x
+
+
+_INPLACE_ACTIVATIONS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
+    "relu": torch.relu_,
+    "tanh": torch.tanh_,
+    "elu": F.elu_,
+}
+
+
+class CpuMLP:
+    """An actor's inference-only forward pass of a float32 MLP on the CPU: [B, in] tensor ->
+    [B, out] NumPy array.
+
+    Small batches go through `NumpyMLP`. The rest go through torch.addmm on detached views of
+    the weights, with in-place activations: at 32 rows through (256, 256) that is ~150 us
+    against the module call's ~210-230 us (2026-11-23, one thread), as it skips the module
+    call, the parameter lookups and F.linear's dispatch, and allocates one tensor per layer
+    instead of two. The views share memory with the parameters, so they follow in-place updates
+    (optimizer steps, load_state_dict, weight pulls) and never go stale.
+    """
+
+    def __init__(self, net: MLP) -> None:
+        self.numpy = NumpyMLP(net)  # checks float32 and CPU
+        self.layers = [(layer.weight.detach().t(), layer.bias.detach()) for layer in net.layers]  # [in, out], [out]
+        self._act_ = _INPLACE_ACTIVATIONS[net.activation]
+
+    def __call__(self, obs: torch.Tensor) -> np.ndarray:
+        if self.numpy.suits(obs.shape[0]):
+            return self.numpy(obs.numpy())
+        x = obs.reshape(obs.shape[0], -1) if obs.dim() != 2 else obs  # [B, *obs_shape] -> [B, obs_dim]
+        if x.dtype != torch.float32:
+            x = x.float()
+        x = x.detach()  # no graph (the weights are detached views already)
+        last = len(self.layers) - 1
+        for i, (w_t, b) in enumerate(self.layers):
+            x = torch.addmm(b, x, w_t)  # [B, out]
+            if i < last:
+                x = self._act_(x)
+        return x.numpy()

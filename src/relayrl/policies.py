@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from relayrl.networks import MLP, NumpyMLP
+from relayrl.networks import MLP, CpuMLP
 from relayrl.specs import ArraySpec, DiscreteSpec, Spec
 
 
@@ -35,6 +35,13 @@ def exponential_schedule(start: float, end: float, decay: float) -> Callable[[in
     return value
 
 
+def _cpu_mlp(net: nn.Module, device: torch.device) -> CpuMLP | None:
+    """The lean CPU forward pass of `net` when it is a float32 MLP on the CPU, else None."""
+    if isinstance(net, MLP) and device.type == "cpu" and all(p.dtype == torch.float32 for p in net.parameters()):
+        return CpuMLP(net)
+    return None
+
+
 class RandomPolicy:
     """Uniform random actions from the action spec, for any batch size."""
 
@@ -54,7 +61,8 @@ class RandomPolicy:
 class GreedyPolicy:
     """argmax_a Q(obs, a). Runs the network on its device and returns CPU actions.
 
-    A float32 MLP on the CPU runs small batches through NumPy views of its weights (see NumpyMLP).
+    A float32 MLP on the CPU runs through `CpuMLP` (NumPy views of its weights for small batches,
+    lean torch ops for the rest).
     """
 
     env_steps: int | None = None  # when a loaded policy was saved (see relayrl.load_policy)
@@ -62,12 +70,11 @@ class GreedyPolicy:
     def __init__(self, q_net: nn.Module, device: torch.device) -> None:
         self.q_net = q_net
         self.device = device
-        self._numpy = (NumpyMLP(q_net) if isinstance(q_net, MLP) and device.type == "cpu"
-                       and all(p.dtype == torch.float32 for p in q_net.parameters()) else None)
+        self._cpu = _cpu_mlp(q_net, device)
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
-        if self._numpy is not None and self._numpy.suits(obs.shape[0]):
-            return torch.from_numpy(self._numpy(obs.numpy()).argmax(axis=1))
+        if self._cpu is not None and obs.device.type == "cpu":
+            return torch.from_numpy(self._cpu(obs).argmax(axis=1))
         with torch.no_grad():
             return self.q_net(obs.to(self.device, non_blocking=True)).argmax(dim=1).cpu()
 
@@ -128,16 +135,15 @@ class TanhGaussianPolicy:
         self.log_std_bounds = (log_std_min, log_std_max)
         self.loc = ((high + low) / 2.0).astype(np.float32)  # [A]
         self.half = ((high - low) / 2.0).astype(np.float32)  # [A]
-        self._numpy = (NumpyMLP(actor) if isinstance(actor, MLP) and device.type == "cpu"
-                       and all(p.dtype == torch.float32 for p in actor.parameters()) else None)
+        self._cpu = _cpu_mlp(actor, device)
         self._gen: torch.Generator | None = None  # noise on the device (see act_on_device)
         self._bounds: tuple[torch.Tensor, torch.Tensor] | None = None  # loc, half there
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
         if obs.device.type != "cpu" and obs.device.type == self.device.type:  # ("cuda" is "cuda:0" here)
             return self.act_on_device(obs)
-        if self._numpy is not None and self._numpy.suits(obs.shape[0]):
-            out = self._numpy(obs.numpy())  # [B, 2A]
+        if self._cpu is not None and obs.device.type == "cpu":
+            out = self._cpu(obs)  # [B, 2A]
         else:
             with torch.no_grad():
                 out = self.actor(obs.to(self.device, non_blocking=True)).cpu().numpy()
