@@ -20,7 +20,7 @@ from relayrl.replay import (
     Table,
     Uniform,
 )
-from relayrl.replay.sumtree import SumTree, make_sum_tree
+from relayrl.replay.sumtree import SumTree, compiled, make_sum_tree
 
 
 def filled(max_size, n, sampler=None, remover=None, limiter=None, prios=None, **kw):
@@ -233,6 +233,47 @@ def test_inserting_one_item_on_the_scalar_path_matches_the_array_path(remover, s
     xa, ia = a.sample(64)
     xb, ib = b.sample(64)
     assert xa.tolist() == xb.tolist() and np.array_equal(ia.probability, ib.probability)
+
+
+def test_compiled_insert_into_free_slots_leaves_the_numpy_paths_table():
+    # relayrl[fast]: a Uniform/Fifo table inserts n > 1 items that fit in free slots in one
+    # numba loop (table_jit). Twin tables, one forced onto the NumPy path, through inserts that
+    # fit, that overflow (FIFO victims: NumPy path on both), deletes and samples.
+    if compiled("table_jit", "insert_free") is None:
+        pytest.skip("the compiled insert needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
+    rng = np.random.default_rng(3)
+    a, b = (Table("t", 60, Uniform(), Fifo(), MinSize(1), seed=0) for _ in range(2))
+    assert a._insert_free is not None
+    b._insert_free = None
+    taken = 0
+    for step in range(80):
+        n = int(rng.integers(1, 30))
+        taken += n > 1 and n <= a._num_free
+        items = np.arange(step * 100, step * 100 + n)
+        assert a.insert_batch(items, n=n).tolist() == b.insert_batch(items, n=n).tolist()
+        if rng.random() < 0.5 and a.size:
+            gone = rng.choice(a.slot_key[a.slot_key >= 0], size=min(a.size, int(rng.integers(1, 40))), replace=False)
+            assert a.delete(gone) == b.delete(gone)
+        if rng.random() < 0.3:
+            assert a.sample(5)[0].tolist() == b.sample(5)[0].tolist()
+        for name in ("slot_key", "priority", "times_sampled"):
+            assert np.array_equal(getattr(a, name), getattr(b, name)), name
+        sa, sb, ra, rb = a.sampler, b.sampler, a.remover, b.remover
+        assert (sa.size, sa.identity, ra.size, a._num_free, a._inserted) == (sb.size, sb.identity, rb.size,
+                                                                            b._num_free, b._inserted)
+        assert np.array_equal(sa.dense[:sa.size], sb.dense[:sb.size])
+        live = np.flatnonzero(a.slot_key >= 0)
+        assert np.array_equal(sa.where[live], sb.where[live])
+        assert np.array_equal(ra.queue[ra.head:ra.tail], rb.queue[rb.head:rb.tail])
+        assert contents(a) == contents(b)
+        assert a.rate_limiter.state_dict() == b.rate_limiter.state_dict()
+    assert taken >= 20
+
+
+def test_without_numba_tables_insert_in_numpy(monkeypatch):
+    monkeypatch.setenv("RELAYRL_NUMBA", "0")
+    assert Table("t", 10, Uniform(), Fifo(), MinSize(1))._insert_free is None
+    assert Table("t", 10, Uniform(), Lifo(), MinSize(1))._insert_free is None  # (any NUMBA: only Uniform/Fifo)
 
 
 @pytest.mark.parametrize("queue", [Fifo, Lifo])

@@ -297,7 +297,7 @@ def test_compiled_batched_step_leaves_the_numpy_paths_state(num_envs, n_step, ma
                              frame_stack=frame_stack, chunk_length=10_000)
         assert (w._batched_step is not None) is True
         if not jit:
-            w._batched_step = None  # the vectorised NumPy path
+            w._batched_step = w._write_records = None  # the vectorised NumPy paths
         for st in stream:
             w(st)
             w.flush()
@@ -309,7 +309,8 @@ def test_compiled_batched_step_leaves_the_numpy_paths_state(num_envs, n_step, ma
 def test_without_numba_the_batched_step_is_numpy(monkeypatch):
     monkeypatch.setenv("RELAYRL_NUMBA", "0")
     t = Table("t", 100, Uniform(), Fifo(), MinSize(1), seed=0)
-    assert TransitionWriter(t, 4, OBS, ACT, gamma=G)._batched_step is None
+    w = TransitionWriter(t, 4, OBS, ACT, gamma=G)
+    assert w._batched_step is None and w._write_records is None
 
 
 @pytest.mark.parametrize("num_envs", [1, 2])

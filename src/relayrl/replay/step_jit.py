@@ -94,6 +94,23 @@ def _write_and_close(frame: np.ndarray, action: np.ndarray, reward: np.ndarray, 
     return m
 
 
+@_compile
+def write_records(slot_ref: np.ndarray, slot_rows: np.ndarray, slots: np.ndarray, items: np.ndarray,
+                  ret: np.ndarray, disc: np.ndarray) -> None:
+    """`_Writer.write` for a batch of items: each slot's ref and its record (row, next row, and
+    the row's return and discount). ~2 us for 32 items where the NumPy path's record
+    building takes ~11 us (2026-11-23)."""
+    for j in range(slots.size):
+        slot = slots[j]
+        row = items[j, 1]
+        slot_ref[slot] = items[j, 0]
+        rec = slot_rows[slot]
+        rec["row"] = row
+        rec["next"] = items[j, 2]
+        rec["ret"] = ret[row]
+        rec["disc"] = disc[row]
+
+
 def bind_batched_step(w: TransitionWriter) -> Callable[[TransitionWriter, Transition], None]:
     """`batched_step` for writer `w`, with its columns bound once (when the writer is built)."""
     return partial(batched_step, columns=_flat_columns(w))

@@ -25,13 +25,14 @@ import torch
 
 
 def compiled(module: str, name: str) -> Any:
-    """`relayrl.replay.<module>.<name>` from a numba module (the `relayrl[fast]` extra), or None
-    without numba or with `RELAYRL_NUMBA=0` (tests, benchmarks): the caller then takes its
-    NumPy path, which gives the same results, only slower per call."""
+    """`relayrl.replay.<module>.<name>` (or `<module>.<name>` for a dotted module path) from a
+    numba module (the `relayrl[fast]` extra), or None without numba or with `RELAYRL_NUMBA=0`
+    (tests, benchmarks): the caller then takes its NumPy path, which gives the same results,
+    only slower per call."""
     if os.environ.get("RELAYRL_NUMBA", "1") == "0":
         return None
     try:
-        return getattr(importlib.import_module(f"relayrl.replay.{module}"), name)
+        return getattr(importlib.import_module(module if "." in module else f"relayrl.replay.{module}"), name)
     except ImportError:  # no numba
         return None
 

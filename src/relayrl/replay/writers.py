@@ -134,6 +134,9 @@ class _Writer:
         self._frame, self._action, self._reward, self._stamp = f("frame"), f("action"), f("reward"), f("stamp")
         self._start, self._last, self._terminated = f("start"), f("last"), f("terminated")
         self._item_key, self._ret, self._disc, self._nlen = f("item_key"), f("ret"), f("disc"), f("nlen")
+        # `write` of several items in a compiled loop when numba is there (step_jit.write_records)
+        self._write_records = compiled("step_jit", "write_records")
+        self._ret_disc = (np.asarray(self._ret), np.asarray(self._disc))  # plain views, as numba takes them
         table.storage = self
 
     # ---- the Table's storage interface ---------------------------------------------------
@@ -143,6 +146,9 @@ class _Writer:
             slot, (ref, row, nxt) = slots[0], items[0].tolist()
             self.slot_ref[slot] = ref
             self.slot_rows[slot] = (row, nxt, self._ret[row], self._disc[row])
+            return
+        if self._write_records is not None:
+            self._write_records(self.slot_ref, self.slot_rows, slots, items, *self._ret_disc)
             return
         self.slot_ref[slots] = items[:, 0]
         self.slot_rows[slots] = self._records(items[:, 1], items[:, 2])
