@@ -1,7 +1,9 @@
-"""Batch-aware metrics at batch sizes 1, 7 and 32, against hand-computed values."""
+"""Batch-aware metrics at batch sizes 1, 7 and 32, against hand-computed values, through the
+compiled accumulation (metrics_jit, numba) and the NumPy one."""
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -12,7 +14,20 @@ from relayrl.metrics import (
     EpisodeStats,
     NumberOfEpisodes,
 )
+from relayrl.replay.sumtree import compiled
 from relayrl.types import Transition
+
+
+@pytest.fixture(autouse=True, params=["compiled", "numpy"])
+def accumulation(request, monkeypatch):
+    if request.param == "numpy":
+        monkeypatch.setenv("RELAYRL_NUMBA", "0")
+        assert EpisodeStats()._accumulate is None
+    elif compiled("relayrl.metrics_jit", "accumulate") is None:
+        pytest.skip("the compiled accumulation needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
+    else:
+        assert EpisodeStats()._accumulate is not None
+    return request.param
 
 
 def step(rewards, terminated, truncated=None):
@@ -88,3 +103,25 @@ def test_batch_of_32_with_episodes_ending_at_different_steps_and_a_mid_episode_r
         assert NumberOfEpisodes(s).result() == len(lengths)
         assert AverageReturn(s).result() == pytest.approx(sum(returns) / len(returns))
         assert AverageEpisodeLength(s).result() == pytest.approx(sum(lengths) / len(lengths))
+
+
+def test_float_returns_are_summed_exactly_in_float64():
+    # Both accumulations add each float32 reward to a float64 running sum in step order, so
+    # the episode returns equal a plain Python sum to the last bit.
+    rng = np.random.default_rng(0)
+    rewards = rng.standard_normal((60, 7)).astype(np.float32) * 3.7
+    ended = rng.random((60, 7)) < 0.1
+    stats = EpisodeStats(buffer_size=None)
+    running, expected, lengths = [0.0] * 7, [], []
+    since = [0] * 7
+    for s in range(60):
+        stats(step(rewards[s].tolist(), ended[s].tolist()))
+        for i in range(7):
+            running[i] += float(rewards[s, i])
+            since[i] += 1
+            if ended[s, i]:
+                expected.append(running[i])
+                lengths.append(since[i])
+                running[i], since[i] = 0.0, 0
+    assert list(stats.returns) == expected and list(stats.lengths) == lengths and len(expected) > 20
+    assert stats._ret.tolist() == running

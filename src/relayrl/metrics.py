@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from relayrl.replay.storage import to_numpy
+from relayrl.replay.sumtree import compiled
 from relayrl.types import Transition
 
 
@@ -47,16 +48,26 @@ class EpisodeStats:
         self.episodes = 0
         self._ret: np.ndarray | None = None
         self._len: np.ndarray | None = None
+        self._done: np.ndarray | None = None
+        self._accumulate = compiled("relayrl.metrics_jit", "accumulate")  # None: the NumPy path
 
     def __call__(self, t: Transition) -> None:
         reward = to_numpy(t.reward)  # a view for CPU tensors; device tensors are copied
         if self._ret is None or self._ret.shape[0] != reward.shape[0]:
             self._ret = np.zeros(reward.shape[0], np.float64)
             self._len = np.zeros(reward.shape[0], np.int64)
-        assert self._len is not None
-        self._ret += reward
-        self._len += 1
-        done = to_numpy(t.terminated) | to_numpy(t.truncated)  # NumPy: a tiny torch op costs ~5x more
+            self._done = np.zeros(reward.shape[0], np.bool_)
+        assert self._len is not None and self._done is not None
+        # NumPy, not torch, for these [B] arrays: a tiny torch op costs ~5x more.
+        if self._accumulate is not None:
+            if not self._accumulate(self._ret, self._len, reward, to_numpy(t.terminated), to_numpy(t.truncated),
+                                    self._done):
+                return
+            done = self._done
+        else:
+            self._ret += reward
+            self._len += 1
+            done = to_numpy(t.terminated) | to_numpy(t.truncated)
         if done.any():
             ended = np.flatnonzero(done)
             for i in ended:
@@ -112,6 +123,7 @@ class EpisodeStats:
         if state.get("running") is not None:
             ret, length = state["running"]
             self._ret, self._len = np.array(ret, np.float64), np.array(length, np.int64)
+            self._done = np.zeros(self._ret.shape[0], np.bool_)
 
 
 class AverageReturn:
