@@ -42,7 +42,9 @@ class RemoteTable:
             got = ray.get(self.pending)
             self.answered = self.requests
             self.last_empty = not got
-            self._queue.extend((type(b)(*(None if x is None else torch.from_numpy(x) for x in b)), info)
+            # Ray hands back read-only views of its object store: copies are writable (torch warns
+            # on read-only arrays) and free the store's buffers now, not when the batch is used.
+            self._queue.extend((type(b)(*(None if x is None else torch.from_numpy(np.array(x)) for x in b)), info)
                                for b, info in got)
             self._request()
         return len(self._queue)
