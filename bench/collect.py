@@ -1,7 +1,7 @@
 """Collection throughput of SAC's actor on Pendulum-v1 against Gymnasium's raw vector envs, same run.
 
-    .venv/bin/python bench/collect.py [--envs 1 8 32 128] [--seconds 2] [--steps-per-run 1] [--threads 1]
-        [--json bench/results/collect.json]
+    .venv/bin/python bench/collect.py [--envs 1 8 32 128] [--seconds 2] [--repeats 3] [--steps-per-run 1]
+        [--threads 1] [--json bench/results/collect.json]
     .venv/bin/python bench/collect.py --env relayrl/StatelessPendulum-v0 --envs 256 4096 \
         --vectorization sync --replay-device numpy cpu [--device cuda]
 
@@ -23,9 +23,13 @@ one batch of tensors on `--device`), raw is that env stepped with random actions
 cpu / cuda: torch tensors there; see `replay.device`).
 
 Overhead = ours' time per env step minus raw's, as a % of raw's: the actor loop's cost on top of
-the env. The issue's target: under 25% at N = 32. Figures are env steps/s, the median of 3
-repeats of `--seconds`, raw and ours alternating so they see the same load (the machine is
-shared). torch runs on `--threads` threads (1 by default; the env is single-threaded too).
+the env. The issue's target: under 25% at N = 32. `our env` is relayrl's batched env alone,
+stepped with random actions like raw; "loop only" = ours' time minus our env's, as a % of raw's:
+the policy, replay and metrics, without what our env layer saves (or costs) against Gymnasium's
+vector env. Figures are env steps/s, the median of `--repeats` (3) runs of `--seconds`, raw,
+our env and ours alternating so they see the same load (the machine is shared); the spread of
+the overhead over the (raw, ours) pairs is printed beside it. torch runs on `--threads` threads
+(1 by default; the env is single-threaded too).
 """
 
 from __future__ import annotations
@@ -95,6 +99,14 @@ def raw(n: int, vectorization: str, env_id: str = ENV,
     return cycle(vec.step, actions), vec.close
 
 
+def env_alone(n: int, vectorization: str) -> tuple[Callable[[], None], Callable[[], None]]:
+    """relayrl's own batched env (as `ours` builds it) stepped with pre-drawn random actions."""
+    env = make_env(ENV, n, vectorization=vectorization)
+    env.reset(seed=0)
+    acts = torch.from_numpy(np.random.default_rng(0).uniform(-2, 2, (1024, n, 1)).astype(np.float32))
+    return cycle(env.step, acts), env.close
+
+
 def ours(n: int, vectorization: str, steps_per_run: int = 1, env_id: str = ENV, device: str = "cpu",
          replay_device: str = "numpy") -> tuple[Callable[[], None], Callable[[], None]]:
     c = load_config("sac-batched", [f"env.num_envs={n}", f"env.vectorization={vectorization}",
@@ -111,20 +123,27 @@ def ours(n: int, vectorization: str, steps_per_run: int = 1, env_id: str = ENV, 
 
 
 def measure(n: int, vectorization: str, seconds: float, steps_per_run: int, env_id: str = ENV,
-            device: str = "cpu", replay_device: str = "numpy") -> dict[str, float]:
-    figures: dict[str, list[float]] = {"raw": [], "ours": []}
-    for _ in range(3):
-        for name in ("raw", "ours"):
+            device: str = "cpu", replay_device: str = "numpy", repeats: int = 3) -> dict[str, Any]:
+    names = ("raw", "ours") if env_id == STATELESS else ("raw", "env", "ours")  # (stateless: raw is our env)
+    figures: dict[str, list[float]] = {name: [] for name in names}
+    for _ in range(repeats):
+        for name in names:
             step, close = (raw(n, vectorization, env_id, device) if name == "raw"
+                           else env_alone(n, vectorization) if name == "env"
                            else ours(n, vectorization, steps_per_run, env_id, device, replay_device))
-            per_call = n if name == "raw" else n * steps_per_run
+            per_call = n * steps_per_run if name == "ours" else n
             try:
                 figures[name].append(rate(step, per_call, seconds))
             finally:
                 close()
     r, o = statistics.median(figures["raw"]), statistics.median(figures["ours"])
+    e = statistics.median(figures["env"]) if "env" in figures else r
+    pairs = sorted(100 * (a / b - 1) for a, b in zip(figures["raw"], figures["ours"], strict=True))
     return {"n": n, "vectorization": vectorization, "env": env_id, "replay_device": replay_device,
-            "raw_sps": r, "ours_sps": o, "overhead_pct": 100 * (r / o - 1)}
+            "raw_sps": r, "env_sps": e, "ours_sps": o, "overhead_pct": 100 * (r / o - 1),
+            # the loop's own cost (policy, replay, metrics) over our env, as a % of raw's time
+            "loop_overhead_pct": 100 * (r / o - r / e),
+            "pair_overheads_pct": pairs, "figures": figures}
 
 
 def main() -> None:
@@ -132,6 +151,7 @@ def main() -> None:
     ap.add_argument("--envs", type=int, nargs="+", default=[1, 8, 32, 128])
     ap.add_argument("--vectorization", nargs="+", default=["sync", "async"], choices=["sync", "async"])
     ap.add_argument("--seconds", type=float, default=2.0)
+    ap.add_argument("--repeats", type=int, default=3, help="raw/ours pairs per row; the median is reported")
     ap.add_argument("--steps-per-run", type=int, default=1)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--env", default=ENV, choices=[ENV, STATELESS])
@@ -143,16 +163,19 @@ def main() -> None:
     print(f"torch threads {args.threads}, batched steps per Actor.run {args.steps_per_run}")
     rows = []
     print(f"env {args.env}, device {args.device}")
-    print(f"{'N':>5} {'vectorization':>13} {'replay':>7} {'raw steps/s':>12} {'ours steps/s':>13} {'overhead':>9}")
+    print(f"{'N':>5} {'vectorization':>13} {'replay':>7} {'raw steps/s':>12} {'our env':>9} {'ours steps/s':>13} "
+          f"{'overhead':>9} {'loop only':>9}  pairs (min..max)")
     for vec in args.vectorization:
         for n in args.envs:
             if vec == "async" and (n == 1 or args.env == STATELESS):
                 continue  # one copy always steps in process; a stateless env is one batch of tensors
             for rd in args.replay_device:
-                row = measure(n, vec, args.seconds, args.steps_per_run, args.env, args.device, rd)
+                row = measure(n, vec, args.seconds, args.steps_per_run, args.env, args.device, rd, args.repeats)
                 rows.append(row)
-                print(f"{n:>5} {vec:>13} {rd:>7} {row['raw_sps']:>12,.0f} {row['ours_sps']:>13,.0f} "
-                      f"{row['overhead_pct']:>8.1f}%", flush=True)
+                lo, hi = row["pair_overheads_pct"][0], row["pair_overheads_pct"][-1]
+                print(f"{n:>5} {vec:>13} {rd:>7} {row['raw_sps']:>12,.0f} {row['env_sps']:>9,.0f} "
+                      f"{row['ours_sps']:>13,.0f} {row['overhead_pct']:>8.1f}% {row['loop_overhead_pct']:>8.1f}%  "
+                      f"{lo:.1f}..{hi:.1f}%", flush=True)
     if args.json:
         meta = {"date": datetime.date.today().isoformat(), "machine": platform.platform(),
                 "threads": args.threads, "steps_per_run": args.steps_per_run,
