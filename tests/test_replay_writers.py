@@ -306,6 +306,44 @@ def test_compiled_batched_step_leaves_the_numpy_paths_state(num_envs, n_step, ma
     _assert_same(run(True), run(False))
 
 
+def test_fused_flush_takes_only_tables_with_room_for_a_whole_step():
+    # The batched step writes rows and inserts items in one compiled call (_step_and_insert)
+    # while a Uniform/Fifo table has B free slots and its limiter lets B inserts through;
+    # otherwise it takes the general path. Both leave the same state (the test above).
+    if compiled("step_jit", "bind_batched_step") is None:
+        pytest.skip("the compiled step needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
+    from relayrl.replay import Prioritized, SampleToInsertRatio
+
+    stream = _stream(np.random.default_rng(5), 4, 30, p_end=0.0)
+
+    def paths(table):
+        w = TransitionWriter(table, 4, OBS, ACT, gamma=G, n_step=2)
+        return [w._batched_step(w, st) for st in stream]
+
+    assert all(paths(Table("t", 1_000, Uniform(), Fifo(), MinSize(1), seed=0)))
+    # 4 items a step from the 3rd step (n = 2) on: the 12th is the last that finds 4 free slots
+    full = paths(Table("t", 40, Uniform(), Fifo(), MinSize(1), seed=0))
+    assert all(full[:12]) and not any(full[12:])
+    assert not any(paths(Table("t", 1_000, Prioritized(0.6), Fifo(), MinSize(1), seed=0)))
+    # a rate limiter that would make some of B = 4 inserts wait sends the step to the general
+    # path (whose insert waits); the fused path never waits
+    from relayrl.replay.step_jit import _fused_step
+
+    limited = Table("t", 1_000, Uniform(), Fifo(), SampleToInsertRatio(1.0, 1, 10.0), seed=0)
+    w = TransitionWriter(limited, 4, OBS, ACT, gamma=G, n_step=2)
+    columns = w._batched_step.keywords["columns"]
+    st = stream[0]
+
+    def fused():
+        args = st.obs.numpy(), st.action.numpy().reshape(4, -1), st.reward.numpy(), np.empty((4, 3), np.int64)
+        return _fused_step(w, columns, *args)
+
+    limited.rate_limiter.inserts_available = lambda: 3
+    assert not fused() and w.store.head.tolist() == [0, 0, 0, 0]  # declined: nothing written
+    limited.rate_limiter.inserts_available = lambda: 4
+    assert fused() and w.store.head.tolist() == [1, 1, 1, 1]
+
+
 def test_without_numba_the_batched_step_is_numpy(monkeypatch):
     monkeypatch.setenv("RELAYRL_NUMBA", "0")
     t = Table("t", 100, Uniform(), Fifo(), MinSize(1), seed=0)

@@ -1,12 +1,14 @@
-"""B envs, one staged step, no episode end: a TransitionWriter's flush in two compiled loops.
+"""B envs, one staged step, no episode end: a TransitionWriter's flush in compiled loops.
 
 A batched 1:1 collect/train loop (sac-batched: 32 envs, a gradient step after every batched
 step) flushes its writer after every step. The general path (`_Writer._flush_one`) spends
 ~60 NumPy calls on 32-element arrays there (~170 us before the table insert); these loops
-write the same rows and close the same items in ~10 us. Like the compiled sum tree they
-need numba (`relayrl[fast]`); without it, or with RELAYRL_NUMBA=0, the NumPy path runs.
-tests/test_replay_writers.py checks that both give the same store, items and table.
-"""
+write the same rows and close the same items in ~10 us. When the table is Uniform/Fifo with
+room for the step's items (`table_jit`), one call (`_step_and_insert`) also inserts them and
+writes the slot records: the flush is then one compiled call and ~20 lines of Python. Like the
+compiled sum tree they need numba (`relayrl[fast]`); without it, or with RELAYRL_NUMBA=0, the
+NumPy path runs. tests/test_replay_writers.py checks that both give the same store, items and
+table."""
 
 from __future__ import annotations
 
@@ -18,6 +20,7 @@ import numpy as np
 
 from relayrl.replay.storage import to_numpy
 from relayrl.replay.sumtree_jit import _compile
+from relayrl.replay.table_jit import insert_free
 from relayrl.types import Transition
 
 if TYPE_CHECKING:
@@ -111,7 +114,39 @@ def write_records(slot_ref: np.ndarray, slot_rows: np.ndarray, slots: np.ndarray
         rec["disc"] = disc[row]
 
 
-def bind_batched_step(w: TransitionWriter) -> Callable[[TransitionWriter, Transition], None]:
+@_compile
+def _step_and_insert(frame: np.ndarray, action: np.ndarray, reward: np.ndarray, stamp: np.ndarray, start: np.ndarray,
+                     last: np.ndarray, terminated: np.ndarray, item_key: np.ndarray, ret: np.ndarray,
+                     disc: np.ndarray, nlen: np.ndarray, head: np.ndarray, ep_start: np.ndarray,
+                     open_from: np.ndarray, rows: int, n: int, k: int, powers: np.ndarray, obs: np.ndarray,
+                     act: np.ndarray, rew: np.ndarray, items: np.ndarray, slot_ref: np.ndarray, slot_rows: np.ndarray,
+                     slot_key: np.ndarray, free: np.ndarray, num_free: int, inserted: int, priority: np.ndarray,
+                     max_priority: float, times_sampled: np.ndarray, dense: np.ndarray, where: np.ndarray, size: int,
+                     identity: bool, queue: np.ndarray, tail: int, slots: np.ndarray,
+                     keys: np.ndarray) -> tuple[int, bool]:
+    """The whole one-step flush for a host store whose table is Uniform/Fifo with room for B
+    more items: `_write_and_close`, then the table's insert (`table_jit.insert_free`), the
+    writer's slot records and each row's item key, in one call instead of four and their
+    Python glue. Returns (items inserted, the sampler's identity flag); (-1, identity) with
+    nothing written when a live item reads a row about to be reused (the caller deletes it
+    on the general path)."""
+    if _evictable(stamp, item_key, slot_key, head, rows, k, slots) > 0:
+        return -1, identity
+    m = _write_and_close(frame, action, reward, stamp, start, last, terminated, item_key, ret, disc, nlen, head,
+                         ep_start, open_from, rows, n, powers, obs, act, rew, items)
+    if m == 0:
+        return 0, identity
+    for j in range(m):
+        slots[j] = free[num_free - 1 - j]  # the free stack's end first, as Table._insert_free_compiled
+    write_records(slot_ref, slot_rows, slots[:m], items[:m], ret, disc)
+    identity = insert_free(slots[:m], inserted, slot_key, priority, max_priority, times_sampled, dense, where, size,
+                           identity, queue, tail, keys[:m])
+    for j in range(m):
+        item_key[items[j, 1]] = keys[j]
+    return m, identity
+
+
+def bind_batched_step(w: TransitionWriter) -> Callable[[TransitionWriter, Transition], bool]:
     """`batched_step` for writer `w`, with its columns bound once (when the writer is built)."""
     return partial(batched_step, columns=_flat_columns(w))
 
@@ -129,27 +164,70 @@ def _flat_columns(w: TransitionWriter) -> tuple[np.ndarray, ...]:
                                       w._ret, w._disc, w._nlen)))
 
 
-def batched_step(w: TransitionWriter, t: Transition, columns: tuple[np.ndarray, ...]) -> None:
+def batched_step(w: TransitionWriter, t: Transition, columns: tuple[np.ndarray, ...]) -> bool:
     """Append step `t` of a B-env TransitionWriter in which no episode ended, and insert the
-    items it closes: `_Writer._flush_one`'s NumPy path, compiled. `columns`: `_flat_columns(w)`."""
+    items it closes: `_Writer._flush_one`'s NumPy path, compiled. `columns`: `_flat_columns(w)`.
+    Returns whether the fused path (`_step_and_insert`) took it."""
     s, table = w.store, w.table
     b = s.B
+    frames = t.obs[:, -1] if s.k > 1 else t.obs
+    items = np.empty((b, 3), np.int64)
+    if not s.on_device:
+        frames_np = np.ascontiguousarray(to_numpy(frames)).reshape(b, -1)
+        actions_np = np.ascontiguousarray(to_numpy(t.action)).reshape(b, -1)
+        rewards = np.ascontiguousarray(to_numpy(t.reward)).reshape(b)
+        if _fused_step(w, columns, frames_np, actions_np, rewards, items):
+            return True
     stamp, item_key = columns[3], columns[7]
     evict = np.empty(b, np.int64)
     count = _evictable(stamp, item_key, table.slot_key, s.head, s.T, s.k, evict)
     if count:
         table.delete(evict[:count])
-    frames = t.obs[:, -1] if s.k > 1 else t.obs
-    items = np.empty((b, 3), np.int64)
     if s.on_device:  # the rows this step takes; the loops write the bookkeeping, torch the data
         rows = s.head_rows()
         s._put("frame", rows, frames)
         s._put("action", rows, t.action)
         frames_np = actions_np = np.empty((b, 0), np.float32)
-    else:
-        frames_np = np.ascontiguousarray(to_numpy(frames)).reshape(b, -1)
-        actions_np = np.ascontiguousarray(to_numpy(t.action)).reshape(b, -1)
+        rewards = np.ascontiguousarray(to_numpy(t.reward)).reshape(b)
     m = _write_and_close(*columns, s.head, s.ep_start, w._open_from, s.T, w.n, w.powers, frames_np, actions_np,
-                         np.ascontiguousarray(to_numpy(t.reward)).reshape(b), items)
+                         rewards, items)
     if m:
         item_key[items[:m, 1]] = table.insert_batch(items[:m], n=m)
+    return False
+
+
+def _fused_step(w: TransitionWriter, columns: tuple[np.ndarray, ...], frames: np.ndarray, actions: np.ndarray,
+                rewards: np.ndarray, items: np.ndarray) -> bool:
+    """`_step_and_insert` under the table's lock when the table can take B items at once
+    without waiting (free slots, a non-blocking rate limiter, queue room); False, with nothing
+    written, when it cannot or when a row's reuse needs a delete first."""
+    s, table = w.store, w.table
+    b = s.B
+    if table._insert_free is None or table.storage is not w:
+        return False
+    sampler, remover = table.sampler, table.remover
+    with table._cv:
+        if table._num_free < b or (table.inserts_wait and table.rate_limiter.inserts_available() < b):
+            return False
+        if remover.tail + b > remover.queue.size:
+            remover._compact(b)  # as its insert would
+        slots = np.empty(b, np.int64)
+        keys = np.empty(b, np.int64)
+        m, identity = _step_and_insert(*columns, s.head, s.ep_start, w._open_from, s.T, w.n, s.k, w.powers, frames,
+                                       actions, rewards, items, w.slot_ref, w.slot_rows, table.slot_key, table._free,
+                                       table._num_free, table._inserted, table.priority, table.max_priority,
+                                       table.times_sampled, sampler.dense, sampler.where, sampler.size,
+                                       sampler.identity, remover.queue, remover.tail, slots, keys)
+        if m < 0:
+            return False
+        if m:
+            sampler.identity = identity
+            table._num_free -= m
+            table._inserted += m
+            sampler.size += m
+            remover.tail += m
+            remover.size += m
+            table.rate_limiter.inserts += m
+            if table._waiting:
+                table._cv.notify_all()
+    return True
