@@ -420,3 +420,18 @@ def test_sampled_batches_read_the_rows_items_were_written_from():
     assert np.array_equal(batch.obs.numpy(), w.store.frame[env, pos % w.rows])
     assert np.array_equal(batch.next_obs.numpy(), w.store.frame[env, (pos + nlen) % w.rows])
     assert np.array_equal(batch.reward.numpy(), w.store.ret[env, pos % w.rows])
+
+
+def test_compiled_row_sort_matches_argsort():
+    if compiled("step_jit", "bind_batched_step") is None:
+        pytest.skip("the compiled step needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
+    from relayrl.replay.step_jit import _sort_rows
+
+    rng = np.random.default_rng(0)
+    for m in (0, 1, 2, 3, 33, 500):
+        items = np.stack([rng.permutation(10 * m + 1)[:m] * 7 + 3, rng.integers(0, 9, m), rng.integers(0, 9, m)], 1)
+        items = np.concatenate([items, np.full((4, 3), -1)])  # rows past m stay as they are
+        want = items.copy()
+        want[:m] = items[:m][np.argsort(items[:m, 0])]
+        _sort_rows(items, m)
+        assert np.array_equal(items, want)

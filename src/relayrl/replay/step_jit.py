@@ -61,8 +61,10 @@ def _write_and_close(frame: np.ndarray, action: np.ndarray, reward: np.ndarray, 
     for b in range(num_envs):
         pos = head[b]
         i = b * rows + pos % rows
-        frame[i, :] = obs[b, :]
-        action[i, :] = act[b, :]
+        for c in range(obs.shape[1]):  # loops, not slice copies: those cost seconds of compiling
+            frame[i, c] = obs[b, c]
+        for c in range(act.shape[1]):
+            action[i, c] = act[b, c]
         reward[i] = rew[b]
         stamp[i] = pos + 1
         start[i] = ep_start[b]
@@ -92,9 +94,27 @@ def _write_and_close(frame: np.ndarray, action: np.ndarray, reward: np.ndarray, 
             ordered = False
         m += 1
     if not ordered:  # envs at different positions: oldest first
-        order = np.argsort(items[:m, 0])
-        items[:m] = items[:m][order]
+        _sort_rows(items, m)
     return m
+
+
+@_compile
+def _sort_rows(items: np.ndarray, m: int) -> None:
+    """Sort items[:m] by their first column (unique refs) in place: a shell sort. numba's
+    np.argsort plus the row gather took ~9 s to compile from a cold cache (every new install,
+    every CI run); this takes ~0.3 s, and 0.75 ms for 4,096 shuffled rows (argsort: 0.4 ms).
+    The rows come nearly in order (one run per group of envs at the same position), where it
+    is fastest."""
+    gap = m // 2
+    while gap > 0:
+        for i in range(gap, m):
+            r0, r1, r2 = items[i, 0], items[i, 1], items[i, 2]
+            j = i
+            while j >= gap and items[j - gap, 0] > r0:
+                items[j, 0], items[j, 1], items[j, 2] = items[j - gap, 0], items[j - gap, 1], items[j - gap, 2]
+                j -= gap
+            items[j, 0], items[j, 1], items[j, 2] = r0, r1, r2
+        gap //= 2
 
 
 @_compile
