@@ -235,23 +235,26 @@ def test_inserting_one_item_on_the_scalar_path_matches_the_array_path(remover, s
     assert xa.tolist() == xb.tolist() and np.array_equal(ia.probability, ib.probability)
 
 
-def test_compiled_insert_into_free_slots_leaves_the_numpy_paths_table():
-    # relayrl[fast]: a Uniform/Fifo table inserts n > 1 items that fit in free slots in one
-    # numba loop (table_jit). Twin tables, one forced onto the NumPy path, through inserts that
-    # fit, that overflow (FIFO victims: NumPy path on both), deletes and samples.
-    if compiled("table_jit", "insert_free") is None:
+@pytest.mark.parametrize("stale_keys", [False, True])
+def test_compiled_insert_leaves_the_numpy_paths_table(stale_keys):
+    # relayrl[fast]: a Uniform/Fifo table inserts n > 1 items in numba loops (table_jit): free
+    # slots, then the Fifo's oldest live items as victims. Twin tables, one forced onto the
+    # NumPy path, through inserts that fit, that overflow (victims), deletes (stale keys the
+    # victim search must skip) and samples.
+    if compiled("table_jit", "insert_slots") is None:
         pytest.skip("the compiled insert needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
     rng = np.random.default_rng(3)
     a, b = (Table("t", 60, Uniform(), Fifo(), MinSize(1), seed=0) for _ in range(2))
-    assert a._insert_free is not None
-    b._insert_free = None
-    taken = 0
-    for step in range(80):
-        n = int(rng.integers(1, 30))
-        taken += n > 1 and n <= a._num_free
+    assert a._insert_kernels is not None
+    b._insert_kernels = None
+    free_only = with_victims = 0
+    for step in range(120):
+        n = int(rng.integers(2, 30))
+        free_only += n <= a._num_free
+        with_victims += n > a._num_free
         items = np.arange(step * 100, step * 100 + n)
         assert a.insert_batch(items, n=n).tolist() == b.insert_batch(items, n=n).tolist()
-        if rng.random() < 0.5 and a.size:
+        if rng.random() < (0.5 if stale_keys else 0.1) and a.size:
             gone = rng.choice(a.slot_key[a.slot_key >= 0], size=min(a.size, int(rng.integers(1, 40))), replace=False)
             assert a.delete(gone) == b.delete(gone)
         if rng.random() < 0.3:
@@ -264,16 +267,17 @@ def test_compiled_insert_into_free_slots_leaves_the_numpy_paths_table():
         assert np.array_equal(sa.dense[:sa.size], sb.dense[:sb.size])
         live = np.flatnonzero(a.slot_key >= 0)
         assert np.array_equal(sa.where[live], sb.where[live])
-        assert np.array_equal(ra.queue[ra.head:ra.tail], rb.queue[rb.head:rb.tail])
+        qa, qb = ra.queue[ra.head:ra.tail], rb.queue[rb.head:rb.tail]  # live keys in the same order
+        assert np.array_equal(qa[a.slot_key[qa % 60] == qa], qb[b.slot_key[qb % 60] == qb])
         assert contents(a) == contents(b)
         assert a.rate_limiter.state_dict() == b.rate_limiter.state_dict()
-    assert taken >= 20
+    assert free_only >= 10 and with_victims >= 20
 
 
 def test_without_numba_tables_insert_in_numpy(monkeypatch):
+    assert Table("t", 10, Uniform(), Lifo(), MinSize(1))._insert_kernels is None  # only Uniform/Fifo compile
     monkeypatch.setenv("RELAYRL_NUMBA", "0")
-    assert Table("t", 10, Uniform(), Fifo(), MinSize(1))._insert_free is None
-    assert Table("t", 10, Uniform(), Lifo(), MinSize(1))._insert_free is None  # (any NUMBA: only Uniform/Fifo)
+    assert Table("t", 10, Uniform(), Fifo(), MinSize(1))._insert_kernels is None
 
 
 @pytest.mark.parametrize("queue", [Fifo, Lifo])

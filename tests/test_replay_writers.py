@@ -306,10 +306,11 @@ def test_compiled_batched_step_leaves_the_numpy_paths_state(num_envs, n_step, ma
     _assert_same(run(True), run(False))
 
 
-def test_fused_flush_takes_only_tables_with_room_for_a_whole_step():
+def test_fused_flush_takes_uniform_fifo_tables_full_or_not():
     # The batched step writes rows and inserts items in one compiled call (_step_and_insert)
-    # while a Uniform/Fifo table has B free slots and its limiter lets B inserts through;
-    # otherwise it takes the general path. Both leave the same state (the test above).
+    # for a Uniform/Fifo table whose limiter lets B inserts through, free slots or Fifo
+    # victims alike; otherwise it takes the general path. Both leave the same state (the
+    # twin test above, whose max_size=40 tables fill up).
     if compiled("step_jit", "bind_batched_step") is None:
         pytest.skip("the compiled step needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
     from relayrl.replay import Prioritized, SampleToInsertRatio
@@ -321,10 +322,10 @@ def test_fused_flush_takes_only_tables_with_room_for_a_whole_step():
         return [w._batched_step(w, st) for st in stream]
 
     assert all(paths(Table("t", 1_000, Uniform(), Fifo(), MinSize(1), seed=0)))
-    # 4 items a step from the 3rd step (n = 2) on: the 12th is the last that finds 4 free slots
-    full = paths(Table("t", 40, Uniform(), Fifo(), MinSize(1), seed=0))
-    assert all(full[:12]) and not any(full[12:])
+    full = Table("t", 40, Uniform(), Fifo(), MinSize(1), seed=0)  # 4 items a step from the 3rd step on
+    assert all(paths(full)) and full.size == 40 and full.rate_limiter.deletes == 4 * 28 - 40
     assert not any(paths(Table("t", 1_000, Prioritized(0.6), Fifo(), MinSize(1), seed=0)))
+    assert not any(paths(Table("t", 3, Uniform(), Fifo(), MinSize(1), seed=0)))  # B > max_size
     # a rate limiter that would make some of B = 4 inserts wait sends the step to the general
     # path (whose insert waits); the fused path never waits
     from relayrl.replay.step_jit import _fused_step

@@ -3,12 +3,11 @@
 A batched 1:1 collect/train loop (sac-batched: 32 envs, a gradient step after every batched
 step) flushes its writer after every step. The general path (`_Writer._flush_one`) spends
 ~60 NumPy calls on 32-element arrays there (~170 us before the table insert); these loops
-write the same rows and close the same items in ~10 us. When the table is Uniform/Fifo with
-room for the step's items (`table_jit`), one call (`_step_and_insert`) also inserts them and
-writes the slot records: the flush is then one compiled call and ~20 lines of Python. Like the
-compiled sum tree they need numba (`relayrl[fast]`); without it, or with RELAYRL_NUMBA=0, the
-NumPy path runs. tests/test_replay_writers.py checks that both give the same store, items and
-table."""
+write the same rows and close the same items in ~10 us. When the table is Uniform/Fifo
+(`table_jit`), one call (`_step_and_insert`) also inserts them and writes the slot records:
+the flush is then one compiled call and ~20 lines of Python. Like the compiled sum tree they
+need numba (`relayrl[fast]`); without it, or with RELAYRL_NUMBA=0, the NumPy path runs.
+tests/test_replay_writers.py checks that both give the same store, items and table."""
 
 from __future__ import annotations
 
@@ -20,7 +19,7 @@ import numpy as np
 
 from relayrl.replay.storage import to_numpy
 from relayrl.replay.sumtree_jit import _compile
-from relayrl.replay.table_jit import insert_free
+from relayrl.replay.table_jit import insert_slots, take_slots
 from relayrl.types import Transition
 
 if TYPE_CHECKING:
@@ -142,28 +141,28 @@ def _step_and_insert(frame: np.ndarray, action: np.ndarray, reward: np.ndarray, 
                      act: np.ndarray, rew: np.ndarray, items: np.ndarray, slot_ref: np.ndarray, slot_rows: np.ndarray,
                      slot_key: np.ndarray, free: np.ndarray, num_free: int, inserted: int, priority: np.ndarray,
                      max_priority: float, times_sampled: np.ndarray, dense: np.ndarray, where: np.ndarray, size: int,
-                     identity: bool, queue: np.ndarray, tail: int, slots: np.ndarray,
-                     keys: np.ndarray) -> tuple[int, bool]:
-    """The whole one-step flush for a host store whose table is Uniform/Fifo with room for B
-    more items: `_write_and_close`, then the table's insert (`table_jit.insert_free`), the
-    writer's slot records and each row's item key, in one call instead of four and their
-    Python glue. Returns (items inserted, the sampler's identity flag); (-1, identity) with
-    nothing written when a live item reads a row about to be reused (the caller deletes it
-    on the general path)."""
+                     identity: bool, queue: np.ndarray, queue_head: int, tail: int, slots: np.ndarray,
+                     keys: np.ndarray) -> tuple[int, int, bool, int]:
+    """The whole one-step flush for a host store whose table is Uniform/Fifo: `_write_and_close`,
+    then the table's insert (`table_jit.take_slots`: free slots, then Fifo victims;
+    `table_jit.insert_slots`), the writer's slot records and each row's item key, in one call
+    instead of four and their Python glue. Returns (items inserted m, of them into free slots,
+    the sampler's identity flag, the Fifo queue's new head); m = -1 with nothing written when a
+    live item reads a row about to be reused (the caller deletes it on the general path)."""
     if _evictable(stamp, item_key, slot_key, head, rows, k, slots) > 0:
-        return -1, identity
+        return -1, 0, identity, queue_head
     m = _write_and_close(frame, action, reward, stamp, start, last, terminated, item_key, ret, disc, nlen, head,
                          ep_start, open_from, rows, n, powers, obs, act, rew, items)
     if m == 0:
-        return 0, identity
-    for j in range(m):
-        slots[j] = free[num_free - 1 - j]  # the free stack's end first, as Table._insert_free_compiled
+        return 0, 0, identity, queue_head
+    queue_head = take_slots(slots[:m], free, num_free, slot_key, queue, queue_head, tail)  # (cannot run out:
+    n_free = min(m, num_free)  # the caller checked B <= the table's size)
     write_records(slot_ref, slot_rows, slots[:m], items[:m], ret, disc)
-    identity = insert_free(slots[:m], inserted, slot_key, priority, max_priority, times_sampled, dense, where, size,
-                           identity, queue, tail, keys[:m])
+    identity = insert_slots(slots[:m], n_free, inserted, slot_key, priority, max_priority, times_sampled, dense, where,
+                            size, identity, queue, tail, keys[:m])
     for j in range(m):
         item_key[items[j, 1]] = keys[j]
-    return m, identity
+    return m, n_free, identity, queue_head
 
 
 def bind_batched_step(w: TransitionWriter) -> Callable[[TransitionWriter, Transition], bool]:
@@ -219,35 +218,31 @@ def batched_step(w: TransitionWriter, t: Transition, columns: tuple[np.ndarray, 
 def _fused_step(w: TransitionWriter, columns: tuple[np.ndarray, ...], frames: np.ndarray, actions: np.ndarray,
                 rewards: np.ndarray, items: np.ndarray) -> bool:
     """`_step_and_insert` under the table's lock when the table can take B items at once
-    without waiting (free slots, a non-blocking rate limiter, queue room); False, with nothing
+    without waiting (a Uniform/Fifo table, a non-blocking rate limiter); False, with nothing
     written, when it cannot or when a row's reuse needs a delete first."""
     s, table = w.store, w.table
     b = s.B
-    if table._insert_free is None or table.storage is not w:
+    if table._insert_kernels is None or table.storage is not w or b > table.max_size:
         return False
     sampler, remover = table.sampler, table.remover
     with table._cv:
-        if table._num_free < b or (table.inserts_wait and table.rate_limiter.inserts_available() < b):
+        if table.inserts_wait and table.rate_limiter.inserts_available() < b:
             return False
         if remover.tail + b > remover.queue.size:
             remover._compact(b)  # as its insert would
         slots = np.empty(b, np.int64)
         keys = np.empty(b, np.int64)
-        m, identity = _step_and_insert(*columns, s.head, s.ep_start, w._open_from, s.T, w.n, s.k, w.powers, frames,
-                                       actions, rewards, items, w.slot_ref, w.slot_rows, table.slot_key, table._free,
-                                       table._num_free, table._inserted, table.priority, table.max_priority,
-                                       table.times_sampled, sampler.dense, sampler.where, sampler.size,
-                                       sampler.identity, remover.queue, remover.tail, slots, keys)
+        m, n_free, identity, queue_head = _step_and_insert(
+            *columns, s.head, s.ep_start, w._open_from, s.T, w.n, s.k, w.powers, frames, actions, rewards, items,
+            w.slot_ref, w.slot_rows, table.slot_key, table._free, table._num_free, table._inserted, table.priority,
+            table.max_priority, table.times_sampled, sampler.dense, sampler.where, sampler.size, sampler.identity,
+            remover.queue, remover.head, remover.tail, slots, keys)
         if m < 0:
             return False
         if m:
             sampler.identity = identity
-            table._num_free -= m
-            table._inserted += m
-            sampler.size += m
-            remover.tail += m
-            remover.size += m
-            table.rate_limiter.inserts += m
+            remover.head = queue_head
+            table.note_inserted(m, n_free)
             if table._waiting:
                 table._cv.notify_all()
     return True

@@ -76,10 +76,13 @@ class Table:
         # use for priorities (Fifo, Lifo, Uniform); otherwise both are told in NumPy.
         fused = sampler.update_keys if type(remover).update is Selector.update else None
         self._update_keys: Callable[[np.ndarray, np.ndarray], float] = fused or self._update_slots
-        # Inserts into free slots in one compiled loop (table_jit) for the usual pair of
-        # selectors, when numba is there; else, and for a full table, the NumPy path.
+        # Inserts in compiled loops (table_jit) for the usual pair of selectors, when numba is
+        # there; else the NumPy path.
         uniform_fifo = type(sampler) is Uniform and type(remover) is Fifo
-        self._insert_free = compiled("table_jit", "insert_free") if uniform_fifo else None
+        take, put = (compiled("table_jit", "take_slots"), compiled("table_jit", "insert_slots")) if uniform_fifo \
+            else (None, None)
+        self._insert_kernels: tuple[Callable[..., int], Callable[..., bool]] | None = \
+            (take, put) if take is not None and put is not None else None
 
     # ---- introspection ------------------------------------------------------------------
     @property
@@ -146,8 +149,8 @@ class Table:
         return self._insert_many_locked(items, priorities, n)
 
     def _insert_many_locked(self, items: Any, priorities: np.ndarray | None, n: int) -> np.ndarray:
-        if self._insert_free is not None and priorities is None and n <= self._num_free:
-            return self._insert_free_compiled(items, n)
+        if self._insert_kernels is not None and priorities is None:
+            return self._insert_compiled(items, n)
         n_free = min(n, self._num_free)
         free = self._free[self._num_free - n_free:self._num_free][::-1].copy()
         self._num_free -= n_free
@@ -175,26 +178,52 @@ class Table:
         limiter.deletes += victims.size
         return keys
 
-    def _insert_free_compiled(self, items: Any, n: int) -> np.ndarray:
-        """`_insert_many_locked` for n items that all fit in free slots, no priorities given, a
-        Uniform sampler and a Fifo remover: the same writes in one compiled loop (table_jit)."""
+    def _insert_compiled(self, items: Any, n: int) -> np.ndarray:
+        """`_insert_many_locked` for a Uniform sampler and a Fifo remover, no priorities given:
+        the same writes in compiled loops (table_jit)."""
         sampler, remover = self.sampler, self.remover
         assert isinstance(sampler, Uniform) and isinstance(remover, Fifo)
-        slots = self._free[self._num_free - n:self._num_free][::-1].copy()  # the stack's end first
-        self.storage.write(slots, items)  # first: if it raises, the table is as it was
+        n_free = min(n, self._num_free)
+        slots = np.empty(n, dtype=np.int64)
+        assert self._insert_kernels is not None
+        take = self._insert_kernels[0]
+        head = take(slots, self._free, self._num_free, self.slot_key, remover.queue, remover.head, remover.tail)
+        if head < 0:
+            raise IndexError("pop from an empty queue")  # as _KeyQueue.pop
+        remover.head = head
+        keys = self._insert_slots(slots, n_free)
+        self.storage.write(slots, items)
+        return keys
+
+    def _insert_slots(self, slots: np.ndarray, n_free: int) -> np.ndarray:
+        """The table's and selectors' writes for `slots` taken by `table_jit.take_slots` (the
+        first `n_free` off the free stack, the rest Fifo victims); returns their keys."""
+        sampler, remover = self.sampler, self.remover
+        n = slots.size
         if remover.tail + n > remover.queue.size:
             remover._compact(n)  # as its insert would
         keys = np.empty(n, dtype=np.int64)
-        sampler.identity = self._insert_free(slots, self._inserted, self.slot_key, self.priority, self.max_priority,
-                                             self.times_sampled, sampler.dense, sampler.where, sampler.size,
-                                             sampler.identity, remover.queue, remover.tail, keys)
-        self._num_free -= n
-        self._inserted += n
-        sampler.size += n
-        remover.tail += n
-        remover.size += n
-        self.rate_limiter.inserts += n
+        assert self._insert_kernels is not None
+        insert_slots = self._insert_kernels[1]
+        sampler.identity = insert_slots(slots, n_free, self._inserted, self.slot_key, self.priority,
+                                        self.max_priority, self.times_sampled, sampler.dense, sampler.where,
+                                        sampler.size, sampler.identity, remover.queue, remover.tail, keys)
+        self.note_inserted(n, n_free)
         return keys
+
+    def note_inserted(self, n: int, n_free: int) -> None:
+        """Counters after n items went into n_free free slots and n - n_free victims' slots
+        through the compiled loops (here, or in step_jit's fused flush)."""
+        sampler, remover = self.sampler, self.remover
+        self._num_free -= n_free
+        self._inserted += n
+        sampler.size += n_free
+        remover.tail += n
+        remover.size += n_free  # a victim's delete and its slot's insert cancel out
+        self.rate_limiter.inserts += n
+        self.rate_limiter.deletes += n - n_free
+        if n > n_free and remover.tail - remover.head > 2 * remover.size + 1024:
+            remover._compact()  # as its delete would
 
     def _insert_one_locked(self, items: Any, priorities: np.ndarray | None) -> np.ndarray:
         """`_insert_many_locked` for one item, in Python scalars (a per-step writer's insert)."""

@@ -1,12 +1,13 @@
-"""A Table's insert of n items into free slots, with a Uniform sampler and a Fifo remover (the
-default table, and every uniform replay relayrl builds), in one compiled loop (numba, the
-`relayrl[fast]` extra).
+"""A Table's insert of n items with a Uniform sampler and a Fifo remover (the default table, and
+every uniform replay relayrl builds), in compiled loops (numba, the `relayrl[fast]` extra).
 
 `Table._insert_many_locked` spends ~20 NumPy calls on [n] arrays (its own bookkeeping, then each
 selector's); at n = 32 that is ~40 us, twice that between env steps, on the batched 1:1 loop's
-every step. This loop does the same writes in ~3 us. A full table (Fifo victims), priorities
-given, other selectors, or no numba (RELAYRL_NUMBA=0) take the NumPy path; tests/test_replay_table.py
-checks that both leave the same table.
+every step. These loops do the same writes in ~3 us: free slots first (the free stack's end
+first), then, in a full table, the Fifo's oldest live items as victims (as `_KeyQueue.pop`
+takes them, skipping stale keys). Priorities given, other selectors, or no numba
+(RELAYRL_NUMBA=0) take the NumPy path; tests/test_replay_table.py checks that both leave the
+same table.
 """
 
 from __future__ import annotations
@@ -17,14 +18,37 @@ from relayrl.replay.sumtree_jit import _compile
 
 
 @_compile
-def insert_free(slots: np.ndarray, inserted: int, slot_key: np.ndarray, priority: np.ndarray, max_priority: float,
-                times_sampled: np.ndarray, dense: np.ndarray, where: np.ndarray, size: int, identity: bool,
-                queue: np.ndarray, tail: int, keys: np.ndarray) -> bool:
-    """Key the free `slots` insert_count * max_size + slot, reset their priority and sample
-    count, append them to the Uniform sampler's dense list and their keys to the Fifo queue at
-    `tail`. Fills `keys`; returns the sampler's new `identity` flag (dense[:size] ==
-    arange(size) still holds). The caller took the slots off the free stack, checked that the
-    queue has room, and updates the scalar counters."""
+def take_slots(slots: np.ndarray, free: np.ndarray, num_free: int, slot_key: np.ndarray, queue: np.ndarray,
+               head: int, tail: int) -> int:
+    """Fill `slots`: free ones off the stack's end, then the Fifo's oldest live items (the
+    victims). Returns the queue's new head, or -1 when it ran out of live keys (nothing that
+    the caller keeps is changed then: it raises)."""
+    n = slots.size
+    n_free = min(n, num_free)
+    for j in range(n_free):
+        slots[j] = free[num_free - 1 - j]
+    capacity = slot_key.size
+    j = n_free
+    while j < n:
+        if head >= tail:
+            return -1
+        key = queue[head]
+        head += 1
+        if slot_key[key % capacity] == key:  # stale keys (deleted items) are skipped
+            slots[j] = key % capacity
+            j += 1
+    return head
+
+
+@_compile
+def insert_slots(slots: np.ndarray, n_free: int, inserted: int, slot_key: np.ndarray, priority: np.ndarray,
+                 max_priority: float, times_sampled: np.ndarray, dense: np.ndarray, where: np.ndarray, size: int,
+                 identity: bool, queue: np.ndarray, tail: int, keys: np.ndarray) -> bool:
+    """Key `slots` insert_count * max_size + slot, reset their priority and sample count, and
+    append their keys to the Fifo queue at `tail`. The first `n_free` (free slots) join the
+    Uniform sampler's dense list; the rest were victims, live slots already in it. Fills `keys`;
+    returns the sampler's new `identity` flag (dense[:size] == arange(size) still holds). The
+    caller checked that the queue has room and updates the scalar counters."""
     max_size = slot_key.size
     for j in range(slots.size):
         slot = slots[j]
@@ -33,8 +57,9 @@ def insert_free(slots: np.ndarray, inserted: int, slot_key: np.ndarray, priority
         slot_key[slot] = key
         priority[slot] = max_priority
         times_sampled[slot] = 0
-        dense[size + j] = slot
-        where[slot] = size + j
-        identity = identity and slot == size + j
+        if j < n_free:
+            dense[size + j] = slot
+            where[slot] = size + j
+            identity = identity and slot == size + j
         queue[tail + j] = key
     return identity
