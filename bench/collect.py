@@ -87,10 +87,7 @@ def cycle(step: Callable[[Any], Any], actions: Any) -> Callable[[], None]:
 def raw(n: int, vectorization: str, env_id: str = ENV,
         device: str = "cpu") -> tuple[Callable[[], None], Callable[[], None]]:
     if env_id == STATELESS:
-        env = make_env(env_id, n, device=device)
-        env.reset(seed=0)
-        acts = torch.rand((1024, n, 1), generator=torch.Generator().manual_seed(0)).mul(4).sub(2).to(device)
-        return cycle(env.step, acts), env.close
+        return env_alone(n, "sync", env_id, device)  # relayrl's own env is the raw one
     fns = [lambda: gym.make(ENV, disable_env_checker=True)] * n
     cls = gym.vector.AsyncVectorEnv if vectorization == "async" else gym.vector.SyncVectorEnv
     vec = cls(fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
@@ -99,11 +96,12 @@ def raw(n: int, vectorization: str, env_id: str = ENV,
     return cycle(vec.step, actions), vec.close
 
 
-def env_alone(n: int, vectorization: str) -> tuple[Callable[[], None], Callable[[], None]]:
+def env_alone(n: int, vectorization: str, env_id: str = ENV,
+              device: str = "cpu") -> tuple[Callable[[], None], Callable[[], None]]:
     """relayrl's own batched env (as `ours` builds it) stepped with pre-drawn random actions."""
-    env = make_env(ENV, n, vectorization=vectorization)
+    env = make_env(env_id, n, vectorization=vectorization, device=device)
     env.reset(seed=0)
-    acts = torch.from_numpy(np.random.default_rng(0).uniform(-2, 2, (1024, n, 1)).astype(np.float32))
+    acts = torch.rand((1024, n, 1), generator=torch.Generator().manual_seed(0)).mul(4).sub(2).to(device)
     return cycle(env.step, acts), env.close
 
 

@@ -207,14 +207,24 @@ class _KeyQueue(Selector):
 
     def insert(self, slots: np.ndarray, keys: np.ndarray) -> None:
         n = len(keys)
-        if self.tail + n > self.queue.size:
-            self._compact(n)
+        self.reserve(n)
         if n == 1:
             self.queue[self.tail] = keys[0]
         else:
             self.queue[self.tail:self.tail + n] = keys
         self.tail += n
         self.size += len(slots)
+
+    def reserve(self, n: int) -> None:
+        """Room for n more keys at the tail (compacting first if there is none); the table's
+        compiled insert writes them there itself."""
+        if self.tail + n > self.queue.size:
+            self._compact(n)
+
+    def trim(self) -> None:
+        """Compact once stale keys and popped space outweigh the live keys (after deletes)."""
+        if self.tail - self.head > 2 * self.size + 1024:
+            self._compact()
 
     def _compact(self, extra: int = 0) -> None:
         """Drop stale keys and popped space; grow so that `extra` more keys fit."""
@@ -228,8 +238,7 @@ class _KeyQueue(Selector):
 
     def delete(self, slots: np.ndarray) -> None:
         self.size -= len(slots)  # queue entries go stale; skipped at the front
-        if self.tail - self.head > 2 * self.size + 1024:
-            self._compact()
+        self.trim()
 
     def _live(self, key: int) -> bool:
         return bool(self.slot_key[key % self.capacity] == key)

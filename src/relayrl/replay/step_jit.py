@@ -228,8 +228,7 @@ def _fused_step(w: TransitionWriter, columns: tuple[np.ndarray, ...], frames: np
     with table._cv:
         if table.inserts_wait and table.rate_limiter.inserts_available() < b:
             return False
-        if remover.tail + b > remover.queue.size:
-            remover._compact(b)  # as its insert would
+        remover.reserve(b)
         slots = np.empty(b, np.int64)
         keys = np.empty(b, np.int64)
         m, n_free, identity, queue_head = _step_and_insert(

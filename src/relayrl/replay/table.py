@@ -78,11 +78,9 @@ class Table:
         self._update_keys: Callable[[np.ndarray, np.ndarray], float] = fused or self._update_slots
         # Inserts in compiled loops (table_jit) for the usual pair of selectors, when numba is
         # there; else the NumPy path.
-        uniform_fifo = type(sampler) is Uniform and type(remover) is Fifo
-        take, put = (compiled("table_jit", "take_slots"), compiled("table_jit", "insert_slots")) if uniform_fifo \
-            else (None, None)
+        take = compiled("table_jit", "take_slots") if type(sampler) is Uniform and type(remover) is Fifo else None
         self._insert_kernels: tuple[Callable[..., int], Callable[..., bool]] | None = \
-            (take, put) if take is not None and put is not None else None
+            None if take is None else (take, compiled("table_jit", "insert_slots"))
 
     # ---- introspection ------------------------------------------------------------------
     @property
@@ -180,35 +178,23 @@ class Table:
 
     def _insert_compiled(self, items: Any, n: int) -> np.ndarray:
         """`_insert_many_locked` for a Uniform sampler and a Fifo remover, no priorities given:
-        the same writes in compiled loops (table_jit)."""
+        the same writes in compiled loops (table_jit): free slots first, then Fifo victims."""
         sampler, remover = self.sampler, self.remover
-        assert isinstance(sampler, Uniform) and isinstance(remover, Fifo)
-        n_free = min(n, self._num_free)
+        assert isinstance(sampler, Uniform) and isinstance(remover, Fifo) and self._insert_kernels is not None
+        take, put = self._insert_kernels
+        remover.reserve(n)
         slots = np.empty(n, dtype=np.int64)
-        assert self._insert_kernels is not None
-        take = self._insert_kernels[0]
         head = take(slots, self._free, self._num_free, self.slot_key, remover.queue, remover.head, remover.tail)
         if head < 0:
             raise IndexError("pop from an empty queue")  # as _KeyQueue.pop
         remover.head = head
-        keys = self._insert_slots(slots, n_free)
-        self.storage.write(slots, items)
-        return keys
-
-    def _insert_slots(self, slots: np.ndarray, n_free: int) -> np.ndarray:
-        """The table's and selectors' writes for `slots` taken by `table_jit.take_slots` (the
-        first `n_free` off the free stack, the rest Fifo victims); returns their keys."""
-        sampler, remover = self.sampler, self.remover
-        n = slots.size
-        if remover.tail + n > remover.queue.size:
-            remover._compact(n)  # as its insert would
+        n_free = min(n, self._num_free)
         keys = np.empty(n, dtype=np.int64)
-        assert self._insert_kernels is not None
-        insert_slots = self._insert_kernels[1]
-        sampler.identity = insert_slots(slots, n_free, self._inserted, self.slot_key, self.priority,
-                                        self.max_priority, self.times_sampled, sampler.dense, sampler.where,
-                                        sampler.size, sampler.identity, remover.queue, remover.tail, keys)
+        sampler.identity = put(slots, n_free, self._inserted, self.slot_key, self.priority, self.max_priority,
+                               self.times_sampled, sampler.dense, sampler.where, sampler.size, sampler.identity,
+                               remover.queue, remover.tail, keys)
         self.note_inserted(n, n_free)
+        self.storage.write(slots, items)
         return keys
 
     def note_inserted(self, n: int, n_free: int) -> None:
@@ -222,8 +208,8 @@ class Table:
         remover.size += n_free  # a victim's delete and its slot's insert cancel out
         self.rate_limiter.inserts += n
         self.rate_limiter.deletes += n - n_free
-        if n > n_free and remover.tail - remover.head > 2 * remover.size + 1024:
-            remover._compact()  # as its delete would
+        if n > n_free:
+            remover.trim()  # as its delete of the victims would
 
     def _insert_one_locked(self, items: Any, priorities: np.ndarray | None) -> np.ndarray:
         """`_insert_many_locked` for one item, in Python scalars (a per-step writer's insert)."""
