@@ -1,14 +1,17 @@
 """Collection throughput of SAC's actor on Pendulum-v1 against Gymnasium's raw vector envs, same run.
 
     .venv/bin/python bench/collect.py [--envs 1 8 32 128] [--seconds 2] [--repeats 3] [--steps-per-run 1]
-        [--threads 1] [--json bench/results/collect.json]
+        [--threads 1] [--workers 0] [--json bench/results/collect.json]
     .venv/bin/python bench/collect.py --env relayrl/StatelessPendulum-v0 --envs 256 4096 \
         --vectorization sync --replay-device numpy cpu [--device cuda]
 
-For each N and each vectorization (sync: in this process; async: one worker process per copy):
+For each N and each vectorization (sync: in this process; async: in worker processes):
 
   raw    Gymnasium's SyncVectorEnv / AsyncVectorEnv stepped with random actions drawn before
-         timing (so the figure is the env alone), same-step autoreset
+         timing (so the figure is the env alone), same-step autoreset. AsyncVectorEnv runs one
+         process per copy; relayrl's async env shares the copies out over `--workers` processes
+         (`env.num_workers`; 0, the default, takes one per core), so async rows also time raw
+         SyncVectorEnv (`raw sync`): the fastest way Gymnasium offers to step these copies here
   ours   relayrl's Actor: SAC's collect policy (a (256, 256) tanh-Gaussian actor, the sac-batched
          preset's) + our batched env + EnvironmentSteps and EpisodeStats metrics + the
          TransitionWriter inserting into a 1,000,000-item Table. `Actor.run` takes
@@ -96,21 +99,21 @@ def raw(n: int, vectorization: str, env_id: str = ENV,
     return cycle(vec.step, actions), vec.close
 
 
-def env_alone(n: int, vectorization: str, env_id: str = ENV,
-              device: str = "cpu") -> tuple[Callable[[], None], Callable[[], None]]:
+def env_alone(n: int, vectorization: str, env_id: str = ENV, device: str = "cpu",
+              workers: int = 0) -> tuple[Callable[[], None], Callable[[], None]]:
     """relayrl's own batched env (as `ours` builds it) stepped with pre-drawn random actions."""
-    env = make_env(env_id, n, vectorization=vectorization, device=device)
+    env = make_env(env_id, n, vectorization=vectorization, device=device, num_workers=workers)
     env.reset(seed=0)
     acts = torch.rand((1024, n, 1), generator=torch.Generator().manual_seed(0)).mul(4).sub(2).to(device)
     return cycle(env.step, acts), env.close
 
 
 def ours(n: int, vectorization: str, steps_per_run: int = 1, env_id: str = ENV, device: str = "cpu",
-         replay_device: str = "numpy") -> tuple[Callable[[], None], Callable[[], None]]:
+         replay_device: str = "numpy", workers: int = 0) -> tuple[Callable[[], None], Callable[[], None]]:
     c = load_config("sac-batched", [f"env.num_envs={n}", f"env.vectorization={vectorization}",
                                     "train.gradient_steps=0", f"device={device}", f"replay.device={replay_device}"])
     dev = torch.device(device)
-    env = make_env(env_id, n, vectorization=vectorization, device=dev)
+    env = make_env(env_id, n, vectorization=vectorization, device=dev, num_workers=workers)
     agent = make_agent("sac", c.agent, env.observation_spec, env.action_spec, dev,
                        np.random.default_rng(0), c.train.total_steps)
     table, writer = build_replay(c, env.observation_spec, env.action_spec, run_root=None,  # type: ignore[arg-type]
@@ -121,14 +124,17 @@ def ours(n: int, vectorization: str, steps_per_run: int = 1, env_id: str = ENV, 
 
 
 def measure(n: int, vectorization: str, seconds: float, steps_per_run: int, env_id: str = ENV,
-            device: str = "cpu", replay_device: str = "numpy", repeats: int = 3) -> dict[str, Any]:
+            device: str = "cpu", replay_device: str = "numpy", repeats: int = 3, workers: int = 0) -> dict[str, Any]:
     names = ("raw", "ours") if env_id == STATELESS else ("raw", "env", "ours")  # (stateless: raw is our env)
+    if vectorization == "async":
+        names = ("raw", "raw_sync", "env", "ours")
     figures: dict[str, list[float]] = {name: [] for name in names}
     for _ in range(repeats):
         for name in names:
             step, close = (raw(n, vectorization, env_id, device) if name == "raw"
-                           else env_alone(n, vectorization) if name == "env"
-                           else ours(n, vectorization, steps_per_run, env_id, device, replay_device))
+                           else raw(n, "sync", env_id, device) if name == "raw_sync"
+                           else env_alone(n, vectorization, workers=workers) if name == "env"
+                           else ours(n, vectorization, steps_per_run, env_id, device, replay_device, workers))
             per_call = n * steps_per_run if name == "ours" else n
             try:
                 figures[name].append(rate(step, per_call, seconds))
@@ -137,11 +143,18 @@ def measure(n: int, vectorization: str, seconds: float, steps_per_run: int, env_
     r, o = statistics.median(figures["raw"]), statistics.median(figures["ours"])
     e = statistics.median(figures["env"]) if "env" in figures else r
     pairs = sorted(100 * (a / b - 1) for a, b in zip(figures["raw"], figures["ours"], strict=True))
+    rs = statistics.median(figures["raw_sync"]) if "raw_sync" in figures else None
     return {"n": n, "vectorization": vectorization, "env": env_id, "replay_device": replay_device,
+            "workers": workers if vectorization == "async" else None, "raw_sync_sps": rs,
             "raw_sps": r, "env_sps": e, "ours_sps": o, "overhead_pct": 100 * (r / o - 1),
             # the loop's own cost (policy, replay, metrics) over our env, as a % of raw's time
             "loop_overhead_pct": 100 * (r / o - r / e),
             "pair_overheads_pct": pairs, "figures": figures}
+
+
+def vs_sync(row: dict[str, Any]) -> str:
+    rs = row["raw_sync_sps"]
+    return f"  [{rs:,.0f}, {row['ours_sps'] / rs:.2f}x]" if rs else ""
 
 
 def main() -> None:
@@ -152,6 +165,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3, help="raw/ours pairs per row; the median is reported")
     ap.add_argument("--steps-per-run", type=int, default=1)
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--workers", type=int, default=0, help="async: env.num_workers (0: one per core)")
     ap.add_argument("--env", default=ENV, choices=[ENV, STATELESS])
     ap.add_argument("--device", default="cpu", help="the stateless env's and the policy's device")
     ap.add_argument("--replay-device", nargs="+", default=["numpy"], help="numpy | cpu | cuda (replay.device)")
@@ -162,21 +176,22 @@ def main() -> None:
     rows = []
     print(f"env {args.env}, device {args.device}")
     print(f"{'N':>5} {'vectorization':>13} {'replay':>7} {'raw steps/s':>12} {'our env':>9} {'ours steps/s':>13} "
-          f"{'overhead':>9} {'loop only':>9}  pairs (min..max)")
+          f"{'overhead':>9} {'loop only':>9}  pairs (min..max)  [async: raw sync steps/s, ours / raw sync]")
     for vec in args.vectorization:
         for n in args.envs:
             if vec == "async" and (n == 1 or args.env == STATELESS):
                 continue  # one copy always steps in process; a stateless env is one batch of tensors
             for rd in args.replay_device:
-                row = measure(n, vec, args.seconds, args.steps_per_run, args.env, args.device, rd, args.repeats)
+                row = measure(n, vec, args.seconds, args.steps_per_run, args.env, args.device, rd, args.repeats,
+                              args.workers)
                 rows.append(row)
                 lo, hi = row["pair_overheads_pct"][0], row["pair_overheads_pct"][-1]
                 print(f"{n:>5} {vec:>13} {rd:>7} {row['raw_sps']:>12,.0f} {row['env_sps']:>9,.0f} "
                       f"{row['ours_sps']:>13,.0f} {row['overhead_pct']:>8.1f}% {row['loop_overhead_pct']:>8.1f}%  "
-                      f"{lo:.1f}..{hi:.1f}%", flush=True)
+                      f"{lo:.1f}..{hi:.1f}%" + vs_sync(row), flush=True)
     if args.json:
         meta = {"date": datetime.date.today().isoformat(), "machine": platform.platform(),
-                "threads": args.threads, "steps_per_run": args.steps_per_run,
+                "threads": args.threads, "steps_per_run": args.steps_per_run, "workers": args.workers,
                 "cpus": __import__("os").cpu_count(), "torch": torch.__version__, "gymnasium": gym.__version__}
         with open(args.json, "w") as f:
             json.dump({"meta": meta, "rows": rows}, f, indent=1)

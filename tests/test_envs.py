@@ -1,5 +1,7 @@
 """The batched Gymnasium adapter: specs, auto-reset boundaries, custom classes, errors."""
 
+import os
+
 import pytest
 import torch
 
@@ -74,9 +76,10 @@ def test_bad_env_ids_say_what_is_valid(env_id, fragment):
         make_env(env_id)
 
 
-@pytest.mark.parametrize("env_id", ["CartPole-v1", "toy_envs:Countdown"])
-def test_async_workers_give_the_same_transitions_as_in_process(env_id):
-    sync, asyn = make_env(env_id, 3), make_env(env_id, 3, vectorization="async")
+@pytest.mark.parametrize("env_id, workers", [("CartPole-v1", 0), ("toy_envs:Countdown", 0),
+                                             ("CartPole-v1", 1), ("toy_envs:Countdown", 3)])
+def test_async_workers_give_the_same_transitions_as_in_process(env_id, workers):
+    sync, asyn = make_env(env_id, 3), make_env(env_id, 3, vectorization="async", num_workers=workers)
     try:
         assert torch.equal(sync.reset(seed=4), asyn.reset(seed=4))
         gen = torch.Generator().manual_seed(0)
@@ -90,12 +93,41 @@ def test_async_workers_give_the_same_transitions_as_in_process(env_id):
         asyn.close()
 
 
+def test_worker_slices_share_the_copies_out_evenly():
+    from relayrl.envs.vector import worker_slices
+
+    # the main process's slice first, then one per worker
+    assert worker_slices(32, 1) == [(0, 16), (16, 32)]
+    assert worker_slices(7, 2) == [(0, 2), (2, 5), (5, 7)]
+    assert worker_slices(3, 8) == [(0, 1), (1, 2), (2, 3)]  # never more workers than copies
+    assert len(worker_slices(64, 0)) == max(2, os.cpu_count() or 1)  # 0: one per core beside the main's
+
+
+def test_async_worker_errors_reach_the_main_process():
+    env = make_env("toy_envs:Broken", 4, vectorization="async", num_workers=2)
+    try:
+        env.reset(seed=0)
+        with pytest.raises(RuntimeError, match="(?s)env worker 0 failed.*ValueError: the simulator lost its state"):
+            env.step(torch.zeros(4, dtype=torch.int64))
+    finally:
+        env.close()
+    env = make_env("toy_envs:DiesInWorker", 3, vectorization="async", num_workers=2)
+    try:
+        env.reset(seed=0)
+        with pytest.raises(RuntimeError, match=r"env worker 0 \(copy 1\) died \(exit code 3\)"):
+            env.step(torch.zeros(3, dtype=torch.int64))
+    finally:
+        env.close()
+
+
 def test_unknown_vectorization_is_a_config_error():
     import relayrl
     from relayrl.errors import ConfigError
 
     with pytest.raises(ConfigError, match="env.vectorization='threads' is not valid; valid: sync, async"):
         relayrl.load_config("dqn-cartpole", ["env.vectorization=threads"])
+    with pytest.raises(ConfigError, match="env.num_workers=-1 is not valid; it must be >= 0"):
+        relayrl.load_config("dqn-cartpole", ["env.num_workers=-1"])
 
 
 def test_a_reset_in_one_copy_leaves_the_other_copies_observations_alone():

@@ -53,8 +53,9 @@ def test_steps_without_episode_ends_carry_no_info_and_no_keys_cost_nothing():
     assert bool(out.terminated.all()) and out.episode_info is None
 
 
-def test_async_envs_read_the_ended_episodes_info_not_the_resets():
-    env = make_env("toy_envs:Travel", 2, vectorization="async", info_keys=["x"])
+@pytest.mark.parametrize("workers", [1, 2])
+def test_async_envs_read_the_ended_episodes_info_not_the_resets(workers):
+    env = make_env("toy_envs:Travel", 2, vectorization="async", info_keys=["x"], num_workers=workers)
     try:
         stats = EpisodeStats(buffer_size=None)
         run_steps(env, stats, 6)

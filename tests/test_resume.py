@@ -68,6 +68,17 @@ def test_resumed_run_is_bit_identical_to_the_uninterrupted_one(tmp_path, preset,
     assert_same_state(tmp_path / "full", tmp_path / "resumed")
 
 
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_async_run_gives_the_in_process_runs_numbers(tmp_path, workers):
+    """The copies' slices (main process and workers) must not change a single number."""
+    over = DQN + ["env.num_envs=3", "env.max_episode_steps=40", f"env.num_workers={workers}"]
+    for v in ("sync", "async"):
+        cfg = relayrl.load_config("dqn-cartpole-fast", over + [f"env.vectorization={v}"], seed=3)
+        relayrl.train(cfg, tmp_path / v, progress=False)
+    assert comparable(tmp_path / "async") == comparable(tmp_path / "sync")
+    assert_same_state(tmp_path / "sync", tmp_path / "async")
+
+
 @pytest.mark.parametrize("envs", [["env.num_envs=1"], ["env.num_envs=3", "env.vectorization=async"]],
                          ids=["1", "3async"])
 def test_env_that_cannot_be_pickled_resumes_with_new_episodes(tmp_path, capsys, envs):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 
 import gymnasium as gym
@@ -130,4 +131,20 @@ class CrashOnce(CartPoleEnv):
                 pass
             else:
                 os._exit(1)
+        return super().step(action)
+
+
+class Broken(Countdown):
+    """Countdown whose step raises, as a simulator's error would."""
+
+    def step(self, action):
+        raise ValueError("the simulator lost its state")
+
+
+class DiesInWorker(Countdown):
+    """Countdown whose process dies at its first step when it runs in a worker process."""
+
+    def step(self, action):
+        if multiprocessing.parent_process() is not None:
+            os._exit(3)
         return super().step(action)

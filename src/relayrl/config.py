@@ -28,7 +28,8 @@ class EnvConfig:
     max_episode_steps: int = 0  # 0: the env's own time limit
     # true: a time-limit cut counts as termination (no bootstrap), as in old gym / TF-Agents
     time_limit_terminates: bool = False
-    vectorization: str = "sync"  # sync: copies stepped in this process | async: one worker process each
+    vectorization: str = "sync"  # sync: copies stepped in this process | async: in worker processes
+    num_workers: int = 0  # async: worker processes sharing the copies; 0: one per CPU core (at most num_envs)
     # info values read at each episode's end and averaged like returns (metrics.jsonl
     # `train/<key>` and `eval/<key>`, TensorBoard, `relayrl plot`): e.g. Mario's ["x_pos"]
     info_keys: list[str] = field(default_factory=list)
@@ -117,6 +118,9 @@ class Config:
                     "policy_save_interval", "log_interval", "pull_interval", "torch_threads"):
             if getattr(self.train, key) < 0:
                 raise ConfigError(f"train.{key} must be >= 0")
+        if self.env.num_workers < 0:
+            raise ConfigError(f"env.num_workers={self.env.num_workers} is not valid; it must be >= 0 "
+                              "(0: one worker process per CPU core)")
         if self.env.vectorization not in ("sync", "async"):
             raise ConfigError(f"env.vectorization={self.env.vectorization!r} is not valid; valid: sync, async")
         r = self.replay

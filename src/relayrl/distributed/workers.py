@@ -140,6 +140,7 @@ class RolloutWorker:
         self.index, self.num_actors = index, c.distributed.num_actors
         self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
                             time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
+                            num_workers=c.env.num_workers,
                             info_keys=c.env.info_keys)
         agent = make_agent(c.algo, c.agent, self.env.observation_spec, self.env.action_spec, torch.device("cpu"),
                            np.random.default_rng(seed), c.train.total_steps)

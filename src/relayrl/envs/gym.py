@@ -166,13 +166,24 @@ class GymBatchEnv(BatchEnvBase):
         return torch.from_numpy(np.stack(obs).astype(self._obs_dtype, copy=False))
 
     def step(self, action: torch.Tensor) -> StepOutput:
-        # tolist() gives Python ints for discrete actions: what Gymnasium envs compare against.
-        actions = action.tolist() if self._discrete else action.numpy()
         b = self.num_envs
         next_obs = np.empty((b, *self.observation_spec.shape), self._obs_dtype)
         reward = np.empty(b, np.float32)
         terminated = np.empty(b, np.bool_)
         truncated = np.empty(b, np.bool_)
+        obs, info = self.step_into(action.numpy(), next_obs, reward, terminated, truncated)
+        return StepOutput(torch.from_numpy(next_obs), torch.from_numpy(reward), torch.from_numpy(terminated),
+                          torch.from_numpy(truncated), torch.from_numpy(obs), info)
+
+    def step_into(self, action: np.ndarray, next_obs: np.ndarray, reward: np.ndarray, terminated: np.ndarray,
+                  truncated: np.ndarray, reset_obs: np.ndarray | None = None) -> tuple[np.ndarray, EpisodeInfo | None]:
+        """Step every copy, writing the results into the given [num_envs, ...] arrays (the
+        worker processes pass shared memory). Copies whose episode ended are reset: their
+        reset observations go into `reset_obs` (its other rows untouched), or, when it is None,
+        into a copy of `next_obs`. Returns that obs array (`next_obs` itself if none ended)
+        and the ended episodes' `info_keys` values."""
+        # tolist() gives Python ints for discrete actions: what Gymnasium envs compare against.
+        actions = action.tolist() if self._discrete else action
         ended = []
         infos: dict[int, dict] = {}
         for i, env in enumerate(self.envs):
@@ -186,16 +197,14 @@ class GymBatchEnv(BatchEnvBase):
             if term or trunc:
                 ended.append(i)
                 infos[i] = info
-        obs = next_obs  # shared unless some copy is reset
-        if ended:
+        obs = next_obs if reset_obs is None else reset_obs  # shared unless some copy is reset
+        if ended and reset_obs is None:
             # Copy only once every row of next_obs is written (copying at the first reset
             # would carry unwritten rows of later copies into obs).
             obs = next_obs.copy()
-            for i in ended:
-                obs[i] = self.envs[i].reset()[0]
-        return StepOutput(torch.from_numpy(next_obs), torch.from_numpy(reward), torch.from_numpy(terminated),
-                          torch.from_numpy(truncated), torch.from_numpy(obs),
-                          episode_info(self.info_keys, b, ended, infos.__getitem__))
+        for i in ended:
+            obs[i] = self.envs[i].reset()[0]
+        return obs, episode_info(self.info_keys, len(self.envs), ended, infos.__getitem__)
 
     def render(self) -> np.ndarray | None:
         return self.envs[0].render()
@@ -207,10 +216,12 @@ class GymBatchEnv(BatchEnvBase):
 
 def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_mode: str | None = None,
              time_limit_terminates: bool = False, vectorization: str = "sync",
-             device: str | torch.device = "cpu", info_keys: tuple[str, ...] | list[str] = ()) -> GymBatchEnv:
+             device: str | torch.device = "cpu", info_keys: tuple[str, ...] | list[str] = (),
+             num_workers: int = 0) -> GymBatchEnv:
     """A batched env of `num_envs` copies of `env_id`: stepped in this process ("sync") or
-    in one worker process per copy ("async", see envs/vector.py). A stateless torch env id
-    (`relayrl/StatelessPendulum-v0`) gives all copies as one batch of tensors on `device`.
+    shared out over `num_workers` worker processes ("async", 0: one per core; see envs/vector.py).
+    A stateless torch env id (`relayrl/StatelessPendulum-v0`) gives all copies as one batch of
+    tensors on `device`.
     `info_keys`: info values to report at each episode's end (`StepOutput.episode_info`)."""
     from relayrl.envs.stateless.adapter import STATELESS_ENVS, make_batch_env
 
@@ -225,7 +236,7 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
         if vectorization == "async" and num_envs > 1:
             from relayrl.envs.vector import AsyncGymBatchEnv
 
-            env = AsyncGymBatchEnv([fn] * num_envs, time_limit_terminates)
+            env = AsyncGymBatchEnv([fn] * num_envs, time_limit_terminates, num_workers)
         else:
             env = GymBatchEnv([fn] * num_envs, time_limit_terminates)
     except gym.error.Error as e:

@@ -1,103 +1,267 @@
 """Gymnasium envs stepped in worker processes, as one batched env (`env.vectorization = "async"`).
 
-Built on `gymnasium.vector.AsyncVectorEnv` with same-step autoreset: a copy whose episode
-ends is reset inside the same `step`, its true final observation comes back in
-`info["final_obs"]`, and we put that in `next_obs` and the reset observation in `obs`, so
-transitions look exactly as from the in-process `GymBatchEnv` (same seeds, same numbers).
-Worth it when one env step costs more than the pipe round trip (~0.1 ms): physics
-simulators such as Minitaur, not CartPole.
+The copies are shared out in contiguous slices: the first to the main process, one to each of
+`env.num_workers` worker processes (0, the default: one per CPU core beside the main
+process's). Every slice is stepped by the in-process `GymBatchEnv`, so autoreset, seeding
+(copy i gets seed + i wherever it lives), time limits and episode infos are the in-process
+code's, and transitions are identical to `sync`'s.
+
+Why this shape: more processes than cores never speeds up CPU-bound envs, and one process per
+copy (Gymnasium's `AsyncVectorEnv`) pays a pipe round trip per copy per step, which made 32
+Pendulum copies 5x slower than stepping them in one process. The main process steps its own
+slice while the workers step theirs, so it does not sleep through the step and pay a wake-up
+(~0.1 ms on this VM) to read the results. Workers read actions from and write results into
+shared memory; the pipes carry one small command per worker per step and, when an episode
+ends, its info values.
 """
 
 from __future__ import annotations
 
-import pickle
+import multiprocessing as mp
+import os
+import traceback
+from multiprocessing.connection import Connection
+from typing import Any
 
-import gymnasium as gym
+import cloudpickle
 import numpy as np
 import torch
-from gymnasium.vector import AutoresetMode
 
-from relayrl.envs.gym import BatchEnvBase, EnvFn, env_snapshot, episode_info
+from relayrl.envs.gym import BatchEnvBase, EnvFn, GymBatchEnv
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
-from relayrl.types import StepOutput
+from relayrl.types import EpisodeInfo, StepOutput
 
 
-class _Snapshot(gym.Wrapper):
-    """Hands a worker's env state out (pickled) and takes one in, through the vector env's
-    `call` / `set_attr` (which can only reach the env's own attributes)."""
-
-    relayrl_state_in: bytes = b""
-
-    def relayrl_get_state(self) -> bytes | None:
-        return env_snapshot(self.env)
-
-    def relayrl_frame_stack(self) -> int:
-        return frame_stack_of(self.env)
-
-    def relayrl_set_state(self) -> None:
-        self.env.close()
-        self.env = pickle.loads(self.relayrl_state_in)
-        self.relayrl_state_in = b""
+def worker_slices(num_envs: int, num_workers: int) -> list[tuple[int, int]]:
+    """Contiguous [lo, hi) slices of the copies, the main process's first, then one per worker
+    (`num_workers`, 0: one per core beside the main's, never more than the copies allow);
+    sizes differ by at most 1."""
+    workers = num_workers or max(1, (os.cpu_count() or 1) - 1)
+    n = 1 + max(0, min(workers, num_envs - 1))
+    bounds = np.linspace(0, num_envs, n + 1).round().astype(int)
+    return [(int(lo), int(hi)) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-class _Wrapped:
-    """A picklable env factory (the workers get it through cloudpickle) adding `_Snapshot`."""
+class _Buffers:
+    """The shared arrays: actions in; next_obs, reset obs, reward, terminated, truncated out."""
 
-    def __init__(self, fn: EnvFn) -> None:
-        self.fn = fn
+    def __init__(self, ctx: Any, num_envs: int, obs_shape: tuple[int, ...], obs_dtype: np.dtype,
+                 act_shape: tuple[int, ...], act_dtype: np.dtype) -> None:
+        self.layout = {"action": ((num_envs, *act_shape), act_dtype), "next_obs": ((num_envs, *obs_shape), obs_dtype),
+                       "obs": ((num_envs, *obs_shape), obs_dtype), "reward": ((num_envs,), np.dtype(np.float32)),
+                       "terminated": ((num_envs,), np.dtype(np.bool_)), "truncated": ((num_envs,), np.dtype(np.bool_))}
+        self.raw = {k: ctx.RawArray("b", max(1, int(np.prod(shape)) * dtype.itemsize))
+                    for k, (shape, dtype) in self.layout.items()}
+        self.views()
 
-    def __call__(self) -> gym.Env:
-        return _Snapshot(self.fn())
+    def views(self) -> None:
+        """NumPy views on the raw arrays (again in a spawned worker, which gets `raw` pickled)."""
+        self.arrays = {k: np.frombuffer(self.raw[k], dtype=dtype, count=int(np.prod(shape))).reshape(shape)
+                       for k, (shape, dtype) in self.layout.items()}
+
+    def __getstate__(self) -> dict:
+        return {"layout": self.layout, "raw": self.raw}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.views()
+
+
+def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Buffers,
+            time_limit_terminates: bool) -> None:
+    """Serve commands until "close": step, reset, info_keys, get_state, set_state."""
+    a = buffers.arrays
+    env: GymBatchEnv | None = None
+    try:
+        env = GymBatchEnv(cloudpickle.loads(fns_pickled), time_limit_terminates)
+        conn.send(("ok", None))
+        while True:
+            cmd, arg = conn.recv()
+            try:
+                if cmd == "step":  # straight into shared memory: reset observations into "obs"
+                    _, info = env.step_into(a["action"][lo:hi], a["next_obs"][lo:hi], a["reward"][lo:hi],
+                                            a["terminated"][lo:hi], a["truncated"][lo:hi], a["obs"][lo:hi])
+                    conn.send(("ok", info))
+                elif cmd == "reset":
+                    a["obs"][lo:hi] = env.reset(seed=None if arg is None else arg + lo).numpy()
+                    conn.send(("ok", None))
+                elif cmd == "info_keys":
+                    env.info_keys = arg
+                    conn.send(("ok", None))
+                elif cmd == "get_state":
+                    conn.send(("ok", env.get_state()))
+                elif cmd == "set_state":
+                    env.set_state(arg)
+                    conn.send(("ok", None))
+                elif cmd == "close":
+                    break
+            except UserError as e:
+                conn.send(("user_error", str(e)))
+            except Exception:  # any failure of the env's code goes to the main process, with its traceback
+                conn.send(("error", traceback.format_exc()))
+    except Exception:
+        conn.send(("error", traceback.format_exc()))
+    except KeyboardInterrupt:  # Ctrl-C reaches the whole process group: the main process reports it
+        pass
+    finally:
+        if env is not None:
+            env.close()
+        conn.close()
 
 
 class AsyncGymBatchEnv(BatchEnvBase):
-    def __init__(self, env_fns: list[EnvFn], time_limit_terminates: bool = False) -> None:
+    """`len(env_fns)` copies: the first slice stepped in this process, the others by
+    `num_workers` worker processes (0: one per core beside this one)."""
+
+    def __init__(self, env_fns: list[EnvFn], time_limit_terminates: bool = False, num_workers: int = 0) -> None:
         if not env_fns:
             raise UserError("env.num_envs must be >= 1")
-        self.vec = gym.vector.AsyncVectorEnv([_Wrapped(fn) for fn in env_fns], autoreset_mode=AutoresetMode.SAME_STEP)
-        self._init_specs(len(env_fns), self.vec.single_observation_space, self.vec.single_action_space,
-                         time_limit_terminates, int(self.vec.call("relayrl_frame_stack")[0]))
+        self._conns: list[Connection] = []
+        self._procs: list[Any] = []
+        self._closed = False
+        self.slices = worker_slices(len(env_fns), num_workers)
+        self._k = self.slices[0][1]  # copies [0, k) are this process's
+        self._local = GymBatchEnv(env_fns[:self._k], time_limit_terminates)
+        first = self._local.envs[0]
+        self._init_specs(len(env_fns), first.observation_space, first.action_space, time_limit_terminates,
+                         frame_stack_of(first))
+        act_dtype = np.dtype(np.int64) if self._discrete else np.dtype(np.float32)
+        # fork: workers start in milliseconds and inherit what they need; spawn where there is no fork.
+        ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+        self._buf = _Buffers(ctx, self.num_envs, tuple(self.observation_spec.shape), np.dtype(self._obs_dtype),
+                             tuple(self.action_spec.shape), act_dtype)
+        try:
+            for lo, hi in self.slices[1:]:
+                parent, child = ctx.Pipe()
+                fns = cloudpickle.dumps(env_fns[lo:hi])
+                proc = ctx.Process(target=_worker, name=f"relayrl-env-{lo}-{hi}", daemon=True,
+                                   args=(child, fns, lo, hi, self._buf, time_limit_terminates))
+                proc.start()
+                child.close()
+                self._conns.append(parent)
+                self._procs.append(proc)
+            self._gather()
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def num_workers(self) -> int:
+        return len(self._procs)
+
+    @property
+    def info_keys(self) -> tuple[str, ...]:
+        return self._info_keys
+
+    @info_keys.setter
+    def info_keys(self, keys: tuple[str, ...]) -> None:  # make_env sets it after construction
+        self._info_keys = tuple(keys)
+        self._local.info_keys = self._info_keys
+        if self._conns:
+            self._command("info_keys", self._info_keys)
+
+    def _gather(self) -> list[Any]:
+        """Every worker's reply, in order; a worker's failure is raised here."""
+        replies, failure = [], None
+        for w, conn in enumerate(self._conns):
+            try:
+                status, value = conn.recv()
+            except (EOFError, ConnectionResetError):
+                self._procs[w].join(timeout=2)  # reaped, so its exit code is known
+                lo, hi = self.slices[w + 1]
+                copies = f"copy {lo}" if hi - lo == 1 else f"copies {lo}..{hi - 1}"
+                raise RuntimeError(f"env worker {w} ({copies}) died (exit code {self._procs[w].exitcode})") from None
+            if status == "user_error":
+                failure = failure or UserError(value)
+            elif status == "error":
+                failure = failure or RuntimeError(f"env worker {w} failed:\n{value}")
+            replies.append(value)
+        if failure is not None:  # raised once every reply is read, so the pipes stay in step
+            raise failure
+        return replies
+
+    def _command(self, cmd: str, arg: Any = None, per_worker: list[Any] | None = None) -> list[Any]:
+        for w, conn in enumerate(self._conns):
+            conn.send((cmd, arg if per_worker is None else per_worker[w]))
+        return self._gather()
 
     def get_state(self) -> list[bytes] | None:
-        """As `GymBatchEnv.get_state`, pickled in each worker."""
-        states = list(self.vec.call("relayrl_get_state"))
-        return None if any(s is None for s in states) else states
+        """As `GymBatchEnv.get_state`: this process's copies, then each worker's, pickled there."""
+        parts = [self._local.get_state(), *self._command("get_state")]
+        return None if any(p is None for p in parts) else [s for p in parts for s in p]
 
     def set_state(self, states: list[bytes]) -> None:
         if len(states) != self.num_envs:
             raise ValueError(f"env state for {len(states)} copies, but this env has {self.num_envs}")
-        self.vec.set_attr("relayrl_state_in", list(states))
-        self.vec.call("relayrl_set_state")
+        self._local.set_state(states[:self._k])
+        self._command("set_state", per_worker=[states[lo:hi] for lo, hi in self.slices[1:]])
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
-        obs, _ = self.vec.reset(seed=None if seed is None else [seed + i for i in range(self.num_envs)])
-        return torch.from_numpy(np.asarray(obs, dtype=self._obs_dtype))
+        for conn in self._conns:
+            conn.send(("reset", seed))
+        try:
+            local = self._local.reset(seed)
+        finally:
+            self._gather()
+        obs = self._buf.arrays["obs"].copy()
+        obs[:self._k] = local.numpy()
+        return torch.from_numpy(obs)
 
     def step(self, action: torch.Tensor) -> StepOutput:
-        actions = action.numpy().astype(np.int64) if self._discrete else action.numpy()
-        obs, reward, terminated, truncated, info = self.vec.step(actions)
-        obs = np.asarray(obs, dtype=self._obs_dtype)
-        next_obs = obs
-        done = terminated | truncated
-        if done.any():
-            next_obs = obs.copy()
-            for i in np.flatnonzero(done):
-                next_obs[i] = info["final_obs"][i]
-        ended_info = None
-        if self.info_keys and done.any():
-            final = info["final_info"]  # the ended episodes' last infos (the top level has the resets')
-            ended_info = episode_info(self.info_keys, self.num_envs, np.flatnonzero(done).tolist(),
-                                      lambda i: {k: v[i] for k, v in final.items()
-                                                 if not k.startswith("_") and final[f"_{k}"][i]})
-        if self.time_limit_terminates:
-            terminated, truncated = done, np.zeros_like(truncated)
-        return StepOutput(torch.from_numpy(next_obs), torch.from_numpy(reward.astype(np.float32)),
-                          torch.from_numpy(terminated.astype(np.bool_)), torch.from_numpy(truncated.astype(np.bool_)),
-                          torch.from_numpy(obs), ended_info)
+        a, k, b = self._buf.arrays, self._k, self.num_envs
+        act = action.numpy()
+        a["action"][k:] = act[k:]
+        for conn in self._conns:
+            conn.send(("step", None))
+        # The results come in fresh arrays: this process's rows are written there directly,
+        # the workers' are copied from shared memory, which the next step writes over.
+        next_obs = np.empty((b, *self.observation_spec.shape), self._obs_dtype)
+        reset_obs = np.empty_like(next_obs)
+        reward, terminated, truncated = np.empty(b, np.float32), np.empty(b, np.bool_), np.empty(b, np.bool_)
+        try:
+            _, local_info = self._local.step_into(act[:k], next_obs[:k], reward[:k], terminated[:k], truncated[:k],
+                                                  reset_obs[:k])
+        finally:
+            infos = self._gather()  # also when this process's copies failed: the pipes stay in step
+        next_obs[k:], reward[k:] = a["next_obs"][k:], a["reward"][k:]
+        terminated[k:], truncated[k:] = a["terminated"][k:], a["truncated"][k:]
+        ended = terminated | truncated
+        obs = next_obs
+        if ended.any():
+            obs = next_obs.copy()
+            reset_obs[k:] = a["obs"][k:]
+            obs[ended] = reset_obs[ended]
+        return StepOutput(torch.from_numpy(next_obs), torch.from_numpy(reward), torch.from_numpy(terminated),
+                          torch.from_numpy(truncated), torch.from_numpy(obs), self._join_infos([local_info, *infos]))
+
+    def _join_infos(self, infos: list[EpisodeInfo | None]) -> EpisodeInfo | None:
+        if all(i is None for i in infos):
+            return None
+        out = {k: np.full(self.num_envs, np.nan) for k in self.info_keys}
+        for (lo, hi), info in zip(self.slices, infos, strict=True):
+            if info is not None:
+                for k, v in info.items():
+                    out[k][lo:hi] = v
+        return out
 
     def render(self) -> np.ndarray | None:
         raise UserError("rendering needs env.vectorization = 'sync' (the video command uses one in-process env)")
 
     def close(self) -> None:
-        self.vec.close()
+        if self._closed:
+            return
+        self._closed = True
+        for conn in self._conns:
+            try:
+                conn.send(("close", None))
+            except (BrokenPipeError, OSError):
+                pass
+        for proc in self._procs:
+            proc.join(timeout=5)
+            if proc.is_alive():
+                proc.terminate()
+        for conn in self._conns:
+            conn.close()
+        if hasattr(self, "_local"):
+            self._local.close()

@@ -153,6 +153,7 @@ class LocalRun(RunLog):
         # Stateless torch envs live on the agent's device; Gymnasium envs on the CPU.
         self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
                             time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
+                            num_workers=c.env.num_workers,
                             device=self.device, info_keys=c.env.info_keys)
         self.eval_env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, self.device,
                                       c.env.info_keys)
