@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/collect.py [--envs 1 8 32 128] [--seconds 2] [--repeats 3] [--steps-per-run 1]
         [--threads 1] [--workers 0] [--json bench/results/collect.json]
+    .venv/bin/python bench/collect.py --parts --envs 32    # where a batched step's time goes
     .venv/bin/python bench/collect.py --env relayrl/StatelessPendulum-v0 --envs 256 4096 \
         --vectorization sync --replay-device numpy cpu [--device cuda]
 
@@ -152,6 +153,33 @@ def measure(n: int, vectorization: str, seconds: float, steps_per_run: int, env_
             "pair_overheads_pct": pairs, "figures": figures}
 
 
+def parts(n: int, vectorization: str, workers: int, steps: int = 3000) -> dict[str, float]:
+    """Microseconds per batched step in the policy, in env.step, and in all, timed in the loop."""
+    run, close = ours(n, vectorization, workers=workers)
+    actor = run.__closure__[0].cell_contents  # type: ignore[index]  # the Actor `ours` built
+    spent = {"policy": 0.0, "env": 0.0}
+
+    def timed(f: Callable[[Any], Any], key: str) -> Callable[[Any], Any]:
+        def call(x: Any) -> Any:
+            t = time.perf_counter()
+            out = f(x)
+            spent[key] += time.perf_counter() - t
+            return out
+        return call
+
+    actor.policy, actor.env.step = timed(actor.policy, "policy"), timed(actor.env.step, "env")
+    for _ in range(300):
+        run()
+    spent.update(policy=0.0, env=0.0)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        run()
+    total = time.perf_counter() - t0
+    close()
+    return {"policy": 1e6 * spent["policy"] / steps, "env": 1e6 * spent["env"] / steps,
+            "rest": 1e6 * (total - spent["policy"] - spent["env"]) / steps, "total": 1e6 * total / steps}
+
+
 def vs_sync(row: dict[str, Any]) -> str:
     rs = row["raw_sync_sps"]
     return f"  [{rs:,.0f}, {row['ours_sps'] / rs:.2f}x]" if rs else ""
@@ -169,9 +197,17 @@ def main() -> None:
     ap.add_argument("--env", default=ENV, choices=[ENV, STATELESS])
     ap.add_argument("--device", default="cpu", help="the stateless env's and the policy's device")
     ap.add_argument("--replay-device", nargs="+", default=["numpy"], help="numpy | cpu | cuda (replay.device)")
+    ap.add_argument("--parts", action="store_true",
+                    help="instead: us per batched step in policy / env.step / the rest, each N and vectorization")
     ap.add_argument("--json")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    if args.parts:
+        for vec in args.vectorization:
+            for n in args.envs:
+                p = parts(n, vec, args.workers)
+                print(f"N {n:>4} {vec:>5}: " + ", ".join(f"{k} {v:,.0f} us" for k, v in p.items()), flush=True)
+        return
     print(f"torch threads {args.threads}, batched steps per Actor.run {args.steps_per_run}")
     rows = []
     print(f"env {args.env}, device {args.device}")
