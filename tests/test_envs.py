@@ -1,6 +1,10 @@
 """The batched Gymnasium adapter: specs, auto-reset boundaries, custom classes, errors."""
 
 import os
+import signal
+import subprocess
+import sys
+import time
 
 import pytest
 import torch
@@ -118,6 +122,33 @@ def test_async_worker_errors_reach_the_main_process():
             env.step(torch.zeros(3, dtype=torch.int64))
     finally:
         env.close()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_async_workers_exit_when_the_main_process_is_killed():
+    code = ("import time; from relayrl.envs import make_env; "
+            "e = make_env('CartPole-v1', 6, vectorization='async', num_workers=3); e.reset(seed=0); "
+            "print(*[p.pid for p in e._procs], flush=True); time.sleep(60)")
+    main = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    pids = [int(p) for p in main.stdout.readline().split()]
+    assert len(pids) == 3
+    main.send_signal(signal.SIGKILL)
+    main.wait()
+
+    def running(pid: int) -> bool:  # a zombie (exited, not yet reaped by init) is not running
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+        except FileNotFoundError:
+            return False
+
+    deadline = time.monotonic() + 20
+    while any(map(running, pids)) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    stuck = [p for p in pids if running(p)]
+    for p in stuck:
+        os.kill(p, signal.SIGKILL)
+    assert not stuck, "env workers outlived the main process"
 
 
 def test_unknown_vectorization_is_a_config_error():

@@ -68,9 +68,12 @@ class _Buffers:
         self.views()
 
 
-def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Buffers,
+def _worker(conn: Connection, parent_end: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Buffers,
             time_limit_terminates: bool) -> None:
     """Serve commands until "close": step, reset, info_keys, get_state, set_state."""
+    # Our copy of the main process's end would keep the pipe open after that process dies
+    # (SIGKILL): closed, a dead main process reads as EOF here, and the worker exits.
+    parent_end.close()
     a = buffers.arrays
     env: GymBatchEnv | None = None
     try:
@@ -100,10 +103,10 @@ def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Bu
                 conn.send(("user_error", str(e)))
             except Exception:  # any failure of the env's code goes to the main process, with its traceback
                 conn.send(("error", traceback.format_exc()))
+    except (EOFError, KeyboardInterrupt):  # the main process is gone, or Ctrl-C (which it reports)
+        pass
     except Exception:
         conn.send(("error", traceback.format_exc()))
-    except KeyboardInterrupt:  # Ctrl-C reaches the whole process group: the main process reports it
-        pass
     finally:
         if env is not None:
             env.close()
@@ -136,7 +139,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
                 parent, child = ctx.Pipe()
                 fns = cloudpickle.dumps(env_fns[lo:hi])
                 proc = ctx.Process(target=_worker, name=f"relayrl-env-{lo}-{hi}", daemon=True,
-                                   args=(child, fns, lo, hi, self._buf, time_limit_terminates))
+                                   args=(child, parent, fns, lo, hi, self._buf, time_limit_terminates))
                 proc.start()
                 child.close()
                 self._conns.append(parent)
