@@ -281,8 +281,10 @@ def alive(pids: set[int]) -> set[int]:
 
 
 @needs_ray
-def test_two_rollout_actors_train_sac_and_write_the_run_directory(tmp_path):
-    config = relayrl.load_config("sac-pendulum", SAC_SMALL + ["distributed.num_actors=2"])
+@pytest.mark.parametrize("envs", [[], ["env.num_envs=2", "env.vectorization=async"]], ids=["1env", "2async"])
+def test_two_rollout_actors_train_sac_and_write_the_run_directory(tmp_path, envs):
+    # 2async: each Ray actor forks an env worker process beside itself
+    config = relayrl.load_config("sac-pendulum", SAC_SMALL + ["distributed.num_actors=2"] + envs)
     result = relayrl.train(config, tmp_path / "run", progress=False)
     r = rows(tmp_path / "run")
     local_keys = {"step", "train_step", "average_return", "average_episode_length", "episodes", "wall_time_s",

@@ -97,6 +97,25 @@ def test_async_workers_give_the_same_transitions_as_in_process(env_id, workers):
         asyn.close()
 
 
+@pytest.mark.parametrize("terminates", [False, True])
+def test_async_time_limits_match_in_process(terminates):
+    kw = dict(max_episode_steps=7, time_limit_terminates=terminates)
+    sync = make_env("CartPole-v1", 5, **kw)
+    asyn = make_env("CartPole-v1", 5, vectorization="async", num_workers=2, **kw)
+    try:
+        assert torch.equal(sync.reset(seed=1), asyn.reset(seed=1))
+        cut = 0
+        for t in range(15):
+            action = torch.tensor([t % 2, 1, 0, 1, t % 3 // 2])
+            a, b = sync.step(action), asyn.step(action)
+            for x, y in zip(a[:5], b[:5], strict=True):
+                assert torch.equal(x, y)
+            cut += int(a.truncated.sum()) + int(a.terminated.sum())
+        assert cut >= 5  # every copy's 7-step limit came at least once
+    finally:
+        asyn.close()
+
+
 def test_worker_slices_share_the_copies_out_evenly():
     from relayrl.envs.vector import worker_slices
 
