@@ -29,7 +29,9 @@ class EnvConfig:
     # true: a time-limit cut counts as termination (no bootstrap), as in old gym / TF-Agents
     time_limit_terminates: bool = False
     vectorization: str = "sync"  # sync: copies stepped in this process | async: in worker processes
-    num_workers: int = 0  # async: worker processes sharing the copies; 0: one per CPU core (at most num_envs)
+    # async: worker processes stepping slices of the copies beside the main process's slice;
+    # 0: one per CPU core beside the main one (never more than num_envs - 1)
+    num_workers: int = 0
     # info values read at each episode's end and averaged like returns (metrics.jsonl
     # `train/<key>` and `eval/<key>`, TensorBoard, `relayrl plot`): e.g. Mario's ["x_pos"]
     info_keys: list[str] = field(default_factory=list)
@@ -120,7 +122,7 @@ class Config:
                 raise ConfigError(f"train.{key} must be >= 0")
         if self.env.num_workers < 0:
             raise ConfigError(f"env.num_workers={self.env.num_workers} is not valid; it must be >= 0 "
-                              "(0: one worker process per CPU core)")
+                              "(0: one worker process per CPU core beside the main one)")
         if self.env.vectorization not in ("sync", "async"):
             raise ConfigError(f"env.vectorization={self.env.vectorization!r} is not valid; valid: sync, async")
         r = self.replay
