@@ -117,13 +117,13 @@ def test_async_time_limits_match_in_process(terminates):
 
 
 def test_worker_slices_share_the_copies_out_evenly():
-    from relayrl.envs.vector import worker_slices
+    from relayrl.envs.vector import usable_cpus, worker_slices
 
     # the main process's slice first, then one per worker
     assert worker_slices(32, 1) == [(0, 16), (16, 32)]
     assert worker_slices(7, 2) == [(0, 2), (2, 5), (5, 7)]
     assert worker_slices(3, 8) == [(0, 1), (1, 2), (2, 3)]  # never more workers than copies
-    assert len(worker_slices(64, 0)) == max(2, os.cpu_count() or 1)  # 0: one per core beside the main's
+    assert len(worker_slices(64, 0)) == max(2, usable_cpus())  # 0: one per core beside the main's
 
 
 def test_async_worker_errors_reach_the_main_process():

@@ -33,11 +33,20 @@ from relayrl.errors import UserError
 from relayrl.types import EpisodeInfo, StepOutput
 
 
+def usable_cpus() -> int:
+    """The cores this process may run on (its affinity mask: `taskset`, container cpusets),
+    which can be far fewer than the machine's `os.cpu_count()`."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # no sched_getaffinity (macOS, Windows)
+        return os.cpu_count() or 1
+
+
 def worker_slices(num_envs: int, num_workers: int) -> list[tuple[int, int]]:
     """Contiguous [lo, hi) slices of the copies, the main process's first, then one per worker
     (`num_workers`, 0: one per core beside the main's, never more than the copies allow);
     sizes differ by at most 1."""
-    workers = num_workers or max(1, (os.cpu_count() or 1) - 1)
+    workers = num_workers or max(1, usable_cpus() - 1)
     n = 1 + max(0, min(workers, num_envs - 1))
     bounds = np.linspace(0, num_envs, n + 1).round().astype(int)
     return [(int(lo), int(hi)) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
