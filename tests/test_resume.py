@@ -1,6 +1,7 @@
 """Whole-run checkpoints: a run resumed from a checkpoint is the uninterrupted run, bit for bit."""
 
 import json
+import os
 import random
 import shutil
 import signal
@@ -155,18 +156,41 @@ def test_run_killed_at_a_random_moment_resumes_to_the_uninterrupted_result(tmp_p
     assert comparable(tmp_path / "killed") == comparable(tmp_path / "full")
 
 
-def test_sigterm_stops_a_run_like_ctrl_c_and_it_resumes(tmp_path):
-    over = DQN[:1] + ["train.total_steps=3000", "train.torch_threads=1"] + DQN[2:]
+def proc_state(pid: int) -> tuple[str, int] | None:
+    """(state, parent pid) of a process from /proc; None once it is gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            state, ppid = f.read().rsplit(")", 1)[1].split()[:2]
+    except (OSError, ValueError):
+        return None
+    return state, int(ppid)
+
+
+def children_running(pid: int) -> set[int]:
+    """Processes whose parent is `pid` and that have not exited (zombies left out)."""
+    found = {int(d): proc_state(int(d)) for d in os.listdir("/proc") if d.isdigit()}
+    return {p for p, st in found.items() if st is not None and st[1] == pid and st[0] != "Z"}
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.parametrize("envs", [[], ["env.num_envs=3", "env.vectorization=async", "env.num_workers=2"]],
+                         ids=["1env", "3async"])
+def test_sigterm_stops_a_run_like_ctrl_c_and_it_resumes(tmp_path, envs):
+    over = DQN[:1] + ["train.total_steps=3000", "train.torch_threads=1"] + DQN[2:] + envs
     cmd = [sys.executable, "-m", "relayrl", "train", "dqn-cartpole-fast", "--run-dir", str(tmp_path / "run"),
            "--no-progress", *[a for o in over for a in ("--set", o)]]
     p = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
     while not list_checkpoints(tmp_path / "run" / "checkpoints") and p.poll() is None:
         time.sleep(0.02)
+    workers = children_running(p.pid)
+    assert len(workers) == (2 if envs else 0)
     p.send_signal(signal.SIGTERM)
     _, err = p.communicate(timeout=60)
     assert p.returncode == 143, err  # 128 + SIGTERM: handled, not killed (-15)
     assert "relayrl: terminated; resume with --resume from the last checkpoint" in err
     assert "Traceback" not in err
+    assert not [w for w in workers if (st := proc_state(w)) is not None and st[0] != "Z"], \
+        "env workers outlived the run"
     done = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert RunDir(tmp_path / "run").read_metrics()[-1]["step"] == 3000
