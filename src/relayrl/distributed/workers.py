@@ -140,7 +140,9 @@ class RolloutWorker:
         self.index, self.num_actors = index, c.distributed.num_actors
         self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
                             time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
-                            num_workers=c.env.num_workers,
+                            # async: by default one worker per CPU Ray reserved for this actor beyond
+                            # its own (at least one), not one per core of the machine it landed on
+                            num_workers=c.env.num_workers or max(1, round(c.distributed.actor_cpus) - 1),
                             info_keys=c.env.info_keys)
         agent = make_agent(c.algo, c.agent, self.env.observation_spec, self.env.action_spec, torch.device("cpu"),
                            np.random.default_rng(seed), c.train.total_steps)
