@@ -107,9 +107,11 @@ _NP_ACTIVATIONS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
 }
 
 
-# Above this many multiply-adds per forward pass torch's CPU matmul (oneDNN) beats NumPy's
-# OpenBLAS, 3x at 32 rows through (256, 256); below it torch's per-op dispatch dominates.
-# Measured crossovers (1 thread): 8 rows at width 256, ~48 at 128, ~64 at 64.
+# Above this many multiply-adds per forward pass torch's CPU matmul (MKL's sgemm) beats NumPy's
+# OpenBLAS; below it torch's per-op dispatch dominates. Measured crossovers (1 thread): 8 rows
+# at width 256, ~48 at 128, ~64 at 64. [32, 256] x [256, 256] on one thread (2026-11-23): MKL
+# 140-155 us, OpenBLAS 395-400 us, oneDNN's linear 240 us. (OpenBLAS on 2 threads takes ~80 us,
+# but its threads spin on the core the envs step on and slow them as much.)
 NUMPY_MAX_MACS = 500_000
 
 
