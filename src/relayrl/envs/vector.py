@@ -135,15 +135,15 @@ class AsyncGymBatchEnv(BatchEnvBase):
         self.slices = worker_slices(len(env_fns), num_workers)
         self._k = self.slices[0][1]  # copies [0, k) are this process's
         self._local = GymBatchEnv(env_fns[:self._k], time_limit_terminates)
-        first = self._local.envs[0]
-        self._init_specs(len(env_fns), first.observation_space, first.action_space, time_limit_terminates,
-                         frame_stack_of(first))
-        act_dtype = np.dtype(np.int64) if self._discrete else np.dtype(np.float32)
-        # fork: workers start in milliseconds and inherit what they need; spawn where there is no fork.
-        ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
-        self._buf = _Buffers(ctx, self.num_envs, tuple(self.observation_spec.shape), np.dtype(self._obs_dtype),
-                             tuple(self.action_spec.shape), act_dtype)
-        try:
+        try:  # from here on a failure closes what was made: this process's envs, started workers
+            first = self._local.envs[0]
+            self._init_specs(len(env_fns), first.observation_space, first.action_space, time_limit_terminates,
+                             frame_stack_of(first))
+            act_dtype = np.dtype(np.int64) if self._discrete else np.dtype(np.float32)
+            # fork: workers start in milliseconds and inherit what they need; spawn where there is no fork.
+            ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+            self._buf = _Buffers(ctx, self.num_envs, tuple(self.observation_spec.shape), np.dtype(self._obs_dtype),
+                                 tuple(self.action_spec.shape), act_dtype)
             for lo, hi in self.slices[1:]:
                 parent, child = ctx.Pipe()
                 fns = cloudpickle.dumps(env_fns[lo:hi])
