@@ -6,6 +6,7 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 import pytest
 import torch
 
@@ -127,10 +128,20 @@ def test_worker_slices_share_the_copies_out_evenly():
 
 
 def test_async_worker_errors_reach_the_main_process():
-    env = make_env("toy_envs:Broken", 4, vectorization="async", num_workers=2)
+    env = make_env("toy_envs:BrokenInWorker", 4, vectorization="async", num_workers=2)
     try:
         env.reset(seed=0)
         with pytest.raises(RuntimeError, match="(?s)env worker 0 failed.*ValueError: the simulator lost its state"):
+            env.step(torch.zeros(4, dtype=torch.int64))
+    finally:
+        env.close()
+    env = make_env("toy_envs:Broken", 4, vectorization="async", num_workers=2)
+    try:
+        env.reset(seed=0)
+        # this process's copies failed too: their own error, as in-process, not a worker's report
+        with pytest.raises(ValueError, match="the simulator lost its state"):
+            env.step(torch.zeros(4, dtype=torch.int64))
+        with pytest.raises(ValueError):  # the workers' replies to the failed step were read: in step
             env.step(torch.zeros(4, dtype=torch.int64))
     finally:
         env.close()
@@ -143,6 +154,84 @@ def test_async_worker_errors_reach_the_main_process():
         env.close()
 
 
+def test_an_interrupted_async_step_leaves_the_next_steps_right():
+    """Ctrl-C in a notebook interrupts only the main process, maybe while it waits for a worker:
+    the next step must not read that worker's stale reply and half-written shared memory."""
+    env = make_env("toy_envs:SlowInWorker", 2, vectorization="async", num_workers=1)
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        env.reset(seed=0)
+        signal.setitimer(signal.ITIMER_REAL, 0.05)  # while the worker sleeps through its step
+        with pytest.raises(KeyboardInterrupt):
+            env.step(torch.zeros(2, dtype=torch.int64))
+        for t in (2, 3):  # both copies stepped in the interrupted call, and once more in each of these
+            assert env.step(torch.zeros(2, dtype=torch.int64)).next_obs[:, 0].tolist() == [t, t]
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+        env.close()
+
+
+def test_async_envs_may_keep_the_action_they_were_given():
+    sync = make_env("toy_envs:KeepsAction", 4)
+    asyn = make_env("toy_envs:KeepsAction", 4, vectorization="async", num_workers=1)
+    try:
+        sync.reset(seed=0), asyn.reset(seed=0)
+        for t in range(4):
+            action = torch.full((4, 1), float(t % 2))
+            assert torch.equal(sync.step(action).reward, asyn.step(action).reward)
+    finally:
+        asyn.close()
+
+
+def test_workers_draw_their_own_global_random_numbers_repeatably():
+    def draws() -> np.ndarray:
+        np.random.seed(0)
+        env = make_env("toy_envs:GlobalDraws", 4, vectorization="async", num_workers=3)
+        try:
+            env.reset(seed=0)
+            return torch.stack([env.step(torch.zeros(4, dtype=torch.int64)).next_obs[:, 0] for _ in range(3)]).numpy()
+        finally:
+            env.close()
+
+    first = draws()
+    assert len(np.unique(first)) == first.size  # no copy repeats another's draws (forked RNG state)
+    np.testing.assert_array_equal(first, draws())  # a script that seeds np.random gets them again
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_dropped_async_env_s_workers_exit_while_another_lives():
+    """Workers of a later env inherit (fork) the earlier env's pipe ends: they must not keep
+    its workers alive once it is dropped without close()."""
+    import gc
+
+    a = make_env("CartPole-v1", 2, vectorization="async", num_workers=1)
+    b = make_env("CartPole-v1", 2, vectorization="async", num_workers=1)
+    try:
+        pid = a._procs[0].pid
+        del a
+        gc.collect()
+        deadline = time.monotonic() + 20
+        while _running(pid) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not _running(pid), "a dropped env's worker lived on"
+    finally:
+        b.close()
+
+
+def _running(pid: int) -> bool:
+    """A zombie (exited, not yet reaped) is not running."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_async_workers_exit_when_the_main_process_is_killed():
     code = ("import time; from relayrl.envs import make_env; "
@@ -153,18 +242,10 @@ def test_async_workers_exit_when_the_main_process_is_killed():
     assert len(pids) == 3
     main.send_signal(signal.SIGKILL)
     main.wait()
-
-    def running(pid: int) -> bool:  # a zombie (exited, not yet reaped by init) is not running
-        try:
-            with open(f"/proc/{pid}/stat") as f:
-                return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-        except FileNotFoundError:
-            return False
-
     deadline = time.monotonic() + 20
-    while any(map(running, pids)) and time.monotonic() < deadline:
+    while any(map(_running, pids)) and time.monotonic() < deadline:
         time.sleep(0.1)
-    stuck = [p for p in pids if running(p)]
+    stuck = [p for p in pids if _running(p)]
     for p in stuck:
         os.kill(p, signal.SIGKILL)
     assert not stuck, "env workers outlived the main process"

@@ -196,6 +196,29 @@ def test_sigterm_stops_a_run_like_ctrl_c_and_it_resumes(tmp_path, envs):
     assert RunDir(tmp_path / "run").read_metrics()[-1]["step"] == 3000
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+@pytest.mark.parametrize("sig, code, what", [(signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")])
+def test_a_signal_to_the_whole_process_group_stops_an_async_run_cleanly(tmp_path, cli_env, sig, code, what):
+    """Ctrl-C in a terminal, systemd and Slurm signal every process of the group, env workers
+    included: the run must still stop as on a signal to the main process alone."""
+    over = ["env.id=toy_envs:Sleepy", "env.num_envs=2", "env.vectorization=async", "env.num_workers=1",
+            "train.total_steps=100000", "train.initial_collect_steps=100000", "eval.episodes=1"]
+    cmd = [sys.executable, "-m", "relayrl", "train", "dqn-cartpole-fast", "--run-dir", str(tmp_path / "run"),
+           "--no-progress", *[a for o in over for a in ("--set", o)]]
+    p = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=cli_env, start_new_session=True)
+    deadline = time.monotonic() + 60
+    while not (workers := children_running(p.pid)) and p.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert workers, "no env worker started"
+    time.sleep(2.0)  # past the first evaluation (0.4 s), into collection: ~2 ms env steps on both sides
+    os.killpg(p.pid, sig)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == code, err
+    assert f"relayrl: {what}; resume with --resume" in err and "Traceback" not in err, err
+    assert not [w for w in workers if (st := proc_state(w)) is not None and st[0] != "Z"], \
+        "env workers outlived the run"
+
+
 def test_policy_loads_and_evaluates_at_any_moment_of_a_run(tmp_path):
     over = DQN[:1] + ["train.total_steps=100000", "train.policy_save_interval=100", "train.torch_threads=1"] + DQN[2:]
     run = tmp_path / "live"

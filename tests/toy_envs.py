@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import time
 
 import gymnasium as gym
 import numpy as np
@@ -141,6 +142,15 @@ class Broken(Countdown):
         raise ValueError("the simulator lost its state")
 
 
+class BrokenInWorker(Countdown):
+    """Countdown whose step raises when it runs in a worker process."""
+
+    def step(self, action):
+        if multiprocessing.parent_process() is not None:
+            raise ValueError("the simulator lost its state")
+        return super().step(action)
+
+
 class DiesInWorker(Countdown):
     """Countdown whose process dies at its first step when it runs in a worker process."""
 
@@ -148,3 +158,55 @@ class DiesInWorker(Countdown):
         if multiprocessing.parent_process() is not None:
             os._exit(3)
         return super().step(action)
+
+
+class SlowInWorker(Countdown):
+    """Countdown of 1,000-step episodes whose step takes 0.3 s in a worker process."""
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        super().__init__(length=1000, render_mode=render_mode)
+
+    def step(self, action):
+        if multiprocessing.parent_process() is not None:
+            time.sleep(0.3)
+        return super().step(action)
+
+
+class Sleepy(Countdown):
+    """Countdown of 200-step episodes whose step sleeps 2 ms: a run that spends its time in env steps."""
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        super().__init__(length=200, render_mode=render_mode)
+
+    def step(self, action):
+        time.sleep(0.002)
+        return super().step(action)
+
+
+class KeepsAction(gym.Env):
+    """Continuous env that keeps the action array it was given: reward -|a - previous a|."""
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        self.observation_space = gym.spaces.Box(-1, 1, (1,), np.float32)
+        self.action_space = gym.spaces.Box(-1, 1, (1,), np.float32)
+        self.previous = np.zeros(1, np.float32)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action):
+        reward = -float(np.abs(action - self.previous).sum())
+        self.previous = action  # no copy, as an env may
+        return np.zeros(1, np.float32), reward, False, False, {}
+
+
+class GlobalDraws(Countdown):
+    """Countdown whose observation is a draw from the global `np.random`, as older envs do."""
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        super().__init__(length=1000, render_mode=render_mode)
+
+    def step(self, action):
+        _, reward, terminated, truncated, info = super().step(action)
+        return np.array([np.random.random(), self.t], np.float32), reward, terminated, truncated, info

@@ -6,6 +6,11 @@ process's). Every slice is stepped by the in-process `GymBatchEnv`, so autoreset
 (copy i gets seed + i wherever it lives), time limits and episode infos are the in-process
 code's, and transitions are identical to `sync`'s.
 
+Envs that draw from the global RNGs (`np.random`, `random`, torch's) instead of their own
+`self.np_random` cannot give sync's numbers: every worker has its own streams, seeded from this
+process's `np.random` state (so a script that seeds it runs the same twice) and its slice's
+first copy, so copies in different workers never repeat each other's draws.
+
 Why this shape: more processes than cores never speeds up CPU-bound envs, and one process per
 copy (Gymnasium's `AsyncVectorEnv`) pays a pipe round trip per copy per step, which made 32
 Pendulum copies 5x slower than stepping them in one process. The main process steps its own
@@ -19,7 +24,12 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import random
+import signal
+import sys
 import traceback
+import weakref
+import zlib
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -77,12 +87,33 @@ class _Buffers:
         self.views()
 
 
+# The main process's ends of every async env's pipes. A forked worker inherits them all and
+# closes them: an inherited copy would keep a pipe open after its env's owner is gone (the main
+# process SIGKILLed, or another env dropped without close()), so that env's workers would never
+# read EOF and exit.
+_MAIN_ENDS: weakref.WeakSet[Connection] = weakref.WeakSet()
+
+
+def _global_rng_seed(lo: int) -> int:
+    """A seed for the global RNGs of the worker whose slice starts at copy `lo`: derived from
+    this process's `np.random` state without drawing from it, distinct per worker."""
+    return (zlib.crc32(np.random.get_state()[1].tobytes()) + lo) % 2**32
+
+
 def _worker(conn: Connection, parent_end: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Buffers,
-            time_limit_terminates: bool) -> None:
+            time_limit_terminates: bool, rng_seed: int) -> None:
     """Serve commands until "close": step, reset, info_keys, get_state, set_state."""
-    # Our copy of the main process's end would keep the pipe open after that process dies
-    # (SIGKILL): closed, a dead main process reads as EOF here, and the worker exits.
-    parent_end.close()
+    parent_end.close()  # this worker's own env's end; _MAIN_ENDS holds the earlier envs'
+    for end in list(_MAIN_ENDS):  # (fork) see _MAIN_ENDS
+        end.close()
+    # Ctrl-C reaches the terminal's whole process group: the main process reports it and closes
+    # the workers, which must still answer it meanwhile. SIGTERM (close()'s last resort, and
+    # multiprocessing's at exit) kills, whatever handler the forked main process had installed.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    np.random.seed(rng_seed)  # forked, they would repeat the main process's draws (module docstring)
+    random.seed(rng_seed)
+    torch.manual_seed(rng_seed)
     a = buffers.arrays
     env: GymBatchEnv | None = None
     try:
@@ -92,7 +123,9 @@ def _worker(conn: Connection, parent_end: Connection, fns_pickled: bytes, lo: in
             cmd, arg = conn.recv()
             try:
                 if cmd == "step":  # straight into shared memory: reset observations into "obs"
-                    _, info = env.step_into(a["action"][lo:hi], a["next_obs"][lo:hi], a["reward"][lo:hi],
+                    # A copy of the actions: an env may keep the one it was given (sync hands out a
+                    # fresh array each step), and the shared row is written over by the next step.
+                    _, info = env.step_into(a["action"][lo:hi].copy(), a["next_obs"][lo:hi], a["reward"][lo:hi],
                                             a["terminated"][lo:hi], a["truncated"][lo:hi], a["obs"][lo:hi])
                     conn.send(("ok", info))
                 elif cmd == "reset":
@@ -112,7 +145,7 @@ def _worker(conn: Connection, parent_end: Connection, fns_pickled: bytes, lo: in
                 conn.send(("user_error", str(e)))
             except Exception:  # any failure of the env's code goes to the main process, with its traceback
                 conn.send(("error", traceback.format_exc()))
-    except (EOFError, KeyboardInterrupt):  # the main process is gone, or Ctrl-C (which it reports)
+    except EOFError:  # the main process is gone
         pass
     except Exception:
         conn.send(("error", traceback.format_exc()))
@@ -131,6 +164,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
             raise UserError("env.num_envs must be >= 1")
         self._conns: list[Connection] = []
         self._procs: list[Any] = []
+        self._pending: list[int] = []  # replies each worker owes (an interrupted call leaves some unread)
         self._closed = False
         self.slices = worker_slices(len(env_fns), num_workers)
         self._k = self.slices[0][1]  # copies [0, k) are this process's
@@ -140,19 +174,23 @@ class AsyncGymBatchEnv(BatchEnvBase):
             self._init_specs(len(env_fns), first.observation_space, first.action_space, time_limit_terminates,
                              frame_stack_of(first))
             act_dtype = np.dtype(np.int64) if self._discrete else np.dtype(np.float32)
-            # fork: workers start in milliseconds and inherit what they need; spawn where there is no fork.
-            ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+            # fork on Linux: workers start in milliseconds and inherit what they need. Elsewhere
+            # spawn: macOS has fork, but its system libraries are not safe to use after one.
+            ctx = mp.get_context("fork" if sys.platform.startswith("linux") else "spawn")
             self._buf = _Buffers(ctx, self.num_envs, tuple(self.observation_spec.shape), np.dtype(self._obs_dtype),
                                  tuple(self.action_spec.shape), act_dtype)
             for lo, hi in self.slices[1:]:
                 parent, child = ctx.Pipe()
                 fns = cloudpickle.dumps(env_fns[lo:hi])
                 proc = ctx.Process(target=_worker, name=f"relayrl-env-{lo}-{hi}", daemon=True,
-                                   args=(child, parent, fns, lo, hi, self._buf, time_limit_terminates))
+                                   args=(child, parent, fns, lo, hi, self._buf, time_limit_terminates,
+                                         _global_rng_seed(lo)))
                 proc.start()
                 child.close()
+                _MAIN_ENDS.add(parent)
                 self._conns.append(parent)
                 self._procs.append(proc)
+                self._pending.append(1)  # its "ok" once the envs are made
             self._gather()
         except BaseException:
             self.close()
@@ -173,17 +211,22 @@ class AsyncGymBatchEnv(BatchEnvBase):
         if self._conns:
             self._command("info_keys", self._info_keys)
 
+    def _recv(self, w: int) -> tuple[str, Any]:
+        try:
+            reply = self._conns[w].recv()
+        except (EOFError, ConnectionResetError):
+            self._procs[w].join(timeout=2)  # reaped, so its exit code is known
+            lo, hi = self.slices[w + 1]
+            copies = f"copy {lo}" if hi - lo == 1 else f"copies {lo}..{hi - 1}"
+            raise RuntimeError(f"env worker {w} ({copies}) died (exit code {self._procs[w].exitcode})") from None
+        self._pending[w] -= 1
+        return reply
+
     def _gather(self) -> list[Any]:
         """Every worker's reply, in order; a worker's failure is raised here."""
         replies, failure = [], None
-        for w, conn in enumerate(self._conns):
-            try:
-                status, value = conn.recv()
-            except (EOFError, ConnectionResetError):
-                self._procs[w].join(timeout=2)  # reaped, so its exit code is known
-                lo, hi = self.slices[w + 1]
-                copies = f"copy {lo}" if hi - lo == 1 else f"copies {lo}..{hi - 1}"
-                raise RuntimeError(f"env worker {w} ({copies}) died (exit code {self._procs[w].exitcode})") from None
+        for w in range(len(self._conns)):
+            status, value = self._recv(w)
             if status == "user_error":
                 failure = failure or UserError(value)
             elif status == "error":
@@ -193,9 +236,31 @@ class AsyncGymBatchEnv(BatchEnvBase):
             raise failure
         return replies
 
-    def _command(self, cmd: str, arg: Any = None, per_worker: list[Any] | None = None) -> list[Any]:
+    def _drain(self) -> None:
+        """Read and drop the replies an interrupted call left unread (Ctrl-C in a notebook during
+        a step), so the next call reads its own replies and shared memory the workers are done
+        writing."""
+        for w in range(len(self._conns)):
+            while self._pending[w] > 0:
+                self._recv(w)
+
+    def _send(self, cmd: str, arg: Any = None, per_worker: list[Any] | None = None) -> None:
+        self._drain()
         for w, conn in enumerate(self._conns):
             conn.send((cmd, arg if per_worker is None else per_worker[w]))
+            self._pending[w] += 1
+
+    def _settle(self) -> None:
+        """After this process's copies failed: the workers' replies read, their errors dropped
+        (the local failure is the one raised; a worker killed by the same Ctrl-C or SIGTERM to
+        the process group would otherwise replace it)."""
+        try:
+            self._drain()
+        except Exception:
+            pass
+
+    def _command(self, cmd: str, arg: Any = None, per_worker: list[Any] | None = None) -> list[Any]:
+        self._send(cmd, arg, per_worker)
         return self._gather()
 
     def get_state(self) -> list[bytes] | None:
@@ -210,12 +275,13 @@ class AsyncGymBatchEnv(BatchEnvBase):
         self._command("set_state", per_worker=[states[lo:hi] for lo, hi in self.slices[1:]])
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
-        for conn in self._conns:
-            conn.send(("reset", seed))
+        self._send("reset", seed)
         try:
             local = self._local.reset(seed)
-        finally:
-            self._gather()
+        except BaseException:
+            self._settle()
+            raise
+        self._gather()
         obs = self._buf.arrays["obs"].copy()
         obs[:self._k] = local.numpy()
         return torch.from_numpy(obs)
@@ -223,9 +289,9 @@ class AsyncGymBatchEnv(BatchEnvBase):
     def step(self, action: torch.Tensor) -> StepOutput:
         a, k, b = self._buf.arrays, self._k, self.num_envs
         act = action.numpy()
+        self._drain()  # before the actions are written: a worker may still be reading the last ones
         a["action"][k:] = act[k:]
-        for conn in self._conns:
-            conn.send(("step", None))
+        self._send("step")
         # The results come in fresh arrays: this process's rows are written there directly,
         # the workers' are copied from shared memory, which the next step writes over.
         next_obs = np.empty((b, *self.observation_spec.shape), self._obs_dtype)
@@ -234,8 +300,10 @@ class AsyncGymBatchEnv(BatchEnvBase):
         try:
             _, local_info = self._local.step_into(act[:k], next_obs[:k], reward[:k], terminated[:k], truncated[:k],
                                                   reset_obs[:k])
-        finally:
-            infos = self._gather()  # also when this process's copies failed: the pipes stay in step
+        except BaseException:
+            self._settle()
+            raise
+        infos = self._gather()
         next_obs[k:], reward[k:] = a["next_obs"][k:], a["reward"][k:]
         terminated[k:], truncated[k:] = a["terminated"][k:], a["truncated"][k:]
         ended = terminated | truncated
@@ -271,9 +339,14 @@ class AsyncGymBatchEnv(BatchEnvBase):
                 pass
         for proc in self._procs:
             proc.join(timeout=5)
-            if proc.is_alive():
+            if proc.is_alive():  # stuck in the env's code
                 proc.terminate()
+                proc.join(timeout=2)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(timeout=2)
         for conn in self._conns:
+            _MAIN_ENDS.discard(conn)
             conn.close()
         if hasattr(self, "_local"):
             self._local.close()
