@@ -1,6 +1,7 @@
 """Whole-run checkpoints: a run resumed from a checkpoint is the uninterrupted run, bit for bit."""
 
 import json
+import multiprocessing
 import os
 import random
 import shutil
@@ -99,6 +100,21 @@ def test_resume_refuses_another_number_of_envs(tmp_path):
     more = relayrl.load_config("dqn-cartpole-fast", DQN + ["env.num_envs=2"])
     with pytest.raises(relayrl.errors.UserError, match="env.num_envs=2 but the run being resumed has 1"):
         relayrl.train(more, tmp_path / "r", resume=True, progress=False)
+    # async: the refusal closes the env's worker processes (a notebook would keep them otherwise)
+    more = relayrl.load_config("dqn-cartpole-fast", DQN + ["env.num_envs=2", "env.vectorization=async"])
+    with pytest.raises(relayrl.errors.UserError, match="env.num_envs=2 but the run being resumed has 1"):
+        relayrl.train(more, tmp_path / "r", resume=True, progress=False)
+    assert not [p for p in multiprocessing.active_children() if p.name.startswith("relayrl-env")]
+
+
+def test_a_run_that_fails_while_it_is_built_leaves_no_env_worker(tmp_path):
+    bad = relayrl.load_config("dqn-cartpole-fast", DQN + ["env.num_envs=2", "env.vectorization=async",
+                                                          "replay.storage=memmap"])
+    (tmp_path / "r").mkdir()
+    (tmp_path / "r" / "replay").write_text("a file where the memmap replay's folder goes")
+    with pytest.raises(FileExistsError):  # the replay's storage, built after the env
+        relayrl.train(bad, tmp_path / "r", progress=False)
+    assert not [p for p in multiprocessing.active_children() if p.name.startswith("relayrl-env")]
 
 
 WRITER = """

@@ -155,6 +155,14 @@ class LocalRun(RunLog):
                             time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
                             num_workers=c.env.num_workers,
                             device=self.device, info_keys=c.env.info_keys)
+        try:
+            self._build(c, run_dir)
+        except BaseException:  # async envs have worker processes: none is left behind by a failure here
+            self.env.close()
+            raise
+
+    def _build(self, c: Config, run_dir: RunDir) -> None:
+        """Everything besides the env, which exists already."""
         self.eval_env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, self.device,
                                       c.env.info_keys)
         obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
@@ -292,7 +300,12 @@ class LocalRun(RunLog):
         if not c.train.checkpoint_replay and c.train.checkpoint_interval > 0:
             self.say("train.checkpoint_replay = false: checkpoints leave the replay out; a resumed run refills it")
         if resume:
-            self.restore()  # rewrites metrics.jsonl: open the log only afterwards
+            try:
+                self.restore()  # rewrites metrics.jsonl: open the log only afterwards
+            except BaseException:  # (a wrong num_envs, no readable checkpoint) no env worker left behind
+                self.env.close()
+                self.eval_env.close()
+                raise
         self.tb = SummaryWriter(str(self.rd.tb))
         self.metrics_log = MetricsLog(self.rd.metrics)
         try:
