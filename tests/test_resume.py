@@ -112,8 +112,8 @@ def test_a_run_that_fails_while_it_is_built_leaves_no_env_worker(tmp_path):
                                                           "replay.storage=memmap"])
     (tmp_path / "r").mkdir()
     (tmp_path / "r" / "replay").write_text("a file where the memmap replay's folder goes")
-    with pytest.raises(FileExistsError):  # the replay's storage, built after the env
-        relayrl.train(bad, tmp_path / "r", progress=False)
+    with pytest.raises(relayrl.errors.UserError, match="needs a folder at .*replay, but a file is in the way"):
+        relayrl.train(bad, tmp_path / "r", progress=False)  # the replay's storage is built after the env
     assert not [p for p in multiprocessing.active_children() if p.name.startswith("relayrl-env")]
 
 

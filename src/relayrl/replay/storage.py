@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from relayrl.errors import UserError
+
 Signature = dict[str, tuple[tuple[int, ...], np.dtype]]  # name -> (shape per row, dtype)
 
 
@@ -43,7 +45,11 @@ class Columns:
             raise ValueError("memmap storage lives on disk; it cannot also live on a device")
         self.arrays: dict[str, Any] = {}
         if self.path is not None:
-            self.path.mkdir(parents=True, exist_ok=True)
+            try:
+                self.path.mkdir(parents=True, exist_ok=True)
+            except (FileExistsError, NotADirectoryError):
+                raise UserError(f"memmap replay storage needs a folder at {self.path}, but a file is in the way; "
+                                "move it, or use another run directory") from None
             meta = {"leading": list(self.leading),
                     "signature": {k: [list(s), d.str] for k, (s, d) in self.signature.items()}}
             meta_file = self.path / "columns.json"
