@@ -87,10 +87,10 @@ class _Buffers:
         self.views()
 
 
-# The main process's ends of every async env's pipes. A forked worker inherits them all and
-# closes them: an inherited copy would keep a pipe open after its env's owner is gone (the main
-# process SIGKILLed, or another env dropped without close()), so that env's workers would never
-# read EOF and exit.
+# The main process's ends of every async env's pipes, its own env's included. A forked worker
+# inherits them all and closes them: an inherited copy would keep a pipe open after its env's
+# owner is gone (the main process SIGKILLed, or another env dropped without close()), so that
+# env's workers would never read EOF and exit. A spawned worker inherits none.
 _MAIN_ENDS: weakref.WeakSet[Connection] = weakref.WeakSet()
 
 
@@ -100,11 +100,10 @@ def _global_rng_seed(lo: int) -> int:
     return (zlib.crc32(np.random.get_state()[1].tobytes()) + lo) % 2**32
 
 
-def _worker(conn: Connection, parent_end: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Buffers,
-            time_limit_terminates: bool, rng_seed: int) -> None:
+def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Buffers, time_limit_terminates: bool,
+            rng_seed: int) -> None:
     """Serve commands until "close": step, reset, info_keys, get_state, set_state."""
-    parent_end.close()  # this worker's own env's end; _MAIN_ENDS holds the earlier envs'
-    for end in list(_MAIN_ENDS):  # (fork) see _MAIN_ENDS
+    for end in list(_MAIN_ENDS):  # see _MAIN_ENDS
         end.close()
     # Ctrl-C reaches the terminal's whole process group: the main process reports it and closes
     # the workers, which must still answer it meanwhile. SIGTERM (close()'s last resort, and
@@ -181,13 +180,12 @@ class AsyncGymBatchEnv(BatchEnvBase):
                                  tuple(self.action_spec.shape), act_dtype)
             for lo, hi in self.slices[1:]:
                 parent, child = ctx.Pipe()
+                _MAIN_ENDS.add(parent)  # before the fork: the worker closes its copy of it too
                 fns = cloudpickle.dumps(env_fns[lo:hi])
                 proc = ctx.Process(target=_worker, name=f"relayrl-env-{lo}-{hi}", daemon=True,
-                                   args=(child, parent, fns, lo, hi, self._buf, time_limit_terminates,
-                                         _global_rng_seed(lo)))
+                                   args=(child, fns, lo, hi, self._buf, time_limit_terminates, _global_rng_seed(lo)))
                 proc.start()
                 child.close()
-                _MAIN_ENDS.add(parent)
                 self._conns.append(parent)
                 self._procs.append(proc)
                 self._pending.append(1)  # its "ok" once the envs are made
