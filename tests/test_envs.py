@@ -9,6 +9,7 @@ import time
 import numpy as np
 import pytest
 import torch
+from procs import running
 
 from relayrl.envs import make_env
 from relayrl.errors import UserError
@@ -216,20 +217,11 @@ def test_a_dropped_async_env_s_workers_exit_while_another_lives():
         del a
         gc.collect()
         deadline = time.monotonic() + 20
-        while _running(pid) and time.monotonic() < deadline:
+        while running(pid) and time.monotonic() < deadline:
             time.sleep(0.05)
-        assert not _running(pid), "a dropped env's worker lived on"
+        assert not running(pid), "a dropped env's worker lived on"
     finally:
         b.close()
-
-
-def _running(pid: int) -> bool:
-    """A zombie (exited, not yet reaped) is not running."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
-    except FileNotFoundError:
-        return False
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
@@ -243,9 +235,9 @@ def test_async_workers_exit_when_the_main_process_is_killed():
     main.send_signal(signal.SIGKILL)
     main.wait()
     deadline = time.monotonic() + 20
-    while any(map(_running, pids)) and time.monotonic() < deadline:
+    while any(map(running, pids)) and time.monotonic() < deadline:
         time.sleep(0.1)
-    stuck = [p for p in pids if _running(p)]
+    stuck = [p for p in pids if running(p)]
     for p in stuck:
         os.kill(p, signal.SIGKILL)
     assert not stuck, "env workers outlived the main process"

@@ -14,6 +14,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
+from procs import children_running, running
 
 import relayrl
 from relayrl.training.checkpoint import list_checkpoints, load_latest_checkpoint
@@ -172,22 +173,6 @@ def test_run_killed_at_a_random_moment_resumes_to_the_uninterrupted_result(tmp_p
     assert comparable(tmp_path / "killed") == comparable(tmp_path / "full")
 
 
-def proc_state(pid: int) -> tuple[str, int] | None:
-    """(state, parent pid) of a process from /proc; None once it is gone."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            state, ppid = f.read().rsplit(")", 1)[1].split()[:2]
-    except (OSError, ValueError):
-        return None
-    return state, int(ppid)
-
-
-def children_running(pid: int) -> set[int]:
-    """Processes whose parent is `pid` and that have not exited (zombies left out)."""
-    found = {int(d): proc_state(int(d)) for d in os.listdir("/proc") if d.isdigit()}
-    return {p for p, st in found.items() if st is not None and st[1] == pid and st[0] != "Z"}
-
-
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 @pytest.mark.parametrize("envs", [[], ["env.num_envs=3", "env.vectorization=async", "env.num_workers=2"]],
                          ids=["1env", "3async"])
@@ -205,8 +190,7 @@ def test_sigterm_stops_a_run_like_ctrl_c_and_it_resumes(tmp_path, envs):
     assert p.returncode == 143, err  # 128 + SIGTERM: handled, not killed (-15)
     assert "relayrl: terminated; resume with --resume from the last checkpoint" in err
     assert "Traceback" not in err
-    assert not [w for w in workers if (st := proc_state(w)) is not None and st[0] != "Z"], \
-        "env workers outlived the run"
+    assert not [w for w in workers if running(w)], "env workers outlived the run"
     done = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert RunDir(tmp_path / "run").read_metrics()[-1]["step"] == 3000
@@ -231,8 +215,7 @@ def test_a_signal_to_the_whole_process_group_stops_an_async_run_cleanly(tmp_path
     _, err = p.communicate(timeout=60)
     assert p.returncode == code, err
     assert f"relayrl: {what}; resume with --resume" in err and "Traceback" not in err, err
-    assert not [w for w in workers if (st := proc_state(w)) is not None and st[0] != "Z"], \
-        "env workers outlived the run"
+    assert not [w for w in workers if running(w)], "env workers outlived the run"
 
 
 def test_policy_loads_and_evaluates_at_any_moment_of_a_run(tmp_path):
