@@ -1,6 +1,8 @@
 """The batched Gymnasium adapter: specs, auto-reset boundaries, custom classes, errors."""
 
+import gc
 import os
+import random
 import signal
 import subprocess
 import sys
@@ -175,6 +177,114 @@ def test_an_interrupted_async_step_leaves_the_next_steps_right():
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
         env.close()
+
+
+class _WatchdogFired(Exception):
+    pass
+
+
+def test_async_steps_stay_right_under_interrupts_at_random_moments():
+    """Ctrl-C may land anywhere in a step: in the wait for a worker, mid-read of its reply,
+    between reading and counting it. No later step may hang, fail, or take another step's reply
+    or half-written shared memory: the worker's copy counts every step it took, so its obs
+    must grow from one clean step to the next."""
+    env = make_env("toy_envs:Ticking", 2, vectorization="async", num_workers=1)
+    rng = random.Random(0)
+    mode = ["interrupt"]
+
+    def alarm(signum, frame):
+        if mode[0] == "interrupt":
+            raise KeyboardInterrupt
+        raise _WatchdogFired("a clean step did not return within 10 s")
+
+    previous = signal.signal(signal.SIGALRM, alarm)
+    action = torch.zeros(2, dtype=torch.int64)
+    interrupted, clean, last = 0, 0, 0.0
+    try:
+        env.reset(seed=0)
+        deadline = time.monotonic() + 3.0
+        while time.monotonic() < deadline:
+            mode[0] = "interrupt"
+            signal.setitimer(signal.ITIMER_REAL, rng.uniform(1e-4, 2e-3))
+            try:
+                env.step(action)
+                signal.setitimer(signal.ITIMER_REAL, 0)  # in the try: an alarm up to here is caught below
+            except KeyboardInterrupt:
+                interrupted += 1
+            mode[0] = "watchdog"
+            signal.setitimer(signal.ITIMER_REAL, 10.0)
+            count = env.step(action).next_obs[1, 0].item()
+            signal.setitimer(signal.ITIMER_REAL, 0)
+            assert count > last, (count, last, interrupted)
+            last, clean = count, clean + 1
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+        env.close()
+    assert interrupted >= 100 and clean >= 100, (interrupted, clean)
+
+
+def test_async_workers_get_actions_in_the_env_s_own_dtype():
+    sync = make_env("toy_envs:IntAction", 2)
+    asyn = make_env("toy_envs:IntAction", 2, vectorization="async", num_workers=1)
+    try:
+        sync.reset(seed=0), asyn.reset(seed=0)
+        action = torch.tensor([[123456789], [123456789]])  # not a float32: 123456792 there
+        s, a = sync.step(action), asyn.step(action)
+        assert a.reward.tolist() == [123456789 % 7] * 2 and a.next_obs[:, 0].tolist() == [1.0, 1.0]  # ints, exact
+        assert torch.equal(s.reward, a.reward) and torch.equal(s.next_obs, a.next_obs)
+        action = torch.tensor([[8.0], [9.0]], dtype=torch.float64)  # other dtypes: the same values
+        assert torch.equal(sync.step(action).reward, asyn.step(action).reward)
+    finally:
+        asyn.close()
+
+
+@pytest.mark.parametrize("vectorization", ["sync", "async"])
+def test_a_wrong_number_of_actions_is_refused(vectorization):
+    env = make_env("toy_envs:Countdown", 4, vectorization=vectorization, num_workers=1)
+    try:
+        env.reset(seed=0)
+        for wrong in (torch.zeros(3, dtype=torch.int64), torch.zeros(5, dtype=torch.int64)):
+            with pytest.raises(ValueError, match="actions for .* copies, but this env has 4"):
+                env.step(wrong)
+        assert env.step(torch.zeros(4, dtype=torch.int64)).next_obs[:, 0].tolist() == [1, 1, 1, 1]
+    finally:
+        env.close()
+
+
+def test_a_closed_async_env_says_so():
+    env = make_env("toy_envs:Countdown", 2, vectorization="async", num_workers=1)
+    env.reset(seed=0)
+    env.close()
+    with pytest.raises(RuntimeError, match="closed"):
+        env.step(torch.zeros(2, dtype=torch.int64))
+
+
+def test_a_worker_whose_env_was_dropped_mid_step_exits_quietly(capfd):
+    """Dropped (not closed) while its worker steps: the worker's reply meets a closed pipe, and
+    it exits without printing tracebacks into the user's notebook or terminal."""
+    env = make_env("toy_envs:SlowInWorker", 2, vectorization="async", num_workers=1)
+    env.reset(seed=0)
+    pid = env._procs[0].pid
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGALRM, interrupt)
+    try:
+        signal.setitimer(signal.ITIMER_REAL, 0.05)  # while the worker sleeps through its step
+        with pytest.raises(KeyboardInterrupt):
+            env.step(torch.zeros(2, dtype=torch.int64))
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    del env
+    gc.collect()
+    deadline = time.monotonic() + 5
+    while running(pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not running(pid)
+    assert "Traceback" not in capfd.readouterr().err
 
 
 def test_async_envs_may_keep_the_action_they_were_given():

@@ -210,3 +210,31 @@ class GlobalDraws(Countdown):
     def step(self, action):
         _, reward, terminated, truncated, info = super().step(action)
         return np.array([np.random.random(), self.t], np.float32), reward, terminated, truncated, info
+
+
+class Ticking(Countdown):
+    """Countdown whose episodes never end in a test (10**9 steps) and whose step sleeps 0.5 ms:
+    obs[0] counts every step a copy took."""
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        super().__init__(length=10**9, render_mode=render_mode)
+
+    def step(self, action):
+        time.sleep(0.0005)
+        return super().step(action)
+
+
+class IntAction(gym.Env):
+    """An int64 Box action; reward = the action's value mod 7, obs[0] = 1 when it came as an int."""
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        self.observation_space = gym.spaces.Box(-1, 1, (1,), np.float32)
+        self.action_space = gym.spaces.Box(0, 10**9, (1,), np.int64)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action):
+        a = np.asarray(action)
+        return np.array([float(a.dtype.kind == "i")], np.float32), float(a[0] % 7), False, False, {}

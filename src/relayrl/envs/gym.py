@@ -167,11 +167,14 @@ class GymBatchEnv(BatchEnvBase):
 
     def step(self, action: torch.Tensor) -> StepOutput:
         b = self.num_envs
+        act = action.numpy()
+        if act.shape[:1] != (b,):
+            raise ValueError(f"actions for {act.shape[0] if act.ndim else 'no'} copies, but this env has {b}")
         next_obs = np.empty((b, *self.observation_spec.shape), self._obs_dtype)
         reward = np.empty(b, np.float32)
         terminated = np.empty(b, np.bool_)
         truncated = np.empty(b, np.bool_)
-        obs, info = self.step_into(action.numpy(), next_obs, reward, terminated, truncated)
+        obs, info = self.step_into(act, next_obs, reward, terminated, truncated)
         return StepOutput(torch.from_numpy(next_obs), torch.from_numpy(reward), torch.from_numpy(terminated),
                           torch.from_numpy(truncated), torch.from_numpy(obs), info)
 

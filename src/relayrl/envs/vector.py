@@ -6,6 +6,13 @@ process's). Every slice is stepped by the in-process `GymBatchEnv`, so autoreset
 (copy i gets seed + i wherever it lives), time limits and episode infos are the in-process
 code's, and transitions are identical to `sync`'s.
 
+The pipes carry pickled (command, seq, argument) one way and (status, seq, value) the other,
+each reply after the bytes `_MAGIC`. Ctrl-C (a notebook's interrupt) may stop a call anywhere;
+the next call sends a "sync" first and drops replies whose seq is not its own, so it neither
+waits for a reply that was already read nor takes an interrupted call's reply for its own. An
+interrupt that cuts a big message (a get_state or set_state of large envs) in two makes the env
+say it is broken at its next call, rather than hang (`AsyncGymBatchEnv._fill`).
+
 Envs that draw from the global RNGs (`np.random`, `random`, torch's) instead of their own
 `self.np_random` cannot give sync's numbers: every worker has its own streams, seeded from this
 process's `np.random` state (so a script that seeds it runs the same twice) and its slice's
@@ -24,8 +31,11 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import pickle
 import random
+import select
 import signal
+import struct
 import sys
 import traceback
 import weakref
@@ -96,8 +106,30 @@ _MAIN_ENDS: weakref.WeakSet[Connection] = weakref.WeakSet()
 
 def _global_rng_seed(lo: int) -> int:
     """A seed for the global RNGs of the worker whose slice starts at copy `lo`: derived from
-    this process's `np.random` state without drawing from it, distinct per worker."""
+    this process's `np.random` state without drawing from it, distinct per worker. So it is a
+    function of that state, as everything else a seeded script does: two envs made with no
+    draw from `np.random` between them give their workers the same streams."""
     return (zlib.crc32(np.random.get_state()[1].tobytes()) + lo) % 2**32
+
+
+# Pickled commands up to this size go out in one write (multiprocessing's Connection writes
+# the length and the bytes together below 16 KiB): an interrupt sends all of one or none of it.
+_ONE_WRITE = 16_000
+
+
+# Every reply starts with these bytes, after the Connection's length header: a reader whose
+# stream lost bytes to an interrupt (see AsyncGymBatchEnv._fill) finds out at the next reply.
+_MAGIC = b"RLRW"
+
+
+def _poller(conn: Connection) -> Any:
+    """A select.poll on the pipe, to wait for a reply without reading any of it (~1 us a
+    call, against ~12 us for Connection.poll); None where select has no poll (Windows)."""
+    if not hasattr(select, "poll"):
+        return None
+    poll = select.poll()
+    poll.register(conn.fileno(), select.POLLIN)
+    return poll
 
 
 def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Buffers, time_limit_terminates: bool,
@@ -116,42 +148,50 @@ def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Bu
     a = buffers.arrays
     env: GymBatchEnv | None = None
     try:
-        env = GymBatchEnv(cloudpickle.loads(fns_pickled), time_limit_terminates)
-        conn.send(("ok", None))
+        try:
+            env = GymBatchEnv(cloudpickle.loads(fns_pickled), time_limit_terminates)
+            reply: tuple[str, int, Any] = ("ok", 0, None)
+        except Exception:
+            reply = ("error", 0, traceback.format_exc())
         while True:
-            cmd, arg = conn.recv()
+            conn.send_bytes(_MAGIC + pickle.dumps(reply))
+            if env is None:
+                break
+            cmd, seq, arg = pickle.loads(conn.recv_bytes())
+            if cmd == "close":
+                break
             try:
-                if cmd == "step":  # straight into shared memory: reset observations into "obs"
-                    # A copy of the actions: an env may keep the one it was given (sync hands out a
-                    # fresh array each step), and the shared row is written over by the next step.
-                    _, info = env.step_into(a["action"][lo:hi].copy(), a["next_obs"][lo:hi], a["reward"][lo:hi],
-                                            a["terminated"][lo:hi], a["truncated"][lo:hi], a["obs"][lo:hi])
-                    conn.send(("ok", info))
-                elif cmd == "reset":
-                    a["obs"][lo:hi] = env.reset(seed=None if arg is None else arg + lo).numpy()
-                    conn.send(("ok", None))
-                elif cmd == "info_keys":
-                    env.info_keys = arg
-                    conn.send(("ok", None))
-                elif cmd == "get_state":
-                    conn.send(("ok", env.get_state()))
-                elif cmd == "set_state":
-                    env.set_state(arg)
-                    conn.send(("ok", None))
-                elif cmd == "close":
-                    break
+                reply = ("ok", seq, _serve(env, a, lo, hi, cmd, arg))
             except UserError as e:
-                conn.send(("user_error", str(e)))
+                reply = ("user_error", seq, str(e))
             except Exception:  # any failure of the env's code goes to the main process, with its traceback
-                conn.send(("error", traceback.format_exc()))
-    except EOFError:  # the main process is gone
+                reply = ("error", seq, traceback.format_exc())
+    except (EOFError, OSError):  # the main process's end is closed (it exited, or dropped the env mid-reply)
         pass
-    except Exception:
-        conn.send(("error", traceback.format_exc()))
     finally:
         if env is not None:
             env.close()
         conn.close()
+
+
+def _serve(env: GymBatchEnv, a: dict[str, np.ndarray], lo: int, hi: int, cmd: str, arg: Any) -> Any:
+    """One command of a worker's slice [lo, hi): the reply's value."""
+    if cmd == "step":  # straight into shared memory: reset observations into "obs"
+        # A copy of the actions: an env may keep the one it was given (sync hands out a fresh
+        # array each step), and the shared row is written over by the next step.
+        return env.step_into(a["action"][lo:hi].copy(), a["next_obs"][lo:hi], a["reward"][lo:hi],
+                             a["terminated"][lo:hi], a["truncated"][lo:hi], a["obs"][lo:hi])[1]
+    if cmd == "reset":
+        a["obs"][lo:hi] = env.reset(seed=None if arg is None else arg + lo).numpy()
+    elif cmd == "info_keys":
+        env.info_keys = arg
+    elif cmd == "get_state":
+        return env.get_state()
+    elif cmd == "set_state":
+        env.set_state(arg)
+    elif cmd != "sync":  # "sync" only answers: see AsyncGymBatchEnv._resync
+        raise ValueError(f"unknown env worker command {cmd!r}")
+    return None
 
 
 class AsyncGymBatchEnv(BatchEnvBase):
@@ -163,7 +203,11 @@ class AsyncGymBatchEnv(BatchEnvBase):
             raise UserError("env.num_envs must be >= 1")
         self._conns: list[Connection] = []
         self._procs: list[Any] = []
-        self._pending: list[int] = []  # replies each worker owes (an interrupted call leaves some unread)
+        self._polls: list[Any] = []  # select.poll objects, one per pipe (None where there is no poll)
+        self._inbox: list[bytearray] = []  # bytes read from each pipe, not yet taken as replies
+        self._seq = 0  # the last command's (0: the workers' "ok" once their envs are made)
+        self._unsettled = True  # a command's replies are not all read yet (see _resync)
+        self._broken: str | None = None  # why the pipes cannot be used again
         self._closed = False
         self.slices = worker_slices(len(env_fns), num_workers)
         self._k = self.slices[0][1]  # copies [0, k) are this process's
@@ -172,7 +216,11 @@ class AsyncGymBatchEnv(BatchEnvBase):
             first = self._local.envs[0]
             self._init_specs(len(env_fns), first.observation_space, first.action_space, time_limit_terminates,
                              frame_stack_of(first))
-            act_dtype = np.dtype(np.int64) if self._discrete else np.dtype(np.float32)
+            # The env's own action dtype: a worker's copies get the values sync hands its copies,
+            # whatever the dtype of the actions given (an int or float64 Box included).
+            space_dtype = getattr(first.action_space, "dtype", None)
+            act_dtype = np.dtype(space_dtype if space_dtype is not None
+                                 else torch.empty((), dtype=self.action_spec.dtype).numpy().dtype)
             # fork on Linux: workers start in milliseconds and inherit what they need. Elsewhere
             # spawn: macOS has fork, but its system libraries are not safe to use after one.
             ctx = mp.get_context("fork" if sys.platform.startswith("linux") else "spawn")
@@ -182,14 +230,16 @@ class AsyncGymBatchEnv(BatchEnvBase):
                 parent, child = ctx.Pipe()
                 _MAIN_ENDS.add(parent)  # before the fork: the worker closes its copy of it too
                 fns = cloudpickle.dumps(env_fns[lo:hi])
+                seed = _global_rng_seed(lo)
                 proc = ctx.Process(target=_worker, name=f"relayrl-env-{lo}-{hi}", daemon=True,
-                                   args=(child, fns, lo, hi, self._buf, time_limit_terminates, _global_rng_seed(lo)))
+                                   args=(child, fns, lo, hi, self._buf, time_limit_terminates, seed))
                 proc.start()
                 child.close()
                 self._conns.append(parent)
                 self._procs.append(proc)
-                self._pending.append(1)  # its "ok" once the envs are made
-            self._gather()
+                self._polls.append(_poller(parent))
+                self._inbox.append(bytearray())
+            self._gather(0)
         except BaseException:
             self.close()
             raise
@@ -209,57 +259,140 @@ class AsyncGymBatchEnv(BatchEnvBase):
         if self._conns:
             self._command("info_keys", self._info_keys)
 
-    def _recv(self, w: int) -> tuple[str, Any]:
-        try:
-            reply = self._conns[w].recv()
-        except (EOFError, ConnectionResetError):
-            self._procs[w].join(timeout=2)  # reaped, so its exit code is known
-            lo, hi = self.slices[w + 1]
-            copies = f"copy {lo}" if hi - lo == 1 else f"copies {lo}..{hi - 1}"
-            raise RuntimeError(f"env worker {w} ({copies}) died (exit code {self._procs[w].exitcode})") from None
-        self._pending[w] -= 1
-        return reply
+    def _read(self, w: int, seq: int) -> tuple[str, Any]:
+        """Worker w's reply to command `seq`; replies to earlier, interrupted calls are dropped."""
+        while True:
+            frame = self._take(w)
+            if frame is None:
+                self._fill(w)
+                continue
+            status, got, value = pickle.loads(frame)
+            if got == seq:
+                return status, value
 
-    def _gather(self) -> list[Any]:
-        """Every worker's reply, in order; a worker's failure is raised here."""
+    def _take(self, w: int) -> bytearray | None:
+        """The next whole reply in worker w's inbox, taken out of it; None until one is whole."""
+        box = self._inbox[w]
+        if len(box) < 8:
+            return None
+        (size,) = struct.unpack("!i", box[:4])  # Connection's header (-1: a size over 2 GiB follows)
+        start = 4
+        if size == -1:
+            if len(box) < 16:
+                return None
+            (size,), start = struct.unpack("!Q", box[4:12]), 12
+        if box[start:start + 4] != _MAGIC:
+            self._broken = (f"the pipe from env worker {w} lost bytes to an interrupted call; "
+                            "close() this env and make a new one")
+            raise RuntimeError(self._broken)
+        if len(box) < start + size:
+            return None
+        frame = box[start + 4:start + size]  # a copy
+        del box[:start + size]  # one step: an interrupt leaves the reply in the inbox or takes it whole
+        return frame
+
+    def _fill(self, w: int) -> None:
+        """Waits for worker w's next bytes and adds them to its inbox.
+
+        Ctrl-C (a notebook's interrupt) may land anywhere here. In the wait it reads nothing.
+        Between the read and the inbox it drops what was read: whole replies, since each is one
+        write smaller than a read, which only the interrupted call waited for (later calls tell
+        them apart by seq); or part of a big one (a get_state), and then the next reply fails its
+        `_MAGIC` check and the env says it is broken, instead of hanging or unpickling garbage.
+        """
+        conn, poll = self._conns[w], self._polls[w]
+        if poll is None:  # no select.poll (Windows): whole messages, through the Connection
+            conn.poll(None)
+            try:
+                data = conn.recv_bytes()
+            except EOFError:
+                data = b""
+            except BaseException:  # it may stop between a message's length and its bytes
+                self._broken = (f"a call to the env was interrupted while it read from env worker {w}; "
+                                "close() this env and make a new one")
+                raise
+            chunk = struct.pack("!i", len(data)) + data if data else b""
+        else:
+            poll.poll()
+            try:
+                chunk = os.read(conn.fileno(), 1 << 20)
+            except ConnectionResetError:
+                chunk = b""
+        if not chunk:
+            self._broken = self._died(w)
+            raise RuntimeError(self._broken)
+        self._inbox[w].extend(chunk)
+
+    def _died(self, w: int) -> str:
+        self._procs[w].join(timeout=2)  # reaped, so its exit code is known
+        lo, hi = self.slices[w + 1]
+        copies = f"copy {lo}" if hi - lo == 1 else f"copies {lo}..{hi - 1}"
+        return f"env worker {w} ({copies}) died (exit code {self._procs[w].exitcode})"
+
+    def _gather(self, seq: int, drop_errors: bool = False) -> list[Any]:
+        """Every worker's reply to command `seq`, in order; a worker's failure is raised here
+        (unless `drop_errors`: after a failure in this process, which is the one raised)."""
         replies, failure = [], None
         for w in range(len(self._conns)):
-            status, value = self._recv(w)
+            status, value = self._read(w, seq)
             if status == "user_error":
                 failure = failure or UserError(value)
             elif status == "error":
                 failure = failure or RuntimeError(f"env worker {w} failed:\n{value}")
             replies.append(value)
-        if failure is not None:  # raised once every reply is read, so the pipes stay in step
+        self._unsettled = False
+        if failure is not None and not drop_errors:  # raised once every reply is read
             raise failure
         return replies
 
-    def _drain(self) -> None:
-        """Read and drop the replies an interrupted call left unread (Ctrl-C in a notebook during
-        a step), so the next call reads its own replies and shared memory the workers are done
-        writing."""
-        for w in range(len(self._conns)):
-            while self._pending[w] > 0:
-                self._recv(w)
+    def _ready(self) -> None:
+        """Before a command: the env is usable and every worker is done with the last one."""
+        if self._broken is not None:
+            raise RuntimeError(self._broken)
+        if self._closed:
+            raise RuntimeError("this env is closed")
+        if self._unsettled:
+            self._resync()
 
-    def _send(self, cmd: str, arg: Any = None, per_worker: list[Any] | None = None) -> None:
-        self._drain()
-        for w, conn in enumerate(self._conns):
-            conn.send((cmd, arg if per_worker is None else per_worker[w]))
-            self._pending[w] += 1
+    def _resync(self) -> None:
+        """After an interrupted call (Ctrl-C during a step): a "sync" to every worker, answered
+        after whatever it was still doing, so no worker still reads the shared actions or writes
+        results when the next command starts. The interrupted call's replies, read or not, are
+        dropped by their seq, so none is taken for a later command's, and none is waited for."""
+        self._gather(self._send("sync"), drop_errors=True)
 
-    def _settle(self) -> None:
-        """After this process's copies failed: the workers' replies read, their errors dropped
-        (the local failure is the one raised; a worker killed by the same Ctrl-C or SIGTERM to
-        the process group would otherwise replace it)."""
+    def _settle(self, seq: int) -> None:
+        """After this process's copies failed: the workers' replies to `seq` read, their errors
+        dropped (the local failure is the one raised; a worker killed by the same SIGTERM to the
+        process group would otherwise replace it, and the env says so at its next call)."""
         try:
-            self._drain()
+            self._gather(seq, drop_errors=True)
         except Exception:
             pass
 
+    def _send(self, cmd: str, arg: Any = None, per_worker: list[Any] | None = None) -> int:
+        """Sends a command to every worker; its seq, for `_gather`."""
+        self._seq += 1
+        self._unsettled = True
+        for w, conn in enumerate(self._conns):
+            data = pickle.dumps((cmd, self._seq, arg if per_worker is None else per_worker[w]))
+            try:
+                conn.send_bytes(data)
+            except (BrokenPipeError, ConnectionResetError):
+                self._broken = self._died(w)
+                raise RuntimeError(self._broken) from None
+            except BaseException:
+                # A small message goes out in one write, whole or not at all; a large one (a
+                # set_state of big envs) in several, and the worker may be left with part of it.
+                if len(data) > _ONE_WRITE:
+                    self._broken = (f"a call to the env was interrupted while it wrote to env worker {w}; "
+                                    "close() this env and make a new one")
+                raise
+        return self._seq
+
     def _command(self, cmd: str, arg: Any = None, per_worker: list[Any] | None = None) -> list[Any]:
-        self._send(cmd, arg, per_worker)
-        return self._gather()
+        self._ready()
+        return self._gather(self._send(cmd, arg, per_worker))
 
     def get_state(self) -> list[bytes] | None:
         """As `GymBatchEnv.get_state`: this process's copies, then each worker's, pickled there."""
@@ -273,13 +406,14 @@ class AsyncGymBatchEnv(BatchEnvBase):
         self._command("set_state", per_worker=[states[lo:hi] for lo, hi in self.slices[1:]])
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
-        self._send("reset", seed)
+        self._ready()
+        seq = self._send("reset", seed)
         try:
             local = self._local.reset(seed)
-        except BaseException:
-            self._settle()
+        except Exception:
+            self._settle(seq)
             raise
-        self._gather()
+        self._gather(seq)
         obs = self._buf.arrays["obs"].copy()
         obs[:self._k] = local.numpy()
         return torch.from_numpy(obs)
@@ -287,9 +421,11 @@ class AsyncGymBatchEnv(BatchEnvBase):
     def step(self, action: torch.Tensor) -> StepOutput:
         a, k, b = self._buf.arrays, self._k, self.num_envs
         act = action.numpy()
-        self._drain()  # before the actions are written: a worker may still be reading the last ones
+        if act.shape[:1] != (b,):
+            raise ValueError(f"actions for {act.shape[0] if act.ndim else 'no'} copies, but this env has {b}")
+        self._ready()  # before the actions are written: a worker may still be reading the last ones
         a["action"][k:] = act[k:]
-        self._send("step")
+        seq = self._send("step")
         # The results come in fresh arrays: this process's rows are written there directly,
         # the workers' are copied from shared memory, which the next step writes over.
         next_obs = np.empty((b, *self.observation_spec.shape), self._obs_dtype)
@@ -298,10 +434,10 @@ class AsyncGymBatchEnv(BatchEnvBase):
         try:
             _, local_info = self._local.step_into(act[:k], next_obs[:k], reward[:k], terminated[:k], truncated[:k],
                                                   reset_obs[:k])
-        except BaseException:
-            self._settle()
+        except Exception:  # (a KeyboardInterrupt leaves the replies to the next call's _resync)
+            self._settle(seq)
             raise
-        infos = self._gather()
+        infos = self._gather(seq)
         next_obs[k:], reward[k:] = a["next_obs"][k:], a["reward"][k:]
         terminated[k:], truncated[k:] = a["terminated"][k:], a["truncated"][k:]
         ended = terminated | truncated
@@ -332,9 +468,11 @@ class AsyncGymBatchEnv(BatchEnvBase):
         self._closed = True
         for conn in self._conns:
             try:
-                conn.send(("close", None))
-            except (BrokenPipeError, OSError):
+                if self._broken is None:  # (a broken pipe may have part of a message in it: no command)
+                    conn.send_bytes(pickle.dumps(("close", 0, None)))
+            except OSError:
                 pass
+            conn.close()  # now: a worker blocked writing a reply, or reading the rest of one, exits
         for proc in self._procs:
             proc.join(timeout=5)
             if proc.is_alive():  # stuck in the env's code
@@ -345,6 +483,5 @@ class AsyncGymBatchEnv(BatchEnvBase):
                 proc.join(timeout=2)
         for conn in self._conns:
             _MAIN_ENDS.discard(conn)
-            conn.close()
         if hasattr(self, "_local"):
             self._local.close()
