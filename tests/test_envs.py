@@ -224,6 +224,53 @@ def test_async_steps_stay_right_under_interrupts_at_random_moments():
     assert interrupted >= 100 and clean >= 100, (interrupted, clean)
 
 
+def test_an_interrupt_while_a_large_reply_is_read_never_hangs_the_next_call():
+    """Ctrl-C while a worker's 16 MB get_state reply is read, at moments spread over the read:
+    the next call steps right, or says the env is broken. It must not wait for bytes that the
+    interrupt dropped (that hung) nor unpickle garbage."""
+    mode = ["interrupt"]
+
+    def alarm(signum, frame):
+        if mode[0] == "interrupt":
+            raise KeyboardInterrupt
+        raise _WatchdogFired("the call after an interrupted get_state did not return within 10 s")
+
+    previous = signal.signal(signal.SIGALRM, alarm)
+    outcomes = []
+    try:
+        for fraction in np.linspace(0.1, 0.95, 10):  # (a hang came at ~1 try in 15 before the fix)
+            env = make_env("toy_envs:BigState", 2, vectorization="async", num_workers=1)
+            try:
+                env.reset(seed=0)
+                t0 = time.monotonic()
+                env.get_state()
+                duration = time.monotonic() - t0
+                mode[0] = "interrupt"
+                signal.setitimer(signal.ITIMER_REAL, float(fraction) * duration)
+                try:
+                    env.get_state()
+                    signal.setitimer(signal.ITIMER_REAL, 0)
+                except KeyboardInterrupt:
+                    pass
+                mode[0] = "watchdog"
+                signal.setitimer(signal.ITIMER_REAL, 10.0)
+                try:
+                    obs = env.step(torch.zeros(2, dtype=torch.int64)).next_obs
+                    outcomes.append("ok")
+                    assert obs[:, 0].tolist() == [1.0, 1.0]
+                except RuntimeError as e:
+                    assert "make a new one" in str(e)
+                    outcomes.append("broken")
+                finally:
+                    signal.setitimer(signal.ITIMER_REAL, 0)
+            finally:
+                env.close()
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    assert len(outcomes) == 10, outcomes
+
+
 def test_async_workers_get_actions_in_the_env_s_own_dtype():
     sync = make_env("toy_envs:IntAction", 2)
     asyn = make_env("toy_envs:IntAction", 2, vectorization="async", num_workers=1)

@@ -238,3 +238,12 @@ class IntAction(gym.Env):
     def step(self, action):
         a = np.asarray(action)
         return np.array([float(a.dtype.kind == "i")], np.float32), float(a[0] % 7), False, False, {}
+
+
+class BigState(Countdown):
+    """Countdown of 1,000-step episodes carrying 16 MB of data: its get_state replies are large,
+    so reading one from a worker takes many reads."""
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        super().__init__(length=1000, render_mode=render_mode)
+        self.blob = np.random.default_rng(0).integers(0, 255, 16_000_000, dtype=np.uint8)

@@ -33,7 +33,6 @@ import multiprocessing as mp
 import os
 import pickle
 import random
-import select
 import signal
 import struct
 import sys
@@ -120,16 +119,7 @@ _ONE_WRITE = 16_000
 # Every reply starts with these bytes, after the Connection's length header: a reader whose
 # stream lost bytes to an interrupt (see AsyncGymBatchEnv._fill) finds out at the next reply.
 _MAGIC = b"RLRW"
-
-
-def _poller(conn: Connection) -> Any:
-    """A select.poll on the pipe, to wait for a reply without reading any of it (~1 us a
-    call, against ~12 us for Connection.poll); None where select has no poll (Windows)."""
-    if not hasattr(select, "poll"):
-        return None
-    poll = select.poll()
-    poll.register(conn.fileno(), select.POLLIN)
-    return poll
+_LENGTH = struct.Struct("!i")  # multiprocessing's Connection length header
 
 
 def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Buffers, time_limit_terminates: bool,
@@ -203,7 +193,8 @@ class AsyncGymBatchEnv(BatchEnvBase):
             raise UserError("env.num_envs must be >= 1")
         self._conns: list[Connection] = []
         self._procs: list[Any] = []
-        self._polls: list[Any] = []  # select.poll objects, one per pipe (None where there is no poll)
+        # The pipes' file descriptors, read directly (Windows has none: its pipes are read whole).
+        self._fds: list[int | None] = []
         self._inbox: list[bytearray] = []  # bytes read from each pipe, not yet taken as replies
         self._seq = 0  # the last command's (0: the workers' "ok" once their envs are made)
         self._unsettled = True  # a command's replies are not all read yet (see _resync)
@@ -237,7 +228,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
                 child.close()
                 self._conns.append(parent)
                 self._procs.append(proc)
-                self._polls.append(_poller(parent))
+                self._fds.append(None if sys.platform == "win32" else parent.fileno())
                 self._inbox.append(bytearray())
             self._gather(0)
         except BaseException:
@@ -262,7 +253,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
     def _read(self, w: int, seq: int) -> tuple[str, Any]:
         """Worker w's reply to command `seq`; replies to earlier, interrupted calls are dropped."""
         while True:
-            frame = self._take(w)
+            frame = self._take(w) if self._inbox[w] else None
             if frame is None:
                 self._fill(w)
                 continue
@@ -275,13 +266,13 @@ class AsyncGymBatchEnv(BatchEnvBase):
         box = self._inbox[w]
         if len(box) < 8:
             return None
-        (size,) = struct.unpack("!i", box[:4])  # Connection's header (-1: a size over 2 GiB follows)
+        (size,) = _LENGTH.unpack_from(box)  # -1: a size over 2 GiB follows
         start = 4
         if size == -1:
             if len(box) < 16:
                 return None
-            (size,), start = struct.unpack("!Q", box[4:12]), 12
-        if box[start:start + 4] != _MAGIC:
+            (size,), start = struct.unpack_from("!Q", box, 4), 12
+        if not box.startswith(_MAGIC, start):
             self._broken = (f"the pipe from env worker {w} lost bytes to an interrupted call; "
                             "close() this env and make a new one")
             raise RuntimeError(self._broken)
@@ -294,14 +285,16 @@ class AsyncGymBatchEnv(BatchEnvBase):
     def _fill(self, w: int) -> None:
         """Waits for worker w's next bytes and adds them to its inbox.
 
-        Ctrl-C (a notebook's interrupt) may land anywhere here. In the wait it reads nothing.
-        Between the read and the inbox it drops what was read: whole replies, since each is one
-        write smaller than a read, which only the interrupted call waited for (later calls tell
-        them apart by seq); or part of a big one (a get_state), and then the next reply fails its
-        `_MAGIC` check and the env says it is broken, instead of hanging or unpickling garbage.
+        Ctrl-C (a notebook's interrupt) may land anywhere here. In the wait it reads nothing (a
+        read interrupted by a signal returns no bytes). Between the read and the inbox it drops
+        what was read. With an empty inbox that is whole replies (each is one write smaller than
+        a read), which only the interrupted call waited for and later calls tell apart by seq, or
+        the head of a big one (a get_state), and then the next bytes fail the `_MAGIC` check.
+        With part of a big reply in the inbox the rest may have been dropped, so the env is marked
+        broken. Either way it says so at its next call, instead of hanging or unpickling garbage.
         """
-        conn, poll = self._conns[w], self._polls[w]
-        if poll is None:  # no select.poll (Windows): whole messages, through the Connection
+        conn, fd = self._conns[w], self._fds[w]
+        if fd is None:  # Windows: whole messages, through the Connection
             conn.poll(None)
             try:
                 data = conn.recv_bytes()
@@ -311,13 +304,17 @@ class AsyncGymBatchEnv(BatchEnvBase):
                 self._broken = (f"a call to the env was interrupted while it read from env worker {w}; "
                                 "close() this env and make a new one")
                 raise
-            chunk = struct.pack("!i", len(data)) + data if data else b""
+            chunk = _LENGTH.pack(len(data)) + data if data else b""
         else:
-            poll.poll()
             try:
-                chunk = os.read(conn.fileno(), 1 << 20)
+                chunk = os.read(fd, 1 << 16)  # (a read allocates its size: 1 MiB costs an mmap a step)
             except ConnectionResetError:
                 chunk = b""
+            except BaseException:
+                if self._inbox[w]:
+                    self._broken = (f"a call to the env was interrupted while it read a large reply from env "
+                                    f"worker {w}; close() this env and make a new one")
+                raise
         if not chunk:
             self._broken = self._died(w)
             raise RuntimeError(self._broken)
