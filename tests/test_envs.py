@@ -1,5 +1,6 @@
 """The batched Gymnasium adapter: specs, auto-reset boundaries, custom classes, errors."""
 
+import contextlib
 import gc
 import os
 import random
@@ -7,6 +8,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
@@ -183,6 +185,30 @@ class _WatchdogFired(Exception):
     pass
 
 
+@contextlib.contextmanager
+def _alarms(watchdog: str) -> Iterator[Callable[[str, float], None]]:
+    """SIGALRM for these tests: `arm("interrupt", s)` raises KeyboardInterrupt (Ctrl-C) in s
+    seconds, `arm("watchdog", s)` fails the test with `watchdog` if a call still runs then,
+    `arm(..., 0)` disarms."""
+    mode = ["interrupt"]
+
+    def alarm(signum, frame):
+        if mode[0] == "interrupt":
+            raise KeyboardInterrupt
+        raise _WatchdogFired(watchdog)
+
+    def arm(what: str, seconds: float) -> None:
+        mode[0] = what
+        signal.setitimer(signal.ITIMER_REAL, seconds)
+
+    previous = signal.signal(signal.SIGALRM, alarm)
+    try:
+        yield arm
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+
+
 def test_async_steps_stay_right_under_interrupts_at_random_moments():
     """Ctrl-C may land anywhere in a step: in the wait for a worker, mid-read of its reply,
     between reading and counting it. No later step may hang, fail, or take another step's reply
@@ -190,36 +216,25 @@ def test_async_steps_stay_right_under_interrupts_at_random_moments():
     must grow from one clean step to the next."""
     env = make_env("toy_envs:Ticking", 2, vectorization="async", num_workers=1)
     rng = random.Random(0)
-    mode = ["interrupt"]
-
-    def alarm(signum, frame):
-        if mode[0] == "interrupt":
-            raise KeyboardInterrupt
-        raise _WatchdogFired("a clean step did not return within 10 s")
-
-    previous = signal.signal(signal.SIGALRM, alarm)
     action = torch.zeros(2, dtype=torch.int64)
     interrupted, clean, last = 0, 0, 0.0
     try:
-        env.reset(seed=0)
-        deadline = time.monotonic() + 3.0
-        while time.monotonic() < deadline:
-            mode[0] = "interrupt"
-            signal.setitimer(signal.ITIMER_REAL, rng.uniform(1e-4, 2e-3))
-            try:
-                env.step(action)
-                signal.setitimer(signal.ITIMER_REAL, 0)  # in the try: an alarm up to here is caught below
-            except KeyboardInterrupt:
-                interrupted += 1
-            mode[0] = "watchdog"
-            signal.setitimer(signal.ITIMER_REAL, 10.0)
-            count = env.step(action).next_obs[1, 0].item()
-            signal.setitimer(signal.ITIMER_REAL, 0)
-            assert count > last, (count, last, interrupted)
-            last, clean = count, clean + 1
+        with _alarms("a clean step did not return within 10 s") as arm:
+            env.reset(seed=0)
+            deadline = time.monotonic() + 3.0
+            while time.monotonic() < deadline:
+                arm("interrupt", rng.uniform(1e-4, 2e-3))
+                try:
+                    env.step(action)
+                    arm("interrupt", 0)  # in the try: an alarm up to here is caught below
+                except KeyboardInterrupt:
+                    interrupted += 1
+                arm("watchdog", 10.0)
+                count = env.step(action).next_obs[1, 0].item()
+                arm("watchdog", 0)
+                assert count > last, (count, last, interrupted)
+                last, clean = count, clean + 1
     finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
         env.close()
     assert interrupted >= 100 and clean >= 100, (interrupted, clean)
 
@@ -228,32 +243,21 @@ def test_an_interrupt_while_a_large_reply_is_read_never_hangs_the_next_call():
     """Ctrl-C while a worker's 16 MB get_state reply is read, at moments spread over the read:
     the next call steps right, or says the env is broken. It must not wait for bytes that the
     interrupt dropped (that hung) nor unpickle garbage."""
-    mode = ["interrupt"]
-
-    def alarm(signum, frame):
-        if mode[0] == "interrupt":
-            raise KeyboardInterrupt
-        raise _WatchdogFired("the call after an interrupted get_state did not return within 10 s")
-
-    previous = signal.signal(signal.SIGALRM, alarm)
     outcomes = []
-    try:
+    with _alarms("the call after an interrupted get_state did not return within 10 s") as arm:
         for fraction in np.linspace(0.1, 0.95, 10):  # (a hang came at ~1 try in 15 before the fix)
             env = make_env("toy_envs:BigState", 2, vectorization="async", num_workers=1)
             try:
                 env.reset(seed=0)
                 t0 = time.monotonic()
                 env.get_state()
-                duration = time.monotonic() - t0
-                mode[0] = "interrupt"
-                signal.setitimer(signal.ITIMER_REAL, float(fraction) * duration)
+                arm("interrupt", float(fraction) * (time.monotonic() - t0))
                 try:
                     env.get_state()
-                    signal.setitimer(signal.ITIMER_REAL, 0)
+                    arm("interrupt", 0)
                 except KeyboardInterrupt:
                     pass
-                mode[0] = "watchdog"
-                signal.setitimer(signal.ITIMER_REAL, 10.0)
+                arm("watchdog", 10.0)
                 try:
                     obs = env.step(torch.zeros(2, dtype=torch.int64)).next_obs
                     outcomes.append("ok")
@@ -261,13 +265,9 @@ def test_an_interrupt_while_a_large_reply_is_read_never_hangs_the_next_call():
                 except RuntimeError as e:
                     assert "make a new one" in str(e)
                     outcomes.append("broken")
-                finally:
-                    signal.setitimer(signal.ITIMER_REAL, 0)
+                arm("watchdog", 0)
             finally:
                 env.close()
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
     assert len(outcomes) == 10, outcomes
 
 
