@@ -160,27 +160,31 @@ class DiesInWorker(Countdown):
         return super().step(action)
 
 
-class SlowInWorker(Countdown):
-    """Countdown of 1,000-step episodes whose step takes 0.3 s in a worker process."""
+class _Slowed(Countdown):
+    """Countdown of `LENGTH`-step episodes whose step sleeps `SLEEP` s (only in a worker
+    process when `WORKER_ONLY`)."""
+
+    LENGTH, SLEEP, WORKER_ONLY = 3, 0.0, False
 
     def __init__(self, render_mode: str | None = None) -> None:
-        super().__init__(length=1000, render_mode=render_mode)
+        super().__init__(length=self.LENGTH, render_mode=render_mode)
 
     def step(self, action):
-        if multiprocessing.parent_process() is not None:
-            time.sleep(0.3)
+        if not self.WORKER_ONLY or multiprocessing.parent_process() is not None:
+            time.sleep(self.SLEEP)
         return super().step(action)
 
 
-class Sleepy(Countdown):
-    """Countdown of 200-step episodes whose step sleeps 2 ms: a run that spends its time in env steps."""
+class SlowInWorker(_Slowed):
+    """1,000-step episodes whose step takes 0.3 s in a worker process."""
 
-    def __init__(self, render_mode: str | None = None) -> None:
-        super().__init__(length=200, render_mode=render_mode)
+    LENGTH, SLEEP, WORKER_ONLY = 1000, 0.3, True
 
-    def step(self, action):
-        time.sleep(0.002)
-        return super().step(action)
+
+class Sleepy(_Slowed):
+    """200-step episodes whose step sleeps 2 ms: a run that spends its time in env steps."""
+
+    LENGTH, SLEEP = 200, 0.002
 
 
 class KeepsAction(gym.Env):
@@ -212,16 +216,11 @@ class GlobalDraws(Countdown):
         return np.array([np.random.random(), self.t], np.float32), reward, terminated, truncated, info
 
 
-class Ticking(Countdown):
-    """Countdown whose episodes never end in a test (10**9 steps) and whose step sleeps 0.5 ms:
-    obs[0] counts every step a copy took."""
+class Ticking(_Slowed):
+    """Episodes that never end in a test (10**9 steps), steps that sleep 0.5 ms: obs[0] counts
+    every step a copy took."""
 
-    def __init__(self, render_mode: str | None = None) -> None:
-        super().__init__(length=10**9, render_mode=render_mode)
-
-    def step(self, action):
-        time.sleep(0.0005)
-        return super().step(action)
+    LENGTH, SLEEP = 10**9, 0.0005
 
 
 class IntAction(gym.Env):

@@ -77,6 +77,14 @@ class BatchEnvBase:
         self.time_limit_terminates = time_limit_terminates
         self.info_keys: tuple[str, ...] = ()  # set by make_env: info values logged per episode
 
+    def _actions(self, action: torch.Tensor) -> np.ndarray:
+        """A step's actions as a NumPy array, one row per copy (anything else is refused)."""
+        act = action.numpy()
+        if act.shape[:1] != (self.num_envs,):
+            raise ValueError(f"actions for {act.shape[0] if act.ndim else 'no'} copies, "
+                             f"but this env has {self.num_envs}")
+        return act
+
 
 def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | None = None) -> EnvFn:
     """A factory for one env: a Gymnasium id (`CartPole-v1`) or `package.module:Class`."""
@@ -167,9 +175,7 @@ class GymBatchEnv(BatchEnvBase):
 
     def step(self, action: torch.Tensor) -> StepOutput:
         b = self.num_envs
-        act = action.numpy()
-        if act.shape[:1] != (b,):
-            raise ValueError(f"actions for {act.shape[0] if act.ndim else 'no'} copies, but this env has {b}")
+        act = self._actions(action)
         next_obs = np.empty((b, *self.observation_spec.shape), self._obs_dtype)
         reward = np.empty(b, np.float32)
         terminated = np.empty(b, np.bool_)

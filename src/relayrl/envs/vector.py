@@ -193,8 +193,6 @@ class AsyncGymBatchEnv(BatchEnvBase):
             raise UserError("env.num_envs must be >= 1")
         self._conns: list[Connection] = []
         self._procs: list[Any] = []
-        # The pipes' file descriptors, read directly (Windows has none: its pipes are read whole).
-        self._fds: list[int | None] = []
         self._inbox: list[bytearray] = []  # bytes read from each pipe, not yet taken as replies
         self._seq = 0  # the last command's (0: the workers' "ok" once their envs are made)
         self._unsettled = True  # a command's replies are not all read yet (see _resync)
@@ -228,7 +226,6 @@ class AsyncGymBatchEnv(BatchEnvBase):
                 child.close()
                 self._conns.append(parent)
                 self._procs.append(proc)
-                self._fds.append(None if sys.platform == "win32" else parent.fileno())
                 self._inbox.append(bytearray())
             self._gather(0)
         except BaseException:
@@ -253,7 +250,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
     def _read(self, w: int, seq: int) -> tuple[str, Any]:
         """Worker w's reply to command `seq`; replies to earlier, interrupted calls are dropped."""
         while True:
-            frame = self._take(w) if self._inbox[w] else None
+            frame = self._take(w)
             if frame is None:
                 self._fill(w)
                 continue
@@ -273,9 +270,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
                 return None
             (size,), start = struct.unpack_from("!Q", box, 4), 12
         if not box.startswith(_MAGIC, start):
-            self._broken = (f"the pipe from env worker {w} lost bytes to an interrupted call; "
-                            "close() this env and make a new one")
-            raise RuntimeError(self._broken)
+            raise RuntimeError(self._break(f"the pipe from env worker {w} lost bytes to an interrupted call"))
         if len(box) < start + size:
             return None
         frame = box[start + 4:start + size]  # a copy
@@ -293,38 +288,42 @@ class AsyncGymBatchEnv(BatchEnvBase):
         With part of a big reply in the inbox the rest may have been dropped, so the env is marked
         broken. Either way it says so at its next call, instead of hanging or unpickling garbage.
         """
-        conn, fd = self._conns[w], self._fds[w]
-        if fd is None:  # Windows: whole messages, through the Connection
+        conn = self._conns[w]
+        if sys.platform == "win32":  # no file descriptor to read: whole messages, through the Connection
             conn.poll(None)
             try:
                 data = conn.recv_bytes()
             except EOFError:
                 data = b""
             except BaseException:  # it may stop between a message's length and its bytes
-                self._broken = (f"a call to the env was interrupted while it read from env worker {w}; "
-                                "close() this env and make a new one")
+                self._break(f"a call to the env was interrupted while it read from env worker {w}")
                 raise
             chunk = _LENGTH.pack(len(data)) + data if data else b""
         else:
             try:
-                chunk = os.read(fd, 1 << 16)  # (a read allocates its size: 1 MiB costs an mmap a step)
+                chunk = os.read(conn.fileno(), 1 << 16)  # (a read allocates its size: 1 MiB costs an mmap a step)
             except ConnectionResetError:
                 chunk = b""
             except BaseException:
                 if self._inbox[w]:
-                    self._broken = (f"a call to the env was interrupted while it read a large reply from env "
-                                    f"worker {w}; close() this env and make a new one")
+                    self._break(f"a call to the env was interrupted while it read a large reply from env worker {w}")
                 raise
         if not chunk:
-            self._broken = self._died(w)
-            raise RuntimeError(self._broken)
+            raise RuntimeError(self._died(w))
         self._inbox[w].extend(chunk)
 
+    def _break(self, what: str) -> str:
+        """Marks the pipes unusable because `what` happened: every later call says so."""
+        self._broken = f"{what}; close() this env and make a new one"
+        return self._broken
+
     def _died(self, w: int) -> str:
+        """Marks the pipes unusable because worker w died; the message."""
         self._procs[w].join(timeout=2)  # reaped, so its exit code is known
         lo, hi = self.slices[w + 1]
         copies = f"copy {lo}" if hi - lo == 1 else f"copies {lo}..{hi - 1}"
-        return f"env worker {w} ({copies}) died (exit code {self._procs[w].exitcode})"
+        self._broken = f"env worker {w} ({copies}) died (exit code {self._procs[w].exitcode})"
+        return self._broken
 
     def _gather(self, seq: int, drop_errors: bool = False) -> list[Any]:
         """Every worker's reply to command `seq`, in order; a worker's failure is raised here
@@ -376,14 +375,12 @@ class AsyncGymBatchEnv(BatchEnvBase):
             try:
                 conn.send_bytes(data)
             except (BrokenPipeError, ConnectionResetError):
-                self._broken = self._died(w)
-                raise RuntimeError(self._broken) from None
+                raise RuntimeError(self._died(w)) from None
             except BaseException:
                 # A small message goes out in one write, whole or not at all; a large one (a
                 # set_state of big envs) in several, and the worker may be left with part of it.
                 if len(data) > _ONE_WRITE:
-                    self._broken = (f"a call to the env was interrupted while it wrote to env worker {w}; "
-                                    "close() this env and make a new one")
+                    self._break(f"a call to the env was interrupted while it wrote to env worker {w}")
                 raise
         return self._seq
 
@@ -417,9 +414,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
 
     def step(self, action: torch.Tensor) -> StepOutput:
         a, k, b = self._buf.arrays, self._k, self.num_envs
-        act = action.numpy()
-        if act.shape[:1] != (b,):
-            raise ValueError(f"actions for {act.shape[0] if act.ndim else 'no'} copies, but this env has {b}")
+        act = self._actions(action)
         self._ready()  # before the actions are written: a worker may still be reading the last ones
         a["action"][k:] = act[k:]
         seq = self._send("step")

@@ -303,8 +303,7 @@ class LocalRun(RunLog):
             try:
                 self.restore()  # rewrites metrics.jsonl: open the log only afterwards
             except BaseException:  # (a wrong num_envs, no readable checkpoint) no env worker left behind
-                self.env.close()
-                self.eval_env.close()
+                self._close_envs()
                 raise
         self.tb = SummaryWriter(str(self.rd.tb))
         self.metrics_log = MetricsLog(self.rd.metrics)
@@ -325,8 +324,12 @@ class LocalRun(RunLog):
                 self.bar.close()
             self.tb.close()
             self.metrics_log.close()
-            self.env.close()
-            self.eval_env.close()
+            self._close_envs()
+
+    def _close_envs(self) -> None:
+        """The envs end with the run, however it ends: async envs' worker processes included."""
+        self.env.close()
+        self.eval_env.close()
 
     def _iterate(self) -> None:
         c = self.config
