@@ -4,8 +4,10 @@
 
 Agent rows use the RL-Zoo CartPole settings (Huber, grad clip 10, target copied every 128
 steps); "autograd" rows run the same agent with `manual_grads = False` (dqn_loss + backward),
-the others the hand-written gradients of agents/dqn/fast.py. The burst row is what the
-trainer does after every 256 env steps: 128 x (replay.sample + agent.train), per step.
+the others the hand-written gradients of agents/dqn/fast.py. The burst rows are what the
+trainer does after every 256 env steps, `Learner.run(128)`, per step: with the target
+network's Q-values computed once per chunk of batches (the default) and, for comparison,
+once per step.
 
 Rows compare each relayrl piece with the plain-PyTorch way of doing the same thing, measured
 in the same process one after the other (ratios, not absolute times, are what carry over).
@@ -16,6 +18,7 @@ from __future__ import annotations
 import argparse
 import copy
 import time
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -27,6 +30,7 @@ from relayrl.envs import make_env
 from relayrl.policies import GreedyPolicy
 from relayrl.replay import Table, TransitionWriter
 from relayrl.specs import ArraySpec, DiscreteSpec
+from relayrl.training.learner import Learner
 from relayrl.types import Batch, Transition
 
 
@@ -101,9 +105,13 @@ def main() -> None:
     one = torch.randn(1, 4)
     greedy = GreedyPolicy(agent.online, torch.device("cpu"))
 
-    def burst(agent: DQNAgent) -> None:
-        for _ in range(128):
-            agent.train(sample())
+    def burst(agent: DQNAgent, ahead: bool) -> Callable[[], None]:
+        """The trainer's burst: a Learner's 128 steps, with or without the target network's
+        Q-values computed once per chunk (`DQNAgent.prepare`)."""
+        if not ahead:
+            agent.prepare = lambda batch, steps: batch  # type: ignore[method-assign]
+        learner = Learner(agent, table, b, torch.device("cpu"))
+        return lambda: learner.run(128)
 
     rows = [
         ("matmul alone: one [B,h]x[h,h] (of 4 per update)", per_call_us(lambda: x @ w.T)),
@@ -115,9 +123,10 @@ def main() -> None:
             how = "hand-written grads" if manual else "autograd"
             a = make_agent(double, manual)
             rows.append((f"relayrl agent.train, {name}, {how}", per_call_us(lambda a=a: a.train(batch))))
-        a = make_agent(double, True)
-        rows.append((f"relayrl {name} burst: 128 x (sample + train), per step",
-                     per_call_us(lambda a=a: burst(a), 20) / 128))
+        for ahead in (False, True):
+            how = "target Q per chunk" if ahead else "target Q per step"
+            rows.append((f"relayrl {name} burst: Learner.run(128), {how}, per step",
+                         per_call_us(burst(make_agent(double, True), ahead), 20) / 128))
     rows += [
         ("Table.sample (uniform, 100k)", per_call_us(sample)),
         ("env.step, batch of 1 (CartPole-v1)", per_call_us(lambda: env.step(a0))),

@@ -102,3 +102,16 @@ def test_agent_is_deterministic():
 def test_only_plain_mlps_take_the_fast_path():
     assert fast.supports(MLP(4, [8], 2, "elu"))
     assert not fast.supports(torch.nn.Sequential(torch.nn.Linear(4, 2)))
+
+
+@pytest.mark.parametrize("double", [False, True])
+def test_target_q_given_with_the_batch_stands_for_the_target_network(double):
+    online, target = nets("relu", with_target=True)
+    batch = make_batch()
+    with torch.no_grad():
+        given = batch._replace(target_q=target(batch.next_obs))
+        shifted = batch._replace(target_q=target(batch.next_obs) + 1.0)
+    for fn in (lambda b: dqn_loss(online, target, b, double=double)[0],
+               lambda b: fast.dqn_loss_and_grads(online, target, b, double=double)[0]):
+        assert torch.allclose(fn(given), fn(batch), rtol=1e-6)
+        assert not torch.allclose(fn(shifted), fn(batch), rtol=1e-3)  # the given values are used

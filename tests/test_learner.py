@@ -1,7 +1,11 @@
-"""The learner's sampling: a uniform burst drawn in chunks gives the batches of one call each."""
+"""The learner's sampling: a uniform burst drawn in chunks gives the batches of one call each,
+and chunks an agent prepares ahead (DQN's target Q-values) stay right across target updates."""
 
+import numpy as np
+import pytest
 import torch
 
+from relayrl.agents.dqn import DQNAgent, DQNConfig
 from relayrl.replay import Fifo, MinSize, Table, TransitionWriter, Uniform
 from relayrl.specs import ArraySpec, DiscreteSpec
 from relayrl.training.learner import Learner
@@ -61,3 +65,50 @@ def test_bursts_of_large_observations_are_drawn_in_small_chunks():
     assert learner._chunk == (32 << 20) // (per_batch + 32 * (8 + 4 + 4))
     assert calls[0] == 32 and set(calls[1:]) <= {32 * learner._chunk, 32 * (39 % learner._chunk)}
     assert sum(calls) == 40 * 32
+
+
+@pytest.mark.parametrize("double", [False, True])
+@pytest.mark.parametrize("manual", [True, False])
+def test_target_q_computed_per_chunk_is_the_target_network_s_at_every_step(double, manual):
+    """DQNAgent.prepare fills in target Q-values for a whole chunk; the learner must cut chunks
+    where the target network changes (every 5 steps here, from a misaligned start), so every
+    step's values are those of the target network it trains against, and training matches
+    the agent computing them itself."""
+    def agent():
+        cfg = DQNConfig(hidden=[16], batch_size=16, target_update_period=5, double=double, lr=1e-2)
+        torch.manual_seed(0)  # the same initial weights for both
+        a = DQNAgent(ArraySpec((3,), torch.float32), DiscreteSpec(2), cfg, torch.device("cpu"),
+                     np.random.default_rng(0))
+        a.manual_grads = manual and a.manual_grads
+        return a
+
+    chunked, stepwise = agent(), agent()
+    stepwise.prepare = lambda batch, steps: batch
+    chunked.train(table().sample(16)[0])  # train_step 1: the next update is 4 steps away
+    stepwise.train(table().sample(16)[0])
+    seen = []
+    train = chunked.train
+
+    def checked_train(batch):
+        if batch.target_q is not None:
+            seen.append(len(seen))
+            with torch.no_grad():
+                assert torch.allclose(batch.target_q, chunked.target(batch.next_obs), atol=1e-6)
+        return train(batch)
+
+    chunked.train = checked_train
+    Learner(chunked, table(), batch_size=16, device=torch.device("cpu")).run(60)
+    Learner(stepwise, table(), batch_size=16, device=torch.device("cpu")).run(60)
+    assert len(seen) >= 50  # all but the chunk-size probe and 1-step chunks came prepared
+    for a, b in zip(chunked.online.parameters(), stepwise.online.parameters(), strict=True):
+        assert torch.allclose(a, b, atol=1e-5)
+
+
+def test_no_target_network_or_one_copied_every_step_leaves_batches_as_sampled():
+    for period, tau in ((1, 1.0), (1, 0.5)):
+        cfg = DQNConfig(hidden=[16], batch_size=16, target_update_period=period, tau=tau)
+        a = DQNAgent(ArraySpec((3,), torch.float32), DiscreteSpec(2), cfg, torch.device("cpu"),
+                     np.random.default_rng(0))
+        assert a.target_horizon() == 0
+        batch = table().sample(64)[0]
+        assert a.prepare(batch, 4) is batch

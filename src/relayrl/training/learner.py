@@ -55,18 +55,27 @@ class Learner:
         during a burst, so these are the items of one call per batch (the same RNG draws);
         where another thread inserts meanwhile, its items become sampleable at the next chunk
         instead of the next batch. Prioritized batches depend on the priorities the previous
-        step set, so they are drawn one by one."""
+        step set, so they are drawn one by one. An agent with `prepare` (DQN with a target
+        network) gets each chunk first, cut where its target network changes, and fills in
+        what it can compute once for the whole chunk."""
         if self.prioritized or iterations == 1 or not isinstance(self.table, Table) or self.table.max_times_sampled:
             for _ in range(iterations):
                 yield self.table.sample(self.batch_size)
             return
         n = self.batch_size
+        horizon = getattr(self.agent, "target_horizon", None)
+        prepare = getattr(self.agent, "prepare", None)
         while iterations > 0:
             k = min(iterations, self._chunk or 1)  # the first call learns the batch's size
+            h = horizon() if horizon is not None else 0
+            if h > 0:
+                k = min(k, h)  # a chunk ends where the agent's target network changes
             batch, info = self.table.sample(k * n)
             if self._chunk is None:  # at most ~32 MB a call: bursts of pixel batches stay small
                 nbytes = sum(x.nbytes for x in batch if isinstance(x, torch.Tensor))
                 self._chunk = max(1, min(SAMPLE_CHUNK_BATCHES, (32 << 20) // max(1, nbytes)))
+            if prepare is not None:
+                batch = prepare(batch, k)  # what stays valid for the chunk, computed once
             for j in range(k):
                 rows = slice(j * n, (j + 1) * n)
                 yield (type(batch)(*(x[rows] if isinstance(x, torch.Tensor) else x for x in batch)),

@@ -123,11 +123,13 @@ def dqn_loss_and_grads(
     q_all, inputs, pre = online.forward(x)  # [2N or N, A]
     if target is None:
         next_v = q_all[n:].amax(dim=1)  # [N]
-    elif double:
-        best = q_all[n:].argmax(dim=1, keepdim=True)  # [N, 1]
-        next_v = target.forward(batch.next_obs)[0].gather(1, best).squeeze(1)  # [N]
     else:
-        next_v = target.forward(batch.next_obs)[0].amax(dim=1)  # [N]
+        target_q = batch.target_q if batch.target_q is not None else target.forward(batch.next_obs)[0]  # [N, A]
+        if double:
+            best = q_all[n:].argmax(dim=1, keepdim=True)  # [N, 1]
+            next_v = target_q.gather(1, best).squeeze(1)  # [N]
+        else:
+            next_v = target_q.amax(dim=1)  # [N]
     y = torch.addcmul(batch.reward, batch.discount, next_v)  # [N]
     action = batch.action.long().unsqueeze(1)  # [N, 1]
     if both:

@@ -22,12 +22,14 @@ def td_targets(
     with torch.no_grad():
         if target is None:
             next_v = online(batch.next_obs).max(dim=1).values  # [N]
-        elif double:
-            # van Hasselt et al. 2016: select with the online net, evaluate with the target net.
-            best = online(batch.next_obs).argmax(dim=1, keepdim=True)  # [N, 1]
-            next_v = target(batch.next_obs).gather(1, best).squeeze(1)  # [N]
         else:
-            next_v = target(batch.next_obs).max(dim=1).values  # [N]
+            target_q = batch.target_q if batch.target_q is not None else target(batch.next_obs)  # [N, A]
+            if double:
+                # van Hasselt et al. 2016: select with the online net, evaluate with the target net.
+                best = online(batch.next_obs).argmax(dim=1, keepdim=True)  # [N, 1]
+                next_v = target_q.gather(1, best).squeeze(1)  # [N]
+            else:
+                next_v = target_q.max(dim=1).values  # [N]
         return torch.addcmul(batch.reward, batch.discount, next_v)  # [N]
 
 
