@@ -299,6 +299,32 @@ def test_a_wrong_number_of_actions_is_refused(vectorization):
         env.close()
 
 
+@pytest.mark.parametrize("vectorization", ["sync", "async"])
+def test_actions_with_a_singleton_dim_are_taken_and_other_shapes_refused(vectorization):
+    """[B, 1] for scalar actions (an argmax with keepdim) steps as [B] does, in both
+    vectorizations; [B, 2] is refused with the shape the env takes."""
+    env = make_env("toy_envs:Countdown", 4, vectorization=vectorization, num_workers=2)
+    try:
+        env.reset(seed=0)
+        assert env.step(torch.zeros(4, 1, dtype=torch.int64)).next_obs[:, 0].tolist() == [1, 1, 1, 1]
+        with pytest.raises(ValueError, match=r"actions of shape \(4, 2\), but this env takes \(4,\)"):
+            env.step(torch.zeros(4, 2, dtype=torch.int64))
+        assert env.step(torch.zeros(4, dtype=torch.int64)).next_obs[:, 0].tolist() == [2, 2, 2, 2]
+    finally:
+        env.close()
+
+
+def test_a_one_dim_box_takes_actions_without_their_trailing_dim():
+    env = make_env("Pendulum-v1", 3)
+    try:
+        env.reset(seed=0)
+        flat = env.step(torch.zeros(3)).next_obs
+        env.reset(seed=0)
+        assert torch.equal(env.step(torch.zeros(3, 1)).next_obs, flat)
+    finally:
+        env.close()
+
+
 def test_a_closed_async_env_says_so():
     env = make_env("toy_envs:Countdown", 2, vectorization="async", num_workers=1)
     env.reset(seed=0)

@@ -83,7 +83,21 @@ class BatchEnvBase:
         if act.shape[:1] != (self.num_envs,):
             raise ValueError(f"actions for {act.shape[0] if act.ndim else 'no'} copies, "
                              f"but this env has {self.num_envs}")
+        want = self.action_spec.shape
+        if act.shape[1:] != want:
+            # [B, 1] for a scalar action (argmax with keepdim) and [B] for a one-dim Box(1,)
+            # are the same actions; any other shape is a mistake worth one clear line.
+            if _drop_trailing_ones(act.shape[1:]) != _drop_trailing_ones(want):
+                raise ValueError(f"actions of shape {tuple(act.shape)}, but this env takes {(self.num_envs, *want)}: "
+                                 f"{self.num_envs} copies of action shape {want}")
+            act = act.reshape(self.num_envs, *want)
         return act
+
+
+def _drop_trailing_ones(shape: tuple[int, ...]) -> tuple[int, ...]:
+    while shape and shape[-1] == 1:
+        shape = shape[:-1]
+    return shape
 
 
 def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | None = None) -> EnvFn:
