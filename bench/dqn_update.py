@@ -7,7 +7,7 @@ steps); "autograd" rows run the same agent with `manual_grads = False` (dqn_loss
 the others the hand-written gradients of agents/dqn/fast.py. The burst rows are what the
 trainer does after every 256 env steps, `Learner.run(128)`, per step: with the target
 network's Q-values computed once per chunk of batches (the default) and, for comparison,
-once per step.
+once per step, alternating round by round (medians of 30).
 
 Rows compare each relayrl piece with the plain-PyTorch way of doing the same thing, measured
 in the same process one after the other (ratios, not absolute times, are what carry over).
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import statistics
 import time
 from collections.abc import Callable
 
@@ -113,6 +114,19 @@ def main() -> None:
         learner = Learner(agent, table, b, torch.device("cpu"))
         return lambda: learner.run(128)
 
+    def interleaved(double: bool, rounds: int = 30) -> tuple[float, float]:
+        """Median us per step of a burst with the target Q per step and per chunk, the two
+        alternating round by round so the machine's drift hits both alike."""
+        runs = {ahead: burst(make_agent(double, True), ahead) for ahead in (False, True)}
+        times: dict[bool, list[float]] = {False: [], True: []}
+        for r in range(rounds + 1):
+            for ahead in ((False, True) if r % 2 else (True, False)):
+                t0 = time.perf_counter()
+                runs[ahead]()
+                if r:  # round 0 warms up
+                    times[ahead].append((time.perf_counter() - t0) / 128 * 1e6)
+        return statistics.median(times[False]), statistics.median(times[True])
+
     rows = [
         ("matmul alone: one [B,h]x[h,h] (of 4 per update)", per_call_us(lambda: x @ w.T)),
         ("plain PyTorch update (nn.Sequential, optim.Adam)", per_call_us(plain_update(h, b))),
@@ -123,10 +137,10 @@ def main() -> None:
             how = "hand-written grads" if manual else "autograd"
             a = make_agent(double, manual)
             rows.append((f"relayrl agent.train, {name}, {how}", per_call_us(lambda a=a: a.train(batch))))
-        for ahead in (False, True):
-            how = "target Q per chunk" if ahead else "target Q per step"
-            rows.append((f"relayrl {name} burst: Learner.run(128), {how}, per step",
-                         per_call_us(burst(make_agent(double, True), ahead), 20) / 128))
+        per_step, per_chunk = interleaved(double)
+        rows.append((f"relayrl {name} burst: Learner.run(128), target Q per step, per step", per_step))
+        rows.append((f"relayrl {name} burst: Learner.run(128), target Q per chunk, per step "
+                     f"({per_chunk / per_step:.3f}x)", per_chunk))
     rows += [
         ("Table.sample (uniform, 100k)", per_call_us(sample)),
         ("env.step, batch of 1 (CartPole-v1)", per_call_us(lambda: env.step(a0))),
