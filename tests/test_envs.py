@@ -2,6 +2,7 @@
 
 import contextlib
 import gc
+import multiprocessing
 import os
 import random
 import signal
@@ -157,6 +158,14 @@ def test_async_worker_errors_reach_the_main_process():
             env.step(torch.zeros(3, dtype=torch.int64))
     finally:
         env.close()
+
+
+def test_a_user_error_while_a_worker_makes_its_copies_stays_a_user_error():
+    """Bad input met in a worker comes back as the one line it is in this process, and the
+    workers already started are gone."""
+    with pytest.raises(UserError, match="^this copy's simulator licence is missing$"):
+        make_env("toy_envs:RefusedInWorker", 3, vectorization="async", num_workers=2)
+    assert not [p for p in multiprocessing.active_children() if p.name.startswith("relayrl-env")]
 
 
 def test_an_interrupted_async_step_leaves_the_next_steps_right():

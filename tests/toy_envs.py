@@ -142,6 +142,18 @@ class Broken(Countdown):
         raise ValueError("the simulator lost its state")
 
 
+class RefusedInWorker(Countdown):
+    """Countdown that refuses to be made in a worker process, as a user's env refuses a bad
+    setting with relayrl's UserError (a copy-specific resource, say)."""
+
+    def __init__(self, render_mode=None):
+        if multiprocessing.parent_process() is not None:
+            from relayrl.errors import UserError
+
+            raise UserError("this copy's simulator licence is missing")
+        super().__init__(render_mode=render_mode)
+
+
 class BrokenInWorker(Countdown):
     """Countdown whose step raises when it runs in a worker process."""
 

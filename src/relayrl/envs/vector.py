@@ -141,6 +141,8 @@ def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Bu
         try:
             env = GymBatchEnv(cloudpickle.loads(fns_pickled), time_limit_terminates)
             reply: tuple[str, int, Any] = ("ok", 0, None)
+        except UserError as e:  # bad input met while making a copy: one line, as in this process
+            reply = ("user_error", 0, str(e))
         except Exception:
             reply = ("error", 0, traceback.format_exc())
         while True:
