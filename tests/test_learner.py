@@ -109,6 +109,6 @@ def test_no_target_network_or_one_copied_every_step_leaves_batches_as_sampled():
         cfg = DQNConfig(hidden=[16], batch_size=16, target_update_period=period, tau=tau)
         a = DQNAgent(ArraySpec((3,), torch.float32), DiscreteSpec(2), cfg, torch.device("cpu"),
                      np.random.default_rng(0))
-        assert a.target_horizon() == 0
+        assert a.prepare_horizon() == 0
         batch = table().sample(64)[0]
         assert a.prepare(batch, 4) is batch

@@ -51,6 +51,22 @@ class Observer(Protocol):
     def __call__(self, transition: Transition) -> None: ...
 
 
+class PreparesChunks(Protocol):
+    """Optional for an Agent: work that stays valid for several gradient steps, done once for
+    a chunk of them (DQN: its target network's Q-values of the next observations). A local
+    uniform learner draws chunks of at most `prepare_horizon()` batches when that is > 0 and
+    hands each chunk, as one Batch, to `prepare` before slicing it into the steps' batches."""
+
+    def prepare_horizon(self) -> int:
+        """How many of the next train() calls a chunk prepared now stays valid for (0: none)."""
+        ...
+
+    def prepare(self, batch: Batch, steps: int) -> Batch:
+        """The chunk of the next `steps` batches, with what the agent computed ahead filled in
+        (or as it is, where nothing stays valid that long)."""
+        ...
+
+
 class Agent(Saveable, Protocol):
     """What the train loop knows of an algorithm."""
 

@@ -55,21 +55,21 @@ class Learner:
         during a burst, so these are the items of one call per batch (the same RNG draws);
         where another thread inserts meanwhile, its items become sampleable at the next chunk
         instead of the next batch. Prioritized batches depend on the priorities the previous
-        step set, so they are drawn one by one. An agent with `prepare` (DQN with a target
-        network) gets each chunk first, cut where its target network changes, and fills in
-        what it can compute once for the whole chunk."""
+        step set, so they are drawn one by one. An agent with `prepare` (`core.PreparesChunks`;
+        DQN with a target network) gets each chunk first, cut at its `prepare_horizon()`,
+        and fills in what it can compute once for the whole chunk."""
         if self.prioritized or iterations == 1 or not isinstance(self.table, Table) or self.table.max_times_sampled:
             for _ in range(iterations):
                 yield self.table.sample(self.batch_size)
             return
         n = self.batch_size
-        horizon = getattr(self.agent, "target_horizon", None)
+        horizon = getattr(self.agent, "prepare_horizon", None)
         prepare = getattr(self.agent, "prepare", None)
         while iterations > 0:
             k = min(iterations, self._chunk or 1)  # the first call learns the batch's size
             h = horizon() if horizon is not None else 0
             if h > 0:
-                k = min(k, h)  # a chunk ends where the agent's target network changes
+                k = min(k, h)  # a chunk ends where what the agent prepares goes stale
             batch, info = self.table.sample(k * n)
             if self._chunk is None:  # at most ~32 MB a call: bursts of pixel batches stay small
                 nbytes = sum(x.nbytes for x in batch if isinstance(x, torch.Tensor))

@@ -72,7 +72,7 @@ class DQNAgent:
         if self._lr_at is not None:
             self.optimizer.lr = self._lr_at(env_steps)
 
-    def target_horizon(self) -> int:
+    def prepare_horizon(self) -> int:
         """How many of the next train() calls see the current target network; 0 where there
         is none or it changes after every call (nothing to compute ahead then)."""
         if self.target is None or self.cfg.target_update_period == 1:
@@ -86,15 +86,15 @@ class DQNAgent:
         those calls. Why: one forward pass over the whole chunk replaces `steps` small ones;
         with (256, 256) at batch 64 on a CPU that saves a few % of an update (BENCHMARKS.md).
         The values are what train() would compute itself, up to float rounding."""
-        if steps < 2 or steps > self.target_horizon():
+        if steps < 2 or steps > self.prepare_horizon():
             return batch
         next_obs = batch.next_obs.to(self.device, non_blocking=True)  # [steps * N, *obs_shape]
-        if not self.manual_grads:
-            return batch._replace(target_q=self.target(next_obs))
+        view = self._target_view if self.manual_grads else None
+        forward = (lambda x: view.forward(x)[0]) if view is not None else self.target
         # Blocks of 256 rows: one [8192, 256] activation is a fresh 8 MB allocation whose page
-        # faults cost as much as the matmul saves; 256 rows stay in cache and reuse memory.
-        blocks = [self._target_view.forward(x)[0] for x in next_obs.split(256)]
-        return batch._replace(target_q=torch.cat(blocks))  # [steps * N, A]
+        # faults cost as much as the matmul saves (256 rows stay in cache and reuse memory),
+        # and a chunk of pixel batches never needs all its conv activations at once.
+        return batch._replace(target_q=torch.cat([forward(x) for x in next_obs.split(256)]))  # [steps * N, A]
 
     def train(self, batch: Batch) -> dict[str, torch.Tensor]:
         cfg = self.cfg
