@@ -39,6 +39,7 @@ import sys
 import traceback
 import weakref
 import zlib
+from collections.abc import Callable
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -138,13 +139,9 @@ def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Bu
     a = buffers.arrays
     env: GymBatchEnv | None = None
     try:
-        try:
-            env = GymBatchEnv(cloudpickle.loads(fns_pickled), time_limit_terminates)
-            reply: tuple[str, int, Any] = ("ok", 0, None)
-        except UserError as e:  # bad input met while making a copy: one line, as in this process
-            reply = ("user_error", 0, str(e))
-        except Exception:
-            reply = ("error", 0, traceback.format_exc())
+        made = _outcome(0, lambda: GymBatchEnv(cloudpickle.loads(fns_pickled), time_limit_terminates))
+        env = made[2] if made[0] == "ok" else None
+        reply = made if env is None else ("ok", 0, None)  # the main process waits for this "ok"
         while True:
             conn.send_bytes(_MAGIC + pickle.dumps(reply))
             if env is None:
@@ -152,18 +149,25 @@ def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Bu
             cmd, seq, arg = pickle.loads(conn.recv_bytes())
             if cmd == "close":
                 break
-            try:
-                reply = ("ok", seq, _serve(env, a, lo, hi, cmd, arg))
-            except UserError as e:
-                reply = ("user_error", seq, str(e))
-            except Exception:  # any failure of the env's code goes to the main process, with its traceback
-                reply = ("error", seq, traceback.format_exc())
+            reply = _outcome(seq, _serve, env, a, lo, hi, cmd, arg)
     except (EOFError, OSError):  # the main process's end is closed (it exited, or dropped the env mid-reply)
         pass
     finally:
         if env is not None:
             env.close()
         conn.close()
+
+
+def _outcome(seq: int, work: Callable[..., Any], *args: Any) -> tuple[str, int, Any]:
+    """A worker's reply to command `seq`: ("ok", seq, work(*args)), or its failure as the main
+    process raises it: a UserError as its one line (bad input met while making or stepping a
+    copy), any other failure of the env's code with its traceback."""
+    try:
+        return ("ok", seq, work(*args))
+    except UserError as e:
+        return ("user_error", seq, str(e))
+    except Exception:
+        return ("error", seq, traceback.format_exc())
 
 
 def _serve(env: GymBatchEnv, a: dict[str, np.ndarray], lo: int, hi: int, cmd: str, arg: Any) -> Any:
