@@ -1,7 +1,8 @@
 """Saved policies: load one as a batched callable, or export it for plain PyTorch.
 
 `policy/policy.pt` holds a plain dict (network sizes, weights, action bounds) that
-`load_policy` rebuilds without the agent or replay. `export_policy` (`relayrl export RUN_DIR`;
+`load_policy` rebuilds without the agent or replay; it is read without running code
+(`policy_file.py`), so a shared policy file is safe to load. `export_policy` (`relayrl export RUN_DIR`;
 a few seconds, so not done on every save) writes `policy.pt2`, a
 `torch.export` program of the deterministic policy with a dynamic batch dimension, which
 runs with nothing but PyTorch:
@@ -22,6 +23,7 @@ from torch import nn
 from relayrl.errors import UserError
 from relayrl.networks import CONV_NETWORKS, MLP, ConvQNet
 from relayrl.policies import ClampedPolicy, GreedyPolicy, TanhGaussianPolicy
+from relayrl.policy_file import REFUSED, load_policy_file
 
 KINDS = ("q_greedy", "tanh_gaussian", "clamped_mlp")  # DQN, SAC, BPTT
 
@@ -39,13 +41,17 @@ def _policy_file(path: str | Path) -> Path:
 
 def load_policy_state(path: str | Path) -> dict[str, Any]:
     f = _policy_file(path)
-    try:
-        state = torch.load(f, map_location="cpu", weights_only=False)
-    except Exception as e:
-        raise UserError(f"policy file {str(f)!r} is unreadable: {e}") from None
+    state = load_policy_file(f)
     if state.get("kind") not in KINDS:
         raise UserError(f"policy kind {state.get('kind')!r} is not supported by this relayrl version; "
                         f"valid: {', '.join(KINDS)}")
+    try:
+        _DeterministicPolicy(state)  # builds the network and reads the bounds: every key is there
+        if state["kind"] == "tanh_gaussian":
+            float(state["log_std_min"]), float(state["log_std_max"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        raise UserError(f"policy file {str(f)!r} does not hold a complete {state['kind']} policy "
+                        f"({type(e).__name__}: {e}); {REFUSED}") from None
     return state
 
 
@@ -59,6 +65,11 @@ def _network(state: dict[str, Any]) -> nn.Module:
     net = MLP(state["obs_dim"], state["hidden"], out_dim, state["activation"])
     net.load_state_dict(state["state_dict"])
     return net.eval()
+
+
+def _bounds(state: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Action bounds as float32 arrays (saved as lists of float32 values)."""
+    return np.asarray(state["action_low"], np.float32), np.asarray(state["action_high"], np.float32)
 
 
 def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = True,
@@ -79,9 +90,9 @@ def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = Tru
     if state["kind"] == "q_greedy":
         policy = GreedyPolicy(net, dev)
     elif state["kind"] == "clamped_mlp":
-        policy = ClampedPolicy(net, np.asarray(state["action_low"]), np.asarray(state["action_high"]), dev)
+        policy = ClampedPolicy(net, *_bounds(state), dev)
     else:
-        policy = TanhGaussianPolicy(net, np.asarray(state["action_low"]), np.asarray(state["action_high"]), dev,
+        policy = TanhGaussianPolicy(net, *_bounds(state), dev,
                                     deterministic, np.random.default_rng(seed),
                                     state["log_std_min"], state["log_std_max"])
     policy.env_steps = state.get("env_steps")
@@ -97,7 +108,7 @@ class _DeterministicPolicy(nn.Module):
         self.discrete = state["kind"] == "q_greedy"
         self.clamped = state["kind"] == "clamped_mlp"
         if not self.discrete:
-            low, high = np.asarray(state["action_low"]), np.asarray(state["action_high"])
+            low, high = _bounds(state)
             self.register_buffer("loc", torch.as_tensor((high + low) / 2.0, dtype=torch.float32))
             self.register_buffer("scale", torch.as_tensor((high - low) / 2.0, dtype=torch.float32))
             self.action_dim = int(state["action_dim"])

@@ -20,7 +20,7 @@ from torch import nn
 from relayrl.config import Config
 from relayrl.errors import ConfigError
 from relayrl.networks import MLP
-from relayrl.training.checkpoint import atomic_torch_save
+from relayrl.policy_file import save_policy_file
 from relayrl.training.run_dir import MetricsLog, RunDir
 
 ENV_ID = "relayrl/StatelessPendulum-v0"
@@ -104,5 +104,5 @@ def run_bptt(config: Config, rd: RunDir, progress: bool = True) -> dict[str, Any
     finally:
         log.close()
         tb.close()
-    atomic_torch_save(policy_state(result.policy, a.hidden, iterations * per_iteration), rd.policy / "policy.pt")
+    save_policy_file(policy_state(result.policy, a.hidden, iterations * per_iteration), rd.policy / "policy.pt")
     return last

@@ -63,11 +63,11 @@ class PolicySaver(IntervalTrigger):
         self.agent, self.folder, self.extra = agent, Path(folder), dict(extra or {})
 
     def save(self, progress: Progress) -> None:
-        from relayrl.training.checkpoint import atomic_torch_save
+        from relayrl.policy_file import save_policy_file
 
         self.folder.mkdir(parents=True, exist_ok=True)
         state = {**self.agent.policy_state(), "env_steps": progress.env_steps, **self.extra}
-        atomic_torch_save(state, self.folder / "policy.pt")
+        save_policy_file(state, self.folder / "policy.pt")
 
 
 class Checkpointer(IntervalTrigger):

@@ -1,0 +1,80 @@
+"""The policy file (`policy/policy.pt`): the one file of a run that users pass around.
+
+It holds only tensors, numbers, strings, lists and dicts, and is read with
+`torch.load(weights_only=True)`, whose unpickler builds nothing else: a crafted file cannot run
+code while it is read. Files written before action bounds became lists hold them as float NumPy
+arrays; those are read with NumPy's array reconstruction allowed as well (it builds arrays of
+the allowed dtypes and nothing else). Checkpoints are different: they hold pickled env and RNG
+state and are as trusted as code (`training/checkpoint.py`).
+"""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from relayrl.errors import UserError
+
+REFUSED = "not a relayrl policy file, or one that would run code"
+
+try:
+    from numpy._core.multiarray import _reconstruct
+except ImportError:  # NumPy 1.x
+    from numpy.core.multiarray import _reconstruct
+
+# What a policy file written before bounds were lists needs beyond plain types: float arrays.
+_OLD_LAYOUT_GLOBALS: list[Any] = [
+    (_reconstruct, "numpy._core.multiarray._reconstruct"),
+    (_reconstruct, "numpy.core.multiarray._reconstruct"),  # as NumPy 1.x pickles it
+    np.ndarray, np.dtype, type(np.dtype(np.float32)), type(np.dtype(np.float64)),
+]
+
+
+def plain(value: Any) -> Any:
+    """`value` with NumPy arrays and scalars turned into lists and Python numbers, recursively."""
+    if isinstance(value, dict):
+        return {k: plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [plain(v) for v in value]
+    if isinstance(value, np.ndarray | np.generic):
+        return value.tolist()
+    return value
+
+
+def save_policy_file(state: dict[str, Any], path: Path) -> None:
+    """Write `state` (made plain) atomically: a reader sees the old file or the new one."""
+    from relayrl.training.checkpoint import atomic_torch_save
+
+    atomic_torch_save(plain(state), path)
+
+
+def load_policy_file(path: Path) -> dict[str, Any]:
+    """The state dict in a policy file, read without running any code it may carry."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        state = _load_old_layout(path)
+    except Exception as e:  # truncated, not a torch file at all, ...
+        raise UserError(f"policy file {str(path)!r} is unreadable ({type(e).__name__}: {_first_line(e)}); "
+                        f"{REFUSED}") from None
+    if not isinstance(state, dict):
+        raise UserError(f"policy file {str(path)!r} holds a {type(state).__name__}, not a policy: {REFUSED}")
+    return state
+
+
+def _load_old_layout(path: Path) -> Any:
+    try:
+        with torch.serialization.safe_globals(_OLD_LAYOUT_GLOBALS):
+            return plain(torch.load(path, map_location="cpu", weights_only=True))
+    except Exception:
+        raise UserError(f"{str(path)!r} is {REFUSED}; it was not loaded (a policy file holds only tensors, "
+                        "numbers, strings, lists and dicts)") from None
+
+
+def _first_line(e: Exception) -> str:
+    text = str(e).strip()
+    return text.splitlines()[0] if text else "no details"

@@ -1,0 +1,112 @@
+"""policy.pt is read without running code: crafted files are refused, every algorithm's still loads."""
+
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+import relayrl
+from relayrl.errors import UserError
+from relayrl.policy_file import REFUSED
+
+RELAYRL = [sys.executable, "-m", "relayrl.cli"]
+TINY = {
+    "dqn": ("dqn-cartpole-fast", ["train.total_steps=300", "train.initial_collect_steps=100", "eval.interval=300",
+                                  "eval.episodes=1", "train.collect_steps=100", "train.gradient_steps=5",
+                                  "agent.hidden=[16,16]"], (4,)),
+    "sac": ("sac-pendulum", ["train.total_steps=300", "train.initial_collect_steps=100", "eval.interval=300",
+                             "eval.episodes=1", "agent.actor_hidden=[16,16]", "agent.critic_hidden=[16,16]",
+                             "agent.batch_size=16"], (3,)),
+    "bptt": ("bptt-pendulum", ["train.total_steps=3200", "eval.interval=3200"], (3,)),
+}
+
+
+class _Payload:
+    """Unpickling this runs `touch <marker>`: what a crafted policy file would do."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("runs")
+    for algo, (preset, overrides, _) in TINY.items():
+        relayrl.train(relayrl.load_config(preset, overrides, seed=0), root / algo, progress=False)
+    return root
+
+
+@pytest.mark.parametrize("algo", sorted(TINY))
+def test_every_algorithms_policy_file_is_plain_data(runs, algo):
+    # weights_only=True with no extra globals: tensors, numbers, strings, lists and dicts only
+    state = torch.load(runs / algo / "policy" / "policy.pt", weights_only=True)
+    assert state["kind"] in ("q_greedy", "tanh_gaussian", "clamped_mlp")
+    obs = torch.randn(5, *TINY[algo][2])
+    assert relayrl.load_policy(runs / algo)(obs).shape[0] == 5
+
+
+def test_a_policy_saved_with_numpy_bounds_still_loads_and_acts_the_same(runs, tmp_path):
+    state = torch.load(runs / "sac" / "policy" / "policy.pt", weights_only=True)
+    old = {**state, "action_low": np.asarray(state["action_low"], np.float32),
+           "action_high": np.asarray(state["action_high"], np.float32)}
+    torch.save(old, tmp_path / "policy.pt")  # the layout an earlier release wrote
+    obs = torch.randn(7, 3)
+    assert torch.equal(relayrl.load_policy(tmp_path / "policy.pt")(obs), relayrl.load_policy(runs / "sac")(obs))
+
+
+@pytest.fixture
+def crafted_run(runs, tmp_path):
+    """A copy of a real run whose policy.pt carries a payload; returns (run dir, marker path)."""
+    run = tmp_path / "shared-run"
+    shutil.copytree(runs / "dqn", run)
+    marker = tmp_path / "code-ran"
+    state = torch.load(run / "policy" / "policy.pt", weights_only=True)
+    torch.save({**state, "hidden": _Payload(marker)}, run / "policy" / "policy.pt")
+    return run, marker
+
+
+def test_load_policy_refuses_a_file_that_would_run_code(crafted_run):
+    run, marker = crafted_run
+    for target in (run, run / "policy" / "policy.pt"):
+        with pytest.raises(UserError, match=REFUSED):
+            relayrl.load_policy(target)
+        with pytest.raises(UserError, match=REFUSED):
+            relayrl.export_policy(target)
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize("command", [["eval"], ["video"], ["export"]])
+def test_the_cli_refuses_it_in_one_line(crafted_run, command, cli_env, tmp_path):
+    run, marker = crafted_run
+    r = subprocess.run(RELAYRL + [*command, str(run)], capture_output=True, text=True, env=cli_env, cwd=tmp_path,
+                       timeout=300)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and REFUSED in lines[0] and "Traceback" not in r.stderr, r.stderr
+    assert not marker.exists()
+    assert not (run / "policy" / "policy.pt2").exists() and not list(run.glob("*.mp4"))
+
+
+@pytest.mark.parametrize("content", [
+    torch.zeros(3),  # not a dict
+    {"kind": "q_greedy", "obs_dim": 4},  # keys missing
+    {"kind": "q_greedy", "obs_dim": 4, "hidden": [8], "num_actions": 2, "activation": "relu",
+     "state_dict": {"layers.0.weight": torch.zeros(8, 3)}},  # weights of the wrong shape
+], ids=["tensor", "missing-keys", "wrong-shapes"])
+def test_plain_files_that_are_not_policies_are_one_line_errors(tmp_path, content):
+    torch.save(content, tmp_path / "policy.pt")
+    with pytest.raises(UserError, match=REFUSED):
+        relayrl.load_policy(tmp_path / "policy.pt")
+
+
+def test_a_file_that_is_not_a_torch_file_is_one_line_error(tmp_path):
+    (tmp_path / "policy.pt").write_bytes(b"not a policy")
+    with pytest.raises(UserError, match=REFUSED):
+        relayrl.load_policy(tmp_path / "policy.pt")
