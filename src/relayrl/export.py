@@ -15,16 +15,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
-from torch import nn
 
+from relayrl.agents.registry import for_policy_kind
 from relayrl.errors import UserError
-from relayrl.networks import CONV_NETWORKS, MLP, ConvQNet
 from relayrl.policies import ClampedPolicy, GreedyPolicy, TanhGaussianPolicy
-
-KINDS = ("q_greedy", "tanh_gaussian", "clamped_mlp")  # DQN, SAC, BPTT
-
 
 def _policy_file(path: str | Path) -> Path:
     p = Path(path)
@@ -43,22 +38,8 @@ def load_policy_state(path: str | Path) -> dict[str, Any]:
         state = torch.load(f, map_location="cpu", weights_only=False)
     except Exception as e:
         raise UserError(f"policy file {str(f)!r} is unreadable: {e}") from None
-    if state.get("kind") not in KINDS:
-        raise UserError(f"policy kind {state.get('kind')!r} is not supported by this relayrl version; "
-                        f"valid: {', '.join(KINDS)}")
+    for_policy_kind(state.get("kind"))  # UserError for a kind this version does not know
     return state
-
-
-def _network(state: dict[str, Any]) -> nn.Module:
-    if state.get("network") in CONV_NETWORKS:  # DQN on frames: uint8 [B, C, H, W] in
-        conv = ConvQNet(tuple(state["obs_shape"]), state["num_actions"])
-        conv.load_state_dict(state["state_dict"])
-        return conv.eval()
-    out_dim = {"q_greedy": state.get("num_actions"), "tanh_gaussian": 2 * state.get("action_dim", 0),
-               "clamped_mlp": state.get("action_dim")}[state["kind"]]
-    net = MLP(state["obs_dim"], state["hidden"], out_dim, state["activation"])
-    net.load_state_dict(state["state_dict"])
-    return net.eval()
 
 
 def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = True,
@@ -71,50 +52,15 @@ def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = Tru
     replaced atomically, so a policy can be loaded at any moment.
     """
     state = load_policy_state(path)
-    dev = torch.device(device)
-    net = _network(state).to(dev)
-    policy: GreedyPolicy | TanhGaussianPolicy | ClampedPolicy
-    if state["kind"] in ("q_greedy", "clamped_mlp") and not deterministic:
-        raise UserError(f"a {state['kind']} policy is deterministic; deterministic=False applies to SAC policies")
-    if state["kind"] == "q_greedy":
-        policy = GreedyPolicy(net, dev)
-    elif state["kind"] == "clamped_mlp":
-        policy = ClampedPolicy(net, np.asarray(state["action_low"]), np.asarray(state["action_high"]), dev)
-    else:
-        policy = TanhGaussianPolicy(net, np.asarray(state["action_low"]), np.asarray(state["action_high"]), dev,
-                                    deterministic, np.random.default_rng(seed),
-                                    state["log_std_min"], state["log_std_max"])
+    policy = for_policy_kind(state["kind"]).policy_module().load(state, torch.device(device), deterministic, seed)
     policy.env_steps = state.get("env_steps")
     return policy
-
-
-class _DeterministicPolicy(nn.Module):
-    """The eval policy as one traceable module: argmax Q, or loc + scale * tanh(mean)."""
-
-    def __init__(self, state: dict[str, Any]) -> None:
-        super().__init__()
-        self.net = _network(state)
-        self.discrete = state["kind"] == "q_greedy"
-        self.clamped = state["kind"] == "clamped_mlp"
-        if not self.discrete:
-            low, high = np.asarray(state["action_low"]), np.asarray(state["action_high"])
-            self.register_buffer("loc", torch.as_tensor((high + low) / 2.0, dtype=torch.float32))
-            self.register_buffer("scale", torch.as_tensor((high - low) / 2.0, dtype=torch.float32))
-            self.action_dim = int(state["action_dim"])
-
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        out = self.net(obs)
-        if self.discrete:
-            return out.argmax(dim=1)  # [B]
-        if self.clamped:
-            return torch.minimum(torch.maximum(out, self.loc - self.scale), self.loc + self.scale)  # [B, A]
-        return self.loc + self.scale * torch.tanh(out[:, : self.action_dim])  # [B, A]
 
 
 def export_policy(path: str | Path, out: str | Path | None = None) -> Path:
     """Write the deterministic policy as a `torch.export` program (`policy.pt2`)."""
     state = load_policy_state(path)
-    module = _DeterministicPolicy(state).requires_grad_(False)
+    module = for_policy_kind(state["kind"]).policy_module().deterministic_module(state).requires_grad_(False)
     example = (torch.zeros(2, *state["obs_shape"], dtype=torch.uint8) if "obs_shape" in state
                else torch.zeros(2, state["obs_dim"]))
     batch = torch.export.Dim("batch", min=1)

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
-from relayrl.networks import MLP, CpuMLP
+from relayrl.networks import CONV_NETWORKS, MLP, ConvQNet, CpuMLP
 from relayrl.specs import ArraySpec, DiscreteSpec, Spec
 
 
@@ -188,3 +189,14 @@ class ClampedPolicy:
         with torch.no_grad():
             a = self.net(obs.to(self.device, non_blocking=True))
             return torch.minimum(torch.maximum(a, self.low), self.high).cpu()
+
+
+def saved_network(state: dict[str, Any], out_dim: int) -> nn.Module:
+    """The network of a saved policy (policy.pt's dict), in eval mode: a conv Q-net on uint8
+    frames when `state["network"]` names one, else an MLP of `state["hidden"]`."""
+    if state.get("network") in CONV_NETWORKS:  # DQN on frames: uint8 [B, C, H, W] in
+        net: nn.Module = ConvQNet(tuple(state["obs_shape"]), state["num_actions"])
+    else:
+        net = MLP(state["obs_dim"], state["hidden"], out_dim, state["activation"])
+    net.load_state_dict(state["state_dict"])
+    return net.eval()
