@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 import torch
 
+from relayrl.agents.bptt.bptt import make_policy, pendulum_mlp_rewards, train_bptt
+from relayrl.agents.bptt.config import BpttConfig
 from relayrl.envs.stateless import (
     Cat,
     Cos,
@@ -29,8 +31,6 @@ from relayrl.envs.stateless import (
     rollout,
     tree_leaves,
 )
-from relayrl.agents.bptt.bptt import make_policy, pendulum_mlp_rewards, train_bptt
-from relayrl.agents.bptt.config import BpttConfig
 from relayrl.envs.stateless.adapter import StatelessBatchEnv
 from relayrl.envs.stateless.pendulum import PendulumState
 

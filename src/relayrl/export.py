@@ -21,6 +21,7 @@ from relayrl.agents.registry import for_policy_kind
 from relayrl.errors import UserError
 from relayrl.policies import ClampedPolicy, GreedyPolicy, TanhGaussianPolicy
 
+
 def _policy_file(path: str | Path) -> Path:
     p = Path(path)
     for candidate in (p / "policy" / "policy.pt", p / "policy.pt", p):

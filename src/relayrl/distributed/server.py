@@ -16,7 +16,7 @@ from relayrl.config import from_dict
 from relayrl.replay import RateLimiterTimeout, SampleInfo
 from relayrl.replay.writers import StepChunk
 from relayrl.specs import Spec
-from relayrl.training.replay import build_shared_replay
+from relayrl.training.replay_setup import build_shared_replay
 
 
 class ReplayServer:
