@@ -19,7 +19,7 @@ import torch
 from test_resume import DQN, SAC, assert_same_state, comparable, cut_back
 
 import relayrl
-from relayrl.agents.registry import ALGORITHMS, algorithm
+from relayrl.agents.registry import ALGORITHMS, algorithm, load_attr
 from relayrl.envs import make_env
 from relayrl.errors import UserError
 from relayrl.export import load_policy_state
@@ -36,6 +36,16 @@ NAMES = sorted(ALGORITHMS)
 
 def test_every_algorithm_has_a_case():
     assert sorted(CASES) == NAMES
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_registry_entry_resolves(name):
+    spec = algorithm(name)
+    assert spec.config().validate() is None  # the defaults are valid
+    module = spec.policy_module()
+    assert callable(module.load) and callable(module.deterministic_module)
+    for path in (spec.agent, spec.run):
+        assert not path or callable(load_attr(path))
 
 
 @pytest.fixture(scope="module")

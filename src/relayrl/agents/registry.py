@@ -39,6 +39,12 @@ class Algorithm:
     run: str = ""  # "module:Class": a run of its own (config, run_dir, progress), instead of Actor + Learner
     resumable: bool = True  # its runs write checkpoints that `--resume` continues
 
+    def __post_init__(self) -> None:
+        if self.replay not in REPLAYS:
+            raise ValueError(f"Algorithm {self.name!r}: replay={self.replay!r} is not one of {REPLAYS}")
+        if not (self.agent or self.run) or (self.replay == "none" and not self.run):
+            raise ValueError(f"Algorithm {self.name!r} needs an agent (fed from a replay) or a run of its own")
+
     def make_agent(self, agent_cfg: Any, obs_spec: Any, action_spec: Any, device: Any, rng: Any,
                    total_steps: int) -> Any:
         if not self.agent:

@@ -134,10 +134,10 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
 
     def make_registered() -> gym.Env:
         _register_on_demand(env_id)  # again in a worker process that starts with a fresh registry
-        # disable_env_checker: the passive checker costs ~10% per step on tiny envs and only warns.
-        # No OrderEnforcing either (as for a user's class above): it only raises on a step or
-        # render before the first reset, which the batched envs never do, and costs ~4 us a
-        # step, 12% of Pendulum-v1's (2026-11-23).
+        # disable_env_checker: the passive checker costs a measurable share of a tiny env's step
+        # and only warns. No OrderEnforcing either (as for a user's class above): it only raises
+        # on a step or render before the first reset, which the batched envs never do, and it
+        # costs a share of every step (BENCHMARKS.md).
         spec = dataclasses.replace(gym.spec(env_id), order_enforce=False)
         return gym.make(spec, disable_env_checker=True, **kwargs)
 

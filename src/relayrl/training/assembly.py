@@ -75,8 +75,12 @@ class Run:
 
     def _assemble(self, obs_spec: Spec, act_spec: Spec) -> None:
         c = self.config
-        self.agent = algorithm(c.algo).make_agent(c.agent, obs_spec, act_spec, self.device,
-                                                  np.random.default_rng(c.seed + 1), c.train.total_steps)
+        spec = algorithm(c.algo)
+        if spec.replay != "transitions":
+            raise ValueError(f"algo={c.algo!r} collects into replay={spec.replay!r}; Actor + Learner runs feed "
+                             "a transitions table (the registry gives it a run of its own)")
+        self.agent = spec.make_agent(c.agent, obs_spec, act_spec, self.device, np.random.default_rng(c.seed + 1),
+                                     c.train.total_steps)
         table, variables = self.connect(obs_spec, act_spec)
         self.learner = Learner(self.agent, table, c.agent.batch_size, self.device,
                                prioritized=c.replay.sampler == "prioritized",
