@@ -43,6 +43,9 @@ UNAVAILABLE_LIMIT = 150
 
 
 class DistributedRun(Run):
+    """The assembled run (training/assembly.py) with its envs in K rollout actors, evaluations in
+    eval actors and the replay in a server actor; the learner trains in the driver."""
+
     def open(self) -> tuple[Spec, Spec]:
         self.ray = require_ray()
         c = self.config
