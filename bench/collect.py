@@ -52,13 +52,13 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from relayrl.agents import make_agent
+from relayrl.agents.registry import algorithm
 from relayrl.envs import make_env
 from relayrl.metrics import EnvironmentSteps, EpisodeStats
 from relayrl.presets import load_config
 from relayrl.training.actor import Actor
-from relayrl.training.replay import build_replay
-from relayrl.training.replay import replay_device as replay_device_of
+from relayrl.training.replay_setup import build_replay
+from relayrl.training.replay_setup import replay_device as replay_device_of
 
 ENV = "Pendulum-v1"
 STATELESS = "relayrl/StatelessPendulum-v0"
@@ -115,7 +115,7 @@ def ours(n: int, vectorization: str, steps_per_run: int = 1, env_id: str = ENV, 
                                     "train.gradient_steps=0", f"device={device}", f"replay.device={replay_device}"])
     dev = torch.device(device)
     env = make_env(env_id, n, vectorization=vectorization, device=dev, num_workers=workers)
-    agent = make_agent("sac", c.agent, env.observation_spec, env.action_spec, dev,
+    agent = algorithm("sac").make_agent(c.agent, env.observation_spec, env.action_spec, dev,
                        np.random.default_rng(0), c.train.total_steps)
     table, writer = build_replay(c, env.observation_spec, env.action_spec, run_root=None,  # type: ignore[arg-type]
                                  device=replay_device_of(c, dev, env_id == STATELESS))

@@ -61,12 +61,12 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # so that `bench.distributed:BusyEnv` imports here and in Ray workers
     sys.path.insert(0, str(ROOT))
 
-from relayrl.agents import make_agent  # noqa: E402
+from relayrl.agents.registry import algorithm  # noqa: E402
 from relayrl.config import Config, from_dict, to_dict  # noqa: E402
 from relayrl.envs import make_env  # noqa: E402
 from relayrl.replay.writers import StepChunk  # noqa: E402
 from relayrl.training.learner import Learner  # noqa: E402
-from relayrl.training.replay import build_replay  # noqa: E402
+from relayrl.training.replay_setup import build_replay  # noqa: E402
 
 BUSY = "bench.distributed:BusyEnv"
 MINITAUR = "relayrl/MinitaurBullet-v0"
@@ -146,7 +146,7 @@ def fake_chunks(steps: int, obs: int = OBS, act: int = ACT, seed: int = 0) -> li
 
 def sac_agent(c: Config, obs_spec: Any, act_spec: Any) -> Any:
     torch.manual_seed(0)
-    return make_agent("sac", c.agent, obs_spec, act_spec, torch.device("cpu"), np.random.default_rng(1),
+    return algorithm("sac").make_agent(c.agent, obs_spec, act_spec, torch.device("cpu"), np.random.default_rng(1),
                       c.train.total_steps)
 
 
@@ -297,7 +297,7 @@ def learner_alone(c: Config, steps: int, warm: int) -> float:
 def learner_with_actors(env_id: str, k: int, steps: int, warm: int) -> tuple[float, float]:
     """(grad steps/s, env steps/s the actors shipped while the learner ran: from the end of the
     fill, warm-up steps included; chunks land 256 steps at a time, so a short run reads coarse)."""
-    from relayrl.distributed.learner import RemotePusher, RemoteTable
+    from relayrl.distributed.remote import RemotePusher, RemoteTable
 
     c = bench_config(env_id, k)
     cl = Cluster(c, k)

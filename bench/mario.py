@@ -163,7 +163,7 @@ def relayrl_memory(items: int, record: int, seed: int) -> dict:
     from relayrl.envs import make_env
     from relayrl.replay.rate_limiters import MinSize
     from relayrl.replay.writers import StepChunk
-    from relayrl.training.replay import build_replay, frame_stack
+    from relayrl.training.replay_setup import build_replay, frame_stack
 
     over = ["device=cpu"]
     if items != FULL:  # smaller (--quick): the burn-in must fit in the replay
@@ -266,7 +266,7 @@ def relayrl_loop(burn_in: int, steps: int, warmup: int, threads: int, seed: int)
         rd = RunDir(os.path.join(tmp, "run"))
         run = LocalRun(c, rd, progress=False)
         rd.create()
-        run.run_eval = lambda p: None  # no evaluation: the tutorial's loop has none
+        run.evaluator.fn = run.evaluate_now = lambda p: None  # no evaluation: the tutorial's loop has none
         marks: list[tuple[int, float]] = []
         first_collect: list[float] = []
         actor_run = run.actor.run

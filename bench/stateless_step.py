@@ -121,11 +121,12 @@ def bench_gymnasium(batch: int, seconds: float) -> float:
 
 
 def bench_bptt(iterations: int, fused: bool, device: str, threads: int) -> float:
-    from relayrl.envs.stateless import BpttConfig, train_bptt
+    from relayrl.agents.bptt.bptt import train_bptt
+    from relayrl.agents.bptt.config import BpttConfig
 
-    train_bptt(BpttConfig(iterations=3, fused=fused, device=device, torch_threads=threads))  # warm-up
-    return train_bptt(BpttConfig(iterations=iterations, fused=fused, device=device,
-                                 torch_threads=threads)).iterations_per_s
+    c = BpttConfig(fused=fused)
+    train_bptt(c, iterations=3, device=device, torch_threads=threads)  # warm-up
+    return train_bptt(c, iterations=iterations, device=device, torch_threads=threads).iterations_per_s
 
 
 def tutorial_trainer(seed: int) -> Callable[[], tuple[float, float]]:
@@ -287,11 +288,11 @@ def torchrl_learn(python: str, seeds: list[int]) -> list[dict]:
 
 
 def learn(device: str) -> list[dict]:
-    from relayrl.envs.stateless import BpttConfig, train_bptt
+    from relayrl.agents.bptt.bptt import train_bptt
 
     out = []
     for seed in range(3):
-        r = train_bptt(BpttConfig(seed=seed, device=device))
+        r = train_bptt(seed=seed, device=device)
         out.append({"seed": seed, "mean_reward_final50": statistics.mean(r.mean_reward[-50:]),
                     "last_reward_final50": statistics.mean(r.last_reward[-50:]), "it_per_s": r.iterations_per_s})
         print(f"  seed {seed}: mean reward {out[-1]['mean_reward_final50']:.3f}, last-step reward "

@@ -15,11 +15,12 @@ from relayrl.envs.pixels import SkipFrame, frame_stack_of, mario_preprocessing
 from relayrl.errors import ConfigError, UserError
 from relayrl.export import load_policy
 from relayrl.networks import ConvQNet
-from relayrl.policies import RandomPolicy, exponential_schedule
+from relayrl.policies import RandomPolicy
 from relayrl.replay import Table
+from relayrl.schedules import exponential_schedule
 from relayrl.specs import ArraySpec, DiscreteSpec
 from relayrl.training.actor import Actor
-from relayrl.training.replay import build_replay, frame_stack
+from relayrl.training.replay_setup import build_replay, frame_stack
 from relayrl.types import Batch, Transition
 
 

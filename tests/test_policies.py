@@ -5,7 +5,8 @@ import pytest
 import torch
 
 from relayrl.networks import MLP
-from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy, RandomPolicy, linear_schedule
+from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy, RandomPolicy
+from relayrl.schedules import linear_schedule
 from relayrl.specs import ArraySpec, DiscreteSpec
 
 

@@ -13,7 +13,7 @@ from relayrl.replay import Fifo, MinSize, SequenceWriter, Table, TransitionWrite
 from relayrl.replay.sumtree import compiled
 from relayrl.specs import ArraySpec
 from relayrl.training.loop import LocalRun
-from relayrl.training.replay import replay_device
+from relayrl.training.replay_setup import replay_device
 from relayrl.training.run_dir import RunDir
 from relayrl.types import Transition
 

@@ -2,8 +2,6 @@
 target updates, determinism, export and a short learning test."""
 
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -166,24 +164,14 @@ def test_sac_learns_a_continuous_one_step_task(tmp_path):
     assert result.final["average_return"] > -0.15, result.final
 
 
-def test_saved_policy_loads_and_exports_for_plain_pytorch(tmp_path):
+def test_saved_policy_samples_when_asked(tmp_path):  # load and export round trips: tests/test_conformance.py
     config = relayrl.load_config("sac-pendulum", REACH + ["train.total_steps=300"], seed=1)
     relayrl.train(config, tmp_path / "run", progress=False)
-    policy = relayrl.load_policy(tmp_path / "run")
     obs = torch.rand(7, 2) * 2 - 1
     live = relayrl.load_policy(tmp_path / "run")(obs)
-    assert torch.equal(policy(obs), live) and live.shape == (7, 2)
+    assert live.shape == (7, 2)
     sampled = relayrl.load_policy(tmp_path / "run", deterministic=False, seed=0)
     assert not torch.equal(sampled(obs), live)
-    path = relayrl.export_policy(tmp_path / "run")
-    assert path.name == "policy.pt2"
-    np.save(tmp_path / "obs.npy", obs.numpy())
-    # A fresh interpreter with only torch: the program must not need relayrl.
-    code = (f"import sys, numpy, torch; m = torch.export.load({str(path)!r}).module(); "
-            f"a = m(torch.from_numpy(numpy.load({str(tmp_path / 'obs.npy')!r}))); "
-            "assert 'relayrl' not in sys.modules; numpy.save(sys.argv[1], a.detach().numpy())")
-    subprocess.run([sys.executable, "-c", code, str(tmp_path / "out.npy")], check=True, cwd=tmp_path)
-    assert np.allclose(np.load(tmp_path / "out.npy"), live.numpy(), atol=1e-6)
 
 
 def test_sac_run_is_deterministic_and_resumes(tmp_path):

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import torch
 
+from relayrl.agents.bptt.bptt import make_policy, pendulum_mlp_rewards, train_bptt
+from relayrl.agents.bptt.config import BpttConfig
 from relayrl.envs.stateless import (
-    BpttConfig,
     Cat,
     Cos,
     ObservationNorm,
@@ -27,10 +28,7 @@ from relayrl.envs.stateless import (
     check_env,
     make_generator,
     make_pendulum,
-    make_policy,
-    pendulum_mlp_rewards,
     rollout,
-    train_bptt,
     tree_leaves,
 )
 from relayrl.envs.stateless.adapter import StatelessBatchEnv
@@ -296,7 +294,7 @@ def _eval(policy, seed=123):
 @pytest.mark.parametrize("fused", [True, False])
 def test_short_bptt_run_improves(fused):
     logs = []
-    result = train_bptt(BpttConfig(iterations=30, seed=0, fused=fused), callback=logs.append)
+    result = train_bptt(BpttConfig(fused=fused), callback=logs.append, iterations=30, seed=0)
     assert len(result.mean_reward) == len(logs) == 30 and logs[-1].iteration == 29
     assert logs[0].lr == pytest.approx(2e-3, rel=1e-4)
     with torch.random.fork_rng():
@@ -379,7 +377,7 @@ def test_make_batch_env_and_the_gymnasium_view():
 def test_bptt_pendulum_learns_like_the_tutorial():
     """Issue 6 target: seeds 0-2, each averaged over its final 50 iterations, then over the seeds
     (single seeds of the tutorial's recipe vary: -2.0 to -3.0 mean, -0.0 to -0.9 last-step)."""
-    runs = [train_bptt(BpttConfig(seed=seed)) for seed in range(3)]
+    runs = [train_bptt(seed=seed) for seed in range(3)]
     mean = statistics.mean(statistics.mean(r.mean_reward[-50:]) for r in runs)
     last = statistics.mean(statistics.mean(r.last_reward[-50:]) for r in runs)
     assert mean >= -3.0 and last >= -0.7, (mean, last)

@@ -91,19 +91,6 @@ def test_dqn_refuses_continuous_actions(tmp_path):
     assert not (tmp_path / "p").exists()
 
 
-def test_policy_round_trip_gives_the_agents_actions(tmp_path):
-    result = relayrl.train(relayrl.load_config("dqn-cartpole-fast", SMALL), tmp_path / "r", progress=False)
-    policy = relayrl.load_policy(result.run_dir)
-    state = torch.load(tmp_path / "r" / "policy" / "policy.pt", weights_only=False)
-    from relayrl.networks import MLP
-
-    net = MLP(state["obs_dim"], state["hidden"], state["num_actions"], state["activation"])
-    net.load_state_dict(state["state_dict"])
-    obs = torch.randn(64, 4)
-    with torch.no_grad():
-        assert torch.equal(policy(obs), net(obs).argmax(1))
-
-
 @pytest.mark.parametrize("double", [False, True])
 def test_dqn_learns_a_bandit(tmp_path, double):
     cfg = relayrl.load_config("dqn-cartpole-fast", [

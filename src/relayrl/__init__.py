@@ -20,7 +20,7 @@ __all__ = ["load_config", "list_presets", "train", "load_policy", "export_policy
 _LAZY = {
     "load_config": "relayrl.presets",
     "list_presets": "relayrl.presets",
-    "train": "relayrl.training.loop",
+    "train": "relayrl.run",
     "load_policy": "relayrl.export",
     "export_policy": "relayrl.export",
     "plot_run": "relayrl.plot",
@@ -33,7 +33,7 @@ if TYPE_CHECKING:
     from relayrl.export import export_policy, load_policy
     from relayrl.plot import plot_run
     from relayrl.presets import list_presets, load_config
-    from relayrl.training.loop import train
+    from relayrl.run import train
     from relayrl.video import record_video
 
 

@@ -56,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _train(args: argparse.Namespace) -> None:
     from relayrl.presets import load_config
-    from relayrl.training.loop import train
+    from relayrl.run import train
     from relayrl.training.run_dir import RunDir
 
     if args.resume:

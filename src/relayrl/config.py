@@ -13,12 +13,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from relayrl.agents.bptt.config import BpttAgentConfig
-from relayrl.agents.dqn.config import DQNConfig
-from relayrl.agents.sac.config import SACConfig
+from relayrl.agents.registry import algorithm
 from relayrl.errors import ConfigError
-
-AGENT_CONFIGS: dict[str, type] = {"dqn": DQNConfig, "sac": SACConfig, "bptt": BpttAgentConfig}
 
 
 @dataclass
@@ -98,7 +94,7 @@ class Config:
     eval: EvalConfig = field(default_factory=EvalConfig)
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     distributed: DistributedConfig = field(default_factory=DistributedConfig)
-    agent: Any = field(default_factory=DQNConfig)
+    agent: Any = field(default_factory=lambda: algorithm("dqn").config())  # the algo's config class
 
     def validate(self) -> None:
         """Cross-field checks that types alone cannot express."""
@@ -161,10 +157,7 @@ def to_dict(config: Config) -> dict[str, Any]:
 def from_dict(data: dict[str, Any]) -> Config:
     """Build a Config from nested dicts (e.g. parsed TOML); every key is checked."""
     data = dict(data)
-    algo = data.get("algo", "dqn")
-    if algo not in AGENT_CONFIGS:
-        raise ConfigError(f"algo={algo!r} is not known; valid: {', '.join(sorted(AGENT_CONFIGS))}")
-    config = Config(agent=AGENT_CONFIGS[algo]())
+    config = Config(agent=algorithm(data.get("algo", "dqn")).config())
     _merge(config, data, prefix="")
     config.validate()
     return config

@@ -1,8 +1,8 @@
 """Saved policies: load one as a batched callable, or export it for plain PyTorch.
 
 `policy/policy.pt` holds a plain dict (network sizes, weights, action bounds) that
-`load_policy` rebuilds without the agent or replay; it is read without running code
-(`policy_file.py`), so a shared policy file is safe to load. `export_policy` (`relayrl export RUN_DIR`;
+`load_policy` rebuilds without the agent or replay; it is read without running any code it
+may carry (`policy_file.py`), so a shared policy file is safe to load. `export_policy` (`relayrl export RUN_DIR`;
 a few seconds, so not done on every save) writes `policy.pt2`, a
 `torch.export` program of the deterministic policy with a dynamic batch dimension, which
 runs with nothing but PyTorch:
@@ -16,16 +16,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
-from torch import nn
 
+from relayrl.agents.registry import for_policy_kind
 from relayrl.errors import UserError
-from relayrl.networks import CONV_NETWORKS, MLP, ConvQNet
 from relayrl.policies import ClampedPolicy, GreedyPolicy, TanhGaussianPolicy
 from relayrl.policy_file import REFUSED, load_policy_file
-
-KINDS = ("q_greedy", "tanh_gaussian", "clamped_mlp")  # DQN, SAC, BPTT
 
 
 def _policy_file(path: str | Path) -> Path:
@@ -42,34 +38,14 @@ def _policy_file(path: str | Path) -> Path:
 def load_policy_state(path: str | Path) -> dict[str, Any]:
     f = _policy_file(path)
     state = load_policy_file(f)
-    if state.get("kind") not in KINDS:
-        raise UserError(f"policy kind {state.get('kind')!r} is not supported by this relayrl version; "
-                        f"valid: {', '.join(KINDS)}")
+    module = for_policy_kind(state.get("kind")).policy_module()  # UserError for a kind this version does not know
     try:
-        _DeterministicPolicy(state)  # builds the network and reads the bounds: every key is there
-        if state["kind"] == "tanh_gaussian":
-            float(state["log_std_min"]), float(state["log_std_max"])
+        module.load(state, torch.device("cpu"), True, None)  # every key load_policy and export read is there
+        module.deterministic_module(state)
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         raise UserError(f"policy file {str(f)!r} does not hold a complete {state['kind']} policy "
                         f"({type(e).__name__}: {e}); {REFUSED}") from None
     return state
-
-
-def _network(state: dict[str, Any]) -> nn.Module:
-    if state.get("network") in CONV_NETWORKS:  # DQN on frames: uint8 [B, C, H, W] in
-        conv = ConvQNet(tuple(state["obs_shape"]), state["num_actions"])
-        conv.load_state_dict(state["state_dict"])
-        return conv.eval()
-    out_dim = {"q_greedy": state.get("num_actions"), "tanh_gaussian": 2 * state.get("action_dim", 0),
-               "clamped_mlp": state.get("action_dim")}[state["kind"]]
-    net = MLP(state["obs_dim"], state["hidden"], out_dim, state["activation"])
-    net.load_state_dict(state["state_dict"])
-    return net.eval()
-
-
-def _bounds(state: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """Action bounds as float32 arrays (saved as lists of float32 values)."""
-    return np.asarray(state["action_low"], np.float32), np.asarray(state["action_high"], np.float32)
 
 
 def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = True,
@@ -82,50 +58,15 @@ def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = Tru
     replaced atomically, so a policy can be loaded at any moment.
     """
     state = load_policy_state(path)
-    dev = torch.device(device)
-    net = _network(state).to(dev)
-    policy: GreedyPolicy | TanhGaussianPolicy | ClampedPolicy
-    if state["kind"] in ("q_greedy", "clamped_mlp") and not deterministic:
-        raise UserError(f"a {state['kind']} policy is deterministic; deterministic=False applies to SAC policies")
-    if state["kind"] == "q_greedy":
-        policy = GreedyPolicy(net, dev)
-    elif state["kind"] == "clamped_mlp":
-        policy = ClampedPolicy(net, *_bounds(state), dev)
-    else:
-        policy = TanhGaussianPolicy(net, *_bounds(state), dev,
-                                    deterministic, np.random.default_rng(seed),
-                                    state["log_std_min"], state["log_std_max"])
+    policy = for_policy_kind(state["kind"]).policy_module().load(state, torch.device(device), deterministic, seed)
     policy.env_steps = state.get("env_steps")
     return policy
-
-
-class _DeterministicPolicy(nn.Module):
-    """The eval policy as one traceable module: argmax Q, or loc + scale * tanh(mean)."""
-
-    def __init__(self, state: dict[str, Any]) -> None:
-        super().__init__()
-        self.net = _network(state)
-        self.discrete = state["kind"] == "q_greedy"
-        self.clamped = state["kind"] == "clamped_mlp"
-        if not self.discrete:
-            low, high = _bounds(state)
-            self.register_buffer("loc", torch.as_tensor((high + low) / 2.0, dtype=torch.float32))
-            self.register_buffer("scale", torch.as_tensor((high - low) / 2.0, dtype=torch.float32))
-            self.action_dim = int(state["action_dim"])
-
-    def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        out = self.net(obs)
-        if self.discrete:
-            return out.argmax(dim=1)  # [B]
-        if self.clamped:
-            return torch.minimum(torch.maximum(out, self.loc - self.scale), self.loc + self.scale)  # [B, A]
-        return self.loc + self.scale * torch.tanh(out[:, : self.action_dim])  # [B, A]
 
 
 def export_policy(path: str | Path, out: str | Path | None = None) -> Path:
     """Write the deterministic policy as a `torch.export` program (`policy.pt2`)."""
     state = load_policy_state(path)
-    module = _DeterministicPolicy(state).requires_grad_(False)
+    module = for_policy_kind(state["kind"]).policy_module().deterministic_module(state).requires_grad_(False)
     example = (torch.zeros(2, *state["obs_shape"], dtype=torch.uint8) if "obs_shape" in state
                else torch.zeros(2, state["obs_dim"]))
     batch = torch.export.Dim("batch", min=1)

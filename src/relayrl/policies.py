@@ -1,38 +1,17 @@
-"""Batched policies: random, greedy over Q-values, epsilon-greedy with a schedule."""
+"""Batched policies: random, greedy over Q-values, epsilon-greedy, SAC's tanh-Gaussian, clamped;
+and the network of a saved policy."""
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import torch
 from torch import nn
 
-from relayrl.networks import MLP, CpuMLP
+from relayrl.networks import CONV_NETWORKS, MLP, ConvQNet, CpuMLP
 from relayrl.specs import ArraySpec, DiscreteSpec, Spec
-
-
-def linear_schedule(start: float, end: float, steps: int) -> Callable[[int], float]:
-    """start -> end linearly over `steps`, then end. steps=0 gives the constant `end`."""
-    if steps <= 0:
-        return lambda t: end
-
-    def value(t: int) -> float:
-        return end + (start - end) * max(0.0, 1.0 - t / steps)
-
-    return value
-
-
-def exponential_schedule(start: float, end: float, decay: float) -> Callable[[int], float]:
-    """start * decay ** t, floored at `end`: the Mario tutorial's epsilon, multiplied by
-    `decay` once per env step (t = env steps so far, so it is the same at any env.num_envs)."""
-    log_decay = math.log(decay)
-
-    def value(t: int) -> float:
-        return max(end, start * math.exp(log_decay * t))
-
-    return value
 
 
 def _cpu_mlp(net: nn.Module, device: torch.device) -> CpuMLP | None:
@@ -151,7 +130,7 @@ class TanhGaussianPolicy:
         u = out[:, :a_dim]  # [B, A]
         if not self.deterministic:
             lo, hi = self.log_std_bounds
-            log_std = np.minimum(np.maximum(out[:, a_dim:], lo), hi)  # np.clip's values; its wrapper costs ~7 us
+            log_std = np.minimum(np.maximum(out[:, a_dim:], lo), hi)  # np.clip's values without its wrapper's cost
             u = u + np.exp(log_std) * self.rng.standard_normal(u.shape, dtype=np.float32)
         return torch.from_numpy((self.loc + self.half * np.tanh(u)).astype(np.float32, copy=False))
 
@@ -188,3 +167,19 @@ class ClampedPolicy:
         with torch.no_grad():
             a = self.net(obs.to(self.device, non_blocking=True))
             return torch.minimum(torch.maximum(a, self.low), self.high).cpu()
+
+
+def saved_bounds(state: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """A saved policy's action bounds as float32 arrays (policy.pt holds them as lists)."""
+    return np.asarray(state["action_low"], np.float32), np.asarray(state["action_high"], np.float32)
+
+
+def saved_network(state: dict[str, Any], out_dim: int) -> nn.Module:
+    """The network of a saved policy (policy.pt's dict), in eval mode: a conv Q-net on uint8
+    frames when `state["network"]` names one, else an MLP of `state["hidden"]`."""
+    if state.get("network") in CONV_NETWORKS:  # DQN on frames: uint8 [B, C, H, W] in
+        net: nn.Module = ConvQNet(tuple(state["obs_shape"]), state["num_actions"])
+    else:
+        net = MLP(state["obs_dim"], state["hidden"], out_dim, state["activation"])
+    net.load_state_dict(state["state_dict"])
+    return net.eval()

@@ -21,26 +21,17 @@ import uuid
 from collections import deque
 from typing import Any
 
-import numpy as np
-import torch
-from tqdm import tqdm
-
-from relayrl.agents import make_agent
-from relayrl.config import Config, to_dict
+from relayrl.config import to_dict
 from relayrl.distributed import require_ray
-from relayrl.distributed.learner import RemotePusher, RemoteTable
+from relayrl.distributed.remote import RemotePusher, RemoteTable
 from relayrl.distributed.server import ReplayServer
 from relayrl.distributed.workers import ActorNames, EvalWorker, RolloutWorker
 from relayrl.envs import make_env
 from relayrl.errors import UserError
-from relayrl.metrics import EpisodeStats
-from relayrl.policies import linear_schedule
+from relayrl.specs import Spec
+from relayrl.training.assembly import Run
 from relayrl.training.checkpoint import load_latest_checkpoint
-from relayrl.training.learner import Learner
-from relayrl.training.loop import RunLog, RunResult, resolve_device
-from relayrl.training.replay import collect_only
-from relayrl.training.run_dir import MetricsLog, RunDir
-from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver, Progress, StepsPerSecond
+from relayrl.training.triggers import IntervalTrigger, Progress
 from relayrl.training.variables import VariableContainer
 
 CALL_CHUNKS = 4  # chunks per collect call: long enough that a call's RPC costs little
@@ -51,30 +42,15 @@ RETRY_S = 0.2
 UNAVAILABLE_LIMIT = 150
 
 
-class DistributedRun(RunLog):
-    def __init__(self, config: Config, run_dir: RunDir, progress: bool = True) -> None:
+class DistributedRun(Run):
+    """The assembled run (training/assembly.py) with its envs in K rollout actors, evaluations in
+    eval actors and the replay in a server actor; the learner trains in the driver."""
+
+    def open(self) -> tuple[Spec, Spec]:
         self.ray = require_ray()
-        c, d = config, config.distributed
-        if c.algo not in ("dqn", "sac"):
-            raise UserError(f"algo={c.algo!r} runs in one process only; distributed.num_actors works with dqn and sac")
-        self.config, self.rd, self.show_progress = config, run_dir, progress
-        self.K = d.num_actors
-        if c.train.torch_threads > 0:
-            torch.set_num_threads(c.train.torch_threads)
-        torch.manual_seed(c.seed)
-        self.device = resolve_device(c.device)
-        probe = make_env(c.env.id, 1, c.env.max_episode_steps)  # specs (and a bad env id fails here)
-        obs_spec, act_spec = probe.observation_spec, probe.action_spec
-        probe.close()
-        self.agent = make_agent(c.algo, c.agent, obs_spec, act_spec, self.device,
-                                np.random.default_rng(c.seed + 1), c.train.total_steps)
-        self.stats = EpisodeStats()
-        self.sps = StepsPerSecond()
-        self.bar: Any = None
-        self.last_eval: dict[str, Any] = {}
+        c = self.config
+        self.K = c.distributed.num_actors
         self.eval_count = 0
-        self.wall_offset = 0.0
-        self.t0 = time.perf_counter()
         self.accepted = [0] * self.K  # env steps the replay server took from each actor
         self.failures = [0] * self.K
         self.unavailable = [0] * self.K  # ActorUnavailableError answers in a row
@@ -88,28 +64,30 @@ class DistributedRun(RunLog):
         self._owns_ray = False
         self.workers: list[Any] = []
         self.eval_workers: list[Any] = []
-        try:
-            self._start_actors(obs_spec, act_spec)
-        except BaseException:
-            self.shutdown()
-            raise
+        probe = make_env(c.env.id, 1, c.env.max_episode_steps)  # specs (and a bad env id fails here)
+        obs_spec, act_spec = probe.observation_spec, probe.action_spec
+        probe.close()
+        return obs_spec, act_spec
+
+    def connect(self, obs_spec: Spec, act_spec: Spec) -> tuple[Any, Any]:
+        c = self.config
+        self._start_actors(obs_spec, act_spec)
         self.table = RemoteTable(self.server, c.agent.batch_size)
-        self.pusher = RemotePusher(self.variables, self.agent, d.push_interval)
-        self.learner = Learner(self.agent, self.table, c.agent.batch_size, self.device,  # type: ignore[arg-type]
-                               prioritized=c.replay.sampler == "prioritized",
-                               importance_exponent=c.replay.importance_exponent,
-                               priority_eps=c.replay.priority_eps, variables=self.pusher)  # type: ignore[arg-type]
-        self._beta_at = linear_schedule(c.replay.importance_exponent, 1.0, c.train.total_steps)
-        self.collect_only = collect_only(c)
-        self.policy_saver = PolicySaver(c.train.policy_save_interval, self.agent, run_dir.policy,
-                                        extra={"env_id": c.env.id})
-        self.checkpointer = Checkpointer(c.train.checkpoint_interval, self.checkpoint_state, run_dir.checkpoints)
-        self.triggers = [
-            IntervalTrigger(c.eval.interval, self._interval_eval),
-            self.policy_saver,
-            self.checkpointer,
-            IntervalTrigger(c.train.log_interval, self.log_progress),
-        ]
+        self.pusher = RemotePusher(self.variables, self.agent, c.distributed.push_interval)
+        return self.table, self.pusher
+
+    def eval_trigger(self) -> IntervalTrigger:
+        return IntervalTrigger(self.config.eval.interval, self._interval_eval)
+
+    def evaluate_now(self, p: Progress) -> None:
+        self.submit_eval(p)
+
+    def settle_evals(self) -> None:
+        self._finish_evals(until=0)
+
+    def announce(self) -> None:
+        self.say(f"distributed: {self.K} rollout actors x {self.config.env.num_envs} envs, "
+                 f"{len(self.eval_workers)} eval actors, learner on {self.device}")
 
     # ---- actors -------------------------------------------------------------------------
     def _start_actors(self, obs_spec: Any, act_spec: Any) -> None:
@@ -141,7 +119,7 @@ class DistributedRun(RunLog):
         self.eval_workers = [evaluator.remote(cfg, names, path) for _ in range(d.num_eval_actors)]
         ray.get([w.pid.remote() for w in self.workers + self.eval_workers])  # env errors surface here
 
-    def shutdown(self) -> None:
+    def close(self) -> None:
         """Stop every actor (and the local Ray instance this run started): no orphan processes."""
         ray = self.ray
         if not ray.is_initialized():
@@ -158,9 +136,6 @@ class DistributedRun(RunLog):
 
     def env_steps(self) -> int:
         return sum(self.accepted)
-
-    def progress(self) -> Progress:
-        return Progress(self.env_steps(), self.agent.train_step)
 
     def postfix(self) -> dict[str, str]:
         alive = self.K - len(self.dead) - len(self.restarting)
@@ -243,8 +218,8 @@ class DistributedRun(RunLog):
     def _on_actor_unavailable(self, i: int, error: Exception) -> None:
         # Ray says the actor may come back: it crashed and Ray is restarting it, or the
         # connection dropped. Count one restart for the whole spell (its queued calls and
-        # those sent while it restarts fail the same way: each used to count, so one crash
-        # used up every restart) and ask again every RETRY_S until it answers; UNAVAILABLE_LIMIT
+        # those sent while it restarts fail the same way, and one crash must not use up every
+        # restart) and ask again every RETRY_S until it answers; UNAVAILABLE_LIMIT
         # answers in a row count as a death of their own.
         self.unavailable[i] += 1
         if self.unavailable[i] > UNAVAILABLE_LIMIT:
@@ -360,37 +335,10 @@ class DistributedRun(RunLog):
                  f"the {self.K} rollout actors start new episodes")
 
     # ---- the loop -------------------------------------------------------------------------
-    def run(self, resume: bool = False) -> RunResult:
-        from torch.utils.tensorboard import SummaryWriter
-
-        c = self.config
-        self.t0 = time.perf_counter()
-        try:
-            if resume:
-                self.restore()
-            self.tb = SummaryWriter(str(self.rd.tb))
-            self.metrics_log = MetricsLog(self.rd.metrics)
-            self.bar = tqdm(total=c.train.total_steps, unit="step", disable=None if self.show_progress else True,
-                            dynamic_ncols=True, initial=self.env_steps())
-            self.say(f"distributed: {self.K} rollout actors x {c.env.num_envs} envs, "
-                     f"{len(self.eval_workers)} eval actors, learner on {self.device}")
-            if self.env_steps() == 0:
-                self.submit_eval(Progress(0, 0))
-                self.policy_saver.save(Progress(0, 0))
-            self.pusher.push(force=True)
-            self.sps.reset(self.progress())
-            self._iterate()
-            return RunResult(self.rd.root, self.last_eval)
-        finally:
-            if self.bar is not None:
-                self.bar.close()
-            for log in (getattr(self, "tb", None), getattr(self, "metrics_log", None)):
-                if log is not None:
-                    log.close()
-            self.shutdown()
-
-    def _iterate(self) -> None:
+    def iterate(self) -> None:
         ray = self.ray
+        self.pusher.push(force=True)
+        self.sps_log.rates.reset(self.progress())
         for i in range(self.K):
             for _ in range(CALLS_QUEUED):
                 self._submit(i)
@@ -399,13 +347,9 @@ class DistributedRun(RunLog):
             moved = self._poll_workers()
             n = 0 if self.collect_only else self.table.poll()
             if n:
-                steps = self.env_steps()
-                self.agent.set_progress(steps)
-                self.learner.importance_exponent = self._beta_at(steps)
+                self.step_schedules(self.env_steps())
                 self.learner.run(n)
-            p = self.progress()
-            for trigger in self.triggers:
-                trigger(p)
+            self.fire_triggers()
             self._finish_evals()
             if not self.inflight and not self._retry_pending():
                 if collected_at is None:
@@ -420,11 +364,3 @@ class DistributedRun(RunLog):
                     ray.wait(waiting, num_returns=1, timeout=RETRY_S if self._retry_pending() else 1.0)
                 else:
                     time.sleep(RETRY_S)  # only an actor waiting to be asked again
-        p = self.progress()
-        if self.last_eval.get("step") != p.env_steps:
-            self.submit_eval(p)
-        self._finish_evals(until=0)
-        self.policy_saver.save(p)
-        if self.config.train.checkpoint_interval > 0:
-            self.checkpointer.save(p)
-        self.log_progress(p)

@@ -16,7 +16,7 @@ from relayrl.config import from_dict
 from relayrl.replay import RateLimiterTimeout, SampleInfo
 from relayrl.replay.writers import StepChunk
 from relayrl.specs import Spec
-from relayrl.training.replay import build_shared_replay
+from relayrl.training.replay_setup import build_shared_replay
 
 
 class ReplayServer:
@@ -53,7 +53,7 @@ class ReplayServer:
             return []
         while len(out) < max_batches and self.table.samples_available() >= batch_size:
             out.append(self.table.sample(batch_size))
-        # As NumPy: Ray pickles torch tensors through torch's own path, ~10x slower than arrays
+        # As NumPy: Ray pickles torch tensors through torch's own path, much slower than arrays
         # (bench/distributed.py --part server); RemoteTable turns them back into tensors.
         return [(type(b)(*(None if x is None else x.numpy() for x in b)), info) for b, info in out]
 

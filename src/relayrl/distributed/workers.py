@@ -18,7 +18,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from relayrl.agents import make_agent
+from relayrl.agents.registry import algorithm
 from relayrl.config import Config, from_dict
 from relayrl.envs import make_env
 from relayrl.metrics import EpisodeStats
@@ -26,7 +26,7 @@ from relayrl.policies import RandomPolicy
 from relayrl.replay.writers import stack_steps
 from relayrl.training.actor import Actor
 from relayrl.training.evaluate import evaluate, make_eval_env
-from relayrl.training.replay import frame_stack
+from relayrl.training.replay_setup import frame_stack
 from relayrl.training.variables import WeightPuller
 from relayrl.types import Transition
 
@@ -144,8 +144,8 @@ class RolloutWorker:
                             # its own (at least one), not one per core of the machine it landed on
                             num_workers=c.env.num_workers or max(1, round(c.distributed.actor_cpus) - 1),
                             info_keys=c.env.info_keys)
-        agent = make_agent(c.algo, c.agent, self.env.observation_spec, self.env.action_spec, torch.device("cpu"),
-                           np.random.default_rng(seed), c.train.total_steps)
+        agent = algorithm(c.algo).make_agent(c.agent, self.env.observation_spec, self.env.action_spec,
+                                             torch.device("cpu"), np.random.default_rng(seed), c.train.total_steps)
         net = agent.policy_network().requires_grad_(False)
         self.global_steps = 0  # the run's env steps, for env-step schedules (DQN's epsilon)
         self.collect_policy = agent.collect_policy(lambda: self.global_steps, net)
@@ -184,8 +184,9 @@ class EvalWorker:
         _, variables = names.handles()
         self.episodes = c.eval.episodes
         self.env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, info_keys=c.env.info_keys)
-        self.agent = make_agent(c.algo, c.agent, self.env.observation_spec, self.env.action_spec,
-                                torch.device("cpu"), np.random.default_rng(c.seed), c.train.total_steps)
+        self.agent = algorithm(c.algo).make_agent(c.agent, self.env.observation_spec, self.env.action_spec,
+                                                  torch.device("cpu"), np.random.default_rng(c.seed),
+                                                  c.train.total_steps)
         self.puller = WeightPuller(RemoteVariables(variables), self.agent.policy_network().requires_grad_(False))
 
     def evaluate(self, seed: int) -> dict[str, Any]:

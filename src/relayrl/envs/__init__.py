@@ -2,7 +2,8 @@
 
 import gymnasium
 
-from relayrl.envs.gym import GymBatchEnv, make_env, resolve_env_fn
+from relayrl.envs.gym import GymBatchEnv, resolve_env_fn
+from relayrl.envs.make import make_env
 
 # By entry-point string, so importing relayrl.envs never imports pybullet (an extra).
 if "relayrl/MinitaurBullet-v0" not in gymnasium.registry:

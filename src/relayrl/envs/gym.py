@@ -134,10 +134,10 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
 
     def make_registered() -> gym.Env:
         _register_on_demand(env_id)  # again in a worker process that starts with a fresh registry
-        # disable_env_checker: the passive checker costs ~10% per step on tiny envs and only warns.
-        # No OrderEnforcing either (as for a user's class above): it only raises on a step or
-        # render before the first reset, which the batched envs never do, and costs ~4 us a
-        # step, 12% of Pendulum-v1's (2026-11-23).
+        # disable_env_checker: the passive checker costs a measurable share of a tiny env's step
+        # and only warns. No OrderEnforcing either (as for a user's class above): it only raises
+        # on a step or render before the first reset, which the batched envs never do, and it
+        # costs a share of every step (BENCHMARKS.md).
         spec = dataclasses.replace(gym.spec(env_id), order_enforce=False)
         return gym.make(spec, disable_env_checker=True, **kwargs)
 
@@ -235,34 +235,3 @@ class GymBatchEnv(BatchEnvBase):
     def close(self) -> None:
         for env in self.envs:
             env.close()
-
-
-def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_mode: str | None = None,
-             time_limit_terminates: bool = False, vectorization: str = "sync",
-             device: str | torch.device = "cpu", info_keys: tuple[str, ...] | list[str] = (),
-             num_workers: int = 0) -> GymBatchEnv:
-    """A batched env of `num_envs` copies of `env_id`: stepped in this process ("sync") or
-    shared out over `num_workers` worker processes ("async", 0: one per core; see envs/vector.py).
-    A stateless torch env id (`relayrl/StatelessPendulum-v0`) gives all copies as one batch of
-    tensors on `device`.
-    `info_keys`: info values to report at each episode's end (`StepOutput.episode_info`)."""
-    from relayrl.envs.stateless.adapter import STATELESS_ENVS, make_batch_env
-
-    if env_id in STATELESS_ENVS and render_mode is None:
-        if info_keys:
-            raise UserError(f"env.info_keys is not supported by stateless envs ({env_id!r} has no info dict)")
-        return make_batch_env(env_id, num_envs, device, max_episode_steps=max_episode_steps,  # type: ignore[return-value]
-                              time_limit_terminates=time_limit_terminates)
-    fn = resolve_env_fn(env_id, max_episode_steps, render_mode)
-    try:
-        env: BatchEnvBase
-        if vectorization == "async" and num_envs > 1:
-            from relayrl.envs.vector import AsyncGymBatchEnv
-
-            env = AsyncGymBatchEnv([fn] * num_envs, time_limit_terminates, num_workers)
-        else:
-            env = GymBatchEnv([fn] * num_envs, time_limit_terminates)
-    except gym.error.Error as e:
-        raise UserError(f"env.id={env_id!r} could not be made: {e}") from None
-    env.info_keys = tuple(info_keys)
-    return env  # type: ignore[return-value]

@@ -86,7 +86,11 @@ class Checkpointer(IntervalTrigger):
 
 
 class Evaluate(IntervalTrigger):
-    """Runs `episodes` episodes of `policy_fn()` on `env`; results go to `results` and `on_result`."""
+    """Runs `episodes` episodes of `policy_fn()` on `env`; results go to `results` and `on_result`.
+
+    Evaluation k (from 0, counted in `count`, which a resumed run restores) resets the env with
+    seed + 10_000 * k; `seconds` is how long the latest one took.
+    """
 
     def __init__(self, interval: int, env: Any, policy_fn: Callable[[], Any], episodes: int = 10,
                  unit: str = "env_steps", seed: int = 0,
@@ -95,11 +99,16 @@ class Evaluate(IntervalTrigger):
         self.env, self.policy_fn, self.episodes, self.seed = env, policy_fn, episodes, seed
         self.on_result = on_result
         self.results: list[tuple[Progress, dict[str, float]]] = []
+        self.count = 0
+        self.seconds = 0.0
 
     def evaluate(self, progress: Progress) -> None:
         from relayrl.training.evaluate import evaluate
 
-        result = evaluate(self.env, self.policy_fn(), self.episodes, seed=self.seed + 10_000 * len(self.results))
+        t0 = time.perf_counter()
+        result = evaluate(self.env, self.policy_fn(), self.episodes, seed=self.seed + 10_000 * self.count)
+        self.seconds = time.perf_counter() - t0
+        self.count += 1
         self.results.append((progress, result))
         if self.on_result is not None:
             self.on_result(progress, result)
@@ -127,14 +136,20 @@ class StepsPerSecond:
 
 
 class StepsPerSecondLog(IntervalTrigger):
-    """Logs env steps/s and gradient steps/s since the previous log (TF-Agents' StepPerSecondLogTrigger)."""
+    """Env steps/s and gradient steps/s since the previous log (TF-Agents' StepPerSecondLogTrigger):
+    `report(progress, env_sps, grad_sps)` gets them; by default a line goes to `log`."""
 
-    def __init__(self, interval: int, unit: str = "env_steps", log: Callable[[str], None] | None = None) -> None:
+    def __init__(self, interval: int, unit: str = "env_steps", log: Callable[[str], None] | None = None,
+                 report: Callable[[Progress, float, float], None] | None = None) -> None:
         super().__init__(interval, self.log_rates, unit)
         self.rates = StepsPerSecond()
         self.log = log or (lambda text: print(text, file=sys.stderr, flush=True))
+        self.report = report or self._line
 
     def log_rates(self, progress: Progress) -> None:
         env_sps, grad_sps = self.rates(progress)
+        self.report(progress, env_sps, grad_sps)
+
+    def _line(self, progress: Progress, env_sps: float, grad_sps: float) -> None:
         self.log(f"step {progress.env_steps:,} | train step {progress.train_step:,} | "
                  f"{env_sps:.1f} env steps/s | {grad_sps:.1f} grad steps/s")

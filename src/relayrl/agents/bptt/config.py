@@ -1,4 +1,5 @@
-"""Hyperparameters of training through a differentiable rollout (TorchRL's Pendulum tutorial)."""
+"""Hyperparameters of training through a differentiable rollout (TorchRL's Pendulum tutorial):
+the `agent` section of an `algo = "bptt"` config, and what `train_bptt` takes."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from relayrl.errors import ConfigError
 
 
 @dataclass
-class BpttAgentConfig:
+class BpttConfig:
     hidden: list[int] = field(default_factory=lambda: [64, 64, 64])  # Tanh MLP, linear output
     lr: float = 2e-3
     lr_t_max: int = 20_000  # CosineAnnealingLR's T_max, stepped once per iteration (the tutorial's)

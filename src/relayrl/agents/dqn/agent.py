@@ -15,7 +15,8 @@ from relayrl.agents.dqn.losses import dqn_loss
 from relayrl.agents.dqn.networks import q_network
 from relayrl.networks import ConvQNet
 from relayrl.optim import FastAdam
-from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy, exponential_schedule, linear_schedule
+from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy
+from relayrl.schedules import exponential_schedule, linear_schedule
 from relayrl.specs import DiscreteSpec, Spec
 from relayrl.types import Batch
 

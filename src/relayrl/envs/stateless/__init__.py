@@ -13,7 +13,6 @@ from relayrl.envs.stateless.base import (
     tree_map,
     tree_where,
 )
-from relayrl.envs.stateless.bptt import BpttConfig, BpttLog, BpttResult, make_policy, pendulum_mlp_rewards, train_bptt
 from relayrl.envs.stateless.check import SpecError, check_env
 from relayrl.envs.stateless.pendulum import (
     Pendulum,
@@ -39,10 +38,10 @@ from relayrl.envs.stateless.transforms import (
 )
 
 __all__ = [
-    "BpttConfig", "BpttLog", "BpttResult", "Cat", "Cos", "Obs", "ObsSpec", "ObservationNorm", "Pendulum",
+    "Cat", "Cos", "Obs", "ObsSpec", "ObservationNorm", "Pendulum",
     "PendulumParams", "PendulumState", "RescaleAction", "RewardScale", "Rollout", "RunningObservationNorm",
     "STATELESS_ENVS", "Select", "Sin", "SpecError", "StatelessBatchEnv", "StatelessEnv", "StatelessGymEnv",
     "StepResult", "Transform", "TransformedEnv", "Unsqueeze", "bounded", "check_env", "make_batch_env",
-    "make_generator", "make_pendulum", "make_policy", "pendulum_mlp_rewards", "pendulum_params",
-    "pendulum_transforms", "rollout", "train_bptt", "tree_leaves", "tree_map", "tree_where",
+    "make_generator", "make_pendulum", "pendulum_params",
+    "pendulum_transforms", "rollout", "tree_leaves", "tree_map", "tree_where",
 ]

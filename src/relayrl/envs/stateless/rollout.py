@@ -2,7 +2,7 @@
 
 Nothing here detaches, uses `no_grad` or writes in place into tensors the graph holds, so a
 loss on the returned rewards backpropagates through the dynamics into the policy's weights
-and the initial state (the TorchRL Pendulum tutorial's training, `bptt.py`). Results are
+and the initial state (the TorchRL Pendulum tutorial's training, `agents/bptt/bptt.py`). Results are
 stacked with a leading time dim: `[T, *B, ...]`.
 
 The rollout does not reset finished episodes: done flags are reported and stepping goes on

@@ -1,4 +1,4 @@
-"""`algo = "bptt"`: TorchRL's Pendulum tutorial as a run directory (relayrl.envs.stateless.bptt).
+"""`algo = "bptt"`: TorchRL's Pendulum tutorial as a run directory (agents/bptt/bptt.py).
 
 No replay, actor or learner: each iteration differentiates the mean reward of `batch_size`
 rollouts of `rollout_steps` steps. A row goes to metrics.jsonl every `eval.interval` env steps
@@ -17,10 +17,12 @@ import numpy as np
 import torch
 from torch import nn
 
+from relayrl.agents.bptt.bptt import BpttLog, train_bptt
 from relayrl.config import Config
 from relayrl.errors import ConfigError
 from relayrl.networks import MLP
 from relayrl.policy_file import save_policy_file
+from relayrl.training.assembly import RunResult, resolve_device
 from relayrl.training.run_dir import MetricsLog, RunDir
 
 ENV_ID = "relayrl/StatelessPendulum-v0"
@@ -56,9 +58,6 @@ def policy_state(policy: nn.Sequential, hidden: list[int], env_steps: int) -> di
 def run_bptt(config: Config, rd: RunDir, progress: bool = True) -> dict[str, Any]:
     """Train, writing rows to metrics.jsonl; returns the last row."""
     from torch.utils.tensorboard import SummaryWriter
-
-    from relayrl.envs.stateless.bptt import BpttConfig, BpttLog, train_bptt
-    from relayrl.training.loop import resolve_device
 
     c, a = config, config.agent
     iterations = check_bptt_config(c)
@@ -97,12 +96,22 @@ def run_bptt(config: Config, rd: RunDir, progress: bool = True) -> dict[str, Any
                   f"{row['bptt/last_reward']:7.3f} | {row['wall_time_s']:6.1f}s", file=sys.stderr, flush=True)
 
     try:
-        result = train_bptt(BpttConfig(iterations=iterations, batch_size=a.batch_size, rollout_steps=a.rollout_steps,
-                                       lr=a.lr, lr_t_max=a.lr_t_max, max_grad_norm=a.max_grad_norm,
-                                       hidden=tuple(a.hidden), seed=c.seed, device=str(resolve_device(c.device)),
-                                       torch_threads=c.train.torch_threads, fused=a.fused), on_iteration)
+        result = train_bptt(a, on_iteration, iterations=iterations, seed=c.seed, device=str(resolve_device(c.device)),
+                            torch_threads=c.train.torch_threads)
     finally:
         log.close()
         tb.close()
     save_policy_file(policy_state(result.policy, a.hidden, iterations * per_iteration), rd.policy / "policy.pt")
     return last
+
+
+class BpttRun:
+    """The registry's own run for algo = "bptt": the config is checked when the run is made,
+    before anything is written; runs are not resumable (Algorithm.resumable)."""
+
+    def __init__(self, config: Config, rd: RunDir, progress: bool = True) -> None:
+        check_bptt_config(config)
+        self.config, self.rd, self.progress = config, rd, progress
+
+    def run(self, resume: bool = False) -> RunResult:
+        return RunResult(self.rd.root, run_bptt(self.config, self.rd, self.progress))

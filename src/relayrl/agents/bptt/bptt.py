@@ -32,30 +32,15 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import torch
 from torch import nn
 
+from relayrl.agents.bptt.config import BpttConfig
 from relayrl.envs.stateless.base import make_generator
 from relayrl.envs.stateless.pendulum import PendulumParams, make_pendulum
 from relayrl.envs.stateless.rollout import rollout
-
-
-@dataclass(frozen=True)
-class BpttConfig:
-    iterations: int = 625
-    batch_size: int = 32
-    rollout_steps: int = 100
-    lr: float = 2e-3
-    lr_t_max: int = 20_000  # the tutorial's CosineAnnealingLR T_max (see module doc)
-    max_grad_norm: float = 1.0
-    hidden: tuple[int, ...] = (64, 64, 64)
-    seed: int = 0
-    device: str = "cpu"
-    torch_threads: int = 1  # 0 leaves torch's setting; 1 is fastest for tensors this small
-    fused: bool = True
 
 
 class BpttLog(NamedTuple):
@@ -247,33 +232,35 @@ def pendulum_mlp_rewards(policy: nn.Sequential, th0: torch.Tensor, thdot0: torch
     return PendulumMlpRollout.apply(th0, thdot0, _consts(params), steps, *wb)
 
 
-def train_bptt(config: BpttConfig | None = None,
-               callback: Callable[[BpttLog], None] | None = None) -> BpttResult:
+def train_bptt(config: BpttConfig | None = None, callback: Callable[[BpttLog], None] | None = None, *,
+               iterations: int = 625, seed: int = 0, device: str = "cpu", torch_threads: int = 1) -> BpttResult:
     """Train a Pendulum policy by backpropagation through rollouts (see module doc).
-    `callback` gets a BpttLog after every iteration (forcing a device sync when given)."""
+    `callback` gets a BpttLog after every iteration (forcing a device sync when given).
+    `iterations`: the tutorial's 625 (`20_000 // batch_size`); `torch_threads`: 0 leaves
+    torch's setting, 1 is fastest for tensors this small."""
     c = config or BpttConfig()
     threads = torch.get_num_threads()
-    if c.torch_threads > 0:
-        torch.set_num_threads(c.torch_threads)
+    if torch_threads > 0:
+        torch.set_num_threads(torch_threads)
     try:
-        return _train(c, callback)
+        return _train(c, callback, iterations, seed, torch.device(device))
     finally:
         torch.set_num_threads(threads)
 
 
-def _train(c: BpttConfig, callback: Callable[[BpttLog], None] | None) -> BpttResult:
-    device = torch.device(c.device)
+def _train(c: BpttConfig, callback: Callable[[BpttLog], None] | None, iterations: int, seed: int,
+           device: torch.device) -> BpttResult:
     env = make_pendulum(device=device)
     params = env.base_env.params
     with torch.random.fork_rng(devices=[]):  # seed the init without touching the caller's RNG
-        torch.manual_seed(c.seed)
+        torch.manual_seed(seed)
         policy = make_policy(3, 1, c.hidden).to(device)
-    gen = make_generator(c.seed, "cpu")  # CPU generator: the same initial states on every device
+    gen = make_generator(seed, "cpu")  # CPU generator: the same initial states on every device
     optim = torch.optim.Adam(policy.parameters(), lr=c.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(optim, c.lr_t_max)
-    stats = torch.empty(c.iterations, 3, device=device)  # mean, last, grad norm: one sync at the end
+    stats = torch.empty(iterations, 3, device=device)  # mean, last, grad norm: one sync at the end
     start = time.perf_counter()
-    for i in range(c.iterations):
+    for i in range(iterations):
         state, _ = env.reset((c.batch_size,), gen, device)
         if c.fused:
             rewards = pendulum_mlp_rewards(policy, state.th, state.thdot, c.rollout_steps, params)

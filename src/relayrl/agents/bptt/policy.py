@@ -1,0 +1,35 @@
+"""A saved BPTT policy (kind "clamped_mlp"): the MLP's output clamped to the action bounds, as
+the env clamps it, for `load_policy` and `export_policy`."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+
+from relayrl.errors import UserError
+from relayrl.policies import ClampedPolicy, saved_bounds, saved_network
+
+
+def load(state: dict[str, Any], device: torch.device, deterministic: bool, seed: int | None) -> ClampedPolicy:
+    if not deterministic:
+        raise UserError("a clamped_mlp policy is deterministic; deterministic=False applies to SAC policies")
+    net = saved_network(state, state["action_dim"]).to(device)
+    return ClampedPolicy(net, *saved_bounds(state), device)
+
+
+class Clamped(nn.Module):
+    def __init__(self, state: dict[str, Any]) -> None:
+        super().__init__()
+        self.net = saved_network(state, state["action_dim"])
+        low, high = saved_bounds(state)
+        self.register_buffer("low", torch.as_tensor(low, dtype=torch.float32))
+        self.register_buffer("high", torch.as_tensor(high, dtype=torch.float32))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return torch.minimum(torch.maximum(self.net(obs), self.low), self.high)  # [B, A]
+
+
+def deterministic_module(state: dict[str, Any]) -> nn.Module:
+    return Clamped(state)

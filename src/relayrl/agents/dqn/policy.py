@@ -1,0 +1,30 @@
+"""A saved DQN policy (kind "q_greedy"): greedy in Q, for `load_policy` and `export_policy`."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import nn
+
+from relayrl.errors import UserError
+from relayrl.policies import GreedyPolicy, saved_network
+
+
+def load(state: dict[str, Any], device: torch.device, deterministic: bool, seed: int | None) -> GreedyPolicy:
+    if not deterministic:
+        raise UserError("a q_greedy policy is deterministic; deterministic=False applies to SAC policies")
+    return GreedyPolicy(saved_network(state, state["num_actions"]).to(device), device)
+
+
+class ArgmaxQ(nn.Module):
+    def __init__(self, state: dict[str, Any]) -> None:
+        super().__init__()
+        self.net = saved_network(state, state["num_actions"])
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.net(obs).argmax(dim=1)  # [B]
+
+
+def deterministic_module(state: dict[str, Any]) -> nn.Module:
+    return ArgmaxQ(state)

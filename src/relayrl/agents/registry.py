@@ -1,0 +1,84 @@
+"""Every algorithm relayrl knows, one `Algorithm` each: the one place config, export, the run
+assembly, the distributed run and the CLI learn what an algorithm is.
+
+Adding an algorithm: its folder under agents/ (a torch-free `config.py`, the agent, a
+`policy.py` for its saved policy) and one line in `ALGORITHMS`. Agents, policy loaders and own
+runs are named "module:attribute" and imported when first used, so this module, and config.py
+which asks it for config classes, import no torch (`relayrl presets` and config errors stay fast).
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from typing import Any
+
+from relayrl.agents.bptt.config import BpttConfig
+from relayrl.agents.dqn.config import DQNConfig
+from relayrl.agents.sac.config import SACConfig
+from relayrl.errors import ConfigError, UserError
+
+REPLAYS = ("transitions", "none")  # what an algorithm's run collects into: a transition Table, or nothing
+
+
+def load_attr(path: str) -> Any:
+    """"package.module:attribute" -> the attribute (the module imported on first use)."""
+    module, _, attr = path.partition(":")
+    return getattr(importlib.import_module(module), attr)
+
+
+@dataclass(frozen=True)
+class Algorithm:
+    name: str  # config's `algo`
+    config: type  # the `agent` section's dataclass, with validate()
+    policy_kind: str  # the `kind` its saved policy.pt carries
+    policy: str  # module with `load(state, device, deterministic, seed)` and `deterministic_module(state)`
+    agent: str = ""  # "module:Class" built as Class(obs_spec, action_spec, cfg, device, rng, total_steps)
+    replay: str = "transitions"  # one of REPLAYS
+    ray: bool = False  # runs with distributed.num_actors > 0
+    run: str = ""  # "module:Class": a run of its own (config, run_dir, progress), instead of Actor + Learner
+    resumable: bool = True  # its runs write checkpoints that `--resume` continues
+
+    def __post_init__(self) -> None:
+        if self.replay not in REPLAYS:
+            raise ValueError(f"Algorithm {self.name!r}: replay={self.replay!r} is not one of {REPLAYS}")
+        if not (self.agent or self.run) or (self.replay == "none" and not self.run):
+            raise ValueError(f"Algorithm {self.name!r} needs an agent (fed from a replay) or a run of its own")
+
+    def make_agent(self, agent_cfg: Any, obs_spec: Any, action_spec: Any, device: Any, rng: Any,
+                   total_steps: int) -> Any:
+        if not self.agent:
+            raise ValueError(f"algo={self.name!r} has no agent: it trains in its own run")
+        return load_attr(self.agent)(obs_spec, action_spec, agent_cfg, device, rng, total_steps)
+
+    def policy_module(self) -> Any:
+        return importlib.import_module(self.policy)
+
+
+ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (
+    Algorithm("dqn", DQNConfig, "q_greedy", "relayrl.agents.dqn.policy", agent="relayrl.agents.dqn.agent:DQNAgent",
+              ray=True),
+    Algorithm("sac", SACConfig, "tanh_gaussian", "relayrl.agents.sac.policy",
+              agent="relayrl.agents.sac.agent:SACAgent", ray=True),
+    Algorithm("bptt", BpttConfig, "clamped_mlp", "relayrl.agents.bptt.policy", replay="none",
+              run="relayrl.agents.bptt.run:BpttRun", resumable=False),
+)}
+
+
+def algorithm(name: str) -> Algorithm:
+    if name not in ALGORITHMS:
+        raise ConfigError(f"algo={name!r} is not known; valid: {', '.join(sorted(ALGORITHMS))}")
+    return ALGORITHMS[name]
+
+
+def for_policy_kind(kind: Any) -> Algorithm:
+    """The algorithm whose saved policies carry `kind`; UserError for a kind none writes."""
+    for a in ALGORITHMS.values():
+        if a.policy_kind == kind:
+            return a
+    valid = ", ".join(a.policy_kind for a in ALGORITHMS.values())
+    raise UserError(f"policy kind {kind!r} is not supported by this relayrl version; valid: {valid}")
+
+
+def ray_algorithms() -> list[str]:
+    return [a.name for a in ALGORITHMS.values() if a.ray]

@@ -1,0 +1,37 @@
+"""A saved SAC policy (kind "tanh_gaussian"): tanh(mean), or sampled, for `load_policy`; the
+deterministic one for `export_policy`."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from relayrl.policies import TanhGaussianPolicy, saved_bounds, saved_network
+
+
+def load(state: dict[str, Any], device: torch.device, deterministic: bool, seed: int | None) -> TanhGaussianPolicy:
+    net = saved_network(state, 2 * state["action_dim"]).to(device)
+    return TanhGaussianPolicy(net, *saved_bounds(state), device,
+                              deterministic, np.random.default_rng(seed), state["log_std_min"], state["log_std_max"])
+
+
+class TanhMean(nn.Module):
+    """loc + scale * tanh(mean): the action at the Gaussian's mean."""
+
+    def __init__(self, state: dict[str, Any]) -> None:
+        super().__init__()
+        self.net = saved_network(state, 2 * state["action_dim"])
+        low, high = saved_bounds(state)
+        self.register_buffer("loc", torch.as_tensor((high + low) / 2.0, dtype=torch.float32))
+        self.register_buffer("scale", torch.as_tensor((high - low) / 2.0, dtype=torch.float32))
+        self.action_dim = int(state["action_dim"])
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.loc + self.scale * torch.tanh(self.net(obs)[:, : self.action_dim])  # [B, A]
+
+
+def deterministic_module(state: dict[str, Any]) -> nn.Module:
+    return TanhMean(state)

@@ -1,0 +1,255 @@
+"""The one run assembly: the parts every Actor + Learner run is built from, in one process or on Ray.
+
+`Run.__init__` seeds the process, picks the device, asks the subclass for the env specs
+(`open`), builds the agent the registry names, asks the subclass for the replay and the
+variable container (`connect`), and builds the learner and the triggers (evaluation, policy
+save, checkpoint, steps/s log). `Run.run` writes the run directory around the subclass's
+`iterate`: the untrained policy's evaluation and save, then the final evaluation, policy save
+and checkpoint. A subclass says how it steps envs and evaluates; nothing else differs.
+"""
+
+from __future__ import annotations
+
+import random
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from relayrl.agents.registry import algorithm
+from relayrl.config import Config
+from relayrl.errors import UserError
+from relayrl.metrics import EpisodeStats
+from relayrl.schedules import linear_schedule
+from relayrl.specs import Spec
+from relayrl.training.learner import Learner
+from relayrl.training.replay_setup import collect_only
+from relayrl.training.run_dir import MetricsLog, RunDir
+from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver, Progress, StepsPerSecondLog
+
+
+@dataclass
+class RunResult:
+    run_dir: Path
+    final: dict[str, Any]  # the last evaluation row of metrics.jsonl
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError(f"device={name!r} but CUDA is not available here; valid: cpu, auto")
+    return torch.device(name)
+
+
+class Run:
+    """A run's parts and what it shows and writes as it goes (console, progress bar,
+    TensorBoard, the eval rows of metrics.jsonl). Subclasses implement open, connect,
+    eval_trigger, evaluate_now, iterate, env_steps, checkpoint_state, restore and close."""
+
+    tb: Any
+    metrics_log: MetricsLog
+
+    def __init__(self, config: Config, run_dir: RunDir, progress: bool = True) -> None:
+        c = config
+        self.config, self.rd, self.show_progress = config, run_dir, progress
+        if c.train.torch_threads > 0:
+            torch.set_num_threads(c.train.torch_threads)
+        torch.manual_seed(c.seed)  # network initialisation
+        self.device = resolve_device(c.device)
+        self.stats = EpisodeStats()
+        self.bar: Any = None
+        self.last_eval: dict[str, Any] = {}
+        self.wall_offset = 0.0
+        self.t0 = time.perf_counter()
+        obs_spec, act_spec = self.open()
+        try:
+            self._assemble(obs_spec, act_spec)
+        except BaseException:  # env worker processes or Ray actors: none is left behind by a failure here
+            self.close()
+            raise
+
+    def _assemble(self, obs_spec: Spec, act_spec: Spec) -> None:
+        c = self.config
+        spec = algorithm(c.algo)
+        if spec.replay != "transitions":
+            raise ValueError(f"algo={c.algo!r} collects into replay={spec.replay!r}; Actor + Learner runs feed "
+                             "a transitions table (the registry gives it a run of its own)")
+        self.agent = spec.make_agent(c.agent, obs_spec, act_spec, self.device, np.random.default_rng(c.seed + 1),
+                                     c.train.total_steps)
+        table, variables = self.connect(obs_spec, act_spec)
+        self.learner = Learner(self.agent, table, c.agent.batch_size, self.device,
+                               prioritized=c.replay.sampler == "prioritized",
+                               importance_exponent=c.replay.importance_exponent,
+                               priority_eps=c.replay.priority_eps, variables=variables)
+        self.beta_at = linear_schedule(c.replay.importance_exponent, 1.0, c.train.total_steps)
+        self.collect_only = collect_only(c)
+        self.policy_saver = PolicySaver(c.train.policy_save_interval, self.agent, self.rd.policy,
+                                        extra={"env_id": c.env.id})
+        self.checkpointer = Checkpointer(c.train.checkpoint_interval, self.checkpoint_state, self.rd.checkpoints)
+        self.sps_log = StepsPerSecondLog(c.train.log_interval, report=self.log_progress)
+        self.triggers: list[IntervalTrigger] = [self.eval_trigger(), self.policy_saver, self.checkpointer,
+                                                self.sps_log]
+
+    # ---- what a subclass provides -----------------------------------------------------------
+    def open(self) -> tuple[Spec, Spec]:
+        """Whatever the run steps envs with; returns the observation and action specs."""
+        raise NotImplementedError
+
+    def connect(self, obs_spec: Spec, act_spec: Spec) -> tuple[Any, Any]:
+        """The replay the learner samples from and the variable container it pushes to."""
+        raise NotImplementedError
+
+    def eval_trigger(self) -> IntervalTrigger:
+        raise NotImplementedError
+
+    def evaluate_now(self, p: Progress) -> None:
+        raise NotImplementedError
+
+    def settle_evals(self) -> None:
+        """Wait for evaluations still in flight (none in one process)."""
+
+    def iterate(self) -> None:
+        """Collect and train up to train.total_steps, firing the triggers."""
+        raise NotImplementedError
+
+    def env_steps(self) -> int:
+        raise NotImplementedError
+
+    def checkpoint_state(self) -> dict[str, Any]:
+        raise NotImplementedError
+
+    def restore(self) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        """End what `open` and `connect` started, however the run ends."""
+
+    def announce(self) -> None:
+        """A line about the run's layout, once it starts."""
+
+    # ---- shared -------------------------------------------------------------------------------
+    def progress(self) -> Progress:
+        return Progress(self.env_steps(), self.agent.train_step)
+
+    def wall_time(self) -> float:
+        return self.wall_offset + time.perf_counter() - self.t0
+
+    def run(self, resume: bool = False) -> RunResult:
+        from torch.utils.tensorboard import SummaryWriter
+        from tqdm import tqdm
+
+        c = self.config
+        self.t0 = time.perf_counter()
+        try:
+            if not c.train.checkpoint_replay and c.train.checkpoint_interval > 0:
+                self.say("train.checkpoint_replay = false: checkpoints leave the replay out; a resumed run refills it")
+            if resume:
+                self.restore()  # rewrites metrics.jsonl: open the log only afterwards
+            self.tb = SummaryWriter(str(self.rd.tb))
+            self.metrics_log = MetricsLog(self.rd.metrics)
+            self.bar = tqdm(total=c.train.total_steps, unit="step", disable=None if self.show_progress else True,
+                            dynamic_ncols=True, initial=self.env_steps())
+            self.announce()
+            if self.env_steps() == 0:
+                self.evaluate_now(Progress(0, 0))  # the untrained policy, before any collection
+                self.policy_saver.save(Progress(0, 0))  # `relayrl eval` works from the start
+            self.iterate()
+            self.finish(self.progress())
+            return RunResult(self.rd.root, self.last_eval)
+        finally:
+            if self.bar is not None:
+                self.bar.close()
+            for log in (getattr(self, "tb", None), getattr(self, "metrics_log", None)):
+                if log is not None:
+                    log.close()
+            self.close()
+
+    def step_schedules(self, env_steps: int) -> None:
+        """What follows collection: the agent's env-step schedules, the importance exponent."""
+        self.agent.set_progress(env_steps)
+        self.learner.importance_exponent = self.beta_at(env_steps)
+
+    def fire_triggers(self) -> None:
+        p = self.progress()
+        for trigger in self.triggers:
+            trigger(p)
+
+    def finish(self, p: Progress) -> None:
+        """The final evaluation (unless one ran at this step), policy save, checkpoint and log."""
+        if self.last_eval.get("step") != p.env_steps:
+            self.evaluate_now(p)
+        self.settle_evals()
+        self.policy_saver.save(p)
+        if self.config.train.checkpoint_interval > 0:
+            self.checkpointer.save(p)
+        self.sps_log.log_rates(p)
+
+    def process_state(self) -> dict[str, Any]:
+        """The global RNGs (a user's env may draw from them) and the latest losses."""
+        return {"global_rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
+                               "python": random.getstate()},
+                "last_metrics": {k: v.detach().cpu() for k, v in self.learner.last_metrics.items()}}
+
+    def load_process_state(self, state: dict[str, Any]) -> None:
+        rng = state["global_rng"]
+        torch.set_rng_state(rng["torch"])
+        np.random.set_state(rng["numpy"])
+        random.setstate(rng["python"])
+        self.learner.last_metrics = dict(state["last_metrics"])
+
+    def resume_at(self, steps: int) -> None:
+        """Drop metrics rows past the checkpoint and let the triggers carry on from it."""
+        kept = self.rd.truncate_metrics(after_step=steps)
+        if kept and kept[-1].get("step") == steps:
+            self.last_eval = kept[-1]  # a finished run resumed again needs no second final eval
+        for trigger in self.triggers:
+            trigger.start_at(steps)
+
+    def say(self, text: str) -> None:
+        if self.bar is not None and not self.bar.disable:
+            self.bar.write(text)
+        else:
+            print(text, file=sys.stderr, flush=True)
+
+    def postfix(self) -> dict[str, str]:
+        """Extra fields for the progress bar."""
+        return {}
+
+    def log_progress(self, p: Progress, env_sps: float, grad_sps: float) -> None:
+        scalars = {"perf/sps": env_sps, "perf/grad_sps": grad_sps, **self.learner.scalar_metrics()}
+        if self.stats.returns:
+            scalars["charts/episodic_return"] = sum(self.stats.returns) / len(self.stats.returns)
+        scalars.update({f"charts/{k}": v for k, v in self.stats.info_means().items()})
+        for k, v in scalars.items():
+            self.tb.add_scalar(k, v, p.env_steps)
+        if self.bar is not None:
+            self.bar.update(p.env_steps - self.bar.n)
+            last = self.last_eval.get("average_return")
+            self.bar.set_postfix(sps=f"{env_sps:.0f}", eval=f"{last:.1f}" if last is not None else "-",
+                                 **self.postfix())
+
+    def record_eval(self, p: Progress, result: dict[str, Any], eval_s: float, wall_time_s: float | None = None,
+                    extra: dict[str, Any] | None = None) -> None:
+        """One metrics.jsonl row (and TensorBoard scalars, and a console line) for an evaluation."""
+        wall = self.wall_time() if wall_time_s is None else wall_time_s
+        row = {"step": p.env_steps, "train_step": p.train_step, **result,
+               "wall_time_s": round(wall, 3), "eval_s": round(eval_s, 3),
+               "train/average_return": (sum(self.stats.returns) / len(self.stats.returns)
+                                        if self.stats.returns else float("nan")),
+               "train/episodes": self.stats.episodes,
+               **{f"train/{k}": v for k, v in self.stats.info_means().items()},
+               **self.learner.scalar_metrics(), **(extra or {})}
+        self.metrics_log.write(row)
+        self.tb.add_scalar("eval/average_return", result["average_return"], p.env_steps)
+        self.tb.add_scalar("eval/average_episode_length", result["average_episode_length"], p.env_steps)
+        for k, v in result.items():
+            if k.startswith("eval/"):
+                self.tb.add_scalar(k, v, p.env_steps)
+        self.last_eval = row
+        self.say(f"step {p.env_steps:>9,} | eval return {result['average_return']:8.2f} "
+                 f"| length {result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
