@@ -7,7 +7,7 @@
     batch, info = table.sample(64)
 """
 
-from relayrl.replay.rate_limiters import MinSize, Queue, RateLimiter, SampleToInsertRatio
+from relayrl.replay.rate_limiters import MinSize, Queue, RateLimiter, SampleToInsertRatio, Stack
 from relayrl.replay.selectors import Fifo, Lifo, MaxHeap, MinHeap, Prioritized, Selector, Uniform
 from relayrl.replay.storage import ItemStorage
 from relayrl.replay.table import RateLimiterTimeout, SampleInfo, Table
@@ -15,6 +15,6 @@ from relayrl.replay.writers import Sequence, SequenceWriter, TransitionWriter
 
 __all__ = [
     "Fifo", "ItemStorage", "Lifo", "MaxHeap", "MinHeap", "MinSize", "Prioritized", "Queue", "RateLimiter",
-    "RateLimiterTimeout", "SampleInfo", "SampleToInsertRatio", "Selector", "Sequence", "SequenceWriter", "Table",
-    "TransitionWriter", "Uniform",
+    "RateLimiterTimeout", "SampleInfo", "SampleToInsertRatio", "Selector", "Sequence", "SequenceWriter", "Stack",
+    "Table", "TransitionWriter", "Uniform",
 ]

@@ -80,22 +80,42 @@ class MinSize(RateLimiter):
 class SampleToInsertRatio(RateLimiter):
     """Keep samples per insert near `samples_per_insert`, within `error_buffer` samples.
 
-    Reverb's definition: offset = samples_per_insert * min_size_to_sample, and the
-    difference `inserts * samples_per_insert - samples` stays in offset +- error_buffer.
-    `error_buffer` must leave room for at least one insert and one sample, or both sides
-    would block each other forever.
+    Reverb's definition: a number `error_buffer` is a range around the offset
+    `samples_per_insert * min_size_to_sample`, so `inserts * samples_per_insert - samples`
+    stays in offset +- error_buffer; a pair `(min_diff, max_diff)` is that range itself, with
+    no offset. The range must be at least 2 * max(1, samples_per_insert) wide, or inserts and
+    samples could block each other forever, and must not start above the offset, or sampling
+    would block as soon as the table reaches its minimum size.
     """
 
-    def __init__(self, samples_per_insert: float, min_size_to_sample: int, error_buffer: float) -> None:
+    def __init__(self, samples_per_insert: float, min_size_to_sample: int,
+                 error_buffer: float | tuple[float, float]) -> None:
         offset = samples_per_insert * min_size_to_sample
-        if error_buffer < max(1.0, samples_per_insert):
-            raise ValueError(f"error_buffer={error_buffer} is too small; it must be >= max(1, samples_per_insert="
-                             f"{samples_per_insert}) so that inserts and samples cannot block each other")
-        super().__init__(samples_per_insert, min_size_to_sample, offset - error_buffer, offset + error_buffer)
+        if isinstance(error_buffer, tuple | list):
+            min_diff, max_diff = (float(x) for x in error_buffer)
+        else:
+            min_diff, max_diff = offset - error_buffer, offset + error_buffer
+        if max_diff - min_diff < 2 * max(1.0, samples_per_insert):
+            raise ValueError(f"error_buffer={error_buffer} is too small: the range it allows must be >= 2 * max(1, "
+                             f"samples_per_insert={samples_per_insert}) wide so that inserts and samples cannot "
+                             "block each other")
+        if min_diff > offset:
+            raise ValueError(f"error_buffer={error_buffer} starts above samples_per_insert * min_size_to_sample = "
+                             f"{offset:g}: sampling would block forever once the table reaches its minimum size")
+        super().__init__(samples_per_insert, min_size_to_sample, min_diff, max_diff)
 
 
 class Queue(RateLimiter):
-    """Every item sampled exactly once, at most `size` waiting (Reverb's queue preset)."""
+    """Every item sampled exactly once, oldest first, at most `size` waiting (Reverb's queue
+    preset: use it with a Fifo sampler and remover and max_times_sampled=1, as `Table.queue`)."""
+
+    def __init__(self, size: int) -> None:
+        super().__init__(1.0, 1, 0.0, float(size))
+
+
+class Stack(RateLimiter):
+    """Every item sampled exactly once, newest first, at most `size` waiting (Reverb's stack
+    preset: use it with a Lifo sampler and remover and max_times_sampled=1, as `Table.stack`)."""
 
     def __init__(self, size: int) -> None:
         super().__init__(1.0, 1, 0.0, float(size))

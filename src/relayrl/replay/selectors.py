@@ -175,10 +175,17 @@ class Prioritized(Selector):
         return self.tree.update_live(self.slot_key, self.priority, keys, priorities, self.priority_exponent)
 
     def pop(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """n distinct slots, each drawn by priority from the items not drawn yet; once those
+        have zero total priority, uniformly among them."""
         chosen: list[int] = []
-        while len(chosen) < n:  # distinct slots: draw, remove, draw again
-            slot = int(self.select(1, rng)[0][0])
+        taken: set[int] = set()
+        while len(chosen) < n:
+            slot = int(self.select(1, rng)[0][0]) if self.tree.total > 0.0 else -1
+            if slot < 0 or slot in taken:  # nothing left with mass (or only rounding residue)
+                rest = np.setdiff1d(np.flatnonzero(self.slot_key >= 0), chosen)
+                slot = int(rest[rng.integers(0, rest.size)])
             chosen.append(slot)
+            taken.add(slot)
             self.tree.set(np.array([slot]), np.zeros(1))
         self.tree.set_power(np.array(chosen), self.priority, self.priority_exponent)  # the table deletes them
         return np.array(chosen, dtype=np.int64)
@@ -301,28 +308,40 @@ class Lifo(_KeyQueue):
 
 
 class _Heap(Selector):
-    """Items ordered by priority (ties: oldest first). O(log n) insert and update."""
+    """Items ordered by priority; ties go to the least recently inserted or updated item, as
+    in Reverb's heap. O(log n) insert and update.
+
+    Every insert and update stamps its slot with a new sequence number and pushes an entry
+    (sign * priority, stamp, slot). An entry is live while its slot's stamp is still its own,
+    so an update leaves exactly one live entry per item, whatever the priorities.
+    """
 
     deterministic = True
     sign = 1.0  # +1: smallest priority at the front (MinHeap); -1: largest (MaxHeap)
 
     def bind(self, capacity: int, slot_key: np.ndarray, priority: np.ndarray) -> None:
         super().bind(capacity, slot_key, priority)
-        self.heap: list[tuple[float, int]] = []
+        self.heap: list[tuple[float, int, int]] = []
+        self.stamp = np.full(capacity, -1, dtype=np.int64)  # slot -> stamp of its live entry (-1: none)
+        self.next_stamp = 0
 
     def _push(self, slots: np.ndarray) -> None:
         for slot in np.asarray(slots).tolist():
-            heapq.heappush(self.heap, (self.sign * float(self.priority[slot]), int(self.slot_key[slot])))
+            stamp = self.next_stamp
+            self.next_stamp += 1
+            self.stamp[slot] = stamp
+            heapq.heappush(self.heap, (self.sign * float(self.priority[slot]), stamp, slot))
 
     def insert(self, slots: np.ndarray, keys: np.ndarray) -> None:
         self._push(slots)
         self.size += len(slots)
 
     def update(self, slots: np.ndarray) -> None:
-        self._push(slots)  # the old entry goes stale: its priority no longer matches
+        self._push(slots)  # the slot's older entry goes stale: its stamp is no longer the slot's
         self._maybe_compact()
 
     def delete(self, slots: np.ndarray) -> None:
+        self.stamp[slots] = -1
         self.size -= len(slots)
         self._maybe_compact()
 
@@ -331,15 +350,13 @@ class _Heap(Selector):
             self.heap = [e for e in self.heap if self._live(e)]
             heapq.heapify(self.heap)
 
-    def _live(self, entry: tuple[float, int]) -> bool:
-        value, key = entry
-        slot = key % self.capacity
-        return bool(self.slot_key[slot] == key and self.sign * self.priority[slot] == value)
+    def _live(self, entry: tuple[float, int, int]) -> bool:
+        return bool(self.stamp[entry[2]] == entry[1])
 
     def _front(self) -> int:
         while not self._live(self.heap[0]):
             heapq.heappop(self.heap)
-        return self.heap[0][1] % self.capacity
+        return self.heap[0][2]
 
     def select(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         return np.full(n, self._front(), dtype=np.int64), np.ones(n)
@@ -347,9 +364,21 @@ class _Heap(Selector):
     def pop(self, n: int, rng: np.random.Generator) -> np.ndarray:
         out = []
         for _ in range(n):
-            out.append(self._front())
+            slot = self._front()
             heapq.heappop(self.heap)
+            self.stamp[slot] = -1  # popped: none of its entries may come up again before the table deletes it
+            out.append(slot)
         return np.array(out, dtype=np.int64)
+
+    def state_dict(self) -> dict[str, Any]:
+        live = np.flatnonzero(self.stamp >= 0)
+        return {"order": live[np.argsort(self.stamp[live], kind="stable")]}  # oldest insert or update first
+
+    def load_state_dict(self, state: dict[str, Any], live_slots: np.ndarray) -> None:
+        self.heap, self.size, self.next_stamp = [], 0, 0
+        self.stamp[:] = -1
+        order = np.asarray(state.get("order", live_slots), dtype=np.int64)
+        self.insert(order, self.slot_key[order])
 
 
 class MinHeap(_Heap):

@@ -102,8 +102,13 @@ class SumTree:
         self._top_stale = True
 
     def set_power(self, idx: np.ndarray, priority: np.ndarray, exponent: float) -> None:
-        """`set(idx, priority[idx] ** exponent)`."""
-        self.set(idx, np.power(priority.take(idx), exponent))
+        """`set(idx, priority[idx] ** exponent)`, where a zero priority stays zero for every
+        exponent (Reverb's rule: 0 ** 0 would give a zero-priority item a chance)."""
+        p = priority.take(idx)
+        values = np.power(p, exponent)
+        if exponent == 0.0:
+            values[p == 0.0] = 0.0
+        self.set(idx, values)
 
     def sample(self, uniform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """`find_with_mass(uniform * total)` for `uniform` in [0, 1), and each leaf's

@@ -44,7 +44,8 @@ def _set(tree: np.ndarray, base: int, idx: np.ndarray, values: np.ndarray) -> No
 def _set_power(tree: np.ndarray, base: int, idx: np.ndarray, priority: np.ndarray, exponent: float) -> None:
     node = idx + base
     for j in range(idx.size):
-        tree[node[j]] = priority[idx[j]] ** exponent
+        p = priority[idx[j]]
+        tree[node[j]] = p ** exponent if p > 0.0 else 0.0  # zero stays zero, even for exponent 0
     _update_parents(tree, node)
 
 
@@ -85,7 +86,7 @@ def _update_live(tree: np.ndarray, base: int, slot_key: np.ndarray, priority: np
             continue
         p = prios[j]
         priority[slot] = p
-        tree[base + slot] = p ** exponent
+        tree[base + slot] = p ** exponent if p > 0.0 else 0.0
         node[n] = base + slot
         n += 1
         top = max(top, p)

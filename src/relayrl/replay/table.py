@@ -15,8 +15,8 @@ from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
-from relayrl.replay.rate_limiters import MinSize, RateLimiter
-from relayrl.replay.selectors import Fifo, Selector, Uniform
+from relayrl.replay.rate_limiters import MinSize, Queue, RateLimiter, Stack
+from relayrl.replay.selectors import Fifo, Lifo, Selector, Uniform
 from relayrl.replay.storage import ItemStorage
 from relayrl.replay.sumtree import compiled
 
@@ -81,6 +81,17 @@ class Table:
         take = compiled("table_jit", "take_slots") if type(sampler) is Uniform and type(remover) is Fifo else None
         self._insert_kernels: tuple[Callable[..., int], Callable[..., bool]] | None = \
             None if take is None else (take, compiled("table_jit", "insert_slots"))
+
+    @classmethod
+    def queue(cls, name: str, max_size: int) -> Table:
+        """Reverb's `Table.queue`: every item sampled once, oldest first; inserts block while
+        `max_size` items wait, samples while none does."""
+        return cls(name, max_size, Fifo(), Fifo(), Queue(max_size), max_times_sampled=1)
+
+    @classmethod
+    def stack(cls, name: str, max_size: int) -> Table:
+        """Reverb's `Table.stack`: as `queue`, newest item first."""
+        return cls(name, max_size, Lifo(), Lifo(), Stack(max_size), max_times_sampled=1)
 
     # ---- introspection ------------------------------------------------------------------
     @property
@@ -309,7 +320,9 @@ class Table:
         got = 0
         while got < batch_size:
             allowed = self._wait(self.samples_available, timeout, "sample")
-            k = min(batch_size - got, allowed)
+            # With max_times_sampled, each item sampled may delete one and so change what the
+            # limiter allows: ask it again before every item, as Reverb does.
+            k = 1 if self.max_times_sampled > 0 else min(batch_size - got, allowed)
             parts.append(self._sample_locked(k))
             got += k
             if self._waiting:
@@ -325,8 +338,8 @@ class Table:
         return self.storage.read(slots), SampleInfo(keys, probs, size, prios)
 
     def _sample_counted(self, n: int) -> tuple[Any, SampleInfo]:
-        # One item at a time, as Reverb does, so an item is never handed out more often
-        # than max_times_sampled, even within one batch.
+        # One item at a time, so an item is never handed out more often than max_times_sampled,
+        # even within one batch (the caller checked the rate limiter for each).
         slots = np.empty(n, dtype=np.int64)
         probs = np.empty(n)
         keys = np.empty(n, dtype=np.int64)
