@@ -23,6 +23,19 @@ class _Parser(argparse.ArgumentParser):
         sys.exit(EXIT_USAGE)
 
 
+def _seed(text: str) -> int:
+    """--seed's type: an integer in [0, 2**63 - 1], which every consumer of a seed accepts."""
+    from relayrl.seeding import MAX_SEED
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"{value} is not valid; a seed is an integer in [0, {MAX_SEED}]")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="relayrl", description="Deep RL on PyTorch and Gymnasium.")
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -31,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("config", metavar="PRESET|CONFIG.toml", nargs="?",
                    help="what to train (with --resume it may be left out: the run's own config.toml is used)")
     t.add_argument("--run-dir", help="where to write the run (default: runs/<algo>-<env>-s<seed>-<time>)")
-    t.add_argument("--seed", type=int)
+    t.add_argument("--seed", type=_seed, help="the run's seed; every random stream derives from it (default: 0)")
     t.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key, e.g. --set train.total_steps=20000 (repeatable)")
     t.add_argument("--resume", action="store_true", help="continue the run in --run-dir from its last checkpoint")
@@ -39,7 +52,7 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("eval", help="evaluate a run's saved policy; prints one JSON object")
     e.add_argument("run_dir", metavar="RUN_DIR")
     e.add_argument("--episodes", type=int, default=10)
-    e.add_argument("--seed", type=int, default=0)
+    e.add_argument("--seed", type=_seed, default=0, help="seed of the evaluation episodes")
     pl = sub.add_parser("plot", help="PNG of average return against env steps")
     pl.add_argument("run_dir", metavar="RUN_DIR")
     pl.add_argument("--out", metavar="PNG")
@@ -47,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("run_dir", metavar="RUN_DIR")
     v.add_argument("--out", metavar="MP4")
     v.add_argument("--episodes", type=int, default=1)
-    v.add_argument("--seed", type=int, default=0)
+    v.add_argument("--seed", type=_seed, default=0, help="seed of the recorded episodes")
     x = sub.add_parser("export", help="write RUN_DIR/policy/policy.pt2, the policy for plain PyTorch (torch.export)")
     x.add_argument("run_dir", metavar="RUN_DIR")
     x.add_argument("--out", metavar="PT2")

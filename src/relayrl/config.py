@@ -15,6 +15,7 @@ from typing import Any
 
 from relayrl.agents.registry import algorithm
 from relayrl.errors import ConfigError
+from relayrl.seeding import MAX_SEED
 
 
 @dataclass
@@ -98,6 +99,8 @@ class Config:
 
     def validate(self) -> None:
         """Cross-field checks that types alone cannot express."""
+        if not 0 <= self.seed <= MAX_SEED:
+            raise ConfigError(f"seed={self.seed} is not valid; it must be an integer in [0, {MAX_SEED}]")
         if self.device not in ("cpu", "cuda", "auto") and not self.device.startswith("cuda:"):
             raise ConfigError(f"device={self.device!r} is not valid; valid: cpu, cuda, cuda:N, auto")
         positive = {

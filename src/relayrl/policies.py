@@ -116,6 +116,7 @@ class TanhGaussianPolicy:
         self.half = ((high - low) / 2.0).astype(np.float32)  # [A]
         self._cpu = _cpu_mlp(actor, device)
         self._gen: torch.Generator | None = None  # noise on the device (see act_on_device)
+        self._gen_state: torch.Tensor | None = None  # a checkpointed state for it, applied when it is made
         self._bounds: tuple[torch.Tensor, torch.Tensor] | None = None  # loc, half there
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
@@ -142,13 +143,27 @@ class TanhGaussianPolicy:
             if not self.deterministic:
                 if self._gen is None:
                     self._gen = torch.Generator(device=obs.device)
-                    self._gen.manual_seed(int(self.rng.integers(1 << 62)))
+                    if self._gen_state is not None:
+                        self._gen.set_state(self._gen_state)
+                    else:
+                        self._gen.manual_seed(int(self.rng.integers(1 << 62)))
                 noise = torch.randn(u.shape, generator=self._gen, device=obs.device, dtype=u.dtype)
                 u = u + log_std.clamp(*self.log_std_bounds).exp() * noise
             if self._bounds is None or self._bounds[0].device != obs.device:  # moved once, not every step
                 self._bounds = (torch.from_numpy(self.loc).to(obs.device), torch.from_numpy(self.half).to(obs.device))
             loc, half = self._bounds
             return loc + half * torch.tanh(u)
+
+    def state_dict(self) -> dict[str, Any]:
+        """The on-device noise generator's state (None until it is first used). Noise on the
+        CPU draws from `rng`, the agent's, which the agent's own state holds."""
+        return {"device_generator": None if self._gen is None else self._gen.get_state()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        saved = state.get("device_generator")
+        if saved is not None and self._gen is not None:
+            self._gen.set_state(saved)
+        self._gen_state = saved
 
 
 class ClampedPolicy:

@@ -28,6 +28,7 @@ from relayrl.distributed.server import ReplayServer
 from relayrl.distributed.workers import ActorNames, EvalWorker, RolloutWorker
 from relayrl.envs import make_env
 from relayrl.errors import UserError
+from relayrl.seeding import EVAL_STRIDE
 from relayrl.specs import Spec
 from relayrl.training.assembly import Run
 from relayrl.training.checkpoint import load_latest_checkpoint
@@ -114,7 +115,7 @@ class DistributedRun(Run):
         self.variables = ray.remote(num_cpus=0, max_concurrency=self.K + 8)(VariableContainer).options(
             name=names.variables).remote(copy=True)
         worker = ray.remote(num_cpus=d.actor_cpus, max_restarts=d.max_restarts, max_task_retries=0)(RolloutWorker)
-        self.workers = [worker.remote(cfg, i, c.seed + 1000 * (i + 1), names, path) for i in range(self.K)]
+        self.workers = [worker.remote(cfg, i, names, path) for i in range(self.K)]
         evaluator = ray.remote(num_cpus=0, max_restarts=d.max_restarts, max_task_retries=0)(EvalWorker)
         self.eval_workers = [evaluator.remote(cfg, names, path) for _ in range(d.num_eval_actors)]
         ray.get([w.pid.remote() for w in self.workers + self.eval_workers])  # env errors surface here
@@ -264,7 +265,7 @@ class DistributedRun(Run):
         n = len(self.eval_workers)
         self._finish_evals(until=n - 1)  # one in flight per eval actor; rows stay in step order
         self.pusher.push(force=True)  # the eval actor evaluates these weights (or newer)
-        seed = self.config.seed + 10_000 * (self.eval_count + 1)
+        seed = self.seeds.base("evaluation") + EVAL_STRIDE * self.eval_count
         w = self.eval_count % n
         self.evals.append((self.eval_workers[w].evaluate.remote(seed), p, time.perf_counter(), self.wall_time(), w,
                            seed))

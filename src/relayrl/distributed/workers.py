@@ -15,7 +15,6 @@ import uuid
 import warnings
 from typing import Any, NamedTuple
 
-import numpy as np
 import torch
 
 from relayrl.agents.registry import algorithm
@@ -24,6 +23,7 @@ from relayrl.envs import make_env
 from relayrl.metrics import EpisodeStats
 from relayrl.policies import RandomPolicy
 from relayrl.replay.writers import stack_steps
+from relayrl.seeding import RunSeeds
 from relayrl.training.actor import Actor
 from relayrl.training.evaluate import evaluate, make_eval_env
 from relayrl.training.replay_setup import frame_stack
@@ -129,14 +129,15 @@ class EpisodeLog(EpisodeStats):
 class RolloutWorker:
     """Env (batched, `env.num_envs` copies), acting policy and shipper; `collect(n)` per call."""
 
-    def __init__(self, config: dict[str, Any], index: int, seed: int, names: ActorNames, sys_path: list[str]) -> None:
+    def __init__(self, config: dict[str, Any], index: int, names: ActorNames, sys_path: list[str]) -> None:
         import ray
 
         c = _setup(config, sys_path)
         server, variables = names.handles()
-        if _reconstructed():
-            seed += int.from_bytes(os.urandom(3), "little")  # a restarted actor must not replay its episodes
-        torch.manual_seed(seed)
+        seeds = RunSeeds(c.seed).actor(index)
+        if _reconstructed():  # a restarted actor must not replay its episodes: fresh streams
+            seeds = seeds.actor(int.from_bytes(os.urandom(4), "little"))
+        torch.manual_seed(seeds.base("torch"))
         self.index, self.num_actors = index, c.distributed.num_actors
         self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
                             time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
@@ -145,17 +146,18 @@ class RolloutWorker:
                             num_workers=c.env.num_workers or max(1, round(c.distributed.actor_cpus) - 1),
                             info_keys=c.env.info_keys)
         agent = algorithm(c.algo).make_agent(c.agent, self.env.observation_spec, self.env.action_spec,
-                                             torch.device("cpu"), np.random.default_rng(seed), c.train.total_steps)
+                                             torch.device("cpu"), seeds.generator("exploration"), c.train.total_steps)
         net = agent.policy_network().requires_grad_(False)
         self.global_steps = 0  # the run's env steps, for env-step schedules (DQN's epsilon)
         self.collect_policy = agent.collect_policy(lambda: self.global_steps, net)
-        self.random_policy = RandomPolicy(self.env.action_spec, np.random.default_rng(seed + 1))
+        self.random_policy = RandomPolicy(self.env.action_spec, seeds.generator("warmup"))
         token = self.token = uuid.uuid4().hex  # one per incarnation: the driver tells restarts by it
         ray.get(server.register.remote(index, token))
         self.shipper = ChunkShipper(server, index, token, frame_stack(self.env.observation_spec))
         self.episodes = EpisodeLog()
         self.puller = WeightPuller(RemoteVariables(variables), net, c.distributed.pull_interval)
-        self.actor = Actor(self.env, self.random_policy, [self.episodes, self.shipper], seed=seed, puller=self.puller)
+        self.actor = Actor(self.env, self.random_policy, [self.episodes, self.shipper], seed=seeds.base("envs"),
+                           puller=self.puller)
         self.chunk_steps = c.distributed.chunk_steps
 
     def collect(self, steps: int, global_steps: int, random: bool) -> dict[str, Any]:
@@ -185,7 +187,7 @@ class EvalWorker:
         self.episodes = c.eval.episodes
         self.env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, info_keys=c.env.info_keys)
         self.agent = algorithm(c.algo).make_agent(c.agent, self.env.observation_spec, self.env.action_spec,
-                                                  torch.device("cpu"), np.random.default_rng(c.seed),
+                                                  torch.device("cpu"), RunSeeds(c.seed).generator("evaluation"),
                                                   c.train.total_steps)
         self.puller = WeightPuller(RemoteVariables(variables), self.agent.policy_network().requires_grad_(False))
 

@@ -41,8 +41,8 @@ class Storage(Protocol):
 
 class Table:
     def __init__(self, name: str, max_size: int, sampler: Selector | None = None, remover: Selector | None = None,
-                 rate_limiter: RateLimiter | None = None, max_times_sampled: int = 0, seed: int | None = None,
-                 storage: Storage | None = None) -> None:
+                 rate_limiter: RateLimiter | None = None, max_times_sampled: int = 0,
+                 seed: int | np.random.SeedSequence | None = None, storage: Storage | None = None) -> None:
         if max_size < 1:
             raise ValueError(f"Table {name!r}: max_size={max_size} is not valid; it must be >= 1")
         sampler = sampler if sampler is not None else Uniform()

@@ -25,6 +25,7 @@ from relayrl.config import Config
 from relayrl.errors import UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.schedules import linear_schedule
+from relayrl.seeding import RunSeeds
 from relayrl.specs import Spec
 from relayrl.training.learner import Learner
 from relayrl.training.replay_setup import collect_only
@@ -59,7 +60,8 @@ class Run:
         self.config, self.rd, self.show_progress = config, run_dir, progress
         if c.train.torch_threads > 0:
             torch.set_num_threads(c.train.torch_threads)
-        torch.manual_seed(c.seed)  # network initialisation
+        self.seeds = RunSeeds(c.seed)
+        torch.manual_seed(self.seeds.base("torch"))  # network initialisation
         self.device = resolve_device(c.device)
         self.stats = EpisodeStats()
         self.bar: Any = None
@@ -79,7 +81,7 @@ class Run:
         if spec.replay != "transitions":
             raise ValueError(f"algo={c.algo!r} collects into replay={spec.replay!r}; Actor + Learner runs feed "
                              "a transitions table (the registry gives it a run of its own)")
-        self.agent = spec.make_agent(c.agent, obs_spec, act_spec, self.device, np.random.default_rng(c.seed + 1),
+        self.agent = spec.make_agent(c.agent, obs_spec, act_spec, self.device, self.seeds.generator("exploration"),
                                      c.train.total_steps)
         table, variables = self.connect(obs_spec, act_spec)
         self.learner = Learner(self.agent, table, c.agent.batch_size, self.device,

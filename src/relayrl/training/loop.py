@@ -5,8 +5,6 @@ from __future__ import annotations
 import copy
 from typing import Any
 
-import numpy as np
-
 from relayrl.config import to_dict
 from relayrl.envs import make_env
 from relayrl.envs.stateless.adapter import StatelessBatchEnv
@@ -51,10 +49,10 @@ class LocalRun(Run):
         # One thread collects and learns in turn: an insert waiting on the rate limiter could
         # never be released; the learner's `available_steps` after each collect call keeps the ratio.
         self.replay.inserts_wait = False
-        self.random_rng = np.random.default_rng(c.seed + 3)
+        self.random_rng = self.seeds.generator("warmup")
         self.steps = EnvironmentSteps()
         self.actor = Actor(self.env, RandomPolicy(act_spec, self.random_rng),
-                           [self.steps, self.stats, self.writer], seed=c.seed)
+                           [self.steps, self.stats, self.writer], seed=self.seeds.base("envs"))
         # The actor acts with its own copy of the policy network, refreshed from the variable
         # container the learner pushes to: the same wiring as on Ray, where it is remote.
         # Learner and actor take turns in this process, so the container may keep references.
@@ -67,7 +65,7 @@ class LocalRun(Run):
     def eval_trigger(self) -> Evaluate:
         c = self.config
         self.evaluator = Evaluate(c.eval.interval, self.eval_env, self.agent.eval_policy, c.eval.episodes,
-                                  seed=c.seed + 10_000,
+                                  seed=self.seeds.base("evaluation"),
                                   on_result=lambda p, result: self.record_eval(p, result, self.evaluator.seconds))
         return self.evaluator
 
@@ -88,6 +86,8 @@ class LocalRun(Run):
             "replay": self.replay.state_dict() if self.config.train.checkpoint_replay else None,
             "episode_stats": self.stats.state_dict(),
             "random_rng": self.random_rng.bit_generator.state,
+            # A collect policy with state of its own (SAC's noise generator on a GPU) saves it.
+            "collect_policy": getattr(self.collect_policy, "state_dict", dict)(),
             "eval_count": self.evaluator.count,
             "wall_time_s": self.wall_time(),
             # Mid-episode state, so that a resumed run is the uninterrupted run bit for bit:
@@ -119,6 +119,8 @@ class LocalRun(Run):
                      "the replay refills from the resumed policy before learning continues")
         self.stats.load_state_dict(state["episode_stats"])
         self.random_rng.bit_generator.state = state["random_rng"]
+        if hasattr(self.collect_policy, "load_state_dict"):
+            self.collect_policy.load_state_dict(state.get("collect_policy", {}))
         self.evaluator.count = int(state["eval_count"])
         self.wall_offset = float(state["wall_time_s"])
         steps = int(state["env_steps"])
@@ -133,10 +135,10 @@ class LocalRun(Run):
         if "actor" in state:  # checkpoints before mid-episode state (version 1) lack it
             self.variables.load_state_dict({"version": state["variables_version"], "weights": None})
             actor_state = {**state["actor"], "env": None} if files_moved_on else state["actor"]
-            continued = self.actor.load_state_dict(actor_state, reset_seed=self.config.seed + steps)
+            continued = self.actor.load_state_dict(actor_state, reset_seed=self.seeds.base("resume") + steps)
             self.load_process_state(state)
         else:
-            self.actor.load_state_dict({"env_steps": steps, "env": None}, reset_seed=self.config.seed + steps)
+            self.actor.load_state_dict({"env_steps": steps, "env": None}, reset_seed=self.seeds.base("resume") + steps)
         if continued and state["replay"] is not None:
             self.writer.continue_episodes()
         elif not continued:

@@ -25,6 +25,7 @@ from relayrl.replay import (
     Uniform,
 )
 from relayrl.replay.group import WriterGroup
+from relayrl.seeding import RunSeeds
 from relayrl.specs import Spec
 
 
@@ -65,7 +66,7 @@ def build_table(c: Config, burst_steps: int | None = None) -> Table:
     r = c.replay
     sampler = Prioritized(r.priority_exponent) if r.sampler == "prioritized" else Uniform()
     return Table("replay", r.size, sampler=sampler, remover=Fifo(), rate_limiter=rate_limiter(c, burst_steps),
-                 seed=c.seed + 2)
+                 seed=RunSeeds(c.seed).sequence("replay"))
 
 
 def replay_path(c: Config, run_root: Path) -> Path | None:

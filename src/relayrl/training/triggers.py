@@ -15,6 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from relayrl.seeding import EVAL_STRIDE
+
 
 @dataclass
 class Progress:
@@ -89,7 +91,7 @@ class Evaluate(IntervalTrigger):
     """Runs `episodes` episodes of `policy_fn()` on `env`; results go to `results` and `on_result`.
 
     Evaluation k (from 0, counted in `count`, which a resumed run restores) resets the env with
-    seed + 10_000 * k; `seconds` is how long the latest one took.
+    seed + EVAL_STRIDE * k; `seconds` is how long the latest one took.
     """
 
     def __init__(self, interval: int, env: Any, policy_fn: Callable[[], Any], episodes: int = 10,
@@ -106,7 +108,7 @@ class Evaluate(IntervalTrigger):
         from relayrl.training.evaluate import evaluate
 
         t0 = time.perf_counter()
-        result = evaluate(self.env, self.policy_fn(), self.episodes, seed=self.seed + 10_000 * self.count)
+        result = evaluate(self.env, self.policy_fn(), self.episodes, seed=self.seed + EVAL_STRIDE * self.count)
         self.seconds = time.perf_counter() - t0
         self.count += 1
         self.results.append((progress, result))

@@ -41,6 +41,7 @@ from relayrl.agents.bptt.config import BpttConfig
 from relayrl.envs.stateless.base import make_generator
 from relayrl.envs.stateless.pendulum import PendulumParams, make_pendulum
 from relayrl.envs.stateless.rollout import rollout
+from relayrl.seeding import RunSeeds
 
 
 class BpttLog(NamedTuple):
@@ -252,10 +253,11 @@ def _train(c: BpttConfig, callback: Callable[[BpttLog], None] | None, iterations
            device: torch.device) -> BpttResult:
     env = make_pendulum(device=device)
     params = env.base_env.params
+    seeds = RunSeeds(seed)
     with torch.random.fork_rng(devices=[]):  # seed the init without touching the caller's RNG
-        torch.manual_seed(seed)
+        torch.manual_seed(seeds.base("torch"))
         policy = make_policy(3, 1, c.hidden).to(device)
-    gen = make_generator(seed, "cpu")  # CPU generator: the same initial states on every device
+    gen = make_generator(seeds.base("envs"), "cpu")  # CPU generator: the same initial states on every device
     optim = torch.optim.Adam(policy.parameters(), lr=c.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(optim, c.lr_t_max)
     stats = torch.empty(iterations, 3, device=device)  # mean, last, grad norm: one sync at the end

@@ -1,0 +1,52 @@
+"""Every random stream of a run, derived from its one `seed` through `numpy.random.SeedSequence`.
+
+A stream is `SeedSequence(seed, spawn_key=(stream, ...))`: the spawned child that NumPy's
+`SeedSequence(seed).spawn()` would give, so no two streams of a run share numbers, for any seed
+and any number of envs or actors. Envs, which Gymnasium seeds with integers (copy i of a batch
+gets `base + i`, as Gymnasium's vector envs do), get a 62-bit base drawn from their own
+stream; an integer-seeded generator has no spawn key, so it can coincide with none of the
+spawned streams, and two drawn bases are 2**62 apart on average.
+
+| stream | seeds |
+|---|---|
+| envs | the training env copies' resets (copy i: base + i) |
+| exploration | the agent's generator: epsilon-greedy draws, SAC's noise, its torch generator |
+| replay | the replay table's sampling and random removal |
+| warmup | the random policy of `train.initial_collect_steps` |
+| evaluation | evaluation k's env resets (base + 10,000 k + copy) |
+| resume | the env resets of a resumed run whose envs could not be restored (base + env steps) |
+| torch | torch's global generator: network initialisation |
+| actors | actor k on Ray: its own envs / exploration / warmup streams, below (actors, k) |
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+STREAMS = ("envs", "exploration", "replay", "warmup", "evaluation", "resume", "torch", "actors")
+MAX_SEED = 2**63 - 1  # what every consumer of a seed accepts (torch.manual_seed, SeedSequence, JSON)
+EVAL_STRIDE = 10_000  # evaluation k resets its copies from base + EVAL_STRIDE * k
+
+
+class RunSeeds:
+    """The streams of one run (or, below `actor(k)`, of one of its Ray actors)."""
+
+    def __init__(self, seed: int, key: tuple[int, ...] = ()) -> None:
+        if not 0 <= seed <= MAX_SEED:
+            raise ValueError(f"seed={seed} is not valid; it must be an integer in [0, {MAX_SEED}]")
+        self.seed, self.key = seed, key
+
+    def sequence(self, stream: str) -> np.random.SeedSequence:
+        return np.random.SeedSequence(self.seed, spawn_key=(*self.key, STREAMS.index(stream)))
+
+    def generator(self, stream: str) -> np.random.Generator:
+        return np.random.default_rng(self.sequence(stream))
+
+    def base(self, stream: str) -> int:
+        """A 62-bit integer seed from `stream`, for APIs that take integers (env resets,
+        torch.manual_seed); offsets added to it stay below 2**63."""
+        return int(self.sequence(stream).generate_state(1, np.uint64)[0] >> np.uint64(2))
+
+    def actor(self, index: int) -> RunSeeds:
+        """The streams of Ray actor `index` (0, 1, ...), apart from the learner's and each other's."""
+        return RunSeeds(self.seed, (*self.key, STREAMS.index("actors"), index))
