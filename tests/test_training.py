@@ -95,7 +95,7 @@ def test_policy_round_trip_gives_the_agents_actions(tmp_path):
     result = relayrl.train(relayrl.load_config("dqn-cartpole-fast", SMALL), tmp_path / "r", progress=False)
     policy = relayrl.load_policy(result.run_dir)
     state = torch.load(tmp_path / "r" / "policy" / "policy.pt", weights_only=False)
-    from relayrl.networks import MLP
+    from relayrl.nn import MLP
 
     net = MLP(state["obs_dim"], state["hidden"], state["num_actions"], state["activation"])
     net.load_state_dict(state["state_dict"])

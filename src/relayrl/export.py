@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from relayrl.errors import UserError
-from relayrl.networks import CONV_NETWORKS, MLP, ConvQNet
+from relayrl.nn import CONV_NETWORKS, MLP, ConvQNet
 from relayrl.policies import ClampedPolicy, GreedyPolicy, TanhGaussianPolicy
 
 KINDS = ("q_greedy", "tanh_gaussian", "clamped_mlp")  # DQN, SAC, BPTT

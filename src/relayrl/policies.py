@@ -9,7 +9,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from relayrl.networks import MLP, CpuMLP
+from relayrl.nn import MLP
+from relayrl.nn.mlp_fast import MLPInference
 from relayrl.specs import ArraySpec, DiscreteSpec, Spec
 
 
@@ -35,10 +36,10 @@ def exponential_schedule(start: float, end: float, decay: float) -> Callable[[in
     return value
 
 
-def _cpu_mlp(net: nn.Module, device: torch.device) -> CpuMLP | None:
+def _cpu_mlp(net: nn.Module, device: torch.device) -> MLPInference | None:
     """The lean CPU forward pass of `net` when it is a float32 MLP on the CPU, else None."""
     if isinstance(net, MLP) and device.type == "cpu" and all(p.dtype == torch.float32 for p in net.parameters()):
-        return CpuMLP(net)
+        return MLPInference(net)
     return None
 
 
@@ -61,8 +62,8 @@ class RandomPolicy:
 class GreedyPolicy:
     """argmax_a Q(obs, a). Runs the network on its device and returns CPU actions.
 
-    A float32 MLP on the CPU runs through `CpuMLP` (NumPy views of its weights for small batches,
-    lean torch ops for the rest).
+    A float32 MLP on the CPU runs through `MLPInference` (NumPy views of its weights for small
+    batches, lean torch ops for the rest).
     """
 
     env_steps: int | None = None  # when a loaded policy was saved (see relayrl.load_policy)

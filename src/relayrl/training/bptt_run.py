@@ -19,7 +19,7 @@ from torch import nn
 
 from relayrl.config import Config
 from relayrl.errors import ConfigError
-from relayrl.networks import MLP
+from relayrl.nn import MLP
 from relayrl.training.checkpoint import atomic_torch_save
 from relayrl.training.run_dir import MetricsLog, RunDir
 
