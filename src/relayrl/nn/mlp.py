@@ -34,7 +34,7 @@ class MLP(nn.Module):
         if x.dim() != 2:
             x = x.reshape(x.shape[0], -1)  # [B, *obs_shape] -> [B, obs_dim]
         if x.dtype != torch.float32:
-            x = x.float()
+            x = x.to(self.layers[0].weight.dtype)  # observations in the network's dtype (float32 unless .double())
         last = len(self.layers) - 1
         for i, layer in enumerate(self.layers):
             x = F.linear(x, layer.weight, layer.bias)

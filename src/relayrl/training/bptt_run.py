@@ -14,8 +14,6 @@ import time
 from typing import Any
 
 import numpy as np
-import torch
-from torch import nn
 
 from relayrl.config import Config
 from relayrl.errors import ConfigError
@@ -38,17 +36,11 @@ def check_bptt_config(c: Config) -> int:
     return c.train.total_steps // per_iteration
 
 
-def policy_state(policy: nn.Sequential, hidden: list[int], env_steps: int) -> dict[str, Any]:
-    """The trained Tanh MLP in relayrl's MLP layout, as kind "clamped_mlp" (export.py)."""
-    linears = [m for m in policy if isinstance(m, nn.Linear)]
-    net = MLP(linears[0].in_features, list(hidden), linears[-1].out_features, "tanh")
-    with torch.no_grad():
-        for mine, theirs in zip(net.layers, linears, strict=True):
-            mine.weight.copy_(theirs.weight)
-            mine.bias.copy_(theirs.bias)
+def policy_state(net: MLP, hidden: list[int], env_steps: int) -> dict[str, Any]:
+    """The trained Tanh MLP as kind "clamped_mlp" (export.py)."""
     return {"kind": "clamped_mlp", "obs_dim": net.layers[0].in_features, "hidden": list(hidden),
             "action_dim": net.layers[-1].out_features, "activation": "tanh",
-            "state_dict": {k: v.cpu() for k, v in net.state_dict().items()},
+            "state_dict": {k: v.detach().cpu() for k, v in net.state_dict().items()},
             "action_low": np.array([-2.0], np.float32), "action_high": np.array([2.0], np.float32),
             "env_id": ENV_ID, "env_steps": env_steps}
 
@@ -100,7 +92,7 @@ def run_bptt(config: Config, rd: RunDir, progress: bool = True) -> dict[str, Any
         result = train_bptt(BpttConfig(iterations=iterations, batch_size=a.batch_size, rollout_steps=a.rollout_steps,
                                        lr=a.lr, lr_t_max=a.lr_t_max, max_grad_norm=a.max_grad_norm,
                                        hidden=tuple(a.hidden), seed=c.seed, device=str(resolve_device(c.device)),
-                                       torch_threads=c.train.torch_threads, fused=a.fused), on_iteration)
+                                       torch_threads=c.train.torch_threads, fast=a.fast), on_iteration)
     finally:
         log.close()
         tb.close()
