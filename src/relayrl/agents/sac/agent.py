@@ -150,6 +150,7 @@ class SACAgent:
         grads = self._critic_fast.new_grads()
         self._critic_fast.backward(gq, saved, grads)
         self._fast_step(self.critic_opt, grads)
+        del grads  # freed before the actor's pass allocates
 
         noise = torch.randn((n, a_dim), generator=self.gen, device=obs.device)
         a_pi, logp, actor_saved = losses_fast.sample_and_log_prob(self._actor_fast, obs, noise, lo, hi)
