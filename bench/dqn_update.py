@@ -3,8 +3,8 @@
     python bench/dqn_update.py [--hidden 256 256] [--batch 64] [--threads 1]
 
 Agent rows use the RL-Zoo CartPole settings (Huber, grad clip 10, target copied every 128
-steps); "autograd" rows run the same agent with `manual_grads = False` (dqn_loss + backward),
-the others the hand-written gradients of agents/dqn/fast.py. The burst rows are what the
+steps); "autograd" rows run the same agent with `fast = False` (dqn_loss + backward),
+the others the hand-written gradients of agents/dqn/losses_fast.py. The burst rows are what the
 trainer does after every 256 env steps, `Learner.run(128)`, per step: with the target
 network's Q-values computed once per chunk of batches (the default) and, for comparison,
 once per step, alternating round by round (medians of 30).
@@ -77,11 +77,11 @@ def main() -> None:
     h, b = args.hidden, args.batch
     obs_spec, act_spec = ArraySpec((4,), torch.float32), DiscreteSpec(2)
 
-    def make_agent(double: bool, manual: bool) -> DQNAgent:
+    def make_agent(double: bool, fast: bool) -> DQNAgent:
         cfg = DQNConfig(hidden=h, batch_size=b, lr=2.3e-3, target_update_period=128, grad_clip=10.0,
                         double=double)
         agent = DQNAgent(obs_spec, act_spec, cfg, torch.device("cpu"), np.random.default_rng(0))
-        agent.manual_grads = manual and agent.manual_grads
+        agent.fast = fast and agent.fast
         return agent
 
     agent = make_agent(False, True)
@@ -133,9 +133,9 @@ def main() -> None:
     ]
     for double in (False, True):
         name = "Double DQN" if double else "DQN"
-        for manual in (False, True):
-            how = "hand-written grads" if manual else "autograd"
-            a = make_agent(double, manual)
+        for fast in (False, True):
+            how = "hand-written grads" if fast else "autograd"
+            a = make_agent(double, fast)
             rows.append((f"relayrl agent.train, {name}, {how}", per_call_us(lambda a=a: a.train(batch))))
         per_step, per_chunk = interleaved(double)
         rows.append((f"relayrl {name} burst: Learner.run(128), target Q per step, per step", per_step))

@@ -43,7 +43,7 @@ def main() -> None:
     g = torch.Generator().manual_seed(0)
     r, w = args.rows, args.width
     x, weight, bias = torch.randn(r, w, generator=g), torch.randn(w, w, generator=g), torch.randn(w, generator=g)
-    w_t = weight.t()  # [in, out] view of nn.Linear's [out, in], as CpuMLP uses it
+    w_t = weight.t()  # [in, out] view of nn.Linear's [out, in], as MLPInference uses it
     x_np, w_np = x.numpy(), w_t.contiguous().numpy()
     big_t = torch.randn(1024, 1024, generator=g)
     big_np = big_t.numpy()

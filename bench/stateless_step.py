@@ -20,7 +20,7 @@ and the three envs run one after another at each size, so they see the same load
 shared machine. On CUDA the clock stops after a synchronize. `ratio` = stateless / gymnasium.
 
 BPTT (the TorchRL Pendulum tutorial's training: batch 32, 100-step rollouts, Adam, clipping):
-iterations/s of `train_bptt` (fused and, slower, generic autograd through `rollout`), each over
+iterations/s of `train_bptt` (fast and, slower, generic autograd through `rollout`), each over
 `--bptt-iterations` iterations in this process, and of the tutorial's own TorchRL code (env,
 transforms and loop as the tutorial writes them, TorchRL 0.14 spec names) in a fresh process
 of `--torchrl-python`, when that interpreter has torchrl. `--learn` also runs the full
@@ -120,11 +120,11 @@ def bench_gymnasium(batch: int, seconds: float) -> float:
     return rate
 
 
-def bench_bptt(iterations: int, fused: bool, device: str, threads: int) -> float:
+def bench_bptt(iterations: int, fast: bool, device: str, threads: int) -> float:
     from relayrl.agents.bptt.bptt import train_bptt
     from relayrl.agents.bptt.config import BpttConfig
 
-    c = BpttConfig(fused=fused)
+    c = BpttConfig(fast=fast)
     train_bptt(c, iterations=3, device=device, torch_threads=threads)  # warm-up
     return train_bptt(c, iterations=iterations, device=device, torch_threads=threads).iterations_per_s
 
@@ -350,7 +350,7 @@ def main() -> None:
         gym_txt = f"{gym_rate:,.0f}" if gym_rate else "-"
         ratio_txt = "-" if ratio is None else f"{ratio:.2f}x" if ratio < 10 else f"{ratio:,.0f}x"
         print(f"{b:>8} {ours:>18,.0f} {adapted:>16,.0f} {gym_txt:>18} {ratio_txt:>8}", flush=True)
-    bptt = {"fused": bench_bptt(a.bptt_iterations, True, a.device, a.threads),
+    bptt = {"fast": bench_bptt(a.bptt_iterations, True, a.device, a.threads),
             "generic": bench_bptt(max(10, a.bptt_iterations // 5), False, a.device, a.threads)}
     if a.torchrl_python:
         res, proc = run_worker(a.torchrl_python, os.path.abspath(__file__),

@@ -51,3 +51,10 @@ def test_toml_round_trip(tmp_path):
     save_toml(c, tmp_path / "c.toml")
     assert to_dict(from_dict(load_toml(tmp_path / "c.toml"))) == to_dict(c)
     assert to_dict(load_config(str(tmp_path / "c.toml"))) == to_dict(c)
+
+
+def test_bptt_switch_is_named_fast():
+    assert load_config("bptt-pendulum").agent.fast is True
+    assert load_config("bptt-pendulum", ["agent.fast=false"]).agent.fast is False
+    with pytest.raises(ConfigError, match="unknown config key 'agent.fused'"):
+        load_config("bptt-pendulum", ["agent.fused=false"])

@@ -1,4 +1,5 @@
-"""Hand-written DQN gradients (agents/dqn/fast.py) against dqn_loss + autograd."""
+"""Hand-written DQN gradients (agents/dqn/losses_fast.py) against dqn_loss + autograd; the MLP's
+own backward is tested in test_nn.py."""
 
 import copy
 
@@ -6,8 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from relayrl.agents.dqn import DQNAgent, DQNConfig, dqn_loss, fast
-from relayrl.networks import MLP
+from relayrl.agents.dqn import DQNAgent, DQNConfig, dqn_loss
+from relayrl.agents.dqn.losses_fast import dqn_loss_and_grads
+from relayrl.nn import MLP
+from relayrl.nn.mlp_fast import clip_flat_grad_norm_, grad_buffers
 from relayrl.specs import ArraySpec, DiscreteSpec
 from relayrl.types import Batch
 
@@ -46,7 +49,7 @@ def test_gradients_equal_autograd(activation, loss, weighted, mode):
     kw = dict(double=mode == "double", loss=loss, huber_delta=0.7)
     ref_loss, ref_metrics = dqn_loss(online, target, batch, **kw)
     ref_loss.backward()
-    value, metrics, grads = fast.dqn_loss_and_grads(online, target, batch, **kw)
+    value, metrics, grads = dqn_loss_and_grads(online, target, batch, **kw)
     assert torch.allclose(value, ref_loss, rtol=1e-6, atol=1e-7)
     for key in ("loss", "q", "td_error"):
         assert torch.allclose(metrics[key], ref_metrics[key], rtol=1e-6, atol=1e-6), key
@@ -63,21 +66,21 @@ def test_clipping_equals_torch(max_norm):
     batch = make_batch()
     dqn_loss(online, target, batch, double=False)[0].backward()
     ref_norm = torch.nn.utils.clip_grad_norm_(online.parameters(), max_norm)
-    flat, views = fast.grad_buffers(online)
-    _, _, grads = fast.dqn_loss_and_grads(online, target, batch, double=False, out=views)
+    flat, views = grad_buffers(online)
+    _, _, grads = dqn_loss_and_grads(online, target, batch, double=False, out=views)
     assert all(g is v for g, v in zip(grads, views, strict=True))
-    norm = fast.clip_flat_grad_norm_(flat, max_norm)
+    norm = clip_flat_grad_norm_(flat, max_norm)
     assert torch.allclose(norm, ref_norm, rtol=1e-6)
     for g, p in zip(grads, online.parameters(), strict=True):
         assert torch.allclose(g, p.grad, rtol=1e-5, atol=1e-8)
 
 
-def train_agent(manual, double, steps=30, seed=0):
+def train_agent(fast, double, steps=30, seed=0):
     torch.manual_seed(seed)
     cfg = DQNConfig(hidden=[32, 32], lr=1e-3, double=double, target_update_period=7, grad_clip=1.0)
     agent = DQNAgent(ArraySpec((5,), torch.float32), DiscreteSpec(3), cfg, torch.device("cpu"),
                      np.random.default_rng(seed))
-    agent.manual_grads = manual
+    agent.fast = fast
     metrics = [agent.train(make_batch(weighted=i % 2 == 1, seed=i)) for i in range(steps)]
     return agent, metrics
 
@@ -99,11 +102,6 @@ def test_agent_is_deterministic():
         assert all(torch.equal(x[k], y[k]) for k in x)
 
 
-def test_only_plain_mlps_take_the_fast_path():
-    assert fast.supports(MLP(4, [8], 2, "elu"))
-    assert not fast.supports(torch.nn.Sequential(torch.nn.Linear(4, 2)))
-
-
 @pytest.mark.parametrize("double", [False, True])
 def test_target_q_given_with_the_batch_stands_for_the_target_network(double):
     online, target = nets("relu", with_target=True)
@@ -112,6 +110,6 @@ def test_target_q_given_with_the_batch_stands_for_the_target_network(double):
         given = batch._replace(target_q=target(batch.next_obs))
         shifted = batch._replace(target_q=target(batch.next_obs) + 1.0)
     for fn in (lambda b: dqn_loss(online, target, b, double=double)[0],
-               lambda b: fast.dqn_loss_and_grads(online, target, b, double=double)[0]):
+               lambda b: dqn_loss_and_grads(online, target, b, double=double)[0]):
         assert torch.allclose(fn(given), fn(batch), rtol=1e-6)
         assert not torch.allclose(fn(shifted), fn(batch), rtol=1e-3)  # the given values are used

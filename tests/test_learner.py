@@ -68,8 +68,8 @@ def test_bursts_of_large_observations_are_drawn_in_small_chunks():
 
 
 @pytest.mark.parametrize("double", [False, True])
-@pytest.mark.parametrize("manual", [True, False])
-def test_target_q_computed_per_chunk_is_the_target_network_s_at_every_step(double, manual):
+@pytest.mark.parametrize("fast", [True, False])
+def test_target_q_computed_per_chunk_is_the_target_network_s_at_every_step(double, fast):
     """DQNAgent.prepare fills in target Q-values for a whole chunk; the learner must cut chunks
     where the target network changes (every 5 steps here, from a misaligned start), so every
     step's values are those of the target network it trains against, and training matches
@@ -79,7 +79,7 @@ def test_target_q_computed_per_chunk_is_the_target_network_s_at_every_step(doubl
         torch.manual_seed(0)  # the same initial weights for both
         a = DQNAgent(ArraySpec((3,), torch.float32), DiscreteSpec(2), cfg, torch.device("cpu"),
                      np.random.default_rng(0))
-        a.manual_grads = manual and a.manual_grads
+        a.fast = fast and a.fast
         return a
 
     chunked, stepwise = agent(), agent()

@@ -2,7 +2,7 @@
 
 import torch
 
-from relayrl.networks import MLP
+from relayrl.nn import MLP
 from relayrl.optim import FastAdam
 
 

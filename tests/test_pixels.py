@@ -14,7 +14,7 @@ from relayrl.envs import make_env
 from relayrl.envs.pixels import SkipFrame, frame_stack_of, mario_preprocessing
 from relayrl.errors import ConfigError, UserError
 from relayrl.export import load_policy
-from relayrl.networks import ConvQNet
+from relayrl.nn import ConvQNet
 from relayrl.policies import RandomPolicy
 from relayrl.replay import Table
 from relayrl.schedules import exponential_schedule
@@ -185,7 +185,7 @@ def test_conv_q_networks_shapes_and_uint8_scaling(network):
     agent = DQNAgent(ArraySpec((4, 84, 84), torch.uint8), DiscreteSpec(6), cfg, torch.device("cpu"),
                      np.random.default_rng(0))
     net = agent.online
-    assert isinstance(net, ConvQNet) and not agent.manual_grads  # the NumPy fast path is for MLPs only
+    assert isinstance(net, ConvQNet) and not agent.fast  # the hand-written gradients are for MLPs only
     assert net.head[0].in_features == 3136  # 64 x 7 x 7 at 84x84, as in Mnih et al. 2015
     x = torch.randint(0, 256, (5, 4, 84, 84), dtype=torch.uint8)
     q = net(x)

@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from relayrl.networks import MLP
+from relayrl.nn import MLP
+from relayrl.nn.mlp_fast import MLPInference
 from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy, RandomPolicy
 from relayrl.schedules import linear_schedule
 from relayrl.specs import ArraySpec, DiscreteSpec
@@ -17,15 +18,13 @@ def test_linear_schedule_end_points_and_constant():
 
 
 @pytest.mark.parametrize("activation", ["relu", "tanh", "elu"])
-@pytest.mark.parametrize("rows", [7, 50])  # the NumPy path and the addmm path (see CpuMLP)
+@pytest.mark.parametrize("rows", [7, 50])  # the NumPy path and the addmm path (see MLPInference)
 def test_cpu_inference_matches_the_module(activation, rows):
-    from relayrl.networks import CpuMLP
-
     torch.manual_seed(0)
     net = MLP(4, [256, 256], 3, activation)
     obs = torch.randn(rows, 4)
-    cpu = CpuMLP(net)
-    assert cpu.numpy.suits(rows) == (rows == 7)
+    cpu = MLPInference(net)
+    assert cpu.suits_numpy(rows) == (rows == 7)
     with torch.no_grad():
         np.testing.assert_allclose(cpu(obs), net(obs).numpy(), rtol=1e-5, atol=1e-6)
         assert torch.equal(GreedyPolicy(net, torch.device("cpu"))(obs), net(obs).argmax(1))
@@ -40,23 +39,19 @@ def test_cpu_inference_matches_the_module(activation, rows):
 
 
 def test_cpu_inference_leaves_the_parameters_alone():
-    from relayrl.networks import CpuMLP
-
     net = MLP(4, [256, 256], 2)  # requires_grad on: the lean path must neither fail nor build a graph
     before = [p.detach().clone() for p in net.parameters()]
-    out = CpuMLP(net)(torch.randn(64, 4))
+    out = MLPInference(net)(torch.randn(64, 4))
     assert out.shape == (64, 2) and out.dtype == np.float32
     assert all(torch.equal(a, p) for a, p in zip(before, net.parameters(), strict=True))
     assert all(p.grad is None for p in net.parameters())
 
 
 def test_numpy_path_serves_small_batches_and_torch_large_ones():
-    from relayrl.networks import NumpyMLP
-
-    wide = NumpyMLP(MLP(3, [256, 256], 2))  # ~67k multiply-adds per row
-    assert wide.suits(1) and wide.suits(7) and not wide.suits(8) and not wide.suits(32)
-    narrow = NumpyMLP(MLP(4, [64, 64], 2))
-    assert narrow.suits(64) and not narrow.suits(1024)
+    wide = MLPInference(MLP(3, [256, 256], 2))  # ~67k multiply-adds per row
+    assert wide.suits_numpy(1) and wide.suits_numpy(7) and not wide.suits_numpy(8) and not wide.suits_numpy(32)
+    narrow = MLPInference(MLP(4, [64, 64], 2))
+    assert narrow.suits_numpy(64) and not narrow.suits_numpy(1024)
     torch.manual_seed(0)
     net = MLP(4, [256, 256], 3)
     greedy = GreedyPolicy(net, torch.device("cpu"))

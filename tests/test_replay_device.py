@@ -165,7 +165,7 @@ def test_the_policy_acts_in_torch_on_a_device_as_it_does_in_numpy():
     # On a GPU, observations from a stateless env stay there and `act_on_device` runs; here
     # it runs on the CPU and must be the same policy: equal greedy actions, and sampled ones
     # inside the bounds, reproducible from the seed, spread like the NumPy path's.
-    from relayrl.networks import MLP
+    from relayrl.nn import MLP
     from relayrl.policies import TanhGaussianPolicy
 
     torch.manual_seed(0)

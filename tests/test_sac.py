@@ -10,7 +10,6 @@ from torch.distributions import Normal, TanhTransform, TransformedDistribution
 
 import relayrl
 from relayrl.agents.sac import SACAgent, SACConfig, actor_loss, alpha_loss, critic_loss, critic_targets, tanh_gaussian
-from relayrl.agents.sac.networks import TwinCritic
 from relayrl.errors import UserError
 from relayrl.specs import ArraySpec, DiscreteSpec
 from relayrl.types import Batch
@@ -76,26 +75,6 @@ def test_actor_and_alpha_losses():
     assert loss.item() == pytest.approx(-math.log(2.0) * 1.0)  # mean(1 - 1, 3 - 1) = 1
     loss.backward()  # entropy -2 is below the target -1: alpha must grow, i.e. gradient < 0
     assert float(log_alpha.grad) == pytest.approx(-1.0)
-
-
-def test_twin_critic_equals_two_separate_mlps():
-    critic = TwinCritic(5, [7, 6], "relu")
-    obs, act = torch.randn(4, 3), torch.randn(4, 2)
-    x = torch.cat([obs, act], 1)
-    for i in range(2):
-        h = x
-        for j, (w, b) in enumerate(zip(critic.weights, critic.biases, strict=True)):
-            h = h @ w[i] + b[i]
-            h = torch.relu(h) if j < 2 else h
-        assert torch.allclose(critic(obs, act)[i], h.squeeze(-1), atol=1e-6)
-
-
-def test_actor_loss_path_gives_action_gradients_and_no_critic_gradients():
-    critic = TwinCritic(5, [8], "relu")
-    action = torch.randn(4, 2, requires_grad=True)
-    critic(torch.randn(4, 3), action, detach_params=True).sum().backward()
-    assert action.grad is not None and bool(action.grad.abs().sum() > 0)
-    assert all(p.grad is None for p in critic.parameters())
 
 
 def test_target_critics_follow_by_polyak_averaging():

@@ -1,12 +1,11 @@
-"""SAC's hand-written gradients (agents/sac/fast.py) against autograd on the losses of losses.py."""
+"""SAC's hand-written updates (agents/sac/losses_fast.py + nn.mlp_fast) against autograd on the
+losses of losses.py; the networks' own backward passes are tested in test_nn.py."""
 
 import numpy as np
 import pytest
 import torch
 
 from relayrl.agents.sac import SACAgent, SACConfig
-from relayrl.agents.sac.networks import TwinCritic
-from relayrl.networks import MLP
 from relayrl.specs import ArraySpec
 from relayrl.types import Batch
 
@@ -60,12 +59,3 @@ def test_updates_equal_autograds(activation, options):
         for a, b_ in zip(params(fast), params(slow), strict=True):
             assert torch.allclose(a, b_, rtol=1e-5, atol=1e-6)
     assert fast.gen.get_state().equal(slow.gen.get_state())  # the same noise draws
-
-
-def test_other_networks_fall_back_to_autograd():
-    fast, _ = pair()
-    assert type(fast.actor) is MLP and type(fast.critic) is TwinCritic
-    fast.actor.activation = "gelu"  # no hand-written backward for it
-    from relayrl.agents.sac.fast import supports
-
-    assert not supports(fast.actor, fast.critic)

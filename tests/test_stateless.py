@@ -1,5 +1,5 @@
 """Stateless torch envs (issue 6): Pendulum against Gymnasium, specs and check_env, transforms,
-batch shapes, seeding, differentiable rollouts, the fused BPTT gradient, and the adapter."""
+batch shapes, seeding, differentiable rollouts, the fast BPTT gradient, and the adapter."""
 
 import math
 import statistics
@@ -263,13 +263,13 @@ def test_gradient_flows_through_a_20_step_rollout():
         assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0
 
 
-def test_fused_gradient_equals_autograd_through_the_env():
+def test_fast_gradient_equals_autograd_through_the_env():
     torch.manual_seed(0)
     policy = make_policy().double()
     env = make_pendulum(dtype=torch.float64)
     state, _ = env.reset((8,), make_generator(0))
     state = state._replace(thdot=state.thdot * 8)  # fast enough that some steps hit max_speed
-    policy[-1].bias.data.fill_(1.5)  # and some torques hit max_torque
+    policy.layers[-1].bias.data.fill_(1.5)  # and some torques hit max_torque
     th, thdot = state.th.clone().requires_grad_(), state.thdot.clone().requires_grad_()
     r_ref = rollout(env, policy, 30, state._replace(th=th, thdot=thdot)).reward
     (r_ref * torch.linspace(-1, 1, 30, dtype=torch.float64)[:, None]).sum().backward()  # any loss, not only the mean
@@ -291,10 +291,10 @@ def _eval(policy, seed=123):
         return pendulum_mlp_rewards(policy, state.th, state.thdot, 100, env.base_env.params).mean().item()
 
 
-@pytest.mark.parametrize("fused", [True, False])
-def test_short_bptt_run_improves(fused):
+@pytest.mark.parametrize("fast", [True, False])
+def test_short_bptt_run_improves(fast):
     logs = []
-    result = train_bptt(BpttConfig(fused=fused), callback=logs.append, iterations=30, seed=0)
+    result = train_bptt(BpttConfig(fast=fast), callback=logs.append, iterations=30, seed=0)
     assert len(result.mean_reward) == len(logs) == 30 and logs[-1].iteration == 29
     assert logs[0].lr == pytest.approx(2e-3, rel=1e-4)
     with torch.random.fork_rng():

@@ -10,14 +10,15 @@ import numpy as np
 import torch
 from torch import nn
 
-from relayrl.networks import CONV_NETWORKS, MLP, ConvQNet, CpuMLP
+from relayrl.nn import CONV_NETWORKS, MLP, ConvQNet
+from relayrl.nn.mlp_fast import MLPInference
 from relayrl.specs import ArraySpec, DiscreteSpec, Spec
 
 
-def _cpu_mlp(net: nn.Module, device: torch.device) -> CpuMLP | None:
+def _cpu_mlp(net: nn.Module, device: torch.device) -> MLPInference | None:
     """The lean CPU forward pass of `net` when it is a float32 MLP on the CPU, else None."""
     if isinstance(net, MLP) and device.type == "cpu" and all(p.dtype == torch.float32 for p in net.parameters()):
-        return CpuMLP(net)
+        return MLPInference(net)
     return None
 
 
@@ -40,8 +41,8 @@ class RandomPolicy:
 class GreedyPolicy:
     """argmax_a Q(obs, a). Runs the network on its device and returns CPU actions.
 
-    A float32 MLP on the CPU runs through `CpuMLP` (NumPy views of its weights for small batches,
-    lean torch ops for the rest).
+    A float32 MLP on the CPU runs through `MLPInference` (NumPy views of its weights for small
+    batches, lean torch ops for the rest).
     """
 
     env_steps: int | None = None  # when a loaded policy was saved (see relayrl.load_policy)
@@ -131,7 +132,7 @@ class TanhGaussianPolicy:
         u = out[:, :a_dim]  # [B, A]
         if not self.deterministic:
             lo, hi = self.log_std_bounds
-            log_std = np.minimum(np.maximum(out[:, a_dim:], lo), hi)  # np.clip's values without its wrapper's cost
+            log_std = np.minimum(np.maximum(out[:, a_dim:], lo), hi)  # np.clip's values, without its wrapper
             u = u + np.exp(log_std) * self.rng.standard_normal(u.shape, dtype=np.float32)
         return torch.from_numpy((self.loc + self.half * np.tanh(u)).astype(np.float32, copy=False))
 

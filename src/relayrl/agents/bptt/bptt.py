@@ -10,21 +10,22 @@ nearly constant; we keep T_max = 20,000 to reproduce it.
 
 Two ways to get the gradient, equal up to float rounding (tests/test_stateless.py checks it):
 
-- generic (`fused=False`): `rollout()` through `make_pendulum()` with autograd recording
+- generic (`fast=False`): `rollout()` through `make_pendulum()` with autograd recording
   every op; works for any env and policy.
-- fused (`fused=True`, the default): `PendulumMlpRollout`, an autograd.Function that runs the
+- fast (`fast=True`, the default): `PendulumMlpRollout`, an autograd.Function that runs the
   policy MLP and the Pendulum dynamics without autograd into preallocated `[T, B, ...]`
   buffers and computes the backward pass by hand: per step only the adjoint recursion
   (three small matmuls and a handful of elementwise ops), with every weight gradient done
-  afterwards as one matmul over all T*B rows. On a CPU, where per-op overhead dominates
-  tensors this small, it is ~4x faster than the generic path (bench/stateless_step.py).
-  It assumes the Pendulum dynamics of pendulum.py with scalar params and a
-  `make_policy`-shaped MLP (Linear/Tanh ... Linear); tanh is evaluated as 2 sigmoid(2z) - 1
-  (half the cost on CPU), the same function up to rounding.
+  afterwards as one matmul over all T*B rows. On a CPU per-op overhead dominates tensors
+  this small, so fewer, larger ops win (bench/stateless_step.py measures both).
+  It assumes the Pendulum dynamics of pendulum.py with scalar params and a tanh
+  `relayrl.nn.MLP` (`make_policy`); tanh is evaluated as 2 sigmoid(2z) - 1 (cheaper on
+  CPU), the same function up to rounding. The MLP's generic hand-written backward
+  (relayrl.nn.mlp_fast) does not fit here: this one runs on the sigmoid form, keeps its
+  gradients transposed ([hidden, B]) and interleaves them with the dynamics' adjoint.
 
-torch.compile did not pay off here: compiling one eager step took ~13 s on this 2-core
-machine and the compiled step ran slower than eager at batch 32 (Inductor's CPU call
-overhead), so the whole 625-iteration run would only get longer.
+torch.compile is not used: on a CPU its per-call overhead exceeds what it saves at batch 32,
+and its compile time is longer than a whole run.
 """
 
 from __future__ import annotations
@@ -35,12 +36,12 @@ from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 import torch
-from torch import nn
 
 from relayrl.agents.bptt.config import BpttConfig
 from relayrl.envs.stateless.base import make_generator
 from relayrl.envs.stateless.pendulum import PendulumParams, make_pendulum
 from relayrl.envs.stateless.rollout import rollout
+from relayrl.nn import MLP
 from relayrl.seeding import RunSeeds
 
 
@@ -55,7 +56,7 @@ class BpttLog(NamedTuple):
 class BpttResult(NamedTuple):
     mean_reward: list[float]  # per iteration
     last_reward: list[float]  # per iteration
-    policy: nn.Sequential
+    policy: MLP
     seconds: float  # the training loop's wall time
 
     @property
@@ -63,15 +64,9 @@ class BpttResult(NamedTuple):
         return len(self.mean_reward) / self.seconds
 
 
-def make_policy(obs_dim: int = 3, act_dim: int = 1, hidden: Sequence[int] = (64, 64, 64)) -> nn.Sequential:
+def make_policy(obs_dim: int = 3, act_dim: int = 1, hidden: Sequence[int] = (64, 64, 64)) -> MLP:
     """The tutorial's MLP: Linear+Tanh per hidden layer, then a linear output."""
-    layers: list[nn.Module] = []
-    width = obs_dim
-    for h in hidden:
-        layers += [nn.Linear(width, h), nn.Tanh()]
-        width = h
-    layers.append(nn.Linear(width, act_dim))
-    return nn.Sequential(*layers)
+    return MLP(obs_dim, list(hidden), act_dim, "tanh")
 
 
 class _Consts(NamedTuple):
@@ -88,7 +83,7 @@ def _consts(p: PendulumParams) -> _Consts:
 
 
 class _Saved(NamedTuple):
-    """What the fused forward keeps for its backward, all `[T(+1), B, ...]`."""
+    """What the fast forward keeps for its backward, all `[T(+1), B, ...]`."""
 
     th: torch.Tensor  # [T+1, B]
     obs: torch.Tensor  # [T+1, B, 3]: cos th, sin th, thdot (column 2 is the thdot state)
@@ -113,7 +108,7 @@ def _sigmoid_weights(ws: Sequence[torch.Tensor], bs: Sequence[torch.Tensor]) -> 
     return out
 
 
-def _fused_forward(th0: torch.Tensor, thdot0: torch.Tensor, c: _Consts, steps: int,
+def _fast_forward(th0: torch.Tensor, thdot0: torch.Tensor, c: _Consts, steps: int,
                    layers: list[tuple[torch.Tensor, torch.Tensor]]) -> _Saved:
     t_max, b = steps, th0.shape[0]
     sv = _Saved(th0.new_empty(t_max + 1, b), th0.new_empty(t_max + 1, b, 3),
@@ -156,7 +151,7 @@ def _state_adjoint_map(g_r: torch.Tensor, sv: _Saved, c: _Consts) -> torch.Tenso
     return torch.stack([to_th, to_q], 1)
 
 
-def _fused_backward(g_r: torch.Tensor, sv: _Saved, ws: Sequence[torch.Tensor], c: _Consts,
+def _fast_backward(g_r: torch.Tensor, sv: _Saved, ws: Sequence[torch.Tensor], c: _Consts,
                     ) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
     """Adjoint recursion from the last step to the first, with as few small ops per step as
     we could: the MLP's gradients are kept transposed (`[hidden, B]`), and the state adjoint
@@ -200,7 +195,7 @@ class PendulumMlpRollout(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, th0: torch.Tensor, thdot0: torch.Tensor, c: _Consts, steps: int,
                 *wb: torch.Tensor) -> torch.Tensor:
-        sv = _fused_forward(th0, thdot0, c, steps, _sigmoid_weights(wb[0::2], wb[1::2]))
+        sv = _fast_forward(th0, thdot0, c, steps, _sigmoid_weights(wb[0::2], wb[1::2]))
         an = torch.remainder(sv.th[:steps] + math.pi, 2 * math.pi) - math.pi  # [T, B]
         td, u = sv.obs[:steps, :, 2], sv.u[..., 0]
         ctx.save_for_backward(*wb)
@@ -212,7 +207,7 @@ class PendulumMlpRollout(torch.autograd.Function):
         ws = ctx.saved_tensors[0::2]
         sv, ctx.saved = ctx.saved, None
         t_max, b = g_r.shape
-        g_th, g_td, gz_t = _fused_backward(g_r.contiguous(), sv, ws, ctx.c)
+        g_th, g_td, gz_t = _fast_backward(g_r.contiguous(), sv, ws, ctx.c)
         grads: list[torch.Tensor] = []
         inputs = [sv.obs[:t_max], *(2 * s - 1 for s in sv.sig)]  # each layer's input, [T, B, in]
         for x, g in zip(inputs, gz_t, strict=True):
@@ -221,13 +216,12 @@ class PendulumMlpRollout(torch.autograd.Function):
         return (g_th, g_td, None, None, *grads)
 
 
-def pendulum_mlp_rewards(policy: nn.Sequential, th0: torch.Tensor, thdot0: torch.Tensor, steps: int,
+def pendulum_mlp_rewards(policy: MLP, th0: torch.Tensor, thdot0: torch.Tensor, steps: int,
                          params: PendulumParams) -> torch.Tensor:
     """rewards [T, B] of a rollout of `policy` (a make_policy MLP) on Pendulum from th0, thdot0
     [B], differentiable with respect to the policy's parameters and the initial state."""
-    linears = [m for m in policy if isinstance(m, nn.Linear)]
-    expected = [nn.Linear, nn.Tanh] * (len(linears) - 1) + [nn.Linear]
-    if [type(m) for m in policy] != expected or linears[0].in_features != 3 or linears[-1].out_features != 1:
+    linears = list(policy.layers) if isinstance(policy, MLP) and policy.activation == "tanh" else []
+    if not linears or linears[0].in_features != 3 or linears[-1].out_features != 1:
         raise ValueError("pendulum_mlp_rewards needs a make_policy(3, 1, hidden) MLP")
     wb = [p for m in linears for p in (m.weight, m.bias)]
     return PendulumMlpRollout.apply(th0, thdot0, _consts(params), steps, *wb)
@@ -264,7 +258,7 @@ def _train(c: BpttConfig, callback: Callable[[BpttLog], None] | None, iterations
     start = time.perf_counter()
     for i in range(iterations):
         state, _ = env.reset((c.batch_size,), gen, device)
-        if c.fused:
+        if c.fast:
             rewards = pendulum_mlp_rewards(policy, state.th, state.thdot, c.rollout_steps, params)
         else:
             rewards = rollout(env, policy, c.rollout_steps, state).reward  # [T, B]

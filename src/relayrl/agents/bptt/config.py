@@ -16,7 +16,7 @@ class BpttConfig:
     max_grad_norm: float = 1.0
     batch_size: int = 32  # rollouts per iteration, from random initial states
     rollout_steps: int = 100
-    fused: bool = True  # the hand-written backward for Pendulum + MLP (false: autograd through rollout())
+    fast: bool = True  # the hand-written backward for Pendulum + MLP (false: autograd through rollout())
 
     def validate(self) -> None:
         if not self.hidden or any(h < 1 for h in self.hidden):

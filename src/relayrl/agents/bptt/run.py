@@ -14,13 +14,11 @@ import time
 from typing import Any
 
 import numpy as np
-import torch
-from torch import nn
 
 from relayrl.agents.bptt.bptt import BpttLog, train_bptt
 from relayrl.config import Config
 from relayrl.errors import ConfigError
-from relayrl.networks import MLP
+from relayrl.nn import MLP
 from relayrl.policy_file import save_policy_file
 from relayrl.training.assembly import RunResult, resolve_device
 from relayrl.training.run_dir import MetricsLog, RunDir
@@ -40,17 +38,11 @@ def check_bptt_config(c: Config) -> int:
     return c.train.total_steps // per_iteration
 
 
-def policy_state(policy: nn.Sequential, hidden: list[int], env_steps: int) -> dict[str, Any]:
-    """The trained Tanh MLP in relayrl's MLP layout, as kind "clamped_mlp" (export.py)."""
-    linears = [m for m in policy if isinstance(m, nn.Linear)]
-    net = MLP(linears[0].in_features, list(hidden), linears[-1].out_features, "tanh")
-    with torch.no_grad():
-        for mine, theirs in zip(net.layers, linears, strict=True):
-            mine.weight.copy_(theirs.weight)
-            mine.bias.copy_(theirs.bias)
+def policy_state(net: MLP, hidden: list[int], env_steps: int) -> dict[str, Any]:
+    """The trained Tanh MLP as kind "clamped_mlp" (export.py)."""
     return {"kind": "clamped_mlp", "obs_dim": net.layers[0].in_features, "hidden": list(hidden),
             "action_dim": net.layers[-1].out_features, "activation": "tanh",
-            "state_dict": {k: v.cpu() for k, v in net.state_dict().items()},
+            "state_dict": {k: v.detach().cpu() for k, v in net.state_dict().items()},
             "action_low": np.array([-2.0], np.float32), "action_high": np.array([2.0], np.float32),
             "env_id": ENV_ID, "env_steps": env_steps}
 

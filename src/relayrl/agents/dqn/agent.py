@@ -9,11 +9,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from relayrl.agents.dqn import fast
 from relayrl.agents.dqn.config import DQNConfig
 from relayrl.agents.dqn.losses import dqn_loss
+from relayrl.agents.dqn.losses_fast import dqn_loss_and_grads
 from relayrl.agents.dqn.networks import q_network
-from relayrl.networks import ConvQNet
+from relayrl.nn import ConvQNet, mlp_fast
 from relayrl.optim import FastAdam
 from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy
 from relayrl.schedules import exponential_schedule, linear_schedule
@@ -40,13 +40,13 @@ class DQNAgent:
                        if cfg.lr_end >= 0 and total_steps > 0 else None)
         self._online_params = list(self.online.parameters())
         self._target_params = list(self.target.parameters()) if self.target is not None else []
-        # Gradients by hand for MLPs (same values as autograd's, half the per-update overhead
-        # on CPU; see fast.py). Tests set it to False to compare against the autograd path.
-        self.manual_grads = fast.supports(self.online)
-        if self.manual_grads:
-            self._online_view = fast.MLPView(self.online)
-            self._target_view = fast.MLPView(self.target) if self.target is not None else None
-            self._flat_grad, self._grads = fast.grad_buffers(self.online)
+        # Gradients by hand for MLPs (losses_fast.py: the same values as autograd's, with less
+        # per-update overhead on CPU). Tests set it to False to compare against autograd.
+        self.fast = mlp_fast.supports(self.online)
+        if self.fast:
+            self._online_fast = mlp_fast.MLPFast(self.online)
+            self._target_fast = mlp_fast.MLPFast(self.target) if self.target is not None else None
+            self._flat_grad, self._grads = mlp_fast.grad_buffers(self.online)
 
     @property
     def train_step(self) -> int:
@@ -84,14 +84,13 @@ class DQNAgent:
     def prepare(self, batch: Batch, steps: int) -> Batch:
         """`batch` holding the next `steps` train() calls' batches, with the target network's
         Q-values of their next observations filled in when that network stays the same for
-        those calls. Why: one forward pass over the whole chunk replaces `steps` small ones;
-        with (256, 256) at batch 64 on a CPU that saves a few % of an update (BENCHMARKS.md).
+        those calls. Why: one forward pass over the whole chunk replaces `steps` small ones.
         The values are what train() would compute itself, up to float rounding."""
         if steps < 2 or steps > self.prepare_horizon():
             return batch
         next_obs = batch.next_obs.to(self.device, non_blocking=True)  # [steps * N, *obs_shape]
-        view = self._target_view if self.manual_grads else None
-        forward = (lambda x: view.forward(x)[0]) if view is not None else self.target
+        fast = self._target_fast if self.fast else None
+        forward = (lambda x: fast.forward(x)[0]) if fast is not None else self.target
         # Blocks of 256 rows: one [8192, 256] activation is a fresh 8 MB allocation whose page
         # faults cost as much as the matmul saves (256 rows stay in cache and reuse memory),
         # and a chunk of pixel batches never needs all its conv activations at once.
@@ -99,12 +98,12 @@ class DQNAgent:
 
     def train(self, batch: Batch) -> dict[str, torch.Tensor]:
         cfg = self.cfg
-        if self.manual_grads:
-            _, metrics, grads = fast.dqn_loss_and_grads(
-                self._online_view, self._target_view, batch, double=cfg.double, loss=cfg.loss,
+        if self.fast:
+            _, metrics, grads = dqn_loss_and_grads(
+                self._online_fast, self._target_fast, batch, double=cfg.double, loss=cfg.loss,
                 huber_delta=cfg.huber_delta, out=self._grads)
             if cfg.grad_clip > 0:
-                metrics["grad_norm"] = fast.clip_flat_grad_norm_(self._flat_grad, cfg.grad_clip)
+                metrics["grad_norm"] = mlp_fast.clip_flat_grad_norm_(self._flat_grad, cfg.grad_clip)
             self.optimizer.step(grads)
         else:
             loss, metrics = dqn_loss(self.online, self.target, batch, double=cfg.double,

@@ -6,7 +6,7 @@ from torch import nn
 
 from relayrl.agents.dqn.config import DQNConfig
 from relayrl.errors import UserError
-from relayrl.networks import CONV_NETWORKS, MLP, ConvQNet, tf_agents_init_
+from relayrl.nn import CONV_NETWORKS, MLP, ConvQNet, tf_agents_init_
 from relayrl.specs import DiscreteSpec, Spec, flat_dim
 
 

@@ -1,0 +1,41 @@
+"""The activation registry: every form of an activation in one record.
+
+An MLP's autograd forward uses `torch`; the inference path uses `inplace` (torch) or `numpy`;
+the hand-written gradients (mlp_fast.py) use `backward`, which needs either the output h
+(relu, tanh) or the pre-activation z (elu, `needs_input`). Adding an activation is one
+entry here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+Tensor = torch.Tensor
+_aten = torch.ops.aten
+
+
+@dataclass(frozen=True)
+class Activation:
+    name: str
+    torch: Callable[[Tensor], Tensor]
+    inplace: Callable[[Tensor], Tensor]  # overwrites its argument
+    numpy: Callable[[np.ndarray], np.ndarray]  # may overwrite its argument
+    # d loss / d z from g = d loss / d h, given z (None unless `needs_input`) and h = act(z),
+    # with the kernels autograd calls, so values equal autograd's.
+    backward: Callable[[Tensor, Tensor | None, Tensor], Tensor]
+    needs_input: bool = False  # backward reads z: a forward that saves for it must not overwrite z
+
+
+ACTIVATIONS: dict[str, Activation] = {a.name: a for a in (
+    Activation("relu", torch.relu, torch.relu_, lambda x: np.maximum(x, 0.0, out=x),
+               lambda g, z, h: _aten.threshold_backward.default(g, h, 0)),
+    Activation("tanh", torch.tanh, torch.tanh_, lambda x: np.tanh(x, out=x),
+               lambda g, z, h: _aten.tanh_backward.default(g, h)),
+    Activation("elu", F.elu, F.elu_, lambda x: np.where(x > 0, x, np.expm1(np.minimum(x, 0.0))),
+               lambda g, z, h: _aten.elu_backward.default(g, 1.0, 1, 1, False, z), needs_input=True),
+)}
