@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
+from relayrl.compile import compiled
 from relayrl.config import ConfigError
 from relayrl.presets import load_config
 from relayrl.replay import Fifo, MinSize, SequenceWriter, Table, TransitionWriter, Uniform
-from relayrl.replay.sumtree import compiled
 from relayrl.specs import ArraySpec
 from relayrl.training.loop import LocalRun
 from relayrl.training.replay import replay_device
@@ -106,7 +106,7 @@ def test_device_data_never_goes_through_numpy():
     t, w, shape = build("transition", 5, 40, n_step=3, device="cpu")
     # With numba, steps without an episode end take the compiled batched step (bookkeeping
     # in the loops, data in torch); the rest the general path.
-    assert (w._batched_step is not None) == (compiled("step_jit", "bind_batched_step") is not None)
+    assert (w._batched_step is not None) == (compiled("relayrl.replay.writers_fast", "bind_batched_step") is not None)
     feed(w, stream(5, 60, shape, guard=True), every=1)
     feed(w, stream(5, 30, shape, seed=1, guard=True), every=7)
     batch = w.read(live(t)[:16])

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
+from relayrl.compile import compiled
 from relayrl.replay import Fifo, MinSize, SequenceWriter, Table, TransitionWriter, Uniform
-from relayrl.replay.sumtree import compiled
 from relayrl.specs import ArraySpec, DiscreteSpec
 from relayrl.types import Transition
 
@@ -279,8 +279,8 @@ def test_one_step_flush_paths_leave_exactly_the_general_paths_state(num_envs, n_
 @pytest.mark.parametrize("frame_stack", [1, 3])
 def test_compiled_batched_step_leaves_the_numpy_paths_state(num_envs, n_step, max_size, frame_stack):
     # relayrl[fast]: a one-step flush of B > 1 envs without episode ends runs in two numba
-    # loops (step_jit.py). Rare episode ends, so most steps take it; the rest fall back.
-    if compiled("step_jit", "bind_batched_step") is None:
+    # loops (writers_fast.py). Rare episode ends, so most steps take it; the rest fall back.
+    if compiled("relayrl.replay.writers_fast", "bind_batched_step") is None:
         pytest.skip("the compiled step needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
     rng = np.random.default_rng(num_envs + n_step)
     shape, spec = ((frame_stack, 2, 2), ArraySpec((frame_stack, 2, 2), torch.float32)) if frame_stack > 1 \
@@ -311,7 +311,7 @@ def test_fused_flush_takes_uniform_fifo_tables_full_or_not():
     # for a Uniform/Fifo table whose limiter lets B inserts through, free slots or Fifo
     # victims alike; otherwise it takes the general path. Both leave the same state (the
     # twin test above, whose max_size=40 tables fill up).
-    if compiled("step_jit", "bind_batched_step") is None:
+    if compiled("relayrl.replay.writers_fast", "bind_batched_step") is None:
         pytest.skip("the compiled step needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
     from relayrl.replay import Prioritized, SampleToInsertRatio
 
@@ -328,7 +328,7 @@ def test_fused_flush_takes_uniform_fifo_tables_full_or_not():
     assert not any(paths(Table("t", 3, Uniform(), Fifo(), MinSize(1), seed=0)))  # B > max_size
     # a rate limiter that would make some of B = 4 inserts wait sends the step to the general
     # path (whose insert waits); the fused path never waits
-    from relayrl.replay.step_jit import _fused_step
+    from relayrl.replay.writers_fast import _fused_step
 
     limited = Table("t", 1_000, Uniform(), Fifo(), SampleToInsertRatio(1.0, 1, 10.0), seed=0)
     w = TransitionWriter(limited, 4, OBS, ACT, gamma=G, n_step=2)
@@ -424,9 +424,9 @@ def test_sampled_batches_read_the_rows_items_were_written_from():
 
 
 def test_compiled_row_sort_matches_argsort():
-    if compiled("step_jit", "bind_batched_step") is None:
+    if compiled("relayrl.replay.writers_fast", "bind_batched_step") is None:
         pytest.skip("the compiled step needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
-    from relayrl.replay.step_jit import _sort_rows
+    from relayrl.replay.writers_fast import _sort_rows
 
     rng = np.random.default_rng(0)
     for m in (0, 1, 2, 3, 33, 500):

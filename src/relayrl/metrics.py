@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from relayrl.replay.storage import to_numpy
-from relayrl.replay.sumtree import compiled
+from relayrl.arrays import to_numpy
+from relayrl.compile import compiled
 from relayrl.types import Transition
 
 
@@ -49,7 +49,7 @@ class EpisodeStats:
         self._ret: np.ndarray | None = None
         self._len: np.ndarray | None = None
         self._done: np.ndarray | None = None
-        self._accumulate = compiled("relayrl.metrics_jit", "accumulate")  # None: the NumPy path
+        self._accumulate = compiled("relayrl.metrics_fast", "accumulate")  # None: the NumPy path
 
     def __call__(self, t: Transition) -> None:
         reward = to_numpy(t.reward)  # a view for CPU tensors; device tensors are copied

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from relayrl.replay.storage import to_numpy
+from relayrl.arrays import to_numpy
 from relayrl.types import Transition
 
 if TYPE_CHECKING:

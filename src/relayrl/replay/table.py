@@ -15,10 +15,10 @@ from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
+from relayrl.compile import compiled
 from relayrl.replay.rate_limiters import MinSize, RateLimiter
 from relayrl.replay.selectors import Fifo, Selector, Uniform
 from relayrl.replay.storage import ItemStorage
-from relayrl.replay.sumtree import compiled
 
 
 class RateLimiterTimeout(TimeoutError):
@@ -78,9 +78,10 @@ class Table:
         self._update_keys: Callable[[np.ndarray, np.ndarray], float] = fused or self._update_slots
         # Inserts in compiled loops (table_jit) for the usual pair of selectors, when numba is
         # there; else the NumPy path.
-        take = compiled("table_jit", "take_slots") if type(sampler) is Uniform and type(remover) is Fifo else None
+        uniform_fifo = type(sampler) is Uniform and type(remover) is Fifo
+        take = compiled("relayrl.replay.table_fast", "take_slots") if uniform_fifo else None
         self._insert_kernels: tuple[Callable[..., int], Callable[..., bool]] | None = \
-            None if take is None else (take, compiled("table_jit", "insert_slots"))
+            None if take is None else (take, compiled("relayrl.replay.table_fast", "insert_slots"))
 
     # ---- introspection ------------------------------------------------------------------
     @property

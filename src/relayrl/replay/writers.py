@@ -21,16 +21,16 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
+from relayrl.arrays import to_numpy
+from relayrl.compile import compiled
 from relayrl.replay.one_step import one_env_step
 from relayrl.replay.steps import StepStore
-from relayrl.replay.storage import to_numpy
-from relayrl.replay.sumtree import compiled
 from relayrl.replay.table import Table
 from relayrl.specs import Spec
 from relayrl.types import Batch, Transition
 
 
-class Sequence(NamedTuple):
+class SequenceBatch(NamedTuple):
     """Sampled sequences, [N, L, ...]. Where `last` is set the row is a final observation
     and its action and reward are padding."""
 
@@ -135,7 +135,7 @@ class _Writer:
         self._start, self._last, self._terminated = f("start"), f("last"), f("terminated")
         self._item_key, self._ret, self._disc, self._nlen = f("item_key"), f("ret"), f("disc"), f("nlen")
         # `write` of several items in a compiled loop when numba is there (step_jit.write_records)
-        self._write_records = compiled("step_jit", "write_records")
+        self._write_records = compiled("relayrl.replay.writers_fast", "write_records")
         self._ret_disc = (np.asarray(self._ret), np.asarray(self._disc))  # plain views, as numba takes them
         table.storage = self
 
@@ -365,7 +365,7 @@ class TransitionWriter(_Writer):
         super().__init__(table, num_envs, obs_spec, action_spec, frame_stack, path, rows, pin_memory, chunk_length,
                          device)
         # B > 1 one-step flushes in compiled loops (step_jit) when numba is there; else NumPy.
-        bind = compiled("step_jit", "bind_batched_step")
+        bind = compiled("relayrl.replay.writers_fast", "bind_batched_step")
         self._batched_step = bind(self) if bind is not None and num_envs > 1 else None
 
     def _close_items(self) -> None:
@@ -472,7 +472,7 @@ class SequenceWriter(_Writer):
         self._advance(pos, candidate & ~closed)
         self._insert(envs[closed], pos[closed], pos[closed])
 
-    def read(self, slots: np.ndarray) -> Sequence:
+    def read(self, slots: np.ndarray) -> SequenceBatch:
         s = self.store
         envs, pos = self._refs(slots)
         steps = pos[:, None] + np.arange(self.L)  # [N, L]
@@ -485,5 +485,5 @@ class SequenceWriter(_Writer):
             stacks = [s.stacks(envs, steps[:, j], start) for j in range(self.L)]
             obs = torch.stack(stacks, 1) if s.on_device else np.stack(stacks, axis=1)  # type: ignore[arg-type]
         t = self._tensor
-        return Sequence(t(obs), t(s.gather("action", e * self.rows + rows)), t(s.reward[e, rows]), t(s.last[e, rows]),
-                        t(s.terminated[e, rows]))
+        return SequenceBatch(t(obs), t(s.gather("action", e * self.rows + rows)), t(s.reward[e, rows]),
+                             t(s.last[e, rows]), t(s.terminated[e, rows]))

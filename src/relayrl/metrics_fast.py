@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from relayrl.replay.sumtree_jit import _compile
+from relayrl.compile import njit
 
 
-@_compile
+@njit
 def accumulate(ret: np.ndarray, length: np.ndarray, reward: np.ndarray, terminated: np.ndarray,
                truncated: np.ndarray, done: np.ndarray) -> int:
     """ret += reward (in float64, as NumPy's mixed-type add), length += 1, done = terminated |

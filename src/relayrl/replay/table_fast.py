@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from relayrl.replay.sumtree_jit import _compile
+from relayrl.compile import njit
 
 
-@_compile
+@njit
 def take_slots(slots: np.ndarray, free: np.ndarray, num_free: int, slot_key: np.ndarray, queue: np.ndarray,
                head: int, tail: int) -> int:
     """Fill `slots`: free ones off the stack's end, then the Fifo's oldest live items (the
@@ -40,7 +40,7 @@ def take_slots(slots: np.ndarray, free: np.ndarray, num_free: int, slot_key: np.
     return head
 
 
-@_compile
+@njit
 def insert_slots(slots: np.ndarray, n_free: int, inserted: int, slot_key: np.ndarray, priority: np.ndarray,
                  max_priority: float, times_sampled: np.ndarray, dense: np.ndarray, where: np.ndarray, size: int,
                  identity: bool, queue: np.ndarray, tail: int, keys: np.ndarray) -> bool:

@@ -17,16 +17,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from relayrl.replay.storage import to_numpy
-from relayrl.replay.sumtree_jit import _compile
-from relayrl.replay.table_jit import insert_slots, take_slots
+from relayrl.arrays import to_numpy
+from relayrl.compile import njit
+from relayrl.replay.table_fast import insert_slots, take_slots
 from relayrl.types import Transition
 
 if TYPE_CHECKING:
     from relayrl.replay.writers import TransitionWriter
 
 
-@_compile
+@njit
 def _evictable(stamp: np.ndarray, item_key: np.ndarray, slot_key: np.ndarray, head: np.ndarray, rows: int,
                k: int, out: np.ndarray) -> int:
     """StepStore.evictable + _Writer._evict's liveness filter for each env's next row: the
@@ -46,7 +46,7 @@ def _evictable(stamp: np.ndarray, item_key: np.ndarray, slot_key: np.ndarray, he
     return n
 
 
-@_compile
+@njit
 def _write_and_close(frame: np.ndarray, action: np.ndarray, reward: np.ndarray, stamp: np.ndarray,
                      start: np.ndarray, last: np.ndarray, terminated: np.ndarray, item_key: np.ndarray,
                      ret: np.ndarray, disc: np.ndarray, nlen: np.ndarray, head: np.ndarray, ep_start: np.ndarray,
@@ -97,7 +97,7 @@ def _write_and_close(frame: np.ndarray, action: np.ndarray, reward: np.ndarray, 
     return m
 
 
-@_compile
+@njit
 def _sort_rows(items: np.ndarray, m: int) -> None:
     """Sort items[:m] by their first column (unique refs) in place: a shell sort. numba's
     np.argsort plus the row gather took ~9 s to compile from a cold cache (every new install,
@@ -116,7 +116,7 @@ def _sort_rows(items: np.ndarray, m: int) -> None:
         gap //= 2
 
 
-@_compile
+@njit
 def write_records(slot_ref: np.ndarray, slot_rows: np.ndarray, slots: np.ndarray, items: np.ndarray,
                   ret: np.ndarray, disc: np.ndarray) -> None:
     """`_Writer.write` for a batch of items: each slot's ref and its record (row, next row, and
@@ -133,7 +133,7 @@ def write_records(slot_ref: np.ndarray, slot_rows: np.ndarray, slots: np.ndarray
         rec["disc"] = disc[row]
 
 
-@_compile
+@njit
 def _step_and_insert(frame: np.ndarray, action: np.ndarray, reward: np.ndarray, stamp: np.ndarray, start: np.ndarray,
                      last: np.ndarray, terminated: np.ndarray, item_key: np.ndarray, ret: np.ndarray,
                      disc: np.ndarray, nlen: np.ndarray, head: np.ndarray, ep_start: np.ndarray,
