@@ -58,7 +58,7 @@ class EpisodeStats:
             self._len = np.zeros(reward.shape[0], np.int64)
             self._done = np.zeros(reward.shape[0], np.bool_)
         assert self._len is not None and self._done is not None
-        # NumPy, not torch, for these [B] arrays: a tiny torch op costs ~5x more.
+        # NumPy, not torch, for these [B] arrays: a tiny torch op costs several times more.
         if self._accumulate is not None:
             if not self._accumulate(self._ret, self._len, reward, to_numpy(t.terminated), to_numpy(t.truncated),
                                     self._done):

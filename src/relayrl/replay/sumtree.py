@@ -42,7 +42,7 @@ def flat_updates(idx: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def _cumsum(x: np.ndarray, axis: int) -> np.ndarray:
-    """Left-to-right cumulative sums (torch's CPU scan: ~4x faster than NumPy's here)."""
+    """Left-to-right cumulative sums (torch's CPU scan, faster than NumPy's here)."""
     return torch.cumsum(torch.from_numpy(x), axis).numpy()
 
 

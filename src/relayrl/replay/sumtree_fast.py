@@ -1,11 +1,11 @@
 """A binary sum tree walked by compiled loops (numba, the `relayrl[fast]` extra).
 
 The NumPy tree in `sumtree.py` answers a batch in a dozen array calls, and at 256 queries
-those calls' fixed costs (~5-80 us each, the top level's cumsum the largest) are the whole
-bill. Here a query is a 20-step loop down a flat binary tree and an update a 20-step loop
-up it, so a batch of 256 costs microseconds. `make_sum_tree` picks this class when numba
-imports; both classes have the same interface and find the same leaves (the two only round
-differently, so a query exactly on an interval's boundary may land one leaf apart).
+those calls' fixed costs (the top level's cumsum the largest) are the whole bill. Here a
+query is a 20-step loop down a flat binary tree and an update a 20-step loop up it.
+`make_sum_tree` picks this class when numba imports; both classes have the same interface and
+find the same leaves (the two only round differently, so a query exactly on an interval's
+boundary may land one leaf apart).
 
 Layout: `tree[1]` is the total, node i has children 2i and 2i+1, the leaves are
 `tree[base:base + capacity]` with `base` the power of two >= capacity. Every update

@@ -33,6 +33,12 @@ class SampleInfo(NamedTuple):
 
 
 class Storage(Protocol):
+    """Where a table keeps its items' data, by slot. The table calls `write` when it gives
+    items slots and `read` with the slots it samples; its checkpoint holds the storage's.
+    A storage may also have `stale(slots) -> bool mask`: items whose data no longer holds
+    what was written (memmap files reopened after the run went on), which a table that loads
+    a checkpoint deletes."""
+
     def write(self, slots: np.ndarray, items: Any) -> None: ...
     def read(self, slots: np.ndarray) -> Any: ...
     def state_dict(self) -> dict[str, Any]: ...
@@ -76,12 +82,20 @@ class Table:
         # use for priorities (Fifo, Lifo, Uniform); otherwise both are told in NumPy.
         fused = sampler.update_keys if type(remover).update is Selector.update else None
         self._update_keys: Callable[[np.ndarray, np.ndarray], float] = fused or self._update_slots
-        # Inserts in compiled loops (table_jit) for the usual pair of selectors, when numba is
-        # there; else the NumPy path.
+        # Inserts of n > 1 items in compiled loops (table_fast) for the usual pair of selectors,
+        # when numba is there; else the NumPy path.
         uniform_fifo = type(sampler) is Uniform and type(remover) is Fifo
         take = compiled("relayrl.replay.table_fast", "take_slots") if uniform_fifo else None
         self._insert_kernels: tuple[Callable[..., int], Callable[..., bool]] | None = \
             None if take is None else (take, compiled("relayrl.replay.table_fast", "insert_slots"))
+
+    def set_storage(self, storage: Storage) -> None:
+        """Keep items in `storage` from now on; only before the first insert. For a writer whose
+        items reference its own step store (it builds the storage with the table's size)."""
+        with self._cv:
+            if self._inserted:
+                raise ValueError(f"Table {self.name!r} already took items; its storage is set before the first insert")
+            self.storage = storage
 
     # ---- introspection ------------------------------------------------------------------
     @property
@@ -179,7 +193,7 @@ class Table:
 
     def _insert_compiled(self, items: Any, n: int) -> np.ndarray:
         """`_insert_many_locked` for a Uniform sampler and a Fifo remover, no priorities given:
-        the same writes in compiled loops (table_jit): free slots first, then Fifo victims."""
+        the same writes in compiled loops (table_fast): free slots first, then Fifo victims."""
         sampler, remover = self.sampler, self.remover
         assert isinstance(sampler, Uniform) and isinstance(remover, Fifo) and self._insert_kernels is not None
         take, put = self._insert_kernels
@@ -194,14 +208,6 @@ class Table:
         sampler.identity = put(slots, n_free, self._inserted, self.slot_key, self.priority, self.max_priority,
                                self.times_sampled, sampler.dense, sampler.where, sampler.size, sampler.identity,
                                remover.queue, remover.tail, keys)
-        self.note_inserted(n, n_free)
-        self.storage.write(slots, items)
-        return keys
-
-    def note_inserted(self, n: int, n_free: int) -> None:
-        """Counters after n items went into n_free free slots and n - n_free victims' slots
-        through the compiled loops (here, or in step_jit's fused flush)."""
-        sampler, remover = self.sampler, self.remover
         self._num_free -= n_free
         self._inserted += n
         sampler.size += n_free
@@ -211,6 +217,8 @@ class Table:
         self.rate_limiter.deletes += n - n_free
         if n > n_free:
             remover.trim()  # as its delete of the victims would
+        self.storage.write(slots, items)
+        return keys
 
     def _insert_one_locked(self, items: Any, priorities: np.ndarray | None) -> np.ndarray:
         """`_insert_many_locked` for one item, in Python scalars (a per-step writer's insert)."""
@@ -272,11 +280,16 @@ class Table:
         return float(priorities.max())
 
     def delete(self, keys: np.ndarray) -> int:
-        """Remove items by key; returns how many were still in the table."""
+        """Remove items by key; returns how many were still in the table (keys of items gone
+        already, or never inserted, are ignored)."""
         keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+        slots = keys % self.max_size
+        # A key that is not live now never is again (keys are never reused), so a call whose
+        # keys are all gone (a writer's usual eviction) returns without taking the lock.
+        if not (self.slot_key.take(slots) == keys).any():
+            return 0
         with self._cv:
-            slots = keys % self.max_size
-            slots = np.unique(slots[self.slot_key[slots] == keys])
+            slots = np.unique(slots[(self.slot_key[slots] == keys) & (keys >= 0)])  # key -1 matches an empty slot
             if slots.size:
                 self._delete_slots(slots)
                 if self._waiting:

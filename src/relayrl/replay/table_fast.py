@@ -1,13 +1,13 @@
 """A Table's insert of n items with a Uniform sampler and a Fifo remover (the default table, and
 every uniform replay relayrl builds), in compiled loops (numba, the `relayrl[fast]` extra).
 
-`Table._insert_many_locked` spends ~20 NumPy calls on [n] arrays (its own bookkeeping, then each
-selector's); at n = 32 that is ~40 us, twice that between env steps, on the batched 1:1 loop's
-every step. These loops do the same writes in ~3 us: free slots first (the free stack's end
-first), then, in a full table, the Fifo's oldest live items as victims (as `_KeyQueue.pop`
-takes them, skipping stale keys). Priorities given, other selectors, or no numba
-(RELAYRL_NUMBA=0) take the NumPy path; tests/test_replay_table.py checks that both leave the
-same table.
+`Table._insert_many_locked` spends about twenty NumPy calls on [n] arrays (its own bookkeeping, then each
+selector's), whose fixed costs are most of an insert at the batched 1:1 loop's n = B; these
+loops do the same writes: free slots first (the free stack's end first), then, in a full
+table, the Fifo's oldest live items as victims (as `_KeyQueue.pop` takes them, skipping stale
+keys). `Table.insert_batch` calls them under its lock and updates its counters. Priorities
+given, other selectors, or no numba (RELAYRL_NUMBA=0) take the NumPy path;
+tests/test_replay_table.py checks that both leave the same table.
 """
 
 from __future__ import annotations
