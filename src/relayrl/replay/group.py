@@ -52,6 +52,10 @@ class StorageGroup:
         self.owner = np.zeros(capacity, dtype=np.int32)  # slot -> storage
         self.active = 0
 
+    def bind(self, slot_key: np.ndarray) -> None:
+        for st in self.storages:
+            st.bind(slot_key)
+
     def write(self, slots: np.ndarray, items: np.ndarray) -> None:
         self.owner[slots] = self.active
         self.storages[self.active].write(slots, items)

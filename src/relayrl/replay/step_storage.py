@@ -51,9 +51,14 @@ class StepStorage:
         self.slot_rows = np.zeros(capacity, dtype=SLOT_RECORD)
         self.open_from = np.zeros(store.B, dtype=np.int64)  # per env: first position that may still become an item
         self.saved_episodes: tuple[Any, Any] = (None, None)  # (open_from, ep_start) of a loaded checkpoint
+        self.slot_key = np.full(capacity, -1, dtype=np.int64)  # the table's, once `bind` hands it over
         self._ret, self._disc, self._nlen = store.flat("ret"), store.flat("disc"), store.flat("nlen")
         self._write_records = compiled("relayrl.replay.step_storage_fast", "write_records") if fast else None
         self._ret_disc = (np.asarray(self._ret), np.asarray(self._disc))  # plain views, as numba takes them
+
+    def bind(self, slot_key: np.ndarray) -> None:
+        """The table's key map (slot -> live key, -1: empty), read to tell live items apart."""
+        self.slot_key = slot_key
 
     def share_slot_map(self, other: StepStorage) -> None:
         """Use `other`'s slot map: storages of one table (a WriterGroup's) own disjoint slots."""

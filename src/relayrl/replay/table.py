@@ -37,7 +37,9 @@ class Storage(Protocol):
     items slots and `read` with the slots it samples; its checkpoint holds the storage's.
     A storage may also have `stale(slots) -> bool mask`: items whose data no longer holds
     what was written (memmap files reopened after the run went on), which a table that loads
-    a checkpoint deletes."""
+    a checkpoint deletes; and `bind(slot_key)`: the table hands it its key map (read-only, as
+    its selectors get it), for a storage that tells its writer which live items read data
+    about to be overwritten."""
 
     def write(self, slots: np.ndarray, items: Any) -> None: ...
     def read(self, slots: np.ndarray) -> Any: ...
@@ -61,7 +63,6 @@ class Table:
         self.remover = remover
         self.rate_limiter = rate_limiter if rate_limiter is not None else MinSize(1)
         self.max_times_sampled = max_times_sampled
-        self.storage: Storage = storage if storage is not None else ItemStorage(max_size)
         self.rng = np.random.default_rng(seed)
         self.slot_key = np.full(max_size, -1, dtype=np.int64)
         self.priority = np.zeros(max_size, dtype=np.float64)
@@ -78,6 +79,9 @@ class Table:
         self.inserts_wait = True
         for selector in (sampler, remover):
             selector.bind(max_size, self.slot_key, self.priority)
+        self.storage: Storage = ItemStorage(max_size)
+        if storage is not None:
+            self.set_storage(storage)
         # A compiled prioritized sampler updates keys in one pass, when the remover has no
         # use for priorities (Fifo, Lifo, Uniform); otherwise both are told in NumPy.
         fused = sampler.update_keys if type(remover).update is Selector.update else None
@@ -96,6 +100,9 @@ class Table:
             if self._inserted:
                 raise ValueError(f"Table {self.name!r} already took items; its storage is set before the first insert")
             self.storage = storage
+            bind = getattr(storage, "bind", None)
+            if bind is not None:
+                bind(self.slot_key)
 
     # ---- introspection ------------------------------------------------------------------
     @property

@@ -5,7 +5,8 @@ A 1:1 collect/train loop flushes its writer after every batched step. The genera
 (`_Writer._write`) spends dozens of NumPy calls on [B] arrays there, whose fixed costs are
 the whole bill at small B; these loops write the same rows and close the same items in two
 calls. The items then go through the table's `insert_batch` (which takes its own compiled
-path for Uniform/Fifo tables) and the evictions through `delete`, as on the general path.
+path for Uniform/Fifo tables) and the evictions through `delete`, as on the general path;
+live items are told apart with the key map the table gave its storage (`StepStorage.bind`).
 Without numba, with RELAYRL_NUMBA=0, or with `TransitionWriter(fast=False)` the general path
 runs; tests/test_replay_writers.py checks that both leave the same store, items and table.
 """
@@ -25,19 +26,22 @@ if TYPE_CHECKING:
 
 
 @njit
-def evictable(stamp: np.ndarray, item_key: np.ndarray, head: np.ndarray, rows: int, k: int, out: np.ndarray) -> int:
-    """StepStore.evictable for each env's next row: the keys (>= 0) of the items that writing
-    row `head` would corrupt, into `out`; returns their count. Most are long gone; the
-    table's `delete` skips those."""
+def evictable(stamp: np.ndarray, item_key: np.ndarray, slot_key: np.ndarray, head: np.ndarray, rows: int, k: int,
+              out: np.ndarray) -> int:
+    """StepStore.evictable for each env's next row, live items only: the keys of the items still
+    in the table (`slot_key`, the table's key map) that writing row `head` would corrupt, into
+    `out`; returns their count. Most such items are long gone (the remover took them first)."""
     n = 0
     for b in range(head.size):
         p = head[b] - rows + k - 1  # the newest item that reads the row about to be reused
         if p < 0:
             continue
         i = b * rows + p % rows
-        if stamp[i] == p + 1 and item_key[i] >= 0:
-            out[n] = item_key[i]
-            n += 1
+        if stamp[i] == p + 1:
+            key = item_key[i]
+            if key >= 0 and slot_key[key % slot_key.size] == key:
+                out[n] = key
+                n += 1
     return n
 
 
@@ -134,7 +138,7 @@ class OneStep:
         if np.count_nonzero(to_numpy(t.terminated)) or np.count_nonzero(to_numpy(t.truncated)):
             return False
         s, w, columns, b = self.store, self.w, self.columns, self.store.B
-        count = evictable(columns[3], columns[7], s.head, s.T, s.k, self.keys)
+        count = evictable(columns[3], columns[7], w.storage.slot_key, s.head, s.T, s.k, self.keys)
         if count:
             self.table.delete(self.keys[:count])
         frames = t.obs[:, -1] if s.k > 1 else t.obs
