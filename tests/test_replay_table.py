@@ -241,12 +241,11 @@ def test_compiled_insert_leaves_the_numpy_paths_table(stale_keys):
     # slots, then the Fifo's oldest live items as victims. Twin tables, one forced onto the
     # NumPy path, through inserts that fit, that overflow (victims), deletes (stale keys the
     # victim search must skip) and samples.
-    if compiled("relayrl.replay.table_fast", "insert_slots") is None:
+    if compiled("relayrl.replay.table_fast", "insert") is None:
         pytest.skip("the compiled insert needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
     rng = np.random.default_rng(3)
-    a, b = (Table("t", 60, Uniform(), Fifo(), MinSize(1), seed=0) for _ in range(2))
-    assert a._insert_kernels is not None
-    b._insert_kernels = None
+    a, b = (Table("t", 60, Uniform(), Fifo(), MinSize(1), seed=0, fast=fast) for fast in (True, False))
+    assert a._insert_kernel is not None and b._insert_kernel is None
     free_only = with_victims = 0
     for step in range(120):
         n = int(rng.integers(2, 30))
@@ -275,9 +274,9 @@ def test_compiled_insert_leaves_the_numpy_paths_table(stale_keys):
 
 
 def test_without_numba_tables_insert_in_numpy(monkeypatch):
-    assert Table("t", 10, Uniform(), Lifo(), MinSize(1))._insert_kernels is None  # only Uniform/Fifo compile
+    assert Table("t", 10, Uniform(), Lifo(), MinSize(1))._insert_kernel is None  # only Uniform/Fifo compile
     monkeypatch.setenv("RELAYRL_NUMBA", "0")
-    assert Table("t", 10, Uniform(), Fifo(), MinSize(1))._insert_kernels is None
+    assert Table("t", 10, Uniform(), Fifo(), MinSize(1))._insert_kernel is None
 
 
 @pytest.mark.parametrize("queue", [Fifo, Lifo])

@@ -51,14 +51,16 @@ class StepStorage:
         self.slot_rows = np.zeros(capacity, dtype=SLOT_RECORD)
         self.open_from = np.zeros(store.B, dtype=np.int64)  # per env: first position that may still become an item
         self.saved_episodes: tuple[Any, Any] = (None, None)  # (open_from, ep_start) of a loaded checkpoint
-        self.slot_key = np.full(capacity, -1, dtype=np.int64)  # the table's, once `bind` hands it over
         self._ret, self._disc, self._nlen = store.flat("ret"), store.flat("disc"), store.flat("nlen")
+        self._item_key = store.flat("item_key")
+        self.bind(np.full(capacity, -1, dtype=np.int64))  # until the table hands over its key map
         self._write_records = compiled("relayrl.replay.step_storage_fast", "write_records") if fast else None
-        self._ret_disc = (np.asarray(self._ret), np.asarray(self._disc))  # plain views, as numba takes them
 
     def bind(self, slot_key: np.ndarray) -> None:
         """The table's key map (slot -> live key, -1: empty), read to tell live items apart."""
         self.slot_key = slot_key
+        # What `write_records` reads and writes besides the slot map, as plain ndarray views.
+        self._columns = (np.asarray(self._ret), np.asarray(self._disc), slot_key, np.asarray(self._item_key))
 
     def share_slot_map(self, other: StepStorage) -> None:
         """Use `other`'s slot map: storages of one table (a WriterGroup's) own disjoint slots."""
@@ -66,17 +68,21 @@ class StepStorage:
 
     # ---- the Table's storage interface ---------------------------------------------------
     def write(self, slots: np.ndarray, items: np.ndarray) -> None:
-        """items: [n, 3] rows of (pos * B + env, flat row, flat next row)."""
+        """items: [n, 3] rows of (pos * B + env, flat row, flat next row). Each item's row also
+        notes the item's key (`item_key`, from the table's key map): the item to evict when the
+        row is reused."""
         if len(slots) == 1:
             slot, (ref, row, nxt) = slots[0], items[0].tolist()
             self.slot_ref[slot] = ref
             self.slot_rows[slot] = (row, nxt, self._ret[row], self._disc[row])
+            self._item_key[row] = self.slot_key[slot]
             return
         if self._write_records is not None:
-            self._write_records(self.slot_ref, self.slot_rows, slots, items, *self._ret_disc)
+            self._write_records(self.slot_ref, self.slot_rows, slots, items, *self._columns)
             return
         self.slot_ref[slots] = items[:, 0]
         self.slot_rows[slots] = self._records(items[:, 1], items[:, 2])
+        self._item_key[items[:, 1]] = self.slot_key.take(slots)
 
     def read(self, slots: np.ndarray) -> Any:
         raise NotImplementedError

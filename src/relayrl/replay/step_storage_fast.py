@@ -14,8 +14,9 @@ from relayrl.compile import njit
 
 @njit
 def write_records(slot_ref: np.ndarray, slot_rows: np.ndarray, slots: np.ndarray, items: np.ndarray,
-                  ret: np.ndarray, disc: np.ndarray) -> None:
-    """Each slot's ref and its record (row, next row, and the row's return and discount)."""
+                  ret: np.ndarray, disc: np.ndarray, slot_key: np.ndarray, item_key: np.ndarray) -> None:
+    """Each slot's ref and its record (row, next row, and the row's return and discount), and
+    each item's key at its row."""
     for j in range(slots.size):
         slot = slots[j]
         row = items[j, 1]
@@ -25,3 +26,4 @@ def write_records(slot_ref: np.ndarray, slot_rows: np.ndarray, slots: np.ndarray
         rec["next"] = items[j, 2]
         rec["ret"] = ret[row]
         rec["disc"] = disc[row]
+        item_key[row] = slot_key[slot]

@@ -50,7 +50,7 @@ class Storage(Protocol):
 class Table:
     def __init__(self, name: str, max_size: int, sampler: Selector | None = None, remover: Selector | None = None,
                  rate_limiter: RateLimiter | None = None, max_times_sampled: int = 0, seed: int | None = None,
-                 storage: Storage | None = None) -> None:
+                 storage: Storage | None = None, fast: bool = True) -> None:
         if max_size < 1:
             raise ValueError(f"Table {name!r}: max_size={max_size} is not valid; it must be >= 1")
         sampler = sampler if sampler is not None else Uniform()
@@ -86,12 +86,14 @@ class Table:
         # use for priorities (Fifo, Lifo, Uniform); otherwise both are told in NumPy.
         fused = sampler.update_keys if type(remover).update is Selector.update else None
         self._update_keys: Callable[[np.ndarray, np.ndarray], float] = fused or self._update_slots
-        # Inserts of n > 1 items in compiled loops (table_fast) for the usual pair of selectors,
-        # when numba is there; else the NumPy path.
-        uniform_fifo = type(sampler) is Uniform and type(remover) is Fifo
-        take = compiled("relayrl.replay.table_fast", "take_slots") if uniform_fifo else None
-        self._insert_kernels: tuple[Callable[..., int], Callable[..., bool]] | None = \
-            None if take is None else (take, compiled("relayrl.replay.table_fast", "insert_slots"))
+        # `fast`: inserts of n > 1 items in compiled loops (table_fast) for the usual pair of
+        # selectors, when numba is there; else (and with fast=False) the NumPy path.
+        uniform_fifo = fast and type(sampler) is Uniform and type(remover) is Fifo
+        self._insert_kernel: Callable[..., tuple[int, bool]] | None = \
+            compiled("relayrl.replay.table_fast", "insert") if uniform_fifo else None
+        self.storage: Storage = ItemStorage(max_size)
+        if storage is not None:
+            self.set_storage(storage)
 
     def set_storage(self, storage: Storage) -> None:
         """Keep items in `storage` from now on; only before the first insert. For a writer whose
@@ -166,11 +168,11 @@ class Table:
     def _insert_locked(self, items: Any, priorities: np.ndarray | None, n: int) -> np.ndarray:
         if n == 1:
             return self._insert_one_locked(items, priorities)
+        if self._insert_kernel is not None and priorities is None:
+            return self._insert_compiled(items, n)
         return self._insert_many_locked(items, priorities, n)
 
     def _insert_many_locked(self, items: Any, priorities: np.ndarray | None, n: int) -> np.ndarray:
-        if self._insert_kernels is not None and priorities is None:
-            return self._insert_compiled(items, n)
         n_free = min(n, self._num_free)
         free = self._free[self._num_free - n_free:self._num_free][::-1].copy()
         self._num_free -= n_free
@@ -202,19 +204,18 @@ class Table:
         """`_insert_many_locked` for a Uniform sampler and a Fifo remover, no priorities given:
         the same writes in compiled loops (table_fast): free slots first, then Fifo victims."""
         sampler, remover = self.sampler, self.remover
-        assert isinstance(sampler, Uniform) and isinstance(remover, Fifo) and self._insert_kernels is not None
-        take, put = self._insert_kernels
+        assert isinstance(sampler, Uniform) and isinstance(remover, Fifo) and self._insert_kernel is not None
         remover.reserve(n)
         slots = np.empty(n, dtype=np.int64)
-        head = take(slots, self._free, self._num_free, self.slot_key, remover.queue, remover.head, remover.tail)
+        keys = np.empty(n, dtype=np.int64)
+        head, sampler.identity = self._insert_kernel(
+            slots, keys, self._free, self._num_free, self._inserted, self.slot_key, self.priority, self.max_priority,
+            self.times_sampled, sampler.dense, sampler.where, sampler.size, sampler.identity, remover.queue,
+            remover.head, remover.tail)
         if head < 0:
             raise IndexError("pop from an empty queue")  # as _KeyQueue.pop
         remover.head = head
         n_free = min(n, self._num_free)
-        keys = np.empty(n, dtype=np.int64)
-        sampler.identity = put(slots, n_free, self._inserted, self.slot_key, self.priority, self.max_priority,
-                               self.times_sampled, sampler.dense, sampler.where, sampler.size, sampler.identity,
-                               remover.queue, remover.tail, keys)
         self._num_free -= n_free
         self._inserted += n
         sampler.size += n_free

@@ -117,7 +117,7 @@ class _Writer:
         self._staged: list[Transition] = []
         f = self.store.flat
         self._reward, self._start, self._last, self._terminated = f("reward"), f("start"), f("last"), f("terminated")
-        self._item_key, self._ret, self._disc, self._nlen = f("item_key"), f("ret"), f("disc"), f("nlen")
+        self._ret, self._disc, self._nlen = f("ret"), f("disc"), f("nlen")
 
     def _use_storage(self, storage: StepStorage) -> None:
         self.storage = storage
@@ -225,9 +225,9 @@ class _Writer:
         base = envs * self.rows
         items = np.empty((len(envs), 3), dtype=np.int64)  # what `StepStorage.write` stores per slot
         items[:, 0] = ref
-        items[:, 1] = rows = base + pos % self.rows
+        items[:, 1] = base + pos % self.rows
         items[:, 2] = base + next_pos % self.rows
-        self._item_key[rows] = self.table.insert_batch(items, n=len(envs))
+        self.table.insert_batch(items, n=len(envs))  # (the storage notes each item's key at its row)
 
     def _advance(self, pos: np.ndarray, still_open: np.ndarray) -> None:
         """Next flush starts at each env's first item that may still close."""

@@ -153,5 +153,5 @@ class OneStep:
         m = _write_and_close(*columns, s.head, s.ep_start, w.open_from, s.T, w.n, w.powers, frames_np, actions_np,
                              rewards, items)
         if m:
-            columns[7][items[:m, 1]] = self.table.insert_batch(items[:m], n=m)
+            self.table.insert_batch(items[:m], n=m)  # (the storage notes each item's key at its row)
         return True
