@@ -229,7 +229,9 @@ class Table:
         return keys
 
     def _insert_one_locked(self, items: Any, priorities: np.ndarray | None) -> np.ndarray:
-        """`_insert_many_locked` for one item, in Python scalars (a per-step writer's insert)."""
+        """`_insert_many_locked` for one item, in Python scalars: a one-env writer inserts one item
+        per step, and the NumPy path's dozen array calls on one-element arrays cost several
+        times this (a prioritized table has no compiled insert)."""
         if self._num_free:
             self._num_free -= 1
             slot = int(self._free[self._num_free])
