@@ -79,9 +79,6 @@ class Table:
         self.inserts_wait = True
         for selector in (sampler, remover):
             selector.bind(max_size, self.slot_key, self.priority)
-        self.storage: Storage = ItemStorage(max_size)
-        if storage is not None:
-            self.set_storage(storage)
         # A compiled prioritized sampler updates keys in one pass, when the remover has no
         # use for priorities (Fifo, Lifo, Uniform); otherwise both are told in NumPy.
         fused = sampler.update_keys if type(remover).update is Selector.update else None
