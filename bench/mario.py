@@ -200,7 +200,7 @@ def relayrl_memory(items: int, record: int, seed: int) -> dict:
                                          rec["rewards"][j][:, None], d[:, None], rec["term"][j][:, None], finals))
         fill_s = time.perf_counter() - t0
         after = proc_status()
-        arrays = list(s.cols.arrays.values()) + [writer.slot_ref, writer.slot_rows]
+        arrays = list(s.cols.arrays.values()) + [writer.storage.slot_ref, writer.storage.slot_rows]
         own = resident_of(arrays)
         batch, _ = table.sample(32)
         ok = tuple(batch.obs.shape) == (32, *OBS) and batch.obs.dtype.is_floating_point is False
@@ -285,7 +285,7 @@ def relayrl_loop(burn_in: int, steps: int, warmup: int, threads: int, seed: int)
         run.run()
         rss1 = proc_status()["VmRSS"]
         s = run.writer.store
-        arrays = list(s.cols.arrays.values()) + [run.writer.slot_ref, run.writer.slot_rows]
+        arrays = list(s.cols.arrays.values()) + [run.writer.storage.slot_ref, run.writer.storage.slot_rows]
         own = resident_of(arrays)
         train_steps = run.agent.train_step
         episodes = run.stats.episodes

@@ -111,7 +111,7 @@ def test_writer_group_evicts_its_own_items_when_its_rows_wrap():
         group.write_chunk(0, s.chunk(10))  # 300 steps per env into 64 rows: the ring wraps
     batch, _ = table.sample(500)
     assert_items_consistent(batch)
-    assert not group.stale(np.flatnonzero(table.slot_key >= 0)).any()
+    assert not group.storage.stale(np.flatnonzero(table.slot_key >= 0)).any()
 
 
 def test_writer_group_checkpoint_round_trip():

@@ -1,5 +1,5 @@
 """Batch-aware metrics at batch sizes 1, 7 and 32, against hand-computed values, through the
-compiled accumulation (metrics_jit, numba) and the NumPy one."""
+compiled accumulation (metrics_fast, numba) and the NumPy one."""
 
 import math
 
@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from relayrl.compile import compiled
 from relayrl.metrics import (
     AverageEpisodeLength,
     AverageReturn,
@@ -14,7 +15,6 @@ from relayrl.metrics import (
     EpisodeStats,
     NumberOfEpisodes,
 )
-from relayrl.replay.sumtree import compiled
 from relayrl.types import Transition
 
 
@@ -23,7 +23,7 @@ def accumulation(request, monkeypatch):
     if request.param == "numpy":
         monkeypatch.setenv("RELAYRL_NUMBA", "0")
         assert EpisodeStats()._accumulate is None
-    elif compiled("relayrl.metrics_jit", "accumulate") is None:
+    elif compiled("relayrl.metrics_fast", "accumulate") is None:
         pytest.skip("the compiled accumulation needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
     else:
         assert EpisodeStats()._accumulate is not None

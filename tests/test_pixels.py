@@ -171,7 +171,7 @@ def test_stacks_rebuilt_by_the_replay_equal_a_naive_replay_across_episodes(tmp_p
     ends = [r for r in naive.rows if r[4] == 0.0]
     assert ends and len(ends) < len(naive.rows)  # terminations, and truncations by the time limit
     live = np.flatnonzero(table.slot_key >= 0)
-    b = writer.read(live)
+    b = writer.storage.read(live)
     stored = sorted((o.numpy().tobytes(), int(a), float(r), n.numpy().tobytes(), round(float(d), 6))
                     for o, a, r, n, d in zip(b.obs, b.action, b.reward, b.next_obs, b.discount, strict=True))
     assert b.obs.dtype == torch.uint8 and b.obs.shape[1:] == (4, 84, 84)

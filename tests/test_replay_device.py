@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 import torch
 
+from relayrl.compile import compiled
 from relayrl.config import ConfigError
 from relayrl.presets import load_config
 from relayrl.replay import Fifo, MinSize, SequenceWriter, Table, TransitionWriter, Uniform
-from relayrl.replay.sumtree import compiled
 from relayrl.specs import ArraySpec
 from relayrl.training.loop import LocalRun
 from relayrl.training.replay_setup import replay_device
@@ -83,14 +83,14 @@ def test_a_store_on_a_device_holds_and_reads_what_the_numpy_store_does(kind, num
     feed(w_dev, steps, every)
     # The same items in the same slots (the bookkeeping is NumPy on both sides)...
     assert np.array_equal(t_np.slot_key, t_dev.slot_key)
-    assert np.array_equal(w_np.slot_ref, w_dev.slot_ref)
+    assert np.array_equal(w_np.storage.slot_ref, w_dev.storage.slot_ref)
     assert t_np.size == t_dev.size > 10
     # ...the same rows of data...
     for name in ("frame", "action"):
         assert torch.equal(torch.from_numpy(w_np.store.flat(name)), w_dev.store.flat(name)), name
     # ...and the same reads, as tensors on the store's device.
     slots = live(t_np)
-    a, b = w_np.read(slots), w_dev.read(slots)
+    a, b = w_np.storage.read(slots), w_dev.storage.read(slots)
     for x, y in zip(a, b, strict=True):
         if x is None:
             assert y is None
@@ -104,12 +104,12 @@ def test_device_data_never_goes_through_numpy():
     # actions must be written and read in torch ops only (rewards and done flags, [B], go to
     # the host for the bookkeeping, as they must).
     t, w, shape = build("transition", 5, 40, n_step=3, device="cpu")
-    # With numba, steps without an episode end take the compiled batched step (bookkeeping
+    # With numba, steps without an episode end take the compiled one-step flush (bookkeeping
     # in the loops, data in torch); the rest the general path.
-    assert (w._batched_step is not None) == (compiled("step_jit", "bind_batched_step") is not None)
+    assert (w._one_step is not None) == (compiled("relayrl.replay.writers_fast", "OneStep") is not None)
     feed(w, stream(5, 60, shape, guard=True), every=1)
     feed(w, stream(5, 30, shape, seed=1, guard=True), every=7)
-    batch = w.read(live(t)[:16])
+    batch = w.storage.read(live(t)[:16])
     assert batch.obs.shape == (16, 3) and batch.action.shape == (16, 2)
 
 
@@ -118,14 +118,15 @@ def test_checkpoints_move_between_device_and_numpy_stores():
     # machine (and the other way round).
     t_dev, w_dev, shape = build("transition", 3, 60, device="cpu")
     feed(w_dev, stream(3, 50, shape), every=1)
-    state = w_dev.state_dict()
+    w_dev.flush()
+    state = w_dev.storage.state_dict()
     assert all(isinstance(v, np.ndarray) for v in state["store"]["columns"]["arrays"].values())
     t_np, w_np, _ = build("transition", 3, 60)
-    w_np.load_state_dict(state)
+    w_np.storage.load_state_dict(state)
     t_back, w_back, _ = build("transition", 3, 60, device="cpu")
-    w_back.load_state_dict(w_np.state_dict())
+    w_back.storage.load_state_dict(w_np.storage.state_dict())
     slots = np.flatnonzero(t_dev.slot_key >= 0)
-    for x, y in zip(w_dev.read(slots), w_back.read(slots), strict=True):
+    for x, y in zip(w_dev.storage.read(slots), w_back.storage.read(slots), strict=True):
         assert x is None or torch.equal(x, y)
     assert torch.equal(torch.from_numpy(w_np.store.flat("frame")), w_dev.store.flat("frame"))
 
@@ -157,7 +158,7 @@ def test_sac_trains_with_a_stateless_env_and_its_replay_as_torch_tensors(tmp_pat
     rd.create()
     result = run.run()
     assert run.agent.train_step > 0 and np.isfinite(result.final["average_return"])
-    batch = run.writer.read(live(run.replay)[:8])  # (sampling now would wait on the rate limiter)
+    batch = run.writer.storage.read(live(run.replay)[:8])  # (sampling now would wait on the rate limiter)
     assert isinstance(batch.obs, torch.Tensor) and batch.obs.shape == (8, 3)
 
 

@@ -124,7 +124,7 @@ def test_sum_tree_find_matches_a_cumulative_sum():
 def test_without_numba_prioritized_tables_use_the_numpy_tree(monkeypatch):
     import sys
 
-    monkeypatch.setitem(sys.modules, "relayrl.replay.sumtree_jit", None)  # its import now fails
+    monkeypatch.setitem(sys.modules, "relayrl.replay.sumtree_fast", None)  # its import now fails
     assert type(make_sum_tree(10)) is SumTree
     t = filled(3, 3, sampler=Prioritized(1.0), prios=[1.0, 0.0, 3.0])
     assert type(t.sampler.tree) is SumTree and set(t.sample(50)[1].priority.tolist()) == {1.0, 3.0}
@@ -237,16 +237,15 @@ def test_inserting_one_item_on_the_scalar_path_matches_the_array_path(remover, s
 
 @pytest.mark.parametrize("stale_keys", [False, True])
 def test_compiled_insert_leaves_the_numpy_paths_table(stale_keys):
-    # relayrl[fast]: a Uniform/Fifo table inserts n > 1 items in numba loops (table_jit): free
+    # relayrl[fast]: a Uniform/Fifo table inserts n > 1 items in numba loops (table_fast): free
     # slots, then the Fifo's oldest live items as victims. Twin tables, one forced onto the
     # NumPy path, through inserts that fit, that overflow (victims), deletes (stale keys the
     # victim search must skip) and samples.
-    if compiled("table_jit", "insert_slots") is None:
+    if compiled("relayrl.replay.table_fast", "insert") is None:
         pytest.skip("the compiled insert needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
     rng = np.random.default_rng(3)
-    a, b = (Table("t", 60, Uniform(), Fifo(), MinSize(1), seed=0) for _ in range(2))
-    assert a._insert_kernels is not None
-    b._insert_kernels = None
+    a, b = (Table("t", 60, Uniform(), Fifo(), MinSize(1), seed=0, fast=fast) for fast in (True, False))
+    assert a._insert_kernel is not None and b._insert_kernel is None
     free_only = with_victims = 0
     for step in range(120):
         n = int(rng.integers(2, 30))
@@ -275,9 +274,9 @@ def test_compiled_insert_leaves_the_numpy_paths_table(stale_keys):
 
 
 def test_without_numba_tables_insert_in_numpy(monkeypatch):
-    assert Table("t", 10, Uniform(), Lifo(), MinSize(1))._insert_kernels is None  # only Uniform/Fifo compile
+    assert Table("t", 10, Uniform(), Lifo(), MinSize(1))._insert_kernel is None  # only Uniform/Fifo compile
     monkeypatch.setenv("RELAYRL_NUMBA", "0")
-    assert Table("t", 10, Uniform(), Fifo(), MinSize(1))._insert_kernels is None
+    assert Table("t", 10, Uniform(), Fifo(), MinSize(1))._insert_kernel is None
 
 
 @pytest.mark.parametrize("queue", [Fifo, Lifo])

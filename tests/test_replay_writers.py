@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import torch
 
+from relayrl.compile import compiled
 from relayrl.replay import Fifo, MinSize, SequenceWriter, Table, TransitionWriter, Uniform
-from relayrl.replay.sumtree import compiled
 from relayrl.specs import ArraySpec, DiscreteSpec
 from relayrl.types import Transition
 
@@ -32,16 +32,16 @@ def episode(obs_values, end="terminated"):
     return steps
 
 
-def items(table):
-    table.storage.flush()  # the writer stages steps until a chunk is full or the actor's run ends
+def items(table, w):
+    w.flush()  # the writer stages steps until a chunk is full or the actor's run ends
     live = np.flatnonzero(table.slot_key >= 0)
     live = live[np.argsort(table.slot_key[live])]
     b = table.storage.read(live)
     return b
 
 
-def transition_rows(table):
-    b = items(table)
+def transition_rows(table, w):
+    b = items(table, w)
     return [(o[0], a, round(r, 4), n[0], round(d, 4)) for o, a, r, n, d in zip(
         b.obs.tolist(), b.action.tolist(), b.reward.tolist(), b.next_obs.tolist(), b.discount.tolist(), strict=True)]
 
@@ -65,7 +65,7 @@ def test_n_step_items_of_one_episode(n, end, expected):
     t, w = writer(n)
     for s in episode([0, 1, 2, 3], end):
         w(s)
-    assert transition_rows(t) == [tuple(float(x) if i != 1 else x for i, x in enumerate(e)) for e in expected]
+    assert transition_rows(t, w) == [tuple(float(x) if i != 1 else x for i, x in enumerate(e)) for e in expected]
 
 
 def test_items_never_pair_the_reset_obs_with_the_last_action():
@@ -76,7 +76,7 @@ def test_items_never_pair_the_reset_obs_with_the_last_action():
     w(step([50], [2], [1.0], [51]))
     w(step([51], [3], [1.0], [52]))
     w(step([52], [4], [1.0], [53]))
-    rows = transition_rows(t)
+    rows = transition_rows(t, w)
     assert (0.0, 0, 1.5, 2.0, 0.0) in rows and (1.0, 1, 1.0, 2.0, 0.0) in rows
     assert (50.0, 2, 1.5, 52.0, G * G) in rows
     assert all(not (o < 50 <= n) for o, _, _, n, _ in rows)
@@ -87,7 +87,7 @@ def test_batched_envs_keep_separate_streams():
     t, w = writer(1, num_envs=2)
     w(step([0, 100], [0, 1], [1.0, 2.0], [1, 101], terminated=[False, True]))
     w(step([1, 200], [2, 3], [3.0, 4.0], [2, 201], truncated=[True, False]))
-    rows = set(transition_rows(t))
+    rows = set(transition_rows(t, w))
     assert rows == {(100.0, 1, 2.0, 101.0, 0.0), (0.0, 0, 1.0, 1.0, G), (1.0, 2, 3.0, 2.0, G)}
 
 
@@ -112,7 +112,7 @@ def test_sequence_items(length, stride, starts):
         w.flush()
         assert t.size == 0  # episodes shorter than the sequence give none
         return
-    seq = items(t)
+    seq = items(t, w)
     assert seq.obs[:, 0, 0].tolist() == [float(s) for s in starts]
     assert seq.obs.shape == (len(starts), length, 1)
     for row, s in enumerate(starts):
@@ -136,7 +136,7 @@ def test_frame_stacks_are_rebuilt_from_single_frames():
     for i in range(5):
         w(Transition(torch.from_numpy(stack(i))[None], torch.tensor([i]), torch.tensor([1.0]),
                      torch.from_numpy(stack(i + 1))[None], torch.tensor([i == 4]), torch.tensor([False])))
-    b = items(t)
+    b = items(t, w)
     for i in range(5):
         assert np.array_equal(b.obs[i].numpy(), stack(i))
         assert np.array_equal(b.next_obs[i].numpy(), stack(i + 1))
@@ -147,7 +147,7 @@ def test_reused_rows_evict_their_items_instead_of_returning_wrong_data():
     w = TransitionWriter(t, 1, OBS, ACT, gamma=G, n_step=2, rows=6)
     for s in episode(list(range(30)), "truncated"):
         w(s)
-    rows = transition_rows(t)
+    rows = transition_rows(t, w)
     assert 0 < len(rows) <= 6
     for o, a, r, n, _d in rows:
         assert a == o and n == min(o + 2, 29) and r == (10 + o) + (G * (11 + o) if o < 28 else 0)
@@ -164,7 +164,7 @@ def test_reused_rows_evict_their_items_when_flushed_in_chunks(end):
         steps = episode(list(range(60)), "truncated")[:-1]
     for s in steps:
         w(s)
-    rows = transition_rows(t)
+    rows = transition_rows(t, w)
     assert 0 < len(rows) <= 16
     for o, a, r, n, _d in rows:
         assert a == o % 100 and n - o in (1, 2) and r >= 10 + o % 100, (o, a, r, n)
@@ -178,14 +178,16 @@ def test_memmap_table_reopens_from_disk_and_drops_items_written_over_later(tmp_p
     t, w = make()
     for s in episode(list(range(21)), "truncated"):
         w(s)
+    w.flush()  # a table's checkpoint holds what was inserted, not what a writer still stages
     state = t.state_dict()
     assert "arrays" not in str(state["storage"]["store"]["columns"])  # files, not copies
-    before = transition_rows(t)
+    before = transition_rows(t, w)
     for s in episode(list(range(100, 121)), "truncated"):  # after the checkpoint: overwrites rows
         w(s)
+    w.flush()  # 42 rows in a 40-row ring: rows 0 and 1 now hold newer steps
     t2, w2 = make()
     t2.load_state_dict(state)
-    after = transition_rows(t2)
+    after = transition_rows(t2, w2)
     assert set(after) <= set(before)  # nothing from after the checkpoint, nothing mixed
     assert 0 < len(after) < len(before)  # items whose rows were overwritten are gone
     assert t2.size == len(after)
@@ -195,9 +197,10 @@ def test_state_dict_round_trip_of_a_ram_writer():
     t, w = writer(3, num_envs=2, max_size=20)
     for i in range(15):
         w(step([i, 100 + i], [i % 5, 1], [float(i), 1.0], [i + 1, 101 + i], terminated=[i % 7 == 6, False]))
+    w.flush()
     t2, w2 = writer(3, num_envs=2, max_size=20)
     t2.load_state_dict(t.state_dict())
-    assert transition_rows(t2) == transition_rows(t)
+    assert transition_rows(t2, w2) == transition_rows(t, w)
 
 
 @pytest.mark.parametrize("n_step", [1, 3])
@@ -212,17 +215,17 @@ def test_flushing_every_step_or_once_gives_the_same_items(n_step):
             w(s)
             if per_step:
                 w.flush()
-        rows.append(sorted(transition_rows(t)))
+        rows.append(sorted(transition_rows(t, w)))
     assert rows[0] == rows[1] and len(rows[0]) > 100
 
 
-# ---- fast paths against the general path ---------------------------------------------------
+# ---- the compiled one-step flush against the general path ----------------------------------
 def _writer_state(t, w):
     """Everything a TransitionWriter and its table hold, as plain arrays."""
     w.flush()
     state = {f"store.{k}": v.copy() for k, v in w.store.cols.arrays.items()}
-    state.update(head=w.store.head.copy(), ep_start=w.store.ep_start.copy(), open_from=w._open_from.copy(),
-                 slot_ref=w.slot_ref.copy(), slot_rows=w.slot_rows.copy(),
+    state.update(head=w.store.head.copy(), ep_start=w.store.ep_start.copy(), open_from=w.open_from.copy(),
+                 slot_ref=w.storage.slot_ref.copy(), slot_rows=w.storage.slot_rows.copy(),
                  slot_key=t.slot_key.copy(), priority=t.priority.copy(), dense=t.sampler.dense[: t.size].copy())
     return state
 
@@ -240,10 +243,8 @@ def _stream(rng, num_envs, steps, obs_shape=(1,), action=None, p_end=0.1):
     return out
 
 
-def _run(stream, flush_every_step, general_only=False, **kw):
-    t, w = writer(**kw)
-    if general_only:
-        w._flush_one = lambda step: False  # every flush takes the general path
+def _run(stream, flush_every_step, fast=True, **kw):
+    t, w = writer(fast=fast, **kw)
     for s in stream:
         w(s)
         if flush_every_step:
@@ -257,32 +258,34 @@ def _assert_same(a, b):
         assert np.array_equal(a[k], b[k]), k
 
 
-@pytest.mark.parametrize("num_envs", [1, 3])
+def _needs_numba():
+    if compiled("relayrl.replay.writers_fast", "OneStep") is None:
+        pytest.skip("the compiled step needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
+
+
+@pytest.mark.parametrize("num_envs", [1, 3, 7])
 @pytest.mark.parametrize("n_step", [1, 3])
 @pytest.mark.parametrize("max_size", [1_000, 40])  # 40: full, so inserts also remove (FIFO)
-def test_one_step_flush_paths_leave_exactly_the_general_paths_state(num_envs, n_step, max_size):
-    # A flush of one staged step takes a short path: Python scalars for one env (one_step.py),
-    # vectorised over envs otherwise. Both must leave the general path's state bit for bit.
-    stream = _stream(np.random.default_rng(1), num_envs, 120)
+def test_compiled_one_step_flush_leaves_exactly_the_general_paths_state(num_envs, n_step, max_size):
+    # relayrl[fast]: a flush of one staged step without episode ends runs in numba loops
+    # (writers_fast.py); the rest fall back. Both must leave the general path's state bit for bit.
+    _needs_numba()
+    stream = _stream(np.random.default_rng(num_envs + n_step), num_envs, 120)
     kw = dict(n_step=n_step, num_envs=num_envs, max_size=max_size, chunk_length=10_000)
     fast = _run(stream, True, **kw)
-    _assert_same(fast, _run(stream, True, general_only=True, **kw))
+    _assert_same(fast, _run(stream, True, fast=False, **kw))
     if num_envs == 1 and max_size == 1_000:
         # One env, no row reused: per-step flushes also insert in one chunk's order. (Else
         # evictions free slots in a different order: other slots, same items.)
         _assert_same(fast, _run(stream, False, **kw))
 
 
-@pytest.mark.parametrize("num_envs", [3, 7])
-@pytest.mark.parametrize("n_step", [1, 3])
+@pytest.mark.parametrize("num_envs", [1, 3])
 @pytest.mark.parametrize("max_size", [1_000, 40])
 @pytest.mark.parametrize("frame_stack", [1, 3])
-def test_compiled_batched_step_leaves_the_numpy_paths_state(num_envs, n_step, max_size, frame_stack):
-    # relayrl[fast]: a one-step flush of B > 1 envs without episode ends runs in two numba
-    # loops (step_jit.py). Rare episode ends, so most steps take it; the rest fall back.
-    if compiled("step_jit", "bind_batched_step") is None:
-        pytest.skip("the compiled step needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
-    rng = np.random.default_rng(num_envs + n_step)
+def test_compiled_one_step_flush_of_stacked_frames_and_vector_actions(num_envs, max_size, frame_stack):
+    _needs_numba()
+    rng = np.random.default_rng(num_envs)
     shape, spec = ((frame_stack, 2, 2), ArraySpec((frame_stack, 2, 2), torch.float32)) if frame_stack > 1 \
         else ((1,), OBS)
 
@@ -291,13 +294,10 @@ def test_compiled_batched_step_leaves_the_numpy_paths_state(num_envs, n_step, ma
 
     stream = _stream(rng, num_envs, 150, obs_shape=shape, action=actions, p_end=0.03)
 
-    def run(jit):
+    def run(fast):
         t = Table("t", max_size, Uniform(), Fifo(), MinSize(1), seed=0)
-        w = TransitionWriter(t, num_envs, spec, ArraySpec((2,), torch.float32), gamma=G, n_step=n_step,
-                             frame_stack=frame_stack, chunk_length=10_000)
-        assert (w._batched_step is not None) is True
-        if not jit:
-            w._batched_step = w._write_records = None  # the vectorised NumPy paths
+        w = TransitionWriter(t, num_envs, spec, ArraySpec((2,), torch.float32), gamma=G, n_step=2,
+                             frame_stack=frame_stack, chunk_length=10_000, fast=fast)
         for st in stream:
             w(st)
             w.flush()
@@ -306,56 +306,44 @@ def test_compiled_batched_step_leaves_the_numpy_paths_state(num_envs, n_step, ma
     _assert_same(run(True), run(False))
 
 
-def test_fused_flush_takes_uniform_fifo_tables_full_or_not():
-    # The batched step writes rows and inserts items in one compiled call (_step_and_insert)
-    # for a Uniform/Fifo table whose limiter lets B inserts through, free slots or Fifo
-    # victims alike; otherwise it takes the general path. Both leave the same state (the
-    # twin test above, whose max_size=40 tables fill up).
-    if compiled("step_jit", "bind_batched_step") is None:
-        pytest.skip("the compiled step needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
-    from relayrl.replay import Prioritized, SampleToInsertRatio
+def test_compiled_one_step_flush_takes_every_table_and_declines_episode_ends():
+    # The items go through Table.insert_batch, which picks its own path (compiled for
+    # Uniform/Fifo, NumPy for a prioritized sampler) and splits what max_size cannot take.
+    _needs_numba()
+    from relayrl.replay import Prioritized
 
     stream = _stream(np.random.default_rng(5), 4, 30, p_end=0.0)
 
     def paths(table):
         w = TransitionWriter(table, 4, OBS, ACT, gamma=G, n_step=2)
-        return [w._batched_step(w, st) for st in stream]
+        return [w._one_step(st) for st in stream]
 
     assert all(paths(Table("t", 1_000, Uniform(), Fifo(), MinSize(1), seed=0)))
     full = Table("t", 40, Uniform(), Fifo(), MinSize(1), seed=0)  # 4 items a step from the 3rd step on
     assert all(paths(full)) and full.size == 40 and full.rate_limiter.deletes == 4 * 28 - 40
-    assert not any(paths(Table("t", 1_000, Prioritized(0.6), Fifo(), MinSize(1), seed=0)))
-    assert not any(paths(Table("t", 3, Uniform(), Fifo(), MinSize(1), seed=0)))  # B > max_size
-    # a rate limiter that would make some of B = 4 inserts wait sends the step to the general
-    # path (whose insert waits); the fused path never waits
-    from relayrl.replay.step_jit import _fused_step
-
-    limited = Table("t", 1_000, Uniform(), Fifo(), SampleToInsertRatio(1.0, 1, 10.0), seed=0)
-    w = TransitionWriter(limited, 4, OBS, ACT, gamma=G, n_step=2)
-    columns = w._batched_step.keywords["columns"]
-    st = stream[0]
-
-    def fused():
-        args = st.obs.numpy(), st.action.numpy().reshape(4, -1), st.reward.numpy(), np.empty((4, 3), np.int64)
-        return _fused_step(w, columns, *args)
-
-    limited.rate_limiter.inserts_available = lambda: 3
-    assert not fused() and w.store.head.tolist() == [0, 0, 0, 0]  # declined: nothing written
-    limited.rate_limiter.inserts_available = lambda: 4
-    assert fused() and w.store.head.tolist() == [1, 1, 1, 1]
+    prioritized = Table("t", 1_000, Prioritized(0.6), Fifo(), MinSize(1), seed=0)
+    assert all(paths(prioritized)) and prioritized.size == 4 * 28
+    tiny = Table("t", 3, Uniform(), Fifo(), MinSize(1), seed=0)  # B > max_size
+    assert all(paths(tiny)) and tiny.size == 3
+    w = TransitionWriter(Table("t", 100, seed=0), 4, OBS, ACT, gamma=G)
+    ended = stream[0]._replace(terminated=torch.tensor([False, True, False, False]))
+    assert not w._one_step(ended) and w.store.head.tolist() == [0, 0, 0, 0]  # declined: nothing written
 
 
-def test_without_numba_the_batched_step_is_numpy(monkeypatch):
+def test_without_numba_or_with_fast_false_the_flush_is_numpy(monkeypatch):
+    t = Table("t", 100, Uniform(), Fifo(), MinSize(1), seed=0)
+    w = TransitionWriter(t, 4, OBS, ACT, gamma=G, fast=False)
+    assert w._one_step is None
     monkeypatch.setenv("RELAYRL_NUMBA", "0")
     t = Table("t", 100, Uniform(), Fifo(), MinSize(1), seed=0)
     w = TransitionWriter(t, 4, OBS, ACT, gamma=G)
-    assert w._batched_step is None and w._write_records is None
+    assert w._one_step is None
 
 
 @pytest.mark.parametrize("num_envs", [1, 2])
 @pytest.mark.parametrize("action_shape", [(1,), (3,)])
 def test_float_vector_actions_round_trip(num_envs, action_shape):
-    # SAC-style continuous actions [B, A]; A = 1 also goes through the scalar one-env path.
+    # SAC-style continuous actions [B, A], per-step flushes (the compiled path) and chunks.
     spec = ArraySpec(action_shape, torch.float32)
 
     def actions(rng):
@@ -370,7 +358,7 @@ def test_float_vector_actions_round_trip(num_envs, action_shape):
             w(s)
             if per_step:
                 w.flush()
-        b = items(t)
+        b = items(t, w)
         assert b.action.dtype == torch.float32 and b.action.shape == (t.size, *action_shape)
         sent = {tuple(np.round(s.obs[e].numpy(), 6)) + tuple(np.round(s.action[e].numpy(), 6))
                 for s in stream for e in range(num_envs)}
@@ -391,18 +379,16 @@ def test_frame_stack_one_step_flushes_match_the_general_path(max_size):
         stream.append(Transition(o, torch.tensor([i % 5]), torch.tensor([1.0]), o.roll(1, 1), torch.tensor([end]),
                                  torch.tensor([False])))
 
-    def run(per_step, general_only=False):
+    def run(per_step, fast=True):
         t = Table("t", max_size, Uniform(), Fifo(), MinSize(1), seed=0)
-        w = TransitionWriter(t, 1, spec, ACT, gamma=G, n_step=2, frame_stack=k, chunk_length=10_000)
-        if general_only:
-            w._flush_one = lambda step: False
+        w = TransitionWriter(t, 1, spec, ACT, gamma=G, n_step=2, frame_stack=k, chunk_length=10_000, fast=fast)
         for s in stream:
             w(s)
             if per_step:
                 w.flush()
         return _writer_state(t, w)
 
-    _assert_same(run(True), run(True, general_only=True))
+    _assert_same(run(True), run(True, fast=False))
     if max_size == 1_000:
         _assert_same(run(True), run(False))
 
@@ -416,7 +402,7 @@ def test_sampled_batches_read_the_rows_items_were_written_from():
     w.flush()
     batch, info = t.sample(200)
     slots = info.key % t.max_size
-    env, pos = w.slot_ref[slots] % 2, w.slot_ref[slots] // 2
+    env, pos = w.storage.slot_ref[slots] % 2, w.storage.slot_ref[slots] // 2
     nlen = w.store.nlen[env, pos % w.rows]
     assert np.array_equal(batch.obs.numpy(), w.store.frame[env, pos % w.rows])
     assert np.array_equal(batch.next_obs.numpy(), w.store.frame[env, (pos + nlen) % w.rows])
@@ -424,9 +410,8 @@ def test_sampled_batches_read_the_rows_items_were_written_from():
 
 
 def test_compiled_row_sort_matches_argsort():
-    if compiled("step_jit", "bind_batched_step") is None:
-        pytest.skip("the compiled step needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
-    from relayrl.replay.step_jit import _sort_rows
+    _needs_numba()
+    from relayrl.replay.writers_fast import _sort_rows
 
     rng = np.random.default_rng(0)
     for m in (0, 1, 2, 3, 33, 500):

@@ -61,7 +61,7 @@ def assert_same_state(a, b):
     ("sac-pendulum", SAC + ["env.id=relayrl/StatelessPendulum-v0", "env.num_envs=6", "train.collect_steps=6"]),
 ], ids=["dqn-3async-nstep", "sac-7envs-stale-actor", "sac-6stateless"])
 def test_resumed_run_is_bit_identical_to_the_uninterrupted_one(tmp_path, preset, over):
-    cfg = relayrl.load_config(preset, over, seed=2)
+    cfg = relayrl.load_config(preset, over, seed=3)
     relayrl.train(cfg, tmp_path / "full", progress=False)
     cut_back(tmp_path / "full", tmp_path / "resumed")
     assert load_latest_checkpoint(tmp_path / "resumed" / "checkpoints")["actor"]["env"] is not None
@@ -85,7 +85,7 @@ def test_async_run_gives_the_in_process_runs_numbers(tmp_path, workers):
                          ids=["1", "3async"])
 def test_env_that_cannot_be_pickled_resumes_with_new_episodes(tmp_path, capsys, envs):
     over = DQN + ["env.id=toy_envs:Unpicklable", "env.max_episode_steps=50"] + envs
-    cfg = relayrl.load_config("dqn-cartpole-fast", over, seed=2)
+    cfg = relayrl.load_config("dqn-cartpole-fast", over, seed=3)
     relayrl.train(cfg, tmp_path / "full", progress=False)
     cut_back(tmp_path / "full", tmp_path / "resumed")
     assert load_latest_checkpoint(tmp_path / "resumed" / "checkpoints")["actor"]["env"] is None
@@ -154,7 +154,7 @@ def test_sigkill_at_any_moment_leaves_a_readable_checkpoint(tmp_path):
 
 def test_run_killed_at_a_random_moment_resumes_to_the_uninterrupted_result(tmp_path):
     over = DQN[:1] + ["train.total_steps=3000", "train.torch_threads=1"] + DQN[2:]
-    relayrl.train(relayrl.load_config("dqn-cartpole-fast", over, seed=2), tmp_path / "full", progress=False)
+    relayrl.train(relayrl.load_config("dqn-cartpole-fast", over, seed=3), tmp_path / "full", progress=False)
     cmd = [sys.executable, "-m", "relayrl", "train", "dqn-cartpole-fast", "--run-dir", str(tmp_path / "killed"),
            "--no-progress"]
     sets = [a for o in over for a in ("--set", o)]
@@ -262,12 +262,12 @@ def test_memmap_replay_resumed_from_an_older_checkpoint(tmp_path, capsys, size, 
     run.bar = None
     run.restore()
     live = np.flatnonzero(run.replay.slot_key >= 0)
-    assert not run.writer.stale(live).any() and (live.size == 0) == wraps
+    assert not run.writer.storage.stale(live).any() and (live.size == 0) == wraps
     said = "the replay files were overwritten after this checkpoint" in capsys.readouterr().err
     assert said == wraps
     run.actor.run(5)  # continued (or new) episodes insert only items whose rows hold their steps
     live = np.flatnonzero(run.replay.slot_key >= 0)
-    assert live.size > 0 and not run.writer.stale(live).any()
+    assert live.size > 0 and not run.writer.storage.stale(live).any()
     run.env.close()
     run.eval_env.close()
     assert relayrl.train(cfg, run_dir, resume=True, progress=False).final["step"] == 1500

@@ -1,4 +1,4 @@
-"""A check both sum trees must pass (imported by test_replay_table and test_sumtree_jit)."""
+"""A check both sum trees must pass (imported by test_replay_table and test_sumtree_fast)."""
 
 import numpy as np
 

@@ -11,10 +11,12 @@ from relayrl.replay.rate_limiters import MinSize, Queue, RateLimiter, SampleToIn
 from relayrl.replay.selectors import Fifo, Lifo, MaxHeap, MinHeap, Prioritized, Selector, Uniform
 from relayrl.replay.storage import ItemStorage
 from relayrl.replay.table import RateLimiterTimeout, SampleInfo, Table
-from relayrl.replay.writers import Sequence, SequenceWriter, TransitionWriter
+from relayrl.replay.writers import SequenceBatch, SequenceWriter, TransitionWriter
+
+Sequence = SequenceBatch  # the name SequenceWriter items had before; SequenceBatch does not shadow typing.Sequence
 
 __all__ = [
     "Fifo", "ItemStorage", "Lifo", "MaxHeap", "MinHeap", "MinSize", "Prioritized", "Queue", "RateLimiter",
-    "RateLimiterTimeout", "SampleInfo", "SampleToInsertRatio", "Selector", "Sequence", "SequenceWriter", "Stack",
-    "Table", "TransitionWriter", "Uniform",
+    "RateLimiterTimeout", "SampleInfo", "SampleToInsertRatio", "Selector", "Sequence", "SequenceBatch",
+    "SequenceWriter", "Stack", "Table", "TransitionWriter", "Uniform",
 ]

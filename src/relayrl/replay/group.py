@@ -3,8 +3,8 @@
 A writer takes whole batched steps of its own envs. Actors on other machines step out of
 phase with each other, so the replay server gives each one its own writer (its own
 StepStore rows) and lets all of them insert into one Table, whose sampler, remover and rate
-limiter then see every actor's items together, as Reverb's server does. The group is the
-Table's storage: it remembers which writer owns each slot and routes reads to it.
+limiter then see every actor's items together, as Reverb's server does. The Table's storage
+is a `StorageGroup`: it remembers which writer's storage owns each slot and routes reads to it.
 """
 
 from __future__ import annotations
@@ -17,8 +17,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from relayrl.replay.step_storage import StepStorage
 from relayrl.replay.table import Table
-from relayrl.replay.writers import StepChunk, _Writer
+from relayrl.replay.writers import SequenceWriter, StepChunk, TransitionWriter
+
+Writer = TransitionWriter | SequenceWriter
 
 
 def split_chunk(chunk: StepChunk, max_steps: int) -> list[StepChunk]:
@@ -37,47 +40,25 @@ def split_chunk(chunk: StepChunk, max_steps: int) -> list[StepChunk]:
     return pieces
 
 
-class WriterGroup:
-    """`make_writer(table, index, path)` builds writer `index`; every writer inserts into `table`.
+class StorageGroup:
+    """A Table's storage over several writers' storages: `active` names the one whose items
+    are being inserted; each slot remembers its storage, which reads it. Each slot belongs to
+    one storage at a time, so the storages share one slot map (saved once)."""
 
-    `write_chunk(index, chunk)` is thread-safe (one chunk at a time: a chunk's inserts may
-    block on the rate limiter, and the next actor's chunk waits behind it, as it would for
-    the limiter anyway). Reads and inserts meet only under the Table's own lock.
-    """
+    def __init__(self, storages: list[StepStorage], capacity: int) -> None:
+        self.storages = storages
+        for st in storages[1:]:
+            st.share_slot_map(storages[0])
+        self.owner = np.zeros(capacity, dtype=np.int32)  # slot -> storage
+        self.active = 0
 
-    def __init__(self, table: Table, num_writers: int,
-                 make_writer: Callable[[Table, int, Path | None], _Writer], path: str | Path | None = None) -> None:
-        if num_writers < 1:
-            raise ValueError(f"num_writers={num_writers} is not valid; it must be >= 1")
-        self.table = table
-        root = Path(path) if path is not None else None
-        self.writers = [make_writer(table, i, None if root is None else root / f"writer{i}")
-                        for i in range(num_writers)]
-        # Each slot belongs to one writer at a time, so one slot map serves them all (32 bytes
-        # per slot, shared instead of once per actor).
-        for w in self.writers[1:]:
-            w.slot_ref, w.slot_rows = self.writers[0].slot_ref, self.writers[0].slot_rows
-        self.owner = np.zeros(table.max_size, dtype=np.int32)  # slot -> writer
-        self._active = 0  # the writer whose inserts are in progress
-        self._lock = threading.Lock()
-        table.storage = self  # each writer made itself the storage; the group routes to them
+    def bind(self, slot_key: np.ndarray) -> None:
+        for st in self.storages:
+            st.bind(slot_key)
 
-    def write_chunk(self, index: int, chunk: StepChunk) -> None:
-        writer = self.writers[index]
-        with self._lock:
-            self._active = index
-            for piece in split_chunk(chunk, writer._max_staged):  # rows reused mid-chunk would corrupt it
-                writer.write_chunk(piece)
-
-    def restart_episodes(self, index: int) -> None:
-        """Writer `index` forgets its open episodes (its actor died and was restarted)."""
-        with self._lock:
-            self.writers[index].restart_episodes()
-
-    # ---- the Table's storage interface ---------------------------------------------------
     def write(self, slots: np.ndarray, items: np.ndarray) -> None:
-        self.owner[slots] = self._active
-        self.writers[self._active].write(slots, items)
+        self.owner[slots] = self.active
+        self.storages[self.active].write(slots, items)
 
     def _groups(self, slots: np.ndarray) -> list[tuple[int, np.ndarray]]:
         owner = self.owner.take(slots)
@@ -89,8 +70,8 @@ class WriterGroup:
     def read(self, slots: np.ndarray) -> Any:
         groups = self._groups(slots)
         if len(groups) == 1:
-            return self.writers[groups[0][0]].read(slots)
-        parts = [self.writers[w].read(slots[idx]) for w, idx in groups]
+            return self.storages[groups[0][0]].read(slots)
+        parts = [self.storages[w].read(slots[idx]) for w, idx in groups]
         inverse = torch.from_numpy(np.argsort(np.concatenate([idx for _, idx in groups]), kind="stable"))
         fields = [None if f[0] is None else torch.cat(f).index_select(0, inverse) for f in zip(*parts, strict=True)]
         return type(parts[0])(*fields)
@@ -98,27 +79,57 @@ class WriterGroup:
     def stale(self, slots: np.ndarray) -> np.ndarray:
         out = np.zeros(len(slots), dtype=bool)
         for w, idx in self._groups(slots):
-            out[idx] = self.writers[w].stale(slots[idx])
+            out[idx] = self.storages[w].stale(slots[idx])
         return out
 
     def state_dict(self) -> dict[str, Any]:
-        # Called by Table.state_dict under the Table's lock, never under the group's: a chunk
-        # whose inserts wait on the rate limiter holds the group lock until someone samples.
-        states = [w.state_dict() for w in self.writers]
+        states = [st.state_dict() for st in self.storages]
         slot_ref = states[0]["slot_ref"]
-        for st in states:
-            del st["slot_ref"]  # the shared map, saved once
+        for state in states:
+            del state["slot_ref"]  # the shared map, saved once
         return {"writers": states, "owner": self.owner.copy(), "slot_ref": slot_ref}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        if len(state["writers"]) != len(self.writers):
+        if len(state["writers"]) != len(self.storages):
             raise ValueError(f"the saved replay has {len(state['writers'])} writers (actors), this one "
-                             f"{len(self.writers)}")
+                             f"{len(self.storages)}")
+        self.owner[:] = state["owner"]
+        for st, saved in zip(self.storages, state["writers"], strict=True):
+            st.load_state_dict({**saved, "slot_ref": state["slot_ref"]})  # resumed actors start new episodes
+        # Each load rewrote the whole shared map with its own n-step lengths; each storage's
+        # own slots read its own store.
+        for i, st in enumerate(self.storages):
+            st.refresh_slot_rows(np.flatnonzero(self.owner == i))
+
+
+class WriterGroup:
+    """`make_writer(table, index, path)` builds writer `index`; every writer inserts into `table`.
+
+    `write_chunk(index, chunk)` is thread-safe (one chunk at a time: a chunk's inserts may
+    block on the rate limiter, and the next actor's chunk waits behind it, as it would for
+    the limiter anyway). Reads and inserts meet only under the Table's own lock.
+    """
+
+    def __init__(self, table: Table, num_writers: int,
+                 make_writer: Callable[[Table, int, Path | None], Writer], path: str | Path | None = None) -> None:
+        if num_writers < 1:
+            raise ValueError(f"num_writers={num_writers} is not valid; it must be >= 1")
+        self.table = table
+        root = Path(path) if path is not None else None
+        self.writers = [make_writer(table, i, None if root is None else root / f"writer{i}")
+                        for i in range(num_writers)]
+        self.storage = StorageGroup([w.storage for w in self.writers], table.max_size)
+        table.set_storage(self.storage)  # (each writer set its own; the group routes to them)
+        self._lock = threading.Lock()
+
+    def write_chunk(self, index: int, chunk: StepChunk) -> None:
+        writer = self.writers[index]
         with self._lock:
-            self.owner[:] = state["owner"]
-            for w, s in zip(self.writers, state["writers"], strict=True):
-                w.load_state_dict({**s, "slot_ref": state["slot_ref"]})  # resumed actors start new episodes
-            # Each load rewrote the whole shared map with its own n-step lengths; each writer's
-            # own slots read its own store.
-            for i, w in enumerate(self.writers):
-                w.refresh_slot_rows(np.flatnonzero(self.owner == i))
+            self.storage.active = index
+            for piece in split_chunk(chunk, writer.max_staged):  # rows reused mid-chunk would corrupt it
+                writer.write_chunk(piece)
+
+    def restart_episodes(self, index: int) -> None:
+        """Writer `index` forgets its open episodes (its actor died and was restarted)."""
+        with self._lock:
+            self.writers[index].restart_episodes()

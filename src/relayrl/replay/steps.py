@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from relayrl.replay.storage import Columns, to_numpy, torch_dtype
+from relayrl.arrays import to_numpy, torch_dtype
+from relayrl.replay.storage import Columns
 
 DATA = ("frame", "action")  # the columns that live on `device` when the store has one
 
@@ -64,7 +65,7 @@ class StepStore:
         self.ret, self.disc, self.nlen = c["ret"], c["disc"], c["nlen"]
         self._flat = {k: a.reshape((num_envs * rows,) + tuple(a.shape[2:])) for k, a in c.items()}
         # Columns with a row shape (frames, vector actions) as one opaque element per row:
-        # assigning rows by index is then a 1-D scatter, ~2.5x cheaper than a 2-D one.
+        # assigning rows by index is then a 1-D scatter, several times cheaper than a 2-D one.
         self._rows = {k: _row_view(a) for k, a in self._flat.items()
                       if k not in self.data and a.ndim > 1 and a[0].nbytes > 0}
         self.head = np.zeros(num_envs, dtype=np.int64)  # next position per env
@@ -135,12 +136,10 @@ class StepStore:
         """The flat rows each env's next step takes: [B]."""
         return self.envs * self.T + self.head % self.T
 
-    def write_step(self, frames: np.ndarray, actions: np.ndarray, rewards: np.ndarray) -> np.ndarray:
-        """Append one batched step in which no episode ended; returns its positions [B]."""
-        pos = self.head.copy()
-        self._write_rows(self.head_rows(), pos, self.ep_start, frames, actions, rewards)
-        self.head += 1
-        return pos
+    def write_data(self, i: np.ndarray, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor) -> None:
+        """Frames and actions of flat rows `i` alone (a compiled writer writes the rest)."""
+        self._put("frame", i, frames)
+        self._put("action", i, actions)
 
     def _write_rows(self, i: np.ndarray, pos: np.ndarray, start: np.ndarray, frames: np.ndarray,
                     actions: np.ndarray | None, rewards: np.ndarray | float, last: bool = False,
@@ -186,7 +185,7 @@ class StepStore:
         col = self._flat[name]
         if name in self.data:
             return col.index_select(0, self.index(i.reshape(-1))).reshape(*i.shape, *col.shape[1:])
-        return col.take(i, axis=0)  # `take` on flat columns: 3-4x cheaper than fancy indexing
+        return col.take(i, axis=0)  # `take` on flat columns: cheaper than fancy indexing
 
     def stacks(self, envs: np.ndarray, pos: np.ndarray, start: np.ndarray) -> np.ndarray | torch.Tensor:
         """Stacked observations at `pos`: [N, k, *frame], rebuilt from single frames (k > 1)."""

@@ -15,23 +15,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from relayrl.arrays import to_numpy, torch_dtype
 from relayrl.errors import UserError
 
 Signature = dict[str, tuple[tuple[int, ...], np.dtype]]  # name -> (shape per row, dtype)
-
-
-def torch_dtype(dtype: np.dtype) -> torch.dtype:
-    """The torch dtype of a NumPy dtype (for columns allocated as tensors)."""
-    return torch.from_numpy(np.zeros(0, dtype)).dtype
-
-
-def to_numpy(x: Any) -> np.ndarray:
-    if isinstance(x, torch.Tensor):
-        try:
-            return x.numpy()  # CPU tensors without grad: a view, no copy
-        except (RuntimeError, TypeError):
-            return x.detach().cpu().numpy()
-    return np.asarray(x)
 
 
 class Columns:

@@ -16,31 +16,18 @@ leaf before it.
 
 from __future__ import annotations
 
-import importlib
-import os
 from typing import Any
 
 import numpy as np
 import torch
 
-
-def compiled(module: str, name: str) -> Any:
-    """`relayrl.replay.<module>.<name>` (or `<module>.<name>` for a dotted module path) from a
-    numba module (the `relayrl[fast]` extra), or None without numba or with `RELAYRL_NUMBA=0`
-    (tests, benchmarks): the caller then takes its NumPy path, which gives the same results,
-    only slower per call."""
-    if os.environ.get("RELAYRL_NUMBA", "1") == "0":
-        return None
-    try:
-        return getattr(importlib.import_module(module if "." in module else f"relayrl.replay.{module}"), name)
-    except ImportError:  # no numba
-        return None
+from relayrl.compile import compiled
 
 
 def make_sum_tree(capacity: int) -> Any:
-    """The compiled tree (`sumtree_jit.CompiledSumTree`) when `compiled` finds it, else this
+    """The compiled tree (`sumtree_fast.CompiledSumTree`) when `compiled` finds it, else this
     module's NumPy `SumTree`: same interface, same leaves found."""
-    tree_class = compiled("sumtree_jit", "CompiledSumTree")
+    tree_class = compiled("relayrl.replay.sumtree_fast", "CompiledSumTree")
     return tree_class(capacity) if tree_class is not None else SumTree(capacity)
 
 
@@ -55,7 +42,7 @@ def flat_updates(idx: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.nd
 
 
 def _cumsum(x: np.ndarray, axis: int) -> np.ndarray:
-    """Left-to-right cumulative sums (torch's CPU scan: ~4x faster than NumPy's here)."""
+    """Left-to-right cumulative sums (torch's CPU scan, faster than NumPy's here)."""
     return torch.cumsum(torch.from_numpy(x), axis).numpy()
 
 

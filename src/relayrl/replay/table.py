@@ -15,10 +15,10 @@ from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
+from relayrl.compile import compiled
 from relayrl.replay.rate_limiters import MinSize, Queue, RateLimiter, Stack
 from relayrl.replay.selectors import Fifo, Lifo, Selector, Uniform
 from relayrl.replay.storage import ItemStorage
-from relayrl.replay.sumtree import compiled
 
 
 class RateLimiterTimeout(TimeoutError):
@@ -33,6 +33,14 @@ class SampleInfo(NamedTuple):
 
 
 class Storage(Protocol):
+    """Where a table keeps its items' data, by slot. The table calls `write` when it gives
+    items slots and `read` with the slots it samples; its checkpoint holds the storage's.
+    A storage may also have `stale(slots) -> bool mask`: items whose data no longer holds
+    what was written (memmap files reopened after the run went on), which a table that loads
+    a checkpoint deletes; and `bind(slot_key)`: the table hands it its key map (read-only, as
+    its selectors get it), for a storage that tells its writer which live items read data
+    about to be overwritten."""
+
     def write(self, slots: np.ndarray, items: Any) -> None: ...
     def read(self, slots: np.ndarray) -> Any: ...
     def state_dict(self) -> dict[str, Any]: ...
@@ -42,7 +50,8 @@ class Storage(Protocol):
 class Table:
     def __init__(self, name: str, max_size: int, sampler: Selector | None = None, remover: Selector | None = None,
                  rate_limiter: RateLimiter | None = None, max_times_sampled: int = 0,
-                 seed: int | np.random.SeedSequence | None = None, storage: Storage | None = None) -> None:
+                 seed: int | np.random.SeedSequence | None = None, storage: Storage | None = None,
+                 fast: bool = True) -> None:
         if max_size < 1:
             raise ValueError(f"Table {name!r}: max_size={max_size} is not valid; it must be >= 1")
         sampler = sampler if sampler is not None else Uniform()
@@ -55,7 +64,6 @@ class Table:
         self.remover = remover
         self.rate_limiter = rate_limiter if rate_limiter is not None else MinSize(1)
         self.max_times_sampled = max_times_sampled
-        self.storage: Storage = storage if storage is not None else ItemStorage(max_size)
         self.rng = np.random.default_rng(seed)
         self.slot_key = np.full(max_size, -1, dtype=np.int64)
         self.priority = np.zeros(max_size, dtype=np.float64)
@@ -76,11 +84,25 @@ class Table:
         # use for priorities (Fifo, Lifo, Uniform); otherwise both are told in NumPy.
         fused = sampler.update_keys if type(remover).update is Selector.update else None
         self._update_keys: Callable[[np.ndarray, np.ndarray], float] = fused or self._update_slots
-        # Inserts in compiled loops (table_jit) for the usual pair of selectors, when numba is
-        # there; else the NumPy path.
-        take = compiled("table_jit", "take_slots") if type(sampler) is Uniform and type(remover) is Fifo else None
-        self._insert_kernels: tuple[Callable[..., int], Callable[..., bool]] | None = \
-            None if take is None else (take, compiled("table_jit", "insert_slots"))
+        # `fast`: inserts of n > 1 items in compiled loops (table_fast) for the usual pair of
+        # selectors, when numba is there; else (and with fast=False) the NumPy path.
+        uniform_fifo = fast and type(sampler) is Uniform and type(remover) is Fifo
+        self._insert_kernel: Callable[..., tuple[int, bool]] | None = \
+            compiled("relayrl.replay.table_fast", "insert") if uniform_fifo else None
+        self.storage: Storage = ItemStorage(max_size)
+        if storage is not None:
+            self.set_storage(storage)
+
+    def set_storage(self, storage: Storage) -> None:
+        """Keep items in `storage` from now on; only before the first insert. For a writer whose
+        items reference its own step store (it builds the storage with the table's size)."""
+        with self._cv:
+            if self._inserted:
+                raise ValueError(f"Table {self.name!r} already took items; its storage is set before the first insert")
+            self.storage = storage
+            bind = getattr(storage, "bind", None)
+            if bind is not None:
+                bind(self.slot_key)
 
     @classmethod
     def queue(cls, name: str, max_size: int) -> Table:
@@ -155,11 +177,11 @@ class Table:
     def _insert_locked(self, items: Any, priorities: np.ndarray | None, n: int) -> np.ndarray:
         if n == 1:
             return self._insert_one_locked(items, priorities)
+        if self._insert_kernel is not None and priorities is None:
+            return self._insert_compiled(items, n)
         return self._insert_many_locked(items, priorities, n)
 
     def _insert_many_locked(self, items: Any, priorities: np.ndarray | None, n: int) -> np.ndarray:
-        if self._insert_kernels is not None and priorities is None:
-            return self._insert_compiled(items, n)
         n_free = min(n, self._num_free)
         free = self._free[self._num_free - n_free:self._num_free][::-1].copy()
         self._num_free -= n_free
@@ -189,29 +211,20 @@ class Table:
 
     def _insert_compiled(self, items: Any, n: int) -> np.ndarray:
         """`_insert_many_locked` for a Uniform sampler and a Fifo remover, no priorities given:
-        the same writes in compiled loops (table_jit): free slots first, then Fifo victims."""
+        the same writes in compiled loops (table_fast): free slots first, then Fifo victims."""
         sampler, remover = self.sampler, self.remover
-        assert isinstance(sampler, Uniform) and isinstance(remover, Fifo) and self._insert_kernels is not None
-        take, put = self._insert_kernels
+        assert isinstance(sampler, Uniform) and isinstance(remover, Fifo) and self._insert_kernel is not None
         remover.reserve(n)
         slots = np.empty(n, dtype=np.int64)
-        head = take(slots, self._free, self._num_free, self.slot_key, remover.queue, remover.head, remover.tail)
+        keys = np.empty(n, dtype=np.int64)
+        head, sampler.identity = self._insert_kernel(
+            slots, keys, self._free, self._num_free, self._inserted, self.slot_key, self.priority, self.max_priority,
+            self.times_sampled, sampler.dense, sampler.where, sampler.size, sampler.identity, remover.queue,
+            remover.head, remover.tail)
         if head < 0:
             raise IndexError("pop from an empty queue")  # as _KeyQueue.pop
         remover.head = head
         n_free = min(n, self._num_free)
-        keys = np.empty(n, dtype=np.int64)
-        sampler.identity = put(slots, n_free, self._inserted, self.slot_key, self.priority, self.max_priority,
-                               self.times_sampled, sampler.dense, sampler.where, sampler.size, sampler.identity,
-                               remover.queue, remover.tail, keys)
-        self.note_inserted(n, n_free)
-        self.storage.write(slots, items)
-        return keys
-
-    def note_inserted(self, n: int, n_free: int) -> None:
-        """Counters after n items went into n_free free slots and n - n_free victims' slots
-        through the compiled loops (here, or in step_jit's fused flush)."""
-        sampler, remover = self.sampler, self.remover
         self._num_free -= n_free
         self._inserted += n
         sampler.size += n_free
@@ -221,9 +234,13 @@ class Table:
         self.rate_limiter.deletes += n - n_free
         if n > n_free:
             remover.trim()  # as its delete of the victims would
+        self.storage.write(slots, items)
+        return keys
 
     def _insert_one_locked(self, items: Any, priorities: np.ndarray | None) -> np.ndarray:
-        """`_insert_many_locked` for one item, in Python scalars (a per-step writer's insert)."""
+        """`_insert_many_locked` for one item, in Python scalars: a one-env writer inserts one item
+        per step, and the NumPy path's dozen array calls on one-element arrays cost several
+        times this (a prioritized table has no compiled insert)."""
         if self._num_free:
             self._num_free -= 1
             slot = int(self._free[self._num_free])
@@ -282,11 +299,16 @@ class Table:
         return float(priorities.max())
 
     def delete(self, keys: np.ndarray) -> int:
-        """Remove items by key; returns how many were still in the table."""
+        """Remove items by key; returns how many were still in the table (keys of items gone
+        already, or never inserted, are ignored)."""
         keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+        slots = keys % self.max_size
+        # A key that is not live now never is again (keys are never reused), so a call whose
+        # keys are all gone (a writer's usual eviction) returns without taking the lock.
+        if not (self.slot_key.take(slots) == keys).any():
+            return 0
         with self._cv:
-            slots = keys % self.max_size
-            slots = np.unique(slots[self.slot_key[slots] == keys])
+            slots = np.unique(slots[(self.slot_key[slots] == keys) & (keys >= 0)])  # key -1 matches an empty slot
             if slots.size:
                 self._delete_slots(slots)
                 if self._waiting:

@@ -1,9 +1,11 @@
 """Writers (TF-Agents/Acme adders): cut a batched actor's stream into table items.
 
-A writer is an actor observer: called with each batched `Transition`, it appends the steps
-to its StepStore and inserts an item into its table for every window that closed. It is also
-the table's storage: items are references (env, position) into the StepStore, and `read`
-turns sampled references into training data. No item ever spans an episode boundary.
+A writer is an actor observer: called with each batched `Transition`, it stages the step;
+at a flush it appends the staged steps to its StepStore and inserts an item into its table
+for every window that closed. Items are references into the StepStore: the writer gives the
+table a `StepStorage` over its store (`Table.set_storage`), which turns sampled references
+into training data. Before rows are reused, the writer deletes the items that read them
+(`Table.delete`, which ignores items already gone). No item ever spans an episode boundary.
 
 - `TransitionWriter(n_step)`: items (s_t, a_t, sum_i gamma^i r_{t+i}, s_{t+m}, discount),
   m = min(n, steps left in the episode); discount = gamma^m, or 0 when the episode
@@ -11,6 +13,11 @@ turns sampled references into training data. No item ever spans an episode bound
 - `SequenceWriter(sequence_length, stride_length)`: items of L consecutive rows of one
   episode (an episode's last row is its final observation), starting every `stride_length`
   rows from the episode start; TF-Agents' DQN tutorial uses L=2, stride 1.
+
+A flush takes the general path (`_write`, any number of steps and episode ends), or, for
+one staged step without episode ends in a TransitionWriter, its compiled twin
+(`writers_fast.OneStep`, with `fast=True` and numba there): the step of a 1:1 collect/train
+loop, which flushes after every batched step.
 """
 
 from __future__ import annotations
@@ -21,31 +28,17 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from relayrl.replay.one_step import one_env_step
+from relayrl.arrays import to_numpy
+from relayrl.compile import compiled
+from relayrl.replay.step_storage import SequenceBatch, SequenceStorage, StepStorage, TransitionStorage
 from relayrl.replay.steps import StepStore
-from relayrl.replay.storage import to_numpy
-from relayrl.replay.sumtree import compiled
 from relayrl.replay.table import Table
 from relayrl.specs import Spec
-from relayrl.types import Batch, Transition
+from relayrl.types import Transition
 
-
-class Sequence(NamedTuple):
-    """Sampled sequences, [N, L, ...]. Where `last` is set the row is a final observation
-    and its action and reward are padding."""
-
-    obs: torch.Tensor  # [N, L, *obs_shape]
-    action: torch.Tensor  # [N, L, *act_shape]
-    reward: torch.Tensor  # [N, L]
-    last: torch.Tensor  # [N, L] bool
-    terminated: torch.Tensor  # [N, L] bool, on last rows: the episode terminated (vs truncated)
-
+__all__ = ["SequenceBatch", "SequenceWriter", "StepChunk", "TransitionWriter", "stack_steps"]
 
 _NEVER = np.iinfo(np.int64).max // 2  # "no final row yet"
-
-# A slot's record: the item's flat row, its next observation's row, and (transition items)
-# its n-step return and discount, copied from the rows when the item is inserted.
-SLOT_RECORD = np.dtype([("row", np.int64), ("next", np.int64), ("ret", np.float32), ("disc", np.float32)])
 
 
 def _np_dtype(spec: Spec) -> np.dtype:
@@ -53,9 +46,9 @@ def _np_dtype(spec: Spec) -> np.dtype:
 
 
 def _stack(xs: list[Any], keep_tensors: bool = False) -> np.ndarray:
-    """Stack one field of the staged steps: one torch call for a list of tensors (~0.3 us a
-    tensor) instead of a `.numpy()` per tensor (~2.5 us) and `np.stack`. `keep_tensors`:
-    tensors stay tensors on their device (for a StepStore whose data lives there)."""
+    """Stack one field of the staged steps: one torch call for a list of tensors, much cheaper
+    than a `.numpy()` per tensor and `np.stack`. `keep_tensors`: tensors stay tensors on their
+    device (for a StepStore whose data lives there)."""
     if isinstance(xs[0], torch.Tensor):
         try:
             stacked = torch.stack(xs)
@@ -100,14 +93,13 @@ def stack_steps(staged: list[Transition], frame_stack: int = 1, keep_tensors: bo
 
 
 class _Writer:
-    """StepStore plumbing shared by both writers; subclasses say when windows close."""
+    """Staging, eviction and inserts shared by both writers; subclasses say when windows close."""
 
     lookahead = 1  # rows after an item's first row that it reads
 
     def __init__(self, table: Table, num_envs: int, obs_spec: Spec, action_spec: Spec,
                  frame_stack: int = 1, path: str | Path | None = None, rows: int | None = None,
-                 pin_memory: bool = False, chunk_length: int = 1024,
-                 device: str | torch.device | None = None) -> None:
+                 chunk_length: int = 1024, device: str | torch.device | None = None) -> None:
         if table.size > 0:
             raise ValueError(f"table {table.name!r} already holds items; a writer needs an empty table")
         # Enough rows that a FIFO-removed table drops items before their rows are reused;
@@ -118,116 +110,42 @@ class _Writer:
                                tuple(action_spec.shape), _np_dtype(action_spec), frame_stack, path, device)
         self.table = table
         self.num_envs = num_envs
-        self.pin_memory = pin_memory
-        self.slot_ref = np.zeros(table.max_size, dtype=np.int64)  # slot -> pos * B + env
-        # Per slot, what a read needs before the frames: one 24-byte record, so a sampled item
-        # costs one cache miss here instead of four (see SLOT_RECORD).
-        self.slot_rows = np.zeros(table.max_size, dtype=SLOT_RECORD)
         self.chunk_length = chunk_length
         # Reused rows must never be inside the chunk being written.
-        self._max_staged = max(1, (self.rows - frame_stack - self.lookahead - 2) // 2)
-        self._stage_limit = min(self._max_staged, max(1, -(-chunk_length // num_envs)))
+        self.max_staged = max(1, (self.rows - frame_stack - self.lookahead - 2) // 2)
+        self._stage_limit = min(self.max_staged, max(1, -(-chunk_length // num_envs)))
         self._staged: list[Transition] = []
-        self._open_from = np.zeros(num_envs, dtype=np.int64)  # first position that may still become an item
-        self._saved_episodes: tuple[Any, Any] = (None, None)  # see continue_episodes
         f = self.store.flat
-        self._frame, self._action, self._reward, self._stamp = f("frame"), f("action"), f("reward"), f("stamp")
-        self._start, self._last, self._terminated = f("start"), f("last"), f("terminated")
-        self._item_key, self._ret, self._disc, self._nlen = f("item_key"), f("ret"), f("disc"), f("nlen")
-        # `write` of several items in a compiled loop when numba is there (step_jit.write_records)
-        self._write_records = compiled("step_jit", "write_records")
-        self._ret_disc = (np.asarray(self._ret), np.asarray(self._disc))  # plain views, as numba takes them
-        table.storage = self
+        self._reward, self._start, self._last, self._terminated = f("reward"), f("start"), f("last"), f("terminated")
+        self._ret, self._disc, self._nlen = f("ret"), f("disc"), f("nlen")
 
-    # ---- the Table's storage interface ---------------------------------------------------
-    def write(self, slots: np.ndarray, items: np.ndarray) -> None:
-        """items: [n, 3] rows of (pos * B + env, flat row, flat next row), as `_insert` makes them."""
-        if len(slots) == 1:
-            slot, (ref, row, nxt) = slots[0], items[0].tolist()
-            self.slot_ref[slot] = ref
-            self.slot_rows[slot] = (row, nxt, self._ret[row], self._disc[row])
-            return
-        if self._write_records is not None:
-            self._write_records(self.slot_ref, self.slot_rows, slots, items, *self._ret_disc)
-            return
-        self.slot_ref[slots] = items[:, 0]
-        self.slot_rows[slots] = self._records(items[:, 1], items[:, 2])
+    def _use_storage(self, storage: StepStorage) -> None:
+        self.storage = storage
+        self.open_from = storage.open_from  # updated in place only: the storage saves it
+        self.table.set_storage(storage)
 
-    def _records(self, rows: np.ndarray, nxt: np.ndarray) -> np.ndarray:
-        """Slot records for items at flat `rows` whose next observations are at `nxt`. An
-        item's return and discount are final when it is inserted (its window has closed) and
-        stay so until its row is reused, which evicts it first."""
-        rec = np.empty(len(rows), SLOT_RECORD)
-        rec["row"], rec["next"] = rows, nxt
-        rec["ret"], rec["disc"] = self._ret.take(rows), self._disc.take(rows)
-        return rec
-
-    def _refs(self, slots: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        ref = self.slot_ref.take(slots)
-        return ref % self.num_envs, ref // self.num_envs  # env, position
-
-    def _tensor(self, x: np.ndarray | torch.Tensor) -> torch.Tensor:
-        if isinstance(x, torch.Tensor):  # gathered on the store's device
-            return x
-        t = torch.from_numpy(x)  # gathers are fresh contiguous arrays
-        if self.store.on_device:  # the small host columns join the data on its device
-            return t.to(self.store.device, non_blocking=True)
-        return t.pin_memory() if self.pin_memory else t
-
-    def stale(self, slots: np.ndarray) -> np.ndarray:
-        envs, pos = self._refs(slots)
-        return ~self.store.valid(envs, pos, self._ahead(envs, pos))
-
-    def _ahead(self, envs: np.ndarray, pos: np.ndarray) -> np.ndarray:
-        return np.full(len(pos), self.lookahead, dtype=np.int64)
-
-    def _next_pos(self, envs: np.ndarray, pos: np.ndarray) -> np.ndarray:
-        """Position of the row an item reads as its next observation (the row itself by default)."""
-        return pos
-
-    def state_dict(self) -> dict[str, Any]:
-        self.flush()
-        return {"store": self.store.state_dict(), "slot_ref": self.slot_ref.copy(),
-                "open_from": self._open_from.copy()}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.store.load_state_dict(state["store"])
-        self.slot_ref[:] = state["slot_ref"]
-        self.refresh_slot_rows()
-        self._staged.clear()
-        self._open_from = self.store.head.copy()  # resumed actors start new episodes...
-        # ...unless their envs resume mid-episode too: then `continue_episodes()`.
-        self._saved_episodes = (state.get("open_from"), state["store"].get("ep_start"))
-
-    def refresh_slot_rows(self, slots: np.ndarray | None = None) -> None:
-        """Recompute the flat rows of `slots` (default: all) from `slot_ref`."""
-        ref = self.slot_ref if slots is None else self.slot_ref[slots]
-        envs, pos = ref % self.num_envs, ref // self.num_envs
-        at = slice(None) if slots is None else slots
-        self.slot_rows[at] = self._records(envs * self.rows + pos % self.rows,
-                                           envs * self.rows + self._next_pos(envs, pos) % self.rows)
-
+    # ---- checkpoints (the storage's state is in the table's) -------------------------------
     def saved_episodes_intact(self) -> bool:
-        """After `load_state_dict`: whether the rows of the episodes open at the checkpoint still
-        hold what it saw (memmap files reopened after the run went on may not)."""
-        open_from, _ = self._saved_episodes
-        if open_from is None:
-            return False
-        s = self.store
-        for env, first in enumerate(np.asarray(open_from, dtype=np.int64).tolist()):
-            pos = np.arange(max(first - s.k + 1, 0), int(s.head[env]))  # open rows and their stacking look-back
-            if pos.size and not (s.stamp[env, pos % s.T] == pos + 1).all():
-                return False
-        return True
+        """After the table loaded a checkpoint: whether the rows of the episodes open at the
+        checkpoint still hold what it saw (memmap files reopened after the run went on may not)."""
+        return self.storage.saved_episodes_intact()
 
     def continue_episodes(self) -> None:
-        """After `load_state_dict`, when the actor's envs were restored mid-episode as well:
-        the next step continues the interrupted episodes (their last steps become items)."""
-        open_from, ep_start = self._saved_episodes
+        """After the table loaded a checkpoint, when the actor's envs were restored mid-episode
+        as well: the next step continues the interrupted episodes (their last steps become items)."""
+        self._staged.clear()
+        open_from, ep_start = self.storage.saved_episodes
         if open_from is None or ep_start is None:
             raise ValueError("this writer state predates episode continuation; resumed envs must start new episodes")
-        self._open_from = np.asarray(open_from, dtype=np.int64).copy()
+        self.open_from[:] = np.asarray(open_from, dtype=np.int64)
         self.store.ep_start[:] = ep_start
+
+    def restart_episodes(self) -> None:
+        """Forget the episodes in progress: the next steps start new ones. For an actor that
+        died mid-episode and was restarted: its last steps never become items."""
+        self._staged.clear()
+        self.open_from[:] = self.store.head
+        self.store.ep_start[:] = self.store.head
 
     # ---- the observer ---------------------------------------------------------------
     def __call__(self, t: Transition) -> None:
@@ -251,32 +169,15 @@ class _Writer:
         staged.clear()
         self.write_chunk(chunk)
 
+    def _flush_one(self, t: Transition) -> bool:
+        """Write one staged step on a compiled path if there is one; False: the general path."""
+        return False
+
     def write_chunk(self, chunk: StepChunk) -> None:
         """Append steps stacked by `stack_steps` (possibly in another process: the replay
         server's writers take chunks from remote actors) and insert the items they close."""
         self.flush()  # steps staged here come first
         self._write(chunk.frames, chunk.actions, chunk.rewards, chunk.done, chunk.terminated, chunk.finals)
-
-    def restart_episodes(self) -> None:
-        """Forget the episodes in progress: the next steps start new ones. For an actor that
-        died mid-episode and was restarted: its last steps never become items."""
-        self._staged.clear()
-        self._open_from = self.store.head.copy()
-        self.store.ep_start[:] = self.store.head
-
-    def _flush_one(self, t: Transition) -> bool:
-        """One staged step (a 1:1 collect/train loop flushes every step): write it on a short
-        path if there is one; False leaves it to the general path (always, for a store on a
-        device: this path writes NumPy rows)."""
-        if self.store.on_device:
-            return False
-        if np.count_nonzero(to_numpy(t.terminated)) or np.count_nonzero(to_numpy(t.truncated)):
-            return False
-        obs = to_numpy(t.obs)
-        s = self.store
-        self._evict(s.envs, s.head)
-        self._close_newest(s.write_step(obs[:, -1] if s.k > 1 else obs, to_numpy(t.action), to_numpy(t.reward)))
-        return True
 
     def _write(self, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor, rewards: np.ndarray,
                done: np.ndarray, term: np.ndarray, finals: np.ndarray | torch.Tensor) -> None:
@@ -288,22 +189,11 @@ class _Writer:
         envs = np.repeat(s.envs, j.size).reshape(s.B, j.size)
         pos = s.head[:, None] + j  # [B, R]
         mask = j < new_rows[:, None]
-        self._evict(envs[mask], pos[mask])
-        s.write_chunk(frames, actions, rewards, done, term, finals)
-        self._close_items()
-
-    def _evict(self, envs: np.ndarray, pos: np.ndarray) -> None:
-        """Drop the items that read the rows about to be reused for `pos`."""
-        keys = self.store.evictable(envs, pos)
+        keys = s.evictable(envs[mask], pos[mask])
         keys = keys[keys >= 0]
         if keys.size:
-            # Most are long gone (the remover took them first); the table's lock only for the rest.
-            keys = keys[self.table.slot_key.take(keys % self.table.max_size) == keys]
-            if keys.size:
-                self.table.delete(keys)
-
-    def _close_newest(self, pos: np.ndarray) -> None:
-        """After one step without episode ends: close items that this row completes."""
+            self.table.delete(keys)  # most are long gone (the remover took them first)
+        s.write_chunk(frames, actions, rewards, done, term, finals)
         self._close_items()
 
     def _window(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -313,8 +203,8 @@ class _Writer:
         number when the episode is still running).
         """
         s = self.store
-        w = int((s.head - self._open_from).max())
-        pos = self._open_from[:, None] + np.arange(w)  # [B, W]
+        w = int((s.head - self.open_from).max())
+        pos = self.open_from[:, None] + np.arange(w)  # [B, W]
         envs = np.repeat(s.envs, w).reshape(pos.shape)
         written = pos < s.head[:, None]
         last = self._last[envs * s.T + pos % s.T] & written
@@ -333,40 +223,45 @@ class _Writer:
             order = np.argsort(ref, kind="stable")
             envs, pos, next_pos, ref = envs.take(order), pos.take(order), next_pos.take(order), ref.take(order)
         base = envs * self.rows
-        items = np.empty((len(envs), 3), dtype=np.int64)  # what `write` stores per slot
+        items = np.empty((len(envs), 3), dtype=np.int64)  # what `StepStorage.write` stores per slot
         items[:, 0] = ref
-        items[:, 1] = rows = base + pos % self.rows
+        items[:, 1] = base + pos % self.rows
         items[:, 2] = base + next_pos % self.rows
-        self._item_key[rows] = self.table.insert_batch(items, n=len(envs))
+        self.table.insert_batch(items, n=len(envs))  # (the storage notes each item's key at its row)
 
     def _advance(self, pos: np.ndarray, still_open: np.ndarray) -> None:
         """Next flush starts at each env's first item that may still close."""
         rows = np.arange(len(pos))
         first = np.argmax(still_open, axis=1)
-        self._open_from = np.where(still_open[rows, first], pos[rows, first], self.store.head)
+        self.open_from[:] = np.where(still_open[rows, first], pos[rows, first], self.store.head)
 
     def _close_items(self) -> None:
         raise NotImplementedError
 
 
 class TransitionWriter(_Writer):
-    """n-step transitions; `read` returns a `Batch` (weights None: the learner sets them)."""
+    """n-step transitions; the table's samples are `Batch`es (weights None: the learner sets them).
+
+    `fast`: one-step flushes without episode ends in compiled loops (`writers_fast`) when
+    numba is there; False (or no numba, or RELAYRL_NUMBA=0): always the general NumPy path."""
 
     def __init__(self, table: Table, num_envs: int, obs_spec: Spec, action_spec: Spec, *,
                  gamma: float, n_step: int = 1, frame_stack: int = 1, path: str | Path | None = None,
                  rows: int | None = None, pin_memory: bool = False, chunk_length: int = 1024,
-                 device: str | torch.device | None = None) -> None:
+                 device: str | torch.device | None = None, fast: bool = True) -> None:
         if n_step < 1:
             raise ValueError(f"n_step={n_step} is not valid; it must be >= 1")
         self.n = n_step
         self.lookahead = n_step
         self.gamma = gamma
         self.powers = gamma ** np.arange(n_step + 1, dtype=np.float64)  # [n+1]
-        super().__init__(table, num_envs, obs_spec, action_spec, frame_stack, path, rows, pin_memory, chunk_length,
-                         device)
-        # B > 1 one-step flushes in compiled loops (step_jit) when numba is there; else NumPy.
-        bind = compiled("step_jit", "bind_batched_step")
-        self._batched_step = bind(self) if bind is not None and num_envs > 1 else None
+        super().__init__(table, num_envs, obs_spec, action_spec, frame_stack, path, rows, chunk_length, device)
+        self._use_storage(TransitionStorage(self.store, table.max_size, pin_memory, fast))
+        one_step = compiled("relayrl.replay.writers_fast", "OneStep") if fast else None
+        self._one_step = one_step(self) if one_step is not None else None
+
+    def _flush_one(self, t: Transition) -> bool:
+        return self._one_step is not None and self._one_step(t)
 
     def _close_items(self) -> None:
         s, n = self.store, self.n
@@ -377,7 +272,7 @@ class TransitionWriter(_Writer):
         closed = item & (reaches_end | (pos + n < s.head[:, None]))
         length = np.where(reaches_end, to_end, n)  # [B, W]
         # n-step discounted returns over the window: rewards of rows q .. q+length-1.
-        r_pos = self._open_from[:, None] + np.arange(w + n - 1)  # [B, W+n-1]
+        r_pos = self.open_from[:, None] + np.arange(w + n - 1)  # [B, W+n-1]
         rewards = self._reward[envs[:, :1] * s.T + r_pos % s.T]  # [B, W+n-1]
         ret = rewards[:, :w].astype(np.float64)  # m = 0: every item has length >= 1
         for m in range(1, n):
@@ -392,62 +287,10 @@ class TransitionWriter(_Writer):
         self._advance(pos, item & ~closed)
         self._insert(e, p, p + m)
 
-    def _close_newest(self, pos: np.ndarray) -> None:
-        # Row `pos` completes the n-step window of the item at pos - n, if that item is
-        # in this episode and still open; nothing else can close without an episode end.
-        s, n = self.store, self.n
-        q = pos - n
-        ok = q >= self._open_from
-        if not ok.any():
-            return
-        e, q = s.envs[ok], q[ok]
-        base = e * s.T
-        i = base + q % s.T
-        ret = self._reward.take(i).astype(np.float64)
-        for m in range(1, n):  # left to right, as _close_items and the one-env path sum
-            ret += self._reward.take(base + (q + m) % s.T) * self.powers[m]
-        self._ret[i] = ret
-        self._disc[i] = self.powers[n]
-        self._nlen[i] = n
-        self._open_from[ok] = q + 1
-        self._insert(e, q, q + n)
-
-    def _flush_one(self, t: Transition) -> bool:
-        if self.num_envs == 1 and not self.store.on_device:  # (Python scalars: host rows only)
-            one_env_step(self, t)
-            return True
-        if self._batched_step is not None and not (np.count_nonzero(to_numpy(t.terminated))
-                                                   or np.count_nonzero(to_numpy(t.truncated))):
-            self._batched_step(self, t)
-            return True
-        return super()._flush_one(t)
-
-    def _ahead(self, envs: np.ndarray, pos: np.ndarray) -> np.ndarray:
-        return self.store.nlen[envs, pos % self.rows].astype(np.int64)
-
-    def _next_pos(self, envs: np.ndarray, pos: np.ndarray) -> np.ndarray:
-        return pos + self.store.nlen[envs, pos % self.rows]
-
-    def read(self, slots: np.ndarray) -> Batch:
-        s = self.store
-        rec = self.slot_rows.take(slots)  # one gather: rows, return and discount of each item
-        i = rec["row"]
-        if s.k == 1:
-            obs, next_obs = s.gather("frame", i), s.gather("frame", rec["next"])
-        else:
-            envs, pos = self._refs(slots)
-            start = self._start.take(i)
-            obs = s.stacks(envs, pos, start)
-            next_obs = s.stacks(envs, pos + self._nlen.take(i), start)
-        t = self._tensor
-        # ret and disc made contiguous: as views of the records they would pickle (Ray) and pin
-        # the whole record array.
-        return Batch(t(obs), t(s.gather("action", i)), t(np.ascontiguousarray(rec["ret"])), t(next_obs),
-                     t(np.ascontiguousarray(rec["disc"])), None)
-
 
 class SequenceWriter(_Writer):
-    """Items of `sequence_length` rows of one episode, every `stride_length` rows."""
+    """Items of `sequence_length` rows of one episode, every `stride_length` rows; the
+    table's samples are `SequenceBatch`es."""
 
     def __init__(self, table: Table, num_envs: int, obs_spec: Spec, action_spec: Spec, *,
                  sequence_length: int, stride_length: int = 1, frame_stack: int = 1,
@@ -458,8 +301,8 @@ class SequenceWriter(_Writer):
         self.L = sequence_length
         self.stride = stride_length
         self.lookahead = sequence_length - 1
-        super().__init__(table, num_envs, obs_spec, action_spec, frame_stack, path, rows, pin_memory, chunk_length,
-                         device)
+        super().__init__(table, num_envs, obs_spec, action_spec, frame_stack, path, rows, chunk_length, device)
+        self._use_storage(SequenceStorage(self.store, table.max_size, sequence_length, pin_memory))
 
     def _close_items(self) -> None:
         s, span = self.store, self.L - 1
@@ -471,19 +314,3 @@ class SequenceWriter(_Writer):
         closed = candidate & (pos + span < s.head[:, None])
         self._advance(pos, candidate & ~closed)
         self._insert(envs[closed], pos[closed], pos[closed])
-
-    def read(self, slots: np.ndarray) -> Sequence:
-        s = self.store
-        envs, pos = self._refs(slots)
-        steps = pos[:, None] + np.arange(self.L)  # [N, L]
-        rows = steps % self.rows
-        e = envs[:, None]
-        start = s.start[envs, pos % self.rows]
-        if s.k == 1:
-            obs = s.gather("frame", e * self.rows + rows)  # [N, L, *obs]
-        else:
-            stacks = [s.stacks(envs, steps[:, j], start) for j in range(self.L)]
-            obs = torch.stack(stacks, 1) if s.on_device else np.stack(stacks, axis=1)  # type: ignore[arg-type]
-        t = self._tensor
-        return Sequence(t(obs), t(s.gather("action", e * self.rows + rows)), t(s.reward[e, rows]), t(s.last[e, rows]),
-                        t(s.terminated[e, rows]))

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from relayrl.arrays import to_numpy
 from relayrl.core import BatchedEnv, Policy
 from relayrl.envs import make_env
-from relayrl.replay.storage import to_numpy
 
 EVAL_BATCH = 16  # eval episodes run as one batch of at most this many env copies
 

@@ -1,11 +1,11 @@
 """A binary sum tree walked by compiled loops (numba, the `relayrl[fast]` extra).
 
 The NumPy tree in `sumtree.py` answers a batch in a dozen array calls, and at 256 queries
-those calls' fixed costs (~5-80 us each, the top level's cumsum the largest) are the whole
-bill. Here a query is a 20-step loop down a flat binary tree and an update a 20-step loop
-up it, so a batch of 256 costs microseconds. `make_sum_tree` picks this class when numba
-imports; both classes have the same interface and find the same leaves (the two only round
-differently, so a query exactly on an interval's boundary may land one leaf apart).
+those calls' fixed costs (the top level's cumsum the largest) are the whole bill. Here a
+query is a 20-step loop down a flat binary tree and an update a 20-step loop up it.
+`make_sum_tree` picks this class when numba imports; both classes have the same interface and
+find the same leaves (the two only round differently, so a query exactly on an interval's
+boundary may land one leaf apart).
 
 Layout: `tree[1]` is the total, node i has children 2i and 2i+1, the leaves are
 `tree[base:base + capacity]` with `base` the power of two >= capacity. Every update
@@ -14,25 +14,13 @@ recomputes its ancestors from their children, so sums never drift.
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import Any
-
-import numba
 import numpy as np
 
+from relayrl.compile import njit
 from relayrl.replay.sumtree import flat_updates
 
 
-def _compile(fn: Callable[..., Any]) -> Any:
-    """numba.njit, cached on disk (~0.7 s of compiling saved per process) where numba finds
-    a writable cache directory; without one (read-only install, no home), compiled per process."""
-    try:
-        return numba.njit(cache=True)(fn)
-    except RuntimeError:  # numba: "cannot cache function ...: no locator available"
-        return numba.njit(fn)
-
-
-@_compile
+@njit
 def _set(tree: np.ndarray, base: int, idx: np.ndarray, values: np.ndarray) -> None:
     node = idx + base
     for j in range(idx.size):  # in order, so a repeated index keeps its last value
@@ -40,7 +28,7 @@ def _set(tree: np.ndarray, base: int, idx: np.ndarray, values: np.ndarray) -> No
     _update_parents(tree, node)
 
 
-@_compile
+@njit
 def _set_power(tree: np.ndarray, base: int, idx: np.ndarray, priority: np.ndarray, exponent: float) -> None:
     node = idx + base
     for j in range(idx.size):
@@ -49,7 +37,7 @@ def _set_power(tree: np.ndarray, base: int, idx: np.ndarray, priority: np.ndarra
     _update_parents(tree, node)
 
 
-@_compile
+@njit
 def _update_parents(tree: np.ndarray, node: np.ndarray) -> None:
     # Level by level across the batch, not index by index: the loads of one level are
     # independent, so the CPU overlaps their cache misses (a 1M-leaf tree is 16 MB).
@@ -64,7 +52,7 @@ def _update_parents(tree: np.ndarray, node: np.ndarray) -> None:
             node[j] = p
 
 
-@_compile
+@njit
 def _update_live(tree: np.ndarray, base: int, slot_key: np.ndarray, priority: np.ndarray, keys: np.ndarray,
                  prios: np.ndarray, exponent: float, node: np.ndarray) -> float:
     """A table's `update_priorities` in one pass: for each key still live in its slot, write
@@ -94,7 +82,7 @@ def _update_live(tree: np.ndarray, base: int, slot_key: np.ndarray, priority: np
     return top
 
 
-@_compile
+@njit
 def _find(tree: np.ndarray, base: int, u: np.ndarray, scale: float, node: np.ndarray, mass: np.ndarray) -> None:
     if u.size == 0:  # as in `_update_parents`: node[0] below must exist
         return
@@ -115,7 +103,7 @@ def _find(tree: np.ndarray, base: int, u: np.ndarray, scale: float, node: np.nda
         node[j] -= base
 
 
-@_compile
+@njit
 def _find_items(tree: np.ndarray, base: int, u: np.ndarray, node: np.ndarray, prob: np.ndarray,
                 slot_key: np.ndarray, priority: np.ndarray, key: np.ndarray, prio: np.ndarray) -> None:
     """`_find` for u in [0, 1), with each leaf's probability, and the table's key and priority
