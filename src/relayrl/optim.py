@@ -1,8 +1,8 @@
 """Adam with the fused kernel called directly.
 
-`torch.optim.Adam(fused=True).step()` spends about 130 us per call in Python (profiler
-hooks, param-group bookkeeping) around a 45 us kernel on CPU; for small RL networks that
-wrapper costs more than the math. Same update as torch.optim.Adam (no weight decay, no
+`torch.optim.Adam(fused=True).step()` wraps the kernel in Python (profiler hooks,
+param-group bookkeeping) that, for small RL networks on a CPU, costs more than the math
+(BENCHMARKS.md has the figures). Same update as torch.optim.Adam (no weight decay, no
 amsgrad); state_dict round-trips. Falls back to torch.optim.Adam where the kernel is missing.
 """
 
@@ -28,7 +28,7 @@ class FastAdam:
         self.exp_avg_sq = [torch.zeros_like(p) for p in self._data]
         # One step counter per tensor, as the kernel expects (on the params' device); where
         # all params share a device the counters are views of one tensor, so counting a step
-        # is one op (torch._foreach_add_ on CPU loops over the tensors: ~30 us vs ~7 us).
+        # is one op (torch._foreach_add_ on CPU loops over the tensors one by one).
         devices = {p.device for p in self._data}
         self._steps_flat = (torch.zeros(len(self._data), dtype=torch.float32, device=devices.pop())
                             if len(devices) == 1 else None)

@@ -82,8 +82,8 @@ class Table:
             selector.bind(max_size, self.slot_key, self.priority)
         # A compiled prioritized sampler updates keys in one pass, when the remover has no
         # use for priorities (Fifo, Lifo, Uniform); otherwise both are told in NumPy.
-        fused = sampler.update_keys if type(remover).update is Selector.update else None
-        self._update_keys: Callable[[np.ndarray, np.ndarray], float] = fused or self._update_slots
+        one_pass = sampler.update_keys if type(remover).update is Selector.update else None
+        self._update_keys: Callable[[np.ndarray, np.ndarray], float] = one_pass or self._update_slots
         # `fast`: inserts of n > 1 items in compiled loops (table_fast) for the usual pair of
         # selectors, when numba is there; else (and with fast=False) the NumPy path.
         uniform_fifo = fast and type(sampler) is Uniform and type(remover) is Fifo

@@ -50,8 +50,8 @@ class Learner:
 
     def _batches(self, iterations: int) -> Iterator[tuple[Batch, SampleInfo]]:
         """`iterations` sampled batches. From a uniform local table, a burst is drawn with one
-        `sample` call per chunk and sliced, at a third of the cost per batch of 64 (the
-        table's fixed cost per call is ~50 us). In the one-process loop nothing is inserted
+        `sample` call per chunk and sliced, which spreads the table's fixed cost per call over the
+        chunk. In the one-process loop nothing is inserted
         during a burst, so these are the items of one call per batch (the same RNG draws);
         where another thread inserts meanwhile, its items become sampleable at the next chunk
         instead of the next batch. Prioritized batches depend on the priorities the previous
