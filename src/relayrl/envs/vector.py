@@ -21,9 +21,9 @@ first copy, so copies in different workers never repeat each other's draws.
 Why this shape: more processes than cores never speeds up CPU-bound envs, and one process per
 copy (Gymnasium's `AsyncVectorEnv`) pays a pipe round trip per copy per step, which for light
 envs costs more than the step itself. The main process steps its own slice while the workers
-step theirs, so it does not sleep through the step and pay a wake-up to read the results. Workers read actions from and write results into
-shared memory; the pipes carry one small command per worker per step and, when an episode
-ends, its info values.
+step theirs, so it does not sleep through the step and pay a wake-up to read the results.
+Workers read actions from and write results into shared memory; the pipes carry one small
+command per worker per step and, when an episode ends, its info values.
 """
 
 from __future__ import annotations
