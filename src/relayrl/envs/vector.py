@@ -239,6 +239,10 @@ class AsyncGymBatchEnv(BatchEnvBase):
             raise
 
     @property
+    def time_limited(self) -> bool:
+        return self._local.time_limited
+
+    @property
     def num_workers(self) -> int:
         return len(self._procs)
 

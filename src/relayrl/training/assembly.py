@@ -13,6 +13,7 @@ from __future__ import annotations
 import random
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,9 +56,11 @@ class Run:
     tb: Any
     metrics_log: MetricsLog
 
-    def __init__(self, config: Config, run_dir: RunDir, progress: bool = True) -> None:
+    def __init__(self, config: Config, run_dir: RunDir, progress: bool = True,
+                 env_factory: Callable[[], Any] | None = None) -> None:
         c = config
         self.config, self.rd, self.show_progress = config, run_dir, progress
+        self.env_factory = env_factory  # relayrl.train(env=...): made instead of env.id
         if c.train.torch_threads > 0:
             torch.set_num_threads(c.train.torch_threads)
         self.seeds = RunSeeds(c.seed)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -19,9 +21,41 @@ class RunDir:
         self.checkpoints = self.root / "checkpoints"
         self.policy = self.root / "policy"
 
+    def check_writable(self) -> None:
+        """One line, before anything is built, where the run directory cannot be made: a file in
+        its place or above it, or a folder above it that cannot be written (missing folders
+        above it are created here; the run directory itself once the run is built)."""
+        if self.root.exists() and not self.root.is_dir():
+            raise UserError(f"--run-dir {str(self.root)!r} is a file, not a directory")
+        try:
+            self.root.parent.mkdir(parents=True, exist_ok=True)
+        except FileExistsError:
+            raise UserError(f"--run-dir {str(self.root)!r}: a file stands where a folder above it should be") from None
+        except OSError as e:
+            raise UserError(f"--run-dir {str(self.root)!r}: its parent folder cannot be created ({e.strerror})") from None
+        target = self.root if self.root.exists() else self.root.parent
+        if not os.access(target, os.W_OK | os.X_OK):
+            raise UserError(f"--run-dir {str(self.root)!r}: no permission to write in {str(target)!r}")
+
+    def has_checkpoint(self) -> bool:
+        from relayrl.training.checkpoint import list_checkpoints
+
+        return bool(list_checkpoints(self.checkpoints))
+
+    def clear(self) -> None:
+        """Remove what a run writes here (a new run replaces it); other files are left alone."""
+        for path in (self.config, self.metrics):
+            path.unlink(missing_ok=True)
+        for folder in (self.tb, self.checkpoints, self.policy, self.root / "replay"):
+            if folder.is_dir():
+                shutil.rmtree(folder)
+
     def create(self) -> None:
-        for d in (self.root, self.tb, self.checkpoints, self.policy):
-            d.mkdir(parents=True, exist_ok=True)
+        try:
+            for d in (self.root, self.tb, self.checkpoints, self.policy):
+                d.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise UserError(f"--run-dir {str(self.root)!r} cannot be created: {e.strerror}") from None
 
     def require(self) -> None:
         """Fail with a clear message unless this is an existing run directory."""
