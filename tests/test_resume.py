@@ -213,7 +213,8 @@ def test_a_signal_to_the_whole_process_group_stops_an_async_run_cleanly(tmp_path
     os.killpg(p.pid, sig)
     _, err = p.communicate(timeout=60)
     assert p.returncode == code, err
-    assert f"relayrl: {what}; resume with --resume" in err and "Traceback" not in err, err
+    # Still in the random warm-up, before the first checkpoint: no --resume is offered.
+    assert f"relayrl: {what} before the first checkpoint: nothing to resume" in err and "Traceback" not in err, err
     assert not [w for w in workers if running(w)], "env workers outlived the run"
 
 

@@ -128,7 +128,8 @@ def _interrupted_line(what: str, args: argparse.Namespace) -> str:
 
     run_dir = getattr(args, "run_dir", None) if args.command == "train" else None
     if run_dir and RunDir(run_dir).has_checkpoint():
-        return f"relayrl: {what}; resume with --resume from the last checkpoint: relayrl train --run-dir {run_dir} --resume"
+        return (f"relayrl: {what}; resume with --resume from the last checkpoint: "
+                f"relayrl train --run-dir {run_dir} --resume")
     where = f" in {run_dir}" if run_dir else ""
     return f"relayrl: {what} before the first checkpoint: nothing to resume; a new run{where} starts over"
 

@@ -45,13 +45,9 @@ class LocalRun(Run):
         except BaseException:  # async envs have worker processes: none is left behind by a failure here
             self.env.close()
             raise
-        if user_env:
-            if not getattr(self.env, "time_limited", True):
-                self.say(f"env.id={c.env.id!r} has no time limit: training episodes end only when the env "
-                         "ends them (env.max_episode_steps caps them)")
-            note = eval_cap_note(self.eval_env, c.env.id)
-            if note:
-                self.say(note)
+        note = eval_cap_note(self.eval_env, c.env.id)
+        if note:
+            self.say(note)
         return self.env.observation_spec, self.env.action_spec
 
     def connect(self, obs_spec: Spec, act_spec: Spec) -> tuple[Any, Any]:

@@ -22,20 +22,18 @@ class RunDir:
         self.policy = self.root / "policy"
 
     def check_writable(self) -> None:
-        """One line, before anything is built, where the run directory cannot be made: a file in
-        its place or above it, or a folder above it that cannot be written (missing folders
-        above it are created here; the run directory itself once the run is built)."""
+        """One line, before anything is built or written, where the run directory cannot be
+        made: a file in its place or above it, or a folder above it that cannot be written.
+        (Missing folders above it are created with it, once the run is built.)"""
         if self.root.exists() and not self.root.is_dir():
             raise UserError(f"--run-dir {str(self.root)!r} is a file, not a directory")
-        try:
-            self.root.parent.mkdir(parents=True, exist_ok=True)
-        except FileExistsError:
-            raise UserError(f"--run-dir {str(self.root)!r}: a file stands where a folder above it should be") from None
-        except OSError as e:
-            raise UserError(f"--run-dir {str(self.root)!r}: its parent folder cannot be created ({e.strerror})") from None
-        target = self.root if self.root.exists() else self.root.parent
-        if not os.access(target, os.W_OK | os.X_OK):
-            raise UserError(f"--run-dir {str(self.root)!r}: no permission to write in {str(target)!r}")
+        existing = self.root.absolute()
+        while not existing.exists() and existing.parent != existing:
+            existing = existing.parent
+        if not existing.is_dir():
+            raise UserError(f"--run-dir {str(self.root)!r}: {str(existing)!r} is a file, not a directory")
+        if not os.access(existing, os.W_OK | os.X_OK):
+            raise UserError(f"--run-dir {str(self.root)!r}: no permission to write in {str(existing)!r}")
 
     def has_checkpoint(self) -> bool:
         from relayrl.training.checkpoint import list_checkpoints
