@@ -4,7 +4,6 @@ env.wrappers, an env factory in Python, episode caps, and the env checker."""
 import os
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -24,33 +23,14 @@ SRC = str(Path(__file__).resolve().parents[1] / "src")
 TINY = ["train.total_steps=60", "train.initial_collect_steps=20", "eval.interval=30", "eval.episodes=2",
         "train.checkpoint_interval=30", "train.policy_save_interval=0", "agent.batch_size=8"]
 
-CORRIDOR = '''
-import gymnasium as gym
-import numpy as np
+README = Path(__file__).resolve().parents[1] / "README.md"
 
 
-class Corridor(gym.Env):
-    """Step right `length` times to reach the end."""
-
-    def __init__(self, length=3, render_mode=None):
-        self.length = length
-        self.observation_space = gym.spaces.Box(0, 100, (1,), np.float32)
-        self.action_space = gym.spaces.Discrete(2)
-        self.pos = 0
-
-    def reset(self, *, seed=None, options=None):
-        super().reset(seed=seed)
-        self.pos = 0
-        return np.array([self.pos], np.float32), {}
-
-    def step(self, action):
-        self.pos += 1
-        done = self.pos >= self.length
-        return np.array([self.pos], np.float32), 1.0, done, False, {}
-
-
-gym.register("Corridor-v0", entry_point="mypkg.envs:Corridor", kwargs={"length": 4})
-'''
+def readme_env() -> str:
+    """The quick start's own env class (README.md, `# mygame/envs.py`), as a user would copy it."""
+    text = README.read_text()
+    start = text.index("# mygame/envs.py")
+    return text[start:text.index("```", start)]
 
 
 def policy_of(action: int):
@@ -61,9 +41,10 @@ def policy_of(action: int):
 def project(tmp_path):
     """A user's project folder holding its own package, and a `relayrl` console script
     outside it (the script's folder, not the current one, starts its import path)."""
-    (tmp_path / "proj" / "mypkg").mkdir(parents=True)
-    (tmp_path / "proj" / "mypkg" / "__init__.py").write_text("")
-    (tmp_path / "proj" / "mypkg" / "envs.py").write_text(textwrap.dedent(CORRIDOR))
+    (tmp_path / "proj" / "mygame").mkdir(parents=True)
+    (tmp_path / "proj" / "mygame" / "__init__.py").write_text("")
+    registered = '\ngym.register("Corridor-v0", entry_point="mygame.envs:Corridor", max_episode_steps=20)\n'
+    (tmp_path / "proj" / "mygame" / "envs.py").write_text(readme_env() + registered)
     (tmp_path / "bin").mkdir()
     script = tmp_path / "bin" / "relayrl"
     # What pip's console-script wrapper runs.
@@ -72,16 +53,17 @@ def project(tmp_path):
     return tmp_path / "proj", script, env
 
 
-@pytest.mark.parametrize("env_id", ["mypkg.envs:Corridor", "mypkg.envs:Corridor-v0"])
+@pytest.mark.parametrize("env_id", ["mygame.envs:Corridor", "mygame.envs:Corridor-v0"])
 def test_console_script_finds_the_users_package_in_the_current_directory(project, env_id):
+    """The README's own-env command, shrunk, from the user's project folder."""
     proj, script, env = project
-    sets = [a for o in TINY + [f"env.id={env_id}"] for a in ("--set", o)]
-    r = subprocess.run([sys.executable, str(script), "train", "dqn-cartpole", "--run-dir", "run", "--no-progress",
-                        *sets], cwd=proj, env=env, capture_output=True, text=True, timeout=300)
+    sets = [a for o in TINY + [f"env.id={env_id}", "env.kwargs={length=3}"] for a in ("--set", o)]
+    r = subprocess.run([sys.executable, str(script), "train", "dqn-cartpole-fast", "--run-dir", "run",
+                        "--no-progress", *sets], cwd=proj, env=env, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
-    rows = RunDir(proj / "run").read_metrics()
-    # Corridor-v0 is registered with length=4; the class defaults to 3.
-    assert rows[-1]["average_episode_length"] == (4.0 if env_id.endswith("-v0") else 3.0)
+    assert RunDir(proj / "run").read_metrics()[-1]["step"] == 60
+    # Corridor-v0 is registered with a time limit; the bare class has none: evaluation caps it.
+    assert ("evaluation episodes are cut at" in r.stderr) == (not env_id.endswith("-v0"))
 
 
 def test_a_missing_package_is_one_line_saying_what_was_tried(project):
@@ -97,8 +79,8 @@ def test_a_missing_package_is_one_line_saying_what_was_tried(project):
 
 def test_an_error_inside_the_users_module_is_one_line(project):
     proj, script, env = project
-    (proj / "mypkg" / "bad.py").write_text("import numpy\nraise RuntimeError('oops')\n")
-    r = subprocess.run([sys.executable, str(script), "train", "dqn-cartpole", "--set", "env.id=mypkg.bad:Env"],
+    (proj / "mygame" / "bad.py").write_text("import numpy\nraise RuntimeError('oops')\n")
+    r = subprocess.run([sys.executable, str(script), "train", "dqn-cartpole", "--set", "env.id=mygame.bad:Env"],
                        cwd=proj, env=env, capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "Traceback" not in r.stderr
     (line,) = r.stderr.strip().splitlines()
@@ -171,6 +153,8 @@ def test_train_takes_an_env_factory(tmp_path, vectorization):
     again = load_config(str(tmp_path / "run" / "config.toml"), ["train.total_steps=90"])
     result = train(again, tmp_path / "run", resume=True, progress=False, env=lambda: toy_envs.Countdown(length=6))
     assert result.final["step"] == 90 and result.final["average_episode_length"] == 6.0
+    with pytest.raises(UserError, match="records an env factory given to relayrl.train"):
+        train(again, tmp_path / "run", resume=True, progress=False)  # without it
 
 
 def test_an_importable_factory_is_recorded_so_the_cli_can_evaluate_it(tmp_path):

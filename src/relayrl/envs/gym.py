@@ -119,6 +119,10 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
         base = _custom_fn(env_id, factory, kwargs, max_episode_steps)
     elif ":" in env_id and "/" not in env_id.split(":", 1)[0]:
         module_name, name = env_id.split(":", 1)
+        if "<" in name or module_name == "__main__":
+            raise UserError(f"env.id={env_id!r} records an env factory given to relayrl.train in Python that "
+                            "cannot be imported here (a lambda, a local function or __main__); pass the same "
+                            "env= again in Python, or make it a function in a module and name it in env.id")
         module = import_user_module(module_name, f"env.id={env_id!r}")
         if hasattr(module, name):
             target = getattr(module, name)
