@@ -99,7 +99,7 @@ def _train(args: argparse.Namespace) -> None:
 def _eval(args: argparse.Namespace) -> None:
     from relayrl.export import load_policy
     from relayrl.presets import load_config
-    from relayrl.training.evaluate import evaluate, make_eval_env
+    from relayrl.training.evaluate import eval_cap_note, evaluate, make_eval_env
     from relayrl.training.run_dir import RunDir
 
     if args.episodes < 1:
@@ -110,6 +110,9 @@ def _eval(args: argparse.Namespace) -> None:
     policy = load_policy(rd.root)
     env = make_eval_env(config.env.id, args.episodes, config.env.max_episode_steps,
                         info_keys=config.env.info_keys, kwargs=config.env.kwargs, wrappers=config.env.wrappers)
+    note = eval_cap_note(env, config.env.id)
+    if note:
+        print(f"relayrl: {note}", file=sys.stderr)
     print(json.dumps({**evaluate(env, policy, args.episodes, seed=args.seed), "policy_env_steps": policy.env_steps}))
 
 

@@ -43,6 +43,16 @@ def check_resume_matches(config: Config, rd: RunDir) -> None:
                         f"env.id={saved_env!r}; leave out PRESET|CONFIG.toml to resume with the run's own config.toml")
 
 
+def _use_factory(config: Config, env: Any, one_process: bool) -> None:
+    """Check an env factory given to `train` and record it as the config's env.id."""
+    if not callable(env):
+        raise UserError(f"env={env!r} is not a callable returning a Gymnasium env (e.g. lambda: MyEnv())")
+    if not one_process:
+        raise UserError("env=<factory> works with the one-process Actor + Learner run; name the env in "
+                        "env.id as package.module:make_env instead")
+    config.env.id = factory_env_id(env)
+
+
 def _takeover_notice(rd: RunDir, overwrite: bool) -> str | None:
     """What a new run in `rd` does to what is there: None (nothing there, or not a run's), a
     notice when it replaces a run (`overwrite`, or a run that stopped before its first
@@ -94,12 +104,7 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     config.validate()
     spec = algorithm(config.algo)
     if env is not None:
-        if not callable(env):
-            raise UserError(f"env={env!r} is not a callable returning a Gymnasium env (e.g. lambda: MyEnv())")
-        if spec.run or config.distributed.num_actors > 0:
-            raise UserError("env=<factory> works with the one-process Actor + Learner run; name the env in "
-                            "env.id as package.module:make_env instead")
-        config.env.id = factory_env_id(env)
+        _use_factory(config, env, one_process=not spec.run and config.distributed.num_actors == 0)
     rd = RunDir(run_dir if run_dir is not None else default_run_dir(config))
     rd.check_writable()
     if resume:

@@ -23,6 +23,7 @@ import torch
 
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config
+from relayrl.envs.make import check_env, is_user_env
 from relayrl.errors import UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.schedules import linear_schedule
@@ -138,6 +139,13 @@ class Run:
         """A line about the run's layout, once it starts."""
 
     # ---- shared -------------------------------------------------------------------------------
+    def check_user_env(self) -> None:
+        """Gymnasium's env checker, once, on a user's own env (env.check): its findings as lines."""
+        c = self.config
+        if c.env.check and is_user_env(c.env.id, self.env_factory):
+            for line in check_env(c.env.id, c.env.kwargs, c.env.wrappers, self.env_factory, c.env.max_episode_steps):
+                self.say(f"env check (env.check = false turns it off): {line}")
+
     def progress(self) -> Progress:
         return Progress(self.env_steps(), self.agent.train_step)
 

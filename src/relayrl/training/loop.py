@@ -7,7 +7,6 @@ from typing import Any
 
 from relayrl.config import to_dict
 from relayrl.envs import make_env
-from relayrl.envs.make import check_env, is_user_env
 from relayrl.envs.stateless.adapter import StatelessBatchEnv
 from relayrl.errors import UserError
 from relayrl.metrics import EnvironmentSteps
@@ -28,11 +27,8 @@ class LocalRun(Run):
 
     def open(self) -> tuple[Spec, Spec]:
         c = self.config
+        self.check_user_env()
         made = {"kwargs": c.env.kwargs, "wrappers": c.env.wrappers, "factory": self.env_factory}
-        user_env = is_user_env(c.env.id, self.env_factory)
-        if user_env and c.env.check:
-            for line in check_env(c.env.id, max_episode_steps=c.env.max_episode_steps, **made):
-                self.say(f"env check (env.check = false turns it off): {line}")
         # Stateless torch envs live on the agent's device; Gymnasium envs on the CPU.
         self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
                             time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
