@@ -78,8 +78,8 @@ def test_reset_with_seed_reproduces():
 
 @pytest.mark.parametrize("env_id, fragment", [
     ("CartPool-v1", "did you mean CartPole-v1"),
-    ("toy_envs:Missing", "cannot import Missing"),
-    ("no_such_module:Env", "cannot import Env"),
+    ("toy_envs:Missing", "module 'toy_envs' has no 'Missing' and registers no Gymnasium id"),
+    ("no_such_module:Env", "no module 'no_such_module' in the current directory"),
     ("toy_envs:NotAnEnv", "not a gymnasium.Env subclass"),
 ])
 def test_bad_env_ids_say_what_is_valid(env_id, fragment):

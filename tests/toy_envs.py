@@ -258,3 +258,39 @@ class BigState(Countdown):
     def __init__(self, render_mode: str | None = None) -> None:
         super().__init__(length=1000, render_mode=render_mode)
         self.blob = np.random.default_rng(0).integers(0, 255, 16_000_000, dtype=np.uint8)
+
+
+class Endless(Countdown):
+    """Countdown that never ends an episode (no termination, no time limit of its own)."""
+
+    def step(self, action):
+        obs, reward, _, _, info = super().step(action)
+        return obs, reward, False, False, info
+
+
+class Sloppy(Countdown):
+    """Countdown whose reset ignores its seed: Gymnasium's env checker complains about it."""
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        self.t = 0
+        return np.array([self.t, 0], np.float32), {}
+
+
+def double_reward(env: gym.Env) -> gym.Env:
+    """An env.wrappers entry: rewards times 2."""
+    return gym.wrappers.TransformReward(env, lambda r: 2 * r)
+
+
+def shift_obs(env: gym.Env) -> gym.Env:
+    """An env.wrappers entry: observations + 100 (applied after double_reward, order shows)."""
+    return gym.wrappers.TransformObservation(env, lambda o: o + 100, env.observation_space)
+
+
+def make_countdown(length: int = 3, render_mode: str | None = None) -> gym.Env:
+    """A factory function (not a class) named in env.id."""
+    return Countdown(length=length, render_mode=render_mode)
+
+
+# Gymnasium's `module:EnvId-v0` form: importing this module registers the id.
+if "ToyCountdown-v0" not in gym.registry:
+    gym.register("ToyCountdown-v0", entry_point="toy_envs:Countdown", kwargs={"length": 2})

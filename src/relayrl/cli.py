@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 from typing import NoReturn
@@ -48,6 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key, e.g. --set train.total_steps=20000 (repeatable)")
     t.add_argument("--resume", action="store_true", help="continue the run in --run-dir from its last checkpoint")
+    t.add_argument("--overwrite", action="store_true",
+                   help="replace the run already in --run-dir (its checkpoints, metrics and policy are deleted)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     e = sub.add_parser("eval", help="evaluate a run's saved policy; prints one JSON object")
     e.add_argument("run_dir", metavar="RUN_DIR")
@@ -69,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _train(args: argparse.Namespace) -> None:
     from relayrl.presets import load_config
-    from relayrl.run import train
+    from relayrl.run import check_resume_matches, default_run_dir, train
     from relayrl.training.run_dir import RunDir
 
     if args.resume:
@@ -77,12 +80,16 @@ def _train(args: argparse.Namespace) -> None:
             raise UserError("--resume needs --run-dir DIR (the run to continue)")
         rd = RunDir(args.run_dir)
         rd.require()
+        if args.config:  # it must name the run's own algorithm and env; the run's config.toml is used
+            check_resume_matches(load_config(args.config, args.overrides, args.seed), rd)
         config = load_config(str(rd.config), args.overrides, args.seed)
     elif not args.config:
         raise UserError("train needs PRESET|CONFIG.toml (see `relayrl presets`), or --run-dir DIR --resume")
     else:
         config = load_config(args.config, args.overrides, args.seed)
-    result = train(config, args.run_dir, resume=args.resume, progress=not args.no_progress)
+    args.run_dir = args.run_dir or str(default_run_dir(config))  # named here: an interrupt's line names it
+    result = train(config, args.run_dir, resume=args.resume, progress=not args.no_progress,
+                   overwrite=args.overwrite)
     final = result.final
     print(f"run directory: {result.run_dir}")
     print(f"final evaluation: average_return={final.get('average_return')} "
@@ -92,7 +99,7 @@ def _train(args: argparse.Namespace) -> None:
 def _eval(args: argparse.Namespace) -> None:
     from relayrl.export import load_policy
     from relayrl.presets import load_config
-    from relayrl.training.evaluate import evaluate, make_eval_env
+    from relayrl.training.evaluate import eval_cap_note, evaluate, make_eval_env
     from relayrl.training.run_dir import RunDir
 
     if args.episodes < 1:
@@ -102,7 +109,10 @@ def _eval(args: argparse.Namespace) -> None:
     config = load_config(str(rd.config))
     policy = load_policy(rd.root)
     env = make_eval_env(config.env.id, args.episodes, config.env.max_episode_steps,
-                        info_keys=config.env.info_keys)
+                        info_keys=config.env.info_keys, kwargs=config.env.kwargs, wrappers=config.env.wrappers)
+    note = eval_cap_note(env, config.env.id)
+    if note:
+        print(f"relayrl: {note}", file=sys.stderr)
     print(json.dumps({**evaluate(env, policy, args.episodes, seed=args.seed), "policy_env_steps": policy.env_steps}))
 
 
@@ -115,7 +125,23 @@ def _on_sigterm(signum: int, frame: object) -> NoReturn:
     raise Terminated
 
 
+def _interrupted_line(what: str, args: argparse.Namespace) -> str:
+    """Offer --resume only where there is a checkpoint to resume from."""
+    from relayrl.training.run_dir import RunDir
+
+    run_dir = getattr(args, "run_dir", None) if args.command == "train" else None
+    if run_dir and RunDir(run_dir).has_checkpoint():
+        return (f"relayrl: {what}; resume with --resume from the last checkpoint: "
+                f"relayrl train --run-dir {run_dir} --resume")
+    where = f" in {run_dir}" if run_dir else ""
+    return f"relayrl: {what} before the first checkpoint: nothing to resume; a new run{where} starts over"
+
+
 def main(argv: list[str] | None = None) -> int:
+    # The current directory is on the import path, as for `python -m relayrl`: a user's
+    # env.id = mypkg.envs:MyEnv (and env.wrappers) resolve from their project folder.
+    if "" not in sys.path and os.getcwd() not in sys.path:
+        sys.path.insert(0, os.getcwd())
     args = build_parser().parse_args(argv)
     try:
         if args.command == "presets":
@@ -151,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as e:
         # 128 + the signal's number, as shells report it
         what, code = ("terminated", 143) if isinstance(e, Terminated) else ("interrupted", 130)
-        print(f"relayrl: {what}; resume with --resume from the last checkpoint", file=sys.stderr)
+        print(_interrupted_line(what, args), file=sys.stderr)
         return code
     return 0
 

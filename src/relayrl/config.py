@@ -20,9 +20,18 @@ from relayrl.seeding import MAX_SEED
 
 @dataclass
 class EnvConfig:
+    # a Gymnasium id (CartPole-v1), package.module:Class (a gymnasium.Env subclass or a callable
+    # returning an env; the current directory is on the import path), or package.module:EnvId-v0
     id: str = "CartPole-v1"
     num_envs: int = 1
-    max_episode_steps: int = 0  # 0: the env's own time limit
+    # episode step cap for training and evaluation; 0: the env's own time limit (evaluation
+    # episodes of a package.module:Class env without one are cut at 1,000 steps)
+    max_episode_steps: int = 0
+    # keyword arguments of the env class or gymnasium.make, e.g. {continuous = true}
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    # package.module:Callable wrappers applied in order, each taking an env and returning one
+    wrappers: list[str] = field(default_factory=list)
+    check: bool = True  # run Gymnasium's env checker on a user's own env at the start (warnings only)
     # true: a time-limit cut counts as termination (no bootstrap), as in old gym / TF-Agents
     time_limit_terminates: bool = False
     vectorization: str = "sync"  # sync: copies stepped in this process | async: in worker processes
@@ -195,6 +204,10 @@ def _coerce(value: Any, hint: Any, path: str) -> Any:
             except ConfigError:
                 continue
         raise ConfigError(f"{path}={value!r} has the wrong type; expected {_type_name(hint)}")
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{path}={value!r} has the wrong type; expected a table, e.g. {{key = value}}")
+        return dict(value)
     if origin in (list, tuple):
         (item,) = typing.get_args(hint)[:1]
         if not isinstance(value, (list, tuple)):

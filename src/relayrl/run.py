@@ -4,39 +4,116 @@ Actor + Learner run, in one process or, with distributed.num_actors > 0, on Ray.
 
 from __future__ import annotations
 
+import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from relayrl.agents.registry import algorithm, load_attr, ray_algorithms
-from relayrl.config import Config, from_dict, save_toml
+from relayrl.config import Config, from_dict, load_toml, save_toml
 from relayrl.errors import UserError
 from relayrl.training.assembly import RunResult
 from relayrl.training.run_dir import RunDir
 
 
 def default_run_dir(config: Config) -> Path:
-    name = config.env.id.replace("/", "_").replace(":", "_")
+    name = config.env.id.replace("/", "_").replace(":", "_").replace("<", "").replace(">", "")
     return Path("runs") / f"{config.algo}-{name}-s{config.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
+def factory_env_id(factory: Callable[[], Any]) -> str:
+    """The env.id a factory given in Python is recorded as: `module:name`, which a later
+    `relayrl eval` or resume from the command line can import where the factory is importable."""
+    module = getattr(factory, "__module__", None) or "__main__"
+    name = getattr(factory, "__qualname__", None) or type(factory).__qualname__
+    return f"{module}:{name}"
+
+
+def check_resume_matches(config: Config, rd: RunDir) -> None:
+    """A resumed run is the run in `rd`: a config that names another algorithm or env is one line."""
+    saved = load_toml(rd.config)
+    saved_algo = saved.get("algo", "dqn")
+    saved_env = saved.get("env", {}).get("id", "CartPole-v1")
+    if config.algo != saved_algo:
+        raise UserError(f"--resume: algo={config.algo!r} but the run in {str(rd.root)!r} is algo={saved_algo!r}; "
+                        "leave out PRESET|CONFIG.toml to resume with the run's own config.toml")
+    if config.env.id != saved_env:
+        raise UserError(f"--resume: env.id={config.env.id!r} but the run in {str(rd.root)!r} is "
+                        f"env.id={saved_env!r}; leave out PRESET|CONFIG.toml to resume with the run's own config.toml")
+
+
+def _use_factory(config: Config, env: Any, one_process: bool) -> None:
+    """Check an env factory given to `train` and record it as the config's env.id."""
+    if not callable(env):
+        raise UserError(f"env={env!r} is not a callable returning a Gymnasium env (e.g. lambda: MyEnv())")
+    if not one_process:
+        raise UserError("env=<factory> works with the one-process Actor + Learner run; name the env in "
+                        "env.id as package.module:make_env instead")
+    config.env.id = factory_env_id(env)
+
+
+def _takeover_notice(rd: RunDir, overwrite: bool) -> str | None:
+    """What a new run in `rd` does to what is there: None (nothing there, or not a run's), a
+    notice when it replaces a run (`overwrite`, or a run that stopped before its first
+    checkpoint), or a UserError when that run has a checkpoint or finished."""
+    if not (rd.metrics.exists() or rd.config.exists()):
+        if overwrite and rd.root.is_dir() and any(rd.root.iterdir()):
+            raise UserError(f"--overwrite: {str(rd.root)!r} is not a relayrl run directory (no config.toml); "
+                            "refusing to delete it")
+        return None
+    if overwrite:
+        return f"--overwrite: replacing the run in {str(rd.root)!r}"
+    if not rd.has_checkpoint() and not _finished(rd):
+        return (f"run directory {str(rd.root)!r} holds a run that stopped before its first checkpoint: "
+                "starting over in it")
+    raise UserError(f"run directory {str(rd.root)!r} already holds a run; pass --resume to continue it, "
+                    "--overwrite to replace it, or choose another --run-dir")
+
+
+def _finished(rd: RunDir) -> bool:
+    """Whether the run in `rd` got to its end (kept even though it has no checkpoint)."""
+    try:
+        saved = from_dict(load_toml(rd.config))
+    except Exception:  # a config.toml this version cannot read: keep the run, as if finished
+        return True
+    if not algorithm(saved.algo).resumable:  # its policy file is written when it ends
+        return (rd.policy / "policy.pt").exists()
+    rows = rd.read_metrics()
+    return bool(rows) and rows[-1].get("step", 0) >= saved.train.total_steps
+
+
 def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, resume: bool = False,
-          progress: bool = True) -> RunResult:
+          progress: bool = True, env: Callable[[], Any] | None = None, overwrite: bool = False) -> RunResult:
     """Train from a Config (or a nested dict of config values) into a run directory.
 
-    A new run refuses a directory that already holds a run; `resume=True` continues the
-    run in `run_dir` from its latest checkpoint, with the config saved there.
+    A new run refuses a directory that already holds a run with a checkpoint (or a finished
+    one), unless `overwrite=True` replaces it; a run directory with no checkpoint (a run that
+    stopped before its first) is taken over. `resume=True` continues the run in `run_dir` from
+    its latest checkpoint; the config must name the run's algorithm and env.
+
+    `env`: a callable returning a Gymnasium env, used instead of `config.env.id` (which is set
+    to the callable's `module:name`). Each copy of the env is one call; with
+    env.vectorization = "async" the callable is pickled with cloudpickle into the worker
+    processes, so it must not hold what cannot be pickled (open files, simulator handles) --
+    make those inside it. A resumed run needs the same callable passed again. Distributed runs
+    need an importable env.id instead.
     """
     if isinstance(config, dict):
         config = from_dict(config)
     config.validate()
     spec = algorithm(config.algo)
+    if env is not None:
+        _use_factory(config, env, one_process=not spec.run and config.distributed.num_actors == 0)
     rd = RunDir(run_dir if run_dir is not None else default_run_dir(config))
+    rd.check_writable()
     if resume:
+        if overwrite:
+            raise UserError("--overwrite replaces a run, --resume continues it: pass one of them")
         rd.require()
-    elif rd.metrics.exists() or rd.config.exists():
-        raise UserError(f"run directory {str(rd.root)!r} already holds a run; "
-                        "pass --resume to continue it or choose another --run-dir")
+        check_resume_matches(config, rd)
+    else:
+        takeover = _takeover_notice(rd, overwrite)
     if resume and not spec.resumable:
         raise UserError(f"algo={spec.name!r} runs are not checkpointed (they take minutes): start a new run instead")
     if config.distributed.num_actors > 0 and not spec.ray:
@@ -52,7 +129,10 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     else:
         from relayrl.training.loop import LocalRun
 
-        run = LocalRun(config, rd, progress)
+        run = LocalRun(config, rd, progress, env_factory=env)
+    if not resume and takeover:
+        print(f"relayrl: {takeover}", file=sys.stderr, flush=True)
+        rd.clear()
     rd.create()
     if not resume:
         save_toml(config, rd.config)

@@ -25,7 +25,8 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
     config = load_config(str(rd.config))
     policy = load_policy(rd.root)
-    env = make_env(config.env.id, 1, config.env.max_episode_steps, render_mode="rgb_array")
+    env = make_env(config.env.id, 1, config.env.max_episode_steps, render_mode="rgb_array",
+                   kwargs=config.env.kwargs, wrappers=config.env.wrappers)
     fps = int(env.envs[0].metadata.get("render_fps", 30))
     frames = []
     obs = env.reset(seed=seed)

@@ -65,7 +65,9 @@ class DistributedRun(Run):
         self._owns_ray = False
         self.workers: list[Any] = []
         self.eval_workers: list[Any] = []
-        probe = make_env(c.env.id, 1, c.env.max_episode_steps)  # specs (and a bad env id fails here)
+        self.check_user_env()
+        # specs (and a bad env id fails here)
+        probe = make_env(c.env.id, 1, c.env.max_episode_steps, kwargs=c.env.kwargs, wrappers=c.env.wrappers)
         obs_spec, act_spec = probe.observation_spec, probe.action_spec
         probe.close()
         return obs_spec, act_spec

@@ -144,7 +144,7 @@ class RolloutWorker:
                             # async: by default one worker per CPU Ray reserved for this actor beyond
                             # its own (at least one), not one per core of the machine it landed on
                             num_workers=c.env.num_workers or max(1, round(c.distributed.actor_cpus) - 1),
-                            info_keys=c.env.info_keys)
+                            info_keys=c.env.info_keys, kwargs=c.env.kwargs, wrappers=c.env.wrappers)
         agent = algorithm(c.algo).make_agent(c.agent, self.env.observation_spec, self.env.action_spec,
                                              torch.device("cpu"), seeds.generator("exploration"), c.train.total_steps)
         net = agent.policy_network().requires_grad_(False)
@@ -185,7 +185,8 @@ class EvalWorker:
         c = _setup(config, sys_path)
         _, variables = names.handles()
         self.episodes = c.eval.episodes
-        self.env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, info_keys=c.env.info_keys)
+        self.env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, info_keys=c.env.info_keys,
+                                 kwargs=c.env.kwargs, wrappers=c.env.wrappers)
         self.agent = algorithm(c.algo).make_agent(c.agent, self.env.observation_spec, self.env.action_spec,
                                                   torch.device("cpu"), RunSeeds(c.seed).generator("evaluation"),
                                                   c.train.total_steps)

@@ -11,8 +11,11 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import importlib
+import os
 import pickle
+import traceback
 from collections.abc import Callable
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -100,48 +103,144 @@ def _drop_trailing_ones(shape: tuple[int, ...]) -> tuple[int, ...]:
     return shape
 
 
-def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | None = None) -> EnvFn:
-    """A factory for one env: a Gymnasium id (`CartPole-v1`) or `package.module:Class`."""
-    kwargs: dict = {}
+def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | None = None,
+                   kwargs: dict[str, Any] | None = None, wrappers: list[str] | tuple[str, ...] = (),
+                   factory: EnvFn | None = None) -> EnvFn:
+    """A factory for one env: a Gymnasium id (`CartPole-v1`), `package.module:Class` (or any
+    callable there returning an env), Gymnasium's `package.module:EnvId-v0` (importing the module
+    registers the id), or `factory` itself (a callable given in Python; `env_id` then only names it).
+    `kwargs` go to the class or `gymnasium.make`; `wrappers` (`module:Callable`, each taking
+    and returning an env) are applied in order over the made env and its time limit."""
+    kwargs = dict(kwargs or {})
     if render_mode is not None:
         kwargs["render_mode"] = render_mode
-    if ":" in env_id and "/" not in env_id.split(":", 1)[0]:
-        module_name, class_name = env_id.split(":", 1)
+    wrap = [load_callable(w, "env.wrappers") for w in wrappers]
+    if factory is not None:
+        base = _custom_fn(env_id, factory, kwargs, max_episode_steps)
+    elif ":" in env_id and "/" not in env_id.split(":", 1)[0]:
+        module_name, name = env_id.split(":", 1)
+        if "<" in name or module_name == "__main__":
+            raise UserError(f"env.id={env_id!r} records an env factory given to relayrl.train in Python that "
+                            "cannot be imported here (a lambda, a local function or __main__); pass the same "
+                            "env= again in Python, or make it a function in a module and name it in env.id")
+        module = import_user_module(module_name, f"env.id={env_id!r}")
+        if hasattr(module, name):
+            target = getattr(module, name)
+            if isinstance(target, type) and not issubclass(target, gym.Env) or not callable(target):
+                raise UserError(f"env.id={env_id!r} is not a gymnasium.Env subclass (nor a callable returning one)")
+            base = _custom_fn(env_id, target, kwargs, max_episode_steps)
+        elif name in gym.registry:  # Gymnasium's own `module:EnvId-v0`: the import registered it
+            base = _registered_fn(name, kwargs, max_episode_steps, module_name)
+        else:
+            raise UserError(f"env.id={env_id!r}: module {module_name!r} has no {name!r} and registers no "
+                            f"Gymnasium id {name!r} (valid: package.module:Class or package.module:EnvId-v0)")
+    else:
+        _register_on_demand(env_id)
+        if env_id not in gym.registry:
+            close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
+            hint = f"; did you mean {', '.join(close)}?" if close else ""
+            raise UserError(
+                f"env.id={env_id!r} is not a registered Gymnasium id{hint} "
+                "(valid: a Gymnasium id such as CartPole-v1, relayrl/..., or package.module:Class)"
+            )
+        base = _registered_fn(env_id, kwargs, max_episode_steps)
+    return _wrapped(base, wrap) if wrap else base
+
+
+def _custom_fn(env_id: str, make: Callable[..., Any], kwargs: dict[str, Any], max_episode_steps: int) -> EnvFn:
+    """A user's class or factory; no OrderEnforcing (see `_registered_fn`)."""
+
+    def make_custom() -> gym.Env:
         try:
-            cls = getattr(importlib.import_module(module_name), class_name)
-        except (ImportError, AttributeError) as e:
-            raise UserError(f"env.id={env_id!r}: cannot import {class_name} from {module_name} ({e})") from None
-        if not (isinstance(cls, type) and issubclass(cls, gym.Env)):
-            raise UserError(f"env.id={env_id!r} is not a gymnasium.Env subclass")
+            env = make(**kwargs)
+        except TypeError as e:
+            if kwargs and "argument" in str(e):
+                raise UserError(f"env.id={env_id!r} does not take the arguments given ({e}); "
+                                f"env.kwargs and render_mode passed: {sorted(kwargs)}") from None
+            raise
+        if not isinstance(env, gym.Env):
+            raise UserError(f"env.id={env_id!r} returned {type(env).__name__}, not a gymnasium.Env")
+        if max_episode_steps > 0:
+            env = gym.wrappers.TimeLimit(env, max_episode_steps)
+        return env
 
-        def make_custom() -> gym.Env:
-            env = cls(**kwargs)
-            if max_episode_steps > 0:
-                env = gym.wrappers.TimeLimit(env, max_episode_steps)
-            return env
+    return make_custom
 
-        return make_custom
-    _register_on_demand(env_id)
-    if env_id not in gym.registry:
-        close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
-        hint = f"; did you mean {', '.join(close)}?" if close else ""
-        raise UserError(
-            f"env.id={env_id!r} is not a registered Gymnasium id{hint} "
-            "(valid: a Gymnasium id such as CartPole-v1, relayrl/..., or package.module:Class)"
-        )
+
+def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, module: str = "") -> EnvFn:
     if max_episode_steps > 0:
-        kwargs["max_episode_steps"] = max_episode_steps
+        kwargs = {**kwargs, "max_episode_steps": max_episode_steps}
 
     def make_registered() -> gym.Env:
-        _register_on_demand(env_id)  # again in a worker process that starts with a fresh registry
+        # Again in a worker process that starts with a fresh registry.
+        if module:
+            importlib.import_module(module)
+        _register_on_demand(env_id)
         # disable_env_checker: the passive checker costs a measurable share of a tiny env's step
         # and only warns. No OrderEnforcing either (as for a user's class above): it only raises
         # on a step or render before the first reset, which the batched envs never do, and it
         # costs a share of every step (BENCHMARKS.md).
         spec = dataclasses.replace(gym.spec(env_id), order_enforce=False)
-        return gym.make(spec, disable_env_checker=True, **kwargs)
+        try:
+            return gym.make(spec, disable_env_checker=True, **kwargs)
+        except TypeError as e:
+            if "argument" not in str(e):
+                raise
+            raise UserError(f"env.id={env_id!r} does not take the arguments given ({e}); "
+                            f"env.kwargs passed: {sorted(kwargs)}") from None
 
     return make_registered
+
+
+def _wrapped(base: EnvFn, wrappers: list[Callable[[gym.Env], gym.Env]]) -> EnvFn:
+    def make_wrapped() -> gym.Env:
+        env = base()
+        for w in wrappers:
+            env = w(env)
+            if not isinstance(env, gym.Env):
+                raise UserError(f"env.wrappers: {w!r} returned {type(env).__name__}, not a gymnasium.Env")
+        return env
+
+    return make_wrapped
+
+
+def import_user_module(module_name: str, what: str) -> Any:
+    """Import a user's module, or fail in one line that says what was tried and how to fix it."""
+    try:
+        return importlib.import_module(module_name)
+    except ModuleNotFoundError as e:
+        if e.name is None or not module_name.startswith(e.name):
+            raise UserError(f"{what}: importing {module_name!r} failed: it imports {e.name!r}, which is "
+                            "not installed") from None
+        raise UserError(
+            f"{what}: no module {e.name!r} in the current directory ({os.getcwd()}) or the installed "
+            f"packages; run relayrl from the folder that holds {e.name.split('.')[0]}/, add that folder "
+            "to PYTHONPATH, or pip install -e your project") from None
+    except Exception as e:  # the user's module raised while it was imported
+        where = traceback.extract_tb(e.__traceback__)[-1]
+        raise UserError(f"{what}: importing {module_name!r} raised {type(e).__name__}: {e} "
+                        f"({where.filename}:{where.lineno})") from None
+
+
+def load_callable(path: str, what: str) -> Callable[..., Any]:
+    """`package.module:name` resolved to a callable (for env.wrappers)."""
+    if path.count(":") != 1:
+        raise UserError(f"{what}: {path!r} is not package.module:Callable")
+    module_name, name = path.split(":")
+    target = getattr(import_user_module(module_name, f"{what}: {path!r}"), name, None)
+    if not callable(target):
+        raise UserError(f"{what}: {path!r}: module {module_name!r} has no callable {name!r}")
+    return target
+
+
+def has_time_limit(env: gym.Env) -> bool:
+    """Whether a TimeLimit wrapper anywhere in the env's chain ends its episodes."""
+    e: Any = env
+    while e is not None:
+        if isinstance(e, gym.wrappers.TimeLimit):
+            return True
+        e = getattr(e, "env", None)
+    return False
 
 
 def _register_on_demand(env_id: str) -> None:
@@ -161,9 +260,20 @@ class GymBatchEnv(BatchEnvBase):
         if not env_fns:
             raise UserError("env.num_envs must be >= 1")
         self.envs = [fn() for fn in env_fns]
+        self.capped_at = 0  # cap_episodes: the step cap put on an env without a time limit
         first = self.envs[0]
         self._init_specs(len(self.envs), first.observation_space, first.action_space, time_limit_terminates,
                          frame_stack_of(first))
+
+    @property
+    def time_limited(self) -> bool:
+        """Whether the copies' episodes end at a step limit (else only the env ends them)."""
+        return has_time_limit(self.envs[0])
+
+    def cap_episodes(self, max_episode_steps: int) -> None:
+        """Cut every copy's episodes at `max_episode_steps` (for an env without a time limit)."""
+        self.envs = [gym.wrappers.TimeLimit(env, max_episode_steps) for env in self.envs]
+        self.capped_at = max_episode_steps
 
     def get_state(self) -> list[bytes] | None:
         """Every copy's state, for checkpoints that resume mid-episode; None if any copy

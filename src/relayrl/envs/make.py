@@ -3,10 +3,16 @@ as one stateless torch batch. It sits above gym.py and vector.py, which know not
 
 from __future__ import annotations
 
+import random
+import re
+import warnings
+from typing import Any
+
 import gymnasium as gym
+import numpy as np
 import torch
 
-from relayrl.envs.gym import BatchEnvBase, GymBatchEnv, resolve_env_fn
+from relayrl.envs.gym import BatchEnvBase, EnvFn, GymBatchEnv, resolve_env_fn
 from relayrl.envs.stateless.adapter import STATELESS_ENVS, make_batch_env
 from relayrl.envs.vector import AsyncGymBatchEnv
 from relayrl.errors import UserError
@@ -15,18 +21,22 @@ from relayrl.errors import UserError
 def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_mode: str | None = None,
              time_limit_terminates: bool = False, vectorization: str = "sync",
              device: str | torch.device = "cpu", info_keys: tuple[str, ...] | list[str] = (),
-             num_workers: int = 0) -> GymBatchEnv:
+             num_workers: int = 0, kwargs: dict[str, Any] | None = None,
+             wrappers: tuple[str, ...] | list[str] = (), factory: EnvFn | None = None) -> GymBatchEnv:
     """A batched env of `num_envs` copies of `env_id`: stepped in this process ("sync") or
     shared out over `num_workers` worker processes ("async", 0: one per core; see envs/vector.py).
     A stateless torch env id (`relayrl/StatelessPendulum-v0`) gives all copies as one batch of
     tensors on `device`.
-    `info_keys`: info values to report at each episode's end (`StepOutput.episode_info`)."""
-    if env_id in STATELESS_ENVS and render_mode is None:
-        if info_keys:
-            raise UserError(f"env.info_keys is not supported by stateless envs ({env_id!r} has no info dict)")
+    `info_keys`: info values to report at each episode's end (`StepOutput.episode_info`).
+    `kwargs`, `wrappers`, `factory`: see `resolve_env_fn` (env.kwargs, env.wrappers, and the
+    env factory given to `relayrl.train`)."""
+    if env_id in STATELESS_ENVS and render_mode is None and factory is None:
+        if info_keys or kwargs or wrappers:
+            what = "env.info_keys" if info_keys else "env.kwargs" if kwargs else "env.wrappers"
+            raise UserError(f"{what} is not supported by stateless envs ({env_id!r} is a batch of tensors)")
         return make_batch_env(env_id, num_envs, device, max_episode_steps=max_episode_steps,  # type: ignore[return-value]
                               time_limit_terminates=time_limit_terminates)
-    fn = resolve_env_fn(env_id, max_episode_steps, render_mode)
+    fn = resolve_env_fn(env_id, max_episode_steps, render_mode, kwargs, wrappers, factory)
     try:
         env: BatchEnvBase
         if vectorization == "async" and num_envs > 1:
@@ -37,3 +47,42 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
         raise UserError(f"env.id={env_id!r} could not be made: {e}") from None
     env.info_keys = tuple(info_keys)
     return env  # type: ignore[return-value]
+
+
+def is_user_env(env_id: str, factory: EnvFn | None = None) -> bool:
+    """A user's own env (`module:Class`, `module:EnvId-v0`, a factory), not a known id: the
+    envs that are checked at the start of a run and whose missing time limit is worth a line."""
+    return factory is not None or (":" in env_id and "/" not in env_id.split(":", 1)[0])
+
+
+def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple[str, ...] | list[str] = (),
+              factory: EnvFn | None = None, max_episode_steps: int = 0) -> list[str]:
+    """Gymnasium's env checker on one fresh copy: its complaints as lines (warnings, not
+    failures). The global RNGs are left as they were, so a checked run is the unchecked one."""
+    from gymnasium.utils.env_checker import check_env as gym_check_env
+
+    rng = (torch.get_rng_state(), np.random.get_state(), random.getstate())
+    env = resolve_env_fn(env_id, max_episode_steps, None, kwargs, wrappers, factory)()
+    lines: list[str] = []
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                gym_check_env(env, skip_render_check=True, skip_close_check=True)
+            except Exception as e:  # the checker's assertions: reported, the run goes on
+                lines.append(f"{type(e).__name__}: {e}")
+        for w in caught:
+            text = str(w.message)
+            # Wrappers (a TimeLimit, env.wrappers) are ours to add; the checker would rather have none.
+            if "is different from the unwrapped version" not in text:
+                lines.append(text)
+    finally:
+        env.close()
+        torch.set_rng_state(rng[0])
+        np.random.set_state(rng[1])
+        random.setstate(rng[2])
+    clean = (" ".join(_ANSI.sub("", line).removeprefix("WARN: ").split()) for line in lines)
+    return list(dict.fromkeys(clean))
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")  # gymnasium's logger colours its warnings

@@ -238,6 +238,10 @@ class AsyncGymBatchEnv(BatchEnvBase):
             raise
 
     @property
+    def time_limited(self) -> bool:
+        return self._local.time_limited
+
+    @property
     def num_workers(self) -> int:
         return len(self._procs)
 

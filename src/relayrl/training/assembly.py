@@ -13,6 +13,7 @@ from __future__ import annotations
 import random
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -22,6 +23,7 @@ import torch
 
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config
+from relayrl.envs.make import check_env, is_user_env
 from relayrl.errors import UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.schedules import linear_schedule
@@ -55,9 +57,11 @@ class Run:
     tb: Any
     metrics_log: MetricsLog
 
-    def __init__(self, config: Config, run_dir: RunDir, progress: bool = True) -> None:
+    def __init__(self, config: Config, run_dir: RunDir, progress: bool = True,
+                 env_factory: Callable[[], Any] | None = None) -> None:
         c = config
         self.config, self.rd, self.show_progress = config, run_dir, progress
+        self.env_factory = env_factory  # relayrl.train(env=...): made instead of env.id
         if c.train.torch_threads > 0:
             torch.set_num_threads(c.train.torch_threads)
         self.seeds = RunSeeds(c.seed)
@@ -135,6 +139,13 @@ class Run:
         """A line about the run's layout, once it starts."""
 
     # ---- shared -------------------------------------------------------------------------------
+    def check_user_env(self) -> None:
+        """Gymnasium's env checker, once, on a user's own env (env.check): its findings as lines."""
+        c = self.config
+        if c.env.check and is_user_env(c.env.id, self.env_factory):
+            for line in check_env(c.env.id, c.env.kwargs, c.env.wrappers, self.env_factory, c.env.max_episode_steps):
+                self.say(f"env check (env.check = false turns it off): {line}")
+
     def progress(self) -> Progress:
         return Progress(self.env_steps(), self.agent.train_step)
 

@@ -2,20 +2,44 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import torch
 
 from relayrl.arrays import to_numpy
 from relayrl.core import BatchedEnv, Policy
 from relayrl.envs import make_env
+from relayrl.envs.gym import EnvFn, GymBatchEnv
+from relayrl.envs.make import is_user_env
 
 EVAL_BATCH = 16  # eval episodes run as one batch of at most this many env copies
+# Evaluation episodes of a user's env without a time limit (and no env.max_episode_steps) end
+# here, so that an evaluation of a policy that never reaches a terminal state ends. (Known ids
+# without a TimeLimit, such as Atari's, end their episodes themselves.)
+EVAL_MAX_EPISODE_STEPS = 1_000
 
 
 def make_eval_env(env_id: str, episodes: int, max_episode_steps: int = 0,
-                  device: str | torch.device = "cpu", info_keys: tuple[str, ...] | list[str] = ()) -> BatchedEnv:
-    """The env `evaluate` runs `episodes` episodes on: min(episodes, EVAL_BATCH) copies."""
-    return make_env(env_id, min(episodes, EVAL_BATCH), max_episode_steps, device=device, info_keys=info_keys)
+                  device: str | torch.device = "cpu", info_keys: tuple[str, ...] | list[str] = (),
+                  kwargs: dict[str, Any] | None = None, wrappers: tuple[str, ...] | list[str] = (),
+                  factory: EnvFn | None = None) -> BatchedEnv:
+    """The env `evaluate` runs `episodes` episodes on: min(episodes, EVAL_BATCH) copies, their
+    episodes cut at EVAL_MAX_EPISODE_STEPS if it is a user's env without a time limit
+    (`capped_at` says so)."""
+    env = make_env(env_id, min(episodes, EVAL_BATCH), max_episode_steps, device=device, info_keys=info_keys,
+                   kwargs=kwargs, wrappers=wrappers, factory=factory)
+    if isinstance(env, GymBatchEnv) and is_user_env(env_id, factory) and not env.time_limited:
+        env.cap_episodes(EVAL_MAX_EPISODE_STEPS)
+    return env
+
+
+def eval_cap_note(env: BatchedEnv, env_id: str) -> str | None:
+    """The line that says an evaluation cap was put on an env without a time limit."""
+    if not getattr(env, "capped_at", 0):
+        return None
+    return (f"env.id={env_id!r} has no time limit: evaluation episodes are cut at {env.capped_at:,} steps "  # type: ignore[attr-defined]
+            "(env.max_episode_steps caps training and evaluation episodes)")
 
 
 def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = None,

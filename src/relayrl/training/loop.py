@@ -15,7 +15,7 @@ from relayrl.specs import Spec
 from relayrl.training.actor import Actor
 from relayrl.training.assembly import Run
 from relayrl.training.checkpoint import load_latest_checkpoint
-from relayrl.training.evaluate import make_eval_env
+from relayrl.training.evaluate import eval_cap_note, make_eval_env
 from relayrl.training.replay_setup import build_replay, replay_device
 from relayrl.training.triggers import Evaluate, Progress
 from relayrl.training.variables import VariableContainer, WeightPuller
@@ -27,18 +27,23 @@ class LocalRun(Run):
 
     def open(self) -> tuple[Spec, Spec]:
         c = self.config
+        self.check_user_env()
+        made = {"kwargs": c.env.kwargs, "wrappers": c.env.wrappers, "factory": self.env_factory}
         # Stateless torch envs live on the agent's device; Gymnasium envs on the CPU.
         self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
                             time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
                             num_workers=c.env.num_workers,
-                            device=self.device, info_keys=c.env.info_keys)
+                            device=self.device, info_keys=c.env.info_keys, **made)
         self.eval_env: Any = None
         try:
             self.eval_env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, self.device,
-                                          c.env.info_keys)
+                                          c.env.info_keys, **made)
         except BaseException:  # async envs have worker processes: none is left behind by a failure here
             self.env.close()
             raise
+        note = eval_cap_note(self.eval_env, c.env.id)
+        if note:
+            self.say(note)
         return self.env.observation_spec, self.env.action_spec
 
     def connect(self, obs_spec: Spec, act_spec: Spec) -> tuple[Any, Any]:
@@ -153,12 +158,12 @@ class LocalRun(Run):
 
     def iterate(self) -> None:
         c = self.config
+        total = c.train.total_steps
         if self.actor.env_steps == 0:
-            self.actor.run(c.train.initial_collect_steps)
+            self.actor.run(min(c.train.initial_collect_steps, total))  # never past total_steps
         self.sps_log.rates.reset(self.progress())
         self.variables.push(list(self.agent.policy_network().parameters()))  # fresh or restored weights
         self.actor.policy = self.collect_policy
-        total = c.train.total_steps
         while self.actor.env_steps < total:
             self.actor.run(min(c.train.collect_steps, total - self.actor.env_steps))
             self.step_schedules(self.actor.env_steps)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -19,9 +21,39 @@ class RunDir:
         self.checkpoints = self.root / "checkpoints"
         self.policy = self.root / "policy"
 
+    def check_writable(self) -> None:
+        """One line, before anything is built or written, where the run directory cannot be
+        made: a file in its place or above it, or a folder above it that cannot be written.
+        (Missing folders above it are created with it, once the run is built.)"""
+        if self.root.exists() and not self.root.is_dir():
+            raise UserError(f"--run-dir {str(self.root)!r} is a file, not a directory")
+        existing = self.root.absolute()
+        while not existing.exists() and existing.parent != existing:
+            existing = existing.parent
+        if not existing.is_dir():
+            raise UserError(f"--run-dir {str(self.root)!r}: {str(existing)!r} is a file, not a directory")
+        if not os.access(existing, os.W_OK | os.X_OK):
+            raise UserError(f"--run-dir {str(self.root)!r}: no permission to write in {str(existing)!r}")
+
+    def has_checkpoint(self) -> bool:
+        from relayrl.training.checkpoint import list_checkpoints
+
+        return bool(list_checkpoints(self.checkpoints))
+
+    def clear(self) -> None:
+        """Remove what a run writes here (a new run replaces it); other files are left alone."""
+        for path in (self.config, self.metrics):
+            path.unlink(missing_ok=True)
+        for folder in (self.tb, self.checkpoints, self.policy, self.root / "replay"):
+            if folder.is_dir():
+                shutil.rmtree(folder)
+
     def create(self) -> None:
-        for d in (self.root, self.tb, self.checkpoints, self.policy):
-            d.mkdir(parents=True, exist_ok=True)
+        try:
+            for d in (self.root, self.tb, self.checkpoints, self.policy):
+                d.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise UserError(f"--run-dir {str(self.root)!r} cannot be created: {e.strerror}") from None
 
     def require(self) -> None:
         """Fail with a clear message unless this is an existing run directory."""

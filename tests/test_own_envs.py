@@ -1,0 +1,195 @@
+"""A user's own env: found from their project folder, Gymnasium's `module:EnvId-v0`, env.kwargs,
+env.wrappers, an env factory in Python, episode caps, and the env checker."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import toy_envs
+
+from relayrl.config import from_dict, load_toml, save_toml
+from relayrl.envs import make_env
+from relayrl.errors import UserError
+from relayrl.presets import load_config
+from relayrl.run import train
+from relayrl.training.evaluate import EVAL_MAX_EPISODE_STEPS, evaluate, make_eval_env
+from relayrl.training.run_dir import RunDir
+
+SRC = str(Path(__file__).resolve().parents[1] / "src")
+TINY = ["train.total_steps=60", "train.initial_collect_steps=20", "eval.interval=30", "eval.episodes=2",
+        "train.checkpoint_interval=30", "train.policy_save_interval=0", "agent.batch_size=8"]
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def readme_env() -> str:
+    """The quick start's own env class (README.md, `# mygame/envs.py`), as a user would copy it."""
+    text = README.read_text()
+    start = text.index("# mygame/envs.py")
+    return text[start:text.index("```", start)]
+
+
+def policy_of(action: int):
+    return lambda obs: torch.full((obs.shape[0],), action, dtype=torch.int64)
+
+
+@pytest.fixture
+def project(tmp_path):
+    """A user's project folder holding its own package, and a `relayrl` console script
+    outside it (the script's folder, not the current one, starts its import path)."""
+    (tmp_path / "proj" / "mygame").mkdir(parents=True)
+    (tmp_path / "proj" / "mygame" / "__init__.py").write_text("")
+    registered = '\ngym.register("Corridor-v0", entry_point="mygame.envs:Corridor", max_episode_steps=20)\n'
+    (tmp_path / "proj" / "mygame" / "envs.py").write_text(readme_env() + registered)
+    (tmp_path / "bin").mkdir()
+    script = tmp_path / "bin" / "relayrl"
+    # What pip's console-script wrapper runs.
+    script.write_text("import sys\nfrom relayrl.cli import main\nsys.exit(main())\n")
+    env = {**os.environ, "PYTHONPATH": SRC}  # the project folder is not on it
+    return tmp_path / "proj", script, env
+
+
+@pytest.mark.parametrize("env_id", ["mygame.envs:Corridor", "mygame.envs:Corridor-v0"])
+def test_console_script_finds_the_users_package_in_the_current_directory(project, env_id):
+    """The README's own-env command, shrunk, from the user's project folder."""
+    proj, script, env = project
+    sets = [a for o in TINY + [f"env.id={env_id}", "env.kwargs={length=3}"] for a in ("--set", o)]
+    r = subprocess.run([sys.executable, str(script), "train", "dqn-cartpole-fast", "--run-dir", "run",
+                        "--no-progress", *sets], cwd=proj, env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert RunDir(proj / "run").read_metrics()[-1]["step"] == 60
+    # Corridor-v0 is registered with a time limit; the bare class has none: evaluation caps it.
+    assert ("evaluation episodes are cut at" in r.stderr) == (not env_id.endswith("-v0"))
+
+
+def test_a_missing_package_is_one_line_saying_what_was_tried(project):
+    proj, script, env = project
+    r = subprocess.run([sys.executable, str(script), "train", "dqn-cartpole", "--set", "env.id=nopkg.envs:Corridor"],
+                       cwd=proj, env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    (line,) = r.stderr.strip().splitlines()
+    assert "no module 'nopkg' in the current directory" in line and str(proj) in line
+    assert "PYTHONPATH" in line and "pip install -e" in line
+    assert not (proj / "runs").exists()
+
+
+def test_an_error_inside_the_users_module_is_one_line(project):
+    proj, script, env = project
+    (proj / "mygame" / "bad.py").write_text("import numpy\nraise RuntimeError('oops')\n")
+    r = subprocess.run([sys.executable, str(script), "train", "dqn-cartpole", "--set", "env.id=mygame.bad:Env"],
+                       cwd=proj, env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    (line,) = r.stderr.strip().splitlines()
+    assert "raised RuntimeError: oops" in line and "bad.py:2" in line
+
+
+def test_module_colon_registered_id_and_module_colon_factory_function():
+    env = make_env("toy_envs:ToyCountdown-v0", 1)  # registered with length=2 when toy_envs is imported
+    assert evaluate(env, policy_of(0), 2)["average_episode_length"] == 2.0
+    env = make_env("toy_envs:make_countdown", 1, kwargs={"length": 5})
+    assert evaluate(env, policy_of(0), 2)["average_episode_length"] == 5.0
+    with pytest.raises(UserError, match="has no 'Nope-v0' and registers no Gymnasium id"):
+        make_env("toy_envs:Nope-v0")
+
+
+@pytest.mark.parametrize("vectorization", ["sync", "async"])
+def test_kwargs_and_wrappers_apply_in_order_in_every_env(vectorization):
+    made = {"kwargs": {"length": 4}, "wrappers": ["toy_envs:double_reward", "toy_envs:shift_obs"]}
+    env = make_env("toy_envs:Countdown", 3, vectorization=vectorization, num_workers=1, **made)
+    try:
+        obs = env.reset(seed=0)
+        assert obs[:, 0].tolist() == [100.0] * 3  # shift_obs ran
+        out = env.step(torch.zeros(3, dtype=torch.int64))
+        assert out.reward.tolist() == [2.0] * 3  # double_reward ran
+    finally:
+        env.close()
+    result = evaluate(make_eval_env("toy_envs:Countdown", 2, **made), policy_of(0), 2)
+    assert result["average_episode_length"] == 4.0 and result["average_return"] == 8.0
+
+
+def test_kwargs_reach_gymnasium_make():
+    env = make_env("CartPole-v1", 1, kwargs={"sutton_barto_reward": True})
+    env.reset(seed=0)
+    assert env.step(torch.zeros(1, dtype=torch.int64)).reward.tolist() == [0.0]  # Sutton-Barto pays 0 per step
+    with pytest.raises(UserError, match="does not take the arguments given"):
+        make_env("toy_envs:Countdown", 1, kwargs={"nope": 1})
+
+
+def test_bad_wrappers_are_one_line():
+    with pytest.raises(UserError, match="is not package.module:Callable"):
+        make_env("CartPole-v1", wrappers=["toy_envs.double_reward"])
+    with pytest.raises(UserError, match="has no callable 'nope'"):
+        make_env("CartPole-v1", wrappers=["toy_envs:nope"])
+
+
+def test_kwargs_and_wrappers_survive_config_toml_and_resume(tmp_path):
+    config = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:Countdown", "env.kwargs={length=5}",
+                                                 'env.wrappers=["toy_envs:double_reward"]'])
+    save_toml(config, tmp_path / "c.toml")
+    again = from_dict(load_toml(tmp_path / "c.toml"))
+    assert again.env.kwargs == {"length": 5} and again.env.wrappers == ["toy_envs:double_reward"]
+    assert load_config("dqn-cartpole", ["env.kwargs.length=5"]).env.kwargs == {"length": 5}
+    train(config, tmp_path / "run", progress=False)
+    saved = load_config(str(tmp_path / "run" / "config.toml"), ["train.total_steps=90"])
+    train(saved, tmp_path / "run", resume=True, progress=False)
+    rows = RunDir(tmp_path / "run").read_metrics()
+    assert rows[-1]["step"] == 90
+    assert {(r["average_episode_length"], r["average_return"]) for r in rows} == {(5.0, 10.0)}
+
+
+@pytest.mark.parametrize("vectorization", ["sync", "async"])
+def test_train_takes_an_env_factory(tmp_path, vectorization):
+    config = load_config("dqn-cartpole", TINY + ["env.num_envs=2", f"env.vectorization={vectorization}",
+                                                 "env.num_workers=1"])
+    result = train(config, tmp_path / "run", progress=False, env=lambda: toy_envs.Countdown(length=6))
+    assert result.final["average_episode_length"] == 6.0
+    saved = load_toml(tmp_path / "run" / "config.toml")
+    assert saved["env"]["id"].startswith("test_own_envs:") and saved["env"]["id"].endswith("<lambda>")
+    # Resumed with the same factory given again.
+    again = load_config(str(tmp_path / "run" / "config.toml"), ["train.total_steps=90"])
+    result = train(again, tmp_path / "run", resume=True, progress=False, env=lambda: toy_envs.Countdown(length=6))
+    assert result.final["step"] == 90 and result.final["average_episode_length"] == 6.0
+    with pytest.raises(UserError, match="records an env factory given to relayrl.train"):
+        train(again, tmp_path / "run", resume=True, progress=False)  # without it
+
+
+def test_an_importable_factory_is_recorded_so_the_cli_can_evaluate_it(tmp_path):
+    train(load_config("dqn-cartpole", TINY), tmp_path / "run", progress=False, env=toy_envs.make_countdown)
+    assert load_toml(tmp_path / "run" / "config.toml")["env"]["id"] == "toy_envs:make_countdown"
+
+
+def test_an_env_without_a_time_limit_is_capped_and_the_log_says_so(tmp_path, capfd):
+    config = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:Endless", "env.check=false"])
+    result = train(config, tmp_path / "a", progress=False)
+    err = capfd.readouterr().err
+    assert result.final["average_episode_length"] == EVAL_MAX_EPISODE_STEPS
+    assert f"evaluation episodes are cut at {EVAL_MAX_EPISODE_STEPS:,} steps" in err
+    config = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:Endless", "env.max_episode_steps=7"])
+    result = train(config, tmp_path / "b", progress=False)
+    assert result.final["average_episode_length"] == 7.0
+    assert result.final["train/episodes"] == 60 // 7  # training episodes are cut too
+    assert "no time limit" not in capfd.readouterr().err
+
+
+def test_a_users_env_is_checked_once_unless_turned_off(tmp_path, capfd):
+    config = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:Sloppy"])
+    train(config, tmp_path / "a", progress=False)
+    err = capfd.readouterr().err
+    assert err.count("does not call `super().reset(seed=seed)`") == 1 and "env.check = false" in err
+    config = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:Sloppy", "env.check=false"])
+    train(config, tmp_path / "b", progress=False)
+    assert "env check" not in capfd.readouterr().err
+
+
+def test_the_check_leaves_the_run_as_it_would_be_without_it(tmp_path):
+    for check in ("true", "false"):
+        config = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:BetterAction", f"env.check={check}"])
+        train(config, tmp_path / check, progress=False)
+    strip = [{k: v for k, v in r.items() if not k.endswith("_s")} for r in RunDir(tmp_path / "true").read_metrics()]
+    assert strip == [{k: v for k, v in r.items() if not k.endswith("_s")}
+                     for r in RunDir(tmp_path / "false").read_metrics()]
+    assert np.isfinite(strip[-1]["average_return"])

@@ -1,0 +1,165 @@
+"""Runs that fail are recoverable: nothing blocks a retry, --overwrite, --resume checks what it
+resumes, total_steps is a hard end, and a bad --run-dir is one line."""
+
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+from relayrl.cli import main
+from relayrl.errors import UserError
+from relayrl.presets import load_config
+from relayrl.run import train
+from relayrl.training.checkpoint import list_checkpoints
+from relayrl.training.run_dir import RunDir
+
+TINY = ["train.total_steps=60", "train.initial_collect_steps=20", "eval.interval=30", "eval.episodes=2",
+        "train.checkpoint_interval=30", "train.policy_save_interval=0", "agent.batch_size=8",
+        "env.id=toy_envs:Countdown", "env.check=false"]
+
+
+class Result:
+    def __init__(self, returncode, stderr):
+        self.returncode, self.stderr = returncode, stderr
+
+
+@pytest.fixture
+def cli(capfd):
+    """`relayrl ARGS` in this process (subprocesses would spend most of the time importing torch)."""
+
+    def call(args, env=None):
+        capfd.readouterr()
+        code = main(args)
+        return Result(code, capfd.readouterr().err)
+
+    return call
+
+
+def sets(overrides):
+    return [a for o in overrides for a in ("--set", o)]
+
+
+def test_a_run_that_fails_to_build_writes_nothing(tmp_path):
+    with pytest.raises(UserError):
+        train(load_config("dqn-cartpole", TINY + ["env.id=toy_envs:NotAnEnv"]), tmp_path / "run", progress=False)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_run_that_failed_before_its_first_checkpoint_is_taken_over(tmp_path, cli):
+    run = tmp_path / "run"
+    broken = TINY + ["env.id=toy_envs:Broken", "train.checkpoint_interval=1000"]
+    with pytest.raises(ValueError, match="lost its state"):  # the env's own error, as from a simulator
+        cli(["train", "dqn-cartpole", "--run-dir", str(run), "--no-progress", *sets(broken)])
+    assert (run / "config.toml").exists() and not list_checkpoints(run / "checkpoints")
+    r = cli(["train", "dqn-cartpole", "--run-dir", str(run), "--no-progress", *sets(TINY)])
+    assert r.returncode == 0, r.stderr
+    assert "stopped before its first checkpoint: starting over in it" in r.stderr
+    assert "toy_envs:Countdown" in (run / "config.toml").read_text()
+    assert [row["step"] for row in RunDir(run).read_metrics()] == [0, 30, 60]
+
+
+def test_a_run_with_a_checkpoint_is_kept_unless_overwrite(tmp_path, cli):
+    run = tmp_path / "run"
+    train(load_config("dqn-cartpole", TINY), run, progress=False)
+    before = (run / "metrics.jsonl").read_text()
+    r = cli(["train", "dqn-cartpole", "--run-dir", str(run), *sets(TINY)])
+    assert r.returncode == 2 and "already holds a run" in r.stderr and "--overwrite" in r.stderr
+    assert (run / "metrics.jsonl").read_text() == before
+    r = cli(["train", "dqn-cartpole", "--run-dir", str(run), "--no-progress", "--overwrite",
+             *sets(TINY + ["train.total_steps=40"])])
+    assert r.returncode == 0, r.stderr
+    assert "--overwrite: replacing the run" in r.stderr
+    assert RunDir(run).read_metrics()[-1]["step"] == 40
+    assert [p.name for p in list_checkpoints(run / "checkpoints")] == ["ckpt-000000000030.pt", "ckpt-000000000040.pt"]
+
+
+def test_a_finished_run_without_checkpoints_is_kept(tmp_path):
+    run = tmp_path / "run"
+    train(load_config("dqn-cartpole", TINY + ["train.checkpoint_interval=0"]), run, progress=False)
+    with pytest.raises(UserError, match="already holds a run"):
+        train(load_config("dqn-cartpole", TINY), run, progress=False)
+    train(load_config("dqn-cartpole", TINY + ["train.total_steps=30"]), run, progress=False, overwrite=True)
+    assert RunDir(run).read_metrics()[-1]["step"] == 30
+
+
+def test_overwrite_refuses_a_folder_that_is_not_a_run(tmp_path):
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(UserError, match="is not a relayrl run directory"):
+        train(load_config("dqn-cartpole", TINY), tmp_path, progress=False, overwrite=True)
+    assert (tmp_path / "notes.txt").read_text() == "mine"
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["sac-pendulum"], "algo='sac' but the run in"),
+    (["dqn-cartpole", "--set", "env.id=Acrobot-v1"], "env.id='Acrobot-v1' but the run in"),
+])
+def test_resume_with_another_algorithm_or_env_is_one_line(tmp_path, cli, args, fragment):
+    run = tmp_path / "run"
+    train(load_config("dqn-cartpole", TINY), run, progress=False)
+    before = (run / "metrics.jsonl").read_text()
+    r = cli(["train", *args, "--run-dir", str(run), "--resume"])
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    (line,) = r.stderr.strip().splitlines()
+    assert fragment in line
+    assert (run / "metrics.jsonl").read_text() == before
+    # The run's own preset is accepted, and the run's config.toml is what resumes.
+    r = cli(["train", "dqn-cartpole", "--run-dir", str(run), "--resume", "--no-progress",
+             "--set", "env.id=toy_envs:Countdown", "--set", "train.total_steps=90"])
+    assert r.returncode == 0, r.stderr
+    assert RunDir(run).read_metrics()[-1]["step"] == 90
+
+
+def test_total_steps_below_initial_collect_steps_is_honoured(tmp_path):
+    result = train(load_config("dqn-cartpole", TINY + ["train.total_steps=25", "train.initial_collect_steps=50"]),
+                   tmp_path / "run", progress=False)
+    assert result.final["step"] == 25 and result.final["train_step"] == 0
+
+
+def test_interrupt_before_the_first_checkpoint_does_not_offer_resume(tmp_path, cli_env):
+    run = tmp_path / "run"
+    slow = TINY + ["env.id=toy_envs:Sleepy", "train.total_steps=100000", "train.checkpoint_interval=100000"]
+    p = subprocess.Popen([sys.executable, "-m", "relayrl.cli", "train", "dqn-cartpole", "--run-dir", str(run),
+                          "--no-progress", *sets(slow)], env=cli_env, stderr=subprocess.PIPE, text=True)
+    while not (run / "metrics.jsonl").exists() and p.poll() is None:
+        time.sleep(0.02)
+    p.send_signal(2)
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130, err
+    assert "interrupted before the first checkpoint: nothing to resume" in err and "--resume" not in err
+
+
+def test_run_dir_bad_places_are_one_line_and_missing_parents_are_made(tmp_path, cli):
+    (tmp_path / "file").write_text("keep")
+    for run_dir, fragment in [(tmp_path / "file", "is a file, not a directory"),
+                              (tmp_path / "file" / "run", "is a file, not a directory")]:
+        r = cli(["train", "dqn-cartpole", "--run-dir", str(run_dir)])
+        assert r.returncode == 2 and "Traceback" not in r.stderr
+        (line,) = r.stderr.strip().splitlines()
+        assert fragment in line
+    assert (tmp_path / "file").read_text() == "keep"
+    r = cli(["train", "dqn-cartpole", "--run-dir", str(tmp_path / "a" / "b" / "run"), "--no-progress",
+             *sets(TINY)])
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "a" / "b" / "run" / "config.toml").exists()
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root may write anywhere")
+def test_run_dir_in_an_unwritable_folder_is_one_line(tmp_path, cli):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        r = cli(["train", "dqn-cartpole", "--run-dir", str(locked / "run")])
+    finally:
+        locked.chmod(0o700)
+    assert r.returncode == 2 and "no permission to write in" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc")
+def test_run_dir_that_cannot_be_created_is_one_line(cli):
+    """/proc refuses new folders even to root."""
+    r = cli(["train", "dqn-cartpole", "--run-dir", "/proc/relayrl-nope/run", "--no-progress", *sets(TINY)])
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "cannot be created" in r.stderr.strip().splitlines()[-1]
