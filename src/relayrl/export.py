@@ -74,27 +74,30 @@ FORMATS = ("pt2", "onnx")
 
 def export_policy(path: str | Path, out: str | Path | None = None, format: str = "pt2") -> Path:
     """Write the deterministic policy as a `torch.export` program (`policy.pt2`) or, with
-    `format="onnx"`, an ONNX model (`policy.onnx`; needs the `onnx` package). Beside it,
+    `format="onnx"`, an ONNX model (`policy.onnx`; needs the `onnx` extra). Beside it,
     `<file>.json` says what it takes and returns (`signature`)."""
     if format not in FORMATS:
         raise UserError(f"export format {format!r} is not known; valid: {', '.join(FORMATS)}")
     if format == "onnx":
         try:
-            import onnx  # noqa: F401  (torch.onnx writes the model through it)
+            import onnx  # noqa: F401  (torch.onnx writes the model through these)
+            import onnxscript  # noqa: F401
         except ImportError:
-            raise UserError("--format onnx needs the onnx package: pip install 'relayrl[onnx]'") from None
+            raise UserError("--format onnx needs the onnx and onnxscript packages: "
+                            "pip install 'relayrl[onnx]'") from None
     state = load_policy_state(path)
-    module = for_policy_kind(state["kind"]).policy_module().deterministic_module(state).requires_grad_(False)
+    module = for_policy_kind(state["kind"]).policy_module().deterministic_module(state).requires_grad_(False).eval()
     shape, dtype = observation_spec(state)
     example = torch.zeros(2, *shape, dtype=dtype)
     target = output_path(out, _policy_file(path).with_suffix("." + format))
     tmp = target.with_name(".tmp-" + target.name)  # torch.export wants the .pt2 suffix
+    batch = torch.export.Dim("batch", min=1)
     if format == "pt2":
-        batch = torch.export.Dim("batch", min=1)
         torch.export.save(torch.export.export(module, (example,), dynamic_shapes=({0: batch},)), tmp)
     else:
-        torch.onnx.export(module, (example,), str(tmp), input_names=["obs"], output_names=["action"],
-                          dynamic_axes={"obs": {0: "batch"}, "action": {0: "batch"}}, dynamo=False)
+        program = torch.onnx.export(module, (example,), input_names=["obs"], output_names=["action"],
+                                    dynamic_shapes=({0: batch},), dynamo=True, verbose=False)
+        program.save(str(tmp))
     tmp.replace(target)  # never a half-written program under the real name
     with torch.no_grad():
         action = module(example)
