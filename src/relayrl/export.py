@@ -16,7 +16,11 @@ same shapes). Beside either, `policy.<format>.json` records the input's and outp
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -95,8 +99,9 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str =
     if format == "pt2":
         torch.export.save(torch.export.export(module, (example,), dynamic_shapes=({0: batch},)), tmp)
     else:
-        program = torch.onnx.export(module, (example,), input_names=["obs"], output_names=["action"],
-                                    dynamic_shapes=({0: batch},), dynamo=True, verbose=False)
+        with _quiet_onnx():
+            program = torch.onnx.export(module, (example,), input_names=["obs"], output_names=["action"],
+                                        dynamic_shapes=({0: batch},), dynamo=True, verbose=False)
         program.save(str(tmp))
     tmp.replace(target)  # never a half-written program under the real name
     with torch.no_grad():
@@ -104,6 +109,22 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str =
     sig = signature(state, format, action)
     target.with_name(target.name + ".json").write_text(json.dumps(sig, indent=2) + "\n")
     return target
+
+
+@contextlib.contextmanager
+def _quiet_onnx() -> Iterator[None]:
+    """torch's ONNX exporter notes what it skips ("torchvision is not installed") and warns of its
+    own deprecations: noise for a user who asked for a file. Errors still show."""
+    log = logging.getLogger("torch.onnx")
+    level = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)
+            warnings.simplefilter("ignore", DeprecationWarning)
+            yield
+    finally:
+        log.setLevel(level)
 
 
 def signature(state: dict[str, Any], format: str, action: torch.Tensor) -> dict[str, Any]:

@@ -48,6 +48,26 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def log_config(tb: Any, config: Config) -> None:
+    """The run's config in TensorBoard: as TOML text (with each key's meaning) and as hparams."""
+    from relayrl.config import to_dict
+    from relayrl.config_fields import commented_toml
+
+    text = commented_toml(config)
+    tb.add_text("config", "\n".join("    " + line for line in text.splitlines()))  # a markdown code block
+    flat: dict[str, Any] = {}
+
+    def walk(d: dict[str, Any], prefix: str) -> None:
+        for k, v in d.items():
+            if isinstance(v, dict):
+                walk(v, f"{prefix}{k}.")
+            elif v is not None:
+                flat[prefix + k] = v if isinstance(v, (bool, int, float, str)) else str(v)
+
+    walk(to_dict(config), "")
+    tb.add_hparams(flat, {}, run_name=".")  # ".": into the run's own folder, not a new one
+
+
 class Run:
     """A run's parts and what it shows and writes as it goes (console, progress bar,
     TensorBoard, the eval rows of metrics.jsonl). Subclasses implement open, connect,
@@ -165,7 +185,7 @@ class Run:
                 self.lines = ProgressLines(self.progress_line, self.say).start()
             self.announce()
             if self.env_steps() == 0:
-                self.log_config()
+                log_config(self.tb, c)
                 self.evaluate_now(Progress(0, 0))  # the untrained policy, before any collection
                 self.policy_saver.save(Progress(0, 0))  # `relayrl eval` works from the start
             self.iterate()
@@ -257,25 +277,6 @@ class Run:
                    **{f"charts/{k}": v for k, v in self.stats.info_means().items()}}
         for k, v in scalars.items():
             self.tb.add_scalar(k, v, p.env_steps)
-
-    def log_config(self) -> None:
-        """The run's config in TensorBoard: as TOML text (with each key's meaning) and as hparams."""
-        from relayrl.config import to_dict
-        from relayrl.config_fields import commented_toml
-
-        text = commented_toml(self.config)
-        self.tb.add_text("config", "\n".join("    " + line for line in text.splitlines()))  # a markdown code block
-        flat: dict[str, Any] = {}
-
-        def walk(d: dict[str, Any], prefix: str) -> None:
-            for k, v in d.items():
-                if isinstance(v, dict):
-                    walk(v, f"{prefix}{k}.")
-                elif v is not None:
-                    flat[prefix + k] = v if isinstance(v, (bool, int, float, str)) else str(v)
-
-        walk(to_dict(self.config), "")
-        self.tb.add_hparams(flat, {}, run_name=".")  # "." : into this run's folder, not a new one
 
     def progress_line(self) -> str:
         """The line printed every 30 s where there is no progress bar (no terminal)."""
