@@ -68,6 +68,10 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
             except ConfigError:
                 continue
         raise ConfigError(f"{path}={value!r} has the wrong type; expected {type_name(hint)}")
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{path}={value!r} has the wrong type; expected a table, e.g. {{key = value}}")
+        return dict(value)
     if origin in (list, tuple):
         (item,) = typing.get_args(hint)[:1]
         if not isinstance(value, (list, tuple)):
@@ -109,14 +113,12 @@ def meanings(cls: type) -> dict[str, str]:
 def commented_toml(config: Any) -> str:
     """`config` as TOML, each key followed by its meaning as a comment; it reads back as the
     same config. Sections become tables; a None field (TOML has no null) is shown commented out."""
-    import tomli_w
-
     lines: list[str] = []
-    _write_section(config, "", lines, tomli_w.dumps)
+    _write_section(config, "", lines)
     return "\n".join(lines) + "\n"
 
 
-def _write_section(obj: Any, name: str, lines: list[str], dumps: Any) -> None:
+def _write_section(obj: Any, name: str, lines: list[str]) -> None:
     if name:
         lines += ["", f"[{name}]"]
     about = meanings(type(obj))
@@ -126,14 +128,22 @@ def _write_section(obj: Any, name: str, lines: list[str], dumps: Any) -> None:
         if dataclasses.is_dataclass(value):
             nested.append((f.name, value))
             continue
-        text = f"# {f.name} = (unset)" if value is None else f"{f.name} = {_literal(value, dumps)}"
+        text = f"# {f.name} = (unset)" if value is None else f"{f.name} = {_literal(value)}"
         lines.append(f"{text}  # {about[f.name]}" if f.name in about else text)
     for key, value in nested:
-        _write_section(value, f"{name}.{key}" if name else key, lines, dumps)
+        _write_section(value, f"{name}.{key}" if name else key, lines)
 
 
-def _literal(value: Any, dumps: Any) -> str:
-    """A TOML literal on one line (tomli_w spreads arrays over lines)."""
+def _literal(value: Any) -> str:
+    """A TOML literal on one line (tomli_w spreads arrays over lines and writes tables as sections)."""
+    import tomli_w
+
     if isinstance(value, list):
-        return "[" + ", ".join(_literal(v, dumps) for v in value) + "]"
-    return dumps({"v": value}).strip()[len("v = "):]
+        return "[" + ", ".join(_literal(v) for v in value) + "]"
+    if isinstance(value, dict):  # an inline table
+        return "{" + ", ".join(f"{_key(k)} = {_literal(v)}" for k, v in value.items()) + "}"
+    return tomli_w.dumps({"v": value}).strip()[len("v = "):]
+
+
+def _key(key: str) -> str:
+    return key if key and all(c.isalnum() or c in "-_" for c in key) else _literal(key)
