@@ -14,7 +14,7 @@ def run(args, env, cwd=None):
 
 
 @pytest.mark.parametrize("args, fragment", [
-    (["train", "no-such-preset"], "unknown preset 'no-such-preset'; valid: bptt-pendulum, "),
+    (["train", "no-such-preset"], "unknown preset 'no-such-preset' (valid: bptt-pendulum, "),
     (["train", "dqn-cartpole", "--set", "env.id=CartPool-v9"], "is not a registered Gymnasium id"),
     (["train", "dqn-cartpole", "--set", "agent.nope=1"], "unknown config key 'agent.nope'"),
     (["train", "dqn-cartpole", "--set", "train.total_steps=ten"], "expected int"),

@@ -24,7 +24,9 @@ def test_overrides_are_typed():
 
 
 @pytest.mark.parametrize("override, fragment", [
-    ("agent.lrr=0.1", "unknown config key 'agent.lrr'; valid: agent.hidden"),
+    ("agent.lrr=0.1", "unknown config key 'agent.lrr'; did you mean 'agent.lr'?"),
+    ("train.total_step=5", "unknown config key 'train.total_step'; did you mean 'train.total_steps'?"),
+    ("agent.zzz=1", "unknown config key 'agent.zzz'; valid: agent.hidden"),
     ("nope=1", "unknown config key 'nope'"),
     ("train.total_steps=abc", "train.total_steps='abc' has the wrong type; expected int"),
     ("train.total_steps=1.5", "expected int"),
@@ -42,7 +44,7 @@ def test_bad_overrides_fail_with_a_clear_message(override, fragment):
 
 
 def test_unknown_preset_lists_valid_ones():
-    with pytest.raises(ConfigError, match="unknown preset 'dqn-cartpol'; valid: bptt-pendulum, .*dqn-cartpole"):
+    with pytest.raises(ConfigError, match="unknown preset 'dqn-cartpol'; did you mean 'dqn-cartpole'.*valid: bptt-"):
         load_config("dqn-cartpol")
 
 

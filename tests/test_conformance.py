@@ -10,6 +10,7 @@ small run in CASES: a few seconds of training on a tiny env.
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -131,3 +132,47 @@ def test_cli_bad_input_is_one_line_and_exit_2(name, cli_env, tmp_path):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("relayrl: error:") and "agent.batch_size" in lines[0], r.stderr
     assert not (tmp_path / "z").exists()
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_loaded_policy_takes_numpy_torch_single_and_batched(runs, name):
+    _, root = runs(name)
+    state = load_policy_state(root)
+    obs = observations(state)  # torch [7, *obs_shape] of the policy's dtype
+    policy = relayrl.load_policy(root)
+    expected = policy.batched(obs)
+    batch64 = obs.numpy().astype(np.float64)
+    for given in (obs.numpy(), batch64):  # NumPy in, NumPy out, float64 cast
+        actions = policy(given)
+        assert isinstance(actions, np.ndarray) and np.array_equal(actions, expected.numpy())
+    one = policy(batch64[0])  # one observation in, one action out
+    assert isinstance(one, (np.ndarray, np.generic)) and np.shape(one) == tuple(expected.shape[1:])
+    # (a batch of one may round differently from a batch of seven in the matmul)
+    assert np.allclose(one, expected[0].numpy(), atol=1e-6)
+    single = policy(obs.double()[0])  # torch in, torch out
+    assert isinstance(single, torch.Tensor) and torch.allclose(single.double(), expected[0].double(), atol=1e-6)
+    action, recurrent_state = policy.predict(obs.numpy()[0], deterministic=True)  # SB3's spelling
+    assert recurrent_state is None and np.allclose(action, expected[0].numpy(), atol=1e-6)
+    with pytest.raises(UserError, match="does not fit this policy"):
+        policy(np.zeros((3, 99)))
+    if name == "sac":
+        sampled, _ = policy.predict(obs.numpy(), deterministic=False)
+        assert sampled.shape == expected.shape and not np.array_equal(sampled, expected.numpy())
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_onnx_export_matches_the_torch_policy(runs, name, tmp_path):
+    pytest.importorskip("onnx")
+    ort = pytest.importorskip("onnxruntime")
+    _, root = runs(name)
+    state = load_policy_state(root)
+    obs = observations(state)
+    expected = relayrl.load_policy(root)(obs)
+    path = relayrl.export_policy(root, tmp_path / "sub" / "policy.onnx", format="onnx")  # folders are created
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    (actions,) = session.run(None, {"obs": obs.numpy()})
+    assert np.allclose(actions, expected.numpy(), atol=1e-5)
+    sig = json.loads(path.with_name("policy.onnx.json").read_text())
+    assert sig["input"] == {"name": "obs", "dtype": str(obs.dtype).removeprefix("torch."),
+                            "shape": ["batch", *obs.shape[1:]]}
+    assert sig["output"]["shape"] == ["batch", *expected.shape[1:]]

@@ -1,4 +1,7 @@
-"""The `relayrl` command: presets | train | eval | plot | video | export. Thin: parse, build, call."""
+"""The `relayrl` command: presets | config | train | eval | plot | video | export. Thin: parse, build, call.
+
+`relayrl` with no command prints the help and exits with 2 (no command ran), as argparse does
+for a missing argument."""
 
 from __future__ import annotations
 
@@ -38,8 +41,11 @@ def _seed(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from relayrl import __version__
+
     p = _Parser(prog="relayrl", description="Deep RL on PyTorch and Gymnasium.")
-    sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    p.add_argument("--version", action="version", version=f"relayrl {__version__}")
+    sub = p.add_subparsers(dest="command", parser_class=_Parser)
     sub.add_parser("presets", help="list preset names with a short description")
     t = sub.add_parser("train", help="train a preset or a config TOML into a run directory")
     t.add_argument("config", metavar="PRESET|CONFIG.toml", nargs="?",
@@ -53,20 +59,29 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace the run already in --run-dir (its checkpoints, metrics and policy are deleted)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     e = sub.add_parser("eval", help="evaluate a run's saved policy; prints one JSON object")
-    e.add_argument("run_dir", metavar="RUN_DIR")
-    e.add_argument("--episodes", type=int, default=10)
+    e.add_argument("run_dir", metavar="RUN_DIR", help="a run directory (or its policy/policy.pt)")
+    e.add_argument("--episodes", type=int, default=10, help="episodes to average over (default: 10)")
     e.add_argument("--seed", type=_seed, default=0, help="seed of the evaluation episodes")
     pl = sub.add_parser("plot", help="PNG of average return against env steps")
-    pl.add_argument("run_dir", metavar="RUN_DIR")
-    pl.add_argument("--out", metavar="PNG")
+    pl.add_argument("run_dir", metavar="RUN_DIR", help="a run directory")
+    pl.add_argument("--out", metavar="PNG",
+                    help="where to write it (default: RUN_DIR/returns.png; folders are created)")
     v = sub.add_parser("video", help="MP4 of the greedy policy")
-    v.add_argument("run_dir", metavar="RUN_DIR")
-    v.add_argument("--out", metavar="MP4")
-    v.add_argument("--episodes", type=int, default=1)
+    v.add_argument("run_dir", metavar="RUN_DIR", help="a run directory")
+    v.add_argument("--out", metavar="MP4", help="where to write it (default: RUN_DIR/video.mp4; folders are created)")
+    v.add_argument("--episodes", type=int, default=1, help="episodes to record (default: 1)")
     v.add_argument("--seed", type=_seed, default=0, help="seed of the recorded episodes")
-    x = sub.add_parser("export", help="write RUN_DIR/policy/policy.pt2, the policy for plain PyTorch (torch.export)")
-    x.add_argument("run_dir", metavar="RUN_DIR")
-    x.add_argument("--out", metavar="PT2")
+    x = sub.add_parser("export", help="write RUN_DIR/policy/policy.pt2, the policy for plain PyTorch (torch.export), "
+                                      "or policy.onnx")
+    x.add_argument("run_dir", metavar="RUN_DIR", help="a run directory (or its policy/policy.pt)")
+    x.add_argument("--out", metavar="FILE", help="where to write it (default: RUN_DIR/policy/policy.FORMAT; "
+                                                 "folders are created)")
+    x.add_argument("--format", choices=("pt2", "onnx"), default="pt2",
+                   help="pt2: a torch.export program (default) | onnx: an ONNX model (pip install 'relayrl[onnx]')")
+    c = sub.add_parser("config", help="print a preset's (or config TOML's) full config, each key with its meaning")
+    c.add_argument("config", metavar="PRESET|CONFIG.toml", help="a preset name (see `relayrl presets`) or a TOML file")
+    c.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config key before printing (repeatable)")
     return p
 
 
@@ -116,6 +131,14 @@ def _eval(args: argparse.Namespace) -> None:
     print(json.dumps({**evaluate(env, policy, args.episodes, seed=args.seed), "policy_env_steps": policy.env_steps}))
 
 
+def _export(args: argparse.Namespace) -> None:
+    from relayrl.export import describe, export_policy
+
+    path = export_policy(args.run_dir, args.out, args.format)
+    sig = json.loads(path.with_name(path.name + ".json").read_text())
+    print(f"{path} ({describe(sig)}; signature in {path.name}.json)")
+
+
 class Terminated(KeyboardInterrupt):
     """SIGTERM (`kill`, a cluster scheduler's preemption) during `train`: the run stops as on
     Ctrl-C, so Ray actors and env worker processes are shut down instead of orphaned."""
@@ -142,7 +165,11 @@ def main(argv: list[str] | None = None) -> int:
     # env.id = mypkg.envs:MyEnv (and env.wrappers) resolve from their project folder.
     if "" not in sys.path and os.getcwd() not in sys.path:
         sys.path.insert(0, os.getcwd())
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return EXIT_USAGE
     try:
         if args.command == "presets":
             from relayrl.presets import list_presets
@@ -168,9 +195,12 @@ def main(argv: list[str] | None = None) -> int:
                 raise UserError(f"--episodes {args.episodes} is not valid; it must be >= 1")
             print(record_video(args.run_dir, args.out, args.episodes, args.seed))
         elif args.command == "export":
-            from relayrl.export import export_policy
+            _export(args)
+        elif args.command == "config":
+            from relayrl.config_fields import commented_toml
+            from relayrl.presets import load_config
 
-            print(export_policy(args.run_dir, args.out))
+            print(commented_toml(load_config(args.config, args.overrides)), end="")
     except UserError as e:
         print(f"relayrl: error: {e}", file=sys.stderr)
         return EXIT_USAGE

@@ -1,29 +1,31 @@
 """One config object per run: nested dataclasses, saved as TOML, overridable with --set.
 
-Unknown keys and wrong types fail loudly with a ConfigError naming the valid choices.
+Unknown keys and wrong types fail loudly with a ConfigError naming the valid choices (or the
+closest key), from TOML, --set or an assignment in Python (`config_fields.Section`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import tomllib
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from relayrl.agents.registry import algorithm
+from relayrl.config_fields import Section, unknown_key
 from relayrl.errors import ConfigError
 from relayrl.seeding import MAX_SEED
 
 
 @dataclass
-class EnvConfig:
+class EnvConfig(Section):
+    SECTION = "env"
+
     # a Gymnasium id (CartPole-v1), package.module:Class (a gymnasium.Env subclass or a callable
     # returning an env; the current directory is on the import path), or package.module:EnvId-v0
     id: str = "CartPole-v1"
-    num_envs: int = 1
+    num_envs: int = 1  # env copies stepped as one batch
     # episode step cap for training and evaluation; 0: the env's own time limit (evaluation
     # episodes of a package.module:Class env without one are cut at 1,000 steps)
     max_episode_steps: int = 0
@@ -44,7 +46,9 @@ class EnvConfig:
 
 
 @dataclass
-class TrainConfig:
+class TrainConfig(Section):
+    SECTION = "train"
+
     total_steps: int = 50_000  # env steps
     initial_collect_steps: int = 1_000  # env steps with the random policy before learning
     collect_steps: int = 1  # env steps per iteration
@@ -58,7 +62,9 @@ class TrainConfig:
 
 
 @dataclass
-class ReplayConfig:
+class ReplayConfig(Section):
+    SECTION = "replay"
+
     size: int = 100_000  # items (transitions) kept; the oldest are removed first
     sampler: str = "uniform"  # uniform | prioritized
     priority_exponent: float = 0.6  # prioritized: P(i) ~ priority_i ** priority_exponent
@@ -77,13 +83,17 @@ class ReplayConfig:
 
 
 @dataclass
-class EvalConfig:
+class EvalConfig(Section):
+    SECTION = "eval"
+
     interval: int = 5_000  # env steps
-    episodes: int = 10
+    episodes: int = 10  # episodes per evaluation
 
 
 @dataclass
-class DistributedConfig:
+class DistributedConfig(Section):
+    SECTION = "distributed"
+
     num_actors: int = 0  # rollout actors on Ray; 0: the one-process loop
     address: str = ""  # an existing Ray cluster ("auto" or host:port); "": start a local Ray instance
     pull_interval: int = 1_000  # env steps between a rollout actor's weight pulls
@@ -95,10 +105,10 @@ class DistributedConfig:
 
 
 @dataclass
-class Config:
-    seed: int = 0
+class Config(Section):
+    seed: int = 0  # every random stream of the run derives from it
     device: str = "cpu"  # cpu | cuda | auto
-    algo: str = "dqn"
+    algo: str = "dqn"  # dqn | sac | bptt (sets what the agent section holds)
     env: EnvConfig = field(default_factory=EnvConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
@@ -177,11 +187,10 @@ def from_dict(data: dict[str, Any]) -> Config:
 
 def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
     names = {f.name: f for f in dataclasses.fields(obj)}
-    hints = typing.get_type_hints(type(obj))
     for key, value in data.items():
         path = prefix + key
         if key not in names:
-            raise ConfigError(f"unknown config key {path!r}; valid: {', '.join(prefix + n for n in names)}")
+            raise ConfigError(unknown_key(path, [prefix + n for n in names]))
         current = getattr(obj, key)
         if dataclasses.is_dataclass(current):
             if not isinstance(value, dict):
@@ -189,39 +198,7 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
                 raise ConfigError(f"{path} is a section; set its keys, e.g. {path}.{example}")
             _merge(current, value, path + ".")
         else:
-            setattr(obj, key, _coerce(value, hints[key], path))
-
-
-def _coerce(value: Any, hint: Any, path: str) -> Any:
-    """Check `value` against the field's type; ints are accepted where floats are expected."""
-    origin = typing.get_origin(hint)
-    if origin in (types.UnionType, typing.Union):
-        for arg in typing.get_args(hint):
-            if arg is type(None) and value is None:
-                return None
-            try:
-                return _coerce(value, arg, path)
-            except ConfigError:
-                continue
-        raise ConfigError(f"{path}={value!r} has the wrong type; expected {_type_name(hint)}")
-    if origin is dict:
-        if not isinstance(value, dict):
-            raise ConfigError(f"{path}={value!r} has the wrong type; expected a table, e.g. {{key = value}}")
-        return dict(value)
-    if origin in (list, tuple):
-        (item,) = typing.get_args(hint)[:1]
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{path}={value!r} has the wrong type; expected a list of {_type_name(item)}")
-        return [_coerce(v, item, f"{path}[{i}]") for i, v in enumerate(value)]
-    if hint is float and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    if hint is Any or (isinstance(value, hint) and not (hint is int and isinstance(value, bool))):
-        return value
-    raise ConfigError(f"{path}={value!r} has the wrong type; expected {_type_name(hint)}")
-
-
-def _type_name(hint: Any) -> str:
-    return getattr(hint, "__name__", str(hint))
+            setattr(obj, key, value)  # Section.__setattr__ checks the type
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:

@@ -92,5 +92,9 @@ class Agent(Saveable, Protocol):
         """What `relayrl.load_policy` needs to rebuild the eval policy without the agent."""
         ...
 
+    def scalars(self, env_steps: int) -> dict[str, float]:
+        """Schedules' current values (epsilon, learning_rate), logged as TensorBoard's charts/<name>."""
+        ...
+
     @property
     def train_step(self) -> int: ...

@@ -1,4 +1,4 @@
-"""Saved policies: load one as a batched callable, or export it for plain PyTorch.
+"""Saved policies: load one for the user's code, or export it for plain PyTorch or ONNX.
 
 `policy/policy.pt` holds a plain dict (network sizes, weights, action bounds) that
 `load_policy` rebuilds without the agent or replay; it is read without running any code it
@@ -9,10 +9,18 @@ runs with nothing but PyTorch:
 
     program = torch.export.load("run/policy/policy.pt2").module()
     actions = program(obs)  # [B, *obs_shape] float32 (uint8 frames for conv nets) -> [B] or [B, A]
+
+`relayrl export --format onnx` writes `policy.onnx` instead (input "obs", output "action", the
+same shapes). Beside either, `policy.<format>.json` records the input's and output's dtype and shape.
 """
 
 from __future__ import annotations
 
+import contextlib
+import json
+import logging
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +28,8 @@ import torch
 
 from relayrl.agents.registry import for_policy_kind
 from relayrl.errors import UserError
-from relayrl.policies import ClampedPolicy, GreedyPolicy, TanhGaussianPolicy
+from relayrl.loaded_policy import LoadedPolicy, observation_spec
+from relayrl.paths import output_path
 from relayrl.policy_file import REFUSED, load_policy_file
 
 
@@ -49,30 +58,88 @@ def load_policy_state(path: str | Path) -> dict[str, Any]:
 
 
 def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = True,
-                seed: int | None = None) -> GreedyPolicy | TanhGaussianPolicy | ClampedPolicy:
-    """A run directory, its `policy/` folder or the file itself -> batched policy.
+                seed: int | None = None) -> LoadedPolicy:
+    """A run directory, its `policy/` folder or the file itself -> the policy, for plain Python.
 
-    The policy takes observations [B, *obs_shape] and returns actions: [B] for discrete
-    (greedy in Q), [B, A] for continuous (tanh(mean), or sampled with `deterministic=False`).
-    Its `env_steps` is the run's env step when the policy was saved. During a run the file is
+    It takes NumPy or torch observations, one [*obs_shape] or a batch [B, *obs_shape], and
+    returns actions of the same kind: for a batch [B] for discrete (greedy in Q), [B, A] for
+    continuous (tanh(mean), or sampled with `deterministic=False`); for one observation, one
+    action. `policy.predict(obs)` returns `(action, None)` as Stable-Baselines3's does. Its
+    `env_steps` is the run's env step when the policy was saved. During a run the file is
     replaced atomically, so a policy can be loaded at any moment.
     """
     state = load_policy_state(path)
-    policy = for_policy_kind(state["kind"]).policy_module().load(state, torch.device(device), deterministic, seed)
-    policy.env_steps = state.get("env_steps")
-    return policy
+    batched = for_policy_kind(state["kind"]).policy_module().load(state, torch.device(device), deterministic, seed)
+    return LoadedPolicy(batched, state, device, deterministic, seed)
 
 
-def export_policy(path: str | Path, out: str | Path | None = None) -> Path:
-    """Write the deterministic policy as a `torch.export` program (`policy.pt2`)."""
+FORMATS = ("pt2", "onnx")
+
+
+def export_policy(path: str | Path, out: str | Path | None = None, format: str = "pt2") -> Path:
+    """Write the deterministic policy as a `torch.export` program (`policy.pt2`) or, with
+    `format="onnx"`, an ONNX model (`policy.onnx`; needs the `onnx` extra). Beside it,
+    `<file>.json` says what it takes and returns (`signature`)."""
+    if format not in FORMATS:
+        raise UserError(f"export format {format!r} is not known; valid: {', '.join(FORMATS)}")
+    if format == "onnx":
+        try:
+            import onnx  # noqa: F401  (torch.onnx writes the model through these)
+            import onnxscript  # noqa: F401
+        except ImportError:
+            raise UserError("--format onnx needs the onnx and onnxscript packages: "
+                            "pip install 'relayrl[onnx]'") from None
     state = load_policy_state(path)
-    module = for_policy_kind(state["kind"]).policy_module().deterministic_module(state).requires_grad_(False)
-    example = (torch.zeros(2, *state["obs_shape"], dtype=torch.uint8) if "obs_shape" in state
-               else torch.zeros(2, state["obs_dim"]))
-    batch = torch.export.Dim("batch", min=1)
-    program = torch.export.export(module, (example,), dynamic_shapes=({0: batch},))
-    target = Path(out) if out is not None else _policy_file(path).with_suffix(".pt2")
+    module = for_policy_kind(state["kind"]).policy_module().deterministic_module(state).requires_grad_(False).eval()
+    shape, dtype = observation_spec(state)
+    example = torch.zeros(2, *shape, dtype=dtype)
+    target = output_path(out, _policy_file(path).with_suffix("." + format))
     tmp = target.with_name(".tmp-" + target.name)  # torch.export wants the .pt2 suffix
-    torch.export.save(program, tmp)
+    batch = torch.export.Dim("batch", min=1)
+    if format == "pt2":
+        torch.export.save(torch.export.export(module, (example,), dynamic_shapes=({0: batch},)), tmp)
+    else:
+        with _quiet_onnx():
+            program = torch.onnx.export(module, (example,), input_names=["obs"], output_names=["action"],
+                                        dynamic_shapes=({0: batch},), dynamo=True, verbose=False)
+        program.save(str(tmp))
     tmp.replace(target)  # never a half-written program under the real name
+    with torch.no_grad():
+        action = module(example)
+    sig = signature(state, format, action)
+    target.with_name(target.name + ".json").write_text(json.dumps(sig, indent=2) + "\n")
     return target
+
+
+@contextlib.contextmanager
+def _quiet_onnx() -> Iterator[None]:
+    """torch's ONNX exporter notes what it skips ("torchvision is not installed") and warns of its
+    own deprecations: noise for a user who asked for a file. Errors still show."""
+    log = logging.getLogger("torch.onnx")
+    level = log.level
+    log.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)
+            warnings.simplefilter("ignore", DeprecationWarning)
+            yield
+    finally:
+        log.setLevel(level)
+
+
+def signature(state: dict[str, Any], format: str, action: torch.Tensor) -> dict[str, Any]:
+    """What an exported policy takes and returns, for `<file>.json` and the CLI's line."""
+    shape, dtype = observation_spec(state)
+    return {"format": format, "kind": state["kind"], "env_id": state.get("env_id"),
+            "env_steps": state.get("env_steps"),
+            "input": {"name": "obs", "dtype": str(dtype).removeprefix("torch."), "shape": ["batch", *shape]},
+            "output": {"name": "action", "dtype": str(action.dtype).removeprefix("torch."),
+                       "shape": ["batch", *action.shape[1:]]}}
+
+
+def describe(sig: dict[str, Any]) -> str:
+    """'input obs float32 [batch, 4] -> output action int64 [batch]'."""
+    def one(part: dict[str, Any]) -> str:
+        return f"{part['name']} {part['dtype']} [{', '.join(map(str, part['shape']))}]"
+
+    return f"input {one(sig['input'])} -> output {one(sig['output'])}"

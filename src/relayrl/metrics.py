@@ -7,6 +7,7 @@ the batch size (TF-Agents' `AverageReturnMetric(batch_size=...)` trap cannot hap
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -14,6 +15,8 @@ import numpy as np
 from relayrl.arrays import to_numpy
 from relayrl.compile import compiled
 from relayrl.types import Transition
+
+FINISHED_KEPT = 100_000  # finished episodes kept for TensorBoard between logs (the oldest go first)
 
 
 class EnvironmentSteps:
@@ -46,6 +49,10 @@ class EpisodeStats:
         self.lengths: deque[int] = deque(maxlen=buffer_size)
         self.info: dict[str, deque[float]] = {}  # env.info_keys values at episode ends, same window
         self.episodes = 0
+        # (env step, return, length) of each finished episode, while `step_fn` (the run's env
+        # step counter, read only where episodes end) is set: TensorBoard's per-episode points
+        self.step_fn: Callable[[], int] | None = None
+        self.finished: deque[tuple[int, float, int]] = deque(maxlen=FINISHED_KEPT)
         self._ret: np.ndarray | None = None
         self._len: np.ndarray | None = None
         self._done: np.ndarray | None = None
@@ -73,6 +80,9 @@ class EpisodeStats:
             for i in ended:
                 self.returns.append(float(self._ret[i]))
                 self.lengths.append(int(self._len[i]))
+            if self.step_fn is not None:
+                step = self.step_fn()
+                self.finished.extend((step, float(self._ret[i]), int(self._len[i])) for i in ended)
             for key, values in (t.episode_info or {}).items():
                 self._info_window(key).extend(float(values[i]) for i in ended)
             self.episodes += int(done.sum())
@@ -83,9 +93,18 @@ class EpisodeStats:
         """Count episodes that finished elsewhere (a remote actor's `EpisodeLog.take()`)."""
         self.returns.extend(returns)
         self.lengths.extend(lengths)
+        if self.step_fn is not None:  # they finished on actors: at the step they are counted
+            step = self.step_fn()
+            self.finished.extend((step, float(r), int(n)) for r, n in zip(returns, lengths, strict=True))
         for key, values in info.items():
             self._info_window(key).extend(values)
         self.episodes += len(returns)
+
+    def take_finished(self) -> list[tuple[int, float, int]]:
+        """The finished episodes recorded since the last call, oldest first."""
+        out = list(self.finished)
+        self.finished.clear()
+        return out
 
     def _info_window(self, key: str) -> deque[float]:
         """The window of `key`'s values, as long as the returns' window."""

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from relayrl.errors import UserError
+from relayrl.paths import output_path
 from relayrl.training.run_dir import RunDir
 
 Rows = list[dict[str, Any]]
@@ -51,7 +52,7 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
     for ax in panels[panels_n:]:
         ax.set_visible(False)
     fig.tight_layout()
-    path = Path(out) if out else rd.root / "returns.png"
+    path = output_path(out, rd.root / "returns.png")
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path

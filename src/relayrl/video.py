@@ -10,6 +10,7 @@ import torch
 from relayrl.envs import make_env
 from relayrl.errors import UserError
 from relayrl.export import load_policy
+from relayrl.paths import output_path
 from relayrl.presets import load_config
 
 
@@ -19,6 +20,7 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
 
     rd = RunDir(run_dir)
     rd.require()
+    path = output_path(out, rd.root / "video.mp4")
     # Off-screen rendering needs no display or sound: without these, pygame-based envs
     # (Pendulum) print an SDL "XDG_RUNTIME_DIR is invalid" error on headless machines.
     os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
@@ -45,7 +47,6 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
         raise UserError(f"env {config.env.id!r} does not render rgb_array frames")
     import imageio.v2 as imageio
 
-    path = Path(out) if out else rd.root / "video.mp4"
     # macro_block_size=1 keeps odd frame sizes as they are instead of resizing with a warning.
     imageio.mimwrite(path, frames, fps=fps, macro_block_size=1)
     return path

@@ -16,6 +16,7 @@ from typing import Any
 from relayrl.agents.bptt.config import BpttConfig
 from relayrl.agents.dqn.config import DQNConfig
 from relayrl.agents.sac.config import SACConfig
+from relayrl.config_fields import did_you_mean
 from relayrl.errors import ConfigError, UserError
 
 REPLAYS = ("transitions", "none")  # what an algorithm's run collects into: a transition Table, or nothing
@@ -67,7 +68,8 @@ ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (
 
 def algorithm(name: str) -> Algorithm:
     if name not in ALGORITHMS:
-        raise ConfigError(f"algo={name!r} is not known; valid: {', '.join(sorted(ALGORITHMS))}")
+        raise ConfigError(f"algo={name!r} is not known{did_you_mean(str(name), list(ALGORITHMS))} "
+                          f"(valid: {', '.join(sorted(ALGORITHMS))})")
     return ALGORITHMS[name]
 
 

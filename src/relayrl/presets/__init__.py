@@ -6,6 +6,7 @@ from importlib import resources
 from typing import Any
 
 from relayrl.config import Config, apply_overrides, from_dict, load_toml
+from relayrl.config_fields import did_you_mean
 from relayrl.errors import ConfigError
 
 
@@ -26,7 +27,8 @@ def list_presets() -> dict[str, str]:
 def preset_dict(name: str) -> dict[str, Any]:
     files = _files()
     if name not in files:
-        raise ConfigError(f"unknown preset {name!r}; valid: {', '.join(sorted(files))}")
+        raise ConfigError(f"unknown preset {name!r}{did_you_mean(name, list(files))} "
+                          f"(valid: {', '.join(sorted(files))}; a config file's name ends in .toml)")
     with files[name].open("rb") as f:
         import tomllib
 

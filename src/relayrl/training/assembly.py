@@ -29,6 +29,7 @@ from relayrl.metrics import EpisodeStats
 from relayrl.schedules import linear_schedule
 from relayrl.seeding import RunSeeds
 from relayrl.specs import Spec
+from relayrl.training.heartbeat import ProgressLines
 from relayrl.training.learner import Learner
 from relayrl.training.replay_setup import collect_only
 from relayrl.training.run_dir import MetricsLog, RunDir
@@ -47,6 +48,26 @@ def resolve_device(name: str) -> torch.device:
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise UserError(f"device={name!r} but CUDA is not available here; valid: cpu, auto")
     return torch.device(name)
+
+
+def log_config(tb: Any, config: Config) -> None:
+    """The run's config in TensorBoard: as TOML text (with each key's meaning) and as hparams."""
+    from relayrl.config import to_dict
+    from relayrl.config_fields import commented_toml
+
+    text = commented_toml(config)
+    tb.add_text("config", "\n".join("    " + line for line in text.splitlines()))  # a markdown code block
+    flat: dict[str, Any] = {}
+
+    def walk(d: dict[str, Any], prefix: str) -> None:
+        for k, v in d.items():
+            if isinstance(v, dict):
+                walk(v, f"{prefix}{k}.")
+            elif v is not None:
+                flat[prefix + k] = v if isinstance(v, (bool, int, float, str)) else str(v)
+
+    walk(to_dict(config), "")
+    tb.add_hparams(flat, {}, run_name=".")  # ".": into the run's own folder, not a new one
 
 
 class Run:
@@ -68,7 +89,10 @@ class Run:
         torch.manual_seed(self.seeds.base("torch"))  # network initialisation
         self.device = resolve_device(c.device)
         self.stats = EpisodeStats()
+        self.stats.step_fn = self.env_steps  # where a subclass has no finer counter
         self.bar: Any = None
+        self.lines: ProgressLines | None = None
+        self.started = (time.perf_counter(), Progress(0, 0))  # when and where run() began: the run's sps
         self.last_eval: dict[str, Any] = {}
         self.wall_offset = 0.0
         self.t0 = time.perf_counter()
@@ -167,14 +191,20 @@ class Run:
             self.metrics_log = MetricsLog(self.rd.metrics)
             self.bar = tqdm(total=c.train.total_steps, unit="step", disable=None if self.show_progress else True,
                             dynamic_ncols=True, initial=self.env_steps())
+            self.started = (time.perf_counter(), self.progress())
+            if self.show_progress and self.bar.disable:  # no terminal: a line every 30 s instead
+                self.lines = ProgressLines(self.progress_line, self.say).start()
             self.announce()
             if self.env_steps() == 0:
+                log_config(self.tb, c)
                 self.evaluate_now(Progress(0, 0))  # the untrained policy, before any collection
                 self.policy_saver.save(Progress(0, 0))  # `relayrl eval` works from the start
             self.iterate()
             self.finish(self.progress())
             return RunResult(self.rd.root, self.last_eval)
         finally:
+            if self.lines is not None:
+                self.lines.stop()
             if self.bar is not None:
                 self.bar.close()
             for log in (getattr(self, "tb", None), getattr(self, "metrics_log", None)):
@@ -200,7 +230,9 @@ class Run:
         self.policy_saver.save(p)
         if self.config.train.checkpoint_interval > 0:
             self.checkpointer.save(p)
-        self.sps_log.log_rates(p)
+        t0, p0 = self.started
+        dt = max(time.perf_counter() - t0, 1e-9)
+        self.write_scalars(p, (p.env_steps - p0.env_steps) / dt, (p.train_step - p0.train_step) / dt)
 
     def process_state(self) -> dict[str, Any]:
         """The global RNGs (a user's env may draw from them) and the latest losses."""
@@ -234,17 +266,37 @@ class Run:
         return {}
 
     def log_progress(self, p: Progress, env_sps: float, grad_sps: float) -> None:
-        scalars = {"perf/sps": env_sps, "perf/grad_sps": grad_sps, **self.learner.scalar_metrics()}
-        if self.stats.returns:
-            scalars["charts/episodic_return"] = sum(self.stats.returns) / len(self.stats.returns)
-        scalars.update({f"charts/{k}": v for k, v in self.stats.info_means().items()})
-        for k, v in scalars.items():
-            self.tb.add_scalar(k, v, p.env_steps)
+        """Every train.log_interval env steps: TensorBoard scalars and the progress bar. The final
+        step's scalars are `finish`'s (the run's steps/s), so none is written twice."""
+        if p.env_steps < self.config.train.total_steps:
+            self.write_scalars(p, env_sps, grad_sps)
         if self.bar is not None:
             self.bar.update(p.env_steps - self.bar.n)
             last = self.last_eval.get("average_return")
             self.bar.set_postfix(sps=f"{env_sps:.0f}", eval=f"{last:.1f}" if last is not None else "-",
                                  **self.postfix())
+
+    def write_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> None:
+        """TensorBoard as CleanRL names it: charts/episodic_return and charts/episodic_length, one
+        point per training episode at the env step it finished; charts/epsilon (DQN) and
+        charts/learning_rate; losses/*; perf/sps and perf/grad_sps."""
+        for step, ret, length in self.stats.take_finished():
+            self.tb.add_scalar("charts/episodic_return", ret, step)
+            self.tb.add_scalar("charts/episodic_length", length, step)
+        scalars = {"perf/sps": env_sps, "perf/grad_sps": grad_sps, **self.learner.scalar_metrics(),
+                   **{f"charts/{k}": v for k, v in self.agent.scalars(p.env_steps).items()},
+                   **{f"charts/{k}": v for k, v in self.stats.info_means().items()}}
+        for k, v in scalars.items():
+            self.tb.add_scalar(k, v, p.env_steps)
+
+    def progress_line(self) -> str:
+        """The line printed every 30 s where there is no progress bar (no terminal)."""
+        p, total = self.progress(), self.config.train.total_steps
+        t0, p0 = self.started
+        sps = (p.env_steps - p0.env_steps) / max(time.perf_counter() - t0, 1e-9)
+        last = self.last_eval.get("average_return")
+        return (f"step {p.env_steps:,}/{total:,} ({100 * p.env_steps / total:.0f}%) | {sps:,.0f} env steps/s "
+                f"| last eval return {'-' if last is None else f'{last:.2f}'} | {self.wall_time():.0f}s")
 
     def record_eval(self, p: Progress, result: dict[str, Any], eval_s: float, wall_time_s: float | None = None,
                     extra: dict[str, Any] | None = None) -> None:

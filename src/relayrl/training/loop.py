@@ -56,6 +56,7 @@ class LocalRun(Run):
         self.replay.inserts_wait = False
         self.random_rng = self.seeds.generator("warmup")
         self.steps = EnvironmentSteps()
+        self.stats.step_fn = lambda: self.steps.value  # read where episodes end (TensorBoard's points)
         self.actor = Actor(self.env, RandomPolicy(act_spec, self.random_rng),
                            [self.steps, self.stats, self.writer], seed=self.seeds.base("envs"))
         # The actor acts with its own copy of the policy network, refreshed from the variable

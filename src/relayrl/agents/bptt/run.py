@@ -51,6 +51,8 @@ def run_bptt(config: Config, rd: RunDir, progress: bool = True) -> dict[str, Any
     """Train, writing rows to metrics.jsonl; returns the last row."""
     from torch.utils.tensorboard import SummaryWriter
 
+    from relayrl.training.assembly import log_config
+
     c, a = config, config.agent
     iterations = check_bptt_config(c)
     per_iteration = a.batch_size * a.rollout_steps
@@ -58,6 +60,7 @@ def run_bptt(config: Config, rd: RunDir, progress: bool = True) -> dict[str, Any
     window: list[BpttLog] = []
     history: list[BpttLog] = []
     log, tb = MetricsLog(rd.metrics), SummaryWriter(str(rd.tb))
+    log_config(tb, config)
     t0 = time.perf_counter()
     last: dict[str, Any] = {}
 

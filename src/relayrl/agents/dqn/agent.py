@@ -55,12 +55,19 @@ class DQNAgent:
     def collect_policy(self, env_step: Callable[[], int], network: torch.nn.Module | None = None
                        ) -> EpsilonGreedyPolicy:
         assert isinstance(self.action_spec, DiscreteSpec)
-        c = self.cfg
-        eps = (exponential_schedule(c.epsilon_start, c.epsilon_end, c.epsilon_decay)
-               if c.epsilon_schedule == "exponential"
-               else linear_schedule(c.epsilon_start, c.epsilon_end, c.epsilon_decay_steps))
         greedy = GreedyPolicy(network if network is not None else self.online, self.device)
-        return EpsilonGreedyPolicy(greedy, self.action_spec.n, eps, env_step, self.rng)
+        return EpsilonGreedyPolicy(greedy, self.action_spec.n, self.epsilon_schedule(), env_step, self.rng)
+
+    def epsilon_schedule(self) -> Callable[[int], float]:
+        """env step -> the probability of a random action."""
+        c = self.cfg
+        return (exponential_schedule(c.epsilon_start, c.epsilon_end, c.epsilon_decay)
+                if c.epsilon_schedule == "exponential"
+                else linear_schedule(c.epsilon_start, c.epsilon_end, c.epsilon_decay_steps))
+
+    def scalars(self, env_steps: int) -> dict[str, float]:
+        """Schedules at `env_steps`, for TensorBoard (charts/epsilon, charts/learning_rate)."""
+        return {"epsilon": float(self.epsilon_schedule()(env_steps)), "learning_rate": float(self.optimizer.lr)}
 
     def policy_network(self) -> torch.nn.Module:
         return self.online

@@ -4,35 +4,38 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from relayrl.config_fields import Section
 from relayrl.errors import ConfigError
 
 
 @dataclass
-class DQNConfig:
-    hidden: list[int] = field(default_factory=lambda: [256, 256])
+class DQNConfig(Section):
+    SECTION = "agent"
+
+    hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of the Q-network MLP
     activation: str = "relu"  # relu | tanh | elu
     init: str = "torch"  # torch | tf-agents (VarianceScaling hidden, small uniform head, bias -0.2)
     # mlp: hidden/activation/init above | nature_cnn: Mnih et al. 2015's conv net for uint8
     # [k, H, W] frame stacks | mario_cnn: the Mario tutorial's net (the same layers)
     network: str = "mlp"
-    lr: float = 1e-3
+    lr: float = 1e-3  # Adam learning rate
     lr_end: float = -1.0  # < 0: constant lr; else linear decay to lr_end over train.total_steps
-    adam_eps: float = 1e-8
-    batch_size: int = 64
-    gamma: float = 0.99
+    adam_eps: float = 1e-8  # Adam's epsilon
+    batch_size: int = 64  # transitions per gradient step
+    gamma: float = 0.99  # discount factor
     loss: str = "huber"  # huber | mse (element-wise squared error, no 1/2)
-    huber_delta: float = 1.0
-    double: bool = False
+    huber_delta: float = 1.0  # huber: where the loss turns from quadratic to linear
+    double: bool = False  # Double DQN: the online net picks the next action, the target net values it
     target_update_period: int = 1  # gradient steps between target updates
     tau: float = 1.0  # 1.0: hard copy; < 1: Polyak averaging
     grad_clip: float = 0.0  # max global grad norm; 0 disables
-    epsilon_start: float = 1.0
-    epsilon_end: float = 0.05
+    epsilon_start: float = 1.0  # exploration: random-action probability at the start
+    epsilon_end: float = 0.05  # exploration: random-action probability at the end of the decay
     epsilon_decay_steps: int = 10_000  # env steps for the linear decay; 0: constant epsilon_end
     # linear: start -> end over epsilon_decay_steps | exponential: start * epsilon_decay ** t,
     # floored at epsilon_end (the Mario tutorial: 0.99999975 per env step, down to 0.1)
     epsilon_schedule: str = "linear"
-    epsilon_decay: float = 0.99999975
+    epsilon_decay: float = 0.99999975  # exponential: the factor per env step
 
     def validate(self) -> None:
         choices = {"activation": ("relu", "tanh", "elu"), "init": ("torch", "tf-agents"),

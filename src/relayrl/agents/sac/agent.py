@@ -88,6 +88,10 @@ class SACAgent:
     def set_progress(self, env_steps: int) -> None:
         """SAC has no env-step schedules; kept for the Agent protocol."""
 
+    def scalars(self, env_steps: int) -> dict[str, float]:
+        """For TensorBoard: charts/learning_rate (the actor's; the critics' and alpha's are in the config)."""
+        return {"learning_rate": float(self.actor_opt.lr)}
+
     def _sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         out = self.actor(obs)  # [N, 2A]
         mean, log_std = out.chunk(2, dim=-1)

@@ -4,28 +4,31 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from relayrl.config_fields import Section
 from relayrl.errors import ConfigError
 
 
 @dataclass
-class SACConfig:
-    actor_hidden: list[int] = field(default_factory=lambda: [256, 256])
-    critic_hidden: list[int] = field(default_factory=lambda: [256, 256])
+class SACConfig(Section):
+    SECTION = "agent"
+
+    actor_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of the actor MLP
+    critic_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of each critic MLP
     activation: str = "relu"  # relu | tanh | elu
-    actor_lr: float = 3e-4
-    critic_lr: float = 3e-4
-    alpha_lr: float = 3e-4
-    batch_size: int = 256
-    gamma: float = 0.99
+    actor_lr: float = 3e-4  # Adam learning rate of the actor
+    critic_lr: float = 3e-4  # Adam learning rate of the critics
+    alpha_lr: float = 3e-4  # Adam learning rate of the entropy temperature
+    batch_size: int = 256  # transitions per gradient step
+    gamma: float = 0.99  # discount factor
     tau: float = 0.005  # Polyak factor for the target critics
     target_update_period: int = 1  # gradient steps between target updates
-    reward_scale: float = 1.0
-    init_alpha: float = 1.0
+    reward_scale: float = 1.0  # rewards are multiplied by this in the critic's target
+    init_alpha: float = 1.0  # initial entropy temperature
     autotune_alpha: bool = True  # false: alpha stays init_alpha
     target_entropy: float | None = None  # None: -|A| (the SAC paper's heuristic)
     grad_clip: float = 0.0  # max global grad norm per network; 0 disables
-    log_std_min: float = -20.0
-    log_std_max: float = 2.0
+    log_std_min: float = -20.0  # lower clip of the actor's log standard deviation
+    log_std_max: float = 2.0  # upper clip of the actor's log standard deviation
 
     def validate(self) -> None:
         if self.activation not in ("relu", "tanh", "elu"):

@@ -1,0 +1,149 @@
+"""What every config section shares: assignments checked against the fields (a mistyped key or a
+wrong type raises `ConfigError` at once, in Python as from TOML), "did you mean" suggestions, and
+each field's one-line meaning, read from the comment beside it in the source (one source of truth:
+`relayrl config PRESET` prints them). Torch-free, so config errors stay fast.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import functools
+import inspect
+import io
+import tokenize
+import types
+import typing
+from typing import Any, ClassVar
+
+from relayrl.errors import ConfigError
+
+
+class Section:
+    """Base of the config dataclasses. `SECTION` is the section's name in TOML ("" at the top)."""
+
+    SECTION: ClassVar[str] = ""
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        hints = _hints(type(self))
+        path = f"{self.SECTION}.{name}" if self.SECTION else name
+        if name not in hints:
+            raise ConfigError(unknown_key(path, [f"{self.SECTION}.{n}" if self.SECTION else n for n in hints]))
+        if not dataclasses.is_dataclass(value):
+            value = coerce(value, hints[name], path)
+        object.__setattr__(self, name, value)
+
+
+@functools.cache
+def _hints(cls: type) -> dict[str, Any]:
+    names = {f.name for f in dataclasses.fields(cls)}
+    return {k: v for k, v in typing.get_type_hints(cls).items() if k in names}
+
+
+def unknown_key(path: str, valid: list[str]) -> str:
+    """"unknown config key 'train.total_step'; did you mean 'train.total_steps'?" (or the valid keys)."""
+    prefix, _, key = path.rpartition(".")
+    names = {v.rpartition(".")[2]: v for v in valid}  # compared without the shared section prefix
+    close = difflib.get_close_matches(key, list(names), n=1, cutoff=0.6)
+    if close:
+        return f"unknown config key {path!r}; did you mean {names[close[0]]!r}?"
+    return f"unknown config key {path!r}; valid: {', '.join(valid)}"
+
+
+def did_you_mean(value: str, valid: list[str]) -> str:
+    """"; did you mean 'x'?" for the closest of `valid`, else "" (for names: presets, algorithms)."""
+    close = difflib.get_close_matches(value, valid, n=1, cutoff=0.6)
+    return f"; did you mean {close[0]!r}?" if close else ""
+
+
+def coerce(value: Any, hint: Any, path: str) -> Any:
+    """Check `value` against the field's type; ints are accepted where floats are expected."""
+    origin = typing.get_origin(hint)
+    if origin in (types.UnionType, typing.Union):
+        for arg in typing.get_args(hint):
+            if arg is type(None) and value is None:
+                return None
+            try:
+                return coerce(value, arg, path)
+            except ConfigError:
+                continue
+        raise ConfigError(f"{path}={value!r} has the wrong type; expected {type_name(hint)}")
+    if origin is dict:
+        if not isinstance(value, dict):
+            raise ConfigError(f"{path}={value!r} has the wrong type; expected a table, e.g. {{key = value}}")
+        return dict(value)
+    if origin in (list, tuple):
+        (item,) = typing.get_args(hint)[:1]
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{path}={value!r} has the wrong type; expected a list of {type_name(item)}")
+        return [coerce(v, item, f"{path}[{i}]") for i, v in enumerate(value)]
+    if hint is float and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    if hint is Any or (isinstance(value, hint) and not (hint is int and isinstance(value, bool))):
+        return value
+    raise ConfigError(f"{path}={value!r} has the wrong type; expected {type_name(hint)}")
+
+
+def type_name(hint: Any) -> str:
+    return getattr(hint, "__name__", str(hint))
+
+
+@functools.cache
+def meanings(cls: type) -> dict[str, str]:
+    """field name -> its one-line meaning: the comment lines just above the field, then the
+    comment at the end of its line, joined into one line."""
+    source = inspect.getsource(cls)
+    comments = {tok.start[0]: tok.string.lstrip("#").strip()
+                for tok in tokenize.generate_tokens(io.StringIO(source).readline) if tok.type == tokenize.COMMENT}
+    fields = {f.name for f in dataclasses.fields(cls)}
+    out: dict[str, str] = {}
+    above: list[str] = []
+    for n, line in enumerate(source.splitlines(), start=1):
+        stripped = line.strip()
+        if stripped.startswith("#"):
+            above.append(comments.get(n, ""))
+            continue
+        name = stripped.split(":", 1)[0].strip()
+        if line.startswith("    ") and not line.startswith("     ") and name in fields:
+            out[name] = " ".join([*above, *([comments[n]] if n in comments else [])])
+        above = []
+    return {k: v for k, v in out.items() if v}
+
+
+def commented_toml(config: Any) -> str:
+    """`config` as TOML, each key followed by its meaning as a comment; it reads back as the
+    same config. Sections become tables; a None field (TOML has no null) is shown commented out."""
+    lines: list[str] = []
+    _write_section(config, "", lines)
+    return "\n".join(lines) + "\n"
+
+
+def _write_section(obj: Any, name: str, lines: list[str]) -> None:
+    if name:
+        lines += ["", f"[{name}]"]
+    about = meanings(type(obj))
+    nested = []
+    for f in dataclasses.fields(obj):
+        value = getattr(obj, f.name)
+        if dataclasses.is_dataclass(value):
+            nested.append((f.name, value))
+            continue
+        text = f"# {f.name} = (unset)" if value is None else f"{f.name} = {_literal(value)}"
+        lines.append(f"{text}  # {about[f.name]}" if f.name in about else text)
+    for key, value in nested:
+        _write_section(value, f"{name}.{key}" if name else key, lines)
+
+
+def _literal(value: Any) -> str:
+    """A TOML literal on one line (tomli_w spreads arrays over lines and writes tables as sections)."""
+    import tomli_w
+
+    if isinstance(value, list):
+        return "[" + ", ".join(_literal(v) for v in value) + "]"
+    if isinstance(value, dict):  # an inline table
+        return "{" + ", ".join(f"{_key(k)} = {_literal(v)}" for k, v in value.items()) + "}"
+    return tomli_w.dumps({"v": value}).strip()[len("v = "):]
+
+
+def _key(key: str) -> str:
+    return key if key and all(c.isalnum() or c in "-_" for c in key) else _literal(key)

@@ -1,0 +1,79 @@
+"""A saved policy in the user's code: NumPy or torch, one observation or a batch, any float dtype.
+
+The policies the training loop runs take batched torch tensors of the env's dtype and stay as
+they are; `LoadedPolicy` (what `relayrl.load_policy` returns) converts around them, and passes a
+batched tensor of the right dtype straight through, so evaluation pays nothing for it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from relayrl.errors import UserError
+
+
+def observation_spec(state: dict[str, Any]) -> tuple[tuple[int, ...], torch.dtype]:
+    """A saved policy's observation shape (without the batch) and dtype: uint8 frames for conv
+    nets, else float32 vectors."""
+    if "obs_shape" in state:
+        return tuple(int(d) for d in state["obs_shape"]), torch.uint8
+    return (int(state["obs_dim"]),), torch.float32
+
+
+class LoadedPolicy:
+    """obs -> action, of the kind it is given: NumPy in, NumPy out; torch in, torch out; one
+    observation [*obs_shape] in, one action out (an integer for discrete actions, [A] else);
+    a batch [B, *obs_shape] in, [B] or [B, A] out. Float64 observations are cast to the policy's
+    dtype. `predict` is Stable-Baselines3's spelling; `batched` is the policy the run itself used.
+    """
+
+    def __init__(self, batched: Any, state: dict[str, Any], device: str, deterministic: bool,
+                 seed: int | None) -> None:
+        from relayrl.agents.registry import for_policy_kind
+
+        self.batched = batched
+        self.kind: str = state["kind"]
+        self.obs_shape, self.obs_dtype = observation_spec(state)
+        self.env_steps: int | None = state.get("env_steps")  # the run's env step when it was saved
+        self.deterministic = deterministic
+        self._state, self._device, self._seed = state, device, seed
+        self._module = for_policy_kind(self.kind).policy_module()
+        self._other_mode: Any = None  # the policy with the other `deterministic`, made when predict asks
+
+    def __call__(self, obs: Any) -> Any:
+        if isinstance(obs, torch.Tensor) and obs.dtype == self.obs_dtype and obs.dim() == len(self.obs_shape) + 1:
+            return self.batched(obs)
+        return self._act(self.batched, obs)
+
+    def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
+                deterministic: bool | None = None) -> tuple[Any, None]:
+        """(action, None) as SB3's `model.predict` returns (the None is its recurrent state; these
+        policies have none). `deterministic=None` keeps the mode the policy was loaded with; a SAC
+        policy can be asked for the other one, a greedy or clamped policy has only deterministic."""
+        if deterministic is None or bool(deterministic) == self.deterministic:
+            return self(observation), None
+        if self._other_mode is None:
+            self._other_mode = self._module.load(self._state, torch.device(self._device), bool(deterministic),
+                                                 self._seed)
+        return self._act(self._other_mode, observation), None
+
+    def _act(self, policy: Any, obs: Any) -> Any:
+        numpy_in = not isinstance(obs, torch.Tensor)
+        t = torch.as_tensor(np.asarray(obs)) if numpy_in else obs
+        n = len(self.obs_shape)
+        if tuple(t.shape[-n:]) != self.obs_shape or t.dim() not in (n, n + 1):
+            raise UserError(f"observation of shape {tuple(t.shape)} does not fit this policy: it takes "
+                            f"{list(self.obs_shape)} or a batch [B, {', '.join(map(str, self.obs_shape))}]")
+        single = t.dim() == n
+        t = t.to(self.obs_dtype)
+        with torch.no_grad():
+            actions = policy(t.unsqueeze(0) if single else t)
+        if single:
+            actions = actions[0]
+        if not numpy_in:
+            return actions
+        out = actions.cpu().numpy()
+        return out[()] if out.ndim == 0 else out  # one discrete action: a NumPy integer
