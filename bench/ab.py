@@ -8,8 +8,10 @@ machine load; each tree runs its own bench script (so a renamed import on one si
 matter) with `PYTHONPATH=<tree>/src`. The table reports medians and B relative to A, where
 > 1.00 means B is faster. Workloads:
 
-  dqn-zoo     bench/dqn_cartpole.py's relayrl zoo setting, seed 0 (50,000 env steps): wall-clock
-  sac         bench/sac_pendulum.py's relayrl side, seed 0, --sac-steps env steps: wall-clock
+  dqn-zoo     bench/dqn_cartpole.py's relayrl zoo setting, seed 0 (50,000 env steps): wall-clock of
+              the training loop, evaluation excluded (a change of random streams changes episode
+              lengths, so evaluation time is not the code's)
+  sac         bench/sac_pendulum.py's relayrl side, seed 0, --sac-steps env steps: as dqn-zoo
   collect-32  bench/collect.py --envs 32 --vectorization sync (SAC's actor, 32 Pendulum copies,
               writer and table): env steps/s
   per         bench/replay.py's relayrl `per` task (prioritized sample 256 + update from a
@@ -39,15 +41,19 @@ def _result(stdout: str, _: Path) -> dict:
     raise RuntimeError("no RESULT line")
 
 
+def _train_s(result: dict) -> float:
+    return result["wall_s"] - result["eval_s"]
+
+
 def _collect_json(_: str, out: Path) -> float:
     return json.loads(out.read_text())["rows"][0]["ours_sps"]
 
 
 WORKLOADS: dict[str, Workload] = {
     "dqn-zoo": (lambda a, out: ["bench/dqn_cartpole.py", "--worker", "relayrl", "zoo", "0"],
-                lambda s, out: _result(s, out)["wall_s"], "time"),
+                lambda s, out: _train_s(_result(s, out)), "time"),
     "sac": (lambda a, out: ["bench/sac_pendulum.py", "--worker", "relayrl", "0", str(a.sac_steps)],
-            lambda s, out: _result(s, out)["wall_s"], "time"),
+            lambda s, out: _train_s(_result(s, out)), "time"),
     "collect-32": (lambda a, out: ["bench/collect.py", "--envs", "32", "--vectorization", "sync", "--repeats", "1",
                                    "--seconds", str(a.seconds), "--json", str(out)], _collect_json, "rate"),
     "per": (lambda a, out: ["bench/replay.py", "--worker", "relayrl", "per", str(a.seconds)],
