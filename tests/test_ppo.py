@@ -141,7 +141,7 @@ def rollout(action):
 def test_train_counts_minibatches_reports_scalars_and_follows_the_schedules(shared):
     a = agent(DiscreteSpec(3), shared=shared, lr=1e-3, lr_end=0.0, clip_range=0.2, clip_range_end=0.0)
     a.set_progress(50)
-    assert a.opt.param_groups[0]["lr"] == pytest.approx(5e-4) and a.clip_range == pytest.approx(0.1)
+    assert a.opt.lr == pytest.approx(5e-4) and a.clip_range == pytest.approx(0.1)
     before = [p.clone() for p in a.net.parameters()]
     m = a.train(rollout(torch.randint(0, 3, (1, 4, 2))))
     assert a.train_step == 2 * 2  # 2 epochs of 8 steps in minibatches of 4

@@ -21,6 +21,7 @@ from relayrl.agents.ppo.gae import gae
 from relayrl.agents.ppo.losses import entropy_loss, explained_variance, normalize, policy_loss, value_loss
 from relayrl.agents.ppo.networks import PPONetworks
 from relayrl.agents.ppo.policy import PPOPolicy
+from relayrl.optim import FastAdam
 from relayrl.schedules import linear_schedule
 from relayrl.specs import ArraySpec, Spec
 
@@ -35,9 +36,10 @@ class PPOAgent:
         self.net = PPONetworks(obs_spec, action_spec, cfg.hidden, cfg.activation, cfg.shared,
                                cfg.log_std_init).to(device)
         self.params = list(self.net.parameters())
-        self.opt = torch.optim.Adam(self.params, lr=cfg.lr, eps=1e-5)
-        self.lr_at = linear_schedule(cfg.lr, cfg.lr_end, total_steps)
-        self.clip_at = linear_schedule(cfg.clip_range, cfg.clip_range_end, total_steps)
+        self.opt = FastAdam(self.params, lr=cfg.lr, eps=1e-5)  # SB3's PPO eps
+        self.lr_at = linear_schedule(cfg.lr, cfg.lr_end if cfg.lr_end >= 0 else cfg.lr, total_steps)
+        self.clip_at = linear_schedule(cfg.clip_range, cfg.clip_range_end if cfg.clip_range_end >= 0
+                                       else cfg.clip_range, total_steps)
         self.clip_range = cfg.clip_range
         self.gen = torch.Generator()  # minibatch shuffles (on the CPU: the same on any device)
         self.gen.manual_seed(int(rng.integers(2**62)))
@@ -65,8 +67,7 @@ class PPOAgent:
 
     def set_progress(self, env_steps: int) -> None:
         """Learning rate and clip range follow their linear schedules in env steps."""
-        for group in self.opt.param_groups:
-            group["lr"] = self.lr_at(env_steps)
+        self.opt.lr = self.lr_at(env_steps)
         self.clip_range = self.clip_at(env_steps)
 
     def _evaluate(self, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -97,7 +98,7 @@ class PPOAgent:
         means = sums / steps
         return {"policy_loss": means[0], "value_loss": means[1], "entropy": means[2], "approx_kl": means[3],
                 "clip_fraction": means[4], "loss": means[5], "explained_variance": explained_variance(values, returns),
-                "clip_range": torch.tensor(self.clip_range), "lr": torch.tensor(self.opt.param_groups[0]["lr"])}
+                "clip_range": torch.tensor(self.clip_range), "lr": torch.tensor(self.opt.lr)}
 
     def _minibatch(self, obs: torch.Tensor, action: torch.Tensor, old_logp: torch.Tensor, old_values: torch.Tensor,
                    adv: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
@@ -110,7 +111,7 @@ class PPOAgent:
         v_loss = value_loss(values, old_values, returns, cfg.clip_range_vf)
         ent_loss = entropy_loss(entropy)
         loss = pg_loss + cfg.ent_coef * ent_loss + cfg.vf_coef * v_loss
-        self.opt.zero_grad(set_to_none=False)
+        self.opt.zero_grad()
         loss.backward()
         if cfg.max_grad_norm > 0:
             torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)

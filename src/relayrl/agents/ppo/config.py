@@ -17,10 +17,10 @@ class PPOConfig:
     hidden: list[int] = field(default_factory=lambda: [64, 64])  # hidden sizes of the actor and of the critic
     activation: str = "tanh"  # relu | tanh | elu
     shared: bool = False  # true: one MLP whose last layer holds the policy and value heads
-    lr: float = 3e-4  # Adam's learning rate at the start
-    lr_end: float = 3e-4  # ... at train.total_steps (linear in env steps)
-    clip_range: float = 0.2  # the surrogate's ratio clip at the start
-    clip_range_end: float = 0.2  # ... at train.total_steps (linear in env steps)
+    lr: float = 3e-4  # Adam's learning rate
+    lr_end: float = -1.0  # < 0: constant lr; else linear in env steps to lr_end at train.total_steps
+    clip_range: float = 0.2  # the surrogate's ratio clip
+    clip_range_end: float = -1.0  # < 0: constant clip_range; else linear to clip_range_end at train.total_steps
     clip_range_vf: float = 0.0  # clip the value prediction to old value +- this; 0: no value clipping
     n_epochs: int = 10  # passes over each rollout
     batch_size: int = 64  # steps per minibatch
@@ -37,10 +37,8 @@ class PPOConfig:
             raise ConfigError(f"agent.activation={self.activation!r} is not valid; valid: relu, tanh, elu")
         if not self.hidden or any(h < 1 for h in self.hidden):
             raise ConfigError(f"agent.hidden={self.hidden} is not valid; give one or more positive sizes")
-        if self.lr <= 0 or self.lr_end < 0:
-            raise ConfigError("agent.lr must be > 0 and agent.lr_end >= 0")
-        if self.clip_range <= 0 or self.clip_range_end < 0 or self.clip_range_vf < 0:
-            raise ConfigError("agent.clip_range must be > 0, agent.clip_range_end and agent.clip_range_vf >= 0")
+        if self.lr <= 0 or self.clip_range <= 0 or self.clip_range_vf < 0:
+            raise ConfigError("agent.lr and agent.clip_range must be > 0, agent.clip_range_vf >= 0")
         if self.n_epochs < 1 or self.batch_size < 1:
             raise ConfigError(f"agent.n_epochs={self.n_epochs} and agent.batch_size={self.batch_size} "
                               "are not valid; they must be >= 1")
