@@ -179,12 +179,13 @@ def test_discrete_samples_follow_the_logits():
     assert acts.float().mean().item() == pytest.approx(0.75, abs=0.03)
 
 
-def test_refuses_unbounded_actions_and_random_warmup(tmp_path):
+def test_refuses_unbounded_actions_random_warmup_and_stale_actors(tmp_path):
     with pytest.raises(UserError, match="PPO needs"):
         agent(ArraySpec((2,), torch.float32))
-    cfg = relayrl.load_config("ppo-cartpole", ["train.initial_collect_steps=100"])
-    with pytest.raises(ConfigError, match="initial_collect_steps"):
-        relayrl.train(cfg, tmp_path / "r", progress=False)
+    for key in ("initial_collect_steps", "pull_interval"):
+        cfg = relayrl.load_config("ppo-cartpole", [f"train.{key}=100"])
+        with pytest.raises(ConfigError, match=key):
+            relayrl.train(cfg, tmp_path / key, progress=False)
 
 
 BANDIT = ["env.id=toy_envs:BetterAction", "env.num_envs=4", "train.total_steps=2048", "train.collect_steps=128",

@@ -113,6 +113,9 @@ def build_rollouts(c: Config) -> tuple[Table, RolloutWriter]:
     if c.train.initial_collect_steps:
         raise ConfigError(f"train.initial_collect_steps={c.train.initial_collect_steps} is not valid for "
                           f"algo={c.algo!r}: it learns on-policy, from its own rollouts only; use 0")
+    if c.train.pull_interval:
+        raise ConfigError(f"train.pull_interval={c.train.pull_interval} is not valid for algo={c.algo!r}: each "
+                          "rollout is collected with the policy just trained (0: pull every iteration)")
     steps = -(-c.train.collect_steps // c.env.num_envs)  # per env copy
     table = Table.queue("rollouts", 1)
     return table, RolloutWriter(table, steps)

@@ -79,16 +79,16 @@ class PPOAgent:
         cfg = self.cfg
         r = {k: v[0].to(self.device) for k, v in rollout.items()}  # one item: [T, B, ...]
         t, b = r["reward"].shape
-        obs = r["obs"].reshape(t * b, *r["obs"].shape[2:])
-        action = r["action"].reshape(t * b, *r["action"].shape[2:])
+        n = t * b
+        obs = r["obs"].reshape(n, *r["obs"].shape[2:])
+        action = r["action"].reshape(n, *r["action"].shape[2:])
         with torch.no_grad():
             old_logp, _, values = self._evaluate(obs, action)
-            next_values = self.net(r["next_obs"].reshape(t * b, *r["next_obs"].shape[2:]))[1]
+            next_values = self.net(r["next_obs"].reshape(n, *r["next_obs"].shape[2:]))[1]
         adv, returns = gae(r["reward"].float(), values.reshape(t, b), next_values.reshape(t, b),
                            r["terminated"], r["truncated"], cfg.gamma, cfg.gae_lambda)
         adv, returns = adv.reshape(-1), returns.reshape(-1)
         sums = torch.zeros(6, device=self.device)
-        n = t * b
         for _ in range(cfg.n_epochs):
             order = torch.randperm(n, generator=self.gen).to(self.device)
             for start in range(0, n, cfg.batch_size):
