@@ -30,6 +30,9 @@ from relayrl.training.checkpoint import load_latest_checkpoint
 CASES = {
     "dqn": ("dqn-cartpole-fast", DQN),
     "sac": ("sac-pendulum", SAC),
+    "ppo": ("ppo-cartpole", ["train.total_steps=1536", "eval.interval=512", "eval.episodes=3",
+                             "train.checkpoint_interval=512", "agent.hidden=[16]", "agent.n_epochs=2",
+                             "agent.batch_size=64"]),
     "bptt": ("bptt-pendulum", ["train.total_steps=9600", "eval.interval=3200"]),  # 3 iterations
 }
 NAMES = sorted(ALGORITHMS)

@@ -1,4 +1,4 @@
-"""The CartPole DQN and Pendulum SAC presets meet their promises on seeds 0, 1, 2 (bptt-pendulum:
+"""The CartPole DQN and PPO and the Pendulum SAC presets meet their promises on seeds 0, 1, 2 (bptt-pendulum:
 tests/test_stateless.py). Minutes each: `pytest -m slow`."""
 
 import pytest
@@ -51,3 +51,11 @@ def test_sac_batched_reaches_minus_200_within_20k_and_ends_there(tmp_path, seed)
     rows = evals(relayrl.load_config("sac-batched", seed=seed), tmp_path / "r")
     assert any(r["average_return"] >= -200 and r["step"] <= 20_000 for r in rows), rows
     assert rows[-1]["average_return"] >= -200, rows
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ppo_cartpole_ends_at_500_within_100k(tmp_path, seed):
+    # RL Zoo's ppo.yml CartPole-v1 settings; BENCHMARKS.md has the seeds' runs
+    rows = evals(relayrl.load_config("ppo-cartpole", seed=seed), tmp_path / "r")
+    assert rows[-1]["step"] == 100_000 and rows[-1]["average_return"] >= 500, rows

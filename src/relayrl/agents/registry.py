@@ -15,11 +15,13 @@ from typing import Any
 
 from relayrl.agents.bptt.config import BpttConfig
 from relayrl.agents.dqn.config import DQNConfig
+from relayrl.agents.ppo.config import PPOConfig
 from relayrl.agents.sac.config import SACConfig
 from relayrl.config_fields import did_you_mean
 from relayrl.errors import ConfigError, UserError
 
-REPLAYS = ("transitions", "none")  # what an algorithm's run collects into: a transition Table, or nothing
+REPLAYS = ("transitions", "rollouts", "none")  # what an algorithm's run collects into: a transition Table,
+# a queue of on-policy rollouts each consumed once, or nothing
 
 
 def load_attr(path: str) -> Any:
@@ -61,6 +63,8 @@ ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (
               ray=True),
     Algorithm("sac", SACConfig, "tanh_gaussian", "relayrl.agents.sac.policy",
               agent="relayrl.agents.sac.agent:SACAgent", ray=True),
+    Algorithm("ppo", PPOConfig, "ppo", "relayrl.agents.ppo.policy", agent="relayrl.agents.ppo.agent:PPOAgent",
+              replay="rollouts"),
     Algorithm("bptt", BpttConfig, "clamped_mlp", "relayrl.agents.bptt.policy", replay="none",
               run="relayrl.agents.bptt.run:BpttRun", resumable=False),
 )}

@@ -106,13 +106,15 @@ class Run:
     def _assemble(self, obs_spec: Spec, act_spec: Spec) -> None:
         c = self.config
         spec = algorithm(c.algo)
-        if spec.replay != "transitions":
+        if spec.replay == "none":
             raise ValueError(f"algo={c.algo!r} collects into replay={spec.replay!r}; Actor + Learner runs feed "
-                             "a transitions table (the registry gives it a run of its own)")
+                             "a transitions table or a rollout queue (the registry gives it a run of its own)")
         self.agent = spec.make_agent(c.agent, obs_spec, act_spec, self.device, self.seeds.generator("exploration"),
                                      c.train.total_steps)
         table, variables = self.connect(obs_spec, act_spec)
-        self.learner = Learner(self.agent, table, c.agent.batch_size, self.device,
+        # A rollout queue's learner takes whole rollouts, one item each; the agent cuts its minibatches.
+        items = 1 if spec.replay == "rollouts" else c.agent.batch_size
+        self.learner = Learner(self.agent, table, items, self.device,
                                prioritized=c.replay.sampler == "prioritized",
                                importance_exponent=c.replay.importance_exponent,
                                priority_eps=c.replay.priority_eps, variables=variables)

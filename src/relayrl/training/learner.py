@@ -87,7 +87,7 @@ class Learner:
             if self.prioritized:
                 w = np.power(info.table_size * info.probability, -self.importance_exponent)  # [N]
                 batch = batch._replace(weight=torch.from_numpy((w / w.max()).astype(np.float32)))
-            if self.device.type != "cpu":
+            if self.device.type != "cpu" and isinstance(batch, Batch):  # a rollout (dict) is moved by its agent
                 batch = Batch(*(None if x is None else x.to(self.device, non_blocking=True) for x in batch))
             self.last_metrics = self.agent.train(batch)
             if self.prioritized:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 from typing import Any
 
+from relayrl.agents.registry import algorithm
 from relayrl.config import to_dict
 from relayrl.envs import make_env
 from relayrl.envs.stateless.adapter import StatelessBatchEnv
@@ -16,7 +17,7 @@ from relayrl.training.actor import Actor
 from relayrl.training.assembly import Run
 from relayrl.training.checkpoint import load_latest_checkpoint
 from relayrl.training.evaluate import eval_cap_note, make_eval_env
-from relayrl.training.replay_setup import build_replay, replay_device
+from relayrl.training.replay_setup import build_replay, build_rollouts, replay_device
 from relayrl.training.triggers import Evaluate, Progress
 from relayrl.training.variables import VariableContainer, WeightPuller
 
@@ -49,8 +50,11 @@ class LocalRun(Run):
     def connect(self, obs_spec: Spec, act_spec: Spec) -> tuple[Any, Any]:
         c = self.config
         stateless = isinstance(self.env, StatelessBatchEnv)
-        self.replay, self.writer = build_replay(c, obs_spec, act_spec, self.rd.root,
-                                                replay_device(c, self.device, stateless))
+        if algorithm(c.algo).replay == "rollouts":
+            self.replay, self.writer = build_rollouts(c)
+        else:
+            self.replay, self.writer = build_replay(c, obs_spec, act_spec, self.rd.root,
+                                                    replay_device(c, self.device, stateless))
         # One thread collects and learns in turn: an insert waiting on the rate limiter could
         # never be released; the learner's `available_steps` after each collect call keeps the ratio.
         self.replay.inserts_wait = False

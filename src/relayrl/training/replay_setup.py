@@ -1,4 +1,4 @@
-"""Builds a run's replay (Table + TransitionWriter) from its config.
+"""Builds a run's replay (Table + TransitionWriter, or a rollout queue) from its config.
 
 The rate limiter is what decides how many gradient steps follow each collect iteration, in
 one process as on Ray: samples_per_insert defaults to gradient_steps * batch_size /
@@ -25,6 +25,7 @@ from relayrl.replay import (
     Uniform,
 )
 from relayrl.replay.group import WriterGroup
+from relayrl.replay.rollouts import RolloutWriter
 from relayrl.seeding import RunSeeds
 from relayrl.specs import Spec
 
@@ -103,6 +104,21 @@ def build_replay(c: Config, obs_spec: Spec, action_spec: Spec, run_root: Path,
                               n_step=c.replay.n_step, frame_stack=frame_stack(obs_spec),
                               path=replay_path(c, run_root), device=device)
     return table, writer
+
+
+def build_rollouts(c: Config) -> tuple[Table, RolloutWriter]:
+    """An on-policy algorithm's replay (registry replay "rollouts"): a queue of one rollout of
+    `train.collect_steps` env steps, each consumed once by the learner. The run collects one
+    rollout per iteration with the current policy, so no stale data is ever trained on."""
+    if c.train.initial_collect_steps:
+        raise ConfigError(f"train.initial_collect_steps={c.train.initial_collect_steps} is not valid for "
+                          f"algo={c.algo!r}: it learns on-policy, from its own rollouts only; use 0")
+    if c.train.pull_interval:
+        raise ConfigError(f"train.pull_interval={c.train.pull_interval} is not valid for algo={c.algo!r}: each "
+                          "rollout is collected with the policy just trained (0: pull every iteration)")
+    steps = -(-c.train.collect_steps // c.env.num_envs)  # per env copy
+    table = Table.queue("rollouts", 1)
+    return table, RolloutWriter(table, steps)
 
 
 def build_shared_replay(c: Config, obs_spec: Spec, action_spec: Spec, run_root: Path,

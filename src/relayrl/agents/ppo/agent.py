@@ -1,0 +1,146 @@
+"""PPO agent: owns the actor / critic networks, the optimizer, the schedules and counters.
+
+`train(rollout)` takes one rollout ([T, B] steps, as `replay.rollouts.RolloutWriter` writes
+it, consumed once), computes the old log-probabilities and values with the networks the
+rollout was collected with (nothing has trained since), GAE(lambda), then `n_epochs`
+epochs of shuffled minibatches: clipped surrogate + vf_coef * value loss - ent_coef *
+entropy, one Adam step each after a global grad-norm clip.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+from relayrl.agents.ppo.config import PPOConfig
+from relayrl.agents.ppo.distributions import log_prob_entropy
+from relayrl.agents.ppo.gae import gae
+from relayrl.agents.ppo.losses import entropy_loss, explained_variance, normalize, policy_loss, value_loss
+from relayrl.agents.ppo.networks import PPONetworks
+from relayrl.agents.ppo.policy import PPOPolicy
+from relayrl.optim import FastAdam
+from relayrl.schedules import linear_schedule
+from relayrl.specs import ArraySpec, Spec
+
+
+class PPOAgent:
+    def __init__(self, obs_spec: Spec, action_spec: Spec, cfg: PPOConfig, device: torch.device,
+                 rng: np.random.Generator, total_steps: int = 0) -> None:
+        self.cfg = cfg
+        self.device = device
+        self.rng = rng  # collect-policy noise, checkpointed with the agent
+        self.action_spec = action_spec
+        self.net = PPONetworks(obs_spec, action_spec, cfg.hidden, cfg.activation, cfg.shared,
+                               cfg.log_std_init).to(device)
+        self.params = list(self.net.parameters())
+        self.opt = FastAdam(self.params, lr=cfg.lr, eps=1e-5)  # SB3's PPO eps
+        self.lr_at = linear_schedule(cfg.lr, cfg.lr_end if cfg.lr_end >= 0 else cfg.lr, total_steps)
+        self.clip_at = linear_schedule(cfg.clip_range, cfg.clip_range_end if cfg.clip_range_end >= 0
+                                       else cfg.clip_range, total_steps)
+        self.clip_range = cfg.clip_range
+        self.gen = torch.Generator()  # minibatch shuffles (on the CPU: the same on any device)
+        self.gen.manual_seed(int(rng.integers(2**62)))
+        self._train_step = 0
+
+    @property
+    def train_step(self) -> int:
+        """Gradient steps (minibatches) so far."""
+        return self._train_step
+
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
+        s = self.action_spec
+        return (s.low, s.high) if isinstance(s, ArraySpec) else None
+
+    def collect_policy(self, env_step: Callable[[], int] | None = None,
+                       network: torch.nn.Module | None = None) -> PPOPolicy:
+        net = network if network is not None else self.net.policy
+        return PPOPolicy(net, getattr(net, "log_std", None), self._bounds(), self.device, False, self.rng)
+
+    def eval_policy(self) -> PPOPolicy:
+        return PPOPolicy(self.net.policy, self.net.policy.log_std, self._bounds(), self.device, True)
+
+    def policy_network(self) -> torch.nn.Module:
+        return self.net.policy
+
+    def set_progress(self, env_steps: int) -> None:
+        """Learning rate and clip range follow their linear schedules in env steps."""
+        self.opt.lr = self.lr_at(env_steps)
+        self.clip_range = self.clip_at(env_steps)
+
+    def _evaluate(self, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        out, values = self.net(obs)
+        logp, entropy = log_prob_entropy(out, self.net.policy.log_std, action)
+        return logp, entropy, values
+
+    def train(self, rollout: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        cfg = self.cfg
+        r = {k: v[0].to(self.device) for k, v in rollout.items()}  # one item: [T, B, ...]
+        t, b = r["reward"].shape
+        n = t * b
+        obs = r["obs"].reshape(n, *r["obs"].shape[2:])
+        action = r["action"].reshape(n, *r["action"].shape[2:])
+        with torch.no_grad():
+            old_logp, _, values = self._evaluate(obs, action)
+            next_values = self.net(r["next_obs"].reshape(n, *r["next_obs"].shape[2:]))[1]
+        adv, returns = gae(r["reward"].float(), values.reshape(t, b), next_values.reshape(t, b),
+                           r["terminated"], r["truncated"], cfg.gamma, cfg.gae_lambda)
+        adv, returns = adv.reshape(-1), returns.reshape(-1)
+        sums = torch.zeros(6, device=self.device)
+        for _ in range(cfg.n_epochs):
+            order = torch.randperm(n, generator=self.gen).to(self.device)
+            for start in range(0, n, cfg.batch_size):
+                idx = order[start:start + cfg.batch_size]
+                sums += self._minibatch(obs[idx], action[idx], old_logp[idx], values[idx], adv[idx], returns[idx])
+        steps = cfg.n_epochs * -(-n // cfg.batch_size)
+        means = sums / steps
+        return {"policy_loss": means[0], "value_loss": means[1], "entropy": means[2], "approx_kl": means[3],
+                "clip_fraction": means[4], "loss": means[5], "explained_variance": explained_variance(values, returns),
+                "clip_range": torch.tensor(self.clip_range), "lr": torch.tensor(self.opt.lr)}
+
+    def _minibatch(self, obs: torch.Tensor, action: torch.Tensor, old_logp: torch.Tensor, old_values: torch.Tensor,
+                   adv: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
+        """One gradient step; returns [policy loss, value loss, entropy, approx KL, clip fraction, loss]."""
+        cfg = self.cfg
+        if cfg.normalize_advantage:
+            adv = normalize(adv)
+        logp, entropy, values = self._evaluate(obs, action)
+        pg_loss, approx_kl, clip_fraction = policy_loss(logp, old_logp, adv, self.clip_range)
+        v_loss = value_loss(values, old_values, returns, cfg.clip_range_vf)
+        ent_loss = entropy_loss(entropy)
+        loss = pg_loss + cfg.ent_coef * ent_loss + cfg.vf_coef * v_loss
+        self.opt.zero_grad()
+        loss.backward()
+        if cfg.max_grad_norm > 0:
+            torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
+        self.opt.step()
+        self._train_step += 1
+        return torch.stack([pg_loss.detach(), v_loss.detach(), -ent_loss.detach(), approx_kl, clip_fraction,
+                            loss.detach()])
+
+    def policy_state(self) -> dict[str, Any]:
+        p = self.net.policy
+        state: dict[str, Any] = {
+            "kind": "ppo", "discrete": self.net.discrete,
+            "obs_dim": p.mlp.layers[0].in_features, "hidden": list(self.cfg.hidden), "action_dim": p.out,
+            "activation": self.cfg.activation, "state_dict": self.net.saved_head(),
+        }
+        if p.log_std is not None:
+            low, high = self._bounds()  # type: ignore[misc]
+            state.update(log_std=p.log_std.detach().cpu().tolist(), action_low=np.asarray(low, np.float32),
+                         action_high=np.asarray(high, np.float32))
+        return state
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"net": self.net.state_dict(), "opt": self.opt.state_dict(), "train_step": self._train_step,
+                "clip_range": self.clip_range, "rng": self.rng.bit_generator.state, "gen": self.gen.get_state()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.net.load_state_dict(state["net"])
+        self.opt.load_state_dict(state["opt"])
+        self._train_step = int(state["train_step"])
+        self.clip_range = float(state["clip_range"])
+        self.rng.bit_generator.state = state["rng"]
+        self.gen.set_state(state["gen"])

@@ -1,0 +1,50 @@
+"""PPO hyperparameters (Schulman et al. 2017, with the defaults of Stable-Baselines3's PPO).
+
+A rollout is `train.collect_steps` env steps (`train.collect_steps / env.num_envs` per env
+copy, SB3's n_steps), collected with the current policy, trained on for `n_epochs` epochs of
+shuffled minibatches of `batch_size` steps, then dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from relayrl.errors import ConfigError
+
+
+@dataclass
+class PPOConfig:
+    hidden: list[int] = field(default_factory=lambda: [64, 64])  # hidden sizes of the actor and of the critic
+    activation: str = "tanh"  # relu | tanh | elu
+    shared: bool = False  # true: one MLP whose last layer holds the policy and value heads
+    lr: float = 3e-4  # Adam's learning rate
+    lr_end: float = -1.0  # < 0: constant lr; else linear in env steps to lr_end at train.total_steps
+    clip_range: float = 0.2  # the surrogate's ratio clip
+    clip_range_end: float = -1.0  # < 0: constant clip_range; else linear to clip_range_end at train.total_steps
+    clip_range_vf: float = 0.0  # clip the value prediction to old value +- this; 0: no value clipping
+    n_epochs: int = 10  # passes over each rollout
+    batch_size: int = 64  # steps per minibatch
+    gamma: float = 0.99
+    gae_lambda: float = 0.95  # GAE's lambda: 1 is Monte Carlo returns, 0 is one-step TD
+    ent_coef: float = 0.0  # weight of the entropy bonus
+    vf_coef: float = 0.5  # weight of the value loss
+    max_grad_norm: float = 0.5  # global gradient-norm clip over all parameters; 0 disables
+    normalize_advantage: bool = True  # per-minibatch advantage normalisation
+    log_std_init: float = 0.0  # continuous actions: the initial state-independent log std
+
+    def validate(self) -> None:
+        if self.activation not in ("relu", "tanh", "elu"):
+            raise ConfigError(f"agent.activation={self.activation!r} is not valid; valid: relu, tanh, elu")
+        if not self.hidden or any(h < 1 for h in self.hidden):
+            raise ConfigError(f"agent.hidden={self.hidden} is not valid; give one or more positive sizes")
+        if self.lr <= 0 or self.clip_range <= 0 or self.clip_range_vf < 0:
+            raise ConfigError("agent.lr and agent.clip_range must be > 0, agent.clip_range_vf >= 0")
+        if self.n_epochs < 1 or self.batch_size < 1:
+            raise ConfigError(f"agent.n_epochs={self.n_epochs} and agent.batch_size={self.batch_size} "
+                              "are not valid; they must be >= 1")
+        for key in ("gamma", "gae_lambda"):
+            if not 0.0 <= getattr(self, key) <= 1.0:
+                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be in [0, 1]")
+        for key in ("ent_coef", "vf_coef", "max_grad_norm"):
+            if getattr(self, key) < 0:
+                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be >= 0")

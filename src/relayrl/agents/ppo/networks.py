@@ -1,0 +1,88 @@
+"""PPO's networks: the actor (logits, or a Gaussian mean with a state-independent log std)
+and the critic, as two MLPs or as one whose last layer holds both heads, orthogonally
+initialised (SB3 / CleanRL: gain sqrt(2) hidden, 0.01 policy head, 1 value head, zero bias)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch import nn
+
+from relayrl.errors import UserError
+from relayrl.nn import MLP
+from relayrl.specs import ArraySpec, DiscreteSpec, Spec, flat_dim
+
+
+def action_dim(action_spec: Spec) -> tuple[int, bool]:
+    """(policy outputs, discrete): logits of a Discrete space, or the mean of a bounded Box."""
+    if isinstance(action_spec, DiscreteSpec):
+        return action_spec.n, True
+    bounded = (isinstance(action_spec, ArraySpec) and action_spec.dtype.is_floating_point
+               and action_spec.low is not None and action_spec.high is not None
+               and bool(np.isfinite(action_spec.low).all() and np.isfinite(action_spec.high).all()))
+    if not bounded:
+        raise UserError("PPO needs a Discrete action space or a bounded continuous one (gymnasium.spaces.Box "
+                        "with finite low/high)")
+    return flat_dim(action_spec), False
+
+
+def orthogonal_init_(net: MLP, head_gains: list[tuple[int, int, float]]) -> None:
+    """Hidden layers: orthogonal, gain sqrt(2); the last layer's rows [a, b) get their gain."""
+    layers = list(net.layers)
+    for layer in layers[:-1]:
+        nn.init.orthogonal_(layer.weight, math.sqrt(2.0))
+        nn.init.zeros_(layer.bias)
+    head = layers[-1]
+    with torch.no_grad():
+        for a, b, gain in head_gains:
+            rows = torch.empty(b - a, head.in_features)
+            nn.init.orthogonal_(rows, gain)
+            head.weight[a:b] = rows
+        head.bias.zero_()
+
+
+class PolicyNet(nn.Module):
+    """obs -> the policy's outputs [N, A] (logits or Gaussian mean); `log_std` [A] for
+    continuous actions. With `shared`, `mlp` has one more output, the value, which `forward`
+    leaves out: this module is what the actor's copy of the policy holds and pulls."""
+
+    def __init__(self, obs_dim: int, hidden: list[int], out: int, activation: str, shared: bool,
+                 log_std_init: float | None) -> None:
+        super().__init__()
+        self.out = out
+        self.mlp = MLP(obs_dim, list(hidden), out + int(shared), activation)
+        gains = [(0, out, 0.01)] + ([(out, out + 1, 1.0)] if shared else [])
+        orthogonal_init_(self.mlp, gains)
+        self.log_std = None if log_std_init is None else nn.Parameter(torch.full((out,), float(log_std_init)))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.mlp(obs)[:, : self.out]
+
+
+class PPONetworks(nn.Module):
+    def __init__(self, obs_spec: Spec, action_spec: Spec, hidden: list[int], activation: str, shared: bool,
+                 log_std_init: float) -> None:
+        super().__init__()
+        out, self.discrete = action_dim(action_spec)
+        self.shared = shared
+        self.policy = PolicyNet(flat_dim(obs_spec), hidden, out, activation, shared,
+                                None if self.discrete else log_std_init)
+        self.critic: MLP | None = None
+        if not shared:
+            self.critic = MLP(flat_dim(obs_spec), list(hidden), 1, activation)
+            orthogonal_init_(self.critic, [(0, 1, 1.0)])
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(policy outputs [N, A], values [N]) in one pass through a shared network."""
+        if self.critic is None:
+            both = self.policy.mlp(obs)
+            return both[:, : self.policy.out], both[:, self.policy.out]
+        return self.policy(obs), self.critic(obs)[:, 0]
+
+    def saved_head(self) -> dict[str, torch.Tensor]:
+        """The actor as a plain MLP's state_dict with outputs [A] (a shared net's value row cut)."""
+        out = self.policy.out
+        return {k: (v[:out] if k.startswith(f"layers.{len(self.policy.mlp.layers) - 1}.") else v).detach().cpu()
+                .clone() for k, v in self.policy.mlp.state_dict().items()}

@@ -1,0 +1,54 @@
+"""RolloutWriter: an actor's observer that gathers `steps` batched env steps and inserts them
+into a table as ONE item, a rollout of [steps, B, ...] arrays, for an on-policy learner that
+consumes each rollout once (a `Table.queue`, as Acme feeds its PPO learner).
+
+An item's fields: obs, action, reward, next_obs (the true next observation, also at an
+episode's end), terminated, truncated. A partly gathered rollout is not inserted: the run
+collects whole rollouts between learner steps, so none is pending at a checkpoint.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from relayrl.arrays import to_numpy
+from relayrl.replay.table import Table
+from relayrl.types import Transition
+
+FIELDS = ("obs", "action", "reward", "next_obs", "terminated", "truncated")
+
+
+class RolloutWriter:
+    def __init__(self, table: Table, steps: int) -> None:
+        if steps < 1:
+            raise ValueError(f"RolloutWriter: steps={steps} is not valid; it must be >= 1")
+        self.table = table
+        self.steps = steps
+        self.t = 0  # steps gathered into the rollout in progress
+        self.arrays: dict[str, np.ndarray] = {}
+
+    def __call__(self, transition: Transition) -> None:
+        for name in FIELDS:
+            value = to_numpy(getattr(transition, name))
+            if self.t == 0 and (name not in self.arrays or self.arrays[name].shape[1:] != value.shape
+                                or self.arrays[name].dtype != value.dtype):
+                self.arrays[name] = np.empty((self.steps, *value.shape), dtype=value.dtype)
+            self.arrays[name][self.t] = value
+        self.t += 1
+        if self.t == self.steps:
+            self.table.insert(dict(self.arrays))  # the table's storage copies the arrays
+            self.t = 0
+
+    def flush(self) -> None:
+        """Nothing is staged between rollouts: a rollout goes in when its last step arrives."""
+
+    def pending(self) -> int:
+        """Steps of the rollout in progress (not yet in the table)."""
+        return self.t
+
+    # What the one-process run asks a replay writer when it resumes.
+    def saved_episodes_intact(self) -> bool:
+        return True
+
+    def continue_episodes(self) -> None:
+        """Episodes need no bookkeeping here: each rollout stands alone."""

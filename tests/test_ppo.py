@@ -1,0 +1,240 @@
+"""PPO: losses against hand-computed values, GAE against a brute-force reference, the rollout
+queue, short learning runs (discrete and continuous), sync = async, the saved policy.
+Load / export / resume round trips: tests/test_conformance.py; the preset: test_presets_learn.py."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from test_resume import assert_same_state, comparable, cut_back
+
+import relayrl
+from relayrl.agents.ppo.agent import PPOAgent
+from relayrl.agents.ppo.config import PPOConfig
+from relayrl.agents.ppo.distributions import log_prob_entropy
+from relayrl.agents.ppo.gae import gae
+from relayrl.agents.ppo.losses import explained_variance, normalize, policy_loss, value_loss
+from relayrl.errors import ConfigError, UserError
+from relayrl.policy_file import load_policy_file
+from relayrl.replay import Table
+from relayrl.replay.rollouts import RolloutWriter
+from relayrl.specs import ArraySpec, DiscreteSpec
+from relayrl.training.run_dir import RunDir
+from relayrl.types import Transition
+
+
+def test_clipped_surrogate_by_hand():
+    adv = torch.tensor([1.0, -1.0, 2.0, -2.0])
+    ratio = torch.tensor([1.5, 1.5, 0.5, 0.5])  # clip 0.2: 1.2, 1.2, 0.8, 0.8
+    old = torch.zeros(4)
+    loss, kl, frac = policy_loss(ratio.log(), old, adv, 0.2)
+    # min(r A, clip(r) A): min(1.5, 1.2)=1.2; min(-1.5, -1.2)=-1.5; min(1.0, 1.6)=1.0; min(-1.0, -1.6)=-1.6
+    assert loss.item() == pytest.approx(-(1.2 - 1.5 + 1.0 - 1.6) / 4)
+    assert frac.item() == 1.0
+    expected_kl = np.mean([(r - 1) - math.log(r) for r in (1.5, 1.5, 0.5, 0.5)])
+    assert kl.item() == pytest.approx(expected_kl)
+    loss, kl, frac = policy_loss(old, old, adv, 0.2)  # ratio 1: the loss is -mean(A)
+    assert loss.item() == pytest.approx(0.0) and kl.item() == 0.0 and frac.item() == 0.0
+
+
+def test_value_loss_by_hand_with_and_without_clipping():
+    v, old, ret = torch.tensor([1.0, 0.0]), torch.tensor([0.0, 0.0]), torch.tensor([2.0, 1.0])
+    assert value_loss(v, old, ret).item() == pytest.approx((1.0 + 1.0) / 2)
+    # clip 0.5: v_clipped = [0.5, 0.0]; max((1-2)^2, (0.5-2)^2) = 2.25, max(1, 1) = 1
+    assert value_loss(v, old, ret, 0.5).item() == pytest.approx((2.25 + 1.0) / 2)
+
+
+def test_normalize_and_explained_variance():
+    a = torch.tensor([1.0, 2.0, 3.0])
+    assert torch.allclose(normalize(a), torch.tensor([-1.0, 0.0, 1.0]), atol=1e-6)
+    assert torch.equal(normalize(torch.tensor([5.0])), torch.tensor([5.0]))
+    r = torch.tensor([1.0, 2.0, 3.0, 4.0])
+    assert explained_variance(r, r).item() == 1.0
+    assert explained_variance(torch.full((4,), 2.5), r).item() == pytest.approx(0.0)
+
+
+def test_log_probs_and_entropies_match_torch_distributions():
+    torch.manual_seed(0)
+    logits, a = torch.randn(5, 3), torch.randint(0, 3, (5,))
+    logp, ent = log_prob_entropy(logits, None, a)
+    d = torch.distributions.Categorical(logits=logits)
+    assert torch.allclose(logp, d.log_prob(a)) and torch.allclose(ent, d.entropy())
+    mean, log_std, x = torch.randn(5, 2), torch.tensor([-0.3, 0.4]), torch.randn(5, 2)
+    logp, ent = log_prob_entropy(mean, log_std, x)
+    n = torch.distributions.Normal(mean, log_std.exp())
+    assert torch.allclose(logp, n.log_prob(x).sum(-1), atol=1e-6)
+    assert torch.allclose(ent, n.entropy().sum(-1), atol=1e-6)
+
+
+def brute_force_gae(r, v, nv, term, trunc, gamma, lam):
+    """A_t = sum_k (gamma lam)^k delta_{t+k}, the sum stopping at the episode's end."""
+    t_len, b = r.shape
+    adv = np.zeros((t_len, b))
+    for j in range(b):
+        for t in range(t_len):
+            total, w = 0.0, 1.0
+            for k in range(t, t_len):
+                delta = r[k, j] + gamma * (0.0 if term[k, j] else nv[k, j]) - v[k, j]
+                total += w * delta
+                if term[k, j] or trunc[k, j]:
+                    break
+                w *= gamma * lam
+            adv[t, j] = total
+    return adv
+
+
+@pytest.mark.parametrize("lam", [0.0, 0.8, 1.0])
+def test_gae_matches_a_brute_force_reference_over_terminations_and_truncations(lam):
+    rng = np.random.default_rng(1)
+    t_len, b = 9, 4
+    r, v, nv = (rng.normal(size=(t_len, b)) for _ in range(3))
+    term = rng.random((t_len, b)) < 0.2
+    trunc = (rng.random((t_len, b)) < 0.2) & ~term
+    term[-1, 0], trunc[-1, 1] = True, True  # episode ends on the rollout's last step too
+    adv, ret = gae(*(torch.tensor(x) for x in (r, v, nv, term, trunc)), 0.98, lam)
+    expected = brute_force_gae(r, v, nv, term, trunc, 0.98, lam)
+    assert np.allclose(adv.numpy(), expected) and np.allclose(ret.numpy(), expected + v)
+
+
+def test_gae_bootstraps_truncation_from_the_true_final_value_and_not_termination():
+    r, v = torch.zeros(1, 2), torch.zeros(1, 2)
+    nv = torch.tensor([[10.0, 10.0]])  # V of the true final observations
+    adv, _ = gae(r, v, nv, torch.tensor([[True, False]]), torch.tensor([[False, True]]), 0.5, 0.9)
+    assert adv.tolist() == [[0.0, 5.0]]
+
+
+def step(obs, t):
+    return Transition(torch.full((2, 3), float(t)), torch.tensor([t, t]), torch.ones(2), torch.zeros(2, 3),
+                      torch.zeros(2, dtype=torch.bool), torch.zeros(2, dtype=torch.bool))
+
+
+def test_rollout_writer_inserts_one_item_per_rollout_consumed_once():
+    table = Table.queue("rollouts", 1)
+    w = RolloutWriter(table, steps=3)
+    for t in range(3):
+        assert table.samples_available() == 0
+        w(step(None, t))
+    assert table.samples_available() == 1 and w.pending() == 0
+    item, _ = table.sample(1)
+    assert item["obs"].shape == (1, 3, 2, 3) and item["action"][0, :, 0].tolist() == [0, 1, 2]
+    assert table.samples_available() == 0 and table.size == 0
+
+
+def agent(action_spec, **kw):
+    cfg = PPOConfig(hidden=[8], batch_size=4, n_epochs=2, **kw)
+    return PPOAgent(ArraySpec((3,), torch.float32), action_spec, cfg, torch.device("cpu"),
+                    np.random.default_rng(0), total_steps=100)
+
+
+def rollout(action):
+    g = torch.Generator().manual_seed(0)
+    t, b = 4, 2
+    return {"obs": torch.randn(1, t, b, 3, generator=g), "action": action, "reward": torch.randn(1, t, b, generator=g),
+            "next_obs": torch.randn(1, t, b, 3, generator=g), "terminated": torch.zeros(1, t, b, dtype=torch.bool),
+            "truncated": torch.zeros(1, t, b, dtype=torch.bool)}
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_train_counts_minibatches_reports_scalars_and_follows_the_schedules(shared):
+    a = agent(DiscreteSpec(3), shared=shared, lr=1e-3, lr_end=0.0, clip_range=0.2, clip_range_end=0.0)
+    a.set_progress(50)
+    assert a.opt.lr == pytest.approx(5e-4) and a.clip_range == pytest.approx(0.1)
+    before = [p.clone() for p in a.net.parameters()]
+    m = a.train(rollout(torch.randint(0, 3, (1, 4, 2))))
+    assert a.train_step == 2 * 2  # 2 epochs of 8 steps in minibatches of 4
+    for k in ("policy_loss", "value_loss", "entropy", "approx_kl", "clip_fraction", "explained_variance"):
+        assert torch.isfinite(m[k]), k
+    assert all(not torch.equal(p, q) for p, q in zip(before, a.net.parameters(), strict=True))
+
+
+def test_shared_network_saves_a_plain_actor_mlp():
+    a = agent(DiscreteSpec(3), shared=True)
+    state = a.policy_state()
+    assert state["state_dict"]["layers.1.weight"].shape == (3, 8)
+    obs = torch.randn(5, 3)
+    net = relayrl.agents.ppo.policy.deterministic_module(state)
+    assert torch.equal(net(obs), a.eval_policy()(obs))
+
+
+def test_continuous_actions_are_clipped_and_the_mean_is_deterministic():
+    spec = ArraySpec((2,), torch.float32, np.array([-0.1, -1.0], np.float32), np.array([0.1, 1.0], np.float32))
+    a = agent(spec, log_std_init=2.0)
+    obs = torch.randn(64, 3)
+    act = a.collect_policy()(obs)
+    assert act.shape == (64, 2) and (act[:, 0].abs() <= 0.1).all() and (act[:, 1].abs() <= 1.0).all()
+    assert (act[:, 1].abs() == 1.0).any()  # std e^2: many draws land beyond the bounds
+    assert torch.equal(a.eval_policy()(obs), a.eval_policy()(obs))
+    a.train(rollout(torch.randn(1, 4, 2, 2)))
+
+
+def test_discrete_samples_follow_the_logits():
+    a = agent(DiscreteSpec(2))
+    with torch.no_grad():
+        a.net.policy.mlp.layers[-1].bias.copy_(torch.tensor([0.0, math.log(3.0)]))
+        a.net.policy.mlp.layers[-1].weight.zero_()
+    acts = a.collect_policy()(torch.zeros(4000, 3))
+    assert acts.float().mean().item() == pytest.approx(0.75, abs=0.03)
+
+
+def test_refuses_unbounded_actions_random_warmup_and_stale_actors(tmp_path):
+    with pytest.raises(UserError, match="PPO needs"):
+        agent(ArraySpec((2,), torch.float32))
+    for key in ("initial_collect_steps", "pull_interval"):
+        cfg = relayrl.load_config("ppo-cartpole", [f"train.{key}=100"])
+        with pytest.raises(ConfigError, match=key):
+            relayrl.train(cfg, tmp_path / key, progress=False)
+
+
+BANDIT = ["env.id=toy_envs:BetterAction", "env.num_envs=4", "train.total_steps=2048", "train.collect_steps=128",
+          "agent.batch_size=32", "agent.n_epochs=4", "eval.interval=1024", "eval.episodes=20",
+          "train.checkpoint_interval=0"]
+REACH = ["env.id=toy_envs:Reach", "env.num_envs=4", "train.total_steps=12288", "train.collect_steps=256",
+         "agent.batch_size=64", "agent.n_epochs=10", "agent.lr=3e-3", "agent.log_std_init=-0.5",
+         "eval.interval=4096", "eval.episodes=20", "train.checkpoint_interval=0"]
+
+
+def final(tmp_path, overrides, name="r", seed=0):
+    cfg = relayrl.load_config("ppo-cartpole", overrides, seed=seed)
+    relayrl.train(cfg, tmp_path / name, progress=False)
+    return RunDir(tmp_path / name).read_metrics()
+
+
+def test_ppo_learns_a_discrete_one_step_task(tmp_path):
+    rows = final(tmp_path, BANDIT)
+    assert rows[0]["average_return"] < 0.9 and rows[-1]["average_return"] == 1.0, rows
+
+
+def test_ppo_learns_a_continuous_one_step_task(tmp_path):
+    rows = final(tmp_path, REACH)
+    assert rows[-1]["average_return"] > -0.3 > rows[0]["average_return"], rows
+
+
+def test_sync_and_async_vectorization_give_the_same_run(tmp_path):
+    over = [*BANDIT, "train.total_steps=512"]
+    a = final(tmp_path, over, "sync")
+    b = final(tmp_path, [*over, "env.vectorization=async", "env.num_workers=1"], "async")
+    def rows(run):  # repr: NaN (no training episode yet at step 0) compares equal to itself
+        return [repr({k: v for k, v in r.items() if k not in ("wall_time_s", "eval_s")}) for r in run]
+
+    assert rows(a) == rows(b) and "losses/approx_kl" in a[-1]
+    assert load_policy_file(tmp_path / "sync" / "policy" / "policy.pt")["state_dict"]["layers.0.weight"].equal(
+        load_policy_file(tmp_path / "async" / "policy" / "policy.pt")["state_dict"]["layers.0.weight"])
+
+
+def test_continuous_shared_async_run_resumes_bit_exact(tmp_path):
+    """The conformance test resumes the discrete preset; this, a Gaussian policy on a shared
+    network with its envs in a worker process."""
+    over = [*REACH, "train.total_steps=1536", "eval.interval=512", "train.checkpoint_interval=512",
+            "agent.shared=true", "agent.n_epochs=2", "env.vectorization=async", "env.num_workers=1"]
+    cfg = relayrl.load_config("ppo-cartpole", over, seed=3)
+    relayrl.train(cfg, tmp_path / "full", progress=False)
+    cut_back(tmp_path / "full", tmp_path / "resumed")
+    relayrl.train(cfg, tmp_path / "resumed", resume=True, progress=False)
+    assert comparable(tmp_path / "resumed") == comparable(tmp_path / "full")
+    assert_same_state(tmp_path / "full", tmp_path / "resumed")
+    policy = relayrl.load_policy(tmp_path / "full", deterministic=False, seed=0)
+    a = policy(torch.zeros(100, 2))
+    assert a.shape == (100, 2) and a.std(0).min() > 0.1  # sampled around the mean
