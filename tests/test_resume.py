@@ -158,7 +158,7 @@ def test_run_killed_at_a_random_moment_resumes_to_the_uninterrupted_result(tmp_p
     cmd = [sys.executable, "-m", "relayrl", "train", "dqn-cartpole-fast", "--run-dir", str(tmp_path / "killed"),
            "--no-progress"]
     sets = [a for o in over for a in ("--set", o)]
-    p = subprocess.Popen(cmd + sets + ["--seed", "2"], stderr=subprocess.DEVNULL)
+    p = subprocess.Popen(cmd + sets + ["--seed", "3"], stderr=subprocess.DEVNULL)
     while not list_checkpoints(tmp_path / "killed" / "checkpoints") and p.poll() is None:
         time.sleep(0.02)
     time.sleep(random.Random(1).uniform(0.0, 1.0))

@@ -65,6 +65,10 @@ class PPOAgent:
     def policy_network(self) -> torch.nn.Module:
         return self.net.policy
 
+    def scalars(self, env_steps: int) -> dict[str, float]:
+        """Schedules at `env_steps`, for TensorBoard (charts/learning_rate, charts/clip_range)."""
+        return {"learning_rate": float(self.lr_at(env_steps)), "clip_range": float(self.clip_at(env_steps))}
+
     def set_progress(self, env_steps: int) -> None:
         """Learning rate and clip range follow their linear schedules in env steps."""
         self.opt.lr = self.lr_at(env_steps)

@@ -9,11 +9,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from relayrl.config_fields import Section
 from relayrl.errors import ConfigError
 
 
 @dataclass
-class PPOConfig:
+class PPOConfig(Section):
+    SECTION = "agent"
+
     hidden: list[int] = field(default_factory=lambda: [64, 64])  # hidden sizes of the actor and of the critic
     activation: str = "tanh"  # relu | tanh | elu
     shared: bool = False  # true: one MLP whose last layer holds the policy and value heads
@@ -24,7 +27,7 @@ class PPOConfig:
     clip_range_vf: float = 0.0  # clip the value prediction to old value +- this; 0: no value clipping
     n_epochs: int = 10  # passes over each rollout
     batch_size: int = 64  # steps per minibatch
-    gamma: float = 0.99
+    gamma: float = 0.99  # discount factor
     gae_lambda: float = 0.95  # GAE's lambda: 1 is Monte Carlo returns, 0 is one-step TD
     ent_coef: float = 0.0  # weight of the entropy bonus
     vf_coef: float = 0.5  # weight of the value loss
