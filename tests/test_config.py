@@ -60,3 +60,12 @@ def test_bptt_switch_is_named_fast():
     assert load_config("bptt-pendulum", ["agent.fast=false"]).agent.fast is False
     with pytest.raises(ConfigError, match="unknown config key 'agent.fused'"):
         load_config("bptt-pendulum", ["agent.fused=false"])
+
+
+@pytest.mark.parametrize("algo", [["dqn"], {"a": 1}, 3])
+def test_an_algo_that_is_not_a_name_is_one_config_error(algo):
+    from relayrl.config import from_dict
+    from relayrl.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="is not known"):
+        from_dict({"algo": algo})

@@ -125,3 +125,16 @@ def test_float_returns_are_summed_exactly_in_float64():
                 running[i], since[i] = 0.0, 0
     assert list(stats.returns) == expected and list(stats.lengths) == lengths and len(expected) > 20
     assert stats._ret.tolist() == running
+
+
+def test_finished_episodes_not_yet_logged_survive_a_checkpoint():
+    steps = [0]
+    stats = EpisodeStats()
+    stats.step_fn = lambda: steps[0]
+    for t in range(3):
+        steps[0] = t + 1
+        stats(Transition(torch.zeros(2, 1), torch.zeros(2), torch.ones(2), torch.zeros(2, 1),
+                         torch.tensor([False, t == 2]), torch.zeros(2, dtype=torch.bool)))
+    again = EpisodeStats()
+    again.load_state_dict(stats.state_dict())
+    assert again.take_finished() == stats.take_finished() == [(3, 3.0, 3)]

@@ -163,3 +163,39 @@ def test_run_dir_that_cannot_be_created_is_one_line(cli):
     r = cli(["train", "dqn-cartpole", "--run-dir", "/proc/relayrl-nope/run", "--no-progress", *sets(TINY)])
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert "cannot be created" in r.stderr.strip().splitlines()[-1]
+
+
+def test_a_run_running_in_a_directory_is_never_taken_over_or_resumed_under_it(tmp_path):
+    import fcntl
+
+    run = tmp_path / "busy"
+    run.mkdir()
+    (run / "config.toml").write_text('algo = "dqn"\n')
+    (run / "metrics.jsonl").write_text('{"step": 0}\n')  # no checkpoint: would be taken over
+    with open(run / ".lock", "w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)  # as the running run's process holds it
+        for kwargs in ({}, {"overwrite": True}, {"resume": True}):
+            with pytest.raises(UserError, match="a run is running in"):
+                train(load_config("dqn-cartpole-fast", TINY), run, progress=False, **kwargs)
+    assert (run / "metrics.jsonl").read_text() == '{"step": 0}\n'
+    train(load_config("dqn-cartpole-fast", TINY), run, progress=False)  # released: taken over
+
+
+def test_resume_keeps_the_runs_seed(tmp_path):
+    train(load_config("dqn-cartpole-fast", TINY, seed=1), tmp_path / "r", progress=False)
+    longer = TINY + ["train.total_steps=90"]
+    with pytest.raises(UserError, match="a resumed run keeps its seed"):
+        train(load_config("dqn-cartpole-fast", longer, seed=2), tmp_path / "r", resume=True, progress=False)
+    assert train(load_config("dqn-cartpole-fast", longer, seed=1), tmp_path / "r", resume=True,
+                 progress=False).final["step"] == 90
+
+
+def test_overwriting_a_memmap_run_keeps_the_new_runs_replay_files(tmp_path, capsys):
+    memmap = TINY + ["replay.storage='memmap'"]
+    train(load_config("dqn-cartpole-fast", memmap), tmp_path / "m", progress=False)
+    train(load_config("dqn-cartpole-fast", memmap), tmp_path / "m", progress=False, overwrite=True)
+    assert any((tmp_path / "m" / "replay").iterdir())
+    capsys.readouterr()
+    train(load_config("dqn-cartpole-fast", memmap + ["train.total_steps=90"]), tmp_path / "m", resume=True,
+          progress=False)
+    assert "replay files were overwritten" not in capsys.readouterr().err

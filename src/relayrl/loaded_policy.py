@@ -68,7 +68,10 @@ class LoadedPolicy:
             raise UserError(f"observation of shape {tuple(t.shape)} does not fit this policy: it takes "
                             f"{list(self.obs_shape)} or a batch [B, {', '.join(map(str, self.obs_shape))}]")
         single = t.dim() == n
-        t = t.to(self.obs_dtype)
+        if not (t.is_floating_point() and not self.obs_dtype.is_floating_point):
+            t = t.to(self.obs_dtype)  # (float frames in [0, 1] stay float: a conv net takes those too)
+        elif t.dtype != torch.float32:
+            t = t.float()
         with torch.no_grad():
             actions = policy(t.unsqueeze(0) if single else t)
         if single:

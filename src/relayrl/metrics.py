@@ -125,7 +125,8 @@ class EpisodeStats:
     def state_dict(self) -> dict[str, Any]:
         running = None if self._ret is None else (self._ret.copy(), self._len.copy())  # type: ignore[union-attr]
         return {"returns": list(self.returns), "lengths": list(self.lengths), "episodes": self.episodes,
-                "running": running, "info": {k: list(w) for k, w in self.info.items()}}
+                "running": running, "info": {k: list(w) for k, w in self.info.items()},
+                "finished": list(self.finished)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restores episodes in progress too; call `reset_running()` after if the envs were
@@ -135,6 +136,8 @@ class EpisodeStats:
         self.lengths.clear()
         self.lengths.extend(state["lengths"])
         self.episodes = int(state["episodes"])
+        self.finished.clear()
+        self.finished.extend(tuple(e) for e in state.get("finished", []))
         self.info = {}
         for key, values in state.get("info", {}).items():
             self._info_window(key).extend(values)

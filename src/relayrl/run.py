@@ -38,6 +38,10 @@ def check_resume_matches(config: Config, rd: RunDir) -> None:
     if config.algo != saved_algo:
         raise UserError(f"--resume: algo={config.algo!r} but the run in {str(rd.root)!r} is algo={saved_algo!r}; "
                         "leave out PRESET|CONFIG.toml to resume with the run's own config.toml")
+    saved_seed = saved.get("seed", 0)
+    if config.seed != saved_seed:
+        raise UserError(f"--resume: seed={config.seed} but the run in {str(rd.root)!r} has seed={saved_seed}; "
+                        "a resumed run keeps its seed (leave out --seed)")
     if config.env.id != saved_env:
         raise UserError(f"--resume: env.id={config.env.id!r} but the run in {str(rd.root)!r} is "
                         f"env.id={saved_env!r}; leave out PRESET|CONFIG.toml to resume with the run's own config.toml")
@@ -107,6 +111,7 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         _use_factory(config, env, one_process=not spec.run and config.distributed.num_actors == 0)
     rd = RunDir(run_dir if run_dir is not None else default_run_dir(config))
     rd.check_writable()
+    rd.check_not_running()
     if resume:
         if overwrite:
             raise UserError("--overwrite replaces a run, --resume continues it: pass one of them")
@@ -134,6 +139,10 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         print(f"relayrl: {takeover}", file=sys.stderr, flush=True)
         rd.clear()
     rd.create()
-    if not resume:
-        save_toml(config, rd.config)
-    return run.run(resume=resume)
+    rd.hold_lock()
+    try:
+        if not resume:
+            save_toml(config, rd.config)
+        return run.run(resume=resume)
+    finally:
+        rd.release_lock()

@@ -71,7 +71,7 @@ ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (
 
 
 def algorithm(name: str) -> Algorithm:
-    if name not in ALGORITHMS:
+    if not isinstance(name, str) or name not in ALGORITHMS:
         raise ConfigError(f"algo={name!r} is not known{did_you_mean(str(name), list(ALGORITHMS))} "
                           f"(valid: {', '.join(sorted(ALGORITHMS))})")
     return ALGORITHMS[name]

@@ -11,6 +11,11 @@ from typing import Any
 
 from relayrl.errors import UserError
 
+try:
+    import fcntl
+except ImportError:  # Windows: runs are not locked against each other there
+    fcntl = None  # type: ignore[assignment]
+
 
 class RunDir:
     def __init__(self, root: str | Path) -> None:
@@ -20,6 +25,40 @@ class RunDir:
         self.tb = self.root / "tb"
         self.checkpoints = self.root / "checkpoints"
         self.policy = self.root / "policy"
+        self.lock_file = self.root / ".lock"  # held (flock) by the process whose run writes here
+        self._lock_fd: int | None = None
+
+    def check_not_running(self) -> None:
+        """One line when another process is running a run here now: it must not be taken over,
+        overwritten or resumed under it."""
+        if fcntl is None or self._lock_fd is not None or not self.lock_file.is_file():
+            return
+        fd = os.open(self.lock_file, os.O_RDWR)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise UserError(f"a run is running in {str(self.root)!r} now (another process holds its .lock); "
+                            "wait for it, stop it, or choose another --run-dir") from None
+        finally:
+            os.close(fd)  # closing releases a lock taken here
+
+    def hold_lock(self) -> None:
+        """Hold .lock until `release_lock` (or this process ends)."""
+        if fcntl is None or self._lock_fd is not None:
+            return
+        fd = os.open(self.lock_file, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise UserError(f"a run is running in {str(self.root)!r} now (another process holds its .lock); "
+                            "wait for it, stop it, or choose another --run-dir") from None
+        self._lock_fd = fd
+
+    def release_lock(self) -> None:
+        if self._lock_fd is not None:
+            os.close(self._lock_fd)
+            self._lock_fd = None
 
     def check_writable(self) -> None:
         """One line, before anything is built or written, where the run directory cannot be
@@ -44,7 +83,9 @@ class RunDir:
         """Remove what a run writes here (a new run replaces it); other files are left alone."""
         for path in (self.config, self.metrics):
             path.unlink(missing_ok=True)
-        for folder in (self.tb, self.checkpoints, self.policy, self.root / "replay"):
+        # Not replay/: a memmap replay's files are made while the new run is built, before this
+        # runs; they are rewritten as the run goes and a new table never reads an old row.
+        for folder in (self.tb, self.checkpoints, self.policy):
             if folder.is_dir():
                 shutil.rmtree(folder)
 
