@@ -74,3 +74,11 @@ def spec_from_space(space: gym.Space) -> Spec:
 def flat_dim(spec: Spec) -> int:
     """Number of scalars in one element (1 for a DiscreteSpec)."""
     return int(np.prod(spec.shape)) if spec.shape else 1
+
+
+def is_bounded_box(spec: Spec) -> bool:
+    """A continuous action space with finite low and high everywhere (what SAC and PPO's
+    Gaussian policies clip or squash into)."""
+    return (isinstance(spec, ArraySpec) and spec.dtype.is_floating_point
+            and spec.low is not None and spec.high is not None
+            and bool(np.isfinite(spec.low).all() and np.isfinite(spec.high).all()))

@@ -6,23 +6,19 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 from torch import nn
 
 from relayrl.errors import UserError
 from relayrl.nn import MLP
-from relayrl.specs import ArraySpec, DiscreteSpec, Spec, flat_dim
+from relayrl.specs import DiscreteSpec, Spec, flat_dim, is_bounded_box
 
 
 def action_dim(action_spec: Spec) -> tuple[int, bool]:
     """(policy outputs, discrete): logits of a Discrete space, or the mean of a bounded Box."""
     if isinstance(action_spec, DiscreteSpec):
         return action_spec.n, True
-    bounded = (isinstance(action_spec, ArraySpec) and action_spec.dtype.is_floating_point
-               and action_spec.low is not None and action_spec.high is not None
-               and bool(np.isfinite(action_spec.low).all() and np.isfinite(action_spec.high).all()))
-    if not bounded:
+    if not is_bounded_box(action_spec):
         raise UserError("PPO needs a Discrete action space or a bounded continuous one (gymnasium.spaces.Box "
                         "with finite low/high)")
     return flat_dim(action_spec), False

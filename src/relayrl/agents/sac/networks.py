@@ -3,18 +3,13 @@ that run as one batched network."""
 
 from __future__ import annotations
 
-import numpy as np
-
 from relayrl.errors import UserError
 from relayrl.nn import MLP, TwinMLP
-from relayrl.specs import ArraySpec, Spec, flat_dim
+from relayrl.specs import ArraySpec, Spec, flat_dim, is_bounded_box
 
 
 def check_action_spec(action_spec: Spec) -> ArraySpec:
-    bounded = (isinstance(action_spec, ArraySpec) and action_spec.dtype.is_floating_point
-               and action_spec.low is not None and action_spec.high is not None
-               and bool(np.isfinite(action_spec.low).all() and np.isfinite(action_spec.high).all()))
-    if not bounded:
+    if not is_bounded_box(action_spec):
         raise UserError("SAC needs a bounded continuous action space (gymnasium.spaces.Box with finite "
                         "low/high); use DQN for discrete actions")
     assert isinstance(action_spec, ArraySpec)
