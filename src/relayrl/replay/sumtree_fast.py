@@ -31,9 +31,10 @@ def _set(tree: np.ndarray, base: int, idx: np.ndarray, values: np.ndarray) -> No
 @njit
 def _set_power(tree: np.ndarray, base: int, idx: np.ndarray, priority: np.ndarray, exponent: float) -> None:
     node = idx + base
+    zero_power = exponent == 0.0
     for j in range(idx.size):
         p = priority[idx[j]]
-        tree[node[j]] = p ** exponent if p > 0.0 else 0.0  # zero stays zero, even for exponent 0
+        tree[node[j]] = (1.0 if p > 0.0 else 0.0) if zero_power else p ** exponent  # 0 ** 0 must stay 0
     _update_parents(tree, node)
 
 
@@ -63,6 +64,7 @@ def _update_live(tree: np.ndarray, base: int, slot_key: np.ndarray, priority: np
         if not (p >= 0.0 and p < np.inf):  # NaN fails both
             return -2.0
     capacity = slot_key.size
+    zero_power = exponent == 0.0
     top = -1.0
     n = 0
     for j in range(keys.size):  # in order, so a repeated key keeps its last priority
@@ -74,7 +76,8 @@ def _update_live(tree: np.ndarray, base: int, slot_key: np.ndarray, priority: np
             continue
         p = prios[j]
         priority[slot] = p
-        tree[base + slot] = p ** exponent if p > 0.0 else 0.0
+        # 0 ** 0 is 1: a zero priority must stay zero (the branch is on a loop invariant)
+        tree[base + slot] = (1.0 if p > 0.0 else 0.0) if zero_power else p ** exponent
         node[n] = base + slot
         n += 1
         top = max(top, p)
