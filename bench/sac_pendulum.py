@@ -28,6 +28,7 @@ def run_relayrl(seed: int, steps: int) -> dict:
     import os
 
     import relayrl
+    import relayrl.run  # the run's modules (and torch) load before the timer, as process start-up
     from relayrl.training.run_dir import RunDir
 
     overrides = [f"train.total_steps={steps}", f"eval.interval={EVAL_EVERY}", f"eval.episodes={EVAL_EPISODES}",
