@@ -32,13 +32,13 @@ def factory_env_id(factory: Callable[[], Any]) -> str:
 
 def check_resume_matches(config: Config, rd: RunDir) -> None:
     """A resumed run is the run in `rd`: a config that names another algorithm or env is one line."""
-    saved = load_toml(rd.config)
-    saved_algo = saved.get("algo", "dqn")
-    saved_env = saved.get("env", {}).get("id", "CartPole-v1")
+    saved, defaults = load_toml(rd.config), Config()  # a key left out of config.toml is its default
+    saved_algo = saved.get("algo", defaults.algo)
+    saved_env = saved.get("env", {}).get("id", defaults.env.id)
     if config.algo != saved_algo:
         raise UserError(f"--resume: algo={config.algo!r} but the run in {str(rd.root)!r} is algo={saved_algo!r}; "
                         "leave out PRESET|CONFIG.toml to resume with the run's own config.toml")
-    saved_seed = saved.get("seed", 0)
+    saved_seed = saved.get("seed", defaults.seed)
     if config.seed != saved_seed:
         raise UserError(f"--resume: seed={config.seed} but the run in {str(rd.root)!r} has seed={saved_seed}; "
                         "a resumed run keeps its seed (leave out --seed)")

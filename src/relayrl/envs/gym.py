@@ -103,6 +103,12 @@ def _drop_trailing_ones(shape: tuple[int, ...]) -> tuple[int, ...]:
     return shape
 
 
+def names_module(env_id: str) -> bool:
+    """`package.module:Name` (a user's class, callable or `EnvId-v0`), not a Gymnasium id such as
+    `relayrl/Atari-Pong-v0` or `ALE/Pong-v5`."""
+    return ":" in env_id and "/" not in env_id.split(":", 1)[0]
+
+
 def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | None = None,
                    kwargs: dict[str, Any] | None = None, wrappers: list[str] | tuple[str, ...] = (),
                    factory: EnvFn | None = None) -> EnvFn:
@@ -117,7 +123,7 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
     wrap = [load_callable(w, "env.wrappers") for w in wrappers]
     if factory is not None:
         base = _custom_fn(env_id, factory, kwargs, max_episode_steps)
-    elif ":" in env_id and "/" not in env_id.split(":", 1)[0]:
+    elif names_module(env_id):
         module_name, name = env_id.split(":", 1)
         if "<" in name or module_name == "__main__":
             raise UserError(f"env.id={env_id!r} records an env factory given to relayrl.train in Python that "

@@ -12,7 +12,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from relayrl.envs.gym import BatchEnvBase, EnvFn, GymBatchEnv, resolve_env_fn
+from relayrl.envs.gym import BatchEnvBase, EnvFn, GymBatchEnv, names_module, resolve_env_fn
 from relayrl.envs.stateless.adapter import STATELESS_ENVS, make_batch_env
 from relayrl.envs.vector import AsyncGymBatchEnv
 from relayrl.errors import UserError
@@ -52,7 +52,7 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
 def is_user_env(env_id: str, factory: EnvFn | None = None) -> bool:
     """A user's own env (`module:Class`, `module:EnvId-v0`, a factory), not a known id: the
     envs that are checked at the start of a run and whose missing time limit is worth a line."""
-    return factory is not None or (":" in env_id and "/" not in env_id.split(":", 1)[0])
+    return factory is not None or names_module(env_id)
 
 
 def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple[str, ...] | list[str] = (),

@@ -31,16 +31,9 @@ class RunDir:
     def check_not_running(self) -> None:
         """One line when another process is running a run here now: it must not be taken over,
         overwritten or resumed under it."""
-        if fcntl is None or self._lock_fd is not None or not self.lock_file.is_file():
-            return
-        fd = os.open(self.lock_file, os.O_RDWR)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise UserError(f"a run is running in {str(self.root)!r} now (another process holds its .lock); "
-                            "wait for it, stop it, or choose another --run-dir") from None
-        finally:
-            os.close(fd)  # closing releases a lock taken here
+        if self._lock_fd is None and self.lock_file.is_file():
+            self.hold_lock()  # raises when another process holds it
+            self.release_lock()
 
     def hold_lock(self) -> None:
         """Hold .lock until `release_lock` (or this process ends)."""
