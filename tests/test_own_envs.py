@@ -147,6 +147,7 @@ def test_train_takes_an_env_factory(tmp_path, vectorization):
                                                  "env.num_workers=1"])
     result = train(config, tmp_path / "run", progress=False, env=lambda: toy_envs.Countdown(length=6))
     assert result.final["average_episode_length"] == 6.0
+    assert config.env.id == "CartPole-v0"  # the caller's config is left as it was
     saved = load_toml(tmp_path / "run" / "config.toml")
     assert saved["env"]["id"].startswith("test_own_envs:") and saved["env"]["id"].endswith("<lambda>")
     # Resumed with the same factory given again.

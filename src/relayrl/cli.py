@@ -125,10 +125,14 @@ def _eval(args: argparse.Namespace) -> None:
     policy = load_policy(rd.root)
     env = make_eval_env(config.env.id, args.episodes, config.env.max_episode_steps,
                         info_keys=config.env.info_keys, kwargs=config.env.kwargs, wrappers=config.env.wrappers)
-    note = eval_cap_note(env, config.env.id)
-    if note:
-        print(f"relayrl: {note}", file=sys.stderr)
-    print(json.dumps({**evaluate(env, policy, args.episodes, seed=args.seed), "policy_env_steps": policy.env_steps}))
+    try:
+        note = eval_cap_note(env, config.env.id)
+        if note:
+            print(f"relayrl: {note}", file=sys.stderr)
+        result = evaluate(env, policy, args.episodes, seed=args.seed)
+    finally:
+        env.close()  # an env's worker processes or windows never outlive a failed evaluation
+    print(json.dumps({**result, "policy_env_steps": policy.env_steps}))
 
 
 def _export(args: argparse.Namespace) -> None:

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from relayrl import atomic
 from relayrl.agents.registry import algorithm
 from relayrl.config_fields import Section, unknown_key
 from relayrl.errors import ConfigError
@@ -239,7 +240,7 @@ def load_toml(path: str | Path) -> dict[str, Any]:
 def save_toml(config: Config, path: str | Path) -> None:
     import tomli_w
 
-    Path(path).write_text(tomli_w.dumps(_drop_none(to_dict(config))))
+    atomic.write_text(Path(path), tomli_w.dumps(_drop_none(to_dict(config))))
 
 
 def _drop_none(d: dict[str, Any]) -> dict[str, Any]:

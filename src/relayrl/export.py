@@ -26,6 +26,7 @@ from typing import Any
 
 import torch
 
+from relayrl import atomic
 from relayrl.agents.registry import for_policy_kind
 from relayrl.errors import UserError
 from relayrl.loaded_policy import LoadedPolicy, observation_spec
@@ -94,20 +95,20 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str =
     shape, dtype = observation_spec(state)
     example = torch.zeros(2, *shape, dtype=dtype)
     target = output_path(out, _policy_file(path).with_suffix("." + format))
-    tmp = target.with_name(".tmp-" + target.name)  # torch.export wants the .pt2 suffix
     batch = torch.export.Dim("batch", min=1)
-    if format == "pt2":
-        torch.export.save(torch.export.export(module, (example,), dynamic_shapes=({0: batch},)), tmp)
-    else:
-        with _quiet_onnx():
-            program = torch.onnx.export(module, (example,), input_names=["obs"], output_names=["action"],
-                                        dynamic_shapes=({0: batch},), dynamo=True, verbose=False)
-        program.save(str(tmp))
-    tmp.replace(target)  # never a half-written program under the real name
+    # never a half-written program under the real name; torch.export wants the .pt2 suffix
+    with atomic.replacing(target, ".tmp-" + target.name) as tmp:
+        if format == "pt2":
+            torch.export.save(torch.export.export(module, (example,), dynamic_shapes=({0: batch},)), tmp)
+        else:
+            with _quiet_onnx():
+                program = torch.onnx.export(module, (example,), input_names=["obs"], output_names=["action"],
+                                            dynamic_shapes=({0: batch},), dynamo=True, verbose=False)
+            program.save(str(tmp))
     with torch.no_grad():
         action = module(example)
     sig = signature(state, format, action)
-    target.with_name(target.name + ".json").write_text(json.dumps(sig, indent=2) + "\n")
+    atomic.write_text(target.with_name(target.name + ".json"), json.dumps(sig, indent=2) + "\n")
     return target
 
 

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from relayrl import atomic
 from relayrl.errors import UserError
 
 REFUSED = "not a relayrl policy file, or one that would run code"
@@ -47,9 +48,7 @@ def plain(value: Any) -> Any:
 
 def save_policy_file(state: dict[str, Any], path: Path) -> None:
     """Write `state` (made plain) atomically: a reader sees the old file or the new one."""
-    from relayrl.training.checkpoint import atomic_torch_save
-
-    atomic_torch_save(plain(state), path)
+    atomic.torch_save(plain(state), path)
 
 
 def load_policy_file(path: Path) -> dict[str, Any]:

@@ -4,6 +4,7 @@ Actor + Learner run, in one process or, with distributed.num_actors > 0, on Ray.
 
 from __future__ import annotations
 
+import copy
 import sys
 import time
 from collections.abc import Callable
@@ -103,8 +104,8 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     make those inside it. A resumed run needs the same callable passed again. Distributed runs
     need an importable env.id instead.
     """
-    if isinstance(config, dict):
-        config = from_dict(config)
+    # A copy: recording an env factory's name (and the run's own settings) never changes the caller's config.
+    config = from_dict(config) if isinstance(config, dict) else copy.deepcopy(config)
     config.validate()
     spec = algorithm(config.algo)
     if env is not None:

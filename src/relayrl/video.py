@@ -29,20 +29,22 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     policy = load_policy(rd.root)
     env = make_env(config.env.id, 1, config.env.max_episode_steps, render_mode="rgb_array",
                    kwargs=config.env.kwargs, wrappers=config.env.wrappers)
-    fps = int(env.envs[0].metadata.get("render_fps", 30))
-    frames = []
-    obs = env.reset(seed=seed)
-    finished = 0
-    for _ in range(max_steps):
-        frames.append(env.render())
-        with torch.inference_mode():
-            out_step = env.step(policy(obs))
-        if bool((out_step.terminated | out_step.truncated)[0]):
-            finished += 1
-            if finished >= episodes:
-                break
-        obs = out_step.obs
-    env.close()
+    try:
+        fps = int(env.envs[0].metadata.get("render_fps", 30))
+        frames = []
+        obs = env.reset(seed=seed)
+        finished = 0
+        for _ in range(max_steps):
+            frames.append(env.render())
+            with torch.inference_mode():
+                out_step = env.step(policy(obs))
+            if bool((out_step.terminated | out_step.truncated)[0]):
+                finished += 1
+                if finished >= episodes:
+                    break
+            obs = out_step.obs
+    finally:
+        env.close()
     if not frames or frames[0] is None:
         raise UserError(f"env {config.env.id!r} does not render rgb_array frames")
     import imageio.v2 as imageio

@@ -265,7 +265,13 @@ class GymBatchEnv(BatchEnvBase):
     def __init__(self, env_fns: list[EnvFn], time_limit_terminates: bool = False) -> None:
         if not env_fns:
             raise UserError("env.num_envs must be >= 1")
-        self.envs = [fn() for fn in env_fns]
+        self.envs = []
+        try:
+            for fn in env_fns:
+                self.envs.append(fn())
+        except BaseException:
+            self.close()  # the copies already made (their windows, files, processes) go with the failure
+            raise
         self.capped_at = 0  # cap_episodes: the step cap put on an env without a time limit
         first = self.envs[0]
         self._init_specs(len(self.envs), first.observation_space, first.action_space, time_limit_terminates,

@@ -123,15 +123,20 @@ class Table:
     def __len__(self) -> int:
         return self.size
 
+    # Under the lock: the size and the limiter's counters are read as one state, never between
+    # an insert's slot bookkeeping and its limiter update on another thread.
     def can_sample(self, n: int = 1) -> bool:
-        return self.size > 0 and self.rate_limiter.can_sample(n)
+        with self._cv:
+            return self.size > 0 and self.rate_limiter.can_sample(n)
 
     def samples_available(self) -> int:
-        return self.rate_limiter.samples_available() if self.size > 0 else 0
+        with self._cv:
+            return self.rate_limiter.samples_available() if self.size > 0 else 0
 
     def __repr__(self) -> str:
-        return (f"Table(name={self.name!r}, max_size={self.max_size}, sampler={self.sampler!r}, "
-                f"remover={self.remover!r}, rate_limiter={self.rate_limiter!r}, size={self.size})")
+        with self._cv:
+            return (f"Table(name={self.name!r}, max_size={self.max_size}, sampler={self.sampler!r}, "
+                    f"remover={self.remover!r}, rate_limiter={self.rate_limiter!r}, size={self.size})")
 
     # ---- writes ---------------------------------------------------------------------
     def insert(self, item: Any, priority: float | None = None, timeout: float | None = None) -> int:

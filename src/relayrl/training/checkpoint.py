@@ -3,7 +3,6 @@ is complete, and a corrupt newest checkpoint falls back to the one before it."""
 
 from __future__ import annotations
 
-import os
 import re
 import warnings
 from pathlib import Path
@@ -11,27 +10,10 @@ from typing import Any
 
 import torch
 
+from relayrl import atomic
 from relayrl.errors import CheckpointError
 
 _NAME = re.compile(r"^ckpt-(\d{12})\.pt$")
-
-
-def atomic_torch_save(obj: Any, path: Path) -> None:
-    """Write to a temp file in the same folder, fsync, rename over `path`, fsync the folder.
-
-    A crash at any moment leaves either the old file or the new one, never a partial file.
-    """
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        torch.save(obj, f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
 
 
 def list_checkpoints(folder: Path) -> list[Path]:
@@ -44,7 +26,7 @@ def list_checkpoints(folder: Path) -> list[Path]:
 def save_checkpoint(folder: Path, env_steps: int, state: dict[str, Any], keep: int = 2) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"ckpt-{env_steps:012d}.pt"
-    atomic_torch_save(state, path)
+    atomic.torch_save(state, path)  # the temp name (ckpt-*.pt.tmp) never matches a checkpoint's
     for old in list_checkpoints(folder)[:-keep]:
         old.unlink(missing_ok=True)
     for partial in folder.glob("ckpt-*.pt.tmp"):  # left by writes that a kill interrupted

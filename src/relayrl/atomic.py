@@ -1,0 +1,53 @@
+"""Files written atomically: a reader, or a run that crashes mid-write, sees the old file or the
+new one, never a partial file, and a failed write leaves no temp file behind."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import IO, Any
+
+
+@contextlib.contextmanager
+def replacing(path: Path, tmp_name: str | None = None) -> Iterator[Path]:
+    """Yields a temp path beside `path`; on success it is renamed over `path` and the folder
+    synced, on failure removed. `tmp_name` for writers that want a given suffix."""
+    path = Path(path)
+    tmp = path.with_name(tmp_name or path.name + ".tmp")  # never matches a glob for the real suffix
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+    _fsync_folder(path.parent)
+
+
+def write_with(path: Path, write: Callable[[IO[bytes]], Any], tmp_name: str | None = None) -> None:
+    """Call `write(file)` on a temp file, fsync it, rename it over `path`."""
+    with replacing(path, tmp_name) as tmp, open(tmp, "wb") as f:
+        write(f)
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def write_text(path: Path, text: str) -> None:
+    write_with(path, lambda f: f.write(text.encode()))
+
+
+def torch_save(obj: Any, path: Path, tmp_name: str | None = None) -> None:
+    import torch
+
+    write_with(path, lambda f: torch.save(obj, f), tmp_name)
+
+
+def _fsync_folder(folder: Path) -> None:
+    with contextlib.suppress(OSError):  # some filesystems cannot open a folder for fsync
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)

@@ -1,0 +1,72 @@
+"""Files written atomically leave the old file or the new one, and no temp file, on failure;
+what a failed build made is closed."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import pytest
+import torch
+
+from relayrl import atomic
+from relayrl.envs.gym import GymBatchEnv
+
+
+def test_a_failed_write_keeps_the_old_file_and_leaves_no_temp_file(tmp_path):
+    path = tmp_path / "f.json"
+    atomic.write_text(path, "old")
+
+    def fail(f):
+        f.write(b"half")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError, match="disk full"):
+        atomic.write_with(path, fail)
+    assert path.read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.json"]
+
+
+def test_torch_save_round_trips_and_replaces(tmp_path):
+    path = tmp_path / "x.pt"
+    atomic.torch_save({"a": torch.arange(3)}, path)
+    atomic.torch_save({"a": torch.arange(4)}, path)
+    assert torch.load(path, weights_only=True)["a"].tolist() == [0, 1, 2, 3]
+    assert [p.name for p in tmp_path.iterdir()] == ["x.pt"]
+
+
+def test_a_failed_export_leaves_no_temp_file_and_no_signature(tmp_path, monkeypatch):
+    import relayrl
+    from relayrl.export import export_policy
+
+    run = tmp_path / "run"
+    relayrl.train(relayrl.load_config("dqn-cartpole", ["train.total_steps=200", "train.initial_collect_steps=100",
+                                                       "eval.episodes=1", "eval.interval=200"]), run, progress=False)
+    monkeypatch.setattr(torch.export, "save", lambda *a, **k: (_ for _ in ()).throw(OSError("no space left")))
+    with pytest.raises(OSError, match="no space left"):
+        export_policy(run, tmp_path / "out" / "p.pt2")
+    assert list((tmp_path / "out").iterdir()) == []
+
+
+class _Closing(gym.Env):
+    closed: list[int] = []
+
+    def __init__(self, i: int) -> None:
+        self.i = i
+        self.observation_space = gym.spaces.Box(-1, 1, (1,))
+        self.action_space = gym.spaces.Discrete(2)
+
+    def close(self) -> None:
+        _Closing.closed.append(self.i)
+
+
+def test_a_copy_that_fails_to_build_closes_the_ones_already_made():
+    def third_fails(i):
+        def make():
+            if i == 2:
+                raise RuntimeError("simulator licence")
+            return _Closing(i)
+        return make
+
+    _Closing.closed = []
+    with pytest.raises(RuntimeError, match="simulator licence"):
+        GymBatchEnv([third_fails(i) for i in range(3)])
+    assert _Closing.closed == [0, 1]
