@@ -1,0 +1,55 @@
+"""The docs a user reads agree with the code: docs/config.md is what the config classes generate,
+and the README's preset tables list exactly the presets `relayrl presets` lists."""
+
+import re
+from pathlib import Path
+
+from relayrl.docs_config import main, render
+from relayrl.presets import list_presets
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def preset_tables(markdown: str) -> list[list[str]]:
+    """The first-column names of every table whose header's first cell is `preset`."""
+    tables, current = [], None
+    for line in markdown.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")] if line.startswith("|") else None
+        if cells is None:
+            current = None
+        elif cells[0] == "preset":
+            current = []
+            tables.append(current)
+        elif current is not None and not set(cells[0]) <= set("-: "):
+            match = re.fullmatch(r"`([^`]+)`", cells[0])
+            current.append(match.group(1) if match else cells[0])
+    return tables
+
+
+def test_config_reference_is_current():
+    assert (ROOT / "docs" / "config.md").read_text() == render(), "run `python -m relayrl.docs_config`"
+
+
+def test_docs_config_check_flags_a_stale_file(tmp_path):
+    out = tmp_path / "config.md"
+    assert main(["--out", str(out), "--check"]) == 1  # missing
+    assert main(["--out", str(out)]) == 0 and out.read_text() == render()
+    assert main(["--out", str(out), "--check"]) == 0
+    out.write_text(render().replace("env copies", "copies"))
+    assert main(["--out", str(out), "--check"]) == 1
+
+
+def test_config_reference_lists_every_key_of_every_algorithm():
+    text = render()
+    for key in ("`seed`", "`env.num_workers`", "`replay.device`", "`distributed.actor_cpus`",
+                "`agent.double`", "`agent.network`", "`agent.target_entropy`",
+                "`agent.gae_lambda`", "`agent.rollout_steps`"):
+        assert key in text, key
+
+
+def test_readme_preset_tables_list_exactly_the_presets():
+    tables = preset_tables((ROOT / "README.md").read_text())
+    assert tables, "the README has no table whose first column is `preset`"
+    names = sorted(list_presets())
+    for table in tables:
+        assert sorted(table) == names, (sorted(set(table) ^ set(names)), "README table vs `relayrl presets`")
