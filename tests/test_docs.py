@@ -53,3 +53,24 @@ def test_readme_preset_tables_list_exactly_the_presets():
     names = sorted(list_presets())
     for table in tables:
         assert sorted(table) == names, (sorted(set(table) ^ set(names)), "README table vs `relayrl presets`")
+
+
+def anchor(heading: str) -> str:
+    """GitHub's anchor for a heading: lower case, punctuation dropped, spaces to hyphens."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def test_benchmark_links_point_at_sections():
+    for name in ("benchmarks.md", "distributed.md"):
+        text = (ROOT / "docs" / name).read_text()
+        anchors = {anchor(h) for h in re.findall(r"^#+ (.+)$", text, flags=re.M)}
+        links = re.findall(r"\]\(#([^)]+)\)", text)
+        assert links or name != "benchmarks.md"
+        assert not [a for a in links if a not in anchors], name
+
+
+def test_summary_rows_link_to_their_sections():
+    text = (ROOT / "docs" / "benchmarks.md").read_text()
+    summary = text.split("## Summary", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in summary.splitlines() if line.startswith("| [")]
+    assert len(rows) >= 10 and all("](#" in row.split("|")[1] for row in rows)
