@@ -74,3 +74,13 @@ def test_summary_rows_link_to_their_sections():
     summary = text.split("## Summary", 1)[1].split("\n## ", 1)[0]
     rows = [line for line in summary.splitlines() if line.startswith("| [")]
     assert len(rows) >= 10 and all("](#" in row.split("|")[1] for row in rows)
+
+
+def test_readme_links_to_benchmark_sections_resolve():
+    readme = (ROOT / "README.md").read_text()
+    text = (ROOT / "docs" / "benchmarks.md").read_text()
+    anchors = {anchor(h) for h in re.findall(r"^#+ (.+)$", text, flags=re.M)}
+    links = re.findall(r"\(docs/benchmarks\.md#([^)]+)\)", readme)
+    assert links and not [a for a in links if a not in anchors]
+    own = {anchor(h) for h in re.findall(r"^#+ (.+)$", readme, flags=re.M)}
+    assert not [a for a in re.findall(r"\]\(#([^)]+)\)", readme) if a not in own]
