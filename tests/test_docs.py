@@ -4,6 +4,7 @@ and the README's preset tables list exactly the presets `relayrl presets` lists.
 import re
 from pathlib import Path
 
+from relayrl.agents.registry import ALGORITHMS
 from relayrl.docs_config import main, render
 from relayrl.presets import list_presets
 
@@ -39,8 +40,12 @@ def test_docs_config_check_flags_a_stale_file(tmp_path):
     assert main(["--out", str(out), "--check"]) == 1
 
 
-def test_config_reference_lists_every_key_of_every_algorithm():
+def test_config_reference_covers_every_section_and_algorithm():
     text = render()
+    for name in ("env", "train", "eval", "replay", "distributed"):
+        assert f"## [{name}]" in text, name
+    for algo in ALGORITHMS:
+        assert f'### [agent] with algo = "{algo}"' in text, algo
     for key in ("`seed`", "`env.num_workers`", "`replay.device`", "`distributed.actor_cpus`",
                 "`agent.double`", "`agent.network`", "`agent.target_entropy`",
                 "`agent.gae_lambda`", "`agent.rollout_steps`"):
