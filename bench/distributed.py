@@ -533,7 +533,7 @@ def wire_bytes() -> dict[str, int]:
 class Model:
     """A steady-state bottleneck model of the distributed run (docs/distributed.md). Times in
     us unless named otherwise; server figures are CPU time in the server process. Defaults:
-    measured by `--part server` on the shared 2-core machine (BENCHMARKS.md), except the
+    measured by `--part server` on the shared 2-core machine (docs/benchmarks.md), except the
     env, the learner and the NIC, which are scenario choices."""
 
     env_ms: float = 3.7  # one env step of one actor (Minitaur: ~3.7 ms on this CPU)

@@ -21,7 +21,7 @@ def test_dqn_cartpole_fast_solves_within_50k_and_stays_solved(tmp_path, seed):
 
 
 # The tutorial's recipe meets its strict per-seed target on about 70% of seeds, as TF-Agents' own
-# code does (BENCHMARKS.md, "dqn-cartpole against TF-Agents' own tutorial"); seeds 0-2 meet it
+# code does (docs/benchmarks.md, "dqn-cartpole against TF-Agents' own tutorial"); seeds 0-2 meet it
 # with the run's current random streams.
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -47,7 +47,7 @@ _SAC_BATCHED_MISS = pytest.mark.xfail(reason="issue 24: seed 0 ends at -236 with
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [pytest.param(0, marks=_SAC_BATCHED_MISS), 1, 2])
 def test_sac_batched_reaches_minus_200_within_20k_and_ends_there(tmp_path, seed):
-    # BENCHMARKS.md, "Presets re-checked with per-run seed streams"
+    # docs/benchmarks.md, "Presets re-checked with the current seed streams"
     rows = evals(relayrl.load_config("sac-batched", seed=seed), tmp_path / "r")
     assert any(r["average_return"] >= -200 and r["step"] <= 20_000 for r in rows), rows
     assert rows[-1]["average_return"] >= -200, rows
@@ -56,6 +56,6 @@ def test_sac_batched_reaches_minus_200_within_20k_and_ends_there(tmp_path, seed)
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_ppo_cartpole_ends_at_500_within_100k(tmp_path, seed):
-    # RL Zoo's ppo.yml CartPole-v1 settings; BENCHMARKS.md has the seeds' runs
+    # RL Zoo's ppo.yml CartPole-v1 settings; docs/benchmarks.md has the seeds' runs
     rows = evals(relayrl.load_config("ppo-cartpole", seed=seed), tmp_path / "r")
     assert rows[-1]["step"] == 100_000 and rows[-1]["average_return"] >= 500, rows

@@ -109,7 +109,7 @@ class DistributedConfig(Section):
 class Config(Section):
     seed: int = 0  # every random stream of the run derives from it
     device: str = "cpu"  # cpu | cuda | auto
-    algo: str = "dqn"  # dqn | sac | bptt (sets what the agent section holds)
+    algo: str = "dqn"  # dqn | sac | ppo | bptt (sets what the agent section holds)
     env: EnvConfig = field(default_factory=EnvConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)

@@ -110,6 +110,30 @@ def meanings(cls: type) -> dict[str, str]:
     return {k: v for k, v in out.items() if v}
 
 
+@dataclasses.dataclass(frozen=True)
+class FieldDoc:
+    """One key of a config section as `relayrl config` and docs/config.md show it."""
+
+    name: str
+    type: str  # the annotation, e.g. "int", "list[int]", "float | None"
+    value: Any  # the field's value on the object described (None: unset)
+    meaning: str  # the comment beside the field in the source ("" if none)
+
+
+def field_docs(section: Any) -> list[FieldDoc]:
+    """The non-section fields of a config dataclass object, in source order."""
+    about, hints = meanings(type(section)), _hints(type(section))
+    return [FieldDoc(f.name, type_text(hints[f.name]), getattr(section, f.name), about.get(f.name, ""))
+            for f in dataclasses.fields(section) if not dataclasses.is_dataclass(getattr(section, f.name))]
+
+
+def type_text(hint: Any) -> str:
+    """An annotation as written in the source: int, list[int], dict[str, Any], float | None."""
+    if isinstance(hint, type) and not typing.get_args(hint):
+        return hint.__name__
+    return str(hint).replace("typing.", "").replace("NoneType", "None")
+
+
 def commented_toml(config: Any) -> str:
     """`config` as TOML, each key followed by its meaning as a comment; it reads back as the
     same config. Sections become tables; a None field (TOML has no null) is shown commented out."""
@@ -121,29 +145,25 @@ def commented_toml(config: Any) -> str:
 def _write_section(obj: Any, name: str, lines: list[str]) -> None:
     if name:
         lines += ["", f"[{name}]"]
-    about = meanings(type(obj))
-    nested = []
+    for doc in field_docs(obj):
+        text = f"# {doc.name} = (unset)" if doc.value is None else f"{doc.name} = {toml_literal(doc.value)}"
+        lines.append(f"{text}  # {doc.meaning}" if doc.meaning else text)
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
         if dataclasses.is_dataclass(value):
-            nested.append((f.name, value))
-            continue
-        text = f"# {f.name} = (unset)" if value is None else f"{f.name} = {_literal(value)}"
-        lines.append(f"{text}  # {about[f.name]}" if f.name in about else text)
-    for key, value in nested:
-        _write_section(value, f"{name}.{key}" if name else key, lines)
+            _write_section(value, f"{name}.{f.name}" if name else f.name, lines)
 
 
-def _literal(value: Any) -> str:
+def toml_literal(value: Any) -> str:
     """A TOML literal on one line (tomli_w spreads arrays over lines and writes tables as sections)."""
     import tomli_w
 
     if isinstance(value, list):
-        return "[" + ", ".join(_literal(v) for v in value) + "]"
+        return "[" + ", ".join(toml_literal(v) for v in value) + "]"
     if isinstance(value, dict):  # an inline table
-        return "{" + ", ".join(f"{_key(k)} = {_literal(v)}" for k, v in value.items()) + "}"
+        return "{" + ", ".join(f"{_key(k)} = {toml_literal(v)}" for k, v in value.items()) + "}"
     return tomli_w.dumps({"v": value}).strip()[len("v = "):]
 
 
 def _key(key: str) -> str:
-    return key if key and all(c.isalnum() or c in "-_" for c in key) else _literal(key)
+    return key if key and all(c.isalnum() or c in "-_" for c in key) else toml_literal(key)

@@ -2,7 +2,7 @@
 
 `torch.optim.Adam(fused=True).step()` wraps the kernel in Python (profiler hooks,
 param-group bookkeeping) that, for small RL networks on a CPU, costs more than the math
-(BENCHMARKS.md has the figures). Same update as torch.optim.Adam (no weight decay, no
+(docs/benchmarks.md has the figures). Same update as torch.optim.Adam (no weight decay, no
 amsgrad); state_dict round-trips. Falls back to torch.optim.Adam where the kernel is missing.
 """
 

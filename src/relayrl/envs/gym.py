@@ -185,7 +185,7 @@ def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, 
         # disable_env_checker: the passive checker costs a measurable share of a tiny env's step
         # and only warns. No OrderEnforcing either (as for a user's class above): it only raises
         # on a step or render before the first reset, which the batched envs never do, and it
-        # costs a share of every step (BENCHMARKS.md).
+        # costs a share of every step (docs/benchmarks.md).
         spec = dataclasses.replace(gym.spec(env_id), order_enforce=False)
         try:
             return gym.make(spec, disable_env_checker=True, **kwargs)

@@ -28,7 +28,7 @@ from relayrl.nn.mlp import MLP, TwinMLP
 Tensor = torch.Tensor
 
 # Above this many multiply-adds per forward pass torch's CPU matmul (MKL's sgemm) beats NumPy's
-# OpenBLAS; below it torch's per-op dispatch dominates (BENCHMARKS.md has the crossovers).
+# OpenBLAS; below it torch's per-op dispatch dominates (docs/benchmarks.md has the crossovers).
 # OpenBLAS stays on one thread: its threads would spin on the core the envs step on.
 NUMPY_MAX_MACS = 500_000
 

@@ -1,0 +1,91 @@
+"""The docs a user reads agree with the code: docs/config.md is what the config classes generate,
+and the README's preset tables list exactly the presets `relayrl presets` lists."""
+
+import re
+from pathlib import Path
+
+from relayrl.agents.registry import ALGORITHMS
+from relayrl.docs_config import main, render
+from relayrl.presets import list_presets
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def preset_tables(markdown: str) -> list[list[str]]:
+    """The first-column names of every table whose header's first cell is `preset`."""
+    tables, current = [], None
+    for line in markdown.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")] if line.startswith("|") else None
+        if cells is None:
+            current = None
+        elif cells[0] == "preset":
+            current = []
+            tables.append(current)
+        elif current is not None and not set(cells[0]) <= set("-: "):
+            match = re.fullmatch(r"`([^`]+)`", cells[0])
+            current.append(match.group(1) if match else cells[0])
+    return tables
+
+
+def test_config_reference_is_current():
+    assert (ROOT / "docs" / "config.md").read_text() == render(), "run `python -m relayrl.docs_config`"
+
+
+def test_docs_config_check_flags_a_stale_file(tmp_path):
+    out = tmp_path / "config.md"
+    assert main(["--out", str(out), "--check"]) == 1  # missing
+    assert main(["--out", str(out)]) == 0 and out.read_text() == render()
+    assert main(["--out", str(out), "--check"]) == 0
+    out.write_text(render().replace("env copies", "copies"))
+    assert main(["--out", str(out), "--check"]) == 1
+
+
+def test_config_reference_covers_every_section_and_algorithm():
+    text = render()
+    for name in ("env", "train", "eval", "replay", "distributed"):
+        assert f"## [{name}]" in text, name
+    for algo in ALGORITHMS:
+        assert f'### [agent] with algo = "{algo}"' in text, algo
+    for key in ("`seed`", "`env.num_workers`", "`replay.device`", "`distributed.actor_cpus`",
+                "`agent.double`", "`agent.network`", "`agent.target_entropy`",
+                "`agent.gae_lambda`", "`agent.rollout_steps`"):
+        assert key in text, key
+
+
+def test_readme_preset_tables_list_exactly_the_presets():
+    tables = preset_tables((ROOT / "README.md").read_text())
+    assert tables, "the README has no table whose first column is `preset`"
+    names = sorted(list_presets())
+    for table in tables:
+        assert sorted(table) == names, (sorted(set(table) ^ set(names)), "README table vs `relayrl presets`")
+
+
+def anchor(heading: str) -> str:
+    """GitHub's anchor for a heading: lower case, punctuation dropped, spaces to hyphens."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def test_benchmark_links_point_at_sections():
+    for name in ("benchmarks.md", "distributed.md"):
+        text = (ROOT / "docs" / name).read_text()
+        anchors = {anchor(h) for h in re.findall(r"^#+ (.+)$", text, flags=re.M)}
+        links = re.findall(r"\]\(#([^)]+)\)", text)
+        assert links or name != "benchmarks.md"
+        assert not [a for a in links if a not in anchors], name
+
+
+def test_summary_rows_link_to_their_sections():
+    text = (ROOT / "docs" / "benchmarks.md").read_text()
+    summary = text.split("## Summary", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in summary.splitlines() if line.startswith("| [")]
+    assert len(rows) >= 10 and all("](#" in row.split("|")[1] for row in rows)
+
+
+def test_readme_links_to_benchmark_sections_resolve():
+    readme = (ROOT / "README.md").read_text()
+    text = (ROOT / "docs" / "benchmarks.md").read_text()
+    anchors = {anchor(h) for h in re.findall(r"^#+ (.+)$", text, flags=re.M)}
+    links = re.findall(r"\(docs/benchmarks\.md#([^)]+)\)", readme)
+    assert links and not [a for a in links if a not in anchors]
+    own = {anchor(h) for h in re.findall(r"^#+ (.+)$", readme, flags=re.M)}
+    assert not [a for a in re.findall(r"\]\(#([^)]+)\)", readme) if a not in own]
