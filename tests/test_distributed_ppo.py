@@ -107,10 +107,11 @@ def test_driver_has_a_live_actor_cover_for_one_that_is_restarting():
 needs_ray = pytest.mark.skipif(importlib.util.find_spec("ray") is None,
                                reason="distributed runs need Ray (pip install 'relayrl[ray]')")
 
-# 2 actors x 2 CartPole copies, rollouts of 64 env steps (16 per copy), 16 updates of 2 x 2 minibatches
-# (the envs' 150th step, where CrashOnce crashes, comes on the 10th).
-SMALL = ["env.id=toy_envs:CrashOnce", "env.num_envs=2", "train.collect_steps=64", "train.total_steps=1024",
-         "agent.hidden=[16]", "agent.n_epochs=2", "agent.batch_size=32", "eval.interval=1024", "eval.episodes=1",
+# 2 actors x 2 CartPole copies, rollouts of 64 env steps (16 per copy): 15 updates of 2 x 2 minibatches
+# and a last rollout of 40 steps (10 per copy) cut short by total_steps, collected but not trained
+# on (as in one process). The envs' 150th step, where CrashOnce crashes, comes in the 10th rollout.
+SMALL = ["env.id=toy_envs:CrashOnce", "env.num_envs=2", "train.collect_steps=64", "train.total_steps=1000",
+         "agent.hidden=[16]", "agent.n_epochs=2", "agent.batch_size=32", "eval.interval=1000", "eval.episodes=1",
          "train.checkpoint_interval=512", "train.policy_save_interval=512", "train.log_interval=256",
          "distributed.num_actors=2", "train.torch_threads=1"]
 
@@ -144,17 +145,17 @@ def test_two_actors_train_ppo_through_a_restart(ray_run, capsys):
     run, err = ray_run
     assert "rollout actor" in err and "restarts it" in err
     r = rows(run)
-    assert [row["step"] for row in r] == [0, 1024]
-    # Every update is one whole rollout of both actors' shares: 16 of 2 epochs x 2 minibatches.
-    assert r[-1]["train_step"] == 16 * 2 * 2 and r[-1]["train/episodes"] > 0
+    assert [row["step"] for row in r] == [0, 1000]
+    # Every update is one whole rollout of both actors' shares: 15 of 2 epochs x 2 minibatches.
+    assert r[-1]["train_step"] == 15 * 2 * 2 and r[-1]["train/episodes"] > 0
     assert all(row["stale_rollouts"] == row["stale_env_steps"] // 32 for row in r)  # present, in shares of 32
     assert r[-1]["actors_alive"] == 2
-    assert relayrl.load_policy(run).env_steps == 1024
+    assert relayrl.load_policy(run).env_steps == 1000
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     tb = EventAccumulator(str(run / "tb"), size_guidance={"scalars": 0})
     tb.Reload()
-    assert [e.step for e in tb.Scalars("charts/stale_rollouts")][-1] == 1024
+    assert [e.step for e in tb.Scalars("charts/stale_rollouts")][-1] == 1000
     from relayrl.cli import main
 
     assert main(["eval", str(run), "--episodes", "2"]) == 0
@@ -172,5 +173,5 @@ def test_ppo_on_ray_resumes_from_its_checkpoint(ray_run, tmp_path, capsys):
     relayrl.train(config, tmp_path / "run", resume=True, progress=False)
     assert "resumed from env step 512" in capsys.readouterr().err
     r = rows(tmp_path / "run")
-    assert [row["step"] for row in r] == [0, 1024] and r[-1]["train_step"] == 16 * 2 * 2
-    assert relayrl.load_policy(tmp_path / "run").env_steps == 1024
+    assert [row["step"] for row in r] == [0, 1000] and r[-1]["train_step"] == 15 * 2 * 2
+    assert relayrl.load_policy(tmp_path / "run").env_steps == 1000

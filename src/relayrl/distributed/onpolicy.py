@@ -85,7 +85,7 @@ class OnPolicyRun(DistributedRun):
     worker_class = RolloutCollector
 
     def connect(self, obs_spec: Spec, act_spec: Spec) -> tuple[Any, Any]:
-        self.trained = 0  # env steps of the rollouts the learner took (the run's env steps)
+        self.trained = 0  # env steps of the current-version shares taken (the run's env steps)
         self.share_steps = 0  # T: steps per env copy of the current version's shares
         self.call_version: dict[Any, int] = {}  # collect call -> the version current when it was made
         self.shares = RolloutShares(0, self.K)
@@ -167,7 +167,9 @@ class OnPolicyRun(DistributedRun):
         rollout = self.shares.take()
         self.trained += self.share_steps * self.K * self.config.env.num_envs
         self.step_schedules(self.trained)
-        if not self.collect_only:
+        # A last rollout cut short by train.total_steps is collected, not trained on, as in
+        # one process (where the rollout writer never inserts a partial rollout).
+        if not self.collect_only and self.share_steps == self._full_share():
             self.table.insert(rollout)
             self.learner.run(self.learner.available_steps())  # this one rollout; pushes the weights
         self._new_version()

@@ -207,18 +207,19 @@ class RolloutCollector:
         self.index = index
         net = agent.policy_network().requires_grad_(False)
         self.token = uuid.uuid4().hex  # one per incarnation: the driver tells restarts by it
-        self.queue = Table.queue("rollout", 1)  # the writer's one finished rollout, taken out at once
-        self.writers: dict[int, RolloutWriter] = {}
+        self.writers: dict[int, RolloutWriter] = {}  # by steps per env copy, each into its own queue
         self.episodes = EpisodeLog()
         self.puller = WeightPuller(RemoteVariables(variables), net, 0)  # every collect call pulls
         self.actor = Actor(self.env, agent.collect_policy(None, net), [self.episodes], seed=seeds.base("envs"),
                            puller=self.puller)
 
     def collect(self, steps_per_env: int) -> dict[str, Any]:
-        writer = self.writers.setdefault(steps_per_env, RolloutWriter(self.queue, steps_per_env))
+        writer = self.writers.get(steps_per_env)
+        if writer is None:  # a queue's storage has the shape of its first item: one per rollout length
+            writer = self.writers[steps_per_env] = RolloutWriter(Table.queue("rollout", 1), steps_per_env)
         self.actor.observers = [self.episodes, writer]
         self.actor.run(steps_per_env * self.env.num_envs)
-        item, _ = self.queue.sample(1)
+        item, _ = writer.table.sample(1)  # the writer's one finished rollout, taken out at once
         returns, lengths, info = self.episodes.take()
         return {"index": self.index, "token": self.token, "rollout": {k: v[0].numpy() for k, v in item.items()},
                 "policy_version": self.puller.version, "returns": returns, "lengths": lengths, "info": info}
