@@ -175,3 +175,15 @@ def test_ppo_on_ray_resumes_from_its_checkpoint(ray_run, tmp_path, capsys):
     r = rows(tmp_path / "run")
     assert [row["step"] for row in r] == [0, 1000] and r[-1]["train_step"] == 15 * 2 * 2
     assert relayrl.load_policy(tmp_path / "run").env_steps == 1000
+
+
+@pytest.mark.slow
+@needs_ray
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ppo_cartpole_on_two_ray_actors_ends_at_500_within_100k(tmp_path, seed):
+    # The preset as it is, its rollouts split over 2 actors (BENCHMARKS.md has the seeds' runs)
+    relayrl.train(relayrl.load_config("ppo-cartpole", ["distributed.num_actors=2"], seed=seed), tmp_path / "r",
+                  progress=False)
+    r = rows(tmp_path / "r")
+    assert r[-1]["step"] == 100_000 and r[-1]["average_return"] >= 500, r
+    assert r[-1]["stale_rollouts"] == 0  # no actor died: every share was of the current version
