@@ -4,7 +4,8 @@ A rollout worker is the one-process loop's `Actor` with two different observers:
 `ChunkShipper` in place of the replay writer (its steps go to the replay server, a chunk per
 RPC) and an `EpisodeLog` whose finished episodes go back to the driver with each call. Its
 acting network pulls weights from the VariableContainer actor through `RemoteVariables`, so
-`WeightPuller` is the same as in one process.
+`WeightPuller` is the same as in one process. An on-policy algorithm's actor, `RolloutCollector`,
+has the one-process run's `RolloutWriter` instead and answers each call with its rollout.
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ class ActorNames(NamedTuple):
     def handles(self) -> tuple[Any, Any]:
         import ray
 
-        return ray.get_actor(self.server), ray.get_actor(self.variables)
+        return ray.get_actor(self.server), self.container()
 
     def container(self) -> Any:
         """The variable container alone (a run without a replay server has only this one)."""
