@@ -124,10 +124,14 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         raise UserError(f"algo={spec.name!r} runs are not checkpointed (they take minutes): start a new run instead")
     if config.distributed.num_actors > 0 and not spec.ray:
         raise UserError(f"algo={spec.name!r} runs in one process only; distributed.num_actors works with "
-                        f"{' and '.join(ray_algorithms())}")
+                        f"{', '.join(ray_algorithms())}")
     # Each run builds its parts (envs, agent) before anything is written: bad input fails first.
     if spec.run:
         run = load_attr(spec.run)(config, rd, progress)
+    elif config.distributed.num_actors > 0 and spec.replay == "rollouts":
+        from relayrl.distributed.onpolicy import OnPolicyRun
+
+        run = OnPolicyRun(config, rd, progress)
     elif config.distributed.num_actors > 0:
         from relayrl.distributed.run import DistributedRun
 

@@ -64,7 +64,7 @@ ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (
     Algorithm("sac", SACConfig, "tanh_gaussian", "relayrl.agents.sac.policy",
               agent="relayrl.agents.sac.agent:SACAgent", ray=True),
     Algorithm("ppo", PPOConfig, "ppo", "relayrl.agents.ppo.policy", agent="relayrl.agents.ppo.agent:PPOAgent",
-              replay="rollouts"),
+              replay="rollouts", ray=True),
     Algorithm("bptt", BpttConfig, "clamped_mlp", "relayrl.agents.bptt.policy", replay="none",
               run="relayrl.agents.bptt.run:BpttRun", resumable=False),
 )}

@@ -63,17 +63,20 @@ class RemoteTable:
 
 class RemotePusher:
     """`push()` to the VariableContainer actor, at most once per `interval` gradient steps
-    (each push ships the policy's weights), unless forced (before an evaluation)."""
+    (each push ships the policy's weights), unless forced (before an evaluation). Weights no
+    gradient step changed since the last push are not pushed again, forced or not: a new
+    version always means new weights (an on-policy run drops rollouts of older versions)."""
 
     def __init__(self, handle: Any, agent: Agent, interval: int) -> None:
         self.handle, self.agent, self.interval = handle, agent, interval
         self.params = list(agent.policy_network().parameters())
         self._last = -(10**18)
+        self.last_ref: Any = None  # the latest push's ObjectRef; ray.get gives its version
 
     def push(self, weights: list[torch.Tensor] | None = None, force: bool = False) -> None:
         step = self.agent.train_step
-        if not force and step - self._last < self.interval:
+        if step == self._last or (not force and step - self._last < self.interval):
             return
         self._last = step
         # Ray serializes the arguments now, so later in-place updates do not leak in.
-        self.handle.push.remote([w.detach().cpu() for w in (weights or self.params)])
+        self.last_ref = self.handle.push.remote([w.detach().cpu() for w in (weights or self.params)])

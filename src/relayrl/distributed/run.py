@@ -45,7 +45,10 @@ UNAVAILABLE_LIMIT = 150
 
 class DistributedRun(Run):
     """The assembled run (training/assembly.py) with its envs in K rollout actors, evaluations in
-    eval actors and the replay in a server actor; the learner trains in the driver."""
+    eval actors and the replay in a server actor; the learner trains in the driver.
+    `distributed/onpolicy.py` is the on-policy variant (PPO): no server, rollouts to the driver."""
+
+    worker_class: type = RolloutWorker
 
     def open(self) -> tuple[Spec, Spec]:
         self.ray = require_ray()
@@ -95,6 +98,28 @@ class DistributedRun(Run):
     # ---- actors -------------------------------------------------------------------------
     def _start_actors(self, obs_spec: Any, act_spec: Any) -> None:
         ray, c, d = self.ray, self.config, self.config.distributed
+        self._init_ray()
+        cfg = to_dict(c)
+        path = list(sys.path)
+        # Restartable actors find the server and the container by name: Ray cannot promise to
+        # keep actor handles passed as constructor arguments alive for a restart.
+        names = ActorNames(f"relayrl-{uuid.uuid4().hex[:12]}")
+        self.server = self._start_server(names, cfg, obs_spec, act_spec)
+        self.variables = ray.remote(num_cpus=0, max_concurrency=self.K + 8)(VariableContainer).options(
+            name=names.variables).remote(copy=True)
+        worker = ray.remote(num_cpus=d.actor_cpus, max_restarts=d.max_restarts, max_task_retries=0)(self.worker_class)
+        self.workers = [worker.remote(cfg, i, names, path) for i in range(self.K)]
+        evaluator = ray.remote(num_cpus=0, max_restarts=d.max_restarts, max_task_retries=0)(EvalWorker)
+        self.eval_workers = [evaluator.remote(cfg, names, path) for _ in range(d.num_eval_actors)]
+        ray.get([w.pid.remote() for w in self.workers + self.eval_workers])  # env errors surface here
+
+    def _start_server(self, names: ActorNames, cfg: dict[str, Any], obs_spec: Spec, act_spec: Spec) -> Any:
+        """The replay server actor (None where the run has none)."""
+        return self.ray.remote(num_cpus=0, max_concurrency=self.K + 8)(ReplayServer).options(
+            name=names.server).remote(cfg, obs_spec, act_spec, str(self.rd.root), self.K)
+
+    def _init_ray(self) -> None:
+        ray, d = self.ray, self.config.distributed
         if not ray.is_initialized():
             kw: dict[str, Any] = {"include_dashboard": False, "logging_level": "ERROR"}
             on_sigterm = signal.getsignal(signal.SIGTERM)
@@ -107,20 +132,6 @@ class DistributedRun(Run):
                 # stack and exits; the CLI's (stop like Ctrl-C: actors shut down) goes back.
                 signal.signal(signal.SIGTERM, on_sigterm)
             self._owns_ray = True
-        cfg = to_dict(c)
-        path = list(sys.path)
-        # Restartable actors find the server and the container by name: Ray cannot promise to
-        # keep actor handles passed as constructor arguments alive for a restart.
-        names = ActorNames(f"relayrl-{uuid.uuid4().hex[:12]}")
-        self.server = ray.remote(num_cpus=0, max_concurrency=self.K + 8)(ReplayServer).options(
-            name=names.server).remote(cfg, obs_spec, act_spec, str(self.rd.root), self.K)
-        self.variables = ray.remote(num_cpus=0, max_concurrency=self.K + 8)(VariableContainer).options(
-            name=names.variables).remote(copy=True)
-        worker = ray.remote(num_cpus=d.actor_cpus, max_restarts=d.max_restarts, max_task_retries=0)(RolloutWorker)
-        self.workers = [worker.remote(cfg, i, names, path) for i in range(self.K)]
-        evaluator = ray.remote(num_cpus=0, max_restarts=d.max_restarts, max_task_retries=0)(EvalWorker)
-        self.eval_workers = [evaluator.remote(cfg, names, path) for _ in range(d.num_eval_actors)]
-        ray.get([w.pid.remote() for w in self.workers + self.eval_workers])  # env errors surface here
 
     def close(self) -> None:
         """Stop every actor (and the local Ray instance this run started): no orphan processes."""
@@ -187,11 +198,15 @@ class DistributedRun(Run):
             self.tokens[i] = r["token"]
             self.restart_counted[i] = False
             self.restarting.discard(i)
-            self.accepted[i] = max(self.accepted[i], int(r["accepted"]))
-            self.stats.add_finished(r["returns"], r["lengths"], r["info"])
-            self._submit(i)
+            self._take(i, r)
         self._top_up()
         return bool(ready)
+
+    def _take(self, i: int, r: dict[str, Any]) -> None:
+        """What a collect call of actor i answered; the actor's next call."""
+        self.accepted[i] = max(self.accepted[i], int(r["accepted"]))
+        self.stats.add_finished(r["returns"], r["lengths"], r["info"])
+        self._submit(i)
 
     def _top_up(self) -> None:
         """Give every live actor its CALLS_QUEUED calls while steps remain. Steps that a failed
@@ -215,6 +230,8 @@ class DistributedRun(Run):
         count the steps the replay server already took from it."""
         for ref in [r for r, (j, _) in self.inflight.items() if j == i]:
             del self.inflight[ref]
+        if self.server is None:
+            return
         shipped = self.ray.get(self.server.info.remote())["shipped"]
         self.accepted[i] = max(self.accepted[i], int(shipped[i]))
 
@@ -291,24 +308,40 @@ class DistributedRun(Run):
             self.evals.popleft()
             version = result.pop("policy_version")
             self.record_eval(p, result, time.perf_counter() - t0, wall_time_s=wall,
-                             extra={"policy_version": version, "actors_alive": self.K - len(self.dead)})
+                             extra={"policy_version": version, "actors_alive": self.K - len(self.dead),
+                                    **self.eval_extra()})
+
+    def eval_extra(self) -> dict[str, Any]:
+        """Fields of the run's own in each metrics.jsonl row."""
+        return {}
 
     # ---- checkpoints ----------------------------------------------------------------------
     def checkpoint_state(self) -> dict[str, Any]:
         c = self.config
-        server = self.ray.get(self.server.state_dict.remote(c.train.checkpoint_replay))
         return {
             "version": 2,
             "distributed": {"num_actors": self.K},
             "config": to_dict(c),
             "agent": self.agent.state_dict(),
-            "replay": server["table"],
-            "shipped": server["shipped"] if server["table"] is not None else list(self.accepted),
+            **self._collection_state(),
             "episode_stats": self.stats.state_dict(),
             "eval_count": self.eval_count,
             "wall_time_s": self.wall_time(),
             **self.process_state(),
         }
+
+    def _collection_state(self) -> dict[str, Any]:
+        """The replay server's contents and the env steps it took from each actor."""
+        server = self.ray.get(self.server.state_dict.remote(self.config.train.checkpoint_replay))
+        return {"replay": server["table"],
+                "shipped": server["shipped"] if server["table"] is not None else list(self.accepted)}
+
+    def _restore_collection(self, state: dict[str, Any]) -> None:
+        self.ray.get(self.server.load_state_dict.remote({"table": state["replay"], "shipped": state["shipped"]}))
+        if state["replay"] is None:
+            self.say("the checkpoint has no replay contents (train.checkpoint_replay = false): "
+                     "the replay refills from the resumed policy before learning continues")
+        self.accepted = [int(x) for x in state["shipped"]]
 
     def restore(self) -> None:
         c = self.config
@@ -322,11 +355,7 @@ class DistributedRun(Run):
                             f"env.num_envs={state['config']['env']['num_envs']} (its replay is laid out per actor "
                             f"and env copy); resume with the same")
         self.agent.load_state_dict(state["agent"])
-        self.ray.get(self.server.load_state_dict.remote({"table": state["replay"], "shipped": state["shipped"]}))
-        if state["replay"] is None:
-            self.say("the checkpoint has no replay contents (train.checkpoint_replay = false): "
-                     "the replay refills from the resumed policy before learning continues")
-        self.accepted = [int(x) for x in state["shipped"]]
+        self._restore_collection(state)
         self.stats.load_state_dict(state["episode_stats"])
         self.stats.reset_running()
         self.eval_count = int(state["eval_count"])

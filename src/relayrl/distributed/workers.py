@@ -4,7 +4,8 @@ A rollout worker is the one-process loop's `Actor` with two different observers:
 `ChunkShipper` in place of the replay writer (its steps go to the replay server, a chunk per
 RPC) and an `EpisodeLog` whose finished episodes go back to the driver with each call. Its
 acting network pulls weights from the VariableContainer actor through `RemoteVariables`, so
-`WeightPuller` is the same as in one process.
+`WeightPuller` is the same as in one process. An on-policy algorithm's actor, `RolloutCollector`,
+has the one-process run's `RolloutWriter` instead and answers each call with its rollout.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ from relayrl.config import Config, from_dict
 from relayrl.envs import make_env
 from relayrl.metrics import EpisodeStats
 from relayrl.policies import RandomPolicy
+from relayrl.replay import Table
+from relayrl.replay.rollouts import RolloutWriter
 from relayrl.replay.writers import stack_steps
 from relayrl.seeding import RunSeeds
 from relayrl.training.actor import Actor
@@ -58,7 +61,13 @@ class ActorNames(NamedTuple):
     def handles(self) -> tuple[Any, Any]:
         import ray
 
-        return ray.get_actor(self.server), ray.get_actor(self.variables)
+        return ray.get_actor(self.server), self.container()
+
+    def container(self) -> Any:
+        """The variable container alone (a run without a replay server has only this one)."""
+        import ray
+
+        return ray.get_actor(self.variables)
 
 
 def _reconstructed() -> bool:
@@ -67,6 +76,24 @@ def _reconstructed() -> bool:
     with warnings.catch_warnings():  # Ray deprecates an internal call behind this public API
         warnings.simplefilter("ignore")
         return bool(ray.get_runtime_context().was_current_actor_reconstructed)
+
+
+def _acting_parts(c: Config, index: int) -> tuple[RunSeeds, Any, Any]:
+    """Rollout actor `index`'s seed streams, its `env.num_envs` env copies and an agent to act
+    with (on the CPU), seeded apart from the learner and the other actors."""
+    seeds = RunSeeds(c.seed).actor(index)
+    if _reconstructed():  # a restarted actor must not replay its episodes: fresh streams
+        seeds = seeds.actor(int.from_bytes(os.urandom(4), "little"))
+    torch.manual_seed(seeds.base("torch"))
+    env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
+                   time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
+                   # async: by default one worker per CPU Ray reserved for this actor beyond
+                   # its own (at least one), not one per core of the machine it landed on
+                   num_workers=c.env.num_workers or max(1, round(c.distributed.actor_cpus) - 1),
+                   info_keys=c.env.info_keys, kwargs=c.env.kwargs, wrappers=c.env.wrappers)
+    agent = algorithm(c.algo).make_agent(c.agent, env.observation_spec, env.action_spec, torch.device("cpu"),
+                                         seeds.generator("exploration"), c.train.total_steps)
+    return seeds, env, agent
 
 
 class RemoteVariables:
@@ -134,19 +161,8 @@ class RolloutWorker:
 
         c = _setup(config, sys_path)
         server, variables = names.handles()
-        seeds = RunSeeds(c.seed).actor(index)
-        if _reconstructed():  # a restarted actor must not replay its episodes: fresh streams
-            seeds = seeds.actor(int.from_bytes(os.urandom(4), "little"))
-        torch.manual_seed(seeds.base("torch"))
+        seeds, self.env, agent = _acting_parts(c, index)
         self.index, self.num_actors = index, c.distributed.num_actors
-        self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
-                            time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
-                            # async: by default one worker per CPU Ray reserved for this actor beyond
-                            # its own (at least one), not one per core of the machine it landed on
-                            num_workers=c.env.num_workers or max(1, round(c.distributed.actor_cpus) - 1),
-                            info_keys=c.env.info_keys, kwargs=c.env.kwargs, wrappers=c.env.wrappers)
-        agent = algorithm(c.algo).make_agent(c.agent, self.env.observation_spec, self.env.action_spec,
-                                             torch.device("cpu"), seeds.generator("exploration"), c.train.total_steps)
         net = agent.policy_network().requires_grad_(False)
         self.global_steps = 0  # the run's env steps, for env-step schedules (DQN's epsilon)
         self.collect_policy = agent.collect_policy(lambda: self.global_steps, net)
@@ -178,12 +194,47 @@ class RolloutWorker:
         return os.getpid()
 
 
+class RolloutCollector:
+    """An on-policy algorithm's rollout actor (registry replay "rollouts", PPO): `collect(T)`
+    pulls the newest weights, steps its `env.num_envs` copies T times with them through the
+    one-process run's `RolloutWriter`, and returns the [T, num_envs] rollout tagged with the
+    policy version it was collected with. No replay server: the driver keeps only rollouts of
+    the current version (`distributed.onpolicy.RolloutShares`)."""
+
+    def __init__(self, config: dict[str, Any], index: int, names: ActorNames, sys_path: list[str]) -> None:
+        c = _setup(config, sys_path)
+        variables = names.container()
+        seeds, self.env, agent = _acting_parts(c, index)
+        self.index = index
+        net = agent.policy_network().requires_grad_(False)
+        self.token = uuid.uuid4().hex  # one per incarnation: the driver tells restarts by it
+        self.writers: dict[int, RolloutWriter] = {}  # by steps per env copy, each into its own queue
+        self.episodes = EpisodeLog()
+        self.puller = WeightPuller(RemoteVariables(variables), net, 0)  # every collect call pulls
+        self.actor = Actor(self.env, agent.collect_policy(None, net), [self.episodes], seed=seeds.base("envs"),
+                           puller=self.puller)
+
+    def collect(self, steps_per_env: int) -> dict[str, Any]:
+        writer = self.writers.get(steps_per_env)
+        if writer is None:  # a queue's storage has the shape of its first item: one per rollout length
+            writer = self.writers[steps_per_env] = RolloutWriter(Table.queue("rollout", 1), steps_per_env)
+        self.actor.observers = [self.episodes, writer]
+        self.actor.run(steps_per_env * self.env.num_envs)
+        item, _ = writer.table.sample(1)  # the writer's one finished rollout, taken out at once
+        returns, lengths, info = self.episodes.take()
+        return {"index": self.index, "token": self.token, "rollout": {k: v[0].numpy() for k, v in item.items()},
+                "policy_version": self.puller.version, "returns": returns, "lengths": lengths, "info": info}
+
+    def pid(self) -> int:
+        return os.getpid()
+
+
 class EvalWorker:
     """Evaluates the newest weights in the VariableContainer on its own envs."""
 
     def __init__(self, config: dict[str, Any], names: ActorNames, sys_path: list[str]) -> None:
         c = _setup(config, sys_path)
-        _, variables = names.handles()
+        variables = names.container()
         self.episodes = c.eval.episodes
         self.env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, info_keys=c.env.info_keys,
                                  kwargs=c.env.kwargs, wrappers=c.env.wrappers)

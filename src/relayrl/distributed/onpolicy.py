@@ -1,0 +1,207 @@
+"""On-policy training on Ray (registry replay "rollouts": PPO), K rollout actors, one learner.
+
+    K rollout actors ── [T, num_envs] share, tagged with its policy version ──▶ driver
+        ▲ pull (before every share)                      RolloutShares: current version only
+        │                                                        │ K shares ▶ one [T, K x num_envs] rollout
+    VariableContainer ◀── push (after every update) ── Learner ◀─┘ (through the one-process rollout queue)
+
+A rollout is `train.collect_steps` env steps, as in one process, split over the actors: each
+of the K x `env.num_envs` env copies takes T = collect_steps / (K x num_envs) steps (rounded
+up), so a run with K actors trains as a one-process run with K x num_envs copies would. The
+driver asks each actor for one share of the current version, trains once all K have come in,
+pushes the new weights and asks again: actors wait while the learner trains, as PPO does in
+one process. A share collected with an older version (a call made before the last update:
+an actor covering for one that was restarting) is dropped and counted, and its actor asked
+again with the new weights, so the learner never trains off-policy and never waits on a
+share that cannot come.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from relayrl.distributed.remote import RemotePusher
+from relayrl.distributed.run import RETRY_S, ActorNames, DistributedRun
+from relayrl.distributed.workers import RolloutCollector
+from relayrl.specs import Spec
+from relayrl.training.replay_setup import build_rollouts
+from relayrl.training.triggers import Progress
+
+
+class RolloutShares:
+    """The learner-side filter: keeps the shares collected with policy `version`, drops (and
+    counts) every other, and joins `needed` kept shares into one rollout."""
+
+    def __init__(self, version: int, needed: int) -> None:
+        self.version, self.needed = version, needed
+        self.kept: list[tuple[int, int, dict[str, np.ndarray]]] = []  # (actor, arrival, share)
+        self.dropped = 0  # stale shares dropped, over the whole run
+        self.dropped_steps = 0  # their env steps
+
+    def offer(self, actor: int, version: int, share: dict[str, np.ndarray]) -> bool:
+        """Keep `share` if it was collected with the current version (and one is still
+        needed); else drop it. True when kept."""
+        if version != self.version or self.ready():
+            self._drop(share)
+            return False
+        self.kept.append((actor, len(self.kept), share))
+        return True
+
+    def _drop(self, share: dict[str, np.ndarray]) -> None:
+        self.dropped += 1
+        self.dropped_steps += int(share["reward"].size)
+
+    def ready(self) -> bool:
+        return len(self.kept) >= self.needed
+
+    def take(self) -> dict[str, np.ndarray]:
+        """The kept shares side by side, [T, sum of their env copies, ...], in actor order (the
+        same rollout whichever actor answered first)."""
+        shares = [s for _, _, s in sorted(self.kept, key=lambda k: k[:2])]
+        self.kept = []
+        return {k: np.concatenate([s[k] for s in shares], axis=1) for k in shares[0]}
+
+    def advance(self, version: int) -> None:
+        """A new policy version: shares kept of the old one are stale now."""
+        for _, _, share in self.kept:
+            self._drop(share)
+        self.kept = []
+        self.version = version
+
+    def state_dict(self) -> dict[str, int]:
+        return {"dropped": self.dropped, "dropped_steps": self.dropped_steps}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        self.dropped, self.dropped_steps = int(state["dropped"]), int(state["dropped_steps"])
+
+
+class OnPolicyRun(DistributedRun):
+    """The distributed run of an on-policy algorithm: `RolloutCollector` actors, no replay
+    server, the learner's rollout queue in the driver fed with K shares per update."""
+
+    worker_class = RolloutCollector
+
+    def connect(self, obs_spec: Spec, act_spec: Spec) -> tuple[Any, Any]:
+        self.trained = 0  # env steps of the current-version shares taken (the run's env steps)
+        self.share_steps = 0  # T: steps per env copy of the current version's shares
+        self.call_version: dict[Any, int] = {}  # collect call -> the version current when it was made
+        self.shares = RolloutShares(0, self.K)
+        table, _ = build_rollouts(self.config)  # its checks (on-policy: no warm-up steps) hold on Ray too
+        self._start_actors(obs_spec, act_spec)
+        self.table = table
+        self.pusher = RemotePusher(self.variables, self.agent, 1)  # every update: the actors wait for it
+        return self.table, self.pusher
+
+    def _start_server(self, names: ActorNames, cfg: dict[str, Any], obs_spec: Spec, act_spec: Spec) -> Any:
+        return None  # shares go to the driver in the collect calls' answers
+
+    def announce(self) -> None:
+        b = self.config.env.num_envs
+        self.say(f"distributed: {self.K} rollout actors x {b} envs, each rollout of "
+                 f"{self._full_share() * self.K * b} env steps split over them "
+                 f"({self._full_share()} steps per env copy), {len(self.eval_workers)} eval actors, "
+                 f"learner on {self.device}")
+
+    def env_steps(self) -> int:
+        return self.trained
+
+    def postfix(self) -> dict[str, str]:
+        return {**super().postfix(), "stale": str(self.shares.dropped)}
+
+    def eval_extra(self) -> dict[str, Any]:
+        return {"stale_rollouts": self.shares.dropped, "stale_env_steps": self.shares.dropped_steps}
+
+    def write_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> None:
+        super().write_scalars(p, env_sps, grad_sps)
+        self.tb.add_scalar("charts/stale_rollouts", self.shares.dropped, p.env_steps)
+
+    # ---- collection ------------------------------------------------------------------------
+    def _full_share(self) -> int:
+        return -(-self.config.train.collect_steps // (self.K * self.config.env.num_envs))
+
+    def _next_share(self) -> int:
+        """T of the next rollout's shares: the last one shorter, ending at train.total_steps."""
+        per_step = self.K * self.config.env.num_envs
+        return min(self._full_share(), -(-(self.config.train.total_steps - self.trained) // per_step))
+
+    def _current_calls(self, i: int | None = None) -> int:
+        return sum(1 for ref, (j, _) in self.inflight.items()
+                   if self.call_version.get(ref) == self.shares.version and i in (None, j))
+
+    def _submit(self, i: int) -> None:
+        """Ask actor i for a share of the current version, if the version still needs one
+        that no call in flight will bring (one such call per actor at a time)."""
+        if i in self.dead or time.monotonic() < self.retry_at[i] or self.share_steps <= 0:
+            return
+        if len(self.shares.kept) + self._current_calls() >= self.K or self._current_calls(i):
+            return
+        ref = self.workers[i].collect.remote(self.share_steps)
+        self.inflight[ref] = (i, self.share_steps * self.config.env.num_envs)
+        self.call_version[ref] = self.shares.version
+
+    def _top_up(self) -> None:
+        for i in range(self.K):
+            self._submit(i)
+
+    def _take(self, i: int, r: dict[str, Any]) -> None:
+        self.stats.add_finished(r["returns"], r["lengths"], r["info"])
+        if not self.shares.offer(i, r["policy_version"], r["rollout"]):
+            self.say(f"dropped a stale rollout from actor {i} (policy version {r['policy_version']}, the "
+                     f"learner's {self.shares.version}): {self.shares.dropped} so far")
+        self._submit(i)
+
+    # ---- the loop ---------------------------------------------------------------------------
+    def _new_version(self) -> None:
+        """After a push: the version the actors pull now (waited for, so every later call acts
+        with it) and the shares it needs."""
+        self.shares.advance(self.ray.get(self.pusher.last_ref))
+        self.call_version = {ref: v for ref, v in self.call_version.items() if ref in self.inflight}
+        self.share_steps = self._next_share()
+        self._top_up()
+
+    def _update(self) -> None:
+        """Train on the K shares of the current version, then publish the new weights."""
+        rollout = self.shares.take()
+        self.trained += self.share_steps * self.K * self.config.env.num_envs
+        self.step_schedules(self.trained)
+        # A last rollout cut short by train.total_steps is collected, not trained on, as in
+        # one process (where the rollout writer never inserts a partial rollout).
+        if not self.collect_only and self.share_steps == self._full_share():
+            self.table.insert(rollout)
+            self.learner.run(self.learner.available_steps())  # this one rollout; pushes the weights
+        self._new_version()
+
+    def iterate(self) -> None:
+        ray = self.ray
+        self.pusher.push(force=True)  # fresh or restored weights
+        self.sps_log.rates.reset(self.progress())
+        self._new_version()
+        total = self.config.train.total_steps
+        while self.trained < total:
+            moved = self._poll_workers()
+            if self.shares.ready():
+                self._update()
+                moved = True
+            self._top_up()  # an actor back from a restart, or one whose retry wait is over
+            self.fire_triggers()
+            self._finish_evals()
+            if not moved:
+                if self.inflight:
+                    ray.wait(list(self.inflight), num_returns=1, timeout=RETRY_S if self._retry_pending() else 1.0)
+                else:
+                    time.sleep(RETRY_S)  # only an actor waiting to be asked again
+        if self.shares.dropped:
+            self.say(f"{self.shares.dropped} stale rollouts ({self.shares.dropped_steps:,} env steps) were "
+                     "collected with an older policy and dropped")
+
+    # ---- checkpoints --------------------------------------------------------------------------
+    def _collection_state(self) -> dict[str, Any]:
+        # Checkpoints come between updates: no share is kept, and calls in flight are made anew.
+        return {"replay": None, "shipped": [], "onpolicy": {"trained": self.trained, **self.shares.state_dict()}}
+
+    def _restore_collection(self, state: dict[str, Any]) -> None:
+        self.trained = int(state["onpolicy"]["trained"])
+        self.shares.load_state_dict(state["onpolicy"])
