@@ -6,6 +6,9 @@ and exported policies act as the agent does and which resumes bit for bit."""
 from __future__ import annotations
 
 import math
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -229,3 +232,16 @@ def test_normalised_policy_saved_loaded_exported_and_pulled_acts_as_the_agent(no
     assert torch.equal(relayrl.load_policy(root)(obs), expected)
     program = torch.export.load(relayrl.export_policy(root, tmp_path / "policy.pt2")).module()
     assert torch.allclose(program(obs), expected, atol=1e-6)
+
+
+@pytest.mark.parametrize("preset", ["ppo-lunarlander", "ppo-lunarlander-continuous"])
+def test_lunarlander_presets_without_box2d_say_which_extra_in_one_line(preset, cli_env, tmp_path):
+    fake = tmp_path / "site" / "Box2D"  # an installed-but-broken Box2D: importing it fails, as when it is missing
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("raise ImportError('No module named Box2D')\n")
+    env = {**cli_env, "PYTHONPATH": str(fake.parent) + os.pathsep + cli_env["PYTHONPATH"]}
+    r = subprocess.run([sys.executable, "-m", "relayrl", "train", preset, "--run-dir", str(tmp_path / "z")],
+                       capture_output=True, text=True, env=env, timeout=300)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert "Box2D is not installed" in lines[0] and "relayrl[box2d]" in lines[0]
