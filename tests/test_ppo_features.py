@@ -232,6 +232,11 @@ def test_normalised_policy_saved_loaded_exported_and_pulled_acts_as_the_agent(no
     assert torch.equal(relayrl.load_policy(root)(obs), expected)
     program = torch.export.load(relayrl.export_policy(root, tmp_path / "policy.pt2")).module()
     assert torch.allclose(program(obs), expected, atol=1e-6)
+    ort = pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnx")
+    session = ort.InferenceSession(str(relayrl.export_policy(root, tmp_path / "policy.onnx", format="onnx")),
+                                   providers=["CPUExecutionProvider"])
+    assert np.allclose(session.run(None, {"obs": obs.numpy()})[0], expected.numpy(), atol=1e-5)
 
 
 @pytest.mark.parametrize("preset", ["ppo-lunarlander", "ppo-lunarlander-continuous"])
