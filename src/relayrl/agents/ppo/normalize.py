@@ -36,18 +36,30 @@ class RunningMeanStd(nn.Module):
 
     @torch.no_grad()
     def update(self, x: torch.Tensor) -> None:
-        """Fold in a batch x [N, *shape] (Chan et al.'s parallel mean and variance)."""
-        x = x.to(self.mean.device, torch.float64)
-        n = x.shape[0]
+        """Fold in a batch x [N, *shape]."""
+        self.update_steps(x[None])
+
+    @torch.no_grad()
+    def update_steps(self, x: torch.Tensor) -> torch.Tensor:
+        """Fold in T batches x [T, N, *shape], in order; returns the variance after each [T, *shape].
+
+        Pooled sums over the data shifted by the current mean (which keeps the sums of squares
+        small): after t batches, with n_t rows in all (the prior's count included), S1 and S2
+        the sums of the shifted rows and of their squares, the mean moves by S1 / n_t and
+        var_t = (var * count + S2 - S1^2 / n_t) / n_t, as folding the batches in one by one.
+        """
+        d = x.to(self.mean.device, torch.float64) - self.mean
+        t_len, n = d.shape[0], d.shape[1]
         if n == 0:
-            return
-        batch_mean, batch_var = x.mean(0), x.var(0, unbiased=False)
-        delta = batch_mean - self.mean
-        total = self.count + n
-        m2 = self.var * self.count + batch_var * n + delta.square() * self.count * n / total
-        self.mean.add_(delta * n / total)
-        self.var.copy_(m2 / total)
-        self.count.copy_(total)
+            return self.var.expand(t_len, *self.var.shape)
+        counts = self.count + n * torch.arange(1, t_len + 1, dtype=torch.float64, device=d.device)
+        counts = counts.reshape(-1, *([1] * self.mean.dim()))
+        s1, s2 = d.sum(1).cumsum(0), d.square().sum(1).cumsum(0)  # [T, *shape]
+        var = (self.var * self.count + s2 - s1.square() / counts) / counts
+        self.mean.add_(s1[-1] / counts[-1])
+        self.var.copy_(var[-1])
+        self.count.copy_(counts[-1].reshape(()))
+        return var
 
 
 class ObsNorm(RunningMeanStd):
@@ -89,12 +101,15 @@ class RewardScaler:
             self.returns = torch.zeros(b, dtype=torch.float64)
         r = reward.detach().to("cpu", torch.float64)
         ended = done.detach().cpu()
-        out = torch.empty(t_len, b, dtype=torch.float64)
+        returns = torch.empty(t_len, b, dtype=torch.float64)  # R after each step, before its episode-end reset
+        ret = self.returns
         for t in range(t_len):
-            self.returns = self.returns * self.gamma + r[t]
-            self.rms.update(self.returns)  # B rows
-            out[t] = (r[t] / torch.sqrt(self.rms.var + EPS)).clamp(-CLIP, CLIP)
-            self.returns[ended[t]] = 0.0
+            ret = ret * self.gamma + r[t]
+            returns[t] = ret
+            ret = ret.masked_fill(ended[t], 0.0)
+        self.returns = ret
+        var = self.rms.update_steps(returns)  # [T]: var(R) with each step's returns folded in
+        out = (r / torch.sqrt(var[:, None] + EPS)).clamp(-CLIP, CLIP)
         return out.to(reward.device, torch.float32)
 
     def state_dict(self) -> dict[str, Any]:
