@@ -163,7 +163,8 @@ def test_continuous_actions_are_clipped_and_the_mean_is_deterministic():
     spec = ArraySpec((2,), torch.float32, np.array([-0.1, -1.0], np.float32), np.array([0.1, 1.0], np.float32))
     a = agent(spec, log_std_init=2.0)
     obs = torch.randn(64, 3)
-    act = a.collect_policy()(obs)
+    policy = a.collect_policy()
+    act = policy.env_action(policy(obs))  # what the env receives (the rollout keeps the sample itself)
     assert act.shape == (64, 2) and (act[:, 0].abs() <= 0.1).all() and (act[:, 1].abs() <= 1.0).all()
     assert (act[:, 1].abs() == 1.0).any()  # std e^2: many draws land beyond the bounds
     assert torch.equal(a.eval_policy()(obs), a.eval_policy()(obs))

@@ -1,5 +1,5 @@
-"""The CartPole DQN and PPO and the Pendulum SAC presets meet their promises on seeds 0, 1, 2 (bptt-pendulum:
-tests/test_stateless.py). Minutes each: `pytest -m slow`."""
+"""The CartPole DQN and PPO, the LunarLander PPO and the Pendulum SAC presets meet their promises on seeds
+0, 1, 2 (bptt-pendulum: tests/test_stateless.py). Minutes each: `pytest -m slow`."""
 
 import pytest
 
@@ -59,3 +59,13 @@ def test_ppo_cartpole_ends_at_500_within_100k(tmp_path, seed):
     # RL Zoo's ppo.yml CartPole-v1 settings; docs/benchmarks.md has the seeds' runs
     rows = evals(relayrl.load_config("ppo-cartpole", seed=seed), tmp_path / "r")
     assert rows[-1]["step"] == 100_000 and rows[-1]["average_return"] >= 500, rows
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("preset", ["ppo-lunarlander", "ppo-lunarlander-continuous"])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ppo_lunarlander_ends_at_200_or_more_in_1m(tmp_path, preset, seed):
+    # RL Zoo's ppo.yml LunarLander settings (needs relayrl[box2d]); BENCHMARKS.md has the seeds' runs
+    pytest.importorskip("Box2D")
+    rows = evals(relayrl.load_config(preset, seed=seed), tmp_path / "r")
+    assert rows[-1]["step"] == 1_000_000 and rows[-1]["average_return"] >= 200, rows

@@ -11,6 +11,7 @@ import torch
 
 from relayrl.core import Agent
 from relayrl.replay import SampleInfo
+from relayrl.training.variables import network_variables
 
 SAMPLE_TIMEOUT_S = 0.5  # how long one sample RPC may wait on the rate limiter before returning empty
 
@@ -69,7 +70,7 @@ class RemotePusher:
 
     def __init__(self, handle: Any, agent: Agent, interval: int) -> None:
         self.handle, self.agent, self.interval = handle, agent, interval
-        self.params = list(agent.policy_network().parameters())
+        self.params = network_variables(agent.policy_network())
         self._last = -(10**18)
         self.last_ref: Any = None  # the latest push's ObjectRef; ray.get gives its version
 

@@ -44,9 +44,16 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
         else:
             env = GymBatchEnv([fn] * num_envs, time_limit_terminates)
     except gym.error.Error as e:
-        raise UserError(f"env.id={env_id!r} could not be made: {e}") from None
+        raise UserError(f"env.id={env_id!r} could not be made: {e}{extra_hint(e)}") from None
     env.info_keys = tuple(info_keys)
     return env  # type: ignore[return-value]
+
+
+def extra_hint(error: Exception) -> str:
+    """For a Gymnasium env whose dependency is missing: the relayrl extra that brings it."""
+    if isinstance(error, gym.error.DependencyNotInstalled) and "box2d" in str(error).lower():
+        return " (with relayrl: pip install 'relayrl[box2d]')"
+    return ""
 
 
 def is_user_env(env_id: str, factory: EnvFn | None = None) -> bool:

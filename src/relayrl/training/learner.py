@@ -10,7 +10,7 @@ import torch
 from relayrl.core import Agent
 from relayrl.replay import SampleInfo, Table
 from relayrl.training.triggers import IntervalTrigger, Progress
-from relayrl.training.variables import VariableContainer
+from relayrl.training.variables import VariableContainer, network_variables
 from relayrl.types import Batch
 
 SAMPLE_CHUNK_BATCHES = 128  # batches drawn per `Table.sample` call in a uniform burst
@@ -34,7 +34,7 @@ class Learner:
         self.triggers = list(triggers)  # fired after every gradient step
         self.env_steps = env_steps or (lambda: 0)  # what triggers see as Progress.env_steps
         self.variables = variables  # receives the policy weights after every run with a step
-        self._policy_params = list(agent.policy_network().parameters())
+        self._policy_params = network_variables(agent.policy_network())
         self.table = table
         self.batch_size = batch_size
         self.device = device

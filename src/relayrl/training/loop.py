@@ -19,7 +19,7 @@ from relayrl.training.checkpoint import load_latest_checkpoint
 from relayrl.training.evaluate import eval_cap_note, make_eval_env
 from relayrl.training.replay_setup import build_replay, build_rollouts, replay_device
 from relayrl.training.triggers import Evaluate, Progress
-from relayrl.training.variables import VariableContainer, WeightPuller
+from relayrl.training.variables import VariableContainer, WeightPuller, network_variables
 
 
 class LocalRun(Run):
@@ -167,7 +167,7 @@ class LocalRun(Run):
         if self.actor.env_steps == 0:
             self.actor.run(min(c.train.initial_collect_steps, total))  # never past total_steps
         self.sps_log.rates.reset(self.progress())
-        self.variables.push(list(self.agent.policy_network().parameters()))  # fresh or restored weights
+        self.variables.push(network_variables(self.agent.policy_network()))  # fresh or restored weights
         self.actor.policy = self.collect_policy
         while self.actor.env_steps < total:
             self.actor.run(min(c.train.collect_steps, total - self.actor.env_steps))

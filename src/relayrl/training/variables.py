@@ -2,7 +2,8 @@
 
 TF-Agents' actors read their policy's variables from a (Reverb) variable container; ours is
 the same idea as a plain object, and the Ray layer puts one in a Ray actor. Weights travel
-as a list of CPU tensors in `network.parameters()` order, so applying them is one fused copy.
+as a list of CPU tensors (`network_variables`: the parameters, then the buffers), so applying
+them is one fused copy.
 """
 
 from __future__ import annotations
@@ -11,6 +12,12 @@ import threading
 
 import torch
 from torch import nn
+
+
+def network_variables(network: nn.Module) -> list[torch.Tensor]:
+    """What an actor's copy of `network` needs: its parameters, then its buffers (statistics
+    the network keeps, such as PPO's observation normalisation)."""
+    return [*network.parameters(), *network.buffers()]
 
 
 class VariableContainer:
@@ -60,7 +67,7 @@ class WeightPuller:
 
     def __init__(self, container: VariableContainer, network: nn.Module, interval: int = 0) -> None:
         self.container = container
-        self.params = [p.detach() for p in network.parameters()]
+        self.params = [p.detach() for p in network_variables(network)]
         self.interval = interval
         self.version = 0
         self._last_pull_step = -(10**18)

@@ -5,6 +5,11 @@ it, consumed once), computes the old log-probabilities and values with the netwo
 rollout was collected with (nothing has trained since), GAE(lambda), then `n_epochs`
 epochs of shuffled minibatches: clipped surrogate + vf_coef * value loss - ent_coef *
 entropy, one Adam step each after a global grad-norm clip.
+
+With `normalize_reward` the rollout's rewards are scaled (`normalize.RewardScaler`, whose
+state is the agent's) before GAE; with `normalize_obs` the observation statistics, buffers of
+the policy network, take in the rollout's observations after training on it, so a rollout's
+old log-probabilities come from exactly the policy that collected it.
 """
 
 from __future__ import annotations
@@ -20,7 +25,8 @@ from relayrl.agents.ppo.distributions import log_prob_entropy
 from relayrl.agents.ppo.gae import gae
 from relayrl.agents.ppo.losses import entropy_loss, explained_variance, normalize, policy_loss, value_loss
 from relayrl.agents.ppo.networks import PPONetworks
-from relayrl.agents.ppo.policy import PPOPolicy
+from relayrl.agents.ppo.normalize import RewardScaler
+from relayrl.agents.ppo.policy import PPOCollectPolicy, PPOPolicy
 from relayrl.optim import FastAdam
 from relayrl.schedules import linear_schedule
 from relayrl.specs import ArraySpec, Spec
@@ -34,7 +40,12 @@ class PPOAgent:
         self.rng = rng  # collect-policy noise, checkpointed with the agent
         self.action_spec = action_spec
         self.net = PPONetworks(obs_spec, action_spec, cfg.hidden, cfg.activation, cfg.shared,
-                               cfg.log_std_init).to(device)
+                               cfg.log_std_init, cfg.normalize_obs).to(device)
+        # tanh squashing: the log-probabilities are those of loc + scale * tanh(u)
+        bounds = self._bounds()
+        self.squash_scale = (torch.as_tensor((bounds[1] - bounds[0]) / 2, dtype=torch.float32, device=device)
+                             if cfg.squash == "tanh" and bounds is not None and not self.net.discrete else None)
+        self.reward_scaler = RewardScaler(cfg.gamma) if cfg.normalize_reward else None
         self.params = list(self.net.parameters())
         self.opt = FastAdam(self.params, lr=cfg.lr, eps=1e-5)  # SB3's PPO eps
         self.lr_at = linear_schedule(cfg.lr, cfg.lr_end if cfg.lr_end >= 0 else cfg.lr, total_steps)
@@ -57,10 +68,12 @@ class PPOAgent:
     def collect_policy(self, env_step: Callable[[], int] | None = None,
                        network: torch.nn.Module | None = None) -> PPOPolicy:
         net = network if network is not None else self.net.policy
-        return PPOPolicy(net, getattr(net, "log_std", None), self._bounds(), self.device, False, self.rng)
+        return PPOCollectPolicy(net, getattr(net, "log_std", None), self._bounds(), self.device, False, self.rng,
+                                self.cfg.squash)
 
     def eval_policy(self) -> PPOPolicy:
-        return PPOPolicy(self.net.policy, self.net.policy.log_std, self._bounds(), self.device, True)
+        return PPOPolicy(self.net.policy, self.net.policy.log_std, self._bounds(), self.device, True,
+                         squash=self.cfg.squash)
 
     def policy_network(self) -> torch.nn.Module:
         return self.net.policy
@@ -74,9 +87,11 @@ class PPOAgent:
         self.opt.lr = self.lr_at(env_steps)
         self.clip_range = self.clip_at(env_steps)
 
-    def _evaluate(self, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    def evaluate_actions(self, obs: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """(log pi(action | obs) [N], entropy [N], V(obs) [N]) under the current networks, for
+        actions as rollouts hold them (continuous: the Gaussian samples, before clipping)."""
         out, values = self.net(obs)
-        logp, entropy = log_prob_entropy(out, self.net.policy.log_std, action)
+        logp, entropy = log_prob_entropy(out, self.net.policy.log_std, action, self.squash_scale)
         return logp, entropy, values
 
     def train(self, rollout: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -87,9 +102,12 @@ class PPOAgent:
         obs = r["obs"].reshape(n, *r["obs"].shape[2:])
         action = r["action"].reshape(n, *r["action"].shape[2:])
         with torch.no_grad():
-            old_logp, _, values = self._evaluate(obs, action)
+            old_logp, _, values = self.evaluate_actions(obs, action)
             next_values = self.net(r["next_obs"].reshape(n, *r["next_obs"].shape[2:]))[1]
-        adv, returns = gae(r["reward"].float(), values.reshape(t, b), next_values.reshape(t, b),
+        reward = r["reward"].float()
+        if self.reward_scaler is not None:
+            reward = self.reward_scaler(reward, r["terminated"] | r["truncated"])
+        adv, returns = gae(reward, values.reshape(t, b), next_values.reshape(t, b),
                            r["terminated"], r["truncated"], cfg.gamma, cfg.gae_lambda)
         adv, returns = adv.reshape(-1), returns.reshape(-1)
         sums = torch.zeros(6, device=self.device)
@@ -98,6 +116,8 @@ class PPOAgent:
             for start in range(0, n, cfg.batch_size):
                 idx = order[start:start + cfg.batch_size]
                 sums += self._minibatch(obs[idx], action[idx], old_logp[idx], values[idx], adv[idx], returns[idx])
+        if self.net.policy.obs_norm is not None:
+            self.net.policy.obs_norm.update(obs)  # after training: the next rollout's policy
         steps = cfg.n_epochs * -(-n // cfg.batch_size)
         means = sums / steps
         return {"policy_loss": means[0], "value_loss": means[1], "entropy": means[2], "approx_kl": means[3],
@@ -110,7 +130,7 @@ class PPOAgent:
         cfg = self.cfg
         if cfg.normalize_advantage:
             adv = normalize(adv)
-        logp, entropy, values = self._evaluate(obs, action)
+        logp, entropy, values = self.evaluate_actions(obs, action)
         pg_loss, approx_kl, clip_fraction = policy_loss(logp, old_logp, adv, self.clip_range)
         v_loss = value_loss(values, old_values, returns, cfg.clip_range_vf)
         ent_loss = entropy_loss(entropy)
@@ -134,12 +154,15 @@ class PPOAgent:
         if p.log_std is not None:
             low, high = self._bounds()  # type: ignore[misc]
             state.update(log_std=p.log_std.detach().cpu().tolist(), action_low=np.asarray(low, np.float32),
-                         action_high=np.asarray(high, np.float32))
+                         action_high=np.asarray(high, np.float32), squash=self.cfg.squash)
+        if p.obs_norm is not None:
+            state.update(p.obs_norm.saved())
         return state
 
     def state_dict(self) -> dict[str, Any]:
         return {"net": self.net.state_dict(), "opt": self.opt.state_dict(), "train_step": self._train_step,
-                "clip_range": self.clip_range, "rng": self.rng.bit_generator.state, "gen": self.gen.get_state()}
+                "clip_range": self.clip_range, "rng": self.rng.bit_generator.state, "gen": self.gen.get_state(),
+                "reward_scaler": None if self.reward_scaler is None else self.reward_scaler.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.net.load_state_dict(state["net"])
@@ -148,3 +171,5 @@ class PPOAgent:
         self.clip_range = float(state["clip_range"])
         self.rng.bit_generator.state = state["rng"]
         self.gen.set_state(state["gen"])
+        if self.reward_scaler is not None:
+            self.reward_scaler.load_state_dict(state["reward_scaler"])

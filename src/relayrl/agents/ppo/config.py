@@ -34,8 +34,13 @@ class PPOConfig(Section):
     max_grad_norm: float = 0.5  # global gradient-norm clip over all parameters; 0 disables
     normalize_advantage: bool = True  # per-minibatch advantage normalisation
     log_std_init: float = 0.0  # continuous actions: the initial state-independent log std
+    squash: str = "clip"  # continuous: clip | tanh: the Gaussian sample clipped to, or tanh-squashed into, the bounds
+    normalize_obs: bool = False  # running observation normalisation as SB3's VecNormalize, saved with the policy
+    normalize_reward: bool = False  # rewards / running std of each env copy's discounted return (VecNormalize)
 
     def validate(self) -> None:
+        if self.squash not in ("clip", "tanh"):
+            raise ConfigError(f"agent.squash={self.squash!r} is not valid; valid: clip, tanh")
         if self.activation not in ("relu", "tanh", "elu"):
             raise ConfigError(f"agent.activation={self.activation!r} is not valid; valid: relu, tanh, elu")
         if not self.hidden or any(h < 1 for h in self.hidden):

@@ -1,6 +1,7 @@
 """PPO's networks: the actor (logits, or a Gaussian mean with a state-independent log std)
 and the critic, as two MLPs or as one whose last layer holds both heads, orthogonally
-initialised (SB3 / CleanRL: gain sqrt(2) hidden, 0.01 policy head, 1 value head, zero bias)."""
+initialised (SB3 / CleanRL: gain sqrt(2) hidden, 0.01 policy head, 1 value head, zero bias).
+With observation normalisation, both see the observations through the actor's `ObsNorm`."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import math
 import torch
 from torch import nn
 
+from relayrl.agents.ppo.normalize import ObsNorm
 from relayrl.errors import UserError
 from relayrl.nn import MLP
 from relayrl.specs import DiscreteSpec, Spec, flat_dim, is_bounded_box
@@ -42,29 +44,35 @@ def orthogonal_init_(net: MLP, head_gains: list[tuple[int, int, float]]) -> None
 class PolicyNet(nn.Module):
     """obs -> the policy's outputs [N, A] (logits or Gaussian mean); `log_std` [A] for
     continuous actions. With `shared`, `mlp` has one more output, the value, which `forward`
-    leaves out: this module is what the actor's copy of the policy holds and pulls."""
+    leaves out: this module is what the actor's copy of the policy holds and pulls, the
+    observation statistics (`obs_norm`'s buffers) included."""
 
     def __init__(self, obs_dim: int, hidden: list[int], out: int, activation: str, shared: bool,
-                 log_std_init: float | None) -> None:
+                 log_std_init: float | None, normalize_obs: bool = False) -> None:
         super().__init__()
         self.out = out
+        self.obs_norm = ObsNorm(obs_dim) if normalize_obs else None
         self.mlp = MLP(obs_dim, list(hidden), out + int(shared), activation)
         gains = [(0, out, 0.01)] + ([(out, out + 1, 1.0)] if shared else [])
         orthogonal_init_(self.mlp, gains)
         self.log_std = None if log_std_init is None else nn.Parameter(torch.full((out,), float(log_std_init)))
 
+    def features(self, obs: torch.Tensor) -> torch.Tensor:
+        """What the MLPs take: the observations, normalised when the run normalises them."""
+        return obs if self.obs_norm is None else self.obs_norm(obs)
+
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.mlp(obs)[:, : self.out]
+        return self.mlp(self.features(obs))[:, : self.out]
 
 
 class PPONetworks(nn.Module):
     def __init__(self, obs_spec: Spec, action_spec: Spec, hidden: list[int], activation: str, shared: bool,
-                 log_std_init: float) -> None:
+                 log_std_init: float, normalize_obs: bool = False) -> None:
         super().__init__()
         out, self.discrete = action_dim(action_spec)
         self.shared = shared
         self.policy = PolicyNet(flat_dim(obs_spec), hidden, out, activation, shared,
-                                None if self.discrete else log_std_init)
+                                None if self.discrete else log_std_init, normalize_obs)
         self.critic: MLP | None = None
         if not shared:
             self.critic = MLP(flat_dim(obs_spec), list(hidden), 1, activation)
@@ -72,10 +80,11 @@ class PPONetworks(nn.Module):
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(policy outputs [N, A], values [N]) in one pass through a shared network."""
+        x = self.policy.features(obs)
         if self.critic is None:
-            both = self.policy.mlp(obs)
+            both = self.policy.mlp(x)
             return both[:, : self.policy.out], both[:, self.policy.out]
-        return self.policy(obs), self.critic(obs)[:, 0]
+        return self.policy.mlp(x)[:, : self.policy.out], self.critic(x)[:, 0]
 
     def saved_head(self) -> dict[str, torch.Tensor]:
         """The actor as a plain MLP's state_dict with outputs [A] (a shared net's value row cut)."""
