@@ -45,6 +45,14 @@ class Policy(Protocol):
     def __call__(self, obs: torch.Tensor) -> torch.Tensor: ...
 
 
+class EnvActionPolicy(Policy, Protocol):
+    """A policy whose actions are not what the env takes: PPO's continuous samples, which its
+    rollouts keep (their log-probabilities are what its ratio needs) while the env receives
+    them clipped or squashed into the bounds. The Actor steps the env with `env_action(action)`."""
+
+    def env_action(self, action: torch.Tensor) -> torch.Tensor: ...
+
+
 class Observer(Protocol):
     """Sees every batched transition the actor produces (metrics, replay writers)."""
 

@@ -17,6 +17,8 @@ class Actor:
 
     Observers with a `flush()` (replay writers) are flushed at the end of every run. With a
     `puller`, each run starts by pulling newer policy weights (every `interval` env steps).
+    A policy with an `env_action` method (`core.EnvActionPolicy`: PPO's Gaussian samples) has
+    its actions mapped by it for the env, while observers see the actions themselves.
     """
 
     def __init__(self, env: BatchedEnv, policy: Policy, observers: Sequence[Observer],
@@ -33,10 +35,11 @@ class Actor:
             self.puller.maybe_pull(self.env_steps)
         b = self.env.num_envs
         taken = 0
+        env_action = getattr(self.policy, "env_action", None)
         while taken < num_steps:
             obs = self._obs
             action = self.policy(obs)
-            out = self.env.step(action)
+            out = self.env.step(action if env_action is None else env_action(action))
             t = Transition(obs, action, out.reward, out.next_obs, out.terminated, out.truncated, out.episode_info)
             for observer in self.observers:
                 observer(t)

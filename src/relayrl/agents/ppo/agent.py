@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from relayrl.agents.ppo.config import PPOConfig
+from relayrl.agents.ppo.device_policy import PPODevicePolicy
 from relayrl.agents.ppo.distributions import log_prob_entropy
 from relayrl.agents.ppo.gae import gae
 from relayrl.agents.ppo.losses import entropy_loss, explained_variance, normalize, policy_loss, value_loss
@@ -58,6 +59,12 @@ class PPOAgent:
                        network: torch.nn.Module | None = None) -> PPOPolicy:
         net = network if network is not None else self.net.policy
         return PPOPolicy(net, getattr(net, "log_std", None), self._bounds(), self.device, False, self.rng)
+
+    def device_collect_policy(self, network: torch.nn.Module | None = None) -> PPODevicePolicy:
+        """The collect policy for a stateless torch env: actions and noise stay on the device."""
+        net = network if network is not None else self.net.policy
+        return PPODevicePolicy(net, getattr(net, "log_std", None), self._bounds(), self.device,
+                               int(self.rng.integers(2**62)))
 
     def eval_policy(self) -> PPOPolicy:
         return PPOPolicy(self.net.policy, self.net.policy.log_std, self._bounds(), self.device, True)
