@@ -122,3 +122,14 @@ def test_same_seed_same_run_and_resume_is_bit_exact(tmp_path):
     train(tmp_path / "resumed", seed=3, resume=True)
     assert comparable(tmp_path / "resumed") == comparable(tmp_path / "a")
     assert_same_state(tmp_path / "a", tmp_path / "resumed")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_preset_ends_better_than_minus_300(tmp_path, seed):
+    # 1,024 stateless Pendulums, 1.5M env steps; 200-step episodes, so returns are Pendulum-v1's.
+    # BENCHMARKS.md has the seeds' runs.
+    cfg = relayrl.load_config("ppo-stateless-pendulum", ["device=cpu"], seed=seed)
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    rows = RunDir(tmp_path / "r").read_metrics()
+    assert rows[-1]["step"] >= 1_500_000 and rows[-1]["average_return"] > -300, rows
