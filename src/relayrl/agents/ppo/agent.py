@@ -60,17 +60,17 @@ class PPOAgent:
         net = network if network is not None else self.net.policy
         return PPOPolicy(net, getattr(net, "log_std", None), self._bounds(), self.device, False, self.rng)
 
-    def device_collect_policy(self, network: torch.nn.Module | None = None) -> PPODevicePolicy:
-        """The collect policy for a stateless torch env: actions and noise stay on the device."""
-        net = network if network is not None else self.net.policy
-        return PPODevicePolicy(net, getattr(net, "log_std", None), self._bounds(), self.device,
-                               int(self.rng.integers(2**62)))
-
     def eval_policy(self) -> PPOPolicy:
         return PPOPolicy(self.net.policy, self.net.policy.log_std, self._bounds(), self.device, True)
 
     def policy_network(self) -> torch.nn.Module:
         return self.net.policy
+
+    def device_collect_policy(self, network: torch.nn.Module | None = None) -> PPODevicePolicy:
+        """The collect policy for a stateless torch env: actions and noise stay on the device."""
+        net = network if network is not None else self.net.policy
+        return PPODevicePolicy(net, getattr(net, "log_std", None), self._bounds(), self.device,
+                               int(self.rng.integers(2**62)))
 
     def scalars(self, env_steps: int) -> dict[str, float]:
         """Schedules at `env_steps`, for TensorBoard (charts/learning_rate, charts/clip_range)."""
