@@ -9,6 +9,8 @@ collects whole rollouts between learner steps, so none is pending at a checkpoin
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from relayrl.arrays import to_numpy
@@ -25,19 +27,31 @@ class RolloutWriter:
         self.table = table
         self.steps = steps
         self.t = 0  # steps gathered into the rollout in progress
-        self.arrays: dict[str, np.ndarray] = {}
+        self.arrays: dict[str, Any] = {}
 
     def __call__(self, transition: Transition) -> None:
         for name in FIELDS:
-            value = to_numpy(getattr(transition, name))
-            if self.t == 0 and (name not in self.arrays or self.arrays[name].shape[1:] != value.shape
-                                or self.arrays[name].dtype != value.dtype):
-                self.arrays[name] = np.empty((self.steps, *value.shape), dtype=value.dtype)
+            value = self.as_array(getattr(transition, name))
+            if self.t == 0 and self.needs_buffer(name, value):
+                self.arrays[name] = self.empty(value)
             self.arrays[name][self.t] = value
         self.t += 1
         if self.t == self.steps:
-            self.table.insert(dict(self.arrays))  # the table's storage copies the arrays
+            self.table.insert(dict(self.arrays))  # the default storage copies them (see needs_buffer)
             self.t = 0
+
+    # What a step's fields are gathered as; `rollouts_torch.TensorRolloutWriter` keeps tensors.
+    def as_array(self, value: Any) -> Any:
+        return to_numpy(value)
+
+    def needs_buffer(self, name: str, value: Any) -> bool:
+        """At a rollout's first step: a new buffer where the field's shape or dtype changed
+        (the table's storage copies each rollout, so the buffers are reused)."""
+        old = self.arrays.get(name)
+        return old is None or tuple(old.shape[1:]) != tuple(value.shape) or old.dtype != value.dtype
+
+    def empty(self, value: Any) -> Any:
+        return np.empty((self.steps, *value.shape), dtype=value.dtype)
 
     def flush(self) -> None:
         """Nothing is staged between rollouts: a rollout goes in when its last step arrives."""

@@ -51,7 +51,8 @@ class LocalRun(Run):
         c = self.config
         stateless = isinstance(self.env, StatelessBatchEnv)
         if algorithm(c.algo).replay == "rollouts":
-            self.replay, self.writer = build_rollouts(c)
+            # A stateless torch env's rollouts stay tensors on the run's device (no host round trip).
+            self.replay, self.writer = build_rollouts(c, self.device if stateless else None)
         else:
             self.replay, self.writer = build_replay(c, obs_spec, act_spec, self.rd.root,
                                                     replay_device(c, self.device, stateless))
@@ -69,7 +70,9 @@ class LocalRun(Run):
         self.variables = VariableContainer(copy=False)
         acting_net = copy.deepcopy(self.agent.policy_network()).requires_grad_(False)
         self.actor.puller = WeightPuller(self.variables, acting_net, c.train.pull_interval)
-        self.collect_policy = self.agent.collect_policy(lambda: self.actor.env_steps, acting_net)
+        on_device = getattr(self.agent, "device_collect_policy", None) if stateless else None
+        self.collect_policy = (on_device(acting_net) if on_device is not None
+                               else self.agent.collect_policy(lambda: self.actor.env_steps, acting_net))
         return self.replay, self.variables
 
     def eval_trigger(self) -> Evaluate:

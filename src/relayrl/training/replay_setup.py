@@ -26,6 +26,7 @@ from relayrl.replay import (
 )
 from relayrl.replay.group import WriterGroup
 from relayrl.replay.rollouts import RolloutWriter
+from relayrl.replay.rollouts_torch import TensorRolloutWriter, tensor_rollout_queue
 from relayrl.seeding import RunSeeds
 from relayrl.specs import Spec
 
@@ -106,10 +107,11 @@ def build_replay(c: Config, obs_spec: Spec, action_spec: Spec, run_root: Path,
     return table, writer
 
 
-def build_rollouts(c: Config) -> tuple[Table, RolloutWriter]:
+def build_rollouts(c: Config, device: torch.device | None = None) -> tuple[Table, RolloutWriter]:
     """An on-policy algorithm's replay (registry replay "rollouts"): a queue of one rollout of
     `train.collect_steps` env steps, each consumed once by the learner. The run collects one
-    rollout per iteration with the current policy, so no stale data is ever trained on."""
+    rollout per iteration with the current policy, so no stale data is ever trained on.
+    `device`: rollouts stay torch tensors there (a stateless torch env's); None: NumPy arrays."""
     if c.train.initial_collect_steps:
         raise ConfigError(f"train.initial_collect_steps={c.train.initial_collect_steps} is not valid for "
                           f"algo={c.algo!r}: it learns on-policy, from its own rollouts only; use 0")
@@ -117,6 +119,9 @@ def build_rollouts(c: Config) -> tuple[Table, RolloutWriter]:
         raise ConfigError(f"train.pull_interval={c.train.pull_interval} is not valid for algo={c.algo!r}: each "
                           "rollout is collected with the policy just trained (0: pull every iteration)")
     steps = -(-c.train.collect_steps // c.env.num_envs)  # per env copy
+    if device is not None:
+        table = tensor_rollout_queue("rollouts", 1, device)
+        return table, TensorRolloutWriter(table, steps, device)
     table = Table.queue("rollouts", 1)
     return table, RolloutWriter(table, steps)
 

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from relayrl.agents.ppo.config import PPOConfig
+from relayrl.agents.ppo.device_policy import PPODevicePolicy
 from relayrl.agents.ppo.distributions import log_prob_entropy
 from relayrl.agents.ppo.gae import gae
 from relayrl.agents.ppo.losses import entropy_loss, explained_variance, normalize, policy_loss, value_loss
@@ -77,6 +78,13 @@ class PPOAgent:
 
     def policy_network(self) -> torch.nn.Module:
         return self.net.policy
+
+    def device_collect_policy(self, network: torch.nn.Module | None = None) -> PPODevicePolicy:
+        """The collect policy for a stateless torch env: actions and noise stay on the device."""
+        net = network if network is not None else self.net.policy
+        # The env gets the sample clipped, or tanh-squashed where the config has agent.squash = "tanh".
+        return PPODevicePolicy(net, getattr(net, "log_std", None), self._bounds(), self.device,
+                               int(self.rng.integers(2**62)), getattr(self.cfg, "squash", "clip"))
 
     def scalars(self, env_steps: int) -> dict[str, float]:
         """Schedules at `env_steps`, for TensorBoard (charts/learning_rate, charts/clip_range)."""

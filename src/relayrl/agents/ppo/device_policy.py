@@ -1,0 +1,57 @@
+"""PPO's collect policy in torch ops on the observations' device, for stateless torch envs:
+actions stay tensors there and the sampling noise comes from a torch Generator on that
+device (checkpointed through `state_dict`), so env, policy and rollout never go through the
+host. The distribution is the collect policy's: a categorical over logits (inverse CDF of one
+uniform per row), or a Gaussian sample u around the mean with the state-independent std,
+which the rollout keeps while the env receives `env_action(u)`: u clipped to the action
+bounds, or squashed into them (loc + scale * tanh(u), squash = "tanh").
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+
+class PPODevicePolicy:
+    def __init__(self, net: nn.Module, log_std: torch.Tensor | None, bounds: tuple[np.ndarray, np.ndarray] | None,
+                 device: torch.device, seed: int, squash: str = "clip") -> None:
+        self.net = net  # obs -> logits or mean [B, A]
+        self.log_std = log_std  # [A]; None for discrete actions (pulls update it in place)
+        self.device = device
+        self.squash = squash
+        self.gen = torch.Generator(device=device)
+        self.gen.manual_seed(seed)
+        self.low = self.high = None
+        if bounds is not None:
+            self.low, self.high = (torch.as_tensor(b, dtype=torch.float32, device=device) for b in bounds)
+
+    @torch.no_grad()
+    def __call__(self, obs: torch.Tensor) -> torch.Tensor:
+        """Discrete: the action [B]. Continuous: the Gaussian sample u [B, A], unbounded."""
+        out = self.net(obs.to(self.device)).float()  # [B, A]
+        if self.log_std is None:
+            u = torch.rand((out.shape[0], 1), generator=self.gen, device=self.device, dtype=torch.float64)
+            probs = torch.softmax(out.double(), dim=1)
+            return (probs.cumsum(dim=1) < u).sum(dim=1).clamp_(max=out.shape[1] - 1)  # [B]
+        noise = torch.randn(out.shape, generator=self.gen, device=self.device)
+        return out + self.log_std.detach().float().exp() * noise
+
+    def env_action(self, action: torch.Tensor) -> torch.Tensor:
+        """What the env receives for `action`: clipped or squashed into the bounds."""
+        if self.low is None:
+            return action
+        if self.squash == "tanh":
+            loc, scale = (self.high + self.low) / 2, (self.high - self.low) / 2
+            return loc + scale * torch.tanh(action)
+        return torch.minimum(torch.maximum(action, self.low), self.high)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"gen": self.gen.get_state()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if "gen" in state:
+            self.gen.set_state(state["gen"])
