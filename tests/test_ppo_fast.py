@@ -7,6 +7,7 @@ import torch
 
 from relayrl.agents.ppo.agent import PPOAgent
 from relayrl.agents.ppo.config import PPOConfig
+from relayrl.agents.ppo.policy import PPOPolicy
 from relayrl.specs import ArraySpec, DiscreteSpec
 
 OBS = ArraySpec((3,), torch.float32)
@@ -61,3 +62,24 @@ def test_shared_networks_and_value_clipping_stay_on_autograd():
         cfg = PPOConfig(hidden=[8], **kw)
         agent = PPOAgent(OBS, DiscreteSpec(3), cfg, torch.device("cpu"), np.random.default_rng(0))
         assert not agent.fast
+
+
+@pytest.mark.parametrize("discrete", [True, False])
+@pytest.mark.parametrize("shared", [False, True])
+def test_collect_policy_on_numpy_acts_as_the_torch_path(discrete, shared):
+    """The policy's NumPy forward pass (MLPInference) against the same network run by torch
+    (wrapped so that the policy cannot see it is an MLP), with the same noise draws."""
+    cfg = PPOConfig(hidden=[16, 16], shared=shared)
+    agent = PPOAgent(OBS, DiscreteSpec(3) if discrete else BOX, cfg, torch.device("cpu"), np.random.default_rng(0))
+    fast = agent.collect_policy()
+    net = agent.policy_network()
+    slow = PPOPolicy(torch.nn.Sequential(net), net.log_std, None if discrete else (BOX.low, BOX.high),
+                     torch.device("cpu"), False, np.random.default_rng(0))
+    fast.rng = np.random.default_rng(0)
+    with torch.no_grad():
+        for layer in net.mlp.layers:  # logits far from uniform, so that samples differ by state
+            layer.weight.mul_(30.0)
+    obs = torch.randn(64, 3)
+    a, b = fast(obs), slow(obs)
+    assert a.dtype == b.dtype and a.shape == b.shape
+    assert torch.equal(a, b) if discrete else torch.allclose(a, b, atol=1e-5)
