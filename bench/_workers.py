@@ -20,10 +20,12 @@ def run_worker(python: str, script: str, args: list[str]) -> tuple[dict | None, 
     return None, proc
 
 
-def sb3_eval_callback(env_id: str, every: int, episodes: int, seed: int):  # -> BaseCallback (SB3, peer venv only)
+def sb3_eval_callback(env_id: str, every: int, episodes: int, seed: int,
+                      at_start: bool = False):  # -> BaseCallback (SB3, peer venv only)
     """An SB3 callback evaluating the deterministic policy for `episodes` episodes every `every`
-    env steps, from seeded start states; `.curve` holds (env steps, mean return), `.eval_s` the
-    time spent, and `.evaluate()` runs one more evaluation (e.g. at the end)."""
+    env steps (and before the first step with `at_start`, as relayrl does), from seeded start
+    states; `.curve` holds (env steps, mean return), `.eval_s` the time spent, and
+    `.evaluate()` runs one more evaluation (e.g. at the end)."""
     import time
 
     import gymnasium as gym
@@ -51,6 +53,10 @@ def sb3_eval_callback(env_id: str, every: int, episodes: int, seed: int):  # -> 
                 rets.append(ret)
             self.curve.append((self.num_timesteps, float(np.mean(rets))))
             self.eval_s += time.perf_counter() - t0
+
+        def _on_training_start(self) -> None:
+            if at_start:
+                self.evaluate()
 
         def _on_step(self) -> bool:
             if self.num_timesteps % every == 0:

@@ -14,6 +14,9 @@ matter) with `PYTHONPATH=<tree>/src`. The table reports medians and B relative t
   sac         bench/sac_pendulum.py's relayrl side, seed 0, --sac-steps env steps: as dqn-zoo
   collect-32  bench/collect.py --envs 32 --vectorization sync (SAC's actor, 32 Pendulum copies,
               writer and table): env steps/s
+  ppo-cartpole     bench/ppo.py's relayrl cartpole setting, seed 0, --ppo-cartpole-steps env steps:
+                   as dqn-zoo
+  ppo-lunarlander  bench/ppo.py's relayrl lunarlander setting, seed 0, --ppo-lunarlander-steps: as dqn-zoo
   per         bench/replay.py's relayrl `per` task (prioritized sample 256 + update from a
               1,000,000-item table): iterations/s
 """
@@ -56,6 +59,11 @@ WORKLOADS: dict[str, Workload] = {
             lambda s, out: _train_s(_result(s, out)), "time"),
     "collect-32": (lambda a, out: ["bench/collect.py", "--envs", "32", "--vectorization", "sync", "--repeats", "1",
                                    "--seconds", str(a.seconds), "--json", str(out)], _collect_json, "rate"),
+    "ppo-cartpole": (lambda a, out: ["bench/ppo.py", "--worker", "relayrl", "cartpole", "0",
+                                     str(a.ppo_cartpole_steps), "0"], lambda s, out: _train_s(_result(s, out)), "time"),
+    "ppo-lunarlander": (lambda a, out: ["bench/ppo.py", "--worker", "relayrl", "lunarlander", "0",
+                                        str(a.ppo_lunarlander_steps), "0"], lambda s, out: _train_s(_result(s, out)),
+                        "time"),
     "per": (lambda a, out: ["bench/replay.py", "--worker", "relayrl", "per", str(a.seconds)],
             lambda s, out: _result(s, out)["rate"], "rate"),
 }
@@ -80,6 +88,8 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--only", nargs="+", choices=sorted(WORKLOADS), default=list(WORKLOADS))
     p.add_argument("--sac-steps", type=int, default=4000)
+    p.add_argument("--ppo-cartpole-steps", type=int, default=25_600)
+    p.add_argument("--ppo-lunarlander-steps", type=int, default=32_768)
     p.add_argument("--seconds", type=float, default=2.0, help="timed length of the rate workloads")
     p.add_argument("--json")
     args = p.parse_args()

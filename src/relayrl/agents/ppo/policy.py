@@ -20,6 +20,8 @@ from torch import nn
 
 from relayrl.agents.ppo.distributions import squash
 from relayrl.agents.ppo.normalize import ObsNorm
+from relayrl.nn import MLP
+from relayrl.nn.mlp_fast import MLPInference
 from relayrl.policies import saved_bounds, saved_network
 
 SQUASHES = ("clip", "tanh")
@@ -38,6 +40,14 @@ class PPOPolicy:
         self.rng = rng if rng is not None else np.random.default_rng()
         self.squash = squash
         self.low = self.high = None
+        # A float32 MLP on the CPU (the run's PolicyNet holds one as `mlp`, a saved policy is
+        # one) runs through MLPInference: NumPy views of its weights for small batches; not
+        # behind an observation normaliser, which only the torch forward applies.
+        mlp = getattr(net, "mlp", net)
+        self.outputs = getattr(net, "out", None)  # a shared net's MLP has the value as one more output
+        self._cpu = (MLPInference(mlp) if isinstance(mlp, MLP) and device.type == "cpu"
+                     and getattr(net, "obs_norm", None) is None
+                     and all(p.dtype == torch.float32 for p in mlp.parameters()) else None)
         if bounds is not None:
             self.low, self.high = (torch.as_tensor(b, dtype=torch.float32) for b in bounds)
             self.loc, self.scale = (self.high + self.low) / 2, (self.high - self.low) / 2
@@ -45,17 +55,26 @@ class PPOPolicy:
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
         return self.bound(self.sample(obs))
 
-    @torch.no_grad()
+    def _outputs(self, obs: torch.Tensor) -> np.ndarray:
+        """The network's outputs [B, A] (logits or Gaussian mean) as a float32 NumPy array."""
+        if self._cpu is not None and obs.device.type == "cpu":
+            return self._cpu(obs)[:, : self.outputs]
+        with torch.no_grad():
+            return self.net(obs.to(self.device, non_blocking=True)).float().cpu().numpy()
+
     def sample(self, obs: torch.Tensor) -> torch.Tensor:
         """Discrete: the action [B]. Continuous: the Gaussian sample u [B, A] (the mean when
         deterministic), before clipping or squashing."""
-        out = self.net(obs.to(self.device, non_blocking=True)).float().cpu()  # [B, A]
+        out_np = self._outputs(obs)  # [B, A]
         if self.log_std is None:
             if self.deterministic:
-                return out.argmax(dim=1)
-            probs = torch.softmax(out.double(), dim=1)
-            u = torch.from_numpy(self.rng.random((out.shape[0], 1)))
-            return (probs.cumsum(dim=1) < u).sum(dim=1).clamp_(max=out.shape[1] - 1)  # inverse CDF [B]
+                return torch.from_numpy(out_np.argmax(axis=1))
+            logits = out_np.astype(np.float64)
+            e = np.exp(logits - logits.max(axis=1, keepdims=True))
+            cdf = np.cumsum(e / e.sum(axis=1, keepdims=True), axis=1)
+            u = self.rng.random((out_np.shape[0], 1))
+            return torch.from_numpy(np.minimum((cdf < u).sum(axis=1), out_np.shape[1] - 1))  # inverse CDF [B]
+        out = torch.from_numpy(out_np)
         if self.deterministic:
             return out
         noise = torch.from_numpy(self.rng.standard_normal(out.shape, dtype=np.float32))
