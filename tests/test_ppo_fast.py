@@ -80,6 +80,6 @@ def test_collect_policy_on_numpy_acts_as_the_torch_path(discrete, shared):
         for layer in net.mlp.layers:  # logits far from uniform, so that samples differ by state
             layer.weight.mul_(30.0)
     obs = torch.randn(64, 3)
-    a, b = fast(obs), slow(obs)
+    a, b = fast.sample(obs), slow.sample(obs)  # the draws, before clipping
     assert a.dtype == b.dtype and a.shape == b.shape
     assert torch.equal(a, b) if discrete else torch.allclose(a, b, atol=1e-5)

@@ -105,7 +105,7 @@ class PPOAgent:
         net = network if network is not None else self.net.policy
         # The env gets the sample clipped, or tanh-squashed where the config has agent.squash = "tanh".
         return PPODevicePolicy(net, getattr(net, "log_std", None), self._bounds(), self.device,
-                               int(self.rng.integers(2**62)), getattr(self.cfg, "squash", "clip"))
+                               int(self.rng.integers(2**62)), self.cfg.squash)
 
     def scalars(self, env_steps: int) -> dict[str, float]:
         """Schedules at `env_steps`, for TensorBoard (charts/learning_rate, charts/clip_range)."""
