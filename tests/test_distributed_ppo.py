@@ -182,7 +182,7 @@ def test_ppo_on_ray_resumes_from_its_checkpoint(ray_run, tmp_path, capsys):
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_ppo_cartpole_on_two_ray_actors_ends_at_500_within_100k(tmp_path, seed):
     # The preset's 8 env copies as 2 actors x 4: the same rollout, 8 copies x 32 steps
-    # (BENCHMARKS.md has the seeds' runs, and those of 2 actors x 8 copies x 16 steps)
+    # (docs/benchmarks.md has the seeds' runs, and those of 2 actors x 8 copies x 16 steps)
     config = relayrl.load_config("ppo-cartpole", ["distributed.num_actors=2", "env.num_envs=4"], seed=seed)
     relayrl.train(config, tmp_path / "r", progress=False)
     r = rows(tmp_path / "r")

@@ -60,7 +60,7 @@ def test_ppo_cartpole_ends_at_500_within_100k(tmp_path, seed):
 @pytest.mark.parametrize("preset", ["ppo-lunarlander", "ppo-lunarlander-continuous"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_ppo_lunarlander_ends_at_200_or_more_in_1m(tmp_path, preset, seed):
-    # RL Zoo's ppo.yml LunarLander settings (needs relayrl[box2d]); BENCHMARKS.md has the seeds' runs
+    # RL Zoo's ppo.yml LunarLander settings (needs relayrl[box2d]); docs/benchmarks.md has the seeds' runs
     pytest.importorskip("Box2D")
     rows = evals(relayrl.load_config(preset, seed=seed), tmp_path / "r")
     assert rows[-1]["step"] == 1_000_000 and rows[-1]["average_return"] >= 200, rows
