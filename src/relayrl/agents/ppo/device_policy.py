@@ -15,6 +15,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from relayrl.agents.ppo.distributions import to_bounds
+
 
 class PPODevicePolicy:
     def __init__(self, net: nn.Module, log_std: torch.Tensor | None, bounds: tuple[np.ndarray, np.ndarray] | None,
@@ -42,12 +44,7 @@ class PPODevicePolicy:
 
     def env_action(self, action: torch.Tensor) -> torch.Tensor:
         """What the env receives for `action`: clipped or squashed into the bounds."""
-        if self.low is None:
-            return action
-        if self.squash == "tanh":
-            loc, scale = (self.high + self.low) / 2, (self.high - self.low) / 2
-            return loc + scale * torch.tanh(action)
-        return torch.minimum(torch.maximum(action, self.low), self.high)
+        return action if self.low is None else to_bounds(action, self.low, self.high, self.squash == "tanh")
 
     def state_dict(self) -> dict[str, Any]:
         return {"gen": self.gen.get_state()}

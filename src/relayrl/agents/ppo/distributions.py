@@ -42,6 +42,9 @@ def log_prob_entropy(out: torch.Tensor, log_std: torch.Tensor | None, action: to
     return logp, entropy
 
 
-def squash(u: torch.Tensor, loc: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
-    """The env action of a tanh-squashed Gaussian sample: loc + scale * tanh(u)."""
-    return loc + scale * torch.tanh(u)
+def to_bounds(u: torch.Tensor, low: torch.Tensor, high: torch.Tensor, tanh: bool) -> torch.Tensor:
+    """The env action for a Gaussian sample (or mean) u: clip(u, low, high), or with tanh
+    squashing loc + scale * tanh(u), loc and scale the bounds' midpoint and half-width."""
+    if tanh:
+        return (high + low) / 2 + (high - low) / 2 * torch.tanh(u)
+    return torch.minimum(torch.maximum(u, low), high)

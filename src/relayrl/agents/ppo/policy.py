@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from relayrl.agents.ppo.distributions import squash
+from relayrl.agents.ppo.distributions import to_bounds
 from relayrl.agents.ppo.normalize import ObsNorm
 from relayrl.nn import MLP
 from relayrl.nn.mlp_fast import MLPInference
@@ -50,7 +50,6 @@ class PPOPolicy:
                      and all(p.dtype == torch.float32 for p in mlp.parameters()) else None)
         if bounds is not None:
             self.low, self.high = (torch.as_tensor(b, dtype=torch.float32) for b in bounds)
-            self.loc, self.scale = (self.high + self.low) / 2, (self.high - self.low) / 2
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
         return self.bound(self.sample(obs))
@@ -82,11 +81,7 @@ class PPOPolicy:
 
     def bound(self, u: torch.Tensor) -> torch.Tensor:
         """The action the env receives for `sample`'s u: clipped or squashed into the bounds."""
-        if self.low is None:
-            return u
-        if self.squash == "tanh":
-            return squash(u, self.loc, self.scale)
-        return torch.minimum(torch.maximum(u, self.low), self.high)
+        return u if self.low is None else to_bounds(u, self.low, self.high, self.squash == "tanh")
 
 
 class PPOCollectPolicy(PPOPolicy):
@@ -129,16 +124,12 @@ class Greedy(nn.Module):
             low, high = (torch.as_tensor(b, dtype=torch.float32) for b in saved_bounds(state))
             self.register_buffer("low", low)
             self.register_buffer("high", high)
-            self.register_buffer("loc", (high + low) / 2)
-            self.register_buffer("scale", (high - low) / 2)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         out = self.net(obs)
         if self.discrete:
             return out.argmax(dim=1)  # [B]
-        if self.tanh:
-            return squash(out, self.loc, self.scale)  # [B, A]
-        return torch.minimum(torch.maximum(out, self.low), self.high)  # [B, A]
+        return to_bounds(out, self.low, self.high, self.tanh)  # [B, A]
 
 
 def deterministic_module(state: dict[str, Any]) -> nn.Module:
