@@ -26,7 +26,7 @@ class HeadGrads(NamedTuple):
     value: Tensor  # d loss / d values [N, 1]
 
 
-def _surrogate(logp: Tensor, old_logp: Tensor, adv: Tensor, clip_range: float) -> tuple[Tensor, Tensor, Tensor]:
+def _surrogate(logp: Tensor, old_logp: Tensor, adv: Tensor, clip_range: float) -> tuple[Tensor, Tensor]:
     """(policy loss, approx KL, clip fraction) as `losses.policy_loss`, and d loss / d logp [N].
 
     d/dr of -min(r A, clip(r) A) is -A where the unclipped term is the smaller or the two are
@@ -41,7 +41,7 @@ def _surrogate(logp: Tensor, old_logp: Tensor, adv: Tensor, clip_range: float) -
     approx_kl = ((ratio - 1.0) - log_ratio).mean()
     clip_fraction = ((ratio - 1.0).abs() > clip_range).float().mean()
     g_logp = (unclipped <= clipped) * (unclipped * (-1.0 / n))  # d loss / d r * r
-    return torch.stack([loss, approx_kl, clip_fraction]), g_logp, ratio
+    return torch.stack([loss, approx_kl, clip_fraction]), g_logp
 
 
 @torch.no_grad()
@@ -56,7 +56,7 @@ def head_grads(out: Tensor, log_std: Tensor | None, action: Tensor, values: Tens
         logp = logp_all.gather(1, idx)[:, 0]
         p = logp_all.exp()
         entropy = -(p * logp_all).sum(-1)
-        surr, g_logp, _ = _surrogate(logp, old_logp, adv, clip_range)
+        surr, g_logp = _surrogate(logp, old_logp, adv, clip_range)
         # d logp_a / d logits = onehot(a) - p; d (-H) / d logits = p (log p + H)
         g_out = p * ((logp_all + entropy.unsqueeze(1)) * (ent_coef / n) - g_logp.unsqueeze(1))
         g_out.scatter_add_(1, idx, g_logp.unsqueeze(1))
@@ -66,7 +66,7 @@ def head_grads(out: Tensor, log_std: Tensor | None, action: Tensor, values: Tens
         inv_std = torch.exp(-log_std)
         z = (action.reshape(out.shape).to(out.dtype) - out) * inv_std
         logp = (-0.5 * z.square() - log_std - LOG_SQRT_2PI).sum(-1)
-        surr, g_logp, _ = _surrogate(logp, old_logp, adv, clip_range)
+        surr, g_logp = _surrogate(logp, old_logp, adv, clip_range)
         g = g_logp.unsqueeze(1)
         g_out = g * z * inv_std  # d logp / d mean = z / std
         g_log_std = (g * (z.square() - 1.0)).sum(0) - ent_coef  # entropy = sum(log_std) + const
