@@ -181,7 +181,7 @@ def test_discrete_samples_follow_the_logits():
 
 
 def test_refuses_unbounded_actions_random_warmup_and_stale_actors(tmp_path):
-    with pytest.raises(UserError, match="PPO needs"):
+    with pytest.raises(UserError, match="PPO takes"):
         agent(ArraySpec((2,), torch.float32))
     for key in ("initial_collect_steps", "pull_interval"):
         cfg = relayrl.load_config("ppo-cartpole", [f"train.{key}=100"])

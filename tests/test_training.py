@@ -85,7 +85,7 @@ def test_checkpoints_are_atomic_and_fall_back_past_a_corrupt_one(tmp_path):
 
 
 def test_dqn_refuses_continuous_actions(tmp_path):
-    with pytest.raises(UserError, match="DQN needs a discrete action space"):
+    with pytest.raises(UserError, match="DQN takes a Discrete action space"):
         relayrl.train(relayrl.load_config("dqn-cartpole-fast", ["env.id=Pendulum-v1"]), tmp_path / "p",
                       progress=False)
     assert not (tmp_path / "p").exists()

@@ -18,6 +18,14 @@ from typing import Any, ClassVar
 
 from relayrl.errors import ConfigError
 
+# `agent.encoder` of every algorithm on observations (nn/encoders.py builds them)
+ENCODERS = ("auto", "flatten", "nature_cnn", "small_cnn")
+
+
+def check_encoder(value: str) -> None:
+    if value not in ENCODERS:
+        raise ConfigError(f"agent.encoder={value!r} is not valid; valid: {', '.join(ENCODERS)}")
+
 
 class Section:
     """Base of the config dataclasses. `SECTION` is the section's name in TOML ("" at the top)."""

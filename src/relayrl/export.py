@@ -8,10 +8,12 @@ a few seconds, so not done on every save) writes `policy.pt2`, a
 runs with nothing but PyTorch:
 
     program = torch.export.load("run/policy/policy.pt2").module()
-    actions = program(obs)  # [B, *obs_shape] float32 (uint8 frames for conv nets) -> [B] or [B, A]
+    actions = program(obs)  # [B, *obs_shape] in the space's dtype -> [B] or [B, A]
 
-`relayrl export --format onnx` writes `policy.onnx` instead (input "obs", output "action", the
-same shapes). Beside either, `policy.<format>.json` records the input's and output's dtype and shape.
+A policy on Dict or Tuple observations takes one input per entry, in the space's order (a
+Dict's keys, a Tuple's "0", "1", ...; nested entries as "outer.inner"). `relayrl export --format
+onnx` writes `policy.onnx` instead (input "obs" or one per entry, output "action", the same
+shapes). Beside either, `policy.<format>.json` records the inputs' and output's dtype and shape.
 """
 
 from __future__ import annotations
@@ -29,9 +31,11 @@ import torch
 from relayrl import atomic
 from relayrl.agents.registry import for_policy_kind
 from relayrl.errors import UserError
-from relayrl.loaded_policy import LoadedPolicy, observation_spec
+from relayrl.loaded_policy import LoadedPolicy
 from relayrl.paths import output_path
+from relayrl.policies import saved_obs_spec
 from relayrl.policy_file import REFUSED, load_policy_file
+from relayrl.specs import PackedSpec, Spec
 
 
 def _policy_file(path: str | Path) -> Path:
@@ -92,21 +96,32 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str =
                             "pip install 'relayrl[onnx]'") from None
     state = load_policy_state(path)
     module = for_policy_kind(state["kind"]).policy_module().deterministic_module(state).requires_grad_(False).eval()
-    shape, dtype = observation_spec(state)
-    example = torch.zeros(2, *shape, dtype=dtype)
+    inputs = input_specs(state)
+    if len(inputs) > 1 or inputs[0][0] != "obs":  # a Dict / Tuple space: one input per entry
+        module = KeyInputs(module, [name for name, _ in inputs]).eval()
+    examples = tuple(torch.zeros(2, *spec.shape, dtype=spec.dtype) for _, spec in inputs)
     target = output_path(out, _policy_file(path).with_suffix("." + format))
     batch = torch.export.Dim("batch", min=1)
+    dynamic: Any = tuple({0: batch} for _ in examples)
+    if isinstance(module, KeyInputs):
+        dynamic = {"entries": dynamic}  # torch.export names a *args group by its parameter
     # never a half-written program under the real name; torch.export wants the .pt2 suffix
     with atomic.replacing(target, ".tmp-" + target.name) as tmp:
         if format == "pt2":
-            torch.export.save(torch.export.export(module, (example,), dynamic_shapes=({0: batch},)), tmp)
+            torch.export.save(torch.export.export(module, examples, dynamic_shapes=dynamic), tmp)
         else:
-            with _quiet_onnx():
-                program = torch.onnx.export(module, (example,), input_names=["obs"], output_names=["action"],
-                                            dynamic_shapes=({0: batch},), dynamo=True, verbose=False)
+            try:
+                with _quiet_onnx():
+                    program = torch.onnx.export(module, examples, input_names=[n for n, _ in inputs],
+                                                output_names=["action"], dynamic_shapes=dynamic, dynamo=True,
+                                                verbose=False)
+            except Exception as e:  # an op the ONNX exporter cannot write: one line, pt2 still works
+                raise UserError(f"this policy cannot be exported to ONNX ({type(e).__name__}: "
+                                f"{str(e).strip().splitlines()[0] if str(e).strip() else 'no details'}); "
+                                "use --format pt2") from None
             program.save(str(tmp))
     with torch.no_grad():
-        action = module(example)
+        action = module(*examples)
     sig = signature(state, format, action)
     atomic.write_text(target.with_name(target.name + ".json"), json.dumps(sig, indent=2) + "\n")
     return target
@@ -123,19 +138,45 @@ def _quiet_onnx() -> Iterator[None]:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", FutureWarning)
             warnings.simplefilter("ignore", DeprecationWarning)
+            # one batch Dim over several inputs (a Dict space's entries) is noted as a rename
+            warnings.filterwarnings("ignore", message=".*axis name: batch will not be used")
             yield
     finally:
         log.setLevel(level)
 
 
+class KeyInputs(torch.nn.Module):
+    """A policy on Dict / Tuple observations with one input per entry (in the space's order),
+    which it hands on as the dict of entries its encoder takes."""
+
+    def __init__(self, module: torch.nn.Module, keys: list[str]) -> None:
+        super().__init__()
+        self.module = module
+        self.keys = keys
+
+    def forward(self, *entries: torch.Tensor) -> torch.Tensor:
+        return self.module(dict(zip(self.keys, entries, strict=True)))
+
+
+def input_specs(state: dict[str, Any]) -> list[tuple[str, Spec]]:
+    """(name, spec) of each input of an exported policy: "obs", or one per Dict / Tuple entry."""
+    spec = saved_obs_spec(state)
+    if isinstance(spec, PackedSpec):
+        return [(f.key, f.spec) for f in spec.fields]
+    return [("obs", spec)]
+
+
 def signature(state: dict[str, Any], format: str, action: torch.Tensor) -> dict[str, Any]:
     """What an exported policy takes and returns, for `<file>.json` and the CLI's line."""
-    shape, dtype = observation_spec(state)
-    return {"format": format, "kind": state["kind"], "env_id": state.get("env_id"),
-            "env_steps": state.get("env_steps"),
-            "input": {"name": "obs", "dtype": str(dtype).removeprefix("torch."), "shape": ["batch", *shape]},
-            "output": {"name": "action", "dtype": str(action.dtype).removeprefix("torch."),
-                       "shape": ["batch", *action.shape[1:]]}}
+    inputs = [{"name": name, "dtype": str(spec.dtype).removeprefix("torch."), "shape": ["batch", *spec.shape]}
+              for name, spec in input_specs(state)]
+    sig = {"format": format, "kind": state["kind"], "env_id": state.get("env_id"),
+           "env_steps": state.get("env_steps"), "input": inputs[0],
+           "output": {"name": "action", "dtype": str(action.dtype).removeprefix("torch."),
+                      "shape": ["batch", *action.shape[1:]]}}
+    if len(inputs) > 1 or inputs[0]["name"] != "obs":
+        sig["inputs"] = inputs
+    return sig
 
 
 def describe(sig: dict[str, Any]) -> str:
@@ -143,4 +184,5 @@ def describe(sig: dict[str, Any]) -> str:
     def one(part: dict[str, Any]) -> str:
         return f"{part['name']} {part['dtype']} [{', '.join(map(str, part['shape']))}]"
 
-    return f"input {one(sig['input'])} -> output {one(sig['output'])}"
+    inputs = sig.get("inputs", [sig["input"]])
+    return f"input{'s' if len(inputs) > 1 else ''} {', '.join(map(one, inputs))} -> output {one(sig['output'])}"

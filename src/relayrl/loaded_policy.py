@@ -13,21 +13,17 @@ import numpy as np
 import torch
 
 from relayrl.errors import UserError
-
-
-def observation_spec(state: dict[str, Any]) -> tuple[tuple[int, ...], torch.dtype]:
-    """A saved policy's observation shape (without the batch) and dtype: uint8 frames for conv
-    nets, else float32 vectors."""
-    if "obs_shape" in state:
-        return tuple(int(d) for d in state["obs_shape"]), torch.uint8
-    return (int(state["obs_dim"]),), torch.float32
+from relayrl.policies import saved_obs_spec
+from relayrl.specs import DiscreteSpec, MultiDiscreteSpec, PackedSpec, describe
 
 
 class LoadedPolicy:
     """obs -> action, of the kind it is given: NumPy in, NumPy out; torch in, torch out; one
-    observation [*obs_shape] in, one action out (an integer for discrete actions, [A] else);
-    a batch [B, *obs_shape] in, [B] or [B, A] out. Float64 observations are cast to the policy's
-    dtype. `predict` is Stable-Baselines3's spelling; `batched` is the policy the run itself used.
+    observation as the env returns it in, one action out (an integer for discrete actions, [A]
+    else); a batch [B, ...] in, [B] or [B, A] out. A Dict observation is a dict of arrays (a
+    Tuple's a tuple), each entry batched or not; a Discrete one an integer. Float64
+    observations are cast to the policy's dtype. `predict` is Stable-Baselines3's spelling;
+    `batched` is the policy the run itself used.
     """
 
     def __init__(self, batched: Any, state: dict[str, Any], device: str, deterministic: bool,
@@ -36,7 +32,8 @@ class LoadedPolicy:
 
         self.batched = batched
         self.kind: str = state["kind"]
-        self.obs_shape, self.obs_dtype = observation_spec(state)
+        self.obs_space = saved_obs_spec(state)
+        self.obs_shape, self.obs_dtype = tuple(self.obs_space.shape), self.obs_space.dtype
         self.env_steps: int | None = state.get("env_steps")  # the run's env step when it was saved
         self.deterministic = deterministic
         self._state, self._device, self._seed = state, device, seed
@@ -61,22 +58,53 @@ class LoadedPolicy:
         return self._act(self._other_mode, observation), None
 
     def _act(self, policy: Any, obs: Any) -> Any:
-        numpy_in = not isinstance(obs, torch.Tensor)
-        t = torch.as_tensor(np.asarray(obs)) if numpy_in else obs
-        n = len(self.obs_shape)
-        if tuple(t.shape[-n:]) != self.obs_shape or t.dim() not in (n, n + 1):
-            raise UserError(f"observation of shape {tuple(t.shape)} does not fit this policy: it takes "
-                            f"{list(self.obs_shape)} or a batch [B, {', '.join(map(str, self.obs_shape))}]")
-        single = t.dim() == n
-        if not (t.is_floating_point() and not self.obs_dtype.is_floating_point):
-            t = t.to(self.obs_dtype)  # (float frames in [0, 1] stay float: a conv net takes those too)
-        elif t.dtype != torch.float32:
-            t = t.float()
+        if isinstance(self.obs_space, PackedSpec):
+            t, single, numpy_in = self._packed(obs)
+        else:
+            t, single, numpy_in = self._array(obs)
         with torch.no_grad():
-            actions = policy(t.unsqueeze(0) if single else t)
+            actions = policy(t)
         if single:
             actions = actions[0]
         if not numpy_in:
             return actions
         out = actions.cpu().numpy()
         return out[()] if out.ndim == 0 else out  # one discrete action: a NumPy integer
+
+    def _array(self, obs: Any) -> tuple[torch.Tensor, bool, bool]:
+        """An array observation (or batch) as the batched tensor the policy takes."""
+        numpy_in = not isinstance(obs, torch.Tensor)
+        t = torch.as_tensor(np.asarray(obs)) if numpy_in else obs
+        n = len(self.obs_shape)
+        if tuple(t.shape[t.dim() - n:]) != self.obs_shape or t.dim() not in (n, n + 1):
+            raise UserError(f"observation of shape {tuple(t.shape)} does not fit this policy: it takes "
+                            f"{describe(self.obs_space)} observations, one {list(self.obs_shape)} or a batch "
+                            f"[{', '.join(['B', *map(str, self.obs_shape)])}]")
+        single = t.dim() == n
+        if not (t.is_floating_point() and not self.obs_dtype.is_floating_point):
+            t = t.to(self.obs_dtype)  # (float frames in [0, 1] stay float: a conv net takes those too)
+        elif t.dtype != torch.float32:
+            t = t.float()
+        self._check_range(t)
+        return (t.unsqueeze(0) if single else t), single, numpy_in
+
+    def _check_range(self, t: torch.Tensor) -> None:
+        """Discrete entries outside their range would index past a one-hot: one line instead."""
+        s = self.obs_space
+        if isinstance(s, DiscreteSpec | MultiDiscreteSpec) and not t.is_floating_point() and t.numel():
+            high = torch.as_tensor(s.nvec).reshape(s.shape) if isinstance(s, MultiDiscreteSpec) else s.n
+            if bool((t < 0).any() or (t >= high).any()):
+                raise UserError(f"observation {t.tolist()} is outside this policy's {describe(s)} space")
+
+    def _packed(self, obs: Any) -> tuple[torch.Tensor, bool, bool]:
+        """A Dict / Tuple observation (or batch) as the packed rows the policy takes."""
+        spec = self.obs_space
+        assert isinstance(spec, PackedSpec)
+        if isinstance(obs, torch.Tensor | np.ndarray):
+            raise UserError(f"this policy takes {describe(spec)} observations: a "
+                            f"{'tuple' if spec.tuple_space else 'dict'} of arrays, not one array")
+        batch = spec.batch_size(obs)
+        first = obs
+        for step in spec.fields[0].path:
+            first = first[step]
+        return torch.from_numpy(spec.pack_batch(obs, batch)), batch is None, not isinstance(first, torch.Tensor)

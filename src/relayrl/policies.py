@@ -11,8 +11,9 @@ import torch
 from torch import nn
 
 from relayrl.nn import CONV_NETWORKS, MLP, ConvQNet
+from relayrl.nn.encoders import Encoded, make_encoder
 from relayrl.nn.mlp_fast import MLPInference
-from relayrl.specs import ArraySpec, DiscreteSpec, Spec
+from relayrl.specs import ArraySpec, DiscreteSpec, MultiBinarySpec, MultiDiscreteSpec, Spec, spec_from_state, spec_state
 
 
 def _cpu_mlp(net: nn.Module, device: torch.device) -> MLPInference | None:
@@ -33,6 +34,11 @@ class RandomPolicy:
         b = obs.shape[0]
         if isinstance(self.spec, DiscreteSpec):
             return torch.from_numpy(self.rng.integers(0, self.spec.n, b))
+        if isinstance(self.spec, MultiDiscreteSpec):
+            nvec = np.asarray(self.spec.nvec).reshape(self.spec.shape)
+            return torch.from_numpy(self.rng.integers(0, nvec, (b, *self.spec.shape)))
+        if isinstance(self.spec, MultiBinarySpec):
+            return torch.from_numpy(self.rng.integers(0, 2, (b, *self.spec.shape), dtype=np.int8))
         assert isinstance(self.spec, ArraySpec) and self.spec.low is not None and self.spec.high is not None
         u = self.rng.uniform(self.spec.low, self.spec.high, (b, *self.spec.shape))
         return torch.from_numpy(u.astype(np.float32))
@@ -190,12 +196,39 @@ def saved_bounds(state: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(state["action_low"], np.float32), np.asarray(state["action_high"], np.float32)
 
 
+def mlp_head(net: nn.Module) -> MLP:
+    """The MLP of a network built by `nn.encoders.encoded_mlp` (itself, or the head behind its encoder)."""
+    return net.head if isinstance(net, Encoded) else net  # type: ignore[return-value]
+
+
+def network_state(net: nn.Module, obs_spec: Spec, encoder: str, hidden: list[int], activation: str
+                  ) -> dict[str, Any]:
+    """What a policy file holds of an `encoded_mlp` network: the env's observation space (what
+    a loaded policy takes), the encoder's name (rebuilt from the two), the MLP's sizes, weights."""
+    return {"obs_space": spec_state(obs_spec), "encoder": encoder, "obs_dim": mlp_head(net).layers[0].in_features,
+            "hidden": list(hidden), "activation": activation,
+            "state_dict": {k: v.detach().cpu() for k, v in net.state_dict().items()}}
+
+
+def saved_obs_spec(state: dict[str, Any]) -> Spec:
+    """The observation spec a saved policy takes: the env's space where the file records it;
+    older files record only uint8 frames' shape (conv nets) or a float vector's size."""
+    if "obs_space" in state:
+        return spec_from_state(state["obs_space"])
+    if "obs_shape" in state:
+        return ArraySpec(tuple(int(d) for d in state["obs_shape"]), torch.uint8)
+    return ArraySpec((int(state["obs_dim"]),), torch.float32)
+
+
 def saved_network(state: dict[str, Any], out_dim: int) -> nn.Module:
     """The network of a saved policy (policy.pt's dict), in eval mode: a conv Q-net on uint8
-    frames when `state["network"]` names one, else an MLP of `state["hidden"]`."""
+    frames when `state["network"]` names one, else an MLP of `state["hidden"]` behind the
+    encoder of the saved observation space."""
     if state.get("network") in CONV_NETWORKS:  # DQN on frames: uint8 [B, C, H, W] in
         net: nn.Module = ConvQNet(tuple(state["obs_shape"]), state["num_actions"])
     else:
-        net = MLP(state["obs_dim"], state["hidden"], out_dim, state["activation"])
+        mlp = MLP(state["obs_dim"], state["hidden"], out_dim, state["activation"])
+        encoder = make_encoder(saved_obs_spec(state), state.get("encoder", "auto")) if "obs_space" in state else None
+        net = mlp if encoder is None else Encoded(encoder, mlp)
     net.load_state_dict(state["state_dict"])
     return net.eval()

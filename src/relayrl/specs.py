@@ -1,11 +1,23 @@
 """Specs: shape, dtype and bounds of observations and actions, derived from Gymnasium spaces.
 
-Specs describe one element of a batch; batched tensors carry an extra leading dim.
+Specs describe one element of a batch; batched tensors carry an extra leading dim. Every
+space kind maps to one spec: Box -> ArraySpec, Discrete -> DiscreteSpec, MultiDiscrete and
+MultiBinary -> their ArraySpec subclasses, Dict and Tuple -> a PackedSpec, so envs, replay and
+rollouts handle each observation as one array.
+
+Dict and Tuple observations travel as one byte row: each leaf's bytes at its own aligned
+offset, in its own dtype bit for bit (a uint8 image stays one byte per pixel, a float32 vector
+four), so storage costs what the leaves cost, and every part that moves observations (shared
+memory, the step store's rows, compiled writers, Ray) stays one code path. The encoder
+(`nn.encoders.DictEncoder`) views the leaves back without a copy (`unpack`); `PackedSpec.pack`
+and `pack_batch` build rows from what the env returns or what a user passes a policy.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -16,11 +28,18 @@ from relayrl.errors import UserError
 _TORCH_DTYPES = {
     np.dtype(np.float32): torch.float32,
     np.dtype(np.float64): torch.float32,  # float64 observations are stored and fed as float32
+    np.dtype(np.float16): torch.float32,
     np.dtype(np.uint8): torch.uint8,
-    np.dtype(np.int64): torch.int64,
+    np.dtype(np.int8): torch.int8,
+    np.dtype(np.int16): torch.int16,
+    np.dtype(np.uint16): torch.int32,
     np.dtype(np.int32): torch.int64,
+    np.dtype(np.uint32): torch.int64,
+    np.dtype(np.int64): torch.int64,
     np.dtype(np.bool_): torch.bool,
 }
+OBSERVATION_SPACES = "Box, Discrete, MultiDiscrete, MultiBinary, Dict, Tuple"
+ACTION_SPACES = "Discrete and Box (DQN: Discrete; SAC: Box; PPO: Discrete, Box, MultiDiscrete, MultiBinary)"
 
 
 @dataclass(frozen=True)
@@ -52,28 +71,137 @@ class DiscreteSpec:
         return torch.zeros((batch,), dtype=self.dtype)
 
 
+@dataclass(frozen=True)
+class MultiDiscreteSpec(ArraySpec):
+    """Integers [*shape], entry i in [0, nvec[i]) (Gymnasium's MultiDiscrete)."""
+
+    nvec: tuple[int, ...] = ()  # flattened, one per entry
+
+
+@dataclass(frozen=True)
+class MultiBinarySpec(ArraySpec):
+    """0/1 entries [*shape] (Gymnasium's MultiBinary)."""
+
+
 Spec = ArraySpec | DiscreteSpec
 
 
-def spec_from_space(space: gym.Space) -> Spec:
-    """The spec of one element of `space`; raise UserError for spaces relayrl cannot batch."""
+def spec_from_space(space: gym.Space, role: str = "observation") -> Spec:
+    """The spec of one element of `space` (`role`: "observation" or "action", for messages);
+    UserError, naming the space and what is valid, for spaces relayrl cannot take."""
+    valid = OBSERVATION_SPACES if role == "observation" else ACTION_SPACES
     if isinstance(space, gym.spaces.Discrete):
         if int(space.start) != 0:
-            raise UserError(f"Discrete spaces must start at 0, got start={space.start}")
+            raise UserError(f"{role} space {space} starts at {space.start}; relayrl takes Discrete spaces that start "
+                            "at 0 (wrap the env to shift them)")
         return DiscreteSpec(n=int(space.n))
     if isinstance(space, gym.spaces.Box):
         dtype = _TORCH_DTYPES.get(np.dtype(space.dtype))
         if dtype is None:
-            raise UserError(f"Box dtype {space.dtype} is not supported; use float32, uint8 or int64")
+            raise UserError(f"{role} space {space} has dtype {space.dtype}; valid Box dtypes: float16/32/64, "
+                            "uint8, int8/16/32/64, uint16/32, bool")
         return ArraySpec(tuple(space.shape), dtype, np.asarray(space.low), np.asarray(space.high))
-    raise UserError(
-        f"space {type(space).__name__} is not supported; valid: Box, Discrete"
-    )
+    if isinstance(space, gym.spaces.MultiDiscrete):
+        if np.any(np.asarray(space.start) != 0):
+            raise UserError(f"{role} space {space} has a start other than 0; relayrl takes MultiDiscrete spaces "
+                            "that start at 0")
+        nvec = np.asarray(space.nvec, np.int64)
+        return MultiDiscreteSpec(tuple(nvec.shape), torch.int64, np.zeros_like(nvec), nvec - 1,
+                                 nvec=tuple(int(n) for n in nvec.reshape(-1)))
+    if isinstance(space, gym.spaces.MultiBinary):
+        shape = tuple(np.atleast_1d(np.asarray(space.n)).tolist())
+        return MultiBinarySpec(shape, torch.int8, np.zeros(shape, np.int8), np.ones(shape, np.int8))
+    if isinstance(space, gym.spaces.Dict | gym.spaces.Tuple) and role == "observation":
+        return packed_spec(space)
+    raise UserError(f"{role} space {space} is not supported; valid {role} spaces: {valid}")
+
+
+def describe(spec: Spec) -> str:
+    """The space a spec came from, in Gymnasium's words, for messages."""
+    if isinstance(spec, DiscreteSpec):
+        return f"Discrete({spec.n})"
+    if isinstance(spec, MultiDiscreteSpec):
+        return f"MultiDiscrete({list(spec.nvec)})"
+    if isinstance(spec, MultiBinarySpec):
+        return f"MultiBinary({list(spec.shape)})"
+    fields = getattr(spec, "fields", None)
+    if fields is not None:
+        return "Dict(" + ", ".join(f"{f.key}: {describe(f.spec)}" for f in fields) + ")"
+    return f"Box(shape={tuple(spec.shape)}, dtype={str(spec.dtype).removeprefix('torch.')})"
 
 
 def flat_dim(spec: Spec) -> int:
     """Number of scalars in one element (1 for a DiscreteSpec)."""
     return int(np.prod(spec.shape)) if spec.shape else 1
+
+
+def is_flat_vector(spec: Spec) -> bool:
+    """A Box of any rank that an MLP takes flattened as it is (not an image, not a packed
+    structure, not integers with a meaning of their own such as Discrete)."""
+    return type(spec) is ArraySpec and not is_image(spec)
+
+
+def is_image(spec: Spec) -> bool:
+    """A uint8 Box shaped [H, W], [C, H, W] or [H, W, C] whose sides are at least 8: frames,
+    which the conv encoders take (scaled by 1/255)."""
+    if type(spec) is not ArraySpec or spec.dtype != torch.uint8 or len(spec.shape) not in (2, 3):
+        return False
+    return min(image_size(spec)) >= 8
+
+
+def image_layout(spec: ArraySpec) -> tuple[int, bool]:
+    """(channels, channels last) of an image spec: [H, W, C] when the last side is 1, 3 or 4
+    and the first is not (an RGB or RGBA frame), else [C, H, W] (stacked frames)."""
+    shape = spec.shape
+    if len(shape) == 2:
+        return 1, False
+    last = shape[-1] in (1, 3, 4) and shape[0] not in (1, 3, 4)
+    return (shape[-1], True) if last else (shape[0], False)
+
+
+def image_size(spec: ArraySpec) -> tuple[int, int]:
+    """(H, W) of an image-shaped spec."""
+    shape = spec.shape
+    if len(shape) == 2:
+        return shape[0], shape[1]
+    _, last = image_layout(spec)
+    return (shape[0], shape[1]) if last else (shape[1], shape[2])
+
+
+def spec_state(spec: Spec) -> dict[str, Any]:
+    """A spec as plain data (for policy files, which hold only plain types)."""
+    if isinstance(spec, DiscreteSpec):
+        return {"kind": "discrete", "n": spec.n}
+    fields = getattr(spec, "fields", None)
+    if fields is not None:
+        return {"kind": "packed", "tuple": spec.tuple_space,  # type: ignore[attr-defined]
+                "fields": [{"key": f.key, "path": list(f.path), "spec": spec_state(f.spec)} for f in fields]}
+    kind = ("multi_discrete" if isinstance(spec, MultiDiscreteSpec)
+            else "multi_binary" if isinstance(spec, MultiBinarySpec) else "box")
+    state: dict[str, Any] = {"kind": kind, "shape": list(spec.shape), "dtype": str(spec.dtype).removeprefix("torch.")}
+    if isinstance(spec, MultiDiscreteSpec):
+        state["nvec"] = list(spec.nvec)
+    return state
+
+
+def spec_from_state(state: dict[str, Any]) -> Spec:
+    """`spec_state`'s inverse (bounds are not kept: encoders and policies do not read them)."""
+    kind = state["kind"]
+    if kind == "discrete":
+        return DiscreteSpec(int(state["n"]))
+    if kind == "packed":
+        return PackedSpec.build([(f["key"], tuple(f["path"]), spec_from_state(f["spec"])) for f in state["fields"]],
+                                bool(state["tuple"]))
+    shape, dtype = tuple(int(d) for d in state["shape"]), getattr(torch, state["dtype"])
+    if kind == "multi_discrete":
+        return MultiDiscreteSpec(shape, dtype, nvec=tuple(int(n) for n in state["nvec"]))
+    if kind == "multi_binary":
+        return MultiBinarySpec(shape, dtype)
+    return ArraySpec(shape, dtype)
+
+
+def numpy_dtype(spec: Spec) -> np.dtype:
+    return torch.empty((), dtype=spec.dtype).numpy().dtype
 
 
 def is_bounded_box(spec: Spec) -> bool:
@@ -82,3 +210,107 @@ def is_bounded_box(spec: Spec) -> bool:
     return (isinstance(spec, ArraySpec) and spec.dtype.is_floating_point
             and spec.low is not None and spec.high is not None
             and bool(np.isfinite(spec.low).all() and np.isfinite(spec.high).all()))
+
+
+ALIGN = 8  # every leaf starts at a multiple of its own item size (<= 8), so a view of it is a valid array
+
+
+@dataclass(frozen=True)
+class Field:
+    key: str  # "image", "pos.x" for nested dicts, "0" for a Tuple's first entry
+    path: tuple[str | int, ...]  # how to reach the leaf in the observation
+    spec: Spec
+    offset: int  # bytes into the row
+    nbytes: int
+
+
+@dataclass(frozen=True)
+class PackedSpec(ArraySpec):
+    """A Dict or Tuple observation packed into uint8 [nbytes] (see the module docstring)."""
+
+    fields: tuple[Field, ...] = ()
+    tuple_space: bool = False  # the space is a Tuple: a policy also takes a tuple or list
+
+    @staticmethod
+    def build(leaves: Sequence[tuple[str, tuple[str | int, ...], Spec]], tuple_space: bool) -> PackedSpec:
+        fields, offset = [], 0
+        for key, path, spec in leaves:
+            nbytes = int(np.prod(spec.shape, dtype=np.int64)) * numpy_dtype(spec).itemsize
+            fields.append(Field(key, path, spec, offset, nbytes))
+            offset += -(-nbytes // ALIGN) * ALIGN
+        return PackedSpec((max(offset, ALIGN),), torch.uint8, fields=tuple(fields), tuple_space=tuple_space)
+
+    def pack(self, obs: Any) -> np.ndarray:
+        """One observation as the env returns it -> uint8 [nbytes]."""
+        return self.pack_batch(obs, batch=None)[0]
+
+    def pack_batch(self, obs: Any, batch: int | None) -> np.ndarray:
+        """Leaves [batch, *leaf_shape] (or one observation, batch None) -> uint8 [batch or 1, nbytes]."""
+        n = 1 if batch is None else batch
+        row = np.zeros((n, self.shape[0]), np.uint8)
+        for f in self.fields:
+            leaf = _leaf(obs, f)
+            want = f.spec.shape if batch is None else (batch, *f.spec.shape)
+            if leaf.shape != want:
+                batched = "" if batch is None else " or a batch [B, ...] for all keys"
+                raise UserError(f"observation[{f.key!r}] has shape {leaf.shape}; this policy takes "
+                                f"{list(f.spec.shape)}{batched}")
+            leaf = leaf.astype(numpy_dtype(f.spec), copy=False).reshape(n, -1)
+            row[:, f.offset:f.offset + f.nbytes] = leaf.view(np.uint8)
+        return row
+
+    def batch_size(self, obs: Any) -> int | None:
+        """None when `obs` is one observation, else the batch its leaves share."""
+        first = self.fields[0]
+        leaf = _leaf(obs, first)
+        extra = leaf.ndim - len(first.spec.shape)
+        if extra not in (0, 1):
+            raise UserError(f"observation[{first.key!r}] has shape {leaf.shape}; this policy takes "
+                            f"{list(first.spec.shape)} or a batch [B, {', '.join(map(str, first.spec.shape))}]")
+        return leaf.shape[0] if extra == 1 else None
+
+
+def _leaf(obs: Any, f: Field) -> np.ndarray:
+    x = obs
+    for step in f.path:
+        try:
+            x = x[step]
+        except (KeyError, IndexError, TypeError):
+            what = "a dict with key" if isinstance(step, str) else "a tuple with entry"
+            raise UserError(f"observation is not {what} {step!r} (this policy takes {f.key!r}: "
+                            f"{list(f.spec.shape)})") from None
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def packed_spec(space: gym.spaces.Dict | gym.spaces.Tuple) -> PackedSpec:
+    """The packed spec of a Dict or Tuple space (nested ones flattened into dotted keys)."""
+    leaves: list[tuple[str, tuple[str | int, ...], Spec]] = []
+
+    def walk(s: gym.Space, path: tuple[str | int, ...]) -> None:
+        if isinstance(s, gym.spaces.Dict):
+            for k, sub in s.spaces.items():
+                walk(sub, (*path, k))
+        elif isinstance(s, gym.spaces.Tuple):
+            for i, sub in enumerate(s.spaces):
+                walk(sub, (*path, i))
+        else:
+            leaves.append((".".join(map(str, path)), path, spec_from_space(s, "observation")))
+
+    walk(space, ())
+    if not leaves:
+        raise UserError(f"observation space {space} has no entries")
+    return PackedSpec.build(leaves, isinstance(space, gym.spaces.Tuple))
+
+
+def unpack(x: torch.Tensor, spec: PackedSpec) -> dict[str, torch.Tensor]:
+    """uint8 rows [B, nbytes] -> each leaf [B, *leaf_shape] in its dtype (views, no copy)."""
+    b = x.shape[0]
+    out = {}
+    for f in spec.fields:
+        part = x[:, f.offset:f.offset + f.nbytes]
+        if f.spec.dtype != torch.uint8:
+            part = part.view(f.spec.dtype)  # valid on the slice: offsets and row length are multiples of ALIGN
+        out[f.key] = part.reshape(b, *f.spec.shape)
+    return out

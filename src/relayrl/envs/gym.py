@@ -23,7 +23,7 @@ import torch
 
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
-from relayrl.specs import ArraySpec, DiscreteSpec, Spec, spec_from_space
+from relayrl.specs import ArraySpec, DiscreteSpec, PackedSpec, Spec, numpy_dtype, spec_from_space
 from relayrl.types import EpisodeInfo, StepOutput
 
 EnvFn = Callable[[], gym.Env]
@@ -68,12 +68,14 @@ class BatchEnvBase:
     def _init_specs(self, num_envs: int, observation_space: gym.Space, action_space: gym.Space,
                     time_limit_terminates: bool, frame_stack: int = 1) -> None:
         self.num_envs = num_envs
-        self.observation_spec: Spec = spec_from_space(observation_space)
+        self.observation_spec: Spec = spec_from_space(observation_space, "observation")
         if frame_stack > 1 and isinstance(self.observation_spec, ArraySpec):
             # Stacked frames (FrameStackObservation): the replay stores one frame per step.
             self.observation_spec = dataclasses.replace(self.observation_spec, frame_stack=frame_stack)
-        self.action_spec: Spec = spec_from_space(action_space)
-        self._obs_dtype = torch.empty((), dtype=self.observation_spec.dtype).numpy().dtype
+        self.action_spec: Spec = spec_from_space(action_space, "action")
+        self._obs_dtype = numpy_dtype(self.observation_spec)
+        # Dict / Tuple observations travel as packed byte rows (packing.py); None: as they are
+        self._pack = self.observation_spec.pack if isinstance(self.observation_spec, PackedSpec) else None
         self._discrete = isinstance(self.action_spec, DiscreteSpec)
         # Old gym (and so the TF-Agents tutorials) reported a time-limit cut as `done`, a
         # termination: targets do not bootstrap through it. Some presets reproduce that.
@@ -306,7 +308,7 @@ class GymBatchEnv(BatchEnvBase):
             o, _ = env.reset(seed=None if seed is None else seed + i)
             if seed is not None:
                 env.action_space.seed(seed + i)
-            obs.append(o)
+            obs.append(o if self._pack is None else self._pack(o))
         return torch.from_numpy(np.stack(obs).astype(self._obs_dtype, copy=False))
 
     def step(self, action: torch.Tensor) -> StepOutput:
@@ -331,9 +333,10 @@ class GymBatchEnv(BatchEnvBase):
         actions = action.tolist() if self._discrete else action
         ended = []
         infos: dict[int, dict] = {}
+        pack = self._pack
         for i, env in enumerate(self.envs):
             o, r, term, trunc, info = env.step(actions[i])
-            next_obs[i] = o
+            next_obs[i] = o if pack is None else pack(o)
             reward[i] = r
             if self.time_limit_terminates:
                 term, trunc = term or trunc, False
@@ -348,7 +351,8 @@ class GymBatchEnv(BatchEnvBase):
             # would carry unwritten rows of later copies into obs).
             obs = next_obs.copy()
         for i in ended:
-            obs[i] = self.envs[i].reset()[0]
+            o = self.envs[i].reset()[0]
+            obs[i] = o if pack is None else pack(o)
         return obs, episode_info(self.info_keys, len(self.envs), ended, infos.__getitem__)
 
     def render(self) -> np.ndarray | None:

@@ -15,9 +15,9 @@ from relayrl.agents.dqn.losses_fast import dqn_loss_and_grads
 from relayrl.agents.dqn.networks import q_network
 from relayrl.nn import ConvQNet, mlp_fast
 from relayrl.optim import FastAdam
-from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy
+from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy, mlp_head, network_state
 from relayrl.schedules import exponential_schedule, linear_schedule
-from relayrl.specs import DiscreteSpec, Spec
+from relayrl.specs import DiscreteSpec, Spec, spec_state
 from relayrl.types import Batch
 
 
@@ -134,18 +134,14 @@ class DQNAgent:
             torch._foreach_lerp_(self._target_params, self._online_params, self.cfg.tau)
 
     def policy_state(self) -> dict[str, Any]:
-        weights = {k: v.detach().cpu() for k, v in self.online.state_dict().items()}
         if isinstance(self.online, ConvQNet):
+            weights = {k: v.detach().cpu() for k, v in self.online.state_dict().items()}
             return {"kind": "q_greedy", "network": self.cfg.network, "obs_shape": list(self.online.obs_shape),
-                    "num_actions": self.online.head[-1].out_features, "state_dict": weights}
-        return {
-            "kind": "q_greedy",
-            "obs_dim": self.online.layers[0].in_features,
-            "hidden": list(self.cfg.hidden),
-            "num_actions": self.online.layers[-1].out_features,
-            "activation": self.cfg.activation,
-            "state_dict": weights,
-        }
+                    "obs_space": spec_state(self.obs_spec), "num_actions": self.online.head[-1].out_features,
+                    "state_dict": weights}
+        c = self.cfg
+        return {"kind": "q_greedy", "num_actions": mlp_head(self.online).layers[-1].out_features,
+                **network_state(self.online, self.obs_spec, c.encoder, c.hidden, c.activation)}
 
     def state_dict(self) -> dict[str, Any]:
         return {

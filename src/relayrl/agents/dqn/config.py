@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from relayrl.config_fields import Section
+from relayrl.config_fields import Section, check_encoder
 from relayrl.errors import ConfigError
 
 
@@ -14,6 +14,9 @@ class DQNConfig(Section):
 
     hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of the Q-network MLP
     activation: str = "relu"  # relu | tanh | elu
+    # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images,
+    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn
+    encoder: str = "auto"
     init: str = "torch"  # torch | tf-agents (VarianceScaling hidden, small uniform head, bias -0.2)
     # mlp: hidden/activation/init above | nature_cnn: Mnih et al. 2015's conv net for uint8
     # [k, H, W] frame stacks | mario_cnn: the Mario tutorial's net (the same layers)
@@ -38,6 +41,7 @@ class DQNConfig(Section):
     epsilon_decay: float = 0.99999975  # exponential: the factor per env step
 
     def validate(self) -> None:
+        check_encoder(self.encoder)
         choices = {"activation": ("relu", "tanh", "elu"), "init": ("torch", "tf-agents"),
                    "loss": ("huber", "mse"), "network": ("mlp", "nature_cnn", "mario_cnn"),
                    "epsilon_schedule": ("linear", "exponential")}

@@ -29,10 +29,11 @@ from relayrl.agents.ppo.losses import entropy_loss, explained_variance, normaliz
 from relayrl.agents.ppo.networks import PPONetworks
 from relayrl.agents.ppo.normalize import RewardScaler
 from relayrl.agents.ppo.policy import PPOCollectPolicy, PPOPolicy
+from relayrl.errors import UserError
 from relayrl.nn import mlp_fast
 from relayrl.optim import FastAdam
 from relayrl.schedules import linear_schedule
-from relayrl.specs import ArraySpec, Spec
+from relayrl.specs import ArraySpec, Spec, spec_state
 
 
 class PPOAgent:
@@ -42,8 +43,9 @@ class PPOAgent:
         self.device = device
         self.rng = rng  # collect-policy noise, checkpointed with the agent
         self.action_spec = action_spec
+        self.obs_spec = obs_spec
         self.net = PPONetworks(obs_spec, action_spec, cfg.hidden, cfg.activation, cfg.shared,
-                               cfg.log_std_init, cfg.normalize_obs).to(device)
+                               cfg.log_std_init, cfg.normalize_obs, cfg.encoder).to(device)
         # tanh squashing: the log-probabilities are those of loc + scale * tanh(u)
         bounds = self._bounds()
         self.squash_scale = (torch.as_tensor((bounds[1] - bounds[0]) / 2, dtype=torch.float32, device=device)
@@ -59,13 +61,15 @@ class PPOAgent:
         self.gen.manual_seed(int(rng.integers(2**62)))
         self._train_step = 0
         # Hand-written gradients (nn.mlp_fast, losses_fast.py) for separate actor and critic
-        # MLPs without value clipping, tanh squashing or observation normalisation (whose
-        # log-probabilities / inputs the hand-written heads do not model): the same update as
-        # autograd's up to float rounding, with less per-minibatch overhead on CPU. Tests set
-        # it to False to compare.
+        # MLPs on Box observations, one categorical or a Gaussian, without value clipping, tanh
+        # squashing or observation normalisation (whose log-probabilities / inputs the
+        # hand-written heads do not model): the same update as autograd's up to float rounding,
+        # with less per-minibatch overhead on CPU. Tests set it to False to compare.
         critic = self.net.critic
+        head = self.net.head
         self.fast = (critic is not None and cfg.clip_range_vf == 0 and self.squash_scale is None
-                     and self.net.policy.obs_norm is None and mlp_fast.supports(self.net.policy.mlp)
+                     and self.net.policy.obs_norm is None and self.net.policy.encoder is None
+                     and not head.binary and len(head.nvec) <= 1 and mlp_fast.supports(self.net.policy.mlp)
                      and mlp_fast.supports(critic))
         if self.fast:
             self._actor_fast = mlp_fast.MLPFast(self.net.policy.mlp)
@@ -85,17 +89,17 @@ class PPOAgent:
 
     def _bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
         s = self.action_spec
-        return (s.low, s.high) if isinstance(s, ArraySpec) else None
+        return (s.low, s.high) if isinstance(s, ArraySpec) and not self.net.discrete else None
 
     def collect_policy(self, env_step: Callable[[], int] | None = None,
                        network: torch.nn.Module | None = None) -> PPOPolicy:
         net = network if network is not None else self.net.policy
         return PPOCollectPolicy(net, getattr(net, "log_std", None), self._bounds(), self.device, False, self.rng,
-                                self.cfg.squash)
+                                self.cfg.squash, self.net.head)
 
     def eval_policy(self) -> PPOPolicy:
         return PPOPolicy(self.net.policy, self.net.policy.log_std, self._bounds(), self.device, True,
-                         squash=self.cfg.squash)
+                         squash=self.cfg.squash, head=self.net.head)
 
     def policy_network(self) -> torch.nn.Module:
         return self.net.policy
@@ -103,6 +107,8 @@ class PPOAgent:
     def device_collect_policy(self, network: torch.nn.Module | None = None) -> PPODevicePolicy:
         """The collect policy for a stateless torch env: actions and noise stay on the device."""
         net = network if network is not None else self.net.policy
+        if self.net.head.binary or len(self.net.head.nvec) > 1:
+            raise UserError("PPO on a stateless torch env takes Discrete or Box actions")
         # The env gets the sample clipped, or tanh-squashed where the config has agent.squash = "tanh".
         return PPODevicePolicy(net, getattr(net, "log_std", None), self._bounds(), self.device,
                                int(self.rng.integers(2**62)), self.cfg.squash)
@@ -120,7 +126,9 @@ class PPOAgent:
         """(log pi(action | obs) [N], entropy [N], V(obs) [N]) under the current networks, for
         actions as rollouts hold them (continuous: the Gaussian samples, before clipping)."""
         out, values = self.net(obs)
-        logp, entropy = log_prob_entropy(out, self.net.policy.log_std, action, self.squash_scale)
+        head = self.net.head
+        logp, entropy = log_prob_entropy(out, self.net.policy.log_std, action, self.squash_scale, head.nvec,
+                                         head.binary)
         return logp, entropy, values
 
     def train(self, rollout: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -199,7 +207,8 @@ class PPOAgent:
     def policy_state(self) -> dict[str, Any]:
         p = self.net.policy
         state: dict[str, Any] = {
-            "kind": "ppo", "discrete": self.net.discrete,
+            "kind": "ppo", "discrete": self.net.discrete, "obs_space": spec_state(self.obs_spec),
+            "action_space": spec_state(self.action_spec), "encoder": self.cfg.encoder,
             "obs_dim": p.mlp.layers[0].in_features, "hidden": list(self.cfg.hidden), "action_dim": p.out,
             "activation": self.cfg.activation, "state_dict": self.net.saved_head(),
         }

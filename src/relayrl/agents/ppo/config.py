@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from relayrl.config_fields import Section
+from relayrl.config_fields import Section, check_encoder
 from relayrl.errors import ConfigError
 
 
@@ -19,6 +19,9 @@ class PPOConfig(Section):
 
     hidden: list[int] = field(default_factory=lambda: [64, 64])  # hidden sizes of the actor and of the critic
     activation: str = "tanh"  # relu | tanh | elu
+    # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images,
+    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn
+    encoder: str = "auto"
     shared: bool = False  # true: one MLP whose last layer holds the policy and value heads
     lr: float = 3e-4  # Adam's learning rate
     lr_end: float = -1.0  # < 0: constant lr; else linear in env steps to lr_end at train.total_steps
@@ -39,6 +42,7 @@ class PPOConfig(Section):
     normalize_reward: bool = False  # rewards / running std of each env copy's discounted return (VecNormalize)
 
     def validate(self) -> None:
+        check_encoder(self.encoder)
         if self.squash not in ("clip", "tanh"):
             raise ConfigError(f"agent.squash={self.squash!r} is not valid; valid: clip, tanh")
         if self.activation not in ("relu", "tanh", "elu"):

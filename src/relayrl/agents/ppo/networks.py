@@ -6,6 +6,7 @@ With observation normalisation, both see the observations through the actor's `O
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 from torch import nn
@@ -13,17 +14,32 @@ from torch import nn
 from relayrl.agents.ppo.normalize import ObsNorm
 from relayrl.errors import UserError
 from relayrl.nn import MLP
-from relayrl.specs import DiscreteSpec, Spec, flat_dim, is_bounded_box
+from relayrl.nn.encoders import make_encoder
+from relayrl.specs import DiscreteSpec, MultiBinarySpec, MultiDiscreteSpec, Spec, describe, flat_dim, is_bounded_box
 
 
-def action_dim(action_spec: Spec) -> tuple[int, bool]:
-    """(policy outputs, discrete): logits of a Discrete space, or the mean of a bounded Box."""
+class ActionHead(NamedTuple):
+    """What the policy's outputs parameterise for an action space."""
+
+    outputs: int  # logits or Gaussian means
+    discrete: bool  # logits (no log std)
+    nvec: tuple[int, ...] = ()  # MultiDiscrete: the logits' block sizes
+    binary: bool = False  # MultiBinary: Bernoulli logits
+    shape: tuple[int, ...] = ()  # one action's shape (MultiDiscrete / MultiBinary)
+
+
+def action_head(action_spec: Spec) -> ActionHead:
+    """Logits of a Discrete, MultiDiscrete or MultiBinary space, or the mean of a bounded Box."""
     if isinstance(action_spec, DiscreteSpec):
-        return action_spec.n, True
+        return ActionHead(action_spec.n, True)
+    if isinstance(action_spec, MultiDiscreteSpec):
+        return ActionHead(sum(action_spec.nvec), True, action_spec.nvec, shape=action_spec.shape)
+    if isinstance(action_spec, MultiBinarySpec):
+        return ActionHead(flat_dim(action_spec), True, binary=True, shape=action_spec.shape)
     if not is_bounded_box(action_spec):
-        raise UserError("PPO needs a Discrete action space or a bounded continuous one (gymnasium.spaces.Box "
-                        "with finite low/high)")
-    return flat_dim(action_spec), False
+        raise UserError(f"PPO takes Discrete, MultiDiscrete, MultiBinary or Box (finite low and high) action spaces; "
+                        f"this env's action space is {describe(action_spec)}")
+    return ActionHead(flat_dim(action_spec), False)
 
 
 def orthogonal_init_(net: MLP, head_gains: list[tuple[int, int, float]]) -> None:
@@ -45,20 +61,28 @@ class PolicyNet(nn.Module):
     """obs -> the policy's outputs [N, A] (logits or Gaussian mean); `log_std` [A] for
     continuous actions. With `shared`, `mlp` has one more output, the value, which `forward`
     leaves out: this module is what the actor's copy of the policy holds and pulls, the
-    observation statistics (`obs_norm`'s buffers) included."""
+    observation statistics (`obs_norm`'s buffers) and encoder included. The critic takes the
+    same features (SB3's on-policy default: one encoder for both)."""
 
-    def __init__(self, obs_dim: int, hidden: list[int], out: int, activation: str, shared: bool,
-                 log_std_init: float | None, normalize_obs: bool = False) -> None:
+    def __init__(self, obs_spec: Spec, hidden: list[int], out: int, activation: str, shared: bool,
+                 log_std_init: float | None, normalize_obs: bool = False, encoder: str = "auto") -> None:
         super().__init__()
         self.out = out
-        self.obs_norm = ObsNorm(obs_dim) if normalize_obs else None
-        self.mlp = MLP(obs_dim, list(hidden), out + int(shared), activation)
+        self.encoder = make_encoder(obs_spec, encoder)
+        if self.encoder is not None and normalize_obs:
+            raise UserError(f"agent.normalize_obs=true normalises Box observations; this env's observation space is "
+                            f"{describe(obs_spec)} (set agent.normalize_obs=false)")
+        self.features_dim = flat_dim(obs_spec) if self.encoder is None else int(self.encoder.out_dim)
+        self.obs_norm = ObsNorm(self.features_dim) if normalize_obs else None
+        self.mlp = MLP(self.features_dim, list(hidden), out + int(shared), activation)
         gains = [(0, out, 0.01)] + ([(out, out + 1, 1.0)] if shared else [])
         orthogonal_init_(self.mlp, gains)
         self.log_std = None if log_std_init is None else nn.Parameter(torch.full((out,), float(log_std_init)))
 
     def features(self, obs: torch.Tensor) -> torch.Tensor:
-        """What the MLPs take: the observations, normalised when the run normalises them."""
+        """What the MLPs take: the observations encoded, or normalised when the run normalises them."""
+        if self.encoder is not None:
+            return self.encoder(obs)
         return obs if self.obs_norm is None else self.obs_norm(obs)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
@@ -67,15 +91,17 @@ class PolicyNet(nn.Module):
 
 class PPONetworks(nn.Module):
     def __init__(self, obs_spec: Spec, action_spec: Spec, hidden: list[int], activation: str, shared: bool,
-                 log_std_init: float, normalize_obs: bool = False) -> None:
+                 log_std_init: float, normalize_obs: bool = False, encoder: str = "auto") -> None:
         super().__init__()
-        out, self.discrete = action_dim(action_spec)
+        self.head = action_head(action_spec)
+        self.discrete = self.head.discrete
+        out = self.head.outputs
         self.shared = shared
-        self.policy = PolicyNet(flat_dim(obs_spec), hidden, out, activation, shared,
-                                None if self.discrete else log_std_init, normalize_obs)
+        self.policy = PolicyNet(obs_spec, hidden, out, activation, shared,
+                                None if self.discrete else log_std_init, normalize_obs, encoder)
         self.critic: MLP | None = None
         if not shared:
-            self.critic = MLP(flat_dim(obs_spec), list(hidden), 1, activation)
+            self.critic = MLP(self.policy.features_dim, list(hidden), 1, activation)
             orthogonal_init_(self.critic, [(0, 1, 1.0)])
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -87,7 +113,12 @@ class PPONetworks(nn.Module):
         return self.policy.mlp(x)[:, : self.policy.out], self.critic(x)[:, 0]
 
     def saved_head(self) -> dict[str, torch.Tensor]:
-        """The actor as a plain MLP's state_dict with outputs [A] (a shared net's value row cut)."""
+        """The actor as a plain MLP's state_dict with outputs [A] (a shared net's value row cut),
+        behind its encoder's (keys `encoder.*` and `head.*`, as `nn.encoders.Encoded`) where it has one."""
         out = self.policy.out
-        return {k: (v[:out] if k.startswith(f"layers.{len(self.policy.mlp.layers) - 1}.") else v).detach().cpu()
-                .clone() for k, v in self.policy.mlp.state_dict().items()}
+        mlp = {k: (v[:out] if k.startswith(f"layers.{len(self.policy.mlp.layers) - 1}.") else v).detach().cpu()
+               .clone() for k, v in self.policy.mlp.state_dict().items()}
+        if self.policy.encoder is None:
+            return mlp
+        enc = {f"encoder.{k}": v.detach().cpu().clone() for k, v in self.policy.encoder.state_dict().items()}
+        return {**enc, **{f"head.{k}": v for k, v in mlp.items()}}

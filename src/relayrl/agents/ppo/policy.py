@@ -1,6 +1,7 @@
 """PPO's acting policies, and its saved policy (kind "ppo") for `load_policy` and `export_policy`.
 
-Discrete actions: a categorical over the actor's logits, argmax when deterministic.
+Discrete actions: a categorical over the actor's logits, argmax when deterministic (one per
+entry for MultiDiscrete; MultiBinary: a Bernoulli per entry, logit > 0 when deterministic).
 Continuous: a Gaussian sample u around the actor's mean with a state-independent std, u = the
 mean when deterministic; the env receives u clipped to the action bounds, or squashed into them
 (loc + scale * tanh(u), `agent.squash = "tanh"`). `PPOPolicy` returns what the env receives;
@@ -18,11 +19,13 @@ import numpy as np
 import torch
 from torch import nn
 
-from relayrl.agents.ppo.distributions import to_bounds
+from relayrl.agents.ppo.distributions import greedy_logits_action, to_bounds
+from relayrl.agents.ppo.networks import ActionHead, action_head
 from relayrl.agents.ppo.normalize import ObsNorm
 from relayrl.nn import MLP
 from relayrl.nn.mlp_fast import MLPInference
 from relayrl.policies import saved_bounds, saved_network
+from relayrl.specs import spec_from_state
 
 SQUASHES = ("clip", "tanh")
 
@@ -32,8 +35,9 @@ class PPOPolicy:
 
     def __init__(self, net: nn.Module, log_std: torch.Tensor | None, bounds: tuple[np.ndarray, np.ndarray] | None,
                  device: torch.device, deterministic: bool, rng: np.random.Generator | None = None,
-                 squash: str = "clip") -> None:
+                 squash: str = "clip", head: ActionHead | None = None) -> None:
         self.net = net  # obs -> logits or mean [B, A]
+        self.head = head if head is not None else ActionHead(0, log_std is None)
         self.log_std = log_std  # [A]; None for discrete actions (read at each call: pulls update it in place)
         self.device = device
         self.deterministic = deterministic
@@ -42,11 +46,11 @@ class PPOPolicy:
         self.low = self.high = None
         # A float32 MLP on the CPU (the run's PolicyNet holds one as `mlp`, a saved policy is
         # one) runs through MLPInference: NumPy views of its weights for small batches; not
-        # behind an observation normaliser, which only the torch forward applies.
+        # behind an observation normaliser or an encoder, which only the torch forward applies.
         mlp = getattr(net, "mlp", net)
         self.outputs = getattr(net, "out", None)  # a shared net's MLP has the value as one more output
         self._cpu = (MLPInference(mlp) if isinstance(mlp, MLP) and device.type == "cpu"
-                     and getattr(net, "obs_norm", None) is None
+                     and getattr(net, "obs_norm", None) is None and getattr(net, "encoder", None) is None
                      and all(p.dtype == torch.float32 for p in mlp.parameters()) else None)
         if bounds is not None:
             self.low, self.high = (torch.as_tensor(b, dtype=torch.float32) for b in bounds)
@@ -65,19 +69,36 @@ class PPOPolicy:
         """Discrete: the action [B]. Continuous: the Gaussian sample u [B, A] (the mean when
         deterministic), before clipping or squashing."""
         out_np = self._outputs(obs)  # [B, A]
+        h = self.head
+        if h.binary or len(h.nvec) > 1:
+            return self._sample_multi(out_np).reshape(out_np.shape[0], *h.shape)
         if self.log_std is None:
             if self.deterministic:
                 return torch.from_numpy(out_np.argmax(axis=1))
-            logits = out_np.astype(np.float64)
-            e = np.exp(logits - logits.max(axis=1, keepdims=True))
-            cdf = np.cumsum(e / e.sum(axis=1, keepdims=True), axis=1)
-            u = self.rng.random((out_np.shape[0], 1))
-            return torch.from_numpy(np.minimum((cdf < u).sum(axis=1), out_np.shape[1] - 1))  # inverse CDF [B]
+            return torch.from_numpy(self._categorical(out_np))
         out = torch.from_numpy(out_np)
         if self.deterministic:
             return out
         noise = torch.from_numpy(self.rng.standard_normal(out.shape, dtype=np.float32))
         return out + self.log_std.detach().float().cpu().exp() * noise
+
+    def _categorical(self, logits: np.ndarray) -> np.ndarray:
+        """One draw per row of a categorical over `logits` [B, n]: the inverse CDF of a uniform."""
+        x = logits.astype(np.float64)
+        e = np.exp(x - x.max(axis=1, keepdims=True))
+        cdf = np.cumsum(e / e.sum(axis=1, keepdims=True), axis=1)
+        u = self.rng.random((x.shape[0], 1))
+        return np.minimum((cdf < u).sum(axis=1), x.shape[1] - 1)  # [B]
+
+    def _sample_multi(self, out: np.ndarray) -> torch.Tensor:
+        """MultiBinary [B, A] int8 or MultiDiscrete [B, k] int64 actions from their logits."""
+        h = self.head
+        if self.deterministic:
+            return greedy_logits_action(torch.from_numpy(out), h.nvec, h.binary)
+        if h.binary:
+            return torch.from_numpy((self.rng.random(out.shape) * (1.0 + np.exp(-out)) < 1.0).astype(np.int8))
+        blocks = np.split(out, np.cumsum(h.nvec)[:-1], axis=1)
+        return torch.from_numpy(np.stack([self._categorical(b) for b in blocks], axis=1))
 
     def bound(self, u: torch.Tensor) -> torch.Tensor:
         """The action the env receives for `sample`'s u: clipped or squashed into the bounds."""
@@ -103,10 +124,18 @@ def saved_policy_network(state: dict[str, Any]) -> nn.Module:
     return nn.Sequential(ObsNorm.from_saved(state), net).eval()
 
 
+def saved_head(state: dict[str, Any]) -> ActionHead:
+    """The action head a saved policy's outputs parameterise (files before MultiDiscrete and
+    MultiBinary actions hold one categorical or a Gaussian)."""
+    if "action_space" in state and state["action_space"]["kind"] != "box":  # (the file keeps a Box's bounds apart)
+        return action_head(spec_from_state(state["action_space"]))
+    return ActionHead(int(state["action_dim"]), bool(state["discrete"]))
+
+
 def load(state: dict[str, Any], device: torch.device, deterministic: bool, seed: int | None) -> PPOPolicy:
     net = saved_policy_network(state).to(device)
     if state["discrete"]:
-        return PPOPolicy(net, None, None, device, deterministic, np.random.default_rng(seed))
+        return PPOPolicy(net, None, None, device, deterministic, np.random.default_rng(seed), head=saved_head(state))
     log_std = torch.as_tensor(state["log_std"], dtype=torch.float32)
     return PPOPolicy(net, log_std, saved_bounds(state), device, deterministic, np.random.default_rng(seed),
                      squash=state.get("squash", "clip"))
@@ -119,6 +148,8 @@ class Greedy(nn.Module):
         super().__init__()
         self.net = saved_policy_network(state)
         self.discrete = bool(state["discrete"])
+        h = saved_head(state)
+        self.nvec, self.binary, self.shape = h.nvec, h.binary, h.shape
         self.tanh = state.get("squash", "clip") == "tanh"
         if not self.discrete:
             low, high = (torch.as_tensor(b, dtype=torch.float32) for b in saved_bounds(state))
@@ -128,7 +159,8 @@ class Greedy(nn.Module):
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         out = self.net(obs)
         if self.discrete:
-            return out.argmax(dim=1)  # [B]
+            a = greedy_logits_action(out, self.nvec, self.binary)  # [B] or [B, k]
+            return a.reshape(a.shape[0], *self.shape) if self.shape else a
         return to_bounds(out, self.low, self.high, self.tanh)  # [B, A]
 
 

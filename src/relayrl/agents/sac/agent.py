@@ -20,8 +20,8 @@ from relayrl.agents.sac.losses import actor_loss, alpha_loss, critic_loss, criti
 from relayrl.agents.sac.networks import actor_network, check_action_spec, critic_network
 from relayrl.nn import mlp_fast
 from relayrl.optim import FastAdam
-from relayrl.policies import TanhGaussianPolicy
-from relayrl.specs import Spec
+from relayrl.policies import TanhGaussianPolicy, network_state
+from relayrl.specs import Spec, flat_dim
 from relayrl.types import Batch
 
 
@@ -32,8 +32,10 @@ class SACAgent:
         self.action_spec = check_action_spec(action_spec)
         self.device = device
         self.rng = rng  # collect-policy noise, checkpointed with the agent
-        self.actor = actor_network(obs_spec, self.action_spec, cfg.actor_hidden, cfg.activation).to(device)
-        self.critic = critic_network(obs_spec, self.action_spec, cfg.critic_hidden, cfg.activation).to(device)
+        self.obs_spec = obs_spec
+        self.actor = actor_network(obs_spec, self.action_spec, cfg.actor_hidden, cfg.activation, cfg.encoder).to(device)
+        self.critic = critic_network(obs_spec, self.action_spec, cfg.critic_hidden, cfg.activation,
+                                     cfg.encoder).to(device)
         self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self.log_alpha = torch.tensor(float(np.log(cfg.init_alpha)), device=device, requires_grad=True)
         self.actor_opt = FastAdam(self.actor.parameters(), lr=cfg.actor_lr)
@@ -191,13 +193,10 @@ class SACAgent:
         s = self.action_spec
         return {
             "kind": "tanh_gaussian",
-            "obs_dim": self.actor.layers[0].in_features,
-            "hidden": list(self.cfg.actor_hidden),
-            "action_dim": self.actor.layers[-1].out_features // 2,
-            "activation": self.cfg.activation,
+            **network_state(self.actor, self.obs_spec, self.cfg.encoder, self.cfg.actor_hidden, self.cfg.activation),
+            "action_dim": flat_dim(s),
             "action_low": np.asarray(s.low, np.float32), "action_high": np.asarray(s.high, np.float32),
             "log_std_min": self.cfg.log_std_min, "log_std_max": self.cfg.log_std_max,
-            "state_dict": {k: v.detach().cpu() for k, v in self.actor.state_dict().items()},
         }
 
     def state_dict(self) -> dict[str, Any]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from relayrl.config_fields import Section
+from relayrl.config_fields import Section, check_encoder
 from relayrl.errors import ConfigError
 
 
@@ -15,6 +15,9 @@ class SACConfig(Section):
     actor_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of the actor MLP
     critic_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of each critic MLP
     activation: str = "relu"  # relu | tanh | elu
+    # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images,
+    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn
+    encoder: str = "auto"
     actor_lr: float = 3e-4  # Adam learning rate of the actor
     critic_lr: float = 3e-4  # Adam learning rate of the critics
     alpha_lr: float = 3e-4  # Adam learning rate of the entropy temperature
@@ -31,6 +34,7 @@ class SACConfig(Section):
     log_std_max: float = 2.0  # upper clip of the actor's log standard deviation
 
     def validate(self) -> None:
+        check_encoder(self.encoder)
         if self.activation not in ("relu", "tanh", "elu"):
             raise ConfigError(f"agent.activation={self.activation!r} is not valid; valid: relu, tanh, elu")
         for key in ("actor_hidden", "critic_hidden"):

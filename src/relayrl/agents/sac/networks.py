@@ -3,24 +3,52 @@ that run as one batched network."""
 
 from __future__ import annotations
 
+import torch
+from torch import nn
+
 from relayrl.errors import UserError
-from relayrl.nn import MLP, TwinMLP
-from relayrl.specs import ArraySpec, Spec, flat_dim, is_bounded_box
+from relayrl.nn import TwinMLP
+from relayrl.nn.encoders import encoded_mlp, make_encoder
+from relayrl.specs import ArraySpec, Spec, describe, flat_dim, is_bounded_box
 
 
 def check_action_spec(action_spec: Spec) -> ArraySpec:
     if not is_bounded_box(action_spec):
-        raise UserError("SAC needs a bounded continuous action space (gymnasium.spaces.Box with finite "
-                        "low/high); use DQN for discrete actions")
+        raise UserError(f"SAC takes a Box action space with finite low and high; this env's action space is "
+                        f"{describe(action_spec)} (use DQN or PPO for Discrete actions, PPO for MultiDiscrete "
+                        "and MultiBinary)")
     assert isinstance(action_spec, ArraySpec)
     return action_spec
 
 
-def actor_network(obs_spec: Spec, action_spec: ArraySpec, hidden: list[int], activation: str) -> MLP:
+def actor_network(obs_spec: Spec, action_spec: ArraySpec, hidden: list[int], activation: str,
+                  encoder: str = "auto") -> nn.Module:
     """obs -> [mean, log_std] of the pre-tanh Gaussian: out dim 2 * |A|."""
-    return MLP(flat_dim(obs_spec), list(hidden), 2 * flat_dim(action_spec), activation)
+    return encoded_mlp(obs_spec, encoder, list(hidden), 2 * flat_dim(action_spec), activation)
 
 
-def critic_network(obs_spec: Spec, action_spec: ArraySpec, hidden: list[int], activation: str) -> TwinMLP:
+class EncodedTwin(nn.Module):
+    """The twin critics behind an observation encoder of their own (SB3's off-policy default:
+    actor and critics do not share one)."""
+
+    def __init__(self, encoder: nn.Module, twin: TwinMLP) -> None:
+        super().__init__()
+        self.encoder = encoder
+        self.twin = twin
+
+    def forward(self, obs: torch.Tensor, action: torch.Tensor, detach_params: bool = False) -> torch.Tensor:
+        if detach_params:  # the actor's loss needs dQ/da only
+            with torch.no_grad():
+                features = self.encoder(obs)
+        else:
+            features = self.encoder(obs)
+        return self.twin(features, action, detach_params)
+
+
+def critic_network(obs_spec: Spec, action_spec: ArraySpec, hidden: list[int], activation: str,
+                   encoder: str = "auto") -> nn.Module:
     """Twin Q(s, a) critics as one batched network: [obs, action] -> Q [2, N]."""
-    return TwinMLP(flat_dim(obs_spec) + flat_dim(action_spec), list(hidden), activation)
+    enc = make_encoder(obs_spec, encoder)
+    if enc is None:
+        return TwinMLP(flat_dim(obs_spec) + flat_dim(action_spec), list(hidden), activation)
+    return EncodedTwin(enc, TwinMLP(int(enc.out_dim) + flat_dim(action_spec), list(hidden), activation))

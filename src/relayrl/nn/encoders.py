@@ -1,0 +1,169 @@
+"""Observation encoders, chosen from the observation's spec: what every algorithm's networks
+put before their MLPs, so any Gymnasium space reaches them as a float vector [B, features].
+
+- a Box of any rank: flattened (no encoder: the MLP flattens; the fast MLP paths stay on)
+- an image (uint8 [H, W], [C, H, W] or [H, W, C], sides >= 8): a conv net on pixels / 255:
+  the Nature CNN from 36x36 up (84x84 frames as Mnih et al. 2015), a small one below
+- Discrete: one-hot; MultiDiscrete: one one-hot per entry, concatenated; MultiBinary: floats
+- Dict and Tuple: each entry encoded as above, concatenated (as SB3's CombinedExtractor)
+
+`agent.encoder` picks: "auto" (the above), "flatten" (every leaf flattened as floats, images
+unscaled), "nature_cnn" or "small_cnn" (that conv net for images).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from relayrl.config_fields import ENCODERS
+from relayrl.errors import UserError
+from relayrl.nn.conv import NATURE_CONVS, NATURE_HIDDEN
+from relayrl.nn.mlp import MLP
+from relayrl.specs import (
+    ArraySpec,
+    DiscreteSpec,
+    MultiBinarySpec,
+    MultiDiscreteSpec,
+    PackedSpec,
+    Spec,
+    describe,
+    flat_dim,
+    image_layout,
+    image_size,
+    is_flat_vector,
+    is_image,
+    unpack,
+)
+
+# (out_channels, kernel, stride, padding): frames from 8x8 (MiniGrid-like) to 35x35, where the
+# Nature CNN's 8x8 stride-4 first layer would leave almost nothing
+SMALL_CONVS = ((32, 3, 1, 1), (64, 3, 2, 1), (64, 3, 2, 1))
+SMALL_HIDDEN = 256
+NATURE_MIN_SIDE = 36
+
+
+class Flatten(nn.Module):
+    """[B, ...] -> float32 [B, n]."""
+
+    def __init__(self, spec: Spec) -> None:
+        super().__init__()
+        self.out_dim = flat_dim(spec)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x.reshape(x.shape[0], -1).float()
+
+
+class OneHot(nn.Module):
+    """Integers [B, *shape], entry i in [0, nvec[i]) -> concatenated one-hots [B, sum(nvec)]."""
+
+    def __init__(self, nvec: tuple[int, ...]) -> None:
+        super().__init__()
+        offsets = torch.tensor([0, *nvec[:-1]], dtype=torch.int64).cumsum(0)
+        self.register_buffer("offsets", offsets, persistent=False)  # [k] where entry i's one-hot starts
+        self.out_dim = int(sum(nvec))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        idx = x.reshape(x.shape[0], -1).long() + self.offsets  # [B, k]
+        return torch.zeros(x.shape[0], self.out_dim, device=x.device).scatter_(1, idx, 1.0)  # [B, sum(nvec)]
+
+
+class ConvEncoder(nn.Module):
+    """uint8 frames -> [B, hidden]: convs + ReLU, flatten, one dense layer + ReLU."""
+
+    def __init__(self, spec: Spec, convs: tuple[tuple[int, ...], ...], hidden: int) -> None:
+        super().__init__()
+        channels, self.channels_last = image_layout(spec)
+        self.rank = len(spec.shape)
+        h, w = image_size(spec)
+        layers: list[nn.Module] = []
+        c = channels
+        for out, kernel, stride, *pad in convs:
+            layers += [nn.Conv2d(c, out, kernel, stride, padding=pad[0] if pad else 0), nn.ReLU()]
+            c = out
+        self.convs = nn.Sequential(*layers, nn.Flatten())
+        with torch.no_grad():  # the flattened size for this frame size
+            flat = self.convs(torch.zeros(1, channels, h, w)).shape[1]
+        self.dense = nn.Sequential(nn.Linear(flat, hidden), nn.ReLU())
+        self.out_dim = hidden
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.rank == 2:
+            x = x.unsqueeze(1)  # [B, 1, H, W]
+        elif self.channels_last:
+            x = x.permute(0, 3, 1, 2)  # [B, C, H, W]
+        x = x.float().mul_(1.0 / 255.0) if x.dtype == torch.uint8 else x.float()
+        return self.dense(self.convs(x))
+
+
+class DictEncoder(nn.Module):
+    """Packed Dict / Tuple rows -> each entry's encoding, concatenated in the space's order."""
+
+    def __init__(self, spec: PackedSpec, kind: str) -> None:
+        super().__init__()
+        self.spec = spec
+        self.parts = nn.ModuleDict({_module_key(f.key): leaf_encoder(f.spec, kind) for f in spec.fields})
+        self.out_dim = sum(int(m.out_dim) for m in self.parts.values())
+
+    def forward(self, x: torch.Tensor | dict[str, torch.Tensor]) -> torch.Tensor:
+        """Packed rows [B, nbytes], or the entries themselves by key (an exported policy's inputs)."""
+        leaves = x if isinstance(x, dict) else unpack(x, self.spec)
+        return torch.cat([m(leaves[f.key]) for f, m in zip(self.spec.fields, self.parts.values(), strict=True)], dim=1)
+
+
+def _module_key(key: str) -> str:
+    return key.replace(".", "/")  # ModuleDict keys may not hold dots
+
+
+def leaf_encoder(spec: Spec, kind: str) -> nn.Module:
+    """The encoder of one non-structured spec (Flatten where nothing more is needed)."""
+    if isinstance(spec, DiscreteSpec):
+        return OneHot((spec.n,)) if kind != "flatten" else Flatten(spec)
+    if isinstance(spec, MultiDiscreteSpec):
+        return OneHot(spec.nvec) if kind != "flatten" else Flatten(spec)
+    if isinstance(spec, MultiBinarySpec) or not is_image(spec) or kind == "flatten":
+        return Flatten(spec)
+    small = kind == "small_cnn" or (kind == "auto" and min(image_size(spec)) < NATURE_MIN_SIDE)
+    if not small and min(image_size(spec)) < NATURE_MIN_SIDE:
+        raise UserError(f"agent.encoder='nature_cnn' needs frames of at least {NATURE_MIN_SIDE}x{NATURE_MIN_SIDE}, "
+                        f"got {describe(spec)}; use agent.encoder='small_cnn' or 'auto'")
+    if small:
+        return ConvEncoder(spec, SMALL_CONVS, SMALL_HIDDEN)
+    return ConvEncoder(spec, tuple((*c, 0) for c in NATURE_CONVS), NATURE_HIDDEN)
+
+
+def make_encoder(spec: Spec, kind: str = "auto") -> nn.Module | None:
+    """The encoder for observations of `spec`, or None where the MLP takes them as they are
+    (a Box that is not an image, or `kind="flatten"` on one)."""
+    if kind not in ENCODERS:
+        raise UserError(f"agent.encoder={kind!r} is not valid; valid: {', '.join(ENCODERS)}")
+    if isinstance(spec, PackedSpec):
+        return DictEncoder(spec, kind)
+    if is_flat_vector(spec) or (kind == "flatten" and type(spec) is ArraySpec):
+        if kind in ("nature_cnn", "small_cnn"):
+            raise UserError(f"agent.encoder={kind!r} needs image observations (uint8 [H, W], [C, H, W] or "
+                            f"[H, W, C], sides >= 8), got {describe(spec)}; use agent.encoder='auto'")
+        return None
+    return leaf_encoder(spec, kind)
+
+
+class Encoded(nn.Module):
+    """An encoder followed by an MLP head: obs -> head(encoder(obs))."""
+
+    def __init__(self, encoder: nn.Module, head: MLP) -> None:
+        super().__init__()
+        self.encoder = encoder
+        self.head = head
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.encoder(x))
+
+
+def encoded_mlp(spec: Spec, kind: str, hidden: list[int], out_dim: int, activation: str) -> nn.Module:
+    """An MLP on `spec`'s observations, behind their encoder when they need one."""
+    encoder = make_encoder(spec, kind)
+    if encoder is None:
+        return MLP(flat_dim(spec), hidden, out_dim, activation)
+    return Encoded(encoder, MLP(int(encoder.out_dim), hidden, out_dim, activation))
+
+

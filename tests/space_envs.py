@@ -1,0 +1,89 @@
+"""An env for every observation and action space kind, importable as `space_envs:Spaces`.
+
+Each step the observation shows a target in {0, 1}; the reward is 1 when the action "says"
+that target (its first entry, >= 0.5 for Box actions), else 0. Episodes end after `length`
+steps. What the observation looks like depends on `obs` (the target is in every kind).
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+OBS_KINDS = ("box", "box2d", "discrete", "multi_discrete", "multi_binary", "image", "image_hwc", "dict", "tuple")
+ACTION_KINDS = ("discrete", "box", "multi_discrete", "multi_binary")
+
+
+def observation_space(kind: str) -> gym.Space:
+    return {
+        "box": spaces.Box(-1.0, 1.0, (3,), np.float32),
+        "box2d": spaces.Box(-1.0, 1.0, (2, 3), np.float32),
+        "discrete": spaces.Discrete(4),
+        "multi_discrete": spaces.MultiDiscrete([2, 3]),
+        "multi_binary": spaces.MultiBinary(3),
+        "image": spaces.Box(0, 255, (1, 12, 12), np.uint8),
+        "image_hwc": spaces.Box(0, 255, (10, 10, 3), np.uint8),
+        "dict": spaces.Dict({"frame": spaces.Box(0, 255, (1, 8, 8), np.uint8), "cell": spaces.Discrete(4),
+                             "pos": spaces.Box(-1.0, 1.0, (2,), np.float32)}),
+        "tuple": spaces.Tuple((spaces.Discrete(2), spaces.Box(-1.0, 1.0, (2,), np.float64))),
+    }[kind]
+
+
+def action_space(kind: str) -> gym.Space:
+    return {"discrete": spaces.Discrete(2), "box": spaces.Box(-1.0, 1.0, (2,), np.float32),
+            "multi_discrete": spaces.MultiDiscrete([2, 3]), "multi_binary": spaces.MultiBinary(2)}[kind]
+
+
+class Spaces(gym.Env):
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, obs: str = "box", act: str = "discrete", length: int = 8,
+                 render_mode: str | None = None) -> None:
+        self.obs_kind, self.act_kind, self.length = obs, act, length
+        self.observation_space = observation_space(obs)
+        self.action_space = action_space(act)
+        self.render_mode = render_mode
+        self.t = 0
+        self.target = 0
+
+    def _obs(self):
+        g = self.target
+        k = self.obs_kind
+        if k == "box":
+            return np.array([g, 0.5, -0.5], np.float32)
+        if k == "box2d":
+            return np.array([[g, 0, 0], [0, 0, -g]], np.float32)
+        if k == "discrete":
+            return 2 * g + self.t % 2
+        if k == "multi_discrete":
+            return np.array([g, self.t % 3])
+        if k == "multi_binary":
+            return np.array([g, 1 - g, self.t % 2], np.int8)
+        if k in ("image", "image_hwc"):
+            img = np.zeros(self.observation_space.shape, np.uint8)
+            img[..., :4, :] = 255 * g if k == "image" else 0
+            if k == "image_hwc":
+                img[:4] = 255 * g
+            return img
+        if k == "dict":
+            frame = np.full((1, 8, 8), 255 * g, np.uint8)
+            return {"cell": 2 * g, "frame": frame, "pos": np.array([g, 0.0], np.float32)}
+        return (g, np.array([0.0, g], np.float64))
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        self.target = int(self.np_random.integers(2))
+        return self._obs(), {}
+
+    def step(self, action):
+        a = np.asarray(action).reshape(-1)
+        said = int(a[0] >= 0.5) if self.act_kind == "box" else int(a[0])
+        reward = float(said == self.target)
+        self.t += 1
+        self.target = int(self.np_random.integers(2))
+        return self._obs(), reward, self.t >= self.length, False, {}
+
+    def render(self):
+        return np.full((16, 16, 3), 120 * self.target, np.uint8)
