@@ -196,7 +196,7 @@ def from_dict(data: dict[str, Any]) -> Config:
     """Build a Config from nested dicts (e.g. parsed TOML); every key is checked. A key the
     dict does not name is the algorithm's default (`algo_defaults`)."""
     data = dict(data)
-    config = Config(algo=data.get("algo", "dqn"))
+    config = Config(algo=algorithm(data.get("algo", "dqn")).name)  # a name this version knows, first
     _merge(config, data, prefix="")
     config.validate()
     return config
