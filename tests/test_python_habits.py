@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import math
 
-import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from toy_envs import Countdown
 
 import relayrl
 from relayrl.errors import UserError
-from toy_envs import Countdown
 
 TINY = {"algo": "dqn", "env": {"id": "toy_envs:Countdown", "check": False},
         "train": {"total_steps": 200, "initial_collect_steps": 50, "checkpoint_interval": 100,
@@ -64,7 +63,8 @@ def test_evaluate_bad_input_is_one_line():
 
 
 def test_record_video_with_env(run_dir, tmp_path):
-    out = relayrl.record_video(run_dir, tmp_path / "a.mp4", env=lambda render_mode=None: Countdown(render_mode=render_mode))
+    factory = lambda render_mode=None: Countdown(render_mode=render_mode)  # noqa: E731
+    out = relayrl.record_video(run_dir, tmp_path / "a.mp4", env=factory)
     assert out.stat().st_size > 0
     made = Countdown(render_mode="rgb_array")
     assert relayrl.record_video(run_dir, tmp_path / "b.mp4", env=made).stat().st_size > 0
@@ -136,7 +136,8 @@ def test_sac_lr_schedule_reaches_every_optimizer(fast):
     before = [p.detach().clone() for p in [*agent.actor.parameters(), *agent.critic.parameters(), agent.log_alpha]]
     g = torch.Generator().manual_seed(0)
     batch = Batch(obs=torch.randn(4, 3, generator=g), action=torch.rand(4, 1, generator=g) * 4 - 2,
-                  reward=torch.randn(4, generator=g), discount=torch.ones(4), next_obs=torch.randn(4, 3, generator=g), weight=None)
+                  reward=torch.randn(4, generator=g), discount=torch.ones(4),
+                  next_obs=torch.randn(4, 3, generator=g), weight=None)
     agent.train(batch)
     after = [*agent.actor.parameters(), *agent.critic.parameters(), agent.log_alpha]
     assert all(torch.equal(a, b) for a, b in zip(before, after, strict=True))

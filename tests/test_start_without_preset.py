@@ -11,7 +11,7 @@ import pytest
 import relayrl
 from relayrl.agents.registry import ALGORITHMS
 from relayrl.cli import main
-from relayrl.config import Config, _class_defaults, _merge, from_dict, to_dict
+from relayrl.config import Config, class_defaults, _merge, from_dict, to_dict
 from relayrl.errors import ConfigError
 from relayrl.presets import _files, list_presets, load_config, preset_dict
 
@@ -64,7 +64,7 @@ def test_presets_load_exactly_as_on_the_config_classes_defaults(preset):
     # A preset names every key where its algorithm's defaults differ from the classes' own, so
     # it is what it was before algorithms had defaults (`relayrl config PRESET` unchanged).
     data = preset_dict(preset)
-    before = _class_defaults()
+    before = class_defaults()
     object.__setattr__(before, "agent", ALGORITHMS[data.get("algo", "dqn")].config())
     object.__setattr__(before, "algo", data.get("algo", "dqn"))
     _merge(before, copy.deepcopy(data), prefix="")

@@ -122,7 +122,7 @@ class Config(Section):
         # The dataclass fills every key it was not given with the classes' own defaults; the
         # algorithm's defaults (agents/<algo>/config.py DEFAULTS) take their place, so that
         # Config(algo="ppo") is PPO's default config, never DQN's.
-        _rebase(self, _class_defaults(), algo_defaults(self.algo))
+        _rebase(self, class_defaults(), algo_defaults(self.algo))
 
     def __setattr__(self, name: str, value: Any) -> None:
         previous = self.__dict__.get("algo")
@@ -206,14 +206,14 @@ def algo_defaults(algo: str) -> Config:
     """`algo`'s default config: the config classes' defaults with the registry's `defaults` for
     that algorithm over them (relayrl train ALGO, relayrl config ALGO)."""
     spec = algorithm(algo)
-    config = _class_defaults()
+    config = class_defaults()
     object.__setattr__(config, "algo", algo)  # no rebase: this is what rebasing starts from
     object.__setattr__(config, "agent", spec.config())
     _merge(config, copy.deepcopy(spec.defaults), prefix="")
     return config
 
 
-def _class_defaults() -> Config:
+def class_defaults() -> Config:
     """Every section at its class's own defaults (the agent section DQN's), as the dataclass
     builds them before __post_init__."""
     config = object.__new__(Config)

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from relayrl.agents.registry import ALGORITHMS
-from relayrl.config import _class_defaults
+from relayrl.config import class_defaults
 from relayrl.config_fields import field_docs, toml_literal
 
 DEFAULT_OUT = Path("docs") / "config.md"
@@ -50,7 +50,7 @@ def _table(section: Any, prefix: str) -> list[str]:
 
 def render() -> str:
     """The whole of docs/config.md."""
-    config = _class_defaults()
+    config = class_defaults()
     out = [HEADER, "## Top level", "", *_table(config, "")]
     for name in ("env", "train", "eval", "replay", "distributed"):
         out += ["", f"## [{name}]", "", *_table(getattr(config, name), f"{name}.")]

@@ -35,7 +35,8 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
     env without a time limit has its episodes cut at `max_episode_steps`, or 1,000 steps if 0.
     """
     from relayrl.envs.gym import GymBatchEnv
-    from relayrl.training.evaluate import EVAL_MAX_EPISODE_STEPS, evaluate as run_episodes
+    from relayrl.training.evaluate import EVAL_MAX_EPISODE_STEPS
+    from relayrl.training.evaluate import evaluate as run_episodes
 
     if not isinstance(episodes, int) or episodes < 1:
         raise UserError(f"episodes={episodes!r} is not valid; it must be an integer >= 1")
