@@ -57,7 +57,8 @@ def assert_same_state(a, b):
 @pytest.mark.parametrize("preset,over", [
     ("dqn-cartpole-fast", DQN + ["env.num_envs=3", "env.vectorization=async", "replay.n_step=3"]),
     ("sac-pendulum", SAC + ["env.num_envs=7", "train.collect_steps=7", "train.gradient_steps=1",
-                            "train.pull_interval=28"]),  # the checkpoint at 602 falls between pulls
+                            "train.pull_interval=28",  # the checkpoint at 602 falls between pulls
+                            "agent.lr_end=0.0"]),  # the learning rates follow their schedule across the resume
     ("sac-pendulum", SAC + ["env.id=relayrl/StatelessPendulum-v0", "env.num_envs=6", "train.collect_steps=6"]),
 ], ids=["dqn-3async-nstep", "sac-7envs-stale-actor", "sac-6stateless"])
 def test_resumed_run_is_bit_identical_to_the_uninterrupted_one(tmp_path, preset, over):

@@ -7,6 +7,10 @@ Notebook use mirrors the CLI:
     result = relayrl.train(config, "runs/mine")
     relayrl.plot_run("runs/mine"); relayrl.record_video("runs/mine")
     policy = relayrl.load_policy("runs/mine")
+    mean, std = relayrl.evaluate(policy, "CartPole-v1", episodes=10)
+
+Without a preset: `relayrl.load_config("ppo")` (or `{"algo": "ppo", "env": {"id": ...}}`) is PPO's
+own defaults, Stable-Baselines3's; likewise "dqn" and "sac".
 """
 
 from __future__ import annotations
@@ -15,12 +19,15 @@ from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
-__all__ = ["load_config", "list_presets", "train", "load_policy", "export_policy", "plot_run", "record_video", "Config"]
+__all__ = ["load_config", "list_presets", "train", "evaluate", "load_policy", "export_policy", "plot_run",
+           "record_video", "Config", "EvalResult"]
 
 _LAZY = {
     "load_config": "relayrl.presets",
     "list_presets": "relayrl.presets",
     "train": "relayrl.run",
+    "evaluate": "relayrl.evaluation",
+    "EvalResult": "relayrl.evaluation",
     "load_policy": "relayrl.export",
     "export_policy": "relayrl.export",
     "plot_run": "relayrl.plot",
@@ -30,6 +37,7 @@ _LAZY = {
 
 if TYPE_CHECKING:
     from relayrl.config import Config
+    from relayrl.evaluation import EvalResult, evaluate
     from relayrl.export import export_policy, load_policy
     from relayrl.plot import plot_run
     from relayrl.presets import list_presets, load_config
@@ -44,3 +52,8 @@ def __getattr__(name: str) -> Any:
 
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'relayrl' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    # Tab completion and dir(relayrl) show the lazy public API beside what is already imported.
+    return sorted(set(__all__) | set(globals()))

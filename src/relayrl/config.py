@@ -6,6 +6,7 @@ closest key), from TOML, --set or an assignment in Python (`config_fields.Sectio
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import tomllib
 from dataclasses import dataclass, field
@@ -117,6 +118,20 @@ class Config(Section):
     distributed: DistributedConfig = field(default_factory=DistributedConfig)
     agent: Any = field(default_factory=lambda: algorithm("dqn").config())  # the algo's config class
 
+    def __post_init__(self) -> None:
+        # The dataclass fills every key it was not given with the classes' own defaults; the
+        # algorithm's defaults (agents/<algo>/config.py DEFAULTS) take their place, so that
+        # Config(algo="ppo") is PPO's default config, never DQN's.
+        _rebase(self, class_defaults(), algo_defaults(self.algo))
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        previous = self.__dict__.get("algo")
+        super().__setattr__(name, value)
+        if name == "algo" and "agent" in self.__dict__ and previous != value:
+            # config.algo = "sac" after construction: every key still at the old algorithm's
+            # default takes the new one's (and the agent section becomes the new algorithm's).
+            _rebase(self, algo_defaults(previous), algo_defaults(value))
+
     def validate(self) -> None:
         """Cross-field checks that types alone cannot express."""
         if not 0 <= self.seed <= MAX_SEED:
@@ -178,12 +193,59 @@ def to_dict(config: Config) -> dict[str, Any]:
 
 
 def from_dict(data: dict[str, Any]) -> Config:
-    """Build a Config from nested dicts (e.g. parsed TOML); every key is checked."""
+    """Build a Config from nested dicts (e.g. parsed TOML); every key is checked. A key the
+    dict does not name is the algorithm's default (`algo_defaults`)."""
     data = dict(data)
-    config = Config(agent=algorithm(data.get("algo", "dqn")).config())
+    config = Config(algo=algorithm(data.get("algo", "dqn")).name)  # a name this version knows, first
     _merge(config, data, prefix="")
     config.validate()
     return config
+
+
+def algo_defaults(algo: str) -> Config:
+    """`algo`'s default config: the config classes' defaults with the registry's `defaults` for
+    that algorithm over them (relayrl train ALGO, relayrl config ALGO)."""
+    spec = algorithm(algo)
+    config = class_defaults()
+    object.__setattr__(config, "algo", algo)  # no rebase: this is what rebasing starts from
+    object.__setattr__(config, "agent", spec.config())
+    _merge(config, copy.deepcopy(spec.defaults), prefix="")
+    return config
+
+
+def class_defaults() -> Config:
+    """Every section at its class's own defaults (the agent section DQN's), as the dataclass
+    builds them before __post_init__."""
+    config = object.__new__(Config)
+    for f in dataclasses.fields(Config):
+        value = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default  # type: ignore[misc]
+        object.__setattr__(config, f.name, value)
+    return config
+
+
+def _rebase(obj: Any, old: Any, new: Any) -> None:
+    """Every field of `obj` still equal to `old`'s takes `new`'s value; a section of another class
+    (the agent section of another algorithm) becomes `new`'s, keeping the fields it shares with it
+    that were changed from `old`."""
+    for f in dataclasses.fields(obj):
+        if f.name == "algo":
+            continue
+        current, was, becomes = getattr(obj, f.name), getattr(old, f.name), getattr(new, f.name)
+        if dataclasses.is_dataclass(current):
+            if type(current) is not type(becomes):
+                section = copy.deepcopy(becomes)
+                shared = {g.name for g in dataclasses.fields(section)} & {g.name for g in dataclasses.fields(current)}
+                for key in sorted(shared):
+                    if type(current) is not type(was) or getattr(current, key) != getattr(was, key):
+                        try:
+                            setattr(section, key, getattr(current, key))
+                        except ConfigError:  # the same name with another type: the new default stays
+                            pass
+                object.__setattr__(obj, f.name, section)
+            else:
+                _rebase(current, was, becomes)
+        elif current == was and current != becomes:
+            object.__setattr__(obj, f.name, copy.deepcopy(becomes))
 
 
 def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:

@@ -15,16 +15,19 @@ from pathlib import Path
 from typing import Any
 
 from relayrl.agents.registry import ALGORITHMS
-from relayrl.config import Config
+from relayrl.config import class_defaults
 from relayrl.config_fields import field_docs, toml_literal
 
 DEFAULT_OUT = Path("docs") / "config.md"
 
 HEADER = """# Config reference
 
-Every key of a relayrl config, with its type, its default and what it means. The defaults are the
-config classes' own; a preset sets its own values on top of them (`relayrl config PRESET` prints a
-preset's full config, each key with the same meaning). Set a key with `--set KEY=VALUE` (a TOML
+Every key of a relayrl config, with its type, its default and what it means. The defaults below
+are the config classes' own; each algorithm sets some of them differently (its own defaults,
+Stable-Baselines3's as the anchor: [Defaults per algorithm](#defaults-per-algorithm)), and a
+config takes its algorithm's defaults for every key it does not name. A preset names every key
+it sets on top (`relayrl config PRESET` prints a preset's full config, each key with the same
+meaning; `relayrl config ppo` an algorithm's defaults). Set a key with `--set KEY=VALUE` (a TOML
 value), in a config TOML, or as an attribute in Python (`config.train.total_steps = 20_000`).
 Unknown keys and wrong types stop with one line naming the valid keys or the closest one.
 
@@ -47,14 +50,39 @@ def _table(section: Any, prefix: str) -> list[str]:
 
 def render() -> str:
     """The whole of docs/config.md."""
-    config = Config()
+    config = class_defaults()
     out = [HEADER, "## Top level", "", *_table(config, "")]
     for name in ("env", "train", "eval", "replay", "distributed"):
         out += ["", f"## [{name}]", "", *_table(getattr(config, name), f"{name}.")]
     out += ["", "## [agent]", "", "What the `agent` section holds depends on `algo`."]
     for algo in ALGORITHMS.values():
         out += ["", f'### [agent] with algo = "{algo.name}"', "", *_table(algo.config(), "agent.")]
-    return "\n".join(out) + "\n"
+    return "\n".join(out + _per_algorithm()) + "\n"
+
+
+def _per_algorithm() -> list[str]:
+    """The keys each algorithm's defaults set over the tables above (agents/<algo>/config.py
+    DEFAULTS, whose comments say where and why they differ from Stable-Baselines3's)."""
+    algos = [a for a in ALGORITHMS.values() if a.defaults]
+    keys: list[str] = []
+    for a in algos:
+        keys += [k for k in _leaves(a.defaults) if k not in keys]
+    out = ["", "## Defaults per algorithm", "",
+           "What `relayrl train ALGO` (and a config naming only `algo`) holds where it differs from the "
+           "tables above; `-`: the table's default. Why each differs from Stable-Baselines3's: the "
+           "comment above `DEFAULTS` in `src/relayrl/agents/<algo>/config.py`.", "",
+           "| key | " + " | ".join(f"`{a.name}`" for a in algos) + " |", "|---|" + "---|" * len(algos)]
+    for key in keys:
+        cells = [_leaves(a.defaults).get(key) for a in algos]
+        out.append(f"| `{key}` | " + " | ".join("-" if v is None else f"`{toml_literal(v)}`" for v in cells) + " |")
+    return out
+
+
+def _leaves(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out.update(_leaves(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:

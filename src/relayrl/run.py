@@ -7,14 +7,14 @@ from __future__ import annotations
 import copy
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from relayrl.agents.registry import algorithm, load_attr, ray_algorithms
 from relayrl.config import Config, from_dict, load_toml, save_toml
 from relayrl.errors import UserError
-from relayrl.training.assembly import RunResult
+from relayrl.training.assembly import Callback, RunResult
 from relayrl.training.run_dir import RunDir
 
 
@@ -58,6 +58,21 @@ def _use_factory(config: Config, env: Any, one_process: bool) -> None:
     config.env.id = factory_env_id(env)
 
 
+def _check_callbacks(callbacks: Sequence[Callback] | None, one_process: bool) -> list[Callback]:
+    if callbacks is None:
+        return []
+    if callable(callbacks):  # callbacks=cb: one callback is a list of one
+        callbacks = [callbacks]
+    callbacks = list(callbacks)
+    for cb in callbacks:
+        if not callable(cb):
+            raise UserError(f"callbacks: {cb!r} is not callable; give functions taking a metrics row (a dict)")
+    if callbacks and not one_process:
+        raise UserError("callbacks= works with the one-process Actor + Learner run (algo dqn, sac or ppo with "
+                        "distributed.num_actors = 0); this run's evaluations happen elsewhere")
+    return callbacks
+
+
 def _takeover_notice(rd: RunDir, overwrite: bool) -> str | None:
     """What a new run in `rd` does to what is there: None (nothing there, or not a run's), a
     notice when it replaces a run (`overwrite`, or a run that stopped before its first
@@ -89,7 +104,8 @@ def _finished(rd: RunDir) -> bool:
 
 
 def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, resume: bool = False,
-          progress: bool = True, env: Callable[[], Any] | None = None, overwrite: bool = False) -> RunResult:
+          progress: bool = True, env: Callable[[], Any] | None = None, overwrite: bool = False,
+          callbacks: Sequence[Callback] | None = None) -> RunResult:
     """Train from a Config (or a nested dict of config values) into a run directory.
 
     A new run refuses a directory that already holds a run with a checkpoint (or a finished
@@ -103,13 +119,23 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     processes, so it must not hold what cannot be pickled (open files, simulator handles) --
     make those inside it. A resumed run needs the same callable passed again. Distributed runs
     need an importable env.id instead.
+
+    `callbacks`: callables each given a metrics row (a dict) at every evaluation (the row
+    metrics.jsonl gets, with `"event": "eval"`) and every train.log_interval env steps
+    (`"event": "log"`: step, train_step, wall_time_s, perf/*, train/*, losses/*, charts/*).
+    One returning False stops the run cleanly: the final policy and checkpoint are saved and
+    the result's `stopped_early` is True. Early stopping at a return of 400:
+    `callbacks=[lambda row: row.get("average_return", -1e9) < 400]`. What a callback raises
+    propagates; the run's checkpoints so far stay. One-process Actor + Learner runs only.
     """
     # A copy: recording an env factory's name (and the run's own settings) never changes the caller's config.
     config = from_dict(config) if isinstance(config, dict) else copy.deepcopy(config)
     config.validate()
     spec = algorithm(config.algo)
+    one_process = not spec.run and config.distributed.num_actors == 0
     if env is not None:
-        _use_factory(config, env, one_process=not spec.run and config.distributed.num_actors == 0)
+        _use_factory(config, env, one_process)
+    callbacks = _check_callbacks(callbacks, one_process)
     rd = RunDir(run_dir if run_dir is not None else default_run_dir(config))
     rd.check_writable()
     rd.check_not_running()
@@ -139,7 +165,7 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     else:
         from relayrl.training.loop import LocalRun
 
-        run = LocalRun(config, rd, progress, env_factory=env)
+        run = LocalRun(config, rd, progress, env_factory=env, callbacks=callbacks)
     if not resume and takeover:
         print(f"relayrl: {takeover}", file=sys.stderr, flush=True)
         rd.clear()

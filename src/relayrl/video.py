@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
+import gymnasium as gym
 import torch
 
 from relayrl.envs import make_env
+from relayrl.envs.gym import GymBatchEnv
 from relayrl.errors import UserError
 from relayrl.export import load_policy
 from relayrl.paths import output_path
@@ -15,7 +18,10 @@ from relayrl.presets import load_config
 
 
 def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: int = 1,
-                 seed: int = 0, max_steps: int = 10_000) -> Path:
+                 seed: int = 0, max_steps: int = 10_000, env: Any = None) -> Path:
+    """`env`: instead of the run's env.id (a run trained on an env factory in a notebook), a
+    callable taking `render_mode` and returning an env, or an env made with render_mode="rgb_array"
+    (used as it is and left open)."""
     from relayrl.training.run_dir import RunDir
 
     rd = RunDir(run_dir)
@@ -27,8 +33,10 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
     config = load_config(str(rd.config))
     policy = load_policy(rd.root)
-    env = make_env(config.env.id, 1, config.env.max_episode_steps, render_mode="rgb_array",
-                   kwargs=config.env.kwargs, wrappers=config.env.wrappers)
+    given = env
+    env = (make_env(config.env.id, 1, config.env.max_episode_steps, render_mode="rgb_array",
+                    kwargs=config.env.kwargs, wrappers=config.env.wrappers) if given is None
+           else GymBatchEnv([lambda: _rgb_env(given)]))
     try:
         fps = int(env.envs[0].metadata.get("render_fps", 30))
         frames = []
@@ -44,7 +52,8 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
                     break
             obs = out_step.obs
     finally:
-        env.close()
+        if not isinstance(given, gym.Env):  # the caller's own instance stays open
+            env.close()
     if not frames or frames[0] is None:
         raise UserError(f"env {config.env.id!r} does not render rgb_array frames")
     import imageio.v2 as imageio
@@ -52,3 +61,25 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     # macro_block_size=1 keeps odd frame sizes as they are instead of resizing with a warning.
     imageio.mimwrite(path, frames, fps=fps, macro_block_size=1)
     return path
+
+
+def _rgb_env(env: Any) -> gym.Env:
+    """The env a video is recorded from: `env` itself, or `env(render_mode="rgb_array")`."""
+    if isinstance(env, gym.Env):
+        made = env
+    elif callable(env):
+        try:
+            made = env(render_mode="rgb_array")
+        except TypeError as e:
+            if "render_mode" not in str(e):
+                raise
+            raise UserError("env= for a video must take render_mode (e.g. lambda render_mode=None: "
+                            "MyEnv(render_mode=render_mode)), or be an env made with render_mode='rgb_array'") from None
+        if not isinstance(made, gym.Env):
+            raise UserError(f"env= returned {type(made).__name__}, not a gymnasium.Env")
+    else:
+        raise UserError(f"env={env!r} is not an env: give a callable taking render_mode, or a Gymnasium env "
+                        "made with render_mode='rgb_array'")
+    if made.render_mode != "rgb_array":
+        raise UserError(f"env= renders with render_mode={made.render_mode!r}; a video needs render_mode='rgb_array'")
+    return made

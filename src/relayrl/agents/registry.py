@@ -10,12 +10,15 @@ which asks it for config classes, import no torch (`relayrl presets` and config 
 from __future__ import annotations
 
 import importlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from relayrl.agents.bptt.config import BpttConfig
+from relayrl.agents.dqn import config as dqn_config
 from relayrl.agents.dqn.config import DQNConfig
+from relayrl.agents.ppo import config as ppo_config
 from relayrl.agents.ppo.config import PPOConfig
+from relayrl.agents.sac import config as sac_config
 from relayrl.agents.sac.config import SACConfig
 from relayrl.config_fields import did_you_mean
 from relayrl.errors import ConfigError, UserError
@@ -41,6 +44,12 @@ class Algorithm:
     ray: bool = False  # runs with distributed.num_actors > 0
     run: str = ""  # "module:Class": a run of its own (config, run_dir, progress), instead of Actor + Learner
     resumable: bool = True  # its runs write checkpoints that `--resume` continues
+    # What a config of this algo holds for every key it does not name, over the config classes'
+    # own defaults: {"train": {"collect_steps": 2048}, "agent": {...}} (see config.algo_defaults).
+    defaults: dict[str, Any] = field(default_factory=dict, hash=False)
+    # Non-empty: `relayrl train NAME` / `relayrl config NAME` start from these defaults, listed by
+    # `relayrl presets` with this line. Empty: the algorithm starts from its presets only.
+    description: str = ""
 
     def __post_init__(self) -> None:
         if self.replay not in REPLAYS:
@@ -60,11 +69,17 @@ class Algorithm:
 
 ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (
     Algorithm("dqn", DQNConfig, "q_greedy", "relayrl.agents.dqn.policy", agent="relayrl.agents.dqn.agent:DQNAgent",
-              ray=True),
+              ray=True, defaults=dqn_config.DEFAULTS,
+              description="DQN with Stable-Baselines3's defaults (64x64, lr 1e-4, batch 32, a gradient step every "
+                          "4 env steps), target copy every 1,000 env steps; 100,000 env steps (set env.id)"),
     Algorithm("sac", SACConfig, "tanh_gaussian", "relayrl.agents.sac.policy",
-              agent="relayrl.agents.sac.agent:SACAgent", ray=True),
+              agent="relayrl.agents.sac.agent:SACAgent", ray=True, defaults=sac_config.DEFAULTS,
+              description="SAC with Stable-Baselines3's defaults (256x256, lr 3e-4, batch 256, 1M replay, "
+                          "auto entropy); 50,000 env steps (set env.id; continuous actions)"),
     Algorithm("ppo", PPOConfig, "ppo", "relayrl.agents.ppo.policy", agent="relayrl.agents.ppo.agent:PPOAgent",
-              replay="rollouts", ray=True),
+              replay="rollouts", ray=True, defaults=ppo_config.DEFAULTS,
+              description="PPO with Stable-Baselines3's defaults (rollouts of 2,048 steps x 1 env, batch 64, "
+                          "10 epochs, lr 3e-4, 64x64 tanh); 100,000 env steps (set env.id)"),
     Algorithm("bptt", BpttConfig, "clamped_mlp", "relayrl.agents.bptt.policy", replay="none",
               run="relayrl.agents.bptt.run:BpttRun", resumable=False),
 )}

@@ -1,10 +1,13 @@
-"""Named presets: TOML files beside this module. The first comment line describes each."""
+"""Named presets: TOML files beside this module (the first comment line describes each), and
+each algorithm's own default config under its name (`relayrl train ppo`), from the registry."""
 
 from __future__ import annotations
 
+import tomllib
 from importlib import resources
 from typing import Any
 
+from relayrl.agents.registry import ALGORITHMS
 from relayrl.config import Config, apply_overrides, from_dict, load_toml
 from relayrl.config_fields import did_you_mean
 from relayrl.errors import ConfigError
@@ -15,9 +18,14 @@ def _files() -> dict[str, Any]:
     return {p.name[:-5]: p for p in root.iterdir() if p.name.endswith(".toml")}
 
 
+def algorithm_configs() -> dict[str, str]:
+    """Algorithm name -> its one-line description, for the algorithms that start without a preset."""
+    return {a.name: a.description for a in ALGORITHMS.values() if a.description}
+
+
 def list_presets() -> dict[str, str]:
-    """name -> one-line description."""
-    out = {}
+    """name -> one-line description: the algorithms' default configs first, then the presets."""
+    out = dict(sorted(algorithm_configs().items()))
     for name, path in sorted(_files().items()):
         first = path.read_text().splitlines()[0]
         out[name] = first.lstrip("# ").strip()
@@ -25,13 +33,18 @@ def list_presets() -> dict[str, str]:
 
 
 def preset_dict(name: str) -> dict[str, Any]:
+    if name in algorithm_configs():
+        return {"algo": name}  # every other key is the algorithm's default (config.algo_defaults)
     files = _files()
+    if name in ALGORITHMS:  # an algorithm that starts from its presets only (BPTT needs a stateless env)
+        own = sorted(n for n, f in files.items() if tomllib.loads(f.read_text()).get("algo") == name)
+        raise ConfigError(f"algo {name!r} has no default config; start from its preset{'s' * (len(own) > 1)} "
+                          f"{', '.join(own)} (see `relayrl presets`)")
     if name not in files:
-        raise ConfigError(f"unknown preset {name!r}{did_you_mean(name, list(files))} "
-                          f"(valid: {', '.join(sorted(files))}; a config file's name ends in .toml)")
+        valid = [*algorithm_configs(), *files]
+        raise ConfigError(f"unknown preset {name!r}{did_you_mean(name, valid)} "
+                          f"(valid: {', '.join(sorted(valid))}; a config file's name ends in .toml)")
     with files[name].open("rb") as f:
-        import tomllib
-
         return tomllib.load(f)
 
 

@@ -40,6 +40,13 @@ from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver
 class RunResult:
     run_dir: Path
     final: dict[str, Any]  # the last evaluation row of metrics.jsonl
+    stopped_early: bool = False  # a callback returned False before train.total_steps
+
+
+# relayrl.train(callbacks=[...]): each is called with a metrics row (the `event` key says which:
+# "eval", the row metrics.jsonl gets at an evaluation, or "log", every train.log_interval env
+# steps); returning False stops the run as if it had reached train.total_steps.
+Callback = Callable[[dict[str, Any]], Any]
 
 
 def resolve_device(name: str) -> torch.device:
@@ -79,10 +86,12 @@ class Run:
     metrics_log: MetricsLog
 
     def __init__(self, config: Config, run_dir: RunDir, progress: bool = True,
-                 env_factory: Callable[[], Any] | None = None) -> None:
+                 env_factory: Callable[[], Any] | None = None, callbacks: list[Callback] | None = None) -> None:
         c = config
         self.config, self.rd, self.show_progress = config, run_dir, progress
         self.env_factory = env_factory  # relayrl.train(env=...): made instead of env.id
+        self.callbacks = list(callbacks or [])
+        self.stop_requested = False  # a callback returned False: iterate() ends at its next check
         if c.train.torch_threads > 0:
             torch.set_num_threads(c.train.torch_threads)
         self.seeds = RunSeeds(c.seed)
@@ -201,9 +210,13 @@ class Run:
                 log_config(self.tb, c)
                 self.evaluate_now(Progress(0, 0))  # the untrained policy, before any collection
                 self.policy_saver.save(Progress(0, 0))  # `relayrl eval` works from the start
-            self.iterate()
+            if not self.stop_requested:
+                self.iterate()
+            stopped = self.stop_requested and self.env_steps() < c.train.total_steps
+            if stopped:
+                self.say(f"a callback returned False: the run stops at env step {self.env_steps():,}")
             self.finish(self.progress())
-            return RunResult(self.rd.root, self.last_eval)
+            return RunResult(self.rd.root, self.last_eval, stopped_early=stopped)
         finally:
             if self.lines is not None:
                 self.lines.stop()
@@ -272,6 +285,15 @@ class Run:
         step's scalars are `finish`'s (the run's steps/s), so none is written twice."""
         if p.env_steps < self.config.train.total_steps:
             self.write_scalars(p, env_sps, grad_sps)
+        if self.callbacks:
+            row = {"step": p.env_steps, "train_step": p.train_step, "wall_time_s": round(self.wall_time(), 3),
+                   "perf/sps": env_sps, "perf/grad_sps": grad_sps,
+                   "train/average_return": (sum(self.stats.returns) / len(self.stats.returns)
+                                            if self.stats.returns else float("nan")),
+                   "train/episodes": self.stats.episodes,
+                   **self.learner.scalar_metrics(),
+                   **{f"charts/{k}": v for k, v in self.agent.scalars(p.env_steps).items()}}
+            self.call_back("log", row)
         if self.bar is not None:
             self.bar.update(p.env_steps - self.bar.n)
             last = self.last_eval.get("average_return")
@@ -320,3 +342,12 @@ class Run:
         self.last_eval = row
         self.say(f"step {p.env_steps:>9,} | eval return {result['average_return']:8.2f} "
                  f"| length {result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
+        self.call_back("eval", row)
+
+    def call_back(self, event: str, row: dict[str, Any]) -> None:
+        """Each callback gets its own copy of the row with `event`; False from any stops the run.
+        What a callback raises propagates (it is the user's code): the run ends there, its
+        checkpoints and metrics as they were."""
+        for callback in self.callbacks:
+            if callback({**row, "event": event}) is False:
+                self.stop_requested = True

@@ -43,12 +43,13 @@ def eval_cap_note(env: BatchedEnv, env_id: str) -> str | None:
 
 
 def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = None,
-             max_steps: int = 1_000_000) -> dict[str, float]:
+             max_steps: int = 1_000_000, episode_returns: list[float] | None = None) -> dict[str, float]:
     """Run `episodes` full episodes and average their return and length (and, as `eval/<key>`,
     each `env.info_keys` value at the episodes' ends).
 
     Copy i of the batch runs a fixed quota of episodes, so short episodes are not
     over-represented (stopping at the first `episodes` finishers would bias the mean).
+    `episode_returns`, if given, gets each episode's return (relayrl.evaluate's std).
     """
     b = env.num_envs
     quota = np.full(b, episodes // b) + (np.arange(b) < episodes % b)
@@ -77,6 +78,8 @@ def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = 
         ret[done] = 0.0
         length[done] = 0
         obs = out.obs
+    if episode_returns is not None:
+        episode_returns.extend(returns)
     return {
         "average_return": float(np.mean(returns)) if returns else float("nan"),
         "average_episode_length": float(np.mean(lengths)) if lengths else float("nan"),

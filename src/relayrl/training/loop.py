@@ -172,7 +172,7 @@ class LocalRun(Run):
         self.sps_log.rates.reset(self.progress())
         self.variables.push(network_variables(self.agent.policy_network()))  # fresh or restored weights
         self.actor.policy = self.collect_policy
-        while self.actor.env_steps < total:
+        while self.actor.env_steps < total and not self.stop_requested:
             self.actor.run(min(c.train.collect_steps, total - self.actor.env_steps))
             self.step_schedules(self.actor.env_steps)
             if not self.collect_only:

@@ -8,6 +8,7 @@ shuffled minibatches of `batch_size` steps, then dropped.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from relayrl.config_fields import Section, check_encoder
 from relayrl.errors import ConfigError
@@ -60,3 +61,14 @@ class PPOConfig(Section):
         for key in ("ent_coef", "vf_coef", "max_grad_norm"):
             if getattr(self, key) < 0:
                 raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be >= 0")
+
+
+# `relayrl train ppo` / `algo = "ppo"`: what a config that names only algo and env.id gets beyond
+# the classes' own defaults (the agent section above is SB3's PPO already). SB3's rollout: n_steps
+# 2048 x 1 env, each step collected by the current policy. SB3 has no total_steps; 100,000 is
+# where its defaults reach ~500 on CartPole-v1 (docs/config.md, README "Your own env").
+DEFAULTS: dict[str, Any] = {
+    "train": {"total_steps": 100_000, "initial_collect_steps": 0, "collect_steps": 2048,
+              "checkpoint_interval": 20_480, "policy_save_interval": 10_240, "log_interval": 2048},
+    "eval": {"interval": 10_240},  # every 5 rollouts
+}

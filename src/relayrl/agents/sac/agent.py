@@ -21,6 +21,7 @@ from relayrl.agents.sac.networks import actor_network, check_action_spec, critic
 from relayrl.nn import mlp_fast
 from relayrl.optim import FastAdam
 from relayrl.policies import TanhGaussianPolicy, network_state
+from relayrl.schedules import linear_schedule
 from relayrl.specs import Spec, flat_dim
 from relayrl.types import Batch
 
@@ -41,6 +42,12 @@ class SACAgent:
         self.actor_opt = FastAdam(self.actor.parameters(), lr=cfg.actor_lr)
         self.critic_opt = FastAdam(self.critic.parameters(), lr=cfg.critic_lr)
         self.alpha_opt = FastAdam([self.log_alpha], lr=cfg.alpha_lr)
+        # agent.lr_end >= 0: each optimizer's lr linear in env steps to lr_end (set_progress), as
+        # SB3 applies its one schedule to actor, critic and alpha; the fast path reads opt.lr too.
+        self._lr_at = ([(opt, linear_schedule(lr, cfg.lr_end, total_steps)) for opt, lr in
+                        ((self.actor_opt, cfg.actor_lr), (self.critic_opt, cfg.critic_lr),
+                         (self.alpha_opt, cfg.alpha_lr))]
+                       if cfg.lr_end >= 0 and total_steps > 0 else [])
         a_dim = int(np.prod(self.action_spec.shape))
         self.target_entropy = float(-a_dim if cfg.target_entropy is None else cfg.target_entropy)
         low, high = self.action_spec.low, self.action_spec.high
@@ -88,7 +95,9 @@ class SACAgent:
         return self._policy(deterministic=True)
 
     def set_progress(self, env_steps: int) -> None:
-        """SAC has no env-step schedules; kept for the Agent protocol."""
+        """Follow schedules that run on env steps (the learning rates, with agent.lr_end >= 0)."""
+        for opt, lr_at in self._lr_at:
+            opt.lr = lr_at(env_steps)
 
     def scalars(self, env_steps: int) -> dict[str, float]:
         """For TensorBoard: charts/learning_rate (the actor's; the critics' and alpha's are in the config)."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from relayrl.config_fields import Section, check_encoder
 from relayrl.errors import ConfigError
@@ -21,6 +22,9 @@ class SACConfig(Section):
     actor_lr: float = 3e-4  # Adam learning rate of the actor
     critic_lr: float = 3e-4  # Adam learning rate of the critics
     alpha_lr: float = 3e-4  # Adam learning rate of the entropy temperature
+    # < 0: constant learning rates; else actor_lr, critic_lr and alpha_lr each linear in env steps
+    # to lr_end at train.total_steps (SB3 applies its one lr schedule to all three optimizers)
+    lr_end: float = -1.0
     batch_size: int = 256  # transitions per gradient step
     gamma: float = 0.99  # discount factor
     tau: float = 0.005  # Polyak factor for the target critics
@@ -52,3 +56,15 @@ class SACConfig(Section):
             raise ConfigError("agent.target_update_period and agent.batch_size must be >= 1")
         if self.grad_clip < 0 or self.log_std_min >= self.log_std_max:
             raise ConfigError("agent.grad_clip must be >= 0 and agent.log_std_min < agent.log_std_max")
+
+
+# `relayrl train sac` / `algo = "sac"`: beyond the classes' defaults (the agent section above is
+# SB3's SAC: 256x256, lr 3e-4, batch 256, tau 0.005, gamma 0.99, alpha auto), SB3's
+# learning_starts 100 and 1M replay; 1 env step then 1 gradient step (SB3's train_freq 1,
+# gradient_steps 1) are the train section's own defaults. One torch thread (train.torch_threads):
+# SB3 takes every core, which on a shared machine is many times slower (issue 32).
+DEFAULTS: dict[str, Any] = {
+    "env": {"id": "Pendulum-v1"},  # the classes' CartPole-v1 has discrete actions, which SAC does not take
+    "train": {"initial_collect_steps": 100},
+    "replay": {"size": 1_000_000},
+}

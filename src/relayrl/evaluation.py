@@ -1,0 +1,110 @@
+"""`relayrl.evaluate`: Stable-Baselines3's `evaluate_policy` for a saved policy, a run directory or
+any callable, on an env given as an instance, a factory or an id. The episodes themselves run
+through `training.evaluate.evaluate`, the function every run's evaluations use."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from relayrl.errors import UserError
+
+
+class EvalResult(NamedTuple):
+    """Mean and standard deviation of the episodes' returns; unpacks as SB3's `(mean, std)`."""
+
+    mean: float
+    std: float
+
+
+def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bool = True,
+             seed: int | None = 0, max_episode_steps: int = 0) -> EvalResult:
+    """Run `episodes` whole episodes and return the returns' mean and (population) std.
+
+    `policy`: what `relayrl.load_policy` returns, a run directory (or its policy file), an object
+    with SB3's `predict(obs, deterministic=...)`, or any callable taking one observation as the env
+    returns it and returning one action. `env`: a Gymnasium env instance (used as it is and left
+    open), a callable returning one (called once per env copy), or an env id; None: a run
+    directory's own env (its config.toml, as `relayrl eval`). The env copies (up to 16, one for an
+    instance) are reset with seed, seed + 1, ... (None: unseeded), as a run's evaluations are. An
+    env without a time limit has its episodes cut at `max_episode_steps`, or 1,000 steps if 0.
+    """
+    from relayrl.envs.gym import GymBatchEnv
+    from relayrl.training.evaluate import EVAL_MAX_EPISODE_STEPS
+    from relayrl.training.evaluate import evaluate as run_episodes
+
+    if not isinstance(episodes, int) or episodes < 1:
+        raise UserError(f"episodes={episodes!r} is not valid; it must be an integer >= 1")
+    act = _policy_fn(policy, deterministic, seed)
+    batch_env, owned = _batch_env(env, policy, episodes, max_episode_steps)
+    try:
+        if isinstance(batch_env, GymBatchEnv) and not batch_env.time_limited and not batch_env.capped_at:
+            batch_env.cap_episodes(max_episode_steps or EVAL_MAX_EPISODE_STEPS)  # so that it ends
+        returns: list[float] = []
+        run_episodes(batch_env, act, episodes, seed=seed, episode_returns=returns)
+    finally:
+        if owned:
+            batch_env.close()
+    return EvalResult(float(np.mean(returns)), float(np.std(returns)))
+
+
+def _policy_fn(policy: Any, deterministic: bool, seed: int | None) -> Callable[[torch.Tensor], Any]:
+    """A batched policy (a [B, ...] observation tensor -> [B, ...] actions) from what the user gave."""
+    from relayrl.loaded_policy import LoadedPolicy
+
+    if isinstance(policy, (str, Path)):
+        from relayrl.export import load_policy
+
+        policy = load_policy(policy, deterministic=deterministic, seed=seed)
+    if isinstance(policy, LoadedPolicy):
+        return lambda obs: policy.predict(obs, deterministic=deterministic)[0]
+    if hasattr(policy, "predict"):  # an SB3 model, or anything with its spelling
+        return _one_at_a_time(lambda o: policy.predict(o, deterministic=deterministic)[0])
+    if callable(policy):
+        return _one_at_a_time(policy)
+    raise UserError(f"policy={policy!r} is not a policy: give relayrl.load_policy(...)'s result, a run "
+                    "directory, or a callable taking an observation and returning an action")
+
+
+def _one_at_a_time(fn: Callable[[Any], Any]) -> Callable[[torch.Tensor], torch.Tensor]:
+    """A user's function sees one NumPy observation at a time, as the env returns them."""
+
+    def act(obs: torch.Tensor) -> torch.Tensor:
+        return torch.as_tensor(np.stack([np.asarray(fn(o)) for o in obs.cpu().numpy()]))
+
+    return act
+
+
+def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> tuple[Any, bool]:
+    """The batched env to run on, and whether it is ours to close."""
+    from relayrl.envs.gym import GymBatchEnv
+    from relayrl.training.evaluate import make_eval_env
+
+    if isinstance(env, gym.Env):
+        # One copy: the user's own instance, its episodes one after another.
+        return GymBatchEnv([lambda: env]), False
+    if env is None:
+        if not isinstance(policy, (str, Path)):
+            raise UserError("env=None evaluates on a run directory's own env; with a policy object give env "
+                            "(a Gymnasium env, a callable returning one, or an env id)")
+        from relayrl.presets import load_config
+        from relayrl.training.run_dir import RunDir
+
+        root = Path(policy)
+        rd = RunDir(root.parent.parent if root.is_file() else root.parent if root.name == "policy" else root)
+        rd.require()
+        c = load_config(str(rd.config)).env
+        return make_eval_env(c.id, episodes, max_episode_steps or c.max_episode_steps, kwargs=c.kwargs,
+                             wrappers=c.wrappers), True
+    if isinstance(env, str):
+        return make_eval_env(env, episodes, max_episode_steps), True
+    if callable(env):
+        from relayrl.run import factory_env_id
+
+        return make_eval_env(factory_env_id(env), episodes, max_episode_steps, factory=env), True
+    raise UserError(f"env={env!r} is not an env: give a Gymnasium env, a callable returning one, or an env id")

@@ -1,0 +1,153 @@
+"""Python habits (issue 32, D): relayrl.evaluate, record_video(env=), train(callbacks=), SAC's
+learning-rate schedule, dir(relayrl)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from toy_envs import Countdown
+
+import relayrl
+from relayrl.errors import UserError
+
+TINY = {"algo": "dqn", "env": {"id": "toy_envs:Countdown", "check": False},
+        "train": {"total_steps": 200, "initial_collect_steps": 50, "checkpoint_interval": 100,
+                  "policy_save_interval": 100, "log_interval": 50},
+        "eval": {"interval": 50, "episodes": 2}, "agent": {"batch_size": 8}}
+
+
+class Growing(Countdown):
+    """Countdown of 2 steps whose reward is 1 + the episode index: returns 2, 4, 6, 8, ..."""
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        super().__init__(length=2, render_mode=render_mode)
+
+    def step(self, action):
+        obs, _, terminated, truncated, info = super().step(action)
+        return obs, 1.0 + self.episode, terminated, truncated, info
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    root = tmp_path_factory.mktemp("habits") / "run"
+    relayrl.train(TINY, root, progress=False)
+    return root
+
+
+def test_evaluate_returns_mean_and_std_as_sb3():
+    mean, std = relayrl.evaluate(lambda obs: 0, Growing(), episodes=4)  # one copy: returns 2, 4, 6, 8
+    assert (mean, std) == (5.0, pytest.approx(math.sqrt(5.0)))
+    result = relayrl.evaluate(lambda obs: 1, lambda: Countdown(length=3), episodes=5, seed=1)
+    assert isinstance(result, relayrl.EvalResult) and (result.mean, result.std) == (3.0, 0.0)
+
+
+def test_evaluate_a_run_dir_and_a_loaded_policy(run_dir):
+    assert tuple(relayrl.evaluate(run_dir, episodes=3)) == (3.0, 0.0)  # the run's own env
+    policy = relayrl.load_policy(run_dir)
+    assert tuple(relayrl.evaluate(policy, "toy_envs:Countdown", episodes=3)) == (3.0, 0.0)
+    assert tuple(relayrl.evaluate(run_dir, Countdown(length=4), episodes=2)) == (4.0, 0.0)
+    with pytest.raises(UserError, match="deterministic"):  # a greedy policy has no sampling mode
+        relayrl.evaluate(run_dir, Countdown(), deterministic=False)
+
+
+def test_evaluate_bad_input_is_one_line():
+    with pytest.raises(UserError, match="episodes=0"):
+        relayrl.evaluate(lambda o: 0, Countdown(), episodes=0)
+    with pytest.raises(UserError, match="not a policy"):
+        relayrl.evaluate(3, Countdown())
+    with pytest.raises(UserError, match="env=None"):
+        relayrl.evaluate(lambda o: 0)
+
+
+def test_record_video_with_env(run_dir, tmp_path):
+    factory = lambda render_mode=None: Countdown(render_mode=render_mode)  # noqa: E731
+    out = relayrl.record_video(run_dir, tmp_path / "a.mp4", env=factory)
+    assert out.stat().st_size > 0
+    made = Countdown(render_mode="rgb_array")
+    assert relayrl.record_video(run_dir, tmp_path / "b.mp4", env=made).stat().st_size > 0
+    with pytest.raises(UserError, match="render_mode='rgb_array'"):
+        relayrl.record_video(run_dir, tmp_path / "c.mp4", env=Countdown())
+    with pytest.raises(UserError, match="must take render_mode"):
+        relayrl.record_video(run_dir, tmp_path / "d.mp4", env=lambda: Countdown())
+
+
+@pytest.mark.parametrize("algo", ["dqn", "ppo", "sac"])
+def test_callbacks_see_every_eval_and_log_and_false_stops(algo, tmp_path):
+    cfg = {"algo": algo, "env": {"id": "Pendulum-v1" if algo == "sac" else "toy_envs:Countdown", "check": False},
+           "train": {"total_steps": 1_000, "initial_collect_steps": 0 if algo == "ppo" else 50,
+                     "collect_steps": 50 if algo == "ppo" else 1, "checkpoint_interval": 10_000,
+                     "policy_save_interval": 10_000, "log_interval": 50},
+           "eval": {"interval": 100, "episodes": 1}, "agent": {"batch_size": 16}}
+    rows: list[dict] = []
+
+    def cb(row):
+        rows.append(row)
+        return not (row["event"] == "eval" and row["step"] >= 200)  # stop at the 2nd evaluation after 0
+
+    result = relayrl.train(cfg, tmp_path / "r", progress=False, callbacks=[cb])
+    assert result.stopped_early and result.final["step"] == 200
+    evals = [r for r in rows if r["event"] == "eval"]
+    assert [r["step"] for r in evals] == [0, 100, 200] and "average_return" in evals[0]
+    logs = [r for r in rows if r["event"] == "log"]
+    assert len(logs) == 4 and logs[-1]["step"] == 200 and "perf/sps" in logs[-1]  # one per log_interval
+    rd = tmp_path / "r"
+    assert (rd / "checkpoints" / "ckpt-200.pt").exists() or any((rd / "checkpoints").glob("*200*"))
+    assert relayrl.load_policy(rd).env_steps == 200
+    metrics = (rd / "metrics.jsonl").read_text().splitlines()
+    assert len(metrics) == 3 and '"event"' not in metrics[0]  # metrics.jsonl's rows as before
+
+
+def test_a_callback_that_raises_propagates_and_keeps_the_checkpoint(tmp_path):
+    def cb(row):
+        if row["step"] >= 150:
+            raise RuntimeError("mine")
+
+    with pytest.raises(RuntimeError, match="mine"):
+        relayrl.train(TINY, tmp_path / "r", progress=False, callbacks=[cb])
+    assert list((tmp_path / "r" / "checkpoints").glob("ckpt-*"))
+
+
+def test_callbacks_refused_where_not_supported(tmp_path):
+    with pytest.raises(UserError, match="one-process"):
+        relayrl.train({**TINY, "distributed": {"num_actors": 1}}, tmp_path / "r", callbacks=[print])
+    with pytest.raises(UserError, match="not callable"):
+        relayrl.train(TINY, tmp_path / "r", callbacks=[3])
+
+
+@pytest.mark.parametrize("fast", [True, False])
+def test_sac_lr_schedule_reaches_every_optimizer(fast):
+    from relayrl.agents.sac.agent import SACAgent
+    from relayrl.agents.sac.config import SACConfig
+    from relayrl.specs import ArraySpec
+    from relayrl.types import Batch
+
+    obs = ArraySpec((3,), torch.float32, -np.ones(3), np.ones(3))
+    act = ArraySpec((1,), torch.float32, np.array([-2.0]), np.array([2.0]))
+    cfg = SACConfig(lr_end=0.0, batch_size=4, actor_lr=1e-3, critic_lr=2e-3, alpha_lr=3e-3)
+    agent = SACAgent(obs, act, cfg, torch.device("cpu"), np.random.default_rng(0), total_steps=1000)
+    agent.fast = fast and agent.fast
+    agent.set_progress(500)
+    assert (agent.actor_opt.lr, agent.critic_opt.lr, agent.alpha_opt.lr) == pytest.approx((5e-4, 1e-3, 1.5e-3))
+    assert agent.scalars(500)["learning_rate"] == pytest.approx(5e-4)
+    agent.set_progress(1000)  # lr 0: a gradient step leaves every weight where it was
+    before = [p.detach().clone() for p in [*agent.actor.parameters(), *agent.critic.parameters(), agent.log_alpha]]
+    g = torch.Generator().manual_seed(0)
+    batch = Batch(obs=torch.randn(4, 3, generator=g), action=torch.rand(4, 1, generator=g) * 4 - 2,
+                  reward=torch.randn(4, generator=g), discount=torch.ones(4),
+                  next_obs=torch.randn(4, 3, generator=g), weight=None)
+    agent.train(batch)
+    after = [*agent.actor.parameters(), *agent.critic.parameters(), agent.log_alpha]
+    assert all(torch.equal(a, b) for a, b in zip(before, after, strict=True))
+    constant = SACAgent(obs, act, SACConfig(), torch.device("cpu"), np.random.default_rng(0), total_steps=1000)
+    constant.set_progress(900)
+    assert constant.actor_opt.lr == 3e-4  # the default stays constant
+
+
+def test_dir_shows_the_public_api():
+    names = dir(relayrl)
+    for name in ("train", "evaluate", "load_policy", "record_video", "load_config", "Config", "EvalResult"):
+        assert name in names and name in relayrl.__all__
+    assert callable(relayrl.evaluate)

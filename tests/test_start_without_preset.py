@@ -1,0 +1,123 @@
+"""A start without a preset (issue 32, C): each algorithm's own defaults, from the CLI and from
+Python, never another algorithm's; presets load exactly as before."""
+
+from __future__ import annotations
+
+import copy
+import json
+
+import pytest
+
+import relayrl
+from relayrl.agents.registry import ALGORITHMS
+from relayrl.cli import main
+from relayrl.config import Config, class_defaults, _merge, from_dict, to_dict
+from relayrl.errors import ConfigError
+from relayrl.presets import _files, list_presets, load_config, preset_dict
+
+STARTABLE = ("dqn", "ppo", "sac")
+
+
+def _leaves(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        out.update(_leaves(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
+    return out
+
+
+@pytest.mark.parametrize("algo", STARTABLE)
+def test_a_dict_naming_only_algo_and_env_takes_that_algorithms_defaults(algo):
+    c = from_dict({"algo": algo, "env": {"id": "Pendulum-v1" if algo == "sac" else "CartPole-v1"}})
+    got = _leaves(to_dict(c))
+    for key, value in _leaves(ALGORITHMS[algo].defaults).items():
+        if key != "env.id":
+            assert got[key] == value, key
+    assert isinstance(c.agent, ALGORITHMS[algo].config)
+
+
+def test_ppo_from_python_is_not_dqn_ish():
+    # Issue 32: {"algo": "ppo"} took collect_steps = 1 (a gradient step per env step).
+    for c in (from_dict({"algo": "ppo"}), Config(algo="ppo"), relayrl.load_config("ppo")):
+        assert (c.train.collect_steps, c.train.initial_collect_steps, c.train.total_steps) == (2048, 0, 100_000)
+        assert (c.agent.batch_size, c.agent.n_epochs, c.agent.lr, c.agent.hidden) == (64, 10, 3e-4, [64, 64])
+    assert Config(algo="sac").env.id == "Pendulum-v1" and Config(algo="sac").replay.size == 1_000_000
+
+
+def test_setting_algo_afterwards_keeps_what_the_user_changed():
+    c = Config()
+    c.train.total_steps = 777
+    c.env.id = "Pendulum-v1"
+    c.algo = "ppo"
+    assert type(c.agent).__name__ == "PPOConfig"
+    assert (c.train.total_steps, c.env.id, c.train.collect_steps) == (777, "Pendulum-v1", 2048)
+    c.algo = "dqn"
+    assert c.train.collect_steps == 4 and c.agent.batch_size == 32 and c.train.total_steps == 777
+
+
+def test_the_users_keys_win_over_the_defaults():
+    c = from_dict({"algo": "ppo", "train": {"collect_steps": 256}, "agent": {"lr": 1e-3}})
+    assert c.train.collect_steps == 256 and c.agent.lr == 1e-3 and c.train.log_interval == 2048
+
+
+@pytest.mark.parametrize("preset", sorted(_files()))
+def test_presets_load_exactly_as_on_the_config_classes_defaults(preset):
+    # A preset names every key where its algorithm's defaults differ from the classes' own, so
+    # it is what it was before algorithms had defaults (`relayrl config PRESET` unchanged).
+    data = preset_dict(preset)
+    before = class_defaults()
+    object.__setattr__(before, "agent", ALGORITHMS[data.get("algo", "dqn")].config())
+    object.__setattr__(before, "algo", data.get("algo", "dqn"))
+    _merge(before, copy.deepcopy(data), prefix="")
+    assert to_dict(load_config(preset)) == to_dict(before)
+
+
+def test_a_saved_config_round_trips(tmp_path):
+    from relayrl.config import load_toml, save_toml
+
+    for algo in STARTABLE:
+        c = load_config(algo)
+        save_toml(c, tmp_path / "c.toml")
+        assert to_dict(from_dict(load_toml(tmp_path / "c.toml"))) == to_dict(c)
+
+
+def test_presets_lists_the_algorithm_configs():
+    listed = list_presets()
+    for algo in STARTABLE:
+        assert "Stable-Baselines3" in listed[algo]
+    assert "bptt" not in listed
+
+
+def test_cli_config_and_bad_names(capsys):
+    assert main(["config", "ppo"]) == 0
+    out = capsys.readouterr().out
+    assert 'algo = "ppo"' in out and "collect_steps = 2048" in out
+    assert main(["train", "ppx", "--run-dir", "unused"]) == 2
+    assert "did you mean 'ppo'" in capsys.readouterr().err
+    assert main(["train", "bptt", "--run-dir", "unused"]) == 2
+    err = capsys.readouterr().err
+    assert "bptt-pendulum" in err and err.count("\n") == 1
+    with pytest.raises(ConfigError, match="algo='nope' is not known"):
+        Config(algo="nope")
+
+
+def test_cli_train_ppo_without_a_preset(tmp_path, capsys):
+    run = tmp_path / "run"
+    code = main(["train", "ppo", "--set", "env.id=CartPole-v1", "--set", "train.total_steps=512",
+                 "--set", "train.collect_steps=256", "--set", "eval.episodes=2", "--run-dir", str(run),
+                 "--no-progress"])
+    assert code == 0
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert rows[-1]["step"] == 512 and rows[-1]["train_step"] > 0
+    assert 'algo = "ppo"' in (run / "config.toml").read_text()
+
+
+def test_docs_list_each_algorithms_defaults():
+    from relayrl.docs_config import render
+
+    text = render()
+    assert "## Defaults per algorithm" in text
+    table = text.split("## Defaults per algorithm")[1]
+    for algo in STARTABLE:
+        assert f"`{algo}`" in table
+        for key in _leaves(ALGORITHMS[algo].defaults):
+            assert f"| `{key}` |" in table
