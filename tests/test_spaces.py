@@ -185,3 +185,20 @@ def test_frozen_lake_is_learnt_from_its_discrete_observations(preset, over, tmp_
     cfg.eval.interval = cfg.train.total_steps
     result = relayrl.train(cfg, tmp_path, progress=False)
     assert result.final["average_return"] == 1.0
+
+
+def test_ppo_multi_discrete_and_multi_binary_log_probs_by_hand():
+    from relayrl.agents.ppo.distributions import greedy_logits_action, log_prob_entropy
+
+    logits = torch.tensor([[0.0, 1.0, 2.0, 0.5, -1.0]])  # MultiDiscrete([2, 3]): blocks [0, 1] and [2, 0.5, -1]
+    logp, ent = log_prob_entropy(logits, None, torch.tensor([[1, 0]]), nvec=(2, 3))
+    p1, p2 = torch.softmax(logits[0, :2], 0), torch.softmax(logits[0, 2:], 0)
+    assert torch.allclose(logp, (p1[1].log() + p2[0].log()).reshape(1))
+    assert torch.allclose(ent, (-(p1 * p1.log()).sum() - (p2 * p2.log()).sum()).reshape(1))
+    assert greedy_logits_action(logits, (2, 3), False).tolist() == [[1, 0]]
+    bern = torch.tensor([[0.3, -2.0]])  # MultiBinary(2)
+    logp, ent = log_prob_entropy(bern, None, torch.tensor([[1, 0]], dtype=torch.int8), binary=True)
+    q = torch.sigmoid(bern[0])
+    assert torch.allclose(logp, (q[0].log() + (1 - q[1]).log()).reshape(1))
+    assert torch.allclose(ent, (-(q * q.log() + (1 - q) * (1 - q).log())).sum().reshape(1))
+    assert greedy_logits_action(bern, (), True).tolist() == [[1, 0]]

@@ -1,6 +1,7 @@
 """Networks, each defined once: the MLP and twin MLP (mlp.py) with one activation registry
-(activations.py), the conv Q-network (conv.py), and the MLPs' fast twins (mlp_fast.py): an
-inference path for actors and hand-written gradients for learners."""
+(activations.py), the observation encoders chosen from the observation space (encoders.py),
+the conv Q-network (conv.py), and the MLPs' fast twins (mlp_fast.py): an inference path for
+actors and hand-written gradients for learners."""
 
 from relayrl.nn.activations import ACTIVATIONS, Activation
 from relayrl.nn.conv import CONV_NETWORKS, NATURE_CONVS, NATURE_HIDDEN, ConvQNet
