@@ -316,3 +316,42 @@ class NonFiniteAt(Countdown):
             else:
                 obs = np.full_like(obs, self.value)
         return obs, reward, terminated, truncated, info
+
+
+class FourValueStep(Countdown):
+    """The old Gym API: `step` returns (obs, reward, done, info)."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        return obs, reward, terminated or truncated, info
+
+
+class WrongShapeObs(Countdown):
+    """Observations of shape (3,) float64 where the space says (2,) float32."""
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = super().reset(seed=seed, options=options)
+        return np.zeros(3), info
+
+    def step(self, action):
+        _, reward, terminated, truncated, info = super().step(action)
+        return np.zeros(3), reward, terminated, truncated, info
+
+
+class Float64Obs(Countdown):
+    """Observations of the space's shape but float64 where it says float32: harmless (cast)."""
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = super().reset(seed=seed, options=options)
+        return obs.astype(np.float64), info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        return obs.astype(np.float64), reward, terminated, truncated, info
+
+
+class NoRender(Countdown):
+    """An env whose render() returns None (no rgb_array frames)."""
+
+    def render(self):
+        return None
