@@ -2,6 +2,8 @@
 line (exit code 3) before anything non-finite is saved; the last good checkpoint and policy load."""
 
 import math
+import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -125,3 +127,92 @@ def test_the_env_copy_and_step_are_named_in_a_batch_of_envs(tmp_path):
     c = config("dqn", "env.num_envs=2", "env.kwargs.at=70")
     with pytest.raises(NonFiniteError, match=r"^reward was NaN at env step 139 \(env copy 0\)"):
         train(c, tmp_path / "run", progress=False)
+
+
+# ---- plot / video / export: errors are one line, exit 2, and nothing already written is lost ----
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    run = tmp_path_factory.mktemp("runs") / "run"
+    c = load_config("dqn-cartpole", ["train.total_steps=60", "train.initial_collect_steps=20", "eval.interval=30",
+                                     "eval.episodes=1", "agent.batch_size=8", "env.id=toy_envs:Countdown",
+                                     "env.check=false"])
+    train(c, run, progress=False)
+    return run
+
+
+def one_line(capfd, args, code=2):
+    capfd.readouterr()
+    assert main(args) == code
+    err = capfd.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("relayrl: error: ") and "Traceback" not in err, err
+    return err
+
+
+@pytest.mark.parametrize("command", [["plot"], ["video"], ["export"]])
+def test_out_under_a_file_is_one_line(command, small_run, tmp_path, capfd):
+    (tmp_path / "afile").write_text("")
+    err = one_line(capfd, [*command, str(small_run), "--out", str(tmp_path / "afile" / "x.out")])
+    assert "cannot create the folder of" in err and "afile" in err
+
+
+@pytest.mark.parametrize("command, default", [("plot", "returns.png"), ("video", "video.mp4"),
+                                              ("export", "policy/policy.pt2")])
+def test_a_read_only_run_directory_is_one_line(command, default, small_run, capfd, monkeypatch):
+    """As root chmod does not stop writes: the folder is reported unwritable as os.access says."""
+    import relayrl.paths
+
+    target = (small_run / default).parent
+    real_access = relayrl.paths.os.access
+    monkeypatch.setattr(relayrl.paths.os, "access",
+                        lambda p, mode: False if Path(p) == target else real_access(p, mode))
+    err = one_line(capfd, [command, str(small_run)])
+    assert f"cannot write {str(small_run / default)!r}: its folder is not writable; give --out PATH" in err
+
+
+def test_a_failed_write_is_one_line_and_keeps_the_file_there(small_run, tmp_path, capfd, monkeypatch):
+    out = tmp_path / "returns.png"
+    assert main(["plot", str(small_run), "--out", str(out)]) == 0
+    before = out.read_bytes()
+    import matplotlib.figure
+
+    def full_disk(self, *args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", full_disk)
+    err = one_line(capfd, ["plot", str(small_run), "--out", str(out)])
+    assert f"cannot write {str(out)!r}: No space left on device" in err
+    assert out.read_bytes() == before and not list(tmp_path.glob("*.tmp*"))
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_a_chmod_read_only_run_directory_is_one_line(small_run, capfd):
+    os.chmod(small_run, 0o555)
+    try:
+        err = one_line(capfd, ["plot", str(small_run)])
+        assert "is not writable" in err
+    finally:
+        os.chmod(small_run, 0o755)
+
+
+def test_video_of_an_env_that_does_not_render_is_one_line(small_run, tmp_path, capfd):
+    import shutil
+
+    run = tmp_path / "norender"
+    shutil.copytree(small_run, run)
+    text = (run / "config.toml").read_text().replace("toy_envs:Countdown", "toy_envs:NoRender")
+    (run / "config.toml").write_text(text)
+    err = one_line(capfd, ["video", str(run)])
+    assert "env 'toy_envs:NoRender' renders no frames: render() returned None; relayrl video needs render()" in err
+    assert not (run / "video.mp4").exists()
+
+
+def test_video_of_an_env_whose_render_raises_is_one_line(small_run, tmp_path, capfd):
+    import shutil
+
+    run = tmp_path / "cartpole"
+    shutil.copytree(small_run, run)
+    (run / "config.toml").write_text((run / "config.toml").read_text().replace("toy_envs:Countdown",
+                                                                               "toy_envs:RenderRaises"))
+    err = one_line(capfd, ["video", str(run)])
+    assert "cannot render: render() raised RuntimeError: no display" in err

@@ -355,3 +355,10 @@ class NoRender(Countdown):
 
     def render(self):
         return None
+
+
+class RenderRaises(Countdown):
+    """An env whose render() fails (as one needing a display does on a headless machine)."""
+
+    def render(self):
+        raise RuntimeError("no display")

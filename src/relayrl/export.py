@@ -30,7 +30,7 @@ from relayrl import atomic
 from relayrl.agents.registry import for_policy_kind
 from relayrl.errors import UserError
 from relayrl.loaded_policy import LoadedPolicy, observation_spec
-from relayrl.paths import output_path
+from relayrl.paths import output_path, writing
 from relayrl.policy_file import REFUSED, load_policy_file
 
 
@@ -97,7 +97,7 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str =
     target = output_path(out, _policy_file(path).with_suffix("." + format))
     batch = torch.export.Dim("batch", min=1)
     # never a half-written program under the real name; torch.export wants the .pt2 suffix
-    with atomic.replacing(target, ".tmp-" + target.name) as tmp:
+    with writing(target), atomic.replacing(target, ".tmp-" + target.name) as tmp:
         if format == "pt2":
             torch.export.save(torch.export.export(module, (example,), dynamic_shapes=({0: batch},)), tmp)
         else:
@@ -108,7 +108,9 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str =
     with torch.no_grad():
         action = module(example)
     sig = signature(state, format, action)
-    atomic.write_text(target.with_name(target.name + ".json"), json.dumps(sig, indent=2) + "\n")
+    sig_path = target.with_name(target.name + ".json")
+    with writing(sig_path):
+        atomic.write_text(sig_path, json.dumps(sig, indent=2) + "\n")
     return target
 
 
