@@ -24,8 +24,8 @@ ALGOS = {
     "dqn": ("dqn-cartpole", ["agent.batch_size=8", "agent.hidden=[16]"]),
     "sac": ("sac-pendulum", ["agent.batch_size=8", "agent.actor_hidden=[16]", "agent.critic_hidden=[16]",
                              "env.kwargs.continuous=true", "train.torch_threads=1"]),
-    "ppo": ("ppo-cartpole", ["env.num_envs=1", "train.initial_collect_steps=0", "train.collect_steps=20", "agent.batch_size=10",
-                             "agent.hidden=[16]", "agent.n_epochs=1"]),
+    "ppo": ("ppo-cartpole", ["env.num_envs=1", "train.initial_collect_steps=0", "train.collect_steps=20",
+                             "agent.batch_size=10", "agent.hidden=[16]", "agent.n_epochs=1"]),
 }
 
 
@@ -88,7 +88,8 @@ def test_a_non_finite_loss_stops_before_the_weights_are_saved(algo, tmp_path, mo
         if self.agent.train_step >= 30:  # as a diverged update leaves it: NaN loss and weights
             for p in self.agent.policy_network().parameters():
                 p.data.fill_(math.nan)
-            self.last_metrics = {**self.last_metrics, **{k: torch.tensor(math.nan) for k in list(self.last_metrics)[:1]}}
+            first = next(iter(self.last_metrics))
+            self.last_metrics = {**self.last_metrics, first: torch.tensor(math.nan)}
 
     monkeypatch.setattr(Learner, "run", poisoned)
     with pytest.raises(NonFiniteError, match=r"was NaN by env step [\d,]+ \(train step [\d,]+\): check the learning"):

@@ -60,7 +60,7 @@ def _obs_problem(obs: Any, space: gym.Space, method: str) -> str | None:
     if isinstance(space, gym.spaces.Tuple):
         if not isinstance(obs, (tuple, list)) or len(obs) != len(space.spaces):
             return f"{pre} is {_kind(obs)}; observation_space is a Tuple of {len(space.spaces)}"
-        for i, (x, sub) in enumerate(zip(obs, space.spaces)):
+        for i, (x, sub) in enumerate(zip(obs, space.spaces, strict=True)):
             problem = _obs_problem(x, sub, f"{method}[{i}]")
             if problem is not None:
                 return problem

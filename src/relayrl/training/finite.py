@@ -69,11 +69,13 @@ class FiniteWatch:
     """Actor observer: checks the observations and rewards it was shown, on `check()`.
 
     `checked` counts env steps already checked (a resumed run sets it), so a finding names the
-    env step it happened at: the step's number counting every env copy, B per batched step."""
+    env step it happened at: the step's number counting every env copy, B per batched step.
+    `where` names whose env steps they are (a rollout actor's on Ray)."""
 
-    def __init__(self, num_envs: int, checked: int = 0) -> None:
+    def __init__(self, num_envs: int, checked: int = 0, where: str = "") -> None:
         self.num_envs = num_envs
         self.checked = checked
+        self.where = where
         self._steps: list[tuple[Any, Any, Any]] = []
 
     def __call__(self, t: Transition) -> None:
@@ -93,7 +95,7 @@ class FiniteWatch:
             column = [s[field] for s in steps]
             # a dict or tuple observation: each of its arrays over the steps
             leaves = [column] if isinstance(column[0], torch.Tensor) else \
-                [list(rows) for rows in zip(*(list(_leaves(x)) for x in column))]
+                [list(rows) for rows in zip(*(list(_leaves(x)) for x in column), strict=True)]
             for rows in leaves:
                 hit = _first_bad(rows)
                 if hit is not None:
@@ -104,7 +106,7 @@ class FiniteWatch:
             return None
         step, copy, what, value = min(found, key=lambda f: f[0])
         check = "the env's reward" if what == "reward" else "the env's observations (reset and step)"
-        return f"{what} was {describe(value)} at env step {step:,} (env copy {copy}): check {check}"
+        return f"{what} was {describe(value)} at {self.where}env step {step:,} (env copy {copy}): check {check}"
 
 
 def non_finite_metrics(metrics: Mapping[str, torch.Tensor]) -> str | None:
