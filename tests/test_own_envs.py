@@ -197,7 +197,7 @@ def test_the_check_leaves_the_run_as_it_would_be_without_it(tmp_path):
     assert np.isfinite(strip[-1]["average_return"])
 
 
-@pytest.mark.parametrize("algo_preset", ["dqn-cartpole", "ppo-cartpole"])
+@pytest.mark.parametrize("algo_preset", ["dqn-cartpole", "sac-pendulum", "ppo-cartpole"])
 @pytest.mark.parametrize("env_id, fragment", [
     ("toy_envs:FourValueStep", "step() returned 4 values; Gymnasium envs return 5: obs, reward, terminated, "
                                "truncated, info (the old Gym API's obs, reward, done, info"),
