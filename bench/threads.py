@@ -37,14 +37,18 @@ def load() -> str:
     return os.getloadavg().__repr__()
 
 
-def run(preset: str, threads: int, tmp: Path) -> float:
+def run(preset: str, threads: int, tmp: Path, timeout: float) -> float:
+    """Seconds of training, or `inf` where the run took longer than `timeout` (killed)."""
     run_dir = tmp / f"{preset}-{threads}"
     args = [sys.executable, "-m", "relayrl", "train", preset, "--run-dir", str(run_dir), "--overwrite",
             "--no-progress", "--set", f"train.torch_threads={threads}", "--set", "train.checkpoint_interval=0",
             "--set", "train.policy_save_interval=0"]
     for o in SHORT[preset]:
         args += ["--set", o]
-    subprocess.run(args, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        subprocess.run(args, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return float("inf")
     rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
     return rows[-1]["wall_time_s"] - sum(r.get("eval_s", 0.0) for r in rows)
 
@@ -54,9 +58,13 @@ def main() -> None:
     p.add_argument("--presets", nargs="+", default=["sac-pendulum", "sac-batched"], choices=sorted(SHORT))
     p.add_argument("--threads", nargs="+", type=int, default=[1, 2, 0])
     p.add_argument("--rounds", type=int, default=1)
+    p.add_argument("--timeout", type=float, default=120.0, help="a run longer than this is killed: '> T s'")
     p.add_argument("--json")
     a = p.parse_args()
-    print(f"load average before (1, 5, 15 min): {load()}; {os.cpu_count()} cores", flush=True)
+    import torch
+
+    print(f"load average before (1, 5, 15 min): {load()}; {os.cpu_count()} cores; torch_threads=0 runs "
+          f"torch's default of {torch.get_num_threads()} threads here", flush=True)
     results: dict[str, dict[str, list[float]]] = {}
     with tempfile.TemporaryDirectory() as d:
         for _ in range(a.rounds):
@@ -66,7 +74,7 @@ def main() -> None:
                         hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if busy else None
                         try:
                             time.sleep(0.5 if busy else 0.0)
-                            s = run(preset, threads, Path(d))
+                            s = run(preset, threads, Path(d), a.timeout)
                         finally:
                             if hog is not None:
                                 hog.kill()
@@ -80,7 +88,9 @@ def main() -> None:
     for key, r in results.items():
         preset, threads = key.split(" threads=")
         q, b = min(r["quiet"]), min(r["busy"])
-        print(f"| {preset} | {threads} | {q:.1f} | {b:.1f} | {q / b:.2f} |")
+        slow = f"> {a.timeout:.0f}" if b == float("inf") else f"{b:.1f}"
+        ratio = f"< {q / a.timeout:.2f}" if b == float("inf") else f"{q / b:.2f}"
+        print(f"| {preset} | {threads} | {q:.1f} | {slow} | {ratio} |")
     if a.json:
         Path(a.json).write_text(json.dumps(results, indent=2))
 
