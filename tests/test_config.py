@@ -69,3 +69,49 @@ def test_an_algo_that_is_not_a_name_is_one_config_error(algo):
 
     with pytest.raises(ConfigError, match="is not known"):
         from_dict({"algo": algo})
+
+
+def _bad_values(config, section: str) -> list[tuple[str, str]]:
+    """Every numeric key of `section` with a value that no check accepts (-1e9), as --set pairs."""
+    from dataclasses import fields, is_dataclass
+
+    obj = config if section == "" else getattr(config, section)
+    out = []
+    for f in fields(obj):
+        value = getattr(obj, f.name)
+        if is_dataclass(value) or isinstance(value, bool) or not isinstance(value, (int, float)):
+            continue
+        key = f"{section}.{f.name}" if section else f.name
+        out.append((key, "-1000000000" if isinstance(value, int) else "-1e9"))
+    return out
+
+
+@pytest.mark.parametrize("preset", ["dqn-cartpole", "sac-pendulum", "ppo-cartpole"])
+def test_every_validation_message_names_the_one_key_that_is_wrong(preset):
+    """Each rejected value is reported as `key=value is not valid; ...`, naming that key first and
+    no other key as wrong (a bound may name the key it is compared with)."""
+    base = load_config(preset)
+    rejected = 0
+    for section in ("", "env", "train", "eval", "replay", "distributed", "agent"):
+        for key, bad in _bad_values(base, section):
+            try:
+                load_config(preset, [f"{key}={bad}"])
+            except ConfigError as e:
+                rejected += 1
+                # a pair bound (log_std_min < log_std_max) names the first key, with the other as its bound
+                first = str(e).split("=")[0]
+                assert first == key or f"{key}=" in str(e), (key, str(e))
+                assert " and " not in str(e).split(";")[0], (key, str(e))
+    assert rejected >= 15
+
+
+@pytest.mark.parametrize("preset, override, message", [
+    ("dqn-cartpole", "agent.lr=0", "agent.lr=0.0 is not valid; it must be > 0"),
+    ("dqn-cartpole", "agent.gamma=2", "agent.gamma=2.0 is not valid; it must be in [0, 1]"),
+    ("ppo-cartpole", "agent.clip_range=0", "agent.clip_range=0.0 is not valid; it must be > 0"),
+    ("sac-pendulum", "agent.log_std_min=5", "agent.log_std_min=5.0 is not valid; it must be below agent.log_std_max"),
+])
+def test_combined_checks_are_split_per_key(preset, override, message):
+    with pytest.raises(ConfigError) as e:
+        load_config(preset, [override])
+    assert message in str(e.value)

@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
@@ -194,3 +195,56 @@ def test_the_check_leaves_the_run_as_it_would_be_without_it(tmp_path):
     assert strip == [{k: v for k, v in r.items() if not k.endswith("_s")}
                      for r in RunDir(tmp_path / "false").read_metrics()]
     assert np.isfinite(strip[-1]["average_return"])
+
+
+@pytest.mark.parametrize("algo_preset", ["dqn-cartpole", "sac-pendulum", "ppo-cartpole"])
+@pytest.mark.parametrize("env_id, fragment", [
+    ("toy_envs:FourValueStep", "step() returned 4 values; Gymnasium envs return 5: obs, reward, terminated, "
+                               "truncated, info (the old Gym API's obs, reward, done, info"),
+    ("toy_envs:WrongShapeObs", "the observation from reset() has shape (3,) but observation_space is "
+                               "Box(-inf, inf, (2,), float32) (shape (2,))"),
+])
+def test_what_will_break_the_run_stops_it_before_training_in_one_line(algo_preset, env_id, fragment, tmp_path,
+                                                                        capfd):
+    from relayrl.cli import main
+
+    run = tmp_path / "run"
+    code = main(["train", algo_preset, "--run-dir", str(run), "--no-progress", "--set", f"env.id={env_id}",
+                 "--set", "train.total_steps=64", "--set", "train.initial_collect_steps=0"])
+    err = capfd.readouterr().err
+    assert code == 2
+    assert err == f"relayrl: error: env.id={env_id!r}: {fragment}" + err.split(fragment)[1]
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert not run.exists()  # nothing trained, nothing written
+
+
+def test_an_env_factorys_broken_env_is_one_line_too(tmp_path):
+    config = load_config("dqn-cartpole", TINY)
+    with pytest.raises(UserError, match=r"^the env from the factory given to relayrl.train: step\(\) returned 4"):
+        train(config, tmp_path / "run", progress=False, env=lambda: toy_envs.FourValueStep())
+    assert not (tmp_path / "run").exists()
+
+
+def test_what_relayrl_casts_or_tolerates_stays_a_warning(tmp_path, capfd):
+    """float64 observations of the space's shape are cast; the checker's line is a warning."""
+    config = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:Float64Obs", "env.max_episode_steps=5"])
+    result = train(config, tmp_path / "run", progress=False)
+    assert result.final["step"] == 60
+    assert "env check (env.check = false turns it off)" in capfd.readouterr().err
+
+
+@pytest.mark.parametrize("space, obs, fragment", [
+    (gym.spaces.Box(0, 1, (2,), np.float32), np.zeros(2, np.float64), None),  # cast
+    (gym.spaces.Box(0, 1, (2,), np.float32), np.full(2, 7.0, np.float32), None),  # out of bounds: harmless
+    (gym.spaces.Box(0, 1, (2,), np.float32), np.zeros((1, 2)), "has shape (1, 2)"),
+    (gym.spaces.Box(0, 1, (2,), np.float32), np.array(["a", "b"]), "not numbers"),
+    (gym.spaces.Discrete(3), 2, None),
+    (gym.spaces.Discrete(3), np.array([2]), "has shape (1,)"),
+    (gym.spaces.Dict({"a": gym.spaces.Discrete(2)}), {"b": 1}, "Dict with keys ['a']"),
+    (gym.spaces.Tuple((gym.spaces.Discrete(2),) * 2), (1,), "a Tuple of 2"),
+])
+def test_the_probe_flags_only_what_cannot_be_read(space, obs, fragment):
+    from relayrl.envs.probe import _obs_problem
+
+    problem = _obs_problem(obs, space, "step()")
+    assert (problem is None) if fragment is None else (fragment in problem)

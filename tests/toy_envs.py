@@ -294,3 +294,71 @@ def make_countdown(length: int = 3, render_mode: str | None = None) -> gym.Env:
 # Gymnasium's `module:EnvId-v0` form: importing this module registers the id.
 if "ToyCountdown-v0" not in gym.registry:
     gym.register("ToyCountdown-v0", entry_point="toy_envs:Countdown", kwargs={"length": 2})
+
+
+class NonFiniteAt(Countdown):
+    """Countdown of 20-step episodes whose `what` ("reward" or "obs") turns NaN (or `value`) at
+    this copy's `at`-th step, counted over episodes. `continuous`: a Box action (for SAC)."""
+
+    def __init__(self, at: int = 50, what: str = "reward", value: float = float("nan"), continuous: bool = False,
+                 render_mode: str | None = None) -> None:
+        super().__init__(length=20, render_mode=render_mode)
+        self.at, self.what, self.value, self.steps = at, what, value, 0
+        if continuous:
+            self.action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        self.steps += 1
+        if self.steps >= self.at:
+            if self.what == "reward":
+                reward = self.value
+            else:
+                obs = np.full_like(obs, self.value)
+        return obs, reward, terminated, truncated, info
+
+
+class FourValueStep(Countdown):
+    """The old Gym API: `step` returns (obs, reward, done, info)."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        return obs, reward, terminated or truncated, info
+
+
+class WrongShapeObs(Countdown):
+    """Observations of shape (3,) float64 where the space says (2,) float32."""
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = super().reset(seed=seed, options=options)
+        return np.zeros(3), info
+
+    def step(self, action):
+        _, reward, terminated, truncated, info = super().step(action)
+        return np.zeros(3), reward, terminated, truncated, info
+
+
+class Float64Obs(Countdown):
+    """Observations of the space's shape but float64 where it says float32: harmless (cast)."""
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = super().reset(seed=seed, options=options)
+        return obs.astype(np.float64), info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        return obs.astype(np.float64), reward, terminated, truncated, info
+
+
+class NoRender(Countdown):
+    """An env whose render() returns None (no rgb_array frames)."""
+
+    def render(self):
+        return None
+
+
+class RenderRaises(Countdown):
+    """An env whose render() fails (as one needing a display does on a headless machine)."""
+
+    def render(self):
+        raise RuntimeError("no display")

@@ -12,9 +12,10 @@ import signal
 import sys
 from typing import NoReturn
 
-from relayrl.errors import UserError
+from relayrl.errors import NonFiniteError, UserError
 
 EXIT_USAGE = 2
+EXIT_NON_FINITE = 3  # a run stopped at a NaN or inf; its last good checkpoint and policy are kept
 
 
 class _Parser(argparse.ArgumentParser):
@@ -208,6 +209,9 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as e:
         print(f"relayrl: error: {e}", file=sys.stderr)
         return EXIT_USAGE
+    except NonFiniteError as e:
+        print(f"relayrl: run stopped: {e}", file=sys.stderr)
+        return EXIT_NON_FINITE
     except KeyboardInterrupt as e:
         # 128 + the signal's number, as shells report it
         what, code = ("terminated", 143) if isinstance(e, Terminated) else ("interrupted", 130)

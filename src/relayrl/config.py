@@ -153,7 +153,7 @@ class Config(Section):
         for key in ("initial_collect_steps", "gradient_steps", "checkpoint_interval",
                     "policy_save_interval", "log_interval", "pull_interval", "torch_threads"):
             if getattr(self.train, key) < 0:
-                raise ConfigError(f"train.{key} must be >= 0")
+                raise ConfigError(f"train.{key}={getattr(self.train, key)} is not valid; it must be >= 0")
         if self.env.num_workers < 0:
             raise ConfigError(f"env.num_workers={self.env.num_workers} is not valid; it must be >= 0 "
                               "(0: one worker process per CPU core beside the main one)")

@@ -13,3 +13,11 @@ class ConfigError(UserError):
 
 class CheckpointError(UserError):
     """A checkpoint that cannot be read."""
+
+
+class NonFiniteError(Exception):
+    """A NaN or infinity in a run's rewards, observations, losses or weights: the run stops
+    before anything non-finite is saved. Not a UserError (the input was valid): the CLI prints
+    the one-line message and exits with code 3. `kept`: the message says what the run kept."""
+
+    kept = False

@@ -32,7 +32,7 @@ from relayrl import atomic
 from relayrl.agents.registry import for_policy_kind
 from relayrl.errors import UserError
 from relayrl.loaded_policy import LoadedPolicy
-from relayrl.paths import output_path
+from relayrl.paths import output_path, writing
 from relayrl.policies import saved_obs_spec
 from relayrl.policy_file import REFUSED, load_policy_file
 from relayrl.specs import PackedSpec, Spec
@@ -106,7 +106,7 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str =
     if isinstance(module, KeyInputs):
         dynamic = {"entries": dynamic}  # torch.export names a *args group by its parameter
     # never a half-written program under the real name; torch.export wants the .pt2 suffix
-    with atomic.replacing(target, ".tmp-" + target.name) as tmp:
+    with writing(target), atomic.replacing(target, ".tmp-" + target.name) as tmp:
         if format == "pt2":
             torch.export.save(torch.export.export(module, examples, dynamic_shapes=dynamic), tmp)
         else:
@@ -123,7 +123,9 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str =
     with torch.no_grad():
         action = module(*examples)
     sig = signature(state, format, action)
-    atomic.write_text(target.with_name(target.name + ".json"), json.dumps(sig, indent=2) + "\n")
+    sig_path = target.with_name(target.name + ".json")
+    with writing(sig_path):
+        atomic.write_text(sig_path, json.dumps(sig, indent=2) + "\n")
     return target
 
 

@@ -2,18 +2,35 @@
 
 from __future__ import annotations
 
+import contextlib
+import os
+from collections.abc import Iterator
 from pathlib import Path
 
 from relayrl.errors import UserError
 
 
 def output_path(out: str | Path | None, default: Path) -> Path:
-    """`out` (or `default`) with its parent folder created; one-line UserError where it cannot be."""
+    """`out` (or `default`) with its parent folder created; one-line UserError where it cannot be
+    (a file in the way, a folder that is not writable), before any work is done."""
     path = Path(out) if out else default
+    name = f"--out {str(path)!r}" if out else repr(str(path))
+    where = "" if out else "; give --out PATH somewhere writable"
     if path.is_dir():
         raise UserError(f"--out {str(path)!r} is a folder; give a file name in it")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        raise UserError(f"cannot create the folder of --out {str(path)!r}: {e.strerror or e}") from None
+        raise UserError(f"cannot create the folder of {name}: {e.strerror or e}{where}") from None
+    if not os.access(path.parent, os.W_OK):
+        raise UserError(f"cannot write {name}: its folder is not writable{where}")
     return path
+
+
+@contextlib.contextmanager
+def writing(path: Path) -> Iterator[None]:
+    """An OSError while writing `path` (permission, a full disk) as one line, not a traceback."""
+    try:
+        yield
+    except OSError as e:
+        raise UserError(f"cannot write {str(path)!r}: {e.strerror or e}") from None

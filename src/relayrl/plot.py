@@ -7,8 +7,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from relayrl import atomic
 from relayrl.errors import UserError
-from relayrl.paths import output_path
+from relayrl.paths import output_path, writing
 from relayrl.training.run_dir import RunDir
 
 Rows = list[dict[str, Any]]
@@ -53,8 +54,17 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
         ax.set_visible(False)
     fig.tight_layout()
     path = output_path(out, rd.root / "returns.png")
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    kind = path.suffix[1:].lower() or "png"
+    if kind not in fig.canvas.get_supported_filetypes():
+        plt.close(fig)
+        raise UserError(f"--out {str(path)!r}: .{kind} is not an image format matplotlib writes; "
+                        f"valid: {', '.join(sorted(fig.canvas.get_supported_filetypes()))}")
+    try:
+        # a plot already there stays until the new one is complete
+        with writing(path), atomic.replacing(path, ".tmp-" + path.name) as tmp:
+            fig.savefig(tmp, dpi=100, format=kind)
+    finally:
+        plt.close(fig)
     return path
 
 

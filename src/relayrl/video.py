@@ -7,13 +7,15 @@ from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 import torch
 
+from relayrl import atomic
 from relayrl.envs import make_env
 from relayrl.envs.gym import GymBatchEnv
 from relayrl.errors import UserError
 from relayrl.export import load_policy
-from relayrl.paths import output_path
+from relayrl.paths import output_path, writing
 from relayrl.presets import load_config
 
 
@@ -39,11 +41,10 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
            else GymBatchEnv([lambda: _rgb_env(given)]))
     try:
         fps = int(env.envs[0].metadata.get("render_fps", 30))
-        frames = []
         obs = env.reset(seed=seed)
+        frames = [first_frame(env, config.env.id)]
         finished = 0
         for _ in range(max_steps):
-            frames.append(env.render())
             with torch.inference_mode():
                 out_step = env.step(policy(obs))
             if bool((out_step.terminated | out_step.truncated)[0]):
@@ -51,15 +52,17 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
                 if finished >= episodes:
                     break
             obs = out_step.obs
+            frames.append(env.render())
     finally:
         if not isinstance(given, gym.Env):  # the caller's own instance stays open
             env.close()
-    if not frames or frames[0] is None:
-        raise UserError(f"env {config.env.id!r} does not render rgb_array frames")
     import imageio.v2 as imageio
 
-    # macro_block_size=1 keeps odd frame sizes as they are instead of resizing with a warning.
-    imageio.mimwrite(path, frames, fps=fps, macro_block_size=1)
+    # macro_block_size=1 keeps odd frame sizes as they are instead of resizing with a warning;
+    # the temp name keeps the .mp4 suffix imageio picks the format from, and a video already
+    # there stays until the new one is complete.
+    with writing(path), atomic.replacing(path, ".tmp-" + path.name) as tmp:
+        imageio.mimwrite(tmp, frames, fps=fps, macro_block_size=1)
     return path
 
 
@@ -83,3 +86,19 @@ def _rgb_env(env: Any) -> gym.Env:
     if made.render_mode != "rgb_array":
         raise UserError(f"env= renders with render_mode={made.render_mode!r}; a video needs render_mode='rgb_array'")
     return made
+
+
+def first_frame(env: Any, env_id: str) -> np.ndarray:
+    """The frame after reset, or one line saying why the env gives none."""
+    need = "relayrl video needs render() to return an RGB array (render_mode='rgb_array')"
+    try:
+        frame = env.render()
+    except Exception as e:  # the env's own error: what it said, in one line
+        raise UserError(f"env {env_id!r} cannot render: render() raised {type(e).__name__}: "
+                        f"{' '.join(str(e).split())}; {need}") from None
+    if frame is None:
+        raise UserError(f"env {env_id!r} renders no frames: render() returned None; {need}")
+    array = np.asarray(frame)
+    if array.ndim != 3 or array.shape[-1] not in (3, 4):
+        raise UserError(f"env {env_id!r} renders {type(frame).__name__} of shape {array.shape}, not an image; {need}")
+    return frame

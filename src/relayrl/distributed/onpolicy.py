@@ -26,6 +26,7 @@ import numpy as np
 from relayrl.distributed.remote import RemotePusher
 from relayrl.distributed.run import RETRY_S, ActorNames, DistributedRun
 from relayrl.distributed.workers import RolloutCollector
+from relayrl.errors import NonFiniteError
 from relayrl.specs import Spec
 from relayrl.training.replay_setup import build_rollouts
 from relayrl.training.triggers import Progress
@@ -147,6 +148,8 @@ class OnPolicyRun(DistributedRun):
             self._submit(i)
 
     def _take(self, i: int, r: dict[str, Any]) -> None:
+        if r.get("non_finite"):  # Run.run adds what the run keeps
+            raise NonFiniteError(r["non_finite"])
         self.stats.add_finished(r["returns"], r["lengths"], r["info"])
         if not self.shares.offer(i, r["policy_version"], r["rollout"]):
             self.say(f"dropped a stale rollout from actor {i} (policy version {r['policy_version']}, the "

@@ -27,7 +27,7 @@ from relayrl.distributed.remote import RemotePusher, RemoteTable
 from relayrl.distributed.server import ReplayServer
 from relayrl.distributed.workers import ActorNames, EvalWorker, RolloutWorker
 from relayrl.envs import make_env
-from relayrl.errors import UserError
+from relayrl.errors import NonFiniteError, UserError
 from relayrl.seeding import EVAL_STRIDE
 from relayrl.specs import Spec
 from relayrl.training.assembly import Run
@@ -204,6 +204,8 @@ class DistributedRun(Run):
 
     def _take(self, i: int, r: dict[str, Any]) -> None:
         """What a collect call of actor i answered; the actor's next call."""
+        if r.get("non_finite"):  # Run.run adds what the run keeps
+            raise NonFiniteError(r["non_finite"])
         self.accepted[i] = max(self.accepted[i], int(r["accepted"]))
         self.stats.add_finished(r["returns"], r["lengths"], r["info"])
         self._submit(i)

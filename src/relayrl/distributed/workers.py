@@ -29,6 +29,7 @@ from relayrl.replay.writers import stack_steps
 from relayrl.seeding import RunSeeds
 from relayrl.training.actor import Actor
 from relayrl.training.evaluate import evaluate, make_eval_env
+from relayrl.training.finite import FiniteWatch
 from relayrl.training.replay_setup import frame_stack
 from relayrl.training.variables import WeightPuller
 from relayrl.types import Transition
@@ -171,9 +172,10 @@ class RolloutWorker:
         ray.get(server.register.remote(index, token))
         self.shipper = ChunkShipper(server, index, token, frame_stack(self.env.observation_spec))
         self.episodes = EpisodeLog()
+        self.finite = FiniteWatch(c.env.num_envs, where=f"rollout actor {index}'s ")  # the driver stops the run
         self.puller = WeightPuller(RemoteVariables(variables), net, c.distributed.pull_interval)
-        self.actor = Actor(self.env, self.random_policy, [self.episodes, self.shipper], seed=seeds.base("envs"),
-                           puller=self.puller)
+        self.actor = Actor(self.env, self.random_policy, [self.episodes, self.shipper, self.finite],
+                           seed=seeds.base("envs"), puller=self.puller)
         self.chunk_steps = c.distributed.chunk_steps
 
     def collect(self, steps: int, global_steps: int, random: bool) -> dict[str, Any]:
@@ -187,7 +189,7 @@ class RolloutWorker:
         self.shipper.wait()
         returns, lengths, info = self.episodes.take()
         return {"index": self.index, "token": self.token, "env_steps": self.actor.env_steps - start,
-                "accepted": self.shipper.accepted,
+                "accepted": self.shipper.accepted, "non_finite": self.finite.check(),
                 "returns": returns, "lengths": lengths, "info": info, "policy_version": self.puller.version}
 
     def pid(self) -> int:
@@ -210,6 +212,7 @@ class RolloutCollector:
         self.token = uuid.uuid4().hex  # one per incarnation: the driver tells restarts by it
         self.writers: dict[int, RolloutWriter] = {}  # by steps per env copy, each into its own queue
         self.episodes = EpisodeLog()
+        self.finite = FiniteWatch(c.env.num_envs, where=f"rollout actor {index}'s ")  # the driver stops the run
         self.puller = WeightPuller(RemoteVariables(variables), net, 0)  # every collect call pulls
         self.actor = Actor(self.env, agent.collect_policy(None, net), [self.episodes], seed=seeds.base("envs"),
                            puller=self.puller)
@@ -218,11 +221,12 @@ class RolloutCollector:
         writer = self.writers.get(steps_per_env)
         if writer is None:  # a queue's storage has the shape of its first item: one per rollout length
             writer = self.writers[steps_per_env] = RolloutWriter(Table.queue("rollout", 1), steps_per_env)
-        self.actor.observers = [self.episodes, writer]
+        self.actor.observers = [self.episodes, writer, self.finite]
         self.actor.run(steps_per_env * self.env.num_envs)
         item, _ = writer.table.sample(1)  # the writer's one finished rollout, taken out at once
         returns, lengths, info = self.episodes.take()
         return {"index": self.index, "token": self.token, "rollout": {k: v[0].numpy() for k, v in item.items()},
+                "non_finite": self.finite.check(),
                 "policy_version": self.puller.version, "returns": returns, "lengths": lengths, "info": info}
 
     def pid(self) -> int:

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from relayrl.envs.gym import BatchEnvBase, EnvFn, GymBatchEnv, names_module, resolve_env_fn
+from relayrl.envs.probe import first_problem
 from relayrl.envs.stateless.adapter import STATELESS_ENVS, make_batch_env
 from relayrl.envs.vector import AsyncGymBatchEnv
 from relayrl.errors import UserError
@@ -65,13 +66,20 @@ def is_user_env(env_id: str, factory: EnvFn | None = None) -> bool:
 def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple[str, ...] | list[str] = (),
               factory: EnvFn | None = None, max_episode_steps: int = 0) -> list[str]:
     """Gymnasium's env checker on one fresh copy: its complaints as lines (warnings, not
-    failures). The global RNGs are left as they were, so a checked run is the unchecked one."""
+    failures), after a UserError for what will break the run (`probe.first_problem`). The
+    global RNGs are left as they were, so a checked run is the unchecked one."""
     from gymnasium.utils.env_checker import check_env as gym_check_env
 
     rng = (torch.get_rng_state(), np.random.get_state(), random.getstate())
     env = resolve_env_fn(env_id, max_episode_steps, None, kwargs, wrappers, factory)()
     lines: list[str] = []
     try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the checker below reports what it finds once
+            problem = first_problem(env)
+        if problem is not None:
+            who = "the env from the factory given to relayrl.train" if factory is not None else f"env.id={env_id!r}"
+            raise UserError(f"{who}: {problem}")
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             try:

@@ -24,11 +24,13 @@ import torch
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config
 from relayrl.envs.make import check_env, is_user_env
-from relayrl.errors import UserError
+from relayrl.errors import NonFiniteError, UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.schedules import linear_schedule
 from relayrl.seeding import RunSeeds
 from relayrl.specs import Spec
+from relayrl.training.checkpoint import list_checkpoints
+from relayrl.training.finite import FiniteWatch, non_finite_metrics, non_finite_tensor, stop
 from relayrl.training.heartbeat import ProgressLines
 from relayrl.training.learner import Learner
 from relayrl.training.replay_setup import collect_only
@@ -120,6 +122,7 @@ class Run:
                              "a transitions table or a rollout queue (the registry gives it a run of its own)")
         self.agent = spec.make_agent(c.agent, obs_spec, act_spec, self.device, self.seeds.generator("exploration"),
                                      c.train.total_steps)
+        self.finite = FiniteWatch(c.env.num_envs)  # an observer of the actor, where it runs in this process
         table, variables = self.connect(obs_spec, act_spec)
         # A rollout queue's learner takes whole rollouts, one item each; the agent cuts its minibatches.
         items = 1 if spec.replay == "rollouts" else c.agent.batch_size
@@ -217,6 +220,11 @@ class Run:
                 self.say(f"a callback returned False: the run stops at env step {self.env_steps():,}")
             self.finish(self.progress())
             return RunResult(self.rd.root, self.last_eval, stopped_early=stopped)
+        except NonFiniteError as e:  # found below the run (the learner): it says what the run keeps
+            if e.kept:
+                raise
+            # the cause, where it was collected: a NaN reward is named, not the TD error it made
+            raise stop(self.finite.check() or str(e), self.kept()) from None
         finally:
             if self.lines is not None:
                 self.lines.stop()
@@ -234,11 +242,46 @@ class Run:
 
     def fire_triggers(self) -> None:
         p = self.progress()
+        due = [trigger for trigger in self.triggers if trigger.due(p)]
+        if due or self.finite.due():
+            self.check_finite(p, weights=self.policy_saver in due or self.checkpointer in due)
         for trigger in self.triggers:
             trigger(p)
 
+    def check_finite(self, p: Progress, weights: bool) -> None:
+        """Stop the run (NonFiniteError) at a NaN or inf in what was collected, the latest losses
+        or, before a save, the weights: nothing non-finite is ever evaluated or saved."""
+        finding = self.finite.check()
+        where = f"by env step {p.env_steps:,} (train step {p.train_step:,})"
+        if finding is None:
+            loss = non_finite_metrics(self.learner.last_metrics)
+            if loss is not None:
+                finding = (f"{loss} {where}: check the learning rate (agent.lr and the like: too high diverges), "
+                           "the reward scale and the env's observations")
+        if finding is None and weights:
+            name = non_finite_tensor(self.agent.state_dict())
+            if name is not None:
+                finding = (f"the agent's {name} held a NaN or inf {where}: check the learning rate "
+                           "(too high diverges), the reward scale and the env's observations")
+        if finding is not None:
+            raise stop(finding, self.kept())
+
+    def kept(self) -> str:
+        """What a run stopped for a non-finite number leaves: its last checkpoint and policy."""
+        ckpts = list_checkpoints(self.rd.checkpoints)
+        parts = [f"the last good checkpoint (env step {int(ckpts[-1].stem.split('-')[1]):,})"] if ckpts else []
+        saved = self.policy_saver.saved_at
+        if saved is not None:
+            parts.append(f"the policy saved at env step {saved:,}")
+        elif (self.rd.policy / "policy.pt").is_file():
+            parts.append("the policy saved before")
+        if not parts:
+            return f"nothing was saved in {self.rd.root}"
+        return f"{' and '.join(parts)} {'are' if len(parts) > 1 else 'is'} kept in {self.rd.root}"
+
     def finish(self, p: Progress) -> None:
         """The final evaluation (unless one ran at this step), policy save, checkpoint and log."""
+        self.check_finite(p, weights=True)
         if self.last_eval.get("step") != p.env_steps:
             self.evaluate_now(p)
         self.settle_evals()
@@ -269,6 +312,7 @@ class Run:
             self.last_eval = kept[-1]  # a finished run resumed again needs no second final eval
         for trigger in self.triggers:
             trigger.start_at(steps)
+        self.finite.checked = steps
 
     def say(self, text: str) -> None:
         if self.bar is not None and not self.bar.disable:

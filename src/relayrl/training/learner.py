@@ -8,7 +8,9 @@ import numpy as np
 import torch
 
 from relayrl.core import Agent
+from relayrl.errors import NonFiniteError
 from relayrl.replay import SampleInfo, Table
+from relayrl.training.finite import describe
 from relayrl.training.triggers import IntervalTrigger, Progress
 from relayrl.training.variables import VariableContainer, network_variables
 from relayrl.types import Batch
@@ -92,6 +94,10 @@ class Learner:
             self.last_metrics = self.agent.train(batch)
             if self.prioritized:
                 td = self.last_metrics["td_error"].abs().cpu().numpy().astype(np.float64)
+                if not np.isfinite(td).all():  # on the host already: the check costs no sync
+                    raise NonFiniteError(f"the TD error was {describe(float(td[~np.isfinite(td)][0]))} at train step "
+                                         f"{self.agent.train_step:,}: check the learning rate (too high diverges), "
+                                         "the reward scale and the env's observations")
                 self.table.update_priorities(info.key, td + self.priority_eps)
             if self.triggers:
                 progress = Progress(self.env_steps(), self.agent.train_step)

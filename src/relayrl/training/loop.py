@@ -63,7 +63,7 @@ class LocalRun(Run):
         self.steps = EnvironmentSteps()
         self.stats.step_fn = lambda: self.steps.value  # read where episodes end (TensorBoard's points)
         self.actor = Actor(self.env, RandomPolicy(act_spec, self.random_rng),
-                           [self.steps, self.stats, self.writer], seed=self.seeds.base("envs"))
+                           [self.steps, self.stats, self.writer, self.finite], seed=self.seeds.base("envs"))
         # The actor acts with its own copy of the policy network, refreshed from the variable
         # container the learner pushes to: the same wiring as on Ray, where it is remote.
         # Learner and actor take turns in this process, so the container may keep references.

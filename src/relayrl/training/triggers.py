@@ -47,6 +47,10 @@ class IntervalTrigger:
         if self.interval > 0:
             self._next = (count // self.interval + 1) * self.interval
 
+    def due(self, progress: Progress) -> bool:
+        """Whether a call with `progress` would fire."""
+        return self.interval > 0 and self._count(progress) >= self._next
+
     def __call__(self, progress: Progress) -> bool:
         n = self._count(progress)
         if self.interval <= 0 or n < self._next:
@@ -63,6 +67,7 @@ class PolicySaver(IntervalTrigger):
                  extra: dict[str, Any] | None = None) -> None:
         super().__init__(interval, self.save, unit)
         self.agent, self.folder, self.extra = agent, Path(folder), dict(extra or {})
+        self.saved_at: int | None = None  # env steps of the policy this saver last wrote
 
     def save(self, progress: Progress) -> None:
         from relayrl.policy_file import save_policy_file
@@ -70,6 +75,7 @@ class PolicySaver(IntervalTrigger):
         self.folder.mkdir(parents=True, exist_ok=True)
         state = {**self.agent.policy_state(), "env_steps": progress.env_steps, **self.extra}
         save_policy_file(state, self.folder / "policy.pt")
+        self.saved_at = progress.env_steps
 
 
 class Checkpointer(IntervalTrigger):

@@ -53,15 +53,18 @@ class DQNConfig(Section):
             raise ConfigError(f"agent.hidden={self.hidden} is not valid; give one or more positive sizes")
         if not 0.0 < self.tau <= 1.0:
             raise ConfigError(f"agent.tau={self.tau} is not valid; it must be in (0, 1]")
-        if self.target_update_period < 1 or self.batch_size < 1:
-            raise ConfigError("agent.target_update_period and agent.batch_size must be >= 1")
+        for key in ("target_update_period", "batch_size"):
+            if getattr(self, key) < 1:
+                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be >= 1")
         for key in ("epsilon_start", "epsilon_end"):
             if not 0.0 <= getattr(self, key) <= 1.0:
-                raise ConfigError(f"agent.{key} must be in [0, 1]")
+                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be in [0, 1]")
         if not 0.0 < self.epsilon_decay <= 1.0:
             raise ConfigError(f"agent.epsilon_decay={self.epsilon_decay} is not valid; it must be in (0, 1]")
-        if self.lr <= 0 or not 0.0 <= self.gamma <= 1.0:
-            raise ConfigError("agent.lr must be > 0 and agent.gamma in [0, 1]")
+        if self.lr <= 0:
+            raise ConfigError(f"agent.lr={self.lr} is not valid; it must be > 0")
+        if not 0.0 <= self.gamma <= 1.0:
+            raise ConfigError(f"agent.gamma={self.gamma} is not valid; it must be in [0, 1]")
 
 
 # `relayrl train dqn` / `algo = "dqn"`: what a config that names only algo and env.id gets beyond

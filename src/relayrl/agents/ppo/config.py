@@ -50,11 +50,14 @@ class PPOConfig(Section):
             raise ConfigError(f"agent.activation={self.activation!r} is not valid; valid: relu, tanh, elu")
         if not self.hidden or any(h < 1 for h in self.hidden):
             raise ConfigError(f"agent.hidden={self.hidden} is not valid; give one or more positive sizes")
-        if self.lr <= 0 or self.clip_range <= 0 or self.clip_range_vf < 0:
-            raise ConfigError("agent.lr and agent.clip_range must be > 0, agent.clip_range_vf >= 0")
-        if self.n_epochs < 1 or self.batch_size < 1:
-            raise ConfigError(f"agent.n_epochs={self.n_epochs} and agent.batch_size={self.batch_size} "
-                              "are not valid; they must be >= 1")
+        for key in ("lr", "clip_range"):
+            if getattr(self, key) <= 0:
+                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be > 0")
+        if self.clip_range_vf < 0:
+            raise ConfigError(f"agent.clip_range_vf={self.clip_range_vf} is not valid; it must be >= 0 (0: unclipped)")
+        for key in ("n_epochs", "batch_size"):
+            if getattr(self, key) < 1:
+                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be >= 1")
         for key in ("gamma", "gae_lambda"):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be in [0, 1]")

@@ -52,10 +52,14 @@ class SACConfig(Section):
             raise ConfigError(f"agent.tau={self.tau} is not valid; it must be in (0, 1]")
         if not 0.0 <= self.gamma <= 1.0:
             raise ConfigError(f"agent.gamma={self.gamma} is not valid; it must be in [0, 1]")
-        if self.target_update_period < 1 or self.batch_size < 1:
-            raise ConfigError("agent.target_update_period and agent.batch_size must be >= 1")
-        if self.grad_clip < 0 or self.log_std_min >= self.log_std_max:
-            raise ConfigError("agent.grad_clip must be >= 0 and agent.log_std_min < agent.log_std_max")
+        for key in ("target_update_period", "batch_size"):
+            if getattr(self, key) < 1:
+                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be >= 1")
+        if self.grad_clip < 0:
+            raise ConfigError(f"agent.grad_clip={self.grad_clip} is not valid; it must be >= 0 (0: no clipping)")
+        if self.log_std_min >= self.log_std_max:
+            raise ConfigError(f"agent.log_std_min={self.log_std_min} is not valid; it must be below "
+                              f"agent.log_std_max={self.log_std_max}")
 
 
 # `relayrl train sac` / `algo = "sac"`: beyond the classes' defaults (the agent section above is

@@ -1,0 +1,94 @@
+"""What in a user's env will break a run, found before training: one reset and one step of a
+fresh copy, compared with the Gymnasium API and the env's own spaces.
+
+Only what relayrl cannot work with is reported (a `step` of 4 values, an observation whose shape
+or kind does not fit its space, a reward that is not a number); what it casts or tolerates
+(float64 observations of the right shape, values outside the bounds) is left to Gymnasium's
+checker, whose findings stay warnings.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+
+def first_problem(env: gym.Env) -> str | None:
+    """The first thing about `env` that will break a run, as a sentence, or None."""
+    raw = env.unwrapped  # the API first, below the wrappers (a TimeLimit would fail to unpack it)
+    for e in (raw, env) if raw is not env else (env,):
+        problem = _api_problem(e)
+        if problem is not None:
+            return problem
+    out = env.reset(seed=0)
+    problem = _obs_problem(out[0], env.observation_space, "reset()")
+    if problem is not None:
+        return problem
+    obs, reward = env.step(env.action_space.sample())[:2]
+    return _obs_problem(obs, env.observation_space, "step()") or _reward_problem(reward)
+
+
+def _api_problem(env: gym.Env) -> str | None:
+    out = env.reset(seed=0)
+    if not isinstance(out, tuple) or len(out) != 2:
+        what = f"{len(out)} values" if isinstance(out, tuple) else f"a {type(out).__name__}"
+        return (f"reset() returned {what}; Gymnasium envs return (obs, info) "
+                "(gymnasium.Env.reset: `return obs, {}`)")
+    out = env.step(env.action_space.sample())
+    if not isinstance(out, tuple) or len(out) != 5:
+        what = f"{len(out)} values" if isinstance(out, tuple) else f"a {type(out).__name__}"
+        old = " (the old Gym API's obs, reward, done, info: split done into terminated and truncated)" \
+            if isinstance(out, tuple) and len(out) == 4 else ""
+        return f"step() returned {what}; Gymnasium envs return 5: obs, reward, terminated, truncated, info{old}"
+    return None
+
+
+def _obs_problem(obs: Any, space: gym.Space, method: str) -> str | None:
+    """Where `obs` cannot be read as `space` says (shape, structure, a non-numeric kind)."""
+    pre = f"the observation from {method}"
+    if isinstance(space, gym.spaces.Dict):
+        if not isinstance(obs, dict) or set(obs) != set(space.spaces):
+            got = sorted(obs) if isinstance(obs, dict) else type(obs).__name__
+            return f"{pre} is {got}; observation_space is a Dict with keys {sorted(space.spaces)}"
+        for key, sub in space.spaces.items():
+            problem = _obs_problem(obs[key], sub, f"{method}[{key!r}]")
+            if problem is not None:
+                return problem
+        return None
+    if isinstance(space, gym.spaces.Tuple):
+        if not isinstance(obs, (tuple, list)) or len(obs) != len(space.spaces):
+            return f"{pre} is {_kind(obs)}; observation_space is a Tuple of {len(space.spaces)}"
+        for i, (x, sub) in enumerate(zip(obs, space.spaces, strict=True)):
+            problem = _obs_problem(x, sub, f"{method}[{i}]")
+            if problem is not None:
+                return problem
+        return None
+    if space.shape is None:  # a space relayrl does not read as arrays: its own check says so
+        return None
+    try:
+        array = np.asarray(obs)
+    except Exception:  # ragged lists and the like
+        return f"{pre} is {_kind(obs)}, not an array; observation_space is {space}"
+    if array.dtype.kind not in "biuf":
+        return f"{pre} has dtype {array.dtype}, not numbers; observation_space is {space}"
+    if tuple(array.shape) != tuple(space.shape):
+        return (f"{pre} has shape {tuple(array.shape)} but observation_space is {space} "
+                f"(shape {tuple(space.shape)}): return arrays of the space's shape, or declare the shape returned")
+    return None
+
+
+def _reward_problem(reward: Any) -> str | None:
+    try:
+        value = np.asarray(reward, dtype=np.float64)
+    except (TypeError, ValueError):
+        return f"the reward from step() is {_kind(reward)}; it must be a number"
+    if value.shape != ():
+        return f"the reward from step() has shape {value.shape}; it must be one number"
+    return None
+
+
+def _kind(x: Any) -> str:
+    shape = getattr(x, "shape", None)
+    return f"a {type(x).__name__}" + (f" of shape {tuple(shape)}" if shape is not None else "")

@@ -1,0 +1,219 @@
+"""Fail fast, lose nothing: a NaN or inf in rewards, observations or losses stops the run with one
+line (exit code 3) before anything non-finite is saved; the last good checkpoint and policy load."""
+
+import math
+import os
+from pathlib import Path
+
+import pytest
+import torch
+
+from relayrl.cli import EXIT_NON_FINITE, main
+from relayrl.errors import NonFiniteError
+from relayrl.export import load_policy
+from relayrl.presets import load_config
+from relayrl.run import train
+from relayrl.training.checkpoint import list_checkpoints, load_latest_checkpoint
+from relayrl.training.finite import non_finite_tensor
+
+# Checkpoints and policy every 40 env steps; the env turns non-finite at its 130th step.
+TINY = ["train.total_steps=400", "train.initial_collect_steps=20", "eval.interval=40", "eval.episodes=1",
+        "train.checkpoint_interval=40", "train.policy_save_interval=40", "train.log_interval=40",
+        "env.id=toy_envs:NonFiniteAt", "env.max_episode_steps=20"]
+ALGOS = {
+    "dqn": ("dqn-cartpole", ["agent.batch_size=8", "agent.hidden=[16]"]),
+    "sac": ("sac-pendulum", ["agent.batch_size=8", "agent.actor_hidden=[16]", "agent.critic_hidden=[16]",
+                             "env.kwargs.continuous=true", "train.torch_threads=1"]),
+    "ppo": ("ppo-cartpole", ["env.num_envs=1", "train.initial_collect_steps=0", "train.collect_steps=20",
+                             "agent.batch_size=10", "agent.hidden=[16]", "agent.n_epochs=1"]),
+}
+
+
+def config(algo, *extra):
+    preset, own = ALGOS[algo]
+    return load_config(preset, TINY + own + list(extra))
+
+
+def assert_kept_and_finite(run_dir, before_step):
+    """The newest checkpoint and the policy are from before `before_step` and hold finite numbers."""
+    ckpts = list_checkpoints(run_dir / "checkpoints")
+    assert ckpts, "no checkpoint kept"
+    state = load_latest_checkpoint(run_dir / "checkpoints")
+    assert state["env_steps"] < before_step
+    assert non_finite_tensor(state["agent"]) is None
+    policy = load_policy(run_dir)
+    assert policy.env_steps < before_step
+    assert non_finite_tensor(dict(policy.network.state_dict()) if hasattr(policy, "network") else {}) is None
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+@pytest.mark.parametrize("what, value, named", [("reward", "nan", "reward was NaN"),
+                                                ("obs", "inf", "observation was inf")])
+def test_a_non_finite_reward_or_observation_stops_the_run_and_keeps_what_was_good(
+        algo, what, value, named, tmp_path, capfd):
+    c = config(algo, "env.kwargs.at=130", f"env.kwargs.what={what!r}", f"env.kwargs.value={value!r}")
+    with pytest.raises(NonFiniteError) as e:
+        train(c, tmp_path / "run", progress=False)
+    message = str(e.value)
+    assert message.startswith(f"{named} at env step 130 (env copy 0): check the env's")
+    assert "the last good checkpoint (env step 120)" in message and "kept in" in message
+    assert "\n" not in message
+    assert_kept_and_finite(tmp_path / "run", 130)
+
+
+def test_the_cli_prints_one_line_and_exits_3(tmp_path, capfd):
+    preset, own = ALGOS["dqn"]
+    args = ["train", preset, "--run-dir", str(tmp_path / "run"), "--no-progress"]
+    for o in TINY + own + ["env.kwargs.at=130"]:
+        args += ["--set", o]
+    capfd.readouterr()
+    assert main(args) == EXIT_NON_FINITE == 3
+    err = capfd.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("relayrl:")]
+    assert lines == [lines[-1]] and lines[-1].startswith("relayrl: run stopped: reward was NaN at env step 130")
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_a_non_finite_loss_stops_before_the_weights_are_saved(algo, tmp_path, monkeypatch):
+    """A loss that turns NaN (as a diverging learning rate makes it) is named, and no NaN weights
+    reach the policy file or a checkpoint."""
+    c = config(algo, "env.kwargs.at=100000")
+    from relayrl.training.learner import Learner
+
+    real_run = Learner.run
+
+    def poisoned(self, iterations):
+        real_run(self, iterations)
+        if self.agent.train_step >= 30:  # as a diverged update leaves it: NaN loss and weights
+            for p in self.agent.policy_network().parameters():
+                p.data.fill_(math.nan)
+            first = next(iter(self.last_metrics))
+            self.last_metrics = {**self.last_metrics, first: torch.tensor(math.nan)}
+
+    monkeypatch.setattr(Learner, "run", poisoned)
+    with pytest.raises(NonFiniteError, match=r"was NaN by env step [\d,]+ \(train step [\d,]+\): check the learning"):
+        train(c, tmp_path / "run", progress=False)
+    assert_kept_and_finite(tmp_path / "run", 10**9)
+
+
+def test_weights_that_went_non_finite_without_a_loss_saying_so_are_never_saved(tmp_path, monkeypatch):
+    c = config("dqn", "env.kwargs.at=100000")
+    from relayrl.training.learner import Learner
+
+    real_run = Learner.run
+
+    def poisoned(self, iterations):
+        real_run(self, iterations)
+        if self.agent.train_step >= 30:
+            next(self.agent.policy_network().parameters()).data.fill_(math.inf)
+            self.last_metrics = {k: torch.zeros(()) for k in self.last_metrics}  # the losses look fine
+
+    monkeypatch.setattr(Learner, "run", poisoned)
+    with pytest.raises(NonFiniteError, match=r"the agent's .* held a NaN or inf by env step"):
+        train(c, tmp_path / "run", progress=False)
+    assert_kept_and_finite(tmp_path / "run", 10**9)
+
+
+def test_with_prioritized_replay_the_reward_is_named_not_the_td_error_it_made(tmp_path):
+    c = config("dqn", "env.kwargs.at=130", "replay.sampler=prioritized")
+    with pytest.raises(NonFiniteError, match=r"^reward was NaN at env step 130 \(env copy 0\)"):
+        train(c, tmp_path / "run", progress=False)
+    assert_kept_and_finite(tmp_path / "run", 130)
+
+
+def test_the_env_copy_and_step_are_named_in_a_batch_of_envs(tmp_path):
+    """Both copies get NaN rewards from their 70th step: copy 0's is env step 2 * 69 + 1 = 139,
+    counting the steps of both copies."""
+    c = config("dqn", "env.num_envs=2", "env.kwargs.at=70")
+    with pytest.raises(NonFiniteError, match=r"^reward was NaN at env step 139 \(env copy 0\)"):
+        train(c, tmp_path / "run", progress=False)
+
+
+# ---- plot / video / export: errors are one line, exit 2, and nothing already written is lost ----
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    run = tmp_path_factory.mktemp("runs") / "run"
+    c = load_config("dqn-cartpole", ["train.total_steps=60", "train.initial_collect_steps=20", "eval.interval=30",
+                                     "eval.episodes=1", "agent.batch_size=8", "env.id=toy_envs:Countdown",
+                                     "env.check=false"])
+    train(c, run, progress=False)
+    return run
+
+
+def one_line(capfd, args, code=2):
+    capfd.readouterr()
+    assert main(args) == code
+    err = capfd.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("relayrl: error: ") and "Traceback" not in err, err
+    return err
+
+
+@pytest.mark.parametrize("command", [["plot"], ["video"], ["export"]])
+def test_out_under_a_file_is_one_line(command, small_run, tmp_path, capfd):
+    (tmp_path / "afile").write_text("")
+    err = one_line(capfd, [*command, str(small_run), "--out", str(tmp_path / "afile" / "x.out")])
+    assert "cannot create the folder of" in err and "afile" in err
+
+
+@pytest.mark.parametrize("command, default", [("plot", "returns.png"), ("video", "video.mp4"),
+                                              ("export", "policy/policy.pt2")])
+def test_a_read_only_run_directory_is_one_line(command, default, small_run, capfd, monkeypatch):
+    """As root chmod does not stop writes: the folder is reported unwritable as os.access says."""
+    import relayrl.paths
+
+    target = (small_run / default).parent
+    real_access = relayrl.paths.os.access
+    monkeypatch.setattr(relayrl.paths.os, "access",
+                        lambda p, mode: False if Path(p) == target else real_access(p, mode))
+    err = one_line(capfd, [command, str(small_run)])
+    assert f"cannot write {str(small_run / default)!r}: its folder is not writable; give --out PATH" in err
+
+
+def test_a_failed_write_is_one_line_and_keeps_the_file_there(small_run, tmp_path, capfd, monkeypatch):
+    out = tmp_path / "returns.png"
+    assert main(["plot", str(small_run), "--out", str(out)]) == 0
+    before = out.read_bytes()
+    import matplotlib.figure
+
+    def full_disk(self, *args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", full_disk)
+    err = one_line(capfd, ["plot", str(small_run), "--out", str(out)])
+    assert f"cannot write {str(out)!r}: No space left on device" in err
+    assert out.read_bytes() == before and not list(tmp_path.glob("*.tmp*"))
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_a_chmod_read_only_run_directory_is_one_line(small_run, capfd):
+    os.chmod(small_run, 0o555)
+    try:
+        err = one_line(capfd, ["plot", str(small_run)])
+        assert "is not writable" in err
+    finally:
+        os.chmod(small_run, 0o755)
+
+
+def test_video_of_an_env_that_does_not_render_is_one_line(small_run, tmp_path, capfd):
+    import shutil
+
+    run = tmp_path / "norender"
+    shutil.copytree(small_run, run)
+    text = (run / "config.toml").read_text().replace("toy_envs:Countdown", "toy_envs:NoRender")
+    (run / "config.toml").write_text(text)
+    err = one_line(capfd, ["video", str(run)])
+    assert "env 'toy_envs:NoRender' renders no frames: render() returned None; relayrl video needs render()" in err
+    assert not (run / "video.mp4").exists()
+
+
+def test_video_of_an_env_whose_render_raises_is_one_line(small_run, tmp_path, capfd):
+    import shutil
+
+    run = tmp_path / "cartpole"
+    shutil.copytree(small_run, run)
+    (run / "config.toml").write_text((run / "config.toml").read_text().replace("toy_envs:Countdown",
+                                                                               "toy_envs:RenderRaises"))
+    err = one_line(capfd, ["video", str(run)])
+    assert "cannot render: render() raised RuntimeError: no display" in err
