@@ -11,7 +11,7 @@ import pytest
 import relayrl
 from relayrl.agents.registry import ALGORITHMS
 from relayrl.cli import main
-from relayrl.config import Config, class_defaults, _merge, from_dict, to_dict
+from relayrl.config import Config, _merge, class_defaults, from_dict, to_dict
 from relayrl.errors import ConfigError
 from relayrl.presets import _files, list_presets, load_config, preset_dict
 
