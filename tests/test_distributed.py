@@ -362,3 +362,19 @@ def test_server_stores_stacked_frames_once_and_rebuilds_the_stacks(tmp_path):
     assert np.array_equal(obs[:, 0], np.where(step == 1, obs[:, 1], obs[:, 1] - 1)), "a stack crossed an episode start"
     assert np.array_equal(nxt[:, 1], obs[:, 1] + 1) and np.array_equal(nxt[:, 0], obs[:, 1])
     assert server.group.writers[0].store.frame.shape[-2:] == (3, 3)  # one frame per row, not a stack
+
+
+@needs_ray
+def test_a_nan_reward_a_rollout_actor_collected_stops_the_run_in_one_line(tmp_path):
+    from relayrl.errors import NonFiniteError
+
+    config = relayrl.load_config("sac-pendulum", SAC_SMALL + [
+        "distributed.num_actors=1", "env.id=toy_envs:NonFiniteAt", "env.kwargs={at = 300, continuous = true}",
+        "env.check=false"])
+    with pytest.raises(NonFiniteError) as e:
+        relayrl.train(config, tmp_path / "run", progress=False)
+    assert "reward was NaN at" in str(e.value) and "\n" not in str(e.value)
+    assert relayrl.load_policy(tmp_path / "run").env_steps < 300
+    import ray
+
+    assert not ray.is_initialized(), "the run left its Ray instance running"
