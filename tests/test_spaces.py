@@ -202,3 +202,25 @@ def test_ppo_multi_discrete_and_multi_binary_log_probs_by_hand():
     assert torch.allclose(logp, (q[0].log() + (1 - q[1]).log()).reshape(1))
     assert torch.allclose(ent, (-(q * q.log() + (1 - q) * (1 - q).log())).sum().reshape(1))
     assert greedy_logits_action(bern, (), True).tolist() == [[1, 0]]
+
+
+def test_packed_rows_unpack_to_what_the_env_returned():
+    for kind in ("dict", "tuple"):
+        env = Spaces(kind)
+        spec = spec_from_space(env.observation_space)
+        obs, _ = env.reset(seed=1)
+        again = spec.observation(spec.pack(obs))
+        assert env.observation_space.contains(again)
+        assert np.array_equal(spec.pack(again), spec.pack(obs))
+
+
+def test_evaluate_hands_a_users_function_the_envs_own_dict_observations():
+    seen = []
+
+    def policy(obs):
+        seen.append(obs)
+        return int(obs["cell"] >= 2)  # the target, read from the Dict: every step pays 1
+
+    mean, std = relayrl.evaluate(policy, lambda: Spaces("dict"), episodes=2)
+    assert isinstance(seen[0], dict) and set(seen[0]) == {"cell", "frame", "pos"}
+    assert (mean, std) == (8.0, 0.0)

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from relayrl.errors import UserError
+from relayrl.specs import PackedSpec, Spec
 
 
 class EvalResult(NamedTuple):
@@ -40,9 +41,9 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
 
     if not isinstance(episodes, int) or episodes < 1:
         raise UserError(f"episodes={episodes!r} is not valid; it must be an integer >= 1")
-    act = _policy_fn(policy, deterministic, seed)
     batch_env, owned = _batch_env(env, policy, episodes, max_episode_steps)
     try:
+        act = _policy_fn(policy, deterministic, seed, batch_env.observation_spec)
         if isinstance(batch_env, GymBatchEnv) and not batch_env.time_limited and not batch_env.capped_at:
             batch_env.cap_episodes(max_episode_steps or EVAL_MAX_EPISODE_STEPS)  # so that it ends
         returns: list[float] = []
@@ -53,7 +54,7 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
     return EvalResult(float(np.mean(returns)), float(np.std(returns)))
 
 
-def _policy_fn(policy: Any, deterministic: bool, seed: int | None) -> Callable[[torch.Tensor], Any]:
+def _policy_fn(policy: Any, deterministic: bool, seed: int | None, obs_spec: Spec) -> Callable[[torch.Tensor], Any]:
     """A batched policy (a [B, ...] observation tensor -> [B, ...] actions) from what the user gave."""
     from relayrl.loaded_policy import LoadedPolicy
 
@@ -64,18 +65,20 @@ def _policy_fn(policy: Any, deterministic: bool, seed: int | None) -> Callable[[
     if isinstance(policy, LoadedPolicy):
         return lambda obs: policy.predict(obs, deterministic=deterministic)[0]
     if hasattr(policy, "predict"):  # an SB3 model, or anything with its spelling
-        return _one_at_a_time(lambda o: policy.predict(o, deterministic=deterministic)[0])
+        return _one_at_a_time(lambda o: policy.predict(o, deterministic=deterministic)[0], obs_spec)
     if callable(policy):
-        return _one_at_a_time(policy)
+        return _one_at_a_time(policy, obs_spec)
     raise UserError(f"policy={policy!r} is not a policy: give relayrl.load_policy(...)'s result, a run "
                     "directory, or a callable taking an observation and returning an action")
 
 
-def _one_at_a_time(fn: Callable[[Any], Any]) -> Callable[[torch.Tensor], torch.Tensor]:
-    """A user's function sees one NumPy observation at a time, as the env returns them."""
+def _one_at_a_time(fn: Callable[[Any], Any], obs_spec: Spec) -> Callable[[torch.Tensor], torch.Tensor]:
+    """A user's function sees one NumPy observation at a time, as the env returns them (a Dict
+    observation as its dict, not the packed row the batched env carries)."""
+    as_env = obs_spec.observation if isinstance(obs_spec, PackedSpec) else (lambda row: row)
 
     def act(obs: torch.Tensor) -> torch.Tensor:
-        return torch.as_tensor(np.stack([np.asarray(fn(o)) for o in obs.cpu().numpy()]))
+        return torch.as_tensor(np.stack([np.asarray(fn(as_env(o))) for o in obs.cpu().numpy()]))
 
     return act
 

@@ -259,6 +259,18 @@ class PackedSpec(ArraySpec):
             row[:, f.offset:f.offset + f.nbytes] = leaf.view(np.uint8)
         return row
 
+    def observation(self, row: np.ndarray) -> Any:
+        """`pack`'s inverse: one packed row [nbytes] -> the observation as the env returns it (nested
+        dicts and tuples of arrays, a Discrete entry as an integer)."""
+        tree: dict[Any, Any] = {}
+        for f in self.fields:
+            leaf = row[f.offset:f.offset + f.nbytes].view(numpy_dtype(f.spec)).reshape(f.spec.shape)
+            node = tree
+            for step in f.path[:-1]:
+                node = node.setdefault(step, {})
+            node[f.path[-1]] = leaf[()] if leaf.ndim == 0 else leaf.copy()
+        return _as_space(tree, self.tuple_space and not isinstance(next(iter(tree)), str))
+
     def batch_size(self, obs: Any) -> int | None:
         """None when `obs` is one observation, else the batch its leaves share."""
         first = self.fields[0]
@@ -268,6 +280,15 @@ class PackedSpec(ArraySpec):
             raise UserError(f"observation[{first.key!r}] has shape {leaf.shape}; this policy takes "
                             f"{list(first.spec.shape)} or a batch [B, {', '.join(map(str, first.spec.shape))}]")
         return leaf.shape[0] if extra == 1 else None
+
+
+def _as_space(node: Any, tuple_here: bool) -> Any:
+    """Nested dicts from `observation` as the space's structure: int keys are a Tuple's entries."""
+    if not isinstance(node, dict):
+        return node
+    if tuple_here or all(isinstance(k, int) for k in node):
+        return tuple(_as_space(node[k], False) for k in sorted(node))
+    return {k: _as_space(v, False) for k, v in node.items()}
 
 
 def _leaf(obs: Any, f: Field) -> np.ndarray:
