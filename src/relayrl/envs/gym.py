@@ -74,7 +74,7 @@ class BatchEnvBase:
             self.observation_spec = dataclasses.replace(self.observation_spec, frame_stack=frame_stack)
         self.action_spec: Spec = spec_from_space(action_space, "action")
         self._obs_dtype = numpy_dtype(self.observation_spec)
-        # Dict / Tuple observations travel as packed byte rows (packing.py); None: as they are
+        # Dict / Tuple observations travel as packed byte rows (specs.PackedSpec); None: as they are
         self._pack = self.observation_spec.pack if isinstance(self.observation_spec, PackedSpec) else None
         self._discrete = isinstance(self.action_spec, DiscreteSpec)
         # Old gym (and so the TF-Agents tutorials) reported a time-limit cut as `done`, a
