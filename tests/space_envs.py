@@ -38,9 +38,10 @@ def action_space(kind: str) -> gym.Space:
 class Spaces(gym.Env):
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
 
-    def __init__(self, obs: str = "box", act: str = "discrete", length: int = 8,
+    def __init__(self, obs: str = "box", act: str = "discrete", length: int = 8, nan_at: int = 0,
                  render_mode: str | None = None) -> None:
         self.obs_kind, self.act_kind, self.length = obs, act, length
+        self.nan_at, self.steps = nan_at, 0  # nan_at > 0: a Dict observation's "pos" turns NaN at that step
         self.observation_space = observation_space(obs)
         self.action_space = action_space(act)
         self.render_mode = render_mode
@@ -68,7 +69,8 @@ class Spaces(gym.Env):
             return img
         if k == "dict":
             frame = np.full((1, 8, 8), 255 * g, np.uint8)
-            return {"cell": 2 * g, "frame": frame, "pos": np.array([g, 0.0], np.float32)}
+            pos = np.array([g, np.nan if 0 < self.nan_at <= self.steps else 0.0], np.float32)
+            return {"cell": 2 * g, "frame": frame, "pos": pos}
         return (g, np.array([0.0, g], np.float64))
 
     def reset(self, *, seed=None, options=None):
@@ -82,6 +84,7 @@ class Spaces(gym.Env):
         said = int(a[0] >= 0.5) if self.act_kind == "box" else int(a[0])
         reward = float(said == self.target)
         self.t += 1
+        self.steps += 1
         self.target = int(self.np_random.integers(2))
         return self._obs(), reward, self.t >= self.length, False, {}
 

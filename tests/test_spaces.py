@@ -226,3 +226,13 @@ def test_evaluate_hands_a_users_function_the_envs_own_dict_observations():
     mean, std = relayrl.evaluate(policy, lambda: Spaces("dict"), episodes=2)
     assert isinstance(seen[0], dict) and set(seen[0]) == {"cell", "frame", "pos"}
     assert (mean, std) == (8.0, 0.0)
+
+
+def test_a_nan_inside_a_dict_observation_stops_the_run(tmp_path):
+    from relayrl.errors import NonFiniteError
+
+    cfg = short_config("dqn", "dict", "discrete")
+    cfg.env.kwargs = {**cfg.env.kwargs, "nan_at": 40}
+    cfg.env.num_envs = 1
+    with pytest.raises(NonFiniteError, match="observation was NaN at env step 40 "):
+        relayrl.train(cfg, tmp_path, progress=False)

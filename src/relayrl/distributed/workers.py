@@ -172,7 +172,8 @@ class RolloutWorker:
         ray.get(server.register.remote(index, token))
         self.shipper = ChunkShipper(server, index, token, frame_stack(self.env.observation_spec))
         self.episodes = EpisodeLog()
-        self.finite = FiniteWatch(c.env.num_envs, where=f"rollout actor {index}'s ")  # the driver stops the run
+        # what it finds goes back with the collect call's answer: the driver stops the run
+        self.finite = FiniteWatch(c.env.num_envs, self.env.observation_spec, where=f"rollout actor {index}'s ")
         self.puller = WeightPuller(RemoteVariables(variables), net, c.distributed.pull_interval)
         self.actor = Actor(self.env, self.random_policy, [self.episodes, self.shipper, self.finite],
                            seed=seeds.base("envs"), puller=self.puller)
@@ -212,7 +213,8 @@ class RolloutCollector:
         self.token = uuid.uuid4().hex  # one per incarnation: the driver tells restarts by it
         self.writers: dict[int, RolloutWriter] = {}  # by steps per env copy, each into its own queue
         self.episodes = EpisodeLog()
-        self.finite = FiniteWatch(c.env.num_envs, where=f"rollout actor {index}'s ")  # the driver stops the run
+        # what it finds goes back with the collect call's answer: the driver stops the run
+        self.finite = FiniteWatch(c.env.num_envs, self.env.observation_spec, where=f"rollout actor {index}'s ")
         self.puller = WeightPuller(RemoteVariables(variables), net, 0)  # every collect call pulls
         self.actor = Actor(self.env, agent.collect_policy(None, net), [self.episodes], seed=seeds.base("envs"),
                            puller=self.puller)

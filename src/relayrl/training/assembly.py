@@ -122,7 +122,7 @@ class Run:
                              "a transitions table or a rollout queue (the registry gives it a run of its own)")
         self.agent = spec.make_agent(c.agent, obs_spec, act_spec, self.device, self.seeds.generator("exploration"),
                                      c.train.total_steps)
-        self.finite = FiniteWatch(c.env.num_envs)  # an observer of the actor, where it runs in this process
+        self.finite = FiniteWatch(c.env.num_envs, obs_spec)  # an observer of the actor, where it runs here
         table, variables = self.connect(obs_spec, act_spec)
         # A rollout queue's learner takes whole rollouts, one item each; the agent cuts its minibatches.
         items = 1 if spec.replay == "rollouts" else c.agent.batch_size

@@ -11,54 +11,28 @@ policy save and checkpoint.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
 import torch
 
 from relayrl.errors import NonFiniteError
+from relayrl.specs import PackedSpec, Spec, unpack
 from relayrl.types import Transition
 
 CHECK_STEPS = 256  # batched steps held before a check: the check's cost spread over them
 
 
-def _leaves(x: Any) -> Iterator[Any]:
-    """The arrays in an observation (a tensor, an array, or a dict / tuple of them)."""
-    if isinstance(x, Mapping):
-        for v in x.values():
-            yield from _leaves(v)
-    elif isinstance(x, (tuple, list)):
-        for v in x:
-            yield from _leaves(v)
-    elif x is not None:
-        yield x
-
-
-def _first_bad(rows: list[Any]) -> tuple[int, int, float] | None:
-    """Over steps of [B, ...] arrays: (step index, env copy, the value) of the first non-finite
-    entry, or None. Integer arrays (pixels, indices) cannot hold one and are skipped."""
-    first = rows[0]
-    if isinstance(first, torch.Tensor):
-        if not first.is_floating_point():
-            return None
-        stacked = torch.stack(rows)  # [T, B, ...]
-        bad = ~torch.isfinite(stacked)
-        if not bool(bad.any()):
-            return None
-        index = tuple(int(i) for i in bad.nonzero()[0])
-        value = float(stacked[index])
-    else:
-        arrays = [np.asarray(r) for r in rows]
-        if not np.issubdtype(arrays[0].dtype, np.floating):
-            return None
-        stacked_np = np.stack(arrays)
-        bad_np = ~np.isfinite(stacked_np)
-        if not bad_np.any():
-            return None
-        index = tuple(int(i) for i in np.argwhere(bad_np)[0])
-        value = float(stacked_np[index])
-    return index[0], index[1] if len(index) > 1 else 0, value
+def _first_bad(stacked: torch.Tensor) -> tuple[int, int, float] | None:
+    """Over [T, B, ...] steps: (step index, env copy, the value) of the first non-finite entry,
+    or None. Integer arrays (pixels, indices) cannot hold one and are skipped."""
+    if not stacked.is_floating_point():
+        return None
+    bad = ~torch.isfinite(stacked)
+    if not bool(bad.any()):
+        return None
+    index = tuple(int(i) for i in bad.nonzero()[0])
+    return index[0], index[1] if len(index) > 1 else 0, float(stacked[index])
 
 
 def describe(value: float) -> str:
@@ -72,8 +46,9 @@ class FiniteWatch:
     env step it happened at: the step's number counting every env copy, B per batched step.
     `where` names whose env steps they are (a rollout actor's on Ray)."""
 
-    def __init__(self, num_envs: int, checked: int = 0, where: str = "") -> None:
+    def __init__(self, num_envs: int, obs_spec: Spec | None = None, checked: int = 0, where: str = "") -> None:
         self.num_envs = num_envs
+        self.obs_spec = obs_spec  # a PackedSpec's rows are bytes: its float entries are checked unpacked
         self.checked = checked
         self.where = where
         self._steps: list[tuple[Any, Any, Any]] = []
@@ -92,12 +67,9 @@ class FiniteWatch:
             return None
         found: list[tuple[int, int, str, float]] = []  # env step, copy, what, value
         for field, what in ((2, "observation"), (1, "reward"), (0, "observation")):
-            column = [s[field] for s in steps]
-            # a dict or tuple observation: each of its arrays over the steps
-            leaves = [column] if isinstance(column[0], torch.Tensor) else \
-                [list(rows) for rows in zip(*(list(_leaves(x)) for x in column), strict=True)]
-            for rows in leaves:
-                hit = _first_bad(rows)
+            stacked = torch.stack([s[field] for s in steps])  # [T, B, ...]
+            for values in self._parts(stacked) if what == "observation" else (stacked,):
+                hit = _first_bad(values)
                 if hit is not None:
                     i, copy, value = hit
                     found.append((self.checked + i * self.num_envs + copy + 1, copy, what, value))
@@ -107,6 +79,13 @@ class FiniteWatch:
         step, copy, what, value = min(found, key=lambda f: f[0])
         check = "the env's reward" if what == "reward" else "the env's observations (reset and step)"
         return f"{what} was {describe(value)} at {self.where}env step {step:,} (env copy {copy}): check {check}"
+
+    def _parts(self, obs: torch.Tensor) -> list[torch.Tensor]:
+        """Observations [T, B, ...] as the arrays to check: themselves, or a Dict / Tuple's entries."""
+        if not isinstance(self.obs_spec, PackedSpec):
+            return [obs]
+        t, b = obs.shape[:2]
+        return [leaf.reshape(t, b, *leaf.shape[1:]) for leaf in unpack(obs.reshape(t * b, -1), self.obs_spec).values()]
 
 
 def non_finite_metrics(metrics: Mapping[str, torch.Tensor]) -> str | None:
