@@ -115,9 +115,10 @@ class OnPolicyRun(DistributedRun):
     def eval_extra(self) -> dict[str, Any]:
         return {"stale_rollouts": self.shares.dropped, "stale_env_steps": self.shares.dropped_steps}
 
-    def write_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> None:
-        super().write_scalars(p, env_sps, grad_sps)
+    def write_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
+        scalars = super().write_scalars(p, env_sps, grad_sps)
         self.tb.add_scalar("charts/stale_rollouts", self.shares.dropped, p.env_steps)
+        return scalars
 
     # ---- collection ------------------------------------------------------------------------
     def _full_share(self) -> int:

@@ -327,35 +327,43 @@ class Run:
     def log_progress(self, p: Progress, env_sps: float, grad_sps: float) -> None:
         """Every train.log_interval env steps: TensorBoard scalars and the progress bar. The final
         step's scalars are `finish`'s (the run's steps/s), so none is written twice."""
+        scalars = None
         if p.env_steps < self.config.train.total_steps:
-            self.write_scalars(p, env_sps, grad_sps)
+            scalars = self.write_scalars(p, env_sps, grad_sps)
         if self.callbacks:
-            row = {"step": p.env_steps, "train_step": p.train_step, "wall_time_s": round(self.wall_time(), 3),
-                   "perf/sps": env_sps, "perf/grad_sps": grad_sps,
-                   "train/average_return": (sum(self.stats.returns) / len(self.stats.returns)
-                                            if self.stats.returns else float("nan")),
-                   "train/episodes": self.stats.episodes,
-                   **self.learner.scalar_metrics(),
-                   **{f"charts/{k}": v for k, v in self.agent.scalars(p.env_steps).items()}}
-            self.call_back("log", row)
+            self.call_back("log", {"step": p.env_steps, "train_step": p.train_step,
+                                   "wall_time_s": round(self.wall_time(), 3), **self.training_summary(),
+                                   **(scalars or self.log_scalars(p, env_sps, grad_sps))})
         if self.bar is not None:
             self.bar.update(p.env_steps - self.bar.n)
             last = self.last_eval.get("average_return")
             self.bar.set_postfix(sps=f"{env_sps:.0f}", eval=f"{last:.1f}" if last is not None else "-",
                                  **self.postfix())
 
-    def write_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> None:
+    def write_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
         """TensorBoard as CleanRL names it: charts/episodic_return and charts/episodic_length, one
-        point per training episode at the env step it finished; charts/epsilon (DQN) and
-        charts/learning_rate; losses/*; perf/sps and perf/grad_sps."""
+        point per training episode at the env step it finished; then `log_scalars`, returned."""
         for step, ret, length in self.stats.take_finished():
             self.tb.add_scalar("charts/episodic_return", ret, step)
             self.tb.add_scalar("charts/episodic_length", length, step)
-        scalars = {"perf/sps": env_sps, "perf/grad_sps": grad_sps, **self.learner.scalar_metrics(),
-                   **{f"charts/{k}": v for k, v in self.agent.scalars(p.env_steps).items()},
-                   **{f"charts/{k}": v for k, v in self.stats.info_means().items()}}
+        scalars = self.log_scalars(p, env_sps, grad_sps)
         for k, v in scalars.items():
             self.tb.add_scalar(k, v, p.env_steps)
+        return scalars
+
+    def log_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
+        """perf/sps and perf/grad_sps, losses/*, charts/epsilon (DQN), charts/learning_rate and the
+        info keys' means: what TensorBoard and the callbacks' "log" rows get."""
+        return {"perf/sps": env_sps, "perf/grad_sps": grad_sps, **self.learner.scalar_metrics(),
+                **{f"charts/{k}": v for k, v in self.agent.scalars(p.env_steps).items()},
+                **{f"charts/{k}": v for k, v in self.stats.info_means().items()}}
+
+    def training_summary(self) -> dict[str, Any]:
+        """The training episodes' side of a metrics row: their mean return, count and info means."""
+        returns = self.stats.returns
+        return {"train/average_return": sum(returns) / len(returns) if returns else float("nan"),
+                "train/episodes": self.stats.episodes,
+                **{f"train/{k}": v for k, v in self.stats.info_means().items()}}
 
     def progress_line(self) -> str:
         """The line printed every 30 s where there is no progress bar (no terminal)."""
@@ -371,11 +379,7 @@ class Run:
         """One metrics.jsonl row (and TensorBoard scalars, and a console line) for an evaluation."""
         wall = self.wall_time() if wall_time_s is None else wall_time_s
         row = {"step": p.env_steps, "train_step": p.train_step, **result,
-               "wall_time_s": round(wall, 3), "eval_s": round(eval_s, 3),
-               "train/average_return": (sum(self.stats.returns) / len(self.stats.returns)
-                                        if self.stats.returns else float("nan")),
-               "train/episodes": self.stats.episodes,
-               **{f"train/{k}": v for k, v in self.stats.info_means().items()},
+               "wall_time_s": round(wall, 3), "eval_s": round(eval_s, 3), **self.training_summary(),
                **self.learner.scalar_metrics(), **(extra or {})}
         self.metrics_log.write(row)
         self.tb.add_scalar("eval/average_return", result["average_return"], p.env_steps)
