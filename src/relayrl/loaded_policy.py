@@ -14,7 +14,7 @@ import torch
 
 from relayrl.errors import UserError
 from relayrl.policies import saved_obs_spec
-from relayrl.specs import DiscreteSpec, MultiDiscreteSpec, PackedSpec, describe
+from relayrl.specs import DiscreteSpec, MultiDiscreteSpec, PackedSpec, describe, entry
 
 
 class LoadedPolicy:
@@ -104,7 +104,5 @@ class LoadedPolicy:
             raise UserError(f"this policy takes {describe(spec)} observations: a "
                             f"{'tuple' if spec.tuple_space else 'dict'} of arrays, not one array")
         batch = spec.batch_size(obs)
-        first = obs
-        for step in spec.fields[0].path:
-            first = first[step]
-        return torch.from_numpy(spec.pack_batch(obs, batch)), batch is None, not isinstance(first, torch.Tensor)
+        numpy_in = not isinstance(entry(obs, spec.fields[0]), torch.Tensor)
+        return torch.from_numpy(spec.pack_batch(obs, batch)), batch is None, numpy_in

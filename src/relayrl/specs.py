@@ -124,9 +124,8 @@ def describe(spec: Spec) -> str:
         return f"MultiDiscrete({list(spec.nvec)})"
     if isinstance(spec, MultiBinarySpec):
         return f"MultiBinary({list(spec.shape)})"
-    fields = getattr(spec, "fields", None)
-    if fields is not None:
-        return "Dict(" + ", ".join(f"{f.key}: {describe(f.spec)}" for f in fields) + ")"
+    if isinstance(spec, PackedSpec):
+        return "Dict(" + ", ".join(f"{f.key}: {describe(f.spec)}" for f in spec.fields) + ")"
     return f"Box(shape={tuple(spec.shape)}, dtype={str(spec.dtype).removeprefix('torch.')})"
 
 
@@ -172,10 +171,9 @@ def spec_state(spec: Spec) -> dict[str, Any]:
     """A spec as plain data (for policy files, which hold only plain types)."""
     if isinstance(spec, DiscreteSpec):
         return {"kind": "discrete", "n": spec.n}
-    fields = getattr(spec, "fields", None)
-    if fields is not None:
-        return {"kind": "packed", "tuple": spec.tuple_space,  # type: ignore[attr-defined]
-                "fields": [{"key": f.key, "path": list(f.path), "spec": spec_state(f.spec)} for f in fields]}
+    if isinstance(spec, PackedSpec):
+        return {"kind": "packed", "tuple": spec.tuple_space,
+                "fields": [{"key": f.key, "path": list(f.path), "spec": spec_state(f.spec)} for f in spec.fields]}
     kind = ("multi_discrete" if isinstance(spec, MultiDiscreteSpec)
             else "multi_binary" if isinstance(spec, MultiBinarySpec) else "box")
     state: dict[str, Any] = {"kind": kind, "shape": list(spec.shape), "dtype": str(spec.dtype).removeprefix("torch.")}
@@ -292,6 +290,14 @@ def _as_space(node: Any, tuple_here: bool) -> Any:
 
 
 def _leaf(obs: Any, f: Field) -> np.ndarray:
+    x = entry(obs, f)
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x)
+
+
+def entry(obs: Any, f: Field) -> Any:
+    """The entry of a Dict / Tuple observation that field `f` names, as it is given."""
     x = obs
     for step in f.path:
         try:
@@ -300,9 +306,7 @@ def _leaf(obs: Any, f: Field) -> np.ndarray:
             what = "a dict with key" if isinstance(step, str) else "a tuple with entry"
             raise UserError(f"observation is not {what} {step!r} (this policy takes {f.key!r}: "
                             f"{list(f.spec.shape)})") from None
-    if isinstance(x, torch.Tensor):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x)
+    return x
 
 
 def packed_spec(space: gym.spaces.Dict | gym.spaces.Tuple) -> PackedSpec:
