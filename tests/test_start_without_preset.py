@@ -11,25 +11,18 @@ import pytest
 import relayrl
 from relayrl.agents.registry import ALGORITHMS
 from relayrl.cli import main
-from relayrl.config import Config, _merge, class_defaults, from_dict, to_dict
+from relayrl.config import Config, _merge, class_defaults, dotted, from_dict, to_dict
 from relayrl.errors import ConfigError
 from relayrl.presets import _files, list_presets, load_config, preset_dict
 
 STARTABLE = ("dqn", "ppo", "sac")
 
 
-def _leaves(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        out.update(_leaves(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
-    return out
-
-
 @pytest.mark.parametrize("algo", STARTABLE)
 def test_a_dict_naming_only_algo_and_env_takes_that_algorithms_defaults(algo):
     c = from_dict({"algo": algo, "env": {"id": "Pendulum-v1" if algo == "sac" else "CartPole-v1"}})
-    got = _leaves(to_dict(c))
-    for key, value in _leaves(ALGORITHMS[algo].defaults).items():
+    got = dotted(to_dict(c))
+    for key, value in dotted(ALGORITHMS[algo].defaults).items():
         if key != "env.id":
             assert got[key] == value, key
     assert isinstance(c.agent, ALGORITHMS[algo].config)
@@ -119,5 +112,5 @@ def test_docs_list_each_algorithms_defaults():
     table = text.split("## Defaults per algorithm")[1]
     for algo in STARTABLE:
         assert f"`{algo}`" in table
-        for key in _leaves(ALGORITHMS[algo].defaults):
+        for key in dotted(ALGORITHMS[algo].defaults):
             assert f"| `{key}` |" in table

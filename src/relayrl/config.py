@@ -192,6 +192,14 @@ def to_dict(config: Config) -> dict[str, Any]:
     return dataclasses.asdict(config)
 
 
+def dotted(data: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested sections as one level of dotted keys: {"train": {"total_steps": 1}} -> {"train.total_steps": 1}."""
+    out: dict[str, Any] = {}
+    for k, v in data.items():
+        out.update(dotted(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
+    return out
+
+
 def from_dict(data: dict[str, Any]) -> Config:
     """Build a Config from nested dicts (e.g. parsed TOML); every key is checked. A key the
     dict does not name is the algorithm's default (`algo_defaults`)."""

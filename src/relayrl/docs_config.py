@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from relayrl.agents.registry import ALGORITHMS
-from relayrl.config import class_defaults
+from relayrl.config import class_defaults, dotted
 from relayrl.config_fields import field_docs, toml_literal
 
 DEFAULT_OUT = Path("docs") / "config.md"
@@ -64,24 +64,18 @@ def _per_algorithm() -> list[str]:
     """The keys each algorithm's defaults set over the tables above (agents/<algo>/config.py
     DEFAULTS, whose comments say where and why they differ from Stable-Baselines3's)."""
     algos = [a for a in ALGORITHMS.values() if a.defaults]
+    defaults = [dotted(a.defaults) for a in algos]
     keys: list[str] = []
-    for a in algos:
-        keys += [k for k in _leaves(a.defaults) if k not in keys]
+    for d in defaults:
+        keys += [k for k in d if k not in keys]
     out = ["", "## Defaults per algorithm", "",
            "What `relayrl train ALGO` (and a config naming only `algo`) holds where it differs from the "
            "tables above; `-`: the table's default. Why each differs from Stable-Baselines3's: the "
            "comment above `DEFAULTS` in `src/relayrl/agents/<algo>/config.py`.", "",
            "| key | " + " | ".join(f"`{a.name}`" for a in algos) + " |", "|---|" + "---|" * len(algos)]
     for key in keys:
-        cells = [_leaves(a.defaults).get(key) for a in algos]
+        cells = [d.get(key) for d in defaults]
         out.append(f"| `{key}` | " + " | ".join("-" if v is None else f"`{toml_literal(v)}`" for v in cells) + " |")
-    return out
-
-
-def _leaves(d: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        out.update(_leaves(v, f"{prefix}{k}.") if isinstance(v, dict) else {prefix + k: v})
     return out
 
 
