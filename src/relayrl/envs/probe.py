@@ -18,31 +18,32 @@ import numpy as np
 def first_problem(env: gym.Env) -> str | None:
     """The first thing about `env` that will break a run, as a sentence, or None."""
     raw = env.unwrapped  # the API first, below the wrappers (a TimeLimit would fail to unpack it)
-    for e in (raw, env) if raw is not env else (env,):
-        problem = _api_problem(e)
+    if raw is not env:
+        problem = _api_problem(raw)[0]
         if problem is not None:
             return problem
-    out = env.reset(seed=0)
-    problem = _obs_problem(out[0], env.observation_space, "reset()")
+    problem, reset_out, step_out = _api_problem(env)
     if problem is not None:
         return problem
-    obs, reward = env.step(env.action_space.sample())[:2]
-    return _obs_problem(obs, env.observation_space, "step()") or _reward_problem(reward)
+    return (_obs_problem(reset_out[0], env.observation_space, "reset()")
+            or _obs_problem(step_out[0], env.observation_space, "step()") or _reward_problem(step_out[1]))
 
 
-def _api_problem(env: gym.Env) -> str | None:
+def _api_problem(env: gym.Env) -> tuple[str | None, Any, Any]:
+    """(what is wrong with what reset() and step() return, or None; what they returned)."""
     out = env.reset(seed=0)
     if not isinstance(out, tuple) or len(out) != 2:
         what = f"{len(out)} values" if isinstance(out, tuple) else f"a {type(out).__name__}"
         return (f"reset() returned {what}; Gymnasium envs return (obs, info) "
-                "(gymnasium.Env.reset: `return obs, {}`)")
-    out = env.step(env.action_space.sample())
-    if not isinstance(out, tuple) or len(out) != 5:
-        what = f"{len(out)} values" if isinstance(out, tuple) else f"a {type(out).__name__}"
+                "(gymnasium.Env.reset: `return obs, {}`)"), out, None
+    step = env.step(env.action_space.sample())
+    if not isinstance(step, tuple) or len(step) != 5:
+        what = f"{len(step)} values" if isinstance(step, tuple) else f"a {type(step).__name__}"
         old = " (the old Gym API's obs, reward, done, info: split done into terminated and truncated)" \
-            if isinstance(out, tuple) and len(out) == 4 else ""
-        return f"step() returned {what}; Gymnasium envs return 5: obs, reward, terminated, truncated, info{old}"
-    return None
+            if isinstance(step, tuple) and len(step) == 4 else ""
+        problem = f"step() returned {what}; Gymnasium envs return 5: obs, reward, terminated, truncated, info{old}"
+        return problem, out, step
+    return None, out, step
 
 
 def _obs_problem(obs: Any, space: gym.Space, method: str) -> str | None:
