@@ -245,7 +245,7 @@ class Run:
         due = [trigger for trigger in self.triggers if trigger.due(p)]
         if due or self.finite.due():
             self.check_finite(p, weights=self.policy_saver in due or self.checkpointer in due)
-        for trigger in self.triggers:
+        for trigger in due:  # the others would find nothing due
             trigger(p)
 
     def check_finite(self, p: Progress, weights: bool) -> None:

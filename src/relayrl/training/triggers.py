@@ -52,10 +52,9 @@ class IntervalTrigger:
         return self.interval > 0 and self._count(progress) >= self._next
 
     def __call__(self, progress: Progress) -> bool:
-        n = self._count(progress)
-        if self.interval <= 0 or n < self._next:
+        if not self.due(progress):
             return False
-        self._next = (n // self.interval + 1) * self.interval
+        self._next = (self._count(progress) // self.interval + 1) * self.interval
         self.fn(progress)
         return True
 
