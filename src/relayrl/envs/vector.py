@@ -49,6 +49,7 @@ import torch
 from relayrl.envs.gym import BatchEnvBase, EnvFn, GymBatchEnv
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
+from relayrl.specs import numpy_dtype
 from relayrl.types import EpisodeInfo, StepOutput
 
 
@@ -213,8 +214,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
             # The env's own action dtype: a worker's copies get the values sync hands its copies,
             # whatever the dtype of the actions given (an int or float64 Box included).
             space_dtype = getattr(first.action_space, "dtype", None)
-            act_dtype = np.dtype(space_dtype if space_dtype is not None
-                                 else torch.empty((), dtype=self.action_spec.dtype).numpy().dtype)
+            act_dtype = np.dtype(space_dtype if space_dtype is not None else numpy_dtype(self.action_spec))
             # fork on Linux: workers start in milliseconds and inherit what they need. Elsewhere
             # spawn: macOS has fork, but its system libraries are not safe to use after one.
             ctx = mp.get_context("fork" if sys.platform.startswith("linux") else "spawn")

@@ -33,16 +33,12 @@ from relayrl.compile import compiled
 from relayrl.replay.step_storage import SequenceBatch, SequenceStorage, StepStorage, TransitionStorage
 from relayrl.replay.steps import StepStore
 from relayrl.replay.table import Table
-from relayrl.specs import Spec
+from relayrl.specs import Spec, numpy_dtype
 from relayrl.types import Transition
 
 __all__ = ["SequenceBatch", "SequenceWriter", "StepChunk", "TransitionWriter", "stack_steps"]
 
 _NEVER = np.iinfo(np.int64).max // 2  # "no final row yet"
-
-
-def _np_dtype(spec: Spec) -> np.dtype:
-    return torch.zeros((), dtype=spec.dtype).numpy().dtype
 
 
 def _stack(xs: list[Any], keep_tensors: bool = False) -> np.ndarray:
@@ -106,8 +102,8 @@ class _Writer:
         # final-observation rows and stacking look-back take a little more than one per item.
         per_env = -(-table.max_size // num_envs)
         self.rows = rows if rows is not None else per_env + per_env // 16 + self.lookahead + frame_stack + 2
-        self.store = StepStore(num_envs, self.rows, tuple(obs_spec.shape), _np_dtype(obs_spec),
-                               tuple(action_spec.shape), _np_dtype(action_spec), frame_stack, path, device)
+        self.store = StepStore(num_envs, self.rows, tuple(obs_spec.shape), numpy_dtype(obs_spec),
+                               tuple(action_spec.shape), numpy_dtype(action_spec), frame_stack, path, device)
         self.table = table
         self.num_envs = num_envs
         self.chunk_length = chunk_length
