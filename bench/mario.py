@@ -33,7 +33,7 @@ Every measurement runs in a fresh process (its own venv for the tutorial), one a
             memmap files on disk, scaled per item to 100,000; beside the formula 100,000 x 2 x
             4*84*84*4 bytes.
   loop      env steps/s of the whole loop (preprocess, act, store, learn every 3 steps): relayrl's
-            LocalRun with the ddqn-mario preset (device=cpu, initial_collect_steps=--burn-in,
+            LocalDriver with the ddqn-mario preset (device=cpu, initial_collect_steps=--burn-in,
             total_steps=--burn-in + --steps, evaluation off: the tutorial has none) and the
             tutorial's own loop (burnin=--burn-in, same steps), torch threads = --threads on both.
             Steady state: env steps/s from env step burn-in + --warmup to the end (start-up,
@@ -253,7 +253,7 @@ def relayrl_loop(burn_in: int, steps: int, warmup: int, threads: int, seed: int)
     import torch
 
     import relayrl
-    from relayrl.training.loop import LocalRun
+    from relayrl.training.local import LocalDriver
     from relayrl.training.run_dir import RunDir
 
     total = burn_in + steps
@@ -264,7 +264,7 @@ def relayrl_loop(burn_in: int, steps: int, warmup: int, threads: int, seed: int)
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         rd = RunDir(os.path.join(tmp, "run"))
-        run = LocalRun(c, rd, progress=False)
+        run = LocalDriver(c, rd, progress=False)
         rd.create()
         run.evaluator.fn = run.evaluate_now = lambda p: None  # no evaluation: the tutorial's loop has none
         marks: list[tuple[int, float]] = []
@@ -814,7 +814,7 @@ def main() -> None:
                              "seed": a.seed})
             ours = worker(me, ["relayrl-loop", kw])
             row = {"threads": threads, "relayrl": ours}
-            print(f"| {threads} | relayrl LocalRun ddqn-mario | {ours['steady_sps']:.1f} | {ours['burn_in_sps']:.1f} | "
+            print(f"| {threads} | relayrl ddqn-mario | {ours['steady_sps']:.1f} | {ours['burn_in_sps']:.1f} | "
                   f"{grad_ms(ours):.0f} | {ours['train_steps']:,} | {ours['episodes']} | {ours['startup_s']:.1f} | "
                   f"{ours['items']:,} | "
                   f"{mb(ours['replay_mappings_rss'])} (arrays' Rss) | {mb(ours['rss_end'])} |", flush=True)

@@ -20,7 +20,7 @@ import torch
 from test_resume import DQN, SAC, assert_same_state, comparable, cut_back
 
 import relayrl
-from relayrl.agents.registry import ALGORITHMS, algorithm, load_attr
+from relayrl.agents.registry import ALGORITHMS, algorithm
 from relayrl.envs import make_env
 from relayrl.errors import UserError
 from relayrl.export import load_policy_state
@@ -48,8 +48,10 @@ def test_registry_entry_resolves(name):
     assert spec.config().validate() is None  # the defaults are valid
     module = spec.policy_module()
     assert callable(module.load) and callable(module.deterministic_module)
-    for path in (spec.agent, spec.run):
-        assert not path or callable(load_attr(path))
+    if spec.agent is not None:
+        assert isinstance(spec.agent(), type)
+    if spec.trainer is not None:
+        assert callable(spec.direct_trainer().train) and callable(spec.direct_trainer().check_config)
 
 
 @pytest.fixture(scope="module")

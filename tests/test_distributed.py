@@ -214,7 +214,7 @@ def test_rate_limiter_holds_across_clients(tmp_path):
 
 def test_distributed_without_ray_is_one_clear_error(tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` now raises ImportError
-    import relayrl.distributed.run  # noqa: F401  (importable without Ray)
+    import relayrl.distributed.driver  # noqa: F401  (importable without Ray)
 
     config = relayrl.load_config("dqn-cartpole-fast", ["distributed.num_actors=2"])
     with pytest.raises(UserError, match=r"pip install 'relayrl\[ray\]'"):

@@ -16,7 +16,7 @@ import pytest
 from test_resume import cut_back
 
 import relayrl
-from relayrl.distributed.onpolicy import OnPolicyRun, RolloutShares
+from relayrl.distributed.onpolicy import RayOnPolicyDriver, RolloutShares
 from relayrl.metrics import EpisodeStats
 
 
@@ -51,24 +51,24 @@ def test_shares_kept_of_an_old_version_are_dropped_when_it_advances():
     assert (restored.dropped, restored.dropped_steps) == (1, 6)
 
 
-def driver(k: int = 2) -> tuple[OnPolicyRun, list[tuple[int, int]]]:
-    """An OnPolicyRun's collection bookkeeping with fake actors: `calls` logs (actor, T) asked."""
+def driver(k: int = 2) -> tuple[RayOnPolicyDriver, list[tuple[int, int]]]:
+    """An RayOnPolicyDriver's collection bookkeeping with fake actors: `calls` logs (actor, T) asked."""
     calls: list[tuple[int, int]] = []
 
     def worker(i: int) -> SimpleNamespace:
         return SimpleNamespace(collect=SimpleNamespace(remote=lambda t: calls.append((i, t)) or object()))
 
-    run = OnPolicyRun.__new__(OnPolicyRun)
-    run.K, run.dead, run.retry_at, run.inflight, run.call_version = k, set(), [0.0] * k, {}, {}
+    run = RayOnPolicyDriver.__new__(RayOnPolicyDriver)
+    run.num_actors, run.dead, run.retry_at, run.inflight, run.call_version = k, set(), [0.0] * k, {}, {}
     run.workers = [worker(i) for i in range(k)]
     run.config = relayrl.load_config("ppo-cartpole", ["env.num_envs=2"])
     run.shares, run.share_steps, run.stats = RolloutShares(7, k), 3, EpisodeStats()
     run.said = []
-    run.say = run.said.append
+    run.core = SimpleNamespace(say=run.said.append)
     return run, calls
 
 
-def answer(run: OnPolicyRun, i: int, version: int) -> None:
+def answer(run: RayOnPolicyDriver, i: int, version: int) -> None:
     """Actor i's call answers with a share collected with `version`."""
     ref = next(r for r, (j, _) in run.inflight.items() if j == i)
     del run.inflight[ref]

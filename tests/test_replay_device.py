@@ -12,7 +12,7 @@ from relayrl.config import ConfigError
 from relayrl.presets import load_config
 from relayrl.replay import Fifo, MinSize, SequenceWriter, Table, TransitionWriter, Uniform
 from relayrl.specs import ArraySpec
-from relayrl.training.loop import LocalRun
+from relayrl.training.local import LocalDriver
 from relayrl.training.replay_setup import replay_device
 from relayrl.training.run_dir import RunDir
 from relayrl.types import Transition
@@ -153,10 +153,10 @@ def test_sac_trains_with_a_stateless_env_and_its_replay_as_torch_tensors(tmp_pat
                                      "train.initial_collect_steps=320", "eval.interval=640", "eval.episodes=2",
                                      "train.checkpoint_interval=0", "train.policy_save_interval=0"])
     rd = RunDir(tmp_path / "run")
-    run = LocalRun(c, rd, progress=False)
+    run = LocalDriver(c, rd, progress=False)
     assert run.writer.store.on_device and isinstance(run.writer.store.flat("frame"), torch.Tensor)
     rd.create()
-    result = run.run()
+    result = run.train()
     assert run.agent.train_step > 0 and np.isfinite(result.final["average_return"])
     batch = run.writer.storage.read(live(run.replay)[:8])  # (sampling now would wait on the rate limiter)
     assert isinstance(batch.obs, torch.Tensor) and batch.obs.shape == (8, 3)

@@ -23,13 +23,12 @@ from typing import Any
 
 import numpy as np
 
+from relayrl.distributed.driver import RETRY_S, ActorNames, RayDriver
 from relayrl.distributed.remote import RemotePusher
-from relayrl.distributed.run import RETRY_S, ActorNames, DistributedRun
 from relayrl.distributed.workers import RolloutCollector
 from relayrl.errors import NonFiniteError
 from relayrl.specs import Spec
 from relayrl.training.replay_setup import build_rollouts
-from relayrl.training.triggers import Progress
 
 
 class RolloutShares:
@@ -79,7 +78,7 @@ class RolloutShares:
         self.dropped, self.dropped_steps = int(state["dropped"]), int(state["dropped_steps"])
 
 
-class OnPolicyRun(DistributedRun):
+class RayOnPolicyDriver(RayDriver):
     """The distributed run of an on-policy algorithm: `RolloutCollector` actors, no replay
     server, the learner's rollout queue in the driver fed with K shares per update."""
 
@@ -89,7 +88,7 @@ class OnPolicyRun(DistributedRun):
         self.trained = 0  # env steps of the current-version shares taken (the run's env steps)
         self.share_steps = 0  # T: steps per env copy of the current version's shares
         self.call_version: dict[Any, int] = {}  # collect call -> the version current when it was made
-        self.shares = RolloutShares(0, self.K)
+        self.shares = RolloutShares(0, self.num_actors)
         table, _ = build_rollouts(self.config)  # its checks (on-policy: no warm-up steps) hold on Ray too
         self._start_actors(obs_spec, act_spec)
         self.table = table
@@ -101,8 +100,8 @@ class OnPolicyRun(DistributedRun):
 
     def announce(self) -> None:
         b = self.config.env.num_envs
-        self.say(f"distributed: {self.K} rollout actors x {b} envs, each rollout of "
-                 f"{self._full_share() * self.K * b} env steps split over them "
+        self.core.say(f"distributed: {self.num_actors} rollout actors x {b} envs, each rollout of "
+                 f"{self._full_share() * self.num_actors * b} env steps split over them "
                  f"({self._full_share()} steps per env copy), {len(self.eval_workers)} eval actors, "
                  f"learner on {self.device}")
 
@@ -115,18 +114,16 @@ class OnPolicyRun(DistributedRun):
     def eval_extra(self) -> dict[str, Any]:
         return {"stale_rollouts": self.shares.dropped, "stale_env_steps": self.shares.dropped_steps}
 
-    def write_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
-        scalars = super().write_scalars(p, env_sps, grad_sps)
-        self.tb.add_scalar("charts/stale_rollouts", self.shares.dropped, p.env_steps)
-        return scalars
+    def extra_scalars(self) -> dict[str, float]:
+        return {"charts/stale_rollouts": self.shares.dropped}
 
     # ---- collection ------------------------------------------------------------------------
     def _full_share(self) -> int:
-        return -(-self.config.train.collect_steps // (self.K * self.config.env.num_envs))
+        return -(-self.config.train.collect_steps // (self.num_actors * self.config.env.num_envs))
 
     def _next_share(self) -> int:
         """T of the next rollout's shares: the last one shorter, ending at train.total_steps."""
-        per_step = self.K * self.config.env.num_envs
+        per_step = self.num_actors * self.config.env.num_envs
         return min(self._full_share(), -(-(self.config.train.total_steps - self.trained) // per_step))
 
     def _current_calls(self, i: int | None = None) -> int:
@@ -138,14 +135,14 @@ class OnPolicyRun(DistributedRun):
         that no call in flight will bring (one such call per actor at a time)."""
         if i in self.dead or time.monotonic() < self.retry_at[i] or self.share_steps <= 0:
             return
-        if len(self.shares.kept) + self._current_calls() >= self.K or self._current_calls(i):
+        if len(self.shares.kept) + self._current_calls() >= self.num_actors or self._current_calls(i):
             return
         ref = self.workers[i].collect.remote(self.share_steps)
         self.inflight[ref] = (i, self.share_steps * self.config.env.num_envs)
         self.call_version[ref] = self.shares.version
 
     def _top_up(self) -> None:
-        for i in range(self.K):
+        for i in range(self.num_actors):
             self._submit(i)
 
     def _take(self, i: int, r: dict[str, Any]) -> None:
@@ -153,7 +150,7 @@ class OnPolicyRun(DistributedRun):
             raise NonFiniteError(r["non_finite"])
         self.stats.add_finished(r["returns"], r["lengths"], r["info"])
         if not self.shares.offer(i, r["policy_version"], r["rollout"]):
-            self.say(f"dropped a stale rollout from actor {i} (policy version {r['policy_version']}, the "
+            self.core.say(f"dropped a stale rollout from actor {i} (policy version {r['policy_version']}, the "
                      f"learner's {self.shares.version}): {self.shares.dropped} so far")
         self._submit(i)
 
@@ -169,11 +166,11 @@ class OnPolicyRun(DistributedRun):
     def _update(self) -> None:
         """Train on the K shares of the current version, then publish the new weights."""
         rollout = self.shares.take()
-        self.trained += self.share_steps * self.K * self.config.env.num_envs
-        self.step_schedules(self.trained)
+        self.trained += self.share_steps * self.num_actors * self.config.env.num_envs
+        self.core.step_schedules(self.trained)
         # A last rollout cut short by train.total_steps is collected, not trained on, as in
         # one process (where the rollout writer never inserts a partial rollout).
-        if not self.collect_only and self.share_steps == self._full_share():
+        if not self.core.collect_only and self.share_steps == self._full_share():
             self.table.insert(rollout)
             self.learner.run(self.learner.available_steps())  # this one rollout; pushes the weights
         self._new_version()
@@ -181,7 +178,7 @@ class OnPolicyRun(DistributedRun):
     def iterate(self) -> None:
         ray = self.ray
         self.pusher.push(force=True)  # fresh or restored weights
-        self.sps_log.rates.reset(self.progress())
+        self.core.sps_log.rates.reset(self.core.progress())
         self._new_version()
         total = self.config.train.total_steps
         while self.trained < total:
@@ -190,7 +187,7 @@ class OnPolicyRun(DistributedRun):
                 self._update()
                 moved = True
             self._top_up()  # an actor back from a restart, or one whose retry wait is over
-            self.fire_triggers()
+            self.core.fire_triggers()
             self._finish_evals()
             if not moved:
                 if self.inflight:
@@ -198,7 +195,7 @@ class OnPolicyRun(DistributedRun):
                 else:
                     time.sleep(RETRY_S)  # only an actor waiting to be asked again
         if self.shares.dropped:
-            self.say(f"{self.shares.dropped} stale rollouts ({self.shares.dropped_steps:,} env steps) were "
+            self.core.say(f"{self.shares.dropped} stale rollouts ({self.shares.dropped_steps:,} env steps) were "
                      "collected with an older policy and dropped")
 
     # ---- checkpoints --------------------------------------------------------------------------

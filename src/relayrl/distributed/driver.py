@@ -21,17 +21,22 @@ import uuid
 from collections import deque
 from typing import Any
 
-from relayrl.config import to_dict
+from relayrl.agents.registry import algorithm
+from relayrl.config import Config, to_dict
 from relayrl.distributed import require_ray
 from relayrl.distributed.remote import RemotePusher, RemoteTable
 from relayrl.distributed.server import ReplayServer
 from relayrl.distributed.workers import ActorNames, EvalWorker, RolloutWorker
 from relayrl.envs import make_env
 from relayrl.errors import NonFiniteError, UserError
+from relayrl.metrics import EpisodeStats
 from relayrl.seeding import EVAL_STRIDE
 from relayrl.specs import Spec
-from relayrl.training.assembly import Run
 from relayrl.training.checkpoint import load_latest_checkpoint
+from relayrl.training.finite import FiniteWatch
+from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
+from relayrl.training.report import say
+from relayrl.training.run_dir import RunDir
 from relayrl.training.triggers import IntervalTrigger, Progress
 from relayrl.training.variables import VariableContainer
 
@@ -43,24 +48,26 @@ RETRY_S = 0.2
 UNAVAILABLE_LIMIT = 150
 
 
-class DistributedRun(Run):
-    """The assembled run (training/assembly.py) with its envs in K rollout actors, evaluations in
-    eval actors and the replay in a server actor; the learner trains in the driver.
-    `distributed/onpolicy.py` is the on-policy variant (PPO): no server, rollouts to the driver."""
+class RayDriver:
+    """The run with its envs in K rollout actors, evaluations in eval actors and the replay in a
+    server actor; the learner trains here. `distributed/onpolicy.py` is the on-policy variant
+    (PPO): no server, rollouts to the driver."""
 
     worker_class: type = RolloutWorker
 
-    def open(self) -> tuple[Spec, Spec]:
+    def __init__(self, config: Config, rd: RunDir, progress: bool = True) -> None:
+        c = self.config = config
+        self.rd = rd
+        self.seeds, self.device = start_process(c)
         self.ray = require_ray()
-        c = self.config
-        self.K = c.distributed.num_actors
+        self.num_actors = c.distributed.num_actors
         self.eval_count = 0
-        self.accepted = [0] * self.K  # env steps the replay server took from each actor
-        self.failures = [0] * self.K
-        self.unavailable = [0] * self.K  # ActorUnavailableError answers in a row
-        self.tokens: list[str | None] = [None] * self.K  # each actor's incarnation, from its last answer
-        self.restart_counted = [False] * self.K  # this spell of "unavailable" already counted a restart
-        self.retry_at = [0.0] * self.K  # monotonic time before which actor i is not asked again
+        self.accepted = [0] * self.num_actors  # env steps the replay server took from each actor
+        self.failures = [0] * self.num_actors
+        self.unavailable = [0] * self.num_actors  # ActorUnavailableError answers in a row
+        self.tokens: list[str | None] = [None] * self.num_actors  # each actor's incarnation, from its last answer
+        self.restart_counted = [False] * self.num_actors  # this spell of "unavailable" already counted a restart
+        self.retry_at = [0.0] * self.num_actors  # monotonic time before which actor i is not asked again
         self.restarting: set[int] = set()
         self.dead: set[int] = set()
         self.inflight: dict[Any, tuple[int, int]] = {}  # collect call -> (actor, env steps asked)
@@ -68,31 +75,53 @@ class DistributedRun(Run):
         self._owns_ray = False
         self.workers: list[Any] = []
         self.eval_workers: list[Any] = []
-        self.check_user_env()
+        self.server: Any = None
+        self.variables: Any = None
+        check_user_env(c, None, say)
         # specs (and a bad env id fails here)
         probe = make_env(c.env.id, 1, c.env.max_episode_steps, kwargs=c.env.kwargs, wrappers=c.env.wrappers)
         obs_spec, act_spec = probe.observation_spec, probe.action_spec
         probe.close()
-        return obs_spec, act_spec
+        spec = algorithm(c.algo)
+        self.agent = spec.make_agent(c.agent, obs_spec, act_spec, self.device, self.seeds.generator("exploration"),
+                                     c.train.total_steps)
+        self.stats = EpisodeStats()
+        self.stats.step_fn = self.env_steps
+        finite = FiniteWatch(c.env.num_envs, obs_spec)  # a Ray run's actors check what they collect
+        try:
+            table, pusher = self.connect(obs_spec, act_spec)
+            self.learner = make_learner(c, self.agent, table, self.device, pusher, spec.replay == "rollouts")
+            self.core = RunCore(c, rd, self.agent, self.learner, self.stats, finite, env_steps=self.env_steps,
+                                checkpoint_state=self.checkpoint_state,
+                                evaluation=IntervalTrigger(c.eval.interval, self._interval_eval),
+                                show_progress=progress, postfix=self.postfix, extra_scalars=self.extra_scalars)
+        except BaseException:  # Ray actors: none is left behind by a failure here
+            self.close()
+            raise
 
     def connect(self, obs_spec: Spec, act_spec: Spec) -> tuple[Any, Any]:
+        """Start the actors; the replay the learner samples from and where it pushes weights."""
         c = self.config
         self._start_actors(obs_spec, act_spec)
         self.table = RemoteTable(self.server, c.agent.batch_size)
         self.pusher = RemotePusher(self.variables, self.agent, c.distributed.push_interval)
         return self.table, self.pusher
 
-    def eval_trigger(self) -> IntervalTrigger:
-        return IntervalTrigger(self.config.eval.interval, self._interval_eval)
+    def train(self, resume: bool = False) -> RunResult:
+        return run_to_end(self, resume)
 
     def evaluate_now(self, p: Progress) -> None:
         self.submit_eval(p)
+
+    def extra_scalars(self) -> dict[str, float]:
+        """TensorBoard scalars of the driver's own."""
+        return {}
 
     def settle_evals(self) -> None:
         self._finish_evals(until=0)
 
     def announce(self) -> None:
-        self.say(f"distributed: {self.K} rollout actors x {self.config.env.num_envs} envs, "
+        self.core.say(f"distributed: {self.num_actors} rollout actors x {self.config.env.num_envs} envs, "
                  f"{len(self.eval_workers)} eval actors, learner on {self.device}")
 
     # ---- actors -------------------------------------------------------------------------
@@ -105,18 +134,18 @@ class DistributedRun(Run):
         # keep actor handles passed as constructor arguments alive for a restart.
         names = ActorNames(f"relayrl-{uuid.uuid4().hex[:12]}")
         self.server = self._start_server(names, cfg, obs_spec, act_spec)
-        self.variables = ray.remote(num_cpus=0, max_concurrency=self.K + 8)(VariableContainer).options(
+        self.variables = ray.remote(num_cpus=0, max_concurrency=self.num_actors + 8)(VariableContainer).options(
             name=names.variables).remote(copy=True)
         worker = ray.remote(num_cpus=d.actor_cpus, max_restarts=d.max_restarts, max_task_retries=0)(self.worker_class)
-        self.workers = [worker.remote(cfg, i, names, path) for i in range(self.K)]
+        self.workers = [worker.remote(cfg, i, names, path) for i in range(self.num_actors)]
         evaluator = ray.remote(num_cpus=0, max_restarts=d.max_restarts, max_task_retries=0)(EvalWorker)
         self.eval_workers = [evaluator.remote(cfg, names, path) for _ in range(d.num_eval_actors)]
         ray.get([w.pid.remote() for w in self.workers + self.eval_workers])  # env errors surface here
 
     def _start_server(self, names: ActorNames, cfg: dict[str, Any], obs_spec: Spec, act_spec: Spec) -> Any:
         """The replay server actor (None where the run has none)."""
-        return self.ray.remote(num_cpus=0, max_concurrency=self.K + 8)(ReplayServer).options(
-            name=names.server).remote(cfg, obs_spec, act_spec, str(self.rd.root), self.K)
+        return self.ray.remote(num_cpus=0, max_concurrency=self.num_actors + 8)(ReplayServer).options(
+            name=names.server).remote(cfg, obs_spec, act_spec, str(self.rd.root), self.num_actors)
 
     def _init_ray(self) -> None:
         ray, d = self.ray, self.config.distributed
@@ -126,7 +155,7 @@ class DistributedRun(Run):
             if d.address:
                 ray.init(address=d.address, **kw)
             else:  # a local instance with room for every actor's CPU reservation
-                ray.init(num_cpus=max(os.cpu_count() or 1, math.ceil(self.K * d.actor_cpus) + 1), **kw)
+                ray.init(num_cpus=max(os.cpu_count() or 1, math.ceil(self.num_actors * d.actor_cpus) + 1), **kw)
             if callable(on_sigterm):
                 # Ray's core replaces SIGTERM's handler in the driver with one that dumps a
                 # stack and exits; the CLI's (stop like Ctrl-C: actors shut down) goes back.
@@ -138,8 +167,7 @@ class DistributedRun(Run):
         ray = self.ray
         if not ray.is_initialized():
             return
-        for handle in [*self.workers, *self.eval_workers, getattr(self, "server", None),
-                       getattr(self, "variables", None)]:
+        for handle in [*self.workers, *self.eval_workers, self.server, self.variables]:
             if handle is not None:
                 try:
                     ray.kill(handle, no_restart=True)
@@ -152,8 +180,8 @@ class DistributedRun(Run):
         return sum(self.accepted)
 
     def postfix(self) -> dict[str, str]:
-        alive = self.K - len(self.dead) - len(self.restarting)
-        return {"actors": f"{alive}/{self.K}"}
+        alive = self.num_actors - len(self.dead) - len(self.restarting)
+        return {"actors": f"{alive}/{self.num_actors}"}
 
     def _call_steps(self) -> int:
         b = self.config.env.num_envs
@@ -214,17 +242,17 @@ class DistributedRun(Run):
         """Give every live actor its CALLS_QUEUED calls while steps remain. Steps that a failed
         actor's calls had asked for are free again: the other actors must take them, or a run
         whose calls all ended before a failure would stop short of total_steps."""
-        queued = [0] * self.K
+        queued = [0] * self.num_actors
         for i, _ in self.inflight.values():
             queued[i] += 1
-        for i in range(self.K):
+        for i in range(self.num_actors):
             for _ in range(CALLS_QUEUED - queued[i]):
                 self._submit(i)
 
     def _retry_pending(self) -> bool:
         """An actor waits out RETRY_S before it is asked again, with steps still to take."""
         now = time.monotonic()
-        return any(i not in self.dead and now < self.retry_at[i] for i in range(self.K)) and \
+        return any(i not in self.dead and now < self.retry_at[i] for i in range(self.num_actors)) and \
             self.env_steps() < self.config.train.total_steps
 
     def _drop_calls(self, i: int) -> None:
@@ -266,12 +294,13 @@ class DistributedRun(Run):
         if self.failures[i] > d.max_restarts:
             self.dead.add(i)
             self.restarting.discard(i)
-            self.say(f"rollout actor {i} died and is not restarted again (distributed.max_restarts={d.max_restarts})")
-            if len(self.dead) == self.K:
+            self.core.say(f"rollout actor {i} died and is not restarted again "
+                          f"(distributed.max_restarts={d.max_restarts})")
+            if len(self.dead) == self.num_actors:
                 raise RuntimeError("every rollout actor died; continue from the last checkpoint with --resume")
             return
         self.restarting.add(i)
-        self.say(f"rollout actor {i} died ({why}); Ray restarts it and it goes on from the "
+        self.core.say(f"rollout actor {i} died ({why}); Ray restarts it and it goes on from the "
                  f"latest weights (restart {self.failures[i]} of at most {d.max_restarts})")
         self._top_up()
 
@@ -288,7 +317,7 @@ class DistributedRun(Run):
         self.pusher.push(force=True)  # the eval actor evaluates these weights (or newer)
         seed = self.seeds.base("evaluation") + EVAL_STRIDE * self.eval_count
         w = self.eval_count % n
-        self.evals.append((self.eval_workers[w].evaluate.remote(seed), p, time.perf_counter(), self.wall_time(), w,
+        self.evals.append((self.eval_workers[w].evaluate.remote(seed), p, time.perf_counter(), self.core.wall_time(), w,
                            seed))
         self.eval_count += 1
 
@@ -304,13 +333,14 @@ class DistributedRun(Run):
             try:
                 result = ray.get(ref)
             except ray.exceptions.RayActorError as e:  # restarted by Ray: evaluate again
-                self.say(f"eval actor {w} died ({type(e).__name__}); Ray restarts it and the evaluation is repeated")
+                self.core.say(f"eval actor {w} died ({type(e).__name__}); Ray restarts it and the evaluation "
+                              "is repeated")
                 self.evals[0] = (self.eval_workers[w].evaluate.remote(seed), p, t0, wall, w, seed)
                 continue
             self.evals.popleft()
             version = result.pop("policy_version")
-            self.record_eval(p, result, time.perf_counter() - t0, wall_time_s=wall,
-                             extra={"policy_version": version, "actors_alive": self.K - len(self.dead),
+            self.core.report.record_eval(p, result, time.perf_counter() - t0, wall_time_s=wall,
+                             extra={"policy_version": version, "actors_alive": self.num_actors - len(self.dead),
                                     **self.eval_extra()})
 
     def eval_extra(self) -> dict[str, Any]:
@@ -322,14 +352,14 @@ class DistributedRun(Run):
         c = self.config
         return {
             "version": 2,
-            "distributed": {"num_actors": self.K},
+            "distributed": {"num_actors": self.num_actors},
             "config": to_dict(c),
             "agent": self.agent.state_dict(),
             **self._collection_state(),
             "episode_stats": self.stats.state_dict(),
             "eval_count": self.eval_count,
-            "wall_time_s": self.wall_time(),
-            **self.process_state(),
+            "wall_time_s": self.core.wall_time(),
+            **self.core.process_state(),
         }
 
     def _collection_state(self) -> dict[str, Any]:
@@ -341,7 +371,7 @@ class DistributedRun(Run):
     def _restore_collection(self, state: dict[str, Any]) -> None:
         self.ray.get(self.server.load_state_dict.remote({"table": state["replay"], "shipped": state["shipped"]}))
         if state["replay"] is None:
-            self.say("the checkpoint has no replay contents (train.checkpoint_replay = false): "
+            self.core.say("the checkpoint has no replay contents (train.checkpoint_replay = false): "
                      "the replay refills from the resumed policy before learning continues")
         self.accepted = [int(x) for x in state["shipped"]]
 
@@ -352,7 +382,7 @@ class DistributedRun(Run):
         if saved is None:
             raise UserError("this run was trained in one process; resume it with distributed.num_actors=0 "
                             "(its replay is laid out for one actor)")
-        if saved["num_actors"] != self.K or state["config"]["env"]["num_envs"] != c.env.num_envs:
+        if saved["num_actors"] != self.num_actors or state["config"]["env"]["num_envs"] != c.env.num_envs:
             raise UserError(f"the run being resumed has distributed.num_actors={saved['num_actors']} and "
                             f"env.num_envs={state['config']['env']['num_envs']} (its replay is laid out per actor "
                             f"and env copy); resume with the same")
@@ -361,39 +391,39 @@ class DistributedRun(Run):
         self.stats.load_state_dict(state["episode_stats"])
         self.stats.reset_running()
         self.eval_count = int(state["eval_count"])
-        self.wall_offset = float(state["wall_time_s"])
-        self.load_process_state(state)
+        self.core.wall_offset = float(state["wall_time_s"])
+        self.core.load_process_state(state)
         steps = self.env_steps()
-        self.resume_at(steps)
-        self.say(f"resumed from env step {steps:,} (train step {self.agent.train_step:,}); "
-                 f"the {self.K} rollout actors start new episodes")
+        self.core.resume_at(steps)
+        self.core.say(f"resumed from env step {steps:,} (train step {self.agent.train_step:,}); "
+                 f"the {self.num_actors} rollout actors start new episodes")
 
     # ---- the loop -------------------------------------------------------------------------
     def iterate(self) -> None:
         ray = self.ray
         self.pusher.push(force=True)
-        self.sps_log.rates.reset(self.progress())
-        for i in range(self.K):
+        self.core.sps_log.rates.reset(self.core.progress())
+        for i in range(self.num_actors):
             for _ in range(CALLS_QUEUED):
                 self._submit(i)
         collected_at = None  # the sample request current when collection ended
         while True:
             moved = self._poll_workers()
-            n = 0 if self.collect_only else self.table.poll()
+            n = 0 if self.core.collect_only else self.table.poll()
             if n:
-                self.step_schedules(self.env_steps())
+                self.core.step_schedules(self.env_steps())
                 self.learner.run(n)
-            self.fire_triggers()
+            self.core.fire_triggers()
             self._finish_evals()
             if not self.inflight and not self._retry_pending():
                 if collected_at is None:
                     collected_at = self.table.requests
                 # Collection is over: stop once a sample request sent after it found the rate
                 # limiter allowing nothing more (the one-process loop's last `available_steps`).
-                if self.collect_only or (not n and self.table.last_empty and self.table.answered > collected_at):
+                if self.core.collect_only or (not n and self.table.last_empty and self.table.answered > collected_at):
                     break
             if not n and not moved:  # nothing to do: sleep until an actor or the server answers
-                waiting = [*self.inflight] if self.collect_only else [*self.inflight, self.table.pending]
+                waiting = [*self.inflight] if self.core.collect_only else [*self.inflight, self.table.pending]
                 if waiting:
                     ray.wait(waiting, num_returns=1, timeout=RETRY_S if self._retry_pending() else 1.0)
                 else:
