@@ -52,7 +52,7 @@ def run_relayrl(setting: str, seed: int) -> dict:
     import tempfile
 
     import relayrl
-    import relayrl.run  # the run's modules (and torch) load before the timer, as process start-up
+    import relayrl.dispatch  # the run's modules (and torch) load before the timer, as process start-up
     import relayrl.training.local  # noqa: F401
 
     config = relayrl.load_config("dqn-cartpole", RELAYRL[setting], seed=seed)

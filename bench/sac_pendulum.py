@@ -28,7 +28,7 @@ def run_relayrl(seed: int, steps: int) -> dict:
     import os
 
     import relayrl
-    import relayrl.run  # the run's modules (and torch) load before the timer, as process start-up
+    import relayrl.dispatch  # the run's modules (and torch) load before the timer, as process start-up
     import relayrl.training.local  # noqa: F401
     from relayrl.training.run_dir import RunDir
 

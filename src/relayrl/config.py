@@ -213,11 +213,11 @@ def from_dict(data: dict[str, Any]) -> Config:
 def algo_defaults(algo: str) -> Config:
     """`algo`'s default config: the config classes' defaults with the registry's `defaults` for
     that algorithm over them (relayrl train ALGO, relayrl config ALGO)."""
-    spec = algorithm(algo)
+    entry = algorithm(algo)
     config = class_defaults()
     object.__setattr__(config, "algo", algo)  # no rebase: this is what rebasing starts from
-    object.__setattr__(config, "agent", spec.config())
-    _merge(config, copy.deepcopy(spec.defaults), prefix="")
+    object.__setattr__(config, "agent", entry.config())
+    _merge(config, copy.deepcopy(entry.defaults), prefix="")
     return config
 
 

@@ -82,15 +82,15 @@ class RayDriver:
         probe = make_env(c.env.id, 1, c.env.max_episode_steps, kwargs=c.env.kwargs, wrappers=c.env.wrappers)
         obs_spec, act_spec = probe.observation_spec, probe.action_spec
         probe.close()
-        spec = algorithm(c.algo)
-        self.agent = spec.make_agent(c.agent, obs_spec, act_spec, self.device, self.seeds.generator("exploration"),
+        entry = algorithm(c.algo)
+        self.agent = entry.make_agent(c.agent, obs_spec, act_spec, self.device, self.seeds.generator("exploration"),
                                      c.train.total_steps)
         self.stats = EpisodeStats()
         self.stats.step_fn = self.env_steps
         finite = FiniteWatch(c.env.num_envs, obs_spec)  # a Ray run's actors check what they collect
         try:
             table, pusher = self.connect(obs_spec, act_spec)
-            self.learner = make_learner(c, self.agent, table, self.device, pusher, spec.replay == "rollouts")
+            self.learner = make_learner(c, self.agent, table, self.device, pusher, entry.replay == "rollouts")
             self.core = RunCore(c, rd, self.agent, self.learner, self.stats, finite, env_steps=self.env_steps,
                                 checkpoint_state=self.checkpoint_state,
                                 evaluation=IntervalTrigger(c.eval.interval, self._interval_eval),
@@ -232,7 +232,7 @@ class RayDriver:
 
     def _take(self, i: int, r: dict[str, Any]) -> None:
         """What a collect call of actor i answered; the actor's next call."""
-        if r.get("non_finite"):  # Run.run adds what the run keeps
+        if r.get("non_finite"):  # run_to_end adds what the run keeps
             raise NonFiniteError(r["non_finite"])
         self.accepted[i] = max(self.accepted[i], int(r["accepted"]))
         self.stats.add_finished(r["returns"], r["lengths"], r["info"])

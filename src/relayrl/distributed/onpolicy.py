@@ -146,7 +146,7 @@ class RayOnPolicyDriver(RayDriver):
             self._submit(i)
 
     def _take(self, i: int, r: dict[str, Any]) -> None:
-        if r.get("non_finite"):  # Run.run adds what the run keeps
+        if r.get("non_finite"):  # run_to_end adds what the run keeps
             raise NonFiniteError(r["non_finite"])
         self.stats.add_finished(r["returns"], r["lengths"], r["info"])
         if not self.shares.offer(i, r["policy_version"], r["rollout"]):

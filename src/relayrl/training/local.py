@@ -43,7 +43,7 @@ class LocalDriver:
 
     def _build(self, progress: bool, env_factory: Callable[[], Any] | None, callbacks: list[Callback]) -> None:
         c, seeds, device = self.config, self.seeds, self.device
-        spec = algorithm(c.algo)
+        entry = algorithm(c.algo)
         # Envs: stateless torch envs live on the agent's device; Gymnasium envs on the CPU.
         check_user_env(c, env_factory, say)
         made = {"kwargs": c.env.kwargs, "wrappers": c.env.wrappers, "factory": env_factory}
@@ -60,10 +60,10 @@ class LocalDriver:
 
         # The algorithm's agent and the replay it learns from: a rate-limited transitions table,
         # or a queue of rollouts (a stateless torch env's stay tensors on the run's device).
-        self.agent = spec.make_agent(c.agent, obs_spec, act_spec, device, seeds.generator("exploration"),
+        self.agent = entry.make_agent(c.agent, obs_spec, act_spec, device, seeds.generator("exploration"),
                                      c.train.total_steps)
         self.finite = FiniteWatch(c.env.num_envs, obs_spec)
-        whole_rollouts = spec.replay == "rollouts"
+        whole_rollouts = entry.replay == "rollouts"
         if whole_rollouts:
             self.replay, self.writer = build_rollouts(c, device if stateless else None)
         else:

@@ -138,8 +138,8 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     # A copy: recording an env factory's name (and the run's own settings) never changes the caller's config.
     config = from_dict(config) if isinstance(config, dict) else copy.deepcopy(config)
     config.validate()
-    spec = algorithm(config.algo)
-    one_process = spec.replay != "none" and config.distributed.num_actors == 0
+    entry = algorithm(config.algo)
+    one_process = entry.replay != "none" and config.distributed.num_actors == 0
     if env is not None:
         _use_factory(config, env, one_process)
     callbacks = _check_callbacks(callbacks, one_process)
@@ -153,16 +153,16 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         check_resume_matches(config, rd)
     else:
         takeover = _takeover_notice(rd, overwrite)
-    if resume and not spec.resumable:
-        raise UserError(f"algo={spec.name!r} runs are not checkpointed (they take minutes): start a new run instead")
-    if config.distributed.num_actors > 0 and not spec.ray:
-        raise UserError(f"algo={spec.name!r} runs in one process only; distributed.num_actors works with "
+    if resume and not entry.resumable:
+        raise UserError(f"algo={entry.name!r} runs are not checkpointed (they take minutes): start a new run instead")
+    if config.distributed.num_actors > 0 and not entry.ray:
+        raise UserError(f"algo={entry.name!r} runs in one process only; distributed.num_actors works with "
                         f"{', '.join(ray_algorithms())}")
     # Each run builds its parts (envs, agent) before anything is written: bad input fails first.
     driver: LocalDriver | DirectDriver | RayDriver
-    if spec.replay == "none":
+    if entry.replay == "none":
         driver = DirectDriver(config, rd, progress)
-    elif config.distributed.num_actors > 0 and spec.replay == "rollouts":
+    elif config.distributed.num_actors > 0 and entry.replay == "rollouts":
         from relayrl.distributed.onpolicy import RayOnPolicyDriver
 
         driver = RayOnPolicyDriver(config, rd, progress)
