@@ -37,11 +37,11 @@ _LAZY = {
 
 if TYPE_CHECKING:
     from relayrl.config import Config
+    from relayrl.dispatch import train
     from relayrl.evaluation import EvalResult, evaluate
     from relayrl.export import export_policy, load_policy
     from relayrl.plot import plot_run
     from relayrl.presets import list_presets, load_config
-    from relayrl.dispatch import train
     from relayrl.video import record_video
 
 
