@@ -166,7 +166,7 @@ class Cluster:
     def __init__(self, c: Config, k: int) -> None:
         import ray
 
-        from relayrl.distributed.driver import CALL_CHUNKS, CALLS_QUEUED
+        from relayrl.distributed.offpolicy import CALL_CHUNKS, CALLS_QUEUED
         from relayrl.distributed.server import ReplayServer
         from relayrl.distributed.workers import ActorNames, RolloutWorker
         from relayrl.training.variables import VariableContainer

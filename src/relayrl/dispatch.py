@@ -162,10 +162,6 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     driver: LocalDriver | DirectDriver | RayDriver
     if entry.replay == "none":
         driver = DirectDriver(config, rd, progress)
-    elif config.distributed.num_actors > 0 and entry.replay == "rollouts":
-        from relayrl.distributed.onpolicy import RayOnPolicyDriver
-
-        driver = RayOnPolicyDriver(config, rd, progress)
     elif config.distributed.num_actors > 0:
         from relayrl.distributed.driver import RayDriver
 
