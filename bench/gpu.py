@@ -209,7 +209,8 @@ def sac_floor(device: torch.device) -> dict[str, Any]:
     pi_opt = torch.optim.Adam(actor.parameters(), lr=3e-4)
     a_opt = torch.optim.Adam([log_alpha], lr=3e-4)
     obs, nobs = torch.randn(b, o, device=device), torch.randn(b, o, device=device)
-    act, rew, done = torch.rand(b, a, device=device) * 2 - 1, torch.randn(b, device=device), torch.zeros(b, device=device)
+    act = torch.rand(b, a, device=device) * 2 - 1
+    rew, done = torch.randn(b, device=device), torch.zeros(b, device=device)
 
     def sample(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         mean, log_std = actor(x).chunk(2, dim=-1)
@@ -291,7 +292,9 @@ def table(figures: dict[str, Any]) -> str:
         r = runs.get(key, {})
         if "error" in r:
             return "error: " + r["error"][:60]
-        return f"{r['env_steps_per_s']:,.0f} env steps/s" if r.get("env_steps_per_s") else "not measured (run too short)"
+        if not r.get("env_steps_per_s"):
+            return "not measured (run too short)"
+        return f"{r['env_steps_per_s']:,.0f} env steps/s"
 
     rows = [
         ("ddqn-pong (1 env, 1 gradient step / 4 env steps)", sps("ddqn-pong"),
@@ -362,7 +365,8 @@ def smoke(device: torch.device, steps: int) -> bool:
                 if len(action) != 2 or exported_action.shape[0] != 2:
                     raise RuntimeError(f"a batch of 2 observations gave {len(action)} and "
                                        f"{exported_action.shape[0]} actions")
-            print(f"PASS {label}: {preset} on {device}, {config.train.total_steps} env steps, eval return {returns.mean:.1f}, "
+            print(f"PASS {label}: {preset} on {device}, {config.train.total_steps} env steps, "
+                  f"eval return {returns.mean:.1f}, "
                   f"exported and loaded ({time.perf_counter() - t0:.1f} s)", flush=True)
         except Exception as e:  # every algorithm gets its line, whatever the one before did
             ok = False

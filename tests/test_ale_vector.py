@@ -3,12 +3,10 @@
 from __future__ import annotations
 
 import importlib.util
-import json
 
 import pytest
 import torch
 
-import relayrl
 from relayrl.config import Config
 from relayrl.envs import make_env
 from relayrl.errors import ConfigError, UserError
@@ -122,19 +120,3 @@ def test_dqn_pong_fast_preset_is_listed_and_says_its_target_is_unchecked():
     assert (c.env.id, c.env.vectorization, c.env.num_envs, c.replay.n_step, a.double) == (PONG, "ale", 8, 3, True)
     ref = load_config("ddqn-pong")  # the Nature-style reference is left as it was
     assert (ref.env.num_envs, ref.env.vectorization, ref.replay.n_step, ref.agent.lr) == (1, "sync", 1, 1e-4)
-
-
-@needs_ale
-def test_dqn_pong_fast_trains_a_few_hundred_steps_and_evaluates(tmp_path):
-    config = load_config("dqn-pong-fast", [
-        "train.total_steps=400", "train.initial_collect_steps=200", "replay.size=2000", "agent.batch_size=8",
-        "agent.target_update_period=10", "eval.interval=400", "eval.episodes=1", "env.max_episode_steps=60",
-        "train.policy_save_interval=400", "device=cpu", "env.num_envs=4"])
-    result = relayrl.train(config, tmp_path / "run", progress=False)
-    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
-    assert [r["step"] for r in rows] == [0, 400]
-    assert abs(rows[-1]["train_step"] - (400 - 200) // 8 * 2) <= 2  # 2 gradient steps per 8 env steps
-    assert "losses/loss" in rows[-1] and rows[-1]["train/episodes"] == 4  # 4 copies cut at 60 steps
-    assert result.final["average_episode_length"] == 60  # evaluated on the Gymnasium path
-    policy = relayrl.load_policy(tmp_path / "run")
-    assert policy(torch.zeros(2, 4, 84, 84, dtype=torch.uint8)).shape == (2,)
