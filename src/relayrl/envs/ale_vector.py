@@ -18,6 +18,9 @@ Two things are done here rather than in ale-py, to match the other envs exactly:
   the step, with the last frame in `info["final_obs"]`; the step output then carries the true
   final stack (`next_obs`) beside the reset one (`obs`), as `GymBatchEnv` does.
 
+`env.info_keys` read ale-py's per-step info (`lives`, `frame_number`, `episode_frame_number`);
+for a copy reset within the step it already describes the new episode.
+
 On a CUDA run the observations come back in pinned host memory, so the policy's
 `obs.to(device, non_blocking=True)` copies them without blocking the host.
 """
@@ -116,9 +119,10 @@ class AleBatchEnv(BatchEnvBase):
                 nxt[ended_here, -1] = info["final_obs"][ended_here, 0]
             resets = frames
             if cut.any():  # cut by env.max_episode_steps: reset those copies now
-                resets, _ = self.ale.reset(options={"reset_mask": cut})
-                if order is not None:
-                    resets = resets[order]
+                resets, reset_info = self.ale.reset(options={"reset_mask": cut})
+                reset_order = self._in_order(reset_info)
+                if reset_order is not None:
+                    resets = resets[reset_order]
             obs = self._empty()
             o = obs.numpy()
             o[:] = nxt
