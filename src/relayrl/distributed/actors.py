@@ -45,8 +45,8 @@ def init_ray(ray: Any, config: Config) -> bool:
 
 class ActorPool:
     """`start(worker_class, server)` starts the actors; `ask(i, steps, *args)` queues a collect
-    call on rollout actor i; `poll()` returns the answers that came in and the actors whose
-    calls were dropped by a failure. An actor that fails is restarted by Ray up to
+    call on rollout actor i; `poll(take, dropped)` hands over the answers that came in and
+    the actors whose calls a failure dropped. An actor that fails is restarted by Ray up to
     distributed.max_restarts times, then counted dead."""
 
     def __init__(self, ray: Any, config: Config, say: Callable[[str], None]) -> None:
@@ -131,15 +131,16 @@ class ActorPool:
         else:
             time.sleep(RETRY_S)  # only an actor waiting to be asked again
 
-    def poll(self) -> tuple[list[tuple[int, dict[str, Any]]], list[int]]:
-        """The calls that answered: (actor, result) in arrival order, and the actors whose
-        calls were dropped because the actor failed (their steps are free to ask again)."""
+    def poll(self, take: Callable[[int, dict[str, Any]], None], dropped: Callable[[int], None] = lambda i: None
+             ) -> bool:
+        """Hand each call that answered to `take(actor, result)`, in arrival order, each as it
+        leaves the calls in flight (so `take` sees the others still in flight); `dropped(actor)`
+        after a failure dropped an actor's calls (their steps are free to ask again). True when
+        any call answered."""
         ray = self.ray
         if not self.inflight:
-            return [], []
+            return False
         ready, _ = ray.wait(list(self.inflight), num_returns=len(self.inflight), timeout=0)
-        answers: list[tuple[int, dict[str, Any]]] = []
-        failed: list[int] = []
         for ref in ready:
             if ref not in self.inflight:  # dropped with its actor's failure below
                 continue
@@ -147,12 +148,12 @@ class ActorPool:
             try:
                 r = ray.get(ref)
             except getattr(ray.exceptions, "ActorUnavailableError", ()) as e:  # Ray >= 2.2x; maybe not a death
-                if self._on_unavailable(i, e):
-                    failed.append(i)
+                self._on_unavailable(i, e)
+                dropped(i)
                 continue
             except ray.exceptions.RayActorError as e:
                 self._on_death(i, e)
-                failed.append(i)
+                dropped(i)
                 continue
             self.unavailable[i] = 0
             if self.tokens[i] is not None and r["token"] != self.tokens[i] and not self.restart_counted[i]:
@@ -161,32 +162,31 @@ class ActorPool:
             self.tokens[i] = r["token"]
             self.restart_counted[i] = False
             self.restarting.discard(i)
-            answers.append((i, r))
-        return answers, failed
+            take(i, r)
+        return bool(ready)
 
     def _drop_calls(self, i: int) -> None:
         """Forget actor i's calls in flight (queued behind the one that failed: they fail too)."""
         for ref in [r for r, (j, _) in self.inflight.items() if j == i]:
             del self.inflight[ref]
 
-    def _on_unavailable(self, i: int, error: Exception) -> bool:
+    def _on_unavailable(self, i: int, error: Exception) -> None:
         # Ray says the actor may come back: it crashed and Ray is restarting it, or the
         # connection dropped. Count one restart for the whole spell (its queued calls and
         # those sent while it restarts fail the same way, and one crash must not use up every
         # restart) and ask again every RETRY_S until it answers; UNAVAILABLE_LIMIT answers in
-        # a row count as a death of their own. True: its calls were dropped.
+        # a row count as a death of their own.
         self.unavailable[i] += 1
         if self.unavailable[i] > UNAVAILABLE_LIMIT:
             self.unavailable[i] = 0
             self._on_death(i, error)
-            return True
+            return
         self._drop_calls(i)
         self.restarting.add(i)
         self.retry_at[i] = time.monotonic() + RETRY_S
         if not self.restart_counted[i]:
             self.restart_counted[i] = True
             self._count_restart(i, type(error).__name__)
-        return True
 
     def _on_death(self, i: int, error: Exception) -> None:
         self._drop_calls(i)

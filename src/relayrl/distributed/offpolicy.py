@@ -97,21 +97,24 @@ class ReplayCollection:
             for _ in range(CALLS_QUEUED - queued[i]):
                 self._submit(i)
 
+    def _take(self, i: int, r: dict[str, Any]) -> None:
+        """What a collect call of actor i answered; the actor's next call."""
+        if r.get("non_finite"):  # run_to_end adds what the run keeps
+            raise NonFiniteError(r["non_finite"])
+        self.accepted[i] = max(self.accepted[i], int(r["accepted"]))
+        self.stats.add_finished(r["returns"], r["lengths"], r["info"])
+        self._submit(i)
+
+    def _dropped(self, i: int) -> None:
+        """Count the steps the replay server already took from actor i, whose calls failed."""
+        shipped = self.pool.ray.get(self.pool.server.info.remote())["shipped"]
+        self.accepted[i] = max(self.accepted[i], int(shipped[i]))
+
     def _poll(self) -> bool:
         """Take what the actors answered and ask them again; True when any answered."""
-        answers, failed = self.pool.poll()
-        if failed:  # count the steps the replay server already took from a failed actor
-            shipped = self.pool.ray.get(self.pool.server.info.remote())["shipped"]
-            for i in failed:
-                self.accepted[i] = max(self.accepted[i], int(shipped[i]))
-        for i, r in answers:
-            if r.get("non_finite"):  # run_to_end adds what the run keeps
-                raise NonFiniteError(r["non_finite"])
-            self.accepted[i] = max(self.accepted[i], int(r["accepted"]))
-            self.stats.add_finished(r["returns"], r["lengths"], r["info"])
-            self._submit(i)
+        moved = self.pool.poll(self._take, self._dropped)
         self._top_up()
-        return bool(answers or failed)
+        return moved
 
     def _retry_pending(self) -> bool:
         return self.pool.retry_pending() and self.env_steps() < self.config.train.total_steps

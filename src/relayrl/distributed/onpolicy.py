@@ -158,11 +158,9 @@ class RolloutCollection:
         self._submit(i)
 
     def _poll(self, say: Callable[[str], None]) -> bool:
-        answers, failed = self.pool.poll()
-        for i, r in answers:
-            self._take(i, r, say)
+        moved = self.pool.poll(lambda i, r: self._take(i, r, say))
         self._top_up()
-        return bool(answers or failed)
+        return moved
 
     # ---- the loop ---------------------------------------------------------------------------
     def _new_version(self) -> None:
