@@ -1,4 +1,5 @@
-"""Column storage: preallocated arrays in RAM, on a torch device, or memory-mapped files.
+"""What a Table keeps its items in: the Storage protocols, and column storage (preallocated
+arrays in RAM, on a torch device, or memory-mapped files).
 
 `Columns` is a fixed set of named arrays with a leading capacity dimension. RAM columns are
 NumPy arrays because indexing them costs several times less per call than torch indexing on
@@ -10,7 +11,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
@@ -18,7 +19,41 @@ import torch
 from relayrl.arrays import to_numpy, torch_dtype
 from relayrl.errors import UserError
 
+if TYPE_CHECKING:
+    from relayrl.replay.steps import StepChunk
+
 Signature = dict[str, tuple[tuple[int, ...], np.dtype]]  # name -> (shape per row, dtype)
+
+
+class Storage(Protocol):
+    """Where a table keeps its items' data, by slot. The table calls `write` when it gives
+    items slots and `read` with the slots it samples; its checkpoint holds the storage's.
+    A storage may also have `stale(slots) -> bool mask`: items whose data no longer holds
+    what was written (memmap files reopened after the run went on), which a table that loads
+    a checkpoint deletes; and `bind(slot_key)`: the table hands it its key map (read-only, as
+    its selectors get it), for a storage that finds the live items whose data new steps
+    overwrite."""
+
+    def write(self, slots: np.ndarray, items: Any) -> None: ...
+    def read(self, slots: np.ndarray) -> Any: ...
+    def state_dict(self) -> dict[str, Any]: ...
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
+@runtime_checkable
+class StepSink(Storage, Protocol):
+    """A storage that holds steps and makes items of them (see step_storage): the table
+    deletes its `evictions` before it appends steps and inserts the items `append` returns."""
+
+    def evictions(self, done: np.ndarray) -> np.ndarray: ...
+    def append(self, chunk: StepChunk) -> np.ndarray: ...
+    @property
+    def appends_one_step(self) -> bool: ...
+    def one_step_evictions(self) -> np.ndarray: ...
+    def append_one_step(self, frames: Any, actions: Any, rewards: Any) -> np.ndarray: ...
+    def saved_episodes_intact(self) -> bool: ...
+    def continue_episodes(self) -> None: ...
+    def restart_episodes(self) -> None: ...
 
 
 class Columns:
