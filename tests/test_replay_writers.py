@@ -203,6 +203,21 @@ def test_state_dict_round_trip_of_a_ram_writer():
     assert transition_rows(t2, w2) == transition_rows(t, w)
 
 
+def test_the_table_owns_the_steps_and_keeps_the_checkpoint_layout_runs_saved_before():
+    # The writer holds no storage: it stages steps and appends them through its table.
+    t, w = writer(2, num_envs=2, max_size=20)
+    assert not any(hasattr(w, name) for name in ("store", "storage", "open_from"))
+    for i in range(9):
+        w(step([i, 100 + i], [i % 5, 1], [float(i), 1.0], [i + 1, 101 + i]))
+    w.flush()
+    # Checkpoints from when the writer owned the steps load unchanged: the layout is the same.
+    state = t.state_dict()["storage"]
+    assert sorted(state) == ["open_from", "slot_ref", "store"]
+    assert sorted(state["store"]) == ["columns", "ep_start", "head"]
+    assert sorted(state["store"]["columns"]["arrays"]) == sorted(
+        ["frame", "action", "reward", "stamp", "start", "last", "terminated", "item_key", "ret", "disc", "nlen"])
+
+
 @pytest.mark.parametrize("n_step", [1, 3])
 def test_flushing_every_step_or_once_gives_the_same_items(n_step):
     rng = np.random.default_rng(0)
