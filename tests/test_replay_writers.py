@@ -349,11 +349,11 @@ def test_compiled_one_step_flush_takes_every_table_and_declines_episode_ends():
 def test_without_numba_or_with_fast_false_the_flush_is_numpy(monkeypatch):
     t = Table("t", 100, Uniform(), Fifo(), MinSize(1), seed=0)
     w = TransitionWriter(t, 4, OBS, ACT, gamma=G, fast=False)
-    assert not w.table.storage.appends_one_step
+    assert w.table.storage.one_step is None
     monkeypatch.setenv("RELAYRL_NUMBA", "0")
     t = Table("t", 100, Uniform(), Fifo(), MinSize(1), seed=0)
     w = TransitionWriter(t, 4, OBS, ACT, gamma=G)
-    assert not w.table.storage.appends_one_step
+    assert w.table.storage.one_step is None
 
 
 @pytest.mark.parametrize("num_envs", [1, 2])

@@ -58,31 +58,10 @@ class StorageGroup:
         for st in self.storages:
             st.bind(slot_key)
 
-    # ---- steps: the active writer's storage takes them ------------------------------------
-    def evictions(self, done: np.ndarray) -> np.ndarray:
-        return self.storages[self.active].evictions(done)
-
-    def append(self, chunk: StepChunk) -> np.ndarray:
-        return self.storages[self.active].append(chunk)
-
     @property
-    def appends_one_step(self) -> bool:
-        return self.storages[self.active].appends_one_step
-
-    def one_step_evictions(self) -> np.ndarray:
-        return self.storages[self.active].one_step_evictions()
-
-    def append_one_step(self, frames: Any, actions: Any, rewards: Any) -> np.ndarray:
-        return self.storages[self.active].append_one_step(frames, actions, rewards)
-
-    def saved_episodes_intact(self) -> bool:
-        return self.storages[self.active].saved_episodes_intact()
-
-    def continue_episodes(self) -> None:
-        self.storages[self.active].continue_episodes()
-
-    def restart_episodes(self) -> None:
-        self.storages[self.active].restart_episodes()
+    def appending(self) -> StepStorage:
+        """The active writer's storage: it takes the steps being appended."""
+        return self.storages[self.active]
 
     # ---- the Table's storage interface -------------------------------------------------------
     def write(self, slots: np.ndarray, items: np.ndarray) -> None:

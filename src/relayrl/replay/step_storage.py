@@ -72,6 +72,9 @@ class StepStorage:
         self.slot_rows = np.zeros(capacity, dtype=SLOT_RECORD)
         self.open_from = np.zeros(num_envs, dtype=np.int64)  # per env: first position that may still become an item
         self.saved_episodes: tuple[Any, Any] = (None, None)  # (open_from, ep_start) of a loaded checkpoint
+        # `evictions` and `append` of one batched step without episode ends, in compiled loops
+        # (step_storage_fast.OneStep); None: the general path takes every step.
+        self.one_step: Any = None
         f = self.store.flat
         self._reward, self._start, self._last, self._terminated = f("reward"), f("start"), f("last"), f("terminated")
         self._ret, self._disc, self._nlen, self._item_key = f("ret"), f("disc"), f("nlen"), f("item_key")
@@ -89,6 +92,11 @@ class StepStorage:
         self.slot_ref, self.slot_rows = other.slot_ref, other.slot_rows
 
     # ---- appending steps (the table calls these) ------------------------------------------
+    @property
+    def appending(self) -> StepStorage:
+        """The storage that takes appended steps: this one (a StorageGroup names one of its own)."""
+        return self
+
     def evictions(self, done: np.ndarray) -> np.ndarray:
         """Keys of the items whose rows appending steps with episode ends `done` [C, B] overwrites
         (most are long gone, taken by the remover first; `Table.delete` skips those)."""
@@ -107,17 +115,6 @@ class StepStorage:
         self.store.write_chunk(chunk.frames, chunk.actions, chunk.rewards, chunk.done, chunk.terminated,
                                chunk.finals)
         return self._close_items()
-
-    @property
-    def appends_one_step(self) -> bool:
-        """Whether `one_step_evictions` and `append_one_step` run (a compiled path)."""
-        return False
-
-    def one_step_evictions(self) -> np.ndarray:
-        raise NotImplementedError
-
-    def append_one_step(self, frames: Any, actions: Any, rewards: Any) -> np.ndarray:
-        raise NotImplementedError
 
     # ---- episodes across checkpoints and restarts -------------------------------------------
     def saved_episodes_intact(self) -> bool:
@@ -268,8 +265,7 @@ class TransitionStorage(StepStorage):
     """Items (s_t, a_t, sum_i gamma^i r_{t+i}, s_{t+m}, discount), m = min(n_step, steps left in
     the episode); discount = gamma^m, or 0 when the episode terminated inside the window
     (bootstrap through truncation, never through termination). `read` returns a `Batch`
-    (weights None: the learner sets them). `fast`: one-step appends without episode ends in
-    compiled loops (`step_storage_fast.OneStep`) when numba is there."""
+    (weights None: the learner sets them). `fast`: a `one_step` path when numba is there."""
 
     def __init__(self, capacity: int, num_envs: int, obs_spec: Spec, action_spec: Spec, *, gamma: float,
                  n_step: int = 1, frame_stack: int = 1, path: str | Path | None = None, rows: int | None = None,
@@ -282,21 +278,7 @@ class TransitionStorage(StepStorage):
         self.gamma = gamma
         self.powers = gamma ** np.arange(n_step + 1, dtype=np.float64)  # [n+1]
         one_step = compiled("relayrl.replay.step_storage_fast", "OneStep") if fast else None
-        self._one_step = one_step(self) if one_step is not None else None
-
-    @property
-    def appends_one_step(self) -> bool:
-        return self._one_step is not None
-
-    def one_step_evictions(self) -> np.ndarray:
-        """`evictions` of one batched step without episode ends, live items only."""
-        assert self._one_step is not None
-        return self._one_step.evictions()
-
-    def append_one_step(self, frames: Any, actions: Any, rewards: Any) -> np.ndarray:
-        """`append` of one batched step without episode ends ([B, ...] each), in compiled loops."""
-        assert self._one_step is not None
-        return self._one_step.append(frames, actions, rewards)
+        self.one_step = one_step(self) if one_step is not None else None
 
     def _close_items(self) -> np.ndarray:
         s, n = self.store, self.n_step

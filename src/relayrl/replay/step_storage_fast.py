@@ -2,7 +2,7 @@
 
 - `write_records`: `StepStorage.write` of several items in one loop. The NumPy path builds
   the records with a handful of array calls, whose fixed costs are most of a 32-item insert.
-- `OneStep`: `TransitionStorage.one_step_evictions` and `append_one_step`, one batched step
+- `OneStep`: a TransitionStorage's `one_step`: `evictions` and `append` of one batched step
   without episode ends. A 1:1 collect/train loop appends after every batched step; the
   general path (`evictions`, `append`) spends dozens of NumPy calls on [B] arrays there,
   whose fixed costs are the whole bill at small B. These loops write the same rows and close

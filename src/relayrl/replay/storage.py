@@ -11,16 +11,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import Any, Protocol
 
 import numpy as np
 import torch
 
 from relayrl.arrays import to_numpy, torch_dtype
 from relayrl.errors import UserError
-
-if TYPE_CHECKING:
-    from relayrl.replay.steps import StepChunk
 
 Signature = dict[str, tuple[tuple[int, ...], np.dtype]]  # name -> (shape per row, dtype)
 
@@ -30,30 +27,14 @@ class Storage(Protocol):
     items slots and `read` with the slots it samples; its checkpoint holds the storage's.
     A storage may also have `stale(slots) -> bool mask`: items whose data no longer holds
     what was written (memmap files reopened after the run went on), which a table that loads
-    a checkpoint deletes; and `bind(slot_key)`: the table hands it its key map (read-only, as
-    its selectors get it), for a storage that finds the live items whose data new steps
-    overwrite."""
+    a checkpoint deletes; `bind(slot_key)`: the table hands it its key map (read-only, as its
+    selectors get it); and `appending`: the StepStorage that takes appended steps, for a
+    storage of steps (see step_storage)."""
 
     def write(self, slots: np.ndarray, items: Any) -> None: ...
     def read(self, slots: np.ndarray) -> Any: ...
     def state_dict(self) -> dict[str, Any]: ...
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
-
-
-@runtime_checkable
-class StepSink(Storage, Protocol):
-    """A storage that holds steps and makes items of them (see step_storage): the table
-    deletes its `evictions` before it appends steps and inserts the items `append` returns."""
-
-    def evictions(self, done: np.ndarray) -> np.ndarray: ...
-    def append(self, chunk: StepChunk) -> np.ndarray: ...
-    @property
-    def appends_one_step(self) -> bool: ...
-    def one_step_evictions(self) -> np.ndarray: ...
-    def append_one_step(self, frames: Any, actions: Any, rewards: Any) -> np.ndarray: ...
-    def saved_episodes_intact(self) -> bool: ...
-    def continue_episodes(self) -> None: ...
-    def restart_episodes(self) -> None: ...
 
 
 class Columns:

@@ -18,8 +18,9 @@ import numpy as np
 from relayrl.compile import compiled
 from relayrl.replay.rate_limiters import MinSize, Queue, RateLimiter, Stack
 from relayrl.replay.selectors import Fifo, Lifo, Selector, Uniform
+from relayrl.replay.step_storage import StepStorage
 from relayrl.replay.steps import StepChunk
-from relayrl.replay.storage import ItemStorage, StepSink, Storage
+from relayrl.replay.storage import ItemStorage, Storage
 
 
 class RateLimiterTimeout(TimeoutError):
@@ -76,7 +77,6 @@ class Table:
         self._insert_kernel: Callable[..., tuple[int, bool]] | None = \
             compiled("relayrl.replay.table_fast", "insert") if uniform_fifo else None
         self.storage: Storage = ItemStorage(max_size)
-        self._step_sink: StepSink | None = None
         if storage is not None:
             self.set_storage(storage)
 
@@ -87,7 +87,6 @@ class Table:
             if self._inserted:
                 raise ValueError(f"Table {self.name!r} already took items; its storage is set before the first insert")
             self.storage = storage
-            self._step_sink = storage if isinstance(storage, StepSink) else None  # checked once, not per append
             bind = getattr(storage, "bind", None)
             if bind is not None:
                 bind(self.slot_key)
@@ -262,7 +261,8 @@ class Table:
     # ---- steps (a table whose storage holds steps and makes items of them) -------------------
     def append_steps(self, chunk: StepChunk) -> None:
         """Append batched steps to this table's step storage: delete the items whose rows they
-        overwrite, then insert the items they close (which may wait on the rate limiter)."""
+        overwrite, then insert the items they close (which may wait on the rate limiter). The
+        rows are written outside the lock: no live item reads them once those are deleted."""
         steps = self._steps()
         keys = steps.evictions(chunk.done)
         if keys.size:
@@ -274,21 +274,22 @@ class Table:
     def append_step(self, frames: Any, actions: Any, rewards: Any) -> bool:
         """`append_steps` of one batched step without episode ends ([B, ...] each) on the step
         storage's compiled path; False, with nothing written, where it has none."""
-        steps = self._steps()
-        if not steps.appends_one_step:
+        one_step = self._steps().one_step
+        if one_step is None:
             return False
-        keys = steps.one_step_evictions()
+        keys = one_step.evictions()
         if keys.size:
             self.delete(keys)
-        items = steps.append_one_step(frames, actions, rewards)
+        items = one_step.append(frames, actions, rewards)
         if len(items):
             self.insert_batch(items, n=len(items))
         return True
 
-    def _steps(self) -> StepSink:
-        if self._step_sink is None:
+    def _steps(self) -> StepStorage:
+        steps = getattr(self.storage, "appending", None)
+        if steps is None:
             raise TypeError(f"Table {self.name!r} keeps items, not steps: give it a writer before appending steps")
-        return self._step_sink
+        return steps
 
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
         """Set new priorities; keys of items no longer in the table are ignored (as in Reverb)."""

@@ -1,18 +1,9 @@
 """Writers (TF-Agents/Acme adders): cut a batched actor's stream into a table's items.
 
 A writer is an actor observer: called with each batched `Transition`, it stages the step;
-at a flush it hands the staged steps to its table (`Table.append_steps`). The table owns the
-steps and the items over them: the writer gives it a step storage when it is built
-(`Table.set_storage`) and keeps none itself; the storage says which windows of steps are
-items, and the table deletes the items whose rows new steps reuse.
-
-- `TransitionWriter(n_step)`: n-step transitions (`TransitionStorage`); samples are `Batch`es.
-- `SequenceWriter(sequence_length, stride_length)`: sequences of rows of one episode
-  (`SequenceStorage`); samples are `SequenceBatch`es.
-
-A flush of one staged step without episode ends takes the table's `append_step`, where the
-storage has a compiled one-step path (a TransitionWriter's, with `fast=True` and numba
-there): the step of a 1:1 collect/train loop, which flushes after every batched step.
+at a flush it hands the staged steps to its table (`Table.append_steps`, or `append_step` for
+the one step a 1:1 collect/train loop flushes). The table owns the steps and the items over
+them: the writer gives it a step storage when it is built (see step_storage) and keeps none.
 """
 
 from __future__ import annotations
@@ -75,28 +66,31 @@ class _Writer:
         self.max_staged = storage.max_append_steps  # batched steps one `Table.append_steps` may take
         self._stage_limit = min(self.max_staged, max(1, -(-chunk_length // self.num_envs)))
         self._keep_tensors = storage.store.on_device  # staged tensors stay on the store's device
-        self._one_step = storage.appends_one_step
+        self._one_step = storage.one_step is not None
         self._staged: list[Transition] = []
         table.set_storage(storage)  # the table owns the steps from here on
         self.table = table
+
+    def _steps(self) -> StepStorage:
+        return self.table.storage.appending  # type: ignore[attr-defined]  # the storage handed over in __init__
 
     # ---- checkpoints (the steps' state is in the table's) ------------------------------------
     def saved_episodes_intact(self) -> bool:
         """After the table loaded a checkpoint: whether the rows of the episodes open at the
         checkpoint still hold what it saw (memmap files reopened after the run went on may not)."""
-        return self.table.storage.saved_episodes_intact()
+        return self._steps().saved_episodes_intact()
 
     def continue_episodes(self) -> None:
         """After the table loaded a checkpoint, when the actor's envs were restored mid-episode
         as well: the next step continues the interrupted episodes (their last steps become items)."""
         self._staged.clear()
-        self.table.storage.continue_episodes()
+        self._steps().continue_episodes()
 
     def restart_episodes(self) -> None:
         """Forget the episodes in progress: the next steps start new ones. For an actor that
         died mid-episode and was restarted: its last steps never become items."""
         self._staged.clear()
-        self.table.storage.restart_episodes()
+        self._steps().restart_episodes()
 
     # ---- the observer ---------------------------------------------------------------
     def __call__(self, t: Transition) -> None:
