@@ -260,9 +260,8 @@ class Table:
 
     # ---- steps (a table whose storage holds steps and makes items of them) -------------------
     def append_steps(self, chunk: StepChunk) -> None:
-        """Append batched steps to this table's step storage: delete the items whose rows they
-        overwrite, then insert the items they close (which may wait on the rate limiter). The
-        rows are written outside the lock: no live item reads them once those are deleted."""
+        """Delete the items whose rows these steps overwrite, append them to the step storage
+        (outside the lock: no live item reads those rows now), and insert the items they close."""
         steps = self._steps()
         keys = steps.evictions(chunk.done)
         if keys.size:
@@ -286,8 +285,7 @@ class Table:
         return True
 
     def _steps(self) -> StepStorage:
-        steps = getattr(self.storage, "appending", None)
-        if steps is None:
+        if (steps := getattr(self.storage, "appending", None)) is None:
             raise TypeError(f"Table {self.name!r} keeps items, not steps: give it a writer before appending steps")
         return steps
 
