@@ -210,7 +210,7 @@ def test_the_table_owns_the_steps_and_keeps_the_checkpoint_layout_runs_saved_bef
     for i in range(9):
         w(step([i, 100 + i], [i % 5, 1], [float(i), 1.0], [i + 1, 101 + i]))
     w.flush()
-    # Checkpoints from when the writer owned the steps load unchanged: the layout is the same.
+    # Run directories already on disk hold this layout: a change to it needs a conversion on load.
     state = t.state_dict()["storage"]
     assert sorted(state) == ["open_from", "slot_ref", "store"]
     assert sorted(state["store"]) == ["columns", "ep_start", "head"]
