@@ -361,7 +361,7 @@ def test_server_stores_stacked_frames_once_and_rebuilds_the_stacks(tmp_path):
     step = obs[:, 1] % 10  # 1 + position in the episode
     assert np.array_equal(obs[:, 0], np.where(step == 1, obs[:, 1], obs[:, 1] - 1)), "a stack crossed an episode start"
     assert np.array_equal(nxt[:, 1], obs[:, 1] + 1) and np.array_equal(nxt[:, 0], obs[:, 1])
-    assert server.group.writers[0].store.frame.shape[-2:] == (3, 3)  # one frame per row, not a stack
+    assert server.group.storage.storages[0].store.frame.shape[-2:] == (3, 3)  # one frame per row, not a stack
 
 
 @needs_ray
