@@ -18,7 +18,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from relayrl.compile import compiled
+from relayrl.compile import numba_available
 from relayrl.replay.steps import StepStore
 from relayrl.types import Batch
 
@@ -54,7 +54,10 @@ class StepStorage:
         self._ret, self._disc, self._nlen = store.flat("ret"), store.flat("disc"), store.flat("nlen")
         self._item_key = store.flat("item_key")
         self.bind(np.full(capacity, -1, dtype=np.int64))  # until the table hands over its key map
-        self._write_records = compiled("relayrl.replay.step_storage_fast", "write_records") if fast else None
+        self._write_records: Any = None  # the NumPy path
+        if fast and numba_available():
+            from relayrl.replay.step_storage_fast import write_records
+            self._write_records = write_records
 
     def bind(self, slot_key: np.ndarray) -> None:
         """The table's key map (slot -> live key, -1: empty), read to tell live items apart."""

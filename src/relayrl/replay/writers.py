@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from relayrl.arrays import to_numpy
-from relayrl.compile import compiled
+from relayrl.compile import numba_available
 from relayrl.replay.step_storage import SequenceBatch, SequenceStorage, StepStorage, TransitionStorage
 from relayrl.replay.steps import StepStore
 from relayrl.replay.table import Table
@@ -253,8 +253,10 @@ class TransitionWriter(_Writer):
         self.powers = gamma ** np.arange(n_step + 1, dtype=np.float64)  # [n+1]
         super().__init__(table, num_envs, obs_spec, action_spec, frame_stack, path, rows, chunk_length, device)
         self._use_storage(TransitionStorage(self.store, table.max_size, pin_memory, fast))
-        one_step = compiled("relayrl.replay.writers_fast", "OneStep") if fast else None
-        self._one_step = one_step(self) if one_step is not None else None
+        self._one_step: Any = None  # the general path
+        if fast and numba_available():
+            from relayrl.replay.writers_fast import OneStep
+            self._one_step = OneStep(self)
 
     def _flush_one(self, t: Transition) -> bool:
         return self._one_step is not None and self._one_step(t)
