@@ -14,12 +14,13 @@ import numpy as np
 
 from relayrl.arrays import to_numpy
 from relayrl.compile import numba_available
+from relayrl.core import Observer
 from relayrl.types import Transition
 
 FINISHED_KEPT = 100_000  # finished episodes kept for TensorBoard between logs (the oldest go first)
 
 
-class EnvironmentSteps:
+class EnvironmentSteps(Observer):
     """Env steps taken: B per batched step."""
 
     def __init__(self) -> None:
@@ -38,7 +39,7 @@ class EnvironmentSteps:
         self.value = int(state["value"])
 
 
-class EpisodeStats:
+class EpisodeStats(Observer):
     """Running return and length per env; completed episodes go into windows of `buffer_size`.
 
     The four episode metrics read from one instance, so each batched step is accumulated once.
