@@ -9,7 +9,7 @@ import torch
 
 from relayrl.agents.dqn import DQNAgent, DQNConfig, dqn_loss
 from relayrl.agents.dqn.losses_fast import dqn_loss_and_grads
-from relayrl.agents.dqn.update import AutogradDQNUpdate, HandWrittenDQNUpdate
+from relayrl.agents.dqn.update import DQNUpdate, HandWrittenDQNUpdate
 from relayrl.nn import MLP
 from relayrl.nn.mlp_fast import clip_flat_grad_norm_, grad_buffers
 from relayrl.specs import ArraySpec, DiscreteSpec
@@ -82,7 +82,7 @@ def train_agent(fast, double, steps=30, seed=0, **kw):
                        "grad_clip": 1.0, **kw})
     agent = DQNAgent(ArraySpec((5,), torch.float32), DiscreteSpec(3), cfg, torch.device("cpu"),
                      np.random.default_rng(seed), hand_written=fast)
-    assert isinstance(agent.update, HandWrittenDQNUpdate if fast else AutogradDQNUpdate)
+    assert type(agent.update) is (HandWrittenDQNUpdate if fast else DQNUpdate)
     metrics = [agent.train(make_batch(weighted=i % 2 == 1, seed=i)) for i in range(steps)]
     return agent, metrics
 

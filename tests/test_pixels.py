@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from relayrl.agents.dqn import DQNAgent, DQNConfig
-from relayrl.agents.dqn.update import AutogradDQNUpdate
+from relayrl.agents.dqn.update import DQNUpdate
 from relayrl.config import Config, from_dict
 from relayrl.core import Observer
 from relayrl.envs import make_env
@@ -187,7 +187,7 @@ def test_conv_q_networks_shapes_and_uint8_scaling(network):
     agent = DQNAgent(ArraySpec((4, 84, 84), torch.uint8), DiscreteSpec(6), cfg, torch.device("cpu"),
                      np.random.default_rng(0))
     net = agent.online
-    assert isinstance(net, ConvQNet) and isinstance(agent.update, AutogradDQNUpdate)  # hand-written: MLPs only
+    assert isinstance(net, ConvQNet) and type(agent.update) is DQNUpdate  # hand-written: MLPs only
     assert net.head[0].in_features == 3136  # 64 x 7 x 7 at 84x84, as in Mnih et al. 2015
     x = torch.randint(0, 256, (5, 4, 84, 84), dtype=torch.uint8)
     q = net(x)

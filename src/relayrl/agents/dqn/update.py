@@ -1,11 +1,9 @@
 """DQN's gradient step on the online network, chosen once when the agent is built: the
 autograd reference (`dqn_loss` + `backward()`) or its hand-written twin for MLP Q-networks
 (`losses_fast.dqn_loss_and_grads`: the same values, with less per-update overhead on CPU).
-Both have the `DQNUpdate` interface; tests/test_dqn_fast.py runs them side by side."""
+The twin subclasses the reference, overriding its methods; tests/test_dqn_fast.py runs both."""
 
 from __future__ import annotations
-
-from typing import Protocol
 
 import torch
 from torch import nn
@@ -20,27 +18,17 @@ from relayrl.types import Batch
 Tensor = torch.Tensor
 
 
-class DQNUpdate(Protocol):
-    """The agent counts steps and moves the target network; an update does the rest."""
-
-    def __call__(self, batch: Batch, target_q: Tensor | None) -> dict[str, Tensor]:
-        """One loss, gradient, clip and optimizer step; `target_q` [N, A]: the target network's
-        Q(next_obs, .) computed ahead (None: computed here)."""
-        ...
-
-    def target_q(self, next_obs: Tensor) -> Tensor:
-        """The target network's Q-values [N, A] of `next_obs`, without gradients."""
-        ...
-
-
-class AutogradDQNUpdate:
-    """The reference: `dqn_loss`, autograd, torch's norm clip, the optimizer step."""
+class DQNUpdate:
+    """The reference: `dqn_loss`, autograd, torch's norm clip, the optimizer step. The agent
+    counts steps and moves the target network; an update does the rest."""
 
     def __init__(self, online: nn.Module, target: nn.Module | None, optimizer: FastAdam, cfg: DQNConfig) -> None:
         self.online, self.target, self.optimizer, self.cfg = online, target, optimizer, cfg
         self.params = list(online.parameters())
 
     def __call__(self, batch: Batch, target_q: Tensor | None) -> dict[str, Tensor]:
+        """One loss, gradient, clip and optimizer step; `target_q` [N, A]: the target network's
+        Q(next_obs, .) computed ahead (None: computed here)."""
         cfg = self.cfg
         loss, metrics = dqn_loss(self.online, self.target, batch, double=cfg.double, loss=cfg.loss,
                                  huber_delta=cfg.huber_delta, target_q=target_q)
@@ -52,37 +40,38 @@ class AutogradDQNUpdate:
         return metrics
 
     def target_q(self, next_obs: Tensor) -> Tensor:
+        """The target network's Q-values [N, A] of `next_obs` (called without gradients)."""
         assert self.target is not None
         return self.target(next_obs)
 
 
-class HandWrittenDQNUpdate:
-    """`AutogradDQNUpdate` for MLP Q-networks (`mlp_fast.supports`), with the gradients
-    written into one flat buffer (so clipping is one norm and one multiply)."""
+class HandWrittenDQNUpdate(DQNUpdate):
+    """`DQNUpdate` for MLP Q-networks (`mlp_fast.supports`), with the gradients written into
+    one flat buffer (so clipping is one norm and one multiply)."""
 
     def __init__(self, online: nn.Module, target: nn.Module | None, optimizer: FastAdam, cfg: DQNConfig) -> None:
-        self.online = mlp_fast.MLPFast(online)
-        self.target = mlp_fast.MLPFast(target) if target is not None else None
-        self.optimizer, self.cfg = optimizer, cfg
+        super().__init__(online, target, optimizer, cfg)
+        self.fast_online = mlp_fast.MLPFast(online)
+        self.fast_target = mlp_fast.MLPFast(target) if target is not None else None
         self.flat_grad, self.grads = mlp_fast.grad_buffers(online)
 
-    @torch.no_grad()
     def __call__(self, batch: Batch, target_q: Tensor | None) -> dict[str, Tensor]:
         cfg = self.cfg
-        _, metrics, grads = dqn_loss_and_grads(self.online, self.target, batch, double=cfg.double, loss=cfg.loss,
-                                               huber_delta=cfg.huber_delta, target_q=target_q, out=self.grads)
+        _, metrics, grads = dqn_loss_and_grads(self.fast_online, self.fast_target, batch, double=cfg.double,
+                                               loss=cfg.loss, huber_delta=cfg.huber_delta, target_q=target_q,
+                                               out=self.grads)
         if cfg.grad_clip > 0:
             metrics["grad_norm"] = mlp_fast.clip_flat_grad_norm_(self.flat_grad, cfg.grad_clip)
         self.optimizer.step(grads)
         return metrics
 
     def target_q(self, next_obs: Tensor) -> Tensor:
-        assert self.target is not None
-        return self.target.forward(next_obs)[0]
+        assert self.fast_target is not None
+        return self.fast_target.forward(next_obs)[0]
 
 
 def make_update(online: nn.Module, target: nn.Module | None, optimizer: FastAdam, cfg: DQNConfig,
                 hand_written: bool = True) -> DQNUpdate:
     """The hand-written update where it supports the network (and `hand_written`), else autograd's."""
     twin = hand_written and mlp_fast.supports(online)
-    return (HandWrittenDQNUpdate if twin else AutogradDQNUpdate)(online, target, optimizer, cfg)
+    return (HandWrittenDQNUpdate if twin else DQNUpdate)(online, target, optimizer, cfg)

@@ -1,13 +1,12 @@
 """PPO's minibatch gradient step, chosen once when the agent is built: the autograd reference
 (the losses of `losses.py` + `backward()`) or its hand-written twin (`nn.mlp_fast`,
 `losses_fast.py`: the same loss, clip and Adam step up to float rounding, with less
-per-minibatch overhead on CPU). Both are called as `update(minibatch..., clip_range) -> stats`;
-tests/test_ppo_fast.py runs them side by side."""
+per-minibatch overhead on CPU). The twin subclasses the reference, overriding `__call__`;
+tests/test_ppo_fast.py runs both."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Protocol
 
 import torch
 
@@ -23,15 +22,7 @@ Tensor = torch.Tensor
 EvaluateActions = Callable[[Tensor, Tensor], tuple[Tensor, ...]]
 
 
-class PPOUpdate(Protocol):
-    def __call__(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
-                 returns: Tensor, clip_range: float) -> Tensor:
-        """One gradient step on a minibatch; returns [policy loss, value loss, entropy,
-        approx KL, clip fraction, loss]."""
-        ...
-
-
-class AutogradPPOUpdate:
+class PPOUpdate:
     """The reference: clipped surrogate + vf_coef * value loss - ent_coef * entropy, autograd,
     torch's global norm clip, the optimizer step."""
 
@@ -41,6 +32,8 @@ class AutogradPPOUpdate:
 
     def __call__(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
                  returns: Tensor, clip_range: float) -> Tensor:
+        """One gradient step on a minibatch; returns [policy loss, value loss, entropy,
+        approx KL, clip fraction, loss]."""
         cfg = self.cfg
         if cfg.normalize_advantage:
             adv = normalize(adv)
@@ -58,12 +51,12 @@ class AutogradPPOUpdate:
                             loss.detach()])
 
 
-class HandWrittenPPOUpdate:
-    """`AutogradPPOUpdate` with the gradients by hand, where `supports` says it models the networks."""
+class HandWrittenPPOUpdate(PPOUpdate):
+    """`PPOUpdate` with the gradients by hand, where `supports` says it models the networks."""
 
-    def __init__(self, net: PPONetworks, opt: FastAdam, cfg: PPOConfig) -> None:
+    def __init__(self, net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions) -> None:
+        super().__init__(net, opt, cfg, evaluate_actions)
         assert net.critic is not None
-        self.opt, self.cfg = opt, cfg
         self.actor = mlp_fast.MLPFast(net.policy.mlp)
         self.critic = mlp_fast.MLPFast(net.critic)
         self.log_std = net.policy.log_std
@@ -108,5 +101,5 @@ def make_update(net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_action
                 squashed: bool, hand_written: bool = True) -> PPOUpdate:
     """The hand-written update where it models the networks (and `hand_written`), else autograd's."""
     if hand_written and HandWrittenPPOUpdate.supports(net, cfg, squashed):
-        return HandWrittenPPOUpdate(net, opt, cfg)
-    return AutogradPPOUpdate(net, opt, cfg, evaluate_actions)
+        return HandWrittenPPOUpdate(net, opt, cfg, evaluate_actions)
+    return PPOUpdate(net, opt, cfg, evaluate_actions)

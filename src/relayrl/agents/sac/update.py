@@ -1,12 +1,12 @@
 """SAC's gradient steps (critics, actor, alpha), chosen once when the agent is built: the
 autograd reference (the losses of `losses.py` + `backward()`) or its hand-written twin for MLP
 networks (`nn.mlp_fast`, `losses_fast.py`: the same losses, draws and steps, with less
-per-update overhead on CPU). Both are called as `update(batch) -> metrics`;
-tests/test_sac_fast.py runs them side by side."""
+per-update overhead on CPU). The twin subclasses the reference, overriding `__call__`;
+tests/test_sac_fast.py runs both."""
 
 from __future__ import annotations
 
-from typing import NamedTuple, Protocol
+from typing import NamedTuple
 
 import torch
 from torch import nn
@@ -38,15 +38,11 @@ class SACParts(NamedTuple):
     cfg: SACConfig
 
 
-class SACUpdate(Protocol):
-    def __call__(self, batch: Batch) -> dict[str, Tensor]:
-        """Critic step on soft TD targets, actor step through the freshly updated critics,
-        alpha step towards the target entropy; the agent then moves the target critics."""
-        ...
-
-
-class AutogradSACUpdate:
-    """The reference: the losses of `losses.py`, autograd, torch's norm clip, the optimizers."""
+class SACUpdate:
+    """The reference: the losses of `losses.py`, autograd, torch's norm clip, the optimizers.
+    `update(batch)` is a critic step on soft TD targets, an actor step through the freshly
+    updated critics and an alpha step towards the target entropy; the agent then moves the
+    target critics."""
 
     def __init__(self, parts: SACParts) -> None:
         self.p = parts
@@ -91,17 +87,17 @@ class AutogradSACUpdate:
                 "entropy": -logp.detach().mean(), "q": q[0].detach(), "td_error": td}
 
 
-class HandWrittenSACUpdate:
-    """`AutogradSACUpdate` for MLP actor and critics (`mlp_fast.supports`), gradients by hand."""
+class HandWrittenSACUpdate(SACUpdate):
+    """`SACUpdate` for MLP actor and critics (`mlp_fast.supports`), with the gradients by hand."""
 
     def __init__(self, parts: SACParts) -> None:
-        self.p = parts
+        super().__init__(parts)
         self.actor = mlp_fast.MLPFast(parts.actor)
         self.critic = mlp_fast.TwinMLPFast(parts.critic)
         self.target = mlp_fast.TwinMLPFast(parts.target_critic)
         self.actor_grads = mlp_fast.grad_buffers(parts.actor)[1]  # views of one flat buffer
 
-    def _step(self, opt: FastAdam, grads: list[Tensor]) -> None:
+    def _step_with(self, opt: FastAdam, grads: list[Tensor]) -> None:
         if self.p.cfg.grad_clip > 0:
             mlp_fast.clip_grad_norm_(grads, self.p.cfg.grad_clip)
         opt.step(grads)
@@ -126,7 +122,7 @@ class HandWrittenSACUpdate:
         gq = (q - y) * (1.0 / n if w is None else w / n)  # d (0.5 sum_c mean w td^2) / dq
         grads = self.critic.new_grads()
         self.critic.backward(gq, saved, grads)
-        self._step(p.critic_opt, grads)
+        self._step_with(p.critic_opt, grads)
         del grads  # freed before the actor's pass allocates
 
         noise = torch.randn((n, a_dim), generator=p.gen, device=obs.device)
@@ -140,10 +136,10 @@ class HandWrittenSACUpdate:
         g_logp = alpha * (1.0 / n if w is None else w / n)  # d loss / d log pi, [N] or scalar
         g_out = losses_fast.actor_head_grad(g_x[:, -a_dim:], g_logp.expand(n), actor_saved, lo, hi)
         self.actor.backward(g_out, actor_saved[0], self.actor_grads, rows=n)
-        self._step(p.actor_opt, self.actor_grads)
+        self._step_with(p.actor_opt, self.actor_grads)
 
         if cfg.autotune_alpha:  # d alpha_loss / d log_alpha
-            self._step(p.alpha_opt, [-(logp.mean() + p.target_entropy).reshape(p.log_alpha.shape)])
+            self._step_with(p.alpha_opt, [-(logp.mean() + p.target_entropy).reshape(p.log_alpha.shape)])
         return {"critic_loss": c_loss, "actor_loss": a_loss, "alpha": alpha, "entropy": -logp.mean(),
                 "q": q[0], "td_error": td}
 
@@ -151,4 +147,4 @@ class HandWrittenSACUpdate:
 def make_update(parts: SACParts, hand_written: bool = True) -> SACUpdate:
     """The hand-written update where it supports the networks (and `hand_written`), else autograd's."""
     twin = hand_written and mlp_fast.supports(parts.actor) and mlp_fast.supports(parts.critic)
-    return HandWrittenSACUpdate(parts) if twin else AutogradSACUpdate(parts)
+    return HandWrittenSACUpdate(parts) if twin else SACUpdate(parts)
