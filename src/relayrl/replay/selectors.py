@@ -20,12 +20,13 @@ from relayrl.replay.sumtree import SumTree
 
 
 def make_sum_tree(capacity: int) -> Any:
-    """The compiled tree (`sumtree_fast.CompiledSumTree`) where numba runs, else this
-    module's NumPy `SumTree`: same interface, same leaves found."""
+    """The compiled tree (`sumtree_fast.CompiledSumTree`) where numba runs, else the NumPy
+    `sumtree.SumTree`: same interface, same leaves found."""
     if numba_available():
         from relayrl.replay.sumtree_fast import CompiledSumTree
         return CompiledSumTree(capacity)
     return SumTree(capacity)
+
 
 class Selector:
     """Base class. `slot_key[slot]` is the live key in a slot (-1 when empty)."""
