@@ -112,3 +112,20 @@ def test_no_target_network_or_one_copied_every_step_leaves_batches_as_sampled():
         assert a.prepare_horizon() == 0
         batch = table().sample(64)[0]
         assert a.prepare(batch, 4) is batch
+
+
+def test_a_prepared_chunk_keeps_its_type_when_moved_to_the_device():
+    """What an agent's `prepare` returns (DQN's PreparedBatch) reaches `train` as the same type,
+    every tensor moved (the meta device stands in for a GPU)."""
+    class Preparing(Recorder):
+        def prepare_horizon(self) -> int:
+            return 10
+
+        def prepare(self, batch, steps):
+            return PreparedBatch(*batch, target_q=torch.zeros(batch.reward.shape[0], 2))
+
+    agent = Preparing()
+    Learner(agent, table(), batch_size=16, device=torch.device("meta")).run(12)
+    assert all(type(b) is PreparedBatch for b in agent.batches[1:])  # the first draws one batch alone
+    assert all(x.device.type == "meta" for b in agent.batches for x in b if x is not None)
+    assert agent.batches[-1].target_q.shape == (16, 2)
