@@ -9,7 +9,7 @@
     --quick: a smoke run (a few seconds of timing per figure; Ray's start-ups still take their time)
 
 Every part builds relayrl's own pieces (ReplayServer, VariableContainer, RolloutWorker, RemoteTable,
-Learner) and wires them with Ray as distributed/run.py does; nothing here trains a policy.
+Learner) and wires them with Ray as distributed/driver.py does; nothing here trains a policy.
 
   collect   env steps/s the replay server accepts from K = 1 and K = 2 RolloutWorker actors, each
             with two `collect(1024, 0, True)` calls kept queued (random policy; gradient_steps = 0,
@@ -158,7 +158,7 @@ def machine() -> str:
             f"ray {ray.__version__} | gymnasium {gym.__version__}")
 
 
-# ---- Ray wiring (as distributed/run.py does it) -----------------------------------------------
+# ---- Ray wiring (as distributed/driver.py does it) -----------------------------------------------
 class Cluster:
     """A replay server and a variable container under the names RolloutWorker looks up, and K
     rollout actors with CALLS_QUEUED collect calls each kept queued by `pump`."""
@@ -166,7 +166,7 @@ class Cluster:
     def __init__(self, c: Config, k: int) -> None:
         import ray
 
-        from relayrl.distributed.run import CALL_CHUNKS, CALLS_QUEUED
+        from relayrl.distributed.offpolicy import CALL_CHUNKS, CALLS_QUEUED
         from relayrl.distributed.server import ReplayServer
         from relayrl.distributed.workers import ActorNames, RolloutWorker
         from relayrl.training.variables import VariableContainer

@@ -52,8 +52,8 @@ def run_relayrl(setting: str, seed: int) -> dict:
     import tempfile
 
     import relayrl
-    import relayrl.run  # the run's modules (and torch) load before the timer, as process start-up
-    import relayrl.training.loop  # noqa: F401
+    import relayrl.dispatch  # the run's modules (and torch) load before the timer, as process start-up
+    import relayrl.training.local  # noqa: F401
 
     config = relayrl.load_config("dqn-cartpole", RELAYRL[setting], seed=seed)
     with tempfile.TemporaryDirectory() as d:

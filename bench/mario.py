@@ -33,7 +33,7 @@ Every measurement runs in a fresh process (its own venv for the tutorial), one a
             memmap files on disk, scaled per item to 100,000; beside the formula 100,000 x 2 x
             4*84*84*4 bytes.
   loop      env steps/s of the whole loop (preprocess, act, store, learn every 3 steps): relayrl's
-            LocalRun with the ddqn-mario preset (device=cpu, initial_collect_steps=--burn-in,
+            LocalDriver with the ddqn-mario preset (device=cpu, initial_collect_steps=--burn-in,
             total_steps=--burn-in + --steps, evaluation off: the tutorial has none) and the
             tutorial's own loop (burnin=--burn-in, same steps), torch threads = --threads on both.
             Steady state: env steps/s from env step burn-in + --warmup to the end (start-up,
@@ -183,7 +183,8 @@ def relayrl_memory(items: int, record: int, seed: int) -> dict:
         # Filling without a learner: the preset's sample-to-insert limiter would hold inserts
         # once min size + error buffer is reached; a MinSize limiter never does (counts only).
         table.rate_limiter = MinSize(c.train.initial_collect_steps)
-        s = writer.store
+        steps = table.storage
+        s = steps.store
         adt = s.action.dtype
         fill = items + items // 10  # past a full ring: FIFO eviction at work, table full
         chunk = 1024
@@ -200,7 +201,7 @@ def relayrl_memory(items: int, record: int, seed: int) -> dict:
                                          rec["rewards"][j][:, None], d[:, None], rec["term"][j][:, None], finals))
         fill_s = time.perf_counter() - t0
         after = proc_status()
-        arrays = list(s.cols.arrays.values()) + [writer.storage.slot_ref, writer.storage.slot_rows]
+        arrays = list(s.cols.arrays.values()) + [steps.slot_ref, steps.slot_rows]
         own = resident_of(arrays)
         batch, _ = table.sample(32)
         ok = tuple(batch.obs.shape) == (32, *OBS) and batch.obs.dtype.is_floating_point is False
@@ -208,7 +209,8 @@ def relayrl_memory(items: int, record: int, seed: int) -> dict:
     return {"items": table.size, "steps_written": fill, "record": record, "record_episodes": rec["episodes"],
             "record_steps_per_s": rec["steps_per_s"], "rss_growth": after["VmRSS"] - before["VmRSS"],
             "rss_build": built["VmRSS"] - before["VmRSS"], "anon_growth": after["RssAnon"] - before["RssAnon"],
-            "replay_mappings_rss": own, "allocated": s.nbytes(), "rows": int(s.T), "frame_bytes": int(s.frame.nbytes),
+            "replay_mappings_rss": own, "allocated": s.nbytes(), "rows": int(s.rows),
+            "frame_bytes": int(s.frame.nbytes),
             "fill_steps_per_s": fill / fill_s, "sample_ok": bool(ok), "obs_dtype": str(batch.obs.dtype)}
 
 
@@ -253,7 +255,7 @@ def relayrl_loop(burn_in: int, steps: int, warmup: int, threads: int, seed: int)
     import torch
 
     import relayrl
-    from relayrl.training.loop import LocalRun
+    from relayrl.training.local import LocalDriver
     from relayrl.training.run_dir import RunDir
 
     total = burn_in + steps
@@ -264,7 +266,7 @@ def relayrl_loop(burn_in: int, steps: int, warmup: int, threads: int, seed: int)
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         rd = RunDir(os.path.join(tmp, "run"))
-        run = LocalRun(c, rd, progress=False)
+        run = LocalDriver(c, rd, progress=False)
         rd.create()
         run.evaluator.fn = run.evaluate_now = lambda p: None  # no evaluation: the tutorial's loop has none
         marks: list[tuple[int, float]] = []
@@ -284,8 +286,9 @@ def relayrl_loop(burn_in: int, steps: int, warmup: int, threads: int, seed: int)
         rss0 = proc_status()["VmRSS"]
         run.run()
         rss1 = proc_status()["VmRSS"]
-        s = run.writer.store
-        arrays = list(s.cols.arrays.values()) + [run.writer.storage.slot_ref, run.writer.storage.slot_rows]
+        steps = run.replay.storage
+        s = steps.store
+        arrays = list(s.cols.arrays.values()) + [steps.slot_ref, steps.slot_rows]
         own = resident_of(arrays)
         train_steps = run.agent.train_step
         episodes = run.stats.episodes
@@ -814,7 +817,7 @@ def main() -> None:
                              "seed": a.seed})
             ours = worker(me, ["relayrl-loop", kw])
             row = {"threads": threads, "relayrl": ours}
-            print(f"| {threads} | relayrl LocalRun ddqn-mario | {ours['steady_sps']:.1f} | {ours['burn_in_sps']:.1f} | "
+            print(f"| {threads} | relayrl ddqn-mario | {ours['steady_sps']:.1f} | {ours['burn_in_sps']:.1f} | "
                   f"{grad_ms(ours):.0f} | {ours['train_steps']:,} | {ours['episodes']} | {ours['startup_s']:.1f} | "
                   f"{ours['items']:,} | "
                   f"{mb(ours['replay_mappings_rss'])} (arrays' Rss) | {mb(ours['rss_end'])} |", flush=True)

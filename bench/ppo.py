@@ -63,8 +63,8 @@ def relayrl_overrides(setting: str, steps: int) -> list[str]:
 
 def run_relayrl(setting: str, seed: int, steps: int) -> dict:
     import relayrl
-    import relayrl.run  # the run's modules (and torch) load before the timer, as process start-up
-    import relayrl.training.loop  # noqa: F401
+    import relayrl.dispatch  # the run's modules (and torch) load before the timer, as process start-up
+    import relayrl.training.local  # noqa: F401
     from relayrl.training.run_dir import RunDir
 
     config = relayrl.load_config("ppo-cartpole", relayrl_overrides(setting, steps), seed=seed)

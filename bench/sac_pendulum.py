@@ -28,8 +28,8 @@ def run_relayrl(seed: int, steps: int) -> dict:
     import os
 
     import relayrl
-    import relayrl.run  # the run's modules (and torch) load before the timer, as process start-up
-    import relayrl.training.loop  # noqa: F401
+    import relayrl.dispatch  # the run's modules (and torch) load before the timer, as process start-up
+    import relayrl.training.local  # noqa: F401
     from relayrl.training.run_dir import RunDir
 
     overrides = [f"train.total_steps={steps}", f"eval.interval={EVAL_EVERY}", f"eval.episodes={EVAL_EPISODES}",

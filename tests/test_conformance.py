@@ -20,7 +20,7 @@ import torch
 from test_resume import DQN, SAC, assert_same_state, comparable, cut_back
 
 import relayrl
-from relayrl.agents.registry import ALGORITHMS, algorithm, load_attr
+from relayrl.agents.registry import ALGORITHMS, algorithm
 from relayrl.envs import make_env
 from relayrl.errors import UserError
 from relayrl.export import load_policy_state
@@ -44,12 +44,14 @@ def test_every_algorithm_has_a_case():
 
 @pytest.mark.parametrize("name", NAMES)
 def test_registry_entry_resolves(name):
-    spec = algorithm(name)
-    assert spec.config().validate() is None  # the defaults are valid
-    module = spec.policy_module()
+    entry = algorithm(name)
+    assert entry.config().validate() is None  # the defaults are valid
+    module = entry.policy_module()
     assert callable(module.load) and callable(module.deterministic_module)
-    for path in (spec.agent, spec.run):
-        assert not path or callable(load_attr(path))
+    if entry.agent is not None:
+        assert isinstance(entry.agent(), type)
+    if entry.trainer is not None:
+        assert callable(entry.direct_trainer().train) and callable(entry.direct_trainer().check_config)
 
 
 @pytest.fixture(scope="module")
@@ -79,18 +81,18 @@ def observations(state, n=7):
 @pytest.mark.parametrize("name", NAMES)
 def test_saved_policy_round_trip(runs, name):
     cfg, root = runs(name)
-    spec = algorithm(name)
+    entry = algorithm(name)
     state = load_policy_state(root)
-    assert state["kind"] == spec.policy_kind and state["env_steps"] == cfg.train.total_steps
+    assert state["kind"] == entry.policy_kind and state["env_steps"] == cfg.train.total_steps
     policy = relayrl.load_policy(root)
     obs = observations(state)
     actions = policy(obs)
     assert actions.shape[0] == obs.shape[0] and torch.equal(policy(obs), actions)
-    if not spec.agent:
+    if not entry.agent:
         return
     # The checkpointed agent, rebuilt by the registry, acts as the saved policy does.
     env = make_env(cfg.env.id)
-    agent = spec.make_agent(cfg.agent, env.observation_spec, env.action_spec, torch.device("cpu"),
+    agent = entry.make_agent(cfg.agent, env.observation_spec, env.action_spec, torch.device("cpu"),
                             np.random.default_rng(0), cfg.train.total_steps)
     env.close()
     agent.load_state_dict(load_latest_checkpoint(root / "checkpoints")["agent"])

@@ -214,7 +214,7 @@ def test_rate_limiter_holds_across_clients(tmp_path):
 
 def test_distributed_without_ray_is_one_clear_error(tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` now raises ImportError
-    import relayrl.distributed.run  # noqa: F401  (importable without Ray)
+    import relayrl.distributed.driver  # noqa: F401  (importable without Ray)
 
     config = relayrl.load_config("dqn-cartpole-fast", ["distributed.num_actors=2"])
     with pytest.raises(UserError, match=r"pip install 'relayrl\[ray\]'"):
@@ -361,7 +361,7 @@ def test_server_stores_stacked_frames_once_and_rebuilds_the_stacks(tmp_path):
     step = obs[:, 1] % 10  # 1 + position in the episode
     assert np.array_equal(obs[:, 0], np.where(step == 1, obs[:, 1], obs[:, 1] - 1)), "a stack crossed an episode start"
     assert np.array_equal(nxt[:, 1], obs[:, 1] + 1) and np.array_equal(nxt[:, 0], obs[:, 1])
-    assert server.group.writers[0].store.frame.shape[-2:] == (3, 3)  # one frame per row, not a stack
+    assert server.group.storage.storages[0].store.frame.shape[-2:] == (3, 3)  # one frame per row, not a stack
 
 
 @needs_ray

@@ -16,7 +16,8 @@ import pytest
 from test_resume import cut_back
 
 import relayrl
-from relayrl.distributed.onpolicy import OnPolicyRun, RolloutShares
+from relayrl.distributed.actors import ActorPool
+from relayrl.distributed.onpolicy import RolloutCollection, RolloutShares
 from relayrl.metrics import EpisodeStats
 
 
@@ -51,28 +52,29 @@ def test_shares_kept_of_an_old_version_are_dropped_when_it_advances():
     assert (restored.dropped, restored.dropped_steps) == (1, 6)
 
 
-def driver(k: int = 2) -> tuple[OnPolicyRun, list[tuple[int, int]]]:
-    """An OnPolicyRun's collection bookkeeping with fake actors: `calls` logs (actor, T) asked."""
+def driver(k: int = 2) -> tuple[RolloutCollection, list[tuple[int, int]]]:
+    """A Ray PPO run's collection bookkeeping with fake actors: `calls` logs (actor, T) asked;
+    the lines it says are in `.said`."""
     calls: list[tuple[int, int]] = []
 
     def worker(i: int) -> SimpleNamespace:
         return SimpleNamespace(collect=SimpleNamespace(remote=lambda t: calls.append((i, t)) or object()))
 
-    run = OnPolicyRun.__new__(OnPolicyRun)
-    run.K, run.dead, run.retry_at, run.inflight, run.call_version = k, set(), [0.0] * k, {}, {}
-    run.workers = [worker(i) for i in range(k)]
-    run.config = relayrl.load_config("ppo-cartpole", ["env.num_envs=2"])
-    run.shares, run.share_steps, run.stats = RolloutShares(7, k), 3, EpisodeStats()
+    config = relayrl.load_config("ppo-cartpole", ["env.num_envs=2", f"distributed.num_actors={k}"])
+    pool = ActorPool(SimpleNamespace(), config, print)
+    pool.workers = [worker(i) for i in range(k)]
+    run = RolloutCollection(config, pool, EpisodeStats())
+    run.shares, run.share_steps = RolloutShares(7, k), 3
     run.said = []
-    run.say = run.said.append
     return run, calls
 
 
-def answer(run: OnPolicyRun, i: int, version: int) -> None:
+def answer(run: RolloutCollection, i: int, version: int) -> None:
     """Actor i's call answers with a share collected with `version`."""
-    ref = next(r for r, (j, _) in run.inflight.items() if j == i)
-    del run.inflight[ref]
-    run._take(i, {"rollout": share(i), "policy_version": version, "returns": [], "lengths": [], "info": {}})
+    ref = next(r for r, (j, _) in run.pool.inflight.items() if j == i)
+    del run.pool.inflight[ref]
+    run._take(i, {"rollout": share(i), "policy_version": version, "returns": [], "lengths": [], "info": {}},
+              run.said.append)
 
 
 def test_driver_asks_each_actor_once_per_version_and_again_after_a_stale_share():
@@ -94,8 +96,8 @@ def test_driver_asks_each_actor_once_per_version_and_again_after_a_stale_share()
 def test_driver_has_a_live_actor_cover_for_one_that_is_restarting():
     run, calls = driver()
     run._top_up()
-    del run.inflight[next(r for r, (j, _) in run.inflight.items() if j == 0)]  # actor 0 died: its call is gone
-    run.dead.add(0)
+    del run.pool.inflight[next(r for r, (j, _) in run.pool.inflight.items() if j == 0)]  # actor 0 died
+    run.pool.dead.add(0)
     answer(run, 1, 7)
     assert calls[-1] == (1, 3), "actor 1 was not asked for the share actor 0 owed"
     answer(run, 1, 7)

@@ -9,10 +9,10 @@ import pytest
 import torch
 
 from relayrl.cli import EXIT_NON_FINITE, main
+from relayrl.dispatch import train
 from relayrl.errors import NonFiniteError
 from relayrl.export import load_policy
 from relayrl.presets import load_config
-from relayrl.run import train
 from relayrl.training.checkpoint import list_checkpoints, load_latest_checkpoint
 from relayrl.training.finite import non_finite_tensor
 

@@ -3,7 +3,7 @@
 Edges come from the AST: every `import` / `from ... import` of a relayrl module, at module
 level and inside functions alike. A function-level import does not fail when the modules load,
 but it is still a dependency: counting it keeps the layers' arrows pointing down (nothing below
-`relayrl.run` reaches back up, even lazily). Imports under `if TYPE_CHECKING:` are left out:
+`relayrl.dispatch` reaches back up, even lazily). Imports under `if TYPE_CHECKING:` are left out:
 they never run. Importing `a.b.c` runs `a/__init__` and `a/b/__init__` first, so a module also
 depends on its target's parent packages.
 """

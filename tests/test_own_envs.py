@@ -13,10 +13,10 @@ import torch
 import toy_envs
 
 from relayrl.config import from_dict, load_toml, save_toml
+from relayrl.dispatch import train
 from relayrl.envs import make_env
 from relayrl.errors import UserError
 from relayrl.presets import load_config
-from relayrl.run import train
 from relayrl.training.evaluate import EVAL_MAX_EPISODE_STEPS, evaluate, make_eval_env
 from relayrl.training.run_dir import RunDir
 

@@ -137,9 +137,9 @@ def test_specs_mark_stacks_and_the_replay_stores_one_frame_per_step(tmp_path):
     _, stacked = build_replay(c, spec, env.action_spec, tmp_path)
     _, whole = build_replay(c, ArraySpec((4, 84, 84), torch.uint8), env.action_spec, tmp_path)
     # One env (c.env.num_envs = 1); rows differ only by the stacking look-back (k - 1 rows).
-    assert stacked.store.frame.nbytes == stacked.rows * 84 * 84
-    assert whole.store.frame.nbytes == whole.rows * 4 * 84 * 84
-    assert stacked.store.nbytes() < whole.store.nbytes() / 3
+    assert stacked.table.storage.store.frame.nbytes == stacked.table.storage.rows * 84 * 84
+    assert whole.table.storage.store.frame.nbytes == whole.table.storage.rows * 4 * 84 * 84
+    assert stacked.table.storage.store.nbytes() < whole.table.storage.store.nbytes() / 3
 
 
 class Naive(Observer):
@@ -166,14 +166,14 @@ def test_stacks_rebuilt_by_the_replay_equal_a_naive_replay_across_episodes(tmp_p
     env = make_env("test_pixels:StackedPixelCountdown", num_envs, max_episode_steps=5)
     c = from_dict({"replay": {"size": 1000}, "env": {"num_envs": num_envs}})
     table, writer = build_replay(c, env.observation_spec, env.action_spec, tmp_path)
-    assert writer.store.k == 4
+    assert writer.table.storage.store.frame_stack == 4
     naive = Naive(c.agent.gamma)
     actor = Actor(env, RandomPolicy(env.action_spec, np.random.default_rng(0)), [writer, naive], seed=0)
     actor.run(60)
     ends = [r for r in naive.rows if r[4] == 0.0]
     assert ends and len(ends) < len(naive.rows)  # terminations, and truncations by the time limit
     live = np.flatnonzero(table.slot_key >= 0)
-    b = writer.storage.read(live)
+    b = writer.table.storage.read(live)
     stored = sorted((o.numpy().tobytes(), int(a), float(r), n.numpy().tobytes(), round(float(d), 6))
                     for o, a, r, n, d in zip(b.obs, b.action, b.reward, b.next_obs, b.discount, strict=True))
     assert b.obs.dtype == torch.uint8 and b.obs.shape[1:] == (4, 84, 84)

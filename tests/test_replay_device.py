@@ -12,7 +12,7 @@ from relayrl.config import ConfigError
 from relayrl.presets import load_config
 from relayrl.replay import Fifo, MinSize, SequenceWriter, Table, TransitionWriter, Uniform
 from relayrl.specs import ArraySpec
-from relayrl.training.loop import LocalRun
+from relayrl.training.local import LocalDriver
 from relayrl.training.replay_setup import replay_device
 from relayrl.training.run_dir import RunDir
 from relayrl.types import Transition
@@ -77,20 +77,21 @@ def live(t):
 def test_a_store_on_a_device_holds_and_reads_what_the_numpy_store_does(kind, num_envs, frame_stack, max_size, every):
     t_np, w_np, shape = build(kind, num_envs, max_size, frame_stack, n_step=2)
     t_dev, w_dev, _ = build(kind, num_envs, max_size, frame_stack, n_step=2, device="cpu")
-    assert w_dev.store.on_device and not w_np.store.on_device
+    assert w_dev.table.storage.store.on_device and not w_np.table.storage.store.on_device
     steps = stream(num_envs, 90, shape)
     feed(w_np, steps, every)
     feed(w_dev, steps, every)
     # The same items in the same slots (the bookkeeping is NumPy on both sides)...
     assert np.array_equal(t_np.slot_key, t_dev.slot_key)
-    assert np.array_equal(w_np.storage.slot_ref, w_dev.storage.slot_ref)
+    assert np.array_equal(w_np.table.storage.slot_ref, w_dev.table.storage.slot_ref)
     assert t_np.size == t_dev.size > 10
     # ...the same rows of data...
     for name in ("frame", "action"):
-        assert torch.equal(torch.from_numpy(w_np.store.flat(name)), w_dev.store.flat(name)), name
+        assert torch.equal(torch.from_numpy(w_np.table.storage.store.flat(name)),
+                           w_dev.table.storage.store.flat(name)), name
     # ...and the same reads, as tensors on the store's device.
     slots = live(t_np)
-    a, b = w_np.storage.read(slots), w_dev.storage.read(slots)
+    a, b = w_np.table.storage.read(slots), w_dev.table.storage.read(slots)
     for x, y in zip(a, b, strict=True):
         if x is None:
             assert y is None
@@ -106,10 +107,11 @@ def test_device_data_never_goes_through_numpy():
     t, w, shape = build("transition", 5, 40, n_step=3, device="cpu")
     # With numba, steps without an episode end take the compiled one-step flush (bookkeeping
     # in the loops, data in torch); the rest the general path.
-    assert (w._one_step is not None) == numba_available()
+    has_numba = numba_available()
+    assert (w.table.storage.one_step is not None) == has_numba
     feed(w, stream(5, 60, shape, guard=True), every=1)
     feed(w, stream(5, 30, shape, seed=1, guard=True), every=7)
-    batch = w.storage.read(live(t)[:16])
+    batch = w.table.storage.read(live(t)[:16])
     assert batch.obs.shape == (16, 3) and batch.action.shape == (16, 2)
 
 
@@ -119,16 +121,17 @@ def test_checkpoints_move_between_device_and_numpy_stores():
     t_dev, w_dev, shape = build("transition", 3, 60, device="cpu")
     feed(w_dev, stream(3, 50, shape), every=1)
     w_dev.flush()
-    state = w_dev.storage.state_dict()
+    state = w_dev.table.storage.state_dict()
     assert all(isinstance(v, np.ndarray) for v in state["store"]["columns"]["arrays"].values())
     t_np, w_np, _ = build("transition", 3, 60)
-    w_np.storage.load_state_dict(state)
+    w_np.table.storage.load_state_dict(state)
     t_back, w_back, _ = build("transition", 3, 60, device="cpu")
-    w_back.storage.load_state_dict(w_np.storage.state_dict())
+    w_back.table.storage.load_state_dict(w_np.table.storage.state_dict())
     slots = np.flatnonzero(t_dev.slot_key >= 0)
-    for x, y in zip(w_dev.storage.read(slots), w_back.storage.read(slots), strict=True):
+    for x, y in zip(w_dev.table.storage.read(slots), w_back.table.storage.read(slots), strict=True):
         assert x is None or torch.equal(x, y)
-    assert torch.equal(torch.from_numpy(w_np.store.flat("frame")), w_dev.store.flat("frame"))
+    assert torch.equal(torch.from_numpy(w_np.table.storage.store.flat("frame")),
+                       w_dev.table.storage.store.flat("frame"))
 
 
 def test_replay_device_defaults_and_errors():
@@ -153,12 +156,13 @@ def test_sac_trains_with_a_stateless_env_and_its_replay_as_torch_tensors(tmp_pat
                                      "train.initial_collect_steps=320", "eval.interval=640", "eval.episodes=2",
                                      "train.checkpoint_interval=0", "train.policy_save_interval=0"])
     rd = RunDir(tmp_path / "run")
-    run = LocalRun(c, rd, progress=False)
-    assert run.writer.store.on_device and isinstance(run.writer.store.flat("frame"), torch.Tensor)
+    run = LocalDriver(c, rd, progress=False)
+    store = run.replay.storage.store
+    assert store.on_device and isinstance(store.flat("frame"), torch.Tensor)
     rd.create()
-    result = run.run()
+    result = run.train()
     assert run.agent.train_step > 0 and np.isfinite(result.final["average_return"])
-    batch = run.writer.storage.read(live(run.replay)[:8])  # (sampling now would wait on the rate limiter)
+    batch = run.replay.storage.read(live(run.replay)[:8])  # (sampling now would wait on the rate limiter)
     assert isinstance(batch.obs, torch.Tensor) and batch.obs.shape == (8, 3)
 
 

@@ -98,8 +98,8 @@ def test_observations_are_stored_once_per_step():
     w.flush()
     assert t.size == 19
     # One row per step plus one final-observation row: 20 observation rows for 19 items.
-    assert int((w.store.stamp[0] > 0).sum()) == 20
-    assert not hasattr(w.store, "next_obs")
+    assert int((w.table.storage.store.stamp[0] > 0).sum()) == 20
+    assert not hasattr(w.table.storage.store, "next_obs")
 
 
 @pytest.mark.parametrize("length, stride, starts", [(2, 1, [0, 1, 2]), (3, 2, [0]), (2, 2, [0, 2]), (5, 1, [])])
@@ -127,7 +127,7 @@ def test_frame_stacks_are_rebuilt_from_single_frames():
     spec = ArraySpec((k, 2), torch.uint8)
     t = Table("t", 100, seed=0)
     w = TransitionWriter(t, 1, spec, ACT, gamma=G, frame_stack=k)
-    assert w.store.frame.shape[2:] == (2,)  # one frame per row, not a stack
+    assert w.table.storage.store.frame.shape[2:] == (2,)  # one frame per row, not a stack
     frames = [np.full(2, 10 * i, np.uint8) for i in range(6)]
 
     def stack(i):  # reset padding: repeat the first frame
@@ -203,6 +203,21 @@ def test_state_dict_round_trip_of_a_ram_writer():
     assert transition_rows(t2, w2) == transition_rows(t, w)
 
 
+def test_the_table_owns_the_steps_and_keeps_the_checkpoint_layout_runs_saved_before():
+    # The writer holds no storage: it stages steps and appends them through its table.
+    t, w = writer(2, num_envs=2, max_size=20)
+    assert not any(hasattr(w, name) for name in ("store", "storage", "open_from"))
+    for i in range(9):
+        w(step([i, 100 + i], [i % 5, 1], [float(i), 1.0], [i + 1, 101 + i]))
+    w.flush()
+    # Run directories already on disk hold this layout: a change to it needs a conversion on load.
+    state = t.state_dict()["storage"]
+    assert sorted(state) == ["open_from", "slot_ref", "store"]
+    assert sorted(state["store"]) == ["columns", "ep_start", "head"]
+    assert sorted(state["store"]["columns"]["arrays"]) == sorted(
+        ["frame", "action", "reward", "stamp", "start", "last", "terminated", "item_key", "ret", "disc", "nlen"])
+
+
 @pytest.mark.parametrize("n_step", [1, 3])
 def test_flushing_every_step_or_once_gives_the_same_items(n_step):
     rng = np.random.default_rng(0)
@@ -223,9 +238,10 @@ def test_flushing_every_step_or_once_gives_the_same_items(n_step):
 def _writer_state(t, w):
     """Everything a TransitionWriter and its table hold, as plain arrays."""
     w.flush()
-    state = {f"store.{k}": v.copy() for k, v in w.store.cols.arrays.items()}
-    state.update(head=w.store.head.copy(), ep_start=w.store.ep_start.copy(), open_from=w.open_from.copy(),
-                 slot_ref=w.storage.slot_ref.copy(), slot_rows=w.storage.slot_rows.copy(),
+    steps = w.table.storage
+    state = {f"store.{k}": v.copy() for k, v in steps.store.cols.arrays.items()}
+    state.update(head=steps.store.head.copy(), ep_start=steps.store.ep_start.copy(), open_from=steps.open_from.copy(),
+                 slot_ref=steps.slot_ref.copy(), slot_rows=steps.slot_rows.copy(),
                  slot_key=t.slot_key.copy(), priority=t.priority.copy(), dense=t.sampler.dense[: t.size].copy())
     return state
 
@@ -268,7 +284,7 @@ def _needs_numba():
 @pytest.mark.parametrize("max_size", [1_000, 40])  # 40: full, so inserts also remove (FIFO)
 def test_compiled_one_step_flush_leaves_exactly_the_general_paths_state(num_envs, n_step, max_size):
     # relayrl[fast]: a flush of one staged step without episode ends runs in numba loops
-    # (writers_fast.py); the rest fall back. Both must leave the general path's state bit for bit.
+    # (step_storage_fast.py); the rest fall back. Both must leave the general path's state bit for bit.
     _needs_numba()
     stream = _stream(np.random.default_rng(num_envs + n_step), num_envs, 120)
     kw = dict(n_step=n_step, num_envs=num_envs, max_size=max_size, chunk_length=10_000)
@@ -316,7 +332,7 @@ def test_compiled_one_step_flush_takes_every_table_and_declines_episode_ends():
 
     def paths(table):
         w = TransitionWriter(table, 4, OBS, ACT, gamma=G, n_step=2)
-        return [w._one_step(st) for st in stream]
+        return [w._append_one(st) for st in stream]
 
     assert all(paths(Table("t", 1_000, Uniform(), Fifo(), MinSize(1), seed=0)))
     full = Table("t", 40, Uniform(), Fifo(), MinSize(1), seed=0)  # 4 items a step from the 3rd step on
@@ -327,17 +343,17 @@ def test_compiled_one_step_flush_takes_every_table_and_declines_episode_ends():
     assert all(paths(tiny)) and tiny.size == 3
     w = TransitionWriter(Table("t", 100, seed=0), 4, OBS, ACT, gamma=G)
     ended = stream[0]._replace(terminated=torch.tensor([False, True, False, False]))
-    assert not w._one_step(ended) and w.store.head.tolist() == [0, 0, 0, 0]  # declined: nothing written
+    assert not w._append_one(ended) and w.table.storage.store.head.tolist() == [0, 0, 0, 0]  # declined: nothing written
 
 
 def test_without_numba_or_with_fast_false_the_flush_is_numpy(monkeypatch):
     t = Table("t", 100, Uniform(), Fifo(), MinSize(1), seed=0)
     w = TransitionWriter(t, 4, OBS, ACT, gamma=G, fast=False)
-    assert w._one_step is None
+    assert w.table.storage.one_step is None
     monkeypatch.setenv("RELAYRL_NUMBA", "0")
     t = Table("t", 100, Uniform(), Fifo(), MinSize(1), seed=0)
     w = TransitionWriter(t, 4, OBS, ACT, gamma=G)
-    assert w._one_step is None
+    assert w.table.storage.one_step is None
 
 
 @pytest.mark.parametrize("num_envs", [1, 2])
@@ -353,7 +369,8 @@ def test_float_vector_actions_round_trip(num_envs, action_shape):
     for per_step in (True, False):
         t = Table("t", 1_000, Uniform(), Fifo(), MinSize(1), seed=0)
         w = TransitionWriter(t, num_envs, OBS, spec, gamma=G, n_step=2)
-        assert w.store.action.dtype == np.float32 and w.store.action.shape[2:] == action_shape
+        action = w.table.storage.store.action
+        assert action.dtype == np.float32 and action.shape[2:] == action_shape
         for s in stream:
             w(s)
             if per_step:
@@ -402,16 +419,16 @@ def test_sampled_batches_read_the_rows_items_were_written_from():
     w.flush()
     batch, info = t.sample(200)
     slots = info.key % t.max_size
-    env, pos = w.storage.slot_ref[slots] % 2, w.storage.slot_ref[slots] // 2
-    nlen = w.store.nlen[env, pos % w.rows]
-    assert np.array_equal(batch.obs.numpy(), w.store.frame[env, pos % w.rows])
-    assert np.array_equal(batch.next_obs.numpy(), w.store.frame[env, (pos + nlen) % w.rows])
-    assert np.array_equal(batch.reward.numpy(), w.store.ret[env, pos % w.rows])
+    env, pos = w.table.storage.slot_ref[slots] % 2, w.table.storage.slot_ref[slots] // 2
+    nlen = w.table.storage.store.nlen[env, pos % w.table.storage.rows]
+    assert np.array_equal(batch.obs.numpy(), w.table.storage.store.frame[env, pos % w.table.storage.rows])
+    assert np.array_equal(batch.next_obs.numpy(), w.table.storage.store.frame[env, (pos + nlen) % w.table.storage.rows])
+    assert np.array_equal(batch.reward.numpy(), w.table.storage.store.ret[env, pos % w.table.storage.rows])
 
 
 def test_compiled_row_sort_matches_argsort():
     _needs_numba()
-    from relayrl.replay.writers_fast import _sort_rows
+    from relayrl.replay.step_storage_fast import _sort_rows
 
     rng = np.random.default_rng(0)
     for m in (0, 1, 2, 3, 33, 500):

@@ -258,18 +258,17 @@ def test_memmap_replay_resumed_from_an_older_checkpoint(tmp_path, capsys, size, 
     run_dir = tmp_path / "m"
     relayrl.train(cfg, run_dir, progress=False)
     list_checkpoints(run_dir / "checkpoints")[-1].unlink()  # as if killed while writing it
-    from relayrl.training.loop import LocalRun
+    from relayrl.training.local import LocalDriver
 
-    run = LocalRun(cfg, RunDir(run_dir), False)
-    run.bar = None
+    run = LocalDriver(cfg, RunDir(run_dir), False)
     run.restore()
     live = np.flatnonzero(run.replay.slot_key >= 0)
-    assert not run.writer.storage.stale(live).any() and (live.size == 0) == wraps
+    assert not run.writer.table.storage.stale(live).any() and (live.size == 0) == wraps
     said = "the replay files were overwritten after this checkpoint" in capsys.readouterr().err
     assert said == wraps
     run.actor.run(5)  # continued (or new) episodes insert only items whose rows hold their steps
     live = np.flatnonzero(run.replay.slot_key >= 0)
-    assert live.size > 0 and not run.writer.storage.stale(live).any()
+    assert live.size > 0 and not run.writer.table.storage.stale(live).any()
     run.env.close()
     run.eval_env.close()
     assert relayrl.train(cfg, run_dir, resume=True, progress=False).final["step"] == 1500

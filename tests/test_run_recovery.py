@@ -9,9 +9,9 @@ import time
 import pytest
 
 from relayrl.cli import main
+from relayrl.dispatch import train
 from relayrl.errors import UserError
 from relayrl.presets import load_config
-from relayrl.run import train
 from relayrl.training.checkpoint import list_checkpoints
 from relayrl.training.run_dir import RunDir
 

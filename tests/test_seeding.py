@@ -8,7 +8,7 @@ import relayrl
 from relayrl.envs.gym import GymBatchEnv
 from relayrl.policies import TanhGaussianPolicy
 from relayrl.seeding import EVAL_STRIDE, STREAMS, RunSeeds
-from relayrl.training.loop import LocalRun
+from relayrl.training.local import LocalDriver
 from relayrl.training.run_dir import RunDir
 
 
@@ -65,7 +65,7 @@ def _sequences_used(monkeypatch, tmp_path, overrides):
     monkeypatch.setattr(np.random, "default_rng", default_rng)
     monkeypatch.setattr(GymBatchEnv, "reset", reset)
     config = relayrl.load_config("dqn-cartpole-fast", overrides, seed=0)
-    run = LocalRun(config, RunDir(tmp_path / "r"), progress=False)
+    run = LocalDriver(config, RunDir(tmp_path / "r"), progress=False)
     run.close()
     return used
 

@@ -25,7 +25,7 @@ __all__ = ["load_config", "list_presets", "train", "evaluate", "load_policy", "e
 _LAZY = {
     "load_config": "relayrl.presets",
     "list_presets": "relayrl.presets",
-    "train": "relayrl.run",
+    "train": "relayrl.dispatch",
     "evaluate": "relayrl.evaluation",
     "EvalResult": "relayrl.evaluation",
     "load_policy": "relayrl.export",
@@ -37,11 +37,11 @@ _LAZY = {
 
 if TYPE_CHECKING:
     from relayrl.config import Config
+    from relayrl.dispatch import train
     from relayrl.evaluation import EvalResult, evaluate
     from relayrl.export import export_policy, load_policy
     from relayrl.plot import plot_run
     from relayrl.presets import list_presets, load_config
-    from relayrl.run import train
     from relayrl.video import record_video
 
 

@@ -87,8 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _train(args: argparse.Namespace) -> None:
+    from relayrl.dispatch import check_resume_matches, default_run_dir, train
     from relayrl.presets import load_config
-    from relayrl.run import check_resume_matches, default_run_dir, train
     from relayrl.training.run_dir import RunDir
 
     if args.resume:

@@ -38,9 +38,11 @@ class EnvConfig(Section):
     check: bool = True  # run Gymnasium's env checker on a user's own env at the start (warnings only)
     # true: a time-limit cut counts as termination (no bootstrap), as in old gym / TF-Agents
     time_limit_terminates: bool = False
-    vectorization: str = "sync"  # sync: copies stepped in this process | async: in worker processes
+    # sync: copies stepped in this process | async: in worker processes | ale: Atari ids
+    # (relayrl/Atari-<Game>-v0) only, stepped by ale-py's C++ vector env in threads
+    vectorization: str = "sync"
     # async: worker processes stepping slices of the copies beside the main process's slice;
-    # 0: one per CPU core beside the main one (never more than num_envs - 1)
+    # 0: one per CPU core beside the main one (never more than num_envs - 1) | ale: threads (0: one per core)
     num_workers: int = 0
     # info values read at each episode's end and averaged like returns (metrics.jsonl
     # `train/<key>` and `eval/<key>`, TensorBoard, `relayrl plot`): e.g. Mario's ["x_pos"]
@@ -162,8 +164,8 @@ class Config(Section):
         if self.env.num_workers < 0:
             raise ConfigError(f"env.num_workers={self.env.num_workers} is not valid; it must be >= 0 "
                               "(0: one worker process per CPU core beside the main one)")
-        if self.env.vectorization not in ("sync", "async"):
-            raise ConfigError(f"env.vectorization={self.env.vectorization!r} is not valid; valid: sync, async")
+        if self.env.vectorization not in ("sync", "async", "ale"):
+            raise ConfigError(f"env.vectorization={self.env.vectorization!r} is not valid; valid: sync, async, ale")
         r = self.replay
         choices = {"sampler": ("uniform", "prioritized"), "storage": ("ram", "memmap")}
         for key, valid in choices.items():
@@ -218,11 +220,11 @@ def from_dict(data: dict[str, Any]) -> Config:
 def algo_defaults(algo: str) -> Config:
     """`algo`'s default config: the config classes' defaults with the registry's `defaults` for
     that algorithm over them (relayrl train ALGO, relayrl config ALGO)."""
-    spec = algorithm(algo)
+    entry = algorithm(algo)
     config = class_defaults()
     object.__setattr__(config, "algo", algo)  # no rebase: this is what rebasing starts from
-    object.__setattr__(config, "agent", spec.config())
-    _merge(config, copy.deepcopy(spec.defaults), prefix="")
+    object.__setattr__(config, "agent", entry.config())
+    _merge(config, copy.deepcopy(entry.defaults), prefix="")
     return config
 
 

@@ -107,7 +107,7 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
     if isinstance(env, str):
         return make_eval_env(env, episodes, max_episode_steps), True
     if callable(env):
-        from relayrl.run import factory_env_id
+        from relayrl.dispatch import factory_env_id
 
         return make_eval_env(factory_env_id(env), episodes, max_episode_steps, factory=env), True
     raise UserError(f"env={env!r} is not an env: give a Gymnasium env, a callable returning one, or an env id")

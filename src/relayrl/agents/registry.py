@@ -1,17 +1,18 @@
-"""Every algorithm relayrl knows, one `Algorithm` each: the one place config, export, the run
-assembly, the distributed run and the CLI learn what an algorithm is.
+"""Every algorithm relayrl knows, one `Algorithm` each: the one place config, export, the
+drivers and the CLI learn what an algorithm is.
 
 Adding an algorithm: its folder under agents/ (a torch-free `config.py`, the agent, a
-`policy.py` for its saved policy) and one line in `ALGORITHMS`. Agents, policy loaders and own
-runs are named "module:attribute" and imported when first used, so this module, and config.py
-which asks it for config classes, import no torch (`relayrl presets` and config errors stay fast).
+`policy.py` for its saved policy) and one entry in `ALGORITHMS`, whose factories below import
+its modules by name when first called, so this module, and config.py which asks it for config
+classes, import no torch (`relayrl presets` and config errors stay fast).
 """
 
 from __future__ import annotations
 
-import importlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from types import ModuleType
+from typing import TYPE_CHECKING, Any
 
 from relayrl.agents.bptt.config import BpttConfig
 from relayrl.agents.dqn import config as dqn_config
@@ -23,14 +24,11 @@ from relayrl.agents.sac.config import SACConfig
 from relayrl.config_fields import did_you_mean
 from relayrl.errors import ConfigError, UserError
 
+if TYPE_CHECKING:
+    from relayrl.core import Agent
+
 REPLAYS = ("transitions", "rollouts", "none")  # what an algorithm's run collects into: a transition Table,
 # a queue of on-policy rollouts each consumed once, or nothing
-
-
-def load_attr(path: str) -> Any:
-    """"package.module:attribute" -> the attribute (the module imported on first use)."""
-    module, _, attr = path.partition(":")
-    return getattr(importlib.import_module(module), attr)
 
 
 @dataclass(frozen=True)
@@ -38,11 +36,15 @@ class Algorithm:
     name: str  # config's `algo`
     config: type  # the `agent` section's dataclass, with validate()
     policy_kind: str  # the `kind` its saved policy.pt carries
-    policy: str  # module with `load(state, device, deterministic, seed)` and `deterministic_module(state)`
-    agent: str = ""  # "module:Class" built as Class(obs_spec, action_spec, cfg, device, rng, total_steps)
+    # Its saved policy's module: `load(state, device, deterministic, seed)` and `deterministic_module(state)`.
+    policy: Callable[[], ModuleType]
+    # The agent class, built as Class(obs_spec, action_spec, cfg, device, rng, total_steps).
+    agent: Callable[[], type[Agent]] | None = None
     replay: str = "transitions"  # one of REPLAYS
     ray: bool = False  # runs with distributed.num_actors > 0
-    run: str = ""  # "module:Class": a run of its own (config, run_dir, progress), instead of Actor + Learner
+    # replay "none": the module that trains by itself (`check_config(config)`, `train(...)`),
+    # which training/direct.py drives instead of an Actor + Learner.
+    trainer: Callable[[], ModuleType] | None = None
     resumable: bool = True  # its runs write checkpoints that `--resume` continues
     # What a config of this algo holds for every key it does not name, over the config classes'
     # own defaults: {"train": {"collect_steps": 2048}, "agent": {...}} (see config.algo_defaults).
@@ -54,34 +56,87 @@ class Algorithm:
     def __post_init__(self) -> None:
         if self.replay not in REPLAYS:
             raise ValueError(f"Algorithm {self.name!r}: replay={self.replay!r} is not one of {REPLAYS}")
-        if not (self.agent or self.run) or (self.replay == "none" and not self.run):
-            raise ValueError(f"Algorithm {self.name!r} needs an agent (fed from a replay) or a run of its own")
+        if (self.replay == "none") != (self.trainer is not None) or (self.replay != "none") != (self.agent is not None):
+            raise ValueError(f"Algorithm {self.name!r} needs an agent (fed from a replay) or, with replay 'none', "
+                             "a trainer")
 
     def make_agent(self, agent_cfg: Any, obs_spec: Any, action_spec: Any, device: Any, rng: Any,
-                   total_steps: int) -> Any:
-        if not self.agent:
-            raise ValueError(f"algo={self.name!r} has no agent: it trains in its own run")
-        return load_attr(self.agent)(obs_spec, action_spec, agent_cfg, device, rng, total_steps)
+                   total_steps: int) -> Agent:
+        if self.agent is None:
+            raise ValueError(f"algo={self.name!r} has no agent: it trains by itself")
+        return self.agent()(obs_spec, action_spec, agent_cfg, device, rng, total_steps)
 
-    def policy_module(self) -> Any:
-        return importlib.import_module(self.policy)
+    def policy_module(self) -> ModuleType:
+        return self.policy()
+
+    def direct_trainer(self) -> ModuleType:
+        if self.trainer is None:
+            raise ValueError(f"algo={self.name!r} trains through an Actor + Learner, not by itself")
+        return self.trainer()
+
+
+def _dqn_agent() -> type[Agent]:
+    from relayrl.agents.dqn.agent import DQNAgent
+
+    return DQNAgent
+
+
+def _dqn_policy() -> ModuleType:
+    from relayrl.agents.dqn import policy
+
+    return policy
+
+
+def _sac_agent() -> type[Agent]:
+    from relayrl.agents.sac.agent import SACAgent
+
+    return SACAgent
+
+
+def _sac_policy() -> ModuleType:
+    from relayrl.agents.sac import policy
+
+    return policy
+
+
+def _ppo_agent() -> type[Agent]:
+    from relayrl.agents.ppo.agent import PPOAgent
+
+    return PPOAgent
+
+
+def _ppo_policy() -> ModuleType:
+    from relayrl.agents.ppo import policy
+
+    return policy
+
+
+def _bptt_policy() -> ModuleType:
+    from relayrl.agents.bptt import policy
+
+    return policy
+
+
+def _bptt_trainer() -> ModuleType:
+    from relayrl.agents.bptt import trainer
+
+    return trainer
 
 
 ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (
-    Algorithm("dqn", DQNConfig, "q_greedy", "relayrl.agents.dqn.policy", agent="relayrl.agents.dqn.agent:DQNAgent",
+    Algorithm("dqn", DQNConfig, "q_greedy", _dqn_policy, agent=_dqn_agent,
               ray=True, defaults=dqn_config.DEFAULTS,
               description="DQN with Stable-Baselines3's defaults (64x64, lr 1e-4, batch 32, a gradient step every "
                           "4 env steps), target copy every 1,000 env steps; 100,000 env steps (set env.id)"),
-    Algorithm("sac", SACConfig, "tanh_gaussian", "relayrl.agents.sac.policy",
-              agent="relayrl.agents.sac.agent:SACAgent", ray=True, defaults=sac_config.DEFAULTS,
+    Algorithm("sac", SACConfig, "tanh_gaussian", _sac_policy, agent=_sac_agent, ray=True, defaults=sac_config.DEFAULTS,
               description="SAC with Stable-Baselines3's defaults (256x256, lr 3e-4, batch 256, 1M replay, "
                           "auto entropy); 50,000 env steps (set env.id; continuous actions)"),
-    Algorithm("ppo", PPOConfig, "ppo", "relayrl.agents.ppo.policy", agent="relayrl.agents.ppo.agent:PPOAgent",
+    Algorithm("ppo", PPOConfig, "ppo", _ppo_policy, agent=_ppo_agent,
               replay="rollouts", ray=True, defaults=ppo_config.DEFAULTS,
               description="PPO with Stable-Baselines3's defaults (rollouts of 2,048 steps x 1 env, batch 64, "
                           "10 epochs, lr 3e-4, 64x64 tanh); 100,000 env steps (set env.id)"),
-    Algorithm("bptt", BpttConfig, "clamped_mlp", "relayrl.agents.bptt.policy", replay="none",
-              run="relayrl.agents.bptt.run:BpttRun", resumable=False),
+    Algorithm("bptt", BpttConfig, "clamped_mlp", _bptt_policy, replay="none", trainer=_bptt_trainer,
+              resumable=False),
 )}
 
 

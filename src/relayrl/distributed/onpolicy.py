@@ -18,18 +18,22 @@ share that cannot come.
 
 from __future__ import annotations
 
-import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
+from relayrl.config import Config
+from relayrl.core import Agent
+from relayrl.distributed.actors import RETRY_S, ActorPool
 from relayrl.distributed.remote import RemotePusher
-from relayrl.distributed.run import RETRY_S, ActorNames, DistributedRun
 from relayrl.distributed.workers import RolloutCollector
 from relayrl.errors import NonFiniteError
+from relayrl.metrics import EpisodeStats
+from relayrl.replay import Table
 from relayrl.specs import Spec
+from relayrl.training.lifecycle import RunCore
 from relayrl.training.replay_setup import build_rollouts
-from relayrl.training.triggers import Progress
 
 
 class RolloutShares:
@@ -79,133 +83,130 @@ class RolloutShares:
         self.dropped, self.dropped_steps = int(state["dropped"]), int(state["dropped_steps"])
 
 
-class OnPolicyRun(DistributedRun):
-    """The distributed run of an on-policy algorithm: `RolloutCollector` actors, no replay
-    server, the learner's rollout queue in the driver fed with K shares per update."""
+class RolloutCollection:
+    """RolloutCollector actors, no replay server: the learner's rollout queue here is fed
+    with K shares per update; the env steps of the shares trained on are the run's."""
 
     worker_class = RolloutCollector
 
-    def connect(self, obs_spec: Spec, act_spec: Spec) -> tuple[Any, Any]:
+    def __init__(self, config: Config, pool: ActorPool, stats: EpisodeStats) -> None:
+        self.config, self.pool, self.stats = config, pool, stats
         self.trained = 0  # env steps of the current-version shares taken (the run's env steps)
         self.share_steps = 0  # T: steps per env copy of the current version's shares
         self.call_version: dict[Any, int] = {}  # collect call -> the version current when it was made
-        self.shares = RolloutShares(0, self.K)
+        self.shares = RolloutShares(0, pool.num_actors)
+
+    def start(self, rd_root: str, obs_spec: Spec, act_spec: Spec, agent: Agent) -> tuple[Table, RemotePusher]:
+        """The actors; the rollout queue the learner takes from and its pusher."""
         table, _ = build_rollouts(self.config)  # its checks (on-policy: no warm-up steps) hold on Ray too
-        self._start_actors(obs_spec, act_spec)
+        self.pool.start(self.worker_class, None)  # shares go to the driver in the collect calls' answers
         self.table = table
-        self.pusher = RemotePusher(self.variables, self.agent, 1)  # every update: the actors wait for it
+        self.pusher = RemotePusher(self.pool.variables, agent, 1)  # every update: the actors wait for it
         return self.table, self.pusher
-
-    def _start_server(self, names: ActorNames, cfg: dict[str, Any], obs_spec: Spec, act_spec: Spec) -> Any:
-        return None  # shares go to the driver in the collect calls' answers
-
-    def announce(self) -> None:
-        b = self.config.env.num_envs
-        self.say(f"distributed: {self.K} rollout actors x {b} envs, each rollout of "
-                 f"{self._full_share() * self.K * b} env steps split over them "
-                 f"({self._full_share()} steps per env copy), {len(self.eval_workers)} eval actors, "
-                 f"learner on {self.device}")
 
     def env_steps(self) -> int:
         return self.trained
 
+    def layout(self) -> str:
+        k, b = self.pool.num_actors, self.config.env.num_envs
+        return (f"{k} rollout actors x {b} envs, each rollout of {self._full_share() * k * b} env steps split "
+                f"over them ({self._full_share()} steps per env copy)")
+
     def postfix(self) -> dict[str, str]:
-        return {**super().postfix(), "stale": str(self.shares.dropped)}
+        return {**self.pool.postfix(), "stale": str(self.shares.dropped)}
 
     def eval_extra(self) -> dict[str, Any]:
         return {"stale_rollouts": self.shares.dropped, "stale_env_steps": self.shares.dropped_steps}
 
-    def write_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
-        scalars = super().write_scalars(p, env_sps, grad_sps)
-        self.tb.add_scalar("charts/stale_rollouts", self.shares.dropped, p.env_steps)
-        return scalars
+    def extra_scalars(self) -> dict[str, float]:
+        return {"charts/stale_rollouts": self.shares.dropped}
 
     # ---- collection ------------------------------------------------------------------------
     def _full_share(self) -> int:
-        return -(-self.config.train.collect_steps // (self.K * self.config.env.num_envs))
+        return -(-self.config.train.collect_steps // (self.pool.num_actors * self.config.env.num_envs))
 
     def _next_share(self) -> int:
         """T of the next rollout's shares: the last one shorter, ending at train.total_steps."""
-        per_step = self.K * self.config.env.num_envs
+        per_step = self.pool.num_actors * self.config.env.num_envs
         return min(self._full_share(), -(-(self.config.train.total_steps - self.trained) // per_step))
 
     def _current_calls(self, i: int | None = None) -> int:
-        return sum(1 for ref, (j, _) in self.inflight.items()
+        return sum(1 for ref, (j, _) in self.pool.inflight.items()
                    if self.call_version.get(ref) == self.shares.version and i in (None, j))
 
     def _submit(self, i: int) -> None:
         """Ask actor i for a share of the current version, if the version still needs one
         that no call in flight will bring (one such call per actor at a time)."""
-        if i in self.dead or time.monotonic() < self.retry_at[i] or self.share_steps <= 0:
+        if not self.pool.may_ask(i) or self.share_steps <= 0:
             return
-        if len(self.shares.kept) + self._current_calls() >= self.K or self._current_calls(i):
+        if len(self.shares.kept) + self._current_calls() >= self.pool.num_actors or self._current_calls(i):
             return
-        ref = self.workers[i].collect.remote(self.share_steps)
-        self.inflight[ref] = (i, self.share_steps * self.config.env.num_envs)
+        ref = self.pool.ask(i, self.share_steps * self.config.env.num_envs, self.share_steps)
         self.call_version[ref] = self.shares.version
 
     def _top_up(self) -> None:
-        for i in range(self.K):
+        for i in range(self.pool.num_actors):
             self._submit(i)
 
-    def _take(self, i: int, r: dict[str, Any]) -> None:
-        if r.get("non_finite"):  # Run.run adds what the run keeps
+    def _take(self, i: int, r: dict[str, Any], say: Callable[[str], None]) -> None:
+        if r.get("non_finite"):  # run_to_end adds what the run keeps
             raise NonFiniteError(r["non_finite"])
         self.stats.add_finished(r["returns"], r["lengths"], r["info"])
         if not self.shares.offer(i, r["policy_version"], r["rollout"]):
-            self.say(f"dropped a stale rollout from actor {i} (policy version {r['policy_version']}, the "
-                     f"learner's {self.shares.version}): {self.shares.dropped} so far")
+            say(f"dropped a stale rollout from actor {i} (policy version {r['policy_version']}, the "
+                f"learner's {self.shares.version}): {self.shares.dropped} so far")
         self._submit(i)
+
+    def _poll(self, say: Callable[[str], None]) -> bool:
+        moved = self.pool.poll(lambda i, r: self._take(i, r, say))
+        self._top_up()
+        return moved
 
     # ---- the loop ---------------------------------------------------------------------------
     def _new_version(self) -> None:
         """After a push: the version the actors pull now (waited for, so every later call acts
         with it) and the shares it needs."""
-        self.shares.advance(self.ray.get(self.pusher.last_ref))
-        self.call_version = {ref: v for ref, v in self.call_version.items() if ref in self.inflight}
+        self.shares.advance(self.pool.ray.get(self.pusher.last_ref))
+        self.call_version = {ref: v for ref, v in self.call_version.items() if ref in self.pool.inflight}
         self.share_steps = self._next_share()
         self._top_up()
 
-    def _update(self) -> None:
+    def _update(self, core: RunCore) -> None:
         """Train on the K shares of the current version, then publish the new weights."""
         rollout = self.shares.take()
-        self.trained += self.share_steps * self.K * self.config.env.num_envs
-        self.step_schedules(self.trained)
+        self.trained += self.share_steps * self.pool.num_actors * self.config.env.num_envs
+        core.step_schedules(self.trained)
         # A last rollout cut short by train.total_steps is collected, not trained on, as in
         # one process (where the rollout writer never inserts a partial rollout).
-        if not self.collect_only and self.share_steps == self._full_share():
+        if not core.collect_only and self.share_steps == self._full_share():
             self.table.insert(rollout)
-            self.learner.run(self.learner.available_steps())  # this one rollout; pushes the weights
+            core.learner.run(core.learner.available_steps())  # this one rollout; pushes the weights
         self._new_version()
 
-    def iterate(self) -> None:
-        ray = self.ray
+    def iterate(self, core: RunCore, finish_evals: Callable[[], None]) -> None:
         self.pusher.push(force=True)  # fresh or restored weights
-        self.sps_log.rates.reset(self.progress())
+        core.sps_log.rates.reset(core.progress())
         self._new_version()
         total = self.config.train.total_steps
         while self.trained < total:
-            moved = self._poll_workers()
+            moved = self._poll(core.say)
             if self.shares.ready():
-                self._update()
+                self._update(core)
                 moved = True
             self._top_up()  # an actor back from a restart, or one whose retry wait is over
-            self.fire_triggers()
-            self._finish_evals()
+            core.fire_triggers()
+            finish_evals()
             if not moved:
-                if self.inflight:
-                    ray.wait(list(self.inflight), num_returns=1, timeout=RETRY_S if self._retry_pending() else 1.0)
-                else:
-                    time.sleep(RETRY_S)  # only an actor waiting to be asked again
+                self.pool.wait([], RETRY_S if self.pool.retry_pending() else 1.0)
         if self.shares.dropped:
-            self.say(f"{self.shares.dropped} stale rollouts ({self.shares.dropped_steps:,} env steps) were "
+            core.say(f"{self.shares.dropped} stale rollouts ({self.shares.dropped_steps:,} env steps) were "
                      "collected with an older policy and dropped")
 
     # ---- checkpoints --------------------------------------------------------------------------
-    def _collection_state(self) -> dict[str, Any]:
+    def state_dict(self) -> dict[str, Any]:
         # Checkpoints come between updates: no share is kept, and calls in flight are made anew.
         return {"replay": None, "shipped": [], "onpolicy": {"trained": self.trained, **self.shares.state_dict()}}
 
-    def _restore_collection(self, state: dict[str, Any]) -> None:
+    def load_state_dict(self, state: dict[str, Any], say: Callable[[str], None]) -> None:
         self.trained = int(state["onpolicy"]["trained"])
         self.shares.load_state_dict(state["onpolicy"])

@@ -36,16 +36,24 @@ def make_atari(game: str, render_mode: str | None = None, **preprocessing: Any) 
     """`ALE/<game>-v5` with the standard preprocessing (keyword overrides: frame_skip,
     screen_size, stack, noop_max, terminal_on_life_loss)."""
     ale_id = f"ALE/{game}-v5"
-    import_ale(f"relayrl/Atari-{game}-v0")
-    if ale_id not in gym.registry:
-        raise UserError(f"ale-py has no game {game!r} (no {ale_id}); e.g. relayrl/Atari-Pong-v0, "
-                        "relayrl/Atari-Breakout-v0")
+    make_atari_spec_kwargs(game)  # one line if ale-py or the game is missing
     # frameskip=1: AtariPreprocessing skips frames itself, max-pooling the last two.
     env = gym.make(ale_id, frameskip=1, render_mode=render_mode, disable_env_checker=True)
     env = atari_preprocessing(env, **preprocessing)
     # One step shows every frame_skip-th of the console's 60 frames/s: videos play in real time.
     env.metadata = {**env.metadata, "render_fps": ATARI_FPS // preprocessing.get("frame_skip", SKIP)}
     return env
+
+
+def make_atari_spec_kwargs(game: str) -> dict[str, Any]:
+    """The keyword arguments `ALE/<game>-v5` is registered with (its ROM id, sticky actions,
+    frame limit); one line if ale-py is missing or has no such game."""
+    ale_id = f"ALE/{game}-v5"
+    import_ale(f"relayrl/Atari-{game}-v0")
+    if ale_id not in gym.registry:
+        raise UserError(f"ale-py has no game {game!r} (no {ale_id}); e.g. relayrl/Atari-Pong-v0, "
+                        "relayrl/Atari-Breakout-v0")
+    return dict(gym.spec(ale_id).kwargs)
 
 
 def register_atari_id(env_id: str) -> bool:

@@ -25,7 +25,9 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
              num_workers: int = 0, kwargs: dict[str, Any] | None = None,
              wrappers: tuple[str, ...] | list[str] = (), factory: EnvFn | None = None) -> GymBatchEnv:
     """A batched env of `num_envs` copies of `env_id`: stepped in this process ("sync") or
-    shared out over `num_workers` worker processes ("async", 0: one per core; see envs/vector.py).
+    shared out over `num_workers` worker processes ("async", 0: one per core; see envs/vector.py),
+    or, for `relayrl/Atari-<Game>-v0`, by ale-py's vector env on `num_workers` threads ("ale";
+    see envs/ale_vector.py).
     A stateless torch env id (`relayrl/StatelessPendulum-v0`) gives all copies as one batch of
     tensors on `device`.
     `info_keys`: info values to report at each episode's end (`StepOutput.episode_info`).
@@ -37,6 +39,16 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
             raise UserError(f"{what} is not supported by stateless envs ({env_id!r} is a batch of tensors)")
         return make_batch_env(env_id, num_envs, device, max_episode_steps=max_episode_steps,  # type: ignore[return-value]
                               time_limit_terminates=time_limit_terminates)
+    if vectorization == "ale":
+        if render_mode is not None or wrappers or factory is not None:
+            what = "render_mode" if render_mode is not None else "env.wrappers" if wrappers else "an env factory"
+            raise UserError(f"{what} is not supported with env.vectorization='ale' (ale-py steps the copies "
+                            "in C++); use env.vectorization='sync'")
+        from relayrl.envs.ale_vector import make_ale_env
+
+        ale = make_ale_env(env_id, num_envs, max_episode_steps, time_limit_terminates, device, num_workers, kwargs)
+        ale.info_keys = tuple(info_keys)
+        return ale  # type: ignore[return-value]
     fn = resolve_env_fn(env_id, max_episode_steps, render_mode, kwargs, wrappers, factory)
     try:
         env: BatchEnvBase

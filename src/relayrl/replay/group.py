@@ -1,10 +1,11 @@
 """One Table fed by several writers: the replay server's storage.
 
 A writer takes whole batched steps of its own envs. Actors on other machines step out of
-phase with each other, so the replay server gives each one its own writer (its own
-StepStore rows) and lets all of them insert into one Table, whose sampler, remover and rate
+phase with each other, so the replay server gives each one its own writer, and the Table
+its own step storage (its own StepStore rows) per writer; its sampler, remover and rate
 limiter then see every actor's items together, as Reverb's server does. The Table's storage
-is a `StorageGroup`: it remembers which writer's storage owns each slot and routes reads to it.
+is a `StorageGroup`: steps go to the active writer's storage, and each slot remembers the
+storage that owns it, which reads it.
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ import numpy as np
 import torch
 
 from relayrl.replay.step_storage import StepStorage
+from relayrl.replay.steps import StepChunk
 from relayrl.replay.table import Table
-from relayrl.replay.writers import SequenceWriter, StepChunk, TransitionWriter
+from relayrl.replay.writers import SequenceWriter, TransitionWriter
 
 Writer = TransitionWriter | SequenceWriter
 
@@ -41,9 +43,9 @@ def split_chunk(chunk: StepChunk, max_steps: int) -> list[StepChunk]:
 
 
 class StorageGroup:
-    """A Table's storage over several writers' storages: `active` names the one whose items
-    are being inserted; each slot remembers its storage, which reads it. Each slot belongs to
-    one storage at a time, so the storages share one slot map (saved once)."""
+    """A Table's storage over several step storages, one per writer: `active` names the one
+    whose steps are being appended; each slot remembers its storage, which reads it. Each
+    slot belongs to one storage at a time, so the storages share one slot map (saved once)."""
 
     def __init__(self, storages: list[StepStorage], capacity: int) -> None:
         self.storages = storages
@@ -56,6 +58,12 @@ class StorageGroup:
         for st in self.storages:
             st.bind(slot_key)
 
+    @property
+    def appending(self) -> StepStorage:
+        """The active writer's storage: it takes the steps being appended."""
+        return self.storages[self.active]
+
+    # ---- the Table's storage interface -------------------------------------------------------
     def write(self, slots: np.ndarray, items: np.ndarray) -> None:
         self.owner[slots] = self.active
         self.storages[self.active].write(slots, items)
@@ -116,10 +124,15 @@ class WriterGroup:
             raise ValueError(f"num_writers={num_writers} is not valid; it must be >= 1")
         self.table = table
         root = Path(path) if path is not None else None
-        self.writers = [make_writer(table, i, None if root is None else root / f"writer{i}")
-                        for i in range(num_writers)]
-        self.storage = StorageGroup([w.storage for w in self.writers], table.max_size)
-        table.set_storage(self.storage)  # (each writer set its own; the group routes to them)
+        self.writers: list[Writer] = []
+        storages: list[StepStorage] = []
+        for i in range(num_writers):
+            self.writers.append(make_writer(table, i, None if root is None else root / f"writer{i}"))
+            storage = table.storage  # the step storage writer i just gave the table
+            assert isinstance(storage, StepStorage)
+            storages.append(storage)
+        self.storage = StorageGroup(storages, table.max_size)
+        table.set_storage(self.storage)  # the table keeps every writer's steps; the group routes
         self._lock = threading.Lock()
 
     def write_chunk(self, index: int, chunk: StepChunk) -> None:
@@ -132,4 +145,5 @@ class WriterGroup:
     def restart_episodes(self, index: int) -> None:
         """Writer `index` forgets its open episodes (its actor died and was restarted)."""
         with self._lock:
+            self.storage.active = index
             self.writers[index].restart_episodes()

@@ -26,19 +26,19 @@ class RolloutWriter:
             raise ValueError(f"RolloutWriter: steps={steps} is not valid; it must be >= 1")
         self.table = table
         self.steps = steps
-        self.t = 0  # steps gathered into the rollout in progress
+        self.filled = 0  # steps gathered into the rollout in progress
         self.arrays: dict[str, Any] = {}
 
     def __call__(self, transition: Transition) -> None:
         for name in FIELDS:
             value = self.as_array(getattr(transition, name))
-            if self.t == 0 and self.needs_buffer(name, value):
+            if self.filled == 0 and self.needs_buffer(name, value):
                 self.arrays[name] = self.empty(value)
-            self.arrays[name][self.t] = value
-        self.t += 1
-        if self.t == self.steps:
+            self.arrays[name][self.filled] = value
+        self.filled += 1
+        if self.filled == self.steps:
             self.table.insert(dict(self.arrays))  # the default storage copies them (see needs_buffer)
-            self.t = 0
+            self.filled = 0
 
     # What a step's fields are gathered as; `rollouts_torch.TensorRolloutWriter` keeps tensors.
     def as_array(self, value: Any) -> Any:
@@ -58,7 +58,7 @@ class RolloutWriter:
 
     def pending(self) -> int:
         """Steps of the rollout in progress (not yet in the table)."""
-        return self.t
+        return self.filled
 
     # What the one-process run asks a replay writer when it resumes.
     def saved_episodes_intact(self) -> bool:

@@ -1,6 +1,6 @@
-"""StepStore: the steps of B parallel episodes, each observation stored once.
+"""StepStore: the steps of `num_envs` parallel episodes, each observation stored once.
 
-Env b writes its steps into its own ring of T rows. A row holds the observation an action
+Env b writes its steps into its own ring of `rows` rows. A row holds the observation an action
 was taken from, the action and the reward; when an episode ends, one more row holds its
 final observation (no action). A transition's next observation is simply a later row of
 the same ring, so observations are never stored twice, and n-step windows and sequences
@@ -9,7 +9,7 @@ only the newest frame; stacks are rebuilt at read time from the previous k-1 row
 same episode, repeating its first frame before the start (Gymnasium's
 `FrameStackObservation(padding_type="reset")`).
 
-Positions are absolute (they only grow); row = position % T. A row's `stamp` is position+1,
+Positions are absolute (they only grow); row = position % rows. A row's `stamp` is position+1,
 so a reader can tell a row that was overwritten, or written after a checkpoint, from the
 one it expects.
 
@@ -21,7 +21,7 @@ bookkeeping columns stay NumPy arrays on the host, where indexing them from Pyth
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -30,6 +30,22 @@ from relayrl.arrays import to_numpy, torch_dtype
 from relayrl.replay.storage import Columns
 
 DATA = ("frame", "action")  # the columns that live on `device` when the store has one
+
+
+class StepChunk(NamedTuple):
+    """C batched steps as plain arrays, what a writer appends at a flush: small enough to
+    ship between processes (one newest frame per step when observations are stacked)."""
+
+    frames: np.ndarray  # [C, B, *frame]
+    actions: np.ndarray  # [C, B, *act_shape]
+    rewards: np.ndarray  # [C, B]
+    done: np.ndarray  # [C, B] bool: terminated or truncated
+    terminated: np.ndarray  # [C, B] bool
+    finals: np.ndarray  # [D, *frame]: final observations where `done`, in (step, env) order
+
+    @property
+    def env_steps(self) -> int:
+        return int(self.done.size)
 
 
 class StepStore:
@@ -41,7 +57,9 @@ class StepStore:
         if frame_stack > 1 and (len(obs_shape) < 2 or obs_shape[0] != frame_stack):
             raise ValueError(f"frame_stack={frame_stack} needs observations shaped [{frame_stack}, ...], "
                              f"got {list(obs_shape)}")
-        self.B, self.T, self.k = num_envs, rows, frame_stack
+        self.num_envs = num_envs
+        self.rows = rows  # per env: the length of its ring
+        self.frame_stack = frame_stack
         frame_shape = obs_shape[1:] if frame_stack > 1 else obs_shape
         sig = {
             "frame": (frame_shape, obs_dtype), "action": (action_shape, action_dtype),
@@ -66,7 +84,7 @@ class StepStore:
         self._flat = {k: a.reshape((num_envs * rows,) + tuple(a.shape[2:])) for k, a in c.items()}
         # Columns with a row shape (frames, vector actions) as one opaque element per row:
         # assigning rows by index is then a 1-D scatter, several times cheaper than a 2-D one.
-        self._rows = {k: _row_view(a) for k, a in self._flat.items()
+        self._row_views = {k: _row_view(a) for k, a in self._flat.items()
                       if k not in self.data and a.ndim > 1 and a[0].nbytes > 0}
         self.head = np.zeros(num_envs, dtype=np.int64)  # next position per env
         self.ep_start = np.zeros(num_envs, dtype=np.int64)  # first position of the running episode
@@ -85,7 +103,7 @@ class StepStore:
         An item at p reads rows p-k+1 .. p+n; writing q overwrites q-T, which the item at
         q-T+k-1 is the newest to need. Older ones were evicted by earlier writes.
         """
-        p = pos - self.T + self.k - 1
+        p = pos - self.rows + self.frame_stack - 1
         ok = p >= 0
         n_ok = np.count_nonzero(ok)
         if n_ok < len(p):  # the ring's first lap: nothing to evict before row 0
@@ -94,7 +112,7 @@ class StepStore:
             keys = np.full(len(p), -1, dtype=np.int64)
             keys[ok] = self.evictable(envs[ok], pos[ok])
             return keys
-        i = envs * self.T + p % self.T
+        i = envs * self.rows + p % self.rows
         return np.where(self._flat["stamp"].take(i) == p + 1, self._flat["item_key"].take(i), -1)
 
     def flat(self, name: str) -> np.ndarray:
@@ -111,33 +129,33 @@ class StepStore:
         c, b = done.shape
         any_done = np.count_nonzero(done) > 0
         if any_done:
-            rows = 1 + done.astype(np.int64)  # [C, B]
-            pos = self.head + np.cumsum(rows, axis=0) - rows  # [C, B] position of each step's row
+            new_rows = 1 + done.astype(np.int64)  # [C, B]
+            pos = self.head + np.cumsum(new_rows, axis=0) - new_rows  # [C, B] position of each step's row
             # The episode each step belongs to starts after the latest earlier final row.
             after_final = np.where(done, pos + 2, -1)  # [C, B]
             start = np.maximum.accumulate(np.vstack([self.ep_start[None], after_final[:-1]]), axis=0)  # [C, B]
         else:  # the same, without episode ends: one row per step
             pos = self.head + np.arange(c)[:, None]
             start = np.repeat(self.ep_start[None], c, axis=0)
-        i = ((self.envs * self.T) + pos % self.T).reshape(-1)  # [C*B] flat rows
+        i = ((self.envs * self.rows) + pos % self.rows).reshape(-1)  # [C*B] flat rows
         self._write_rows(i, pos.reshape(-1), start.reshape(-1), frames.reshape((c * b,) + frames.shape[2:]),
                          actions.reshape((c * b,) + actions.shape[2:]), rewards.reshape(-1))
         if any_done:
             ce, be = np.nonzero(done)  # (step, env) order, as final_frames
             fp = pos[ce, be] + 1
-            j = be * self.T + fp % self.T
+            j = be * self.rows + fp % self.rows
             self._write_rows(j, fp, start[ce, be], final_frames, None, 0.0, last=True, terminated=terminated[ce, be])
             self.ep_start = np.maximum(self.ep_start, after_final.max(axis=0))
-            self.head = self.head + rows.sum(axis=0)
+            self.head = self.head + new_rows.sum(axis=0)
         else:
             self.head = self.head + c
 
     def head_rows(self) -> np.ndarray:
         """The flat rows each env's next step takes: [B]."""
-        return self.envs * self.T + self.head % self.T
+        return self.envs * self.rows + self.head % self.rows
 
     def write_data(self, i: np.ndarray, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor) -> None:
-        """Frames and actions of flat rows `i` alone (a compiled writer writes the rest)."""
+        """Frames and actions of flat rows `i` alone (the compiled one-step append writes the rest)."""
         self._put("frame", i, frames)
         self._put("action", i, actions)
 
@@ -164,7 +182,7 @@ class StepStore:
                 v = torch.as_tensor(values).to(col.device, col.dtype)  # no-op for the env's device tensors
                 col.index_copy_(0, self.index(i), v.expand((len(i), *col.shape[1:])))
             return
-        rows = self._rows.get(name)
+        rows = self._row_views.get(name)
         if rows is None:
             self._flat[name][i] = values
             return
@@ -189,20 +207,20 @@ class StepStore:
 
     def stacks(self, envs: np.ndarray, pos: np.ndarray, start: np.ndarray) -> np.ndarray | torch.Tensor:
         """Stacked observations at `pos`: [N, k, *frame], rebuilt from single frames (k > 1)."""
-        back = np.arange(self.k - 1, -1, -1)  # [k] oldest first
-        idx = np.maximum(pos[:, None] - back, start[:, None]) % self.T  # [N, k]
-        return self.gather("frame", envs[:, None] * self.T + idx)  # [N, k, *frame]
+        back = np.arange(self.frame_stack - 1, -1, -1)  # [k] oldest first
+        idx = np.maximum(pos[:, None] - back, start[:, None]) % self.rows  # [N, k]
+        return self.gather("frame", envs[:, None] * self.rows + idx)  # [N, k, *frame]
 
     def valid(self, envs: np.ndarray, pos: np.ndarray, ahead: np.ndarray) -> np.ndarray:
         """Whether rows pos-k+1 (or the episode start) .. pos+ahead still hold what an item read."""
-        r = pos % self.T
+        r = pos % self.rows
         ok = self.stamp[envs, r] == pos + 1
         start = self.start[envs, r]
-        span = int(ahead.max(initial=0)) + self.k
-        for j in range(-(self.k - 1), span):
+        span = int(ahead.max(initial=0)) + self.frame_stack
+        for j in range(-(self.frame_stack - 1), span):
             p = pos + j
             need = (p >= start) & (p <= pos + ahead) & ok
-            ok &= ~need | (self.stamp[envs, p % self.T] == p + 1)
+            ok &= ~need | (self.stamp[envs, p % self.rows] == p + 1)
         return ok
 
     def state_dict(self) -> dict[str, Any]:
@@ -222,7 +240,7 @@ class StepStore:
         self.head[:] = state["head"]
         # By default a resumed actor starts fresh episodes, so the steps of the interrupted
         # ones are never joined to new ones; a writer whose env state was restored too
-        # continues them (`_Writer.continue_episodes`).
+        # continues them (`StepStorage.continue_episodes`).
         self.ep_start[:] = self.head
 
 

@@ -1,4 +1,5 @@
-"""Column storage: preallocated arrays in RAM, on a torch device, or memory-mapped files.
+"""What a Table keeps its items in: the Storage protocols, and column storage (preallocated
+arrays in RAM, on a torch device, or memory-mapped files).
 
 `Columns` is a fixed set of named arrays with a leading capacity dimension. RAM columns are
 NumPy arrays because indexing them costs several times less per call than torch indexing on
@@ -10,7 +11,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -19,6 +20,21 @@ from relayrl.arrays import to_numpy, torch_dtype
 from relayrl.errors import UserError
 
 Signature = dict[str, tuple[tuple[int, ...], np.dtype]]  # name -> (shape per row, dtype)
+
+
+class Storage(Protocol):
+    """Where a table keeps its items' data, by slot. The table calls `write` when it gives
+    items slots and `read` with the slots it samples; its checkpoint holds the storage's.
+    A storage may also have `stale(slots) -> bool mask`: items whose data no longer holds
+    what was written (memmap files reopened after the run went on), which a table that loads
+    a checkpoint deletes; `bind(slot_key)`: the table hands it its key map (read-only, as its
+    selectors get it); and `appending`: the StepStorage that takes appended steps, for a
+    storage of steps (see step_storage)."""
+
+    def write(self, slots: np.ndarray, items: Any) -> None: ...
+    def read(self, slots: np.ndarray) -> Any: ...
+    def state_dict(self) -> dict[str, Any]: ...
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
 
 class Columns:

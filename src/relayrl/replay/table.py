@@ -11,14 +11,16 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, NamedTuple, Protocol
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from relayrl.compile import numba_available
 from relayrl.replay.rate_limiters import MinSize, Queue, RateLimiter, Stack
 from relayrl.replay.selectors import Fifo, Lifo, Selector, Uniform
-from relayrl.replay.storage import ItemStorage
+from relayrl.replay.step_storage import StepStorage
+from relayrl.replay.steps import StepChunk
+from relayrl.replay.storage import ItemStorage, Storage
 
 
 class RateLimiterTimeout(TimeoutError):
@@ -30,21 +32,6 @@ class SampleInfo(NamedTuple):
     probability: np.ndarray  # [N] float64, the chance this item had of being sampled
     table_size: int
     priority: np.ndarray  # [N] float64
-
-
-class Storage(Protocol):
-    """Where a table keeps its items' data, by slot. The table calls `write` when it gives
-    items slots and `read` with the slots it samples; its checkpoint holds the storage's.
-    A storage may also have `stale(slots) -> bool mask`: items whose data no longer holds
-    what was written (memmap files reopened after the run went on), which a table that loads
-    a checkpoint deletes; and `bind(slot_key)`: the table hands it its key map (read-only, as
-    its selectors get it), for a storage that tells its writer which live items read data
-    about to be overwritten."""
-
-    def write(self, slots: np.ndarray, items: Any) -> None: ...
-    def read(self, slots: np.ndarray) -> Any: ...
-    def state_dict(self) -> dict[str, Any]: ...
-    def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
 
 class Table:
@@ -96,8 +83,8 @@ class Table:
             self.set_storage(storage)
 
     def set_storage(self, storage: Storage) -> None:
-        """Keep items in `storage` from now on; only before the first insert. For a writer whose
-        items reference its own step store (it builds the storage with the table's size)."""
+        """Keep items in `storage` from now on; only before the first insert. A writer hands
+        its table a step storage (see step_storage) when it is built."""
         with self._cv:
             if self._inserted:
                 raise ValueError(f"Table {self.name!r} already took items; its storage is set before the first insert")
@@ -272,6 +259,37 @@ class Table:
         self.rate_limiter.inserts += 1
         self.rate_limiter.deletes += victim
         return keys
+
+    # ---- steps (a table whose storage holds steps and makes items of them) -------------------
+    def append_steps(self, chunk: StepChunk) -> None:
+        """Delete the items whose rows these steps overwrite, append them to the step storage
+        (outside the lock: no live item reads those rows now), and insert the items they close."""
+        steps = self._steps()
+        keys = steps.evictions(chunk.done)
+        if keys.size:
+            self.delete(keys)
+        items = steps.append(chunk)
+        if len(items):
+            self.insert_batch(items, n=len(items))
+
+    def append_step(self, frames: Any, actions: Any, rewards: Any) -> bool:
+        """`append_steps` of one batched step without episode ends ([B, ...] each) on the step
+        storage's compiled path; False, with nothing written, where it has none."""
+        one_step = self._steps().one_step
+        if one_step is None:
+            return False
+        keys = one_step.evictions()
+        if keys.size:
+            self.delete(keys)
+        items = one_step.append(frames, actions, rewards)
+        if len(items):
+            self.insert_batch(items, n=len(items))
+        return True
+
+    def _steps(self) -> StepStorage:
+        if (steps := getattr(self.storage, "appending", None)) is None:
+            raise TypeError(f"Table {self.name!r} keeps items, not steps: give it a writer before appending steps")
+        return steps
 
     def update_priorities(self, keys: np.ndarray, priorities: np.ndarray) -> None:
         """Set new priorities; keys of items no longer in the table are ignored (as in Reverb)."""

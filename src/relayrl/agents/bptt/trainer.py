@@ -1,4 +1,5 @@
-"""`algo = "bptt"`: TorchRL's Pendulum tutorial as a run directory (agents/bptt/bptt.py).
+"""`algo = "bptt"`: TorchRL's Pendulum tutorial (agents/bptt/bptt.py) as a trainer the direct
+driver (training/direct.py) runs into a run directory.
 
 No replay, actor or learner: each iteration differentiates the mean reward of `batch_size`
 rollouts of `rollout_steps` steps. A row goes to metrics.jsonl every `eval.interval` env steps
@@ -9,25 +10,25 @@ so they are not checkpointed; the policy is saved at the end (`relayrl.load_poli
 
 from __future__ import annotations
 
-import sys
 import time
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import torch
 
 from relayrl.agents.bptt.bptt import BpttLog, train_bptt
-from relayrl.config import Config
 from relayrl.errors import ConfigError
 from relayrl.nn import MLP
-from relayrl.policy_file import save_policy_file
-from relayrl.training.assembly import RunResult, resolve_device
-from relayrl.training.run_dir import MetricsLog, RunDir
+
+if TYPE_CHECKING:
+    from relayrl.config import Config
 
 ENV_ID = "relayrl/StatelessPendulum-v0"
 FINAL_WINDOW = 50  # iterations the issue's learning targets average over
 
 
-def check_bptt_config(c: Config) -> int:
+def check_config(c: Config) -> int:
     """Iterations the config asks for; ConfigError for settings BPTT cannot honour."""
     if c.env.id != ENV_ID:
         raise ConfigError(f"algo='bptt' trains through {ENV_ID} only; env.id={c.env.id!r} is not valid")
@@ -47,30 +48,24 @@ def policy_state(net: MLP, hidden: list[int], env_steps: int) -> dict[str, Any]:
             "env_id": ENV_ID, "env_steps": env_steps}
 
 
-def run_bptt(config: Config, rd: RunDir, progress: bool = True) -> dict[str, Any]:
-    """Train, writing rows to metrics.jsonl; returns the last row."""
-    from torch.utils.tensorboard import SummaryWriter
-
-    from relayrl.training.assembly import log_config
-
+def train(config: Config, device: torch.device, write_row: Callable[[dict[str, Any]], None],
+          add_scalar: Callable[[str, float, int], None], say: Callable[[str], None] | None) -> dict[str, Any]:
+    """Train; rows go to `write_row`, per-iteration scalars to `add_scalar`, a console line per
+    row to `say` (None: quiet). Returns the trained policy's state (`policy_state`)."""
     c, a = config, config.agent
-    iterations = check_bptt_config(c)
+    iterations = check_config(c)
     per_iteration = a.batch_size * a.rollout_steps
     rows_every = max(1, c.eval.interval // per_iteration)  # iterations per metrics row
     window: list[BpttLog] = []
     history: list[BpttLog] = []
-    log, tb = MetricsLog(rd.metrics), SummaryWriter(str(rd.tb))
-    log_config(tb, config)
     t0 = time.perf_counter()
-    last: dict[str, Any] = {}
 
     def on_iteration(entry: BpttLog) -> None:
-        nonlocal last
         window.append(entry)
         history.append(entry)
         step = (entry.iteration + 1) * per_iteration
-        tb.add_scalar("charts/mean_reward", entry.mean_reward, step)
-        tb.add_scalar("charts/last_reward", entry.last_reward, step)
+        add_scalar("charts/mean_reward", entry.mean_reward, step)
+        add_scalar("charts/last_reward", entry.last_reward, step)
         if len(window) < rows_every and entry.iteration + 1 < iterations:
             return
         mean_r = float(np.mean([w.mean_reward for w in window]))
@@ -83,30 +78,12 @@ def run_bptt(config: Config, rd: RunDir, progress: bool = True) -> dict[str, Any
             tail = history[-FINAL_WINDOW:]
             row["bptt/final50_mean_reward"] = float(np.mean([h.mean_reward for h in tail]))
             row["bptt/final50_last_reward"] = float(np.mean([h.last_reward for h in tail]))
-        log.write(row)
+        write_row(row)
         window.clear()
-        last = row
-        if progress:
-            print(f"iteration {entry.iteration + 1:>5}/{iterations} | mean reward {mean_r:7.3f} | last reward "
-                  f"{row['bptt/last_reward']:7.3f} | {row['wall_time_s']:6.1f}s", file=sys.stderr, flush=True)
+        if say is not None:
+            say(f"iteration {entry.iteration + 1:>5}/{iterations} | mean reward {mean_r:7.3f} | last reward "
+                f"{row['bptt/last_reward']:7.3f} | {row['wall_time_s']:6.1f}s")
 
-    try:
-        result = train_bptt(a, on_iteration, iterations=iterations, seed=c.seed, device=str(resolve_device(c.device)),
-                            torch_threads=c.train.torch_threads)
-    finally:
-        log.close()
-        tb.close()
-    save_policy_file(policy_state(result.policy, a.hidden, iterations * per_iteration), rd.policy / "policy.pt")
-    return last
-
-
-class BpttRun:
-    """The registry's own run for algo = "bptt": the config is checked when the run is made,
-    before anything is written; runs are not resumable (Algorithm.resumable)."""
-
-    def __init__(self, config: Config, rd: RunDir, progress: bool = True) -> None:
-        check_bptt_config(config)
-        self.config, self.rd, self.progress = config, rd, progress
-
-    def run(self, resume: bool = False) -> RunResult:
-        return RunResult(self.rd.root, run_bptt(self.config, self.rd, self.progress))
+    result = train_bptt(a, on_iteration, iterations=iterations, seed=c.seed, device=str(device),
+                        torch_threads=c.train.torch_threads)
+    return policy_state(result.policy, a.hidden, iterations * per_iteration)

@@ -1,6 +1,7 @@
-"""`train()`: the trainer's dispatch, at the top of the package so that nothing below imports
-upward. The registry says what the config's algorithm needs: its own run (BPTT), or the
-Actor + Learner run, in one process or, with distributed.num_actors > 0, on Ray."""
+"""`train()`: the drivers' dispatch, at the top of the package so that nothing below imports
+upward. One driver per topology: the one-process Actor + Learner (training/local.py), the same
+on Ray with distributed.num_actors > 0 (distributed/driver.py, and distributed/onpolicy.py for
+a rollout queue), or, for an algorithm that trains by itself, training/direct.py."""
 
 from __future__ import annotations
 
@@ -9,13 +10,19 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from relayrl.agents.registry import algorithm, load_attr, ray_algorithms
+from relayrl.agents.registry import algorithm, ray_algorithms
 from relayrl.config import Config, from_dict, load_toml, save_toml
 from relayrl.errors import UserError
-from relayrl.training.assembly import Callback, RunResult
+from relayrl.training.direct import DirectDriver
+from relayrl.training.lifecycle import RunResult
+from relayrl.training.local import LocalDriver
+from relayrl.training.report import Callback
 from relayrl.training.run_dir import RunDir
+
+if TYPE_CHECKING:
+    from relayrl.distributed.driver import RayDriver
 
 
 def default_run_dir(config: Config) -> Path:
@@ -131,8 +138,8 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     # A copy: recording an env factory's name (and the run's own settings) never changes the caller's config.
     config = from_dict(config) if isinstance(config, dict) else copy.deepcopy(config)
     config.validate()
-    spec = algorithm(config.algo)
-    one_process = not spec.run and config.distributed.num_actors == 0
+    entry = algorithm(config.algo)
+    one_process = entry.replay != "none" and config.distributed.num_actors == 0
     if env is not None:
         _use_factory(config, env, one_process)
     callbacks = _check_callbacks(callbacks, one_process)
@@ -146,26 +153,21 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         check_resume_matches(config, rd)
     else:
         takeover = _takeover_notice(rd, overwrite)
-    if resume and not spec.resumable:
-        raise UserError(f"algo={spec.name!r} runs are not checkpointed (they take minutes): start a new run instead")
-    if config.distributed.num_actors > 0 and not spec.ray:
-        raise UserError(f"algo={spec.name!r} runs in one process only; distributed.num_actors works with "
+    if resume and not entry.resumable:
+        raise UserError(f"algo={entry.name!r} runs are not checkpointed (they take minutes): start a new run instead")
+    if config.distributed.num_actors > 0 and not entry.ray:
+        raise UserError(f"algo={entry.name!r} runs in one process only; distributed.num_actors works with "
                         f"{', '.join(ray_algorithms())}")
     # Each run builds its parts (envs, agent) before anything is written: bad input fails first.
-    if spec.run:
-        run = load_attr(spec.run)(config, rd, progress)
-    elif config.distributed.num_actors > 0 and spec.replay == "rollouts":
-        from relayrl.distributed.onpolicy import OnPolicyRun
-
-        run = OnPolicyRun(config, rd, progress)
+    driver: LocalDriver | DirectDriver | RayDriver
+    if entry.replay == "none":
+        driver = DirectDriver(config, rd, progress)
     elif config.distributed.num_actors > 0:
-        from relayrl.distributed.run import DistributedRun
+        from relayrl.distributed.driver import RayDriver
 
-        run = DistributedRun(config, rd, progress)
+        driver = RayDriver(config, rd, progress)
     else:
-        from relayrl.training.loop import LocalRun
-
-        run = LocalRun(config, rd, progress, env_factory=env, callbacks=callbacks)
+        driver = LocalDriver(config, rd, progress, env_factory=env, callbacks=callbacks)
     if not resume and takeover:
         print(f"relayrl: {takeover}", file=sys.stderr, flush=True)
         rd.clear()
@@ -174,6 +176,6 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     try:
         if not resume:
             save_toml(config, rd.config)
-        return run.run(resume=resume)
+        return driver.train(resume=resume)
     finally:
         rd.release_lock()

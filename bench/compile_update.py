@@ -1,0 +1,201 @@
+"""Does torch.compile make the reference update as fast as the hand-written gradients on a CPU?
+
+    python bench/compile_update.py [--rounds 5] [--steps 300] [--threads 1] [--only dqn sac]
+
+One gradient step, three ways, timed in the same process round by round (medians; ratios
+carry over between machines, absolute times do not):
+
+  hand-written  the agent's `train(batch)` as relayrl runs it (nn/mlp_fast.py + losses_fast.py)
+  eager         the reference: the pure loss (agents/*/losses.py), autograd, torch.optim.Adam
+  compiled      the same reference step under torch.compile (inductor, default mode)
+  one graph     DQN only: the reference loss through torch.func.grad_and_value, gradient
+                clipping and Adam written out, the whole step one torch.compile(fullgraph=True)
+                graph (LeanRL's shape, less the CUDA graph)
+
+Settings: DQN with RL Zoo's CartPole network (64x64 ReLU, batch 64, Huber, grad clip 10) and
+SAC with SB3's Pendulum defaults (256x256, batch 256, auto entropy). The compiled column
+excludes compilation (done in warm-up); its compile time is printed on its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch.func import functional_call, grad_and_value
+
+from relayrl.agents.dqn import DQNAgent, DQNConfig
+from relayrl.agents.dqn.losses import dqn_loss
+from relayrl.agents.sac import SACAgent, SACConfig
+from relayrl.agents.sac.losses import actor_loss, alpha_loss, critic_loss, critic_targets, tanh_gaussian
+from relayrl.envs import make_env
+from relayrl.nn import MLP
+from relayrl.specs import ArraySpec, DiscreteSpec
+from relayrl.types import Batch
+
+
+def dqn_batch(n: int) -> Batch:
+    g = torch.Generator().manual_seed(0)
+    obs, next_obs = torch.randn(n, 4, generator=g), torch.randn(n, 4, generator=g)
+    return Batch(obs=obs, action=torch.randint(2, (n,), generator=g), reward=torch.randn(n, generator=g),
+                 next_obs=next_obs, discount=torch.full((n,), 0.99), weight=None)
+
+
+def dqn_steps(batch_size: int) -> dict[str, Callable[[], object]]:
+    cfg = DQNConfig(hidden=[64, 64], batch_size=batch_size, lr=2.3e-3, target_update_period=10**9, grad_clip=10.0)
+    agent = DQNAgent(ArraySpec((4,), torch.float32), DiscreteSpec(2), cfg, torch.device("cpu"),
+                     np.random.default_rng(0))
+    batch = dqn_batch(batch_size)
+    online, target = MLP(4, [64, 64], 2, "relu"), MLP(4, [64, 64], 2, "relu")
+    target.load_state_dict(online.state_dict())
+    opt = torch.optim.Adam(online.parameters(), lr=2.3e-3)
+
+    def reference() -> torch.Tensor:
+        loss, _ = dqn_loss(online, target, batch, double=False, loss="huber")
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(online.parameters(), 10.0)
+        opt.step()
+        return loss.detach()
+
+    return {"hand-written": lambda: agent.train(batch), "eager": reference, "compiled": torch.compile(reference),
+            "one graph": torch.compile(one_graph_dqn_step(online, target, batch), fullgraph=True)}
+
+
+def one_graph_dqn_step(online: MLP, target: MLP, batch: Batch) -> Callable[[], torch.Tensor]:
+    """The reference DQN step as one function of tensors: gradients by torch.func, then
+    clipping to norm 10 and Adam (lr 2.3e-3) in place, so nothing breaks the graph."""
+    params = {k: v.detach().clone() for k, v in online.named_parameters()}
+    target_params = {k: v.detach().clone() for k, v in target.named_parameters()}
+    m1 = {k: torch.zeros_like(v) for k, v in params.items()}
+    m2 = {k: torch.zeros_like(v) for k, v in params.items()}
+    count = torch.zeros(())
+
+    def loss_fn(p: dict[str, torch.Tensor]) -> torch.Tensor:
+        loss, _ = dqn_loss(lambda x: functional_call(online, p, (x,)),
+                           lambda x: functional_call(target, target_params, (x,)), batch, double=False)
+        return loss
+
+    grad_fn = grad_and_value(loss_fn)
+
+    def step() -> torch.Tensor:
+        grads, loss = grad_fn(params)
+        norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads.values()]))
+        scale = (10.0 / (norm + 1e-6)).clamp(max=1.0)
+        count.add_(1)
+        c1, c2 = 1 - 0.9 ** count, 1 - 0.999 ** count
+        for k, p in params.items():
+            g = grads[k] * scale
+            m1[k].lerp_(g, 0.1)
+            m2[k].mul_(0.999).addcmul_(g, g, value=0.001)
+            p.sub_(2.3e-3 * (m1[k] / c1) / ((m2[k] / c2).sqrt() + 1e-8))
+        return loss
+
+    return step
+
+
+def sac_steps(batch_size: int) -> dict[str, Callable[[], object]]:
+    env = make_env("Pendulum-v1", 1)
+    obs_spec, act_spec = env.observation_spec, env.action_spec
+    env.close()
+    cfg = SACConfig(batch_size=batch_size)
+    agent = SACAgent(obs_spec, act_spec, cfg, torch.device("cpu"), np.random.default_rng(0))
+    g = torch.Generator().manual_seed(0)
+    n, o, a = batch_size, obs_spec.shape[0], act_spec.shape[0]
+    batch = Batch(obs=torch.randn(n, o, generator=g), action=torch.rand(n, a, generator=g) * 2 - 1,
+                  reward=torch.randn(n, generator=g), next_obs=torch.randn(n, o, generator=g),
+                  discount=torch.full((n,), 0.99), weight=None)
+    actor = MLP(o, [256, 256], 2 * a, "relu")
+    critics = [MLP(o + a, [256, 256], 1, "relu") for _ in range(2)]
+    targets = [MLP(o + a, [256, 256], 1, "relu") for _ in range(2)]
+    for t, c in zip(targets, critics, strict=True):
+        t.load_state_dict(c.state_dict())
+    log_alpha = torch.zeros((), requires_grad=True)
+    actor_opt = torch.optim.Adam(actor.parameters(), lr=3e-4)
+    critic_opt = torch.optim.Adam([p for c in critics for p in c.parameters()], lr=3e-4)
+    alpha_opt = torch.optim.Adam([log_alpha], lr=3e-4)
+
+    def policy(obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, log_std = actor(obs).chunk(2, dim=-1)
+        return tanh_gaussian(mean, log_std.clamp(-20, 2), torch.randn_like(mean))
+
+    def q(nets: list[MLP], obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([obs, act], dim=-1)
+        return torch.stack([net(x).squeeze(-1) for net in nets])  # [2, N]
+
+    def reference() -> torch.Tensor:
+        alpha = log_alpha.exp().detach()
+        with torch.no_grad():
+            next_a, next_logp = policy(batch.next_obs)
+            y = critic_targets(batch.reward, batch.discount, q(targets, batch.next_obs, next_a), next_logp, alpha, 1.0)
+        c_loss, _ = critic_loss(q(critics, batch.obs, batch.action), y)
+        critic_opt.zero_grad(set_to_none=True)
+        c_loss.backward()
+        critic_opt.step()
+        act, logp = policy(batch.obs)
+        a_loss = actor_loss(logp, q(critics, batch.obs, act), alpha)
+        actor_opt.zero_grad(set_to_none=True)
+        a_loss.backward()
+        actor_opt.step()
+        al = alpha_loss(log_alpha, logp, -float(a))
+        alpha_opt.zero_grad(set_to_none=True)
+        al.backward()
+        alpha_opt.step()
+        with torch.no_grad():
+            for t, c in zip(targets, critics, strict=True):
+                for pt, pc in zip(t.parameters(), c.parameters(), strict=True):
+                    pt.lerp_(pc, 0.005)
+        return F.relu(c_loss.detach())
+
+    return {"hand-written": lambda: agent.train(batch), "eager": reference, "compiled": torch.compile(reference)}
+
+
+def per_step_us(fn: Callable[[], object], steps: int) -> float:
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        fn()
+    return (time.perf_counter() - t0) / steps * 1e6
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--rounds", type=int, default=5)
+    p.add_argument("--steps", type=int, default=300)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--only", nargs="+", choices=["dqn", "sac"], default=["dqn", "sac"])
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    settings = {"dqn": (dqn_steps, 64), "sac": (sac_steps, 256)}
+    print(f"torch {torch.__version__}, {args.threads} thread(s), medians of {args.rounds} rounds x {args.steps} steps")
+    print("| update | hand-written us | eager us | compiled us | one graph us | best compiled / hand-written "
+          "| compiled / eager | compile s |")
+    print("|---|---|---|---|---|---|---|---|")
+    for name in args.only:
+        make, batch_size = settings[name]
+        steps = make(batch_size)
+        t0 = time.perf_counter()
+        for key in ("compiled", "one graph"):
+            for _ in range(3 if key in steps else 0):
+                steps[key]()
+        compile_s = time.perf_counter() - t0
+        for fn in steps.values():
+            per_step_us(fn, 20)  # warm-up
+        times: dict[str, list[float]] = {k: [] for k in steps}
+        for _ in range(args.rounds):
+            for k, fn in steps.items():
+                times[k].append(per_step_us(fn, args.steps))
+        med = {k: statistics.median(v) for k, v in times.items()}
+        one = med.get("one graph")
+        best = min(med["compiled"], one or float("inf"))
+        print(f"| {name} (batch {batch_size}) | {med['hand-written']:.0f} | {med['eager']:.0f} | "
+              f"{med['compiled']:.0f} | {'-' if one is None else f'{one:.0f}'} | {best / med['hand-written']:.2f} | "
+              f"{med['compiled'] / med['eager']:.2f} | {compile_s:.1f} |")
+
+
+if __name__ == "__main__":
+    main()

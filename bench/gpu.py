@@ -1,0 +1,404 @@
+"""Every figure of the GPU table (issue 34) in one run, for relayrl and for the eager floor, in
+at most ~8 minutes on one GPU; or, with --smoke, a train / evaluate / export / load check of
+every algorithm on the device.
+
+    python bench/gpu.py [--device cuda] [--seconds 40] [--out gpu.json]
+    python bench/gpu.py --smoke [--device cuda] [--steps 300]
+
+Figures (env steps/s over the steady part of each run: from the first log row after learning
+starts to the last, evaluations excluded; each run capped by steps and by --seconds):
+- ddqn-pong at its own ratio (one env, a gradient step every 4 env steps); dqn-pong-fast
+  (8 ale-py vector envs, 2 gradient steps of 128 per 8 env steps);
+- sac-pendulum (one env step + one gradient step), sac-batched (32 copies, 16 gradient steps
+  per batched step), ppo-stateless-pendulum (the whole loop), dqn-cartpole-fast (on --device and
+  on the CPU, same run);
+- eager floors in bare PyTorch: a Nature-CNN Double DQN update at batch 32 and a batch-1 action
+  (ms), the Pong env's own step, and what they allow the ddqn-pong loop (4 actions, 4 env steps
+  and one update per 4 env steps); a SAC update at batch 256 and a batch-1 action (ms), and the
+  sac-pendulum loop they allow. Device times are taken with torch.cuda.synchronize on CUDA.
+
+The table goes to stdout and the figures to a JSON file (--out; default $OUT/gpu.json when OUT
+is set, else gpu.json). docs/benchmarks.md ("GPU figures") says how to run it on a lent GPU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import importlib.util
+import json
+import os
+import sys
+import tempfile
+import time
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+# (name, preset, overrides, total env steps at most): the issue's table, then the fast Pong preset.
+RUNS: list[tuple[str, str, list[str], int]] = [
+    ("ddqn-pong", "ddqn-pong", ["train.initial_collect_steps=2000", "eval.episodes=1"], 100_000),
+    ("dqn-pong-fast", "dqn-pong-fast", ["train.initial_collect_steps=4000", "eval.episodes=1"], 200_000),
+    ("sac-pendulum", "sac-pendulum", ["eval.episodes=1"], 20_000),
+    ("sac-batched", "sac-batched", ["eval.episodes=1"], 40_000),
+    ("ppo-stateless-pendulum", "ppo-stateless-pendulum", ["eval.episodes=32"], 1_500_000),
+    ("dqn-cartpole-fast", "dqn-cartpole-fast", ["eval.episodes=1"], 50_000),
+]
+LOG_ROWS = 20  # log rows per run: the seconds cap is checked at each
+
+
+def fail(message: str) -> None:
+    """Bad input: one line and exit code 2."""
+    print(f"bench/gpu.py: {message}", file=sys.stderr)
+    raise SystemExit(2)
+
+
+def check_device(name: str) -> torch.device:
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        fail(f"--device {name!r} is not a torch device; valid: cuda, cuda:N, cpu")
+    if device.type not in ("cuda", "cpu"):
+        fail(f"--device {name!r} is not valid; valid: cuda, cuda:N, cpu")
+    if device.type == "cuda" and not torch.cuda.is_available():
+        fail("--device cuda: torch sees no CUDA device here (pass --device cpu to run on the CPU)")
+    return device
+
+
+def sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def ms_per_call(fn: Callable[[], Any], device: torch.device, seconds: float = 2.0) -> float:
+    """Median milliseconds per call over batches of calls, after a warm-up."""
+    for _ in range(5):
+        fn()
+    sync(device)
+    times: list[float] = []
+    end = time.perf_counter() + seconds
+    while time.perf_counter() < end or len(times) < 3:
+        t0 = time.perf_counter()
+        for _ in range(20):
+            fn()
+        sync(device)
+        times.append((time.perf_counter() - t0) / 20 * 1e3)
+    return float(np.median(times))
+
+
+# ---- relayrl runs -------------------------------------------------------------------------
+
+def timed_run(preset: str, overrides: list[str], device: torch.device, seconds: float,
+              steps: int) -> dict[str, Any]:
+    """Train `preset` on `device` for at most `steps` env steps / `seconds` of steady running;
+    env steps/s between the first log row after learning starts and the last."""
+    import relayrl
+    from relayrl.presets import load_config
+
+    config = load_config(preset, overrides)
+    total = min(steps, config.train.total_steps)
+    start = min(config.train.initial_collect_steps, total // 4)  # learning starts within the run
+    config.train.initial_collect_steps = start
+    config.train.total_steps = total
+    config.train.log_interval = max(1, (total - start) // LOG_ROWS)
+    config.eval.interval = total  # evaluations at the start and the end only, outside the window
+    config.train.checkpoint_interval = 0
+    config.train.policy_save_interval = 0
+    config.device = str(device)
+    points: list[tuple[int, float]] = []
+
+    def watch(row: dict[str, Any]) -> bool:
+        if row.get("event") == "log" and row["step"] > start:
+            points.append((row["step"], time.perf_counter()))
+        # a seconds cap: stop (cleanly) once the steady window is long enough
+        return not points or time.perf_counter() - points[0][1] < seconds
+
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        result = relayrl.train(config, Path(tmp) / "run", progress=False, callbacks=[watch])
+    wall = time.perf_counter() - t0
+    out: dict[str, Any] = {"preset": preset, "device": str(device), "wall_s": round(wall, 1),
+                           "final_return": result.final.get("average_return")}
+    if len(points) >= 2:
+        (s0, t_0), (s1, t_1) = points[0], points[-1]
+        out.update(env_steps_per_s=round((s1 - s0) / (t_1 - t_0), 1), window_steps=s1 - s0)
+    else:  # too short a run for two log rows after learning starts
+        out.update(env_steps_per_s=None, window_steps=0)
+    return out
+
+
+# ---- eager floors in bare PyTorch ---------------------------------------------------------
+
+def nature_cnn(actions: int) -> nn.Module:
+    """Mnih et al. 2015's Q-network, scaling uint8 frames by 1/255 itself."""
+    return nn.Sequential(
+        nn.Conv2d(4, 32, 8, 4), nn.ReLU(), nn.Conv2d(32, 64, 4, 2), nn.ReLU(), nn.Conv2d(64, 64, 3, 1), nn.ReLU(),
+        nn.Flatten(), nn.Linear(3136, 512), nn.ReLU(), nn.Linear(512, actions))
+
+
+def pong_floor(device: torch.device) -> dict[str, Any]:
+    """A bare eager Double DQN update (Nature CNN, batch 32, Adam, Huber, clip 10) and a batch-1
+    greedy action, plus one Pong env step (the Gymnasium path, one env)."""
+    online, target = nature_cnn(6).to(device), nature_cnn(6).to(device)
+    target.load_state_dict(online.state_dict())
+    opt = torch.optim.Adam(online.parameters(), lr=1e-4)
+    b = 32
+    obs = torch.randint(0, 256, (b, 4, 84, 84), dtype=torch.uint8, device=device)
+    nobs = torch.randint(0, 256, (b, 4, 84, 84), dtype=torch.uint8, device=device)
+    act = torch.randint(0, 6, (b, 1), device=device)
+    rew, disc = torch.randn(b, device=device), torch.full((b,), 0.99, device=device)
+
+    def update() -> None:
+        with torch.no_grad():
+            best = online(nobs.float() / 255).argmax(1, keepdim=True)
+            y = rew + disc * target(nobs.float() / 255).gather(1, best).squeeze(1)
+        q = online(obs.float() / 255).gather(1, act).squeeze(1)
+        loss = F.smooth_l1_loss(q, y)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        nn.utils.clip_grad_norm_(online.parameters(), 10.0)
+        opt.step()
+
+    one = torch.randint(0, 256, (1, 4, 84, 84), dtype=torch.uint8)
+
+    def action() -> None:
+        with torch.no_grad():
+            online(one.to(device, non_blocking=True).float() / 255).argmax(1).cpu()
+
+    out = {"dqn_update_b32_ms": ms_per_call(update, device), "action_b1_ms": ms_per_call(action, device)}
+    try:
+        from relayrl.envs import make_env
+
+        env = make_env("relayrl/Atari-Pong-v0", 1)
+        env.reset(seed=0)
+        zero = torch.zeros(1, dtype=torch.int64)
+        out["pong_env_step_ms"] = ms_per_call(lambda: env.step(zero), torch.device("cpu"))
+        env.close()
+    except Exception as e:  # ale-py missing: the floor without the env's cost
+        out["pong_env_step_ms"] = 0.0
+        out["pong_env_note"] = f"{type(e).__name__}: {e}"
+    per_4 = 4 * (out["action_b1_ms"] + out["pong_env_step_ms"]) + out["dqn_update_b32_ms"]
+    out["ddqn_pong_loop_env_steps_per_s"] = round(4 / per_4 * 1e3, 1)
+    return {k: round(v, 3) if isinstance(v, float) else v for k, v in out.items()}
+
+
+def mlp(sizes: list[int]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for a, b in zip(sizes[:-2], sizes[1:-1], strict=True):
+        layers += [nn.Linear(a, b), nn.ReLU()]
+    return nn.Sequential(*layers, nn.Linear(sizes[-2], sizes[-1]))
+
+
+def sac_floor(device: torch.device) -> dict[str, Any]:
+    """A bare eager SAC update as CleanRL writes it (256x256 actor and twin critics, batch 256,
+    automatic entropy, Polyak targets) and a batch-1 action, plus one Pendulum-v1 step."""
+    import gymnasium as gym
+
+    o, a, b = 3, 1, 256
+    actor = mlp([o, 256, 256, 2 * a]).to(device)
+    q1, q2 = mlp([o + a, 256, 256, 1]).to(device), mlp([o + a, 256, 256, 1]).to(device)
+    t1, t2 = copy.deepcopy(q1), copy.deepcopy(q2)
+    log_alpha = torch.zeros(1, device=device, requires_grad=True)
+    q_opt = torch.optim.Adam([*q1.parameters(), *q2.parameters()], lr=3e-4)
+    pi_opt = torch.optim.Adam(actor.parameters(), lr=3e-4)
+    a_opt = torch.optim.Adam([log_alpha], lr=3e-4)
+    obs, nobs = torch.randn(b, o, device=device), torch.randn(b, o, device=device)
+    act = torch.rand(b, a, device=device) * 2 - 1
+    rew, done = torch.randn(b, device=device), torch.zeros(b, device=device)
+
+    def sample(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, log_std = actor(x).chunk(2, dim=-1)
+        std = log_std.clamp(-5, 2).exp()
+        u = mean + std * torch.randn_like(mean)
+        y = torch.tanh(u)
+        logp = (-0.5 * ((u - mean) / std) ** 2 - std.log() - 0.9189385).sum(-1) - torch.log(1 - y**2 + 1e-6).sum(-1)
+        return y, logp
+
+    def update() -> None:
+        alpha = log_alpha.exp().detach()
+        with torch.no_grad():
+            na, nlogp = sample(nobs)
+            x = torch.cat([nobs, na], -1)
+            y = rew + 0.99 * (1 - done) * (torch.min(t1(x), t2(x)).squeeze(-1) - alpha * nlogp)
+        x = torch.cat([obs, act], -1)
+        q_loss = F.mse_loss(q1(x).squeeze(-1), y) + F.mse_loss(q2(x).squeeze(-1), y)
+        q_opt.zero_grad(set_to_none=True)
+        q_loss.backward()
+        q_opt.step()
+        pa, logp = sample(obs)
+        x = torch.cat([obs, pa], -1)
+        pi_loss = (alpha * logp - torch.min(q1(x), q2(x)).squeeze(-1)).mean()
+        pi_opt.zero_grad(set_to_none=True)
+        pi_loss.backward()
+        pi_opt.step()
+        a_loss = -(log_alpha.exp() * (logp.detach() - a)).mean()
+        a_opt.zero_grad(set_to_none=True)
+        a_loss.backward()
+        a_opt.step()
+        with torch.no_grad():
+            for net, tgt in ((q1, t1), (q2, t2)):
+                torch._foreach_lerp_(list(tgt.parameters()), list(net.parameters()), 0.005)
+
+    one = torch.randn(1, o)
+
+    def action() -> None:
+        with torch.no_grad():
+            sample(one.to(device, non_blocking=True))[0].cpu()
+
+    env = gym.make("Pendulum-v1")
+    env.reset(seed=0)
+    zero = np.zeros(1, np.float32)
+
+    def env_step() -> None:
+        env.step(zero)
+
+    out = {"sac_update_b256_ms": ms_per_call(update, device), "sac_action_b1_ms": ms_per_call(action, device),
+           "pendulum_env_step_ms": ms_per_call(env_step, torch.device("cpu"), 0.5)}
+    env.close()
+    per_step = out["sac_update_b256_ms"] + out["sac_action_b1_ms"] + out["pendulum_env_step_ms"]
+    out["sac_pendulum_loop_env_steps_per_s"] = round(1 / per_step * 1e3, 1)
+    return {k: round(v, 3) for k, v in out.items()}
+
+
+def bench(device: torch.device, seconds: float, max_steps: int = 0) -> dict[str, Any]:
+    figures: dict[str, Any] = {"device": str(device), "gpu": torch.cuda.get_device_name(device)
+                               if device.type == "cuda" else None, "torch": torch.__version__, "runs": {}}
+    for name, preset, overrides, steps in RUNS:
+        devices = [device, torch.device("cpu")] if name == "dqn-cartpole-fast" and device.type == "cuda" else [device]
+        for dev in devices:
+            key = name if dev == device else f"{name}@cpu"
+            t0 = time.perf_counter()
+            try:
+                cap = min(steps, max_steps) if max_steps else steps
+                figures["runs"][key] = timed_run(preset, overrides, dev, seconds, cap)
+            except Exception as e:  # one broken run leaves the others' figures
+                figures["runs"][key] = {"error": f"{type(e).__name__}: {e}"}
+                traceback.print_exc()
+            print(f"  {key}: {figures['runs'][key]} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+    figures["floor"] = {**pong_floor(device), **sac_floor(device)}
+    return figures
+
+
+def table(figures: dict[str, Any]) -> str:
+    runs, floor = figures["runs"], figures["floor"]
+
+    def sps(key: str) -> str:
+        r = runs.get(key, {})
+        if "error" in r:
+            return "error: " + r["error"][:60]
+        if not r.get("env_steps_per_s"):
+            return "not measured (run too short)"
+        return f"{r['env_steps_per_s']:,.0f} env steps/s"
+
+    rows = [
+        ("ddqn-pong (1 env, 1 gradient step / 4 env steps)", sps("ddqn-pong"),
+         f"eager floor {floor['ddqn_pong_loop_env_steps_per_s']:,.0f} env steps/s (update b32 "
+         f"{floor['dqn_update_b32_ms']:.2f} ms, action b1 {floor['action_b1_ms']:.3f} ms, "
+         f"env step {floor['pong_env_step_ms']:.3f} ms)"),
+        ("dqn-pong-fast (8 ale-py envs, 2 x b128 / 8 env steps)", sps("dqn-pong-fast"), "-"),
+        ("sac-pendulum (1 env step + 1 gradient step)", sps("sac-pendulum"),
+         f"eager floor {floor['sac_pendulum_loop_env_steps_per_s']:,.0f} env steps/s (update b256 "
+         f"{floor['sac_update_b256_ms']:.2f} ms, action b1 {floor['sac_action_b1_ms']:.3f} ms); "
+         "LeanRL reports 725, CleanRL 127"),
+        ("sac-batched (32 copies, 16 gradient steps / batched step)", sps("sac-batched"),
+         f"eager update b256 {floor['sac_update_b256_ms']:.2f} ms"),
+        ("ppo-stateless-pendulum (whole loop)", sps("ppo-stateless-pendulum"), "PureJaxRL-style: millions"),
+        ("dqn-cartpole-fast", sps("dqn-cartpole-fast"),
+         f"same preset on the CPU: {sps('dqn-cartpole-fast@cpu')}" if "dqn-cartpole-fast@cpu" in runs else "-"),
+    ]
+    head = f"device: {figures['device']} ({figures['gpu'] or 'CPU'}), torch {figures['torch']}"
+    lines = [head, "", "| work | relayrl | reference (same device) |", "|---|---|---|"]
+    lines += [f"| {a} | {b} | {c} |" for a, b, c in rows]
+    return "\n".join(lines)
+
+
+# ---- smoke: train, evaluate, export, load -------------------------------------------------
+
+def smoke_configs(steps: int) -> list[tuple[str, str, list[str]]]:
+    """(label, preset, overrides): each algorithm at its smallest, `steps` env steps."""
+    n = steps
+    small = [f"train.total_steps={n}", f"eval.interval={n}", "eval.episodes=1", "train.checkpoint_interval=0",
+             f"train.policy_save_interval={n}", f"train.log_interval={n}"]
+    return [
+        ("dqn", "dqn", [*small, f"train.initial_collect_steps={n // 3}", "agent.batch_size=16"]),
+        ("sac", "sac-pendulum", [*small, f"train.initial_collect_steps={n // 3}", "agent.batch_size=16",
+                                 "env.max_episode_steps=50"]),
+        ("ppo", "ppo", [*small, "train.collect_steps=64", "agent.batch_size=32", "agent.n_epochs=1"]),
+        ("bptt", "bptt-pendulum", [f"train.total_steps={max(n, 400)}", f"eval.interval={max(n, 400)}",
+                                   "agent.batch_size=4", "agent.rollout_steps=20"]),
+        ("pixel-ddqn", "dqn-pong-fast", [*small, f"train.initial_collect_steps={n // 3}", "agent.batch_size=8",
+                                         "env.num_envs=2", "replay.size=2000", "env.max_episode_steps=50"]),
+    ]
+
+
+def smoke(device: torch.device, steps: int) -> bool:
+    """Train each algorithm for `steps` env steps on `device`, then evaluate, export and load its
+    policy; one PASS/FAIL line each (SKIP for pixel DDQN without ale-py). True when none failed."""
+    import relayrl
+    from relayrl.presets import load_config
+
+    ok = True
+    for label, preset, overrides in smoke_configs(steps):
+        t0 = time.perf_counter()
+        if label == "pixel-ddqn" and importlib.util.find_spec("ale_py") is None:
+            print(f"SKIP {label}: ale-py is not installed (pip install 'relayrl[atari]')", flush=True)
+            continue
+        try:
+            config = load_config(preset, overrides)
+            config.device = str(device)
+            with tempfile.TemporaryDirectory() as tmp:
+                run = Path(tmp) / "run"
+                relayrl.train(config, run, progress=False)
+                returns = relayrl.evaluate(run, episodes=1)
+                exported = relayrl.export_policy(run)
+                policy = relayrl.load_policy(run, device=str(device))
+                program = torch.export.load(str(exported))
+                obs = torch.zeros(2, *policy.obs_shape, dtype=policy.obs_dtype)
+                action = policy(obs)
+                exported_action = program.module()(obs)
+                if len(action) != 2 or exported_action.shape[0] != 2:
+                    raise RuntimeError(f"a batch of 2 observations gave {len(action)} and "
+                                       f"{exported_action.shape[0]} actions")
+            print(f"PASS {label}: {preset} on {device}, {config.train.total_steps} env steps, "
+                  f"eval return {returns.mean:.1f}, "
+                  f"exported and loaded ({time.perf_counter() - t0:.1f} s)", flush=True)
+        except Exception as e:  # every algorithm gets its line, whatever the one before did
+            ok = False
+            print(f"FAIL {label}: {preset} on {device}: {type(e).__name__}: {e}", flush=True)
+            traceback.print_exc(file=sys.stderr)
+    return ok
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter)
+    p.add_argument("--device", default="cuda", help="cuda (default), cuda:N or cpu")
+    p.add_argument("--seconds", type=float, default=30.0, help="steady seconds per run at most (default 30)")
+    p.add_argument("--max-steps", type=int, default=0,
+                   help="env steps per run at most, below each run's own cap (0: none; for a quick CPU check)")
+    p.add_argument("--out", default=None, help="JSON file (default: $OUT/gpu.json when OUT is set, else gpu.json)")
+    p.add_argument("--smoke", action="store_true", help="train, evaluate, export and load each algorithm instead")
+    p.add_argument("--steps", type=int, default=300, help="--smoke: env steps per algorithm (default 300)")
+    args = p.parse_args(argv)
+    device = check_device(args.device)
+    if args.seconds <= 0 or args.steps < 30 or args.max_steps < 0:
+        fail(f"--seconds must be > 0, --steps >= 30 and --max-steps >= 0 (got {args.seconds}, {args.steps}, "
+             f"{args.max_steps})")
+    if args.smoke:
+        return 0 if smoke(device, args.steps) else 1
+    out = Path(args.out) if args.out else Path(os.environ["OUT"]) / "gpu.json" if os.environ.get("OUT") \
+        else Path("gpu.json")
+    figures = bench(device, args.seconds, args.max_steps)
+    print(table(figures))
+    out.write_text(json.dumps(figures, indent=1) + "\n")
+    print(f"figures: {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,208 @@
+"""The Ray side of a distributed run: Ray started (or joined), K restartable rollout actors,
+the eval actors and the variable container, with the rollout actors' calls in flight, their
+failures and restarts. What the actors are asked to collect is the collection's
+(distributed/offpolicy.py, distributed/onpolicy.py); this module only keeps them answering."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import sys
+import time
+import uuid
+from collections.abc import Callable
+from typing import Any
+
+from relayrl.config import Config, to_dict
+from relayrl.distributed.workers import ActorNames, EvalWorker
+from relayrl.training.variables import VariableContainer
+
+# An actor Ray reports unavailable (restarting after a crash, or its connection lost) is asked
+# again every RETRY_S; this many such answers in a row count as a second failure.
+RETRY_S = 0.2
+UNAVAILABLE_LIMIT = 150
+
+
+def init_ray(ray: Any, config: Config) -> bool:
+    """Join distributed.address, or start a local Ray instance with room for every actor's CPU
+    reservation; True when this process started it (and so shuts it down)."""
+    d = config.distributed
+    if ray.is_initialized():
+        return False
+    kw: dict[str, Any] = {"include_dashboard": False, "logging_level": "ERROR"}
+    on_sigterm = signal.getsignal(signal.SIGTERM)
+    if d.address:
+        ray.init(address=d.address, **kw)
+    else:
+        ray.init(num_cpus=max(os.cpu_count() or 1, math.ceil(d.num_actors * d.actor_cpus) + 1), **kw)
+    if callable(on_sigterm):
+        # Ray's core replaces SIGTERM's handler in the driver with one that dumps a stack and
+        # exits; the CLI's (stop like Ctrl-C: actors shut down) goes back.
+        signal.signal(signal.SIGTERM, on_sigterm)
+    return True
+
+
+class ActorPool:
+    """`start(worker_class, server)` starts the actors; `ask(i, steps, *args)` queues a collect
+    call on rollout actor i; `poll(take, dropped)` hands over the answers that came in and
+    the actors whose calls a failure dropped. An actor that fails is restarted by Ray up to
+    distributed.max_restarts times, then counted dead."""
+
+    def __init__(self, ray: Any, config: Config, say: Callable[[str], None]) -> None:
+        self.ray, self.config, self.say = ray, config, say
+        k = self.num_actors = config.distributed.num_actors
+        self.failures = [0] * k
+        self.unavailable = [0] * k  # ActorUnavailableError answers in a row
+        self.tokens: list[str | None] = [None] * k  # each actor's incarnation, from its last answer
+        self.restart_counted = [False] * k  # this spell of "unavailable" already counted a restart
+        self.retry_at = [0.0] * k  # monotonic time before which actor i is not asked again
+        self.restarting: set[int] = set()
+        self.dead: set[int] = set()
+        self.inflight: dict[Any, tuple[int, int]] = {}  # collect call -> (actor, env steps asked)
+        self.workers: list[Any] = []
+        self.eval_workers: list[Any] = []
+        self.server: Any = None
+        self.variables: Any = None
+        self.owns_ray = False
+
+    def start(self, worker_class: type, server: Callable[[Any, ActorNames], Any] | None) -> None:
+        """Ray, the replay server (`server(ray, names)`, where the collection has one), the
+        variable container, the rollout and the eval actors; env errors surface here."""
+        ray, c, d = self.ray, self.config, self.config.distributed
+        self.owns_ray = init_ray(ray, c)
+        cfg, path = to_dict(c), list(sys.path)
+        # Restartable actors find the server and the container by name: Ray cannot promise to
+        # keep actor handles passed as constructor arguments alive for a restart.
+        names = ActorNames(f"relayrl-{uuid.uuid4().hex[:12]}")
+        self.server = server(ray, names) if server is not None else None
+        self.variables = ray.remote(num_cpus=0, max_concurrency=self.num_actors + 8)(VariableContainer).options(
+            name=names.variables).remote(copy=True)
+        worker = ray.remote(num_cpus=d.actor_cpus, max_restarts=d.max_restarts, max_task_retries=0)(worker_class)
+        self.workers = [worker.remote(cfg, i, names, path) for i in range(self.num_actors)]
+        evaluator = ray.remote(num_cpus=0, max_restarts=d.max_restarts, max_task_retries=0)(EvalWorker)
+        self.eval_workers = [evaluator.remote(cfg, names, path) for _ in range(d.num_eval_actors)]
+        ray.get([w.pid.remote() for w in self.workers + self.eval_workers])
+
+    def close(self) -> None:
+        """Stop every actor (and the local Ray instance this run started): no orphan processes."""
+        ray = self.ray
+        if not ray.is_initialized():
+            return
+        for handle in [*self.workers, *self.eval_workers, self.server, self.variables]:
+            if handle is not None:
+                try:
+                    ray.kill(handle, no_restart=True)
+                except Exception:  # already gone
+                    pass
+        if self.owns_ray:
+            ray.shutdown()
+
+    @property
+    def alive(self) -> int:
+        return self.num_actors - len(self.dead)
+
+    def postfix(self) -> dict[str, str]:
+        return {"actors": f"{self.alive - len(self.restarting)}/{self.num_actors}"}
+
+    def may_ask(self, i: int) -> bool:
+        return i not in self.dead and time.monotonic() >= self.retry_at[i]
+
+    def ask(self, i: int, steps: int, *args: Any) -> Any:
+        """Queue `collect(*args)` on actor i, counted as `steps` env steps asked; its ref."""
+        ref = self.workers[i].collect.remote(*args)
+        self.inflight[ref] = (i, steps)
+        return ref
+
+    def asked(self, i: int | None = None) -> int:
+        """Env steps the calls in flight ask for (of actor i, or of all)."""
+        return sum(n for j, n in self.inflight.values() if i in (None, j))
+
+    def retry_pending(self) -> bool:
+        """An actor waits out RETRY_S before it is asked again."""
+        now = time.monotonic()
+        return any(i not in self.dead and now < self.retry_at[i] for i in range(self.num_actors))
+
+    def wait(self, also: list[Any], timeout: float) -> None:
+        """Sleep until a call in flight (or one of `also`) answers, or `timeout` passes."""
+        waiting = [*self.inflight, *also]
+        if waiting:
+            self.ray.wait(waiting, num_returns=1, timeout=timeout)
+        else:
+            time.sleep(RETRY_S)  # only an actor waiting to be asked again
+
+    def poll(self, take: Callable[[int, dict[str, Any]], None], dropped: Callable[[int], None] = lambda i: None
+             ) -> bool:
+        """Hand each call that answered to `take(actor, result)`, in arrival order, each as it
+        leaves the calls in flight (so `take` sees the others still in flight); `dropped(actor)`
+        after a failure dropped an actor's calls (their steps are free to ask again). True when
+        any call answered."""
+        ray = self.ray
+        if not self.inflight:
+            return False
+        ready, _ = ray.wait(list(self.inflight), num_returns=len(self.inflight), timeout=0)
+        for ref in ready:
+            if ref not in self.inflight:  # dropped with its actor's failure below
+                continue
+            i, _ = self.inflight.pop(ref)
+            try:
+                r = ray.get(ref)
+            except getattr(ray.exceptions, "ActorUnavailableError", ()) as e:  # Ray >= 2.2x; maybe not a death
+                self._on_unavailable(i, e)
+                dropped(i)
+                continue
+            except ray.exceptions.RayActorError as e:
+                self._on_death(i, e)
+                dropped(i)
+                continue
+            self.unavailable[i] = 0
+            if self.tokens[i] is not None and r["token"] != self.tokens[i] and not self.restart_counted[i]:
+                # A new incarnation that no failed call announced: it crashed while idle.
+                self._count_restart(i, "it crashed")
+            self.tokens[i] = r["token"]
+            self.restart_counted[i] = False
+            self.restarting.discard(i)
+            take(i, r)
+        return bool(ready)
+
+    def _drop_calls(self, i: int) -> None:
+        """Forget actor i's calls in flight (queued behind the one that failed: they fail too)."""
+        for ref in [r for r, (j, _) in self.inflight.items() if j == i]:
+            del self.inflight[ref]
+
+    def _on_unavailable(self, i: int, error: Exception) -> None:
+        # Ray says the actor may come back: it crashed and Ray is restarting it, or the
+        # connection dropped. Count one restart for the whole spell (its queued calls and
+        # those sent while it restarts fail the same way, and one crash must not use up every
+        # restart) and ask again every RETRY_S until it answers; UNAVAILABLE_LIMIT answers in
+        # a row count as a death of their own.
+        self.unavailable[i] += 1
+        if self.unavailable[i] > UNAVAILABLE_LIMIT:
+            self.unavailable[i] = 0
+            self._on_death(i, error)
+            return
+        self._drop_calls(i)
+        self.restarting.add(i)
+        self.retry_at[i] = time.monotonic() + RETRY_S
+        if not self.restart_counted[i]:
+            self.restart_counted[i] = True
+            self._count_restart(i, type(error).__name__)
+
+    def _on_death(self, i: int, error: Exception) -> None:
+        self._drop_calls(i)
+        self.tokens[i] = None  # its next incarnation is this restart, counted here
+        self._count_restart(i, type(error).__name__)
+
+    def _count_restart(self, i: int, why: str) -> None:
+        d = self.config.distributed
+        self.failures[i] += 1
+        if self.failures[i] > d.max_restarts:
+            self.dead.add(i)
+            self.restarting.discard(i)
+            self.say(f"rollout actor {i} died and is not restarted again (distributed.max_restarts={d.max_restarts})")
+            if len(self.dead) == self.num_actors:
+                raise RuntimeError("every rollout actor died; continue from the last checkpoint with --resume")
+            return
+        self.restarting.add(i)
+        self.say(f"rollout actor {i} died ({why}); Ray restarts it and it goes on from the "
+                 f"latest weights (restart {self.failures[i]} of at most {d.max_restarts})")

@@ -1,0 +1,157 @@
+"""The Ray driver: the learner trains here, everything else runs in Ray actors. Put together
+top to bottom in `RayDriver.__init__`: the env's specs from a probe copy, the agent, the actor
+pool (distributed/actors.py) and the algorithm's collection (distributed/offpolicy.py: a replay
+server fed by the actors; distributed/onpolicy.py: rollout shares to the learner here), the
+learner and the run's core. Evaluations run in eval actors; metrics.jsonl has the same schema
+as in one process.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from typing import Any
+
+from relayrl.agents.registry import algorithm
+from relayrl.config import Config, to_dict
+from relayrl.distributed import require_ray
+from relayrl.distributed.actors import ActorPool
+from relayrl.distributed.offpolicy import ReplayCollection
+from relayrl.distributed.onpolicy import RolloutCollection
+from relayrl.envs import make_env
+from relayrl.errors import UserError
+from relayrl.metrics import EpisodeStats
+from relayrl.seeding import EVAL_STRIDE
+from relayrl.training.checkpoint import load_latest_checkpoint
+from relayrl.training.finite import FiniteWatch
+from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
+from relayrl.training.report import say
+from relayrl.training.run_dir import RunDir
+from relayrl.training.triggers import IntervalTrigger, Progress
+
+
+class RayDriver:
+    def __init__(self, config: Config, rd: RunDir, progress: bool = True) -> None:
+        c = self.config = config
+        self.rd = rd
+        self.seeds, self.device = start_process(c)
+        ray = self.ray = require_ray()
+        self.eval_count = 0
+        self.evals: deque[tuple[Any, Progress, float, float, int, int]] = deque()  # in flight, oldest first
+        check_user_env(c, None, say)
+        # The specs, from one copy of the env here (a bad env id fails before any actor starts).
+        probe = make_env(c.env.id, 1, c.env.max_episode_steps, kwargs=c.env.kwargs, wrappers=c.env.wrappers)
+        obs_spec, act_spec = probe.observation_spec, probe.action_spec
+        probe.close()
+        entry = algorithm(c.algo)
+        self.agent = entry.make_agent(c.agent, obs_spec, act_spec, self.device, self.seeds.generator("exploration"),
+                                      c.train.total_steps)
+        self.stats = EpisodeStats()
+        self.pool = ActorPool(ray, c, say)
+        whole_rollouts = entry.replay == "rollouts"
+        self.collection = (RolloutCollection if whole_rollouts else ReplayCollection)(c, self.pool, self.stats)
+        self.stats.step_fn = self.collection.env_steps
+        finite = FiniteWatch(c.env.num_envs, obs_spec)  # a Ray run's actors check what they collect
+        try:
+            table, self.pusher = self.collection.start(str(rd.root), obs_spec, act_spec, self.agent)
+            learner = make_learner(c, self.agent, table, self.device, self.pusher, whole_rollouts)
+            self.core = RunCore(c, rd, self.agent, learner, self.stats, finite, env_steps=self.collection.env_steps,
+                                checkpoint_state=self.checkpoint_state,
+                                evaluation=IntervalTrigger(c.eval.interval, self._interval_eval),
+                                show_progress=progress, postfix=self.collection.postfix,
+                                extra_scalars=self.collection.extra_scalars)
+        except BaseException:  # Ray actors: none is left behind by a failure here
+            self.close()
+            raise
+        self.pool.say = self.core.say  # once the run's report exists, lines go past its progress bar
+
+    def train(self, resume: bool = False) -> RunResult:
+        return run_to_end(self, resume)
+
+    def iterate(self) -> None:
+        self.collection.iterate(self.core, self._finish_evals)
+
+    def announce(self) -> None:
+        self.core.say(f"distributed: {self.collection.layout()}, {len(self.pool.eval_workers)} eval actors, "
+                      f"learner on {self.device}")
+
+    def close(self) -> None:
+        self.pool.close()
+
+    # ---- evaluation ---------------------------------------------------------------------
+    def _interval_eval(self, p: Progress) -> None:
+        # The last collect call can cross the final interval while the learner still has
+        # steps to take; the final evaluation, after them, covers that boundary.
+        if p.env_steps < self.config.train.total_steps:
+            self.evaluate_now(p)
+
+    def evaluate_now(self, p: Progress) -> None:
+        workers = self.pool.eval_workers
+        self._finish_evals(until=len(workers) - 1)  # one in flight per eval actor; rows stay in step order
+        self.pusher.push(force=True)  # the eval actor evaluates these weights (or newer)
+        seed = self.seeds.base("evaluation") + EVAL_STRIDE * self.eval_count
+        w = self.eval_count % len(workers)
+        self.evals.append((workers[w].evaluate.remote(seed), p, time.perf_counter(), self.core.wall_time(), w, seed))
+        self.eval_count += 1
+
+    def settle_evals(self) -> None:
+        self._finish_evals(until=0)
+
+    def _finish_evals(self, until: int | None = None) -> None:
+        """Record finished evaluations, oldest first; wait for them while more than `until`
+        are in flight (None: never wait)."""
+        ray = self.ray
+        while self.evals:
+            ref, p, t0, wall, w, seed = self.evals[0]
+            must = until is not None and len(self.evals) > until
+            if not must and not ray.wait([ref], timeout=0)[0]:
+                return
+            try:
+                result = ray.get(ref)
+            except ray.exceptions.RayActorError as e:  # restarted by Ray: evaluate again
+                self.core.say(f"eval actor {w} died ({type(e).__name__}); Ray restarts it and the evaluation "
+                              "is repeated")
+                self.evals[0] = (self.pool.eval_workers[w].evaluate.remote(seed), p, t0, wall, w, seed)
+                continue
+            self.evals.popleft()
+            version = result.pop("policy_version")
+            self.core.report.record_eval(p, result, time.perf_counter() - t0, wall_time_s=wall,
+                                         extra={"policy_version": version, "actors_alive": self.pool.alive,
+                                                **self.collection.eval_extra()})
+
+    # ---- checkpoints ----------------------------------------------------------------------
+    def checkpoint_state(self) -> dict[str, Any]:
+        return {
+            "version": 2,
+            "distributed": {"num_actors": self.pool.num_actors},
+            "config": to_dict(self.config),
+            "agent": self.agent.state_dict(),
+            **self.collection.state_dict(),
+            "episode_stats": self.stats.state_dict(),
+            "eval_count": self.eval_count,
+            "wall_time_s": self.core.wall_time(),
+            **self.core.process_state(),
+        }
+
+    def restore(self) -> None:
+        c, core, k = self.config, self.core, self.pool.num_actors
+        state = load_latest_checkpoint(self.rd.checkpoints)
+        saved = state.get("distributed")
+        if saved is None:
+            raise UserError("this run was trained in one process; resume it with distributed.num_actors=0 "
+                            "(its replay is laid out for one actor)")
+        if saved["num_actors"] != k or state["config"]["env"]["num_envs"] != c.env.num_envs:
+            raise UserError(f"the run being resumed has distributed.num_actors={saved['num_actors']} and "
+                            f"env.num_envs={state['config']['env']['num_envs']} (its replay is laid out per actor "
+                            f"and env copy); resume with the same")
+        self.agent.load_state_dict(state["agent"])
+        self.collection.load_state_dict(state, core.say)
+        self.stats.load_state_dict(state["episode_stats"])
+        self.stats.reset_running()
+        self.eval_count = int(state["eval_count"])
+        core.wall_offset = float(state["wall_time_s"])
+        core.load_process_state(state)
+        steps = self.collection.env_steps()
+        core.resume_at(steps)
+        core.say(f"resumed from env step {steps:,} (train step {self.agent.train_step:,}); "
+                 f"the {k} rollout actors start new episodes")

@@ -1,0 +1,159 @@
+"""Off-policy collection on Ray (registry replay "transitions": DQN, SAC).
+
+    replay server (Table + a writer per actor) ◀─ chunks ─ K rollout actors ◀─ pull ─┐
+        │ sample (a group of batches per RPC)                                          │
+        ▼                                                                              │
+    Learner (driver, GPU if any) ─ push ─▶ VariableContainer actor ─ pull ─▶ eval actors
+
+The driver hands each rollout actor collect calls of a few chunks (two queued per actor, so
+none waits for the driver) and trains on whatever batches the server's rate limiter releases.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from relayrl.config import Config, to_dict
+from relayrl.core import Agent
+from relayrl.distributed.actors import RETRY_S, ActorPool
+from relayrl.distributed.remote import RemotePusher, RemoteTable
+from relayrl.distributed.server import ReplayServer
+from relayrl.distributed.workers import ActorNames, RolloutWorker
+from relayrl.errors import NonFiniteError
+from relayrl.metrics import EpisodeStats
+from relayrl.specs import Spec
+from relayrl.training.lifecycle import RunCore
+
+CALL_CHUNKS = 4  # chunks per collect call: long enough that a call's RPC costs little
+CALLS_QUEUED = 2  # collect calls queued per actor: the next one starts without the driver
+
+
+class ReplayCollection:
+    """Rollout actors ship transitions to the replay server; the env steps it took from each
+    actor are the run's env steps."""
+
+    worker_class = RolloutWorker
+
+    def __init__(self, config: Config, pool: ActorPool, stats: EpisodeStats) -> None:
+        self.config, self.pool, self.stats = config, pool, stats
+        self.accepted = [0] * pool.num_actors  # env steps the replay server took from each actor
+
+    def start(self, rd_root: str, obs_spec: Spec, act_spec: Spec, agent: Agent) -> tuple[RemoteTable, RemotePusher]:
+        """The actors and the replay server; the table the learner samples and its pusher."""
+        c, k = self.config, self.pool.num_actors
+
+        def server(ray: Any, names: ActorNames) -> Any:
+            return ray.remote(num_cpus=0, max_concurrency=k + 8)(ReplayServer).options(
+                name=names.server).remote(to_dict(c), obs_spec, act_spec, rd_root, k)
+
+        self.pool.start(self.worker_class, server)
+        self.table = RemoteTable(self.pool.server, c.agent.batch_size)
+        self.pusher = RemotePusher(self.pool.variables, agent, c.distributed.push_interval)
+        return self.table, self.pusher
+
+    def env_steps(self) -> int:
+        return sum(self.accepted)
+
+    def layout(self) -> str:
+        return f"{self.pool.num_actors} rollout actors x {self.config.env.num_envs} envs"
+
+    def postfix(self) -> dict[str, str]:
+        return self.pool.postfix()
+
+    def eval_extra(self) -> dict[str, Any]:
+        return {}
+
+    def extra_scalars(self) -> dict[str, float]:
+        return {}
+
+    # ---- collection -----------------------------------------------------------------------
+    def _call_steps(self) -> int:
+        b = self.config.env.num_envs
+        return -(-CALL_CHUNKS * self.config.distributed.chunk_steps // b) * b
+
+    def _submit(self, i: int) -> None:
+        """Queue a collect call on actor i for its share of the steps still to take."""
+        if not self.pool.may_ask(i):
+            return
+        c = self.config
+        asked = self.pool.asked()
+        remaining = c.train.total_steps - self.env_steps() - asked
+        if remaining <= 0:
+            return
+        b = c.env.num_envs
+        n = -(-min(self._call_steps(), remaining) // b) * b
+        explore = self.env_steps() + asked < c.train.initial_collect_steps
+        self.pool.ask(i, n, n, self.env_steps(), explore)
+
+    def _top_up(self) -> None:
+        """Give every live actor its CALLS_QUEUED calls while steps remain. Steps that a failed
+        actor's calls had asked for are free again: the other actors must take them, or a run
+        whose calls all ended before a failure would stop short of total_steps."""
+        queued = [0] * self.pool.num_actors
+        for i, _ in self.pool.inflight.values():
+            queued[i] += 1
+        for i in range(self.pool.num_actors):
+            for _ in range(CALLS_QUEUED - queued[i]):
+                self._submit(i)
+
+    def _take(self, i: int, r: dict[str, Any]) -> None:
+        """What a collect call of actor i answered; the actor's next call."""
+        if r.get("non_finite"):  # run_to_end adds what the run keeps
+            raise NonFiniteError(r["non_finite"])
+        self.accepted[i] = max(self.accepted[i], int(r["accepted"]))
+        self.stats.add_finished(r["returns"], r["lengths"], r["info"])
+        self._submit(i)
+
+    def _dropped(self, i: int) -> None:
+        """Count the steps the replay server already took from actor i, whose calls failed."""
+        shipped = self.pool.ray.get(self.pool.server.info.remote())["shipped"]
+        self.accepted[i] = max(self.accepted[i], int(shipped[i]))
+
+    def _poll(self) -> bool:
+        """Take what the actors answered and ask them again; True when any answered."""
+        moved = self.pool.poll(self._take, self._dropped)
+        self._top_up()
+        return moved
+
+    def _retry_pending(self) -> bool:
+        return self.pool.retry_pending() and self.env_steps() < self.config.train.total_steps
+
+    def iterate(self, core: RunCore, finish_evals: Callable[[], None]) -> None:
+        self.pusher.push(force=True)
+        core.sps_log.rates.reset(core.progress())
+        self._top_up()
+        collected_at = None  # the sample request current when collection ended
+        while True:
+            moved = self._poll()
+            n = 0 if core.collect_only else self.table.poll()
+            if n:
+                core.step_schedules(self.env_steps())
+                core.learner.run(n)
+            core.fire_triggers()
+            finish_evals()
+            if not self.pool.inflight and not self._retry_pending():
+                if collected_at is None:
+                    collected_at = self.table.requests
+                # Collection is over: stop once a sample request sent after it found the rate
+                # limiter allowing nothing more (the one-process loop's last `available_steps`).
+                if core.collect_only or (not n and self.table.last_empty and self.table.answered > collected_at):
+                    break
+            if not n and not moved:  # nothing to do: sleep until an actor or the server answers
+                also = [] if core.collect_only else [self.table.pending]
+                self.pool.wait(also, RETRY_S if self._retry_pending() else 1.0)
+
+    # ---- checkpoints ----------------------------------------------------------------------
+    def state_dict(self) -> dict[str, Any]:
+        """The replay server's contents and the env steps it took from each actor."""
+        server = self.pool.ray.get(self.pool.server.state_dict.remote(self.config.train.checkpoint_replay))
+        return {"replay": server["table"],
+                "shipped": server["shipped"] if server["table"] is not None else list(self.accepted)}
+
+    def load_state_dict(self, state: dict[str, Any], say: Callable[[str], None]) -> None:
+        self.pool.ray.get(self.pool.server.load_state_dict.remote({"table": state["replay"],
+                                                                   "shipped": state["shipped"]}))
+        if state["replay"] is None:
+            say("the checkpoint has no replay contents (train.checkpoint_replay = false): "
+                "the replay refills from the resumed policy before learning continues")
+        self.accepted = [int(x) for x in state["shipped"]]

@@ -1,0 +1,44 @@
+"""The direct driver: an algorithm that trains by itself (registry `replay = "none"`: BPTT
+through a differentiable env) writes its run directory through this: metrics rows,
+TensorBoard, the config, and the policy file at the end. No actor, replay or learner."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from relayrl.agents.registry import algorithm
+from relayrl.config import Config
+from relayrl.policy_file import save_policy_file
+from relayrl.training.lifecycle import RunResult, resolve_device
+from relayrl.training.report import log_config, say
+from relayrl.training.run_dir import MetricsLog, RunDir
+
+
+class DirectDriver:
+    """The trainer's config is checked when the driver is made, before anything is written;
+    its runs are not resumable (Algorithm.resumable)."""
+
+    def __init__(self, config: Config, rd: RunDir, progress: bool = True) -> None:
+        self.trainer = algorithm(config.algo).direct_trainer()
+        self.trainer.check_config(config)
+        self.config, self.rd, self.progress = config, rd, progress
+
+    def train(self, resume: bool = False) -> RunResult:
+        from torch.utils.tensorboard import SummaryWriter
+
+        rows: list[dict[str, Any]] = []
+        log, tb = MetricsLog(self.rd.metrics), SummaryWriter(str(self.rd.tb))
+
+        def write_row(row: dict[str, Any]) -> None:
+            log.write(row)
+            rows.append(row)
+
+        try:
+            log_config(tb, self.config)
+            state = self.trainer.train(self.config, resolve_device(self.config.device), write_row, tb.add_scalar,
+                                       say if self.progress else None)
+        finally:
+            log.close()
+            tb.close()
+        save_policy_file(state, self.rd.policy / "policy.pt")
+        return RunResult(self.rd.root, rows[-1] if rows else {})

@@ -1,0 +1,249 @@
+"""What every driver (training/local.py, distributed/driver.py) does the same way: start the
+process (threads, seeds, device), build the learner and the triggers around the agent the
+registry makes, and take a run from its first evaluation to its last checkpoint (`run_to_end`).
+
+A driver builds its own envs and replay, then a `RunCore`, top to bottom in its `__init__`;
+`run_to_end(driver)` calls only the `Driver` methods below.
+"""
+
+from __future__ import annotations
+
+import random
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from relayrl.config import Config
+from relayrl.core import Agent
+from relayrl.envs.make import check_env, is_user_env
+from relayrl.errors import NonFiniteError, UserError
+from relayrl.metrics import EpisodeStats
+from relayrl.schedules import linear_schedule
+from relayrl.seeding import RunSeeds
+from relayrl.training.checkpoint import list_checkpoints
+from relayrl.training.finite import FiniteWatch, non_finite_metrics, non_finite_tensor, stop
+from relayrl.training.learner import Learner
+from relayrl.training.replay_setup import collect_only
+from relayrl.training.report import Callback, RunReport, log_config
+from relayrl.training.run_dir import RunDir
+from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver, Progress, StepsPerSecondLog
+
+
+@dataclass
+class RunResult:
+    run_dir: Path
+    final: dict[str, Any]  # the last evaluation row of metrics.jsonl
+    stopped_early: bool = False  # a callback returned False before train.total_steps
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise UserError(f"device={name!r} but CUDA is not available here; valid: cpu, auto")
+    return torch.device(name)
+
+
+def start_process(config: Config) -> tuple[RunSeeds, torch.device]:
+    """Thread count, the run's seeds (torch's global generator seeded for network
+    initialisation) and its device."""
+    if config.train.torch_threads > 0:
+        torch.set_num_threads(config.train.torch_threads)
+    seeds = RunSeeds(config.seed)
+    torch.manual_seed(seeds.base("torch"))
+    return seeds, resolve_device(config.device)
+
+
+def check_user_env(config: Config, env_factory: Callable[[], Any] | None, say: Callable[[str], None]) -> None:
+    """Gymnasium's env checker, once, on a user's own env (env.check): its findings as lines."""
+    e = config.env
+    if e.check and is_user_env(e.id, env_factory):
+        for line in check_env(e.id, e.kwargs, e.wrappers, env_factory, e.max_episode_steps):
+            say(f"env check (env.check = false turns it off): {line}")
+
+
+def make_learner(config: Config, agent: Agent, table: Any, device: torch.device, variables: Any,
+                 whole_rollouts: bool) -> Learner:
+    """The learner over `table`; a rollout queue's (`whole_rollouts`) takes one rollout per
+    step, which the agent cuts into its minibatches."""
+    c = config
+    return Learner(agent, table, 1 if whole_rollouts else c.agent.batch_size, device,
+                   prioritized=c.replay.sampler == "prioritized", importance_exponent=c.replay.importance_exponent,
+                   priority_eps=c.replay.priority_eps, variables=variables)
+
+
+class RunCore:
+    """The parts every driver holds the same way: agent, learner, report, triggers (the
+    evaluation the driver gives, policy save, checkpoint, steps/s log), the finite watch and
+    the run's clock. `env_steps()` and `checkpoint_state()` are the driver's."""
+
+    def __init__(self, config: Config, rd: RunDir, agent: Agent, learner: Learner, stats: EpisodeStats,
+                 finite: FiniteWatch, *, env_steps: Callable[[], int], checkpoint_state: Callable[[], dict[str, Any]],
+                 evaluation: IntervalTrigger, show_progress: bool, callbacks: list[Callback] | None = None,
+                 postfix: Callable[[], dict[str, str]] = dict,
+                 extra_scalars: Callable[[], dict[str, float]] = dict) -> None:
+        c = config
+        self.config, self.rd, self.agent, self.learner = config, rd, agent, learner
+        self.stats, self.finite = stats, finite
+        self.env_steps = env_steps
+        self.t0, self.wall_offset = time.perf_counter(), 0.0
+        self.report = RunReport(c, rd, stats, show_progress=show_progress, callbacks=list(callbacks or []),
+                                progress=self.progress, wall_time=self.wall_time, losses=learner.scalar_metrics,
+                                schedules=agent.scalars, postfix=postfix, extra_scalars=extra_scalars)
+        self.beta_at = linear_schedule(c.replay.importance_exponent, 1.0, c.train.total_steps)
+        self.collect_only = collect_only(c)
+        self.policy_saver = PolicySaver(c.train.policy_save_interval, agent, rd.policy, extra={"env_id": c.env.id})
+        self.checkpointer = Checkpointer(c.train.checkpoint_interval, checkpoint_state, rd.checkpoints)
+        self.sps_log = StepsPerSecondLog(c.train.log_interval, report=self.report.log_progress)
+        self.triggers: list[IntervalTrigger] = [evaluation, self.policy_saver, self.checkpointer, self.sps_log]
+
+    def say(self, text: str) -> None:
+        self.report.say(text)
+
+    def progress(self) -> Progress:
+        return Progress(self.env_steps(), self.agent.train_step)
+
+    def wall_time(self) -> float:
+        return self.wall_offset + time.perf_counter() - self.t0
+
+    def step_schedules(self, env_steps: int) -> None:
+        """What follows collection: the agent's env-step schedules, the importance exponent."""
+        self.agent.set_progress(env_steps)
+        self.learner.importance_exponent = self.beta_at(env_steps)
+
+    def fire_triggers(self) -> None:
+        p = self.progress()
+        due = [trigger for trigger in self.triggers if trigger.due(p)]
+        if due or self.finite.due():
+            self.check_finite(p, weights=self.policy_saver in due or self.checkpointer in due)
+        for trigger in due:  # the others would find nothing due
+            trigger(p)
+
+    def check_finite(self, p: Progress, weights: bool) -> None:
+        """Stop the run (NonFiniteError) at a NaN or inf in what was collected, the latest losses
+        or, before a save, the weights: nothing non-finite is ever evaluated or saved."""
+        finding = self.finite.check()
+        where = f"by env step {p.env_steps:,} (train step {p.train_step:,})"
+        if finding is None:
+            loss = non_finite_metrics(self.learner.last_metrics)
+            if loss is not None:
+                finding = (f"{loss} {where}: check the learning rate (agent.lr and the like: too high diverges), "
+                           "the reward scale and the env's observations")
+        if finding is None and weights:
+            name = non_finite_tensor(self.agent.state_dict())
+            if name is not None:
+                finding = (f"the agent's {name} held a NaN or inf {where}: check the learning rate "
+                           "(too high diverges), the reward scale and the env's observations")
+        if finding is not None:
+            raise stop(finding, self.kept())
+
+    def kept(self) -> str:
+        """What a run stopped for a non-finite number leaves: its last checkpoint and policy."""
+        ckpts = list_checkpoints(self.rd.checkpoints)
+        parts = [f"the last good checkpoint (env step {int(ckpts[-1].stem.split('-')[1]):,})"] if ckpts else []
+        saved = self.policy_saver.saved_at
+        if saved is not None:
+            parts.append(f"the policy saved at env step {saved:,}")
+        elif (self.rd.policy / "policy.pt").is_file():
+            parts.append("the policy saved before")
+        if not parts:
+            return f"nothing was saved in {self.rd.root}"
+        return f"{' and '.join(parts)} {'are' if len(parts) > 1 else 'is'} kept in {self.rd.root}"
+
+    def process_state(self) -> dict[str, Any]:
+        """The global RNGs (a user's env may draw from them) and the latest losses."""
+        return {"global_rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
+                               "python": random.getstate()},
+                "last_metrics": {k: v.detach().cpu() for k, v in self.learner.last_metrics.items()}}
+
+    def load_process_state(self, state: dict[str, Any]) -> None:
+        rng = state["global_rng"]
+        torch.set_rng_state(rng["torch"])
+        np.random.set_state(rng["numpy"])
+        random.setstate(rng["python"])
+        self.learner.last_metrics = dict(state["last_metrics"])
+
+    def resume_at(self, steps: int) -> None:
+        """Drop metrics rows past the checkpoint and let the triggers carry on from it."""
+        kept = self.rd.truncate_metrics(after_step=steps)
+        if kept and kept[-1].get("step") == steps:
+            self.report.last_eval = kept[-1]  # a finished run resumed again needs no second final eval
+        for trigger in self.triggers:
+            trigger.start_at(steps)
+        self.finite.checked = steps
+
+
+class Driver(Protocol):
+    """What `run_to_end` asks of a driver (training/local.py, distributed/driver.py)."""
+
+    core: RunCore
+
+    def restore(self) -> None:
+        """Load the latest checkpoint into every part (`--resume`)."""
+
+    def announce(self) -> None:
+        """A line about the run's layout, once it starts."""
+
+    def evaluate_now(self, p: Progress) -> None:
+        """Start an evaluation of the current policy (its row is written when it finishes)."""
+
+    def iterate(self) -> None:
+        """Collect and train up to train.total_steps, firing the core's triggers."""
+
+    def settle_evals(self) -> None:
+        """Wait for evaluations still in flight."""
+
+    def close(self) -> None:
+        """End the envs, processes or actors the driver started, however the run ends."""
+
+
+def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
+    """The run directory around the driver's `iterate`: the untrained policy's evaluation and
+    save, then the final evaluation, policy save and checkpoint."""
+    core = driver.core
+    c, report = core.config, core.report
+    core.t0 = time.perf_counter()
+    try:
+        if not c.train.checkpoint_replay and c.train.checkpoint_interval > 0:
+            core.say("train.checkpoint_replay = false: checkpoints leave the replay out; a resumed run refills it")
+        if resume:
+            driver.restore()  # rewrites metrics.jsonl: open the log only afterwards
+        report.open(core.env_steps())
+        driver.announce()
+        if core.env_steps() == 0:
+            log_config(report.tb, c)
+            driver.evaluate_now(Progress(0, 0))  # the untrained policy, before any collection
+            core.policy_saver.save(Progress(0, 0))  # `relayrl eval` works from the start
+        if not report.stop_requested:
+            driver.iterate()
+        stopped = report.stop_requested and core.env_steps() < c.train.total_steps
+        if stopped:
+            core.say(f"a callback returned False: the run stops at env step {core.env_steps():,}")
+        finish(driver, core.progress())
+        return RunResult(core.rd.root, report.last_eval, stopped_early=stopped)
+    except NonFiniteError as e:  # found below the run (the learner): it says what the run keeps
+        if e.kept:
+            raise
+        # the cause, where it was collected: a NaN reward is named, not the TD error it made
+        raise stop(core.finite.check() or str(e), core.kept()) from None
+    finally:
+        report.close()
+        driver.close()
+
+
+def finish(driver: Driver, p: Progress) -> None:
+    """The final evaluation (unless one ran at this step), policy save, checkpoint and log."""
+    core = driver.core
+    core.check_finite(p, weights=True)
+    if core.report.last_eval.get("step") != p.env_steps:
+        driver.evaluate_now(p)
+    driver.settle_evals()
+    core.policy_saver.save(p)
+    if core.config.train.checkpoint_interval > 0:
+        core.checkpointer.save(p)
+    core.report.write_scalars(p, *core.report.run_sps(p))

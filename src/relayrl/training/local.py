@@ -1,0 +1,210 @@
+"""The one-process driver: envs, Actor, replay, Learner and triggers in this process (the envs
+stepped here or in worker processes), put together top to bottom in `LocalDriver.__init__` and
+driven by `iterate`: collect, train what the rate limiter allows, fire the triggers."""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Callable
+from typing import Any
+
+from relayrl.agents.registry import algorithm
+from relayrl.config import Config, to_dict
+from relayrl.envs import make_env
+from relayrl.envs.stateless.adapter import StatelessBatchEnv
+from relayrl.errors import UserError
+from relayrl.metrics import EnvironmentSteps, EpisodeStats
+from relayrl.policies import RandomPolicy
+from relayrl.training.actor import Actor
+from relayrl.training.checkpoint import load_latest_checkpoint
+from relayrl.training.evaluate import eval_cap_note, make_eval_env
+from relayrl.training.finite import FiniteWatch
+from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
+from relayrl.training.replay_setup import build_replay, build_rollouts, replay_device
+from relayrl.training.report import Callback, say
+from relayrl.training.run_dir import RunDir
+from relayrl.training.triggers import Evaluate, Progress
+from relayrl.training.variables import VariableContainer, WeightPuller, network_variables
+
+
+class LocalDriver:
+    def __init__(self, config: Config, rd: RunDir, progress: bool = True,
+                 env_factory: Callable[[], Any] | None = None, callbacks: list[Callback] | None = None) -> None:
+        c = self.config = config
+        self.rd = rd
+        self.seeds, self.device = start_process(c)
+        self.env: Any = None
+        self.eval_env: Any = None
+        try:
+            self._build(progress, env_factory, callbacks or [])
+        except BaseException:  # env worker processes: none is left behind by a failure here
+            self.close()
+            raise
+
+    def _build(self, progress: bool, env_factory: Callable[[], Any] | None, callbacks: list[Callback]) -> None:
+        c, seeds, device = self.config, self.seeds, self.device
+        entry = algorithm(c.algo)
+        # Envs: stateless torch envs live on the agent's device; Gymnasium envs on the CPU.
+        check_user_env(c, env_factory, say)
+        made = {"kwargs": c.env.kwargs, "wrappers": c.env.wrappers, "factory": env_factory}
+        self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
+                            time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
+                            num_workers=c.env.num_workers, device=device, info_keys=c.env.info_keys, **made)
+        self.eval_env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, device,
+                                      c.env.info_keys, **made)
+        note = eval_cap_note(self.eval_env, c.env.id)
+        if note:
+            say(note)
+        obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
+        stateless = isinstance(self.env, StatelessBatchEnv)
+
+        # The algorithm's agent and the replay it learns from: a rate-limited transitions table,
+        # or a queue of rollouts (a stateless torch env's stay tensors on the run's device).
+        self.agent = entry.make_agent(c.agent, obs_spec, act_spec, device, seeds.generator("exploration"),
+                                     c.train.total_steps)
+        self.finite = FiniteWatch(c.env.num_envs, obs_spec)
+        whole_rollouts = entry.replay == "rollouts"
+        if whole_rollouts:
+            self.replay, self.writer = build_rollouts(c, device if stateless else None)
+        else:
+            self.replay, self.writer = build_replay(c, obs_spec, act_spec, self.rd.root,
+                                                    replay_device(c, device, stateless))
+        # One thread collects and learns in turn: an insert waiting on the rate limiter could
+        # never be released; the learner's `available_steps` after each collect call keeps the ratio.
+        self.replay.inserts_wait = False
+
+        # The actor: random actions until train.initial_collect_steps, then the collect policy
+        # on its own copy of the policy network, refreshed from the variable container the
+        # learner pushes to (the same wiring as on Ray, where it is remote). Learner and actor
+        # take turns in this process, so the container may keep references.
+        self.random_rng = seeds.generator("warmup")
+        self.steps = EnvironmentSteps()
+        self.stats = EpisodeStats()
+        self.stats.step_fn = lambda: self.steps.value  # read where episodes end (TensorBoard's points)
+        self.actor = Actor(self.env, RandomPolicy(act_spec, self.random_rng),
+                           [self.steps, self.stats, self.writer, self.finite], seed=seeds.base("envs"))
+        self.variables = VariableContainer(copy=False)
+        acting_net = copy.deepcopy(self.agent.policy_network()).requires_grad_(False)
+        self.actor.puller = WeightPuller(self.variables, acting_net, c.train.pull_interval)
+        on_device = self.agent.device_collect_policy(acting_net) if stateless else None
+        self.collect_policy = (on_device if on_device is not None
+                               else self.agent.collect_policy(lambda: self.actor.env_steps, acting_net))
+
+        learner = make_learner(c, self.agent, self.replay, device, self.variables, whole_rollouts)
+        self.evaluator = Evaluate(c.eval.interval, self.eval_env, self.agent.eval_policy, c.eval.episodes,
+                                  seed=seeds.base("evaluation"),
+                                  on_result=lambda p, result: self.core.report.record_eval(p, result,
+                                                                                           self.evaluator.seconds))
+        self.core = RunCore(c, self.rd, self.agent, learner, self.stats, self.finite,
+                            env_steps=lambda: self.actor.env_steps, checkpoint_state=self.checkpoint_state,
+                            evaluation=self.evaluator, show_progress=progress, callbacks=callbacks)
+
+    def train(self, resume: bool = False) -> RunResult:
+        return run_to_end(self, resume)
+
+    def iterate(self) -> None:
+        c, core = self.config, self.core
+        total = c.train.total_steps
+        if self.actor.env_steps == 0:
+            self.actor.run(min(c.train.initial_collect_steps, total))  # never past total_steps
+        core.sps_log.rates.reset(core.progress())
+        self.variables.push(network_variables(self.agent.policy_network()))  # fresh or restored weights
+        self.actor.policy = self.collect_policy
+        while self.actor.env_steps < total and not core.report.stop_requested:
+            self.actor.run(min(c.train.collect_steps, total - self.actor.env_steps))
+            core.step_schedules(self.actor.env_steps)
+            if not core.collect_only:
+                core.learner.run(core.learner.available_steps())  # the rate limiter decides
+            core.fire_triggers()
+
+    def announce(self) -> None:
+        """One process says nothing about its layout."""
+
+    def evaluate_now(self, p: Progress) -> None:
+        self.evaluator.evaluate(p)
+
+    def settle_evals(self) -> None:
+        """Evaluations run in turn here: none is in flight."""
+
+    def checkpoint_state(self) -> dict[str, Any]:
+        """Everything a resume needs besides the env step, which the Checkpointer adds."""
+        return {
+            "version": 2,
+            "config": to_dict(self.config),
+            "agent": self.agent.state_dict(),
+            # Very large tables may be left out (train.checkpoint_replay = false): a resumed
+            # run then refills its replay before learning again.
+            "replay": self.replay.state_dict() if self.config.train.checkpoint_replay else None,
+            "episode_stats": self.stats.state_dict(),
+            "random_rng": self.random_rng.bit_generator.state,
+            # A collect policy with state of its own (SAC's noise generator on a GPU) saves it.
+            "collect_policy": self.collect_policy.state_dict(),
+            "eval_count": self.evaluator.count,
+            "wall_time_s": self.core.wall_time(),
+            # Mid-episode state, so that a resumed run is the uninterrupted run bit for bit:
+            # the envs (pickled, where they can be), the pending observation, the acting copy
+            # of the policy, the global RNGs a user's env may draw from, the latest losses.
+            "actor": self.actor.state_dict(),
+            "variables_version": self.variables.version,
+            **self.core.process_state(),
+        }
+
+    def restore(self) -> None:
+        core = self.core
+        state = load_latest_checkpoint(self.rd.checkpoints)
+        saved_envs = state["config"]["env"]["num_envs"]
+        if saved_envs != self.config.env.num_envs:
+            raise UserError(f"env.num_envs={self.config.env.num_envs} but the run being resumed has "
+                            f"{saved_envs} (its replay and envs are laid out per copy); resume with {saved_envs}")
+        self.agent.load_state_dict(state["agent"])
+        files_moved_on = False
+        if state["replay"] is not None:
+            self.replay.load_state_dict(state["replay"])  # drops items whose memmap rows were overwritten
+            # A memmap replay reopens its files as they are now: if the run went on for more
+            # than a ring's worth of steps after this checkpoint, even the open episodes' rows
+            # hold newer steps, and the envs must start new episodes.
+            files_moved_on = "actor" in state and not self.writer.saved_episodes_intact()
+            if files_moved_on:
+                core.say("the replay files were overwritten after this checkpoint: the envs start new episodes")
+        else:
+            core.say("the checkpoint has no replay contents (train.checkpoint_replay = false): "
+                     "the replay refills from the resumed policy before learning continues")
+        self.stats.load_state_dict(state["episode_stats"])
+        self.random_rng.bit_generator.state = state["random_rng"]
+        self.collect_policy.load_state_dict(state.get("collect_policy", {}))
+        self.evaluator.count = int(state["eval_count"])
+        core.wall_offset = float(state["wall_time_s"])
+        steps = int(state["env_steps"])
+        self.steps.value = steps
+        self._restore_episodes(state, steps, files_moved_on)
+        core.resume_at(steps)
+        core.say(f"resumed from env step {steps:,} (train step {self.agent.train_step:,})")
+
+    def _restore_episodes(self, state: dict[str, Any], steps: int, files_moved_on: bool) -> None:
+        """The actor, its envs mid-episode where they can be, and what observes them."""
+        continued = False
+        reset_seed = self.seeds.base("resume") + steps
+        if "actor" in state:  # checkpoints before mid-episode state (version 1) lack it
+            self.variables.load_state_dict({"version": state["variables_version"], "weights": None})
+            actor_state = {**state["actor"], "env": None} if files_moved_on else state["actor"]
+            continued = self.actor.load_state_dict(actor_state, reset_seed=reset_seed)
+            self.core.load_process_state(state)
+        else:
+            self.actor.load_state_dict({"env_steps": steps, "env": None}, reset_seed=reset_seed)
+        if continued and state["replay"] is not None:
+            self.writer.continue_episodes()
+        elif not continued:
+            # Env internals that cannot be pickled (simulator handles): fresh episodes, seeded
+            # so that a resumed run is itself reproducible; the interrupted ones are dropped.
+            self.stats.reset_running()
+            if "actor" not in state:
+                self.core.say("this checkpoint (format 1) holds no env state: the resumed run starts new episodes")
+            elif not files_moved_on:
+                self.core.say("env state is not checkpointable (the env cannot be pickled): "
+                              "the resumed run starts new episodes")
+
+    def close(self) -> None:
+        """The envs end with the run, however it ends: async envs' worker processes included."""
+        for env in (self.env, self.eval_env):
+            if env is not None:
+                env.close()

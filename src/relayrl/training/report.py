@@ -1,0 +1,181 @@
+"""What a run shows and writes as it goes: console lines, the progress bar (or a line every 30 s
+without a terminal), TensorBoard, the evaluation rows of metrics.jsonl and the user's callbacks.
+Every driver (one process, Ray) reports through one of these; it reads the run's progress and
+losses through the functions it is given and never steers the run, except that a callback
+returning False sets `stop_requested`."""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+from relayrl.config import Config, to_dict
+from relayrl.metrics import EpisodeStats
+from relayrl.training.heartbeat import ProgressLines
+from relayrl.training.run_dir import MetricsLog, RunDir
+from relayrl.training.triggers import Progress
+
+# relayrl.train(callbacks=[...]): each is called with a metrics row (the `event` key says which:
+# "eval", the row metrics.jsonl gets at an evaluation, or "log", every train.log_interval env
+# steps); returning False stops the run as if it had reached train.total_steps.
+Callback = Callable[[dict[str, Any]], Any]
+
+
+def say(text: str) -> None:
+    """A line for the user where no report is open (a driver being built)."""
+    print(text, file=sys.stderr, flush=True)
+
+
+def log_config(tb: Any, config: Config) -> None:
+    """The run's config in TensorBoard: as TOML text (with each key's meaning) and as hparams."""
+    from relayrl.config_fields import commented_toml
+
+    text = commented_toml(config)
+    tb.add_text("config", "\n".join("    " + line for line in text.splitlines()))  # a markdown code block
+    flat: dict[str, Any] = {}
+
+    def walk(d: dict[str, Any], prefix: str) -> None:
+        for k, v in d.items():
+            if isinstance(v, dict):
+                walk(v, f"{prefix}{k}.")
+            elif v is not None:
+                flat[prefix + k] = v if isinstance(v, (bool, int, float, str)) else str(v)
+
+    walk(to_dict(config), "")
+    tb.add_hparams(flat, {}, run_name=".")  # ".": into the run's own folder, not a new one
+
+
+class RunReport:
+    """`progress()` and `wall_time()` say where the run is; `losses()` the learner's latest
+    scalars; `schedules(env_steps)` the agent's (epsilon, learning_rate); `postfix()` extra
+    progress-bar fields and `extra_scalars()` extra TensorBoard scalars of a driver's own."""
+
+    def __init__(self, config: Config, rd: RunDir, stats: EpisodeStats, *, show_progress: bool,
+                 callbacks: list[Callback], progress: Callable[[], Progress], wall_time: Callable[[], float],
+                 losses: Callable[[], dict[str, float]], schedules: Callable[[int], dict[str, float]],
+                 postfix: Callable[[], dict[str, str]] = dict,
+                 extra_scalars: Callable[[], dict[str, float]] = dict) -> None:
+        self.config, self.rd, self.stats = config, rd, stats
+        self.show_progress, self.callbacks = show_progress, list(callbacks)
+        self.progress, self.wall_time, self.losses, self.schedules = progress, wall_time, losses, schedules
+        self.postfix, self.extra_scalars = postfix, extra_scalars
+        self.stop_requested = False  # a callback returned False: the driver stops at its next check
+        self.last_eval: dict[str, Any] = {}
+        self.started = (time.perf_counter(), Progress(0, 0))  # when and where reporting began: the run's sps
+        self.tb: Any = None
+        self.metrics_log: MetricsLog | None = None
+        self.bar: Any = None
+        self.lines: ProgressLines | None = None
+
+    def open(self, initial_steps: int) -> None:
+        """TensorBoard, metrics.jsonl (appended to) and the progress bar, from `initial_steps`."""
+        from torch.utils.tensorboard import SummaryWriter
+        from tqdm import tqdm
+
+        self.tb = SummaryWriter(str(self.rd.tb))
+        self.metrics_log = MetricsLog(self.rd.metrics)
+        self.bar = tqdm(total=self.config.train.total_steps, unit="step",
+                        disable=None if self.show_progress else True, dynamic_ncols=True, initial=initial_steps)
+        self.started = (time.perf_counter(), self.progress())
+        if self.show_progress and self.bar.disable:  # no terminal: a line every 30 s instead
+            self.lines = ProgressLines(self.progress_line, self.say).start()
+
+    def close(self) -> None:
+        if self.lines is not None:
+            self.lines.stop()
+        if self.bar is not None:
+            self.bar.close()
+        for log in (self.tb, self.metrics_log):
+            if log is not None:
+                log.close()
+
+    def say(self, text: str) -> None:
+        if self.bar is not None and not self.bar.disable:
+            self.bar.write(text)
+        else:
+            say(text)
+
+    def run_sps(self, p: Progress) -> tuple[float, float]:
+        """Env and gradient steps per second since reporting began."""
+        t0, p0 = self.started
+        dt = max(time.perf_counter() - t0, 1e-9)
+        return (p.env_steps - p0.env_steps) / dt, (p.train_step - p0.train_step) / dt
+
+    def log_progress(self, p: Progress, env_sps: float, grad_sps: float) -> None:
+        """Every train.log_interval env steps: TensorBoard scalars and the progress bar. The final
+        step's scalars are the driver's last `write_scalars` (the run's steps/s), so none is
+        written twice."""
+        scalars = None
+        if p.env_steps < self.config.train.total_steps:
+            scalars = self.write_scalars(p, env_sps, grad_sps)
+        if self.callbacks:
+            self.call_back("log", {"step": p.env_steps, "train_step": p.train_step,
+                                   "wall_time_s": round(self.wall_time(), 3), **self.training_summary(),
+                                   **(scalars or self.log_scalars(p, env_sps, grad_sps))})
+        if self.bar is not None:
+            self.bar.update(p.env_steps - self.bar.n)
+            last = self.last_eval.get("average_return")
+            self.bar.set_postfix(sps=f"{env_sps:.0f}", eval=f"{last:.1f}" if last is not None else "-",
+                                 **self.postfix())
+
+    def write_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
+        """TensorBoard as CleanRL names it: charts/episodic_return and charts/episodic_length, one
+        point per training episode at the env step it finished; then `log_scalars`, returned."""
+        for step, ret, length in self.stats.take_finished():
+            self.tb.add_scalar("charts/episodic_return", ret, step)
+            self.tb.add_scalar("charts/episodic_length", length, step)
+        scalars = self.log_scalars(p, env_sps, grad_sps)
+        for k, v in {**scalars, **self.extra_scalars()}.items():
+            self.tb.add_scalar(k, v, p.env_steps)
+        return scalars
+
+    def log_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
+        """perf/sps and perf/grad_sps, losses/*, charts/epsilon (DQN), charts/learning_rate and the
+        info keys' means: what TensorBoard and the callbacks' "log" rows get."""
+        return {"perf/sps": env_sps, "perf/grad_sps": grad_sps, **self.losses(),
+                **{f"charts/{k}": v for k, v in self.schedules(p.env_steps).items()},
+                **{f"charts/{k}": v for k, v in self.stats.info_means().items()}}
+
+    def training_summary(self) -> dict[str, Any]:
+        """The training episodes' side of a metrics row: their mean return, count and info means."""
+        returns = self.stats.returns
+        return {"train/average_return": sum(returns) / len(returns) if returns else float("nan"),
+                "train/episodes": self.stats.episodes,
+                **{f"train/{k}": v for k, v in self.stats.info_means().items()}}
+
+    def progress_line(self) -> str:
+        """The line printed every 30 s where there is no progress bar (no terminal)."""
+        p, total = self.progress(), self.config.train.total_steps
+        sps, _ = self.run_sps(p)
+        last = self.last_eval.get("average_return")
+        return (f"step {p.env_steps:,}/{total:,} ({100 * p.env_steps / total:.0f}%) | {sps:,.0f} env steps/s "
+                f"| last eval return {'-' if last is None else f'{last:.2f}'} | {self.wall_time():.0f}s")
+
+    def record_eval(self, p: Progress, result: dict[str, Any], eval_s: float, wall_time_s: float | None = None,
+                    extra: dict[str, Any] | None = None) -> None:
+        """One metrics.jsonl row (and TensorBoard scalars, and a console line) for an evaluation."""
+        assert self.metrics_log is not None, "record_eval before open"
+        wall = self.wall_time() if wall_time_s is None else wall_time_s
+        row = {"step": p.env_steps, "train_step": p.train_step, **result,
+               "wall_time_s": round(wall, 3), "eval_s": round(eval_s, 3), **self.training_summary(),
+               **self.losses(), **(extra or {})}
+        self.metrics_log.write(row)
+        self.tb.add_scalar("eval/average_return", result["average_return"], p.env_steps)
+        self.tb.add_scalar("eval/average_episode_length", result["average_episode_length"], p.env_steps)
+        for k, v in result.items():
+            if k.startswith("eval/"):
+                self.tb.add_scalar(k, v, p.env_steps)
+        self.last_eval = row
+        self.say(f"step {p.env_steps:>9,} | eval return {result['average_return']:8.2f} "
+                 f"| length {result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
+        self.call_back("eval", row)
+
+    def call_back(self, event: str, row: dict[str, Any]) -> None:
+        """Each callback gets its own copy of the row with `event`; False from any stops the run.
+        What a callback raises propagates (it is the user's code): the run ends there, its
+        checkpoints and metrics as they were."""
+        for callback in self.callbacks:
+            if callback({**row, "event": event}) is False:
+                self.stop_requested = True
