@@ -3,7 +3,7 @@
     python bench/dqn_update.py [--hidden 256 256] [--batch 64] [--threads 1]
 
 Agent rows use the RL-Zoo CartPole settings (Huber, grad clip 10, target copied every 128
-steps); "autograd" rows run the same agent with `fast = False` (dqn_loss + backward),
+steps); "autograd" rows run the same agent with `hand_written=False` (dqn_loss + backward),
 the others the hand-written gradients of agents/dqn/losses_fast.py. The burst rows are what the
 trainer does after every 256 env steps, `Learner.run(128)`, per step: with the target
 network's Q-values computed once per chunk of batches (the default) and, for comparison,
@@ -80,9 +80,7 @@ def main() -> None:
     def make_agent(double: bool, fast: bool) -> DQNAgent:
         cfg = DQNConfig(hidden=h, batch_size=b, lr=2.3e-3, target_update_period=128, grad_clip=10.0,
                         double=double)
-        agent = DQNAgent(obs_spec, act_spec, cfg, torch.device("cpu"), np.random.default_rng(0))
-        agent.fast = fast and agent.fast
-        return agent
+        return DQNAgent(obs_spec, act_spec, cfg, torch.device("cpu"), np.random.default_rng(0), hand_written=fast)
 
     agent = make_agent(False, True)
     # The trainer's replay: a uniform Table fed by a TransitionWriter, 100,000 transitions.

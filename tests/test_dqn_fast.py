@@ -9,6 +9,7 @@ import torch
 
 from relayrl.agents.dqn import DQNAgent, DQNConfig, dqn_loss
 from relayrl.agents.dqn.losses_fast import dqn_loss_and_grads
+from relayrl.agents.dqn.update import DQNUpdate, HandWrittenDQNUpdate
 from relayrl.nn import MLP
 from relayrl.nn.mlp_fast import clip_flat_grad_norm_, grad_buffers
 from relayrl.specs import ArraySpec, DiscreteSpec
@@ -75,21 +76,24 @@ def test_clipping_equals_torch(max_norm):
         assert torch.allclose(g, p.grad, rtol=1e-5, atol=1e-8)
 
 
-def train_agent(fast, double, steps=30, seed=0):
+def train_agent(fast, double, steps=30, seed=0, **kw):
     torch.manual_seed(seed)
-    cfg = DQNConfig(hidden=[32, 32], lr=1e-3, double=double, target_update_period=7, grad_clip=1.0)
+    cfg = DQNConfig(**{"hidden": [32, 32], "lr": 1e-3, "double": double, "target_update_period": 7,
+                       "grad_clip": 1.0, **kw})
     agent = DQNAgent(ArraySpec((5,), torch.float32), DiscreteSpec(3), cfg, torch.device("cpu"),
-                     np.random.default_rng(seed))
-    agent.fast = fast
+                     np.random.default_rng(seed), hand_written=fast)
+    assert type(agent.update) is (HandWrittenDQNUpdate if fast else DQNUpdate)
     metrics = [agent.train(make_batch(weighted=i % 2 == 1, seed=i)) for i in range(steps)]
     return agent, metrics
 
 
 @pytest.mark.parametrize("double", [False, True])
-def test_agent_updates_equal_autograd_path(double):
-    fast_agent, fast_metrics = train_agent(True, double)
-    ref_agent, ref_metrics = train_agent(False, double)
-    assert set(fast_metrics[-1]) == set(ref_metrics[-1]) >= {"loss", "q", "td_error", "grad_norm"}
+@pytest.mark.parametrize("options", [{}, {"loss": "mse", "grad_clip": 0.0}, {"tau": 0.1, "target_update_period": 1},
+                                     {"target_update_period": 1}])  # the last: no target network
+def test_agent_updates_equal_autograd_path(double, options):
+    fast_agent, fast_metrics = train_agent(True, double, **options)
+    ref_agent, ref_metrics = train_agent(False, double, **options)
+    assert set(fast_metrics[-1]) == set(ref_metrics[-1]) >= {"loss", "q", "td_error"}
     for a, b in zip(fast_agent.online.parameters(), ref_agent.online.parameters(), strict=True):
         assert torch.allclose(a, b, rtol=1e-4, atol=1e-6)
     assert torch.allclose(fast_metrics[-1]["td_error"], ref_metrics[-1]["td_error"], rtol=1e-4, atol=1e-5)
@@ -103,13 +107,20 @@ def test_agent_is_deterministic():
 
 
 @pytest.mark.parametrize("double", [False, True])
-def test_target_q_given_with_the_batch_stands_for_the_target_network(double):
+def test_target_q_given_stands_for_the_target_network(double):
     online, target = nets("relu", with_target=True)
     batch = make_batch()
     with torch.no_grad():
-        given = batch._replace(target_q=target(batch.next_obs))
-        shifted = batch._replace(target_q=target(batch.next_obs) + 1.0)
-    for fn in (lambda b: dqn_loss(online, target, b, double=double)[0],
-               lambda b: dqn_loss_and_grads(online, target, b, double=double)[0]):
-        assert torch.allclose(fn(given), fn(batch), rtol=1e-6)
-        assert not torch.allclose(fn(shifted), fn(batch), rtol=1e-3)  # the given values are used
+        given, shifted = target(batch.next_obs), target(batch.next_obs) + 1.0
+    for fn in (lambda q: dqn_loss(online, target, batch, double=double, target_q=q)[0],
+               lambda q: dqn_loss_and_grads(online, target, batch, double=double, target_q=q)[0]):
+        assert torch.allclose(fn(given), fn(None), rtol=1e-6)
+        assert not torch.allclose(fn(shifted), fn(None), rtol=1e-3)  # the given values are used
+
+
+def test_both_updates_give_the_target_network_s_q_values():
+    for fast in (True, False):
+        agent, _ = train_agent(fast, False, steps=3)
+        obs = torch.randn(6, 5)
+        with torch.no_grad():
+            assert torch.allclose(agent.update.target_q(obs), agent.target(obs), atol=1e-6)

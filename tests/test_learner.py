@@ -6,13 +6,15 @@ import pytest
 import torch
 
 from relayrl.agents.dqn import DQNAgent, DQNConfig
+from relayrl.agents.dqn.agent import PreparedBatch
+from relayrl.core import Agent
 from relayrl.replay import Fifo, MinSize, Table, TransitionWriter, Uniform
 from relayrl.specs import ArraySpec, DiscreteSpec
 from relayrl.training.learner import Learner
 from relayrl.types import Transition
 
 
-class Recorder:
+class Recorder(Agent):
     """An agent that only records the batches it is given."""
 
     def __init__(self) -> None:
@@ -77,10 +79,8 @@ def test_target_q_computed_per_chunk_is_the_target_network_s_at_every_step(doubl
     def agent():
         cfg = DQNConfig(hidden=[16], batch_size=16, target_update_period=5, double=double, lr=1e-2)
         torch.manual_seed(0)  # the same initial weights for both
-        a = DQNAgent(ArraySpec((3,), torch.float32), DiscreteSpec(2), cfg, torch.device("cpu"),
-                     np.random.default_rng(0))
-        a.fast = fast and a.fast
-        return a
+        return DQNAgent(ArraySpec((3,), torch.float32), DiscreteSpec(2), cfg, torch.device("cpu"),
+                        np.random.default_rng(0), hand_written=fast)
 
     chunked, stepwise = agent(), agent()
     stepwise.prepare = lambda batch, steps: batch
@@ -90,7 +90,7 @@ def test_target_q_computed_per_chunk_is_the_target_network_s_at_every_step(doubl
     train = chunked.train
 
     def checked_train(batch):
-        if batch.target_q is not None:
+        if isinstance(batch, PreparedBatch):
             seen.append(len(seen))
             with torch.no_grad():
                 assert torch.allclose(batch.target_q, chunked.target(batch.next_obs), atol=1e-6)
@@ -112,3 +112,20 @@ def test_no_target_network_or_one_copied_every_step_leaves_batches_as_sampled():
         assert a.prepare_horizon() == 0
         batch = table().sample(64)[0]
         assert a.prepare(batch, 4) is batch
+
+
+def test_a_prepared_chunk_keeps_its_type_when_moved_to_the_device():
+    """What an agent's `prepare` returns (DQN's PreparedBatch) reaches `train` as the same type,
+    every tensor moved (the meta device stands in for a GPU)."""
+    class Preparing(Recorder):
+        def prepare_horizon(self) -> int:
+            return 10
+
+        def prepare(self, batch, steps):
+            return PreparedBatch(*batch, target_q=torch.zeros(batch.reward.shape[0], 2))
+
+    agent = Preparing()
+    Learner(agent, table(), batch_size=16, device=torch.device("meta")).run(12)
+    assert all(type(b) is PreparedBatch for b in agent.batches[1:])  # the first draws one batch alone
+    assert all(x.device.type == "meta" for b in agent.batches for x in b if x is not None)
+    assert agent.batches[-1].target_q.shape == (16, 2)

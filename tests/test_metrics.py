@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from relayrl.compile import compiled
+from relayrl.compile import numba_available
 from relayrl.metrics import (
     AverageEpisodeLength,
     AverageReturn,
@@ -23,7 +23,7 @@ def accumulation(request, monkeypatch):
     if request.param == "numpy":
         monkeypatch.setenv("RELAYRL_NUMBA", "0")
         assert EpisodeStats()._accumulate is None
-    elif compiled("relayrl.metrics_fast", "accumulate") is None:
+    elif not numba_available():
         pytest.skip("the compiled accumulation needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
     else:
         assert EpisodeStats()._accumulate is not None

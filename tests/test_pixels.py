@@ -9,7 +9,9 @@ import pytest
 import torch
 
 from relayrl.agents.dqn import DQNAgent, DQNConfig
+from relayrl.agents.dqn.update import DQNUpdate
 from relayrl.config import Config, from_dict
+from relayrl.core import Observer
 from relayrl.envs import make_env
 from relayrl.envs.pixels import SkipFrame, frame_stack_of, mario_preprocessing
 from relayrl.errors import ConfigError, UserError
@@ -140,7 +142,7 @@ def test_specs_mark_stacks_and_the_replay_stores_one_frame_per_step(tmp_path):
     assert stacked.table.storage.store.nbytes() < whole.table.storage.store.nbytes() / 3
 
 
-class Naive:
+class Naive(Observer):
     """Observer keeping every transition as a plain copy: what a naive replay would store."""
 
     def __init__(self, gamma: float) -> None:
@@ -185,7 +187,7 @@ def test_conv_q_networks_shapes_and_uint8_scaling(network):
     agent = DQNAgent(ArraySpec((4, 84, 84), torch.uint8), DiscreteSpec(6), cfg, torch.device("cpu"),
                      np.random.default_rng(0))
     net = agent.online
-    assert isinstance(net, ConvQNet) and not agent.fast  # the hand-written gradients are for MLPs only
+    assert isinstance(net, ConvQNet) and type(agent.update) is DQNUpdate  # hand-written: MLPs only
     assert net.head[0].in_features == 3136  # 64 x 7 x 7 at 84x84, as in Mnih et al. 2015
     x = torch.randint(0, 256, (5, 4, 84, 84), dtype=torch.uint8)
     q = net(x)

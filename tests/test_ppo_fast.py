@@ -8,6 +8,7 @@ import torch
 from relayrl.agents.ppo.agent import PPOAgent
 from relayrl.agents.ppo.config import PPOConfig
 from relayrl.agents.ppo.policy import PPOPolicy
+from relayrl.agents.ppo.update import HandWrittenPPOUpdate, PPOUpdate
 from relayrl.specs import ArraySpec, DiscreteSpec
 
 OBS = ArraySpec((3,), torch.float32)
@@ -18,12 +19,12 @@ def pair(action_spec, **kw):
     """Two agents in the same state: one on hand-written gradients, one on autograd."""
     cfg = PPOConfig(hidden=[16, 16], batch_size=8, n_epochs=3, **kw)
     agents = []
-    for _ in range(2):
+    for hand_written in (True, False):
         torch.manual_seed(0)
-        agents.append(PPOAgent(OBS, action_spec, cfg, torch.device("cpu"), np.random.default_rng(0), total_steps=100))
+        agents.append(PPOAgent(OBS, action_spec, cfg, torch.device("cpu"), np.random.default_rng(0), total_steps=100,
+                               hand_written=hand_written))
     fast, slow = agents
-    assert fast.fast
-    slow.fast = False
+    assert isinstance(fast.update, HandWrittenPPOUpdate) and type(slow.update) is PPOUpdate
     return fast, slow
 
 
@@ -61,7 +62,7 @@ def test_shared_networks_and_value_clipping_stay_on_autograd():
     for kw in ({"shared": True}, {"clip_range_vf": 0.2}):
         cfg = PPOConfig(hidden=[8], **kw)
         agent = PPOAgent(OBS, DiscreteSpec(3), cfg, torch.device("cpu"), np.random.default_rng(0))
-        assert not agent.fast
+        assert type(agent.update) is PPOUpdate
 
 
 @pytest.mark.parametrize("discrete", [True, False])

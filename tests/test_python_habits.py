@@ -127,8 +127,8 @@ def test_sac_lr_schedule_reaches_every_optimizer(fast):
     obs = ArraySpec((3,), torch.float32, -np.ones(3), np.ones(3))
     act = ArraySpec((1,), torch.float32, np.array([-2.0]), np.array([2.0]))
     cfg = SACConfig(lr_end=0.0, batch_size=4, actor_lr=1e-3, critic_lr=2e-3, alpha_lr=3e-3)
-    agent = SACAgent(obs, act, cfg, torch.device("cpu"), np.random.default_rng(0), total_steps=1000)
-    agent.fast = fast and agent.fast
+    agent = SACAgent(obs, act, cfg, torch.device("cpu"), np.random.default_rng(0), total_steps=1000,
+                     hand_written=fast)
     agent.set_progress(500)
     assert (agent.actor_opt.lr, agent.critic_opt.lr, agent.alpha_opt.lr) == pytest.approx((5e-4, 1e-3, 1.5e-3))
     assert agent.scalars(500)["learning_rate"] == pytest.approx(5e-4)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from relayrl.compile import compiled
+from relayrl.compile import numba_available
 from relayrl.config import ConfigError
 from relayrl.presets import load_config
 from relayrl.replay import Fifo, MinSize, SequenceWriter, Table, TransitionWriter, Uniform
@@ -107,7 +107,7 @@ def test_device_data_never_goes_through_numpy():
     t, w, shape = build("transition", 5, 40, n_step=3, device="cpu")
     # With numba, steps without an episode end take the compiled one-step flush (bookkeeping
     # in the loops, data in torch); the rest the general path.
-    has_numba = compiled("relayrl.replay.step_storage_fast", "OneStep") is not None
+    has_numba = numba_available()
     assert (w.table.storage.one_step is not None) == has_numba
     feed(w, stream(5, 60, shape, guard=True), every=1)
     feed(w, stream(5, 30, shape, seed=1, guard=True), every=7)

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from tree_checks import check_updates_and_finds
 
+from relayrl.compile import numba_available
 from relayrl.replay import (
     Fifo,
     Lifo,
@@ -20,7 +21,8 @@ from relayrl.replay import (
     Table,
     Uniform,
 )
-from relayrl.replay.sumtree import SumTree, compiled, make_sum_tree
+from relayrl.replay.selectors import make_sum_tree
+from relayrl.replay.sumtree import SumTree
 
 
 def filled(max_size, n, sampler=None, remover=None, limiter=None, prios=None, **kw):
@@ -124,7 +126,7 @@ def test_sum_tree_find_matches_a_cumulative_sum():
 def test_without_numba_prioritized_tables_use_the_numpy_tree(monkeypatch):
     import sys
 
-    monkeypatch.setitem(sys.modules, "relayrl.replay.sumtree_fast", None)  # its import now fails
+    monkeypatch.setitem(sys.modules, "numba", None)  # its import now fails
     assert type(make_sum_tree(10)) is SumTree
     t = filled(3, 3, sampler=Prioritized(1.0), prios=[1.0, 0.0, 3.0])
     assert type(t.sampler.tree) is SumTree and set(t.sample(50)[1].priority.tolist()) == {1.0, 3.0}
@@ -241,7 +243,7 @@ def test_compiled_insert_leaves_the_numpy_paths_table(stale_keys):
     # slots, then the Fifo's oldest live items as victims. Twin tables, one forced onto the
     # NumPy path, through inserts that fit, that overflow (victims), deletes (stale keys the
     # victim search must skip) and samples.
-    if compiled("relayrl.replay.table_fast", "insert") is None:
+    if not numba_available():
         pytest.skip("the compiled insert needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
     rng = np.random.default_rng(3)
     a, b = (Table("t", 60, Uniform(), Fifo(), MinSize(1), seed=0, fast=fast) for fast in (True, False))

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from relayrl.compile import compiled
+from relayrl.compile import numba_available
 from relayrl.replay import Fifo, MinSize, SequenceWriter, Table, TransitionWriter, Uniform
 from relayrl.specs import ArraySpec, DiscreteSpec
 from relayrl.types import Transition
@@ -275,7 +275,7 @@ def _assert_same(a, b):
 
 
 def _needs_numba():
-    if compiled("relayrl.replay.step_storage_fast", "OneStep") is None:
+    if not numba_available():
         pytest.skip("the compiled step needs numba (pip install relayrl[fast]) and RELAYRL_NUMBA not 0")
 
 

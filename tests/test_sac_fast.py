@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from relayrl.agents.sac import SACAgent, SACConfig
+from relayrl.agents.sac.update import HandWrittenSACUpdate, SACUpdate
 from relayrl.specs import ArraySpec
 from relayrl.types import Batch
 
@@ -17,12 +18,12 @@ def pair(**kw):
     """Two agents in the same state: one on hand-written gradients, one on autograd."""
     cfg = SACConfig(actor_hidden=[16, 16], critic_hidden=[16, 16], batch_size=8, **kw)
     agents = []
-    for _ in range(2):
+    for hand_written in (True, False):
         torch.manual_seed(0)
-        agents.append(SACAgent(OBS, ACT, cfg, torch.device("cpu"), np.random.default_rng(0)))
+        agents.append(SACAgent(OBS, ACT, cfg, torch.device("cpu"), np.random.default_rng(0),
+                               hand_written=hand_written))
     fast, slow = agents
-    assert fast.fast
-    slow.fast = False
+    assert isinstance(fast.update, HandWrittenSACUpdate) and type(slow.update) is SACUpdate
     return fast, slow
 
 

@@ -5,7 +5,8 @@ import pytest
 from tree_checks import check_updates_and_finds
 
 from relayrl.replay import Fifo, MaxHeap, MinSize, Prioritized, Table
-from relayrl.replay.sumtree import SumTree, make_sum_tree
+from relayrl.replay.selectors import make_sum_tree
+from relayrl.replay.sumtree import SumTree
 
 jit = pytest.importorskip("relayrl.replay.sumtree_fast", reason="numba is not installed (pip install relayrl[fast])")
 CompiledSumTree = jit.CompiledSumTree

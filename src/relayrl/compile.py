@@ -1,5 +1,7 @@
 """The numba gate: where a module has a compiled twin (`x_fast.py` beside `x.py`), callers
-ask `compiled(...)` for it and take their NumPy path on None.
+import it, inside a function, only where `numba_available()`, and take their NumPy path
+otherwise. The import stays a plain import statement, so a reader (and the import-graph
+test) can follow it.
 
 numba is the optional `relayrl[fast]` extra. `RELAYRL_NUMBA=0` turns every twin off (tests
 and benchmarks compare the two paths, which give the same results).
@@ -7,27 +9,26 @@ and benchmarks compare the two paths, which give the same results).
 
 from __future__ import annotations
 
-import importlib
 import os
 from collections.abc import Callable
 from typing import Any
 
 
-def compiled(module: str, name: str) -> Any:
-    """`module.name` from a compiled twin (a dotted module path, e.g. "relayrl.replay.sumtree_fast"),
-    or None without numba or with `RELAYRL_NUMBA=0`."""
+def numba_available() -> bool:
+    """True where the compiled twins run: numba imports and `RELAYRL_NUMBA` is not 0 (read at
+    every call, so a test can switch it)."""
     if os.environ.get("RELAYRL_NUMBA", "1") == "0":
-        return None
+        return False
     try:
-        return getattr(importlib.import_module(module), name)
-    except ImportError:  # no numba
-        return None
+        import numba  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 
 def njit(fn: Callable[..., Any]) -> Any:
     """numba.njit, cached on disk where numba finds a writable cache directory; without one
-    (read-only install, no home), compiled per process. Imports numba, so a twin module that
-    uses it fails to import without numba, which `compiled` reads as "no twin"."""
+    (read-only install, no home), compiled per process."""
     import numba
 
     try:

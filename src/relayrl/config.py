@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from relayrl import atomic
-from relayrl.agents.registry import algorithm
+from relayrl.agents.registry import ALGORITHMS, algorithm
 from relayrl.config_fields import Section, unknown_key
 from relayrl.errors import ConfigError
 from relayrl.seeding import MAX_SEED
@@ -108,22 +108,27 @@ class DistributedConfig(Section):
     actor_cpus: float = 1.0  # CPUs Ray reserves per rollout actor (spreads them over a cluster)
 
 
+# `algo` when a config does not name one: the registry's first algorithm, so that this layer
+# names none (a new algorithm is a registry line, never a config edit).
+DEFAULT_ALGO = next(iter(ALGORITHMS))
+
+
 @dataclass
 class Config(Section):
     seed: int = 0  # every random stream of the run derives from it
     device: str = "cpu"  # cpu | cuda | auto
-    algo: str = "dqn"  # dqn | sac | ppo | bptt (sets what the agent section holds)
+    algo: str = DEFAULT_ALGO  # which algorithm trains; each has an [agent] section of its own
     env: EnvConfig = field(default_factory=EnvConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     replay: ReplayConfig = field(default_factory=ReplayConfig)
     distributed: DistributedConfig = field(default_factory=DistributedConfig)
-    agent: Any = field(default_factory=lambda: algorithm("dqn").config())  # the algo's config class
+    agent: Any = field(default_factory=lambda: algorithm(DEFAULT_ALGO).config())  # the algo's config class
 
     def __post_init__(self) -> None:
         # The dataclass fills every key it was not given with the classes' own defaults; the
         # algorithm's defaults (agents/<algo>/config.py DEFAULTS) take their place, so that
-        # Config(algo="ppo") is PPO's default config, never DQN's.
+        # Config(algo=X) is X's default config, never another algorithm's.
         _rebase(self, class_defaults(), algo_defaults(self.algo))
 
     def __setattr__(self, name: str, value: Any) -> None:
@@ -206,7 +211,7 @@ def from_dict(data: dict[str, Any]) -> Config:
     """Build a Config from nested dicts (e.g. parsed TOML); every key is checked. A key the
     dict does not name is the algorithm's default (`algo_defaults`)."""
     data = dict(data)
-    config = Config(algo=algorithm(data.get("algo", "dqn")).name)  # a name this version knows, first
+    config = Config(algo=algorithm(data.get("algo", DEFAULT_ALGO)).name)  # a name this version knows, first
     _merge(config, data, prefix="")
     config.validate()
     return config
@@ -224,7 +229,7 @@ def algo_defaults(algo: str) -> Config:
 
 
 def class_defaults() -> Config:
-    """Every section at its class's own defaults (the agent section DQN's), as the dataclass
+    """Every section at its class's own defaults (the agent section `DEFAULT_ALGO`'s), as the dataclass
     builds them before __post_init__."""
     config = object.__new__(Config)
     for f in dataclasses.fields(Config):

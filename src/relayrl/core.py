@@ -1,4 +1,10 @@
-"""The protocols every layer speaks. Kept tiny on purpose, like Acme's core.py."""
+"""The protocols every layer speaks. Kept tiny on purpose, like Acme's core.py.
+
+Each protocol lists every method the loop calls. Where a capability is optional the protocol
+holds its default, the "nothing to do" or "not supported" answer, and a class inherits it by
+subclassing the protocol (`class DQNAgent(Agent)`), so callers call the method directly
+instead of probing for it.
+"""
 
 from __future__ import annotations
 
@@ -38,19 +44,34 @@ class BatchedEnv(Protocol):
 
     def close(self) -> None: ...
 
+    def get_state(self) -> list[bytes] | None:
+        """Every copy's state mid-episode, for a checkpoint. None (the default): the env cannot
+        be saved (simulator handles), and a resumed run starts new episodes."""
+        return None
+
+    def set_state(self, states: list[bytes]) -> None:
+        """Restore what `get_state` returned. Only called with a state `get_state` gave."""
+        raise NotImplementedError(f"{type(self).__name__} cannot restore its copies' state")
+
 
 class Policy(Protocol):
     """Maps a batch of observations to a batch of actions."""
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor: ...
 
+    def env_action(self, action: torch.Tensor) -> torch.Tensor:
+        """What the env receives for `action`, while observers keep `action` itself. PPO's
+        continuous samples, whose log-probabilities its ratio needs, reach the env clipped or
+        squashed into the bounds. The default: the action as it is."""
+        return action
 
-class EnvActionPolicy(Policy, Protocol):
-    """A policy whose actions are not what the env takes: PPO's continuous samples, which its
-    rollouts keep (their log-probabilities are what its ratio needs) while the env receives
-    them clipped or squashed into the bounds. The Actor steps the env with `env_action(action)`."""
+    def state_dict(self) -> dict[str, Any]:
+        """State of the policy's own that a checkpoint keeps (a noise generator on a GPU);
+        the default: none."""
+        return {}
 
-    def env_action(self, action: torch.Tensor) -> torch.Tensor: ...
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore `state_dict()`; the default has nothing to restore."""
 
 
 class Observer(Protocol):
@@ -58,25 +79,13 @@ class Observer(Protocol):
 
     def __call__(self, transition: Transition) -> None: ...
 
-
-class PreparesChunks(Protocol):
-    """Optional for an Agent: work that stays valid for several gradient steps, done once for
-    a chunk of them (DQN: its target network's Q-values of the next observations). A local
-    uniform learner draws chunks of at most `prepare_horizon()` batches when that is > 0 and
-    hands each chunk, as one Batch, to `prepare` before slicing it into the steps' batches."""
-
-    def prepare_horizon(self) -> int:
-        """How many of the next train() calls a chunk prepared now stays valid for (0: none)."""
-        ...
-
-    def prepare(self, batch: Batch, steps: int) -> Batch:
-        """The chunk of the next `steps` batches, with what the agent computed ahead filled in
-        (or as it is, where nothing stays valid that long)."""
-        ...
+    def flush(self) -> None:
+        """Hand on what is staged, at the end of every actor run, before anyone samples
+        (replay writers). The default: nothing is staged."""
 
 
 class Agent(Saveable, Protocol):
-    """What the train loop knows of an algorithm."""
+    """What the train loop knows of an algorithm. The factory that builds one returns this type."""
 
     def collect_policy(self, env_step: Callable[[], int], network: nn.Module | None = None) -> Policy:
         """The exploring policy. `env_step` drives schedules (epsilon); `network` is the copy
@@ -92,8 +101,10 @@ class Agent(Saveable, Protocol):
         """The greedy / deterministic policy."""
         ...
 
-    def train(self, batch: Batch) -> dict[str, torch.Tensor]:
-        """One gradient step; returns scalar metrics as tensors (no host sync forced)."""
+    def train(self, batch: Any) -> dict[str, torch.Tensor]:
+        """One update on a sampled `Batch` (or what `prepare` made of it), or, for an on-policy
+        agent, on a rollout (a dict of [1, T, B, ...] tensors). Returns scalar metrics as
+        tensors (no host sync forced)."""
         ...
 
     def policy_state(self) -> dict[str, Any]:
@@ -106,3 +117,24 @@ class Agent(Saveable, Protocol):
 
     @property
     def train_step(self) -> int: ...
+
+    def set_progress(self, env_steps: int) -> None:
+        """Follow schedules that run on env steps (learning rates, clip ranges), called after
+        every collect. The default: no such schedule."""
+
+    def prepare_horizon(self) -> int:
+        """How many of the next train() calls a chunk prepared now stays valid for; 0 (the
+        default): nothing is computed ahead. A local uniform learner then draws chunks of at
+        most that many batches and hands each to `prepare` before slicing it into batches."""
+        return 0
+
+    def prepare(self, batch: Batch, steps: int) -> tuple[torch.Tensor | None, ...]:
+        """The chunk of the next `steps` batches with what stays valid for all of them computed
+        once (DQN: its target network's Q-values of the next observations), as a NamedTuple of
+        [steps * N, ...] tensors that the learner slices row-wise. The default: `batch` itself."""
+        return batch
+
+    def device_collect_policy(self, network: nn.Module | None = None) -> Policy | None:
+        """The collect policy for a stateless torch env, acting without leaving the env's device
+        (`network` as for `collect_policy`). None (the default): `collect_policy` serves."""
+        return None

@@ -12,12 +12,13 @@ from typing import Any
 import numpy as np
 import torch
 
+from relayrl.core import Policy
 from relayrl.errors import UserError
 from relayrl.policies import saved_obs_spec
 from relayrl.specs import DiscreteSpec, MultiDiscreteSpec, PackedSpec, describe, entry
 
 
-class LoadedPolicy:
+class LoadedPolicy(Policy):
     """obs -> action, of the kind it is given: NumPy in, NumPy out; torch in, torch out; one
     observation as the env returns it in, one action out (an integer for discrete actions, [A]
     else); a batch [B, ...] in, [B] or [B, A] out. A Dict observation is a dict of arrays (a

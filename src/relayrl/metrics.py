@@ -13,13 +13,14 @@ from typing import Any
 import numpy as np
 
 from relayrl.arrays import to_numpy
-from relayrl.compile import compiled
+from relayrl.compile import numba_available
+from relayrl.core import Observer
 from relayrl.types import Transition
 
 FINISHED_KEPT = 100_000  # finished episodes kept for TensorBoard between logs (the oldest go first)
 
 
-class EnvironmentSteps:
+class EnvironmentSteps(Observer):
     """Env steps taken: B per batched step."""
 
     def __init__(self) -> None:
@@ -38,7 +39,7 @@ class EnvironmentSteps:
         self.value = int(state["value"])
 
 
-class EpisodeStats:
+class EpisodeStats(Observer):
     """Running return and length per env; completed episodes go into windows of `buffer_size`.
 
     The four episode metrics read from one instance, so each batched step is accumulated once.
@@ -56,7 +57,10 @@ class EpisodeStats:
         self._ret: np.ndarray | None = None
         self._len: np.ndarray | None = None
         self._done: np.ndarray | None = None
-        self._accumulate = compiled("relayrl.metrics_fast", "accumulate")  # None: the NumPy path
+        self._accumulate: Callable[..., Any] | None = None  # None: the NumPy path
+        if numba_available():
+            from relayrl.metrics_fast import accumulate
+            self._accumulate = accumulate
 
     def __call__(self, t: Transition) -> None:
         reward = to_numpy(t.reward)  # a view for CPU tensors; device tensors are copied

@@ -10,6 +10,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from relayrl.core import Policy
 from relayrl.nn import CONV_NETWORKS, MLP, ConvQNet
 from relayrl.nn.encoders import Encoded, make_encoder
 from relayrl.nn.mlp_fast import MLPInference
@@ -23,7 +24,7 @@ def _cpu_mlp(net: nn.Module, device: torch.device) -> MLPInference | None:
     return None
 
 
-class RandomPolicy:
+class RandomPolicy(Policy):
     """Uniform random actions from the action spec, for any batch size."""
 
     def __init__(self, action_spec: Spec, rng: np.random.Generator) -> None:
@@ -44,7 +45,7 @@ class RandomPolicy:
         return torch.from_numpy(u.astype(np.float32))
 
 
-class GreedyPolicy:
+class GreedyPolicy(Policy):
     """argmax_a Q(obs, a). Runs the network on its device and returns CPU actions.
 
     A float32 MLP on the CPU runs through `MLPInference` (NumPy views of its weights for small
@@ -65,7 +66,7 @@ class GreedyPolicy:
             return self.q_net(obs.to(self.device, non_blocking=True)).argmax(dim=1).cpu()
 
 
-class EpsilonGreedyPolicy:
+class EpsilonGreedyPolicy(Policy):
     """With probability epsilon(t) a uniform random action, per batch element, else greedy.
 
     `step_fn` returns the current env step, so the schedule follows collection, not calls.
@@ -98,7 +99,7 @@ class EpsilonGreedyPolicy:
         return torch.where(torch.from_numpy(explore), random_actions, self.greedy(obs))
 
 
-class TanhGaussianPolicy:
+class TanhGaussianPolicy(Policy):
     """SAC's policy: a = low + (tanh(u) + 1) / 2 * (high - low), u ~ N(mean(s), std(s)).
 
     `deterministic=True` takes u = mean (the eval policy). The actor MLP outputs
@@ -173,7 +174,7 @@ class TanhGaussianPolicy:
         self._gen_state = saved
 
 
-class ClampedPolicy:
+class ClampedPolicy(Policy):
     """a = clamp(net(obs), low, high): a deterministic policy whose env clamps its actions
     (the BPTT Pendulum policy, trained through the clamp). CPU float32 actions [B, A]."""
 

@@ -50,6 +50,3 @@ class Batch(NamedTuple):
     next_obs: torch.Tensor  # [N, *obs_shape]
     discount: torch.Tensor  # [N] gamma^n for bootstrapping, 0 where the episode terminated
     weight: torch.Tensor | None  # [N] importance weights; None means all ones (uniform replay)
-    # [N, A] the target network's Q(next_obs, .), when an agent computed it ahead for a chunk
-    # of batches (`DQNAgent.prepare`); None: the loss computes it
-    target_q: torch.Tensor | None = None

@@ -21,6 +21,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from relayrl.core import BatchedEnv
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
 from relayrl.specs import ArraySpec, DiscreteSpec, PackedSpec, Spec, numpy_dtype, spec_from_space
@@ -62,7 +63,7 @@ def env_snapshot(env: gym.Env) -> bytes | None:
         return None
 
 
-class BatchEnvBase:
+class BatchEnvBase(BatchedEnv):
     """Specs and flags shared by the in-process and the worker-process batched envs."""
 
     def _init_specs(self, num_envs: int, observation_space: gym.Space, action_space: gym.Space,

@@ -15,7 +15,17 @@ from typing import Any
 
 import numpy as np
 
-from relayrl.replay.sumtree import make_sum_tree
+from relayrl.compile import numba_available
+from relayrl.replay.sumtree import SumTree
+
+
+def make_sum_tree(capacity: int) -> Any:
+    """The compiled tree (`sumtree_fast.CompiledSumTree`) where numba runs, else the NumPy
+    `sumtree.SumTree`: same interface, same leaves found."""
+    if numba_available():
+        from relayrl.replay.sumtree_fast import CompiledSumTree
+        return CompiledSumTree(capacity)
+    return SumTree(capacity)
 
 
 class Selector:

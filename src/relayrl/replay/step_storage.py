@@ -25,7 +25,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from relayrl.compile import compiled
+from relayrl.compile import numba_available
 from relayrl.replay.steps import StepChunk, StepStore
 from relayrl.specs import Spec, numpy_dtype
 from relayrl.types import Batch
@@ -79,7 +79,10 @@ class StepStorage:
         self._reward, self._start, self._last, self._terminated = f("reward"), f("start"), f("last"), f("terminated")
         self._ret, self._disc, self._nlen, self._item_key = f("ret"), f("disc"), f("nlen"), f("item_key")
         self.bind(np.full(capacity, -1, dtype=np.int64))  # until a table hands over its key map
-        self._write_records = compiled("relayrl.replay.step_storage_fast", "write_records") if fast else None
+        self._write_records: Any = None  # the NumPy path
+        if fast and numba_available():
+            from relayrl.replay.step_storage_fast import write_records
+            self._write_records = write_records
 
     def bind(self, slot_key: np.ndarray) -> None:
         """The owning table's key map (slot -> live key, -1: empty), read-only, as its selectors get it."""
@@ -277,8 +280,9 @@ class TransitionStorage(StepStorage):
         self.n_step = n_step
         self.gamma = gamma
         self.powers = gamma ** np.arange(n_step + 1, dtype=np.float64)  # [n+1]
-        one_step = compiled("relayrl.replay.step_storage_fast", "OneStep") if fast else None
-        self.one_step = one_step(self) if one_step is not None else None
+        if fast and numba_available():
+            from relayrl.replay.step_storage_fast import OneStep
+            self.one_step = OneStep(self)
 
     def _close_items(self) -> np.ndarray:
         s, n = self.store, self.n_step

@@ -16,19 +16,8 @@ leaf before it.
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 import torch
-
-from relayrl.compile import compiled
-
-
-def make_sum_tree(capacity: int) -> Any:
-    """The compiled tree (`sumtree_fast.CompiledSumTree`) when `compiled` finds it, else this
-    module's NumPy `SumTree`: same interface, same leaves found."""
-    tree_class = compiled("relayrl.replay.sumtree_fast", "CompiledSumTree")
-    return tree_class(capacity) if tree_class is not None else SumTree(capacity)
 
 
 def flat_updates(idx: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

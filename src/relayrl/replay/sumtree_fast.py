@@ -3,7 +3,7 @@
 The NumPy tree in `sumtree.py` answers a batch in a dozen array calls, and at 256 queries
 those calls' fixed costs (the top level's cumsum the largest) are the whole bill. Here a
 query is a 20-step loop down a flat binary tree and an update a 20-step loop up it.
-`make_sum_tree` picks this class when numba imports; both classes have the same interface and
+`selectors.make_sum_tree` picks this class when numba imports; both classes have the same interface and
 find the same leaves (the two only round differently, so a query exactly on an interval's
 boundary may land one leaf apart).
 

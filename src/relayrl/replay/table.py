@@ -15,7 +15,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from relayrl.compile import compiled
+from relayrl.compile import numba_available
 from relayrl.replay.rate_limiters import MinSize, Queue, RateLimiter, Stack
 from relayrl.replay.selectors import Fifo, Lifo, Selector, Uniform
 from relayrl.replay.step_storage import StepStorage
@@ -74,8 +74,10 @@ class Table:
         # `fast`: inserts of n > 1 items in compiled loops (table_fast) for the usual pair of
         # selectors, when numba is there; else (and with fast=False) the NumPy path.
         uniform_fifo = fast and type(sampler) is Uniform and type(remover) is Fifo
-        self._insert_kernel: Callable[..., tuple[int, bool]] | None = \
-            compiled("relayrl.replay.table_fast", "insert") if uniform_fifo else None
+        self._insert_kernel: Callable[..., tuple[int, bool]] | None = None
+        if uniform_fifo and numba_available():
+            from relayrl.replay.table_fast import insert
+            self._insert_kernel = insert
         self.storage: Storage = ItemStorage(max_size)
         if storage is not None:
             self.set_storage(storage)

@@ -15,10 +15,10 @@ from relayrl.types import Transition
 class Actor:
     """env + policy + observers. `run(n)` takes at least `n` env steps (B per batched step).
 
-    Observers with a `flush()` (replay writers) are flushed at the end of every run. With a
-    `puller`, each run starts by pulling newer policy weights (every `interval` env steps).
-    A policy with an `env_action` method (`core.EnvActionPolicy`: PPO's Gaussian samples) has
-    its actions mapped by it for the env, while observers see the actions themselves.
+    Observers are flushed at the end of every run (replay writers hand on what they staged).
+    With a `puller`, each run starts by pulling newer policy weights (every `interval` env
+    steps). The env receives `policy.env_action(action)` (PPO's Gaussian samples, bounded),
+    while observers see the actions themselves.
     """
 
     def __init__(self, env: BatchedEnv, policy: Policy, observers: Sequence[Observer],
@@ -35,11 +35,11 @@ class Actor:
             self.puller.maybe_pull(self.env_steps)
         b = self.env.num_envs
         taken = 0
-        env_action = getattr(self.policy, "env_action", None)
+        policy = self.policy
         while taken < num_steps:
             obs = self._obs
-            action = self.policy(obs)
-            out = self.env.step(action if env_action is None else env_action(action))
+            action = policy(obs)
+            out = self.env.step(policy.env_action(action))
             t = Transition(obs, action, out.reward, out.next_obs, out.terminated, out.truncated, out.episode_info)
             for observer in self.observers:
                 observer(t)
@@ -47,16 +47,12 @@ class Actor:
             taken += b
         self.env_steps += taken
         for observer in self.observers:
-            flush = getattr(observer, "flush", None)
-            if flush is not None:
-                flush()  # staged steps reach the replay before anyone samples
+            observer.flush()  # staged steps reach the replay before anyone samples
 
     def state_dict(self) -> dict[str, Any]:
         """Env steps, the observation the next step acts on, and the envs' own state (None
         when the env cannot be pickled: see `envs.gym.env_snapshot`)."""
-        get_state = getattr(self.env, "get_state", None)
-        return {"env_steps": self.env_steps, "obs": self._obs.clone(),
-                "env": get_state() if get_state is not None else None,
+        return {"env_steps": self.env_steps, "obs": self._obs.clone(), "env": self.env.get_state(),
                 "puller": self.puller.state_dict() if self.puller is not None else None}
 
     def load_state_dict(self, state: dict[str, Any], reset_seed: int | None = None) -> bool:
@@ -67,9 +63,8 @@ class Actor:
         if self.puller is not None and state.get("puller") is not None:
             self.puller.load_state_dict(state["puller"])
         env_state = state.get("env")
-        set_state = getattr(self.env, "set_state", None)
-        if env_state is not None and set_state is not None and len(env_state) == self.env.num_envs:
-            set_state(env_state)
+        if env_state is not None and len(env_state) == self.env.num_envs:
+            self.env.set_state(env_state)
             self._obs = state["obs"].clone()
             return True
         self._obs = self.env.reset(seed=reset_seed)

@@ -16,6 +16,7 @@ from typing import Any
 
 import torch
 
+from relayrl.core import Observer
 from relayrl.errors import NonFiniteError
 from relayrl.specs import PackedSpec, Spec, unpack
 from relayrl.types import Transition
@@ -39,7 +40,7 @@ def describe(value: float) -> str:
     return "NaN" if value != value else ("inf" if value > 0 else "-inf")
 
 
-class FiniteWatch:
+class FiniteWatch(Observer):
     """Actor observer: checks the observations and rewards it was shown, on `check()`.
 
     `checked` counts env steps already checked (a resumed run sets it), so a finding names the

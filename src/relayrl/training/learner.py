@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -13,7 +14,6 @@ from relayrl.replay import SampleInfo, Table
 from relayrl.training.finite import describe
 from relayrl.training.triggers import IntervalTrigger, Progress
 from relayrl.training.variables import VariableContainer, network_variables
-from relayrl.types import Batch
 
 SAMPLE_CHUNK_BATCHES = 128  # batches drawn per `Table.sample` call in a uniform burst
 
@@ -50,34 +50,31 @@ class Learner:
         """Gradient steps the table's rate limiter allows now."""
         return self.table.samples_available() // self.batch_size
 
-    def _batches(self, iterations: int) -> Iterator[tuple[Batch, SampleInfo]]:
+    def _batches(self, iterations: int) -> Iterator[tuple[Any, SampleInfo]]:
         """`iterations` sampled batches. From a uniform local table, a burst is drawn with one
         `sample` call per chunk and sliced, which spreads the table's fixed cost per call over the
         chunk. In the one-process loop nothing is inserted
         during a burst, so these are the items of one call per batch (the same RNG draws);
         where another thread inserts meanwhile, its items become sampleable at the next chunk
         instead of the next batch. Prioritized batches depend on the priorities the previous
-        step set, so they are drawn one by one. An agent with `prepare` (`core.PreparesChunks`;
-        DQN with a target network) gets each chunk first, cut at its `prepare_horizon()`,
-        and fills in what it can compute once for the whole chunk."""
+        step set, so they are drawn one by one. The agent gets each chunk first, cut at its
+        `prepare_horizon()` where that is > 0, and fills in what it can compute once for the
+        whole chunk (`Agent.prepare`: DQN with a target network)."""
         if self.prioritized or iterations == 1 or not isinstance(self.table, Table) or self.table.max_times_sampled:
             for _ in range(iterations):
                 yield self.table.sample(self.batch_size)
             return
         n = self.batch_size
-        horizon = getattr(self.agent, "prepare_horizon", None)
-        prepare = getattr(self.agent, "prepare", None)
         while iterations > 0:
             k = min(iterations, self._chunk or 1)  # the first call learns the batch's size
-            h = horizon() if horizon is not None else 0
+            h = self.agent.prepare_horizon()
             if h > 0:
                 k = min(k, h)  # a chunk ends where what the agent prepares goes stale
             batch, info = self.table.sample(k * n)
             if self._chunk is None:  # at most ~32 MB a call: bursts of pixel batches stay small
                 nbytes = sum(x.nbytes for x in batch if isinstance(x, torch.Tensor))
                 self._chunk = max(1, min(SAMPLE_CHUNK_BATCHES, (32 << 20) // max(1, nbytes)))
-            if prepare is not None:
-                batch = prepare(batch, k)  # what stays valid for the chunk, computed once
+            batch = self.agent.prepare(batch, k)  # what stays valid for the chunk, computed once
             for j in range(k):
                 rows = slice(j * n, (j + 1) * n)
                 yield (type(batch)(*(x[rows] if isinstance(x, torch.Tensor) else x for x in batch)),
@@ -89,8 +86,8 @@ class Learner:
             if self.prioritized:
                 w = np.power(info.table_size * info.probability, -self.importance_exponent)  # [N]
                 batch = batch._replace(weight=torch.from_numpy((w / w.max()).astype(np.float32)))
-            if self.device.type != "cpu" and isinstance(batch, Batch):  # a rollout (dict) is moved by its agent
-                batch = Batch(*(None if x is None else x.to(self.device, non_blocking=True) for x in batch))
+            if self.device.type != "cpu" and isinstance(batch, tuple):  # a rollout (dict) is moved by its agent
+                batch = type(batch)(*(None if x is None else x.to(self.device, non_blocking=True) for x in batch))
             self.last_metrics = self.agent.train(batch)
             if self.prioritized:
                 td = self.last_metrics["td_error"].abs().cpu().numpy().astype(np.float64)

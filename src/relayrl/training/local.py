@@ -86,8 +86,8 @@ class LocalDriver:
         self.variables = VariableContainer(copy=False)
         acting_net = copy.deepcopy(self.agent.policy_network()).requires_grad_(False)
         self.actor.puller = WeightPuller(self.variables, acting_net, c.train.pull_interval)
-        on_device = getattr(self.agent, "device_collect_policy", None) if stateless else None
-        self.collect_policy = (on_device(acting_net) if on_device is not None
+        on_device = self.agent.device_collect_policy(acting_net) if stateless else None
+        self.collect_policy = (on_device if on_device is not None
                                else self.agent.collect_policy(lambda: self.actor.env_steps, acting_net))
 
         learner = make_learner(c, self.agent, self.replay, device, self.variables, whole_rollouts)
@@ -138,7 +138,7 @@ class LocalDriver:
             "episode_stats": self.stats.state_dict(),
             "random_rng": self.random_rng.bit_generator.state,
             # A collect policy with state of its own (SAC's noise generator on a GPU) saves it.
-            "collect_policy": getattr(self.collect_policy, "state_dict", dict)(),
+            "collect_policy": self.collect_policy.state_dict(),
             "eval_count": self.evaluator.count,
             "wall_time_s": self.core.wall_time(),
             # Mid-episode state, so that a resumed run is the uninterrupted run bit for bit:
@@ -171,8 +171,7 @@ class LocalDriver:
                      "the replay refills from the resumed policy before learning continues")
         self.stats.load_state_dict(state["episode_stats"])
         self.random_rng.bit_generator.state = state["random_rng"]
-        if hasattr(self.collect_policy, "load_state_dict"):
-            self.collect_policy.load_state_dict(state.get("collect_policy", {}))
+        self.collect_policy.load_state_dict(state.get("collect_policy", {}))
         self.evaluator.count = int(state["eval_count"])
         core.wall_offset = float(state["wall_time_s"])
         steps = int(state["env_steps"])

@@ -4,16 +4,16 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
 from relayrl.agents.dqn.config import DQNConfig
-from relayrl.agents.dqn.losses import dqn_loss
-from relayrl.agents.dqn.losses_fast import dqn_loss_and_grads
 from relayrl.agents.dqn.networks import q_network
-from relayrl.nn import ConvQNet, mlp_fast
+from relayrl.agents.dqn.update import make_update
+from relayrl.core import Agent
+from relayrl.nn import ConvQNet
 from relayrl.optim import FastAdam
 from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy, mlp_head, network_state
 from relayrl.schedules import exponential_schedule, linear_schedule
@@ -21,9 +21,25 @@ from relayrl.specs import DiscreteSpec, Spec, spec_state
 from relayrl.types import Batch
 
 
-class DQNAgent:
+class PreparedBatch(NamedTuple):
+    """A chunk of batches (`Batch`'s fields) with the target network's Q-values of their next
+    observations computed ahead (`DQNAgent.prepare`); the learner slices it row-wise."""
+
+    obs: torch.Tensor  # [N, *obs_shape]
+    action: torch.Tensor  # [N, *act_shape]
+    reward: torch.Tensor  # [N]
+    next_obs: torch.Tensor  # [N, *obs_shape]
+    discount: torch.Tensor  # [N]
+    weight: torch.Tensor | None  # [N]
+    target_q: torch.Tensor  # [N, A] the target network's Q(next_obs, .)
+
+
+class DQNAgent(Agent):
+    """`hand_written=False` runs the autograd update even where the hand-written one supports
+    the network (tests compare the two)."""
+
     def __init__(self, obs_spec: Spec, action_spec: Spec, cfg: DQNConfig, device: torch.device,
-                 rng: np.random.Generator, total_steps: int = 0) -> None:
+                 rng: np.random.Generator, total_steps: int = 0, hand_written: bool = True) -> None:
         self.cfg = cfg
         self.obs_spec = obs_spec
         self.action_spec = action_spec
@@ -40,13 +56,9 @@ class DQNAgent:
                        if cfg.lr_end >= 0 and total_steps > 0 else None)
         self._online_params = list(self.online.parameters())
         self._target_params = list(self.target.parameters()) if self.target is not None else []
-        # Gradients by hand for MLPs (losses_fast.py: the same values as autograd's, with less
-        # per-update overhead on CPU). Tests set it to False to compare against autograd.
-        self.fast = mlp_fast.supports(self.online)
-        if self.fast:
-            self._online_fast = mlp_fast.MLPFast(self.online)
-            self._target_fast = mlp_fast.MLPFast(self.target) if self.target is not None else None
-            self._flat_grad, self._grads = mlp_fast.grad_buffers(self.online)
+        # The gradient step: hand-written for MLPs (the same values as autograd's, with less
+        # per-update overhead on CPU), else autograd's. `update.py` holds both.
+        self.update = make_update(self.online, self.target, self.optimizer, cfg, hand_written)
 
     @property
     def train_step(self) -> int:
@@ -88,40 +100,27 @@ class DQNAgent:
         return self.cfg.target_update_period - self._train_step % self.cfg.target_update_period
 
     @torch.no_grad()
-    def prepare(self, batch: Batch, steps: int) -> Batch:
+    def prepare(self, batch: Batch, steps: int) -> Batch | PreparedBatch:
         """`batch` holding the next `steps` train() calls' batches, with the target network's
-        Q-values of their next observations filled in when that network stays the same for
-        those calls. Why: one forward pass over the whole chunk replaces `steps` small ones.
+        Q-values of their next observations computed ahead when that network stays the same
+        for those calls. Why: one forward pass over the whole chunk replaces `steps` small ones.
         The values are what train() would compute itself, up to float rounding."""
         if steps < 2 or steps > self.prepare_horizon():
             return batch
         next_obs = batch.next_obs.to(self.device, non_blocking=True)  # [steps * N, *obs_shape]
-        fast = self._target_fast if self.fast else None
-        forward = (lambda x: fast.forward(x)[0]) if fast is not None else self.target
         # Blocks of 256 rows: one [8192, 256] activation is a fresh 8 MB allocation whose page
         # faults cost as much as the matmul saves (256 rows stay in cache and reuse memory),
         # and a chunk of pixel batches never needs all its conv activations at once.
-        return batch._replace(target_q=torch.cat([forward(x) for x in next_obs.split(256)]))  # [steps * N, A]
+        target_q = torch.cat([self.update.target_q(x) for x in next_obs.split(256)])  # [steps * N, A]
+        return PreparedBatch(*batch, target_q=target_q)
 
-    def train(self, batch: Batch) -> dict[str, torch.Tensor]:
-        cfg = self.cfg
-        if self.fast:
-            _, metrics, grads = dqn_loss_and_grads(
-                self._online_fast, self._target_fast, batch, double=cfg.double, loss=cfg.loss,
-                huber_delta=cfg.huber_delta, out=self._grads)
-            if cfg.grad_clip > 0:
-                metrics["grad_norm"] = mlp_fast.clip_flat_grad_norm_(self._flat_grad, cfg.grad_clip)
-            self.optimizer.step(grads)
+    def train(self, batch: Batch | PreparedBatch) -> dict[str, torch.Tensor]:
+        if isinstance(batch, PreparedBatch):
+            metrics = self.update(Batch(*batch[:-1]), batch.target_q)
         else:
-            loss, metrics = dqn_loss(self.online, self.target, batch, double=cfg.double,
-                                     loss=cfg.loss, huber_delta=cfg.huber_delta)
-            self.optimizer.zero_grad()
-            loss.backward()
-            if cfg.grad_clip > 0:
-                metrics["grad_norm"] = torch.nn.utils.clip_grad_norm_(self._online_params, cfg.grad_clip)
-            self.optimizer.step()
+            metrics = self.update(batch, None)
         self._train_step += 1
-        if self.target is not None and self._train_step % cfg.target_update_period == 0:
+        if self.target is not None and self._train_step % self.cfg.target_update_period == 0:
             self._update_target()
         return metrics
 

@@ -29,6 +29,7 @@ def dqn_loss_and_grads(
     double: bool,
     loss: str = "huber",
     huber_delta: float = 1.0,
+    target_q: Tensor | None = None,
     out: list[Tensor] | None = None,
 ) -> tuple[Tensor, dict[str, Tensor], list[Tensor]]:
     """`dqn_loss(...)` and the gradients of its loss w.r.t. online.parameters(), in that order
@@ -44,7 +45,8 @@ def dqn_loss_and_grads(
     if target is None:
         next_v = q_all[n:].amax(dim=1)  # [N]
     else:
-        target_q = batch.target_q if batch.target_q is not None else target.forward(batch.next_obs)[0]  # [N, A]
+        if target_q is None:
+            target_q = target.forward(batch.next_obs)[0]  # [N, A]
         if double:
             best = q_all[n:].argmax(dim=1, keepdim=True)  # [N, 1]
             next_v = target_q.gather(1, best).squeeze(1)  # [N]

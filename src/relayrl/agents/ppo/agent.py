@@ -20,25 +20,28 @@ from typing import Any
 import numpy as np
 import torch
 
-from relayrl.agents.ppo import losses_fast
 from relayrl.agents.ppo.config import PPOConfig
 from relayrl.agents.ppo.device_policy import PPODevicePolicy
 from relayrl.agents.ppo.distributions import log_prob_entropy
 from relayrl.agents.ppo.gae import gae
-from relayrl.agents.ppo.losses import entropy_loss, explained_variance, normalize, policy_loss, value_loss
+from relayrl.agents.ppo.losses import explained_variance
 from relayrl.agents.ppo.networks import PPONetworks
 from relayrl.agents.ppo.normalize import RewardScaler
 from relayrl.agents.ppo.policy import PPOCollectPolicy, PPOPolicy
+from relayrl.agents.ppo.update import make_update
+from relayrl.core import Agent
 from relayrl.errors import UserError
-from relayrl.nn import mlp_fast
 from relayrl.optim import FastAdam
 from relayrl.schedules import linear_schedule
 from relayrl.specs import ArraySpec, Spec, spec_state
 
 
-class PPOAgent:
+class PPOAgent(Agent):
+    """`hand_written=False` runs the autograd update even where the hand-written one models
+    the networks (tests compare the two)."""
+
     def __init__(self, obs_spec: Spec, action_spec: Spec, cfg: PPOConfig, device: torch.device,
-                 rng: np.random.Generator, total_steps: int = 0) -> None:
+                 rng: np.random.Generator, total_steps: int = 0, hand_written: bool = True) -> None:
         self.cfg = cfg
         self.device = device
         self.rng = rng  # collect-policy noise, checkpointed with the agent
@@ -60,27 +63,10 @@ class PPOAgent:
         self.gen = torch.Generator()  # minibatch shuffles (on the CPU: the same on any device)
         self.gen.manual_seed(int(rng.integers(2**62)))
         self._train_step = 0
-        # Hand-written gradients (nn.mlp_fast, losses_fast.py) for separate actor and critic
-        # MLPs on Box observations, one categorical or a Gaussian, without value clipping, tanh
-        # squashing or observation normalisation (whose log-probabilities / inputs the
-        # hand-written heads do not model): the same update as autograd's up to float rounding,
-        # with less per-minibatch overhead on CPU. Tests set it to False to compare.
-        critic = self.net.critic
-        head = self.net.head
-        self.fast = (critic is not None and cfg.clip_range_vf == 0 and self.squash_scale is None
-                     and self.net.policy.obs_norm is None and self.net.policy.encoder is None
-                     and not head.binary and len(head.nvec) <= 1 and mlp_fast.supports(self.net.policy.mlp)
-                     and mlp_fast.supports(critic))
-        if self.fast:
-            self._actor_fast = mlp_fast.MLPFast(self.net.policy.mlp)
-            self._critic_fast = mlp_fast.MLPFast(critic)
-            self._flat_grad, grads = mlp_fast.grad_buffers(self.net)  # views in self.params order
-            view = {id(p): g for p, g in zip(self.params, grads, strict=True)}
-            self._grads = grads
-            self._actor_grads = [view[id(p)] for p in self.net.policy.mlp.parameters()]
-            self._critic_grads = [view[id(p)] for p in critic.parameters()]
-            log_std = self.net.policy.log_std
-            self._log_std_grad = None if log_std is None else view[id(log_std)]
+        # The minibatch step: hand-written where it models the networks (the same update as
+        # autograd's up to float rounding, with less overhead on CPU), else autograd's (update.py).
+        self.update = make_update(self.net, self.opt, cfg, self.evaluate_actions, self.squash_scale is not None,
+                                  hand_written)
 
     @property
     def train_step(self) -> int:
@@ -152,8 +138,9 @@ class PPOAgent:
             order = torch.randperm(n, generator=self.gen).to(self.device)
             for start in range(0, n, cfg.batch_size):
                 idx = order[start:start + cfg.batch_size]
-                step = self._minibatch_fast if self.fast else self._minibatch
-                sums += step(obs[idx], action[idx], old_logp[idx], values[idx], adv[idx], returns[idx])
+                sums += self.update(obs[idx], action[idx], old_logp[idx], values[idx], adv[idx], returns[idx],
+                                    self.clip_range)
+                self._train_step += 1
         if self.net.policy.obs_norm is not None:
             self.net.policy.obs_norm.update(obs)  # after training: the next rollout's policy
         steps = cfg.n_epochs * -(-n // cfg.batch_size)
@@ -161,48 +148,6 @@ class PPOAgent:
         return {"policy_loss": means[0], "value_loss": means[1], "entropy": means[2], "approx_kl": means[3],
                 "clip_fraction": means[4], "loss": means[5], "explained_variance": explained_variance(values, returns),
                 "clip_range": torch.tensor(self.clip_range), "lr": torch.tensor(self.opt.lr)}
-
-    def _minibatch(self, obs: torch.Tensor, action: torch.Tensor, old_logp: torch.Tensor, old_values: torch.Tensor,
-                   adv: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
-        """One gradient step; returns [policy loss, value loss, entropy, approx KL, clip fraction, loss]."""
-        cfg = self.cfg
-        if cfg.normalize_advantage:
-            adv = normalize(adv)
-        logp, entropy, values = self.evaluate_actions(obs, action)
-        pg_loss, approx_kl, clip_fraction = policy_loss(logp, old_logp, adv, self.clip_range)
-        v_loss = value_loss(values, old_values, returns, cfg.clip_range_vf)
-        ent_loss = entropy_loss(entropy)
-        loss = pg_loss + cfg.ent_coef * ent_loss + cfg.vf_coef * v_loss
-        self.opt.zero_grad()
-        loss.backward()
-        if cfg.max_grad_norm > 0:
-            torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
-        self.opt.step()
-        self._train_step += 1
-        return torch.stack([pg_loss.detach(), v_loss.detach(), -ent_loss.detach(), approx_kl, clip_fraction,
-                            loss.detach()])
-
-    @torch.no_grad()
-    def _minibatch_fast(self, obs: torch.Tensor, action: torch.Tensor, old_logp: torch.Tensor,
-                        old_values: torch.Tensor, adv: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
-        """`_minibatch` with hand-written gradients: the same loss, clip and Adam step."""
-        cfg = self.cfg
-        if cfg.normalize_advantage:
-            adv = normalize(adv)
-        out, saved_actor = self._actor_fast.forward(obs)
-        values, saved_critic = self._critic_fast.forward(obs)
-        log_std = self.net.policy.log_std
-        g = losses_fast.head_grads(out, None if log_std is None else log_std.detach(), action, values[:, 0], returns,
-                                   old_logp, adv, self.clip_range, cfg.ent_coef, cfg.vf_coef)
-        self._actor_fast.backward(g.out, saved_actor, self._actor_grads)
-        self._critic_fast.backward(g.value, saved_critic, self._critic_grads)
-        if self._log_std_grad is not None:
-            self._log_std_grad.copy_(g.log_std)
-        if cfg.max_grad_norm > 0:
-            mlp_fast.clip_flat_grad_norm_(self._flat_grad, cfg.max_grad_norm)
-        self.opt.step(self._grads)
-        self._train_step += 1
-        return g.stats
 
     def policy_state(self) -> dict[str, Any]:
         p = self.net.policy

@@ -16,9 +16,10 @@ import torch
 from torch import nn
 
 from relayrl.agents.ppo.distributions import to_bounds
+from relayrl.core import Policy
 
 
-class PPODevicePolicy:
+class PPODevicePolicy(Policy):
     def __init__(self, net: nn.Module, log_std: torch.Tensor | None, bounds: tuple[np.ndarray, np.ndarray] | None,
                  device: torch.device, seed: int, squash: str = "clip") -> None:
         self.net = net  # obs -> logits or mean [B, A]

@@ -1,4 +1,4 @@
-"""PPO's loss gradients at the networks' heads, for the hand-written update of agent.py.
+"""PPO's loss gradients at the networks' heads, for the hand-written update of update.py.
 
 The networks' backward passes are relayrl.nn.mlp_fast's; what is PPO's own is the gradient of
 clipped surrogate + ent_coef * entropy loss + vf_coef * value loss with respect to the actor's

@@ -22,6 +22,7 @@ from torch import nn
 from relayrl.agents.ppo.distributions import greedy_logits_action, to_bounds
 from relayrl.agents.ppo.networks import ActionHead, action_head
 from relayrl.agents.ppo.normalize import ObsNorm
+from relayrl.core import Policy
 from relayrl.nn import MLP
 from relayrl.nn.mlp_fast import MLPInference
 from relayrl.policies import saved_bounds, saved_network
@@ -30,7 +31,7 @@ from relayrl.specs import spec_from_state
 SQUASHES = ("clip", "tanh")
 
 
-class PPOPolicy:
+class PPOPolicy(Policy):
     env_steps: int | None = None  # when a loaded policy was saved (see relayrl.load_policy)
 
     def __init__(self, net: nn.Module, log_std: torch.Tensor | None, bounds: tuple[np.ndarray, np.ndarray] | None,

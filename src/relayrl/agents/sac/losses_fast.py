@@ -1,4 +1,4 @@
-"""SAC's loss gradients at the actor's heads, for the hand-written update of agent.py.
+"""SAC's loss gradients at the actor's heads, for the hand-written update of update.py.
 
 The networks' backward passes are relayrl.nn.mlp_fast's; what is SAC's own is the
 tanh-Gaussian sample's gradient with respect to the actor's [mean, log_std] outputs. The maths

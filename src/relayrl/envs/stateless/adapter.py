@@ -20,6 +20,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from relayrl.core import BatchedEnv
 from relayrl.envs.stateless.base import DeviceLike, StatelessEnv, tree_map, tree_where
 from relayrl.envs.stateless.pendulum import make_pendulum
 from relayrl.errors import UserError
@@ -27,7 +28,7 @@ from relayrl.specs import ArraySpec
 from relayrl.types import StepOutput
 
 
-class StatelessBatchEnv:
+class StatelessBatchEnv(BatchedEnv):
     """`num_envs` rows of `env` as one BatchedEnv; the observation is `obs[obs_key]`."""
 
     def __init__(self, env: StatelessEnv, num_envs: int, device: DeviceLike = None, obs_key: str = "observation",

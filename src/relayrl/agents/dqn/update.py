@@ -1,0 +1,77 @@
+"""DQN's gradient step on the online network, chosen once when the agent is built: the
+autograd reference (`dqn_loss` + `backward()`) or its hand-written twin for MLP Q-networks
+(`losses_fast.dqn_loss_and_grads`: the same values, with less per-update overhead on CPU).
+The twin subclasses the reference, overriding its methods; tests/test_dqn_fast.py runs both."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from relayrl.agents.dqn.config import DQNConfig
+from relayrl.agents.dqn.losses import dqn_loss
+from relayrl.agents.dqn.losses_fast import dqn_loss_and_grads
+from relayrl.nn import mlp_fast
+from relayrl.optim import FastAdam
+from relayrl.types import Batch
+
+Tensor = torch.Tensor
+
+
+class DQNUpdate:
+    """The reference: `dqn_loss`, autograd, torch's norm clip, the optimizer step. The agent
+    counts steps and moves the target network; an update does the rest."""
+
+    def __init__(self, online: nn.Module, target: nn.Module | None, optimizer: FastAdam, cfg: DQNConfig) -> None:
+        self.online, self.target, self.optimizer, self.cfg = online, target, optimizer, cfg
+        self.params = list(online.parameters())
+
+    def __call__(self, batch: Batch, target_q: Tensor | None) -> dict[str, Tensor]:
+        """One loss, gradient, clip and optimizer step; `target_q` [N, A]: the target network's
+        Q(next_obs, .) computed ahead (None: computed here)."""
+        cfg = self.cfg
+        loss, metrics = dqn_loss(self.online, self.target, batch, double=cfg.double, loss=cfg.loss,
+                                 huber_delta=cfg.huber_delta, target_q=target_q)
+        self.optimizer.zero_grad()
+        loss.backward()
+        if cfg.grad_clip > 0:
+            metrics["grad_norm"] = torch.nn.utils.clip_grad_norm_(self.params, cfg.grad_clip)
+        self.optimizer.step()
+        return metrics
+
+    def target_q(self, next_obs: Tensor) -> Tensor:
+        """The target network's Q-values [N, A] of `next_obs` (called without gradients)."""
+        assert self.target is not None
+        return self.target(next_obs)
+
+
+class HandWrittenDQNUpdate(DQNUpdate):
+    """`DQNUpdate` for MLP Q-networks (`mlp_fast.supports`), with the gradients written into
+    one flat buffer (so clipping is one norm and one multiply)."""
+
+    def __init__(self, online: nn.Module, target: nn.Module | None, optimizer: FastAdam, cfg: DQNConfig) -> None:
+        super().__init__(online, target, optimizer, cfg)
+        self.fast_online = mlp_fast.MLPFast(online)
+        self.fast_target = mlp_fast.MLPFast(target) if target is not None else None
+        self.flat_grad, self.grads = mlp_fast.grad_buffers(online)
+
+    def __call__(self, batch: Batch, target_q: Tensor | None) -> dict[str, Tensor]:
+        cfg = self.cfg
+        _, metrics, grads = dqn_loss_and_grads(self.fast_online, self.fast_target, batch, double=cfg.double,
+                                               loss=cfg.loss, huber_delta=cfg.huber_delta, target_q=target_q,
+                                               out=self.grads)
+        if cfg.grad_clip > 0:
+            metrics["grad_norm"] = mlp_fast.clip_flat_grad_norm_(self.flat_grad, cfg.grad_clip)
+        self.optimizer.step(grads)
+        return metrics
+
+    def target_q(self, next_obs: Tensor) -> Tensor:
+        assert self.fast_target is not None
+        return self.fast_target.forward(next_obs)[0]
+
+
+def make_update(online: nn.Module, target: nn.Module | None, optimizer: FastAdam, cfg: DQNConfig,
+                hand_written: bool = True) -> DQNUpdate:
+    """The hand-written update where it supports the network (and `hand_written`), else autograd's."""
+    twin = hand_written and mlp_fast.supports(online)
+    return (HandWrittenDQNUpdate if twin else DQNUpdate)(online, target, optimizer, cfg)

@@ -1,0 +1,105 @@
+"""PPO's minibatch gradient step, chosen once when the agent is built: the autograd reference
+(the losses of `losses.py` + `backward()`) or its hand-written twin (`nn.mlp_fast`,
+`losses_fast.py`: the same loss, clip and Adam step up to float rounding, with less
+per-minibatch overhead on CPU). The twin subclasses the reference, overriding `__call__`;
+tests/test_ppo_fast.py runs both."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+
+from relayrl.agents.ppo import losses_fast
+from relayrl.agents.ppo.config import PPOConfig
+from relayrl.agents.ppo.losses import entropy_loss, normalize, policy_loss, value_loss
+from relayrl.agents.ppo.networks import PPONetworks
+from relayrl.nn import mlp_fast
+from relayrl.optim import FastAdam
+
+Tensor = torch.Tensor
+# (obs, action) -> (log pi(action | obs) [N], entropy [N], V(obs) [N]): `PPOAgent.evaluate_actions`
+EvaluateActions = Callable[[Tensor, Tensor], tuple[Tensor, ...]]
+
+
+class PPOUpdate:
+    """The reference: clipped surrogate + vf_coef * value loss - ent_coef * entropy, autograd,
+    torch's global norm clip, the optimizer step."""
+
+    def __init__(self, net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions) -> None:
+        self.params = list(net.parameters())
+        self.opt, self.cfg, self.evaluate_actions = opt, cfg, evaluate_actions
+
+    def __call__(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
+                 returns: Tensor, clip_range: float) -> Tensor:
+        """One gradient step on a minibatch; returns [policy loss, value loss, entropy,
+        approx KL, clip fraction, loss]."""
+        cfg = self.cfg
+        if cfg.normalize_advantage:
+            adv = normalize(adv)
+        logp, entropy, values = self.evaluate_actions(obs, action)
+        pg_loss, approx_kl, clip_fraction = policy_loss(logp, old_logp, adv, clip_range)
+        v_loss = value_loss(values, old_values, returns, cfg.clip_range_vf)
+        ent_loss = entropy_loss(entropy)
+        loss = pg_loss + cfg.ent_coef * ent_loss + cfg.vf_coef * v_loss
+        self.opt.zero_grad()
+        loss.backward()
+        if cfg.max_grad_norm > 0:
+            torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
+        self.opt.step()
+        return torch.stack([pg_loss.detach(), v_loss.detach(), -ent_loss.detach(), approx_kl, clip_fraction,
+                            loss.detach()])
+
+
+class HandWrittenPPOUpdate(PPOUpdate):
+    """`PPOUpdate` with the gradients by hand, where `supports` says it models the networks."""
+
+    def __init__(self, net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions) -> None:
+        super().__init__(net, opt, cfg, evaluate_actions)
+        assert net.critic is not None
+        self.actor = mlp_fast.MLPFast(net.policy.mlp)
+        self.critic = mlp_fast.MLPFast(net.critic)
+        self.log_std = net.policy.log_std
+        self.flat_grad, self.grads = mlp_fast.grad_buffers(net)  # views in net.parameters() order
+        view = {id(p): g for p, g in zip(net.parameters(), self.grads, strict=True)}
+        self.actor_grads = [view[id(p)] for p in net.policy.mlp.parameters()]
+        self.critic_grads = [view[id(p)] for p in net.critic.parameters()]
+        self.log_std_grad = None if self.log_std is None else view[id(self.log_std)]
+
+    @staticmethod
+    def supports(net: PPONetworks, cfg: PPOConfig, squashed: bool) -> bool:
+        """Separate actor and critic MLPs on Box observations, one categorical or a Gaussian,
+        without value clipping, tanh squashing or observation normalisation (whose
+        log-probabilities / inputs the hand-written heads do not model)."""
+        head, policy = net.head, net.policy
+        return (net.critic is not None and cfg.clip_range_vf == 0 and not squashed and policy.obs_norm is None
+                and policy.encoder is None and not head.binary and len(head.nvec) <= 1
+                and mlp_fast.supports(policy.mlp) and mlp_fast.supports(net.critic))
+
+    @torch.no_grad()
+    def __call__(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
+                 returns: Tensor, clip_range: float) -> Tensor:
+        cfg = self.cfg
+        if cfg.normalize_advantage:
+            adv = normalize(adv)
+        out, saved_actor = self.actor.forward(obs)
+        values, saved_critic = self.critic.forward(obs)
+        log_std = self.log_std
+        g = losses_fast.head_grads(out, None if log_std is None else log_std.detach(), action, values[:, 0], returns,
+                                   old_logp, adv, clip_range, cfg.ent_coef, cfg.vf_coef)
+        self.actor.backward(g.out, saved_actor, self.actor_grads)
+        self.critic.backward(g.value, saved_critic, self.critic_grads)
+        if self.log_std_grad is not None:
+            self.log_std_grad.copy_(g.log_std)
+        if cfg.max_grad_norm > 0:
+            mlp_fast.clip_flat_grad_norm_(self.flat_grad, cfg.max_grad_norm)
+        self.opt.step(self.grads)
+        return g.stats
+
+
+def make_update(net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions,
+                squashed: bool, hand_written: bool = True) -> PPOUpdate:
+    """The hand-written update where it models the networks (and `hand_written`), else autograd's."""
+    if hand_written and HandWrittenPPOUpdate.supports(net, cfg, squashed):
+        return HandWrittenPPOUpdate(net, opt, cfg, evaluate_actions)
+    return PPOUpdate(net, opt, cfg, evaluate_actions)

@@ -1,0 +1,150 @@
+"""SAC's gradient steps (critics, actor, alpha), chosen once when the agent is built: the
+autograd reference (the losses of `losses.py` + `backward()`) or its hand-written twin for MLP
+networks (`nn.mlp_fast`, `losses_fast.py`: the same losses, draws and steps, with less
+per-update overhead on CPU). The twin subclasses the reference, overriding `__call__`;
+tests/test_sac_fast.py runs both."""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import nn
+
+from relayrl.agents.sac import losses_fast
+from relayrl.agents.sac.config import SACConfig
+from relayrl.agents.sac.losses import actor_loss, alpha_loss, critic_loss, critic_targets, tanh_gaussian
+from relayrl.nn import mlp_fast
+from relayrl.optim import FastAdam
+from relayrl.types import Batch
+
+Tensor = torch.Tensor
+
+
+class SACParts(NamedTuple):
+    """What the updates work on, built, owned and checkpointed by `SACAgent`."""
+
+    actor: nn.Module
+    critic: nn.Module  # the twin critics: (obs, action) -> [2, N]
+    target_critic: nn.Module
+    log_alpha: Tensor
+    actor_opt: FastAdam
+    critic_opt: FastAdam
+    alpha_opt: FastAdam
+    gen: torch.Generator  # the training noise
+    action_loc: Tensor  # [A] replay holds env-scale actions; the critics see them
+    action_half: Tensor  # [A] rescaled to [-1, 1] as (action - loc) / half
+    target_entropy: float
+    cfg: SACConfig
+
+
+class SACUpdate:
+    """The reference: the losses of `losses.py`, autograd, torch's norm clip, the optimizers.
+    `update(batch)` is a critic step on soft TD targets, an actor step through the freshly
+    updated critics and an alpha step towards the target entropy; the agent then moves the
+    target critics."""
+
+    def __init__(self, parts: SACParts) -> None:
+        self.p = parts
+        self.critic_params = list(parts.critic.parameters())
+        self.actor_params = list(parts.actor.parameters())
+
+    def _sample(self, obs: Tensor) -> tuple[Tensor, Tensor]:
+        cfg = self.p.cfg
+        out = self.p.actor(obs)  # [N, 2A]
+        mean, log_std = out.chunk(2, dim=-1)
+        log_std = log_std.clamp(cfg.log_std_min, cfg.log_std_max)
+        noise = torch.randn(mean.shape, generator=self.p.gen, device=mean.device)
+        return tanh_gaussian(mean, log_std, noise)  # actions in [-1, 1]: [N, A], [N]
+
+    def _step(self, opt: FastAdam, params: list[Tensor], loss: Tensor) -> None:
+        opt.zero_grad()
+        loss.backward()
+        if self.p.cfg.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(params, self.p.cfg.grad_clip)
+        opt.step()
+
+    def __call__(self, batch: Batch) -> dict[str, Tensor]:
+        p, cfg = self.p, self.p.cfg
+        alpha = p.log_alpha.detach().exp()
+        with torch.no_grad():
+            next_a, next_logp = self._sample(batch.next_obs)
+            y = critic_targets(batch.reward, batch.discount, p.target_critic(batch.next_obs, next_a),
+                               next_logp, alpha, cfg.reward_scale)  # [N]
+        action = (batch.action.reshape(batch.action.shape[0], -1) - p.action_loc) / p.action_half  # [N, A]
+        q = p.critic(batch.obs, action)  # [2, N]
+        c_loss, td = critic_loss(q, y, batch.weight)
+        self._step(p.critic_opt, self.critic_params, c_loss)
+
+        a_pi, logp = self._sample(batch.obs)
+        q_pi = p.critic(batch.obs, a_pi, detach_params=True)  # [2, N]: updated critics, grads to a only
+        a_loss = actor_loss(logp, q_pi, alpha, batch.weight)
+        self._step(p.actor_opt, self.actor_params, a_loss)
+
+        if cfg.autotune_alpha:
+            self._step(p.alpha_opt, [p.log_alpha], alpha_loss(p.log_alpha, logp, p.target_entropy))
+        return {"critic_loss": c_loss.detach(), "actor_loss": a_loss.detach(), "alpha": alpha,
+                "entropy": -logp.detach().mean(), "q": q[0].detach(), "td_error": td}
+
+
+class HandWrittenSACUpdate(SACUpdate):
+    """`SACUpdate` for MLP actor and critics (`mlp_fast.supports`), with the gradients by hand."""
+
+    def __init__(self, parts: SACParts) -> None:
+        super().__init__(parts)
+        self.actor = mlp_fast.MLPFast(parts.actor)
+        self.critic = mlp_fast.TwinMLPFast(parts.critic)
+        self.target = mlp_fast.TwinMLPFast(parts.target_critic)
+        self.actor_grads = mlp_fast.grad_buffers(parts.actor)[1]  # views of one flat buffer
+
+    def _step_with(self, opt: FastAdam, grads: list[Tensor]) -> None:
+        if self.p.cfg.grad_clip > 0:
+            mlp_fast.clip_grad_norm_(grads, self.p.cfg.grad_clip)
+        opt.step(grads)
+
+    @torch.no_grad()
+    def __call__(self, batch: Batch) -> dict[str, Tensor]:
+        p, cfg = self.p, self.p.cfg
+        lo, hi = cfg.log_std_min, cfg.log_std_max
+        n, a_dim = batch.reward.shape[0], p.action_loc.numel()
+        alpha = p.log_alpha.detach().exp()
+        obs = batch.obs.reshape(n, -1).float()
+        next_obs = batch.next_obs.reshape(n, -1).float()
+        noise = torch.randn((n, a_dim), generator=p.gen, device=obs.device)
+        next_a, next_logp, _ = losses_fast.sample_and_log_prob(self.actor, next_obs, noise, lo, hi)
+        next_q = self.target.forward(torch.cat([next_obs, next_a], dim=-1))[0]
+        y = critic_targets(batch.reward, batch.discount, next_q, next_logp, alpha, cfg.reward_scale)  # [N]
+
+        action = (batch.action.reshape(n, -1) - p.action_loc) / p.action_half  # [N, A]
+        q, saved = self.critic.forward(torch.cat([obs, action], dim=-1))  # [2, N]
+        c_loss, td = critic_loss(q, y, batch.weight)
+        w = batch.weight
+        gq = (q - y) * (1.0 / n if w is None else w / n)  # d (0.5 sum_c mean w td^2) / dq
+        grads = self.critic.new_grads()
+        self.critic.backward(gq, saved, grads)
+        self._step_with(p.critic_opt, grads)
+        del grads  # freed before the actor's pass allocates
+
+        noise = torch.randn((n, a_dim), generator=p.gen, device=obs.device)
+        a_pi, logp, actor_saved = losses_fast.sample_and_log_prob(self.actor, obs, noise, lo, hi)
+        q_pi, saved = self.critic.forward(torch.cat([obs, a_pi], dim=-1))  # the updated critics
+        a_loss = actor_loss(logp, q_pi, alpha, w)
+        g_min = torch.full((n,), -1.0 / n, device=obs.device) if w is None else w * (-1.0 / n)
+        gq_pi = torch.zeros_like(q_pi).scatter_(0, q_pi.min(dim=0).indices.unsqueeze(0), g_min.unsqueeze(0))
+        g_x = self.critic.backward(gq_pi, saved, None, input_grad=True)  # [N, in]
+        assert g_x is not None
+        g_logp = alpha * (1.0 / n if w is None else w / n)  # d loss / d log pi, [N] or scalar
+        g_out = losses_fast.actor_head_grad(g_x[:, -a_dim:], g_logp.expand(n), actor_saved, lo, hi)
+        self.actor.backward(g_out, actor_saved[0], self.actor_grads, rows=n)
+        self._step_with(p.actor_opt, self.actor_grads)
+
+        if cfg.autotune_alpha:  # d alpha_loss / d log_alpha
+            self._step_with(p.alpha_opt, [-(logp.mean() + p.target_entropy).reshape(p.log_alpha.shape)])
+        return {"critic_loss": c_loss, "actor_loss": a_loss, "alpha": alpha, "entropy": -logp.mean(),
+                "q": q[0], "td_error": td}
+
+
+def make_update(parts: SACParts, hand_written: bool = True) -> SACUpdate:
+    """The hand-written update where it supports the networks (and `hand_written`), else autograd's."""
+    twin = hand_written and mlp_fast.supports(parts.actor) and mlp_fast.supports(parts.critic)
+    return HandWrittenSACUpdate(parts) if twin else SACUpdate(parts)
