@@ -15,7 +15,7 @@ For each N and each vectorization (sync: in this process; async: in worker proce
          SyncVectorEnv (`raw sync`): the fastest way Gymnasium offers to step these copies here
   ours   relayrl's Actor: SAC's collect policy (a (256, 256) tanh-Gaussian actor, the sac-batched
          preset's) + our batched env + EnvironmentSteps and EpisodeStats metrics + the
-         TransitionWriter inserting into a 1,000,000-item Table. `Actor.run` takes
+         TransitionWriter inserting into a 1,000,000-item Table. `Actor.collect` takes
          `--steps-per-run` batched steps per call and the writer flushes at the end of each
          call: 1 (the default) is the sac-batched loop, which trains after every batched step;
          larger values are an actor that only collects (a rollout worker), whose writer
@@ -121,7 +121,7 @@ def ours(n: int, vectorization: str, steps_per_run: int = 1, env_id: str = ENV, 
                                  device=replay_device_of(c, dev, env_id == STATELESS))
     acting = copy.deepcopy(agent.policy_network()).requires_grad_(False)
     actor = Actor(env, agent.collect_policy(lambda: 0, acting), [EnvironmentSteps(), EpisodeStats(), writer], seed=0)
-    return (lambda: actor.run(n * steps_per_run)), env.close
+    return (lambda: actor.collect(n * steps_per_run)), env.close
 
 
 def measure(n: int, vectorization: str, seconds: float, steps_per_run: int, env_id: str = ENV,
@@ -208,7 +208,7 @@ def main() -> None:
                 p = parts(n, vec, args.workers)
                 print(f"N {n:>4} {vec:>5}: " + ", ".join(f"{k} {v:,.0f} us" for k, v in p.items()), flush=True)
         return
-    print(f"torch threads {args.threads}, batched steps per Actor.run {args.steps_per_run}")
+    print(f"torch threads {args.threads}, batched steps per Actor.collect {args.steps_per_run}")
     rows = []
     print(f"env {args.env}, device {args.device}")
     print(f"{'N':>5} {'vectorization':>13} {'replay':>7} {'raw steps/s':>12} {'our env':>9} {'ours steps/s':>13} "

@@ -288,9 +288,9 @@ def learner_alone(c: Config, steps: int, warm: int) -> float:
         for chunk in fake_chunks(EPISODE, *dims)[:max(1, -(-2 * c.replay.min_size_to_sample // EPISODE))]:
             writer.write_chunk(chunk)
         learner = Learner(agent, table, BATCH, torch.device("cpu"))
-        learner.run(warm)
+        learner.learn(warm)
         t0 = time.perf_counter()
-        learner.run(steps)
+        learner.learn(steps)
         return steps / (time.perf_counter() - t0)
 
 
@@ -319,7 +319,7 @@ def learner_with_actors(env_id: str, k: int, steps: int, warm: int) -> tuple[flo
                 ready = table.poll()
                 if ready:
                     m = min(ready, n - done)
-                    learner.run(m)
+                    learner.learn(m)
                     done += m
                 else:
                     cl.ray.wait([table.pending], timeout=0.05)

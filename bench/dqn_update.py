@@ -5,7 +5,7 @@
 Agent rows use the RL-Zoo CartPole settings (Huber, grad clip 10, target copied every 128
 steps); "autograd" rows run the same agent with `hand_written=False` (dqn_loss + backward),
 the others the hand-written gradients of agents/dqn/losses_fast.py. The burst rows are what the
-trainer does after every 256 env steps, `Learner.run(128)`, per step: with the target
+trainer does after every 256 env steps, `Learner.learn(128)`, per step: with the target
 network's Q-values computed once per chunk of batches (the default) and, for comparison,
 once per step, alternating round by round (medians of 30).
 
@@ -110,7 +110,7 @@ def main() -> None:
         if not ahead:
             agent.prepare = lambda batch, steps: batch  # type: ignore[method-assign]
         learner = Learner(agent, table, b, torch.device("cpu"))
-        return lambda: learner.run(128)
+        return lambda: learner.learn(128)
 
     def interleaved(double: bool, rounds: int = 30) -> tuple[float, float]:
         """Median us per step of a burst with the target Q per step and per chunk, the two
@@ -136,8 +136,8 @@ def main() -> None:
             a = make_agent(double, fast)
             rows.append((f"relayrl agent.train, {name}, {how}", per_call_us(lambda a=a: a.train(batch))))
         per_step, per_chunk = interleaved(double)
-        rows.append((f"relayrl {name} burst: Learner.run(128), target Q per step, per step", per_step))
-        rows.append((f"relayrl {name} burst: Learner.run(128), target Q per chunk, per step "
+        rows.append((f"relayrl {name} burst: Learner.learn(128), target Q per step, per step", per_step))
+        rows.append((f"relayrl {name} burst: Learner.learn(128), target Q per chunk, per step "
                      f"({per_chunk / per_step:.3f}x)", per_chunk))
     rows += [
         ("Table.sample (uniform, 100k)", per_call_us(sample)),

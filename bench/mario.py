@@ -257,6 +257,7 @@ def relayrl_loop(burn_in: int, steps: int, warmup: int, threads: int, seed: int)
     import relayrl
     from relayrl.training.local import LocalDriver
     from relayrl.training.run_dir import RunDir
+    from relayrl.training.triggers import IntervalTrigger
 
     total = burn_in + steps
     over = ["device=cpu", f"train.initial_collect_steps={burn_in}", f"train.total_steps={total}",
@@ -271,20 +272,20 @@ def relayrl_loop(burn_in: int, steps: int, warmup: int, threads: int, seed: int)
         run.evaluator.fn = run.evaluate_now = lambda p: None  # no evaluation: the tutorial's loop has none
         marks: list[tuple[int, float]] = []
         first_collect: list[float] = []
-        actor_run = run.actor.run
+        actor_collect = run.actor.collect
 
         def timed_run(n: int):  # the first call is the burn-in
             if not first_collect:
                 first_collect.append(time.perf_counter())
-                out = actor_run(n)
+                out = actor_collect(n)
                 first_collect.append(time.perf_counter())
                 return out
-            return actor_run(n)
+            return actor_collect(n)
 
-        run.actor.run = timed_run
-        run.triggers.append(lambda p: marks.append((p.env_steps, time.perf_counter())))
+        run.actor.collect = timed_run
+        run.core.triggers.append(IntervalTrigger(1, lambda p: marks.append((p.env_steps, time.perf_counter()))))
         rss0 = proc_status()["VmRSS"]
-        run.run()
+        run.train()
         rss1 = proc_status()["VmRSS"]
         steps = run.replay.storage
         s = steps.store

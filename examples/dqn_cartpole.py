@@ -55,11 +55,11 @@ def main() -> None:
     learner = Learner(agent, table, cfg.batch_size, torch.device("cpu"))
 
     print("random policy:", evaluate(eval_env, random_policy, 10, seed=1)["average_return"])
-    actor.run(100)  # initial collection with the random policy
+    actor.collect(100)  # initial collection with the random policy
     actor.policy = agent.collect_policy(lambda: actor.env_steps)
     for iteration in range(1, args.iterations + 1):
-        actor.run(1)  # one collect step ...
-        learner.run(learner.available_steps())  # ... and the gradient steps the rate limiter allows
+        actor.collect(1)  # one collect step ...
+        learner.learn(learner.available_steps())  # ... and the gradient steps the rate limiter allows
         if iteration % args.eval_interval == 0:
             result = evaluate(eval_env, agent.eval_policy(), 10, seed=iteration)
             print(f"iteration {iteration}: eval return {result['average_return']:.1f}, "

@@ -62,7 +62,7 @@ def main() -> None:
     stats = EpisodeStats()
     actor = Actor(env, RandomPolicy(env.action_spec, np.random.default_rng(args.seed)), [writer, stats],
                   seed=args.seed, puller=WeightPuller(variables, acting_net))
-    actor.run(args.initial_steps)  # the tutorial's initial collect with a random policy
+    actor.collect(args.initial_steps)  # the tutorial's initial collect with a random policy
     actor.policy = agent.collect_policy(network=acting_net)
 
     def report(progress, result) -> None:
@@ -78,8 +78,8 @@ def main() -> None:
     learner = Learner(agent, table, cfg.batch_size, torch.device("cpu"), variables=variables,
                       triggers=triggers, env_steps=lambda: actor.env_steps)
     for _ in range(args.iterations):
-        actor.run(1)  # one collect step ...
-        learner.run(learner.available_steps())  # ... and the gradient steps the rate limiter allows
+        actor.collect(1)  # one collect step ...
+        learner.learn(learner.available_steps())  # ... and the gradient steps the rate limiter allows
 
 
 if __name__ == "__main__":

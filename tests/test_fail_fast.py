@@ -81,7 +81,7 @@ def test_a_non_finite_loss_stops_before_the_weights_are_saved(algo, tmp_path, mo
     c = config(algo, "env.kwargs.at=100000")
     from relayrl.training.learner import Learner
 
-    real_run = Learner.run
+    real_run = Learner.learn
 
     def poisoned(self, iterations):
         real_run(self, iterations)
@@ -101,7 +101,7 @@ def test_weights_that_went_non_finite_without_a_loss_saying_so_are_never_saved(t
     c = config("dqn", "env.kwargs.at=100000")
     from relayrl.training.learner import Learner
 
-    real_run = Learner.run
+    real_run = Learner.learn
 
     def poisoned(self, iterations):
         real_run(self, iterations)

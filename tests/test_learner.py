@@ -62,7 +62,7 @@ def test_bursts_of_large_observations_are_drawn_in_small_chunks():
     sample = t.sample
     t.sample = lambda n, timeout=None: (calls.append(n), sample(n, timeout))[1]
     learner = Learner(Recorder(), t, batch_size=32, device=torch.device("cpu"))
-    learner.run(40)
+    learner.learn(40)
     per_batch = 32 * 2 * 4 * 84 * 84  # obs and next_obs dominate
     assert learner._chunk == (32 << 20) // (per_batch + 32 * (8 + 4 + 4))
     assert calls[0] == 32 and set(calls[1:]) <= {32 * learner._chunk, 32 * (39 % learner._chunk)}

@@ -169,7 +169,7 @@ def test_stacks_rebuilt_by_the_replay_equal_a_naive_replay_across_episodes(tmp_p
     assert writer.table.storage.store.frame_stack == 4
     naive = Naive(c.agent.gamma)
     actor = Actor(env, RandomPolicy(env.action_spec, np.random.default_rng(0)), [writer, naive], seed=0)
-    actor.run(60)
+    actor.collect(60)
     ends = [r for r in naive.rows if r[4] == 0.0]
     assert ends and len(ends) < len(naive.rows)  # terminations, and truncations by the time limit
     live = np.flatnonzero(table.slot_key >= 0)

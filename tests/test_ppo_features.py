@@ -68,7 +68,7 @@ def test_rollout_keeps_the_gaussian_sample_and_the_env_gets_it_bounded(squash):
     a = agent(log_std_init=1.5, squash=squash)
     env, table = RecordingEnv(), Table.queue("rollouts", 1)
     actor = Actor(env, a.collect_policy(), [RolloutWriter(table, 8)])
-    actor.run(16)
+    actor.collect(16)
     item, _ = table.sample(1)
     stored = torch.as_tensor(item["action"][0]).reshape(16, 2)
     received = torch.cat(env.received)

@@ -266,7 +266,7 @@ def test_memmap_replay_resumed_from_an_older_checkpoint(tmp_path, capsys, size, 
     assert not run.replay.storage.stale(live).any() and (live.size == 0) == wraps
     said = "the replay files were overwritten after this checkpoint" in capsys.readouterr().err
     assert said == wraps
-    run.actor.run(5)  # continued (or new) episodes insert only items whose rows hold their steps
+    run.actor.collect(5)  # continued (or new) episodes insert only items whose rows hold their steps
     live = np.flatnonzero(run.replay.slot_key >= 0)
     assert live.size > 0 and not run.replay.storage.stale(live).any()
     run.env.close()

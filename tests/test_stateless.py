@@ -344,7 +344,7 @@ def test_adapter_trains_sac_a_few_hundred_steps():
     writer = TransitionWriter(table, 8, env.observation_spec, env.action_spec, gamma=0.99)
     actor = Actor(env, agent.collect_policy(), [writer], seed=0)
     for _ in range(40):  # 320 env steps, 6 episodes per copy
-        actor.run(8)
+        actor.collect(8)
         if table.size >= 64:
             batch, _ = table.sample(32)
             metrics = agent.train(batch)

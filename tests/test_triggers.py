@@ -49,7 +49,7 @@ def test_train_step_triggers_fire_inside_learner_run(tmp_path):
     table = Table("t", 100, Uniform(), Fifo(), MinSize(4), seed=0)
     actor = Actor(env, RandomPolicy(env.action_spec, np.random.default_rng(0)),
                   [TransitionWriter(table, 1, env.observation_spec, env.action_spec, gamma=0.99)], seed=0)
-    actor.run(20)
+    actor.collect(20)
     logs, evals = [], []
     triggers = [
         PolicySaver(5, agent, tmp_path / "policy", unit="train_steps"),
@@ -59,7 +59,7 @@ def test_train_step_triggers_fire_inside_learner_run(tmp_path):
         StepsPerSecondLog(3, unit="train_steps", log=logs.append),
     ]
     learner = Learner(agent, table, 4, torch.device("cpu"), triggers=triggers, env_steps=lambda: actor.env_steps)
-    learner.run(12)
+    learner.learn(12)
     assert evals == [(6, 2), (12, 2)]
     assert len(logs) == 4 and logs[0].startswith("step 20 | train step 3 |")
     assert [p.name for p in list_checkpoints(tmp_path / "ck")] == ["ckpt-000000000020.pt"]  # same env step

@@ -129,7 +129,7 @@ class ReplayCollection:
             n = 0 if core.collect_only else self.table.poll()
             if n:
                 core.step_schedules(self.env_steps())
-                core.learner.run(n)
+                core.learner.learn(n)
             core.fire_triggers()
             finish_evals()
             if not self.pool.inflight and not self._retry_pending():

@@ -180,7 +180,7 @@ class RolloutCollection:
         # one process (where the rollout writer never inserts a partial rollout).
         if not core.collect_only and self.share_steps == self._full_share():
             self.table.insert(rollout)
-            core.learner.run(core.learner.available_steps())  # this one rollout; pushes the weights
+            core.learner.learn(core.learner.available_steps())  # this one rollout; pushes the weights
         self._new_version()
 
     def iterate(self, core: RunCore, finish_evals: Callable[[], None]) -> None:

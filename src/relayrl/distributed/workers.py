@@ -186,7 +186,7 @@ class RolloutWorker:
         start = self.actor.env_steps
         while (taken := self.actor.env_steps - start) < steps:
             self.global_steps = global_steps + taken * self.num_actors
-            self.actor.run(min(self.chunk_steps, steps - taken))
+            self.actor.collect(min(self.chunk_steps, steps - taken))
         self.shipper.wait()
         returns, lengths, info = self.episodes.take()
         return {"index": self.index, "token": self.token, "env_steps": self.actor.env_steps - start,
@@ -224,7 +224,7 @@ class RolloutCollector:
         if writer is None:  # a queue's storage has the shape of its first item: one per rollout length
             writer = self.writers[steps_per_env] = RolloutWriter(Table.queue("rollout", 1), steps_per_env)
         self.actor.observers = [self.episodes, writer, self.finite]
-        self.actor.run(steps_per_env * self.env.num_envs)
+        self.actor.collect(steps_per_env * self.env.num_envs)
         item, _ = writer.table.sample(1)  # the writer's one finished rollout, taken out at once
         returns, lengths, info = self.episodes.take()
         return {"index": self.index, "token": self.token, "rollout": {k: v[0].numpy() for k, v in item.items()},

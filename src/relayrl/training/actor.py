@@ -13,10 +13,10 @@ from relayrl.types import Transition
 
 
 class Actor:
-    """env + policy + observers. `run(n)` takes at least `n` env steps (B per batched step).
+    """env + policy + observers. `collect(n)` takes at least `n` env steps (B per batched step).
 
-    Observers are flushed at the end of every run (replay writers hand on what they staged).
-    With a `puller`, each run starts by pulling newer policy weights (every `interval` env
+    Observers are flushed at the end of every collect call (replay writers hand on what they staged).
+    With a `puller`, each call starts by pulling newer policy weights (every `interval` env
     steps). The env receives `policy.env_action(action)` (PPO's Gaussian samples, bounded),
     while observers see the actions themselves.
     """
@@ -30,7 +30,7 @@ class Actor:
         self.env_steps = 0
         self._obs: torch.Tensor = env.reset(seed=seed)
 
-    def run(self, num_steps: int) -> None:
+    def collect(self, num_steps: int) -> None:
         if self.puller is not None:
             self.puller.maybe_pull(self.env_steps)
         b = self.env.num_envs

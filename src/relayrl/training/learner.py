@@ -19,7 +19,7 @@ SAMPLE_CHUNK_BATCHES = 128  # batches drawn per `Table.sample` call in a uniform
 
 
 class Learner:
-    """agent + table. `run(k)` takes k gradient steps, firing `triggers` after each one, then
+    """agent + table. `learn(k)` takes k gradient steps, firing `triggers` after each one, then
     pushes the policy weights to the VariableContainer if it has one; `last_metrics` holds
     the latest scalars.
 
@@ -35,7 +35,7 @@ class Learner:
         self.agent = agent
         self.triggers = list(triggers)  # fired after every gradient step
         self.env_steps = env_steps or (lambda: 0)  # what triggers see as Progress.env_steps
-        self.variables = variables  # receives the policy weights after every run with a step
+        self.variables = variables  # receives the policy weights after every learn() with a step
         self._policy_params = network_variables(agent.policy_network())
         self.table = table
         self.batch_size = batch_size
@@ -81,7 +81,7 @@ class Learner:
                        SampleInfo(info.key[rows], info.probability[rows], info.table_size, info.priority[rows]))
             iterations -= k
 
-    def run(self, iterations: int) -> None:
+    def learn(self, iterations: int) -> None:
         for batch, info in self._batches(iterations):
             if self.prioritized:
                 w = np.power(info.table_size * info.probability, -self.importance_exponent)  # [N]

@@ -106,15 +106,15 @@ class LocalDriver:
         c, core = self.config, self.core
         total = c.train.total_steps
         if self.actor.env_steps == 0:
-            self.actor.run(min(c.train.initial_collect_steps, total))  # never past total_steps
+            self.actor.collect(min(c.train.initial_collect_steps, total))  # never past total_steps
         core.sps_log.rates.reset(core.progress())
         self.variables.push(network_variables(self.agent.policy_network()))  # fresh or restored weights
         self.actor.policy = self.collect_policy
         while self.actor.env_steps < total and not core.report.stop_requested:
-            self.actor.run(min(c.train.collect_steps, total - self.actor.env_steps))
+            self.actor.collect(min(c.train.collect_steps, total - self.actor.env_steps))
             core.step_schedules(self.actor.env_steps)
             if not core.collect_only:
-                core.learner.run(core.learner.available_steps())  # the rate limiter decides
+                core.learner.learn(core.learner.available_steps())  # the rate limiter decides
             core.fire_triggers()
 
     def announce(self) -> None:
