@@ -81,17 +81,17 @@ def test_a_non_finite_loss_stops_before_the_weights_are_saved(algo, tmp_path, mo
     c = config(algo, "env.kwargs.at=100000")
     from relayrl.training.learner import Learner
 
-    real_run = Learner.learn
+    real_learn = Learner.learn
 
     def poisoned(self, iterations):
-        real_run(self, iterations)
+        real_learn(self, iterations)
         if self.agent.train_step >= 30:  # as a diverged update leaves it: NaN loss and weights
             for p in self.agent.policy_network().parameters():
                 p.data.fill_(math.nan)
             first = next(iter(self.last_metrics))
             self.last_metrics = {**self.last_metrics, first: torch.tensor(math.nan)}
 
-    monkeypatch.setattr(Learner, "run", poisoned)
+    monkeypatch.setattr(Learner, "learn", poisoned)
     with pytest.raises(NonFiniteError, match=r"was NaN by env step [\d,]+ \(train step [\d,]+\): check the learning"):
         train(c, tmp_path / "run", progress=False)
     assert_kept_and_finite(tmp_path / "run", 10**9)
@@ -101,15 +101,15 @@ def test_weights_that_went_non_finite_without_a_loss_saying_so_are_never_saved(t
     c = config("dqn", "env.kwargs.at=100000")
     from relayrl.training.learner import Learner
 
-    real_run = Learner.learn
+    real_learn = Learner.learn
 
     def poisoned(self, iterations):
-        real_run(self, iterations)
+        real_learn(self, iterations)
         if self.agent.train_step >= 30:
             next(self.agent.policy_network().parameters()).data.fill_(math.inf)
             self.last_metrics = {k: torch.zeros(()) for k in self.last_metrics}  # the losses look fine
 
-    monkeypatch.setattr(Learner, "run", poisoned)
+    monkeypatch.setattr(Learner, "learn", poisoned)
     with pytest.raises(NonFiniteError, match=r"the agent's .* held a NaN or inf by env step"):
         train(c, tmp_path / "run", progress=False)
     assert_kept_and_finite(tmp_path / "run", 10**9)

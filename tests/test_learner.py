@@ -47,7 +47,7 @@ def table(obs_shape=(3,), dtype=torch.float32, n=500):
 
 def test_a_uniform_burst_gives_the_batches_of_one_sample_call_each():
     agent = Recorder()
-    Learner(agent, table(), batch_size=16, device=torch.device("cpu")).run(300)  # chunks of 1, 128, 128, 43
+    Learner(agent, table(), batch_size=16, device=torch.device("cpu")).learn(300)  # chunks of 1, 128, 128, 43
     reference = table()
     expected = [reference.sample(16)[0] for _ in range(300)]
     assert len(agent.batches) == 300
@@ -97,8 +97,8 @@ def test_target_q_computed_per_chunk_is_the_target_network_s_at_every_step(doubl
         return train(batch)
 
     chunked.train = checked_train
-    Learner(chunked, table(), batch_size=16, device=torch.device("cpu")).run(60)
-    Learner(stepwise, table(), batch_size=16, device=torch.device("cpu")).run(60)
+    Learner(chunked, table(), batch_size=16, device=torch.device("cpu")).learn(60)
+    Learner(stepwise, table(), batch_size=16, device=torch.device("cpu")).learn(60)
     assert len(seen) >= 50  # all but the chunk-size probe and 1-step chunks came prepared
     for a, b in zip(chunked.online.parameters(), stepwise.online.parameters(), strict=True):
         assert torch.allclose(a, b, atol=1e-5)
@@ -125,7 +125,7 @@ def test_a_prepared_chunk_keeps_its_type_when_moved_to_the_device():
             return PreparedBatch(*batch, target_q=torch.zeros(batch.reward.shape[0], 2))
 
     agent = Preparing()
-    Learner(agent, table(), batch_size=16, device=torch.device("meta")).run(12)
+    Learner(agent, table(), batch_size=16, device=torch.device("meta")).learn(12)
     assert all(type(b) is PreparedBatch for b in agent.batches[1:])  # the first draws one batch alone
     assert all(x.device.type == "meta" for b in agent.batches for x in b if x is not None)
     assert agent.batches[-1].target_q.shape == (16, 2)
