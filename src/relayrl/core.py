@@ -80,7 +80,7 @@ class Observer(Protocol):
     def __call__(self, transition: Transition) -> None: ...
 
     def flush(self) -> None:
-        """Hand on what is staged, at the end of every actor run, before anyone samples
+        """Hand on what is staged, at the end of every collect call, before anyone samples
         (replay writers). The default: nothing is staged."""
 
 

@@ -20,6 +20,7 @@ import torch
 
 from relayrl.replay.step_storage import StepStorage
 from relayrl.replay.steps import StepChunk
+from relayrl.replay.storage import Storage
 from relayrl.replay.table import Table
 from relayrl.replay.writers import SequenceWriter, TransitionWriter
 
@@ -42,7 +43,7 @@ def split_chunk(chunk: StepChunk, max_steps: int) -> list[StepChunk]:
     return pieces
 
 
-class StorageGroup:
+class StorageGroup(Storage):
     """A Table's storage over several step storages, one per writer: `active` names the one
     whose steps are being appended; each slot remembers its storage, which reads it. Each
     slot belongs to one storage at a time, so the storages share one slot map (saved once)."""

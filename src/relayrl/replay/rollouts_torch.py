@@ -16,10 +16,11 @@ import numpy as np
 import torch
 
 from relayrl.replay.rollouts import RolloutWriter
+from relayrl.replay.storage import Storage
 from relayrl.replay.table import Table
 
 
-class TensorItemStorage:
+class TensorItemStorage(Storage):
     """A table's storage holding each slot's item as a dict of tensors (views of what was
     inserted). `read` of one slot returns views; of several, stacked tensors."""
 

@@ -27,6 +27,7 @@ import torch
 
 from relayrl.compile import numba_available
 from relayrl.replay.steps import StepChunk, StepStore
+from relayrl.replay.storage import Storage
 from relayrl.specs import Spec, numpy_dtype
 from relayrl.types import Batch
 
@@ -49,7 +50,7 @@ class SequenceBatch(NamedTuple):
     terminated: torch.Tensor  # [N, L] bool, on last rows: the episode terminated (vs truncated)
 
 
-class StepStorage:
+class StepStorage(Storage):
     """Steps of `num_envs` envs and the slot map of the items over them (see the module
     docstring). `lookahead`: rows after an item's first row that it reads. `rows`: each env's
     ring length (default: enough that a FIFO-removed table of `capacity` drops items before

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 import torch
@@ -19,22 +19,36 @@ import torch
 from relayrl.arrays import to_numpy, torch_dtype
 from relayrl.errors import UserError
 
+if TYPE_CHECKING:
+    from relayrl.replay.step_storage import StepStorage
+
 Signature = dict[str, tuple[tuple[int, ...], np.dtype]]  # name -> (shape per row, dtype)
 
 
 class Storage(Protocol):
     """Where a table keeps its items' data, by slot. The table calls `write` when it gives
     items slots and `read` with the slots it samples; its checkpoint holds the storage's.
-    A storage may also have `stale(slots) -> bool mask`: items whose data no longer holds
-    what was written (memmap files reopened after the run went on), which a table that loads
-    a checkpoint deletes; `bind(slot_key)`: the table hands it its key map (read-only, as its
-    selectors get it); and `appending`: the StepStorage that takes appended steps, for a
-    storage of steps (see step_storage)."""
+    The optional methods hold their defaults here; a storage inherits them by subclassing."""
 
     def write(self, slots: np.ndarray, items: Any) -> None: ...
     def read(self, slots: np.ndarray) -> Any: ...
     def state_dict(self) -> dict[str, Any]: ...
     def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+    def bind(self, slot_key: np.ndarray) -> None:
+        """Take the table's key map (read-only, as its selectors get it); the default needs none."""
+
+    @property
+    def appending(self) -> StepStorage | None:
+        """The StepStorage that takes appended steps, for a storage of steps (see step_storage);
+        None (the default): the table keeps whole items only."""
+        return None
+
+    def stale(self, slots: np.ndarray) -> np.ndarray:
+        """Bool mask of the items whose data no longer holds what was written (memmap files
+        reopened after the run went on), which a table loading a checkpoint deletes. The
+        default: none is."""
+        return np.zeros(len(slots), dtype=bool)
 
 
 class Columns:
@@ -104,7 +118,7 @@ class Columns:
                 self.arrays[k][...] = to_numpy(v)
 
 
-class ItemStorage:
+class ItemStorage(Storage):
     """A table's storage for items inserted directly: one row per slot and field."""
 
     def __init__(self, capacity: int, path: str | Path | None = None,

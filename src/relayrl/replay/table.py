@@ -89,9 +89,7 @@ class Table:
             if self._inserted:
                 raise ValueError(f"Table {self.name!r} already took items; its storage is set before the first insert")
             self.storage = storage
-            bind = getattr(storage, "bind", None)
-            if bind is not None:
-                bind(self.slot_key)
+            storage.bind(self.slot_key)
 
     @classmethod
     def queue(cls, name: str, max_size: int) -> Table:
@@ -287,7 +285,7 @@ class Table:
         return True
 
     def _steps(self) -> StepStorage:
-        if (steps := getattr(self.storage, "appending", None)) is None:
+        if (steps := self.storage.appending) is None:
             raise TypeError(f"Table {self.name!r} keeps items, not steps: give it a writer before appending steps")
         return steps
 
@@ -459,10 +457,9 @@ class Table:
             self.rate_limiter.load_state_dict(state["rate_limiter"])
             self.sampler.load_state_dict(state["sampler"], live)
             self.remover.load_state_dict(state["remover"], live)
-            stale = getattr(self.storage, "stale", None)
-            if stale is not None and live.size:
+            if live.size:
                 # Memmap rows written after this checkpoint no longer hold what these items read.
-                gone = live[stale(live)]
+                gone = live[self.storage.stale(live)]
                 if gone.size:
                     self._delete_slots(gone)
 

@@ -9,7 +9,7 @@ them: the writer gives it a step storage when it is built (see step_storage) and
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -72,7 +72,7 @@ class _Writer:
         self.table = table
 
     def _steps(self) -> StepStorage:
-        return self.table.storage.appending  # type: ignore[attr-defined]  # the storage handed over in __init__
+        return cast(StepStorage, self.table.storage.appending)  # the storage handed over in __init__
 
     # ---- checkpoints (the steps' state is in the table's) ------------------------------------
     def saved_episodes_intact(self) -> bool:

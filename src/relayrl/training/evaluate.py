@@ -36,9 +36,9 @@ def make_eval_env(env_id: str, episodes: int, max_episode_steps: int = 0,
 
 def eval_cap_note(env: BatchedEnv, env_id: str) -> str | None:
     """The line that says an evaluation cap was put on an env without a time limit."""
-    if not getattr(env, "capped_at", 0):
+    if not isinstance(env, GymBatchEnv) or not env.capped_at:
         return None
-    return (f"env.id={env_id!r} has no time limit: evaluation episodes are cut at {env.capped_at:,} steps "  # type: ignore[attr-defined]
+    return (f"env.id={env_id!r} has no time limit: evaluation episodes are cut at {env.capped_at:,} steps "
             "(env.max_episode_steps caps training and evaluation episodes)")
 
 

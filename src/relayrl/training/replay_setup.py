@@ -28,7 +28,7 @@ from relayrl.replay.group import WriterGroup
 from relayrl.replay.rollouts import RolloutWriter
 from relayrl.replay.rollouts_torch import TensorRolloutWriter, tensor_rollout_queue
 from relayrl.seeding import RunSeeds
-from relayrl.specs import Spec
+from relayrl.specs import ArraySpec, Spec
 
 
 def env_steps_per_iteration(c: Config) -> int:
@@ -80,7 +80,7 @@ def replay_path(c: Config, run_root: Path) -> Path | None:
 def frame_stack(obs_spec: Spec) -> int:
     """k for stacked uint8 frames [k, H, W] (FrameStackObservation's; see ArraySpec.frame_stack),
     stored one frame per step; else 1 (whole observations)."""
-    k = getattr(obs_spec, "frame_stack", 1)
+    k = obs_spec.frame_stack if isinstance(obs_spec, ArraySpec) else 1
     ok = k > 1 and obs_spec.dtype == torch.uint8 and len(obs_spec.shape) >= 2 and obs_spec.shape[0] == k
     return k if ok else 1
 
