@@ -107,7 +107,9 @@ def timed_run(preset: str, overrides: list[str], device: torch.device, seconds: 
     config.train.initial_collect_steps = start
     config.train.total_steps = total
     config.train.log_interval = max(1, (total - start) // LOG_ROWS)
-    config.eval.interval = total  # evaluations at the start and the end only, outside the window
+    # Evaluations at the start and after the loop only (the final one comes after the last
+    # log row): an interval of `total` would fire before the log row at `total`.
+    config.eval.interval = total + 1
     config.train.checkpoint_interval = 0
     config.train.policy_save_interval = 0
     config.device = str(device)

@@ -127,7 +127,7 @@ def test_without_numba_prioritized_tables_use_the_numpy_tree(monkeypatch):
     import sys
 
     monkeypatch.setitem(sys.modules, "numba", None)  # its import now fails
-    assert type(make_sum_tree(10)) is SumTree
+    assert type(make_sum_tree(10)[0]) is SumTree
     t = filled(3, 3, sampler=Prioritized(1.0), prios=[1.0, 0.0, 3.0])
     assert type(t.sampler.tree) is SumTree and set(t.sample(50)[1].priority.tolist()) == {1.0, 3.0}
 

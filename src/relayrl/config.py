@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from relayrl import atomic
-from relayrl.agents.registry import ALGORITHMS, algorithm
+from relayrl.agents.registry import DEFAULT_ALGO, algorithm
 from relayrl.config_fields import Section, unknown_key
 from relayrl.errors import ConfigError
 from relayrl.seeding import MAX_SEED
@@ -106,11 +106,6 @@ class DistributedConfig(Section):
     num_eval_actors: int = 1  # eval runs in these Ray actors, beside training
     max_restarts: int = 5  # times Ray restarts a rollout or eval actor that died
     actor_cpus: float = 1.0  # CPUs Ray reserves per rollout actor (spreads them over a cluster)
-
-
-# `algo` when a config does not name one: the registry's first algorithm, so that this layer
-# names none (a new algorithm is a registry line, never a config edit).
-DEFAULT_ALGO = next(iter(ALGORITHMS))
 
 
 @dataclass

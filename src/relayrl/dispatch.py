@@ -159,23 +159,31 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         raise UserError(f"algo={entry.name!r} runs in one process only; distributed.num_actors works with "
                         f"{', '.join(ray_algorithms())}")
     # Each run builds its parts (envs, agent) before anything is written: bad input fails first.
-    driver: LocalDriver | DirectDriver | RayDriver
-    if entry.replay == "none":
-        driver = DirectDriver(config, rd, progress)
-    elif config.distributed.num_actors > 0:
+    driver = _make_driver(config, rd, progress, env, callbacks)
+    try:
+        if not resume and takeover:
+            print(f"relayrl: {takeover}", file=sys.stderr, flush=True)
+            rd.clear()
+        rd.create()
+        rd.hold_lock()
+        try:
+            if not resume:
+                save_toml(config, rd.config)
+            return driver.train(resume=resume)
+        finally:
+            rd.release_lock()
+    finally:
+        driver.close()  # env processes and Ray actors end here too when the run never started
+
+
+def _make_driver(config: Config, rd: RunDir, progress: bool, env: Callable[[], Any] | None,
+                 callbacks: list[Callback]) -> LocalDriver | DirectDriver | RayDriver:
+    """The driver of the config's topology: its own for an algorithm that trains by itself,
+    Ray's with distributed.num_actors > 0, else the one-process Actor + Learner."""
+    if algorithm(config.algo).replay == "none":
+        return DirectDriver(config, rd, progress)
+    if config.distributed.num_actors > 0:
         from relayrl.distributed.driver import RayDriver
 
-        driver = RayDriver(config, rd, progress)
-    else:
-        driver = LocalDriver(config, rd, progress, env_factory=env, callbacks=callbacks)
-    if not resume and takeover:
-        print(f"relayrl: {takeover}", file=sys.stderr, flush=True)
-        rd.clear()
-    rd.create()
-    rd.hold_lock()
-    try:
-        if not resume:
-            save_toml(config, rd.config)
-        return driver.train(resume=resume)
-    finally:
-        rd.release_lock()
+        return RayDriver(config, rd, progress)
+    return LocalDriver(config, rd, progress, env_factory=env, callbacks=callbacks)

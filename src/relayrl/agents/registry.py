@@ -123,6 +123,10 @@ def _bptt_trainer() -> ModuleType:
     return trainer
 
 
+# `algo` when a config does not name one, named here so that the config layer names none. A
+# config.toml without `algo` (one written before `algo` existed) means this algorithm.
+DEFAULT_ALGO = "dqn"
+
 ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (
     Algorithm("dqn", DQNConfig, "q_greedy", _dqn_policy, agent=_dqn_agent,
               ray=True, defaults=dqn_config.DEFAULTS,

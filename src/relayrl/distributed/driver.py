@@ -13,7 +13,7 @@ from collections import deque
 from typing import Any
 
 from relayrl.agents.registry import algorithm
-from relayrl.config import Config, to_dict
+from relayrl.config import Config
 from relayrl.distributed import require_ray
 from relayrl.distributed.actors import ActorPool
 from relayrl.distributed.offpolicy import ReplayCollection
@@ -121,17 +121,8 @@ class RayDriver:
 
     # ---- checkpoints ----------------------------------------------------------------------
     def checkpoint_state(self) -> dict[str, Any]:
-        return {
-            "version": 2,
-            "distributed": {"num_actors": self.pool.num_actors},
-            "config": to_dict(self.config),
-            "agent": self.agent.state_dict(),
-            **self.collection.state_dict(),
-            "episode_stats": self.stats.state_dict(),
-            "eval_count": self.eval_count,
-            "wall_time_s": self.core.wall_time(),
-            **self.core.process_state(),
-        }
+        return {**self.core.checkpoint_common(self.eval_count), "distributed": {"num_actors": self.pool.num_actors},
+                **self.collection.state_dict()}
 
     def restore(self) -> None:
         c, core, k = self.config, self.core, self.pool.num_actors
@@ -144,12 +135,9 @@ class RayDriver:
             raise UserError(f"the run being resumed has distributed.num_actors={saved['num_actors']} and "
                             f"env.num_envs={state['config']['env']['num_envs']} (its replay is laid out per actor "
                             f"and env copy); resume with the same")
-        self.agent.load_state_dict(state["agent"])
+        self.eval_count = core.restore_common(state)
         self.collection.load_state_dict(state, core.say)
-        self.stats.load_state_dict(state["episode_stats"])
         self.stats.reset_running()
-        self.eval_count = int(state["eval_count"])
-        core.wall_offset = float(state["wall_time_s"])
         core.load_process_state(state)
         steps = self.collection.env_steps()
         core.resume_at(steps)

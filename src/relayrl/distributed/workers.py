@@ -5,7 +5,7 @@ A rollout worker is the one-process loop's `Actor` with two different observers:
 RPC) and an `EpisodeLog` whose finished episodes go back to the driver with each call. Its
 acting network pulls weights from the VariableContainer actor through `RemoteVariables`, so
 `WeightPuller` is the same as in one process. An on-policy algorithm's actor, `RolloutCollector`,
-has the one-process run's `RolloutWriter` instead and answers each call with its rollout.
+has the one-process driver's `RolloutWriter` instead and answers each call with its rollout.
 """
 
 from __future__ import annotations
@@ -111,7 +111,7 @@ class RemoteVariables:
 
 class ChunkShipper:
     """Observer: stages batched steps and ships them to the replay server as one StepChunk
-    per flush (the Actor flushes at the end of each run). One insert stays in flight while
+    per flush (the Actor flushes at the end of each collect call). One insert stays in flight while
     the next chunk is collected; waiting for it is how the server's rate limiter slows
     collection down when the learner lags."""
 
@@ -200,7 +200,7 @@ class RolloutWorker:
 class RolloutCollector:
     """An on-policy algorithm's rollout actor (registry replay "rollouts", PPO): `collect(T)`
     pulls the newest weights, steps its `env.num_envs` copies T times with them through the
-    one-process run's `RolloutWriter`, and returns the [T, num_envs] rollout tagged with the
+    one-process driver's `RolloutWriter`, and returns the [T, num_envs] rollout tagged with the
     policy version it was collected with. No replay server: the driver keeps only rollouts of
     the current version (`distributed.onpolicy.RolloutShares`)."""
 

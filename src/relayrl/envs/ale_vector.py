@@ -77,18 +77,19 @@ class AleBatchEnv(BatchEnvBase):
         replay writers keep the step's tensors until they flush."""
         return torch.empty((self.num_envs, *self._stack.shape[1:]), dtype=torch.uint8, pin_memory=self.pin_memory)
 
-    def _in_order(self, info: dict[str, Any]) -> np.ndarray | None:
-        """The permutation that puts a batch in copy order, or None when it already is."""
-        ids = np.asarray(info["env_id"])
-        return None if np.array_equal(ids, self._all) else np.argsort(ids)
+    def _check_order(self, info: dict[str, Any]) -> None:
+        """ale-py answers a synchronous batch (batch_size = num_envs) in copy order, and `send`
+        gives action i to the i-th copy of the last answer: a batch in any other order would
+        pair copies with other copies' actions, so it stops the run instead."""
+        if not np.array_equal(np.asarray(info["env_id"]), self._all):
+            raise RuntimeError(f"ale-py answered copies {list(info['env_id'])} out of order; relayrl steps them "
+                               "in order (report this with the ale-py version)")
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
         if seed is not None:  # ale-py seeds copy i with seed + i, as a C int
             seed %= 2**31 - self.num_envs
         frames, info = self.ale.reset(seed=seed)  # [B, 1, H, W]
-        order = self._in_order(info)
-        if order is not None:
-            frames = frames[order]
+        self._check_order(info)
         out = self._empty()
         out.numpy()[:] = frames  # broadcast over the stack: the first frame repeated
         self._stack = out.numpy()
@@ -98,10 +99,7 @@ class AleBatchEnv(BatchEnvBase):
     def step(self, action: torch.Tensor) -> StepOutput:
         act = self._actions(action).astype(np.int64, copy=False).reshape(self.num_envs)
         frames, reward, terminated, truncated, info = self.ale.step(act)  # frames [B, 1, H, W]
-        order = self._in_order(info)
-        if order is not None:
-            frames, reward, terminated, truncated = frames[order], reward[order], terminated[order], truncated[order]
-            info = {k: np.asarray(v)[order] for k, v in info.items()}
+        self._check_order(info)
         ended_here = terminated | truncated  # ale-py reset these: frames holds their reset frame
         self._steps += 1
         cut = np.zeros_like(ended_here)
@@ -120,9 +118,7 @@ class AleBatchEnv(BatchEnvBase):
             resets = frames
             if cut.any():  # cut by env.max_episode_steps: reset those copies now
                 resets, reset_info = self.ale.reset(options={"reset_mask": cut})
-                reset_order = self._in_order(reset_info)
-                if reset_order is not None:
-                    resets = resets[reset_order]
+                self._check_order(reset_info)
             obs = self._empty()
             o = obs.numpy()
             o[:] = nxt

@@ -60,7 +60,7 @@ class RolloutWriter:
         """Steps of the rollout in progress (not yet in the table)."""
         return self.filled
 
-    # What the one-process run asks a replay writer when it resumes.
+    # What the local driver asks a replay writer when it resumes.
     def saved_episodes_intact(self) -> bool:
         return True
 

@@ -19,13 +19,13 @@ from relayrl.compile import numba_available
 from relayrl.replay.sumtree import SumTree
 
 
-def make_sum_tree(capacity: int) -> Any:
+def make_sum_tree(capacity: int) -> tuple[Any, bool]:
     """The compiled tree (`sumtree_fast.CompiledSumTree`) where numba runs, else the NumPy
-    `sumtree.SumTree`: same interface, same leaves found."""
+    `sumtree.SumTree` (same interface, same leaves found); and whether it is the compiled one."""
     if numba_available():
         from relayrl.replay.sumtree_fast import CompiledSumTree
-        return CompiledSumTree(capacity)
-    return SumTree(capacity)
+        return CompiledSumTree(capacity), True
+    return SumTree(capacity), False
 
 
 class Selector:
@@ -149,8 +149,7 @@ class Prioritized(Selector):
 
     def bind(self, capacity: int, slot_key: np.ndarray, priority: np.ndarray) -> None:
         super().bind(capacity, slot_key, priority)
-        self.tree = make_sum_tree(capacity)
-        self.compiled = hasattr(self.tree, "update_live")
+        self.tree, self.compiled = make_sum_tree(capacity)
         if self.compiled:
             self.update_keys = self._update_keys_compiled
 

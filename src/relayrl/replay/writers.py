@@ -72,7 +72,9 @@ class _Writer:
         self.table = table
 
     def _steps(self) -> StepStorage:
-        return cast(StepStorage, self.table.storage.appending)  # the storage handed over in __init__
+        # The storage handed over in __init__; in a WriterGroup the group's active one, which
+        # the group sets to this writer's before every call it makes on it.
+        return cast(StepStorage, self.table.storage.appending)
 
     # ---- checkpoints (the steps' state is in the table's) ------------------------------------
     def saved_episodes_intact(self) -> bool:
@@ -95,7 +97,7 @@ class _Writer:
     # ---- the observer ---------------------------------------------------------------
     def __call__(self, t: Transition) -> None:
         """Stage one batched step; items reach the table at `flush()` (every `chunk_length`
-        env steps, and whenever the Actor finishes a run), like Reverb's chunked writers.
+        env steps, and whenever the Actor ends a collect call), like Reverb's chunked writers.
         The step's tensors are held, not copied, until then: an env must not write into
         tensors it has already returned."""
         self._staged.append(t)

@@ -42,3 +42,6 @@ class DirectDriver:
             tb.close()
         save_policy_file(state, self.rd.policy / "policy.pt")
         return RunResult(self.rd.root, rows[-1] if rows else {})
+
+    def close(self) -> None:
+        """Nothing outlives `train`: the trainer runs in this process, on its own envs."""

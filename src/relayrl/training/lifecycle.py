@@ -2,7 +2,7 @@
 process (threads, seeds, device), build the learner and the triggers around the agent the
 registry makes, and take a run from its first evaluation to its last checkpoint (`run_to_end`).
 
-A driver builds its own envs and replay, then a `RunCore`, top to bottom in its `__init__`;
+A driver builds its own envs and replay, then a `RunCore`, top to bottom when it is made;
 `run_to_end(driver)` calls only the `Driver` methods below.
 """
 
@@ -18,7 +18,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from relayrl.config import Config
+from relayrl.config import Config, to_dict
 from relayrl.core import Agent
 from relayrl.envs.make import check_env, is_user_env
 from relayrl.errors import NonFiniteError, UserError
@@ -154,6 +154,21 @@ class RunCore:
         if not parts:
             return f"nothing was saved in {self.rd.root}"
         return f"{' and '.join(parts)} {'are' if len(parts) > 1 else 'is'} kept in {self.rd.root}"
+
+    def checkpoint_common(self, eval_count: int) -> dict[str, Any]:
+        """What every driver's checkpoint holds: the config, the agent, the training episodes'
+        stats, the evaluations so far, the wall time and the process's state."""
+        return {"version": 2, "config": to_dict(self.config), "agent": self.agent.state_dict(),
+                "episode_stats": self.stats.state_dict(), "eval_count": eval_count,
+                "wall_time_s": self.wall_time(), **self.process_state()}
+
+    def restore_common(self, state: dict[str, Any]) -> int:
+        """Load the agent, the episodes' stats and the wall time of `checkpoint_common`; returns
+        the evaluations so far. The process's state is the driver's to load, once its envs are back."""
+        self.agent.load_state_dict(state["agent"])
+        self.stats.load_state_dict(state["episode_stats"])
+        self.wall_offset = float(state["wall_time_s"])
+        return int(state["eval_count"])
 
     def process_state(self) -> dict[str, Any]:
         """The global RNGs (a user's env may draw from them) and the latest losses."""

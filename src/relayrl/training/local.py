@@ -1,5 +1,5 @@
 """The one-process driver: envs, Actor, replay, Learner and triggers in this process (the envs
-stepped here or in worker processes), put together top to bottom in `LocalDriver.__init__` and
+stepped here or in worker processes), put together top to bottom in `LocalDriver._build` and
 driven by `iterate`: collect, train what the rate limiter allows, fire the triggers."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from collections.abc import Callable
 from typing import Any
 
 from relayrl.agents.registry import algorithm
-from relayrl.config import Config, to_dict
+from relayrl.config import Config
 from relayrl.envs import make_env
 from relayrl.envs.stateless.adapter import StatelessBatchEnv
 from relayrl.errors import UserError
@@ -129,24 +129,18 @@ class LocalDriver:
     def checkpoint_state(self) -> dict[str, Any]:
         """Everything a resume needs besides the env step, which the Checkpointer adds."""
         return {
-            "version": 2,
-            "config": to_dict(self.config),
-            "agent": self.agent.state_dict(),
+            **self.core.checkpoint_common(self.evaluator.count),
             # Very large tables may be left out (train.checkpoint_replay = false): a resumed
             # run then refills its replay before learning again.
             "replay": self.replay.state_dict() if self.config.train.checkpoint_replay else None,
-            "episode_stats": self.stats.state_dict(),
             "random_rng": self.random_rng.bit_generator.state,
             # A collect policy with state of its own (SAC's noise generator on a GPU) saves it.
             "collect_policy": self.collect_policy.state_dict(),
-            "eval_count": self.evaluator.count,
-            "wall_time_s": self.core.wall_time(),
             # Mid-episode state, so that a resumed run is the uninterrupted run bit for bit:
-            # the envs (pickled, where they can be), the pending observation, the acting copy
-            # of the policy, the global RNGs a user's env may draw from, the latest losses.
+            # the envs (pickled, where they can be), the pending observation and the acting
+            # copy of the policy (the common part holds the global RNGs and the latest losses).
             "actor": self.actor.state_dict(),
             "variables_version": self.variables.version,
-            **self.core.process_state(),
         }
 
     def restore(self) -> None:
@@ -156,7 +150,7 @@ class LocalDriver:
         if saved_envs != self.config.env.num_envs:
             raise UserError(f"env.num_envs={self.config.env.num_envs} but the run being resumed has "
                             f"{saved_envs} (its replay and envs are laid out per copy); resume with {saved_envs}")
-        self.agent.load_state_dict(state["agent"])
+        self.evaluator.count = core.restore_common(state)
         files_moved_on = False
         if state["replay"] is not None:
             self.replay.load_state_dict(state["replay"])  # drops items whose memmap rows were overwritten
@@ -169,11 +163,8 @@ class LocalDriver:
         else:
             core.say("the checkpoint has no replay contents (train.checkpoint_replay = false): "
                      "the replay refills from the resumed policy before learning continues")
-        self.stats.load_state_dict(state["episode_stats"])
         self.random_rng.bit_generator.state = state["random_rng"]
         self.collect_policy.load_state_dict(state.get("collect_policy", {}))
-        self.evaluator.count = int(state["eval_count"])
-        core.wall_offset = float(state["wall_time_s"])
         steps = int(state["env_steps"])
         self.steps.value = steps
         self._restore_episodes(state, steps, files_moved_on)
@@ -208,3 +199,4 @@ class LocalDriver:
         for env in (self.env, self.eval_env):
             if env is not None:
                 env.close()
+        self.env = self.eval_env = None

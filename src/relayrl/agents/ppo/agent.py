@@ -25,7 +25,7 @@ from relayrl.agents.ppo.device_policy import PPODevicePolicy
 from relayrl.agents.ppo.distributions import log_prob_entropy
 from relayrl.agents.ppo.gae import gae
 from relayrl.agents.ppo.losses import explained_variance
-from relayrl.agents.ppo.networks import PPONetworks
+from relayrl.agents.ppo.networks import PolicyNet, PPONetworks
 from relayrl.agents.ppo.normalize import RewardScaler
 from relayrl.agents.ppo.policy import PPOCollectPolicy, PPOPolicy
 from relayrl.agents.ppo.update import make_update
@@ -79,9 +79,17 @@ class PPOAgent(Agent):
 
     def collect_policy(self, env_step: Callable[[], int] | None = None,
                        network: torch.nn.Module | None = None) -> PPOPolicy:
-        net = network if network is not None else self.net.policy
-        return PPOCollectPolicy(net, getattr(net, "log_std", None), self._bounds(), self.device, False, self.rng,
+        net = self._acting(network)
+        return PPOCollectPolicy(net, net.log_std, self._bounds(), self.device, False, self.rng,
                                 self.cfg.squash, self.net.head)
+
+    def _acting(self, network: torch.nn.Module | None) -> PolicyNet:
+        """The policy network a collect policy runs: an actor's copy of `policy_network()`, or
+        (None) the agent's own."""
+        net = network if network is not None else self.net.policy
+        if not isinstance(net, PolicyNet):
+            raise TypeError(f"a PPO collect policy runs a copy of policy_network(), not {type(net).__name__}")
+        return net
 
     def eval_policy(self) -> PPOPolicy:
         return PPOPolicy(self.net.policy, self.net.policy.log_std, self._bounds(), self.device, True,
@@ -92,11 +100,11 @@ class PPOAgent(Agent):
 
     def device_collect_policy(self, network: torch.nn.Module | None = None) -> PPODevicePolicy:
         """The collect policy for a stateless torch env: actions and noise stay on the device."""
-        net = network if network is not None else self.net.policy
+        net = self._acting(network)
         if self.net.head.binary or len(self.net.head.nvec) > 1:
             raise UserError("PPO on a stateless torch env takes Discrete or Box actions")
         # The env gets the sample clipped, or tanh-squashed where the config has agent.squash = "tanh".
-        return PPODevicePolicy(net, getattr(net, "log_std", None), self._bounds(), self.device,
+        return PPODevicePolicy(net, net.log_std, self._bounds(), self.device,
                                int(self.rng.integers(2**62)), self.cfg.squash)
 
     def scalars(self, env_steps: int) -> dict[str, float]:

@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from relayrl.agents.ppo.distributions import greedy_logits_action, to_bounds
-from relayrl.agents.ppo.networks import ActionHead, action_head
+from relayrl.agents.ppo.networks import ActionHead, PolicyNet, action_head
 from relayrl.agents.ppo.normalize import ObsNorm
 from relayrl.core import Policy
 from relayrl.nn import MLP
@@ -48,10 +48,11 @@ class PPOPolicy(Policy):
         # A float32 MLP on the CPU (the run's PolicyNet holds one as `mlp`, a saved policy is
         # one) runs through MLPInference: NumPy views of its weights for small batches; not
         # behind an observation normaliser or an encoder, which only the torch forward applies.
-        mlp = getattr(net, "mlp", net)
-        self.outputs = getattr(net, "out", None)  # a shared net's MLP has the value as one more output
-        self._cpu = (MLPInference(mlp) if isinstance(mlp, MLP) and device.type == "cpu"
-                     and getattr(net, "obs_norm", None) is None and getattr(net, "encoder", None) is None
+        self.outputs: int | None = None  # a shared net's MLP has the value as one more output
+        mlp, plain = net, True
+        if isinstance(net, PolicyNet):
+            mlp, self.outputs, plain = net.mlp, net.out, net.obs_norm is None and net.encoder is None
+        self._cpu = (MLPInference(mlp) if isinstance(mlp, MLP) and device.type == "cpu" and plain
                      and all(p.dtype == torch.float32 for p in mlp.parameters()) else None)
         if bounds is not None:
             self.low, self.high = (torch.as_tensor(b, dtype=torch.float32) for b in bounds)
