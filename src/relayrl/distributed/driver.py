@@ -10,24 +10,44 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Protocol
 
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config
+from relayrl.core import Agent
 from relayrl.distributed import require_ray
 from relayrl.distributed.actors import ActorPool
 from relayrl.distributed.offpolicy import ReplayCollection
 from relayrl.distributed.onpolicy import RolloutCollection
+from relayrl.distributed.remote import RemotePusher
 from relayrl.envs import make_env
 from relayrl.errors import UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.seeding import EVAL_STRIDE
+from relayrl.specs import Spec
 from relayrl.training.checkpoint import load_latest_checkpoint
 from relayrl.training.finite import FiniteWatch
 from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
 from relayrl.training.report import say
 from relayrl.training.run_dir import RunDir
 from relayrl.training.triggers import IntervalTrigger, Progress
+
+
+class Collection(Protocol):
+    """What the driver asks of an algorithm's collection on Ray (offpolicy.ReplayCollection,
+    onpolicy.RolloutCollection): start the actors, say the run's env steps, run the loop, and
+    put its state into the checkpoint."""
+
+    def start(self, rd_root: str, obs_spec: Spec, act_spec: Spec, agent: Agent) -> tuple[Any, RemotePusher]: ...
+    def env_steps(self) -> int: ...
+    def layout(self) -> str: ...
+    def postfix(self) -> dict[str, str]: ...
+    def eval_extra(self) -> dict[str, Any]: ...
+    def extra_scalars(self) -> dict[str, float]: ...
+    def iterate(self, core: RunCore, finish_evals: Callable[[], None]) -> None: ...
+    def state_dict(self) -> dict[str, Any]: ...
+    def load_state_dict(self, state: dict[str, Any], say: Callable[[str], None]) -> None: ...
 
 
 class RayDriver:
@@ -49,7 +69,8 @@ class RayDriver:
         self.stats = EpisodeStats()
         self.pool = ActorPool(ray, c, say)
         whole_rollouts = entry.replay == "rollouts"
-        self.collection = (RolloutCollection if whole_rollouts else ReplayCollection)(c, self.pool, self.stats)
+        self.collection: Collection = (RolloutCollection if whole_rollouts else ReplayCollection)(c, self.pool,
+                                                                                                 self.stats)
         self.stats.step_fn = self.collection.env_steps
         finite = FiniteWatch(c.env.num_envs, obs_spec)  # a Ray run's actors check what they collect
         try:

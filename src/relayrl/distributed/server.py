@@ -14,7 +14,7 @@ import numpy as np
 
 from relayrl.config import from_dict
 from relayrl.replay import RateLimiterTimeout, SampleInfo
-from relayrl.replay.writers import StepChunk
+from relayrl.replay.steps import StepChunk
 from relayrl.specs import Spec
 from relayrl.training.replay_setup import build_shared_replay
 
