@@ -285,7 +285,10 @@ def relayrl_loop(burn_in: int, steps: int, warmup: int, threads: int, seed: int)
         run.actor.collect = timed_run
         run.core.triggers.append(IntervalTrigger(1, lambda p: marks.append((p.env_steps, time.perf_counter()))))
         rss0 = proc_status()["VmRSS"]
-        run.train()
+        try:
+            run.train()
+        finally:
+            run.close()
         rss1 = proc_status()["VmRSS"]
         steps = run.replay.storage
         s = steps.store

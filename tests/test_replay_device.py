@@ -160,7 +160,10 @@ def test_sac_trains_with_a_stateless_env_and_its_replay_as_torch_tensors(tmp_pat
     store = run.replay.storage.store
     assert store.on_device and isinstance(store.flat("frame"), torch.Tensor)
     rd.create()
-    result = run.train()
+    try:
+        result = run.train()
+    finally:
+        run.close()
     assert run.agent.train_step > 0 and np.isfinite(result.final["average_return"])
     batch = run.replay.storage.read(live(run.replay)[:8])  # (sampling now would wait on the rate limiter)
     assert isinstance(batch.obs, torch.Tensor) and batch.obs.shape == (8, 3)

@@ -12,7 +12,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from relayrl.agents.registry import algorithm, ray_algorithms
+from relayrl.agents.registry import Algorithm, algorithm, ray_algorithms
 from relayrl.config import Config, from_dict, load_toml, save_toml
 from relayrl.errors import UserError
 from relayrl.training.direct import DirectDriver
@@ -159,7 +159,7 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         raise UserError(f"algo={entry.name!r} runs in one process only; distributed.num_actors works with "
                         f"{', '.join(ray_algorithms())}")
     # Each run builds its parts (envs, agent) before anything is written: bad input fails first.
-    driver = _make_driver(config, rd, progress, env, callbacks)
+    driver = _make_driver(entry, config, rd, progress, env, callbacks)
     try:
         if not resume and takeover:
             print(f"relayrl: {takeover}", file=sys.stderr, flush=True)
@@ -173,14 +173,14 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         finally:
             rd.release_lock()
     finally:
-        driver.close()  # env processes and Ray actors end here too when the run never started
+        driver.close()  # env processes and Ray actors end with the run, or before it where it never started
 
 
-def _make_driver(config: Config, rd: RunDir, progress: bool, env: Callable[[], Any] | None,
+def _make_driver(entry: Algorithm, config: Config, rd: RunDir, progress: bool, env: Callable[[], Any] | None,
                  callbacks: list[Callback]) -> LocalDriver | DirectDriver | RayDriver:
     """The driver of the config's topology: its own for an algorithm that trains by itself,
     Ray's with distributed.num_actors > 0, else the one-process Actor + Learner."""
-    if algorithm(config.algo).replay == "none":
+    if entry.replay == "none":
         return DirectDriver(config, rd, progress)
     if config.distributed.num_actors > 0:
         from relayrl.distributed.driver import RayDriver

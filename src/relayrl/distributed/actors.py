@@ -95,10 +95,8 @@ class ActorPool:
                     ray.kill(handle, no_restart=True)
                 except Exception:  # already gone
                     pass
-        self.workers, self.eval_workers, self.server, self.variables = [], [], None, None
         if self.owns_ray:
             ray.shutdown()
-            self.owns_ray = False
 
     @property
     def alive(self) -> int:

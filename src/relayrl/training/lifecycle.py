@@ -214,12 +214,13 @@ class Driver(Protocol):
         """Wait for evaluations still in flight."""
 
     def close(self) -> None:
-        """End the envs, processes or actors the driver started, however the run ends."""
+        """End the envs, processes or actors the driver started; whoever made the driver calls
+        it, once, however the run ends (`dispatch.train`)."""
 
 
 def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
     """The run directory around the driver's `iterate`: the untrained policy's evaluation and
-    save, then the final evaluation, policy save and checkpoint."""
+    save, then the final evaluation, policy save and checkpoint. The driver stays open."""
     core = driver.core
     c, report = core.config, core.report
     core.t0 = time.perf_counter()
@@ -248,7 +249,6 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         raise stop(core.finite.check() or str(e), core.kept()) from None
     finally:
         report.close()
-        driver.close()
 
 
 def finish(driver: Driver, p: Progress) -> None:

@@ -199,4 +199,3 @@ class LocalDriver:
         for env in (self.env, self.eval_env):
             if env is not None:
                 env.close()
-        self.env = self.eval_env = None
