@@ -4,6 +4,7 @@ every algorithm on the device.
 
     python bench/gpu.py [--device cuda] [--seconds 40] [--out gpu.json]
     python bench/gpu.py --smoke [--device cuda] [--steps 300]
+    python bench/gpu.py --profile ddqn-pong [--device cuda] [--seconds 10]
 
 Figures (env steps/s over the steady part of each run: from the first log row after learning
 starts to the last, evaluations excluded; each run capped by steps and by --seconds):
@@ -15,7 +16,9 @@ starts to the last, evaluations excluded; each run capped by steps and by --seco
 - eager floors in bare PyTorch: a Nature-CNN Double DQN update at batch 32 and a batch-1 action
   (ms), the Pong env's own step, and what they allow the ddqn-pong loop (4 actions, 4 env steps
   and one update per 4 env steps); a SAC update at batch 256 and a batch-1 action (ms), and the
-  sac-pendulum loop they allow. Device times are taken with torch.cuda.synchronize on CUDA.
+  sac-pendulum loop they allow. Device times are taken with torch.cuda.synchronize on CUDA;
+- on CUDA, the runs of GRAPH_AB once more with RELAYRL_CUDA_GRAPHS=0 (gradient steps launched
+  kernel by kernel instead of replayed from a CUDA graph), in the same process.
 
 The table goes to stdout and the figures to a JSON file (--out; default $OUT/gpu.json when OUT
 is set, else gpu.json). docs/benchmarks.md ("GPU figures") says how to run it on a lent GPU.
@@ -51,6 +54,9 @@ RUNS: list[tuple[str, str, list[str], int]] = [
     ("dqn-cartpole-fast", "dqn-cartpole-fast", ["eval.episodes=1"], 50_000),
 ]
 LOG_ROWS = 20  # log rows per run: the seconds cap is checked at each
+# On CUDA these also run with RELAYRL_CUDA_GRAPHS=0 (every kernel launched one by one), same process:
+# what capturing the gradient step in a CUDA graph buys.
+GRAPH_AB = ("ddqn-pong", "sac-pendulum", "sac-batched", "dqn-cartpole-fast")
 
 
 def fail(message: str) -> None:
@@ -268,23 +274,54 @@ def sac_floor(device: torch.device) -> dict[str, Any]:
     return {k: round(v, 3) for k, v in out.items()}
 
 
-def bench(device: torch.device, seconds: float, max_steps: int = 0) -> dict[str, Any]:
+def variants(name: str, device: torch.device) -> list[tuple[str, torch.device, str]]:
+    """(key, device, RELAYRL_CUDA_GRAPHS) for each timed run of `name`."""
+    out = [(name, device, "1")]
+    if device.type == "cuda" and name in GRAPH_AB:
+        out.append((f"{name}@no-graphs", device, "0"))
+    if device.type == "cuda" and name == "dqn-cartpole-fast":
+        out.append((f"{name}@cpu", torch.device("cpu"), "1"))
+    return out
+
+
+def bench(device: torch.device, seconds: float, out: Path, max_steps: int = 0) -> dict[str, Any]:
+    """Every figure; `out` is rewritten after each run, so a run cut short keeps what it measured."""
     figures: dict[str, Any] = {"device": str(device), "gpu": torch.cuda.get_device_name(device)
                                if device.type == "cuda" else None, "torch": torch.__version__, "runs": {}}
     for name, preset, overrides, steps in RUNS:
-        devices = [device, torch.device("cpu")] if name == "dqn-cartpole-fast" and device.type == "cuda" else [device]
-        for dev in devices:
-            key = name if dev == device else f"{name}@cpu"
+        for key, dev, graphs in variants(name, device):
             t0 = time.perf_counter()
+            os.environ["RELAYRL_CUDA_GRAPHS"] = graphs
             try:
                 cap = min(steps, max_steps) if max_steps else steps
                 figures["runs"][key] = timed_run(preset, overrides, dev, seconds, cap)
             except Exception as e:  # one broken run leaves the others' figures
                 figures["runs"][key] = {"error": f"{type(e).__name__}: {e}"}
                 traceback.print_exc()
+            finally:
+                os.environ.pop("RELAYRL_CUDA_GRAPHS")
             print(f"  {key}: {figures['runs'][key]} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
+            out.write_text(json.dumps(figures, indent=1) + "\n")
     figures["floor"] = {**pong_floor(device), **sac_floor(device)}
+    out.write_text(json.dumps(figures, indent=1) + "\n")
     return figures
+
+
+def profile(name: str, device: torch.device, seconds: float, out: Path) -> None:
+    """One run of `name` under cProfile; the 40 functions with the most own time go to `out`."""
+    import cProfile
+    import io
+    import pstats
+
+    preset, overrides, steps = next((p, o, s) for n, p, o, s in RUNS if n == name)
+    prof = cProfile.Profile()
+    prof.enable()
+    figures = timed_run(preset, overrides, device, seconds, steps)
+    prof.disable()
+    text = io.StringIO()
+    pstats.Stats(prof, stream=text).sort_stats("tottime").print_stats(40)
+    out.write_text(f"{name} on {device}: {figures}\n{text.getvalue()}")
+    print(f"profile of {name}: {out}")
 
 
 def table(figures: dict[str, Any]) -> str:
@@ -292,26 +329,31 @@ def table(figures: dict[str, Any]) -> str:
 
     def sps(key: str) -> str:
         r = runs.get(key, {})
+        if not r:
+            return "not run"
         if "error" in r:
             return "error: " + r["error"][:60]
         if not r.get("env_steps_per_s"):
             return "not measured (run too short)"
         return f"{r['env_steps_per_s']:,.0f} env steps/s"
 
+    def graphs(key: str) -> str:
+        return f"; without CUDA graphs {sps(key + '@no-graphs')}" if key + "@no-graphs" in runs else ""
+
     rows = [
-        ("ddqn-pong (1 env, 1 gradient step / 4 env steps)", sps("ddqn-pong"),
+        ("ddqn-pong (1 env, 1 gradient step / 4 env steps)", sps("ddqn-pong") + graphs("ddqn-pong"),
          f"eager floor {floor['ddqn_pong_loop_env_steps_per_s']:,.0f} env steps/s (update b32 "
          f"{floor['dqn_update_b32_ms']:.2f} ms, action b1 {floor['action_b1_ms']:.3f} ms, "
          f"env step {floor['pong_env_step_ms']:.3f} ms)"),
         ("dqn-pong-fast (8 ale-py envs, 2 x b128 / 8 env steps)", sps("dqn-pong-fast"), "-"),
-        ("sac-pendulum (1 env step + 1 gradient step)", sps("sac-pendulum"),
+        ("sac-pendulum (1 env step + 1 gradient step)", sps("sac-pendulum") + graphs("sac-pendulum"),
          f"eager floor {floor['sac_pendulum_loop_env_steps_per_s']:,.0f} env steps/s (update b256 "
          f"{floor['sac_update_b256_ms']:.2f} ms, action b1 {floor['sac_action_b1_ms']:.3f} ms); "
          "LeanRL reports 725, CleanRL 127"),
-        ("sac-batched (32 copies, 16 gradient steps / batched step)", sps("sac-batched"),
+        ("sac-batched (32 copies, 16 gradient steps / batched step)", sps("sac-batched") + graphs("sac-batched"),
          f"eager update b256 {floor['sac_update_b256_ms']:.2f} ms"),
         ("ppo-stateless-pendulum (whole loop)", sps("ppo-stateless-pendulum"), "PureJaxRL-style: millions"),
-        ("dqn-cartpole-fast", sps("dqn-cartpole-fast"),
+        ("dqn-cartpole-fast", sps("dqn-cartpole-fast") + graphs("dqn-cartpole-fast"),
          f"same preset on the CPU: {sps('dqn-cartpole-fast@cpu')}" if "dqn-cartpole-fast@cpu" in runs else "-"),
     ]
     head = f"device: {figures['device']} ({figures['gpu'] or 'CPU'}), torch {figures['torch']}"
@@ -386,6 +428,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default=None, help="JSON file (default: $OUT/gpu.json when OUT is set, else gpu.json)")
     p.add_argument("--smoke", action="store_true", help="train, evaluate, export and load each algorithm instead")
     p.add_argument("--steps", type=int, default=300, help="--smoke: env steps per algorithm (default 300)")
+    p.add_argument("--profile", choices=[r[0] for r in RUNS], default=None,
+                   help="profile one run (cProfile, 40 functions by own time) instead")
     args = p.parse_args(argv)
     device = check_device(args.device)
     if args.seconds <= 0 or args.steps < 30 or args.max_steps < 0:
@@ -395,9 +439,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if smoke(device, args.steps) else 1
     out = Path(args.out) if args.out else Path(os.environ["OUT"]) / "gpu.json" if os.environ.get("OUT") \
         else Path("gpu.json")
-    figures = bench(device, args.seconds, args.max_steps)
+    if args.profile:
+        profile(args.profile, device, args.seconds, out.with_name(f"profile-{args.profile}.txt"))
+        return 0
+    figures = bench(device, args.seconds, out, args.max_steps)
     print(table(figures))
-    out.write_text(json.dumps(figures, indent=1) + "\n")
     print(f"figures: {out}")
     return 0
 

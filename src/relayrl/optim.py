@@ -20,7 +20,6 @@ class FastAdam:
     def __init__(self, params: Iterable[torch.Tensor], lr: float, betas: tuple[float, float] = (0.9, 0.999),
                  eps: float = 1e-8) -> None:
         self.params = [p for p in params if p.requires_grad]
-        self.lr = lr
         self.betas = betas
         self.eps = eps
         self._data = [p.detach() for p in self.params]
@@ -35,6 +34,21 @@ class FastAdam:
         self.steps = (list(self._steps_flat.unbind(0)) if self._steps_flat is not None else
                       [torch.zeros((), dtype=torch.float32, device=p.device) for p in self._data])
         self._fallback = None if _HAS_FUSED else torch.optim.Adam(self.params, lr=lr, betas=betas, eps=eps)
+        # On a GPU the kernel reads the learning rate from a device tensor, so a step captured
+        # in a CUDA graph (nn/graphed.py) follows a schedule that changes it.
+        cuda = self._steps_flat is not None and self._steps_flat.device.type == "cuda"
+        self._lr_tensor = torch.tensor(float(lr), device=self._steps_flat.device) if cuda else None
+        self._lr = float(lr)
+
+    @property
+    def lr(self) -> float:
+        return self._lr
+
+    @lr.setter
+    def lr(self, value: float) -> None:
+        if value != self._lr and self._lr_tensor is not None:
+            self._lr_tensor.fill_(value)
+        self._lr = float(value)
 
     def zero_grad(self) -> None:
         for p in self.params:
@@ -62,8 +76,9 @@ class FastAdam:
             self._steps_flat.add_(1.0)
         else:
             torch._foreach_add_(self.steps, 1.0)
+        lr = self._lr if self._lr_tensor is None else self._lr_tensor
         torch._fused_adam_(self._data, grads, self.exp_avg, self.exp_avg_sq, [], self.steps,
-                           amsgrad=False, lr=self.lr, beta1=self.betas[0], beta2=self.betas[1],
+                           amsgrad=False, lr=lr, beta1=self.betas[0], beta2=self.betas[1],
                            weight_decay=0.0, eps=self.eps, maximize=False)
 
     def state_dict(self) -> dict[str, Any]:

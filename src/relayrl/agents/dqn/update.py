@@ -1,7 +1,9 @@
 """DQN's gradient step on the online network, chosen once when the agent is built: the
-autograd reference (`dqn_loss` + `backward()`) or its hand-written twin for MLP Q-networks
-(`losses_fast.dqn_loss_and_grads`: the same values, with less per-update overhead on CPU).
-The twin subclasses the reference, overriding its methods; tests/test_dqn_fast.py runs both."""
+autograd reference (`dqn_loss` + `backward()`); on CUDA, the reference replayed from a CUDA
+graph (`nn.graphed`); on CPU, its hand-written twin for MLP Q-networks
+(`losses_fast.dqn_loss_and_grads`: the same values, with less per-update overhead). Both
+subclass the reference, overriding its methods; tests/test_dqn_fast.py and
+tests/test_graphed.py compare them with it."""
 
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ from relayrl.agents.dqn.config import DQNConfig
 from relayrl.agents.dqn.losses import dqn_loss
 from relayrl.agents.dqn.losses_fast import dqn_loss_and_grads
 from relayrl.nn import mlp_fast
+from relayrl.nn.graphed import GraphedStep, cuda_graphs_enabled
 from relayrl.optim import FastAdam
 from relayrl.types import Batch
 
@@ -70,8 +73,25 @@ class HandWrittenDQNUpdate(DQNUpdate):
         return self.fast_target.forward(next_obs)[0]
 
 
+class GraphedDQNUpdate(DQNUpdate):
+    """`DQNUpdate` replayed from a CUDA graph per batch signature (`nn.graphed.GraphedStep`)."""
+
+    def __init__(self, online: nn.Module, target: nn.Module | None, optimizer: FastAdam, cfg: DQNConfig) -> None:
+        super().__init__(online, target, optimizer, cfg)
+        self.graphed = GraphedStep(self._reference)
+
+    def _reference(self, *fields: Tensor | None) -> dict[str, Tensor]:
+        return DQNUpdate.__call__(self, Batch(*fields[:-1]), fields[-1])
+
+    def __call__(self, batch: Batch, target_q: Tensor | None) -> dict[str, Tensor]:
+        return self.graphed(*batch, target_q)
+
+
 def make_update(online: nn.Module, target: nn.Module | None, optimizer: FastAdam, cfg: DQNConfig,
                 hand_written: bool = True) -> DQNUpdate:
-    """The hand-written update where it supports the network (and `hand_written`), else autograd's."""
+    """On CUDA the graphed reference (unless RELAYRL_CUDA_GRAPHS=0); elsewhere the hand-written
+    update where it supports the network (and `hand_written`), else autograd's."""
+    if cuda_graphs_enabled(next(online.parameters()).device):
+        return GraphedDQNUpdate(online, target, optimizer, cfg)
     twin = hand_written and mlp_fast.supports(online)
     return (HandWrittenDQNUpdate if twin else DQNUpdate)(online, target, optimizer, cfg)

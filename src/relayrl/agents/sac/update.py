@@ -1,8 +1,9 @@
 """SAC's gradient steps (critics, actor, alpha), chosen once when the agent is built: the
-autograd reference (the losses of `losses.py` + `backward()`) or its hand-written twin for MLP
-networks (`nn.mlp_fast`, `losses_fast.py`: the same losses, draws and steps, with less
-per-update overhead on CPU). The twin subclasses the reference, overriding `__call__`;
-tests/test_sac_fast.py runs both."""
+autograd reference (the losses of `losses.py` + `backward()`); on CUDA, the reference replayed
+from a CUDA graph (`nn.graphed`); on CPU, its hand-written twin for MLP networks
+(`nn.mlp_fast`, `losses_fast.py`: the same losses, draws and steps, with less per-update
+overhead). Both subclass the reference, overriding `__call__`; tests/test_sac_fast.py and
+tests/test_graphed.py compare them with it."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from relayrl.agents.sac import losses_fast
 from relayrl.agents.sac.config import SACConfig
 from relayrl.agents.sac.losses import actor_loss, alpha_loss, critic_loss, critic_targets, tanh_gaussian
 from relayrl.nn import mlp_fast
+from relayrl.nn.graphed import GraphedStep, cuda_graphs_enabled
 from relayrl.optim import FastAdam
 from relayrl.types import Batch
 
@@ -144,7 +146,25 @@ class HandWrittenSACUpdate(SACUpdate):
                 "q": q[0], "td_error": td}
 
 
+class GraphedSACUpdate(SACUpdate):
+    """`SACUpdate` replayed from a CUDA graph per batch signature (`nn.graphed.GraphedStep`); the
+    training noise's generator is registered with each graph, so replays draw fresh noise."""
+
+    def __init__(self, parts: SACParts) -> None:
+        super().__init__(parts)
+        self.graphed = GraphedStep(self._reference, generators=[parts.gen])
+
+    def _reference(self, *fields: Tensor | None) -> dict[str, Tensor]:
+        return SACUpdate.__call__(self, Batch(*fields))
+
+    def __call__(self, batch: Batch) -> dict[str, Tensor]:
+        return self.graphed(*batch)
+
+
 def make_update(parts: SACParts, hand_written: bool = True) -> SACUpdate:
-    """The hand-written update where it supports the networks (and `hand_written`), else autograd's."""
+    """On CUDA the graphed reference (unless RELAYRL_CUDA_GRAPHS=0); elsewhere the hand-written
+    update where it supports the networks (and `hand_written`), else autograd's."""
+    if cuda_graphs_enabled(parts.log_alpha.device):
+        return GraphedSACUpdate(parts)
     twin = hand_written and mlp_fast.supports(parts.actor) and mlp_fast.supports(parts.critic)
     return HandWrittenSACUpdate(parts) if twin else SACUpdate(parts)

@@ -1,0 +1,92 @@
+"""A gradient step replayed from a CUDA graph: one launch instead of the hundred-odd kernels of
+a forward, backward and optimizer step, whose launch latency bounds small RL updates on a GPU.
+
+`GraphedStep(step)` runs `step(*tensors)` as it is for its first `WARMUP` calls of each input
+signature (which shapes, dtypes and which inputs are None), on a side stream as capture
+requires; the next call captures it and every later one copies its inputs into the captured
+buffers and replays. Every call is one real step: the captured call replays once captured.
+
+What a step may do: work on tensors already on the device, update parameters and optimizer
+state in place (`optim.FastAdam` keeps its learning rate in a device tensor there, so a
+schedule reaches the replays), draw noise from generators named at construction. What it may
+not: read a tensor's value on the host (`.item()`, `float(t)`, a Python branch on a value) or
+allocate tensors it keeps across calls. The returned tensors are the graph's own outputs,
+overwritten by the next call: read them before the next step (the learner does).
+
+`RELAYRL_CUDA_GRAPHS=0` turns capture off (the same steps, each launched kernel by kernel);
+benchmarks compare the two.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import torch
+
+Tensor = torch.Tensor
+Signature = tuple[tuple[torch.Size, torch.dtype] | None, ...]
+WARMUP = 3  # eager calls per signature before capture (lazy cuBLAS / autograd set-up)
+
+
+def cuda_graphs_enabled(device: torch.device) -> bool:
+    """True where steps on `device` are captured: a CUDA device and `RELAYRL_CUDA_GRAPHS` not 0."""
+    return device.type == "cuda" and os.environ.get("RELAYRL_CUDA_GRAPHS", "1") != "0"
+
+
+class _Captured(NamedTuple):
+    graph: torch.cuda.CUDAGraph
+    inputs: list[Tensor | None]  # the buffers the graph reads
+    outputs: dict[str, Tensor]  # the buffers it writes
+
+
+class GraphedStep:
+    """`step(*tensors) -> dict of tensors`, captured per input signature (see the module doc)."""
+
+    def __init__(self, step: Callable[..., dict[str, Tensor]], generators: Sequence[torch.Generator] = ()) -> None:
+        self.step = step
+        self.generators = list(generators)
+        self._calls: dict[Signature, int] = {}
+        self._graphs: dict[Signature, _Captured] = {}
+        self._stream: torch.cuda.Stream | None = None
+
+    def __call__(self, *args: Tensor | None) -> dict[str, Tensor]:
+        key: Signature = tuple(None if a is None else (a.shape, a.dtype) for a in args)
+        captured = self._graphs.get(key)
+        if captured is None:
+            calls = self._calls.get(key, 0)
+            self._calls[key] = calls + 1
+            if calls < WARMUP:
+                return self._eager(args)
+            captured = self._graphs[key] = self._capture(args)
+        for buffer, a in zip(captured.inputs, args, strict=True):
+            if buffer is not None:
+                buffer.copy_(a, non_blocking=True)
+        captured.graph.replay()
+        return captured.outputs
+
+    def _side_stream(self) -> torch.cuda.Stream:
+        if self._stream is None:
+            self._stream = torch.cuda.Stream()
+        return self._stream
+
+    def _eager(self, args: tuple[Tensor | None, ...]) -> dict[str, Tensor]:
+        stream, current = self._side_stream(), torch.cuda.current_stream()
+        stream.wait_stream(current)
+        with torch.cuda.stream(stream):
+            out = self.step(*args)
+        current.wait_stream(stream)
+        return out
+
+    def _capture(self, args: tuple[Tensor | None, ...]) -> _Captured:
+        """Record the step on buffers holding `args`; nothing runs until the first replay."""
+        inputs = [None if a is None else a.detach().clone() for a in args]
+        graph = torch.cuda.CUDAGraph()
+        for gen in self.generators:
+            graph.register_generator_state(gen)
+        torch.cuda.synchronize()  # the warm-up calls' side-stream work is done before capture
+        # thread_local: CUDA calls of other threads (env workers pinning frames) go on meanwhile.
+        with torch.cuda.graph(graph, stream=self._side_stream(), capture_error_mode="thread_local"):
+            outputs = self.step(*inputs)
+        return _Captured(graph, inputs, outputs)

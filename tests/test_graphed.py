@@ -1,0 +1,135 @@
+"""Gradient steps replayed from CUDA graphs (nn/graphed.py) against the same steps launched kernel
+by kernel (RELAYRL_CUDA_GRAPHS=0): DQN and SAC, with and without importance weights, through a
+learning-rate change. The CUDA tests run where torch sees a GPU; the rest run everywhere."""
+
+import numpy as np
+import pytest
+import torch
+
+from relayrl.agents.dqn import DQNAgent, DQNConfig
+from relayrl.agents.dqn.update import GraphedDQNUpdate
+from relayrl.agents.sac import SACAgent, SACConfig
+from relayrl.agents.sac.update import GraphedSACUpdate
+from relayrl.nn.graphed import WARMUP, GraphedStep, cuda_graphs_enabled
+from relayrl.optim import FastAdam
+from relayrl.specs import ArraySpec, DiscreteSpec
+from relayrl.types import Batch
+
+cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+STEPS = WARMUP + 5  # eager warm-up, the captured call, replays
+
+
+def test_graphs_only_on_cuda_and_can_be_turned_off(monkeypatch):
+    monkeypatch.delenv("RELAYRL_CUDA_GRAPHS", raising=False)
+    assert not cuda_graphs_enabled(torch.device("cpu"))
+    assert cuda_graphs_enabled(torch.device("cuda"))
+    monkeypatch.setenv("RELAYRL_CUDA_GRAPHS", "0")
+    assert not cuda_graphs_enabled(torch.device("cuda"))
+
+
+def test_fast_adam_learning_rate_round_trips():
+    opt = FastAdam([torch.zeros(2, requires_grad=True)], lr=1e-3)
+    opt.lr = 5e-4
+    state = opt.state_dict()
+    other = FastAdam([torch.zeros(2, requires_grad=True)], lr=1e-3)
+    other.load_state_dict(state)
+    assert other.lr == pytest.approx(5e-4) and isinstance(other.lr, float)
+
+
+@cuda
+def test_graphed_step_runs_every_call_once():
+    total = torch.zeros(3, device="cuda")
+
+    def step(x: torch.Tensor) -> dict[str, torch.Tensor]:
+        total.add_(x)
+        return {"sum": total.sum()}
+
+    graphed = GraphedStep(step)
+    for i in range(STEPS):
+        out = graphed(torch.full((3,), float(i), device="cuda"))
+    assert float(out["sum"]) == pytest.approx(3 * sum(range(STEPS)))
+
+
+def dqn_pair(monkeypatch, **kw):
+    cfg = DQNConfig(hidden=[32, 32], batch_size=16, lr=1e-3, target_update_period=10**6, double=True, **kw)
+    agents = []
+    for graphs in ("1", "0"):
+        monkeypatch.setenv("RELAYRL_CUDA_GRAPHS", graphs)
+        torch.manual_seed(0)
+        agents.append(DQNAgent(ArraySpec((4,), torch.float32), DiscreteSpec(3), cfg, torch.device("cuda"),
+                               np.random.default_rng(0)))
+    assert isinstance(agents[0].update, GraphedDQNUpdate) and not isinstance(agents[1].update, GraphedDQNUpdate)
+    return agents
+
+
+def dqn_batch(seed: int, weighted: bool) -> Batch:
+    g = torch.Generator().manual_seed(seed)
+    n = 16
+    weight = torch.rand(n, generator=g) + 0.5 if weighted else None
+    b = Batch(torch.randn(n, 4, generator=g), torch.randint(3, (n,), generator=g), torch.randn(n, generator=g),
+              torch.randn(n, 4, generator=g), torch.full((n,), 0.99), weight)
+    return Batch(*(None if x is None else x.cuda() for x in b))
+
+
+@cuda
+@pytest.mark.parametrize("weighted", [False, True])
+def test_graphed_dqn_matches_eager(monkeypatch, weighted):
+    graphed, eager = dqn_pair(monkeypatch)
+    for i in range(STEPS):
+        if i == STEPS - 2:  # a schedule's change reaches the replays
+            graphed.optimizer.lr = eager.optimizer.lr = 0.0
+        a, b = graphed.train(dqn_batch(i, weighted)), eager.train(dqn_batch(i, weighted))
+        torch.testing.assert_close(a["td_error"], b["td_error"], atol=1e-5, rtol=1e-4)
+    for p, q in zip(graphed.online.parameters(), eager.online.parameters(), strict=True):
+        torch.testing.assert_close(p, q, atol=1e-5, rtol=1e-4)
+
+
+@cuda
+def test_graphed_dqn_captures_each_batch_signature(monkeypatch):
+    graphed, eager = dqn_pair(monkeypatch)
+    for i in range(STEPS):  # weighted and unweighted batches take turns: two graphs
+        for weighted in (False, True):
+            graphed.train(dqn_batch(i, weighted))
+            eager.train(dqn_batch(i, weighted))
+    for p, q in zip(graphed.online.parameters(), eager.online.parameters(), strict=True):
+        torch.testing.assert_close(p, q, atol=1e-5, rtol=1e-4)
+
+
+def sac_pair(monkeypatch):
+    obs = ArraySpec((3,), torch.float32, -np.ones(3), np.ones(3))
+    act = ArraySpec((2,), torch.float32, np.array([-2.0, 0.0]), np.array([2.0, 1.0]))
+    cfg = SACConfig(actor_hidden=[32, 32], critic_hidden=[32, 32], batch_size=16)
+    agents = []
+    for graphs in ("1", "0"):
+        monkeypatch.setenv("RELAYRL_CUDA_GRAPHS", graphs)
+        torch.manual_seed(0)
+        agents.append(SACAgent(obs, act, cfg, torch.device("cuda"), np.random.default_rng(0)))
+    assert isinstance(agents[0].update, GraphedSACUpdate) and not isinstance(agents[1].update, GraphedSACUpdate)
+    return agents
+
+
+def sac_batch(seed: int) -> Batch:
+    g = torch.Generator().manual_seed(seed)
+    n = 16
+    action = torch.stack([torch.rand(n, generator=g) * 4 - 2, torch.rand(n, generator=g)], dim=1)
+    b = Batch(torch.randn(n, 3, generator=g), action, torch.randn(n, generator=g), torch.randn(n, 3, generator=g),
+              torch.full((n,), 0.99), None)
+    return Batch(*(None if x is None else x.cuda() for x in b))
+
+
+@cuda
+def test_graphed_sac_draws_fresh_noise_each_replay(monkeypatch):
+    graphed, _ = sac_pair(monkeypatch)
+    entropies = [float(graphed.train(sac_batch(0))["entropy"]) for _ in range(STEPS)]
+    assert len(set(entropies[WARMUP:])) == len(entropies[WARMUP:])
+
+
+@cuda
+def test_graphed_sac_matches_eager(monkeypatch):
+    graphed, eager = sac_pair(monkeypatch)
+    for i in range(STEPS):
+        a, b = graphed.train(sac_batch(i)), eager.train(sac_batch(i))
+        torch.testing.assert_close(a["critic_loss"], b["critic_loss"], atol=1e-4, rtol=1e-4)
+    for p, q in zip([*graphed.actor.parameters(), graphed.log_alpha], [*eager.actor.parameters(), eager.log_alpha],
+                    strict=True):
+        torch.testing.assert_close(p, q, atol=1e-4, rtol=1e-4)
