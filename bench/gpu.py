@@ -284,12 +284,16 @@ def variants(name: str, device: torch.device) -> list[tuple[str, torch.device, s
     return out
 
 
-def bench(device: torch.device, seconds: float, out: Path, max_steps: int = 0) -> dict[str, Any]:
-    """Every figure; `out` is rewritten after each run, so a run cut short keeps what it measured."""
+def bench(device: torch.device, seconds: float, out: Path, max_steps: int = 0,
+          only: list[str] | None = None) -> dict[str, Any]:
+    """Every figure; `out` is rewritten after each run, so a run cut short keeps what it measured.
+    `only`: these runs, on `device` alone, and no floors (an A/B of two source trees)."""
     figures: dict[str, Any] = {"device": str(device), "gpu": torch.cuda.get_device_name(device)
                                if device.type == "cuda" else None, "torch": torch.__version__, "runs": {}}
     for name, preset, overrides, steps in RUNS:
-        for key, dev, graphs in variants(name, device):
+        if only and name not in only:
+            continue
+        for key, dev, graphs in variants(name, device)[:1] if only else variants(name, device):
             t0 = time.perf_counter()
             os.environ["RELAYRL_CUDA_GRAPHS"] = graphs
             try:
@@ -302,8 +306,9 @@ def bench(device: torch.device, seconds: float, out: Path, max_steps: int = 0) -
                 os.environ.pop("RELAYRL_CUDA_GRAPHS")
             print(f"  {key}: {figures['runs'][key]} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
             out.write_text(json.dumps(figures, indent=1) + "\n")
-    figures["floor"] = {**pong_floor(device), **sac_floor(device)}
-    out.write_text(json.dumps(figures, indent=1) + "\n")
+    if not only:
+        figures["floor"] = {**pong_floor(device), **sac_floor(device)}
+        out.write_text(json.dumps(figures, indent=1) + "\n")
     return figures
 
 
@@ -430,6 +435,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=300, help="--smoke: env steps per algorithm (default 300)")
     p.add_argument("--profile", choices=[r[0] for r in RUNS], default=None,
                    help="profile one run (cProfile, 40 functions by own time) instead")
+    p.add_argument("--only", nargs="+", choices=[r[0] for r in RUNS], default=None,
+                   help="time these runs alone (no floors, no variants) and print their JSON")
     args = p.parse_args(argv)
     device = check_device(args.device)
     if args.seconds <= 0 or args.steps < 30 or args.max_steps < 0:
@@ -442,8 +449,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.profile:
         profile(args.profile, device, args.seconds, out.with_name(f"profile-{args.profile}.txt"))
         return 0
-    figures = bench(device, args.seconds, out, args.max_steps)
-    print(table(figures))
+    figures = bench(device, args.seconds, out, args.max_steps, args.only)
+    print(json.dumps(figures["runs"]) if args.only else table(figures))
     print(f"figures: {out}")
     return 0
 

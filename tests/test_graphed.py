@@ -133,3 +133,52 @@ def test_graphed_sac_matches_eager(monkeypatch):
     for p, q in zip([*graphed.actor.parameters(), graphed.log_alpha], [*eager.actor.parameters(), eager.log_alpha],
                     strict=True):
         torch.testing.assert_close(p, q, atol=1e-4, rtol=1e-4)
+
+
+@cuda
+def test_greedy_policy_replays_see_weights_updated_in_place(monkeypatch):
+    from relayrl.nn import MLP
+    from relayrl.policies import GreedyPolicy
+
+    net = MLP(4, [16], 3, "relu").cuda()
+    graphed = GreedyPolicy(net, torch.device("cuda"))
+    monkeypatch.setenv("RELAYRL_CUDA_GRAPHS", "0")
+    eager = GreedyPolicy(net, torch.device("cuda"))
+    g = torch.Generator().manual_seed(0)
+    for i in range(2 * STEPS):
+        if i == STEPS:
+            with torch.no_grad():
+                for p in net.parameters():
+                    p.mul_(-1.5)
+        obs = torch.randn(5, 4, generator=g)
+        assert torch.equal(graphed(obs), eager(obs))
+
+
+@cuda
+def test_signatures_beyond_max_graphs_run_eagerly():
+    total = torch.zeros((), device="cuda")
+
+    def step(x: torch.Tensor) -> dict[str, torch.Tensor]:
+        total.add_(x.sum())
+        return {"total": total}
+
+    graphed = GraphedStep(step, max_graphs=1)
+    expected = 0.0
+    for i in range(STEPS):
+        for n in (1, 2):  # the second shape never gets a graph
+            graphed(torch.full((n,), float(i), device="cuda"))
+            expected += n * i
+    assert float(total) == pytest.approx(expected)
+
+
+def test_one_process_container_keeps_references_where_the_weights_are():
+    from relayrl.training.variables import VariableContainer
+
+    w = [torch.ones(3)]
+    assert VariableContainer(copy=False).pull()[1] is None
+    shared, snap = VariableContainer(copy=False), VariableContainer(copy=True)
+    shared.push(w)
+    snap.push(w)
+    w[0].add_(1)
+    assert torch.equal(shared.pull()[1][0], w[0]) and shared.pull()[1][0].data_ptr() == w[0].data_ptr()
+    assert torch.equal(snap.pull()[1][0], torch.ones(3))

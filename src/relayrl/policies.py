@@ -13,6 +13,7 @@ from torch import nn
 from relayrl.core import Policy
 from relayrl.nn import CONV_NETWORKS, MLP, ConvQNet
 from relayrl.nn.encoders import Encoded, make_encoder
+from relayrl.nn.graphed import GraphedForward
 from relayrl.nn.mlp_fast import MLPInference
 from relayrl.specs import ArraySpec, DiscreteSpec, MultiBinarySpec, MultiDiscreteSpec, Spec, spec_from_state, spec_state
 
@@ -58,12 +59,13 @@ class GreedyPolicy(Policy):
         self.q_net = q_net
         self.device = device
         self._cpu = _cpu_mlp(q_net, device)
+        self._forward = GraphedForward(q_net, device)  # a CUDA graph on CUDA
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
         if self._cpu is not None and obs.device.type == "cpu":
             return torch.from_numpy(self._cpu(obs).argmax(axis=1))
         with torch.no_grad():
-            return self.q_net(obs.to(self.device, non_blocking=True)).argmax(dim=1).cpu()
+            return self._forward(obs.to(self.device, non_blocking=True)).argmax(dim=1).cpu()
 
 
 class EpsilonGreedyPolicy(Policy):
@@ -123,6 +125,7 @@ class TanhGaussianPolicy(Policy):
         self.loc = ((high + low) / 2.0).astype(np.float32)  # [A]
         self.half = ((high - low) / 2.0).astype(np.float32)  # [A]
         self._cpu = _cpu_mlp(actor, device)
+        self._forward = GraphedForward(actor, device)  # a CUDA graph on CUDA
         self._gen: torch.Generator | None = None  # noise on the device (see act_on_device)
         self._gen_state: torch.Tensor | None = None  # a checkpointed state for it, applied when it is made
         self._bounds: tuple[torch.Tensor, torch.Tensor] | None = None  # loc, half there
@@ -134,7 +137,7 @@ class TanhGaussianPolicy(Policy):
             out = self._cpu(obs)  # [B, 2A]
         else:
             with torch.no_grad():
-                out = self.actor(obs.to(self.device, non_blocking=True)).cpu().numpy()
+                out = self._forward(obs.to(self.device, non_blocking=True)).cpu().numpy()
         a_dim = out.shape[1] // 2
         u = out[:, :a_dim]  # [B, A]
         if not self.deterministic:

@@ -1,5 +1,6 @@
-"""A gradient step replayed from a CUDA graph: one launch instead of the hundred-odd kernels of
-a forward, backward and optimizer step, whose launch latency bounds small RL updates on a GPU.
+"""A gradient step (or a policy's forward pass) replayed from a CUDA graph: one launch instead of
+the hundred-odd kernels of a forward, backward and optimizer step, whose launch latency bounds
+small RL updates on a GPU.
 
 `GraphedStep(step)` runs `step(*tensors)` as it is for its first `WARMUP` calls of each input
 signature (which shapes, dtypes and which inputs are None), on a side stream as capture
@@ -42,11 +43,14 @@ class _Captured(NamedTuple):
 
 
 class GraphedStep:
-    """`step(*tensors) -> dict of tensors`, captured per input signature (see the module doc)."""
+    """`step(*tensors) -> dict of tensors`, captured per input signature (see the module doc).
+    The tensors must be on the CUDA device the step works on."""
 
-    def __init__(self, step: Callable[..., dict[str, Tensor]], generators: Sequence[torch.Generator] = ()) -> None:
+    def __init__(self, step: Callable[..., dict[str, Tensor]], generators: Sequence[torch.Generator] = (),
+                 max_graphs: int = 8) -> None:
         self.step = step
         self.generators = list(generators)
+        self.max_graphs = max_graphs  # signatures beyond it (a policy fed every batch size) stay eager
         self._calls: dict[Signature, int] = {}
         self._graphs: dict[Signature, _Captured] = {}
         self._stream: torch.cuda.Stream | None = None
@@ -55,6 +59,8 @@ class GraphedStep:
         key: Signature = tuple(None if a is None else (a.shape, a.dtype) for a in args)
         captured = self._graphs.get(key)
         if captured is None:
+            if len(self._graphs) >= self.max_graphs:
+                return self._eager(args)
             calls = self._calls.get(key, 0)
             self._calls[key] = calls + 1
             if calls < WARMUP:
@@ -65,6 +71,13 @@ class GraphedStep:
                 buffer.copy_(a, non_blocking=True)
         captured.graph.replay()
         return captured.outputs
+
+    def __getstate__(self) -> dict[str, object]:
+        """Pickled without its graphs and stream (device state): a copy captures its own."""
+        return {"step": self.step, "generators": self.generators, "max_graphs": self.max_graphs}
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__init__(**state)  # type: ignore[misc]
 
     def _side_stream(self) -> torch.cuda.Stream:
         if self._stream is None:
@@ -90,3 +103,19 @@ class GraphedStep:
         with torch.cuda.graph(graph, stream=self._side_stream(), capture_error_mode="thread_local"):
             outputs = self.step(*inputs)
         return _Captured(graph, inputs, outputs)
+
+
+class GraphedForward:
+    """`net(x)` for inputs on `device`, called without gradients: replayed from a CUDA graph per
+    input shape where `cuda_graphs_enabled(device)`, else launched op by op. The output is the
+    graph's buffer, overwritten by the next call."""
+
+    def __init__(self, net: Callable[[Tensor], Tensor], device: torch.device) -> None:
+        self.net = net
+        self.graphed = GraphedStep(self._forward) if cuda_graphs_enabled(device) else None
+
+    def _forward(self, x: Tensor) -> dict[str, Tensor]:
+        return {"out": self.net(x)}
+
+    def __call__(self, x: Tensor) -> Tensor:
+        return self.net(x) if self.graphed is None else self.graphed(x)["out"]

@@ -21,9 +21,10 @@ def network_variables(network: nn.Module) -> list[torch.Tensor]:
 
 
 class VariableContainer:
-    """`copy=False` keeps references instead of snapshots: right only where nothing updates
-    the weights between a push and the pulls that follow it (the one-process loop, where the
-    learner and the actor take turns), and it saves one copy of the weights per iteration."""
+    """`copy=False` keeps references instead of CPU snapshots, on the weights' own device: right
+    only where nothing updates the weights between a push and the pulls that follow it (the
+    one-process loop, where the learner and the actor take turns), and it saves a copy of the
+    weights per iteration (on a GPU, a copy to the host and back, which waits for the update)."""
 
     def __init__(self, copy: bool = True) -> None:
         self.copy = copy
@@ -37,7 +38,7 @@ class VariableContainer:
 
     def push(self, weights: list[torch.Tensor]) -> int:
         """Store a snapshot (later in-place updates of `weights` do not leak in); returns its version."""
-        snapshot = [w.detach().to("cpu", copy=self.copy) for w in weights]
+        snapshot = [w.detach().to("cpu", copy=True) if self.copy else w.detach() for w in weights]
         with self._lock:
             self._weights = snapshot
             self._version += 1
