@@ -295,7 +295,9 @@ def bench(device: torch.device, seconds: float, out: Path, max_steps: int = 0,
             continue
         for key, dev, graphs in variants(name, device)[:1] if only else variants(name, device):
             t0 = time.perf_counter()
-            os.environ["RELAYRL_CUDA_GRAPHS"] = graphs
+            before = os.environ.get("RELAYRL_CUDA_GRAPHS")
+            if not only:  # an --only run keeps the caller's setting
+                os.environ["RELAYRL_CUDA_GRAPHS"] = graphs
             try:
                 cap = min(steps, max_steps) if max_steps else steps
                 figures["runs"][key] = timed_run(preset, overrides, dev, seconds, cap)
@@ -303,7 +305,10 @@ def bench(device: torch.device, seconds: float, out: Path, max_steps: int = 0,
                 figures["runs"][key] = {"error": f"{type(e).__name__}: {e}"}
                 traceback.print_exc()
             finally:
-                os.environ.pop("RELAYRL_CUDA_GRAPHS")
+                if before is None:
+                    os.environ.pop("RELAYRL_CUDA_GRAPHS", None)
+                else:
+                    os.environ["RELAYRL_CUDA_GRAPHS"] = before
             print(f"  {key}: {figures['runs'][key]} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
             out.write_text(json.dumps(figures, indent=1) + "\n")
     if not only:

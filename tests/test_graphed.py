@@ -120,8 +120,26 @@ def sac_batch(seed: int) -> Batch:
 @cuda
 def test_graphed_sac_draws_fresh_noise_each_replay(monkeypatch):
     graphed, _ = sac_pair(monkeypatch)
+    for opt in (graphed.actor_opt, graphed.critic_opt, graphed.alpha_opt):
+        opt.lr = 0.0  # the weights stay put: only the noise can move the entropy
     entropies = [float(graphed.train(sac_batch(0))["entropy"]) for _ in range(STEPS)]
     assert len(set(entropies[WARMUP:])) == len(entropies[WARMUP:])
+
+
+@cuda
+def test_graphed_dqn_follows_a_checkpoint_loaded_after_capture(monkeypatch):
+    graphed, eager = dqn_pair(monkeypatch)
+    for i in range(STEPS):  # captured by now
+        graphed.train(dqn_batch(i, False))
+        eager.train(dqn_batch(i, False))
+    saved = graphed.state_dict()
+    saved = {**saved, "online": {k: v.clone() for k, v in saved["online"].items()}}
+    for i in range(3):  # moves away from the checkpoint
+        graphed.train(dqn_batch(100 + i, False))
+    graphed.load_state_dict(saved)  # in place: the graph's tensors take the checkpoint
+    for i in range(3):
+        a, b = graphed.train(dqn_batch(200 + i, False)), eager.train(dqn_batch(200 + i, False))
+        torch.testing.assert_close(a["td_error"], b["td_error"], atol=1e-5, rtol=1e-4)
 
 
 @cuda

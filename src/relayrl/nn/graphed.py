@@ -27,7 +27,7 @@ from typing import NamedTuple
 import torch
 
 Tensor = torch.Tensor
-Signature = tuple[tuple[torch.Size, torch.dtype] | None, ...]
+Signature = tuple[tuple[torch.Size, torch.dtype, torch.device] | None, ...]
 WARMUP = 3  # eager calls per signature before capture (lazy cuBLAS / autograd set-up)
 
 
@@ -53,19 +53,26 @@ class GraphedStep:
         self.max_graphs = max_graphs  # signatures beyond it (a policy fed every batch size) stay eager
         self._calls: dict[Signature, int] = {}
         self._graphs: dict[Signature, _Captured] = {}
-        self._stream: torch.cuda.Stream | None = None
+        self._streams: dict[torch.device, torch.cuda.Stream] = {}
 
     def __call__(self, *args: Tensor | None) -> dict[str, Tensor]:
-        key: Signature = tuple(None if a is None else (a.shape, a.dtype) for a in args)
+        device = next(a.device for a in args if a is not None)
+        # The step's device made current: streams, capture and replay act on the current device,
+        # which need not be the run's (device=cuda:1).
+        with torch.cuda.device(device):
+            return self._call(device, args)
+
+    def _call(self, device: torch.device, args: tuple[Tensor | None, ...]) -> dict[str, Tensor]:
+        key: Signature = tuple(None if a is None else (a.shape, a.dtype, a.device) for a in args)
         captured = self._graphs.get(key)
         if captured is None:
             if len(self._graphs) >= self.max_graphs:
-                return self._eager(args)
+                return self._eager(device, args)
             calls = self._calls.get(key, 0)
             self._calls[key] = calls + 1
             if calls < WARMUP:
-                return self._eager(args)
-            captured = self._graphs[key] = self._capture(args)
+                return self._eager(device, args)
+            captured = self._graphs[key] = self._capture(device, args)
         for buffer, a in zip(captured.inputs, args, strict=True):
             if buffer is not None:
                 buffer.copy_(a, non_blocking=True)
@@ -73,34 +80,34 @@ class GraphedStep:
         return captured.outputs
 
     def __getstate__(self) -> dict[str, object]:
-        """Pickled without its graphs and stream (device state): a copy captures its own."""
+        """Pickled without its graphs and streams (device state): a copy captures its own."""
         return {"step": self.step, "generators": self.generators, "max_graphs": self.max_graphs}
 
     def __setstate__(self, state: dict[str, object]) -> None:
         self.__init__(**state)  # type: ignore[misc]
 
-    def _side_stream(self) -> torch.cuda.Stream:
-        if self._stream is None:
-            self._stream = torch.cuda.Stream()
-        return self._stream
+    def _side_stream(self, device: torch.device) -> torch.cuda.Stream:
+        if device not in self._streams:
+            self._streams[device] = torch.cuda.Stream(device)
+        return self._streams[device]
 
-    def _eager(self, args: tuple[Tensor | None, ...]) -> dict[str, Tensor]:
-        stream, current = self._side_stream(), torch.cuda.current_stream()
+    def _eager(self, device: torch.device, args: tuple[Tensor | None, ...]) -> dict[str, Tensor]:
+        stream, current = self._side_stream(device), torch.cuda.current_stream(device)
         stream.wait_stream(current)
         with torch.cuda.stream(stream):
             out = self.step(*args)
         current.wait_stream(stream)
         return out
 
-    def _capture(self, args: tuple[Tensor | None, ...]) -> _Captured:
+    def _capture(self, device: torch.device, args: tuple[Tensor | None, ...]) -> _Captured:
         """Record the step on buffers holding `args`; nothing runs until the first replay."""
         inputs = [None if a is None else a.detach().clone() for a in args]
         graph = torch.cuda.CUDAGraph()
         for gen in self.generators:
             graph.register_generator_state(gen)
-        torch.cuda.synchronize()  # the warm-up calls' side-stream work is done before capture
+        torch.cuda.synchronize(device)  # the warm-up calls' side-stream work is done before capture
         # thread_local: CUDA calls of other threads (env workers pinning frames) go on meanwhile.
-        with torch.cuda.graph(graph, stream=self._side_stream(), capture_error_mode="thread_local"):
+        with torch.cuda.graph(graph, stream=self._side_stream(device), capture_error_mode="thread_local"):
             outputs = self.step(*inputs)
         return _Captured(graph, inputs, outputs)
 

@@ -2,8 +2,8 @@
 
 TF-Agents' actors read their policy's variables from a (Reverb) variable container; ours is
 the same idea as a plain object, and the Ray layer puts one in a Ray actor. Weights travel
-as a list of CPU tensors (`network_variables`: the parameters, then the buffers), so applying
-them is one fused copy.
+as a list of tensors (`network_variables`: the parameters, then the buffers), so applying
+them is one fused copy: CPU snapshots by default, references in the one-process loop.
 """
 
 from __future__ import annotations
@@ -37,7 +37,8 @@ class VariableContainer:
         return self._version
 
     def push(self, weights: list[torch.Tensor]) -> int:
-        """Store a snapshot (later in-place updates of `weights` do not leak in); returns its version."""
+        """Store `weights`, as a CPU snapshot that later in-place updates do not reach (or, with
+        copy=False, as references); returns the new version."""
         snapshot = [w.detach().to("cpu", copy=True) if self.copy else w.detach() for w in weights]
         with self._lock:
             self._weights = snapshot

@@ -52,12 +52,14 @@ class DQNAgent(Agent):
                        else copy.deepcopy(self.online).requires_grad_(False))
         self.optimizer = FastAdam(self.online.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
         self._train_step = 0
+        self._eval_policy: GreedyPolicy | None = None
         self._lr_at = (linear_schedule(cfg.lr, cfg.lr_end, total_steps)
                        if cfg.lr_end >= 0 and total_steps > 0 else None)
         self._online_params = list(self.online.parameters())
         self._target_params = list(self.target.parameters()) if self.target is not None else []
-        # The gradient step: hand-written for MLPs (the same values as autograd's, with less
-        # per-update overhead on CPU), else autograd's. `update.py` holds both.
+        # The gradient step (`update.py`): on CUDA autograd's replayed from a CUDA graph; on CPU
+        # hand-written for MLPs (the same values as autograd's, with less per-update overhead),
+        # else autograd's.
         self.update = make_update(self.online, self.target, self.optimizer, cfg, hand_written)
 
     @property
@@ -85,7 +87,10 @@ class DQNAgent(Agent):
         return self.online
 
     def eval_policy(self) -> GreedyPolicy:
-        return GreedyPolicy(self.online, self.device)
+        # One for the run: it reads the live network, and on CUDA keeps its captured graphs.
+        if self._eval_policy is None:
+            self._eval_policy = GreedyPolicy(self.online, self.device)
+        return self._eval_policy
 
     def set_progress(self, env_steps: int) -> None:
         """Follow schedules that run on env steps (the learning-rate decay)."""

@@ -61,8 +61,10 @@ class SACAgent(Agent):
         self._critic_params = list(self.critic.parameters())
         self._target_params = list(self.target_critic.parameters())
         self._train_step = 0
-        # The gradient steps: hand-written for the usual MLPs (the same values as autograd's,
-        # with less per-update overhead on CPU), else autograd's. `update.py` holds both.
+        self._eval_policy: TanhGaussianPolicy | None = None
+        # The gradient steps (`update.py`): on CUDA autograd's replayed from a CUDA graph; on
+        # CPU hand-written for the usual MLPs (the same values as autograd's, with less
+        # per-update overhead), else autograd's.
         self.update = make_update(SACParts(self.actor, self.critic, self.target_critic, self.log_alpha,
                                            self.actor_opt, self.critic_opt, self.alpha_opt, self.gen, loc, half,
                                            self.target_entropy, cfg), hand_written)
@@ -88,7 +90,10 @@ class SACAgent(Agent):
         return self.actor
 
     def eval_policy(self) -> TanhGaussianPolicy:
-        return self._policy(deterministic=True)
+        # One for the run: it reads the live actor, and on CUDA keeps its captured graphs.
+        if self._eval_policy is None:
+            self._eval_policy = self._policy(deterministic=True)
+        return self._eval_policy
 
     def set_progress(self, env_steps: int) -> None:
         """Follow schedules that run on env steps (the learning rates, with agent.lr_end >= 0)."""
