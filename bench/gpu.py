@@ -18,7 +18,8 @@ starts to the last, evaluations excluded; each run capped by steps and by --seco
   and one update per 4 env steps); a SAC update at batch 256 and a batch-1 action (ms), and the
   sac-pendulum loop they allow. Device times are taken with torch.cuda.synchronize on CUDA;
 - on CUDA, the runs of GRAPH_AB once more with RELAYRL_CUDA_GRAPHS=0 (gradient steps launched
-  kernel by kernel instead of replayed from a CUDA graph), in the same process.
+  kernel by kernel instead of replayed from a CUDA graph), and those of REPLAY_AB with the
+  replay's frames on the GPU, in the same process.
 
 The table goes to stdout and the figures to a JSON file (--out; default $OUT/gpu.json when OUT
 is set, else gpu.json). docs/benchmarks.md ("GPU figures") says how to run it on a lent GPU.
@@ -57,6 +58,9 @@ LOG_ROWS = 20  # log rows per run: the seconds cap is checked at each
 # On CUDA these also run with RELAYRL_CUDA_GRAPHS=0 (every kernel launched one by one), same process:
 # what capturing the gradient step in a CUDA graph buys.
 GRAPH_AB = ("ddqn-pong", "sac-pendulum", "sac-batched", "dqn-cartpole-fast")
+# On CUDA these also run with the replay's frames on the GPU (replay.device = the run's device),
+# against the host arrays of replay.device = "auto": what sampling stacks on the device buys.
+REPLAY_AB = ("ddqn-pong", "dqn-pong-fast")
 
 
 def fail(message: str) -> None:
@@ -274,13 +278,15 @@ def sac_floor(device: torch.device) -> dict[str, Any]:
     return {k: round(v, 3) for k, v in out.items()}
 
 
-def variants(name: str, device: torch.device) -> list[tuple[str, torch.device, str]]:
-    """(key, device, RELAYRL_CUDA_GRAPHS) for each timed run of `name`."""
-    out = [(name, device, "1")]
+def variants(name: str, device: torch.device) -> list[tuple[str, torch.device, str, list[str]]]:
+    """(key, device, RELAYRL_CUDA_GRAPHS, extra overrides) for each timed run of `name`."""
+    out: list[tuple[str, torch.device, str, list[str]]] = [(name, device, "1", [])]
     if device.type == "cuda" and name in GRAPH_AB:
-        out.append((f"{name}@no-graphs", device, "0"))
+        out.append((f"{name}@no-graphs", device, "0", []))
+    if device.type == "cuda" and name in REPLAY_AB:
+        out.append((f"{name}@replay-on-gpu", device, "1", [f"replay.device={device}"]))
     if device.type == "cuda" and name == "dqn-cartpole-fast":
-        out.append((f"{name}@cpu", torch.device("cpu"), "1"))
+        out.append((f"{name}@cpu", torch.device("cpu"), "1", []))
     return out
 
 
@@ -293,14 +299,14 @@ def bench(device: torch.device, seconds: float, out: Path, max_steps: int = 0,
     for name, preset, overrides, steps in RUNS:
         if only and name not in only:
             continue
-        for key, dev, graphs in variants(name, device)[:1] if only else variants(name, device):
+        for key, dev, graphs, extra in variants(name, device)[:1] if only else variants(name, device):
             t0 = time.perf_counter()
             before = os.environ.get("RELAYRL_CUDA_GRAPHS")
             if not only:  # an --only run keeps the caller's setting
                 os.environ["RELAYRL_CUDA_GRAPHS"] = graphs
             try:
                 cap = min(steps, max_steps) if max_steps else steps
-                figures["runs"][key] = timed_run(preset, overrides, dev, seconds, cap)
+                figures["runs"][key] = timed_run(preset, [*overrides, *extra], dev, seconds, cap)
             except Exception as e:  # one broken run leaves the others' figures
                 figures["runs"][key] = {"error": f"{type(e).__name__}: {e}"}
                 traceback.print_exc()
@@ -348,14 +354,15 @@ def table(figures: dict[str, Any]) -> str:
         return f"{r['env_steps_per_s']:,.0f} env steps/s"
 
     def graphs(key: str) -> str:
-        return f"; without CUDA graphs {sps(key + '@no-graphs')}" if key + "@no-graphs" in runs else ""
+        out = f"; without CUDA graphs {sps(key + '@no-graphs')}" if key + "@no-graphs" in runs else ""
+        return out + (f"; replay on the GPU {sps(key + '@replay-on-gpu')}" if key + "@replay-on-gpu" in runs else "")
 
     rows = [
         ("ddqn-pong (1 env, 1 gradient step / 4 env steps)", sps("ddqn-pong") + graphs("ddqn-pong"),
          f"eager floor {floor['ddqn_pong_loop_env_steps_per_s']:,.0f} env steps/s (update b32 "
          f"{floor['dqn_update_b32_ms']:.2f} ms, action b1 {floor['action_b1_ms']:.3f} ms, "
          f"env step {floor['pong_env_step_ms']:.3f} ms)"),
-        ("dqn-pong-fast (8 ale-py envs, 2 x b128 / 8 env steps)", sps("dqn-pong-fast"), "-"),
+        ("dqn-pong-fast (8 ale-py envs, 2 x b128 / 8 env steps)", sps("dqn-pong-fast") + graphs("dqn-pong-fast"), "-"),
         ("sac-pendulum (1 env step + 1 gradient step)", sps("sac-pendulum") + graphs("sac-pendulum"),
          f"eager floor {floor['sac_pendulum_loop_env_steps_per_s']:,.0f} env steps/s (update b256 "
          f"{floor['sac_update_b256_ms']:.2f} ms, action b1 {floor['sac_action_b1_ms']:.3f} ms); "

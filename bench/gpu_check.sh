@@ -1,0 +1,24 @@
+#!/bin/sh
+# Every GPU check in one call (~6 minutes on one H100): the CUDA tests, the smoke (train,
+# evaluate, export and load each algorithm on CUDA) and bench/gpu.py's table with its A/Bs.
+# Run here first: sh bench/gpu_wheels.sh. Then one call of the device tool, from the repository
+# root, with carry [".whl"] and timeout_s 600:
+#
+#     sh bench/gpu_check.sh
+#
+# What it writes goes to $OUT (tests.txt, smoke.txt, bench.txt, gpu.json), or to the current
+# folder where OUT is unset.
+set -u
+out="${OUT:-.}"
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+    || { echo "gpu_check.sh: the wheels in .whl/ did not install (run sh bench/gpu_wheels.sh here first)"; exit 2; }
+export PYTHONPATH=/tmp/site:src PYTHONUNBUFFERED=1
+nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
+python3 -c "import torch; print('torch', torch.__version__)"
+timeout 120 python3 -m pytest -q -p no:cacheprovider tests/test_graphed.py tests/test_ale_vector.py \
+    tests/test_bench_gpu.py >"$out/tests.txt" 2>&1
+tail -3 "$out/tests.txt"
+timeout 120 python3 bench/gpu.py --smoke >"$out/smoke.txt" 2>&1
+grep -E '^(PASS|FAIL|SKIP)' "$out/smoke.txt"
+timeout 330 python3 bench/gpu.py --seconds 10 --out "$out/gpu.json" >"$out/bench.txt" 2>&1
+grep -vE '^step |callback returned False' "$out/bench.txt" | tail -30
