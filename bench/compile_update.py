@@ -169,6 +169,7 @@ def main() -> None:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--only", nargs="+", choices=["dqn", "sac"], default=["dqn", "sac"])
     args = p.parse_args()
+    torch.set_flush_denormal(True)  # as a run does (training/lifecycle.py)
     torch.set_num_threads(args.threads)
     settings = {"dqn": (dqn_steps, 64), "sac": (sac_steps, 256)}
     print(f"torch {torch.__version__}, {args.threads} thread(s), medians of {args.rounds} rounds x {args.steps} steps")

@@ -72,7 +72,10 @@ def main() -> None:
     p.add_argument("--hidden", type=int, nargs="+", default=[256, 256])
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--keep-denormals", action="store_true",
+                   help="time with denormal floats kept (a run flushes them: training/lifecycle.py)")
     args = p.parse_args()
+    torch.set_flush_denormal(not args.keep_denormals)
     torch.set_num_threads(args.threads)
     h, b = args.hidden, args.batch
     obs_spec, act_spec = ArraySpec((4,), torch.float32), DiscreteSpec(2)
@@ -145,7 +148,8 @@ def main() -> None:
         ("greedy action, 1 obs, torch forward", per_call_us(lambda: agent.online(one).argmax(1), 5000)),
         ("greedy action, 1 obs, relayrl (NumPy views)", per_call_us(lambda: greedy(one), 5000)),
     ]
-    print(f"hidden={h} batch={b} torch_threads={args.threads} torch={torch.__version__}")
+    print(f"hidden={h} batch={b} torch_threads={args.threads} torch={torch.__version__} "
+          f"denormals={'kept' if args.keep_denormals else 'flushed'}")
     print("| piece | us per call |")
     print("|---|---|")
     for name, us in rows:
