@@ -1,13 +1,14 @@
 """SAC on Pendulum-v1 with SB3's defaults: relayrl against Stable-Baselines3 in the same run.
 
     python bench/sac_pendulum.py [--peer-python bench/.venv-peers/bin/python] [--seeds 0 1 2]
-        [--steps 20000] [--json FILE]
+        [--steps 20000] [--threads N] [--json FILE]
 
 Both sides: batch 256, (256, 256) actor and critics, Adam 3e-4, 1 gradient step per env
 step, 100 random steps first, buffer 1M, tau 0.005, automatic entropy tuning; greedy
 evaluation over 10 episodes every 2,000 env steps. Each seed runs relayrl then SB3, each in
 a fresh process, so both see the same machine load. The table reports env steps/s over the
-whole learn() (evaluation included) and the final evaluation return.
+whole learn() (evaluation included) and the final evaluation return. SB3 runs on torch's default
+threads; relayrl on the sac-pendulum preset's one, or `--threads N` (0: torch's default, as SB3).
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from _workers import report, run_worker, sb3_eval_callback
 EVAL_EVERY, EVAL_EPISODES = 2_000, 10
 
 
-def run_relayrl(seed: int, steps: int) -> dict:
+def run_relayrl(seed: int, steps: int, threads: int) -> dict:
     import os
 
     import relayrl
@@ -34,6 +35,8 @@ def run_relayrl(seed: int, steps: int) -> dict:
 
     overrides = [f"train.total_steps={steps}", f"eval.interval={EVAL_EVERY}", f"eval.episodes={EVAL_EPISODES}",
                  "train.checkpoint_interval=0", "train.policy_save_interval=0"]
+    if threads >= 0:
+        overrides.append(f"train.torch_threads={threads}")
     config = relayrl.load_config("sac-pendulum", overrides, seed=seed)
     with tempfile.TemporaryDirectory() as d:
         t0 = time.perf_counter()
@@ -60,13 +63,15 @@ def run_sb3(seed: int, steps: int) -> dict:
 
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--worker":
-        which, seed, steps = sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
-        report(run_relayrl(seed, steps) if which == "relayrl" else run_sb3(seed, steps))
+        which, seed, steps, threads = sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
+        report(run_relayrl(seed, steps, threads) if which == "relayrl" else run_sb3(seed, steps))
         return
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--peer-python", default="bench/.venv-peers/bin/python")
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--steps", type=int, default=20_000)
+    p.add_argument("--threads", type=int, default=-1,
+                   help="relayrl's train.torch_threads (0: torch's default, as SB3; default: the preset's)")
     p.add_argument("--json", help="also write every result here")
     args = p.parse_args()
     results, ratios = {}, []
@@ -75,7 +80,7 @@ def main() -> None:
     for seed in args.seeds:
         out = {}
         for which, python in (("relayrl", sys.executable), ("sb3", args.peer_python)):
-            result, proc = run_worker(python, __file__, [which, str(seed), str(args.steps)])
+            result, proc = run_worker(python, __file__, [which, str(seed), str(args.steps), str(args.threads)])
             if result is None:
                 raise RuntimeError(f"{which} worker failed:\n{proc.stderr[-3000:]}")
             out[which] = result
