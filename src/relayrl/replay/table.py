@@ -263,12 +263,7 @@ class Table:
         """Delete the items whose rows these steps overwrite, append them to the step storage
         (outside the lock: no live item reads those rows now), and insert the items they close."""
         steps = self._steps()
-        keys = steps.evictions(chunk.done)
-        if keys.size:
-            self.delete(keys)
-        items = steps.append(chunk)
-        if len(items):
-            self.insert_batch(items, n=len(items))
+        self._append(steps.evictions(chunk.done), lambda: steps.append(chunk))
 
     def append_step(self, frames: Any, actions: Any, rewards: Any) -> bool:
         """`append_steps` of one batched step without episode ends ([B, ...] each) on the step
@@ -276,13 +271,16 @@ class Table:
         one_step = self._steps().one_step
         if one_step is None:
             return False
-        keys = one_step.evictions()
-        if keys.size:
-            self.delete(keys)
-        items = one_step.append(frames, actions, rewards)
+        self._append(one_step.evictions(), lambda: one_step.append(frames, actions, rewards))
+        return True
+
+    def _append(self, evicted: np.ndarray, append: Callable[[], np.ndarray]) -> None:
+        """Delete the `evicted` items, then `append()` the steps and insert the items it closes."""
+        if evicted.size:
+            self.delete(evicted)
+        items = append()
         if len(items):
             self.insert_batch(items, n=len(items))
-        return True
 
     def _steps(self) -> StepStorage:
         if (steps := self.storage.appending) is None:
