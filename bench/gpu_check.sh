@@ -10,9 +10,7 @@
 # folder where OUT is unset.
 set -u
 out="${OUT:-.}"
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-    || { echo "gpu_check.sh: the wheels in .whl/ did not install (run sh bench/gpu_wheels.sh here first)"; exit 2; }
-export PYTHONPATH=/tmp/site:src PYTHONUNBUFFERED=1
+. bench/gpu_site.sh
 nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
 python3 -c "import torch; print('torch', torch.__version__)"
 timeout 120 python3 -m pytest -q -p no:cacheprovider tests/test_graphed.py tests/test_ale_vector.py \

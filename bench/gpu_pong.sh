@@ -10,9 +10,8 @@ set -u
 run=/tmp/pong-run
 case "${1:-}" in
 start)
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-        || { echo "gpu_pong.sh: the wheels in .whl/ did not install (run sh bench/gpu_wheels.sh here first)"; exit 2; }
-    PYTHONPATH=/tmp/site:src setsid python3 -m relayrl train dqn-pong-fast --run-dir "$run" --no-progress \
+    . bench/gpu_site.sh
+    setsid python3 -m relayrl train dqn-pong-fast --run-dir "$run" --no-progress \
         >/tmp/pong.log 2>&1 </dev/null &
     echo "started: $run" ;;
 wait)

@@ -4,11 +4,8 @@
 # NumPy, OpenCV, matplotlib, tensorboard, tqdm, cloudpickle and pytest, but not Gymnasium,
 # ale-py or tomli-w; nothing can be downloaded there.
 #
-#     sh bench/gpu_wheels.sh            # from the repository root; then, with the device tool:
-#     run(carry=[".whl"], timeout_s=600, command="python3 -m pip install -q --no-index --no-deps \
-#         --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl && \
-#         export PYTHONPATH=/tmp/site:src PYTHONUNBUFFERED=1 || exit; python3 bench/gpu.py --smoke && \
-#         python3 bench/gpu.py --out $OUT/gpu.json")
+#     sh bench/gpu_wheels.sh            # where pip can download, from the repository root; then,
+#     sh bench/gpu_check.sh             # on the GPU machine with .whl/ (bench/gpu_site.sh installs it)
 set -eu
 cd "$(git rev-parse --show-toplevel)"
 exclude="$(git rev-parse --git-path info/exclude)"
