@@ -57,7 +57,7 @@ RUNS: list[tuple[str, str, list[str], int]] = [
 LOG_ROWS = 20  # log rows per run: the seconds cap is checked at each
 # On CUDA these also run with RELAYRL_CUDA_GRAPHS=0 (every kernel launched one by one), same process:
 # what capturing the gradient step in a CUDA graph buys.
-GRAPH_AB = ("ddqn-pong", "sac-pendulum", "sac-batched", "dqn-cartpole-fast")
+GRAPH_AB = ("ddqn-pong", "sac-pendulum", "sac-batched", "ppo-stateless-pendulum", "dqn-cartpole-fast")
 # On CUDA these also run with the replay's frames on the GPU (replay.device = the run's device),
 # against the host arrays of replay.device = "auto": what sampling stacks on the device buys.
 REPLAY_AB = ("ddqn-pong", "dqn-pong-fast")

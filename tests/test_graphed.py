@@ -1,6 +1,7 @@
 """Gradient steps replayed from CUDA graphs (nn/graphed.py) against the same steps launched kernel
 by kernel (RELAYRL_CUDA_GRAPHS=0): DQN and SAC, with and without importance weights, through a
-learning-rate change. The CUDA tests run where torch sees a GPU; the rest run everywhere."""
+learning-rate change; PPO through a learning-rate and clip-range schedule, with an epoch's
+shorter last minibatch. The CUDA tests run where torch sees a GPU; the rest run everywhere."""
 
 import numpy as np
 import pytest
@@ -8,6 +9,8 @@ import torch
 
 from relayrl.agents.dqn import DQNAgent, DQNConfig
 from relayrl.agents.dqn.update import GraphedDQNUpdate
+from relayrl.agents.ppo import PPOAgent, PPOConfig
+from relayrl.agents.ppo.update import GraphedPPOUpdate
 from relayrl.agents.sac import SACAgent, SACConfig
 from relayrl.agents.sac.update import GraphedSACUpdate
 from relayrl.nn.graphed import WARMUP, GraphedStep, cuda_graphs_enabled
@@ -187,6 +190,50 @@ def test_signatures_beyond_max_graphs_run_eagerly():
             graphed(torch.full((n,), float(i), device="cuda"))
             expected += n * i
     assert float(total) == pytest.approx(expected)
+
+
+def ppo_agent(device: str, **kw) -> PPOAgent:
+    obs = ArraySpec((3,), torch.float32, -np.ones(3), np.ones(3))
+    act = ArraySpec((2,), torch.float32, -np.ones(2), np.ones(2))
+    cfg = PPOConfig(hidden=[16, 16], batch_size=16, n_epochs=2, clip_range_end=0.0)
+    torch.manual_seed(0)
+    return PPOAgent(obs, act, cfg, torch.device(device), np.random.default_rng(0), total_steps=100, **kw)
+
+
+def ppo_rollout(seed: int, device: str) -> dict[str, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    t, b = 6, 4  # 24 steps: minibatches of 16 and 8
+    r = {"obs": torch.randn(1, t, b, 3, generator=g), "action": torch.randn(1, t, b, 2, generator=g),
+         "reward": torch.randn(1, t, b, generator=g), "next_obs": torch.randn(1, t, b, 3, generator=g),
+         "terminated": torch.rand(1, t, b, generator=g) < 0.1, "truncated": torch.zeros(1, t, b, dtype=torch.bool)}
+    return {k: v.to(device) for k, v in r.items()}
+
+
+def test_ppo_reference_takes_the_clip_range_as_a_tensor():
+    a, b = ppo_agent("cpu", hand_written=False), ppo_agent("cpu", hand_written=False)
+    r = ppo_rollout(0, "cpu")
+    mb = [x.reshape(24, *x.shape[3:])[:16] for x in (r["obs"], r["action"], r["reward"], r["reward"])]
+    args = (*mb[:2], mb[2] * 0.1, mb[3], mb[2], mb[3] * 2)
+    torch.testing.assert_close(a.update(*args, 0.1), b.update(*args, torch.tensor(0.1)))
+
+
+@cuda
+def test_graphed_ppo_matches_eager(monkeypatch):
+    monkeypatch.setenv("RELAYRL_CUDA_GRAPHS", "1")
+    graphed = ppo_agent("cuda")
+    monkeypatch.setenv("RELAYRL_CUDA_GRAPHS", "0")
+    eager = ppo_agent("cuda", hand_written=False)
+    assert isinstance(graphed.update, GraphedPPOUpdate) and not isinstance(eager.update, GraphedPPOUpdate)
+    for i in range(STEPS):  # two minibatch signatures, each called twice per rollout
+        if i == STEPS - 2:  # the schedule's end reaches the replays: clip range 0
+            graphed.set_progress(100)
+            eager.set_progress(100)
+        a, b = graphed.train(ppo_rollout(i, "cuda")), eager.train(ppo_rollout(i, "cuda"))
+        torch.testing.assert_close(a["loss"], b["loss"], atol=1e-5, rtol=1e-4)
+    # At clip range 0 every ratio off 1 is clipped: all but the first minibatch's (3 of 4).
+    assert float(a["clip_fraction"]) > 0.5
+    for p, q in zip(graphed.net.parameters(), eager.net.parameters(), strict=True):
+        torch.testing.assert_close(p, q, atol=1e-5, rtol=1e-4)
 
 
 def test_one_process_container_keeps_references_where_the_weights_are():

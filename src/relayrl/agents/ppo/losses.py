@@ -14,9 +14,10 @@ def normalize(advantages: torch.Tensor, eps: float = 1e-8) -> torch.Tensor:
 
 
 def policy_loss(log_prob: torch.Tensor, old_log_prob: torch.Tensor, advantages: torch.Tensor,
-                clip_range: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                clip_range: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The clipped surrogate -E[min(r A, clip(r, 1-e, 1+e) A)], r = pi/pi_old; with the
-    approximate KL E[(r - 1) - log r] and the fraction of clipped ratios (both detached)."""
+    approximate KL E[(r - 1) - log r] and the fraction of clipped ratios (both detached).
+    `clip_range` may be a 0-d tensor (a CUDA graph's, whose schedule moves it in place)."""
     log_ratio = log_prob - old_log_prob
     ratio = log_ratio.exp()
     unclipped = ratio * advantages

@@ -1,8 +1,9 @@
 """PPO's minibatch gradient step, chosen once when the agent is built: the autograd reference
-(the losses of `losses.py` + `backward()`) or its hand-written twin (`nn.mlp_fast`,
-`losses_fast.py`: the same loss, clip and Adam step up to float rounding, with less
-per-minibatch overhead on CPU). The twin subclasses the reference, overriding `__call__`;
-tests/test_ppo_fast.py runs both."""
+(the losses of `losses.py` + `backward()`); on CUDA, the reference replayed from a CUDA graph
+(`nn.graphed`); elsewhere its hand-written twin (`nn.mlp_fast`, `losses_fast.py`: the same
+loss, clip and Adam step up to float rounding, with less per-minibatch overhead on CPU). Both
+subclass the reference, overriding `__call__`; tests/test_ppo_fast.py and tests/test_graphed.py
+compare them with it."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from relayrl.agents.ppo.config import PPOConfig
 from relayrl.agents.ppo.losses import entropy_loss, normalize, policy_loss, value_loss
 from relayrl.agents.ppo.networks import PPONetworks
 from relayrl.nn import mlp_fast
+from relayrl.nn.graphed import GraphedStep, cuda_graphs_enabled
 from relayrl.optim import FastAdam
 
 Tensor = torch.Tensor
@@ -31,7 +33,7 @@ class PPOUpdate:
         self.opt, self.cfg, self.evaluate_actions = opt, cfg, evaluate_actions
 
     def __call__(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
-                 returns: Tensor, clip_range: float) -> Tensor:
+                 returns: Tensor, clip_range: float | Tensor) -> Tensor:
         """One gradient step on a minibatch; returns [policy loss, value loss, entropy,
         approx KL, clip fraction, loss]."""
         cfg = self.cfg
@@ -97,9 +99,36 @@ class HandWrittenPPOUpdate(PPOUpdate):
         return g.stats
 
 
+class GraphedPPOUpdate(PPOUpdate):
+    """`PPOUpdate` replayed from a CUDA graph per minibatch signature (`nn.graphed.GraphedStep`;
+    an epoch's shorter last minibatch is a second signature). The clip range reaches the graph
+    as a device tensor, so its schedule reaches the replays."""
+
+    def __init__(self, net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions) -> None:
+        super().__init__(net, opt, cfg, evaluate_actions)
+        self.graphed = GraphedStep(self._reference)
+        self.clip_range = torch.tensor(float(cfg.clip_range), device=self.params[0].device)
+        self._clip_value = float(cfg.clip_range)
+
+    def _reference(self, *tensors: Tensor) -> dict[str, Tensor]:
+        return {"stats": PPOUpdate.__call__(self, *tensors)}
+
+    def __call__(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
+                 returns: Tensor, clip_range: float | Tensor) -> Tensor:
+        if isinstance(clip_range, Tensor):
+            self.clip_range.copy_(clip_range)
+        elif clip_range != self._clip_value:  # a launch only when the schedule moves it
+            self.clip_range.fill_(clip_range)
+            self._clip_value = clip_range
+        return self.graphed(obs, action, old_logp, old_values, adv, returns, self.clip_range)["stats"]
+
+
 def make_update(net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions,
                 squashed: bool, hand_written: bool = True) -> PPOUpdate:
-    """The hand-written update where it models the networks (and `hand_written`), else autograd's."""
+    """On CUDA the graphed reference (unless RELAYRL_CUDA_GRAPHS=0); elsewhere the hand-written
+    update where it models the networks (and `hand_written`), else autograd's."""
+    if cuda_graphs_enabled(next(net.parameters()).device):
+        return GraphedPPOUpdate(net, opt, cfg, evaluate_actions)
     if hand_written and HandWrittenPPOUpdate.supports(net, cfg, squashed):
         return HandWrittenPPOUpdate(net, opt, cfg, evaluate_actions)
     return PPOUpdate(net, opt, cfg, evaluate_actions)
