@@ -72,6 +72,7 @@ class Policy(Protocol):
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore `state_dict()`; the default has nothing to restore."""
+        return None
 
 
 class Observer(Protocol):
@@ -82,6 +83,7 @@ class Observer(Protocol):
     def flush(self) -> None:
         """Hand on what is staged, at the end of every collect call, before anyone samples
         (replay writers). The default: nothing is staged."""
+        return None
 
 
 class Agent(Saveable, Protocol):
@@ -121,6 +123,7 @@ class Agent(Saveable, Protocol):
     def set_progress(self, env_steps: int) -> None:
         """Follow schedules that run on env steps (learning rates, clip ranges), called after
         every collect. The default: no such schedule."""
+        return None
 
     def prepare_horizon(self) -> int:
         """How many of the next train() calls a chunk prepared now stays valid for; 0 (the

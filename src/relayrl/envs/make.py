@@ -14,7 +14,7 @@ import torch
 
 from relayrl.envs.gym import BatchEnvBase, EnvFn, GymBatchEnv, names_module, resolve_env_fn
 from relayrl.envs.probe import first_problem
-from relayrl.envs.stateless.adapter import STATELESS_ENVS, make_batch_env
+from relayrl.envs.stateless.adapter import STATELESS_ENVS, StatelessBatchEnv, make_batch_env
 from relayrl.envs.vector import AsyncGymBatchEnv
 from relayrl.errors import UserError
 
@@ -23,7 +23,8 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
              time_limit_terminates: bool = False, vectorization: str = "sync",
              device: str | torch.device = "cpu", info_keys: tuple[str, ...] | list[str] = (),
              num_workers: int = 0, kwargs: dict[str, Any] | None = None,
-             wrappers: tuple[str, ...] | list[str] = (), factory: EnvFn | None = None) -> GymBatchEnv:
+             wrappers: tuple[str, ...] | list[str] = (), factory: EnvFn | None = None
+             ) -> BatchEnvBase | StatelessBatchEnv:
     """A batched env of `num_envs` copies of `env_id`: stepped in this process ("sync") or
     shared out over `num_workers` worker processes ("async", 0: one per core; see envs/vector.py),
     or, for `relayrl/Atari-<Game>-v0`, by ale-py's vector env on `num_workers` threads ("ale";
@@ -37,7 +38,7 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
         if info_keys or kwargs or wrappers:
             what = "env.info_keys" if info_keys else "env.kwargs" if kwargs else "env.wrappers"
             raise UserError(f"{what} is not supported by stateless envs ({env_id!r} is a batch of tensors)")
-        return make_batch_env(env_id, num_envs, device, max_episode_steps=max_episode_steps,  # type: ignore[return-value]
+        return make_batch_env(env_id, num_envs, device, max_episode_steps=max_episode_steps,
                               time_limit_terminates=time_limit_terminates)
     if vectorization == "ale":
         if render_mode is not None or wrappers or factory is not None:
@@ -48,7 +49,7 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
 
         ale = make_ale_env(env_id, num_envs, max_episode_steps, time_limit_terminates, device, num_workers, kwargs)
         ale.info_keys = tuple(info_keys)
-        return ale  # type: ignore[return-value]
+        return ale
     fn = resolve_env_fn(env_id, max_episode_steps, render_mode, kwargs, wrappers, factory)
     try:
         env: BatchEnvBase
@@ -59,7 +60,7 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
     except gym.error.Error as e:
         raise UserError(f"env.id={env_id!r} could not be made: {e}{extra_hint(e)}") from None
     env.info_keys = tuple(info_keys)
-    return env  # type: ignore[return-value]
+    return env
 
 
 def extra_hint(error: Exception) -> str:

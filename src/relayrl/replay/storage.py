@@ -37,6 +37,7 @@ class Storage(Protocol):
 
     def bind(self, slot_key: np.ndarray) -> None:
         """Take the table's key map (read-only, as its selectors get it); the default needs none."""
+        return None
 
     @property
     def appending(self) -> StepStorage | None:
