@@ -6,8 +6,9 @@
 #
 #     sh bench/gpu_check.sh
 #
-# What it writes goes to $OUT (tests.txt, smoke.txt, bench.txt, gpu.json), or to the current
-# folder where OUT is unset.
+# What it writes goes to $OUT (tests.txt, smoke.txt, bench.txt, gpu.json and a profile of the
+# stateless PPO loop, profile-ppo-stateless-pendulum.txt), or to the current folder where OUT
+# is unset.
 set -u
 out="${OUT:-.}"
 . bench/gpu_site.sh
@@ -20,3 +21,4 @@ timeout 120 python3 bench/gpu.py --smoke >"$out/smoke.txt" 2>&1
 grep -E '^(PASS|FAIL|SKIP)' "$out/smoke.txt"
 timeout 330 python3 bench/gpu.py --seconds 10 --out "$out/gpu.json" >"$out/bench.txt" 2>&1
 grep -vE '^step |callback returned False' "$out/bench.txt" | tail -30
+timeout 60 python3 bench/gpu.py --profile ppo-stateless-pendulum --seconds 10 --out "$out/gpu.json" >/dev/null 2>&1
