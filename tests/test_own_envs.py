@@ -1,6 +1,7 @@
 """A user's own env: found from their project folder, Gymnasium's `module:EnvId-v0`, env.kwargs,
 env.wrappers, an env factory in Python, episode caps, and the env checker."""
 
+import importlib.util
 import os
 import subprocess
 import sys
@@ -175,6 +176,16 @@ def test_an_env_without_a_time_limit_is_capped_and_the_log_says_so(tmp_path, cap
     assert result.final["average_episode_length"] == 7.0
     assert result.final["train/episodes"] == 60 // 7  # training episodes are cut too
     assert "no time limit" not in capfd.readouterr().err
+
+
+def test_a_registered_env_without_a_time_limit_is_capped_too_but_not_an_atari_game():
+    env = make_eval_env("CliffWalking-v1", 2)  # a policy that never reaches the goal walks forever
+    assert env.capped_at == EVAL_MAX_EPISODE_STEPS
+    env.close()
+    if importlib.util.find_spec("ale_py") is not None:
+        env = make_eval_env("ALE/Pong-v5", 1)  # a game of Pong outlasts the cap; ALE ends it itself
+        assert env.capped_at == 0
+        env.close()
 
 
 def test_a_users_env_is_checked_once_unless_turned_off(tmp_path, capfd):

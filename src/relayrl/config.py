@@ -29,7 +29,7 @@ class EnvConfig(Section):
     id: str = "CartPole-v1"
     num_envs: int = 1  # env copies stepped as one batch
     # episode step cap for training and evaluation; 0: the env's own time limit (evaluation
-    # episodes of a package.module:Class env without one are cut at 1,000 steps)
+    # episodes of an env without one, Atari's aside, are cut at 1,000 steps)
     max_episode_steps: int = 0
     # keyword arguments of the env class or gymnasium.make, e.g. {continuous = true}
     kwargs: dict[str, Any] = field(default_factory=dict)

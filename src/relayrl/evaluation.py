@@ -33,10 +33,10 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
     open), a callable returning one (called once per env copy), or an env id; None: a run
     directory's own env (its config.toml, as `relayrl eval`). The env copies (up to 16, one for an
     instance) are reset with seed, seed + 1, ... (None: unseeded), as a run's evaluations are. An
-    env without a time limit has its episodes cut at `max_episode_steps`, or 1,000 steps if 0.
+    env without a time limit has its episodes cut at `max_episode_steps`, or 1,000 steps if 0
+    (Atari games end their own episodes).
     """
-    from relayrl.envs.gym import GymBatchEnv
-    from relayrl.training.evaluate import EVAL_MAX_EPISODE_STEPS
+    from relayrl.training.evaluate import cap_untimed
     from relayrl.training.evaluate import evaluate as run_episodes
 
     if not isinstance(episodes, int) or episodes < 1:
@@ -44,8 +44,7 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
     batch_env, owned = _batch_env(env, policy, episodes, max_episode_steps)
     try:
         act = _policy_fn(policy, deterministic, seed, batch_env.observation_spec)
-        if isinstance(batch_env, GymBatchEnv) and not batch_env.time_limited and not batch_env.capped_at:
-            batch_env.cap_episodes(max_episode_steps or EVAL_MAX_EPISODE_STEPS)  # so that it ends
+        cap_untimed(batch_env, max_episode_steps)  # so that it ends
         returns: list[float] = []
         run_episodes(batch_env, act, episodes, seed=seed, episode_returns=returns)
     finally:

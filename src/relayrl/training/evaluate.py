@@ -11,12 +11,12 @@ from relayrl.arrays import to_numpy
 from relayrl.core import BatchedEnv, Policy
 from relayrl.envs import make_env
 from relayrl.envs.gym import EnvFn, GymBatchEnv
-from relayrl.envs.make import is_user_env
 
 EVAL_BATCH = 16  # eval episodes run as one batch of at most this many env copies
-# Evaluation episodes of a user's env without a time limit (and no env.max_episode_steps) end
-# here, so that an evaluation of a policy that never reaches a terminal state ends. (Known ids
-# without a TimeLimit, such as Atari's, end their episodes themselves.)
+# Evaluation episodes of an env without a time limit (and no env.max_episode_steps) end here, so
+# that an evaluation of a policy that never reaches a terminal state ends: a user's env, or a
+# registered one such as CliffWalking-v1. ALE's games are left alone: they end their episodes
+# at their own frame cap, and a game of Pong outlasts 1,000 steps.
 EVAL_MAX_EPISODE_STEPS = 1_000
 
 
@@ -25,13 +25,22 @@ def make_eval_env(env_id: str, episodes: int, max_episode_steps: int = 0,
                   kwargs: dict[str, Any] | None = None, wrappers: tuple[str, ...] | list[str] = (),
                   factory: EnvFn | None = None) -> BatchedEnv:
     """The env `evaluate` runs `episodes` episodes on: min(episodes, EVAL_BATCH) copies, their
-    episodes cut at EVAL_MAX_EPISODE_STEPS if it is a user's env without a time limit
-    (`capped_at` says so)."""
+    episodes cut at EVAL_MAX_EPISODE_STEPS if the env has no time limit (`capped_at` says so)."""
     env = make_env(env_id, min(episodes, EVAL_BATCH), max_episode_steps, device=device, info_keys=info_keys,
                    kwargs=kwargs, wrappers=wrappers, factory=factory)
-    if isinstance(env, GymBatchEnv) and is_user_env(env_id, factory) and not env.time_limited:
-        env.cap_episodes(EVAL_MAX_EPISODE_STEPS)
+    cap_untimed(env)
     return env
+
+
+def cap_untimed(env: BatchedEnv, max_episode_steps: int = 0) -> None:
+    """Cut the episodes of an env without a time limit, so that an evaluation ends: at
+    `max_episode_steps`, or (0) at EVAL_MAX_EPISODE_STEPS unless it is an ALE game."""
+    if not isinstance(env, GymBatchEnv) or env.time_limited or env.capped_at:
+        return
+    if max_episode_steps > 0:
+        env.cap_episodes(max_episode_steps)
+    elif not type(env.envs[0].unwrapped).__module__.startswith("ale_py"):
+        env.cap_episodes(EVAL_MAX_EPISODE_STEPS)
 
 
 def eval_cap_note(env: BatchedEnv, env_id: str) -> str | None:
