@@ -203,6 +203,40 @@ def test_state_dict_round_trip_of_a_ram_writer():
     assert transition_rows(t2, w2) == transition_rows(t, w)
 
 
+def test_a_checkpoint_holds_the_rows_written_not_the_ring_and_loads_the_full_layout_too():
+    t, w = writer(3, num_envs=2, max_size=20, rows=1000)
+    for i in range(15):
+        w(step([i, 100 + i], [i % 5, 1], [float(i), 1.0], [i + 1, 101 + i], terminated=[i % 7 == 6, False]))
+    w.flush()
+    state = t.state_dict()
+    arrays = state["storage"]["store"]["columns"]["arrays"]
+    assert arrays["frame"].shape[0] == 2 and arrays["frame"].shape[1] <= 20  # the rows of 15 steps, of 1,000
+    t2, w2 = writer(3, num_envs=2, max_size=20, rows=1000)
+    t2.load_state_dict(state)
+    assert transition_rows(t2, w2) == transition_rows(t, w)
+    # Checkpoints written before held every row of the ring: they load as they did.
+    full = {k: np.concatenate([v, np.zeros((2, 1000 - v.shape[1], *v.shape[2:]), v.dtype)], axis=1)
+            for k, v in arrays.items()}
+    old = {**state, "storage": {**state["storage"], "store": {**state["storage"]["store"],
+                                                               "columns": {"arrays": full}}}}
+    t3, w3 = writer(3, num_envs=2, max_size=20, rows=1000)
+    t3.load_state_dict(old)
+    assert transition_rows(t3, w3) == transition_rows(t, w)
+
+
+def test_a_table_of_items_checkpoints_the_slots_in_use():
+    t = Table("t", 10_000, Uniform(), Fifo(), MinSize(1), seed=0)
+    for i in range(5):
+        t.insert({"obs": np.full(3, i, np.float32), "a": np.int64(i)})
+    state = t.state_dict()
+    assert state["storage"]["columns"]["arrays"]["obs"].shape == (5, 3)
+    t2 = Table("t", 10_000, Uniform(), Fifo(), MinSize(1), seed=0)
+    t2.load_state_dict(state)
+    a, _ = t.sample(8)
+    b, _ = t2.sample(8)
+    assert a["obs"].tolist() == b["obs"].tolist() and a["a"].tolist() == b["a"].tolist()
+
+
 def test_the_table_owns_the_steps_and_keeps_the_checkpoint_layout_runs_saved_before():
     # The writer holds no storage: it stages steps and appends them through its table.
     t, w = writer(2, num_envs=2, max_size=20)

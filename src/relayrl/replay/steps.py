@@ -224,9 +224,11 @@ class StepStore:
         return ok
 
     def state_dict(self) -> dict[str, Any]:
-        state = {"columns": self.cols.state_dict(), "head": self.head.copy(), "ep_start": self.ep_start.copy()}
+        used = min(int(self.head.max(initial=0)), self.rows)  # ring positions written so far
+        state = {"columns": self.cols.state_dict(used), "head": self.head.copy(), "ep_start": self.ep_start.copy()}
         if self.data:  # as host arrays, so a checkpoint loads on a machine without the device
-            state["columns"].setdefault("arrays", {}).update({k: t.cpu().numpy() for k, t in self.data.items()})
+            state["columns"].setdefault("arrays", {}).update({k: t[:, :used].cpu().numpy()
+                                                              for k, t in self.data.items()})
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -234,7 +236,8 @@ class StepStore:
         if self.data:  # a checkpoint from a store with or without a device loads in either
             arrays = dict(columns["arrays"])
             for name, t in self.data.items():
-                t.copy_(torch.as_tensor(to_numpy(arrays.pop(name))))
+                saved = torch.as_tensor(to_numpy(arrays.pop(name)))
+                t[:, :saved.shape[1]].copy_(saved)
             columns["arrays"] = arrays
         self.cols.load_state_dict(columns)
         self.head[:] = state["head"]

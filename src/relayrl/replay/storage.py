@@ -99,11 +99,18 @@ class Columns:
             if isinstance(a, np.memmap):
                 a.flush()
 
-    def state_dict(self) -> dict[str, Any]:
+    def used_rows(self, used: int | None) -> tuple[slice, ...]:
+        """The index of the first `used` rows along the last leading dimension (None: all)."""
+        return (slice(None),) * (len(self.leading) - 1) + (slice(0, used),)
+
+    def state_dict(self, used: int | None = None) -> dict[str, Any]:
+        """The arrays' first `used` rows along the last leading dimension (None: all): a
+        checkpoint grows with what the storage holds, not with what it can hold."""
         if self.path is not None:
             self.flush()  # the checkpoint refers to the files
             return {"memmap": str(self.path)}
-        return {"arrays": {k: (v.cpu().clone() if isinstance(v, torch.Tensor) else v.copy())
+        rows = self.used_rows(used)
+        return {"arrays": {k: (v[rows].cpu().clone() if isinstance(v, torch.Tensor) else v[rows].copy())
                            for k, v in self.arrays.items()}}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -113,10 +120,11 @@ class Columns:
                                  f"this table's storage is {self.path!r}")
             return  # the files were reopened in __init__
         for k, v in state["arrays"].items():
+            rows = self.used_rows(v.shape[len(self.leading) - 1])
             if isinstance(self.arrays[k], torch.Tensor):
-                self.arrays[k].copy_(torch.as_tensor(v))
+                self.arrays[k][rows] = torch.as_tensor(v).to(self.arrays[k].device)
             else:
-                self.arrays[k][...] = to_numpy(v)
+                self.arrays[k][rows] = to_numpy(v)
 
 
 class ItemStorage(Storage):
@@ -129,6 +137,10 @@ class ItemStorage(Storage):
         self.device = device
         self.columns: Columns | None = None  # built from the first item's structure
         self.single = False  # items are one array rather than a dict of arrays
+        self.slot_key: np.ndarray | None = None  # the table's: which slots hold items (-1: none)
+
+    def bind(self, slot_key: np.ndarray) -> None:
+        self.slot_key = slot_key
 
     def _build(self, item: Any) -> None:
         self.single = not isinstance(item, dict)
@@ -164,9 +176,11 @@ class ItemStorage(Storage):
     def state_dict(self) -> dict[str, Any]:
         if self.columns is None:
             return {}
+        live = None if self.slot_key is None else np.flatnonzero(self.slot_key >= 0)
+        used = None if live is None else int(live[-1]) + 1 if live.size else 0  # slots above hold no item
         return {"single": self.single,
                 "signature": {k: (s, d.str) for k, (s, d) in self.columns.signature.items()},
-                "columns": self.columns.state_dict()}
+                "columns": self.columns.state_dict(used)}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if not state:

@@ -79,6 +79,7 @@ class Table:
             from relayrl.replay.table_fast import insert
             self._insert_kernel = insert
         self.storage: Storage = ItemStorage(max_size)
+        self.storage.bind(self.slot_key)
         if storage is not None:
             self.set_storage(storage)
 
