@@ -3,6 +3,8 @@ what a failed build made is closed."""
 
 from __future__ import annotations
 
+import signal
+
 import gymnasium as gym
 import pytest
 import torch
@@ -72,3 +74,23 @@ def test_a_copy_that_fails_to_build_closes_the_ones_already_made():
     with pytest.raises(RuntimeError, match="simulator licence"):
         GymBatchEnv([third_fails(i) for i in range(3)])
     assert _Closing.closed == [0, 1]
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_an_interrupt_during_a_write_acts_once_the_file_is_in_place(tmp_path, sig):
+    def on_term(signum, frame):
+        raise KeyboardInterrupt  # as the CLI's SIGTERM handler does (a Terminated)
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        def write(f):
+            f.write(b"new ")
+            signal.raise_signal(sig)  # Ctrl-C or kill in the middle of the write
+            f.write(b"file")
+
+        with pytest.raises(KeyboardInterrupt):
+            atomic.write_with(tmp_path / "f", write)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    assert (tmp_path / "f").read_bytes() == b"new file"
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers put back
