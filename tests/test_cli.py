@@ -74,6 +74,8 @@ def test_quick_start_commands_at_small_size(cli_env, tmp_path):
     assert e.returncode == 0, e.stderr
     result = json.loads(e.stdout)
     assert result["episodes"] == 3 and result["average_return"] > 0
+    e = run(["eval", str(tmp_path / "quick" / "policy" / "policy.pt"), "--episodes", "3"], cli_env)  # as --help says
+    assert e.returncode == 0 and json.loads(e.stdout) == result, e.stderr
 
 
 def test_example_runs_a_few_hundred_steps(cli_env):
@@ -104,3 +106,12 @@ def test_ci_runs_the_readme_test_command():
     root = pathlib.Path(__file__).parents[1]
     ci = (root / ".ci" / "run").read_text().strip().splitlines()[-1]
     assert ci in (root / "README.md").read_text()
+
+
+def test_eval_of_a_policy_file_outside_a_run_directory_is_one_line(tmp_path, capsys):
+    from relayrl.cli import main
+
+    (tmp_path / "policy.pt").write_bytes(b"not used")
+    assert main(["eval", str(tmp_path / "policy.pt")]) == 2
+    err = capsys.readouterr().err
+    assert "is a policy file outside a run directory" in err and len(err.strip().splitlines()) == 1

@@ -10,6 +10,7 @@ import json
 import os
 import signal
 import sys
+from pathlib import Path
 from typing import NoReturn
 
 from relayrl.errors import NonFiniteError, UserError
@@ -120,7 +121,13 @@ def _eval(args: argparse.Namespace) -> None:
 
     if args.episodes < 1:
         raise UserError(f"--episodes {args.episodes} is not valid; it must be >= 1")
-    rd = RunDir(args.run_dir)
+    path = Path(args.run_dir)
+    if path.is_file():  # RUN_DIR/policy/policy.pt: its run directory's config.toml names the env
+        if not (path.parent.parent / "config.toml").is_file():
+            raise UserError(f"{str(path)!r} is a policy file outside a run directory, whose config.toml would "
+                            "name its env; give the run directory, or use relayrl.evaluate(policy, env) in Python")
+        path = path.parent.parent
+    rd = RunDir(path)
     rd.require()
     config = load_config(str(rd.config))
     policy = load_policy(rd.root)
