@@ -126,6 +126,8 @@ def test_bad_wrappers_are_one_line():
         make_env("CartPole-v1", wrappers=["toy_envs.double_reward"])
     with pytest.raises(UserError, match="has no callable 'nope'"):
         make_env("CartPole-v1", wrappers=["toy_envs:nope"])
+    with pytest.raises(UserError, match="TimeLimit cannot be called with the env alone"):
+        make_env("CartPole-v1", wrappers=["gymnasium.wrappers:TimeLimit"])  # needs max_episode_steps
 
 
 def test_kwargs_and_wrappers_survive_config_toml_and_resume(tmp_path):

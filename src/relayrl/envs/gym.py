@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import difflib
 import importlib
+import inspect
 import os
 import pickle
 import traceback
@@ -205,12 +206,25 @@ def _wrapped(base: EnvFn, wrappers: list[Callable[[gym.Env], gym.Env]]) -> EnvFn
     def make_wrapped() -> gym.Env:
         env = base()
         for w in wrappers:
+            _check_takes_an_env(w, env)
             env = w(env)
             if not isinstance(env, gym.Env):
                 raise UserError(f"env.wrappers: {w!r} returned {type(env).__name__}, not a gymnasium.Env")
         return env
 
     return make_wrapped
+
+
+def _check_takes_an_env(wrapper: Callable[..., Any], env: gym.Env) -> None:
+    """One line for a wrapper that needs more than the env (its own errors stay its own)."""
+    try:
+        inspect.signature(wrapper).bind(env)
+    except TypeError as e:
+        name = f"{getattr(wrapper, '__module__', '?')}:{getattr(wrapper, '__qualname__', repr(wrapper))}"
+        raise UserError(f"env.wrappers: {name} cannot be called with the env alone ({e}); give a function of "
+                        "the env that passes the rest, e.g. def wrap(env): return TimeLimit(env, 500)") from None
+    except ValueError:  # no signature to read (a builtin): the call itself says
+        pass
 
 
 def import_user_module(module_name: str, what: str) -> Any:
