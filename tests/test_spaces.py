@@ -13,7 +13,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from space_envs import OBS_KINDS, Spaces
+from space_envs import OBS_KINDS, Spaces, observation_space
 
 import relayrl
 from relayrl.errors import UserError
@@ -172,6 +172,15 @@ def test_loaded_policy_says_what_it_takes(tmp_path):
         policy(7)
     with pytest.raises(UserError, match=r"takes Discrete\(4\) observations"):
         policy(np.zeros((2, 3)))
+
+
+def test_a_discrete_entry_of_a_dict_outside_its_range_is_one_line(tmp_path):
+    relayrl.train(short_config("dqn", "dict", "discrete"), tmp_path, progress=False)
+    policy = relayrl.load_policy(tmp_path)
+    obs = observation_space("dict").sample()
+    policy(obs)
+    with pytest.raises(UserError, match=r"observation\['cell'\] 4 is outside this policy's Discrete\(4\) space"):
+        policy({**obs, "cell": 4})
 
 
 @pytest.mark.parametrize(("preset", "over"), [

@@ -15,7 +15,7 @@ import torch
 from relayrl.core import Policy
 from relayrl.errors import UserError
 from relayrl.policies import saved_obs_spec
-from relayrl.specs import DiscreteSpec, MultiDiscreteSpec, PackedSpec, describe, entry
+from relayrl.specs import DiscreteSpec, MultiDiscreteSpec, PackedSpec, Spec, describe, entry
 
 
 class LoadedPolicy(Policy):
@@ -86,16 +86,8 @@ class LoadedPolicy(Policy):
             t = t.to(self.obs_dtype)  # (float frames in [0, 1] stay float: a conv net takes those too)
         elif t.dtype != torch.float32:
             t = t.float()
-        self._check_range(t)
+        _check_range(t, self.obs_space)
         return (t.unsqueeze(0) if single else t), single, numpy_in
-
-    def _check_range(self, t: torch.Tensor) -> None:
-        """Discrete entries outside their range would index past a one-hot: one line instead."""
-        s = self.obs_space
-        if isinstance(s, DiscreteSpec | MultiDiscreteSpec) and not t.is_floating_point() and t.numel():
-            high = torch.as_tensor(s.nvec).reshape(s.shape) if isinstance(s, MultiDiscreteSpec) else s.n
-            if bool((t < 0).any() or (t >= high).any()):
-                raise UserError(f"observation {t.tolist()} is outside this policy's {describe(s)} space")
 
     def _packed(self, obs: Any) -> tuple[torch.Tensor, bool, bool]:
         """A Dict / Tuple observation (or batch) as the packed rows the policy takes."""
@@ -106,4 +98,14 @@ class LoadedPolicy(Policy):
                             f"{'tuple' if spec.tuple_space else 'dict'} of arrays, not one array")
         batch = spec.batch_size(obs)
         numpy_in = not isinstance(entry(obs, spec.fields[0]), torch.Tensor)
+        for f in spec.fields:
+            _check_range(torch.as_tensor(np.asarray(entry(obs, f))), f.spec, f"[{f.key!r}]")
         return torch.from_numpy(spec.pack_batch(obs, batch)), batch is None, numpy_in
+
+
+def _check_range(t: torch.Tensor, s: Spec, where: str = "") -> None:
+    """Discrete entries outside their range would index past a one-hot: one line instead."""
+    if isinstance(s, DiscreteSpec | MultiDiscreteSpec) and not t.is_floating_point() and t.numel():
+        high = torch.as_tensor(s.nvec).reshape(s.shape) if isinstance(s, MultiDiscreteSpec) else s.n
+        if bool((t < 0).any() or (t >= high).any()):
+            raise UserError(f"observation{where} {t.tolist()} is outside this policy's {describe(s)} space")
