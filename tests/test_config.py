@@ -34,6 +34,7 @@ def test_overrides_are_typed():
     ("agent.hidden=[1, 'a']", "agent.hidden[1]"),
     ("agent.loss=l1", "agent.loss='l1' is not valid; valid: huber, mse"),
     ("eval.episodes=0", "eval.episodes=0 is not valid"),
+    ("env.max_episode_steps=-1", "env.max_episode_steps=-1 is not valid; it must be >= 0"),
     ("train=3", "train is a section"),
     ("novalue", "is not KEY=VALUE"),
 ])
@@ -41,6 +42,12 @@ def test_bad_overrides_fail_with_a_clear_message(override, fragment):
     with pytest.raises(ConfigError, match=None) as e:
         load_config("dqn-cartpole", [override])
     assert fragment in str(e.value)
+
+
+def test_an_on_policy_run_shorter_than_one_rollout_is_refused():
+    with pytest.raises(ConfigError, match=r"train.total_steps=1000 is less than one rollout \(train.collect_steps=2048"):
+        load_config("ppo", ["train.total_steps=1000"])
+    load_config("dqn", ["train.total_steps=1000"])  # off-policy: learns from the first steps on
 
 
 def test_unknown_preset_lists_valid_ones():

@@ -152,6 +152,13 @@ class Config(Section):
         for key, value in positive.items():
             if value < 1:
                 raise ConfigError(f"{key}={value} is not valid; it must be >= 1")
+        if self.env.max_episode_steps < 0:
+            raise ConfigError(f"env.max_episode_steps={self.env.max_episode_steps} is not valid; it must be >= 0 "
+                              "(0: the env's own time limit)")
+        if algorithm(self.algo).replay == "rollouts" and self.train.total_steps < self.train.collect_steps:
+            raise ConfigError(f"train.total_steps={self.train.total_steps} is less than one rollout "
+                              f"(train.collect_steps={self.train.collect_steps} env steps): algo={self.algo!r} would "
+                              "end before its first update; raise train.total_steps or lower train.collect_steps")
         for key in ("initial_collect_steps", "gradient_steps", "checkpoint_interval",
                     "policy_save_interval", "log_interval", "pull_interval", "torch_threads"):
             if getattr(self.train, key) < 0:
