@@ -45,7 +45,7 @@ def test_bad_overrides_fail_with_a_clear_message(override, fragment):
 
 
 def test_an_on_policy_run_shorter_than_one_rollout_is_refused():
-    with pytest.raises(ConfigError, match=r"train.total_steps=1000 is less than one rollout \(train.collect_steps=2048"):
+    with pytest.raises(ConfigError, match=r"total_steps=1000 is less than one rollout \(train.collect_steps=2048"):
         load_config("ppo", ["train.total_steps=1000"])
     load_config("dqn", ["train.total_steps=1000"])  # off-policy: learns from the first steps on
 

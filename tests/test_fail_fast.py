@@ -125,7 +125,7 @@ def test_with_prioritized_replay_the_reward_is_named_not_the_td_error_it_made(tm
 def test_the_env_copy_and_step_are_named_in_a_batch_of_envs(tmp_path):
     """Both copies get NaN rewards from their 70th step: copy 0's is env step 2 * 69 + 1 = 139,
     counting the steps of both copies."""
-    c = config("dqn", "env.num_envs=2", "env.kwargs.at=70")
+    c = config("dqn", "env.num_envs=2", "env.kwargs.at=70", "eval.interval=400")  # evaluations stay short of 70
     with pytest.raises(NonFiniteError, match=r"^reward was NaN at env step 139 \(env copy 0\)"):
         train(c, tmp_path / "run", progress=False)
 
@@ -217,3 +217,10 @@ def test_video_of_an_env_whose_render_raises_is_one_line(small_run, tmp_path, ca
                                                                                "toy_envs:RenderRaises"))
     err = one_line(capfd, ["video", str(run)])
     assert "cannot render: render() raised RuntimeError: no display" in err
+
+
+def test_a_non_finite_reward_in_an_evaluation_stops_the_run_in_one_line(tmp_path):
+    # The first evaluation, of the untrained policy, meets the NaN before any training step.
+    c = config("dqn", "env.kwargs.at=5")
+    with pytest.raises(NonFiniteError, match=r"^reward was NaN in an evaluation episode \(env copy 0\): check"):
+        train(c, tmp_path / "run", progress=False)

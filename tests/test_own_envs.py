@@ -223,7 +223,7 @@ def test_what_will_break_the_run_stops_it_before_training_in_one_line(algo_prese
 
     run = tmp_path / "run"
     code = main(["train", algo_preset, "--run-dir", str(run), "--no-progress", "--set", f"env.id={env_id}",
-                 "--set", "train.total_steps=64", "--set", "train.initial_collect_steps=0"])
+                 "--set", "train.total_steps=100000", "--set", "train.initial_collect_steps=0"])
     err = capfd.readouterr().err
     assert code == 2
     assert err == f"relayrl: error: env.id={env_id!r}: {fragment}" + err.split(fragment)[1]

@@ -138,6 +138,8 @@ def _eval(args: argparse.Namespace) -> None:
         if note:
             print(f"relayrl: {note}", file=sys.stderr)
         result = evaluate(env, policy, args.episodes, seed=args.seed)
+    except NonFiniteError as e:  # an env that returns NaN rewards: what it gave, not a run that stopped
+        raise UserError(str(e)) from None
     finally:
         env.close()  # an env's worker processes or windows never outlive a failed evaluation
     print(json.dumps({**result, "policy_env_steps": policy.env_steps}))

@@ -11,6 +11,8 @@ from relayrl.arrays import to_numpy
 from relayrl.core import BatchedEnv, Policy
 from relayrl.envs import make_env
 from relayrl.envs.gym import EnvFn, GymBatchEnv
+from relayrl.errors import NonFiniteError
+from relayrl.training.finite import describe
 
 EVAL_BATCH = 16  # eval episodes run as one batch of at most this many env copies
 # Evaluation episodes of an env without a time limit (and no env.max_episode_steps) end here, so
@@ -74,7 +76,12 @@ def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = 
             break
         with torch.inference_mode():
             out = env.step(policy(obs))
-        ret += to_numpy(out.reward)
+        reward = to_numpy(out.reward)
+        if not np.isfinite(reward).all():  # the env's fault: named, not averaged into a NaN return
+            i = int(np.flatnonzero(~np.isfinite(reward))[0])
+            raise NonFiniteError(f"reward was {describe(float(reward[i]))} in an evaluation episode (env copy {i}): "
+                                 "check the env's reward")
+        ret += reward
         length += 1
         done = to_numpy(out.terminated | out.truncated)
         for i in np.flatnonzero(done):
