@@ -11,6 +11,8 @@ def test_presets_load_and_describe_themselves():
     names = list_presets()
     assert {"dqn-cartpole", "dqn-cartpole-fast"} <= set(names)
     assert all(desc for desc in names.values())
+    # `relayrl presets` shows a preset's first line: a whole description, not one cut mid-sentence
+    assert not [name for name, desc in names.items() if desc.endswith((",", "(", ":", "and", "the"))]
     c = load_config("dqn-cartpole")
     assert c.env.id == "CartPole-v0" and c.agent.hidden == [100, 50] and c.agent.gamma == 1.0
 
