@@ -30,6 +30,8 @@ def test_overrides_are_typed():
     ("train.total_step=5", "unknown config key 'train.total_step'; did you mean 'train.total_steps'?"),
     ("agent.zzz=1", "unknown config key 'agent.zzz'; valid: agent.hidden"),
     ("nope=1", "unknown config key 'nope'"),
+    ("agent.n_steps=512", "Stable-Baselines3's n_steps is train.collect_steps (env steps per rollout"),
+    ("agent.learning_starts=100", "Stable-Baselines3's learning_starts is train.initial_collect_steps here"),
     ("train.total_steps=abc", "train.total_steps='abc' has the wrong type; expected int"),
     ("train.total_steps=1.5", "expected int"),
     ("agent.double=1", "expected bool"),
@@ -50,6 +52,19 @@ def test_an_on_policy_run_shorter_than_one_rollout_is_refused():
     with pytest.raises(ConfigError, match=r"total_steps=1000 is less than one rollout \(train.collect_steps=2048"):
         load_config("ppo", ["train.total_steps=1000"])
     load_config("dqn", ["train.total_steps=1000"])  # off-policy: learns from the first steps on
+
+
+def test_the_keys_stable_baselines3_names_are_pointed_to_exist():
+    from relayrl.config import dotted, to_dict
+    from relayrl.config_fields import SB3_NAMES
+
+    keys = set()
+    for algo in ("dqn", "sac", "ppo"):
+        keys |= set(dotted(to_dict(load_config(algo))))
+    for target in SB3_NAMES.values():
+        for word in target.replace(",", " ").replace("(", " ").replace(")", " ").split():
+            if word.startswith(("train.", "agent.", "replay.", "env.")):
+                assert word in keys, word
 
 
 def test_unknown_preset_lists_valid_ones():

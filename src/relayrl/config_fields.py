@@ -48,9 +48,29 @@ def _hints(cls: type) -> dict[str, Any]:
     return {k: v for k, v in typing.get_type_hints(cls).items() if k in names}
 
 
+# Stable-Baselines3's names for settings relayrl names otherwise: users bring them from SB3 and
+# RL Zoo's hyperparameter files.
+SB3_NAMES = {
+    "n_steps": "train.collect_steps (env steps per rollout over all env.num_envs copies: SB3's n_steps "
+               "x env.num_envs)",
+    "train_freq": "train.collect_steps (env steps between gradient phases)",
+    "learning_starts": "train.initial_collect_steps",
+    "buffer_size": "replay.size",
+    "total_timesteps": "train.total_steps",
+    "n_envs": "env.num_envs",
+    "learning_rate": "agent.lr (SAC: agent.actor_lr, agent.critic_lr, agent.alpha_lr)",
+    "target_update_interval": "agent.target_update_period",
+    "exploration_final_eps": "agent.epsilon_end",
+    "exploration_initial_eps": "agent.epsilon_start",
+    "exploration_fraction": "agent.epsilon_decay_steps (in env steps: SB3's fraction x train.total_steps)",
+}
+
+
 def unknown_key(path: str, valid: list[str]) -> str:
     """"unknown config key 'train.total_step'; did you mean 'train.total_steps'?" (or the valid keys)."""
     prefix, _, key = path.rpartition(".")
+    if key in SB3_NAMES:
+        return f"unknown config key {path!r}; Stable-Baselines3's {key} is {SB3_NAMES[key]} here"
     names = {v.rpartition(".")[2]: v for v in valid}  # compared without the shared section prefix
     close = difflib.get_close_matches(key, list(names), n=1, cutoff=0.6)
     if close:

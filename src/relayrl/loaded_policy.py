@@ -75,7 +75,14 @@ class LoadedPolicy(Policy):
     def _array(self, obs: Any) -> tuple[torch.Tensor, bool, bool]:
         """An array observation (or batch) as the batched tensor the policy takes."""
         numpy_in = not isinstance(obs, torch.Tensor)
-        t = torch.as_tensor(np.asarray(obs)) if numpy_in else obs
+        if numpy_in:
+            a = np.asarray(obs)
+            if a.dtype == object:  # a dict, or pieces that make no array
+                raise UserError(f"this policy takes {describe(self.obs_space)} observations: an array of numbers "
+                                f"(or a batch of them), not a {type(obs).__name__} like {str(obs)[:60]}")
+            t = torch.as_tensor(a)
+        else:
+            t = obs
         n = len(self.obs_shape)
         if tuple(t.shape[t.dim() - n:]) != self.obs_shape or t.dim() not in (n, n + 1):
             raise UserError(f"observation of shape {tuple(t.shape)} does not fit this policy: it takes "

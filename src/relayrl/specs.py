@@ -39,7 +39,7 @@ _TORCH_DTYPES = {
     np.dtype(np.bool_): torch.bool,
 }
 OBSERVATION_SPACES = "Box, Discrete, MultiDiscrete, MultiBinary, Dict, Tuple"
-ACTION_SPACES = "Discrete and Box (DQN: Discrete; SAC: Box; PPO: Discrete, Box, MultiDiscrete, MultiBinary)"
+ACTION_SPACES = "DQN: Discrete; SAC: Box; PPO: Discrete, Box, MultiDiscrete, MultiBinary"
 
 
 @dataclass(frozen=True)
