@@ -95,6 +95,14 @@ def test_env_that_cannot_be_pickled_resumes_with_new_episodes(tmp_path, capsys, 
     assert "the resumed run starts new episodes" in capsys.readouterr().err
 
 
+def test_resuming_a_run_already_past_total_steps_says_so(tmp_path, capsys):
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    fewer = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=300"] + DQN[2:])
+    relayrl.train(fewer, tmp_path / "r", resume=True, progress=False)
+    assert "the run is at env step 600, past train.total_steps=300: nothing is left to train" in capsys.readouterr().err
+
+
 def test_resume_refuses_another_number_of_envs(tmp_path):
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
     relayrl.train(cfg, tmp_path / "r", progress=False)

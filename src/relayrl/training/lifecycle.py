@@ -234,6 +234,9 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
             core.say("train.checkpoint_replay = false: checkpoints leave the replay out; a resumed run refills it")
         if resume:
             driver.restore()  # rewrites metrics.jsonl: open the log only afterwards
+            if core.env_steps() >= c.train.total_steps:
+                core.say(f"the run is at env step {core.env_steps():,}, past train.total_steps="
+                         f"{c.train.total_steps:,}: nothing is left to train (raise train.total_steps to go on)")
         report.open(core.env_steps())
         driver.announce()
         if core.env_steps() == 0:
