@@ -40,6 +40,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
     torch.manual_seed(args.seed)
+    torch.set_num_threads(1)  # as the presets' train.torch_threads: two threads collapse beside other work
 
     env, eval_env = make_env(args.env), make_env(args.env, num_envs=10)
     cfg = SACConfig(actor_hidden=args.hidden, critic_hidden=args.hidden, batch_size=args.batch_size, gamma=0.99,
