@@ -52,6 +52,10 @@ def test_an_on_policy_run_shorter_than_one_rollout_is_refused():
     with pytest.raises(ConfigError, match=r"total_steps=1000 is less than one rollout \(train.collect_steps=2048"):
         load_config("ppo", ["train.total_steps=1000"])
     load_config("dqn", ["train.total_steps=1000"])  # off-policy: learns from the first steps on
+    for over, words in (('replay.sampler="prioritized"', "replay.sampler='prioritized' is not valid for algo='ppo'"),
+                        ("replay.n_step=3", "replay.n_step=3 is not valid for algo='ppo'")):
+        with pytest.raises(ConfigError, match=words):
+            load_config("ppo", [over])
 
 
 def test_the_keys_stable_baselines3_names_are_pointed_to_exist():

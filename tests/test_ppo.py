@@ -189,6 +189,20 @@ def test_refuses_unbounded_actions_random_warmup_and_stale_actors(tmp_path):
             relayrl.train(cfg, tmp_path / key, progress=False)
 
 
+def test_an_undefined_explained_variance_is_not_taken_for_divergence():
+    """A rollout of equal returns (gamma 0 on CartPole) makes Var[R] = 0: the explained variance
+    is NaN there, as in SB3, and the run goes on; a NaN loss still stops it."""
+    from relayrl.agents.ppo.losses import explained_variance
+    from relayrl.training.finite import non_finite_metrics
+
+    ev = explained_variance(torch.tensor([0.5, 0.2, 0.9]), torch.ones(3))
+    assert math.isnan(float(ev))
+    metrics = {"loss": torch.tensor(0.3), "explained_variance": ev}
+    assert non_finite_metrics(metrics, PPOAgent.undefined_metrics) is None
+    assert non_finite_metrics(metrics) == "the explained variance was NaN"
+    assert non_finite_metrics({**metrics, "loss": ev}, PPOAgent.undefined_metrics) == "the loss was NaN"
+
+
 BANDIT = ["env.id=toy_envs:BetterAction", "env.num_envs=4", "train.total_steps=2048", "train.collect_steps=128",
           "agent.batch_size=32", "agent.n_epochs=4", "eval.interval=1024", "eval.episodes=20",
           "train.checkpoint_interval=0"]

@@ -155,10 +155,8 @@ class Config(Section):
         if self.env.max_episode_steps < 0:
             raise ConfigError(f"env.max_episode_steps={self.env.max_episode_steps} is not valid; it must be >= 0 "
                               "(0: the env's own time limit)")
-        if algorithm(self.algo).replay == "rollouts" and self.train.total_steps < self.train.collect_steps:
-            raise ConfigError(f"train.total_steps={self.train.total_steps} is less than one rollout "
-                              f"(train.collect_steps={self.train.collect_steps} env steps): algo={self.algo!r} would "
-                              "end before its first update; raise train.total_steps or lower train.collect_steps")
+        if algorithm(self.algo).replay == "rollouts":
+            self._check_on_policy()
         for key in ("initial_collect_steps", "gradient_steps", "checkpoint_interval",
                     "policy_save_interval", "log_interval", "pull_interval", "torch_threads"):
             if getattr(self.train, key) < 0:
@@ -195,6 +193,18 @@ class Config(Section):
         if d.actor_cpus < 0:
             raise ConfigError(f"distributed.actor_cpus={d.actor_cpus} is not valid; it must be >= 0")
         self.agent.validate()
+
+
+    def _check_on_policy(self) -> None:
+        """An on-policy algorithm learns from each rollout once: no replay settings apply to it."""
+        if self.train.total_steps < self.train.collect_steps:
+            raise ConfigError(f"train.total_steps={self.train.total_steps} is less than one rollout "
+                              f"(train.collect_steps={self.train.collect_steps} env steps): algo={self.algo!r} would "
+                              "end before its first update; raise train.total_steps or lower train.collect_steps")
+        for key, used in (("sampler", "uniform"), ("n_step", 1)):
+            if getattr(self.replay, key) != used:
+                raise ConfigError(f"replay.{key}={getattr(self.replay, key)!r} is not valid for algo={self.algo!r}: "
+                                  f"it learns from each rollout once, not from a replay; leave it at {used!r}")
 
 
 def to_dict(config: Config) -> dict[str, Any]:

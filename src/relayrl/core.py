@@ -89,6 +89,10 @@ class Observer(Protocol):
 class Agent(Saveable, Protocol):
     """What the train loop knows of an algorithm. The factory that builds one returns this type."""
 
+    # Training metrics that are NaN where they are undefined (PPO's explained variance when a
+    # rollout's returns are all equal): logged as they are, not taken for a diverging run.
+    undefined_metrics: frozenset[str] = frozenset()
+
     def collect_policy(self, env_step: Callable[[], int], network: nn.Module | None = None) -> Policy:
         """The exploring policy. `env_step` drives schedules (epsilon); `network` is the copy
         of `policy_network()` it runs (an actor's, kept fresh from a VariableContainer);

@@ -89,9 +89,12 @@ class FiniteWatch(Observer):
         return [leaf.reshape(t, b, *leaf.shape[1:]) for leaf in unpack(obs.reshape(t * b, -1), self.obs_spec).values()]
 
 
-def non_finite_metrics(metrics: Mapping[str, torch.Tensor]) -> str | None:
-    """The first training scalar (a loss, a TD error) that is not finite, as a finding."""
+def non_finite_metrics(metrics: Mapping[str, torch.Tensor], undefined: frozenset[str] = frozenset()) -> str | None:
+    """The first training scalar (a loss, a TD error) that is not finite, as a finding; those
+    named in `undefined` may be NaN (`Agent.undefined_metrics`)."""
     for name, v in metrics.items():
+        if name in undefined:
+            continue
         if isinstance(v, torch.Tensor) and v.is_floating_point() and not bool(torch.isfinite(v).all()):
             bad = v.detach().flatten()
             return f"the {name.replace('_', ' ')} was {describe(float(bad[~torch.isfinite(bad)][0]))}"

@@ -135,7 +135,7 @@ class RunCore:
         finding = self.finite.check()
         where = f"by env step {p.env_steps:,} (train step {p.train_step:,})"
         if finding is None:
-            loss = non_finite_metrics(self.learner.last_metrics)
+            loss = non_finite_metrics(self.learner.last_metrics, self.agent.undefined_metrics)
             if loss is not None:
                 finding = (f"{loss} {where}: check the learning rate (agent.lr and the like: too high diverges), "
                            "the reward scale and the env's observations")

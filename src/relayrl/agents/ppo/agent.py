@@ -40,6 +40,8 @@ class PPOAgent(Agent):
     """`hand_written=False` runs the autograd update even where the hand-written one models
     the networks (tests compare the two)."""
 
+    undefined_metrics = frozenset({"explained_variance"})  # NaN for a rollout of equal returns
+
     def __init__(self, obs_spec: Spec, action_spec: Spec, cfg: PPOConfig, device: torch.device,
                  rng: np.random.Generator, total_steps: int = 0, hand_written: bool = True) -> None:
         self.cfg = cfg

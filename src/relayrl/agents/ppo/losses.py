@@ -46,6 +46,7 @@ def entropy_loss(entropy: torch.Tensor) -> torch.Tensor:
 
 
 def explained_variance(values: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
-    """1 - Var[R - V] / Var[R]: 1 for perfect values, 0 for a constant; NaN when Var[R] = 0."""
+    """1 - Var[R - V] / Var[R]: 1 for perfect values, 0 for a constant; NaN when Var[R] = 0
+    (undefined, as in SB3 and CleanRL). No host sync: the choice is made on the device."""
     var = returns.var(unbiased=False)
-    return 1.0 - (returns - values).var(unbiased=False) / var if var > 0 else torch.tensor(float("nan"))
+    return torch.where(var > 0, 1.0 - (returns - values).var(unbiased=False) / var, torch.full_like(var, float("nan")))
