@@ -126,6 +126,19 @@ def test_a_run_that_fails_while_it_is_built_leaves_no_env_worker(tmp_path):
     assert not [p for p in multiprocessing.active_children() if p.name.startswith("relayrl-env")]
 
 
+def test_a_memmap_folder_is_recorded_absolute_and_another_run_cannot_share_it(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    small = DQN[:1] + ["train.total_steps=300", "replay.storage=memmap", "replay.path=shared"] + DQN[2:]
+    relayrl.train(relayrl.load_config("dqn-cartpole-fast", small), tmp_path / "a", progress=False)
+    assert relayrl.load_config(str(tmp_path / "a" / "config.toml")).replay.path == str(tmp_path / "shared")
+    with pytest.raises(relayrl.errors.UserError, match="holds the replay of the run in .*a'; give this run"):
+        relayrl.train(relayrl.load_config("dqn-cartpole-fast", small), tmp_path / "b", progress=False)
+    monkeypatch.chdir(tmp_path / "a")  # a resume from elsewhere finds the run's own files
+    more = relayrl.load_config(str(tmp_path / "a" / "config.toml"), ["train.total_steps=400"])
+    relayrl.train(more, tmp_path / "a", resume=True, progress=False)
+    assert not (tmp_path / "a" / "shared").exists()
+
+
 WRITER = """
 import sys, torch
 from pathlib import Path

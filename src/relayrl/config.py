@@ -79,7 +79,7 @@ class ReplayConfig(Section):
     error_buffer: float = 0.0  # samples; 0: one collect iteration's worth
     min_size_to_sample: int = 0  # 0: train.initial_collect_steps (at least one batch)
     storage: str = "ram"  # ram | memmap
-    path: str = ""  # memmap directory; "": <run_dir>/replay
+    path: str = ""  # memmap directory, one run's at a time (saved as an absolute path); "": <run_dir>/replay
     # Where frames and actions live: numpy (host arrays) or a torch device (cpu, cuda, cuda:N);
     # auto: the run's device for a stateless torch env on a GPU (env, policy and replay on one
     # device), else numpy, whose indexing from Python is cheapest on the CPU.

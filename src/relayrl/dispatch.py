@@ -138,6 +138,8 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     # A copy: recording an env factory's name (and the run's own settings) never changes the caller's config.
     config = from_dict(config) if isinstance(config, dict) else copy.deepcopy(config)
     config.validate()
+    if config.replay.path:  # recorded absolute: a resume started from another folder finds the files
+        config.replay.path = str(Path(config.replay.path).resolve())
     entry = algorithm(config.algo)
     one_process = entry.replay != "none" and config.distributed.num_actors == 0
     if env is not None:

@@ -12,8 +12,9 @@ from pathlib import Path
 
 import torch
 
+from relayrl import atomic
 from relayrl.config import Config
-from relayrl.errors import ConfigError
+from relayrl.errors import ConfigError, UserError
 from relayrl.replay import (
     Fifo,
     MinSize,
@@ -71,10 +72,25 @@ def build_table(c: Config, burst_steps: int | None = None) -> Table:
                  seed=RunSeeds(c.seed).sequence("replay"))
 
 
+REPLAY_OWNER = "run.txt"  # in a memmap replay folder: the run directory whose steps it holds
+
+
 def replay_path(c: Config, run_root: Path) -> Path | None:
+    """The memmap replay's folder, claimed for this run: a folder another run still holds is
+    refused, since two runs writing one folder overwrite each other's steps unnoticed."""
     if c.replay.storage != "memmap":
         return None
-    return Path(c.replay.path) if c.replay.path else run_root / "replay"
+    path = Path(c.replay.path) if c.replay.path else run_root / "replay"
+    owner_file, me = path / REPLAY_OWNER, str(Path(run_root).resolve())
+    if owner_file.is_file():
+        owner = owner_file.read_text().strip()
+        if owner != me and (Path(owner) / "config.toml").is_file():
+            raise UserError(f"replay.path={str(path)!r} holds the replay of the run in {owner!r}; give this run a "
+                            "folder of its own (or leave replay.path empty: <run_dir>/replay)")
+    if path.is_dir() or not path.exists():  # a file in the way is the storage's to report
+        path.mkdir(parents=True, exist_ok=True)
+        atomic.write_text(owner_file, me)
+    return path
 
 
 def frame_stack(obs_spec: Spec) -> int:
