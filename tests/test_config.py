@@ -71,6 +71,15 @@ def test_the_keys_stable_baselines3_names_are_pointed_to_exist():
                 assert word in keys, word
 
 
+def test_a_replay_smaller_than_what_learning_waits_for_names_the_key_that_set_it(tmp_path):
+    import relayrl
+
+    cfg = load_config("dqn", ["replay.size=10"])  # initial_collect_steps (100) sets the wait
+    with pytest.raises(ConfigError, match=r"learning waits for 100 transitions \(replay.min_size_to_sample = 0 "
+                                          r"takes train.initial_collect_steps\), more than replay.size=10 holds"):
+        relayrl.train(cfg, tmp_path / "r", progress=False)
+
+
 def test_unknown_preset_lists_valid_ones():
     with pytest.raises(ConfigError, match="unknown preset 'dqn-cartpol'; did you mean 'dqn-cartpole'.*valid: bptt-"):
         load_config("dqn-cartpol")

@@ -49,7 +49,11 @@ def rate_limiter(c: Config, burst_steps: int | None = None) -> RateLimiter:
     r = c.replay
     min_size = r.min_size_to_sample or max(1, c.train.initial_collect_steps or c.agent.batch_size)
     if min_size > r.size:
-        raise ConfigError(f"replay.min_size_to_sample={min_size} is more than replay.size={r.size}")
+        given = ("replay.min_size_to_sample" if r.min_size_to_sample else "train.initial_collect_steps"
+                 if c.train.initial_collect_steps else "agent.batch_size")
+        why = "" if r.min_size_to_sample else f" (replay.min_size_to_sample = 0 takes {given})"
+        raise ConfigError(f"learning waits for {min_size:,} transitions{why}, more than replay.size={r.size:,} holds; "
+                          f"lower {given} or raise replay.size")
     per_iter = env_steps_per_iteration(c) if burst_steps is None else burst_steps
     # The nominal ratio (gradient_steps per collect_steps env steps), not per actual
     # iteration: with N envs an iteration may take more env steps than collect_steps (all
