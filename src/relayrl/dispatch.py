@@ -95,7 +95,8 @@ def _takeover_notice(rd: RunDir, overwrite: bool) -> str | None:
         return (f"run directory {str(rd.root)!r} holds a run that stopped before its first checkpoint: "
                 "starting over in it")
     raise UserError(f"run directory {str(rd.root)!r} already holds a run; pass --resume to continue it, "
-                    "--overwrite to replace it, or choose another --run-dir")
+                    "--overwrite to replace it, or choose another --run-dir (in Python: relayrl.train(..., "
+                    "resume=True) or overwrite=True, or another run_dir)")
 
 
 def _finished(rd: RunDir) -> bool:
@@ -150,7 +151,8 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     rd.check_not_running()
     if resume:
         if overwrite:
-            raise UserError("--overwrite replaces a run, --resume continues it: pass one of them")
+            raise UserError("--overwrite replaces a run, --resume continues it: pass one of them (in Python: "
+                            "overwrite=True or resume=True)")
         rd.require()
         check_resume_matches(config, rd)
     else:
