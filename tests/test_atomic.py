@@ -94,3 +94,20 @@ def test_an_interrupt_during_a_write_acts_once_the_file_is_in_place(tmp_path, si
         signal.signal(signal.SIGTERM, previous)
     assert (tmp_path / "f").read_bytes() == b"new file"
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers put back
+
+
+def test_ctrl_c_while_a_checkpoint_is_written_still_prunes_to_the_last_two(tmp_path, monkeypatch):
+    from relayrl.training.checkpoint import list_checkpoints, save_checkpoint
+
+    for step in (1, 2):
+        save_checkpoint(tmp_path, step, {"step": step})
+    write = atomic.torch_save
+
+    def interrupted(obj, path, tmp_name=None):
+        write(obj, path, tmp_name)
+        signal.raise_signal(signal.SIGINT)  # Ctrl-C just after the new file is in place
+
+    monkeypatch.setattr(atomic, "torch_save", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        save_checkpoint(tmp_path, 3, {"step": 3})
+    assert [p.name for p in list_checkpoints(tmp_path)] == ["ckpt-000000000002.pt", "ckpt-000000000003.pt"]
