@@ -95,6 +95,15 @@ def test_env_that_cannot_be_pickled_resumes_with_new_episodes(tmp_path, capsys, 
     assert "the resumed run starts new episodes" in capsys.readouterr().err
 
 
+def test_a_run_a_callback_stopped_at_its_first_evaluation_resumes_to_the_uninterrupted_run(tmp_path):
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
+    relayrl.train(cfg, tmp_path / "full", progress=False)
+    stopped = relayrl.train(cfg, tmp_path / "cut", progress=False, callbacks=[lambda row: False])
+    assert stopped.stopped_early
+    relayrl.train(cfg, tmp_path / "cut", resume=True, progress=False)
+    assert comparable(tmp_path / "cut") == comparable(tmp_path / "full")  # one step-0 evaluation, not two
+
+
 def test_resuming_a_run_already_past_total_steps_says_so(tmp_path, capsys):
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
     relayrl.train(cfg, tmp_path / "r", progress=False)

@@ -239,7 +239,7 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
                          f"{c.train.total_steps:,}: nothing is left to train (raise train.total_steps to go on)")
         report.open(core.env_steps())
         driver.announce()
-        if core.env_steps() == 0:
+        if core.env_steps() == 0 and not resume:  # a run a callback stopped at step 0 has evaluated it
             log_config(report.tb, c)
             driver.evaluate_now(Progress(0, 0))  # the untrained policy, before any collection
             core.policy_saver.save(Progress(0, 0))  # `relayrl eval` works from the start
