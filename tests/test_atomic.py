@@ -111,3 +111,34 @@ def test_ctrl_c_while_a_checkpoint_is_written_still_prunes_to_the_last_two(tmp_p
     with pytest.raises(KeyboardInterrupt):
         save_checkpoint(tmp_path, 3, {"step": 3})
     assert [p.name for p in list_checkpoints(tmp_path)] == ["ckpt-000000000002.pt", "ckpt-000000000003.pt"]
+
+
+def test_both_signals_inside_a_write_act_and_the_terminate_wins(tmp_path):
+    class Terminated(KeyboardInterrupt):
+        pass
+
+    def on_term(signum, frame):
+        raise Terminated
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        def write(f):
+            signal.raise_signal(signal.SIGINT)
+            signal.raise_signal(signal.SIGTERM)
+            f.write(b"x")
+
+        with pytest.raises(Terminated):  # the CLI then exits 143, as for a kill
+            atomic.write_with(tmp_path / "f", write)
+        assert signal.getsignal(signal.SIGTERM) is on_term and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def test_interrupts_pass_through_off_the_main_thread(tmp_path):
+    import threading
+
+    done = []
+    thread = threading.Thread(target=lambda: (atomic.write_text(tmp_path / "f", "x"), done.append(1)))
+    thread.start()
+    thread.join()
+    assert done and (tmp_path / "f").read_text() == "x"

@@ -224,3 +224,33 @@ def test_a_non_finite_reward_in_an_evaluation_stops_the_run_in_one_line(tmp_path
     c = config("dqn", "env.kwargs.at=5")
     with pytest.raises(NonFiniteError, match=r"^reward was NaN in an evaluation episode \(env copy 0\): check"):
         train(c, tmp_path / "run", progress=False)
+
+
+def test_an_evaluation_ignores_what_a_copy_past_its_quota_returns():
+    import gymnasium as gym
+    import numpy as np
+
+    from relayrl.envs.gym import GymBatchEnv
+    from relayrl.training.evaluate import evaluate
+
+    class NaNAfterOneEpisode(gym.Env):
+        observation_space = gym.spaces.Box(-1, 1, (1,), np.float32)
+        action_space = gym.spaces.Discrete(2)
+
+        def __init__(self, length):
+            self.length, self.episodes = length, 0
+
+        def reset(self, seed=None, options=None):
+            super().reset(seed=seed)
+            self.t, self.episodes = 0, self.episodes + 1
+            return np.zeros(1, np.float32), {}
+
+        def step(self, action):
+            self.t += 1
+            reward = float("nan") if self.episodes > 1 else 1.0
+            return np.zeros(1, np.float32), reward, self.t >= self.length, False, {}
+
+    # Copy 0's one counted episode ends at step 2; it then steps on, uncounted, while copy 1 finishes.
+    env = GymBatchEnv([lambda: NaNAfterOneEpisode(2), lambda: NaNAfterOneEpisode(10)])
+    result = evaluate(env, lambda obs: torch.zeros(len(obs), dtype=torch.int64), episodes=2, seed=0)
+    assert result["average_return"] == 6.0 and result["episodes"] == 2

@@ -42,24 +42,50 @@ def interrupts_deferred() -> Iterator[None]:
     """SIGINT and SIGTERM received inside wait for its end, then act as they would have. An
     interrupt raised inside a writer (torch's zip writer) made it fail with an error of its own
     instead, and the clean stop became a traceback. Only the main thread handles signals."""
-    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    wanted = (signal.SIGINT, signal.SIGTERM)  # delivered in this order: SIGTERM's exception, last, wins
+    previous = {s: signal.getsignal(s) for s in wanted}
     if threading.current_thread() is not threading.main_thread() or None in previous.values():
         yield  # None: a handler not set from Python, which could not be put back
         return
     pending: list[int] = []
-    for s in previous:
-        signal.signal(s, lambda signum, frame: pending.append(signum))
+    try:
+        with _blocked(wanted):  # no signal lands between two handler swaps
+            for sig in wanted:
+                signal.signal(sig, lambda signum, frame: pending.append(signum))
+        yield
+    finally:
+        with _blocked(wanted):
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        _deliver([sig for sig in wanted if sig in pending], previous)
+
+
+def _deliver(signals: list[int], handlers: dict[int, Any]) -> None:
+    """Act on each signal as its own handler would have, every one even if one raises."""
+    if not signals:
+        return
+    sig, rest = signals[0], signals[1:]
+    try:
+        handler = handlers[sig]
+        if callable(handler):
+            handler(sig, None)
+        elif handler == signal.SIG_DFL:
+            signal.raise_signal(sig)
+    finally:
+        _deliver(rest, handlers)
+
+
+@contextlib.contextmanager
+def _blocked(signals: tuple[int, ...]) -> Iterator[None]:
+    """`signals` held back by the OS while inside (POSIX); elsewhere nothing is held."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
     try:
         yield
     finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
-        for s in dict.fromkeys(pending):
-            handler = previous[s]
-            if callable(handler):
-                handler(s, None)
-            elif handler == signal.SIG_DFL:
-                signal.raise_signal(s)
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def write_text(path: Path, text: str) -> None:
