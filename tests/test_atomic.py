@@ -129,7 +129,8 @@ def test_both_signals_inside_a_write_act_and_the_terminate_wins(tmp_path):
 
         with pytest.raises(Terminated):  # the CLI then exits 143, as for a kill
             atomic.write_with(tmp_path / "f", write)
-        assert signal.getsignal(signal.SIGTERM) is on_term and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        assert signal.getsignal(signal.SIGTERM) is on_term
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     finally:
         signal.signal(signal.SIGTERM, previous)
 

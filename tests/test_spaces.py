@@ -183,6 +183,7 @@ def test_a_discrete_entry_of_a_dict_outside_its_range_is_one_line(tmp_path):
     policy(obs)
     with pytest.raises(UserError, match=r"observation\['cell'\] 4 is outside this policy's Discrete\(4\) space"):
         policy({**obs, "cell": 4})
+    policy({**obs, "pos": torch.zeros(2, requires_grad=True)})  # a tensor needing grad is read as it is
 
 
 @pytest.mark.parametrize(("preset", "over"), [

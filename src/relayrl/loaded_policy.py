@@ -15,7 +15,7 @@ import torch
 from relayrl.core import Policy
 from relayrl.errors import UserError
 from relayrl.policies import saved_obs_spec
-from relayrl.specs import DiscreteSpec, MultiDiscreteSpec, PackedSpec, Spec, describe, entry
+from relayrl.specs import DiscreteSpec, MultiDiscreteSpec, PackedSpec, Spec, describe, entry, leaf_array
 
 
 class LoadedPolicy(Policy):
@@ -106,7 +106,8 @@ class LoadedPolicy(Policy):
         batch = spec.batch_size(obs)
         numpy_in = not isinstance(entry(obs, spec.fields[0]), torch.Tensor)
         for f in spec.fields:
-            _check_range(torch.as_tensor(np.asarray(entry(obs, f))), f.spec, f"[{f.key!r}]")
+            if isinstance(f.spec, DiscreteSpec | MultiDiscreteSpec):
+                _check_range(torch.as_tensor(leaf_array(obs, f)), f.spec, f"[{f.key!r}]")
         return torch.from_numpy(spec.pack_batch(obs, batch)), batch is None, numpy_in
 
 

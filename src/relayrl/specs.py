@@ -247,7 +247,7 @@ class PackedSpec(ArraySpec):
         n = 1 if batch is None else batch
         row = np.zeros((n, self.shape[0]), np.uint8)
         for f in self.fields:
-            leaf = _leaf(obs, f)
+            leaf = leaf_array(obs, f)
             want = f.spec.shape if batch is None else (batch, *f.spec.shape)
             if leaf.shape != want:
                 batched = "" if batch is None else " or a batch [B, ...] for all keys"
@@ -272,7 +272,7 @@ class PackedSpec(ArraySpec):
     def batch_size(self, obs: Any) -> int | None:
         """None when `obs` is one observation, else the batch its leaves share."""
         first = self.fields[0]
-        leaf = _leaf(obs, first)
+        leaf = leaf_array(obs, first)
         extra = leaf.ndim - len(first.spec.shape)
         if extra not in (0, 1):
             raise UserError(f"observation[{first.key!r}] has shape {leaf.shape}; this policy takes "
@@ -289,7 +289,8 @@ def _as_space(node: Any, tuple_here: bool) -> Any:
     return {k: _as_space(v, False) for k, v in node.items()}
 
 
-def _leaf(obs: Any, f: Field) -> np.ndarray:
+def leaf_array(obs: Any, f: Field) -> np.ndarray:
+    """The entry field `f` names, as a NumPy array (a tensor's detached host copy)."""
     x = entry(obs, f)
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
