@@ -114,4 +114,17 @@ def test_eval_of_a_policy_file_outside_a_run_directory_is_one_line(tmp_path, cap
     (tmp_path / "policy.pt").write_bytes(b"not used")
     assert main(["eval", str(tmp_path / "policy.pt")]) == 2
     err = capsys.readouterr().err
-    assert "is a policy file outside a run directory" in err and len(err.strip().splitlines()) == 1
+    assert "is a file outside a run directory" in err and len(err.strip().splitlines()) == 1
+
+
+def test_eval_reads_the_policy_file_it_is_given(tmp_path, capsys):
+    import relayrl
+    from relayrl.cli import main
+
+    cfg = relayrl.load_config("dqn-cartpole", ["train.total_steps=60", "train.initial_collect_steps=20",
+                                               "eval.interval=60", "eval.episodes=1", "agent.batch_size=8"])
+    relayrl.train(cfg, tmp_path / "run", progress=False)
+    (tmp_path / "run" / "policy" / "other.pt").write_bytes(b"not a policy")
+    assert main(["eval", str(tmp_path / "run" / "policy" / "other.pt"), "--episodes", "1"]) == 2  # not policy.pt
+    assert main(["eval", str(tmp_path / "run" / "policy"), "--episodes", "1"]) == 0  # the folder names its run
+    assert main(["eval", str(tmp_path / "run" / "config.toml"), "--episodes", "1"]) == 0

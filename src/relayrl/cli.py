@@ -121,16 +121,13 @@ def _eval(args: argparse.Namespace) -> None:
 
     if args.episodes < 1:
         raise UserError(f"--episodes {args.episodes} is not valid; it must be >= 1")
-    path = Path(args.run_dir)
-    if path.is_file():  # RUN_DIR/policy/policy.pt: its run directory's config.toml names the env
-        if not (path.parent.parent / "config.toml").is_file():
-            raise UserError(f"{str(path)!r} is a policy file outside a run directory, whose config.toml would "
-                            "name its env; give the run directory, or use relayrl.evaluate(policy, env) in Python")
-        path = path.parent.parent
-    rd = RunDir(path)
+    rd = RunDir.of(args.run_dir)  # its config.toml names the env
+    if Path(args.run_dir).is_file() and not rd.config.is_file():
+        raise UserError(f"{args.run_dir!r} is a file outside a run directory, whose config.toml would name the "
+                        "env; give the run directory, or use relayrl.evaluate(policy, env) in Python")
     rd.require()
     config = load_config(str(rd.config))
-    policy = load_policy(rd.root)
+    policy = load_policy(rd.root if Path(args.run_dir).name == "config.toml" else args.run_dir)  # the file given
     env = make_eval_env(config.env.id, args.episodes, config.env.max_episode_steps,
                         info_keys=config.env.info_keys, kwargs=config.env.kwargs, wrappers=config.env.wrappers)
     try:

@@ -97,8 +97,7 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
         from relayrl.presets import load_config
         from relayrl.training.run_dir import RunDir
 
-        root = Path(policy)
-        rd = RunDir(root.parent.parent if root.is_file() else root.parent if root.name == "policy" else root)
+        rd = RunDir.of(policy)
         rd.require()
         c = load_config(str(rd.config)).env
         return make_eval_env(c.id, episodes, max_episode_steps or c.max_episode_steps, kwargs=c.kwargs,

@@ -89,6 +89,17 @@ class RunDir:
         except OSError as e:
             raise UserError(f"--run-dir {str(self.root)!r} cannot be created: {e.strerror}") from None
 
+    @classmethod
+    def of(cls, path: str | Path) -> RunDir:
+        """The run directory `path` names: the directory, its policy/ folder, or a file in either
+        (RUN_DIR/policy/policy.pt, RUN_DIR/config.toml)."""
+        p = Path(path)
+        if p.is_file():
+            p = p.parent
+        if p.name == "policy" and (p.parent / "config.toml").is_file():
+            p = p.parent
+        return cls(p)
+
     def require(self) -> None:
         """Fail with a clear message unless this is an existing run directory."""
         if not self.root.is_dir():
