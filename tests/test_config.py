@@ -32,6 +32,7 @@ def test_overrides_are_typed():
     ("nope=1", "unknown config key 'nope'"),
     ("agent.n_steps=512", "Stable-Baselines3's n_steps is train.collect_steps (env steps per rollout"),
     ("agent.learning_starts=100", "Stable-Baselines3's learning_starts is train.initial_collect_steps here"),
+    ("replay.n_steps=3", "did you mean 'replay.n_step'?"),  # the section's own near miss comes first
     ("train.total_steps=abc", "train.total_steps='abc' has the wrong type; expected int"),
     ("train.total_steps=1.5", "expected int"),
     ("agent.double=1", "expected bool"),

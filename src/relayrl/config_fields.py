@@ -69,12 +69,12 @@ SB3_NAMES = {
 def unknown_key(path: str, valid: list[str]) -> str:
     """"unknown config key 'train.total_step'; did you mean 'train.total_steps'?" (or the valid keys)."""
     prefix, _, key = path.rpartition(".")
+    names = {v.rpartition(".")[2]: v for v in valid}  # compared without the shared section prefix
+    close = difflib.get_close_matches(key, list(names), n=1, cutoff=0.8 if key in SB3_NAMES else 0.6)
+    if close:  # a near miss of the section's own key first (replay.n_steps: replay.n_step)
+        return f"unknown config key {path!r}; did you mean {names[close[0]]!r}?"
     if key in SB3_NAMES:
         return f"unknown config key {path!r}; Stable-Baselines3's {key} is {SB3_NAMES[key]} here"
-    names = {v.rpartition(".")[2]: v for v in valid}  # compared without the shared section prefix
-    close = difflib.get_close_matches(key, list(names), n=1, cutoff=0.6)
-    if close:
-        return f"unknown config key {path!r}; did you mean {names[close[0]]!r}?"
     return f"unknown config key {path!r}; valid: {', '.join(valid)}"
 
 
