@@ -378,3 +378,18 @@ def test_a_nan_reward_a_rollout_actor_collected_stops_the_run_in_one_line(tmp_pa
     import ray
 
     assert not ray.is_initialized(), "the run left its Ray instance running"
+
+
+@needs_ray
+def test_a_memmap_folder_another_run_holds_is_refused_before_any_actor_starts(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "config.toml").write_text("")
+    (tmp_path / "shared").mkdir()
+    (tmp_path / "shared" / "run.txt").write_text(str(tmp_path / "a"))  # run a holds the folder
+    over = ["distributed.num_actors=1", "replay.storage=memmap", "replay.path=shared", "train.total_steps=600"]
+    with pytest.raises(relayrl.errors.UserError, match="holds the replay of the run in"):
+        relayrl.train(relayrl.load_config("dqn-cartpole-fast", over), tmp_path / "b", progress=False)
+    import ray
+
+    assert not ray.is_initialized()

@@ -29,6 +29,7 @@ from relayrl.specs import Spec
 from relayrl.training.checkpoint import load_latest_checkpoint
 from relayrl.training.finite import FiniteWatch
 from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
+from relayrl.training.replay_setup import replay_path
 from relayrl.training.report import say
 from relayrl.training.run_dir import RunDir
 from relayrl.training.triggers import IntervalTrigger, Progress
@@ -67,6 +68,7 @@ class RayDriver:
         self.agent = entry.make_agent(c.agent, obs_spec, act_spec, self.device, self.seeds.generator("exploration"),
                                       c.train.total_steps)
         self.stats = EpisodeStats()
+        replay_path(c, rd.root)  # a memmap folder another run holds is refused here, before any actor starts
         self.pool = ActorPool(ray, c, say)
         whole_rollouts = entry.replay == "rollouts"
         self.collection: Collection = (RolloutCollection if whole_rollouts else ReplayCollection)(c, self.pool,
@@ -74,7 +76,8 @@ class RayDriver:
         self.stats.step_fn = self.collection.env_steps
         finite = FiniteWatch(c.env.num_envs, obs_spec)  # a Ray run's actors check what they collect
         try:
-            table, self.pusher = self.collection.start(str(rd.root), obs_spec, act_spec, self.agent)
+            # absolute: the replay server's process need not share this one's working directory
+            table, self.pusher = self.collection.start(str(rd.root.resolve()), obs_spec, act_spec, self.agent)
             learner = make_learner(c, self.agent, table, self.device, self.pusher, whole_rollouts)
             self.core = RunCore(c, rd, self.agent, learner, self.stats, finite, env_steps=self.collection.env_steps,
                                 checkpoint_state=self.checkpoint_state,
