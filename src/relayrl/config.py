@@ -194,7 +194,6 @@ class Config(Section):
             raise ConfigError(f"distributed.actor_cpus={d.actor_cpus} is not valid; it must be >= 0")
         self.agent.validate()
 
-
     def _check_on_policy(self) -> None:
         """An on-policy algorithm learns from each rollout once: no replay settings apply to it."""
         if self.train.total_steps < self.train.collect_steps:

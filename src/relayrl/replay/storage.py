@@ -107,8 +107,8 @@ class Columns:
         """The arrays' first `used` rows along the last leading dimension (None: all): a
         checkpoint grows with what the storage holds, not with what it can hold."""
         if self.path is not None:
-            self.flush()  # the checkpoint refers to the files
-            return {"memmap": str(self.path)}
+            self.flush()  # the checkpoint refers to the files, wherever the resume starts from
+            return {"memmap": str(self.path.resolve())}
         rows = self.used_rows(used)
         return {"arrays": {k: (v[rows].cpu().clone() if isinstance(v, torch.Tensor) else v[rows].copy())
                            for k, v in self.arrays.items()}}

@@ -80,7 +80,7 @@ class HandWrittenPPOUpdate(PPOUpdate):
 
     @torch.no_grad()
     def __call__(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
-                 returns: Tensor, clip_range: float) -> Tensor:
+                 returns: Tensor, clip_range: float | Tensor) -> Tensor:
         cfg = self.cfg
         if cfg.normalize_advantage:
             adv = normalize(adv)
@@ -117,6 +117,7 @@ class GraphedPPOUpdate(PPOUpdate):
                  returns: Tensor, clip_range: float | Tensor) -> Tensor:
         if isinstance(clip_range, Tensor):
             self.clip_range.copy_(clip_range)
+            self._clip_value = float("nan")  # unknown on the host: the next float is written
         elif clip_range != self._clip_value:  # a launch only when the schedule moves it
             self.clip_range.fill_(clip_range)
             self._clip_value = clip_range
