@@ -203,6 +203,15 @@ def test_an_undefined_explained_variance_is_not_taken_for_divergence():
     assert non_finite_metrics({**metrics, "loss": ev}, PPOAgent.undefined_metrics) == "the loss was NaN"
 
 
+def test_a_run_whose_explained_variance_is_undefined_goes_on(tmp_path, monkeypatch):
+    import relayrl.agents.ppo.agent as ppo_agent
+
+    monkeypatch.setattr(ppo_agent, "explained_variance", lambda values, returns: torch.tensor(float("nan")))
+    result = relayrl.train(relayrl.load_config("ppo-cartpole", [*BANDIT, "train.total_steps=512"]), tmp_path,
+                           progress=False)
+    assert result.final["step"] == 512
+
+
 BANDIT = ["env.id=toy_envs:BetterAction", "env.num_envs=4", "train.total_steps=2048", "train.collect_steps=128",
           "agent.batch_size=32", "agent.n_epochs=4", "eval.interval=1024", "eval.episodes=20",
           "train.checkpoint_interval=0"]
