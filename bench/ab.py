@@ -55,7 +55,7 @@ def _collect_json(_: str, out: Path) -> float:
 WORKLOADS: dict[str, Workload] = {
     "dqn-zoo": (lambda a, out: ["bench/dqn_cartpole.py", "--worker", "relayrl", "zoo", "0"],
                 lambda s, out: _train_s(_result(s, out)), "time"),
-    "sac": (lambda a, out: ["bench/sac_pendulum.py", "--worker", "relayrl", "0", str(a.sac_steps)],
+    "sac": (lambda a, out: ["bench/sac_pendulum.py", "--worker", "relayrl", "0", str(a.sac_steps), "-1"],
             lambda s, out: _train_s(_result(s, out)), "time"),
     "collect-32": (lambda a, out: ["bench/collect.py", "--envs", "32", "--vectorization", "sync", "--repeats", "1",
                                    "--seconds", str(a.seconds), "--json", str(out)], _collect_json, "rate"),

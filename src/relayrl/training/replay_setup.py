@@ -86,7 +86,7 @@ def replay_path(c: Config, run_root: Path) -> Path | None:
         return None
     path = Path(c.replay.path) if c.replay.path else run_root / "replay"
     owner_file, me = path / REPLAY_OWNER, str(Path(run_root).resolve())
-    if owner_file.is_file():
+    if c.replay.path and owner_file.is_file():  # <run_dir>/replay is its run's own, a copied run's too
         owner = owner_file.read_text().strip()
         if owner != me and (Path(owner) / "config.toml").is_file():
             raise UserError(f"replay.path={str(path)!r} holds the replay of the run in {owner!r}; give this run a "
