@@ -148,6 +148,14 @@ def test_a_memmap_folder_is_recorded_absolute_and_another_run_cannot_share_it(tm
     assert not (tmp_path / "a" / "shared").exists()
 
 
+def test_a_copied_run_directory_with_its_own_memmap_replay_resumes(tmp_path):
+    small = DQN[:1] + ["train.total_steps=300", "replay.storage=memmap"] + DQN[2:]
+    relayrl.train(relayrl.load_config("dqn-cartpole-fast", small), tmp_path / "a", progress=False)
+    shutil.copytree(tmp_path / "a", tmp_path / "b")  # its replay/run.txt still names run a
+    more = relayrl.load_config(str(tmp_path / "b" / "config.toml"), ["train.total_steps=400"])
+    assert relayrl.train(more, tmp_path / "b", resume=True, progress=False).final["step"] == 400
+
+
 WRITER = """
 import sys, torch
 from pathlib import Path

@@ -62,6 +62,7 @@ class Columns:
         if self.path is not None and self.device is not None and self.device.type != "cpu":
             raise ValueError("memmap storage lives on disk; it cannot also live on a device")
         self.arrays: dict[str, Any] = {}
+        self.reopened = False  # memmap: files of this layout were there already, and are used as they are
         if self.path is not None:
             try:
                 self.path.mkdir(parents=True, exist_ok=True)
@@ -72,6 +73,7 @@ class Columns:
                     "signature": {k: [list(s), d.str] for k, (s, d) in self.signature.items()}}
             meta_file = self.path / "columns.json"
             reopen = meta_file.exists() and json.loads(meta_file.read_text()) == meta
+            self.reopened = reopen and all((self.path / f"{name}.npy").exists() for name in self.signature)
             for name, (shape, dtype) in self.signature.items():
                 file = self.path / f"{name}.npy"
                 if reopen and file.exists():  # reopen without copying
@@ -115,9 +117,12 @@ class Columns:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if "memmap" in state:
-            if self.path is None or Path(state["memmap"]).resolve() != self.path.resolve():
-                raise ValueError(f"checkpoint refers to memmap storage at {state['memmap']!r}, "
-                                 f"this table's storage is {self.path!r}")
+            # The files are where this run keeps them: the checkpoint's folder, or a copy of it
+            # (a copied run directory's own replay/), whose layout matched when it was reopened.
+            if self.path is None or (Path(state["memmap"]).resolve() != self.path.resolve() and not self.reopened):
+                raise UserError(f"the checkpoint's replay files are in {state['memmap']!r}, but this run keeps its "
+                                f"replay in {str(self.path)!r}, which holds none; resume with the replay.path the "
+                                "run was started with")
             return  # the files were reopened in __init__
         for k, v in state["arrays"].items():
             rows = self.used_rows(v.shape[len(self.leading) - 1])
