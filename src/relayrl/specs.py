@@ -250,7 +250,9 @@ class PackedSpec(ArraySpec):
             leaf = leaf_array(obs, f)
             want = f.spec.shape if batch is None else (batch, *f.spec.shape)
             if leaf.shape != want:
-                batched = "" if batch is None else " or a batch [B, ...] for all keys"
+                first = self.fields[0].key
+                batched = ("" if batch is None else
+                           f" or a batch [B, ...] for all keys, as observation[{first!r}]'s B = {batch}")
                 raise UserError(f"observation[{f.key!r}] has shape {leaf.shape}; this policy takes "
                                 f"{list(f.spec.shape)}{batched}")
             leaf = leaf.astype(numpy_dtype(f.spec), copy=False).reshape(n, -1)
