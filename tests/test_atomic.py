@@ -77,7 +77,7 @@ def test_a_copy_that_fails_to_build_closes_the_ones_already_made():
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
-def test_an_interrupt_during_a_write_acts_once_the_file_is_in_place(tmp_path, sig):
+def test_an_interrupt_during_a_write_acts_once_the_file_is_in_place(tmp_path, sig, capsys):
     def on_term(signum, frame):
         raise KeyboardInterrupt  # as the CLI's SIGTERM handler does (a Terminated)
 
@@ -93,6 +93,7 @@ def test_an_interrupt_during_a_write_acts_once_the_file_is_in_place(tmp_path, si
     finally:
         signal.signal(signal.SIGTERM, previous)
     assert (tmp_path / "f").read_bytes() == b"new file"
+    assert capsys.readouterr().err == "relayrl: stopping once the file being written is complete\n"
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers put back
 
 

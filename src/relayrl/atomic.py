@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -48,10 +49,16 @@ def interrupts_deferred() -> Iterator[None]:
         yield  # None: a handler not set from Python, which could not be put back
         return
     pending: list[int] = []
+
+    def hold(signum: int, frame: object) -> None:
+        if not pending:  # a large checkpoint takes a while: say why the stop waits
+            print("relayrl: stopping once the file being written is complete", file=sys.stderr, flush=True)
+        pending.append(signum)
+
     try:
         with _blocked(wanted):  # no signal lands between two handler swaps
             for sig in wanted:
-                signal.signal(sig, lambda signum, frame: pending.append(signum))
+                signal.signal(sig, hold)
         yield
     finally:
         with _blocked(wanted):
