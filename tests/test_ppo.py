@@ -184,7 +184,10 @@ def test_refuses_unbounded_actions_random_warmup_and_stale_actors(tmp_path):
     with pytest.raises(UserError, match="PPO takes"):
         agent(ArraySpec((2,), torch.float32))
     for key in ("initial_collect_steps", "pull_interval"):
-        cfg = relayrl.load_config("ppo-cartpole", [f"train.{key}=100"])
+        with pytest.raises(ConfigError, match=key):
+            relayrl.load_config("ppo-cartpole", [f"train.{key}=100"])
+        cfg = relayrl.load_config("ppo-cartpole")
+        setattr(cfg.train, key, 100)  # set in Python after loading: train() checks it too
         with pytest.raises(ConfigError, match=key):
             relayrl.train(cfg, tmp_path / key, progress=False)
 

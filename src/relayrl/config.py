@@ -195,7 +195,14 @@ class Config(Section):
         self.agent.validate()
 
     def _check_on_policy(self) -> None:
-        """An on-policy algorithm learns from each rollout once: no replay settings apply to it."""
+        """An on-policy algorithm learns from each rollout once, collected by the policy just
+        trained: no warm-up, weight-pull or replay settings apply to it."""
+        if self.train.initial_collect_steps:
+            raise ConfigError(f"train.initial_collect_steps={self.train.initial_collect_steps} is not valid for "
+                              f"algo={self.algo!r}: it learns on-policy, from its own rollouts only; use 0")
+        if self.train.pull_interval:
+            raise ConfigError(f"train.pull_interval={self.train.pull_interval} is not valid for algo={self.algo!r}: "
+                              "each rollout is collected with the policy just trained (0: pull every iteration)")
         if self.train.total_steps < self.train.collect_steps:
             raise ConfigError(f"train.total_steps={self.train.total_steps} is less than one rollout "
                               f"(train.collect_steps={self.train.collect_steps} env steps): algo={self.algo!r} would "

@@ -98,7 +98,7 @@ class RolloutCollection:
 
     def start(self, rd_root: str, obs_spec: Spec, act_spec: Spec, agent: Agent) -> tuple[Table, RemotePusher]:
         """The actors; the rollout queue the learner takes from and its pusher."""
-        table, _ = build_rollouts(self.config)  # its checks (on-policy: no warm-up steps) hold on Ray too
+        table, _ = build_rollouts(self.config)
         self.pool.start(self.worker_class, None)  # shares go to the driver in the collect calls' answers
         self.table = table
         self.pusher = RemotePusher(self.pool.variables, agent, 1)  # every update: the actors wait for it

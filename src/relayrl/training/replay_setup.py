@@ -131,13 +131,8 @@ def build_rollouts(c: Config, device: torch.device | None = None) -> tuple[Table
     """An on-policy algorithm's replay (registry replay "rollouts"): a queue of one rollout of
     `train.collect_steps` env steps, each consumed once by the learner. The run collects one
     rollout per iteration with the current policy, so no stale data is ever trained on.
-    `device`: rollouts stay torch tensors there (a stateless torch env's); None: NumPy arrays."""
-    if c.train.initial_collect_steps:
-        raise ConfigError(f"train.initial_collect_steps={c.train.initial_collect_steps} is not valid for "
-                          f"algo={c.algo!r}: it learns on-policy, from its own rollouts only; use 0")
-    if c.train.pull_interval:
-        raise ConfigError(f"train.pull_interval={c.train.pull_interval} is not valid for algo={c.algo!r}: each "
-                          "rollout is collected with the policy just trained (0: pull every iteration)")
+    `device`: rollouts stay torch tensors there (a stateless torch env's); None: NumPy arrays.
+    What an on-policy config may not set, `Config` refuses."""
     steps = -(-c.train.collect_steps // c.env.num_envs)  # per env copy
     if device is not None:
         table = tensor_rollout_queue("rollouts", 1, device)
