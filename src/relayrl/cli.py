@@ -121,13 +121,14 @@ def _eval(args: argparse.Namespace) -> None:
 
     if args.episodes < 1:
         raise UserError(f"--episodes {args.episodes} is not valid; it must be >= 1")
-    rd = RunDir.of(args.run_dir)  # its config.toml names the env
-    if Path(args.run_dir).is_file() and not rd.config.is_file():
+    given = Path(args.run_dir)
+    rd = RunDir.of(given)  # its config.toml names the env
+    if given.is_file() and not rd.config.is_file():
         raise UserError(f"{args.run_dir!r} is a file outside a run directory, whose config.toml would name the "
                         "env; give the run directory, or use relayrl.evaluate(policy, env) in Python")
     rd.require()
     config = load_config(str(rd.config))
-    policy = load_policy(rd.root if Path(args.run_dir).name == "config.toml" else args.run_dir)  # the file given
+    policy = load_policy(rd.root if given.name == "config.toml" else given)  # the policy file given
     env = make_eval_env(config.env.id, args.episodes, config.env.max_episode_steps,
                         info_keys=config.env.info_keys, kwargs=config.env.kwargs, wrappers=config.env.wrappers)
     try:
