@@ -183,13 +183,20 @@ def test_discrete_samples_follow_the_logits():
 def test_refuses_unbounded_actions_random_warmup_and_stale_actors(tmp_path):
     with pytest.raises(UserError, match="PPO takes"):
         agent(ArraySpec((2,), torch.float32))
-    for key in ("initial_collect_steps", "pull_interval"):
+    for key in ("initial_collect_steps", "pull_interval", "gradient_steps"):
         with pytest.raises(ConfigError, match=key):
             relayrl.load_config("ppo-cartpole", [f"train.{key}=100"])
         cfg = relayrl.load_config("ppo-cartpole")
         setattr(cfg.train, key, 100)  # set in Python after loading: train() checks it too
         with pytest.raises(ConfigError, match=key):
             relayrl.train(cfg, tmp_path / key, progress=False)
+
+
+def test_refuses_a_minibatch_larger_than_a_rollout():
+    rollout = relayrl.load_config("ppo-cartpole").train.collect_steps
+    relayrl.load_config("ppo-cartpole", [f"agent.batch_size={rollout}"])  # the whole rollout: taken
+    with pytest.raises(ConfigError, match=r"agent.batch_size=\d+ is more than one rollout \(train.collect_steps"):
+        relayrl.load_config("ppo-cartpole", [f"agent.batch_size={rollout + 1}"])
 
 
 def test_an_undefined_explained_variance_is_not_taken_for_divergence():

@@ -211,6 +211,11 @@ class Config(Section):
             if getattr(self.replay, key) != used:
                 raise ConfigError(f"replay.{key}={getattr(self.replay, key)!r} is not valid for algo={self.algo!r}: "
                                   f"it learns from each rollout once, not from a replay; leave it at {used!r}")
+        if self.train.gradient_steps != 1:
+            raise ConfigError(f"train.gradient_steps={self.train.gradient_steps} does not apply to algo={self.algo!r}: "
+                              "it trains on each rollout for the agent's own epochs of minibatches "
+                              "(agent.n_epochs, agent.batch_size); leave it at 1")
+        self.agent.check_rollout(self.train.collect_steps)
 
 
 def to_dict(config: Config) -> dict[str, Any]:

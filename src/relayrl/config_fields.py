@@ -41,6 +41,11 @@ class Section:
             value = coerce(value, hints[name], path)
         object.__setattr__(self, name, value)
 
+    def check_rollout(self, steps: int) -> None:
+        """An on-policy agent section's check of its settings against one rollout of `steps`
+        env steps (`train.collect_steps`); other sections take any."""
+        return None
+
 
 @functools.cache
 def _hints(cls: type) -> dict[str, Any]:

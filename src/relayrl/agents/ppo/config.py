@@ -65,6 +65,12 @@ class PPOConfig(Section):
             if getattr(self, key) < 0:
                 raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be >= 0")
 
+    def check_rollout(self, steps: int) -> None:
+        if self.batch_size > steps:
+            raise ConfigError(f"agent.batch_size={self.batch_size} is more than one rollout (train.collect_steps="
+                              f"{steps} env steps): a minibatch is part of a rollout; lower agent.batch_size "
+                              "or raise train.collect_steps")
+
 
 # `relayrl train ppo` / `algo = "ppo"`: what a config that names only algo and env.id gets beyond
 # the classes' own defaults (the agent section above is SB3's PPO already). SB3's rollout: n_steps
