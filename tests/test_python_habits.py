@@ -51,6 +51,8 @@ def test_evaluate_a_run_dir_and_a_loaded_policy(run_dir):
     assert tuple(relayrl.evaluate(run_dir, Countdown(length=4), episodes=2)) == (4.0, 0.0)
     with pytest.raises(UserError, match="deterministic"):  # a greedy policy has no sampling mode
         relayrl.evaluate(run_dir, Countdown(), deterministic=False)
+    with pytest.raises(UserError, match=r"env.s observations \(Box\(shape=\(4,\).* do not fit the policy"):
+        relayrl.evaluate(policy, "CartPole-v1")  # said before any episode, in the env's terms
 
 
 def test_evaluate_bad_input_is_one_line():
