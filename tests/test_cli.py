@@ -26,6 +26,8 @@ def run(args, env, cwd=None):
     (["train", "dqn-cartpole", "--resume"], "--resume needs --run-dir"),
     (["train"], "train needs PRESET|CONFIG.toml (see `relayrl presets`), or --run-dir DIR --resume"),
     (["frobnicate"], "invalid choice"),
+    (["train", "dqn-cartpole", "--dir", "x"], "unrecognized arguments: --dir x; did you mean --run-dir?"),
+    (["train", "dqn-cartpole", "--foo"], "unrecognized arguments: --foo (see"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, fragment, cli_env, tmp_path):
     r = run(args, cli_env, cwd=tmp_path)

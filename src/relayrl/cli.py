@@ -11,7 +11,7 @@ import os
 import signal
 import sys
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from relayrl.errors import NonFiniteError, UserError
 
@@ -20,9 +20,24 @@ EXIT_NON_FINITE = 3  # a run stopped at a NaN or inf; its last good checkpoint a
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse that reports bad usage in one line (no usage dump), exit code 2."""
+    """argparse that reports bad usage in one line (no usage dump), exit code 2, naming the
+    option meant where an unknown one is close to a known one."""
+
+    options: set[str] = set()  # every option of every command, for the hint
+
+    def add_argument(self, *args: Any, **kwargs: Any) -> argparse.Action:
+        _Parser.options.update(a for a in args if isinstance(a, str) and a.startswith("--"))
+        return super().add_argument(*args, **kwargs)
 
     def error(self, message: str) -> NoReturn:
+        if message.startswith("unrecognized arguments:"):
+            import difflib
+
+            for word in message.split(":", 1)[1].split():
+                near = difflib.get_close_matches(word.split("=")[0], sorted(_Parser.options), n=1, cutoff=0.7)
+                if word.startswith("--") and near:
+                    message += f"; did you mean {near[0]}?"
+                    break
         print(f"relayrl: error: {message} (see 'relayrl {self.prog.split()[-1]} --help')"
               if " " in self.prog else f"relayrl: error: {message} (see 'relayrl --help')",
               file=sys.stderr)
