@@ -104,6 +104,20 @@ def test_a_run_a_callback_stopped_at_its_first_evaluation_resumes_to_the_uninter
     assert comparable(tmp_path / "cut") == comparable(tmp_path / "full")  # one step-0 evaluation, not two
 
 
+def test_a_run_a_callback_stopped_between_evaluations_resumes_to_the_uninterrupted_run(tmp_path):
+    """The stop's own evaluation (step 300, off the 500-step grid) is one row more; every later
+    evaluation keeps the uninterrupted run's seed."""
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN + ["train.log_interval=100"])
+    relayrl.train(cfg, tmp_path / "full", progress=False)
+    stopped = relayrl.train(cfg, tmp_path / "cut", progress=False, callbacks=[lambda row: row["step"] < 300])
+    assert stopped.stopped_early and stopped.final["step"] == 300
+    relayrl.train(cfg, tmp_path / "cut", resume=True, progress=False)
+    cut = comparable(tmp_path / "cut")
+    extra = [r for r in cut if r["step"] == 300 and "average_return" in r]
+    assert len(extra) == 1
+    assert [r for r in cut if r is not extra[0]] == comparable(tmp_path / "full")
+
+
 def test_resuming_a_run_already_past_total_steps_says_so(tmp_path, capsys):
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
     relayrl.train(cfg, tmp_path / "r", progress=False)

@@ -13,7 +13,7 @@ spawned streams, and two drawn bases are 2**62 apart on average.
 | exploration | the agent's generator: epsilon-greedy draws, SAC's noise, its torch generator |
 | replay | the replay table's sampling and random removal |
 | warmup | the random policy of `train.initial_collect_steps` |
-| evaluation | evaluation k's env resets (base + 10,000 k + copy) |
+| evaluation | evaluation k's env resets (base + 10,000 k + copy); one off the grid leaves k to the next |
 | resume | the env resets of a resumed run whose envs could not be restored (base + env steps) |
 | torch | torch's global generator: network initialisation |
 | actors | actor k on Ray: its own envs / exploration / warmup streams, below (actors, k) |

@@ -109,14 +109,14 @@ class RayDriver:
         if p.env_steps < self.config.train.total_steps:
             self.evaluate_now(p)
 
-    def evaluate_now(self, p: Progress) -> None:
+    def evaluate_now(self, p: Progress, advance: bool = True) -> None:
         workers = self.pool.eval_workers
         self._finish_evals(until=len(workers) - 1)  # one in flight per eval actor; rows stay in step order
         self.pusher.push(force=True)  # the eval actor evaluates these weights (or newer)
         seed = self.seeds.base("evaluation") + EVAL_STRIDE * self.eval_count
         w = self.eval_count % len(workers)
         self.evals.append((workers[w].evaluate.remote(seed), p, time.perf_counter(), self.core.wall_time(), w, seed))
-        self.eval_count += 1
+        self.eval_count += advance
 
     def settle_evals(self) -> None:
         self._finish_evals(until=0)

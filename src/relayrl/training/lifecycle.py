@@ -105,6 +105,7 @@ class RunCore:
         self.policy_saver = PolicySaver(c.train.policy_save_interval, agent, rd.policy, extra={"env_id": c.env.id})
         self.checkpointer = Checkpointer(c.train.checkpoint_interval, checkpoint_state, rd.checkpoints)
         self.sps_log = StepsPerSecondLog(c.train.log_interval, report=self.report.log_progress)
+        self.evaluation = evaluation
         self.triggers: list[IntervalTrigger] = [evaluation, self.policy_saver, self.checkpointer, self.sps_log]
 
     def say(self, text: str) -> None:
@@ -209,8 +210,9 @@ class Driver(Protocol):
     def announce(self) -> None:
         """A line about the run's layout, once it starts."""
 
-    def evaluate_now(self, p: Progress) -> None:
-        """Start an evaluation of the current policy (its row is written when it finishes)."""
+    def evaluate_now(self, p: Progress, advance: bool = True) -> None:
+        """Start an evaluation of the current policy (its row is written when it finishes);
+        `advance=False`: one off the interval grid, which leaves the next one its seed."""
 
     def iterate(self) -> None:
         """Collect and train up to train.total_steps, firing the core's triggers."""
@@ -264,7 +266,7 @@ def finish(driver: Driver, p: Progress) -> None:
     core = driver.core
     core.check_finite(p, weights=True)
     if core.report.last_eval.get("step") != p.env_steps:
-        driver.evaluate_now(p)
+        driver.evaluate_now(p, advance=core.evaluation.due(p))  # due: it covers a boundary (on Ray)
     driver.settle_evals()
     core.policy_saver.save(p)
     if core.config.train.checkpoint_interval > 0:

@@ -96,7 +96,10 @@ class Evaluate(IntervalTrigger):
     """Runs `episodes` episodes of `policy_fn()` on `env`; results go to `results` and `on_result`.
 
     Evaluation k (from 0, counted in `count`, which a resumed run restores) resets the env with
-    seed + EVAL_STRIDE * k; `seconds` is how long the latest one took.
+    seed + EVAL_STRIDE * k; `seconds` is how long the latest one took. An evaluation off the
+    interval grid (`advance=False`: where a callback stopped the run, or a final step between
+    boundaries) takes the next one's seed without using it up, so a resume that goes on
+    evaluates as the uninterrupted run.
     """
 
     def __init__(self, interval: int, env: Any, policy_fn: Callable[[], Any], episodes: int = 10,
@@ -109,13 +112,13 @@ class Evaluate(IntervalTrigger):
         self.count = 0
         self.seconds = 0.0
 
-    def evaluate(self, progress: Progress) -> None:
+    def evaluate(self, progress: Progress, advance: bool = True) -> None:
         from relayrl.training.evaluate import evaluate
 
         t0 = time.perf_counter()
         result = evaluate(self.env, self.policy_fn(), self.episodes, seed=self.seed + EVAL_STRIDE * self.count)
         self.seconds = time.perf_counter() - t0
-        self.count += 1
+        self.count += advance
         self.results.append((progress, result))
         if self.on_result is not None:
             self.on_result(progress, result)
