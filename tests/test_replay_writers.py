@@ -204,22 +204,25 @@ def test_state_dict_round_trip_of_a_ram_writer():
 
 
 def test_a_checkpoint_holds_the_rows_written_not_the_ring_and_loads_the_full_layout_too():
-    t, w = writer(3, num_envs=2, max_size=20, rows=1000)
+    t, w = writer(3, num_envs=2, max_size=20_000, rows=1000)
     for i in range(15):
         w(step([i, 100 + i], [i % 5, 1], [float(i), 1.0], [i + 1, 101 + i], terminated=[i % 7 == 6, False]))
     w.flush()
     state = t.state_dict()
     arrays = state["storage"]["store"]["columns"]["arrays"]
     assert arrays["frame"].shape[0] == 2 and arrays["frame"].shape[1] <= 20  # the rows of 15 steps, of 1,000
-    t2, w2 = writer(3, num_envs=2, max_size=20, rows=1000)
+    assert state["storage"]["slot_ref"].size <= 30  # the slots of ~30 items, of 20,000
+    t2, w2 = writer(3, num_envs=2, max_size=20_000, rows=1000)
     t2.load_state_dict(state)
     assert transition_rows(t2, w2) == transition_rows(t, w)
     # Checkpoints written before held every row of the ring: they load as they did.
     full = {k: np.concatenate([v, np.zeros((2, 1000 - v.shape[1], *v.shape[2:]), v.dtype)], axis=1)
             for k, v in arrays.items()}
-    old = {**state, "storage": {**state["storage"], "store": {**state["storage"]["store"],
-                                                               "columns": {"arrays": full}}}}
-    t3, w3 = writer(3, num_envs=2, max_size=20, rows=1000)
+    ref = state["storage"]["slot_ref"]
+    full_ref = np.concatenate([ref, np.zeros(20_000 - ref.size, ref.dtype)])
+    old = {**state, "storage": {**state["storage"], "slot_ref": full_ref,
+                                "store": {**state["storage"]["store"], "columns": {"arrays": full}}}}
+    t3, w3 = writer(3, num_envs=2, max_size=20_000, rows=1000)
     t3.load_state_dict(old)
     assert transition_rows(t3, w3) == transition_rows(t, w)
 

@@ -175,11 +175,16 @@ class StepStorage(Storage):
         return ~self.store.valid(envs, pos, self.ahead(envs, pos))
 
     def state_dict(self) -> dict[str, Any]:
-        return {"store": self.store.state_dict(), "slot_ref": self.slot_ref.copy(), "open_from": self.open_from.copy()}
+        live = np.flatnonzero(self.slot_key >= 0)
+        used = int(live[-1]) + 1 if live.size else 0  # a table fills its slots from 0 up
+        return {"store": self.store.state_dict(), "slot_ref": self.slot_ref[:used].copy(),
+                "open_from": self.open_from.copy()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.store.load_state_dict(state["store"])
-        self.slot_ref[:] = state["slot_ref"]
+        saved = np.asarray(state["slot_ref"])  # the slots up to the last live one (older checkpoints: all)
+        self.slot_ref[:] = 0
+        self.slot_ref[:saved.size] = saved
         self.refresh_slot_rows()
         self.open_from[:] = self.store.head  # resumed actors start new episodes, unless
         self.saved_episodes = (state.get("open_from"), state["store"].get("ep_start"))  # they continue them
