@@ -36,6 +36,8 @@ def test_overrides_are_typed():
     ("train.total_steps=abc", "train.total_steps='abc' has the wrong type; expected int"),
     ("train.total_steps=1.5", "expected int"),
     ("agent.double=1", "expected bool"),
+    ("agent.lr=nan", "agent.lr=nan is not valid; it must be a finite number"),  # nan passes `lr <= 0`
+    ("agent.gamma=inf", "agent.gamma=inf is not valid; it must be a finite number"),
     ("agent.hidden=[1, 'a']", "agent.hidden[1]"),
     ("agent.loss=l1", "agent.loss='l1' is not valid; valid: huber, mse"),
     ("eval.episodes=0", "eval.episodes=0 is not valid"),

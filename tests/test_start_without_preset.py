@@ -47,6 +47,24 @@ def test_setting_algo_afterwards_keeps_what_the_user_changed():
     assert c.train.collect_steps == 4 and c.agent.batch_size == 32 and c.train.total_steps == 777
 
 
+@pytest.mark.parametrize("total, decay", [(100_000, 10_000), (5_000, 500)])
+def test_dqn_without_a_preset_explores_over_a_tenth_of_its_run(total, decay):
+    """SB3's exploration_fraction 0.1: a short run is not left exploring to its end."""
+    import numpy as np
+    import torch
+
+    from relayrl.agents.dqn import DQNAgent
+    from relayrl.specs import ArraySpec, DiscreteSpec
+
+    c = relayrl.load_config("dqn", [f"train.total_steps={total}"])
+    agent = DQNAgent(ArraySpec((4,), torch.float32), DiscreteSpec(2), c.agent, torch.device("cpu"),
+                     np.random.default_rng(0), total)
+    eps = agent.epsilon_schedule()
+    assert eps(0) == 1.0 and eps(decay // 2) == pytest.approx(0.525) and eps(decay) == eps(total) == 0.05
+    with pytest.raises(ConfigError, match="agent.epsilon_decay_steps=-2 is not valid"):
+        relayrl.load_config("dqn", ["agent.epsilon_decay_steps=-2"])
+
+
 def test_the_users_keys_win_over_the_defaults():
     c = from_dict({"algo": "ppo", "train": {"collect_steps": 256}, "agent": {"lr": 1e-3}})
     assert c.train.collect_steps == 256 and c.agent.lr == 1e-3 and c.train.log_interval == 2048

@@ -11,6 +11,7 @@ import difflib
 import functools
 import inspect
 import io
+import math
 import tokenize
 import types
 import typing
@@ -67,7 +68,8 @@ SB3_NAMES = {
     "target_update_interval": "agent.target_update_period",
     "exploration_final_eps": "agent.epsilon_end",
     "exploration_initial_eps": "agent.epsilon_start",
-    "exploration_fraction": "agent.epsilon_decay_steps (in env steps: SB3's fraction x train.total_steps)",
+    "exploration_fraction": "agent.epsilon_decay_steps (in env steps: SB3's fraction x train.total_steps; "
+                            "-1 takes 0.1)",
 }
 
 
@@ -112,6 +114,8 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
         return [coerce(v, item, f"{path}[{i}]") for i, v in enumerate(value)]
     if hint is float and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
+    if hint is float and isinstance(value, float) and not math.isfinite(value):  # nan passes every `<` check
+        raise ConfigError(f"{path}={value!r} is not valid; it must be a finite number")
     if hint is Any or (isinstance(value, hint) and not (hint is int and isinstance(value, bool))):
         return value
     raise ConfigError(f"{path}={value!r} has the wrong type; expected {type_name(hint)}")

@@ -53,6 +53,7 @@ class DQNAgent(Agent):
         self.optimizer = FastAdam(self.online.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
         self._train_step = 0
         self._eval_policy: GreedyPolicy | None = None
+        self.epsilon_decay_steps = cfg.epsilon_decay_steps if cfg.epsilon_decay_steps >= 0 else total_steps // 10
         self._lr_at = (linear_schedule(cfg.lr, cfg.lr_end, total_steps)
                        if cfg.lr_end >= 0 and total_steps > 0 else None)
         self._online_params = list(self.online.parameters())
@@ -77,7 +78,7 @@ class DQNAgent(Agent):
         c = self.cfg
         return (exponential_schedule(c.epsilon_start, c.epsilon_end, c.epsilon_decay)
                 if c.epsilon_schedule == "exponential"
-                else linear_schedule(c.epsilon_start, c.epsilon_end, c.epsilon_decay_steps))
+                else linear_schedule(c.epsilon_start, c.epsilon_end, self.epsilon_decay_steps))
 
     def scalars(self, env_steps: int) -> dict[str, float]:
         """Schedules at `env_steps`, for TensorBoard (charts/epsilon, charts/learning_rate)."""

@@ -35,7 +35,8 @@ class DQNConfig(Section):
     grad_clip: float = 0.0  # max global grad norm; 0 disables
     epsilon_start: float = 1.0  # exploration: random-action probability at the start
     epsilon_end: float = 0.05  # exploration: random-action probability at the end of the decay
-    epsilon_decay_steps: int = 10_000  # env steps for the linear decay; 0: constant epsilon_end
+    # env steps for the linear decay; 0: constant epsilon_end; -1: a tenth of train.total_steps
+    epsilon_decay_steps: int = 10_000
     # linear: start -> end over epsilon_decay_steps | exponential: start * epsilon_decay ** t,
     # floored at epsilon_end (the Mario tutorial: 0.99999975 per env step, down to 0.1)
     epsilon_schedule: str = "linear"
@@ -59,6 +60,9 @@ class DQNConfig(Section):
         for key in ("epsilon_start", "epsilon_end"):
             if not 0.0 <= getattr(self, key) <= 1.0:
                 raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be in [0, 1]")
+        if self.epsilon_decay_steps < -1:
+            raise ConfigError(f"agent.epsilon_decay_steps={self.epsilon_decay_steps} is not valid; it must be >= 0 "
+                              "(0: constant epsilon_end), or -1 (a tenth of train.total_steps)")
         if not 0.0 < self.epsilon_decay <= 1.0:
             raise ConfigError(f"agent.epsilon_decay={self.epsilon_decay} is not valid; it must be in (0, 1]")
         if self.lr <= 0:
@@ -70,7 +74,8 @@ class DQNConfig(Section):
 # `relayrl train dqn` / `algo = "dqn"`: what a config that names only algo and env.id gets beyond
 # the classes' defaults (which the DQN presets build on). Stable-Baselines3's DQN is the anchor:
 # 64x64 ReLU MLP, batch 32, Huber loss, gradient norm 10, epsilon 1 -> 0.05 over the first tenth
-# of the run (agent.epsilon_decay_steps), one gradient step every 4 env steps after 100 random ones, gamma 0.99, tau 1.
+# of the run (agent.epsilon_decay_steps = -1: SB3's exploration_fraction 0.1), one gradient step
+# every 4 env steps after 100 random ones, gamma 0.99, tau 1.
 # Where relayrl differs, and why:
 # - target copy every 250 gradient steps (1,000 env steps), not SB3's 10,000 env steps: with
 #   learning starting after 100 steps, SB3's rate leaves small problems (CartPole, Acrobot) with a
@@ -81,5 +86,6 @@ class DQNConfig(Section):
 DEFAULTS: dict[str, Any] = {
     "train": {"total_steps": 100_000, "initial_collect_steps": 100, "collect_steps": 4},
     "eval": {"interval": 10_000},
-    "agent": {"hidden": [64, 64], "lr": 1e-4, "batch_size": 32, "target_update_period": 250, "grad_clip": 10.0},
+    "agent": {"hidden": [64, 64], "lr": 1e-4, "batch_size": 32, "target_update_period": 250, "grad_clip": 10.0,
+              "epsilon_decay_steps": -1},
 }
