@@ -68,7 +68,7 @@ SB3_NAMES = {
     "target_update_interval": "agent.target_update_period",
     "exploration_final_eps": "agent.epsilon_end",
     "exploration_initial_eps": "agent.epsilon_start",
-    "exploration_fraction": "agent.epsilon_decay_steps (in env steps: SB3's fraction x train.total_steps; "
+    "exploration_fraction": "agent.epsilon_decay_steps (in env steps: SB3's fraction x train.total_steps, "
                             "-1 takes 0.1)",
 }
 
