@@ -149,6 +149,14 @@ def test_a_run_that_fails_while_it_is_built_leaves_no_env_worker(tmp_path):
     assert not [p for p in multiprocessing.active_children() if p.name.startswith("relayrl-env")]
 
 
+def test_a_run_too_large_for_memory_is_one_line_and_writes_nothing(tmp_path):
+    huge = relayrl.load_config("dqn-cartpole-fast", DQN + ["replay.size=1000000000000000"])  # 8 PB of keys alone
+    with pytest.raises(relayrl.errors.UserError, match=r"not enough memory to build the run \(.*\): lower "
+                                                       r"replay.size=1,000,000,000,000,000 or the networks' sizes"):
+        relayrl.train(huge, tmp_path / "r", progress=False)
+    assert not (tmp_path / "r").exists()
+
+
 def test_a_memmap_folder_is_recorded_absolute_and_another_run_cannot_share_it(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     small = DQN[:1] + ["train.total_steps=300", "replay.storage=memmap", "replay.path=shared"] + DQN[2:]

@@ -163,7 +163,14 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         raise UserError(f"algo={entry.name!r} runs in one process only; distributed.num_actors works with "
                         f"{', '.join(ray_algorithms())}")
     # Each run builds its parts (envs, agent) before anything is written: bad input fails first.
-    driver = _make_driver(entry, config, rd, progress, env, callbacks)
+    try:
+        driver = _make_driver(entry, config, rd, progress, env, callbacks)
+    except (MemoryError, RuntimeError) as e:
+        if not _out_of_memory(e):
+            raise
+        detail = str(e).strip().splitlines()[-1][:200] if str(e).strip() else type(e).__name__
+        raise UserError(f"not enough memory to build the run ({detail}): lower replay.size={config.replay.size:,} "
+                        "or the networks' sizes (the agent's hidden sizes)") from None
     try:
         if not resume and takeover:
             print(f"relayrl: {takeover}", file=sys.stderr, flush=True)
@@ -178,6 +185,12 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
             rd.release_lock()
     finally:
         driver.close()  # env processes and Ray actors end with the run, or before it where it never started
+
+
+def _out_of_memory(e: BaseException) -> bool:
+    """NumPy's and Python's MemoryError, or torch's CPU / CUDA allocator refusing."""
+    return isinstance(e, MemoryError) or any(s in str(e) for s in ("can't allocate memory", "not enough memory",
+                                                                   "out of memory"))
 
 
 def _make_driver(entry: Algorithm, config: Config, rd: RunDir, progress: bool, env: Callable[[], Any] | None,
