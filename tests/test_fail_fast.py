@@ -158,6 +158,18 @@ def test_out_under_a_file_is_one_line(command, small_run, tmp_path, capfd):
 
 
 @pytest.mark.parametrize("command, default", [("plot", "returns.png"), ("video", "video.mp4"),
+                                              ("export", "policy.pt2")])
+def test_out_as_a_folder_takes_the_default_name_and_a_bare_name_is_one_line(command, default, small_run, tmp_path,
+                                                                           capfd):
+    err = one_line(capfd, [command, str(small_run), "--out", str(tmp_path / "noext")])
+    assert f"has no file extension; give a file name such as noext{Path(default).suffix}" in err
+    assert not (tmp_path / "noext").exists()
+    assert main([command, str(small_run), "--out", str(tmp_path / "made") + "/"]) == 0
+    assert (tmp_path / "made" / default).is_file()
+    assert main([command, str(small_run), "--out", str(tmp_path / "made")]) == 0  # the folder exists now
+
+
+@pytest.mark.parametrize("command, default", [("plot", "returns.png"), ("video", "video.mp4"),
                                               ("export", "policy/policy.pt2")])
 def test_a_read_only_run_directory_is_one_line(command, default, small_run, capfd, monkeypatch):
     """As root chmod does not stop writes: the folder is reported unwritable as os.access says."""

@@ -12,12 +12,16 @@ from relayrl.errors import UserError
 
 def output_path(out: str | Path | None, default: Path) -> Path:
     """`out` (or `default`) with its parent folder created; one-line UserError where it cannot be
-    (a file in the way, a folder that is not writable), before any work is done."""
+    (a file in the way, a folder that is not writable, no file extension), before any work is
+    done. A folder (one that exists, or a name ending in a slash) gets `default`'s file name in it."""
     path = Path(out) if out else default
+    if out and (path.is_dir() or str(out).endswith(("/", os.sep))):
+        path = path / default.name
+    if not path.suffix:
+        raise UserError(f"--out {str(out)!r} has no file extension; give a file name such as "
+                        f"{path.name}{default.suffix}, or a folder ending in /")
     name = f"--out {str(path)!r}" if out else repr(str(path))
     where = "" if out else "; give --out PATH somewhere writable"
-    if path.is_dir():
-        raise UserError(f"--out {str(path)!r} is a folder; give a file name in it")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
