@@ -110,3 +110,8 @@ def test_a_file_that_is_not_a_torch_file_is_one_line_error(tmp_path):
     (tmp_path / "policy.pt").write_bytes(b"not a policy")
     with pytest.raises(UserError, match=REFUSED):
         relayrl.load_policy(tmp_path / "policy.pt")
+    torch.save({"kind": "q_greedy", "x": torch.zeros(1000)}, tmp_path / "whole.pt")
+    (tmp_path / "policy.pt").write_bytes((tmp_path / "whole.pt").read_bytes()[:2000])  # a write cut short
+    with pytest.raises(UserError, match=r"is unreadable \(RuntimeError: PytorchStreamReader failed reading zip "
+                                        r"archive: failed finding central directory\): damaged, or not a relayrl"):
+        relayrl.load_policy(tmp_path / "policy.pt")

@@ -1,7 +1,6 @@
 """The local loop: determinism, checkpoints, resume, and short learning tests."""
 
 import json
-import warnings
 
 import pytest
 import torch
@@ -66,7 +65,7 @@ def test_resume_needs_a_checkpoint(tmp_path):
         relayrl.train(cfg, tmp_path / "r", resume=True, progress=False)
 
 
-def test_checkpoints_are_atomic_and_fall_back_past_a_corrupt_one(tmp_path):
+def test_checkpoints_are_atomic_and_fall_back_past_a_corrupt_one(tmp_path, capsys):
     folder = tmp_path / "ck"
     save_checkpoint(folder, 100, {"x": torch.ones(3), "env_steps": 100})
     save_checkpoint(folder, 200, {"x": torch.zeros(3), "env_steps": 200})
@@ -74,13 +73,13 @@ def test_checkpoints_are_atomic_and_fall_back_past_a_corrupt_one(tmp_path):
     assert [p.name for p in list_checkpoints(folder)] == ["ckpt-000000000200.pt", "ckpt-000000000300.pt"]
     (folder / "ckpt-000000000400.pt.tmp").write_bytes(b"partial")  # a write killed midway
     (folder / "ckpt-000000000300.pt").write_bytes(b"garbage")  # a corrupt newest file
-    with warnings.catch_warnings(record=True) as w:
-        warnings.simplefilter("always")
-        state = load_latest_checkpoint(folder)
-    assert state["env_steps"] == 200 and "unreadable" in str(w[0].message)
+    state = load_latest_checkpoint(folder)
+    err = capsys.readouterr().err
+    assert state["env_steps"] == 200 and err.count("\n") == 1
+    assert err.startswith(f"relayrl: checkpoint {folder / 'ckpt-000000000300.pt'} is unreadable (") and \
+        err.endswith("); trying an older one\n")
     (folder / "ckpt-000000000200.pt").write_bytes(b"")
-    with pytest.raises(CheckpointError, match="every checkpoint"), warnings.catch_warnings():
-        warnings.simplefilter("ignore")
+    with pytest.raises(CheckpointError, match="every checkpoint .* unreadable: start the run again with --overwrite"):
         load_latest_checkpoint(folder)
 
 

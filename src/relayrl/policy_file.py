@@ -58,8 +58,8 @@ def load_policy_file(path: Path) -> dict[str, Any]:
     except pickle.UnpicklingError:
         state = _load_old_layout(path)
     except Exception as e:  # truncated, not a torch file at all, ...
-        raise UserError(f"policy file {str(path)!r} is unreadable ({type(e).__name__}: {_first_line(e)}); "
-                        f"{REFUSED}") from None
+        raise UserError(f"policy file {str(path)!r} is unreadable ({type(e).__name__}: {_first_line(e)}): "
+                        "damaged, or not a relayrl policy file") from None
     if not isinstance(state, dict):
         raise UserError(f"policy file {str(path)!r} holds a {type(state).__name__}, not a policy: {REFUSED}")
     return state
@@ -76,4 +76,4 @@ def _load_old_layout(path: Path) -> Any:
 
 def _first_line(e: Exception) -> str:
     text = str(e).strip()
-    return text.splitlines()[0] if text else "no details"
+    return text.splitlines()[0].split(". ")[0] if text else "no details"  # torch's run on for sentences

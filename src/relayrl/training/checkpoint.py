@@ -4,7 +4,7 @@ is complete, and a corrupt newest checkpoint falls back to the one before it."""
 from __future__ import annotations
 
 import re
-import warnings
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +44,8 @@ def load_latest_checkpoint(folder: Path) -> dict[str, Any]:
         try:
             return torch.load(path, map_location="cpu", weights_only=False)
         except Exception as e:  # a truncated or corrupt file: fall back to an older one
-            warnings.warn(f"checkpoint {path} is unreadable ({type(e).__name__}: {e}); trying an older one",
-                          stacklevel=2)
-    raise CheckpointError(f"every checkpoint in {folder} is unreadable")
+            detail = (str(e).strip().splitlines() or [""])[0][:120]
+            print(f"relayrl: checkpoint {path} is unreadable ({type(e).__name__}: {detail}); trying an older one",
+                  file=sys.stderr, flush=True)
+    raise CheckpointError(f"every checkpoint in {folder} is unreadable: start the run again with --overwrite "
+                          "(in Python: overwrite=True)")
