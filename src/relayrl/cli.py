@@ -78,7 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("eval", help="evaluate a run's saved policy; prints one JSON object")
     e.add_argument("run_dir", metavar="RUN_DIR", help="a run directory (or its policy/policy.pt)")
     e.add_argument("--episodes", type=int, default=10, help="episodes to average over (default: 10)")
-    e.add_argument("--seed", type=_seed, default=0, help="seed of the evaluation episodes")
+    e.add_argument("--seed", type=_seed, default=0,
+                   help="seed of the evaluation episodes: copy i is reset with seed + i (default: 0)")
     pl = sub.add_parser("plot", help="PNG of average return against env steps")
     pl.add_argument("run_dir", metavar="RUN_DIR", help="a run directory")
     pl.add_argument("--out", metavar="PNG",
@@ -87,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("run_dir", metavar="RUN_DIR", help="a run directory")
     v.add_argument("--out", metavar="MP4", help="where to write it (default: RUN_DIR/video.mp4; folders are created)")
     v.add_argument("--episodes", type=int, default=1, help="episodes to record (default: 1)")
-    v.add_argument("--seed", type=_seed, default=0, help="seed of the recorded episodes")
+    v.add_argument("--seed", type=_seed, default=0, help="seed of the recorded episodes (default: 0)")
     x = sub.add_parser("export", help="write RUN_DIR/policy/policy.pt2, the policy for plain PyTorch (torch.export), "
                                       "or policy.onnx")
     x.add_argument("run_dir", metavar="RUN_DIR", help="a run directory (or its policy/policy.pt)")

@@ -77,7 +77,7 @@ class ReplayConfig(Section):
     n_step: int = 1  # n-step returns; bootstrap through truncation, not termination
     samples_per_insert: float = 0.0  # 0: gradient_steps * batch_size / collect_steps
     error_buffer: float = 0.0  # samples; 0: one collect iteration's worth
-    min_size_to_sample: int = 0  # 0: train.initial_collect_steps (at least one batch)
+    min_size_to_sample: int = 0  # 0: train.initial_collect_steps (agent.batch_size where that is 0)
     storage: str = "ram"  # ram | memmap
     path: str = ""  # memmap directory, one run's at a time (saved as an absolute path); "": <run_dir>/replay
     # Where frames and actions live: numpy (host arrays) or a torch device (cpu, cuda, cuda:N);

@@ -38,6 +38,10 @@ def factory_env_id(factory: Callable[[], Any]) -> str:
     return f"{module}:{name}"
 
 
+_OWN_CONFIG = ("leave out PRESET|CONFIG.toml to resume with the run's own config.toml (in Python: "
+               "relayrl.load_config(RUN_DIR/config.toml))")
+
+
 def check_resume_matches(config: Config, rd: RunDir) -> None:
     """A resumed run is the run in `rd`: a config that names another algorithm or env is one line."""
     saved, defaults = load_toml(rd.config), Config()  # a key left out of config.toml is its default
@@ -45,14 +49,14 @@ def check_resume_matches(config: Config, rd: RunDir) -> None:
     saved_env = saved.get("env", {}).get("id", defaults.env.id)
     if config.algo != saved_algo:
         raise UserError(f"--resume: algo={config.algo!r} but the run in {str(rd.root)!r} is algo={saved_algo!r}; "
-                        "leave out PRESET|CONFIG.toml to resume with the run's own config.toml")
+                        f"{_OWN_CONFIG}")
     saved_seed = saved.get("seed", defaults.seed)
     if config.seed != saved_seed:
         raise UserError(f"--resume: seed={config.seed} but the run in {str(rd.root)!r} has seed={saved_seed}; "
-                        "a resumed run keeps its seed (leave out --seed)")
+                        "a resumed run keeps its seed (leave out --seed; in Python, load the run's config.toml)")
     if config.env.id != saved_env:
         raise UserError(f"--resume: env.id={config.env.id!r} but the run in {str(rd.root)!r} is "
-                        f"env.id={saved_env!r}; leave out PRESET|CONFIG.toml to resume with the run's own config.toml")
+                        f"env.id={saved_env!r}; {_OWN_CONFIG}")
 
 
 def _use_factory(config: Config, env: Any, one_process: bool) -> None:
