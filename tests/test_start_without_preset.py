@@ -89,6 +89,8 @@ def test_a_saved_config_round_trips(tmp_path):
         c = load_config(algo)
         save_toml(c, tmp_path / "c.toml")
         assert to_dict(from_dict(load_toml(tmp_path / "c.toml"))) == to_dict(c)
+    lines = (tmp_path / "c.toml").read_text().splitlines()
+    assert [line for line in lines if line.startswith("total_steps = ")][0].endswith("  # env steps")  # explained
 
 
 def test_presets_lists_the_algorithm_configs():

@@ -15,7 +15,7 @@ from typing import Any
 
 from relayrl import atomic
 from relayrl.agents.registry import DEFAULT_ALGO, algorithm
-from relayrl.config_fields import Section, unknown_key
+from relayrl.config_fields import Section, commented_toml, unknown_key
 from relayrl.errors import ConfigError
 from relayrl.seeding import MAX_SEED
 
@@ -338,11 +338,6 @@ def load_toml(path: str | Path) -> dict[str, Any]:
 
 
 def save_toml(config: Config, path: str | Path) -> None:
-    import tomli_w
-
-    atomic.write_text(Path(path), tomli_w.dumps(_drop_none(to_dict(config))))
-
-
-def _drop_none(d: dict[str, Any]) -> dict[str, Any]:
-    # TOML has no null; a None field is written as absent and read back as its default.
-    return {k: _drop_none(v) if isinstance(v, dict) else v for k, v in d.items() if v is not None}
+    """Every key with its meaning as a comment (`relayrl config`'s listing), so a run's
+    config.toml explains itself; it reads back as the same config."""
+    atomic.write_text(Path(path), commented_toml(config))
