@@ -124,9 +124,9 @@ def test_checkpoints_move_between_device_and_numpy_stores():
     state = w_dev.table.storage.state_dict()
     assert all(isinstance(v, np.ndarray) for v in state["store"]["columns"]["arrays"].values())
     t_np, w_np, _ = build("transition", 3, 60)
-    w_np.table.storage.load_state_dict(state)
+    t_np.load_state_dict(t_dev.state_dict())  # the table's state: its storage's slot map follows its live slots
     t_back, w_back, _ = build("transition", 3, 60, device="cpu")
-    w_back.table.storage.load_state_dict(w_np.table.storage.state_dict())
+    t_back.load_state_dict(t_np.state_dict())
     slots = np.flatnonzero(t_dev.slot_key >= 0)
     for x, y in zip(w_dev.table.storage.read(slots), w_back.table.storage.read(slots), strict=True):
         assert x is None or torch.equal(x, y)
