@@ -12,7 +12,7 @@ import numpy as np
 from gymnasium import spaces
 
 OBS_KINDS = ("box", "box2d", "discrete", "multi_discrete", "multi_binary", "image", "image_hwc", "dict", "tuple")
-ACTION_KINDS = ("discrete", "box", "multi_discrete", "multi_binary")
+ACTION_KINDS = ("discrete", "box", "box_scalar", "box2d", "multi_discrete", "multi_binary")
 
 
 def observation_space(kind: str) -> gym.Space:
@@ -32,6 +32,7 @@ def observation_space(kind: str) -> gym.Space:
 
 def action_space(kind: str) -> gym.Space:
     return {"discrete": spaces.Discrete(2), "box": spaces.Box(-1.0, 1.0, (2,), np.float32),
+            "box_scalar": spaces.Box(-1.0, 1.0, (), np.float32), "box2d": spaces.Box(-1.0, 1.0, (2, 2), np.float32),
             "multi_discrete": spaces.MultiDiscrete([2, 3]), "multi_binary": spaces.MultiBinary(2)}[kind]
 
 
@@ -80,8 +81,10 @@ class Spaces(gym.Env):
         return self._obs(), {}
 
     def step(self, action):
+        if self.act_kind.startswith("box"):  # an action of another shape is a bug (Gymnasium does not check)
+            assert np.shape(action) == self.action_space.shape, (np.shape(action), self.action_space)
         a = np.asarray(action).reshape(-1)
-        said = int(a[0] >= 0.5) if self.act_kind == "box" else int(a[0])
+        said = int(a[0] >= 0.5) if self.act_kind.startswith("box") else int(a[0])
         reward = float(said == self.target)
         self.t += 1
         self.steps += 1

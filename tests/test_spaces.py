@@ -21,11 +21,14 @@ from relayrl.nn.encoders import ConvEncoder, DictEncoder, OneHot, make_encoder
 from relayrl.specs import PackedSpec, spec_from_space, spec_from_state, spec_state, unpack
 
 # algo -> the action kinds it takes
-ACTIONS = {"dqn": ("discrete",), "sac": ("box",), "ppo": ("discrete", "box", "multi_discrete", "multi_binary")}
+# (box_scalar: Box shape (), box2d: Box (2, 2): actions that travel flat, in the env's shape at its ends)
+ACTIONS = {"dqn": ("discrete",), "sac": ("box", "box_scalar", "box2d"),
+           "ppo": ("discrete", "box", "box_scalar", "box2d", "multi_discrete", "multi_binary")}
 CASES = ([(algo, obs, ACTIONS[algo][0]) for algo in ACTIONS for obs in OBS_KINDS]
+         + [("sac", "box", act) for act in ACTIONS["sac"][1:]]
          + [("ppo", obs, act) for act in ACTIONS["ppo"][1:] for obs in ("box", "dict")])
 ONNX = {("dqn", "dict", "discrete"), ("sac", "tuple", "box"), ("ppo", "image_hwc", "multi_discrete"),
-        ("ppo", "dict", "multi_binary")}
+        ("ppo", "dict", "multi_binary"), ("sac", "box", "box2d"), ("ppo", "dict", "box_scalar")}
 
 
 def short_config(algo: str, obs: str, act: str):

@@ -97,6 +97,8 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str =
     state = load_policy_state(path)
     module = for_policy_kind(state["kind"]).policy_module().deterministic_module(state).requires_grad_(False).eval()
     inputs = input_specs(state)
+    if "action_shape" in state:  # a Box action of rank != 1, which the policy gives flat
+        module = EnvShaped(module, tuple(state["action_shape"])).eval()
     if len(inputs) > 1 or inputs[0][0] != "obs":  # a Dict / Tuple space: one input per entry
         module = KeyInputs(module, [name for name, _ in inputs]).eval()
     examples = tuple(torch.zeros(2, *spec.shape, dtype=spec.dtype) for _, spec in inputs)
@@ -145,6 +147,19 @@ def _quiet_onnx() -> Iterator[None]:
             yield
     finally:
         log.setLevel(level)
+
+
+class EnvShaped(torch.nn.Module):
+    """A policy whose flat [B, A] actions come out in the env's action shape [B, *shape]."""
+
+    def __init__(self, module: torch.nn.Module, shape: tuple[int, ...]) -> None:
+        super().__init__()
+        self.module = module
+        self.shape = shape
+
+    def forward(self, obs: Any) -> torch.Tensor:
+        action = self.module(obs)
+        return action.reshape(action.shape[0], *self.shape)
 
 
 class KeyInputs(torch.nn.Module):

@@ -36,6 +36,8 @@ class LoadedPolicy(Policy):
         self.obs_space = saved_obs_spec(state)
         self.obs_shape, self.obs_dtype = tuple(self.obs_space.shape), self.obs_space.dtype
         self.env_steps: int | None = state.get("env_steps")  # the run's env step when it was saved
+        # a Box action the policy gives flat (a scalar, [2, 2]): the env's shape (None: as given)
+        self.action_shape: tuple[int, ...] | None = tuple(state["action_shape"]) if "action_shape" in state else None
         self.deterministic = deterministic
         self._state, self._device, self._seed = state, device, seed
         self._module = for_policy_kind(self.kind).policy_module()
@@ -43,8 +45,12 @@ class LoadedPolicy(Policy):
 
     def __call__(self, obs: Any) -> Any:
         if isinstance(obs, torch.Tensor) and obs.dtype == self.obs_dtype and obs.dim() == len(self.obs_shape) + 1:
-            return self.batched(obs)
+            return self._env_shaped(self.batched(obs))
         return self._act(self.batched, obs)
+
+    def _env_shaped(self, actions: torch.Tensor) -> torch.Tensor:
+        """[B, ...] actions in the env's action shape."""
+        return actions if self.action_shape is None else actions.reshape(actions.shape[0], *self.action_shape)
 
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool | None = None) -> tuple[Any, None]:
@@ -64,7 +70,7 @@ class LoadedPolicy(Policy):
         else:
             t, single, numpy_in = self._array(obs)
         with torch.no_grad():
-            actions = policy(t)
+            actions = self._env_shaped(policy(t))
         if single:
             actions = actions[0]
         if not numpy_in:

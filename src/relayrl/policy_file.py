@@ -19,6 +19,7 @@ import torch
 
 from relayrl import atomic
 from relayrl.errors import UserError
+from relayrl.specs import ArraySpec, Spec
 
 REFUSED = "not a relayrl policy file, or one that would run code"
 
@@ -44,6 +45,13 @@ def plain(value: Any) -> Any:
     if isinstance(value, np.ndarray | np.generic):
         return value.tolist()
     return value
+
+
+def action_shape_entry(action_spec: Spec) -> dict[str, Any]:
+    """What a policy file records of a Box action that travels flat (`specs.flat_action`): the
+    env's own shape, which a loaded policy's actions take."""
+    env_shape = action_spec.env_shape if isinstance(action_spec, ArraySpec) else None
+    return {} if env_shape is None else {"action_shape": list(env_shape)}
 
 
 def save_policy_file(state: dict[str, Any], path: Path) -> None:

@@ -16,7 +16,7 @@ and `pack_batch` build rows from what the env returns or what a user passes a po
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import gymnasium as gym
@@ -54,9 +54,22 @@ class ArraySpec:
     # previous steps' frames (Gymnasium's FrameStackObservation, padding "reset"), so a
     # replay may store only each step's newest frame. Set by the env adapters, not by spaces.
     frame_stack: int = 1
+    # A Box action of any other rank than 1 (a scalar, [2, 2]) travels flat, as `shape` = (its
+    # size,): the env adapters reshape each action to `env_shape`, and a saved policy's actions
+    # come out in it. Set by the env adapters, not by spaces.
+    env_shape: tuple[int, ...] | None = None
 
     def zeros(self, batch: int) -> torch.Tensor:
         return torch.zeros((batch, *self.shape), dtype=self.dtype)
+
+
+def flat_action(spec: ArraySpec) -> ArraySpec:
+    """`spec` as a 1-D action, remembering the env's shape (itself where it is 1-D already)."""
+    if len(spec.shape) == 1:
+        return spec
+    size = int(np.prod(spec.shape))
+    low, high = (None if b is None else np.asarray(b).reshape(size) for b in (spec.low, spec.high))
+    return replace(spec, shape=(size,), low=low, high=high, env_shape=tuple(spec.shape))
 
 
 @dataclass(frozen=True)

@@ -25,7 +25,7 @@ import torch
 from relayrl.core import BatchedEnv
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
-from relayrl.specs import ArraySpec, DiscreteSpec, PackedSpec, Spec, numpy_dtype, spec_from_space
+from relayrl.specs import ArraySpec, DiscreteSpec, PackedSpec, Spec, flat_action, numpy_dtype, spec_from_space
 from relayrl.types import EpisodeInfo, StepOutput
 
 EnvFn = Callable[[], gym.Env]
@@ -75,6 +75,10 @@ class BatchEnvBase(BatchedEnv):
             # Stacked frames (FrameStackObservation): the replay stores one frame per step.
             self.observation_spec = dataclasses.replace(self.observation_spec, frame_stack=frame_stack)
         self.action_spec: Spec = spec_from_space(action_space, "action")
+        self._env_action_shape: tuple[int, ...] | None = None  # a Box action of rank != 1: reshaped to it
+        if isinstance(action_space, gym.spaces.Box) and isinstance(self.action_spec, ArraySpec):
+            self.action_spec = flat_action(self.action_spec)
+            self._env_action_shape = self.action_spec.env_shape
         self._obs_dtype = numpy_dtype(self.observation_spec)
         # Dict / Tuple observations travel as packed byte rows (specs.PackedSpec); None: as they are
         self._pack = self.observation_spec.pack if isinstance(self.observation_spec, PackedSpec) else None
@@ -91,14 +95,14 @@ class BatchEnvBase(BatchedEnv):
             raise ValueError(f"actions for {act.shape[0] if act.ndim else 'no'} copies, "
                              f"but this env has {self.num_envs}")
         want = self.action_spec.shape
-        if act.shape[1:] != want:
+        if act.shape[1:] != want and act.shape[1:] != self._env_action_shape:  # flat, or the env's shape
             # [B, 1] for a scalar action (argmax with keepdim) and [B] for a one-dim Box(1,)
             # are the same actions; any other shape is a mistake worth one clear line.
             if _drop_trailing_ones(act.shape[1:]) != _drop_trailing_ones(want):
                 raise ValueError(f"actions of shape {tuple(act.shape)}, but this env takes {(self.num_envs, *want)}: "
                                  f"{self.num_envs} copies of action shape {want}")
             act = act.reshape(self.num_envs, *want)
-        return act
+        return act if self._env_action_shape is None else act.reshape(self.num_envs, *self._env_action_shape)
 
 
 def _drop_trailing_ones(shape: tuple[int, ...]) -> tuple[int, ...]:

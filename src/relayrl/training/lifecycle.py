@@ -23,6 +23,7 @@ from relayrl.core import Agent
 from relayrl.envs.make import check_env, is_user_env
 from relayrl.errors import NonFiniteError, UserError
 from relayrl.metrics import EpisodeStats
+from relayrl.policy_file import action_shape_entry
 from relayrl.schedules import linear_schedule
 from relayrl.seeding import RunSeeds
 from relayrl.training.checkpoint import list_checkpoints
@@ -102,7 +103,8 @@ class RunCore:
                                 schedules=agent.scalars, postfix=postfix, extra_scalars=extra_scalars)
         self.beta_at = linear_schedule(c.replay.importance_exponent, 1.0, c.train.total_steps)
         self.collect_only = collect_only(c)
-        self.policy_saver = PolicySaver(c.train.policy_save_interval, agent, rd.policy, extra={"env_id": c.env.id})
+        self.policy_saver = PolicySaver(c.train.policy_save_interval, agent, rd.policy,
+                                        extra={"env_id": c.env.id, **action_shape_entry(agent.action_spec)})
         self.checkpointer = Checkpointer(c.train.checkpoint_interval, checkpoint_state, rd.checkpoints)
         self.sps_log = StepsPerSecondLog(c.train.log_interval, report=self.report.log_progress)
         self.evaluation = evaluation
