@@ -150,6 +150,11 @@ def test_running_stats_and_obs_normalisation_match_numpy():
     expected = np.clip((obs - mean) / np.sqrt(var + 1e-8), -10, 10).astype(np.float32)
     assert np.allclose(norm(torch.from_numpy(obs)).numpy(), expected, atol=1e-6)
     assert norm(torch.from_numpy(obs))[-1, :2].tolist() == [10.0, -10.0]
+    square = ObsNorm(4)  # a [2, 2] Box: the same statistics, per entry of the flattened observation
+    for x in batches:
+        square.update(torch.from_numpy(x).float().reshape(-1, 2, 2))
+    assert torch.equal(square.mean, norm.mean) and torch.equal(square.var, norm.var)
+    assert torch.equal(square(torch.from_numpy(obs).reshape(-1, 2, 2)), norm(torch.from_numpy(obs)))
     scalar = RunningMeanStd()
     scalar.update(torch.tensor([1.0, 2.0, 4.0]))
     assert scalar.mean.item() == pytest.approx(pooled(np.array([1.0, 2.0, 4.0]))[0])

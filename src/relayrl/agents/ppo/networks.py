@@ -70,8 +70,9 @@ class PolicyNet(nn.Module):
         self.out = out
         self.encoder = make_encoder(obs_spec, encoder)
         if self.encoder is not None and normalize_obs:
-            raise UserError(f"agent.normalize_obs=true normalises Box observations; this env's observation space is "
-                            f"{describe(obs_spec)} (set agent.normalize_obs=false)")
+            raise UserError(f"agent.normalize_obs=true normalises observations the MLP takes as they are; this env's "
+                            f"{describe(obs_spec)} goes through an encoder ({type(self.encoder).__name__}) "
+                            "first: set agent.normalize_obs=false")
         self.features_dim = flat_dim(obs_spec) if self.encoder is None else int(self.encoder.out_dim)
         self.obs_norm = ObsNorm(self.features_dim) if normalize_obs else None
         self.mlp = MLP(self.features_dim, list(hidden), out + int(shared), activation)

@@ -63,12 +63,17 @@ class RunningMeanStd(nn.Module):
 
 
 class ObsNorm(RunningMeanStd):
-    """obs [B, D] -> the normalised observation [B, D] in obs's dtype."""
+    """obs [B, *shape] -> the normalised observation, flat [B, D], in obs's dtype."""
 
     def __init__(self, dim: int) -> None:
         super().__init__((dim,))
 
+    @torch.no_grad()
+    def update(self, x: torch.Tensor) -> None:
+        super().update(x.reshape(x.shape[0], -1))
+
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        obs = obs.reshape(obs.shape[0], -1)  # a Box of any rank, as the MLP takes it
         z = (obs - self.mean) / torch.sqrt(self.var + EPS)  # float64, as SB3's NumPy arithmetic
         return z.clamp(-CLIP, CLIP).to(obs.dtype)
 
