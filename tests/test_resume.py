@@ -126,6 +126,18 @@ def test_resuming_a_run_already_past_total_steps_says_so(tmp_path, capsys):
     assert "the run is at env step 600, past train.total_steps=300: nothing is left to train" in capsys.readouterr().err
 
 
+def test_resume_with_another_network_is_one_line_and_keeps_the_run(tmp_path):
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    before = (tmp_path / "r" / "metrics.jsonl").read_text()
+    wider = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=900", "agent.hidden=[48,32]"]
+                                + DQN[2:-1])
+    with pytest.raises(relayrl.errors.UserError, match=r"the checkpoint's networks do not fit this config \(.*"
+                                                       r"size mismatch.*\): resume with the settings the run started"):
+        relayrl.train(wider, tmp_path / "r", resume=True, progress=False)
+    assert (tmp_path / "r" / "metrics.jsonl").read_text() == before
+
+
 def test_resume_refuses_another_number_of_envs(tmp_path):
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
     relayrl.train(cfg, tmp_path / "r", progress=False)

@@ -173,7 +173,15 @@ class RunCore:
     def restore_common(self, state: dict[str, Any]) -> int:
         """Load the agent, the episodes' stats and the wall time of `checkpoint_common`; returns
         the evaluations so far. The process's state is the driver's to load, once its envs are back."""
-        self.agent.load_state_dict(state["agent"])
+        try:
+            self.agent.load_state_dict(state["agent"])
+        except (RuntimeError, KeyError, ValueError) as e:  # torch's size-mismatch report runs over lines
+            lines = [line.strip() for line in str(e).splitlines() if line.strip()]
+            detail = next((line for line in lines if "mismatch" in line or "key" in line.lower()), lines[0] if lines
+                          else type(e).__name__)
+            raise UserError(f"the checkpoint's networks do not fit this config ({detail[:240]}): resume with the "
+                            "settings the run started with (leave out the --set keys that change a network or a "
+                            "space)") from None
         self.stats.load_state_dict(state["episode_stats"])
         self.wall_offset = float(state["wall_time_s"])
         return int(state["eval_count"])
