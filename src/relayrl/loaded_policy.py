@@ -15,7 +15,16 @@ import torch
 from relayrl.core import Policy
 from relayrl.errors import UserError
 from relayrl.policies import saved_obs_spec
-from relayrl.specs import DiscreteSpec, MultiDiscreteSpec, PackedSpec, Spec, describe, entry, leaf_array
+from relayrl.specs import (
+    DiscreteSpec,
+    MultiBinarySpec,
+    MultiDiscreteSpec,
+    PackedSpec,
+    Spec,
+    describe,
+    entry,
+    leaf_array,
+)
 
 
 class LoadedPolicy(Policy):
@@ -95,10 +104,8 @@ class LoadedPolicy(Policy):
                             f"{describe(self.obs_space)} observations, one {list(self.obs_shape)} or a batch "
                             f"[{', '.join(['B', *map(str, self.obs_shape)])}]")
         single = t.dim() == n
-        if not (t.is_floating_point() and not self.obs_dtype.is_floating_point):
-            t = t.to(self.obs_dtype)  # (float frames in [0, 1] stay float: a conv net takes those too)
-        elif t.dtype != torch.float32:
-            t = t.float()
+        _check_integral(t, self.obs_space)
+        t = t.to(self.obs_dtype)
         _check_range(t, self.obs_space)
         return (t.unsqueeze(0) if single else t), single, numpy_in
 
@@ -112,14 +119,27 @@ class LoadedPolicy(Policy):
         batch = spec.batch_size(obs)
         numpy_in = not isinstance(entry(obs, spec.fields[0]), torch.Tensor)
         for f in spec.fields:
-            if isinstance(f.spec, DiscreteSpec | MultiDiscreteSpec):
-                _check_range(torch.as_tensor(leaf_array(obs, f)), f.spec, f"[{f.key!r}]")
+            if not f.spec.dtype.is_floating_point:
+                value = torch.as_tensor(leaf_array(obs, f))
+                _check_integral(value, f.spec, f"[{f.key!r}]")
+                _check_range(value, f.spec, f"[{f.key!r}]")
         return torch.from_numpy(spec.pack_batch(obs, batch)), batch is None, numpy_in
 
 
+def _check_integral(t: torch.Tensor, s: Spec, where: str = "") -> None:
+    """Floats given for integer values (uint8 frames, counts) are cast as the env would give
+    them; fractions would be cut to other values (frames scaled to [0, 1] to zeros): one line."""
+    if t.is_floating_point() and not s.dtype.is_floating_point and t.numel() and bool((t != t.round()).any()):
+        raise UserError(f"observation{where} holds fractional {str(t.dtype).removeprefix('torch.')} values; this "
+                        f"policy takes {describe(s)} values as the env gives them (frames as 0..255, not scaled "
+                        "to [0, 1])")
+
+
 def _check_range(t: torch.Tensor, s: Spec, where: str = "") -> None:
-    """Discrete entries outside their range would index past a one-hot: one line instead."""
-    if isinstance(s, DiscreteSpec | MultiDiscreteSpec) and not t.is_floating_point() and t.numel():
-        high = torch.as_tensor(s.nvec).reshape(s.shape) if isinstance(s, MultiDiscreteSpec) else s.n
+    """Discrete entries outside their range would index past a one-hot (and a MultiBinary 2 is no
+    bit): one line instead."""
+    if isinstance(s, DiscreteSpec | MultiDiscreteSpec | MultiBinarySpec) and not t.is_floating_point() and t.numel():
+        high = (torch.as_tensor(s.nvec).reshape(s.shape) if isinstance(s, MultiDiscreteSpec)
+                else 2 if isinstance(s, MultiBinarySpec) else s.n)
         if bool((t < 0).any() or (t >= high).any()):
             raise UserError(f"observation{where} {t.tolist()} is outside this policy's {describe(s)} space")
