@@ -271,3 +271,28 @@ def test_a_nan_inside_a_dict_observation_stops_the_run(tmp_path):
     cfg.env.num_envs = 1
     with pytest.raises(NonFiniteError, match="observation was NaN at env step 40 "):
         relayrl.train(cfg, tmp_path, progress=False)
+
+
+class _OutOfRange(gym.Env):
+    """Discrete(4) observations, the 30th of each episode 7."""
+
+    observation_space = gym.spaces.Discrete(4)
+    action_space = gym.spaces.Discrete(2)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return 0, {}
+
+    def step(self, action):
+        self.t += 1
+        return (7 if self.t == 30 else 1), 0.0, False, self.t >= 50, {}
+
+
+@pytest.mark.parametrize("vectorization", ["sync", "async"])
+def test_a_step_observation_outside_the_envs_own_space_is_one_line(vectorization, tmp_path):
+    cfg = relayrl.load_config("dqn", ["env.check=false", "train.total_steps=200", "env.num_envs=2",
+                                      f"env.vectorization={vectorization}"])
+    with pytest.raises(UserError, match=r"the env's step returned observation 7, outside its own observation "
+                                        r"space Discrete\(4\)"):
+        relayrl.train(cfg, tmp_path, progress=False, env=_OutOfRange)

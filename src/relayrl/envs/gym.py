@@ -25,7 +25,18 @@ import torch
 from relayrl.core import BatchedEnv
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
-from relayrl.specs import ArraySpec, DiscreteSpec, PackedSpec, Spec, flat_action, numpy_dtype, spec_from_space
+from relayrl.specs import (
+    ArraySpec,
+    DiscreteSpec,
+    MultiBinarySpec,
+    MultiDiscreteSpec,
+    PackedSpec,
+    Spec,
+    describe,
+    flat_action,
+    numpy_dtype,
+    spec_from_space,
+)
 from relayrl.types import EpisodeInfo, StepOutput
 
 EnvFn = Callable[[], gym.Env]
@@ -83,10 +94,24 @@ class BatchEnvBase(BatchedEnv):
         # Dict / Tuple observations travel as packed byte rows (specs.PackedSpec); None: as they are
         self._pack = self.observation_spec.pack if isinstance(self.observation_spec, PackedSpec) else None
         self._discrete = isinstance(self.action_spec, DiscreteSpec)
+        # Discrete, MultiDiscrete and MultiBinary observations index one-hots: the values past
+        # their range (exclusive), checked on each step's [B] rows; None: nothing to check.
+        spec = self.observation_spec
+        self._obs_high: Any = (spec.n if isinstance(spec, DiscreteSpec)
+                               else np.asarray(spec.nvec).reshape(spec.shape) if isinstance(spec, MultiDiscreteSpec)
+                               else 2 if isinstance(spec, MultiBinarySpec) else None)
         # Old gym (and so the TF-Agents tutorials) reported a time-limit cut as `done`, a
         # termination: targets do not bootstrap through it. Some presets reproduce that.
         self.time_limit_terminates = time_limit_terminates
         self.info_keys: tuple[str, ...] = ()  # set by make_env: info values logged per episode
+
+    def _check_observations(self, obs: np.ndarray) -> None:
+        """One line for a step's observation outside the env's own Discrete / MultiDiscrete /
+        MultiBinary space (a one-hot past its end would be an index error deep in a network)."""
+        if self._obs_high is not None and ((obs < 0).any() or (obs >= self._obs_high).any()):
+            bad = next(o for o in obs if (np.asarray(o) < 0).any() or (np.asarray(o) >= self._obs_high).any())
+            raise UserError(f"the env's step returned observation {np.asarray(bad).tolist()}, outside its own "
+                            f"observation space {describe(self.observation_spec)}")
 
     def _actions(self, action: torch.Tensor) -> np.ndarray:
         """A step's actions as a NumPy array, one row per copy (anything else is refused)."""
@@ -155,7 +180,8 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
             hint = f"; did you mean {', '.join(close)}?" if close else ""
             raise UserError(
                 f"env.id={env_id!r} is not a registered Gymnasium id{hint} "
-                "(valid: a Gymnasium id such as CartPole-v1, relayrl/..., or package.module:Class)"
+                "(valid: a Gymnasium id such as CartPole-v1, relayrl/..., package.module:Class, or "
+                "package.module:EnvId-v0 for an id that module registers with gymnasium.register)"
             )
         base = _registered_fn(env_id, kwargs, max_episode_steps)
     return _wrapped(base, wrap) if wrap else base
@@ -338,6 +364,7 @@ class GymBatchEnv(BatchEnvBase):
         terminated = np.empty(b, np.bool_)
         truncated = np.empty(b, np.bool_)
         obs, info = self.step_into(act, next_obs, reward, terminated, truncated)
+        self._check_observations(next_obs)
         return StepOutput(torch.from_numpy(next_obs), torch.from_numpy(reward), torch.from_numpy(terminated),
                           torch.from_numpy(truncated), torch.from_numpy(obs), info)
 

@@ -442,6 +442,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
         next_obs[k:], reward[k:] = a["next_obs"][k:], a["reward"][k:]
         terminated[k:], truncated[k:] = a["terminated"][k:], a["truncated"][k:]
         ended = terminated | truncated
+        self._check_observations(next_obs)
         obs = next_obs
         if ended.any():
             obs = next_obs.copy()
