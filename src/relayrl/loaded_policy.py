@@ -15,16 +15,7 @@ import torch
 from relayrl.core import Policy
 from relayrl.errors import UserError
 from relayrl.policies import saved_obs_spec
-from relayrl.specs import (
-    DiscreteSpec,
-    MultiBinarySpec,
-    MultiDiscreteSpec,
-    PackedSpec,
-    Spec,
-    describe,
-    entry,
-    leaf_array,
-)
+from relayrl.specs import PackedSpec, Spec, describe, entry, leaf_array, value_limit
 
 
 class LoadedPolicy(Policy):
@@ -138,8 +129,7 @@ def _check_integral(t: torch.Tensor, s: Spec, where: str = "") -> None:
 def _check_range(t: torch.Tensor, s: Spec, where: str = "") -> None:
     """Discrete entries outside their range would index past a one-hot (and a MultiBinary 2 is no
     bit): one line instead."""
-    if isinstance(s, DiscreteSpec | MultiDiscreteSpec | MultiBinarySpec) and not t.is_floating_point() and t.numel():
-        high = (torch.as_tensor(s.nvec).reshape(s.shape) if isinstance(s, MultiDiscreteSpec)
-                else 2 if isinstance(s, MultiBinarySpec) else s.n)
-        if bool((t < 0).any() or (t >= high).any()):
+    high = value_limit(s)
+    if high is not None and not t.is_floating_point() and t.numel():
+        if bool((t < 0).any() or (t >= torch.as_tensor(high)).any()):
             raise UserError(f"observation{where} {t.tolist()} is outside this policy's {describe(s)} space")

@@ -99,6 +99,16 @@ class MultiBinarySpec(ArraySpec):
 Spec = ArraySpec | DiscreteSpec
 
 
+def value_limit(spec: Spec) -> Any:
+    """The exclusive upper bound of a Discrete / MultiDiscrete / MultiBinary value (an int, or an
+    array shaped like the spec; values start at 0); None for other specs."""
+    if isinstance(spec, DiscreteSpec):
+        return spec.n
+    if isinstance(spec, MultiDiscreteSpec):
+        return np.asarray(spec.nvec).reshape(spec.shape)
+    return 2 if isinstance(spec, MultiBinarySpec) else None
+
+
 def spec_from_space(space: gym.Space, role: str = "observation") -> Spec:
     """The spec of one element of `space` (`role`: "observation" or "action", for messages);
     UserError, naming the space and what is valid, for spaces relayrl cannot take."""

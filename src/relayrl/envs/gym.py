@@ -25,18 +25,7 @@ import torch
 from relayrl.core import BatchedEnv
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
-from relayrl.specs import (
-    ArraySpec,
-    DiscreteSpec,
-    MultiBinarySpec,
-    MultiDiscreteSpec,
-    PackedSpec,
-    Spec,
-    describe,
-    flat_action,
-    numpy_dtype,
-    spec_from_space,
-)
+from relayrl.specs import ArraySpec, PackedSpec, Spec, flat_action, numpy_dtype, spec_from_space, value_limit
 from relayrl.types import EpisodeInfo, StepOutput
 
 EnvFn = Callable[[], gym.Env]
@@ -93,13 +82,10 @@ class BatchEnvBase(BatchedEnv):
         self._obs_dtype = numpy_dtype(self.observation_spec)
         # Dict / Tuple observations travel as packed byte rows (specs.PackedSpec); None: as they are
         self._pack = self.observation_spec.pack if isinstance(self.observation_spec, PackedSpec) else None
-        self._discrete = isinstance(self.action_spec, DiscreteSpec)
+        self._discrete = isinstance(action_space, gym.spaces.Discrete)
         # Discrete, MultiDiscrete and MultiBinary observations index one-hots: the values past
         # their range (exclusive), checked on each step's [B] rows; None: nothing to check.
-        spec = self.observation_spec
-        self._obs_high: Any = (spec.n if isinstance(spec, DiscreteSpec)
-                               else np.asarray(spec.nvec).reshape(spec.shape) if isinstance(spec, MultiDiscreteSpec)
-                               else 2 if isinstance(spec, MultiBinarySpec) else None)
+        self._obs_high: Any = value_limit(self.observation_spec)
         # Old gym (and so the TF-Agents tutorials) reported a time-limit cut as `done`, a
         # termination: targets do not bootstrap through it. Some presets reproduce that.
         self.time_limit_terminates = time_limit_terminates
@@ -109,6 +95,8 @@ class BatchEnvBase(BatchedEnv):
         """One line for a step's observation outside the env's own Discrete / MultiDiscrete /
         MultiBinary space (a one-hot past its end would be an index error deep in a network)."""
         if self._obs_high is not None and ((obs < 0).any() or (obs >= self._obs_high).any()):
+            from relayrl.specs import describe  # the error path only
+
             bad = next(o for o in obs if (np.asarray(o) < 0).any() or (np.asarray(o) >= self._obs_high).any())
             raise UserError(f"the env's step returned observation {np.asarray(bad).tolist()}, outside its own "
                             f"observation space {describe(self.observation_spec)}")
