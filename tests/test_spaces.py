@@ -31,11 +31,11 @@ ONNX = {("dqn", "dict", "discrete"), ("sac", "tuple", "box"), ("ppo", "image_hwc
         ("ppo", "dict", "multi_binary"), ("sac", "box", "box2d"), ("ppo", "dict", "box_scalar")}
 
 
-def short_config(algo: str, obs: str, act: str):
+def short_config(algo: str, obs: str, act: str, vectorization: str = "sync"):
     preset = {"dqn": "dqn-cartpole-fast", "sac": "sac-pendulum", "ppo": "ppo-cartpole"}[algo]
     over = ["env.id=space_envs:Spaces", f"env.kwargs={{obs = '{obs}', act = '{act}'}}", "env.num_envs=2",
             "train.total_steps=96", "eval.interval=96", "eval.episodes=2", "env.max_episode_steps=16",
-            "train.checkpoint_interval=0"]
+            "train.checkpoint_interval=0", f"env.vectorization={vectorization}"]
     if algo == "ppo":
         over += ["train.collect_steps=16", "agent.batch_size=16", "agent.n_epochs=1", "agent.hidden=[16]"]
     elif algo == "sac":
@@ -71,7 +71,9 @@ def assert_valid(space: gym.Space, action) -> None:
 
 @pytest.mark.parametrize(("algo", "obs", "act"), CASES)
 def test_trained_policy_takes_the_envs_own_observations(algo, obs, act, tmp_path):
-    relayrl.train(short_config(algo, obs, act), tmp_path, progress=False)
+    # actions travel in the env's shape to worker processes too (async: one copy in a worker)
+    vectorization = "async" if act in ("box_scalar", "box2d") and obs == "box" else "sync"
+    relayrl.train(short_config(algo, obs, act, vectorization), tmp_path, progress=False)
     policy = relayrl.load_policy(tmp_path)
     env = Spaces(obs, act)
     o, _ = env.reset(seed=0)

@@ -218,8 +218,10 @@ class AsyncGymBatchEnv(BatchEnvBase):
             # fork on Linux: workers start in milliseconds and inherit what they need. Elsewhere
             # spawn: macOS has fork, but its system libraries are not safe to use after one.
             ctx = mp.get_context("fork" if sys.platform.startswith("linux") else "spawn")
+            # actions in the env's own shape, as `_actions` hands them on
+            act_shape = tuple(self.action_spec.shape) if self._env_action_shape is None else self._env_action_shape
             self._buf = _Buffers(ctx, self.num_envs, tuple(self.observation_spec.shape), np.dtype(self._obs_dtype),
-                                 tuple(self.action_spec.shape), act_dtype)
+                                 act_shape, act_dtype)
             for lo, hi in self.slices[1:]:
                 parent, child = ctx.Pipe()
                 _MAIN_ENDS.add(parent)  # before the fork: the worker closes its copy of it too
