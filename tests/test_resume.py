@@ -104,6 +104,17 @@ def test_a_run_a_callback_stopped_at_its_first_evaluation_resumes_to_the_uninter
     assert comparable(tmp_path / "cut") == comparable(tmp_path / "full")  # one step-0 evaluation, not two
 
 
+def test_an_evaluation_uses_up_its_seed_index_only_where_it_covers_a_new_grid_boundary():
+    from relayrl.training.triggers import covers_boundary
+
+    assert covers_boundary(0, 500, 0)  # the untrained policy's
+    assert covers_boundary(503, 500, 1)  # a batched step just past the first boundary
+    assert not covers_boundary(300, 500, 1)  # where a callback stopped the run, between 0 and 500
+    assert covers_boundary(1500, 500, 3)  # on Ray: the last boundary, which the final evaluation covers
+    assert not covers_boundary(1700, 500, 4)  # a last step between boundaries
+    assert covers_boundary(2048, 500, 1)  # one rollout over four boundaries: one evaluation, one index
+
+
 def test_a_run_a_callback_stopped_between_evaluations_resumes_to_the_uninterrupted_run(tmp_path):
     """The stop's own evaluation (step 300, off the 500-step grid) is one row more; every later
     evaluation keeps the uninterrupted run's seed."""

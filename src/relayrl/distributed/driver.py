@@ -32,7 +32,7 @@ from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_
 from relayrl.training.replay_setup import replay_path
 from relayrl.training.report import say
 from relayrl.training.run_dir import RunDir
-from relayrl.training.triggers import IntervalTrigger, Progress
+from relayrl.training.triggers import IntervalTrigger, Progress, covers_boundary
 
 
 class Collection(Protocol):
@@ -109,14 +109,14 @@ class RayDriver:
         if p.env_steps < self.config.train.total_steps:
             self.evaluate_now(p)
 
-    def evaluate_now(self, p: Progress, advance: bool = True) -> None:
+    def evaluate_now(self, p: Progress) -> None:
         workers = self.pool.eval_workers
         self._finish_evals(until=len(workers) - 1)  # one in flight per eval actor; rows stay in step order
         self.pusher.push(force=True)  # the eval actor evaluates these weights (or newer)
         seed = self.seeds.base("evaluation") + EVAL_STRIDE * self.eval_count
         w = self.eval_count % len(workers)
         self.evals.append((workers[w].evaluate.remote(seed), p, time.perf_counter(), self.core.wall_time(), w, seed))
-        self.eval_count += advance
+        self.eval_count += covers_boundary(p.env_steps, self.config.eval.interval, self.eval_count)
 
     def settle_evals(self) -> None:
         self._finish_evals(until=0)

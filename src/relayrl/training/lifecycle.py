@@ -107,7 +107,6 @@ class RunCore:
                                         extra={"env_id": c.env.id, **action_shape_entry(agent.action_spec)})
         self.checkpointer = Checkpointer(c.train.checkpoint_interval, checkpoint_state, rd.checkpoints)
         self.sps_log = StepsPerSecondLog(c.train.log_interval, report=self.report.log_progress)
-        self.evaluation = evaluation
         self.triggers: list[IntervalTrigger] = [evaluation, self.policy_saver, self.checkpointer, self.sps_log]
 
     def say(self, text: str) -> None:
@@ -220,9 +219,8 @@ class Driver(Protocol):
     def announce(self) -> None:
         """A line about the run's layout, once it starts."""
 
-    def evaluate_now(self, p: Progress, advance: bool = True) -> None:
-        """Start an evaluation of the current policy (its row is written when it finishes);
-        `advance=False`: one off the interval grid, which leaves the next one its seed."""
+    def evaluate_now(self, p: Progress) -> None:
+        """Start an evaluation of the current policy (its row is written when it finishes)."""
 
     def iterate(self) -> None:
         """Collect and train up to train.total_steps, firing the core's triggers."""
@@ -276,7 +274,7 @@ def finish(driver: Driver, p: Progress) -> None:
     core = driver.core
     core.check_finite(p, weights=True)
     if core.report.last_eval.get("step") != p.env_steps:
-        driver.evaluate_now(p, advance=core.evaluation.due(p))  # due: it covers a boundary (on Ray)
+        driver.evaluate_now(p)
     driver.settle_evals()
     core.policy_saver.save(p)
     if core.config.train.checkpoint_interval > 0:

@@ -120,8 +120,8 @@ class LocalDriver:
     def announce(self) -> None:
         """One process says nothing about its layout."""
 
-    def evaluate_now(self, p: Progress, advance: bool = True) -> None:
-        self.evaluator.evaluate(p, advance)
+    def evaluate_now(self, p: Progress) -> None:
+        self.evaluator.evaluate(p)
 
     def settle_evals(self) -> None:
         """Evaluations run in turn here: none is in flight."""

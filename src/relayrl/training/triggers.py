@@ -92,14 +92,21 @@ class Checkpointer(IntervalTrigger):
                         keep=self.keep)
 
 
+def covers_boundary(steps: int, interval: int, evaluations: int) -> bool:
+    """Whether an evaluation at `steps` covers a boundary of the `interval` grid (0, interval,
+    2 interval, ...) that the `evaluations` so far have not: then it uses up its seed index. One
+    off the grid (where a callback stopped the run, a last step between boundaries) leaves the
+    index to the next, so a resume that goes on evaluates as the uninterrupted run."""
+    return steps // interval + 1 > evaluations
+
+
 class Evaluate(IntervalTrigger):
     """Runs `episodes` episodes of `policy_fn()` on `env`; results go to `results` and `on_result`.
 
     Evaluation k (from 0, counted in `count`, which a resumed run restores) resets the env with
-    seed + EVAL_STRIDE * k; `seconds` is how long the latest one took. An evaluation off the
-    interval grid (`advance=False`: where a callback stopped the run, or a final step between
-    boundaries) takes the next one's seed without using it up, so a resume that goes on
-    evaluates as the uninterrupted run.
+    seed + EVAL_STRIDE * k; `seconds` is how long the latest one took. An evaluation that
+    covers no new boundary of the interval grid (`covers_boundary`) takes the next one's seed
+    without using it up.
     """
 
     def __init__(self, interval: int, env: Any, policy_fn: Callable[[], Any], episodes: int = 10,
@@ -112,13 +119,13 @@ class Evaluate(IntervalTrigger):
         self.count = 0
         self.seconds = 0.0
 
-    def evaluate(self, progress: Progress, advance: bool = True) -> None:
+    def evaluate(self, progress: Progress) -> None:
         from relayrl.training.evaluate import evaluate
 
         t0 = time.perf_counter()
         result = evaluate(self.env, self.policy_fn(), self.episodes, seed=self.seed + EVAL_STRIDE * self.count)
         self.seconds = time.perf_counter() - t0
-        self.count += advance
+        self.count += self.interval <= 0 or covers_boundary(self._count(progress), self.interval, self.count)
         self.results.append((progress, result))
         if self.on_result is not None:
             self.on_result(progress, result)
