@@ -190,13 +190,16 @@ def test_refuses_unbounded_actions_random_warmup_and_stale_actors(tmp_path):
         setattr(cfg.train, key, 100)  # set in Python after loading: train() checks it too
         with pytest.raises(ConfigError, match=key):
             relayrl.train(cfg, tmp_path / key, progress=False)
+    relayrl.load_config("ppo-cartpole", ["train.gradient_steps=0"])  # collection only (bench/ppo_stateless.py)
 
 
 def test_refuses_a_minibatch_larger_than_a_rollout():
     rollout = relayrl.load_config("ppo-cartpole").train.collect_steps
     relayrl.load_config("ppo-cartpole", [f"agent.batch_size={rollout}"])  # the whole rollout: taken
-    with pytest.raises(ConfigError, match=r"agent.batch_size=\d+ is more than one rollout \(train.collect_steps"):
+    with pytest.raises(ConfigError, match=r"agent.batch_size=\d+ is more than one rollout \(\d+ env steps"):
         relayrl.load_config("ppo-cartpole", [f"agent.batch_size={rollout + 1}"])
+    # 10 steps over 4 copies is a rollout of 12
+    relayrl.load_config("ppo-cartpole", ["env.num_envs=4", "train.collect_steps=10", "agent.batch_size=12"])
 
 
 def test_an_undefined_explained_variance_is_not_taken_for_divergence():

@@ -194,6 +194,12 @@ class Config(Section):
             raise ConfigError(f"distributed.actor_cpus={d.actor_cpus} is not valid; it must be >= 0")
         self.agent.validate()
 
+    def steps_per_iteration(self) -> int:
+        """Env steps one collect iteration (an on-policy rollout) takes: train.collect_steps
+        rounded up to whole batched steps, as the actor steps every env copy together."""
+        b = self.env.num_envs
+        return -(-self.train.collect_steps // b) * b
+
     def _check_on_policy(self) -> None:
         """An on-policy algorithm learns from each rollout once, collected by the policy just
         trained: no warm-up, weight-pull or replay settings apply to it."""
@@ -211,11 +217,11 @@ class Config(Section):
             if getattr(self.replay, key) != used:
                 raise ConfigError(f"replay.{key}={getattr(self.replay, key)!r} is not valid for algo={self.algo!r}: "
                                   f"it learns from each rollout once, not from a replay; leave it at {used!r}")
-        if self.train.gradient_steps != 1:
+        if self.train.gradient_steps > 1:
             raise ConfigError(f"train.gradient_steps={self.train.gradient_steps} does not apply to algo={self.algo!r}: "
                               "it trains on each rollout for the agent's own epochs of minibatches "
-                              "(agent.n_epochs, agent.batch_size); leave it at 1")
-        self.agent.check_rollout(self.train.collect_steps)
+                              "(agent.n_epochs, agent.batch_size); leave it at 1 (0: collect only)")
+        self.agent.check_rollout(self.steps_per_iteration())
 
 
 def to_dict(config: Config) -> dict[str, Any]:

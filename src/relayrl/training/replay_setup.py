@@ -32,11 +32,6 @@ from relayrl.seeding import RunSeeds
 from relayrl.specs import ArraySpec, Spec
 
 
-def env_steps_per_iteration(c: Config) -> int:
-    b = c.env.num_envs
-    return -(-c.train.collect_steps // b) * b  # the actor steps all envs together
-
-
 def collect_only(c: Config) -> bool:
     """train.gradient_steps = 0 with no replay.samples_per_insert: a run that only collects
     (its MinSize limiter would let a learner sample without end)."""
@@ -54,7 +49,7 @@ def rate_limiter(c: Config, burst_steps: int | None = None) -> RateLimiter:
         why = "" if r.min_size_to_sample else f" (replay.min_size_to_sample = 0 takes {given})"
         raise ConfigError(f"learning waits for {min_size:,} transitions{why}, more than replay.size={r.size:,} holds; "
                           f"lower {given} or raise replay.size")
-    per_iter = env_steps_per_iteration(c) if burst_steps is None else burst_steps
+    per_iter = c.steps_per_iteration() if burst_steps is None else burst_steps
     # The nominal ratio (gradient_steps per collect_steps env steps), not per actual
     # iteration: with N envs an iteration may take more env steps than collect_steps (all
     # copies step together), and the update-to-data ratio must not change with N.

@@ -67,9 +67,9 @@ class PPOConfig(Section):
 
     def check_rollout(self, steps: int) -> None:
         if self.batch_size > steps:
-            raise ConfigError(f"agent.batch_size={self.batch_size} is more than one rollout (train.collect_steps="
-                              f"{steps} env steps): a minibatch is part of a rollout; lower agent.batch_size "
-                              "or raise train.collect_steps")
+            raise ConfigError(f"agent.batch_size={self.batch_size} is more than one rollout ({steps} env steps: "
+                              "train.collect_steps over whole batched steps): a minibatch is part of a rollout; "
+                              "lower agent.batch_size or raise train.collect_steps")
 
 
 # `relayrl train ppo` / `algo = "ppo"`: what a config that names only algo and env.id gets beyond
