@@ -298,3 +298,32 @@ def test_a_step_observation_outside_the_envs_own_space_is_one_line(vectorization
     with pytest.raises(UserError, match=r"the env's step returned observation 7, outside its own observation "
                                         r"space Discrete\(4\)"):
         relayrl.train(cfg, tmp_path, progress=False, env=_OutOfRange)
+
+
+class _DictOutOfRange(gym.Env):
+    """A Dict observation whose Discrete(4) entry is 9 at reset (`at="reset"`) or 7 at step 30."""
+
+    observation_space = gym.spaces.Dict({"cell": gym.spaces.Discrete(4), "pos": gym.spaces.Box(-1, 1, (2,))})
+    action_space = gym.spaces.Discrete(2)
+
+    def __init__(self, at: str = "step") -> None:
+        self.at = at
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return {"cell": 9 if self.at == "reset" else 0, "pos": np.zeros(2, np.float32)}, {}
+
+    def step(self, action):
+        self.t += 1
+        return {"cell": 7 if self.t == 30 else 1, "pos": np.zeros(2, np.float32)}, 0.0, False, self.t >= 50, {}
+
+
+@pytest.mark.parametrize("vectorization", ["sync", "async"])
+@pytest.mark.parametrize("at, value", [("step", 7), ("reset", 9)])
+def test_a_dict_entry_outside_its_space_is_one_line_at_step_and_reset(at, value, vectorization, tmp_path):
+    cfg = relayrl.load_config("dqn", ["env.check=false", "train.total_steps=200", "env.num_envs=2",
+                                      f"env.vectorization={vectorization}"])
+    with pytest.raises(UserError, match=rf"the env's {at} returned observation\['cell'\] {value}, outside its own "
+                                        r"observation space Discrete\(4\)"):
+        relayrl.train(cfg, tmp_path, progress=False, env=lambda: _DictOutOfRange(at))

@@ -83,23 +83,32 @@ class BatchEnvBase(BatchedEnv):
         # Dict / Tuple observations travel as packed byte rows (specs.PackedSpec); None: as they are
         self._pack = self.observation_spec.pack if isinstance(self.observation_spec, PackedSpec) else None
         self._discrete = isinstance(action_space, gym.spaces.Discrete)
-        # Discrete, MultiDiscrete and MultiBinary observations index one-hots: the values past
-        # their range (exclusive), checked on each step's [B] rows; None: nothing to check.
-        self._obs_high: Any = value_limit(self.observation_spec)
+        # Discrete, MultiDiscrete and MultiBinary observations (and Dict / Tuple entries) index
+        # one-hots: (entry or None for the whole row, the values' exclusive limit) of each.
+        spec = self.observation_spec
+        parts = [(f, f.spec) for f in spec.fields] if isinstance(spec, PackedSpec) else [(None, spec)]
+        self._obs_limits = [(f, limit) for f, s in parts if (limit := value_limit(s)) is not None]
         # Old gym (and so the TF-Agents tutorials) reported a time-limit cut as `done`, a
         # termination: targets do not bootstrap through it. Some presets reproduce that.
         self.time_limit_terminates = time_limit_terminates
         self.info_keys: tuple[str, ...] = ()  # set by make_env: info values logged per episode
 
-    def _check_observations(self, obs: np.ndarray) -> None:
-        """One line for a step's observation outside the env's own Discrete / MultiDiscrete /
-        MultiBinary space (a one-hot past its end would be an index error deep in a network)."""
-        if self._obs_high is not None and ((obs < 0).any() or (obs >= self._obs_high).any()):
-            from relayrl.specs import describe  # the error path only
+    def _check_observations(self, obs: np.ndarray, where: str = "step") -> None:
+        """One line for observations [B, ...] outside the env's own Discrete / MultiDiscrete /
+        MultiBinary space or entry (a one-hot past its end would be an index error deep in a network)."""
+        for f, high in self._obs_limits:
+            values = obs if f is None else obs[:, f.offset:f.offset + f.nbytes].view(numpy_dtype(f.spec))
+            values = values.reshape(len(obs), -1)  # [B, entries]
+            out = ((values < 0) | (values >= np.asarray(high).reshape(-1))).any(axis=1)
+            if out.any():
+                from relayrl.specs import describe  # the error path only
 
-            bad = next(o for o in obs if (np.asarray(o) < 0).any() or (np.asarray(o) >= self._obs_high).any())
-            raise UserError(f"the env's step returned observation {np.asarray(bad).tolist()}, outside its own "
-                            f"observation space {describe(self.observation_spec)}")
+                row = values[int(np.flatnonzero(out)[0])]
+                bad = row[0] if row.size == 1 else row
+                entry = "" if f is None else f"[{f.key!r}]"
+                space = describe(self.observation_spec if f is None else f.spec)
+                raise UserError(f"the env's {where} returned observation{entry} {bad.tolist()}, outside its own "
+                                f"observation space {space}")
 
     def _actions(self, action: torch.Tensor) -> np.ndarray:
         """A step's actions as a NumPy array, one row per copy (anything else is refused)."""
@@ -342,7 +351,9 @@ class GymBatchEnv(BatchEnvBase):
             if seed is not None:
                 env.action_space.seed(seed + i)
             obs.append(o if self._pack is None else self._pack(o))
-        return torch.from_numpy(np.stack(obs).astype(self._obs_dtype, copy=False))
+        rows = np.stack(obs).astype(self._obs_dtype, copy=False)
+        self._check_observations(rows, "reset")
+        return torch.from_numpy(rows)
 
     def step(self, action: torch.Tensor) -> StepOutput:
         b = self.num_envs
@@ -353,6 +364,8 @@ class GymBatchEnv(BatchEnvBase):
         truncated = np.empty(b, np.bool_)
         obs, info = self.step_into(act, next_obs, reward, terminated, truncated)
         self._check_observations(next_obs)
+        if obs is not next_obs:
+            self._check_observations(obs, "reset")
         return StepOutput(torch.from_numpy(next_obs), torch.from_numpy(reward), torch.from_numpy(terminated),
                           torch.from_numpy(truncated), torch.from_numpy(obs), info)
 

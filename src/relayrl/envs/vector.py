@@ -420,7 +420,8 @@ class AsyncGymBatchEnv(BatchEnvBase):
             raise
         self._gather(seq)
         obs = self._buf.arrays["obs"].copy()
-        obs[:self._k] = local.numpy()
+        obs[:self._k] = local.numpy()  # (the in-process rows were checked by their own reset)
+        self._check_observations(obs[self._k:], "reset")
         return torch.from_numpy(obs)
 
     def step(self, action: torch.Tensor) -> StepOutput:
@@ -450,6 +451,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
             obs = next_obs.copy()
             reset_obs[k:] = a["obs"][k:]
             obs[ended] = reset_obs[ended]
+            self._check_observations(reset_obs[ended], "reset")
         return StepOutput(torch.from_numpy(next_obs), torch.from_numpy(reward), torch.from_numpy(terminated),
                           torch.from_numpy(truncated), torch.from_numpy(obs), self._join_infos([local_info, *infos]))
 
