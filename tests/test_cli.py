@@ -27,7 +27,8 @@ def run(args, env, cwd=None):
     (["train"], "train needs PRESET|CONFIG.toml (see `relayrl presets`), or --run-dir DIR --resume"),
     (["frobnicate"], "invalid choice"),
     (["train", "dqn-cartpole", "--dir", "x"], "unrecognized arguments: --dir x; did you mean --run-dir?"),
-    (["train", "dqn-cartpole", "--foo"], "unrecognized arguments: --foo (see"),
+    (["train", "dqn-cartpole", "--foo"], "unrecognized arguments: --foo (see 'relayrl train --help')"),
+    (["plot", "x", "--episodes", "3"], "unrecognized arguments: --episodes 3 (see 'relayrl plot --help')"),  # eval's
 ])
 def test_bad_input_is_one_line_and_exit_2(args, fragment, cli_env, tmp_path):
     r = run(args, cli_env, cwd=tmp_path)

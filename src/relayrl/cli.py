@@ -23,21 +23,25 @@ class _Parser(argparse.ArgumentParser):
     """argparse that reports bad usage in one line (no usage dump), exit code 2, naming the
     option meant where an unknown one is close to a known one."""
 
-    options: set[str] = set()  # every option of every command, for the hint
+    options: frozenset[str] = frozenset()  # this command's long options (each parser adds its own)
 
     def add_argument(self, *args: Any, **kwargs: Any) -> argparse.Action:
-        _Parser.options.update(a for a in args if isinstance(a, str) and a.startswith("--"))
+        self.options = self.options | {a for a in args if isinstance(a, str) and a.startswith("--")}
         return super().add_argument(*args, **kwargs)
 
-    def error(self, message: str) -> NoReturn:
-        if message.startswith("unrecognized arguments:"):
-            import difflib
+    def unrecognized(self, extra: list[str]) -> NoReturn:
+        """Arguments this command does not take, naming the option meant where one is close."""
+        import difflib
 
-            for word in message.split(":", 1)[1].split():
-                near = difflib.get_close_matches(word.split("=")[0], sorted(_Parser.options), n=1, cutoff=0.7)
-                if word.startswith("--") and near:
-                    message += f"; did you mean {near[0]}?"
-                    break
+        message = f"unrecognized arguments: {' '.join(extra)}"
+        for word in extra:
+            near = difflib.get_close_matches(word.split("=")[0], sorted(self.options), n=1, cutoff=0.7)
+            if word.startswith("--") and near:
+                message += f"; did you mean {near[0]}?"
+                break
+        self.error(message)
+
+    def error(self, message: str) -> NoReturn:
         print(f"relayrl: error: {message} (see 'relayrl {self.prog.split()[-1]} --help')"
               if " " in self.prog else f"relayrl: error: {message} (see 'relayrl --help')",
               file=sys.stderr)
@@ -63,6 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="relayrl", description="Deep RL on PyTorch and Gymnasium.")
     p.add_argument("--version", action="version", version=f"relayrl {__version__}")
     sub = p.add_subparsers(dest="command", parser_class=_Parser)
+    p.set_defaults(parsers=sub.choices)  # command -> its parser, for `unrecognized`
     sub.add_parser("presets", help="list preset names with a short description")
     t = sub.add_parser("train", help="train a preset or a config TOML into a run directory")
     t.add_argument("config", metavar="PRESET|CONFIG.toml", nargs="?",
@@ -194,7 +199,9 @@ def main(argv: list[str] | None = None) -> int:
     if "" not in sys.path and os.getcwd() not in sys.path:
         sys.path.insert(0, os.getcwd())
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        (args.parsers.get(args.command) or parser).unrecognized(extra)
     if args.command is None:
         parser.print_help()
         return EXIT_USAGE
