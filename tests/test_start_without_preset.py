@@ -89,6 +89,9 @@ def test_a_saved_config_round_trips(tmp_path):
         c = load_config(algo)
         save_toml(c, tmp_path / "c.toml")
         assert to_dict(from_dict(load_toml(tmp_path / "c.toml"))) == to_dict(c)
+    c = load_config("dqn", ["env.kwargs={\"é\" = 2, \"a b\" = 1}"])  # keys TOML must quote
+    save_toml(c, tmp_path / "k.toml")
+    assert from_dict(load_toml(tmp_path / "k.toml")).env.kwargs == {"é": 2, "a b": 1}
     lines = (tmp_path / "c.toml").read_text().splitlines()
     assert [line for line in lines if line.startswith("total_steps = ")][0].endswith("  # env steps")  # explained
 

@@ -203,4 +203,5 @@ def toml_literal(value: Any) -> str:
 
 
 def _key(key: str) -> str:
-    return key if key and all(c.isalnum() or c in "-_" for c in key) else toml_literal(key)
+    """A TOML key: bare where TOML allows (ASCII letters, digits, - and _), else quoted."""
+    return key if key and all(c.isascii() and (c.isalnum() or c in "-_") for c in key) else toml_literal(key)
