@@ -194,8 +194,9 @@ def test_a_discrete_entry_of_a_dict_outside_its_range_is_one_line(tmp_path):
         policy({**batch, "pos": np.zeros((2, 2), np.float32)})  # batches of 3 and of 2
     # integer entries take floats holding the env's values, and refuse fractions (frames scaled to [0, 1])
     assert policy({**obs, "frame": obs["frame"].astype(np.float32)}) == policy(obs)
-    with pytest.raises(UserError, match=r"observation\['frame'\] holds fractional float32 values; this policy "
-                                        r"takes Box\(shape=\(1, 8, 8\), dtype=uint8\) values as the env gives them"):
+    with pytest.raises(UserError, match=r"observation\['frame'\] holds float32 values that are not whole numbers in "
+                                        r"uint8's range; this policy takes Box\(shape=\(1, 8, 8\), dtype=uint8\) "
+                                        r"values as the env gives them"):
         policy({**obs, "frame": obs["frame"].astype(np.float32) / 255.0 + 0.5 / 255})
 
 
@@ -204,8 +205,10 @@ def test_an_image_policy_takes_the_envs_frames_as_numbers_and_bits_in_range(tmp_
     policy = relayrl.load_policy(tmp_path / "image")
     frame = Spaces("image").reset(seed=0)[0]
     assert policy(frame.astype(np.float64)) == policy(frame)  # as the env gives them, in another dtype
-    with pytest.raises(UserError, match="holds fractional float32 values.*not scaled to \\[0, 1\\]"):
+    with pytest.raises(UserError, match="not whole numbers in uint8's range.*not scaled to \\[0, 1\\]"):
         policy(frame.astype(np.float32) / 255.0 + 0.5 / 255)
+    with pytest.raises(UserError, match="not whole numbers in uint8's range"):
+        policy(frame.astype(np.float32) + 300)  # would wrap round in a uint8
     relayrl.train(short_config("dqn", "multi_binary", "discrete"), tmp_path / "bits", progress=False)
     with pytest.raises(UserError, match=r"observation \[0, 2, 1\] is outside this policy's MultiBinary\(\[3\]\)"):
         relayrl.load_policy(tmp_path / "bits")(np.array([0, 2, 1], np.int8))

@@ -173,8 +173,10 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         if not _out_of_memory(e):
             raise
         detail = str(e).strip().splitlines()[-1][:200] if str(e).strip() else type(e).__name__
-        raise UserError(f"not enough memory to build the run ({detail}): lower replay.size={config.replay.size:,} "
-                        "or the networks' sizes (the agent's hidden sizes)") from None
+        data = (f"replay.size={config.replay.size:,}" if entry.replay == "transitions"
+                else f"train.collect_steps={config.train.collect_steps:,}")
+        raise UserError(f"not enough memory to build the run ({detail}): lower {data} or the networks' sizes "
+                        "(the agent's hidden sizes)") from None
     try:
         if not resume and takeover:
             print(f"relayrl: {takeover}", file=sys.stderr, flush=True)

@@ -119,11 +119,15 @@ class LoadedPolicy(Policy):
 
 def _check_integral(t: torch.Tensor, s: Spec, where: str = "") -> None:
     """Floats given for integer values (uint8 frames, counts) are cast as the env would give
-    them; fractions would be cut to other values (frames scaled to [0, 1] to zeros): one line."""
-    if t.is_floating_point() and not s.dtype.is_floating_point and t.numel() and bool((t != t.round()).any()):
-        raise UserError(f"observation{where} holds fractional {str(t.dtype).removeprefix('torch.')} values; this "
-                        f"policy takes {describe(s)} values as the env gives them (frames as 0..255, not scaled "
-                        "to [0, 1])")
+    them; fractions would be cut to other values (frames scaled to [0, 1] to zeros), and values
+    past the dtype's range would wrap: one line."""
+    if not t.is_floating_point() or s.dtype.is_floating_point or not t.numel() or s.dtype == torch.bool:
+        return
+    info = torch.iinfo(s.dtype)
+    if bool((t != t.round()).any() or (t < info.min).any() or (t > info.max).any()):
+        raise UserError(f"observation{where} holds {str(t.dtype).removeprefix('torch.')} values that are not "
+                        f"whole numbers in {str(s.dtype).removeprefix('torch.')}'s range; this policy takes "
+                        f"{describe(s)} values as the env gives them (frames as 0..255, not scaled to [0, 1])")
 
 
 def _check_range(t: torch.Tensor, s: Spec, where: str = "") -> None:
