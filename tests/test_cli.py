@@ -40,6 +40,14 @@ def test_bad_input_is_one_line_and_exit_2(args, fragment, cli_env, tmp_path):
     assert not (tmp_path / "runs").exists()  # nothing written for bad input
 
 
+def test_running_out_of_memory_during_a_run_is_one_line(cli_env, tmp_path):
+    huge = "100000000000000"  # PPO allocates its rollout once the run has started (and evaluated step 0)
+    r = run(["train", "ppo-cartpole", "--run-dir", str(tmp_path / "r"), "--no-progress", "--set",
+             f"train.collect_steps={huge}", "--set", f"train.total_steps={huge}"], cli_env)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip().splitlines()[-1].startswith("relayrl: error: out of memory (Unable to allocate")
+
+
 def test_presets_lists_one_per_line(cli_env):
     r = run(["presets"], cli_env)
     assert r.returncode == 0

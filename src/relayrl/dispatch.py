@@ -170,7 +170,7 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     try:
         driver = _make_driver(entry, config, rd, progress, env, callbacks)
     except (MemoryError, RuntimeError) as e:
-        if not _out_of_memory(e):
+        if not out_of_memory(e):
             raise
         detail = str(e).strip().splitlines()[-1][:200] if str(e).strip() else type(e).__name__
         data = (f"replay.size={config.replay.size:,}" if entry.replay == "transitions"
@@ -193,7 +193,7 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         driver.close()  # env processes and Ray actors end with the run, or before it where it never started
 
 
-def _out_of_memory(e: BaseException) -> bool:
+def out_of_memory(e: BaseException) -> bool:
     """NumPy's and Python's MemoryError, or torch's CPU / CUDA allocator refusing."""
     return isinstance(e, MemoryError) or any(s in str(e) for s in ("can't allocate memory", "not enough memory",
                                                                    "out of memory"))
