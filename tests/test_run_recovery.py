@@ -91,6 +91,18 @@ def test_overwrite_refuses_a_folder_that_is_not_a_run(tmp_path):
     assert (tmp_path / "notes.txt").read_text() == "mine"
 
 
+def test_a_new_run_in_a_folder_of_other_files_says_so_and_leaves_them(tmp_path, capsys):
+    (tmp_path / "notes.txt").write_text("mine")
+    (tmp_path / "policy").mkdir()
+    (tmp_path / "policy" / "mine.txt").write_text("mine too")
+    train(load_config("dqn-cartpole", TINY), tmp_path, progress=False)
+    assert f"run directory {str(tmp_path)!r} holds other files: the run is written beside them" in \
+        capsys.readouterr().err
+    assert (tmp_path / "notes.txt").read_text() == "mine" and (tmp_path / "policy" / "mine.txt").exists()
+    train(load_config("dqn-cartpole", TINY + ["train.checkpoint_interval=0"]), tmp_path / "empty", progress=False)
+    assert "holds other files" not in capsys.readouterr().err  # an empty or new folder: nothing to say
+
+
 @pytest.mark.parametrize("args, fragment", [
     (["sac-pendulum"], "algo='sac' but the run in"),
     (["dqn-cartpole", "--set", "env.id=Acrobot-v1"], "env.id='Acrobot-v1' but the run in"),

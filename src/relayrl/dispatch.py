@@ -161,6 +161,8 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         check_resume_matches(config, rd)
     else:
         takeover = _takeover_notice(rd, overwrite)
+    # files that are not a run's (looked at before the run's parts make a memmap replay's folder)
+    beside = not resume and not takeover and rd.root.is_dir() and any(rd.root.iterdir())
     if resume and not entry.resumable:
         raise UserError(f"algo={entry.name!r} runs are not checkpointed (they take minutes): start a new run instead")
     if config.distributed.num_actors > 0 and not entry.ray:
@@ -181,6 +183,9 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         if not resume and takeover:
             print(f"relayrl: {takeover}", file=sys.stderr, flush=True)
             rd.clear()
+        elif beside:
+            print(f"relayrl: run directory {str(rd.root)!r} holds other files: the run is written beside them",
+                  file=sys.stderr, flush=True)
         rd.create()
         rd.hold_lock()
         try:
