@@ -245,9 +245,9 @@ def main(argv: list[str] | None = None) -> int:
     except (MemoryError, RuntimeError) as e:  # during a run (its parts were built: dispatch.train says that one)
         from relayrl.dispatch import out_of_memory
 
-        if not out_of_memory(e):
+        detail = out_of_memory(e)
+        if detail is None:
             raise
-        detail = (str(e).strip().splitlines() or [type(e).__name__])[-1][:200]
         print(f"relayrl: error: out of memory ({detail}): lower the run's sizes (train.collect_steps x "
               "env.num_envs for PPO's rollouts, replay.size, the hidden sizes); checkpoints written so far are kept",
               file=sys.stderr)

@@ -172,9 +172,9 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     try:
         driver = _make_driver(entry, config, rd, progress, env, callbacks)
     except (MemoryError, RuntimeError) as e:
-        if not out_of_memory(e):
+        detail = out_of_memory(e)
+        if detail is None:
             raise
-        detail = str(e).strip().splitlines()[-1][:200] if str(e).strip() else type(e).__name__
         data = (f"replay.size={config.replay.size:,}" if entry.replay == "transitions"
                 else f"train.collect_steps={config.train.collect_steps:,}")
         raise UserError(f"not enough memory to build the run ({detail}): lower {data} or the networks' sizes "
@@ -198,10 +198,14 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
         driver.close()  # env processes and Ray actors end with the run, or before it where it never started
 
 
-def out_of_memory(e: BaseException) -> bool:
-    """NumPy's and Python's MemoryError, or torch's CPU / CUDA allocator refusing."""
-    return isinstance(e, MemoryError) or any(s in str(e) for s in ("can't allocate memory", "not enough memory",
-                                                                   "out of memory"))
+def out_of_memory(e: BaseException) -> str | None:
+    """The allocator's last line where `e` is running out of memory (NumPy's and Python's
+    MemoryError, torch's CPU / CUDA allocator refusing); None for any other error."""
+    text = str(e).strip()
+    if not isinstance(e, MemoryError) and not any(s in text for s in ("can't allocate memory", "not enough memory",
+                                                                      "out of memory")):
+        return None
+    return text.splitlines()[-1][:200] if text else type(e).__name__
 
 
 def _make_driver(entry: Algorithm, config: Config, rd: RunDir, progress: bool, env: Callable[[], Any] | None,
