@@ -128,7 +128,7 @@ def build_rollouts(c: Config, device: torch.device | None = None) -> tuple[Table
     rollout per iteration with the current policy, so no stale data is ever trained on.
     `device`: rollouts stay torch tensors there (a stateless torch env's); None: NumPy arrays.
     What an on-policy config may not set, `Config` refuses."""
-    steps = -(-c.train.collect_steps // c.env.num_envs)  # per env copy
+    steps = c.steps_per_iteration() // c.env.num_envs  # per env copy
     if device is not None:
         table = tensor_rollout_queue("rollouts", 1, device)
         return table, TensorRolloutWriter(table, steps, device)
