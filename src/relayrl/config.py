@@ -140,58 +140,33 @@ class Config(Section):
             raise ConfigError(f"seed={self.seed} is not valid; it must be an integer in [0, {MAX_SEED}]")
         if self.device not in ("cpu", "cuda", "auto") and not self.device.startswith("cuda:"):
             raise ConfigError(f"device={self.device!r} is not valid; valid: cpu, cuda, cuda:N, auto")
-        positive = {
-            "env.num_envs": self.env.num_envs,
-            "train.total_steps": self.train.total_steps,
-            "train.collect_steps": self.train.collect_steps,
-            "replay.size": self.replay.size,
-            "replay.n_step": self.replay.n_step,
-            "eval.interval": self.eval.interval,
-            "eval.episodes": self.eval.episodes,
-        }
-        for key, value in positive.items():
-            if value < 1:
-                raise ConfigError(f"{key}={value} is not valid; it must be >= 1")
-        if self.env.max_episode_steps < 0:
-            raise ConfigError(f"env.max_episode_steps={self.env.max_episode_steps} is not valid; it must be >= 0 "
-                              "(0: the env's own time limit)")
+        self.env.require(">= 1", "num_envs")
+        self.train.require(">= 1", "total_steps", "collect_steps")
+        self.replay.require(">= 1", "size", "n_step")
+        self.eval.require(">= 1", "interval", "episodes")
+        self.env.require(">= 0", "max_episode_steps", note=" (0: the env's own time limit)")
         if algorithm(self.algo).replay == "rollouts":
             self._check_on_policy()
-        for key in ("initial_collect_steps", "gradient_steps", "checkpoint_interval",
-                    "policy_save_interval", "log_interval", "pull_interval", "torch_threads"):
-            if getattr(self.train, key) < 0:
-                raise ConfigError(f"train.{key}={getattr(self.train, key)} is not valid; it must be >= 0")
-        if self.env.num_workers < 0:
-            raise ConfigError(f"env.num_workers={self.env.num_workers} is not valid; it must be >= 0 "
-                              "(0: one worker process per CPU core beside the main one)")
-        if self.env.vectorization not in ("sync", "async", "ale"):
-            raise ConfigError(f"env.vectorization={self.env.vectorization!r} is not valid; valid: sync, async, ale")
+        self.train.require(">= 0", "initial_collect_steps", "gradient_steps", "checkpoint_interval",
+                           "policy_save_interval", "log_interval", "pull_interval", "torch_threads")
+        self.env.require(">= 0", "num_workers", note=" (0: one worker process per CPU core beside the main one)")
+        self.env.require_choice(vectorization=("sync", "async", "ale"))
         r = self.replay
-        choices = {"sampler": ("uniform", "prioritized"), "storage": ("ram", "memmap")}
-        for key, valid in choices.items():
-            if getattr(r, key) not in valid:
-                raise ConfigError(f"replay.{key}={getattr(r, key)!r} is not valid; valid: {', '.join(valid)}")
+        r.require_choice(sampler=("uniform", "prioritized"), storage=("ram", "memmap"))
         if r.device not in ("auto", "numpy", "cpu", "cuda") and not r.device.startswith("cuda:"):
             raise ConfigError(f"replay.device={r.device!r} is not valid; valid: auto, numpy, cpu, cuda, cuda:N")
         if r.storage == "memmap" and r.device not in ("auto", "numpy"):
             raise ConfigError(f"replay.device={r.device!r} with replay.storage='memmap': memmap tables live on "
                               "disk; use replay.device=numpy (or auto)")
-        for key in ("priority_exponent", "importance_exponent", "priority_eps", "samples_per_insert",
-                    "error_buffer", "min_size_to_sample"):
-            if getattr(r, key) < 0:
-                raise ConfigError(f"replay.{key}={getattr(r, key)} is not valid; it must be >= 0")
+        r.require(">= 0", "priority_exponent", "importance_exponent", "priority_eps", "samples_per_insert",
+                  "error_buffer", "min_size_to_sample")
         d = self.distributed
         if d.num_actors > 0 and r.device not in ("auto", "numpy"):
             raise ConfigError(f"replay.device={r.device!r} applies to the one-process loop; the replay server of "
                               "distributed.num_actors > 0 keeps NumPy arrays (use auto or numpy)")
-        for key in ("num_actors", "max_restarts"):
-            if getattr(d, key) < 0:
-                raise ConfigError(f"distributed.{key}={getattr(d, key)} is not valid; it must be >= 0")
-        for key in ("pull_interval", "push_interval", "chunk_steps", "num_eval_actors"):
-            if getattr(d, key) < 1:
-                raise ConfigError(f"distributed.{key}={getattr(d, key)} is not valid; it must be >= 1")
-        if d.actor_cpus < 0:
-            raise ConfigError(f"distributed.actor_cpus={d.actor_cpus} is not valid; it must be >= 0")
+        d.require(">= 0", "num_actors", "max_restarts")
+        d.require(">= 1", "pull_interval", "push_interval", "chunk_steps", "num_eval_actors")
+        d.require(">= 0", "actor_cpus")
         self.agent.validate()
 
     def steps_per_iteration(self) -> int:

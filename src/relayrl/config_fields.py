@@ -15,6 +15,7 @@ import math
 import tokenize
 import types
 import typing
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 from relayrl.errors import ConfigError
@@ -23,9 +24,11 @@ from relayrl.errors import ConfigError
 ENCODERS = ("auto", "flatten", "nature_cnn", "small_cnn")
 
 
-def check_encoder(value: str) -> None:
-    if value not in ENCODERS:
-        raise ConfigError(f"agent.encoder={value!r} is not valid; valid: {', '.join(ENCODERS)}")
+# The bounds `Section.require` checks, as its messages name them.
+RULES: dict[str, Callable[[Any], bool]] = {
+    ">= 0": lambda v: v >= 0, ">= 1": lambda v: v >= 1, "> 0": lambda v: v > 0,
+    "in [0, 1]": lambda v: 0.0 <= v <= 1.0, "in (0, 1]": lambda v: 0.0 < v <= 1.0,
+}
 
 
 class Section:
@@ -41,6 +44,24 @@ class Section:
         if not dataclasses.is_dataclass(value):
             value = coerce(value, hints[name], path)
         object.__setattr__(self, name, value)
+
+    def require(self, rule: str, *keys: str, note: str = "") -> None:
+        """ConfigError for the first of `keys` whose value breaks `rule` (one of `RULES`)."""
+        for key in keys:
+            if not RULES[rule](value := getattr(self, key)):
+                raise ConfigError(f"{self.SECTION}.{key}={value} is not valid; it must be {rule}{note}")
+
+    def require_choice(self, **valid: tuple[str, ...]) -> None:
+        """ConfigError for the first key whose value is not one of its `valid` names."""
+        for key, names in valid.items():
+            if (value := getattr(self, key)) not in names:
+                raise ConfigError(f"{self.SECTION}.{key}={value!r} is not valid; valid: {', '.join(names)}")
+
+    def require_sizes(self, *keys: str) -> None:
+        """ConfigError for the first of `keys` (lists of layer sizes) that is empty or holds a size < 1."""
+        for key in keys:
+            if not (sizes := getattr(self, key)) or any(h < 1 for h in sizes):
+                raise ConfigError(f"{self.SECTION}.{key}={sizes} is not valid; give one or more positive sizes")
 
     def check_rollout(self, steps: int) -> None:
         """An on-policy agent section's check of its settings against one rollout of `steps`

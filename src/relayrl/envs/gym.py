@@ -359,9 +359,7 @@ class GymBatchEnv(BatchEnvBase):
         b = self.num_envs
         act = self._actions(action)
         next_obs = np.empty((b, *self.observation_spec.shape), self._obs_dtype)
-        reward = np.empty(b, np.float32)
-        terminated = np.empty(b, np.bool_)
-        truncated = np.empty(b, np.bool_)
+        reward, terminated, truncated = np.empty(b, np.float32), np.empty(b, np.bool_), np.empty(b, np.bool_)
         obs, info = self.step_into(act, next_obs, reward, terminated, truncated)
         self._check_observations(next_obs)
         if obs is not next_obs:

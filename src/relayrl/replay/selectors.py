@@ -199,9 +199,6 @@ class Prioritized(Selector):
         self.tree.set_power(np.array(chosen), self.priority, self.priority_exponent)  # the table deletes them
         return np.array(chosen, dtype=np.int64)
 
-    def state_dict(self) -> dict[str, Any]:
-        return {}  # rebuilt from the table's priorities
-
     def __repr__(self) -> str:
         return f"Prioritized(priority_exponent={self.priority_exponent})"
 

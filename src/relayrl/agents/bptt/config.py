@@ -6,7 +6,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from relayrl.config_fields import Section
-from relayrl.errors import ConfigError
 
 
 @dataclass
@@ -22,11 +21,6 @@ class BpttConfig(Section):
     fast: bool = True  # the hand-written backward for Pendulum + MLP (false: autograd through rollout())
 
     def validate(self) -> None:
-        if not self.hidden or any(h < 1 for h in self.hidden):
-            raise ConfigError(f"agent.hidden={self.hidden} is not valid; give one or more positive sizes")
-        for key in ("lr", "max_grad_norm"):
-            if getattr(self, key) <= 0:
-                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be > 0")
-        for key in ("lr_t_max", "batch_size", "rollout_steps"):
-            if getattr(self, key) < 1:
-                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be >= 1")
+        self.require_sizes("hidden")
+        self.require("> 0", "lr", "max_grad_norm")
+        self.require(">= 1", "lr_t_max", "batch_size", "rollout_steps")

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from relayrl.config_fields import Section, check_encoder
+from relayrl.config_fields import ENCODERS, Section
 from relayrl.errors import ConfigError
 
 
@@ -43,33 +43,19 @@ class DQNConfig(Section):
     epsilon_decay: float = 0.99999975  # exponential: the factor per env step
 
     def validate(self) -> None:
-        check_encoder(self.encoder)
-        choices = {"activation": ("relu", "tanh", "elu"), "init": ("torch", "tf-agents"),
-                   "loss": ("huber", "mse"), "network": ("mlp", "nature_cnn", "mario_cnn"),
-                   "epsilon_schedule": ("linear", "exponential")}
-        for key, valid in choices.items():
-            if getattr(self, key) not in valid:
-                raise ConfigError(f"agent.{key}={getattr(self, key)!r} is not valid; valid: {', '.join(valid)}")
-        if not self.hidden or any(h < 1 for h in self.hidden):
-            raise ConfigError(f"agent.hidden={self.hidden} is not valid; give one or more positive sizes")
-        if not 0.0 < self.tau <= 1.0:
-            raise ConfigError(f"agent.tau={self.tau} is not valid; it must be in (0, 1]")
-        for key in ("target_update_period", "batch_size"):
-            if getattr(self, key) < 1:
-                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be >= 1")
-        for key in ("epsilon_start", "epsilon_end"):
-            if not 0.0 <= getattr(self, key) <= 1.0:
-                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be in [0, 1]")
+        self.require_choice(encoder=ENCODERS, activation=("relu", "tanh", "elu"), init=("torch", "tf-agents"),
+                            loss=("huber", "mse"), network=("mlp", "nature_cnn", "mario_cnn"),
+                            epsilon_schedule=("linear", "exponential"))
+        self.require_sizes("hidden")
+        self.require("in (0, 1]", "tau")
+        self.require(">= 1", "target_update_period", "batch_size")
+        self.require("in [0, 1]", "epsilon_start", "epsilon_end")
         if self.epsilon_decay_steps < -1:
             raise ConfigError(f"agent.epsilon_decay_steps={self.epsilon_decay_steps} is not valid; it must be >= 0 "
                               "(0: constant epsilon_end), or -1 (a tenth of train.total_steps)")
-        if not 0.0 < self.epsilon_decay <= 1.0:
-            raise ConfigError(f"agent.epsilon_decay={self.epsilon_decay} is not valid; it must be in (0, 1]")
-        if self.lr <= 0:
-            raise ConfigError(f"agent.lr={self.lr} is not valid; it must be > 0")
-        if not 0.0 <= self.gamma <= 1.0:
-            raise ConfigError(f"agent.gamma={self.gamma} is not valid; it must be in [0, 1]")
-
+        self.require("in (0, 1]", "epsilon_decay")
+        self.require("> 0", "lr")
+        self.require("in [0, 1]", "gamma")
 
 # `relayrl train dqn` / `algo = "dqn"`: what a config that names only algo and env.id gets beyond
 # the classes' defaults (which the DQN presets build on). Stable-Baselines3's DQN is the anchor:

@@ -35,16 +35,9 @@ def td_targets(
         return torch.addcmul(batch.reward, batch.discount, next_v)  # [N]
 
 
-def dqn_loss(
-    online: nn.Module,
-    target: nn.Module | None,
-    batch: Batch,
-    *,
-    double: bool,
-    loss: str = "huber",
-    huber_delta: float = 1.0,
-    target_q: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+def dqn_loss(online: nn.Module, target: nn.Module | None, batch: Batch, *, double: bool, loss: str = "huber",
+             huber_delta: float = 1.0, target_q: torch.Tensor | None = None
+             ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """Mean over the batch of the (importance-weighted) element-wise TD loss.
 
     `mse` is the element-wise squared error (x - y)^2 without 1/2, like TF-Agents'

@@ -26,5 +26,4 @@ class ArgmaxQ(nn.Module):
         return self.net(obs).argmax(dim=1)  # [B]
 
 
-def deterministic_module(state: dict[str, Any]) -> nn.Module:
-    return ArgmaxQ(state)
+deterministic_module = ArgmaxQ  # the deterministic policy as a module, for export_policy

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from relayrl.config_fields import Section, check_encoder
+from relayrl.config_fields import ENCODERS, Section
 from relayrl.errors import ConfigError
 
 
@@ -43,27 +43,13 @@ class PPOConfig(Section):
     normalize_reward: bool = False  # rewards / running std of each env copy's discounted return (VecNormalize)
 
     def validate(self) -> None:
-        check_encoder(self.encoder)
-        if self.squash not in ("clip", "tanh"):
-            raise ConfigError(f"agent.squash={self.squash!r} is not valid; valid: clip, tanh")
-        if self.activation not in ("relu", "tanh", "elu"):
-            raise ConfigError(f"agent.activation={self.activation!r} is not valid; valid: relu, tanh, elu")
-        if not self.hidden or any(h < 1 for h in self.hidden):
-            raise ConfigError(f"agent.hidden={self.hidden} is not valid; give one or more positive sizes")
-        for key in ("lr", "clip_range"):
-            if getattr(self, key) <= 0:
-                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be > 0")
-        if self.clip_range_vf < 0:
-            raise ConfigError(f"agent.clip_range_vf={self.clip_range_vf} is not valid; it must be >= 0 (0: unclipped)")
-        for key in ("n_epochs", "batch_size"):
-            if getattr(self, key) < 1:
-                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be >= 1")
-        for key in ("gamma", "gae_lambda"):
-            if not 0.0 <= getattr(self, key) <= 1.0:
-                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be in [0, 1]")
-        for key in ("ent_coef", "vf_coef", "max_grad_norm"):
-            if getattr(self, key) < 0:
-                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be >= 0")
+        self.require_choice(encoder=ENCODERS, squash=("clip", "tanh"), activation=("relu", "tanh", "elu"))
+        self.require_sizes("hidden")
+        self.require("> 0", "lr", "clip_range")
+        self.require(">= 0", "clip_range_vf", note=" (0: unclipped)")
+        self.require(">= 1", "n_epochs", "batch_size")
+        self.require("in [0, 1]", "gamma", "gae_lambda")
+        self.require(">= 0", "ent_coef", "vf_coef", "max_grad_norm")
 
     def check_rollout(self, steps: int) -> None:
         if self.batch_size > steps:

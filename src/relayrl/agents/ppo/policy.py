@@ -28,8 +28,6 @@ from relayrl.nn.mlp_fast import MLPInference
 from relayrl.policies import saved_bounds, saved_network
 from relayrl.specs import spec_from_state
 
-SQUASHES = ("clip", "tanh")
-
 
 class PPOPolicy(Policy):
     env_steps: int | None = None  # when a loaded policy was saved (see relayrl.load_policy)
@@ -166,5 +164,4 @@ class Greedy(nn.Module):
         return to_bounds(out, self.low, self.high, self.tanh)  # [B, A]
 
 
-def deterministic_module(state: dict[str, Any]) -> nn.Module:
-    return Greedy(state)
+deterministic_module = Greedy  # the deterministic policy as a module, for export_policy

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from relayrl.config_fields import Section, check_encoder
+from relayrl.config_fields import ENCODERS, Section
 from relayrl.errors import ConfigError
 
 
@@ -38,25 +38,13 @@ class SACConfig(Section):
     log_std_max: float = 2.0  # upper clip of the actor's log standard deviation
 
     def validate(self) -> None:
-        check_encoder(self.encoder)
-        if self.activation not in ("relu", "tanh", "elu"):
-            raise ConfigError(f"agent.activation={self.activation!r} is not valid; valid: relu, tanh, elu")
-        for key in ("actor_hidden", "critic_hidden"):
-            sizes = getattr(self, key)
-            if not sizes or any(h < 1 for h in sizes):
-                raise ConfigError(f"agent.{key}={sizes} is not valid; give one or more positive sizes")
-        for key in ("actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale"):
-            if getattr(self, key) <= 0:
-                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be > 0")
-        if not 0.0 < self.tau <= 1.0:
-            raise ConfigError(f"agent.tau={self.tau} is not valid; it must be in (0, 1]")
-        if not 0.0 <= self.gamma <= 1.0:
-            raise ConfigError(f"agent.gamma={self.gamma} is not valid; it must be in [0, 1]")
-        for key in ("target_update_period", "batch_size"):
-            if getattr(self, key) < 1:
-                raise ConfigError(f"agent.{key}={getattr(self, key)} is not valid; it must be >= 1")
-        if self.grad_clip < 0:
-            raise ConfigError(f"agent.grad_clip={self.grad_clip} is not valid; it must be >= 0 (0: no clipping)")
+        self.require_choice(encoder=ENCODERS, activation=("relu", "tanh", "elu"))
+        self.require_sizes("actor_hidden", "critic_hidden")
+        self.require("> 0", "actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale")
+        self.require("in (0, 1]", "tau")
+        self.require("in [0, 1]", "gamma")
+        self.require(">= 1", "target_update_period", "batch_size")
+        self.require(">= 0", "grad_clip", note=" (0: no clipping)")
         if self.log_std_min >= self.log_std_max:
             raise ConfigError(f"agent.log_std_min={self.log_std_min} is not valid; it must be below "
                               f"agent.log_std_max={self.log_std_max}")

@@ -33,5 +33,4 @@ class TanhMean(nn.Module):
         return self.loc + self.scale * torch.tanh(self.net(obs)[:, : self.action_dim])  # [B, A]
 
 
-def deterministic_module(state: dict[str, Any]) -> nn.Module:
-    return TanhMean(state)
+deterministic_module = TanhMean  # the deterministic policy as a module, for export_policy

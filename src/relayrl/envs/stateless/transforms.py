@@ -34,15 +34,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from relayrl.envs.stateless.base import (
-    BatchShape,
-    DeviceLike,
-    Obs,
-    ObsSpec,
-    StatelessEnv,
-    StepResult,
-    bounded,
-)
+from relayrl.envs.stateless.base import BatchShape, DeviceLike, Obs, ObsSpec, StatelessEnv, StepResult, bounded
 from relayrl.specs import ArraySpec
 
 
@@ -195,13 +187,9 @@ class ObservationNorm(Transform):
         self.loc = torch.as_tensor(loc, dtype=torch.float64)
         self.scale = torch.as_tensor(scale, dtype=torch.float64)
 
-    def _params(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.loc.to(x.device, x.dtype), self.scale.to(x.device, x.dtype)
-
     def forward(self, obs: Obs) -> Obs:
         x = obs[self.key]
-        loc, scale = self._params(x)
-        return {**obs, self.key: (x - loc) / scale}
+        return {**obs, self.key: (x - self.loc.to(x.device, x.dtype)) / self.scale.to(x.device, x.dtype)}
 
     def observation_spec(self, spec: ObsSpec) -> ObsSpec:
         _missing([self.key], spec, type(self).__name__)
