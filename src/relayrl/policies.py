@@ -18,7 +18,7 @@ from relayrl.nn.mlp_fast import MLPInference
 from relayrl.specs import ArraySpec, DiscreteSpec, MultiBinarySpec, MultiDiscreteSpec, Spec, spec_from_state, spec_state
 
 
-def _cpu_mlp(net: nn.Module, device: torch.device) -> MLPInference | None:
+def cpu_mlp(net: nn.Module, device: torch.device) -> MLPInference | None:
     """The lean CPU forward pass of `net` when it is a float32 MLP on the CPU, else None."""
     if isinstance(net, MLP) and device.type == "cpu" and all(p.dtype == torch.float32 for p in net.parameters()):
         return MLPInference(net)
@@ -58,7 +58,7 @@ class GreedyPolicy(Policy):
     def __init__(self, q_net: nn.Module, device: torch.device) -> None:
         self.q_net = q_net
         self.device = device
-        self._cpu = _cpu_mlp(q_net, device)
+        self._cpu = cpu_mlp(q_net, device)
         self._forward = GraphedForward(q_net, device)  # a CUDA graph on CUDA
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
@@ -114,7 +114,7 @@ class TanhGaussianPolicy(Policy):
         self.log_std_bounds = (log_std_min, log_std_max)
         self.loc = ((high + low) / 2.0).astype(np.float32)  # [A]
         self.half = ((high - low) / 2.0).astype(np.float32)  # [A]
-        self._cpu = _cpu_mlp(actor, device)
+        self._cpu = cpu_mlp(actor, device)
         self._forward = GraphedForward(actor, device)  # a CUDA graph on CUDA
         self._gen: torch.Generator | None = None  # noise on the device (see act_on_device)
         self._gen_state: torch.Tensor | None = None  # a checkpointed state for it, applied when it is made

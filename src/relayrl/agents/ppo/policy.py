@@ -23,9 +23,7 @@ from relayrl.agents.ppo.distributions import greedy_logits_action, to_bounds
 from relayrl.agents.ppo.networks import ActionHead, PolicyNet, action_head
 from relayrl.agents.ppo.normalize import ObsNorm
 from relayrl.core import Policy
-from relayrl.nn import MLP
-from relayrl.nn.mlp_fast import MLPInference
-from relayrl.policies import saved_bounds, saved_network
+from relayrl.policies import cpu_mlp, saved_bounds, saved_network
 from relayrl.specs import spec_from_state
 
 
@@ -50,8 +48,7 @@ class PPOPolicy(Policy):
         mlp, plain = net, True
         if isinstance(net, PolicyNet):
             mlp, self.outputs, plain = net.mlp, net.out, net.obs_norm is None and net.encoder is None
-        self._cpu = (MLPInference(mlp) if isinstance(mlp, MLP) and device.type == "cpu" and plain
-                     and all(p.dtype == torch.float32 for p in mlp.parameters()) else None)
+        self._cpu = cpu_mlp(mlp, device) if plain else None
         if bounds is not None:
             self.low, self.high = (torch.as_tensor(b, dtype=torch.float32) for b in bounds)
 
