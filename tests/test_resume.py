@@ -141,12 +141,32 @@ def test_resume_with_another_network_is_one_line_and_keeps_the_run(tmp_path):
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
     relayrl.train(cfg, tmp_path / "r", progress=False)
     before = (tmp_path / "r" / "metrics.jsonl").read_text()
+    config_before = (tmp_path / "r" / "config.toml").read_text()
     wider = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=900", "agent.hidden=[48,32]"]
                                 + DQN[2:-1])
     with pytest.raises(relayrl.errors.UserError, match=r"the checkpoint's networks do not fit this config \(.*"
                                                        r"size mismatch.*\): resume with the settings the run started"):
         relayrl.train(wider, tmp_path / "r", resume=True, progress=False)
     assert (tmp_path / "r" / "metrics.jsonl").read_text() == before
+    assert (tmp_path / "r" / "config.toml").read_text() == config_before  # the refused settings are not kept
+
+
+def test_resume_with_overrides_records_them_in_config_toml(tmp_path, capsys):
+    """`--resume --set ...` goes on with the new settings, and config.toml says so, so that
+    `relayrl eval` and the next plain resume use them too."""
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    capsys.readouterr()
+    longer = relayrl.load_config(str(tmp_path / "r" / "config.toml"), ["train.total_steps=900", "agent.lr=0.002"])
+    relayrl.train(longer, tmp_path / "r", resume=True, progress=False)
+    assert ("resumed with changed settings, now in config.toml: agent.lr: 0.0023 -> 0.002; "
+            "train.total_steps: 600 -> 900") in capsys.readouterr().err
+    saved = relayrl.load_config(str(tmp_path / "r" / "config.toml"))
+    assert (saved.train.total_steps, saved.agent.lr) == (900, 0.002)
+    plain = relayrl.load_config(str(tmp_path / "r" / "config.toml"), ["train.total_steps=1200"])
+    relayrl.train(plain, tmp_path / "r", resume=True, progress=False)
+    assert "changed settings, now in config.toml: train.total_steps: 900 -> 1200\n" in capsys.readouterr().err
+    assert relayrl.load_config(str(tmp_path / "r" / "config.toml")).agent.lr == 0.002
 
 
 def test_resume_refuses_another_number_of_envs(tmp_path):

@@ -211,6 +211,12 @@ def dotted(data: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def changes(old: Config, new: Config) -> list[str]:
+    """`key: old -> new` for every dotted key whose value differs between the two configs."""
+    a, b = dotted(to_dict(old)), dotted(to_dict(new))
+    return [f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in sorted(a.keys() | b.keys()) if a.get(k) != b.get(k)]
+
+
 def from_dict(data: dict[str, Any]) -> Config:
     """Build a Config from nested dicts (e.g. parsed TOML); every key is checked. A key the
     dict does not name is the algorithm's default (`algo_defaults`)."""

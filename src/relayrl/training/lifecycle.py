@@ -18,7 +18,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from relayrl.config import Config, to_dict
+from relayrl.config import Config, changes, from_dict, load_toml, save_toml, to_dict
 from relayrl.core import Agent
 from relayrl.envs.make import check_env, is_user_env
 from relayrl.errors import NonFiniteError, UserError
@@ -244,6 +244,7 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
             core.say("train.checkpoint_replay = false: checkpoints leave the replay out; a resumed run refills it")
         if resume:
             driver.restore()  # rewrites metrics.jsonl: open the log only afterwards
+            record_resumed_config(core)
             if core.env_steps() >= c.train.total_steps:
                 core.say(f"the run is at env step {core.env_steps():,}, past train.total_steps="
                          f"{c.train.total_steps:,}: nothing is left to train (raise train.total_steps to go on)")
@@ -267,6 +268,17 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         raise stop(core.finite.check() or str(e), core.kept()) from None
     finally:
         report.close()
+
+
+def record_resumed_config(core: RunCore) -> None:
+    """config.toml becomes the config the resumed run goes on with (`--set` overrides
+    included), so that `relayrl eval` and a later resume use it; written once the checkpoint
+    has been restored, so a config it refused is not kept. What changed is said."""
+    path = core.rd.config
+    changed = changes(from_dict(load_toml(path)), core.config) if path.is_file() else ["config.toml was missing"]
+    if changed:
+        save_toml(core.config, path)
+        core.say(f"resumed with changed settings, now in config.toml: {'; '.join(changed)}")
 
 
 def finish(driver: Driver, p: Progress) -> None:
