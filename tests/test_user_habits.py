@@ -106,6 +106,16 @@ def test_export_line_says_the_input(run_dir, tmp_path, capsys):
     assert "input obs float32 [batch, 4] -> output action int64 [batch]" in capsys.readouterr().out
 
 
+def test_export_takes_the_format_from_out_and_refuses_a_clash(run_dir, tmp_path, capsys):
+    pytest.importorskip("onnx")
+    assert main(["export", str(run_dir), "--out", str(tmp_path / "p.onnx")]) == 0
+    assert (tmp_path / "p.onnx").read_bytes()[:1] != b"PK"  # ONNX protobuf, not a torch.export zip
+    assert main(["export", str(run_dir), "--format", "onnx", "--out", str(tmp_path / "q.pt2")]) == 2
+    assert ("--out '" + str(tmp_path / "q.pt2") + "' names the pt2 format but --format is onnx"
+            in capsys.readouterr().err)
+    assert not (tmp_path / "q.pt2").exists()
+
+
 def test_onnx_without_the_package_is_one_line(run_dir, tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "onnx", None)  # import onnx raises ImportError
     assert main(["export", str(run_dir), "--format", "onnx", "--out", str(tmp_path / "p.onnx")]) == 2

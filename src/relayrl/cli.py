@@ -99,8 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("run_dir", metavar="RUN_DIR", help="a run directory (or its policy/policy.pt)")
     x.add_argument("--out", metavar="FILE", help="where to write it (default: RUN_DIR/policy/policy.FORMAT; "
                                                  "folders are created)")
-    x.add_argument("--format", choices=("pt2", "onnx"), default="pt2",
-                   help="pt2: a torch.export program (default) | onnx: an ONNX model (pip install 'relayrl[onnx]')")
+    x.add_argument("--format", choices=("pt2", "onnx"),
+                   help="pt2: a torch.export program | onnx: an ONNX model (pip install 'relayrl[onnx]'); "
+                        "default: --out's extension, else pt2")
     c = sub.add_parser("config", help="print a preset's (or config TOML's) full config, each key with its meaning")
     c.add_argument("config", metavar="PRESET|CONFIG.toml", help="a preset name (see `relayrl presets`) or a TOML file")
     c.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",

@@ -81,12 +81,19 @@ def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = Tru
 FORMATS = ("pt2", "onnx")
 
 
-def export_policy(path: str | Path, out: str | Path | None = None, format: str = "pt2") -> Path:
+def export_policy(path: str | Path, out: str | Path | None = None, format: str | None = None) -> Path:
     """Write the deterministic policy as a `torch.export` program (`policy.pt2`) or, with
     `format="onnx"`, an ONNX model (`policy.onnx`; needs the `onnx` extra). Beside it,
-    `<file>.json` says what it takes and returns (`signature`)."""
+    `<file>.json` says what it takes and returns (`signature`). Without `format`, an `out`
+    ending in .onnx or .pt2 names it; else pt2."""
+    named = Path(out).suffix.lstrip(".").lower() if out else ""
+    if format is None:
+        format = named if named in FORMATS else "pt2"
     if format not in FORMATS:
         raise UserError(f"export format {format!r} is not known; valid: {', '.join(FORMATS)}")
+    if named in FORMATS and named != format:
+        raise UserError(f"--out {str(out)!r} names the {named} format but --format is {format}: "
+                        "give one of them, or the same in both")
     if format == "onnx":
         try:
             import onnx  # noqa: F401  (torch.onnx writes the model through these)
