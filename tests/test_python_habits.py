@@ -76,6 +76,15 @@ def test_record_video_with_env(run_dir, tmp_path):
         relayrl.record_video(run_dir, tmp_path / "d.mp4", env=lambda: Countdown())
 
 
+def test_video_shows_every_state_of_each_episode_including_the_last(run_dir, tmp_path):
+    import imageio.v2 as imageio
+
+    factory = lambda render_mode=None: Countdown(length=3, render_mode=render_mode)  # noqa: E731
+    path = relayrl.record_video(run_dir, tmp_path / "v.mp4", episodes=2, env=factory)
+    shades = [round(float(frame.mean()) / 40) for frame in imageio.get_reader(path)]
+    assert shades == [0, 1, 2, 3, 0, 1, 2, 3]  # states t = 0..3 (Countdown renders 40 t), twice
+
+
 @pytest.mark.parametrize("algo", ["dqn", "ppo", "sac"])
 def test_callbacks_see_every_eval_and_log_and_false_stops(algo, tmp_path):
     cfg = {"algo": algo, "env": {"id": "Pendulum-v1" if algo == "sac" else "toy_envs:Countdown", "check": False},

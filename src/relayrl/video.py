@@ -11,8 +11,8 @@ import numpy as np
 import torch
 
 from relayrl import atomic
-from relayrl.envs import make_env
-from relayrl.envs.gym import GymBatchEnv
+from relayrl.envs.gym import GymBatchEnv, resolve_env_fn
+from relayrl.envs.make import extra_hint
 from relayrl.errors import UserError
 from relayrl.export import load_policy
 from relayrl.paths import output_path, writing
@@ -36,13 +36,17 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     config = load_config(str(rd.config))
     policy = load_policy(rd.root)
     given = env
-    env = (make_env(config.env.id, 1, config.env.max_episode_steps, render_mode="rgb_array",
-                    kwargs=config.env.kwargs, wrappers=config.env.wrappers) if given is None
-           else GymBatchEnv([lambda: _rgb_env(given)]))
+    frames: list[np.ndarray] = []
+    make_one = (resolve_env_fn(config.env.id, config.env.max_episode_steps, "rgb_array", config.env.kwargs,
+                               config.env.wrappers) if given is None else lambda: _rgb_env(given))
+    try:
+        env = GymBatchEnv([lambda: EndFrames(make_one(), frames)])
+    except gym.error.Error as e:
+        raise UserError(f"env.id={config.env.id!r} could not be made: {e}{extra_hint(e)}") from None
     try:
         fps = int(env.envs[0].metadata.get("render_fps", 30))
         obs = env.reset(seed=seed)
-        frames = [first_frame(env, config.env.id)]
+        frames.append(first_frame(env, config.env.id))
         finished = 0
         for _ in range(max_steps):
             with torch.inference_mode():
@@ -64,6 +68,21 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     with writing(path), atomic.replacing(path, ".tmp-" + path.name) as tmp:
         imageio.mimwrite(tmp, frames, fps=fps, macro_block_size=1)
     return path
+
+
+class EndFrames(gym.Wrapper):
+    """Adds the frame of each episode's last state to `frames`: the batched env resets its copy
+    as soon as an episode ends, so a render after its step shows the next episode's start."""
+
+    def __init__(self, env: gym.Env, frames: list[np.ndarray]) -> None:
+        super().__init__(env)
+        self.frames = frames
+
+    def step(self, action: Any) -> tuple[Any, Any, bool, bool, dict[str, Any]]:
+        out = self.env.step(action)
+        if out[2] or out[3]:
+            self.frames.append(self.env.render())
+        return out
 
 
 def _rgb_env(env: Any) -> gym.Env:
