@@ -1,6 +1,7 @@
 """A user's own env: found from their project folder, Gymnasium's `module:EnvId-v0`, env.kwargs,
 env.wrappers, an env factory in Python, episode caps, and the env checker."""
 
+import functools
 import importlib.util
 import os
 import subprocess
@@ -13,6 +14,7 @@ import pytest
 import torch
 import toy_envs
 
+from relayrl.cli import main
 from relayrl.config import from_dict, load_toml, save_toml
 from relayrl.dispatch import train
 from relayrl.envs import make_env
@@ -160,6 +162,21 @@ def test_train_takes_an_env_factory(tmp_path, vectorization):
     assert result.final["step"] == 90 and result.final["average_episode_length"] == 6.0
     with pytest.raises(UserError, match="records an env factory given to relayrl.train"):
         train(again, tmp_path / "run", resume=True, progress=False)  # without it
+
+
+class _Factory:
+    def __call__(self):
+        return toy_envs.Countdown(length=6)
+
+
+@pytest.mark.parametrize("factory", [functools.partial(toy_envs.Countdown, length=6), _Factory()],
+                         ids=["partial", "callable_object"])
+def test_a_factory_no_import_finds_asks_for_itself_again(tmp_path, factory, capsys):
+    train(load_config("dqn-cartpole", TINY), tmp_path / "run", progress=False, env=factory)
+    saved = load_toml(tmp_path / "run" / "config.toml")["env"]["id"]
+    assert saved == f"{type(factory).__module__}:<{type(factory).__qualname__}>"
+    assert main(["eval", str(tmp_path / "run")]) == 2
+    assert "pass the same env= again in Python" in capsys.readouterr().err
 
 
 def test_an_importable_factory_is_recorded_so_the_cli_can_evaluate_it(tmp_path):

@@ -8,6 +8,7 @@ from __future__ import annotations
 import copy
 import sys
 import time
+import types
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -31,11 +32,13 @@ def default_run_dir(config: Config) -> Path:
 
 
 def factory_env_id(factory: Callable[[], Any]) -> str:
-    """The env.id a factory given in Python is recorded as: `module:name`, which a later
-    `relayrl eval` or resume from the command line can import where the factory is importable."""
-    module = getattr(factory, "__module__", None) or "__main__"
-    name = getattr(factory, "__qualname__", None) or type(factory).__qualname__
-    return f"{module}:{name}"
+    """The env.id a factory given in Python is recorded as: `module:name` for a module-level
+    function or class, which a later `relayrl eval` or resume from the command line can import
+    where the factory is importable; `module:<type>` for anything else (a functools.partial, a
+    callable object, a method), which no import finds, so those commands ask for the same env=."""
+    if isinstance(factory, (types.FunctionType, type)):  # a lambda or a local function: `<` in its name
+        return f"{factory.__module__ or '__main__'}:{factory.__qualname__}"
+    return f"{type(factory).__module__}:<{type(factory).__qualname__}>"
 
 
 _OWN_CONFIG = ("leave out PRESET|CONFIG.toml to resume with the run's own config.toml (in Python: "
