@@ -12,7 +12,7 @@ import numpy as np
 from gymnasium import spaces
 
 OBS_KINDS = ("box", "box2d", "discrete", "multi_discrete", "multi_binary", "image", "image_hwc", "dict", "tuple")
-ACTION_KINDS = ("discrete", "box", "box_scalar", "box2d", "multi_discrete", "multi_binary")
+ACTION_KINDS = ("discrete", "box", "box_scalar", "box2d", "box_fixed", "multi_discrete", "multi_binary")
 
 
 def observation_space(kind: str) -> gym.Space:
@@ -33,6 +33,7 @@ def observation_space(kind: str) -> gym.Space:
 def action_space(kind: str) -> gym.Space:
     return {"discrete": spaces.Discrete(2), "box": spaces.Box(-1.0, 1.0, (2,), np.float32),
             "box_scalar": spaces.Box(-1.0, 1.0, (), np.float32), "box2d": spaces.Box(-1.0, 1.0, (2, 2), np.float32),
+            "box_fixed": spaces.Box(np.array([-1.0, 0.5], np.float32), np.array([1.0, 0.5], np.float32)),  # low == high
             "multi_discrete": spaces.MultiDiscrete([2, 3]), "multi_binary": spaces.MultiBinary(2)}[kind]
 
 

@@ -126,7 +126,7 @@ def test_policies_respect_action_bounds_at_any_batch_size():
 
 
 def test_sac_refuses_discrete_actions():
-    with pytest.raises(UserError, match="SAC takes a Box action space with finite low and high"):
+    with pytest.raises(UserError, match="SAC takes a Box action space of floats with finite low and high"):
         SACAgent(OBS, DiscreteSpec(2), SACConfig(), torch.device("cpu"), np.random.default_rng(0))
 
 

@@ -22,8 +22,9 @@ from relayrl.specs import PackedSpec, spec_from_space, spec_from_state, spec_sta
 
 # algo -> the action kinds it takes
 # (box_scalar: Box shape (), box2d: Box (2, 2): actions that travel flat, in the env's shape at its ends)
-ACTIONS = {"dqn": ("discrete",), "sac": ("box", "box_scalar", "box2d"),
-           "ppo": ("discrete", "box", "box_scalar", "box2d", "multi_discrete", "multi_binary")}
+# (box_fixed: low == high in one dimension, which holds one value)
+ACTIONS = {"dqn": ("discrete",), "sac": ("box", "box_scalar", "box2d", "box_fixed"),
+           "ppo": ("discrete", "box", "box_scalar", "box2d", "box_fixed", "multi_discrete", "multi_binary")}
 CASES = ([(algo, obs, ACTIONS[algo][0]) for algo in ACTIONS for obs in OBS_KINDS]
          + [("sac", "box", act) for act in ACTIONS["sac"][1:]]
          + [("ppo", obs, act) for act in ACTIONS["ppo"][1:] for obs in ("box", "dict")])
@@ -149,9 +150,9 @@ def test_encoders_one_hot_and_conv_by_size():
 
 
 @pytest.mark.parametrize(("algo", "act", "words"), [
-    ("dqn", "box", "DQN takes a Discrete action space; this env's action space is Box(shape=(2,)"),
-    ("sac", "discrete", "SAC takes a Box action space with finite low and high; this env's action space is "
-                        "Discrete(2)"),
+    ("dqn", "box", "DQN takes a Discrete action space; this env's action space is Box(-1, 1, shape=(2,)"),
+    ("sac", "discrete", "SAC takes a Box action space of floats with finite low and high; this env's action "
+                        "space is Discrete(2)"),
     ("sac", "multi_binary", "action space is MultiBinary([2])"),
 ])
 def test_an_action_space_an_algorithm_does_not_take_is_one_line(algo, act, words, tmp_path):
@@ -167,6 +168,21 @@ def test_unsupported_spaces_name_the_space_and_what_is_valid():
     with pytest.raises(UserError, match=r"action space Dict\(.*valid action spaces: .*PPO: Discrete, Box, "
                                         r"MultiDiscrete, MultiBinary"):
         spec_from_space(gym.spaces.Dict({"a": gym.spaces.Discrete(2)}), "action")
+    with pytest.raises(UserError, match=r"action space Box\(\[\], \[\], \(0,\), float32\) has no dimensions"):
+        spec_from_space(gym.spaces.Box(-1.0, 1.0, (0,), np.float32), "action")
+    assert spec_from_space(gym.spaces.Box(-1.0, 1.0, (0,), np.float32), "observation").shape == (0,)
+
+
+def test_spaces_are_described_with_their_bounds_and_kind():
+    from relayrl.specs import describe
+
+    assert describe(spec_from_space(gym.spaces.Box(-3, 3, (2,), np.int64))) == "Box(-3, 3, shape=(2,), dtype=int64)"
+    low, high = np.array([-1.0, 0.5], np.float32), np.array([1.0, 0.5], np.float32)
+    assert describe(spec_from_space(gym.spaces.Box(low, high))) == ("Box([-1. ,  0.5], [1. , 0.5], shape=(2,), "
+                                                                    "dtype=float32)")
+    assert describe(spec_from_space(gym.spaces.Box(-np.inf, np.inf, (3,)))).startswith("Box(-inf, inf, ")
+    tup = gym.spaces.Tuple((gym.spaces.Discrete(32), gym.spaces.Discrete(11)))
+    assert describe(spec_from_space(tup)) == "Tuple(Discrete(32), Discrete(11))"
 
 
 def test_loaded_policy_says_what_it_takes(tmp_path):

@@ -15,6 +15,7 @@ and `pack_batch` build rows from what the env returns or what a user passes a po
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any
@@ -123,6 +124,8 @@ def spec_from_space(space: gym.Space, role: str = "observation") -> Spec:
         if dtype is None:
             raise UserError(f"{role} space {space} has dtype {space.dtype}; valid Box dtypes: float16/32/64, "
                             "uint8, int8/16/32/64, uint16/32, bool")
+        if role == "action" and math.prod(space.shape) == 0:
+            raise UserError(f"action space {space} has no dimensions: there is no action to learn")
         return ArraySpec(tuple(space.shape), dtype, np.asarray(space.low), np.asarray(space.high))
     if isinstance(space, gym.spaces.MultiDiscrete):
         if np.any(np.asarray(space.start) != 0):
@@ -148,8 +151,19 @@ def describe(spec: Spec) -> str:
     if isinstance(spec, MultiBinarySpec):
         return f"MultiBinary({list(spec.shape)})"
     if isinstance(spec, PackedSpec):
-        return "Dict(" + ", ".join(f"{f.key}: {describe(f.spec)}" for f in spec.fields) + ")"
-    return f"Box(shape={tuple(spec.shape)}, dtype={str(spec.dtype).removeprefix('torch.')})"
+        entries = ", ".join(describe(f.spec) if spec.tuple_space else f"{f.key}: {describe(f.spec)}"
+                            for f in spec.fields)
+        return f"{'Tuple' if spec.tuple_space else 'Dict'}({entries})"
+    bounds = "" if spec.low is None or spec.high is None else f"{_bound(spec.low)}, {_bound(spec.high)}, "
+    return f"Box({bounds}shape={tuple(spec.shape)}, dtype={str(spec.dtype).removeprefix('torch.')})"
+
+
+def _bound(values: np.ndarray) -> str:
+    """A Box bound as Gymnasium prints it: one number where every entry is the same."""
+    flat = np.asarray(values).reshape(-1)
+    if flat.size and (flat == flat[0]).all():
+        return f"{flat[0]:g}" if np.issubdtype(flat.dtype, np.floating) else str(flat[0])
+    return np.array2string(flat, threshold=8, separator=", ")
 
 
 def flat_dim(spec: Spec) -> int:

@@ -37,8 +37,8 @@ def action_head(action_spec: Spec) -> ActionHead:
     if isinstance(action_spec, MultiBinarySpec):
         return ActionHead(flat_dim(action_spec), True, binary=True, shape=action_spec.shape)
     if not is_bounded_box(action_spec):
-        raise UserError(f"PPO takes Discrete, MultiDiscrete, MultiBinary or Box (finite low and high) action spaces; "
-                        f"this env's action space is {describe(action_spec)}")
+        raise UserError("PPO takes Discrete, MultiDiscrete, MultiBinary or Box (floats, finite low and high) "
+                        f"action spaces; this env's action space is {describe(action_spec)}")
     return ActionHead(flat_dim(action_spec), False)
 
 

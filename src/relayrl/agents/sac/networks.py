@@ -14,8 +14,8 @@ from relayrl.specs import ArraySpec, Spec, describe, flat_dim, is_bounded_box
 
 def check_action_spec(action_spec: Spec) -> ArraySpec:
     if not is_bounded_box(action_spec):
-        raise UserError(f"SAC takes a Box action space with finite low and high; this env's action space is "
-                        f"{describe(action_spec)} (use DQN or PPO for Discrete actions, PPO for MultiDiscrete "
+        raise UserError("SAC takes a Box action space of floats with finite low and high; this env's action space "
+                        f"is {describe(action_spec)} (use DQN or PPO for Discrete actions, PPO for MultiDiscrete "
                         "and MultiBinary)")
     assert isinstance(action_spec, ArraySpec)
     return action_spec
