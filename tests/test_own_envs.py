@@ -4,6 +4,7 @@ env.wrappers, an env factory in Python, episode caps, and the env checker."""
 import functools
 import importlib.util
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -233,6 +234,9 @@ def test_the_check_leaves_the_run_as_it_would_be_without_it(tmp_path):
                                "truncated, info (the old Gym API's obs, reward, done, info"),
     ("toy_envs:WrongShapeObs", "the observation from reset() has shape (3,) but observation_space is "
                                "Box(-inf, inf, (2,), float32) (shape (2,))"),
+    ("toy_envs:OldReset", "the env's reset() takes no seed: Gymnasium envs define reset(self, *, seed=None, "
+                          "options=None)"),
+    ("toy_envs:NoActionSpace", "the env has no action_space (a gymnasium.spaces.Space): set self.action_space"),
 ])
 def test_what_will_break_the_run_stops_it_before_training_in_one_line(algo_preset, env_id, fragment, tmp_path,
                                                                         capfd):
@@ -246,6 +250,17 @@ def test_what_will_break_the_run_stops_it_before_training_in_one_line(algo_prese
     assert err == f"relayrl: error: env.id={env_id!r}: {fragment}" + err.split(fragment)[1]
     assert err.count("\n") == 1 and "Traceback" not in err
     assert not run.exists()  # nothing trained, nothing written
+
+
+@pytest.mark.parametrize("vectorization", ["sync", "async"])
+@pytest.mark.parametrize(("env_id", "fragment"), [("toy_envs:OldReset", "the env's reset() takes no seed"),
+                                                  ("toy_envs:NoActionSpace", "the env has no action_space")])
+def test_an_env_off_the_gymnasium_api_is_one_line_with_the_check_off(env_id, fragment, vectorization, tmp_path):
+    config = load_config("dqn-cartpole", TINY + [f"env.id={env_id}", "env.check=false", "env.num_envs=2",
+                                                 f"env.vectorization={vectorization}", "env.num_workers=1"])
+    with pytest.raises(UserError, match=re.escape(fragment)):
+        train(config, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run").exists()
 
 
 def test_an_env_factorys_broken_env_is_one_line_too(tmp_path):

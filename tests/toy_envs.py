@@ -326,6 +326,21 @@ class FourValueStep(Countdown):
         return obs, reward, terminated or truncated, info
 
 
+class OldReset(Countdown):
+    """The old Gym API: `reset(self)` takes no seed and returns the observation alone."""
+
+    def reset(self):  # type: ignore[override]
+        return super().reset()[0]
+
+
+class NoActionSpace(Countdown):
+    """An env that forgot to set its action_space."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        del self.action_space
+
+
 class WrongShapeObs(Countdown):
     """Observations of shape (3,) float64 where the space says (2,) float32."""
 

@@ -303,6 +303,26 @@ def _register_on_demand(env_id: str) -> None:
     register_atari_id(env_id)
 
 
+def missing_spaces(env: gym.Env) -> str | None:
+    """A sentence naming the space an env does not define, or None."""
+    for name in ("observation_space", "action_space"):
+        if not isinstance(getattr(env, name, None), gym.Space):
+            return (f"the env has no {name} (a gymnasium.spaces.Space): set self.{name} in its __init__ "
+                    "(gymnasium.Env's API)")
+    return None
+
+
+def reset_seeded(env: gym.Env, seed: int | None) -> tuple[Any, Any]:
+    """`env.reset(seed=seed)`; one line for an env whose reset takes no seed (the old Gym API)."""
+    try:
+        return env.reset(seed=seed)
+    except TypeError as e:
+        if "unexpected keyword argument 'seed'" not in str(e):
+            raise
+        raise UserError("the env's reset() takes no seed: Gymnasium envs define reset(self, *, seed=None, "
+                        "options=None), call super().reset(seed=seed) and return (obs, info)") from None
+
+
 class GymBatchEnv(BatchEnvBase):
     """`num_envs` Gymnasium envs stepped in this process, as one batched env."""
 
@@ -318,6 +338,10 @@ class GymBatchEnv(BatchEnvBase):
             raise
         self.capped_at = 0  # cap_episodes: the step cap put on an env without a time limit
         first = self.envs[0]
+        problem = missing_spaces(first)
+        if problem is not None:
+            self.close()
+            raise UserError(problem)
         self._init_specs(len(self.envs), first.observation_space, first.action_space, time_limit_terminates,
                          frame_stack_of(first))
 
@@ -347,7 +371,7 @@ class GymBatchEnv(BatchEnvBase):
     def reset(self, seed: int | None = None) -> torch.Tensor:
         obs = []
         for i, env in enumerate(self.envs):
-            o, _ = env.reset(seed=None if seed is None else seed + i)
+            o, _ = reset_seeded(env, None if seed is None else seed + i)
             if seed is not None:
                 env.action_space.seed(seed + i)
             obs.append(o if self._pack is None else self._pack(o))

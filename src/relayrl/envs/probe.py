@@ -14,6 +14,9 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from relayrl.envs.gym import missing_spaces, reset_seeded
+from relayrl.errors import UserError
+
 
 def first_problem(env: gym.Env) -> str | None:
     """The first thing about `env` that will break a run, as a sentence, or None."""
@@ -31,7 +34,13 @@ def first_problem(env: gym.Env) -> str | None:
 
 def _api_problem(env: gym.Env) -> tuple[str | None, Any, Any]:
     """(what is wrong with what reset() and step() return, or None; what they returned)."""
-    out = env.reset(seed=0)
+    problem = missing_spaces(env)
+    if problem is not None:
+        return problem, None, None
+    try:
+        out = reset_seeded(env, 0)
+    except UserError as e:  # the old Gym API's reset(self)
+        return str(e), None, None
     if not isinstance(out, tuple) or len(out) != 2:
         what = f"{len(out)} values" if isinstance(out, tuple) else f"a {type(out).__name__}"
         return (f"reset() returned {what}; Gymnasium envs return (obs, info) "
