@@ -139,3 +139,24 @@ def test_eval_reads_the_policy_file_it_is_given(tmp_path, capsys):
     assert main(["eval", str(tmp_path / "run" / "policy" / "other.pt"), "--episodes", "1"]) == 2  # not policy.pt
     assert main(["eval", str(tmp_path / "run" / "policy"), "--episodes", "1"]) == 0  # the folder names its run
     assert main(["eval", str(tmp_path / "run" / "config.toml"), "--episodes", "1"]) == 0
+
+
+def test_ctrl_c_outside_a_run_says_interrupted_and_inside_one_that_nothing_is_lost(monkeypatch, tmp_path, capsys):
+    from relayrl import cli
+    from relayrl.training.run_dir import RunDir
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_eval", interrupted)
+    assert cli.main(["eval", str(tmp_path)]) == 130
+    assert capsys.readouterr().err == "relayrl: interrupted\n"
+    # Ctrl-C while torch is still importing (the run directory cannot be looked at): one line
+    monkeypatch.setattr(cli, "_train", interrupted)
+    monkeypatch.setattr(RunDir, "has_checkpoint", lambda self: torch_half_imported())
+    assert cli.main(["train", "dqn", "--run-dir", str(tmp_path / "r")]) == 130
+    assert capsys.readouterr().err.startswith("relayrl: interrupted before the first checkpoint: nothing to resume")
+
+
+def torch_half_imported():
+    raise AttributeError("partially initialized module 'torch' has no attribute 'distributed'")

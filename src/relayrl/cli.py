@@ -183,11 +183,17 @@ def _on_sigterm(signum: int, frame: object) -> NoReturn:
 
 
 def _interrupted_line(what: str, args: argparse.Namespace) -> str:
-    """Offer --resume only where there is a checkpoint to resume from."""
-    from relayrl.training.run_dir import RunDir
+    """For `train`, offer --resume only where there is a checkpoint to resume from."""
+    if args.command != "train":
+        return f"relayrl: {what}"
+    run_dir = args.run_dir
+    try:
+        from relayrl.training.run_dir import RunDir
 
-    run_dir = getattr(args, "run_dir", None) if args.command == "train" else None
-    if run_dir and RunDir(run_dir).has_checkpoint():
+        resumable = bool(run_dir) and RunDir(run_dir).has_checkpoint()
+    except Exception:  # interrupted while torch was still importing: no run has started
+        resumable = False
+    if resumable:
         return (f"relayrl: {what}; resume with --resume from the last checkpoint: "
                 f"relayrl train --run-dir {run_dir} --resume")
     where = f" in {run_dir}" if run_dir else ""
