@@ -162,3 +162,16 @@ def test_dir_shows_the_public_api():
     for name in ("train", "evaluate", "load_policy", "record_video", "load_config", "Config", "EvalResult"):
         assert name in names and name in relayrl.__all__
     assert callable(relayrl.evaluate)
+
+
+def test_train_takes_a_config_toml_path_and_a_run_directory_gets_a_hint(run_dir, tmp_path):
+    from relayrl.config import from_dict, save_toml
+
+    save_toml(from_dict(TINY), tmp_path / "my.toml")
+    result = relayrl.train(str(tmp_path / "my.toml"), tmp_path / "run", progress=False)
+    assert result.final["step"] == 200
+    with pytest.raises(UserError, match=r"config=3 is not a config: give a Config"):
+        relayrl.train(3, tmp_path / "other", progress=False)
+    with pytest.raises(UserError, match=r"is a run directory, not a preset: continue it with `relayrl train "
+                                        r"--run-dir .* --resume`, or start a new run from its settings with"):
+        relayrl.load_config(str(run_dir))

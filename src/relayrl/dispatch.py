@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 from relayrl.agents.registry import Algorithm, algorithm, ray_algorithms
 from relayrl.config import Config, from_dict, load_toml, save_toml
 from relayrl.errors import UserError
+from relayrl.presets import load_config
 from relayrl.training.direct import DirectDriver
 from relayrl.training.lifecycle import RunResult
 from relayrl.training.local import LocalDriver
@@ -118,10 +119,11 @@ def _finished(rd: RunDir) -> bool:
     return bool(rows) and rows[-1].get("step", 0) >= saved.train.total_steps
 
 
-def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, resume: bool = False,
+def train(config: Config | dict[str, Any] | str | Path, run_dir: str | Path | None = None, resume: bool = False,
           progress: bool = True, env: Callable[[], Any] | None = None, overwrite: bool = False,
           callbacks: Sequence[Callback] | None = None) -> RunResult:
-    """Train from a Config (or a nested dict of config values) into a run directory.
+    """Train from a Config (or a nested dict of config values, a preset's name or a config
+    TOML's path, as `load_config` takes them) into a run directory.
 
     A new run refuses a directory that already holds a run with a checkpoint (or a finished
     one), unless `overwrite=True` replaces it; a run directory with no checkpoint (a run that
@@ -144,6 +146,11 @@ def train(config: Config | dict[str, Any], run_dir: str | Path | None = None, re
     propagates; the run's checkpoints so far stay. One-process Actor + Learner runs only.
     """
     # A copy: recording an env factory's name (and the run's own settings) never changes the caller's config.
+    if isinstance(config, str | Path):
+        config = load_config(str(config))
+    elif not isinstance(config, Config | dict):
+        raise UserError(f"config={config!r} is not a config: give a Config (relayrl.load_config), a dict of "
+                        "config values, a preset's name or a config TOML's path")
     config = from_dict(config) if isinstance(config, dict) else copy.deepcopy(config)
     config.validate()
     if config.replay.path:  # recorded absolute: a resume started from another folder finds the files

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import tomllib
 from importlib import resources
+from pathlib import Path
 from typing import Any
 
 from relayrl.agents.registry import ALGORITHMS
@@ -41,6 +42,10 @@ def preset_dict(name: str) -> dict[str, Any]:
         raise ConfigError(f"algo {name!r} has no default config; start from its preset{'s' * (len(own) > 1)} "
                           f"{', '.join(own)} (see `relayrl presets`)")
     if name not in files:
+        if (Path(name) / "config.toml").is_file():
+            raise ConfigError(f"{name!r} is a run directory, not a preset: continue it with `relayrl train --run-dir "
+                              f"{name} --resume`, or start a new run from its settings with "
+                              f"{str(Path(name) / 'config.toml')!r}")
         valid = [*algorithm_configs(), *files]
         raise ConfigError(f"unknown preset {name!r}{did_you_mean(name, valid)} "
                           f"(valid: {', '.join(sorted(valid))}; a config file's name ends in .toml)")
