@@ -49,9 +49,10 @@ def test_evaluate_a_run_dir_and_a_loaded_policy(run_dir):
     policy = relayrl.load_policy(run_dir)
     assert tuple(relayrl.evaluate(policy, "toy_envs:Countdown", episodes=3)) == (3.0, 0.0)
     assert tuple(relayrl.evaluate(run_dir, Countdown(length=4), episodes=2)) == (4.0, 0.0)
-    with pytest.raises(UserError, match="deterministic"):  # a greedy policy has no sampling mode
-        relayrl.evaluate(run_dir, Countdown(), deterministic=False)
-    with pytest.raises(UserError, match=r"env.s observations \(Box\(shape=\(4,\).* do not fit the policy"):
+    # a greedy policy has no sampling mode: SB3-style code asking for one gets the greedy actions
+    assert tuple(relayrl.evaluate(run_dir, Countdown(), episodes=3, deterministic=False)) == (3.0, 0.0)
+    assert policy.predict(np.zeros(2, np.float32), deterministic=False)[0] == policy(np.zeros(2, np.float32))
+    with pytest.raises(UserError, match=r"env.s observations \(Box\(.*shape=\(4,\).* do not fit the policy"):
         relayrl.evaluate(policy, "CartPole-v1")  # said before any episode, in the env's terms
 
 

@@ -55,8 +55,8 @@ class LoadedPolicy(Policy):
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool | None = None) -> tuple[Any, None]:
         """(action, None) as SB3's `model.predict` returns (the None is its recurrent state; these
-        policies have none). `deterministic=None` keeps the mode the policy was loaded with; a SAC
-        policy can be asked for the other one, a greedy or clamped policy has only deterministic."""
+        policies have none). `deterministic=None` keeps the mode the policy was loaded with; a SAC or
+        PPO policy can be asked for the other one; a greedy or clamped policy acts the same in both."""
         if deterministic is None or bool(deterministic) == self.deterministic:
             return self(observation), None
         if self._other_mode is None:

@@ -8,13 +8,10 @@ from typing import Any
 import torch
 from torch import nn
 
-from relayrl.errors import UserError
 from relayrl.policies import ClampedPolicy, saved_bounds, saved_network
 
 
 def load(state: dict[str, Any], device: torch.device, deterministic: bool, seed: int | None) -> ClampedPolicy:
-    if not deterministic:
-        raise UserError("a clamped_mlp policy is deterministic; deterministic=False applies to SAC policies")
     net = saved_network(state, state["action_dim"]).to(device)
     return ClampedPolicy(net, *saved_bounds(state), device)
 

@@ -7,13 +7,10 @@ from typing import Any
 import torch
 from torch import nn
 
-from relayrl.errors import UserError
 from relayrl.policies import GreedyPolicy, saved_network
 
 
 def load(state: dict[str, Any], device: torch.device, deterministic: bool, seed: int | None) -> GreedyPolicy:
-    if not deterministic:
-        raise UserError("a q_greedy policy is deterministic; deterministic=False applies to SAC policies")
     return GreedyPolicy(saved_network(state, state["num_actions"]).to(device), device)
 
 
