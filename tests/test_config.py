@@ -44,6 +44,8 @@ def test_overrides_are_typed():
     ("env.max_episode_steps=-1", "env.max_episode_steps=-1 is not valid; it must be >= 0"),
     ("train=3", "train is a section"),
     ("novalue", "is not KEY=VALUE"),
+    ("env.kwargs={kind=md0}", "the value is not a valid TOML table or list; quote the strings in it"),
+    ("agent.hidden=[64,", "the value is not a valid TOML table or list"),
 ])
 def test_bad_overrides_fail_with_a_clear_message(override, fragment):
     with pytest.raises(ConfigError, match=None) as e:

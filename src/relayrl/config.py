@@ -297,6 +297,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     try:
         value = tomllib.loads(f"v = {raw}")["v"]
     except tomllib.TOMLDecodeError:
+        if raw.strip().startswith(("{", "[")):  # meant as a table or a list, not a bare word
+            raise ConfigError(f"--set {text!r}: the value is not a valid TOML table or list; quote the strings "
+                              "in it and close it, e.g. env.kwargs={mode = 'fast'} or agent.hidden=[64, 64]") from None
         value = raw  # bare words such as CartPole-v1 are strings
     return key.strip().split("."), value
 
