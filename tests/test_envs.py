@@ -79,6 +79,8 @@ def test_reset_with_seed_reproduces():
 @pytest.mark.parametrize("env_id, fragment", [
     ("CartPool-v1", "did you mean CartPole-v1"),
     ("toy_envs:Missing", "module 'toy_envs' has no 'Missing' and registers no Gymnasium id"),
+    ("toy_envs:countdown", "has no 'countdown' and registers no Gymnasium id 'countdown'; did you mean "
+                           "toy_envs:Countdown?"),
     ("no_such_module:Env", "no module 'no_such_module' in the current directory"),
     ("toy_envs:NotAnEnv", "not a gymnasium.Env subclass"),
 ])
