@@ -195,6 +195,8 @@ def test_loaded_policy_says_what_it_takes(tmp_path):
         policy(np.zeros((2, 3)))
     with pytest.raises(UserError, match=r"takes Discrete\(4\) observations: an array of numbers .*, not a dict"):
         policy({"cell": 1})
+    with pytest.raises(UserError, match=r"observations: an array of numbers .*, not a str like abc"):
+        policy("abc")
 
 
 def test_a_discrete_entry_of_a_dict_outside_its_range_is_one_line(tmp_path):

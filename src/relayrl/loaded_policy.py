@@ -83,7 +83,7 @@ class LoadedPolicy(Policy):
         numpy_in = not isinstance(obs, torch.Tensor)
         if numpy_in:
             a = np.asarray(obs)
-            if a.dtype == object:  # a dict, or pieces that make no array
+            if a.dtype.kind not in "biuf":  # a dict, text, or pieces that make no array of numbers
                 raise UserError(f"this policy takes {describe(self.obs_space)} observations: an array of numbers "
                                 f"(or a batch of them), not a {type(obs).__name__} like {str(obs)[:60]}")
             t = torch.as_tensor(a)
