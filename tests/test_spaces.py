@@ -197,6 +197,8 @@ def test_loaded_policy_says_what_it_takes(tmp_path):
         policy({"cell": 1})
     with pytest.raises(UserError, match=r"observations: an array of numbers .*, not a str like abc"):
         policy("abc")
+    with pytest.raises(UserError, match=r"observation holds NaN or inf"):
+        policy(np.array([np.inf]))
 
 
 def test_a_discrete_entry_of_a_dict_outside_its_range_is_one_line(tmp_path):

@@ -95,6 +95,8 @@ class LoadedPolicy(Policy):
                             f"{describe(self.obs_space)} observations, one {list(self.obs_shape)} or a batch "
                             f"[{', '.join(['B', *map(str, self.obs_shape)])}]")
         single = t.dim() == n
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise UserError("observation holds NaN or inf: the policy's actions would be NaN")
         _check_integral(t, self.obs_space)
         t = t.to(self.obs_dtype)
         _check_range(t, self.obs_space)
