@@ -22,8 +22,8 @@ from relayrl.specs import PackedSpec, spec_from_space, spec_from_state, spec_sta
 
 # algo -> the action kinds it takes
 # (box_scalar: Box shape (), box2d: Box (2, 2): actions that travel flat, in the env's shape at its ends)
-# (box_fixed: low == high in one dimension, which holds one value)
-ACTIONS = {"dqn": ("discrete",), "sac": ("box", "box_scalar", "box2d", "box_fixed"),
+# (box_fixed: low == high in one dimension, which holds one value; SAC refuses it)
+ACTIONS = {"dqn": ("discrete",), "sac": ("box", "box_scalar", "box2d"),
            "ppo": ("discrete", "box", "box_scalar", "box2d", "box_fixed", "multi_discrete", "multi_binary")}
 CASES = ([(algo, obs, ACTIONS[algo][0]) for algo in ACTIONS for obs in OBS_KINDS]
          + [("sac", "box", act) for act in ACTIONS["sac"][1:]]
@@ -154,11 +154,21 @@ def test_encoders_one_hot_and_conv_by_size():
     ("sac", "discrete", "SAC takes a Box action space of floats with finite low and high; this env's action "
                         "space is Discrete(2)"),
     ("sac", "multi_binary", "action space is MultiBinary([2])"),
+    ("sac", "box_fixed", "SAC needs low < high in every action dimension; this env's action space Box([-1. ,  0.5], "
+                         "[1. , 0.5], shape=(2,), dtype=float32) has low == high at flat index 1"),
 ])
 def test_an_action_space_an_algorithm_does_not_take_is_one_line(algo, act, words, tmp_path):
     with pytest.raises(UserError, match=words.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")
                        .replace("]", r"\]")):
         relayrl.train(short_config(algo, "box", act), tmp_path, progress=False)
+
+
+def test_ppo_squashing_into_a_box_with_a_fixed_dimension_gives_its_value(tmp_path):
+    config = short_config("ppo", "box", "box_fixed")
+    config.agent.squash = "tanh"
+    relayrl.train(config, tmp_path, progress=False)  # no log 0 in the log-probabilities: no NaN stop
+    actions = relayrl.load_policy(tmp_path, deterministic=False, seed=0)(np.zeros((16, 3), np.float32))
+    assert (actions[:, 1] == 0.5).all() and (np.abs(actions[:, 0]) <= 1).all()
 
 
 def test_unsupported_spaces_name_the_space_and_what_is_valid():

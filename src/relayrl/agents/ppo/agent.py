@@ -51,9 +51,11 @@ class PPOAgent(Agent):
         self.obs_spec = obs_spec
         self.net = PPONetworks(obs_spec, action_spec, cfg.hidden, cfg.activation, cfg.shared,
                                cfg.log_std_init, cfg.normalize_obs, cfg.encoder).to(device)
-        # tanh squashing: the log-probabilities are those of loc + scale * tanh(u)
+        # tanh squashing: the log-probabilities are those of loc + scale * tanh(u). The scale adds a
+        # constant to them, which a dimension with low == high (one value) leaves out instead of log 0.
         bounds = self._bounds()
-        self.squash_scale = (torch.as_tensor((bounds[1] - bounds[0]) / 2, dtype=torch.float32, device=device)
+        self.squash_scale = (torch.as_tensor(np.where(bounds[1] > bounds[0], (bounds[1] - bounds[0]) / 2, 1.0),
+                                             dtype=torch.float32, device=device)
                              if cfg.squash == "tanh" and bounds is not None and not self.net.discrete else None)
         self.reward_scaler = RewardScaler(cfg.gamma) if cfg.normalize_reward else None
         self.params = list(self.net.parameters())

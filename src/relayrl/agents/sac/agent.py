@@ -54,9 +54,7 @@ class SACAgent(Agent):
         self.target_entropy = float(-a_dim if cfg.target_entropy is None else cfg.target_entropy)
         low, high = self.action_spec.low, self.action_spec.high
         loc = torch.as_tensor((high + low) / 2.0, dtype=torch.float32, device=device)
-        # The critics see actions rescaled to [-1, 1]; a dimension with low == high holds one value
-        # (the policy gives it), which is left at 0 instead of divided by 0.
-        half = torch.as_tensor(np.where(high > low, (high - low) / 2.0, 1.0), dtype=torch.float32, device=device)
+        half = torch.as_tensor((high - low) / 2.0, dtype=torch.float32, device=device)
         # Training noise from its own generator, so a checkpoint restores it exactly.
         self.gen = torch.Generator(device=device)
         self.gen.manual_seed(int(rng.integers(2**62)))

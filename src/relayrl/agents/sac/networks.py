@@ -3,6 +3,7 @@ that run as one batched network."""
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -18,6 +19,12 @@ def check_action_spec(action_spec: Spec) -> ArraySpec:
                         f"is {describe(action_spec)} (use DQN or PPO for Discrete actions, PPO for MultiDiscrete "
                         "and MultiBinary)")
     assert isinstance(action_spec, ArraySpec)
+    fixed = np.flatnonzero(np.asarray(action_spec.high) <= np.asarray(action_spec.low))
+    if fixed.size:
+        # Its entropy term and the critics' action inputs would count a dimension that cannot vary.
+        raise UserError(f"SAC needs low < high in every action dimension; this env's action space "
+                        f"{describe(action_spec)} has low == high at flat index {', '.join(map(str, fixed))}: "
+                        "leave that dimension out of the space (a wrapper that adds its one value), or use PPO")
     return action_spec
 
 
