@@ -144,9 +144,15 @@ def test_resume_with_another_network_is_one_line_and_keeps_the_run(tmp_path):
     config_before = (tmp_path / "r" / "config.toml").read_text()
     wider = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=900", "agent.hidden=[48,32]"]
                                 + DQN[2:-1])
+    with pytest.raises(relayrl.errors.UserError, match=r"--resume: agent.hidden=\[48, 32\] but the run in .* has "
+                                                       r"\[32, 32\]; a resumed run keeps its networks"):
+        relayrl.train(wider, tmp_path / "r", resume=True, progress=False)
+    # the same activation, sizes and encoder, but an env whose observations changed shape: found on loading
+    other = relayrl.load_config(str(tmp_path / "r" / "config.toml"), ["train.total_steps=900",
+                                                                     "env.wrappers=['toy_envs:Repeated']"])
     with pytest.raises(relayrl.errors.UserError, match=r"the checkpoint's networks do not fit this config \(.*"
                                                        r"size mismatch.*\): resume with the settings the run started"):
-        relayrl.train(wider, tmp_path / "r", resume=True, progress=False)
+        relayrl.train(other, tmp_path / "r", resume=True, progress=False)
     assert (tmp_path / "r" / "metrics.jsonl").read_text() == before
     assert (tmp_path / "r" / "config.toml").read_text() == config_before  # the refused settings are not kept
 

@@ -377,3 +377,15 @@ class RenderRaises(Countdown):
 
     def render(self):
         raise RuntimeError("no display")
+
+
+class Repeated(gym.ObservationWrapper):
+    """An env's Box observation repeated: twice as many numbers (another network input size)."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        low, high = np.tile(env.observation_space.low, 2), np.tile(env.observation_space.high, 2)
+        self.observation_space = gym.spaces.Box(low, high, dtype=np.float32)
+
+    def observation(self, obs):
+        return np.tile(obs, 2).astype(np.float32)

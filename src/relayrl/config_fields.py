@@ -35,6 +35,8 @@ class Section:
     """Base of the config dataclasses. `SECTION` is the section's name in TOML ("" at the top)."""
 
     SECTION: ClassVar[str] = ""
+    # An agent section's keys that shape its networks (or what they take): a resumed run keeps them.
+    NETWORK: ClassVar[tuple[str, ...]] = ()
 
     def __setattr__(self, name: str, value: Any) -> None:
         hints = _hints(type(self))

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from relayrl.agents.registry import Algorithm, algorithm, ray_algorithms
-from relayrl.config import Config, from_dict, load_toml, save_toml
+from relayrl.config import Config, algo_defaults, from_dict, load_toml, save_toml
 from relayrl.errors import UserError
 from relayrl.presets import load_config
 from relayrl.training.direct import DirectDriver
@@ -58,6 +58,13 @@ def check_resume_matches(config: Config, rd: RunDir) -> None:
     if config.seed != saved_seed:
         raise UserError(f"--resume: seed={config.seed} but the run in {str(rd.root)!r} has seed={saved_seed}; "
                         "a resumed run keeps its seed (leave out --seed; in Python, load the run's config.toml)")
+    saved_agent = saved.get("agent", {})
+    for key in config.agent.NETWORK:
+        was, now = saved_agent.get(key, getattr(algo_defaults(saved_algo).agent, key)), getattr(config.agent, key)
+        if now != was:
+            raise UserError(f"--resume: agent.{key}={now!r} but the run in {str(rd.root)!r} has {was!r}; a resumed "
+                            f"run keeps its networks (leave out --set agent.{key}; in Python, load the run's "
+                            "config.toml)")
     if config.env.id != saved_env:
         raise UserError(f"--resume: env.id={config.env.id!r} but the run in {str(rd.root)!r} is "
                         f"env.id={saved_env!r}; {_OWN_CONFIG}")

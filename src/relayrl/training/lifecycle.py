@@ -243,8 +243,9 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if not c.train.checkpoint_replay and c.train.checkpoint_interval > 0:
             core.say("train.checkpoint_replay = false: checkpoints leave the replay out; a resumed run refills it")
         if resume:
+            saved = saved_config(core.rd)  # read first: restoring cuts metrics.jsonl back to the checkpoint
             driver.restore()  # rewrites metrics.jsonl: open the log only afterwards
-            record_resumed_config(core)
+            record_resumed_config(core, saved)
             if core.env_steps() >= c.train.total_steps:
                 core.say(f"the run is at env step {core.env_steps():,}, past train.total_steps="
                          f"{c.train.total_steps:,}: nothing is left to train (raise train.total_steps to go on)")
@@ -270,14 +271,21 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         report.close()
 
 
-def record_resumed_config(core: RunCore) -> None:
+def saved_config(rd: RunDir) -> Config | None:
+    """The run's config.toml as a Config; None where it is missing or this version cannot read it."""
+    try:
+        return from_dict(load_toml(rd.config))
+    except (OSError, ValueError, UserError):  # ConfigError is a UserError; TOML errors are ValueErrors
+        return None
+
+
+def record_resumed_config(core: RunCore, saved: Config | None) -> None:
     """config.toml becomes the config the resumed run goes on with (`--set` overrides
     included), so that `relayrl eval` and a later resume use it; written once the checkpoint
     has been restored, so a config it refused is not kept. What changed is said."""
-    path = core.rd.config
-    changed = changes(from_dict(load_toml(path)), core.config) if path.is_file() else ["config.toml was missing"]
+    changed = changes(saved, core.config) if saved is not None else ["config.toml rewritten in this version's form"]
     if changed:
-        save_toml(core.config, path)
+        save_toml(core.config, core.rd.config)
         core.say(f"resumed with changed settings, now in config.toml: {'; '.join(changed)}")
 
 

@@ -12,6 +12,7 @@ from relayrl.errors import ConfigError
 @dataclass
 class DQNConfig(Section):
     SECTION = "agent"
+    NETWORK = ("hidden", "activation", "encoder", "network")
 
     hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of the Q-network MLP
     activation: str = "relu"  # relu | tanh | elu

@@ -17,6 +17,7 @@ from relayrl.errors import ConfigError
 @dataclass
 class PPOConfig(Section):
     SECTION = "agent"
+    NETWORK = ("hidden", "activation", "encoder", "shared", "squash", "normalize_obs")
 
     hidden: list[int] = field(default_factory=lambda: [64, 64])  # hidden sizes of the actor and of the critic
     activation: str = "tanh"  # relu | tanh | elu

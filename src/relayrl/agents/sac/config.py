@@ -12,6 +12,7 @@ from relayrl.errors import ConfigError
 @dataclass
 class SACConfig(Section):
     SECTION = "agent"
+    NETWORK = ("actor_hidden", "critic_hidden", "activation", "encoder")
 
     actor_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of the actor MLP
     critic_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of each critic MLP
