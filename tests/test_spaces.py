@@ -207,8 +207,20 @@ def test_loaded_policy_says_what_it_takes(tmp_path):
         policy({"cell": 1})
     with pytest.raises(UserError, match=r"observations: an array of numbers .*, not a str like abc"):
         policy("abc")
-    with pytest.raises(UserError, match=r"observation holds NaN or inf"):
+    with pytest.raises(UserError, match=r"observation holds NaN or inf; give finite values"):
         policy(np.array([np.inf]))
+
+
+def test_a_loaded_policy_refuses_nan_observations_however_they_come(tmp_path):
+    relayrl.train(short_config("sac", "dict", "box"), tmp_path, progress=False)
+    policy = relayrl.load_policy(tmp_path)
+    obs = Spaces("dict", "box").reset(seed=0)[0]
+    with pytest.raises(UserError, match=r"observation\['pos'\] holds NaN or inf"):
+        policy({**obs, "pos": np.array([np.nan, 0.0], np.float32)})
+    relayrl.train(short_config("sac", "box", "box"), tmp_path / "box", progress=False)
+    policy = relayrl.load_policy(tmp_path / "box")
+    with pytest.raises(UserError, match="observation holds NaN or inf"):
+        policy(torch.full((4, 3), float("nan")))  # a batched tensor of the policy's own dtype
 
 
 def test_a_discrete_entry_of_a_dict_outside_its_range_is_one_line(tmp_path):

@@ -45,6 +45,7 @@ class LoadedPolicy(Policy):
 
     def __call__(self, obs: Any) -> Any:
         if isinstance(obs, torch.Tensor) and obs.dtype == self.obs_dtype and obs.dim() == len(self.obs_shape) + 1:
+            _check_finite(obs)
             return self._env_shaped(self.batched(obs))
         return self._act(self.batched, obs)
 
@@ -95,8 +96,7 @@ class LoadedPolicy(Policy):
                             f"{describe(self.obs_space)} observations, one {list(self.obs_shape)} or a batch "
                             f"[{', '.join(['B', *map(str, self.obs_shape)])}]")
         single = t.dim() == n
-        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
-            raise UserError("observation holds NaN or inf: the policy's actions would be NaN")
+        _check_finite(t)
         _check_integral(t, self.obs_space)
         t = t.to(self.obs_dtype)
         _check_range(t, self.obs_space)
@@ -112,11 +112,19 @@ class LoadedPolicy(Policy):
         batch = spec.batch_size(obs)
         numpy_in = not isinstance(entry(obs, spec.fields[0]), torch.Tensor)
         for f in spec.fields:
-            if not f.spec.dtype.is_floating_point:
+            if f.spec.dtype.is_floating_point:
+                _check_finite(torch.as_tensor(leaf_array(obs, f)), f"[{f.key!r}]")
+            else:
                 value = torch.as_tensor(leaf_array(obs, f))
                 _check_integral(value, f.spec, f"[{f.key!r}]")
                 _check_range(value, f.spec, f"[{f.key!r}]")
         return torch.from_numpy(spec.pack_batch(obs, batch)), batch is None, numpy_in
+
+
+def _check_finite(t: torch.Tensor, where: str = "") -> None:
+    """A NaN or inf observation would give NaN actions: one line instead."""
+    if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+        raise UserError(f"observation{where} holds NaN or inf; give finite values (the policy's actions would be NaN)")
 
 
 def _check_integral(t: torch.Tensor, s: Spec, where: str = "") -> None:
