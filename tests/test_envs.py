@@ -460,3 +460,20 @@ def test_a_reset_in_one_copy_leaves_the_other_copies_observations_alone():
         assert not torch.equal(out.obs[done], out.next_obs[done]) or not bool(done.any())
         obs = out.obs
     assert obs.shape == (3, 4)
+
+
+def test_a_seed_typeerror_from_inside_a_gymnasium_reset_is_the_envs_own_error():
+    from relayrl.envs.gym import reset_seeded
+
+    class Inner(gym.Env):
+        observation_space = gym.spaces.Box(-1.0, 1.0, (1,))
+        action_space = gym.spaces.Discrete(2)
+
+        def reset(self, *, seed=None, options=None):
+            def helper():
+                pass
+
+            helper(seed=seed)  # the user's bug, inside a reset that takes seed=
+
+    with pytest.raises(TypeError, match="helper"):
+        reset_seeded(Inner(), 0)

@@ -320,10 +320,19 @@ def reset_seeded(env: gym.Env, seed: int | None) -> tuple[Any, Any]:
     try:
         return env.reset(seed=seed)
     except TypeError as e:
-        if "unexpected keyword argument 'seed'" not in str(e):
+        if "unexpected keyword argument 'seed'" not in str(e) or _takes_seed(env):
             raise
         raise UserError("the env's reset() takes no seed: Gymnasium envs define reset(self, *, seed=None, "
                         "options=None), call super().reset(seed=seed) and return (obs, info)") from None
+
+
+def _takes_seed(env: gym.Env) -> bool:
+    """Whether the env's own reset takes seed= (a TypeError about seed then came from inside it)."""
+    try:
+        params = inspect.signature(env.unwrapped.reset).parameters.values()
+    except (TypeError, ValueError):  # no signature to read (a builtin): assume the Gymnasium API
+        return True
+    return any(p.name == "seed" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
 
 
 class GymBatchEnv(BatchEnvBase):
