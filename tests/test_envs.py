@@ -463,6 +463,8 @@ def test_a_reset_in_one_copy_leaves_the_other_copies_observations_alone():
 
 
 def test_a_seed_typeerror_from_inside_a_gymnasium_reset_is_the_envs_own_error():
+    import gymnasium as gym
+
     from relayrl.envs.gym import reset_seeded
 
     class Inner(gym.Env):
