@@ -191,7 +191,7 @@ def _interrupted_line(what: str, args: argparse.Namespace) -> str:
         from relayrl.training.run_dir import RunDir
 
         resumable = bool(run_dir) and RunDir(run_dir).has_checkpoint()
-    except Exception:  # interrupted while torch was still importing: no run has started
+    except (ImportError, AttributeError):  # interrupted while torch was still importing: no run has started
         resumable = False
     if resumable:
         return (f"relayrl: {what}; resume with --resume from the last checkpoint: "

@@ -37,9 +37,12 @@ def factory_env_id(factory: Callable[[], Any]) -> str:
     function or class, which a later `relayrl eval` or resume from the command line can import
     where the factory is importable; `module:<type>` for anything else (a functools.partial, a
     callable object, a method), which no import finds, so those commands ask for the same env=."""
-    if isinstance(factory, (types.FunctionType, type)):  # a lambda or a local function: `<` in its name
-        return f"{factory.__module__ or '__main__'}:{factory.__qualname__}"
-    return f"{type(factory).__module__}:<{type(factory).__qualname__}>"
+    module = getattr(factory, "__module__", None) or type(factory).__module__
+    name = getattr(factory, "__qualname__", None)
+    if isinstance(factory, (types.FunctionType, type)) and name.isidentifier():
+        return f"{module}:{name}"
+    # `<` keeps it from resolving: a lambda, a local or class-level function, a method, a partial
+    return f"{module}:{name if name and '<' in name else f'<{name or type(factory).__qualname__}>'}"
 
 
 _OWN_CONFIG = ("leave out PRESET|CONFIG.toml to resume with the run's own config.toml (in Python: "
