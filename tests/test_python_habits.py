@@ -174,5 +174,6 @@ def test_train_takes_a_config_toml_path_and_a_run_directory_gets_a_hint(run_dir,
     with pytest.raises(UserError, match=r"config=3 is not a config: give a Config"):
         relayrl.train(3, tmp_path / "other", progress=False)
     with pytest.raises(UserError, match=r"is a run directory, not a preset: continue it with `relayrl train "
-                                        r"--run-dir .* --resume`, or start a new run from its settings with"):
+                                        r"--run-dir .* --resume` \(in Python: resume=True\), or start a new run "
+                                        r"from its settings with"):
         relayrl.load_config(str(run_dir))

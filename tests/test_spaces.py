@@ -180,6 +180,8 @@ def test_unsupported_spaces_name_the_space_and_what_is_valid():
         spec_from_space(gym.spaces.Dict({"a": gym.spaces.Discrete(2)}), "action")
     with pytest.raises(UserError, match=r"action space Box\(\[\], \[\], \(0,\), float32\) has no dimensions"):
         spec_from_space(gym.spaces.Box(-1.0, 1.0, (0,), np.float32), "action")
+    with pytest.raises(UserError, match=r"action space MultiDiscrete\(\[\]\) has no dimensions"):
+        spec_from_space(gym.spaces.MultiDiscrete([]), "action")
     assert spec_from_space(gym.spaces.Box(-1.0, 1.0, (0,), np.float32), "observation").shape == (0,)
 
 

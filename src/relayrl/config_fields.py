@@ -16,7 +16,7 @@ import tokenize
 import types
 import typing
 from collections.abc import Callable
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 from relayrl.errors import ConfigError
 
@@ -25,7 +25,8 @@ ENCODERS = ("auto", "flatten", "nature_cnn", "small_cnn")
 
 
 # The bounds `Section.require` checks, as its messages name them.
-RULES: dict[str, Callable[[Any], bool]] = {
+Rule = Literal[">= 0", ">= 1", "> 0", "in [0, 1]", "in (0, 1]"]
+RULES: dict[Rule, Callable[[Any], bool]] = {
     ">= 0": lambda v: v >= 0, ">= 1": lambda v: v >= 1, "> 0": lambda v: v > 0,
     "in [0, 1]": lambda v: 0.0 <= v <= 1.0, "in (0, 1]": lambda v: 0.0 < v <= 1.0,
 }
@@ -47,7 +48,7 @@ class Section:
             value = coerce(value, hints[name], path)
         object.__setattr__(self, name, value)
 
-    def require(self, rule: str, *keys: str, note: str = "") -> None:
+    def require(self, rule: Rule, *keys: str, note: str = "") -> None:
         """ConfigError for the first of `keys` whose value breaks `rule` (one of `RULES`)."""
         for key in keys:
             if not RULES[rule](value := getattr(self, key)):

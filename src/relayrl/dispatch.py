@@ -155,12 +155,12 @@ def train(config: Config | dict[str, Any] | str | Path, run_dir: str | Path | No
     `callbacks=[lambda row: row.get("average_return", -1e9) < 400]`. What a callback raises
     propagates; the run's checkpoints so far stay. One-process Actor + Learner runs only.
     """
-    # A copy: recording an env factory's name (and the run's own settings) never changes the caller's config.
     if isinstance(config, str | Path):
         config = load_config(str(config))
     elif not isinstance(config, Config | dict):
         raise UserError(f"config={config!r} is not a config: give a Config (relayrl.load_config), a dict of "
                         "config values, a preset's name or a config TOML's path")
+    # A copy: recording an env factory's name (and the run's own settings) never changes the caller's config.
     config = from_dict(config) if isinstance(config, dict) else copy.deepcopy(config)
     config.validate()
     if config.replay.path:  # recorded absolute: a resume started from another folder finds the files

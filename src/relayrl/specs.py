@@ -114,6 +114,8 @@ def spec_from_space(space: gym.Space, role: str = "observation") -> Spec:
     """The spec of one element of `space` (`role`: "observation" or "action", for messages);
     UserError, naming the space and what is valid, for spaces relayrl cannot take."""
     valid = OBSERVATION_SPACES if role == "observation" else ACTION_SPACES
+    if role == "action" and space.shape is not None and math.prod(space.shape) == 0:  # Box, MultiDiscrete: (0,)
+        raise UserError(f"action space {space} has no dimensions: there is no action to learn")
     if isinstance(space, gym.spaces.Discrete):
         if int(space.start) != 0:
             raise UserError(f"{role} space {space} starts at {space.start}; relayrl takes Discrete spaces that start "
@@ -124,8 +126,6 @@ def spec_from_space(space: gym.Space, role: str = "observation") -> Spec:
         if dtype is None:
             raise UserError(f"{role} space {space} has dtype {space.dtype}; valid Box dtypes: float16/32/64, "
                             "uint8, int8/16/32/64, uint16/32, bool")
-        if role == "action" and math.prod(space.shape) == 0:
-            raise UserError(f"action space {space} has no dimensions: there is no action to learn")
         return ArraySpec(tuple(space.shape), dtype, np.asarray(space.low), np.asarray(space.high))
     if isinstance(space, gym.spaces.MultiDiscrete):
         if np.any(np.asarray(space.start) != 0):
@@ -159,7 +159,7 @@ def describe(spec: Spec) -> str:
 
 
 def _bound(values: np.ndarray) -> str:
-    """A Box bound as Gymnasium prints it: one number where every entry is the same."""
+    """A Box bound for messages: one number where every entry is the same, else the entries."""
     flat = np.asarray(values).reshape(-1)
     if flat.size and (flat == flat[0]).all():
         return f"{flat[0]:g}" if np.issubdtype(flat.dtype, np.floating) else str(flat[0])

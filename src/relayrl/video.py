@@ -12,7 +12,7 @@ import torch
 
 from relayrl import atomic
 from relayrl.envs.gym import GymBatchEnv, resolve_env_fn
-from relayrl.envs.make import extra_hint
+from relayrl.envs.make import making
 from relayrl.errors import UserError
 from relayrl.export import load_policy
 from relayrl.paths import output_path, writing
@@ -39,10 +39,8 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     frames: list[np.ndarray] = []
     make_one = (resolve_env_fn(config.env.id, config.env.max_episode_steps, "rgb_array", config.env.kwargs,
                                config.env.wrappers) if given is None else lambda: _rgb_env(given))
-    try:
+    with making(config.env.id):
         env = GymBatchEnv([lambda: EndFrames(make_one(), frames)])
-    except gym.error.Error as e:
-        raise UserError(f"env.id={config.env.id!r} could not be made: {e}{extra_hint(e)}") from None
     try:
         fps = int(env.envs[0].metadata.get("render_fps", 30))
         obs = env.reset(seed=seed)

@@ -3,9 +3,11 @@ as one stateless torch batch. It sits above gym.py and vector.py, which know not
 
 from __future__ import annotations
 
+import contextlib
 import random
 import re
 import warnings
+from collections.abc import Iterator
 from typing import Any
 
 import gymnasium as gym
@@ -51,16 +53,23 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
         ale.info_keys = tuple(info_keys)
         return ale
     fn = resolve_env_fn(env_id, max_episode_steps, render_mode, kwargs, wrappers, factory)
-    try:
-        env: BatchEnvBase
+    env: BatchEnvBase
+    with making(env_id):
         if vectorization == "async" and num_envs > 1:
             env = AsyncGymBatchEnv([fn] * num_envs, time_limit_terminates, num_workers)
         else:
             env = GymBatchEnv([fn] * num_envs, time_limit_terminates)
-    except gym.error.Error as e:
-        raise UserError(f"env.id={env_id!r} could not be made: {e}{extra_hint(e)}") from None
     env.info_keys = tuple(info_keys)
     return env
+
+
+@contextlib.contextmanager
+def making(env_id: str) -> Iterator[None]:
+    """Gymnasium's own errors while the copies are made (a missing dependency, a bad kwarg) as one line."""
+    try:
+        yield
+    except gym.error.Error as e:
+        raise UserError(f"env.id={env_id!r} could not be made: {e}{extra_hint(e)}") from None
 
 
 def extra_hint(error: Exception) -> str:

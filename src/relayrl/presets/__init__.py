@@ -44,8 +44,8 @@ def preset_dict(name: str) -> dict[str, Any]:
     if name not in files:
         if (Path(name) / "config.toml").is_file():
             raise ConfigError(f"{name!r} is a run directory, not a preset: continue it with `relayrl train --run-dir "
-                              f"{name} --resume`, or start a new run from its settings with "
-                              f"{str(Path(name) / 'config.toml')!r}")
+                              f"{name} --resume` (in Python: resume=True), or start a new run from its settings "
+                              f"with {str(Path(name) / 'config.toml')!r}")
         valid = [*algorithm_configs(), *files]
         raise ConfigError(f"unknown preset {name!r}{did_you_mean(name, valid)} "
                           f"(valid: {', '.join(sorted(valid))}; a config file's name ends in .toml)")
