@@ -38,8 +38,8 @@ def factory_env_id(factory: Callable[[], Any]) -> str:
     where the factory is importable; `module:<type>` for anything else (a functools.partial, a
     callable object, a method), which no import finds, so those commands ask for the same env=."""
     module = getattr(factory, "__module__", None) or type(factory).__module__
-    name = getattr(factory, "__qualname__", None)
-    if isinstance(factory, (types.FunctionType, type)) and name.isidentifier():
+    name: str | None = getattr(factory, "__qualname__", None)
+    if isinstance(factory, (types.FunctionType, type)) and name is not None and name.isidentifier():
         return f"{module}:{name}"
     # `<` keeps it from resolving: a lambda, a local or class-level function, a method, a partial
     return f"{module}:{name if name and '<' in name else f'<{name or type(factory).__qualname__}>'}"

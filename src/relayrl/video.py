@@ -36,7 +36,7 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     config = load_config(str(rd.config))
     policy = load_policy(rd.root)
     given = env
-    frames: list[np.ndarray] = []
+    frames: list[Any] = []  # RGB arrays
     make_one = (resolve_env_fn(config.env.id, config.env.max_episode_steps, "rgb_array", config.env.kwargs,
                                config.env.wrappers) if given is None else lambda: _rgb_env(given))
     with making(config.env.id):
@@ -72,7 +72,7 @@ class EndFrames(gym.Wrapper):
     """Adds the frame of each episode's last state to `frames`: the batched env resets its copy
     as soon as an episode ends, so a render after its step shows the next episode's start."""
 
-    def __init__(self, env: gym.Env, frames: list[np.ndarray]) -> None:
+    def __init__(self, env: gym.Env, frames: list[Any]) -> None:
         super().__init__(env)
         self.frames = frames
 
