@@ -381,3 +381,16 @@ def test_memmap_replay_resumed_from_an_older_checkpoint(tmp_path, capsys, size, 
     run.env.close()
     run.eval_env.close()
     assert relayrl.train(cfg, run_dir, resume=True, progress=False).final["step"] == 1500
+
+
+def test_resume_naming_a_preset_with_other_networks_uses_the_runs_own_config(tmp_path):
+    """README: with --resume the preset may be given too; the run's own config.toml is what counts."""
+    from relayrl.cli import main
+
+    cfg = relayrl.load_config("dqn", ["env.id=CartPole-v1", "train.total_steps=600", "train.checkpoint_interval=300",
+                                      "eval.interval=300", "eval.episodes=2", "train.initial_collect_steps=100"])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    assert relayrl.load_config("dqn-cartpole-fast").agent.hidden != cfg.agent.hidden
+    assert main(["train", "dqn-cartpole-fast", "--run-dir", str(tmp_path / "r"), "--resume", "--no-progress",
+                 "--set", "train.total_steps=900"]) == 0
+    assert RunDir(tmp_path / "r").read_metrics()[-1]["step"] == 900

@@ -61,16 +61,20 @@ def check_resume_matches(config: Config, rd: RunDir) -> None:
     if config.seed != saved_seed:
         raise UserError(f"--resume: seed={config.seed} but the run in {str(rd.root)!r} has seed={saved_seed}; "
                         "a resumed run keeps its seed (leave out --seed; in Python, load the run's config.toml)")
-    saved_agent = saved.get("agent", {})
+    if config.env.id != saved_env:
+        raise UserError(f"--resume: env.id={config.env.id!r} but the run in {str(rd.root)!r} is "
+                        f"env.id={saved_env!r}; {_OWN_CONFIG}")
+
+
+def check_resume_networks(config: Config, rd: RunDir) -> None:
+    """The config a run resumes with keeps the keys that shape its networks (`NETWORK`)."""
+    saved = load_toml(rd.config).get("agent", {})
     for key in config.agent.NETWORK:
-        was, now = saved_agent.get(key, getattr(algo_defaults(saved_algo).agent, key)), getattr(config.agent, key)
+        was, now = saved.get(key, getattr(algo_defaults(config.algo).agent, key)), getattr(config.agent, key)
         if now != was:
             raise UserError(f"--resume: agent.{key}={now!r} but the run in {str(rd.root)!r} has {was!r}; a resumed "
                             f"run keeps its networks (leave out --set agent.{key}; in Python, load the run's "
                             "config.toml)")
-    if config.env.id != saved_env:
-        raise UserError(f"--resume: env.id={config.env.id!r} but the run in {str(rd.root)!r} is "
-                        f"env.id={saved_env!r}; {_OWN_CONFIG}")
 
 
 def _use_factory(config: Config, env: Any, one_process: bool) -> None:
@@ -179,6 +183,7 @@ def train(config: Config | dict[str, Any] | str | Path, run_dir: str | Path | No
                             "overwrite=True or resume=True)")
         rd.require()
         check_resume_matches(config, rd)
+        check_resume_networks(config, rd)
     else:
         takeover = _takeover_notice(rd, overwrite)
     # files that are not a run's (looked at before the run's parts make a memmap replay's folder)
