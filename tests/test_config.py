@@ -44,6 +44,7 @@ def test_overrides_are_typed():
     ("env.max_episode_steps=-1", "env.max_episode_steps=-1 is not valid; it must be >= 0"),
     ("train=3", "train is a section"),
     ("novalue", "is not KEY=VALUE"),
+    ("distributed.address=nonsense", "distributed.address='nonsense' is not valid; valid: auto"),
     ("env.kwargs={kind=md0}", "the value is not a valid TOML table or list; quote the strings in it"),
     ("agent.hidden=[64,", "the value is not a valid TOML table or list"),
 ])

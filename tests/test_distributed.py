@@ -393,3 +393,19 @@ def test_a_memmap_folder_another_run_holds_is_refused_before_any_actor_starts(tm
     import ray
 
     assert not ray.is_initialized()
+
+
+@needs_ray
+def test_a_ray_cluster_that_is_not_there_is_one_line(tmp_path):
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    from relayrl.errors import UserError
+
+    config = relayrl.load_config("sac-pendulum", ["distributed.num_actors=1",
+                                                  f"distributed.address=127.0.0.1:{port}"])
+    with pytest.raises(UserError, match=r"no Ray cluster answers at distributed.address=.*ray start --head"):
+        relayrl.train(config, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run").exists()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -164,6 +165,9 @@ class Config(Section):
         if d.num_actors > 0 and r.device not in ("auto", "numpy"):
             raise ConfigError(f"replay.device={r.device!r} applies to the one-process loop; the replay server of "
                               "distributed.num_actors > 0 keeps NumPy arrays (use auto or numpy)")
+        if d.address not in ("", "auto") and not re.fullmatch(r"(ray://)?[^:\s/]+:\d+", d.address):
+            raise ConfigError(f"distributed.address={d.address!r} is not valid; valid: auto (the Ray cluster this "
+                              "machine is in), HOST:PORT of a Ray head, or empty (start a local Ray instance)")
         d.require(">= 0", "num_actors", "max_restarts")
         d.require(">= 1", "pull_interval", "push_interval", "chunk_steps", "num_eval_actors")
         d.require(">= 0", "actor_cpus")

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import os
 import signal
+import socket
 import sys
 import time
 import uuid
@@ -16,6 +17,7 @@ from typing import Any
 
 from relayrl.config import Config, to_dict
 from relayrl.distributed.workers import ActorNames, EvalWorker
+from relayrl.errors import UserError
 from relayrl.training.variables import VariableContainer
 
 # An actor Ray reports unavailable (restarting after a crash, or its connection lost) is asked
@@ -33,7 +35,18 @@ def init_ray(ray: Any, config: Config) -> bool:
     kw: dict[str, Any] = {"include_dashboard": False, "logging_level": "ERROR"}
     on_sigterm = signal.getsignal(signal.SIGTERM)
     if d.address:
-        ray.init(address=d.address, **kw)
+        no_head = (f"no Ray cluster answers at distributed.address={d.address!r}: start one (`ray start --head` on "
+                   "its head node), or leave distributed.address empty to start a local Ray instance")
+        if d.address != "auto":  # host:port: a head that is not there would be waited for at length
+            host, port = d.address.removeprefix("ray://").rsplit(":", 1)
+            try:
+                socket.create_connection((host, int(port)), timeout=5).close()
+            except OSError as e:
+                raise UserError(f"{no_head} ({e.strerror or e})") from None
+        try:
+            ray.init(address=d.address, **kw)
+        except ConnectionError:
+            raise UserError(no_head) from None
     else:
         ray.init(num_cpus=max(os.cpu_count() or 1, math.ceil(d.num_actors * d.actor_cpus) + 1), **kw)
     if callable(on_sigterm):
