@@ -67,6 +67,7 @@ class RunReport:
         self.tb: Any = None
         self.metrics_log: MetricsLog | None = None
         self.bar: Any = None
+        self.bar_fields: dict[str, Any] = {}
         self.lines: ProgressLines | None = None
 
     def open(self, initial_steps: int) -> None:
@@ -86,6 +87,9 @@ class RunReport:
         if self.lines is not None:
             self.lines.stop()
         if self.bar is not None:
+            # the bar moves every train.log_interval env steps: the run's last steps and evaluation too
+            self.bar.update(self.progress().env_steps - self.bar.n)
+            self._bar_fields()
             self.bar.close()
         for log in (self.tb, self.metrics_log):
             if log is not None:
@@ -116,9 +120,14 @@ class RunReport:
                                    **(scalars or self.log_scalars(p, env_sps, grad_sps))})
         if self.bar is not None:
             self.bar.update(p.env_steps - self.bar.n)
-            last = self.last_eval.get("average_return")
-            self.bar.set_postfix(sps=f"{env_sps:.0f}", eval=f"{last:.1f}" if last is not None else "-",
-                                 **self.postfix())
+            self._bar_fields(sps=f"{env_sps:.0f}")
+
+    def _bar_fields(self, **fields: str) -> None:
+        """The bar's fields: these, the latest evaluation's return and the driver's `postfix()`."""
+        last = self.last_eval.get("average_return")
+        self.bar_fields = {**self.bar_fields, **fields, "eval": f"{last:.1f}" if last is not None else "-",
+                           **self.postfix()}
+        self.bar.set_postfix(self.bar_fields)
 
     def write_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
         """TensorBoard as CleanRL names it: charts/episodic_return and charts/episodic_length, one
