@@ -177,3 +177,18 @@ def test_train_takes_a_config_toml_path_and_a_run_directory_gets_a_hint(run_dir,
                                         r"--run-dir .* --resume` \(in Python: resume=True\), or start a new run "
                                         r"from its settings with"):
         relayrl.load_config(str(run_dir))
+
+
+def test_plot_panels_follow_what_the_run_logged(run_dir, tmp_path):
+    from relayrl.plot import panels_for
+
+    dqn = [{"step": 0, "losses/loss": 1.0, "losses/q": 2.0}]
+    sac = [{"step": 0, "losses/critic_loss": 1.0, "losses/actor_loss": -1.0, "losses/q": 2.0}]
+    assert [k for k, _ in panels_for(dqn, False)] == ["average_episode_length", "losses/loss", "losses/q"]
+    assert [k for k, _ in panels_for(sac, False)] == ["average_episode_length", "losses/critic_loss", "losses/q"]
+    assert panels_for([{"step": 0}], False) == []  # PPO: the returns alone
+    # a run with one evaluation plots (its axis starts at 0)
+    one = tmp_path / "one"
+    relayrl.train({**TINY, "train": {**TINY["train"], "total_steps": 40, "initial_collect_steps": 40}}, one,
+                  progress=False)
+    assert relayrl.plot_run(one).stat().st_size > 0

@@ -29,13 +29,7 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
     # BPTT runs (algo = "bptt") log training rollouts, not evaluations; like TorchRL's
     # tutorial, they get a second panel with the reward at the rollout's last step.
     bptt = rows[0].get("bptt/last_reward") is not None
-    q_learning = not bptt and any(r.get("losses/q") is not None for r in rows)
-    curves: list[tuple[str, str]] = []  # (metrics key, axis label) after the returns panel
-    if bptt:
-        curves.append(("bptt/last_reward", "reward at the rollout's last step"))
-    if q_learning:
-        curves += [("average_episode_length", "average episode length (eval)"),
-                   ("losses/loss", "loss (latest batch)"), ("losses/q", "mean Q of the batch's actions")]
+    curves = panels_for(rows, bptt)
     # env.info_keys (Mario's x_pos): eval/<key> per evaluation, train/<key> over the episode window
     info_keys = sorted({k[5:] for r in rows for k in r if k.startswith("eval/")})
     panels_n = 1 + len(curves) + len(info_keys)
@@ -68,14 +62,33 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
     return path
 
 
+def panels_for(rows: Rows, bptt: bool) -> list[tuple[str, str]]:
+    """(metrics key, axis label) of each panel after the returns'."""
+    if bptt:
+        return [("bptt/last_reward", "reward at the rollout's last step")]
+    if not any(r.get("losses/q") is not None for r in rows):  # PPO
+        return []
+    # DQN's TD loss, or SAC's critic loss: the Q-learning half of an actor-critic
+    loss = "losses/loss" if any(r.get("losses/loss") is not None for r in rows) else "losses/critic_loss"
+    return [("average_episode_length", "average episode length (eval)"),
+            (loss, f"{'critic ' * (loss != 'losses/loss')}loss (latest batch)"),
+            ("losses/q", "mean Q of the batch's actions")]
+
+
+def _steps_axis(ax: Any, steps: list[int]) -> None:
+    ax.set_xlabel("environment steps")
+    if steps and min(steps) == max(steps):  # one evaluation: an axis from 0, not around one point
+        ax.set_xlim(0, max(steps) or 1)
+
+
 def _returns(ax: Any, rows: Rows, bptt: bool) -> None:
     ax.plot([r["step"] for r in rows], [r["average_return"] for r in rows], marker="o", ms=3,
             label="rollout return (batch mean)" if bptt else "eval (greedy)")
     train_rows = [r for r in rows if r.get("train/average_return") is not None]
     if train_rows:
         ax.plot([r["step"] for r in train_rows], [r["train/average_return"] for r in train_rows],
-                alpha=0.6, label="train (collect policy)")
-    ax.set_xlabel("environment steps")
+                alpha=0.6, marker="o", ms=2, label="train (collect policy)")
+    _steps_axis(ax, [r["step"] for r in rows])
     ax.set_ylabel("average return")
     ax.grid(alpha=0.3)
     ax.legend()
@@ -84,6 +97,6 @@ def _returns(ax: Any, rows: Rows, bptt: bool) -> None:
 def _curve(ax: Any, rows: Rows, key: str, label: str, color: str, legend: str | None = None) -> None:
     points = [(r["step"], r[key]) for r in rows if r.get(key) is not None]
     ax.plot([s for s, _ in points], [v for _, v in points], marker="o", ms=3, color=color, label=legend)
-    ax.set_xlabel("environment steps")
+    _steps_axis(ax, [s for s, _ in points])
     ax.set_ylabel(label)
     ax.grid(alpha=0.3)
