@@ -22,7 +22,7 @@ def run(args, env, cwd=None):
     (["train", "missing.toml"], "config file 'missing.toml' does not exist"),
     (["eval", "/no/such/run"], "run directory '/no/such/run' does not exist"),
     (["plot", "/no/such/run"], "does not exist"),
-    (["plot", "pyproject.toml"], "'pyproject.toml' is a file, not a run directory"),
+    (["plot", __file__], "is a file, not a run directory"),
     (["video", "/no/such/run"], "does not exist"),
     (["train", "dqn-cartpole", "--resume"], "--resume needs --run-dir"),
     (["train"], "train needs PRESET|CONFIG.toml (see `relayrl presets`), or --run-dir DIR --resume"),
