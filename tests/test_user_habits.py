@@ -112,6 +112,11 @@ def test_export_takes_the_format_from_out(run_dir, tmp_path):
     assert (tmp_path / "p.onnx").read_bytes()[:1] != b"PK"  # ONNX protobuf, not a torch.export zip
 
 
+def test_export_refuses_an_out_of_another_extension(run_dir, tmp_path, capsys):
+    assert main(["export", str(run_dir), "--out", str(tmp_path / "x.txt")]) == 2
+    assert "give a file name ending in .pt2 or .onnx (or a folder)" in capsys.readouterr().err
+
+
 def test_export_refuses_an_out_that_names_another_format(run_dir, tmp_path, capsys):
     assert main(["export", str(run_dir), "--format", "onnx", "--out", str(tmp_path / "q.pt2")]) == 2
     assert ("--out '" + str(tmp_path / "q.pt2") + "' names the pt2 format but --format is onnx"

@@ -86,7 +86,9 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
     `format="onnx"`, an ONNX model (`policy.onnx`; needs the `onnx` extra). Beside it,
     `<file>.json` says what it takes and returns (`signature`). Without `format`, an `out`
     ending in .onnx or .pt2 names it; else pt2."""
-    named = Path(out).suffix.lstrip(".").lower() if out else ""
+    named = Path(out).suffix.lstrip(".").lower() if out and not Path(out).is_dir() else ""
+    if named and named not in FORMATS:  # torch.export's reader and onnxruntime go by the extension
+        raise UserError(f"--out {str(out)!r}: give a file name ending in .pt2 or .onnx (or a folder)")
     if format is None:
         format = named if named in FORMATS else "pt2"
     if format not in FORMATS:

@@ -30,7 +30,7 @@ from relayrl.training.checkpoint import load_latest_checkpoint
 from relayrl.training.finite import FiniteWatch
 from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
 from relayrl.training.replay_setup import replay_path
-from relayrl.training.report import say
+from relayrl.training.report import plural, say
 from relayrl.training.run_dir import RunDir
 from relayrl.training.triggers import IntervalTrigger, Progress, covers_boundary
 
@@ -96,7 +96,7 @@ class RayDriver:
         self.collection.iterate(self.core, self._finish_evals)
 
     def announce(self) -> None:
-        self.core.say(f"distributed: {self.collection.layout()}, {len(self.pool.eval_workers)} eval actors, "
+        self.core.say(f"distributed: {self.collection.layout()}, {plural(len(self.pool.eval_workers), 'eval actor')}, "
                       f"learner on {self.device}")
 
     def close(self) -> None:

@@ -24,6 +24,7 @@ from relayrl.errors import NonFiniteError
 from relayrl.metrics import EpisodeStats
 from relayrl.specs import Spec
 from relayrl.training.lifecycle import RunCore
+from relayrl.training.report import plural
 
 CALL_CHUNKS = 4  # chunks per collect call: long enough that a call's RPC costs little
 CALLS_QUEUED = 2  # collect calls queued per actor: the next one starts without the driver
@@ -56,7 +57,7 @@ class ReplayCollection:
         return sum(self.accepted)
 
     def layout(self) -> str:
-        return f"{self.pool.num_actors} rollout actors x {self.config.env.num_envs} envs"
+        return f"{plural(self.pool.num_actors, 'rollout actor')} x {plural(self.config.env.num_envs, 'env')}"
 
     def postfix(self) -> dict[str, str]:
         return self.pool.postfix()

@@ -34,6 +34,7 @@ from relayrl.replay import Table
 from relayrl.specs import Spec
 from relayrl.training.lifecycle import RunCore
 from relayrl.training.replay_setup import build_rollouts
+from relayrl.training.report import plural
 
 
 class RolloutShares:
@@ -109,8 +110,8 @@ class RolloutCollection:
 
     def layout(self) -> str:
         k, b = self.pool.num_actors, self.config.env.num_envs
-        return (f"{k} rollout actors x {b} envs, each rollout of {self._full_share() * k * b} env steps split "
-                f"over them ({self._full_share()} steps per env copy)")
+        return (f"{plural(k, 'rollout actor')} x {plural(b, 'env')}, each rollout of "
+                f"{self._full_share() * k * b} env steps split over them ({self._full_share()} steps per env copy)")
 
     def postfix(self) -> dict[str, str]:
         return {**self.pool.postfix(), "stale": str(self.shares.dropped)}

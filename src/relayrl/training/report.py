@@ -28,6 +28,11 @@ def say(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
 
+def plural(n: int, noun: str) -> str:
+    """"1 eval actor", "2 eval actors": a count for the console."""
+    return f"{n} {noun}{'s' * (n != 1)}"
+
+
 def log_config(tb: Any, config: Config) -> None:
     """The run's config in TensorBoard: as TOML text (with each key's meaning) and as hparams."""
     from relayrl.config_fields import commented_toml
