@@ -78,8 +78,10 @@ def test_a_run_with_a_checkpoint_is_kept_unless_overwrite(tmp_path, cli):
 def test_a_finished_run_without_checkpoints_is_kept(tmp_path):
     run = tmp_path / "run"
     train(load_config("dqn-cartpole", TINY + ["train.checkpoint_interval=0"]), run, progress=False)
-    with pytest.raises(UserError, match="already holds a run"):
+    with pytest.raises(UserError, match=r"already holds a run \(finished, with no checkpoint to resume from\); "
+                                        r"pass --overwrite") as e:
         train(load_config("dqn-cartpole", TINY), run, progress=False)
+    assert "--resume" not in str(e.value)
     train(load_config("dqn-cartpole", TINY + ["train.total_steps=30"]), run, progress=False, overwrite=True)
     assert RunDir(run).read_metrics()[-1]["step"] == 30
 

@@ -131,7 +131,8 @@ def _train(args: argparse.Namespace) -> None:
                    overwrite=args.overwrite)
     final = result.final
     print(f"run directory: {result.run_dir}")
-    print(f"final evaluation: average_return={final.get('average_return')} "
+    ret = final.get("average_return")
+    print(f"final evaluation: average_return={ret if ret is None else round(ret, 4)} "
           f"at step {final.get('step')} ({final.get('wall_time_s')} s)")
 
 
