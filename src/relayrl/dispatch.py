@@ -118,8 +118,8 @@ def _takeover_notice(rd: RunDir, overwrite: bool) -> str | None:
                 "starting over in it")
     if not rd.has_checkpoint():  # finished without checkpoints (bptt's runs write none): nothing to resume
         raise UserError(f"run directory {str(rd.root)!r} already holds a run (finished, with no checkpoint to resume "
-                        "from); pass --overwrite to replace it, or choose another --run-dir (in Python: overwrite=True, "
-                        "or another run_dir)")
+                        "from); pass --overwrite to replace it, or choose another --run-dir (in Python: "
+                        "overwrite=True, or another run_dir)")
     raise UserError(f"run directory {str(rd.root)!r} already holds a run; pass --resume to continue it, "
                     "--overwrite to replace it, or choose another --run-dir (in Python: relayrl.train(..., "
                     "resume=True) or overwrite=True, or another run_dir)")
