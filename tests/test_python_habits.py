@@ -47,6 +47,8 @@ def test_evaluate_returns_mean_and_std_as_sb3():
 def test_evaluate_a_run_dir_and_a_loaded_policy(run_dir):
     assert tuple(relayrl.evaluate(run_dir, episodes=3)) == (3.0, 0.0)  # the run's own env
     policy = relayrl.load_policy(run_dir)
+    assert repr(policy) == ("LoadedPolicy(kind='q_greedy', observations=Box(shape=(2,), dtype=float32), "
+                            "deterministic=True, env_steps=200)")
     assert tuple(relayrl.evaluate(policy, "toy_envs:Countdown", episodes=3)) == (3.0, 0.0)
     assert tuple(relayrl.evaluate(run_dir, Countdown(length=4), episodes=2)) == (4.0, 0.0)
     # a greedy policy has no sampling mode: SB3-style code asking for one gets the greedy actions
@@ -163,6 +165,7 @@ def test_dir_shows_the_public_api():
     for name in ("train", "evaluate", "load_policy", "record_video", "load_config", "Config", "EvalResult"):
         assert name in names and name in relayrl.__all__
     assert callable(relayrl.evaluate)
+    assert not {"Any", "TYPE_CHECKING", "annotations", "ModuleType"} & set(names)
 
 
 def test_train_takes_a_config_toml_path_and_a_run_directory_gets_a_hint(run_dir, tmp_path):

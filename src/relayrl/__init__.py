@@ -15,6 +15,7 @@ own defaults, Stable-Baselines3's; likewise "dqn" and "sac".
 
 from __future__ import annotations
 
+from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
@@ -56,4 +57,6 @@ def __getattr__(name: str) -> Any:
 
 def __dir__() -> list[str]:
     # Tab completion and dir(relayrl) show the lazy public API beside what is already imported.
-    return sorted(set(__all__) | set(globals()))
+    # Not the names this module uses itself (Any, ModuleType, TYPE_CHECKING, annotations).
+    own = {n for n, v in globals().items() if n.startswith("__") or isinstance(v, ModuleType)}
+    return sorted(set(__all__) | own)

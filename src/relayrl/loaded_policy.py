@@ -43,6 +43,11 @@ class LoadedPolicy(Policy):
         self._module = for_policy_kind(self.kind).policy_module()
         self._other_mode: Any = None  # the policy with the other `deterministic`, made when predict asks
 
+    def __repr__(self) -> str:
+        action = f", action_shape={self.action_shape}" if self.action_shape is not None else ""
+        return (f"LoadedPolicy(kind={self.kind!r}, observations={describe(self.obs_space)}{action}, "
+                f"deterministic={self.deterministic}, env_steps={self.env_steps})")
+
     def __call__(self, obs: Any) -> Any:
         if isinstance(obs, torch.Tensor) and obs.dtype == self.obs_dtype and obs.dim() == len(self.obs_shape) + 1:
             _check_finite(obs)
