@@ -150,10 +150,10 @@ def one_line(capfd, args, code=2):
     return err
 
 
-@pytest.mark.parametrize("command", [["plot"], ["video"], ["export"]])
-def test_out_under_a_file_is_one_line(command, small_run, tmp_path, capfd):
+@pytest.mark.parametrize("command, name", [("plot", "x.png"), ("video", "x.mp4"), ("export", "x.pt2")])
+def test_out_under_a_file_is_one_line(command, name, small_run, tmp_path, capfd):
     (tmp_path / "afile").write_text("")
-    err = one_line(capfd, [*command, str(small_run), "--out", str(tmp_path / "afile" / "x.out")])
+    err = one_line(capfd, [command, str(small_run), "--out", str(tmp_path / "afile" / name)])
     assert "cannot create the folder of" in err and "afile" in err
 
 
