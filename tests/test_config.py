@@ -46,7 +46,8 @@ def test_overrides_are_typed():
     ("novalue", "is not KEY=VALUE"),
     ("distributed.address=nonsense", "distributed.address='nonsense' is not valid; valid: auto"),
     ("env.kwargs={kind=md0}", "the value is not a valid TOML table or list; quote the strings in it"),
-    ("agent.hidden=[64,", "the value is not a valid TOML table or list"),
+    ("agent.hidden=[64,", "agent.hidden='[64,' has the wrong type; expected a list of int"),
+    ("agent.hidden=[64, x]", "the value is not a valid TOML table or list"),
 ])
 def test_bad_overrides_fail_with_a_clear_message(override, fragment):
     with pytest.raises(ConfigError, match=None) as e:
@@ -158,3 +159,9 @@ def test_combined_checks_are_split_per_key(preset, override, message):
     with pytest.raises(ConfigError) as e:
         load_config(preset, [override])
     assert message in str(e.value)
+
+
+@pytest.mark.parametrize("address", ["auto", "localhost:6379", "10.0.0.2:6379", "[::1]:6379",
+                                     "ray://head.example-1.org:10001"])
+def test_ray_addresses_of_every_form_pass_the_config_check(address):
+    assert load_config("sac-pendulum", [f"distributed.address={address}"]).distributed.address == address

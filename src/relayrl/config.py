@@ -165,7 +165,7 @@ class Config(Section):
         if d.num_actors > 0 and r.device not in ("auto", "numpy"):
             raise ConfigError(f"replay.device={r.device!r} applies to the one-process loop; the replay server of "
                               "distributed.num_actors > 0 keeps NumPy arrays (use auto or numpy)")
-        if d.address not in ("", "auto") and not re.fullmatch(r"(ray://)?[^:\s/]+:\d+", d.address):
+        if d.address not in ("", "auto") and not re.fullmatch(RAY_ADDRESS, d.address):
             raise ConfigError(f"distributed.address={d.address!r} is not valid; valid: auto (the Ray cluster this "
                               "machine is in), HOST:PORT of a Ray head, or empty (start a local Ray instance)")
         d.require(">= 0", "num_actors", "max_restarts")
@@ -201,6 +201,10 @@ class Config(Section):
                               "it trains on each rollout for the agent's own epochs of minibatches "
                               "(agent.n_epochs, agent.batch_size); leave it at 1 (0: collect only)")
         self.agent.check_rollout(self.steps_per_iteration())
+
+
+# distributed.address as HOST:PORT (a Ray head or, with ray://, a Ray Client server; IPv6 in brackets)
+RAY_ADDRESS = r"(ray://)?(\[[0-9a-fA-F:.]+\]|[^:\s/\[\]]+):\d+"
 
 
 def to_dict(config: Config) -> dict[str, Any]:
@@ -301,9 +305,10 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     try:
         value = tomllib.loads(f"v = {raw}")["v"]
     except tomllib.TOMLDecodeError:
-        if raw.strip().startswith(("{", "[")):  # meant as a table or a list, not a bare word
+        bare = raw.strip()
+        if bare[:1] + bare[-1:] in ("{}", "[]"):  # meant as a table or a list, not a bare word ([::1]:6379 is one)
             raise ConfigError(f"--set {text!r}: the value is not a valid TOML table or list; quote the strings "
-                              "in it and close it, e.g. env.kwargs={mode = 'fast'} or agent.hidden=[64, 64]") from None
+                              "in it, e.g. env.kwargs={mode = 'fast'}") from None
         value = raw  # bare words such as CartPole-v1 are strings
     return key.strip().split("."), value
 

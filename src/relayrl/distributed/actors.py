@@ -40,7 +40,7 @@ def init_ray(ray: Any, config: Config) -> bool:
         if d.address != "auto":  # host:port: a head that is not there would be waited for at length
             host, port = d.address.removeprefix("ray://").rsplit(":", 1)
             try:
-                socket.create_connection((host, int(port)), timeout=5).close()
+                socket.create_connection((host.strip("[]"), int(port)), timeout=5).close()  # [::1]: IPv6
             except OSError as e:
                 raise UserError(f"{no_head} ({e.strerror or e})") from None
         try:
