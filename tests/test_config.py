@@ -1,5 +1,7 @@
 """Config: presets, --set overrides, type checks, TOML round trip."""
 
+import re
+
 import pytest
 
 from relayrl.config import from_dict, load_toml, save_toml, to_dict
@@ -44,7 +46,6 @@ def test_overrides_are_typed():
     ("env.max_episode_steps=-1", "env.max_episode_steps=-1 is not valid; it must be >= 0"),
     ("train=3", "train is a section"),
     ("novalue", "is not KEY=VALUE"),
-    ("distributed.address=nonsense", "distributed.address='nonsense' is not valid; valid: auto"),
     ("env.kwargs={kind=md0}", "the value is not a valid TOML table or list; quote the strings in it"),
     ("agent.hidden=[64,", "agent.hidden='[64,' has the wrong type; expected a list of int"),
     ("agent.hidden=[64, x]", "the value is not a valid TOML table or list"),
@@ -164,4 +165,13 @@ def test_combined_checks_are_split_per_key(preset, override, message):
 @pytest.mark.parametrize("address", ["auto", "localhost:6379", "10.0.0.2:6379", "[::1]:6379",
                                      "ray://head.example-1.org:10001"])
 def test_ray_addresses_of_every_form_pass_the_config_check(address):
+    config = load_config("sac-pendulum", [f"distributed.address={address}", "distributed.num_actors=1"])
+    assert config.distributed.address == address
+
+
+@pytest.mark.parametrize("address", ["nonsense", "host:", "::1:6379", "http://x:1", "host:99999", "host:0"])
+def test_a_ray_address_of_no_form_is_one_line_where_ray_is_used(address):
+    with pytest.raises(ConfigError, match=f"distributed.address='{re.escape(address)}' is not valid; valid: auto"):
+        load_config("sac-pendulum", [f"distributed.address={address}", "distributed.num_actors=1"])
+    # a one-process run does not use it: its saved config still loads (eval, plot, resume)
     assert load_config("sac-pendulum", [f"distributed.address={address}"]).distributed.address == address

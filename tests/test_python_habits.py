@@ -195,3 +195,33 @@ def test_plot_panels_follow_what_the_run_logged(run_dir, tmp_path):
     relayrl.train({**TINY, "train": {**TINY["train"], "total_steps": 40, "initial_collect_steps": 40}}, one,
                   progress=False)
     assert relayrl.plot_run(one).stat().st_size > 0
+
+
+def test_the_progress_bar_ends_at_the_last_step_with_the_last_evaluation(tmp_path, monkeypatch):
+    import tqdm
+
+    bars = []
+
+    class Bar:  # tqdm as a terminal shows it (pytest has none, where tqdm does nothing)
+        def __init__(self, total, initial=0, **kwargs):
+            self.n, self.total, self.disable, self.postfix = initial, total, False, {}
+            bars.append(self)
+
+        def update(self, k):
+            self.n += k
+
+        def set_postfix(self, fields):
+            self.postfix = dict(fields)
+
+        def write(self, text):
+            pass
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(tqdm, "tqdm", Bar)
+    cfg = {**TINY, "train": {**TINY["train"], "total_steps": 130, "log_interval": 50}}
+    result = relayrl.train(cfg, tmp_path / "run", progress=True)
+    assert bars[0].n == 130  # not the last log boundary (100)
+    assert bars[0].postfix["eval"] == f"{result.final['average_return']:.1f}"
+

@@ -100,7 +100,7 @@ class DistributedConfig(Section):
     SECTION = "distributed"
 
     num_actors: int = 0  # rollout actors on Ray; 0: the one-process loop
-    address: str = ""  # an existing Ray cluster ("auto" or host:port); "": start a local Ray instance
+    address: str = ""  # an existing Ray cluster ("auto", host:port or ray://host:port); "": start a local one
     pull_interval: int = 1_000  # env steps between a rollout actor's weight pulls
     push_interval: int = 50  # gradient steps between the learner's weight pushes
     chunk_steps: int = 256  # env steps per replay insert RPC, per actor
@@ -165,9 +165,11 @@ class Config(Section):
         if d.num_actors > 0 and r.device not in ("auto", "numpy"):
             raise ConfigError(f"replay.device={r.device!r} applies to the one-process loop; the replay server of "
                               "distributed.num_actors > 0 keeps NumPy arrays (use auto or numpy)")
-        if d.address not in ("", "auto") and not re.fullmatch(RAY_ADDRESS, d.address):
+        address = re.fullmatch(RAY_ADDRESS, d.address)
+        if d.num_actors > 0 and d.address not in ("", "auto") and not (address and 0 < int(address[3]) < 65536):
             raise ConfigError(f"distributed.address={d.address!r} is not valid; valid: auto (the Ray cluster this "
-                              "machine is in), HOST:PORT of a Ray head, or empty (start a local Ray instance)")
+                              "machine is in), HOST:PORT of a Ray head ([IPv6]:PORT; ray://HOST:PORT for Ray "
+                              "Client), or empty (start a local Ray instance)")
         d.require(">= 0", "num_actors", "max_restarts")
         d.require(">= 1", "pull_interval", "push_interval", "chunk_steps", "num_eval_actors")
         d.require(">= 0", "actor_cpus")
@@ -204,7 +206,7 @@ class Config(Section):
 
 
 # distributed.address as HOST:PORT (a Ray head or, with ray://, a Ray Client server; IPv6 in brackets)
-RAY_ADDRESS = r"(ray://)?(\[[0-9a-fA-F:.]+\]|[^:\s/\[\]]+):\d+"
+RAY_ADDRESS = r"(ray://)?(\[[0-9a-fA-F:.]+\]|[^:\s/\[\]]+):(\d{1,5})"
 
 
 def to_dict(config: Config) -> dict[str, Any]:

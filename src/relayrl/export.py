@@ -32,7 +32,7 @@ from relayrl import atomic
 from relayrl.agents.registry import for_policy_kind
 from relayrl.errors import UserError
 from relayrl.loaded_policy import LoadedPolicy
-from relayrl.paths import output_path, writing
+from relayrl.paths import is_folder, output_path, writing
 from relayrl.policies import saved_obs_spec
 from relayrl.policy_file import REFUSED, load_policy_file
 from relayrl.specs import PackedSpec, Spec
@@ -86,7 +86,7 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
     `format="onnx"`, an ONNX model (`policy.onnx`; needs the `onnx` extra). Beside it,
     `<file>.json` says what it takes and returns (`signature`). Without `format`, an `out`
     ending in .onnx or .pt2 names it; else pt2."""
-    named = Path(out).suffix.lstrip(".").lower() if out and not Path(out).is_dir() else ""
+    named = Path(out).suffix.lstrip(".") if out and not is_folder(out) else ""
     if named and named not in FORMATS:  # torch.export's reader and onnxruntime go by the extension
         raise UserError(f"--out {str(out)!r}: give a file name ending in .pt2 or .onnx (or a folder)")
     if format is None:

@@ -10,12 +10,17 @@ from pathlib import Path
 from relayrl.errors import UserError
 
 
+def is_folder(out: str | Path) -> bool:
+    """Whether an --out names a folder: one that exists, or a name ending in a slash."""
+    return Path(out).is_dir() or str(out).endswith(("/", os.sep))
+
+
 def output_path(out: str | Path | None, default: Path) -> Path:
     """`out` (or `default`) with its parent folder created; one-line UserError where it cannot be
     (a file in the way, a folder that is not writable, no file extension), before any work is
     done. A folder (one that exists, or a name ending in a slash) gets `default`'s file name in it."""
     path = Path(out) if out else default
-    if out and (path.is_dir() or str(out).endswith(("/", os.sep))):
+    if out and is_folder(out):
         path = path / default.name
     if not path.suffix:
         raise UserError(f"--out {str(out)!r} has no file extension; give a file name such as "

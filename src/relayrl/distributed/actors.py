@@ -45,8 +45,12 @@ def init_ray(ray: Any, config: Config) -> bool:
                 raise UserError(f"{no_head} ({e.strerror or e})") from None
         try:
             ray.init(address=d.address, **kw)
-        except ConnectionError:
-            raise UserError(no_head) from None
+        except ConnectionError as e:
+            if d.address == "auto":
+                raise UserError(no_head) from None
+            reason = (str(e).strip().splitlines() or [type(e).__name__])[0][:200]
+            raise UserError(f"something answers at distributed.address={d.address!r}, but Ray could not join it "
+                            f"({reason}): check that it is a Ray head of a matching Ray version") from None
     else:
         ray.init(num_cpus=max(os.cpu_count() or 1, math.ceil(d.num_actors * d.actor_cpus) + 1), **kw)
     if callable(on_sigterm):

@@ -103,7 +103,7 @@ class RunDir:
     def require(self) -> None:
         """Fail with a clear message unless this is an existing run directory."""
         if self.root.is_file():
-            raise UserError(f"{str(self.root)!r} is a file, not a run directory (the folder given as --run-dir)")
+            raise UserError(f"{str(self.root)!r} is a file, not a run directory (give the run's folder)")
         if not self.root.is_dir():
             raise UserError(f"run directory {str(self.root)!r} does not exist")
         if not self.config.is_file():
