@@ -232,6 +232,8 @@ def test_a_discrete_entry_of_a_dict_outside_its_range_is_one_line(tmp_path):
     policy(obs)
     with pytest.raises(UserError, match=r"observation\['cell'\] 4 is outside this policy's Discrete\(4\) space"):
         policy({**obs, "cell": 4})
+    with pytest.raises(UserError, match=r"observation\['cell'\] 7.0 is outside this policy's Discrete\(4\) space"):
+        policy({**obs, "cell": 7.0})  # a float holding a whole number is checked as the env's value
     policy({**obs, "pos": torch.zeros(2, requires_grad=True)})  # a tensor needing grad is read as it is
     batch = {k: np.stack([v] * 3) for k, v in obs.items()}
     with pytest.raises(UserError, match=r"observation\['pos'\] has shape \(2, 2\).*as observation\['cell'\]'s B = 3"):

@@ -101,10 +101,8 @@ class LoadedPolicy(Policy):
                             f"{describe(self.obs_space)} observations, one {list(self.obs_shape)} or a batch "
                             f"[{', '.join(['B', *map(str, self.obs_shape)])}]")
         single = t.dim() == n
-        _check_finite(t)
-        _check_integral(t, self.obs_space)
+        _check_values(t, self.obs_space)
         t = t.to(self.obs_dtype)
-        _check_range(t, self.obs_space)
         return (t.unsqueeze(0) if single else t), single, numpy_in
 
     def _packed(self, obs: Any) -> tuple[torch.Tensor, bool, bool]:
@@ -117,13 +115,16 @@ class LoadedPolicy(Policy):
         batch = spec.batch_size(obs)
         numpy_in = not isinstance(entry(obs, spec.fields[0]), torch.Tensor)
         for f in spec.fields:
-            if f.spec.dtype.is_floating_point:
-                _check_finite(torch.as_tensor(leaf_array(obs, f)), f"[{f.key!r}]")
-            else:
-                value = torch.as_tensor(leaf_array(obs, f))
-                _check_integral(value, f.spec, f"[{f.key!r}]")
-                _check_range(value, f.spec, f"[{f.key!r}]")
+            _check_values(torch.as_tensor(leaf_array(obs, f)), f.spec, f"[{f.key!r}]")
         return torch.from_numpy(spec.pack_batch(obs, batch)), batch is None, numpy_in
+
+
+def _check_values(t: torch.Tensor, s: Spec, where: str = "") -> None:
+    """An observation (or a Dict / Tuple entry) as given, before its cast to the spec's dtype:
+    finite, whole numbers for an integer spec, and inside a Discrete-kind range."""
+    _check_finite(t, where)
+    _check_integral(t, s, where)
+    _check_range(t, s, where)
 
 
 def _check_finite(t: torch.Tensor, where: str = "") -> None:
@@ -149,6 +150,6 @@ def _check_range(t: torch.Tensor, s: Spec, where: str = "") -> None:
     """Discrete entries outside their range would index past a one-hot (and a MultiBinary 2 is no
     bit): one line instead."""
     high = value_limit(s)
-    if high is not None and not t.is_floating_point() and t.numel():
+    if high is not None and t.numel():  # floats too: whole numbers by now (`_check_integral`)
         if bool((t < 0).any() or (t >= torch.as_tensor(high)).any()):
             raise UserError(f"observation{where} {t.tolist()} is outside this policy's {describe(s)} space")
