@@ -42,7 +42,8 @@ def factory_env_id(factory: Callable[[], Any]) -> str:
     if isinstance(factory, (types.FunctionType, type)) and name is not None and name.isidentifier():
         return f"{module}:{name}"
     # `<` keeps it from resolving: a lambda, a local or class-level function, a method, a partial
-    return f"{module}:{name if name and '<' in name else f'<{name or type(factory).__qualname__}>'}"
+    label = name if name and "<" in name else f"<{name or type(factory).__qualname__}>"
+    return f"{module}:{label}"
 
 
 _OWN_CONFIG = ("leave out PRESET|CONFIG.toml to resume with the run's own config.toml (in Python: "
@@ -68,9 +69,9 @@ def check_resume_matches(config: Config, rd: RunDir) -> None:
 
 def check_resume_networks(config: Config, rd: RunDir) -> None:
     """The config a run resumes with keeps the keys that shape its networks (`NETWORK`)."""
-    saved = load_toml(rd.config).get("agent", {})
+    saved, defaults = load_toml(rd.config).get("agent", {}), algo_defaults(config.algo).agent
     for key in config.agent.NETWORK:
-        was, now = saved.get(key, getattr(algo_defaults(config.algo).agent, key)), getattr(config.agent, key)
+        was, now = saved.get(key, getattr(defaults, key)), getattr(config.agent, key)
         if now != was:
             raise UserError(f"--resume: agent.{key}={now!r} but the run in {str(rd.root)!r} has {was!r}; a resumed "
                             f"run keeps its networks (leave out --set agent.{key}; in Python, load the run's "

@@ -93,7 +93,7 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
         format = named if named in FORMATS else "pt2"
     if format not in FORMATS:
         raise UserError(f"export format {format!r} is not known; valid: {', '.join(FORMATS)}")
-    if named in FORMATS and named != format:
+    if named and named != format:
         raise UserError(f"--out {str(out)!r} names the {named} format but --format is {format}: "
                         "give one of them, or the same in both (in Python: out= and format=)")
     if format == "onnx":

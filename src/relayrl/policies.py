@@ -77,7 +77,11 @@ class EpsilonGreedyPolicy(Policy):
 
     def __init__(self, greedy: GreedyPolicy, num_actions: int, epsilon: Callable[[int], float],
                  step_fn: Callable[[], int], rng: np.random.Generator) -> None:
-        self.greedy, self.num_actions, self.epsilon, self.step_fn, self.rng = greedy, num_actions, epsilon, step_fn, rng
+        self.greedy = greedy
+        self.num_actions = num_actions
+        self.epsilon = epsilon
+        self.step_fn = step_fn
+        self.rng = rng
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
         b = obs.shape[0]

@@ -345,15 +345,14 @@ class GymBatchEnv(BatchEnvBase):
         try:
             for fn in env_fns:
                 self.envs.append(fn())
+            problem = missing_spaces(self.envs[0])
+            if problem is not None:
+                raise UserError(problem)
         except BaseException:
             self.close()  # the copies already made (their windows, files, processes) go with the failure
             raise
         self.capped_at = 0  # cap_episodes: the step cap put on an env without a time limit
         first = self.envs[0]
-        problem = missing_spaces(first)
-        if problem is not None:
-            self.close()
-            raise UserError(problem)
         self._init_specs(len(self.envs), first.observation_space, first.action_space, time_limit_terminates,
                          frame_stack_of(first))
 
