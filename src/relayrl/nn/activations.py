@@ -26,16 +26,18 @@ class Activation:
     inplace: Callable[[Tensor], Tensor]  # overwrites its argument
     numpy: Callable[[np.ndarray], np.ndarray]  # may overwrite its argument
     # d loss / d z from g = d loss / d h, given z (None unless `needs_input`) and h = act(z),
-    # with the kernels autograd calls, so values equal autograd's.
+    # with the kernels autograd calls, so values equal autograd's. Written into g (the
+    # hand-written backward passes hand in a fresh gradient): no new tensor per layer.
     backward: Callable[[Tensor, Tensor | None, Tensor], Tensor]
     needs_input: bool = False  # backward reads z: a forward that saves for it must not overwrite z
 
 
 ACTIVATIONS: dict[str, Activation] = {a.name: a for a in (
     Activation("relu", torch.relu, torch.relu_, lambda x: np.maximum(x, 0.0, out=x),
-               lambda g, z, h: _aten.threshold_backward.default(g, h, 0)),
+               lambda g, z, h: _aten.threshold_backward.grad_input(g, h, 0, grad_input=g)),
     Activation("tanh", torch.tanh, torch.tanh_, lambda x: np.tanh(x, out=x),
-               lambda g, z, h: _aten.tanh_backward.default(g, h)),
+               lambda g, z, h: _aten.tanh_backward.grad_input(g, h, grad_input=g)),
     Activation("elu", F.elu, F.elu_, lambda x: np.where(x > 0, x, np.expm1(np.minimum(x, 0.0))),
-               lambda g, z, h: _aten.elu_backward.default(g, 1.0, 1, 1, False, z), needs_input=True),
+               lambda g, z, h: _aten.elu_backward.grad_input(g, 1.0, 1, 1, False, z, grad_input=g),
+               needs_input=True),
 )}

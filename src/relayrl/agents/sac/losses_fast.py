@@ -29,13 +29,15 @@ def sample_and_log_prob(actor: MLPFast, obs: Tensor, noise: Tensor, log_std_min:
 
 
 def actor_head_grad(g_a: Tensor, g_logp: Tensor, saved: tuple, log_std_min: float, log_std_max: float) -> Tensor:
-    """d loss / d [mean, raw log_std] [N, 2A] from d loss / d a [N, A] and d loss / d log pi [N].
+    """d loss / d [mean, raw log_std] [N, 2A] from d loss / d a [N, A] and d loss / d log pi [N],
+    for the first N rows of the sample that `saved` comes from.
 
     a = tanh(u), u = mean + std * noise: da/du = 1 - a^2; log pi = sum(-log_std - 2 (log 2 -
     u - softplus(-2u))) + const: d log pi / du = 2 tanh(u) = 2a, d log pi / d log_std = -1
     (noise held fixed); the clamp passes gradient where min <= raw <= max, as torch's does.
     """
-    _, raw, std, noise, a = saved
+    n = g_a.shape[0]
+    raw, std, noise, a = (t[:n] for t in saved[1:])
     g_logp = g_logp.unsqueeze(-1)  # [N, 1]
     g_u = g_a * (1.0 - a.square()) + 2.0 * g_logp * a  # [N, A]
     g_log_std = (g_u * std * noise - g_logp) * ((raw >= log_std_min) & (raw <= log_std_max))

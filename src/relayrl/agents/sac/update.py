@@ -112,8 +112,14 @@ class HandWrittenSACUpdate(SACUpdate):
         alpha = p.log_alpha.detach().exp()
         obs = batch.obs.reshape(n, -1).float()
         next_obs = batch.next_obs.reshape(n, -1).float()
+        # The critic step leaves the actor as it was, so one actor pass over [obs; next_obs]
+        # serves both the targets and the actor step: one matmul of 2N rows per layer instead
+        # of two of N. The noise is drawn in the reference's order (next_obs's first).
+        noise_next = torch.randn((n, a_dim), generator=p.gen, device=obs.device)
         noise = torch.randn((n, a_dim), generator=p.gen, device=obs.device)
-        next_a, next_logp, _ = losses_fast.sample_and_log_prob(self.actor, next_obs, noise, lo, hi)
+        a_both, logp_both, actor_saved = losses_fast.sample_and_log_prob(
+            self.actor, torch.cat([obs, next_obs]), torch.cat([noise, noise_next]), lo, hi)  # [2N, A], [2N]
+        a_pi, next_a, logp, next_logp = a_both[:n], a_both[n:], logp_both[:n], logp_both[n:]
         next_q = self.target.forward(torch.cat([next_obs, next_a], dim=-1))[0]
         y = critic_targets(batch.reward, batch.discount, next_q, next_logp, alpha, cfg.reward_scale)  # [N]
 
@@ -127,8 +133,6 @@ class HandWrittenSACUpdate(SACUpdate):
         self._step_with(p.critic_opt, grads)
         del grads  # freed before the actor's pass allocates
 
-        noise = torch.randn((n, a_dim), generator=p.gen, device=obs.device)
-        a_pi, logp, actor_saved = losses_fast.sample_and_log_prob(self.actor, obs, noise, lo, hi)
         q_pi, saved = self.critic.forward(torch.cat([obs, a_pi], dim=-1))  # the updated critics
         a_loss = actor_loss(logp, q_pi, alpha, w)
         g_min = torch.full((n,), -1.0 / n, device=obs.device) if w is None else w * (-1.0 / n)
@@ -136,7 +140,7 @@ class HandWrittenSACUpdate(SACUpdate):
         g_x = self.critic.backward(gq_pi, saved, None, input_grad=True)  # [N, in]
         assert g_x is not None
         g_logp = alpha * (1.0 / n if w is None else w / n)  # d loss / d log pi, [N] or scalar
-        g_out = losses_fast.actor_head_grad(g_x[:, -a_dim:], g_logp.expand(n), actor_saved, lo, hi)
+        g_out = losses_fast.actor_head_grad(g_x[:, -a_dim:], g_logp.expand(n), actor_saved, lo, hi)  # [N, 2A]
         self.actor.backward(g_out, actor_saved[0], self.actor_grads, rows=n)
         self._step_with(p.actor_opt, self.actor_grads)
 
