@@ -106,7 +106,8 @@ def test_callbacks_see_every_eval_and_log_and_false_stops(algo, tmp_path):
     evals = [r for r in rows if r["event"] == "eval"]
     assert [r["step"] for r in evals] == [0, 100, 200] and "average_return" in evals[0]
     logs = [r for r in rows if r["event"] == "log"]
-    assert len(logs) == 4 and logs[-1]["step"] == 200 and "perf/sps" in logs[-1]  # one per log_interval
+    assert len(logs) == 3 and logs[-1]["step"] == 150 and "perf/sps" in logs[-1]  # one per log_interval
+    assert rows[-1] is evals[-1]  # nothing more after the False (the log row at 200 is not sent)
     rd = tmp_path / "r"
     assert (rd / "checkpoints" / "ckpt-200.pt").exists() or any((rd / "checkpoints").glob("*200*"))
     assert relayrl.load_policy(rd).env_steps == 200

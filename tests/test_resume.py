@@ -129,6 +129,30 @@ def test_a_run_a_callback_stopped_between_evaluations_resumes_to_the_uninterrupt
     assert [r for r in cut if r is not extra[0]] == comparable(tmp_path / "full")
 
 
+def test_ctrl_c_mid_run_saves_a_checkpoint_there_and_the_resumed_run_is_the_uninterrupted_one(tmp_path, capsys):
+    """The first Ctrl-C ends the iteration, saves the policy and a checkpoint at that step
+    (no final evaluation), then raises KeyboardInterrupt; resuming gives the uninterrupted run."""
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN + ["train.log_interval=100"])
+    relayrl.train(cfg, tmp_path / "full", progress=False)
+    seen = []
+
+    def ctrl_c_at_700(row):
+        seen.append((row["event"], row["step"]))
+        if row["step"] == 700:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    with pytest.raises(KeyboardInterrupt):
+        relayrl.train(cfg, tmp_path / "cut", progress=False, callbacks=[ctrl_c_at_700])
+    assert seen[-1] == ("log", 700)  # no call after the interrupt
+    assert "stopping at the end of this iteration to save a checkpoint" in capsys.readouterr().err
+    assert load_latest_checkpoint(tmp_path / "cut" / "checkpoints")["env_steps"] == 700  # periodic ones: 500
+    assert relayrl.load_policy(tmp_path / "cut").env_steps == 700
+    assert RunDir(tmp_path / "cut").trained_to() == 700  # its policy's step (the last evaluation: 500)
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is put back
+    relayrl.train(cfg, tmp_path / "cut", resume=True, progress=False)
+    assert comparable(tmp_path / "cut") == comparable(tmp_path / "full")
+
+
 def test_resuming_a_run_already_past_total_steps_says_so(tmp_path, capsys):
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
     relayrl.train(cfg, tmp_path / "r", progress=False)

@@ -11,6 +11,7 @@ import pytest
 from relayrl.cli import main
 from relayrl.dispatch import train
 from relayrl.errors import UserError
+from relayrl.export import load_policy
 from relayrl.presets import load_config
 from relayrl.training.checkpoint import list_checkpoints
 from relayrl.training.run_dir import RunDir
@@ -142,6 +143,27 @@ def test_interrupt_before_the_first_checkpoint_does_not_offer_resume(tmp_path, c
     _, err = p.communicate(timeout=60)
     assert p.returncode == 130, err
     assert "interrupted before the first checkpoint: nothing to resume" in err and "--resume" not in err
+
+
+def test_a_run_that_trained_but_stopped_before_its_first_checkpoint_is_kept(tmp_path, cli):
+    """Only a run that stopped before training is taken over: one that trained keeps its
+    policy and metrics until --overwrite."""
+    run = tmp_path / "run"
+    cfg = load_config("dqn-cartpole", TINY + ["train.total_steps=200", "train.checkpoint_interval=0",
+                                              "train.log_interval=50"])
+    assert train(cfg, run, progress=False, callbacks=[lambda row: row["step"] < 100]).stopped_early
+    assert not list((run / "checkpoints").glob("*")) and RunDir(run).trained_to() == 100
+    r = cli(["train", "dqn-cartpole", "--run-dir", str(run), "--no-progress", *sets(TINY)])
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    (line,) = r.stderr.strip().splitlines()
+    assert "stopped at env step 100, before its first checkpoint" in line and "--overwrite" in line
+    assert load_policy(run).env_steps == 100 and RunDir(run).trained_to() == 100
+    from relayrl.cli import _interrupted_line, build_parser
+
+    args = build_parser().parse_args(["train", "dqn", "--run-dir", str(run)])
+    assert "the policy and metrics so far stay in" in _interrupted_line("interrupted", args)
+    r = cli(["train", "dqn-cartpole", "--run-dir", str(run), "--no-progress", "--overwrite", *sets(TINY)])
+    assert r.returncode == 0, r.stderr
 
 
 def test_run_dir_bad_places_are_one_line_and_missing_parents_are_made(tmp_path, cli):

@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import contextlib
 import os
-import signal
-import sys
-import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any
+
+from relayrl import interrupts
 
 
 @contextlib.contextmanager
@@ -31,68 +30,11 @@ def replacing(path: Path, tmp_name: str | None = None) -> Iterator[Path]:
 
 def write_with(path: Path, write: Callable[[IO[bytes]], Any], tmp_name: str | None = None) -> None:
     """Call `write(file)` on a temp file, fsync it, rename it over `path`. Ctrl-C and SIGTERM
-    take effect once the file is in place (`interrupts_deferred`)."""
-    with interrupts_deferred(), replacing(path, tmp_name) as tmp, open(tmp, "wb") as f:
+    take effect once the file is in place (`interrupts.deferred`)."""
+    with interrupts.deferred(), replacing(path, tmp_name) as tmp, open(tmp, "wb") as f:
         write(f)
         f.flush()
         os.fsync(f.fileno())
-
-
-@contextlib.contextmanager
-def interrupts_deferred() -> Iterator[None]:
-    """SIGINT and SIGTERM received inside wait for its end, then act as they would have. An
-    interrupt raised inside a writer (torch's zip writer) made it fail with an error of its own
-    instead, and the clean stop became a traceback. Only the main thread handles signals."""
-    wanted = (signal.SIGINT, signal.SIGTERM)  # delivered in this order: SIGTERM's exception, last, wins
-    previous = {s: signal.getsignal(s) for s in wanted}
-    if threading.current_thread() is not threading.main_thread() or None in previous.values():
-        yield  # None: a handler not set from Python, which could not be put back
-        return
-    pending: list[int] = []
-
-    def hold(signum: int, frame: object) -> None:
-        if not pending:  # a large checkpoint takes a while: say why the stop waits
-            print("relayrl: stopping once the file being written is complete", file=sys.stderr, flush=True)
-        pending.append(signum)
-
-    try:
-        with _blocked(wanted):  # no signal lands between two handler swaps
-            for sig in wanted:
-                signal.signal(sig, hold)
-        yield
-    finally:
-        with _blocked(wanted):
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
-        _deliver([sig for sig in wanted if sig in pending], previous)
-
-
-def _deliver(signals: list[int], handlers: dict[int, Any]) -> None:
-    """Act on each signal as its own handler would have, every one even if one raises."""
-    if not signals:
-        return
-    sig, rest = signals[0], signals[1:]
-    try:
-        handler = handlers[sig]
-        if callable(handler):
-            handler(sig, None)
-        elif handler == signal.SIG_DFL:
-            signal.raise_signal(sig)
-    finally:
-        _deliver(rest, handlers)
-
-
-@contextlib.contextmanager
-def _blocked(signals: tuple[int, ...]) -> Iterator[None]:
-    """`signals` held back by the OS while inside (POSIX); elsewhere nothing is held."""
-    if not hasattr(signal, "pthread_sigmask"):
-        yield
-        return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def write_text(path: Path, text: str) -> None:

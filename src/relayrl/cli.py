@@ -191,12 +191,16 @@ def _interrupted_line(what: str, args: argparse.Namespace) -> str:
     try:
         from relayrl.training.run_dir import RunDir
 
-        resumable = bool(run_dir) and RunDir(run_dir).has_checkpoint()
+        rd = RunDir(run_dir) if run_dir else None
+        resumable, trained = (rd.has_checkpoint(), rd.trained_to() > 0) if rd else (False, False)
     except (ImportError, AttributeError):  # interrupted while torch was still importing: no run has started
-        resumable = False
+        resumable = trained = False
     if resumable:
         return (f"relayrl: {what}; resume with --resume from the last checkpoint: "
                 f"relayrl train --run-dir {run_dir} --resume")
+    if trained:
+        return (f"relayrl: {what} before the first checkpoint: nothing to resume; the policy and metrics so far "
+                f"stay in {run_dir} (a new run there needs --overwrite)")
     where = f" in {run_dir}" if run_dir else ""
     return f"relayrl: {what} before the first checkpoint: nothing to resume; a new run{where} starts over"
 

@@ -115,8 +115,13 @@ def _takeover_notice(rd: RunDir, overwrite: bool) -> str | None:
     if overwrite:
         return f"--overwrite: replacing the run in {str(rd.root)!r}"
     if not rd.has_checkpoint() and not _finished(rd):
-        return (f"run directory {str(rd.root)!r} holds a run that stopped before its first checkpoint: "
-                "starting over in it")
+        reached = rd.trained_to()
+        if reached == 0:  # nothing learned to lose
+            return (f"run directory {str(rd.root)!r} holds a run that stopped before its first checkpoint: "
+                    "starting over in it")
+        raise UserError(f"run directory {str(rd.root)!r} holds a run that stopped at env step {reached:,}, "
+                        "before its first checkpoint (its policy and metrics so far are there); pass --overwrite "
+                        "to replace it, or choose another --run-dir (in Python: overwrite=True, or another run_dir)")
     if not rd.has_checkpoint():  # finished without checkpoints (bptt's runs write none): nothing to resume
         raise UserError(f"run directory {str(rd.root)!r} already holds a run (finished, with no checkpoint to resume "
                         "from); pass --overwrite to replace it, or choose another --run-dir (in Python: "
@@ -145,8 +150,8 @@ def train(config: Config | dict[str, Any] | str | Path, run_dir: str | Path | No
     TOML's path, as `load_config` takes them) into a run directory.
 
     A new run refuses a directory that already holds a run with a checkpoint (or a finished
-    one), unless `overwrite=True` replaces it; a run directory with no checkpoint (a run that
-    stopped before its first) is taken over. `resume=True` continues the run in `run_dir` from
+    one, or one that trained past step 0), unless `overwrite=True` replaces it; a run that
+    stopped before training (no metrics row past step 0) is taken over. `resume=True` continues the run in `run_dir` from
     its latest checkpoint; the config must name the run's algorithm and env.
 
     `env`: a callable returning a Gymnasium env, used instead of `config.env.id` (which is set

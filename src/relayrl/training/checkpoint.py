@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from relayrl import atomic
+from relayrl import atomic, interrupts
 from relayrl.errors import CheckpointError
 
 _NAME = re.compile(r"^ckpt-(\d{12})\.pt$")
@@ -26,7 +26,7 @@ def list_checkpoints(folder: Path) -> list[Path]:
 def save_checkpoint(folder: Path, env_steps: int, state: dict[str, Any], keep: int = 2) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"ckpt-{env_steps:012d}.pt"
-    with atomic.interrupts_deferred():  # Ctrl-C waits for the pruning too: `keep` files stay
+    with interrupts.deferred():  # Ctrl-C waits for the pruning too: `keep` files stay
         atomic.torch_save(state, path)  # the temp name (ckpt-*.pt.tmp) never matches a checkpoint's
         for old in list_checkpoints(folder)[:-keep]:
             old.unlink(missing_ok=True)

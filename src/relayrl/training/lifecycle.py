@@ -18,6 +18,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
+from relayrl import interrupts
 from relayrl.config import Config, changes, from_dict, load_toml, save_toml, to_dict
 from relayrl.core import Agent
 from relayrl.envs.make import check_env, is_user_env
@@ -258,9 +259,11 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if not report.stop_requested:
             driver.iterate()
         stopped = report.stop_requested and core.env_steps() < c.train.total_steps
-        if stopped:
+        if stopped and report.interrupted is None:
             core.say(f"a callback returned False: the run stops at env step {core.env_steps():,}")
-        finish(driver, core.progress())
+        finish(driver, core.progress(), evaluate=report.interrupted is None)  # an interrupt wants no wait
+        if report.interrupted is not None:
+            interrupts.redeliver(report.interrupted)  # KeyboardInterrupt, or the SIGTERM handler's stop
         return RunResult(core.rd.root, report.last_eval, stopped_early=stopped)
     except NonFiniteError as e:  # found below the run (the learner): it says what the run keeps
         if e.kept:
@@ -289,11 +292,12 @@ def record_resumed_config(core: RunCore, saved: Config | None) -> None:
         core.say(f"resumed with changed settings, now in config.toml: {'; '.join(changed)}")
 
 
-def finish(driver: Driver, p: Progress) -> None:
-    """The final evaluation (unless one ran at this step), policy save, checkpoint and log."""
+def finish(driver: Driver, p: Progress, evaluate: bool = True) -> None:
+    """The final evaluation (unless one ran at this step, or not `evaluate`), policy save,
+    checkpoint and log."""
     core = driver.core
     core.check_finite(p, weights=True)
-    if core.report.last_eval.get("step") != p.env_steps:
+    if evaluate and core.report.last_eval.get("step") != p.env_steps:
         driver.evaluate_now(p)
     driver.settle_evals()
     core.policy_saver.save(p)

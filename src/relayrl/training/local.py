@@ -8,6 +8,7 @@ import copy
 from collections.abc import Callable
 from typing import Any
 
+from relayrl import interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config
 from relayrl.envs import make_env
@@ -105,17 +106,20 @@ class LocalDriver:
     def iterate(self) -> None:
         c, core = self.config, self.core
         total = c.train.total_steps
-        if self.actor.env_steps == 0:
+        if self.actor.env_steps == 0:  # the random warm-up: nothing is learned in it, so Ctrl-C stops it at once
             self.actor.collect(min(c.train.initial_collect_steps, total))  # never past total_steps
         core.sps_log.rates.reset(core.progress())
         self.variables.push(network_variables(self.agent.policy_network()))  # fresh or restored weights
         self.actor.policy = self.collect_policy
-        while self.actor.env_steps < total and not core.report.stop_requested:
-            self.actor.collect(min(c.train.collect_steps, total - self.actor.env_steps))
-            core.step_schedules(self.actor.env_steps)
-            if not core.collect_only:
-                core.learner.learn(core.learner.available_steps())  # the rate limiter decides
-            core.fire_triggers()
+        # Ctrl-C or SIGTERM stops the loop between iterations, as a callback's False does, so
+        # the run ends with its policy and a checkpoint at the step it reached (run_to_end).
+        with interrupts.stop_request(core.report.request_stop):
+            while self.actor.env_steps < total and not core.report.stop_requested:
+                self.actor.collect(min(c.train.collect_steps, total - self.actor.env_steps))
+                core.step_schedules(self.actor.env_steps)
+                if not core.collect_only:
+                    core.learner.learn(core.learner.available_steps())  # the rate limiter decides
+                core.fire_triggers()
 
     def announce(self) -> None:
         """One process says nothing about its layout."""

@@ -67,6 +67,7 @@ class RunReport:
         self.progress, self.wall_time, self.losses, self.schedules = progress, wall_time, losses, schedules
         self.postfix, self.extra_scalars = postfix, extra_scalars
         self.stop_requested = False  # a callback returned False: the driver stops at its next check
+        self.interrupted: int | None = None  # the signal (Ctrl-C, SIGTERM) that asked the run to stop
         self.last_eval: dict[str, Any] = {}
         self.started = (time.perf_counter(), Progress(0, 0))  # when and where reporting began: the run's sps
         self.tb: Any = None
@@ -99,6 +100,11 @@ class RunReport:
         for log in (self.tb, self.metrics_log):
             if log is not None:
                 log.close()
+
+    def request_stop(self, signum: int) -> None:
+        """A signal asked the run to stop: the driver stops at its next check, as for a callback."""
+        self.stop_requested, self.interrupted = True, signum
+        self.say("relayrl: stopping at the end of this iteration to save a checkpoint (Ctrl-C again stops at once)")
 
     def say(self, text: str) -> None:
         if self.bar is not None and not self.bar.disable:
@@ -191,5 +197,7 @@ class RunReport:
         What a callback raises propagates (it is the user's code): the run ends there, its
         checkpoints and metrics as they were."""
         for callback in self.callbacks:
+            if self.stop_requested:  # no call after a False (or an interrupt): the run is stopping
+                return
             if callback({**row, "event": event}) is False:
                 self.stop_requested = True

@@ -120,6 +120,19 @@ class RunDir:
                 continue  # a line cut short by a crash; the rest is intact
         return rows
 
+    def trained_to(self) -> int:
+        """How far the run got, as far as its files say: the later of metrics.jsonl's last
+        evaluation and the saved policy's env step (0: it never trained past the start)."""
+        from relayrl.policy_file import load_policy_file
+
+        rows = self.read_metrics()
+        policy = self.policy / "policy.pt"
+        try:
+            saved = int(load_policy_file(policy).get("env_steps", 0)) if policy.is_file() else 0
+        except UserError:  # an unreadable policy file says nothing about how far the run got
+            saved = 0
+        return max(int(rows[-1].get("step", 0)) if rows else 0, saved)
+
     def truncate_metrics(self, after_step: int) -> list[dict[str, Any]]:
         """Drop rows logged after `after_step` (a resumed run logs them again); returns the rows kept."""
         rows = [r for r in self.read_metrics() if r.get("step", 0) <= after_step]

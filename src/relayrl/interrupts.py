@@ -1,0 +1,112 @@
+"""Ctrl-C and SIGTERM handled where stopping at once would lose work: `deferred` holds them
+until a file is written; `stop_request` turns the first into a request that the training loop
+honours at the end of its iteration, so the run stops with a checkpoint."""
+
+from __future__ import annotations
+
+import contextlib
+import signal
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from typing import Any
+
+WANTED = (signal.SIGINT, signal.SIGTERM)  # delivered in this order: SIGTERM's exception, last, wins
+
+
+def _handlers() -> dict[int, Any] | None:
+    """The current handlers, or None where they cannot be swapped: not the main thread (only
+    it handles signals), or a handler not set from Python (None), which could not be put back."""
+    previous = {s: signal.getsignal(s) for s in WANTED}
+    if threading.current_thread() is not threading.main_thread() or None in previous.values():
+        return None
+    return previous
+
+
+@contextlib.contextmanager
+def deferred() -> Iterator[None]:
+    """SIGINT and SIGTERM received inside wait for its end, then act as they would have. An
+    interrupt raised inside a writer (torch's zip writer) made it fail with an error of its own
+    instead, and the clean stop became a traceback. Only the main thread handles signals."""
+    previous = _handlers()
+    if previous is None:
+        yield
+        return
+    pending: list[int] = []
+
+    def hold(signum: int, frame: object) -> None:
+        if not pending:  # a large checkpoint takes a while: say why the stop waits
+            print("relayrl: stopping once the file being written is complete", file=sys.stderr, flush=True)
+        pending.append(signum)
+
+    try:
+        with _blocked(WANTED):  # no signal lands between two handler swaps
+            for sig in WANTED:
+                signal.signal(sig, hold)
+        yield
+    finally:
+        with _blocked(WANTED):
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        _deliver([sig for sig in WANTED if sig in pending], previous)
+
+
+def _deliver(signals: list[int], handlers: dict[int, Any]) -> None:
+    """Act on each signal as its own handler would have, every one even if one raises."""
+    if not signals:
+        return
+    sig, rest = signals[0], signals[1:]
+    try:
+        handler = handlers[sig]
+        if callable(handler):
+            handler(sig, None)
+        elif handler == signal.SIG_DFL:
+            signal.raise_signal(sig)
+    finally:
+        _deliver(rest, handlers)
+
+
+@contextlib.contextmanager
+def _blocked(signals: tuple[int, ...]) -> Iterator[None]:
+    """`signals` held back by the OS while inside (POSIX); elsewhere nothing is held."""
+    if not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+@contextlib.contextmanager
+def stop_request(on_signal: Callable[[int], None]) -> Iterator[None]:
+    """Inside, the first SIGINT or SIGTERM only calls `on_signal(signum)` (a second acts as it
+    would have, at once): the caller stops at a safe point, saves, then calls `redeliver`, so
+    the process ends as the signal asked. Where the handlers cannot be swapped, or SIGINT is
+    ignored (a background job), nothing changes."""
+    previous = _handlers()
+    if previous is None or previous[signal.SIGINT] == signal.SIG_IGN:
+        yield
+        return
+
+    def record(signum: int, frame: object) -> None:
+        with _blocked(WANTED):
+            for sig, handler in previous.items():  # a second signal is not held back
+                signal.signal(sig, handler)
+        on_signal(signum)
+
+    try:
+        with _blocked(WANTED):
+            for sig in WANTED:
+                signal.signal(sig, record)
+        yield
+    finally:
+        with _blocked(WANTED):
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+
+
+def redeliver(signum: int) -> None:
+    """Act on a signal that `stop_request` recorded as its handler, now back in place, would."""
+    _deliver([signum], {signum: signal.getsignal(signum)})
