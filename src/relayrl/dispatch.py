@@ -151,7 +151,7 @@ def train(config: Config | dict[str, Any] | str | Path, run_dir: str | Path | No
 
     A new run refuses a directory that already holds a run with a checkpoint (or a finished
     one, or one that trained past step 0), unless `overwrite=True` replaces it; a run that
-    stopped before training (no metrics row past step 0) is taken over. `resume=True` continues the run in `run_dir` from
+    stopped before training is taken over. `resume=True` continues the run in `run_dir` from
     its latest checkpoint; the config must name the run's algorithm and env.
 
     `env`: a callable returning a Gymnasium env, used instead of `config.env.id` (which is set

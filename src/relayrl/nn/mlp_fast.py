@@ -215,7 +215,8 @@ class TwinMLPFast(_Fast):
         if i == self._last:  # the 1-wide head as multiply-and-sum, as TwinMLP.forward does
             return (x * self.weight_t[i]).sum(-1) + self.bias[i].squeeze(-1)  # [copies, N]
         if i == 0:  # x [N, in] broadcast to every copy (a stride-0 view): the bias in the GEMM
-            return torch.baddbmm(self.bias[0], x.expand(self.weight[0].shape[0], *x.shape), self.weight[0])  # [copies, N, out]
+            copies = self.weight[0].shape[0]
+            return torch.baddbmm(self.bias[0], x.expand(copies, *x.shape), self.weight[0])  # [copies, N, out]
         return torch.baddbmm(self.bias[i], x, self.weight[i])  # [copies, N, out]
 
     def _param_grads(self, i: int, g: Tensor, x: Tensor, out: list[Tensor]) -> None:
