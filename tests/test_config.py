@@ -32,8 +32,11 @@ def test_overrides_are_typed():
     ("train.total_step=5", "unknown config key 'train.total_step'; did you mean 'train.total_steps'?"),
     ("agent.zzz=1", "unknown config key 'agent.zzz'; valid: agent.hidden"),
     ("nope=1", "unknown config key 'nope'"),
-    ("agent.n_steps=512", "Stable-Baselines3's n_steps is train.collect_steps (env steps per rollout"),
-    ("agent.learning_starts=100", "Stable-Baselines3's learning_starts is train.initial_collect_steps here"),
+    ("agent.n_steps=512", "here, Stable-Baselines3's n_steps is train.collect_steps (env steps per rollout"),
+    ("agent.learning_starts=100", "here, Stable-Baselines3's learning_starts is train.initial_collect_steps"),
+    ("agent.net_arch=[64]", "here, Stable-Baselines3's net_arch is agent.hidden (SAC: agent.actor_hidden"),
+    ("agent.ent_coef=0.1", "here, Stable-Baselines3's ent_coef is PPO's agent.ent_coef; SAC's entropy weight is"),
+    ("agent.gradient_steps=2", "here, Stable-Baselines3's gradient_steps is train.gradient_steps"),
     ("replay.n_steps=3", "did you mean 'replay.n_step'?"),  # the section's own near miss comes first
     ("train.total_steps=abc", "train.total_steps='abc' has the wrong type; expected int"),
     ("train.total_steps=1.5", "expected int"),
@@ -49,6 +52,9 @@ def test_overrides_are_typed():
     ("env.kwargs={kind=md0}", "the value is not a valid TOML table or list; quote the strings in it"),
     ("agent.hidden=[64,", "agent.hidden='[64,' has the wrong type; expected a list of int"),
     ("agent.hidden=[64, x]", "the value is not a valid TOML table or list"),
+    ("agent.double=True", "expected bool (true or false, in lower case: true)"),  # written as in Python
+    ("train.total_steps=1e4", "expected int (write 10000: TOML reads 1e4 and 10000.0 as floats)"),
+    ("agent.hidden=(64,64)", "expected a list of int (in brackets: [64, 64])"),
 ])
 def test_bad_overrides_fail_with_a_clear_message(override, fragment):
     with pytest.raises(ConfigError, match=None) as e:
@@ -74,7 +80,7 @@ def test_the_keys_stable_baselines3_names_are_pointed_to_exist():
     for algo in ("dqn", "sac", "ppo"):
         keys |= set(dotted(to_dict(load_config(algo))))
     for target in SB3_NAMES.values():
-        for word in target.replace(",", " ").replace("(", " ").replace(")", " ").split():
+        for word in target.replace(",", " ").replace(";", " ").replace("(", " ").replace(")", " ").split():
             if word.startswith(("train.", "agent.", "replay.", "env.")):
                 assert word in keys, word
 
@@ -175,3 +181,30 @@ def test_a_ray_address_of_no_form_is_one_line_where_ray_is_used(address):
         load_config("sac-pendulum", [f"distributed.address={address}", "distributed.num_actors=1"])
     # a one-process run does not use it: its saved config still loads (eval, plot, resume)
     assert load_config("sac-pendulum", [f"distributed.address={address}"]).distributed.address == address
+
+
+def test_numpy_numbers_are_taken_where_python_numbers_are():
+    import numpy as np
+
+    c = load_config("ppo")
+    c.train.total_steps, c.agent.gamma, c.agent.lr = np.int64(5000), np.float64(0.9), np.int32(1)
+    assert (c.train.total_steps, c.agent.gamma, c.agent.lr) == (5000, 0.9, 1.0)
+    assert type(c.train.total_steps) is int and type(c.agent.lr) is float
+    with pytest.raises(ConfigError, match="it must be a finite number"):
+        c.agent.lr = np.float32("nan")
+    with pytest.raises(ConfigError, match="expected int"):
+        c.train.total_steps = np.float64(5000.0)
+
+
+def test_an_agent_section_that_is_not_the_algorithms_is_one_line():
+    c = load_config("ppo")
+    c.agent = {"lr": 1e-3}
+    with pytest.raises(ConfigError, match="expected the PPOConfig of algo='ppo': set its keys one by one"):
+        c.validate()
+
+
+def test_an_unknown_agent_key_in_a_config_without_algo_says_the_section_is_dqns(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text("[agent]\nclip_range = 0.1\n")
+    with pytest.raises(ConfigError, match="the config names no algo, so its .agent. section is dqn's"):
+        load_config(str(path))

@@ -137,6 +137,11 @@ class Config(Section):
 
     def validate(self) -> None:
         """Cross-field checks that types alone cannot express."""
+        section = algorithm(self.algo).config
+        if type(self.agent) is not section:  # `agent` is typed Any: its class depends on `algo`
+            raise ConfigError(f"agent={self.agent!r} has the wrong type; expected the {section.__name__} of "
+                              f"algo={self.algo!r}: set its keys one by one (config.agent.<key> = value), or "
+                              "load the config with overrides (relayrl.load_config(name, ['agent.<key>=value']))")
         if not 0 <= self.seed <= MAX_SEED:
             raise ConfigError(f"seed={self.seed} is not valid; it must be an integer in [0, {MAX_SEED}]")
         if self.device not in ("cpu", "cuda", "auto") and not self.device.startswith("cuda:"):
@@ -232,7 +237,13 @@ def from_dict(data: dict[str, Any]) -> Config:
     dict does not name is the algorithm's default (`algo_defaults`)."""
     data = dict(data)
     config = Config(algo=algorithm(data.get("algo", DEFAULT_ALGO)).name)  # a name this version knows, first
-    _merge(config, data, prefix="")
+    try:
+        _merge(config, data, prefix="")
+    except ConfigError as e:
+        if "algo" in data or not str(e).startswith("unknown config key 'agent."):
+            raise
+        raise ConfigError(f"{e} (the config names no algo, so its [agent] section is {DEFAULT_ALGO}'s: "
+                          "set algo = \"ppo\", \"sac\", ... at its top)") from None
     config.validate()
     return config
 

@@ -12,6 +12,7 @@ import functools
 import inspect
 import io
 import math
+import numbers
 import tokenize
 import types
 import typing
@@ -94,6 +95,10 @@ SB3_NAMES = {
     "exploration_initial_eps": "agent.epsilon_start",
     "exploration_fraction": "agent.epsilon_decay_steps (in env steps: SB3's fraction x train.total_steps, "
                             "-1 takes 0.1)",
+    "gradient_steps": "train.gradient_steps",
+    "net_arch": "agent.hidden (SAC: agent.actor_hidden and agent.critic_hidden), a list of layer sizes",
+    "ent_coef": "PPO's agent.ent_coef; SAC's entropy weight is agent.init_alpha (agent.autotune_alpha = false "
+                "holds it); DQN has none",
 }
 
 
@@ -105,7 +110,7 @@ def unknown_key(path: str, valid: list[str]) -> str:
     if close:  # a near miss of the section's own key first (replay.n_steps: replay.n_step)
         return f"unknown config key {path!r}; did you mean {names[close[0]]!r}?"
     if key in SB3_NAMES:
-        return f"unknown config key {path!r}; Stable-Baselines3's {key} is {SB3_NAMES[key]} here"
+        return f"unknown config key {path!r}; here, Stable-Baselines3's {key} is {SB3_NAMES[key]}"
     return f"unknown config key {path!r}; valid: {', '.join(valid)}"
 
 
@@ -134,15 +139,27 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
     if origin in (list, tuple):
         (item,) = typing.get_args(hint)[:1]
         if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{path}={value!r} has the wrong type; expected a list of {type_name(item)}")
+            tip = " (in brackets: [64, 64])" if isinstance(value, str) and value.startswith("(") else ""
+            raise ConfigError(f"{path}={value!r} has the wrong type; expected a list of {type_name(item)}{tip}")
         return [coerce(v, item, f"{path}[{i}]") for i, v in enumerate(value)]
-    if hint is float and isinstance(value, int) and not isinstance(value, bool):
+    if isinstance(value, numbers.Integral) and not isinstance(value, bool) and hint in (int, float):
+        return hint(value)  # NumPy's integers too
+    if hint is float and isinstance(value, numbers.Real) and not isinstance(value, bool):
+        if not math.isfinite(value):  # nan passes every `<` check
+            raise ConfigError(f"{path}={value!r} is not valid; it must be a finite number")
         return float(value)
-    if hint is float and isinstance(value, float) and not math.isfinite(value):  # nan passes every `<` check
-        raise ConfigError(f"{path}={value!r} is not valid; it must be a finite number")
     if hint is Any or (isinstance(value, hint) and not (hint is int and isinstance(value, bool))):
         return value
-    raise ConfigError(f"{path}={value!r} has the wrong type; expected {type_name(hint)}")
+    raise ConfigError(f"{path}={value!r} has the wrong type; expected {type_name(hint)}{_tip(value, hint)}")
+
+
+def _tip(value: Any, hint: Any) -> str:
+    """How to write the value TOML's way, where it looks written Python's way."""
+    if hint is bool and isinstance(value, str) and value.lower() in ("true", "false"):
+        return f" (true or false, in lower case: {value.lower()})"
+    if hint is int and isinstance(value, float) and value.is_integer():
+        return f" (write {int(value)}: TOML reads 1e4 and 10000.0 as floats)"
+    return ""
 
 
 def type_name(hint: Any) -> str:
