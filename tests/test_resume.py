@@ -157,8 +157,11 @@ def test_resuming_a_run_already_past_total_steps_says_so(tmp_path, capsys):
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
     relayrl.train(cfg, tmp_path / "r", progress=False)
     fewer = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=300"] + DQN[2:])
+    fewer.agent.lr = 5e-4
+    before = (tmp_path / "r" / "config.toml").read_text()
     relayrl.train(fewer, tmp_path / "r", resume=True, progress=False)
     assert "the run is at env step 600, past train.total_steps=300: nothing is left to train" in capsys.readouterr().err
+    assert (tmp_path / "r" / "config.toml").read_text() == before  # settings the run never used are not recorded
 
 
 def test_resume_with_another_network_is_one_line_and_keeps_the_run(tmp_path):

@@ -109,6 +109,8 @@ def test_a_new_run_in_a_folder_of_other_files_says_so_and_leaves_them(tmp_path, 
 @pytest.mark.parametrize("args, fragment", [
     (["sac-pendulum"], "algo='sac' but the run in"),
     (["dqn-cartpole", "--set", "env.id=Acrobot-v1"], "env.id='Acrobot-v1' but the run in"),
+    (["--set", "env.id=Acrobot-v1"], "; resume with the run's own config.toml: leave out PRESET|CONFIG.toml and "
+                                     "--set env.id"),
 ])
 def test_resume_with_another_algorithm_or_env_is_one_line(tmp_path, cli, args, fragment):
     run = tmp_path / "run"

@@ -46,8 +46,8 @@ def factory_env_id(factory: Callable[[], Any]) -> str:
     return f"{module}:{label}"
 
 
-_OWN_CONFIG = ("leave out PRESET|CONFIG.toml to resume with the run's own config.toml (in Python: "
-               "relayrl.load_config(RUN_DIR/config.toml))")
+_OWN_CONFIG = ("resume with the run's own config.toml: leave out PRESET|CONFIG.toml and --set {key} (in Python: "
+               "relayrl.load_config(RUN_DIR/config.toml), and env= again where the run was given one)")
 
 
 def check_resume_matches(config: Config, rd: RunDir) -> None:
@@ -57,14 +57,14 @@ def check_resume_matches(config: Config, rd: RunDir) -> None:
     saved_env = saved.get("env", {}).get("id", defaults.env.id)
     if config.algo != saved_algo:
         raise UserError(f"--resume: algo={config.algo!r} but the run in {str(rd.root)!r} is algo={saved_algo!r}; "
-                        f"{_OWN_CONFIG}")
+                        + _OWN_CONFIG.format(key="algo"))
     saved_seed = saved.get("seed", defaults.seed)
     if config.seed != saved_seed:
         raise UserError(f"--resume: seed={config.seed} but the run in {str(rd.root)!r} has seed={saved_seed}; "
                         "a resumed run keeps its seed (leave out --seed; in Python, load the run's config.toml)")
     if config.env.id != saved_env:
         raise UserError(f"--resume: env.id={config.env.id!r} but the run in {str(rd.root)!r} is "
-                        f"env.id={saved_env!r}; {_OWN_CONFIG}")
+                        f"env.id={saved_env!r}; " + _OWN_CONFIG.format(key="env.id"))
 
 
 def check_resume_networks(config: Config, rd: RunDir) -> None:

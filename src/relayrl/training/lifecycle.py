@@ -246,10 +246,11 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if resume:
             saved = saved_config(core.rd)  # read first: restoring cuts metrics.jsonl back to the checkpoint
             driver.restore()  # rewrites metrics.jsonl: open the log only afterwards
-            record_resumed_config(core, saved)
-            if core.env_steps() >= c.train.total_steps:
+            if core.env_steps() >= c.train.total_steps:  # config.toml keeps the settings the run had
                 core.say(f"the run is at env step {core.env_steps():,}, past train.total_steps="
                          f"{c.train.total_steps:,}: nothing is left to train (raise train.total_steps to go on)")
+            else:
+                record_resumed_config(core, saved)
         report.open(core.env_steps())
         driver.announce()
         if core.env_steps() == 0 and not resume:  # a run a callback stopped at step 0 has evaluated it
