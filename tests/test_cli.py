@@ -120,13 +120,30 @@ def test_ci_runs_the_readme_test_command():
     assert ci in (root / "README.md").read_text()
 
 
-def test_eval_of_a_policy_file_outside_a_run_directory_is_one_line(tmp_path, capsys):
+def test_eval_of_a_policy_file_outside_a_run_directory_uses_the_env_it_records(tmp_path, capsys):
+    import shutil
+
+    import relayrl
     from relayrl.cli import main
 
     (tmp_path / "policy.pt").write_bytes(b"not used")
     assert main(["eval", str(tmp_path / "policy.pt")]) == 2
     err = capsys.readouterr().err
-    assert "is a file outside a run directory" in err and len(err.strip().splitlines()) == 1
+    assert "is not a relayrl policy file" in err and len(err.strip().splitlines()) == 1
+    cfg = relayrl.load_config("dqn-cartpole", ["train.total_steps=60", "train.initial_collect_steps=20",
+                                               "eval.interval=60", "eval.episodes=1", "agent.batch_size=8"])
+    relayrl.train(cfg, tmp_path / "run", progress=False)
+    capsys.readouterr()
+    shared = tmp_path / "shared dir" / "cart pole.pt"  # the file a run shares, on its own
+    shared.parent.mkdir()
+    shutil.copy(tmp_path / "run" / "policy" / "policy.pt", shared)
+    assert relayrl.load_policy(shared).env_id == "CartPole-v0"  # dqn-cartpole's, TF-Agents' tutorial env
+    assert main(["eval", str(shared), "--episodes", "2"]) == 0
+    assert json.loads(capsys.readouterr().out)["episodes"] == 2
+    assert main(["eval", str(shared), "--episodes", "1", "--env", "CartPole-v1"]) == 0  # another env, same spaces
+    assert main(["eval", str(tmp_path / "run"), "--episodes", "1", "--env", "Acrobot-v1"]) == 2  # 6 obs, not 4
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
 
 
 def test_eval_reads_the_policy_file_it_is_given(tmp_path, capsys):

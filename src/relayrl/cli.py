@@ -81,10 +81,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace the run already in --run-dir (its checkpoints, metrics and policy are deleted)")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     e = sub.add_parser("eval", help="evaluate a run's saved policy; prints one JSON object")
-    e.add_argument("run_dir", metavar="RUN_DIR", help="a run directory (or its policy/policy.pt)")
+    e.add_argument("run_dir", metavar="RUN_DIR", help="a run directory, or a policy file (policy/policy.pt)")
     e.add_argument("--episodes", type=int, default=10, help="episodes to average over (default: 10)")
     e.add_argument("--seed", type=_seed, default=0,
                    help="seed of the evaluation episodes: copy i is reset with seed + i (default: 0)")
+    e.add_argument("--env", metavar="ENV_ID",
+                   help="evaluate on this env (a Gymnasium id or package.module:Class) instead of the run's own "
+                        "(config.toml's, with its env.kwargs and wrappers); for a policy file outside a run "
+                        "directory the default is the env id the file records")
     pl = sub.add_parser("plot", help="PNG of average return against env steps")
     pl.add_argument("run_dir", metavar="RUN_DIR", help="a run directory")
     pl.add_argument("--out", metavar="PNG",
@@ -146,16 +150,23 @@ def _eval(args: argparse.Namespace) -> None:
         raise UserError(f"--episodes {args.episodes} is not valid; it must be >= 1")
     given = Path(args.run_dir)
     rd = RunDir.of(given)  # its config.toml names the env
-    if given.is_file() and not rd.config.is_file():
-        raise UserError(f"{args.run_dir!r} is a file outside a run directory, whose config.toml would name the "
-                        "env; give the run directory, or use relayrl.evaluate(policy, env) in Python")
-    rd.require()
-    config = load_config(str(rd.config))
-    policy = load_policy(rd.root if given.name == "config.toml" else given)  # the policy file given
-    env = make_eval_env(config.env.id, args.episodes, config.env.max_episode_steps,
-                        info_keys=config.env.info_keys, kwargs=config.env.kwargs, wrappers=config.env.wrappers)
+    if given.is_file() and not rd.config.is_file():  # a policy file on its own: the env id it records
+        policy = load_policy(given)
+        env_id = args.env or policy.env_id
+        if not env_id:
+            raise UserError(f"policy file {args.run_dir!r} records no env id: pass --env ENV_ID")
+        env = make_eval_env(env_id, args.episodes, 0)
+    else:
+        rd.require()
+        config = load_config(str(rd.config))
+        policy = load_policy(rd.root if given.name == "config.toml" else given)  # the policy file given
+        env_id = args.env or config.env.id
+        own = {} if args.env else {"info_keys": config.env.info_keys, "kwargs": config.env.kwargs,
+                                   "wrappers": config.env.wrappers}
+        env = make_eval_env(env_id, args.episodes, 0 if args.env else config.env.max_episode_steps, **own)
     try:
-        note = eval_cap_note(env, config.env.id)
+        policy.check_fits(env.observation_spec)
+        note = eval_cap_note(env, env_id)
         if note:
             print(f"relayrl: {note}", file=sys.stderr)
         result = evaluate(env, policy, args.episodes, seed=args.seed)

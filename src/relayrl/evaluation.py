@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from relayrl.errors import UserError
-from relayrl.specs import PackedSpec, Spec, describe
+from relayrl.specs import PackedSpec, Spec
 
 
 class EvalResult(NamedTuple):
@@ -62,9 +62,7 @@ def _policy_fn(policy: Any, deterministic: bool, seed: int | None, obs_spec: Spe
 
         policy = load_policy(policy, deterministic=deterministic, seed=seed)
     if isinstance(policy, LoadedPolicy):
-        if _layout(policy.obs_space) != _layout(obs_spec):
-            raise UserError(f"this env's observations ({describe(obs_spec)}) do not fit the policy: it takes "
-                            f"{describe(policy.obs_space)} observations")
+        policy.check_fits(obs_spec)
         return lambda obs: policy.predict(obs, deterministic=deterministic)[0]
     if hasattr(policy, "predict"):  # an SB3 model, or anything with its spelling
         return _one_at_a_time(lambda o: policy.predict(o, deterministic=deterministic)[0], obs_spec)
@@ -72,13 +70,6 @@ def _policy_fn(policy: Any, deterministic: bool, seed: int | None, obs_spec: Spe
         return _one_at_a_time(policy, obs_spec)
     raise UserError(f"policy={policy!r} is not a policy: give relayrl.load_policy(...)'s result, a run "
                     "directory, or a callable taking an observation and returning an action")
-
-
-def _layout(spec: Spec) -> tuple:
-    """What a policy's observations must match: each Dict / Tuple entry's key and shape, or the shape."""
-    if isinstance(spec, PackedSpec):
-        return tuple((f.key, tuple(f.spec.shape)) for f in spec.fields)
-    return tuple(spec.shape)
 
 
 def _one_at_a_time(fn: Callable[[Any], Any], obs_spec: Spec) -> Callable[[torch.Tensor], torch.Tensor]:

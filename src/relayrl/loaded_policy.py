@@ -36,6 +36,7 @@ class LoadedPolicy(Policy):
         self.obs_space = saved_obs_spec(state)
         self.obs_shape, self.obs_dtype = tuple(self.obs_space.shape), self.obs_space.dtype
         self.env_steps: int | None = state.get("env_steps")  # the run's env step when it was saved
+        self.env_id: str | None = state.get("env_id")  # the env.id of the run that saved it
         # a Box action the policy gives flat (a scalar, [2, 2]): the env's shape (None: as given)
         self.action_shape: tuple[int, ...] | None = tuple(state["action_shape"]) if "action_shape" in state else None
         self.deterministic = deterministic
@@ -47,6 +48,13 @@ class LoadedPolicy(Policy):
         action = f", action_shape={self.action_shape}" if self.action_shape is not None else ""
         return (f"LoadedPolicy(kind={self.kind!r}, observations={describe(self.obs_space)}{action}, "
                 f"deterministic={self.deterministic}, env_steps={self.env_steps})")
+
+    def check_fits(self, obs_spec: Spec) -> None:
+        """UserError unless an env's observations (`obs_spec`) are what this policy takes: each
+        Dict / Tuple entry's key and shape, or the shape."""
+        if _layout(self.obs_space) != _layout(obs_spec):
+            raise UserError(f"this env's observations ({describe(obs_spec)}) do not fit the policy: it takes "
+                            f"{describe(self.obs_space)} observations")
 
     def __call__(self, obs: Any) -> Any:
         if isinstance(obs, torch.Tensor) and obs.dtype == self.obs_dtype and obs.dim() == len(self.obs_shape) + 1:
@@ -153,3 +161,9 @@ def _check_range(t: torch.Tensor, s: Spec, where: str = "") -> None:
     if high is not None and t.numel():  # floats too: whole numbers by now (`_check_integral`)
         if bool((t < 0).any() or (t >= torch.as_tensor(high)).any()):
             raise UserError(f"observation{where} {t.tolist()} is outside this policy's {describe(s)} space")
+
+
+def _layout(spec: Spec) -> tuple:
+    if isinstance(spec, PackedSpec):
+        return tuple((f.key, tuple(f.spec.shape)) for f in spec.fields)
+    return tuple(spec.shape)
