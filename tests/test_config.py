@@ -208,3 +208,8 @@ def test_an_unknown_agent_key_in_a_config_without_algo_says_the_section_is_dqns(
     path.write_text("[agent]\nclip_range = 0.1\n")
     with pytest.raises(ConfigError, match="the config names no algo, so its .agent. section is dqn's"):
         load_config(str(path))
+
+
+def test_a_preset_name_in_other_letter_case_is_pointed_to():
+    with pytest.raises(ConfigError, match="unknown preset 'PPO'; did you mean 'ppo'?"):
+        load_config("PPO")

@@ -116,7 +116,8 @@ def unknown_key(path: str, valid: list[str]) -> str:
 
 def did_you_mean(value: str, valid: list[str]) -> str:
     """"; did you mean 'x'?" for the closest of `valid`, else "" (for names: presets, algorithms)."""
-    close = difflib.get_close_matches(value, valid, n=1, cutoff=0.6)
+    same_letters = [v for v in valid if v.lower() == value.lower()]  # PPO: ppo
+    close = same_letters or difflib.get_close_matches(value, valid, n=1, cutoff=0.6)
     return f"; did you mean {close[0]!r}?" if close else ""
 
 
