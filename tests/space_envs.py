@@ -11,14 +11,17 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-OBS_KINDS = ("box", "box2d", "discrete", "multi_discrete", "multi_binary", "image", "image_hwc", "dict", "tuple")
-ACTION_KINDS = ("discrete", "box", "box_scalar", "box2d", "box_fixed", "multi_discrete", "multi_binary")
+OBS_KINDS = ("box", "box2d", "box_i32", "discrete", "multi_discrete", "multi_binary", "image", "image_hwc", "dict",
+             "tuple")
+ACTION_KINDS = ("discrete", "box", "box_scalar", "box2d", "box_fixed", "box_f16", "multi_discrete", "multi_discrete_i32",
+                "multi_binary")
 
 
 def observation_space(kind: str) -> gym.Space:
     return {
         "box": spaces.Box(-1.0, 1.0, (3,), np.float32),
         "box2d": spaces.Box(-1.0, 1.0, (2, 3), np.float32),
+        "box_i32": spaces.Box(0, 10, (3,), np.int32),  # stored as int64: exports take int32
         "discrete": spaces.Discrete(4),
         "multi_discrete": spaces.MultiDiscrete([2, 3]),
         "multi_binary": spaces.MultiBinary(3),
@@ -34,7 +37,9 @@ def action_space(kind: str) -> gym.Space:
     return {"discrete": spaces.Discrete(2), "box": spaces.Box(-1.0, 1.0, (2,), np.float32),
             "box_scalar": spaces.Box(-1.0, 1.0, (), np.float32), "box2d": spaces.Box(-1.0, 1.0, (2, 2), np.float32),
             "box_fixed": spaces.Box(np.array([-1.0, 0.5], np.float32), np.array([1.0, 0.5], np.float32)),  # low == high
-            "multi_discrete": spaces.MultiDiscrete([2, 3]), "multi_binary": spaces.MultiBinary(2)}[kind]
+            "box_f16": spaces.Box(-1.0, 1.0, (2,), np.float16),  # policies act in float32
+            "multi_discrete": spaces.MultiDiscrete([2, 3]), "multi_discrete_i32": spaces.MultiDiscrete([2, 3], np.int32),
+            "multi_binary": spaces.MultiBinary(2)}[kind]
 
 
 class Spaces(gym.Env):
@@ -57,6 +62,8 @@ class Spaces(gym.Env):
             return np.array([g, 0.5, -0.5], np.float32)
         if k == "box2d":
             return np.array([[g, 0, 0], [0, 0, -g]], np.float32)
+        if k == "box_i32":
+            return np.array([g, 5, 10], np.int32)
         if k == "discrete":
             return 2 * g + self.t % 2
         if k == "multi_discrete":
@@ -84,6 +91,8 @@ class Spaces(gym.Env):
     def step(self, action):
         if self.act_kind.startswith("box"):  # an action of another shape is a bug (Gymnasium does not check)
             assert np.shape(action) == self.action_space.shape, (np.shape(action), self.action_space)
+        if self.act_kind != "discrete":  # nor of another dtype: an env may check action_space.contains
+            assert np.asarray(action).dtype == self.action_space.dtype, (np.asarray(action).dtype, self.action_space)
         a = np.asarray(action).reshape(-1)
         said = int(a[0] >= 0.5) if self.act_kind.startswith("box") else int(a[0])
         reward = float(said == self.target)

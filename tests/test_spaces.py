@@ -23,8 +23,10 @@ from relayrl.specs import PackedSpec, spec_from_space, spec_from_state, spec_sta
 # algo -> the action kinds it takes
 # (box_scalar: Box shape (), box2d: Box (2, 2): actions that travel flat, in the env's shape at its ends)
 # (box_fixed: low == high in one dimension, which holds one value; SAC refuses it)
-ACTIONS = {"dqn": ("discrete",), "sac": ("box", "box_scalar", "box2d"),
-           "ppo": ("discrete", "box", "box_scalar", "box2d", "box_fixed", "multi_discrete", "multi_binary")}
+# (box_f16, multi_discrete_i32: spaces of another dtype than the one stored; actions reach the env in it)
+ACTIONS = {"dqn": ("discrete",), "sac": ("box", "box_scalar", "box2d", "box_f16"),
+           "ppo": ("discrete", "box", "box_scalar", "box2d", "box_fixed", "box_f16", "multi_discrete",
+                   "multi_discrete_i32", "multi_binary")}
 CASES = ([(algo, obs, ACTIONS[algo][0]) for algo in ACTIONS for obs in OBS_KINDS]
          + [("sac", "box", act) for act in ACTIONS["sac"][1:]]
          + [("ppo", obs, act) for act in ACTIONS["ppo"][1:] for obs in ("box", "dict")])
@@ -66,8 +68,8 @@ def to_torch(obs):
 
 
 def assert_valid(space: gym.Space, action) -> None:
-    a = np.asarray(action)
-    assert space.contains(int(a) if isinstance(space, gym.spaces.Discrete) else a.astype(space.dtype)), (action, space)
+    a = np.asarray(action)  # in the space's own dtype (contains checks it)
+    assert space.contains(int(a) if isinstance(space, gym.spaces.Discrete) else a), (action, a.dtype, space)
 
 
 @pytest.mark.parametrize(("algo", "obs", "act"), CASES)
@@ -97,7 +99,8 @@ def test_trained_policy_takes_the_envs_own_observations(algo, obs, act, tmp_path
         inputs = sig.get("inputs", [sig["input"]])
         entries = ([o[i["name"]] for i in inputs] if isinstance(o, dict)
                    else [o[int(i["name"])] for i in inputs] if isinstance(o, tuple) else [o])
-        feeds = [np.asarray(e, dtype=i["dtype"])[None] for e, i in zip(entries, inputs, strict=True)]
+        feeds = [np.asarray(e)[None] for e in entries]  # as the env gives them: the program takes their dtype
+        assert [f.dtype.name for f in feeds] == [i["dtype"] for i in inputs]
         if fmt == "pt2":
             out = torch.export.load(path).module()(*map(torch.from_numpy, feeds)).numpy()
         else:

@@ -34,8 +34,8 @@ from relayrl.errors import UserError
 from relayrl.loaded_policy import LoadedPolicy
 from relayrl.paths import is_folder, output_path, writing
 from relayrl.policies import saved_obs_spec
-from relayrl.policy_file import REFUSED, load_policy_file
-from relayrl.specs import PackedSpec, Spec
+from relayrl.policy_file import REFUSED, env_action_dtype, load_policy_file
+from relayrl.specs import PackedSpec, Spec, env_torch_dtype
 
 
 def _policy_file(path: str | Path) -> Path:
@@ -106,16 +106,15 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
     state = load_policy_state(path)
     module = for_policy_kind(state["kind"]).policy_module().deterministic_module(state).requires_grad_(False).eval()
     inputs = input_specs(state)
-    if "action_shape" in state:  # a Box action of rank != 1, which the policy gives flat
-        module = EnvShaped(module, tuple(state["action_shape"])).eval()
-    if len(inputs) > 1 or inputs[0][0] != "obs":  # a Dict / Tuple space: one input per entry
-        module = KeyInputs(module, [name for name, _ in inputs]).eval()
-    examples = tuple(torch.zeros(2, *spec.shape, dtype=spec.dtype) for _, spec in inputs)
+    if "action_shape" in state or "action_dtype" in state:  # actions as the env takes them
+        module = EnvShaped(module, state.get("action_shape"), env_action_dtype(state))
+    # one input per Dict / Tuple entry, each in the env's own dtype (cast to the one the policy takes)
+    module = EnvInputs(module, [(name, spec.dtype) for name, spec in inputs], packed=inputs[0][0] != "obs"
+                       or len(inputs) > 1).eval()
+    examples = tuple(torch.zeros(2, *spec.shape, dtype=env_torch_dtype(spec)) for _, spec in inputs)
     target = output_path(out, _policy_file(path).with_suffix("." + format))
     batch = torch.export.Dim("batch", min=1)
-    dynamic: Any = tuple({0: batch} for _ in examples)
-    if isinstance(module, KeyInputs):
-        dynamic = {"entries": dynamic}  # torch.export names a *args group by its parameter
+    dynamic: Any = {"entries": tuple({0: batch} for _ in examples)}  # torch.export names *args by its parameter
     # never a half-written program under the real name; torch.export wants the .pt2 suffix
     with writing(target), atomic.replacing(target, ".tmp-" + target.name) as tmp:
         if format == "pt2":
@@ -159,29 +158,36 @@ def _quiet_onnx() -> Iterator[None]:
 
 
 class EnvShaped(torch.nn.Module):
-    """A policy whose flat [B, A] actions come out in the env's action shape [B, *shape]."""
+    """A policy whose flat [B, A] actions come out in the env's action shape [B, *shape] and dtype."""
 
-    def __init__(self, module: torch.nn.Module, shape: tuple[int, ...]) -> None:
+    def __init__(self, module: torch.nn.Module, shape: list[int] | None, dtype: torch.dtype | None) -> None:
         super().__init__()
         self.module = module
-        self.shape = shape
+        self.shape = None if shape is None else tuple(shape)
+        self.dtype = dtype
 
     def forward(self, obs: Any) -> torch.Tensor:
         action = self.module(obs)
-        return action.reshape(action.shape[0], *self.shape)
+        if self.dtype is not None:
+            action = action.to(self.dtype)
+        return action if self.shape is None else action.reshape(action.shape[0], *self.shape)
 
 
-class KeyInputs(torch.nn.Module):
-    """A policy on Dict / Tuple observations with one input per entry (in the space's order),
-    which it hands on as the dict of entries its encoder takes."""
+class EnvInputs(torch.nn.Module):
+    """A policy taking each input in the env's own dtype, cast to the one it was trained on
+    (float64 to float32, int32 to int64, ...); for a Dict / Tuple space (`packed`) one input
+    per entry, in the space's order, handed on as the dict of entries its encoder takes."""
 
-    def __init__(self, module: torch.nn.Module, keys: list[str]) -> None:
+    def __init__(self, module: torch.nn.Module, inputs: list[tuple[str, torch.dtype]], packed: bool) -> None:
         super().__init__()
         self.module = module
-        self.keys = keys
+        self.keys = [name for name, _ in inputs]
+        self.dtypes = [dtype for _, dtype in inputs]
+        self.packed = packed
 
     def forward(self, *entries: torch.Tensor) -> torch.Tensor:
-        return self.module(dict(zip(self.keys, entries, strict=True)))
+        cast = [x.to(dtype) for x, dtype in zip(entries, self.dtypes, strict=True)]
+        return self.module(dict(zip(self.keys, cast, strict=True)) if self.packed else cast[0])
 
 
 def input_specs(state: dict[str, Any]) -> list[tuple[str, Spec]]:
@@ -194,8 +200,8 @@ def input_specs(state: dict[str, Any]) -> list[tuple[str, Spec]]:
 
 def signature(state: dict[str, Any], format: str, action: torch.Tensor) -> dict[str, Any]:
     """What an exported policy takes and returns, for `<file>.json` and the CLI's line."""
-    inputs = [{"name": name, "dtype": str(spec.dtype).removeprefix("torch."), "shape": ["batch", *spec.shape]}
-              for name, spec in input_specs(state)]
+    inputs = [{"name": name, "dtype": str(env_torch_dtype(spec)).removeprefix("torch."),
+               "shape": ["batch", *spec.shape]} for name, spec in input_specs(state)]
     sig = {"format": format, "kind": state["kind"], "env_id": state.get("env_id"),
            "env_steps": state.get("env_steps"), "input": inputs[0],
            "output": {"name": "action", "dtype": str(action.dtype).removeprefix("torch."),

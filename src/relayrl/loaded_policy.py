@@ -15,6 +15,7 @@ import torch
 from relayrl.core import Policy
 from relayrl.errors import UserError
 from relayrl.policies import saved_obs_spec
+from relayrl.policy_file import env_action_dtype
 from relayrl.specs import PackedSpec, Spec, describe, entry, leaf_array, value_limit
 
 
@@ -39,6 +40,8 @@ class LoadedPolicy(Policy):
         self.env_id: str | None = state.get("env_id")  # the env.id of the run that saved it
         # a Box action the policy gives flat (a scalar, [2, 2]): the env's shape (None: as given)
         self.action_shape: tuple[int, ...] | None = tuple(state["action_shape"]) if "action_shape" in state else None
+        # the env's action dtype where the policy's is another (a float64 Box, int32 MultiDiscrete)
+        self.action_dtype = env_action_dtype(state)
         self.deterministic = deterministic
         self._state, self._device, self._seed = state, device, seed
         self._module = for_policy_kind(self.kind).policy_module()
@@ -63,7 +66,9 @@ class LoadedPolicy(Policy):
         return self._act(self.batched, obs)
 
     def _env_shaped(self, actions: torch.Tensor) -> torch.Tensor:
-        """[B, ...] actions in the env's action shape."""
+        """[B, ...] actions in the env's action shape and dtype."""
+        if self.action_dtype is not None:
+            actions = actions.to(self.action_dtype)
         return actions if self.action_shape is None else actions.reshape(actions.shape[0], *self.action_shape)
 
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,

@@ -47,11 +47,19 @@ def plain(value: Any) -> Any:
     return value
 
 
-def action_shape_entry(action_spec: Spec) -> dict[str, Any]:
-    """What a policy file records of a Box action that travels flat (`specs.flat_action`): the
-    env's own shape, which a loaded policy's actions take."""
-    env_shape = action_spec.env_shape if isinstance(action_spec, ArraySpec) else None
-    return {} if env_shape is None else {"action_shape": list(env_shape)}
+def env_action_entries(action_spec: Spec) -> dict[str, Any]:
+    """What a policy file records of actions that do not come out of the policy as the env
+    takes them: a Box's own shape where it travels flat (`specs.flat_action`), and the space's
+    own dtype where it is not the one stored (`ArraySpec.env_dtype`)."""
+    if not isinstance(action_spec, ArraySpec):
+        return {}
+    shape = {} if action_spec.env_shape is None else {"action_shape": list(action_spec.env_shape)}
+    return {**shape, **({"action_dtype": action_spec.env_dtype} if action_spec.env_dtype else {})}
+
+
+def env_action_dtype(state: dict[str, Any]) -> torch.dtype | None:
+    """The env's action dtype a policy file records (`env_action_entries`); None: the policy's own."""
+    return torch.from_numpy(np.zeros(0, state["action_dtype"])).dtype if "action_dtype" in state else None
 
 
 def save_policy_file(state: dict[str, Any], path: Path) -> None:

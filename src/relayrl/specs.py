@@ -59,6 +59,10 @@ class ArraySpec:
     # size,): the env adapters reshape each action to `env_shape`, and a saved policy's actions
     # come out in it. Set by the env adapters, not by spaces.
     env_shape: tuple[int, ...] | None = None
+    # The space's own NumPy dtype where `dtype` is another (float64 and float16 Boxes travel as
+    # float32, int32 as int64, ...): the env adapters give actions in it, and a saved policy's
+    # actions and an exported program's inputs take it.
+    env_dtype: str | None = None
 
     def zeros(self, batch: int) -> torch.Tensor:
         return torch.zeros((batch, *self.shape), dtype=self.dtype)
@@ -126,20 +130,38 @@ def spec_from_space(space: gym.Space, role: str = "observation") -> Spec:
         if dtype is None:
             raise UserError(f"{role} space {space} has dtype {space.dtype}; valid Box dtypes: float16/32/64, "
                             "uint8, int8/16/32/64, uint16/32, bool")
-        return ArraySpec(tuple(space.shape), dtype, np.asarray(space.low), np.asarray(space.high))
+        return ArraySpec(tuple(space.shape), dtype, np.asarray(space.low), np.asarray(space.high),
+                         env_dtype=_other_dtype(space.dtype, dtype))
     if isinstance(space, gym.spaces.MultiDiscrete):
         if np.any(np.asarray(space.start) != 0):
             raise UserError(f"{role} space {space} has a start other than 0; relayrl takes MultiDiscrete spaces "
                             "that start at 0")
         nvec = np.asarray(space.nvec, np.int64)
         return MultiDiscreteSpec(tuple(nvec.shape), torch.int64, np.zeros_like(nvec), nvec - 1,
+                                 env_dtype=_other_dtype(space.dtype, torch.int64),
                                  nvec=tuple(int(n) for n in nvec.reshape(-1)))
     if isinstance(space, gym.spaces.MultiBinary):
         shape = tuple(np.atleast_1d(np.asarray(space.n)).tolist())
-        return MultiBinarySpec(shape, torch.int8, np.zeros(shape, np.int8), np.ones(shape, np.int8))
+        return MultiBinarySpec(shape, torch.int8, np.zeros(shape, np.int8), np.ones(shape, np.int8),
+                               env_dtype=_other_dtype(space.dtype, torch.int8))
     if isinstance(space, gym.spaces.Dict | gym.spaces.Tuple) and role == "observation":
         return packed_spec(space)
     raise UserError(f"{role} space {space} is not supported; valid {role} spaces: {valid}")
+
+
+def _other_dtype(space_dtype: Any, stored: torch.dtype) -> str | None:
+    """The space's NumPy dtype's name where it is not the one relayrl stores (`env_dtype`)."""
+    name = np.dtype(space_dtype).name
+    return None if name == torch.empty((), dtype=stored).numpy().dtype.name else name
+
+
+def env_numpy_dtype(spec: Spec) -> np.dtype:
+    """The dtype the env's space has (the dtype stored, unless `env_dtype` says another)."""
+    return np.dtype(spec.env_dtype) if isinstance(spec, ArraySpec) and spec.env_dtype else numpy_dtype(spec)
+
+
+def env_torch_dtype(spec: Spec) -> torch.dtype:
+    return torch.from_numpy(np.zeros(0, env_numpy_dtype(spec))).dtype
 
 
 def describe(spec: Spec) -> str:
@@ -216,6 +238,8 @@ def spec_state(spec: Spec) -> dict[str, Any]:
     state: dict[str, Any] = {"kind": kind, "shape": list(spec.shape), "dtype": str(spec.dtype).removeprefix("torch.")}
     if isinstance(spec, MultiDiscreteSpec):
         state["nvec"] = list(spec.nvec)
+    if spec.env_dtype:
+        state["env_dtype"] = spec.env_dtype
     return state
 
 
@@ -227,12 +251,12 @@ def spec_from_state(state: dict[str, Any]) -> Spec:
     if kind == "packed":
         return PackedSpec.build([(f["key"], tuple(f["path"]), spec_from_state(f["spec"])) for f in state["fields"]],
                                 bool(state["tuple"]))
-    shape, dtype = tuple(int(d) for d in state["shape"]), getattr(torch, state["dtype"])
+    shape, dtype, env = tuple(int(d) for d in state["shape"]), getattr(torch, state["dtype"]), state.get("env_dtype")
     if kind == "multi_discrete":
-        return MultiDiscreteSpec(shape, dtype, nvec=tuple(int(n) for n in state["nvec"]))
+        return MultiDiscreteSpec(shape, dtype, env_dtype=env, nvec=tuple(int(n) for n in state["nvec"]))
     if kind == "multi_binary":
-        return MultiBinarySpec(shape, dtype)
-    return ArraySpec(shape, dtype)
+        return MultiBinarySpec(shape, dtype, env_dtype=env)
+    return ArraySpec(shape, dtype, env_dtype=env)
 
 
 def numpy_dtype(spec: Spec) -> np.dtype:

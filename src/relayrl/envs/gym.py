@@ -25,7 +25,16 @@ import torch
 from relayrl.core import BatchedEnv
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
-from relayrl.specs import ArraySpec, PackedSpec, Spec, flat_action, numpy_dtype, spec_from_space, value_limit
+from relayrl.specs import (
+    ArraySpec,
+    PackedSpec,
+    Spec,
+    env_numpy_dtype,
+    flat_action,
+    numpy_dtype,
+    spec_from_space,
+    value_limit,
+)
 from relayrl.types import EpisodeInfo, StepOutput
 
 EnvFn = Callable[[], gym.Env]
@@ -80,6 +89,8 @@ class BatchEnvBase(BatchedEnv):
             self.action_spec = flat_action(self.action_spec)
             self._env_action_shape = self.action_spec.env_shape
         self._obs_dtype = numpy_dtype(self.observation_spec)
+        # actions are given in the space's own dtype (an env may check action_space.contains)
+        self._env_action_dtype = env_numpy_dtype(self.action_spec) if isinstance(self.action_spec, ArraySpec) else None
         # Dict / Tuple observations travel as packed byte rows (specs.PackedSpec); None: as they are
         self._pack = self.observation_spec.pack if isinstance(self.observation_spec, PackedSpec) else None
         self._discrete = isinstance(action_space, gym.spaces.Discrete)
@@ -124,6 +135,8 @@ class BatchEnvBase(BatchedEnv):
                 raise ValueError(f"actions of shape {tuple(act.shape)}, but this env takes {(self.num_envs, *want)}: "
                                  f"{self.num_envs} copies of action shape {want}")
             act = act.reshape(self.num_envs, *want)
+        if self._env_action_dtype is not None and act.dtype != self._env_action_dtype:
+            act = act.astype(self._env_action_dtype)
         return act if self._env_action_shape is None else act.reshape(self.num_envs, *self._env_action_shape)
 
 
