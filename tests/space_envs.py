@@ -13,8 +13,8 @@ from gymnasium import spaces
 
 OBS_KINDS = ("box", "box2d", "box_i32", "discrete", "multi_discrete", "multi_binary", "image", "image_hwc", "dict",
              "tuple")
-ACTION_KINDS = ("discrete", "box", "box_scalar", "box2d", "box_fixed", "box_f16", "multi_discrete", "multi_discrete_i32",
-                "multi_binary")
+ACTION_KINDS = ("discrete", "box", "box_scalar", "box2d", "box_fixed", "box_f16", "multi_discrete",
+                "multi_discrete_i32", "multi_binary")
 
 
 def observation_space(kind: str) -> gym.Space:
@@ -38,7 +38,8 @@ def action_space(kind: str) -> gym.Space:
             "box_scalar": spaces.Box(-1.0, 1.0, (), np.float32), "box2d": spaces.Box(-1.0, 1.0, (2, 2), np.float32),
             "box_fixed": spaces.Box(np.array([-1.0, 0.5], np.float32), np.array([1.0, 0.5], np.float32)),  # low == high
             "box_f16": spaces.Box(-1.0, 1.0, (2,), np.float16),  # policies act in float32
-            "multi_discrete": spaces.MultiDiscrete([2, 3]), "multi_discrete_i32": spaces.MultiDiscrete([2, 3], np.int32),
+            "multi_discrete": spaces.MultiDiscrete([2, 3]),
+            "multi_discrete_i32": spaces.MultiDiscrete([2, 3], np.int32),
             "multi_binary": spaces.MultiBinary(2)}[kind]
 
 

@@ -379,3 +379,18 @@ def test_a_dict_entry_outside_its_space_is_one_line_at_step_and_reset(at, value,
     with pytest.raises(UserError, match=rf"the env's {at} returned observation\['cell'\] {value}, outside its own "
                                         r"observation space Discrete\(4\)"):
         relayrl.train(cfg, tmp_path, progress=False, env=lambda: _DictOutOfRange(at))
+
+
+@pytest.mark.parametrize("flat_key", ["a.b", "a/b"])
+def test_dict_keys_that_become_one_name_when_joined_are_one_line(flat_key):
+    nested = gym.spaces.Dict({"b": gym.spaces.Discrete(3)})
+    space = gym.spaces.Dict({flat_key: gym.spaces.Box(-1, 1, (2,)), "a": nested})
+    with pytest.raises(UserError, match="are one name once nested keys are joined with '.': rename"):
+        make_encoder(spec_from_space(space))
+
+
+@pytest.mark.parametrize("space", [gym.spaces.Discrete(4), gym.spaces.MultiDiscrete([2, 3]), gym.spaces.MultiBinary(3),
+                                   gym.spaces.Box(-1, 1, (3,))])
+def test_a_conv_encoder_asked_for_non_image_observations_is_one_line(space):
+    with pytest.raises(UserError, match="agent.encoder='nature_cnn' needs image observations"):
+        make_encoder(spec_from_space(space), "nature_cnn")

@@ -102,7 +102,12 @@ class DictEncoder(nn.Module):
     def __init__(self, spec: PackedSpec, kind: str) -> None:
         super().__init__()
         self.spec = spec
-        self.parts = nn.ModuleDict({_module_key(f.key): leaf_encoder(f.spec, kind) for f in spec.fields})
+        keys = [_module_key(f.key) for f in spec.fields]
+        if len(set(keys)) < len(keys):  # "a.b" beside {"a": {"b": ...}} (or "a/b"): one name for two entries
+            same = sorted({f.key for f, k in zip(spec.fields, keys, strict=True) if keys.count(k) > 1})
+            raise UserError(f"observation entries {', '.join(map(repr, same))} are one name once nested keys are "
+                            "joined with '.': rename the env's Dict keys so that none holds '.' or '/'")
+        self.parts = nn.ModuleDict({k: leaf_encoder(f.spec, kind) for f, k in zip(spec.fields, keys, strict=True)})
         self.out_dim = sum(int(m.out_dim) for m in self.parts.values())
 
     def forward(self, x: torch.Tensor | dict[str, torch.Tensor]) -> torch.Tensor:
@@ -138,13 +143,14 @@ def make_encoder(spec: Spec, kind: str = "auto") -> nn.Module | None:
     if kind not in ENCODERS:
         raise UserError(f"agent.encoder={kind!r} is not valid; valid: {', '.join(ENCODERS)}")
     if isinstance(spec, PackedSpec):
-        return DictEncoder(spec, kind)
+        return DictEncoder(spec, kind)  # `kind` applies to its image entries
+    if kind in ("nature_cnn", "small_cnn") and not is_image(spec):
+        raise UserError(f"agent.encoder={kind!r} needs image observations (uint8 [H, W], [C, H, W] or "
+                        f"[H, W, C], sides >= 8), got {describe(spec)}; use agent.encoder='auto'")
     if is_flat_vector(spec) or (kind == "flatten" and type(spec) is ArraySpec):
-        if kind in ("nature_cnn", "small_cnn"):
-            raise UserError(f"agent.encoder={kind!r} needs image observations (uint8 [H, W], [C, H, W] or "
-                            f"[H, W, C], sides >= 8), got {describe(spec)}; use agent.encoder='auto'")
         return None
     return leaf_encoder(spec, kind)
+
 
 
 class Encoded(nn.Module):

@@ -49,8 +49,9 @@ def eval_cap_note(env: BatchedEnv, env_id: str) -> str | None:
     """The line that says an evaluation cap was put on an env without a time limit."""
     if not isinstance(env, GymBatchEnv) or not env.capped_at:
         return None
-    return (f"env.id={env_id!r} has no time limit: evaluation episodes are cut at {env.capped_at:,} steps "
-            "(env.max_episode_steps caps training and evaluation episodes)")
+    return (f"env.id={env_id!r} has no registered time limit (TimeLimit, max_episode_steps): evaluation episodes "
+            f"are cut at {env.capped_at:,} steps where the env does not end them itself (env.max_episode_steps "
+            "caps training and evaluation episodes)")
 
 
 def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = None,
