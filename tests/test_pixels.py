@@ -213,7 +213,7 @@ def test_conv_dqn_trains_on_uint8_batches_and_its_saved_policy_acts_the_same(tmp
 
 
 def test_conv_network_needs_image_observations():
-    with pytest.raises(UserError, match="image observations"):
+    with pytest.raises(UserError, match="needs uint8 frames"):
         DQNAgent(ArraySpec((4,), torch.float32), DiscreteSpec(2), DQNConfig(network="nature_cnn"),
                  torch.device("cpu"), np.random.default_rng(0))
     with pytest.raises(UserError, match="at least 36x36"):

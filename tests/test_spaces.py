@@ -394,3 +394,16 @@ def test_dict_keys_that_become_one_name_when_joined_are_one_line(flat_key):
 def test_a_conv_encoder_asked_for_non_image_observations_is_one_line(space):
     with pytest.raises(UserError, match="agent.encoder='nature_cnn' needs image observations"):
         make_encoder(spec_from_space(space), "nature_cnn")
+
+
+@pytest.mark.parametrize("space", [gym.spaces.Box(0, 255, (64, 64, 1), np.uint8),
+                                   gym.spaces.Dict({"frame": gym.spaces.Box(0, 255, (4, 84, 84), np.uint8)})])
+def test_dqns_atari_network_on_other_frames_names_their_layout_and_the_way_round(space):
+    from relayrl.agents.dqn.config import DQNConfig
+    from relayrl.agents.dqn.networks import q_network
+
+    cfg = DQNConfig()
+    cfg.network = "nature_cnn"
+    with pytest.raises(UserError, match=r"needs uint8 frames \[C, H, W\], channels first .* are (Box|Dict)\(.*use "
+                                        r"agent.network='mlp' with agent.encoder"):
+        q_network(spec_from_space(space), spec_from_space(gym.spaces.Discrete(2), "action"), cfg)
