@@ -229,6 +229,14 @@ def test_video_of_an_env_whose_render_raises_is_one_line(small_run, tmp_path, ca
                                                                                "toy_envs:RenderRaises"))
     err = one_line(capfd, ["video", str(run)])
     assert "cannot render: render() raised RuntimeError: no display" in err
+    for env, said in [("NoRenderMethod", "render() raised NotImplementedError (the env has no render());"),
+                      ("NoRenderMode", "relayrl video makes the env with render_mode='rgb_array': give the class a "
+                                       "render_mode argument")]:
+        (run / "config.toml").write_text((run / "config.toml").read_text().replace("toy_envs:RenderRaises",
+                                                                                   f"toy_envs:{env}"))
+        assert said in one_line(capfd, ["video", str(run)])
+        (run / "config.toml").write_text((run / "config.toml").read_text().replace(f"toy_envs:{env}",
+                                                                                   "toy_envs:RenderRaises"))
 
 
 def test_a_non_finite_reward_in_an_evaluation_stops_the_run_in_one_line(tmp_path):

@@ -379,6 +379,27 @@ class RenderRaises(Countdown):
         raise RuntimeError("no display")
 
 
+class NoRenderMethod(Countdown):
+    """An env that leaves render() as gymnasium.Env has it (NotImplementedError, no message)."""
+
+    render = gym.Env.render
+
+
+class NoRenderMode(gym.Env):
+    """An env class whose __init__ takes no render_mode."""
+
+    def __init__(self) -> None:
+        self.observation_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+        self.action_space = gym.spaces.Discrete(2)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action):
+        return np.zeros(1, np.float32), 0.0, True, False, {}
+
+
 class Repeated(gym.ObservationWrapper):
     """An env's Box observation repeated: twice as many numbers (another network input size)."""
 

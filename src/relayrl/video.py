@@ -111,8 +111,9 @@ def first_frame(env: Any, env_id: str) -> np.ndarray:
     try:
         frame = env.render()
     except Exception as e:  # the env's own error: what it said, in one line
-        raise UserError(f"env {env_id!r} cannot render: render() raised {type(e).__name__}: "
-                        f"{' '.join(str(e).split())}; {need}") from None
+        said = " ".join(str(e).split())
+        raise UserError(f"env {env_id!r} cannot render: render() raised {type(e).__name__}"
+                        f"{': ' + said if said else ' (the env has no render())'}; {need}") from None
     if frame is None:
         raise UserError(f"env {env_id!r} renders no frames: render() returned None; {need}")
     array = np.asarray(frame)

@@ -208,8 +208,10 @@ def _custom_fn(env_id: str, make: Callable[..., Any], kwargs: dict[str, Any], ma
             env = make(**kwargs)
         except TypeError as e:
             if kwargs and "argument" in str(e):
+                why = ("; relayrl video makes the env with render_mode='rgb_array': give the class a render_mode "
+                       "argument" if "render_mode" in str(e) else "")
                 raise UserError(f"env.id={env_id!r} does not take the arguments given ({e}); "
-                                f"env.kwargs and render_mode passed: {sorted(kwargs)}") from None
+                                f"arguments passed: {sorted(kwargs)}{why}") from None
             raise
         if not isinstance(env, gym.Env):
             raise UserError(f"env.id={env_id!r} returned {type(env).__name__}, not a gymnasium.Env")
