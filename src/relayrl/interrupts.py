@@ -40,14 +40,10 @@ def deferred() -> Iterator[None]:
         pending.append(signum)
 
     try:
-        with _blocked(WANTED):  # no signal lands between two handler swaps
-            for sig in WANTED:
-                signal.signal(sig, hold)
+        _install(dict.fromkeys(WANTED, hold))
         yield
     finally:
-        with _blocked(WANTED):
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
+        _install(previous)
         _deliver([sig for sig in WANTED if sig in pending], previous)
 
 
@@ -64,6 +60,13 @@ def _deliver(signals: list[int], handlers: dict[int, Any]) -> None:
             signal.raise_signal(sig)
     finally:
         _deliver(rest, handlers)
+
+
+def _install(handlers: dict[int, Any]) -> None:
+    """Put `handlers` in place; no signal lands between two of the swaps."""
+    with _blocked(WANTED):
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
 
 
 @contextlib.contextmanager
@@ -91,20 +94,14 @@ def stop_request(on_signal: Callable[[int], None]) -> Iterator[None]:
         return
 
     def record(signum: int, frame: object) -> None:
-        with _blocked(WANTED):
-            for sig, handler in previous.items():  # a second signal is not held back
-                signal.signal(sig, handler)
+        _install(previous)  # a second signal is not held back
         on_signal(signum)
 
     try:
-        with _blocked(WANTED):
-            for sig in WANTED:
-                signal.signal(sig, record)
+        _install(dict.fromkeys(WANTED, record))
         yield
     finally:
-        with _blocked(WANTED):
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
+        _install(previous)
 
 
 def redeliver(signum: int) -> None:
