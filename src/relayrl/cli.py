@@ -161,8 +161,8 @@ def _eval(args: argparse.Namespace) -> None:
         config = load_config(str(rd.config))
         policy = load_policy(rd.root if given.name == "config.toml" else given)  # the policy file given
         env_id = args.env or config.env.id
-        own = {} if args.env else {"info_keys": config.env.info_keys, "kwargs": config.env.kwargs,
-                                   "wrappers": config.env.wrappers}
+        own: dict[str, Any] = {} if args.env else {"info_keys": config.env.info_keys, "kwargs": config.env.kwargs,
+                                                   "wrappers": config.env.wrappers}
         env = make_eval_env(env_id, args.episodes, 0 if args.env else config.env.max_episode_steps, **own)
     try:
         policy.check_fits(env.observation_spec)

@@ -137,7 +137,7 @@ class Config(Section):
 
     def validate(self) -> None:
         """Cross-field checks that types alone cannot express."""
-        section = algorithm(self.algo).config
+        section: Any = algorithm(self.algo).config
         if type(self.agent) is not section:  # `agent` is typed Any: its class depends on `algo`
             raise ConfigError(f"agent={self.agent!r} has the wrong type; expected the {section.__name__} of "
                               f"algo={self.algo!r}: set its keys one by one (config.agent.<key> = value), or "

@@ -17,7 +17,7 @@ WANTED = (signal.SIGINT, signal.SIGTERM)  # delivered in this order: SIGTERM's e
 def _handlers() -> dict[int, Any] | None:
     """The current handlers, or None where they cannot be swapped: not the main thread (only
     it handles signals), or a handler not set from Python (None), which could not be put back."""
-    previous = {s: signal.getsignal(s) for s in WANTED}
+    previous: dict[int, Any] = {s: signal.getsignal(s) for s in WANTED}
     if threading.current_thread() is not threading.main_thread() or None in previous.values():
         return None
     return previous

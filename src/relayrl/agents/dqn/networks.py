@@ -9,7 +9,7 @@ from relayrl.agents.dqn.config import DQNConfig
 from relayrl.errors import UserError
 from relayrl.nn import CONV_NETWORKS, ConvQNet, tf_agents_init_
 from relayrl.nn.encoders import Encoded, encoded_mlp
-from relayrl.specs import DiscreteSpec, Spec, describe, image_layout, is_image
+from relayrl.specs import ArraySpec, DiscreteSpec, Spec, describe, image_layout, is_image
 
 
 def q_network(obs_spec: Spec, action_spec: Spec, cfg: DQNConfig) -> nn.Module:
@@ -19,7 +19,8 @@ def q_network(obs_spec: Spec, action_spec: Spec, cfg: DQNConfig) -> nn.Module:
     if cfg.network in CONV_NETWORKS:
         # the Atari presets' network: stacked frames channels first, as relayrl/Atari-Pong-v0 gives them
         instead = "use agent.network='mlp' with agent.encoder='auto' or 'nature_cnn', which take any image layout"
-        if not is_image(obs_spec) or len(obs_spec.shape) != 3 or image_layout(obs_spec)[1]:
+        if not (isinstance(obs_spec, ArraySpec) and is_image(obs_spec) and len(obs_spec.shape) == 3
+                and not image_layout(obs_spec)[1]):
             raise UserError(f"agent.network={cfg.network!r} needs uint8 frames [C, H, W], channels first (as "
                             f"relayrl/Atari-Pong-v0's [4, 84, 84]); this env's observations are {describe(obs_spec)}: "
                             + instead)
