@@ -194,6 +194,8 @@ def test_numpy_numbers_are_taken_where_python_numbers_are():
         c.agent.lr = np.float32("nan")
     with pytest.raises(ConfigError, match="expected int"):
         c.train.total_steps = np.float64(5000.0)
+    c.agent.normalize_obs = np.bool_(True)
+    assert c.agent.normalize_obs is True
 
 
 def test_an_agent_section_that_is_not_the_algorithms_is_one_line():

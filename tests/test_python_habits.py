@@ -115,6 +115,20 @@ def test_callbacks_see_every_eval_and_log_and_false_stops(algo, tmp_path):
     assert len(metrics) == 3 and '"event"' not in metrics[0]  # metrics.jsonl's rows as before
 
 
+def test_a_callback_that_returned_false_is_not_called_again_and_the_others_still_are(tmp_path):
+    stopper, logger = [], []
+
+    def stop_at_50(row):
+        stopper.append((row["event"], row["step"]))
+        return row["step"] < 50
+
+    relayrl.train({**TINY, "eval": {"interval": 100, "episodes": 2}}, tmp_path / "r", progress=False,
+                  callbacks=[stop_at_50, lambda row: logger.append((row["event"], row["step"]))])
+    (_, at), = [r for r in stopper if r[0] == "log"]  # the first log row, just past 50 (collect steps of 4)
+    assert stopper == [("eval", 0), ("log", at)]
+    assert logger == [("eval", 0), ("log", at), ("eval", at)]  # the stop's own evaluation reaches the other
+
+
 def test_a_callback_that_raises_propagates_and_keeps_the_checkpoint(tmp_path):
     def cb(row):
         if row["step"] >= 150:

@@ -153,6 +153,33 @@ def test_ctrl_c_mid_run_saves_a_checkpoint_there_and_the_resumed_run_is_the_unin
     assert comparable(tmp_path / "cut") == comparable(tmp_path / "full")
 
 
+def test_ctrl_c_in_the_last_iteration_ends_the_run_as_finished(tmp_path):
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:]
+                              + ["train.log_interval=100", "eval.interval=400"])
+
+    def ctrl_c_at_the_end(row):
+        if row["event"] == "log" and row["step"] == 600:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    result = relayrl.train(cfg, tmp_path / "r", progress=False, callbacks=[ctrl_c_at_the_end])
+    assert not result.stopped_early and result.final["step"] == 600  # its final evaluation, as a finished run
+
+
+def test_an_ignored_sigint_leaves_sigterm_to_stop_at_the_iterations_end():
+    from relayrl import interrupts
+
+    got = []
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)  # a background job's
+    try:
+        with interrupts.stop_request(got.append):
+            assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)
+        assert got == [signal.SIGTERM]
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
 def test_resuming_a_run_already_past_total_steps_says_so(tmp_path, capsys):
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
     relayrl.train(cfg, tmp_path / "r", progress=False)

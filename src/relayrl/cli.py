@@ -174,8 +174,8 @@ def _eval(args: argparse.Namespace) -> None:
         raise UserError(str(e)) from None
     finally:
         env.close()  # an env's worker processes or windows never outlive a failed evaluation
-    # Rewards are float32 in the batched env: 4 decimals drop float32's noise (0.5999999940395355).
-    rounded = {k: round(v, 4) if isinstance(v, float) else v for k, v in result.items()}
+    # Rewards are float32 in the batched env: its 7 significant digits drop the noise (0.5999999940395355).
+    rounded = {k: float(f"{v:.7g}") if isinstance(v, float) else v for k, v in result.items()}
     print(json.dumps({**rounded, "policy_env_steps": policy.env_steps}))
 
 
@@ -206,7 +206,7 @@ def _interrupted_line(what: str, args: argparse.Namespace) -> str:
 
         rd = RunDir(run_dir) if run_dir else None
         resumable, trained = (rd.has_checkpoint(), rd.trained_to() > 0) if rd else (False, False)
-    except (ImportError, AttributeError):  # interrupted while torch was still importing: no run has started
+    except (ImportError, AttributeError, OSError):  # torch still importing (no run has started), or unreadable
         resumable = trained = False
     if resumable:
         return (f"relayrl: {what}; resume with --resume from the last checkpoint: "

@@ -143,6 +143,8 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
             tip = " (in brackets: [64, 64])" if isinstance(value, str) and value.startswith("(") else ""
             raise ConfigError(f"{path}={value!r} has the wrong type; expected a list of {type_name(item)}{tip}")
         return [coerce(v, item, f"{path}[{i}]") for i, v in enumerate(value)]
+    if hint is bool and getattr(getattr(value, "dtype", None), "kind", "") == "b":
+        return bool(value)  # NumPy's bool
     if isinstance(value, numbers.Integral) and not isinstance(value, bool) and hint in (int, float):
         return hint(value)  # NumPy's integers too
     if hint is float and isinstance(value, numbers.Real) and not isinstance(value, bool):

@@ -83,13 +83,13 @@ def _blocked(signals: tuple[int, ...]) -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def stop_request(on_signal: Callable[[int], None]) -> Iterator[None]:
-    """Inside, the first SIGINT or SIGTERM only calls `on_signal(signum)` (a second acts as it
-    would have, at once): the caller stops at a safe point, saves, then calls `redeliver`, so
-    the process ends as the signal asked. Where the handlers cannot be swapped, or SIGINT is
-    ignored (a background job), nothing changes."""
+def stop_request(on_signal: Callable[[int], None], signals: tuple[int, ...] = WANTED) -> Iterator[None]:
+    """Inside, the first of `signals` (SIGINT, SIGTERM) only calls `on_signal(signum)` (a second
+    acts as it would have, at once): the caller stops at a safe point, saves, then calls
+    `redeliver`, so the process ends as the signal asked. A signal that is ignored (SIGINT in
+    a background job) stays ignored; where handlers cannot be swapped nothing changes."""
     previous = _handlers()
-    if previous is None or previous[signal.SIGINT] == signal.SIG_IGN:
+    if previous is None:
         yield
         return
 
@@ -98,7 +98,7 @@ def stop_request(on_signal: Callable[[int], None]) -> Iterator[None]:
         on_signal(signum)
 
     try:
-        _install(dict.fromkeys(WANTED, record))
+        _install({sig: record for sig in signals if previous[sig] != signal.SIG_IGN})
         yield
     finally:
         _install(previous)

@@ -260,11 +260,13 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if not report.stop_requested:
             driver.iterate()
         stopped = report.stop_requested and core.env_steps() < c.train.total_steps
-        if stopped and report.interrupted is None:
+        # an interrupt in the last iteration: the run is done, and ends as a finished run does
+        interrupted = report.interrupted if stopped else None
+        if stopped and interrupted is None:
             core.say(f"a callback returned False: the run stops at env step {core.env_steps():,}")
-        finish(driver, core.progress(), evaluate=report.interrupted is None)  # an interrupt wants no wait
-        if report.interrupted is not None:
-            interrupts.redeliver(report.interrupted)  # KeyboardInterrupt, or the SIGTERM handler's stop
+        finish(driver, core.progress(), evaluate=interrupted is None)  # an interrupt wants no wait
+        if interrupted is not None:
+            interrupts.redeliver(interrupted)  # KeyboardInterrupt, or the SIGTERM handler's stop
         return RunResult(core.rd.root, report.last_eval, stopped_early=stopped)
     except NonFiniteError as e:  # found below the run (the learner): it says what the run keeps
         if e.kept:

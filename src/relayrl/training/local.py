@@ -5,6 +5,7 @@ driven by `iterate`: collect, train what the rate limiter allows, fire the trigg
 from __future__ import annotations
 
 import copy
+import signal
 from collections.abc import Callable
 from typing import Any
 
@@ -113,7 +114,10 @@ class LocalDriver:
         self.actor.policy = self.collect_policy
         # Ctrl-C or SIGTERM stops the loop between iterations, as a callback's False does, so
         # the run ends with its policy and a checkpoint at the step it reached (run_to_end).
-        with interrupts.stop_request(core.report.request_stop):
+        # Env worker processes ignore Ctrl-C but end on SIGTERM (which a scheduler sends to the
+        # whole process group): with them, SIGTERM stops the run at once, as before.
+        graceful = (signal.SIGINT,) if c.env.vectorization == "async" else interrupts.WANTED
+        with interrupts.stop_request(core.report.request_stop, graceful):
             while self.actor.env_steps < total and not core.report.stop_requested:
                 self.actor.collect(min(c.train.collect_steps, total - self.actor.env_steps))
                 core.step_schedules(self.actor.env_steps)

@@ -68,6 +68,7 @@ class RunReport:
         self.postfix, self.extra_scalars = postfix, extra_scalars
         self.stop_requested = False  # a callback returned False: the driver stops at its next check
         self.interrupted: int | None = None  # the signal (Ctrl-C, SIGTERM) that asked the run to stop
+        self.stopped_by: set[int] = set()  # the callbacks (by index) that returned False
         self.last_eval: dict[str, Any] = {}
         self.started = (time.perf_counter(), Progress(0, 0))  # when and where reporting began: the run's sps
         self.tb: Any = None
@@ -196,8 +197,9 @@ class RunReport:
         """Each callback gets its own copy of the row with `event`; False from any stops the run.
         What a callback raises propagates (it is the user's code): the run ends there, its
         checkpoints and metrics as they were."""
-        for callback in self.callbacks:
-            if self.stop_requested:  # no call after a False (or an interrupt): the run is stopping
-                return
+        for i, callback in enumerate(self.callbacks):
+            if i in self.stopped_by:  # a callback that returned False is not called again
+                continue
             if callback({**row, "event": event}) is False:
                 self.stop_requested = True
+                self.stopped_by.add(i)
