@@ -192,6 +192,10 @@ def test_spaces_are_described_with_their_bounds_and_kind():
     from relayrl.specs import describe
 
     assert describe(spec_from_space(gym.spaces.Box(-3, 3, (2,), np.int64))) == "Box(-3, 3, shape=(2,), dtype=int64)"
+    # the env's own dtype, not the one relayrl stores (int32 as int64, float64 as float32)
+    assert describe(spec_from_space(gym.spaces.Box(0, 9, (2,), np.int32))) == "Box(0, 9, shape=(2,), dtype=int32)"
+    in_dict = spec_from_space(gym.spaces.Dict({"x": gym.spaces.Box(-1.0, 1.0, (1,), np.float64)}))
+    assert describe(in_dict) == "Dict(x: Box(-1, 1, shape=(1,), dtype=float64))"
     low, high = np.array([-1.0, 0.5], np.float32), np.array([1.0, 0.5], np.float32)
     assert describe(spec_from_space(gym.spaces.Box(low, high))) == ("Box([-1. ,  0.5], [1. , 0.5], shape=(2,), "
                                                                     "dtype=float32)")

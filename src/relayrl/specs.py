@@ -177,7 +177,7 @@ def describe(spec: Spec) -> str:
                             for f in spec.fields)
         return f"{'Tuple' if spec.tuple_space else 'Dict'}({entries})"
     bounds = "" if spec.low is None or spec.high is None else f"{_bound(spec.low)}, {_bound(spec.high)}, "
-    return f"Box({bounds}shape={tuple(spec.shape)}, dtype={str(spec.dtype).removeprefix('torch.')})"
+    return f"Box({bounds}shape={tuple(spec.shape)}, dtype={env_numpy_dtype(spec).name})"  # the env's dtype
 
 
 def _bound(values: np.ndarray) -> str:
