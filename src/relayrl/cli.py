@@ -205,7 +205,8 @@ def _interrupted_line(what: str, args: argparse.Namespace) -> str:
         from relayrl.training.run_dir import RunDir
 
         rd = RunDir(run_dir) if run_dir else None
-        resumable, trained = (rd.has_checkpoint(), rd.trained_to() > 0) if rd else (False, False)
+        resumable = rd is not None and rd.has_checkpoint()
+        trained = rd is not None and not resumable and rd.trained_to() > 0  # reads the policy file: only if needed
     except (ImportError, AttributeError, OSError):  # torch still importing (no run has started), or unreadable
         resumable = trained = False
     if resumable:

@@ -169,6 +169,7 @@ def _check_range(t: torch.Tensor, s: Spec, where: str = "") -> None:
 
 
 def _layout(spec: Spec) -> tuple:
+    """What a policy's observations must match: each Dict / Tuple entry's key and shape, or the shape."""
     if isinstance(spec, PackedSpec):
         return tuple((f.key, tuple(f.spec.shape)) for f in spec.fields)
     return tuple(spec.shape)

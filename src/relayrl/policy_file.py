@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from relayrl import atomic
+from relayrl.arrays import torch_dtype
 from relayrl.errors import UserError
 from relayrl.specs import ArraySpec, Spec
 
@@ -59,7 +60,7 @@ def env_action_entries(action_spec: Spec) -> dict[str, Any]:
 
 def env_action_dtype(state: dict[str, Any]) -> torch.dtype | None:
     """The env's action dtype a policy file records (`env_action_entries`); None: the policy's own."""
-    return torch.from_numpy(np.zeros(0, state["action_dtype"])).dtype if "action_dtype" in state else None
+    return torch_dtype(np.dtype(state["action_dtype"])) if "action_dtype" in state else None
 
 
 def save_policy_file(state: dict[str, Any], path: Path) -> None:

@@ -24,6 +24,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from relayrl.arrays import torch_dtype
 from relayrl.errors import UserError
 
 _TORCH_DTYPES = {
@@ -152,7 +153,7 @@ def spec_from_space(space: gym.Space, role: str = "observation") -> Spec:
 def _other_dtype(space_dtype: Any, stored: torch.dtype) -> str | None:
     """The space's NumPy dtype's name where it is not the one relayrl stores (`env_dtype`)."""
     name = np.dtype(space_dtype).name
-    return None if name == torch.empty((), dtype=stored).numpy().dtype.name else name
+    return None if name == _numpy_of(stored).name else name
 
 
 def env_numpy_dtype(spec: Spec) -> np.dtype:
@@ -161,7 +162,7 @@ def env_numpy_dtype(spec: Spec) -> np.dtype:
 
 
 def env_torch_dtype(spec: Spec) -> torch.dtype:
-    return torch.from_numpy(np.zeros(0, env_numpy_dtype(spec))).dtype
+    return torch_dtype(env_numpy_dtype(spec))
 
 
 def describe(spec: Spec) -> str:
@@ -260,7 +261,11 @@ def spec_from_state(state: dict[str, Any]) -> Spec:
 
 
 def numpy_dtype(spec: Spec) -> np.dtype:
-    return torch.empty((), dtype=spec.dtype).numpy().dtype
+    return _numpy_of(spec.dtype)
+
+
+def _numpy_of(dtype: torch.dtype) -> np.dtype:
+    return torch.empty((), dtype=dtype).numpy().dtype
 
 
 def is_bounded_box(spec: Spec) -> bool:

@@ -152,7 +152,6 @@ def make_encoder(spec: Spec, kind: str = "auto") -> nn.Module | None:
     return leaf_encoder(spec, kind)
 
 
-
 class Encoded(nn.Module):
     """An encoder followed by an MLP head: obs -> head(encoder(obs))."""
 
