@@ -25,6 +25,7 @@ from relayrl.envs import make_env
 from relayrl.errors import UserError
 from relayrl.export import load_policy_state
 from relayrl.training.checkpoint import load_latest_checkpoint
+from relayrl.training.run_dir import RunDir
 
 # algo -> (preset, overrides): a short run that writes checkpoints (where the algorithm has them)
 CASES = {
@@ -181,3 +182,18 @@ def test_onnx_export_matches_the_torch_policy(runs, name, tmp_path):
     assert sig["input"] == {"name": "obs", "dtype": str(obs.dtype).removeprefix("torch."),
                             "shape": ["batch", *obs.shape[1:]]}
     assert sig["output"]["shape"] == ["batch", *expected.shape[1:]]
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_eval_interval_zero_evaluates_once_at_the_end(name, tmp_path):
+    preset, over = CASES[name]
+    cfg = relayrl.load_config(preset, [*over, "eval.interval=0"], seed=3)
+    result = relayrl.train(cfg, tmp_path / "r", progress=False)
+    rows = RunDir(tmp_path / "r").read_metrics()
+    assert [r["step"] for r in rows] == [cfg.train.total_steps] and result.final == rows[0]
+    assert relayrl.load_policy(tmp_path / "r") is not None
+
+
+def test_eval_interval_must_not_be_negative():
+    with pytest.raises(UserError, match=r"eval.interval=-1 is not valid; it must be >= 0 \(0: only the final"):
+        relayrl.load_config("dqn", ["eval.interval=-1"])

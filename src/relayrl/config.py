@@ -91,7 +91,7 @@ class ReplayConfig(Section):
 class EvalConfig(Section):
     SECTION = "eval"
 
-    interval: int = 5_000  # env steps
+    interval: int = 5_000  # env steps between evaluations; 0: only the final one (no step-0 evaluation)
     episodes: int = 10  # episodes per evaluation
 
 
@@ -149,7 +149,8 @@ class Config(Section):
         self.env.require(">= 1", "num_envs")
         self.train.require(">= 1", "total_steps", "collect_steps")
         self.replay.require(">= 1", "size", "n_step")
-        self.eval.require(">= 1", "interval", "episodes")
+        self.eval.require(">= 1", "episodes")
+        self.eval.require(">= 0", "interval", note=" (0: only the final evaluation)")
         self.env.require(">= 0", "max_episode_steps", note=" (0: the env's own time limit)")
         if algorithm(self.algo).replay == "rollouts":
             self._check_on_policy()

@@ -255,7 +255,8 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         driver.announce()
         if core.env_steps() == 0 and not resume:  # a run a callback stopped at step 0 has evaluated it
             log_config(report.tb, c)
-            driver.evaluate_now(Progress(0, 0))  # the untrained policy, before any collection
+            if c.eval.interval > 0:  # 0: the final evaluation only (an env whose episodes take minutes)
+                driver.evaluate_now(Progress(0, 0))  # the untrained policy, before any collection
             core.policy_saver.save(Progress(0, 0))  # `relayrl eval` works from the start
         if not report.stop_requested:
             driver.iterate()

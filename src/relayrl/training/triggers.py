@@ -96,8 +96,9 @@ def covers_boundary(steps: int, interval: int, evaluations: int) -> bool:
     """Whether an evaluation at `steps` covers a boundary of the `interval` grid (0, interval,
     2 interval, ...) that the `evaluations` so far have not: then it uses up its seed index. One
     off the grid (where a callback stopped the run, a last step between boundaries) leaves the
-    index to the next, so a resume that goes on evaluates as the uninterrupted run."""
-    return steps // interval + 1 > evaluations
+    index to the next, so a resume that goes on evaluates as the uninterrupted run. Without a
+    grid (`interval` 0: the final evaluation only) every evaluation uses up its index."""
+    return interval <= 0 or steps // interval + 1 > evaluations
 
 
 class Evaluate(IntervalTrigger):
@@ -125,7 +126,7 @@ class Evaluate(IntervalTrigger):
         t0 = time.perf_counter()
         result = evaluate(self.env, self.policy_fn(), self.episodes, seed=self.seed + EVAL_STRIDE * self.count)
         self.seconds = time.perf_counter() - t0
-        self.count += self.interval <= 0 or covers_boundary(self._count(progress), self.interval, self.count)
+        self.count += covers_boundary(self._count(progress), self.interval, self.count)
         self.results.append((progress, result))
         if self.on_result is not None:
             self.on_result(progress, result)

@@ -3,7 +3,7 @@ driver (training/direct.py) runs into a run directory.
 
 No replay, actor or learner: each iteration differentiates the mean reward of `batch_size`
 rollouts of `rollout_steps` steps. A row goes to metrics.jsonl every `eval.interval` env steps
-(an iteration is batch_size * rollout_steps env steps) with the window's mean rollout return as
+(an iteration is batch_size * rollout_steps env steps; 0: one row, at the end) with the window's mean rollout return as
 `average_return`, so `relayrl plot` draws the tutorial's curve. Runs take seconds to minutes,
 so they are not checkpointed; the policy is saved at the end (`relayrl.load_policy` reads it).
 """
@@ -55,7 +55,8 @@ def train(config: Config, device: torch.device, write_row: Callable[[dict[str, A
     c, a = config, config.agent
     iterations = check_config(c)
     per_iteration = a.batch_size * a.rollout_steps
-    rows_every = max(1, c.eval.interval // per_iteration)  # iterations per metrics row
+    # iterations per metrics row; eval.interval 0: one row, at the end
+    rows_every = max(1, c.eval.interval // per_iteration) if c.eval.interval > 0 else iterations
     window: list[BpttLog] = []
     history: list[BpttLog] = []
     t0 = time.perf_counter()
