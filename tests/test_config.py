@@ -72,6 +72,21 @@ def test_an_on_policy_run_shorter_than_one_rollout_is_refused():
             load_config("ppo", [over])
 
 
+@pytest.mark.parametrize("name, how", [("ppo", "from each rollout once"), ("bptt-pendulum", "through its env")])
+def test_an_algorithm_without_a_replay_takes_no_replay_key_and_lists_none(name, how, tmp_path):
+    from relayrl.config import config_toml, from_dict, load_toml, save_toml
+
+    with pytest.raises(ConfigError, match=rf"replay.size=5 is not valid for algo='\w+': it learns {how}, "
+                                          r"not from a replay; leave it at 100000"):
+        load_config(name, ["replay.size=5"])
+    cfg = load_config(name)
+    text = config_toml(cfg)
+    assert "\n[replay]\n" not in text and f'# [replay]: algo = "{cfg.algo}" learns without a replay table' in text
+    save_toml(cfg, tmp_path / "c.toml")
+    assert from_dict(load_toml(tmp_path / "c.toml")) == cfg  # reads back as the same config
+    assert "\n[replay]\n" in config_toml(load_config("dqn"))
+
+
 def test_the_keys_stable_baselines3_names_are_pointed_to_exist():
     from relayrl.config import dotted, to_dict
     from relayrl.config_fields import SB3_NAMES

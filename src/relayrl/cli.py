@@ -258,10 +258,10 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "export":
             _export(args)
         elif args.command == "config":
-            from relayrl.config_fields import commented_toml
+            from relayrl.config import config_toml
             from relayrl.presets import load_config
 
-            print(commented_toml(load_config(args.config, args.overrides)), end="")
+            print(config_toml(load_config(args.config, args.overrides)), end="")
     except UserError as e:
         print(f"relayrl: error: {e}", file=sys.stderr)
         return EXIT_USAGE

@@ -152,6 +152,8 @@ class Config(Section):
         self.eval.require(">= 1", "episodes")
         self.eval.require(">= 0", "interval", note=" (0: only the final evaluation)")
         self.env.require(">= 0", "max_episode_steps", note=" (0: the env's own time limit)")
+        if algorithm(self.algo).replay != "transitions":
+            self._check_no_replay()
         if algorithm(self.algo).replay == "rollouts":
             self._check_on_policy()
         self.train.require(">= 0", "initial_collect_steps", "gradient_steps", "checkpoint_interval",
@@ -187,6 +189,15 @@ class Config(Section):
         b = self.env.num_envs
         return -(-self.train.collect_steps // b) * b
 
+    def _check_no_replay(self) -> None:
+        """An algorithm without a replay table takes no [replay] setting, so that a config
+        (and `relayrl config`'s listing) never suggests one changes its run."""
+        how = "from each rollout once" if algorithm(self.algo).replay == "rollouts" else "through its env"
+        for f in dataclasses.fields(ReplayConfig):
+            if (value := getattr(self.replay, f.name)) != f.default:
+                raise ConfigError(f"replay.{f.name}={value!r} is not valid for algo={self.algo!r}: it learns {how}, "
+                                  f"not from a replay; leave it at {f.default!r}")
+
     def _check_on_policy(self) -> None:
         """An on-policy algorithm learns from each rollout once, collected by the policy just
         trained: no warm-up, weight-pull or replay settings apply to it."""
@@ -200,10 +211,6 @@ class Config(Section):
             raise ConfigError(f"train.total_steps={self.train.total_steps} is less than one rollout "
                               f"(train.collect_steps={self.train.collect_steps} env steps): algo={self.algo!r} would "
                               "end before its first update; raise train.total_steps or lower train.collect_steps")
-        for key, used in (("sampler", "uniform"), ("n_step", 1)):
-            if getattr(self.replay, key) != used:
-                raise ConfigError(f"replay.{key}={getattr(self.replay, key)!r} is not valid for algo={self.algo!r}: "
-                                  f"it learns from each rollout once, not from a replay; leave it at {used!r}")
         if self.train.gradient_steps > 1:
             raise ConfigError(f"train.gradient_steps={self.train.gradient_steps} does not apply to algo={self.algo!r}: "
                               "it trains on each rollout for the agent's own epochs of minibatches "
@@ -350,7 +357,15 @@ def load_toml(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"config file {str(path)!r} is not valid TOML: {e}") from None
 
 
+def config_toml(config: Config) -> str:
+    """Every key with its meaning as a comment (`relayrl config`'s listing); it reads back as the
+    same config. An algorithm without a replay table gets one line for [replay] instead of its
+    keys (it takes none but the defaults: `Config.validate`)."""
+    if algorithm(config.algo).replay == "transitions":
+        return commented_toml(config)
+    return commented_toml(config, skip={"replay": f'# [replay]: algo = "{config.algo}" learns without a replay table'})
+
+
 def save_toml(config: Config, path: str | Path) -> None:
-    """Every key with its meaning as a comment (`relayrl config`'s listing), so a run's
-    config.toml explains itself; it reads back as the same config."""
-    atomic.write_text(Path(path), commented_toml(config))
+    """`config_toml`, so a run's config.toml explains itself."""
+    atomic.write_text(Path(path), config_toml(config))

@@ -215,15 +215,19 @@ def type_text(hint: Any) -> str:
     return str(hint).replace("typing.", "").replace("NoneType", "None")
 
 
-def commented_toml(config: Any) -> str:
+def commented_toml(config: Any, skip: dict[str, str] | None = None) -> str:
     """`config` as TOML, each key followed by its meaning as a comment; it reads back as the
-    same config. Sections become tables; a None field (TOML has no null) is shown commented out."""
+    same config where the sections in `skip` (name -> the comment line written instead) hold
+    their defaults. Sections become tables; a None field (TOML has no null) is shown commented out."""
     lines: list[str] = []
-    _write_section(config, "", lines)
+    _write_section(config, "", lines, skip or {})
     return "\n".join(lines) + "\n"
 
 
-def _write_section(obj: Any, name: str, lines: list[str]) -> None:
+def _write_section(obj: Any, name: str, lines: list[str], skip: dict[str, str]) -> None:
+    if name in skip:
+        lines += ["", skip[name]]
+        return
     if name:
         lines += ["", f"[{name}]"]
     for doc in field_docs(obj):
@@ -232,7 +236,7 @@ def _write_section(obj: Any, name: str, lines: list[str]) -> None:
     for f in dataclasses.fields(obj):
         value = getattr(obj, f.name)
         if dataclasses.is_dataclass(value):
-            _write_section(value, f"{name}.{f.name}" if name else f.name, lines)
+            _write_section(value, f"{name}.{f.name}" if name else f.name, lines, skip)
 
 
 def toml_literal(value: Any) -> str:

@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from relayrl.config import Config, to_dict
+from relayrl.config import Config, config_toml, to_dict
 from relayrl.metrics import EpisodeStats
 from relayrl.training.heartbeat import ProgressLines
 from relayrl.training.run_dir import MetricsLog, RunDir
@@ -35,9 +35,7 @@ def plural(n: int, noun: str) -> str:
 
 def log_config(tb: Any, config: Config) -> None:
     """The run's config in TensorBoard: as TOML text (with each key's meaning) and as hparams."""
-    from relayrl.config_fields import commented_toml
-
-    text = commented_toml(config)
+    text = config_toml(config)
     tb.add_text("config", "\n".join("    " + line for line in text.splitlines()))  # a markdown code block
     flat: dict[str, Any] = {}
 
