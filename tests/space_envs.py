@@ -11,8 +11,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-OBS_KINDS = ("box", "box2d", "box_i32", "discrete", "multi_discrete", "multi_binary", "image", "image_hwc", "dict",
-             "tuple")
+OBS_KINDS = ("box", "box2d", "box_i32", "discrete", "multi_discrete", "multi_binary", "image", "image_hwc", "board",
+             "dict", "tuple")
 ACTION_KINDS = ("discrete", "box", "box_scalar", "box2d", "box_fixed", "box_f16", "multi_discrete",
                 "multi_discrete_i32", "multi_binary")
 
@@ -27,6 +27,7 @@ def observation_space(kind: str) -> gym.Space:
         "multi_binary": spaces.MultiBinary(3),
         "image": spaces.Box(0, 255, (1, 12, 12), np.uint8),
         "image_hwc": spaces.Box(0, 255, (10, 10, 3), np.uint8),
+        "board": spaces.Box(0, 2, (8, 8), np.uint8),  # cell codes, not pixels: an MLP on the numbers
         "dict": spaces.Dict({"frame": spaces.Box(0, 255, (1, 8, 8), np.uint8), "cell": spaces.Discrete(4),
                              "pos": spaces.Box(-1.0, 1.0, (2,), np.float32)}),
         "tuple": spaces.Tuple((spaces.Discrete(2), spaces.Box(-1.0, 1.0, (2,), np.float64))),
@@ -77,6 +78,10 @@ class Spaces(gym.Env):
             if k == "image_hwc":
                 img[:4] = 255 * g
             return img
+        if k == "board":
+            board = np.zeros((8, 8), np.uint8)
+            board[self.t % 8, 0], board[0, 7] = 1, 2 * g
+            return board
         if k == "dict":
             frame = np.full((1, 8, 8), 255 * g, np.uint8)
             pos = np.array([g, np.nan if 0 < self.nan_at <= self.steps else 0.0], np.float32)

@@ -18,7 +18,7 @@ from space_envs import OBS_KINDS, Spaces, observation_space
 import relayrl
 from relayrl.errors import UserError
 from relayrl.nn.encoders import ConvEncoder, DictEncoder, OneHot, make_encoder
-from relayrl.specs import PackedSpec, spec_from_space, spec_from_state, spec_state, unpack
+from relayrl.specs import PackedSpec, is_image, spec_from_space, spec_from_state, spec_state, unpack
 
 # algo -> the action kinds it takes
 # (box_scalar: Box shape (), box2d: Box (2, 2): actions that travel flat, in the env's shape at its ends)
@@ -116,6 +116,21 @@ def test_spec_survives_the_policy_file(kind):
     spec = spec_from_space(Spaces(kind).observation_space)
     again = spec_from_state(json.loads(json.dumps(spec_state(spec))))
     assert (type(again), again.shape, again.dtype) == (type(spec), spec.shape, spec.dtype)
+    assert is_image(again) == is_image(spec) == (kind in ("image", "image_hwc"))
+
+
+def test_a_uint8_grid_of_codes_is_numbers_not_an_image():
+    board = spec_from_space(gym.spaces.Box(0, 2, (8, 8), np.uint8))
+    assert make_encoder(board) is None and not is_image(board)  # an MLP on the codes as they are
+    state = spec_state(board)
+    assert (state["low"], state["high"]) == (0, 2)  # one number where the bound is the same everywhere
+    uneven = spec_from_space(gym.spaces.Box(0, np.arange(64, dtype=np.uint8).reshape(8, 8) + 192, (8, 8), np.uint8))
+    again = spec_from_state(json.loads(json.dumps(spec_state(uneven))))
+    assert np.array_equal(again.high, uneven.high) and not is_image(again)
+    # a policy file from before bounds were kept: its uint8 frames stay an image, as it was trained
+    assert is_image(spec_from_state({"kind": "box", "shape": [8, 8], "dtype": "uint8"}))
+    with pytest.raises(UserError, match=r"needs image observations \(.*bounds 0 and 255\), got Box\(0, 2, "):
+        make_encoder(board, "nature_cnn")
 
 
 def test_dict_observations_pack_each_entry_in_its_own_dtype():

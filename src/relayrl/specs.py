@@ -201,11 +201,14 @@ def is_flat_vector(spec: Spec) -> bool:
 
 
 def is_image(spec: Spec) -> bool:
-    """A uint8 Box shaped [H, W], [C, H, W] or [H, W, C] whose sides are at least 8: frames,
-    which the conv encoders take (scaled by 1/255)."""
+    """A uint8 Box shaped [H, W], [C, H, W] or [H, W, C] whose sides are at least 8 and whose
+    bounds are 0 and 255 (Stable-Baselines3's rule): frames, which the conv encoders take
+    (scaled by 1/255). A uint8 grid of codes (a board, Box(0, 2)) is a vector of numbers. A
+    spec without bounds (a policy file from before they were kept) counts as having them."""
     if type(spec) is not ArraySpec or spec.dtype != torch.uint8 or len(spec.shape) not in (2, 3):
         return False
-    return min(image_size(spec)) >= 8
+    pixels = spec.low is None or spec.high is None or bool((spec.low == 0).all() and (spec.high == 255).all())
+    return pixels and min(image_size(spec)) >= 8
 
 
 def image_layout(spec: ArraySpec) -> tuple[int, bool]:
@@ -241,11 +244,20 @@ def spec_state(spec: Spec) -> dict[str, Any]:
         state["nvec"] = list(spec.nvec)
     if spec.env_dtype:
         state["env_dtype"] = spec.env_dtype
+    if kind == "box" and spec.dtype == torch.uint8 and spec.low is not None and spec.high is not None:
+        state["low"], state["high"] = _compact(spec.low), _compact(spec.high)  # `is_image` reads them
     return state
 
 
+def _compact(bound: np.ndarray) -> int | list[Any]:
+    """A uint8 bound as one number where it is the same everywhere (a frame's 0 or 255)."""
+    flat = np.asarray(bound).reshape(-1)
+    return int(flat[0]) if flat.size and (flat == flat[0]).all() else np.asarray(bound).tolist()
+
+
 def spec_from_state(state: dict[str, Any]) -> Spec:
-    """`spec_state`'s inverse (bounds are not kept: encoders and policies do not read them)."""
+    """`spec_state`'s inverse (bounds are kept for uint8 Boxes only, which `is_image` reads;
+    policies read no others)."""
     kind = state["kind"]
     if kind == "discrete":
         return DiscreteSpec(int(state["n"]))
@@ -257,6 +269,9 @@ def spec_from_state(state: dict[str, Any]) -> Spec:
         return MultiDiscreteSpec(shape, dtype, env_dtype=env, nvec=tuple(int(n) for n in state["nvec"]))
     if kind == "multi_binary":
         return MultiBinarySpec(shape, dtype, env_dtype=env)
+    if "low" in state:
+        low, high = (np.broadcast_to(np.asarray(state[k], np.uint8), shape).copy() for k in ("low", "high"))
+        return ArraySpec(shape, dtype, low, high, env_dtype=env)
     return ArraySpec(shape, dtype, env_dtype=env)
 
 

@@ -2,7 +2,8 @@
 put before their MLPs, so any Gymnasium space reaches them as a float vector [B, features].
 
 - a Box of any rank: flattened (no encoder: the MLP flattens; the fast MLP paths stay on)
-- an image (uint8 [H, W], [C, H, W] or [H, W, C], sides >= 8): a conv net on pixels / 255:
+- an image (uint8 [H, W], [C, H, W] or [H, W, C], sides >= 8, bounds 0 and 255): a conv net on
+  pixels / 255 (a uint8 grid of codes, Box(0, 2), is a Box like any other):
   the Nature CNN from 36x36 up (84x84 frames as Mnih et al. 2015), a small one below
 - Discrete: one-hot; MultiDiscrete: one one-hot per entry, concatenated; MultiBinary: floats
 - Dict and Tuple: each entry encoded as above, concatenated (as SB3's CombinedExtractor)
@@ -146,7 +147,7 @@ def make_encoder(spec: Spec, kind: str = "auto") -> nn.Module | None:
         return DictEncoder(spec, kind)  # `kind` applies to its image entries
     if kind in ("nature_cnn", "small_cnn") and not is_image(spec):
         raise UserError(f"agent.encoder={kind!r} needs image observations (uint8 [H, W], [C, H, W] or "
-                        f"[H, W, C], sides >= 8), got {describe(spec)}; use agent.encoder='auto'")
+                        f"[H, W, C], sides >= 8, bounds 0 and 255), got {describe(spec)}; use agent.encoder='auto'")
     if is_flat_vector(spec) or (kind == "flatten" and type(spec) is ArraySpec):
         return None
     return leaf_encoder(spec, kind)

@@ -16,7 +16,7 @@ class DQNConfig(Section):
 
     hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of the Q-network MLP
     activation: str = "relu"  # relu | tanh | elu
-    # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images,
+    # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images 0..255,
     # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn
     encoder: str = "auto"
     init: str = "torch"  # torch | tf-agents (VarianceScaling hidden, small uniform head, bias -0.2)

@@ -21,7 +21,7 @@ class PPOConfig(Section):
 
     hidden: list[int] = field(default_factory=lambda: [64, 64])  # hidden sizes of the actor and of the critic
     activation: str = "tanh"  # relu | tanh | elu
-    # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images,
+    # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images 0..255,
     # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn
     encoder: str = "auto"
     shared: bool = False  # true: one MLP whose last layer holds the policy and value heads

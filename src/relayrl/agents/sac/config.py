@@ -17,7 +17,7 @@ class SACConfig(Section):
     actor_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of the actor MLP
     critic_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of each critic MLP
     activation: str = "relu"  # relu | tanh | elu
-    # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images,
+    # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images 0..255,
     # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn
     encoder: str = "auto"
     actor_lr: float = 3e-4  # Adam learning rate of the actor
