@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
@@ -65,6 +66,10 @@ def test_evaluate_bad_input_is_one_line():
         relayrl.evaluate(3, Countdown())
     with pytest.raises(UserError, match="env=None"):
         relayrl.evaluate(lambda o: 0)
+    vector = gym.vector.SyncVectorEnv([Countdown, Countdown])
+    with pytest.raises(UserError, match="env=SyncVectorEnv is a vector env; give one env, an env id, or a callable"):
+        relayrl.evaluate(lambda o: 0, vector)
+    vector.close()
 
 
 def test_record_video_with_env(run_dir, tmp_path):

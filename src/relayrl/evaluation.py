@@ -105,6 +105,9 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
                              wrappers=c.wrappers), True
     if isinstance(env, str):
         return make_eval_env(env, episodes, max_episode_steps), True
+    if isinstance(env, gym.vector.VectorEnv) or hasattr(env, "step_async"):  # Gymnasium's or SB3's VecEnv
+        raise UserError(f"env={type(env).__name__} is a vector env; give one env, an env id, or a callable "
+                        "returning one env: relayrl.evaluate runs its own copies of it (up to 16)")
     if callable(env):
         from relayrl.dispatch import factory_env_id
 
