@@ -263,7 +263,7 @@ def test_a_discrete_entry_of_a_dict_outside_its_range_is_one_line(tmp_path):
     # integer entries take floats holding the env's values, and refuse fractions (frames scaled to [0, 1])
     assert policy({**obs, "frame": obs["frame"].astype(np.float32)}) == policy(obs)
     with pytest.raises(UserError, match=r"observation\['frame'\] holds float32 values that are not whole numbers in "
-                                        r"uint8's range; this policy takes Box\(shape=\(1, 8, 8\), dtype=uint8\) "
+                                        r"uint8's range; this policy takes Box\(0, 255, shape=\(1, 8, 8\), dtype=uint8\) "
                                         r"values as the env gives them"):
         policy({**obs, "frame": obs["frame"].astype(np.float32) / 255.0 + 0.5 / 255})
 
