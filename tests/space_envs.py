@@ -13,7 +13,7 @@ from gymnasium import spaces
 
 OBS_KINDS = ("box", "box2d", "box_i32", "discrete", "multi_discrete", "multi_binary", "image", "image_hwc", "board",
              "dict", "tuple")
-ACTION_KINDS = ("discrete", "box", "box_scalar", "box2d", "box_fixed", "box_f16", "multi_discrete",
+ACTION_KINDS = ("discrete", "box", "box_scalar", "box2d", "box_fixed", "box_f16", "box_unbounded", "multi_discrete",
                 "multi_discrete_i32", "multi_binary")
 
 
@@ -39,6 +39,7 @@ def action_space(kind: str) -> gym.Space:
             "box_scalar": spaces.Box(-1.0, 1.0, (), np.float32), "box2d": spaces.Box(-1.0, 1.0, (2, 2), np.float32),
             "box_fixed": spaces.Box(np.array([-1.0, 0.5], np.float32), np.array([1.0, 0.5], np.float32)),  # low == high
             "box_f16": spaces.Box(-1.0, 1.0, (2,), np.float16),  # policies act in float32
+            "box_unbounded": spaces.Box(np.array([-np.inf, -1.0], np.float32), np.array([np.inf, 1.0], np.float32)),
             "multi_discrete": spaces.MultiDiscrete([2, 3]),
             "multi_discrete_i32": spaces.MultiDiscrete([2, 3], np.int32),
             "multi_binary": spaces.MultiBinary(2)}[kind]

@@ -23,9 +23,10 @@ from relayrl.specs import PackedSpec, is_image, spec_from_space, spec_from_state
 # algo -> the action kinds it takes
 # (box_scalar: Box shape (), box2d: Box (2, 2): actions that travel flat, in the env's shape at its ends)
 # (box_fixed: low == high in one dimension, which holds one value; SAC refuses it)
+# (box_unbounded: an infinite bound; PPO clips to it, as Stable-Baselines3 does; SAC refuses it)
 # (box_f16, multi_discrete_i32: spaces of another dtype than the one stored; actions reach the env in it)
 ACTIONS = {"dqn": ("discrete",), "sac": ("box", "box_scalar", "box2d", "box_f16"),
-           "ppo": ("discrete", "box", "box_scalar", "box2d", "box_fixed", "box_f16", "multi_discrete",
+           "ppo": ("discrete", "box", "box_scalar", "box2d", "box_fixed", "box_f16", "box_unbounded", "multi_discrete",
                    "multi_discrete_i32", "multi_binary")}
 CASES = ([(algo, obs, ACTIONS[algo][0]) for algo in ACTIONS for obs in OBS_KINDS]
          + [("sac", "box", act) for act in ACTIONS["sac"][1:]]
@@ -174,6 +175,8 @@ def test_encoders_one_hot_and_conv_by_size():
     ("sac", "multi_binary", "action space is MultiBinary([2])"),
     ("sac", "box_fixed", "SAC needs low < high in every action dimension; this env's action space Box([-1. ,  0.5], "
                          "[1. , 0.5], shape=(2,), dtype=float32) has low == high at flat index 1"),
+    ("sac", "box_unbounded", "SAC takes a Box action space of floats with finite low and high; this env's action "
+                             "space is Box([-inf,  -1.], [inf,  1.], shape=(2,), dtype=float32)"),
 ])
 def test_an_action_space_an_algorithm_does_not_take_is_one_line(algo, act, words, tmp_path):
     with pytest.raises(UserError, match=words.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")
@@ -187,6 +190,17 @@ def test_ppo_squashing_into_a_box_with_a_fixed_dimension_gives_its_value(tmp_pat
     relayrl.train(config, tmp_path, progress=False)  # no log 0 in the log-probabilities: no NaN stop
     actions = relayrl.load_policy(tmp_path, deterministic=False, seed=0)(np.zeros((16, 3), np.float32))
     assert (actions[:, 1] == 0.5).all() and (np.abs(actions[:, 0]) <= 1).all()
+
+
+def test_ppo_clips_to_an_unbounded_box_and_refuses_to_squash_into_it(tmp_path):
+    relayrl.train(short_config("ppo", "box", "box_unbounded"), tmp_path / "clip", progress=False)
+    actions = relayrl.load_policy(tmp_path / "clip", deterministic=False, seed=0)(np.zeros((64, 3), np.float32))
+    assert np.isfinite(actions).all() and (np.abs(actions[:, 1]) <= 1).all()
+    config = short_config("ppo", "box", "box_unbounded")
+    config.agent.squash = "tanh"
+    with pytest.raises(UserError, match=r"agent.squash='tanh' squashes actions into finite bounds; this env's "
+                                        r"action space is Box\(\[-inf,  -1.\], .*: use agent.squash='clip'"):
+        relayrl.train(config, tmp_path / "tanh", progress=False)
 
 
 def test_unsupported_spaces_name_the_space_and_what_is_valid():
@@ -263,8 +277,8 @@ def test_a_discrete_entry_of_a_dict_outside_its_range_is_one_line(tmp_path):
     # integer entries take floats holding the env's values, and refuse fractions (frames scaled to [0, 1])
     assert policy({**obs, "frame": obs["frame"].astype(np.float32)}) == policy(obs)
     with pytest.raises(UserError, match=r"observation\['frame'\] holds float32 values that are not whole numbers in "
-                                        r"uint8's range; this policy takes Box\(0, 255, shape=\(1, 8, 8\), dtype=uint8\) "
-                                        r"values as the env gives them"):
+                                        r"uint8's range; this policy takes Box\(0, 255, shape=\(1, 8, 8\), "
+                                        r"dtype=uint8\) values as the env gives them"):
         policy({**obs, "frame": obs["frame"].astype(np.float32) / 255.0 + 0.5 / 255})
 
 

@@ -284,8 +284,8 @@ def _numpy_of(dtype: torch.dtype) -> np.dtype:
 
 
 def is_bounded_box(spec: Spec) -> bool:
-    """A continuous action space with finite low and high everywhere (what SAC and PPO's
-    Gaussian policies clip or squash into)."""
+    """A continuous action space with finite low and high everywhere (what SAC's squashed
+    Gaussian needs)."""
     return (isinstance(spec, ArraySpec) and spec.dtype.is_floating_point
             and spec.low is not None and spec.high is not None
             and bool(np.isfinite(spec.low).all() and np.isfinite(spec.high).all()))

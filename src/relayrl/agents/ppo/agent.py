@@ -33,7 +33,7 @@ from relayrl.core import Agent
 from relayrl.errors import UserError
 from relayrl.optim import FastAdam
 from relayrl.schedules import linear_schedule
-from relayrl.specs import ArraySpec, Spec, spec_state
+from relayrl.specs import ArraySpec, Spec, describe, spec_state
 
 
 class PPOAgent(Agent):
@@ -54,6 +54,10 @@ class PPOAgent(Agent):
         # tanh squashing: the log-probabilities are those of loc + scale * tanh(u). The scale adds a
         # constant to them, which a dimension with low == high (one value) leaves out instead of log 0.
         bounds = self._bounds()
+        if cfg.squash == "tanh" and bounds is not None and not (np.isfinite(bounds[0]).all()
+                                                                and np.isfinite(bounds[1]).all()):
+            raise UserError(f"agent.squash='tanh' squashes actions into finite bounds; this env's action space is "
+                            f"{describe(action_spec)}: use agent.squash='clip' (the default)")
         self.squash_scale = (torch.as_tensor(np.where(bounds[1] > bounds[0], (bounds[1] - bounds[0]) / 2, 1.0),
                                              dtype=torch.float32, device=device)
                              if cfg.squash == "tanh" and bounds is not None and not self.net.discrete else None)

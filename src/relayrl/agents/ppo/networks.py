@@ -15,7 +15,7 @@ from relayrl.agents.ppo.normalize import ObsNorm
 from relayrl.errors import UserError
 from relayrl.nn import MLP
 from relayrl.nn.encoders import make_encoder
-from relayrl.specs import DiscreteSpec, MultiBinarySpec, MultiDiscreteSpec, Spec, describe, flat_dim, is_bounded_box
+from relayrl.specs import ArraySpec, DiscreteSpec, MultiBinarySpec, MultiDiscreteSpec, Spec, describe, flat_dim
 
 
 class ActionHead(NamedTuple):
@@ -29,16 +29,18 @@ class ActionHead(NamedTuple):
 
 
 def action_head(action_spec: Spec) -> ActionHead:
-    """Logits of a Discrete, MultiDiscrete or MultiBinary space, or the mean of a bounded Box."""
+    """Logits of a Discrete, MultiDiscrete or MultiBinary space, or the mean of a Box's Gaussian."""
     if isinstance(action_spec, DiscreteSpec):
         return ActionHead(action_spec.n, True)
     if isinstance(action_spec, MultiDiscreteSpec):
         return ActionHead(sum(action_spec.nvec), True, action_spec.nvec, shape=action_spec.shape)
     if isinstance(action_spec, MultiBinarySpec):
         return ActionHead(flat_dim(action_spec), True, binary=True, shape=action_spec.shape)
-    if not is_bounded_box(action_spec):
-        raise UserError("PPO takes Discrete, MultiDiscrete, MultiBinary or Box (floats, finite low and high) "
-                        f"action spaces; this env's action space is {describe(action_spec)}")
+    # A Box's bounds may be infinite (Stable-Baselines3 takes those too): the Gaussian sample is
+    # clipped to them, which leaves an unbounded dimension as sampled; tanh squashing needs them finite.
+    if type(action_spec) is not ArraySpec or not action_spec.dtype.is_floating_point:
+        raise UserError("PPO takes Discrete, MultiDiscrete, MultiBinary or Box (floats) action spaces; this "
+                        f"env's action space is {describe(action_spec)}")
     return ActionHead(flat_dim(action_spec), False)
 
 
