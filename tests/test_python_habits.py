@@ -104,7 +104,8 @@ def test_callbacks_see_every_eval_and_log_and_false_stops(algo, tmp_path):
 
     def cb(row):
         rows.append(row)
-        return not (row["event"] == "eval" and row["step"] >= 200)  # stop at the 2nd evaluation after 0
+        # stop at the 2nd evaluation after 0; NumPy's False stops as Python's does (None goes on)
+        return np.logical_not(row["event"] == "eval" and row["step"] >= 200)
 
     result = relayrl.train(cfg, tmp_path / "r", progress=False, callbacks=[cb])
     assert result.stopped_early and result.final["step"] == 200

@@ -192,12 +192,14 @@ class RunReport:
         self.call_back("eval", row)
 
     def call_back(self, event: str, row: dict[str, Any]) -> None:
-        """Each callback gets its own copy of the row with `event`; False from any stops the run.
+        """Each callback gets its own copy of the row with `event`; a false value from any (False,
+        NumPy's or torch's, 0; not None, which a callback without `return` gives) stops the run.
         What a callback raises propagates (it is the user's code): the run ends there, its
         checkpoints and metrics as they were."""
         for i, callback in enumerate(self.callbacks):
             if i in self.stopped_by:  # a callback that returned False is not called again
                 continue
-            if callback({**row, "event": event}) is False:
+            answer = callback({**row, "event": event})
+            if answer is not None and not answer:
                 self.stop_requested = True
                 self.stopped_by.add(i)
