@@ -246,3 +246,20 @@ def test_the_progress_bar_ends_at_the_last_step_with_the_last_evaluation(tmp_pat
     assert bars[0].n == 130  # not the last log boundary (100)
     assert bars[0].postfix["eval"] == f"{result.final['average_return']:.1f}"
 
+
+
+def test_train_leaves_the_callers_torch_threads_flushing_and_generator_as_they_were(tmp_path):
+    threads, flushing = torch.get_num_threads(), torch.tensor([1e-39]).item() == 0.0  # (other tests' runs)
+    torch.set_num_threads(2)
+    torch.set_flush_denormal(False)
+    try:
+        torch.manual_seed(123)
+        expected = torch.rand(1)
+        torch.manual_seed(123)
+        relayrl.train({**TINY, "train": {**TINY["train"], "torch_threads": 1}}, tmp_path / "r", progress=False)
+        assert torch.get_num_threads() == 2  # the run used 1
+        assert torch.tensor([1e-39]).item() != 0.0  # the run flushed denormals; the caller does not
+        assert torch.equal(torch.rand(1), expected)  # the caller's generator, not the run's seed
+    finally:
+        torch.set_num_threads(threads)
+        torch.set_flush_denormal(flushing)

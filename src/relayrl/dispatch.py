@@ -18,7 +18,7 @@ from relayrl.config import Config, algo_defaults, from_dict, load_toml, save_tom
 from relayrl.errors import UserError
 from relayrl.presets import load_config
 from relayrl.training.direct import DirectDriver
-from relayrl.training.lifecycle import RunResult
+from relayrl.training.lifecycle import RunResult, caller_torch_state
 from relayrl.training.local import LocalDriver
 from relayrl.training.report import Callback
 from relayrl.training.run_dir import RunDir
@@ -194,8 +194,7 @@ def train(config: Config | dict[str, Any] | str | Path, run_dir: str | Path | No
         rd.require()
         check_resume_matches(config, rd)
         check_resume_networks(config, rd)
-    else:
-        takeover = _takeover_notice(rd, overwrite)
+    takeover = None if resume else _takeover_notice(rd, overwrite)
     # files that are not a run's (looked at before the run's parts make a memmap replay's folder)
     beside = not resume and not takeover and rd.root.is_dir() and any(rd.root.iterdir())
     if resume and not entry.resumable:
@@ -203,6 +202,14 @@ def train(config: Config | dict[str, Any] | str | Path, run_dir: str | Path | No
     if config.distributed.num_actors > 0 and not entry.ray:
         raise UserError(f"algo={entry.name!r} runs in one process only; distributed.num_actors works with "
                         f"{', '.join(ray_algorithms())}")
+    with caller_torch_state():  # the run's threads, flushing and seeds are the run's alone
+        return _build_and_train(entry, config, rd, resume, progress, env, callbacks, takeover, beside)
+
+
+def _build_and_train(entry: Algorithm, config: Config, rd: RunDir, resume: bool, progress: bool,
+                     env: Callable[[], Any] | None, callbacks: list[Callback], takeover: str | None,
+                     beside: bool) -> RunResult:
+    """The run's parts, then the run into `rd` (a taken-over directory cleared first)."""
     # Each run builds its parts (envs, agent) before anything is written: bad input fails first.
     try:
         driver = _make_driver(entry, config, rd, progress, env, callbacks)
@@ -215,7 +222,7 @@ def train(config: Config | dict[str, Any] | str | Path, run_dir: str | Path | No
         raise UserError(f"not enough memory to build the run ({detail}): lower {data} or the networks' sizes "
                         "(the agent's hidden sizes)") from None
     try:
-        if not resume and takeover:
+        if takeover:
             print(f"relayrl: {takeover}", file=sys.stderr, flush=True)
             rd.clear()
         elif beside:

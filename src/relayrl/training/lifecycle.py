@@ -8,9 +8,10 @@ A driver builds its own envs and replay, then a `RunCore`, top to bottom when it
 
 from __future__ import annotations
 
+import contextlib
 import random
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
@@ -64,6 +65,21 @@ def start_process(config: Config) -> tuple[RunSeeds, torch.device]:
     seeds = RunSeeds(config.seed)
     torch.manual_seed(seeds.base("torch"))
     return seeds, resolve_device(config.device)
+
+
+@contextlib.contextmanager
+def caller_torch_state() -> Iterator[None]:
+    """The caller's torch thread count, denormal flushing and global generator as they were
+    before the run (`start_process` sets them for it), so that a notebook's own torch code after
+    `relayrl.train` runs as it did before."""
+    threads, generator = torch.get_num_threads(), torch.get_rng_state()
+    flushing = torch.tensor([1e-39]).item() == 0.0  # torch has no getter: a float32 denormal reads 0 when flushed
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
+        torch.set_flush_denormal(flushing)
+        torch.set_rng_state(generator)
 
 
 def check_user_env(config: Config, env_factory: Callable[[], Any] | None, say: Callable[[str], None]) -> None:
