@@ -263,3 +263,13 @@ def test_train_leaves_the_callers_torch_threads_flushing_and_generator_as_they_w
     finally:
         torch.set_num_threads(threads)
         torch.set_flush_denormal(flushing)
+
+
+def test_runs_started_in_the_same_second_get_their_own_default_directories(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("time.strftime", lambda fmt: "20261127-081716")  # the same second each time
+    roots = [relayrl.train({**TINY, "train": {**TINY["train"], "total_steps": 60}}, progress=False).run_dir
+             for _ in range(3)]
+    assert [r.name for r in roots] == ["dqn-toy_envs_Countdown-s0-20261127-081716",
+                                       "dqn-toy_envs_Countdown-s0-20261127-081716-2",
+                                       "dqn-toy_envs_Countdown-s0-20261127-081716-3"]

@@ -6,6 +6,7 @@ a rollout queue), or, for an algorithm that trains by itself, training/direct.py
 from __future__ import annotations
 
 import copy
+import itertools
 import sys
 import time
 import types
@@ -28,8 +29,12 @@ if TYPE_CHECKING:
 
 
 def default_run_dir(config: Config) -> Path:
+    """runs/<algo>-<env>-s<seed>-<date>-<time>, with -2, -3, ... where runs started within the same
+    second (a sweep of short runs) would share it."""
     name = config.env.id.replace("/", "_").replace(":", "_").replace("<", "").replace(">", "")
-    return Path("runs") / f"{config.algo}-{name}-s{config.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+    base = Path("runs") / f"{config.algo}-{name}-s{config.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+    candidates = itertools.chain([base], (base.with_name(f"{base.name}-{i}") for i in itertools.count(2)))
+    return next(path for path in candidates if not path.exists())
 
 
 def factory_env_id(factory: Callable[[], Any]) -> str:
