@@ -273,3 +273,13 @@ def test_runs_started_in_the_same_second_get_their_own_default_directories(tmp_p
     assert [r.name for r in roots] == ["dqn-toy_envs_Countdown-s0-20261127-081716",
                                        "dqn-toy_envs_Countdown-s0-20261127-081716-2",
                                        "dqn-toy_envs_Countdown-s0-20261127-081716-3"]
+
+
+def test_evaluating_a_loaded_policy_that_samples_repeats_with_the_same_seed(tmp_path):
+    cfg = {"algo": "ppo", "env": {"id": "Pendulum-v1"}, "train": {"total_steps": 128, "collect_steps": 64},
+           "eval": {"interval": 0, "episodes": 1}, "agent": {"batch_size": 32, "n_epochs": 1}}
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    policy = relayrl.load_policy(tmp_path / "r")
+    runs = [relayrl.evaluate(policy, "Pendulum-v1", episodes=1, deterministic=False, seed=s) for s in (0, 0, 1)]
+    assert runs[0] == runs[1] != runs[2]
+    assert relayrl.evaluate(tmp_path / "r", episodes=1, deterministic=False, seed=0) == runs[0]  # as from the path

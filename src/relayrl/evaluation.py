@@ -32,7 +32,8 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
     returns it and returning one action. `env`: a Gymnasium env instance (used as it is and left
     open), a callable returning one (called once per env copy), or an env id; None: a run
     directory's own env (its config.toml, as `relayrl eval`). The env copies (up to 16, one for an
-    instance) are reset with seed, seed + 1, ... (None: unseeded), as a run's evaluations are. An
+    instance) are reset with seed, seed + 1, ... (None: unseeded), as a run's evaluations are, and a
+    loaded policy's samples (`deterministic=False`) are drawn from `seed` too. An
     env without a time limit has its episodes cut at `max_episode_steps`, or 1,000 steps if 0
     (Atari games end their own episodes).
     """
@@ -63,6 +64,8 @@ def _policy_fn(policy: Any, deterministic: bool, seed: int | None, obs_spec: Spe
         policy = load_policy(policy, deterministic=deterministic, seed=seed)
     if isinstance(policy, LoadedPolicy):
         policy.check_fits(obs_spec)
+        if not deterministic:  # its samples drawn from `seed`, as a run directory's are: a repeatable evaluation
+            policy = policy.reseeded(seed)
         return lambda obs: policy.predict(obs, deterministic=deterministic)[0]
     if hasattr(policy, "predict"):  # an SB3 model, or anything with its spelling
         return _one_at_a_time(lambda o: policy.predict(o, deterministic=deterministic)[0], obs_spec)

@@ -52,6 +52,11 @@ class LoadedPolicy(Policy):
         return (f"LoadedPolicy(kind={self.kind!r}, observations={describe(self.obs_space)}{action}, "
                 f"deterministic={self.deterministic}, env_steps={self.env_steps})")
 
+    def reseeded(self, seed: int | None) -> LoadedPolicy:
+        """This policy again, its sampling (`deterministic=False`) drawn from `seed`."""
+        batched = self._module.load(self._state, torch.device(self._device), self.deterministic, seed)
+        return LoadedPolicy(batched, self._state, self._device, self.deterministic, seed)
+
     def check_fits(self, obs_spec: Spec) -> None:
         """UserError unless an env's observations (`obs_spec`) are what this policy takes: each
         Dict / Tuple entry's key and shape, or the shape."""
