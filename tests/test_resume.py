@@ -229,6 +229,31 @@ def test_resume_with_overrides_records_them_in_config_toml(tmp_path, capsys):
     assert relayrl.load_config(str(tmp_path / "r" / "config.toml")).agent.lr == 0.002
 
 
+def test_python_resume_without_a_config_goes_on_with_the_runs_own(tmp_path, capsys):
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    with pytest.raises(relayrl.errors.UserError, match="config=None continues a run with its own config.toml"):
+        relayrl.train(None, tmp_path / "r", progress=False)
+    longer = relayrl.load_config(str(tmp_path / "r" / "config.toml"), ["train.total_steps=900"])
+    relayrl.train(longer, tmp_path / "r", resume=True, progress=False)
+    capsys.readouterr()
+    result = relayrl.train(None, tmp_path / "r", resume=True, progress=False)  # nothing left: as the CLI says
+    assert "nothing is left to train" in capsys.readouterr().err and result.final["step"] == 900
+
+
+def test_a_resume_that_changes_total_steps_says_which_schedules_it_stretches(tmp_path, capsys):
+    cfg = relayrl.load_config("dqn", ["train.total_steps=400", "agent.lr_end=0.00001", "eval.episodes=1",
+                                      "train.checkpoint_interval=200", "agent.batch_size=8"])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    capsys.readouterr()
+    relayrl.train(relayrl.load_config(str(tmp_path / "r" / "config.toml"), ["train.total_steps=800"]),
+                  tmp_path / "r", resume=True, progress=False)
+    assert ("the schedules over train.total_steps (agent.lr_end=1e-05, agent.epsilon_decay_steps=-1) now run to "
+            "env step 800: from env step 400 on they follow the new length") in capsys.readouterr().err
+    plain = relayrl.load_config("dqn", ["train.total_steps=400", "eval.episodes=1", "agent.epsilon_decay_steps=100"])
+    assert plain.agent.over_total_steps() == []
+
+
 def test_resume_refuses_another_number_of_envs(tmp_path):
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
     relayrl.train(cfg, tmp_path / "r", progress=False)

@@ -67,6 +67,11 @@ class Section:
             if not (sizes := getattr(self, key)) or any(h < 1 for h in sizes):
                 raise ConfigError(f"{self.SECTION}.{key}={sizes} is not valid; give one or more positive sizes")
 
+    def over_total_steps(self) -> list[str]:
+        """An agent section's settings whose schedules run over train.total_steps (a resumed run
+        given another total stretches them); other sections have none."""
+        return []
+
     def check_rollout(self, steps: int) -> None:
         """An on-policy agent section's check of its settings against one rollout of `steps`
         env steps (`Config.steps_per_iteration`); other sections take any."""

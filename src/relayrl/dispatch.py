@@ -148,7 +148,7 @@ def _finished(rd: RunDir) -> bool:
     return bool(rows) and rows[-1].get("step", 0) >= saved.train.total_steps
 
 
-def train(config: Config | dict[str, Any] | str | Path, run_dir: str | Path | None = None, resume: bool = False,
+def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Path | None = None, resume: bool = False,
           progress: bool = True, env: Callable[[], Any] | None = None, overwrite: bool = False,
           callbacks: Sequence[Callback] | None = None) -> RunResult:
     """Train from a Config (or a nested dict of config values, a preset's name or a config
@@ -157,7 +157,9 @@ def train(config: Config | dict[str, Any] | str | Path, run_dir: str | Path | No
     A new run refuses a directory that already holds a run with a checkpoint (or a finished
     one, or one that trained past step 0), unless `overwrite=True` replaces it; a run that
     stopped before training is taken over. `resume=True` continues the run in `run_dir` from
-    its latest checkpoint; the config must name the run's algorithm and env.
+    its latest checkpoint; the config must name the run's algorithm and env, and `config=None`
+    takes the run's own config.toml (as `relayrl train --run-dir DIR --resume`; to change a setting,
+    `load_config(DIR / "config.toml", ["train.total_steps=..."])`).
 
     `env`: a callable returning a Gymnasium env, used instead of `config.env.id` (which is set
     to the callable's `module:name`). Each copy of the env is one call; with
@@ -174,7 +176,13 @@ def train(config: Config | dict[str, Any] | str | Path, run_dir: str | Path | No
     `callbacks=[lambda row: row.get("average_return", -1e9) < 400]`. What a callback raises
     propagates; the run's checkpoints so far stay. One-process Actor + Learner runs only.
     """
-    if isinstance(config, str | Path):
+    if config is None:
+        if not resume or run_dir is None:
+            raise UserError("config=None continues a run with its own config.toml: give run_dir and resume=True "
+                            "(a new run needs a config: a preset's name, a config TOML's path, a dict or a Config)")
+        RunDir(run_dir).require()
+        config = load_config(str(RunDir(run_dir).config))
+    elif isinstance(config, str | Path):
         config = load_config(str(config))
     elif not isinstance(config, Config | dict):
         raise UserError(f"config={config!r} is not a config: give a Config (relayrl.load_config), a dict of "

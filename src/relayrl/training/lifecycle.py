@@ -310,6 +310,12 @@ def record_resumed_config(core: RunCore, saved: Config | None) -> None:
     if changed:
         save_toml(core.config, core.rd.config)
         core.say(f"resumed with changed settings, now in config.toml: {'; '.join(changed)}")
+    total = core.config.train.total_steps
+    stretched = core.config.agent.over_total_steps()
+    if saved is not None and saved.train.total_steps != total and stretched:
+        core.say(f"the schedules over train.total_steps ({', '.join(stretched)}) now run to env step {total:,}: "
+                 f"from env step {core.env_steps():,} on they follow the new length (a learning rate or epsilon "
+                 "that had decayed rises again where the run is extended)")
 
 
 def finish(driver: Driver, p: Progress, evaluate: bool = True) -> None:

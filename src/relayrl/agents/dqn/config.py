@@ -43,6 +43,10 @@ class DQNConfig(Section):
     epsilon_schedule: str = "linear"
     epsilon_decay: float = 0.99999975  # exponential: the factor per env step
 
+    def over_total_steps(self) -> list[str]:
+        tenth = self.epsilon_schedule == "linear" and self.epsilon_decay_steps == -1
+        return [f"agent.lr_end={self.lr_end}"] * (self.lr_end >= 0) + ["agent.epsilon_decay_steps=-1"] * tenth
+
     def validate(self) -> None:
         self.require_choice(encoder=ENCODERS, activation=("relu", "tanh", "elu"), init=("torch", "tf-agents"),
                             loss=("huber", "mse"), network=("mlp", "nature_cnn", "mario_cnn"),

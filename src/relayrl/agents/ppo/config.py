@@ -43,6 +43,9 @@ class PPOConfig(Section):
     normalize_obs: bool = False  # running observation normalisation as SB3's VecNormalize, saved with the policy
     normalize_reward: bool = False  # rewards / running std of each env copy's discounted return (VecNormalize)
 
+    def over_total_steps(self) -> list[str]:
+        return [f"agent.{k}={getattr(self, k)}" for k in ("lr_end", "clip_range_end") if getattr(self, k) >= 0]
+
     def validate(self) -> None:
         self.require_choice(encoder=ENCODERS, squash=("clip", "tanh"), activation=("relu", "tanh", "elu"))
         self.require_sizes("hidden")

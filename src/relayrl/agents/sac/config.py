@@ -38,6 +38,9 @@ class SACConfig(Section):
     log_std_min: float = -20.0  # lower clip of the actor's log standard deviation
     log_std_max: float = 2.0  # upper clip of the actor's log standard deviation
 
+    def over_total_steps(self) -> list[str]:
+        return [f"agent.lr_end={self.lr_end}"] * (self.lr_end >= 0)
+
     def validate(self) -> None:
         self.require_choice(encoder=ENCODERS, activation=("relu", "tanh", "elu"))
         self.require_sizes("actor_hidden", "critic_hidden")
