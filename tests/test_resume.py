@@ -141,7 +141,9 @@ def test_ctrl_c_mid_run_saves_a_checkpoint_there_and_the_resumed_run_is_the_unin
         if row["step"] == 700:
             os.kill(os.getpid(), signal.SIGINT)
 
-    with pytest.raises(KeyboardInterrupt):
+    root = str(tmp_path / "cut")
+    with pytest.raises(KeyboardInterrupt, match=rf"the run stopped at env step 700 with a checkpoint in '{root}': "
+                                                rf"relayrl.train\(None, '{root}', resume=True\) continues it"):
         relayrl.train(cfg, tmp_path / "cut", progress=False, callbacks=[ctrl_c_at_700])
     assert seen[-1] == ("log", 700)  # no call after the interrupt
     assert "stopping at the end of this iteration to save a checkpoint" in capsys.readouterr().err
@@ -149,7 +151,7 @@ def test_ctrl_c_mid_run_saves_a_checkpoint_there_and_the_resumed_run_is_the_unin
     assert relayrl.load_policy(tmp_path / "cut").env_steps == 700
     assert RunDir(tmp_path / "cut").trained_to() == 700  # its policy's step (the last evaluation: 500)
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is put back
-    relayrl.train(cfg, tmp_path / "cut", resume=True, progress=False)
+    relayrl.train(None, tmp_path / "cut", resume=True, progress=False)  # as the interrupt's message says
     assert comparable(tmp_path / "cut") == comparable(tmp_path / "full")
 
 

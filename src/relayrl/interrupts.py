@@ -104,6 +104,10 @@ def stop_request(on_signal: Callable[[int], None], signals: tuple[int, ...] = WA
         _install(previous)
 
 
-def redeliver(signum: int) -> None:
-    """Act on a signal that `stop_request` recorded as its handler, now back in place, would."""
-    _deliver([signum], {signum: signal.getsignal(signum)})
+def redeliver(signum: int, message: str = "") -> None:
+    """Act on a signal that `stop_request` recorded as its handler, now back in place, would;
+    Python's own Ctrl-C handler's KeyboardInterrupt carries `message` (what a notebook shows)."""
+    handler = signal.getsignal(signum)
+    if handler is signal.default_int_handler:
+        raise KeyboardInterrupt(message)
+    _deliver([signum], {signum: handler})

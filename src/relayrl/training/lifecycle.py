@@ -282,8 +282,8 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if stopped and interrupted is None:
             core.say(f"a callback returned False: the run stops at env step {core.env_steps():,}")
         finish(driver, core.progress(), evaluate=interrupted is None)  # an interrupt wants no wait
-        if interrupted is not None:
-            interrupts.redeliver(interrupted)  # KeyboardInterrupt, or the SIGTERM handler's stop
+        if interrupted is not None:  # KeyboardInterrupt, or the SIGTERM handler's stop
+            interrupts.redeliver(interrupted, _stopped_at(core))
         return RunResult(core.rd.root, report.last_eval, stopped_early=stopped)
     except NonFiniteError as e:  # found below the run (the learner): it says what the run keeps
         if e.kept:
@@ -292,6 +292,16 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         raise stop(core.finite.check() or str(e), core.kept()) from None
     finally:
         report.close()
+
+
+def _stopped_at(core: RunCore) -> str:
+    """Where an interrupted run stopped and how it goes on, in Python's terms (the CLI says its own)."""
+    root, step = str(core.rd.root), core.env_steps()
+    if core.config.train.checkpoint_interval > 0:
+        return (f"the run stopped at env step {step:,} with a checkpoint in {root!r}: "
+                f"relayrl.train(None, {root!r}, resume=True) continues it")
+    return (f"the run stopped at env step {step:,}; its policy and metrics are in {root!r} "
+            "(train.checkpoint_interval = 0: no checkpoint to resume from)")
 
 
 def saved_config(rd: RunDir) -> Config | None:
