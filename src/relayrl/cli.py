@@ -166,10 +166,10 @@ def _eval(args: argparse.Namespace) -> None:
         env = make_eval_env(env_id, args.episodes, 0 if args.env else config.env.max_episode_steps, **own)
     try:
         policy.check_fits(env.observation_spec)
+        result = evaluate(env, policy, args.episodes, seed=args.seed)
         note = eval_cap_note(env, env_id)
         if note:
             print(f"relayrl: {note}", file=sys.stderr)
-        result = evaluate(env, policy, args.episodes, seed=args.seed)
     except NonFiniteError as e:  # an env that returns NaN rewards: what it gave, not a run that stopped
         raise UserError(str(e)) from None
     finally:

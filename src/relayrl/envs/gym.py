@@ -16,7 +16,7 @@ import os
 import pickle
 import traceback
 from collections.abc import Callable
-from typing import Any
+from typing import Any, SupportsFloat
 
 import gymnasium as gym
 import numpy as np
@@ -350,6 +350,18 @@ def _takes_seed(env: gym.Env) -> bool:
     return any(p.name == "seed" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
 
 
+class _StepCap(gym.wrappers.TimeLimit):
+    """Gymnasium's TimeLimit, counting the episodes it ended: an env that ends its own episodes
+    before the cap is never told about it."""
+
+    cuts = 0
+
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
+        obs, reward, terminated, truncated, info = super().step(action)
+        self.cuts += int(truncated and not terminated and self._elapsed_steps >= self._max_episode_steps)
+        return obs, reward, terminated, truncated, info
+
+
 class GymBatchEnv(BatchEnvBase):
     """`num_envs` Gymnasium envs stepped in this process, as one batched env."""
 
@@ -367,6 +379,7 @@ class GymBatchEnv(BatchEnvBase):
             self.close()  # the copies already made (their windows, files, processes) go with the failure
             raise
         self.capped_at = 0  # cap_episodes: the step cap put on an env without a time limit
+        self._caps: list[_StepCap] = []
         first = self.envs[0]
         self._init_specs(len(self.envs), first.observation_space, first.action_space, time_limit_terminates,
                          frame_stack_of(first))
@@ -378,8 +391,14 @@ class GymBatchEnv(BatchEnvBase):
 
     def cap_episodes(self, max_episode_steps: int) -> None:
         """Cut every copy's episodes at `max_episode_steps` (for an env without a time limit)."""
-        self.envs = [gym.wrappers.TimeLimit(env, max_episode_steps) for env in self.envs]
+        self._caps = [_StepCap(env, max_episode_steps) for env in self.envs]
+        self.envs = list(self._caps)
         self.capped_at = max_episode_steps
+
+    @property
+    def episodes_cut(self) -> int:
+        """Episodes `cap_episodes`'s cap has ended so far."""
+        return sum(cap.cuts for cap in self._caps)
 
     def get_state(self) -> list[bytes] | None:
         """Every copy's state, for checkpoints that resume mid-episode; None if any copy

@@ -46,12 +46,13 @@ def cap_untimed(env: BatchedEnv, max_episode_steps: int = 0) -> None:
 
 
 def eval_cap_note(env: BatchedEnv, env_id: str) -> str | None:
-    """The line that says an evaluation cap was put on an env without a time limit."""
-    if not isinstance(env, GymBatchEnv) or not env.capped_at:
+    """The line that says an evaluation episode was cut by the cap on an env without a time
+    limit (None while the env has ended every episode itself)."""
+    if not isinstance(env, GymBatchEnv) or not env.episodes_cut:
         return None
     return (f"env.id={env_id!r} has no registered time limit (TimeLimit, max_episode_steps): evaluation episodes "
-            f"are cut at {env.capped_at:,} steps where the env does not end them itself (env.max_episode_steps "
-            "caps training and evaluation episodes)")
+            f"that do not end by themselves are cut at {env.capped_at:,} steps, as {env.episodes_cut:,} were "
+            "(env.max_episode_steps caps training and evaluation episodes)")
 
 
 def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = None,

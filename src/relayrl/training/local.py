@@ -54,9 +54,6 @@ class LocalDriver:
                             num_workers=c.env.num_workers, device=device, info_keys=c.env.info_keys, **made)
         self.eval_env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, device,
                                       c.env.info_keys, **made)
-        note = eval_cap_note(self.eval_env, c.env.id)
-        if note:
-            say(note)
         obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
         stateless = isinstance(self.env, StatelessBatchEnv)
 
@@ -94,12 +91,18 @@ class LocalDriver:
 
         learner = make_learner(c, self.agent, self.replay, device, self.variables, whole_rollouts)
         self.evaluator = Evaluate(c.eval.interval, self.eval_env, self.agent.eval_policy, c.eval.episodes,
-                                  seed=seeds.base("evaluation"),
-                                  on_result=lambda p, result: self.core.report.record_eval(p, result,
-                                                                                           self.evaluator.seconds))
+                                  seed=seeds.base("evaluation"), on_result=self._record_eval)
+        self.cap_said = False
         self.core = RunCore(c, self.rd, self.agent, learner, self.stats, self.finite,
                             env_steps=lambda: self.actor.env_steps, checkpoint_state=self.checkpoint_state,
                             evaluation=self.evaluator, show_progress=progress, callbacks=callbacks)
+
+    def _record_eval(self, p: Progress, result: dict[str, Any]) -> None:
+        self.core.report.record_eval(p, result, self.evaluator.seconds)
+        note = None if self.cap_said else eval_cap_note(self.eval_env, self.config.env.id)
+        if note:  # once, the first time the cap ends an episode
+            self.cap_said = True
+            self.core.say(note)
 
     def train(self, resume: bool = False) -> RunResult:
         return run_to_end(self, resume)
