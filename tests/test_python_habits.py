@@ -283,3 +283,11 @@ def test_evaluating_a_loaded_policy_that_samples_repeats_with_the_same_seed(tmp_
     runs = [relayrl.evaluate(policy, "Pendulum-v1", episodes=1, deterministic=False, seed=s) for s in (0, 0, 1)]
     assert runs[0] == runs[1] != runs[2]
     assert relayrl.evaluate(tmp_path / "r", episodes=1, deterministic=False, seed=0) == runs[0]  # as from the path
+
+
+def test_train_given_an_env_instance_or_an_id_says_what_env_takes(tmp_path):
+    with pytest.raises(UserError, match=r"is an env instance: relayrl makes its own copies .*env=lambda: Countdown"):
+        relayrl.train(TINY, tmp_path / "a", progress=False, env=Countdown())
+    with pytest.raises(UserError, match=r"env='CartPole-v1' is an env id: set it as the config's env.id"):
+        relayrl.train(TINY, tmp_path / "b", progress=False, env="CartPole-v1")
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

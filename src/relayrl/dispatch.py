@@ -14,6 +14,8 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import gymnasium as gym
+
 from relayrl.agents.registry import Algorithm, algorithm, ray_algorithms
 from relayrl.config import Config, algo_defaults, from_dict, load_toml, save_toml
 from relayrl.errors import UserError
@@ -85,6 +87,13 @@ def check_resume_networks(config: Config, rd: RunDir) -> None:
 
 def _use_factory(config: Config, env: Any, one_process: bool) -> None:
     """Check an env factory given to `train` and record it as the config's env.id."""
+    if isinstance(env, gym.Env):  # SB3's habit: one instance, which cannot be the run's several copies
+        raise UserError(f"env={env!r} is an env instance: relayrl makes its own copies to train and evaluate on; "
+                        f"give a callable returning one (env=lambda: {type(env.unwrapped).__name__}(...)), or "
+                        "name it in env.id")
+    if isinstance(env, str):
+        raise UserError(f"env={env!r} is an env id: set it as the config's env.id (config.env.id = {env!r}, or "
+                        f"--set env.id={env}); env= takes a callable returning an env")
     if not callable(env):
         raise UserError(f"env={env!r} is not a callable returning a Gymnasium env (e.g. lambda: MyEnv())")
     if not one_process:
