@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import gymnasium as gym
 import numpy as np
+import torch
 from gymnasium import spaces
+from torch import nn
 
 OBS_KINDS = ("box", "box2d", "box_i32", "discrete", "multi_discrete", "multi_binary", "image", "image_hwc", "board",
              "dict", "tuple")
@@ -110,3 +112,25 @@ class Spaces(gym.Env):
 
     def render(self):
         return np.full((16, 16, 3), 120 * self.target, np.uint8)
+
+
+class FlatEncoder(nn.Module):
+    """A user's own encoder (agent.encoder = "space_envs:FlatEncoder"): every entry of the
+    observation flattened as floats, then one linear layer (its input size found on first use)."""
+
+    def __init__(self, space: gym.Space) -> None:
+        super().__init__()
+        self.space = space
+        self.linear = nn.LazyLinear(8)
+
+    def forward(self, obs):
+        parts = obs.values() if isinstance(obs, dict) else [obs]
+        return torch.relu(self.linear(torch.cat([p.reshape(p.shape[0], -1).float() for p in parts], dim=1)))
+
+
+def not_a_module(space: gym.Space) -> int:
+    return 3
+
+
+def wrong_shape(space: gym.Space) -> nn.Module:
+    return nn.Identity()  # a Dict's entries, or [B, *shape]: not [B, features]

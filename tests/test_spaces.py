@@ -112,6 +112,40 @@ def test_trained_policy_takes_the_envs_own_observations(algo, obs, act, tmp_path
         np.testing.assert_allclose(out[0], np.asarray(policy(o)), atol=1e-5)
 
 
+@pytest.mark.parametrize("algo", sorted(ACTIONS))
+def test_a_users_own_encoder_trains_and_its_policy_loads_and_exports(algo, tmp_path):
+    act = ACTIONS[algo][0]
+    config = short_config(algo, "dict", act)
+    config.agent.encoder = "space_envs:FlatEncoder"
+    relayrl.train(config, tmp_path, progress=False)
+    policy = relayrl.load_policy(tmp_path)  # built again from the module, by name
+    env = Spaces("dict", act)
+    o, _ = env.reset(seed=0)
+    assert_valid(env.action_space, policy(o))
+    path = relayrl.export_policy(tmp_path)
+    inputs = json.loads(path.with_name(path.name + ".json").read_text())["inputs"]
+    feeds = [torch.from_numpy(np.asarray(o[i["name"]])[None]) for i in inputs]
+    np.testing.assert_allclose(torch.export.load(path).module()(*feeds).numpy()[0], np.asarray(policy(o)), atol=1e-5)
+
+
+def test_a_users_encoder_is_built_from_the_observation_space_and_checked():
+    spec = spec_from_space(Spaces("dict").observation_space)
+    encoder = make_encoder(spec, "space_envs:FlatEncoder")
+    assert encoder.out_dim == 8 and encoder.module.space == gym.spaces.Dict(
+        {"cell": gym.spaces.Discrete(4), "frame": gym.spaces.Box(0, 255, (1, 8, 8), np.uint8),
+         "pos": gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)})  # a float Box's bounds are not kept
+    for name, words in (("nosuch_pkg.mod:make", "agent.encoder: 'nosuch_pkg.mod:make': no module 'nosuch_pkg'"),
+                        ("space_envs:not_a_module", "agent.encoder='space_envs:not_a_module' returned int, not a "
+                                                    "torch.nn.Module"),
+                        ("space_envs:wrong_shape", r"its module gave dict for a batch of 2 observations of Dict\(.*"
+                                                   r"it must give \[B, features\]")):
+        with pytest.raises(UserError, match=words):
+            make_encoder(spec, name)
+    with pytest.raises(UserError, match=r"agent.encoder='my encoder' is not valid; valid: auto, flatten, nature_cnn, "
+                                        r"small_cnn, or package.module:callable"):
+        relayrl.load_config("ppo", ["agent.encoder='my encoder'"])
+
+
 @pytest.mark.parametrize("kind", OBS_KINDS)
 def test_spec_survives_the_policy_file(kind):
     spec = spec_from_space(Spaces(kind).observation_space)

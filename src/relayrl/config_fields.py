@@ -13,6 +13,7 @@ import inspect
 import io
 import math
 import numbers
+import re
 import tokenize
 import types
 import typing
@@ -61,6 +62,13 @@ class Section:
             if (value := getattr(self, key)) not in names:
                 raise ConfigError(f"{self.SECTION}.{key}={value!r} is not valid; valid: {', '.join(names)}")
 
+    def require_encoder(self, value: str) -> None:
+        """An agent section's `encoder` (`value`): one of ENCODERS, or a user's
+        `package.module:callable` (imported when the networks are built)."""
+        if value not in ENCODERS and not re.fullmatch(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*", value):
+            raise ConfigError(f"{self.SECTION}.encoder={value!r} is not valid; valid: {', '.join(ENCODERS)}, or "
+                              "package.module:callable (your own encoder, called with the observation space)")
+
     def require_sizes(self, *keys: str) -> None:
         """ConfigError for the first of `keys` (lists of layer sizes) that is empty or holds a size < 1."""
         for key in keys:
@@ -104,6 +112,10 @@ SB3_NAMES = {
     "net_arch": "agent.hidden (SAC: agent.actor_hidden and agent.critic_hidden), a list of layer sizes",
     "ent_coef": "PPO's agent.ent_coef; SAC's entropy weight is agent.init_alpha (agent.autotune_alpha = false "
                 "holds it); DQN has none",
+    "features_extractor_class": "agent.encoder = \"package.module:make\" (make(observation_space) returns your "
+                                "torch module)",
+    "policy_kwargs": "keys of [agent]: agent.hidden (net_arch), agent.activation (activation_fn), agent.encoder "
+                     "(features_extractor_class)",
 }
 
 

@@ -275,6 +275,40 @@ def spec_from_state(state: dict[str, Any]) -> Spec:
     return ArraySpec(shape, dtype, env_dtype=env)
 
 
+def to_space(spec: Spec) -> gym.Space:
+    """The Gymnasium space a spec describes, as far as the spec keeps it (a Box without bounds is
+    unbounded; integers within their dtype's range): what a user's encoder is built from."""
+    if isinstance(spec, DiscreteSpec):
+        return gym.spaces.Discrete(spec.n)
+    if isinstance(spec, MultiDiscreteSpec):
+        return gym.spaces.MultiDiscrete(np.asarray(spec.nvec).reshape(spec.shape), dtype=env_numpy_dtype(spec))
+    if isinstance(spec, MultiBinarySpec):
+        return gym.spaces.MultiBinary(list(spec.shape))
+    if isinstance(spec, PackedSpec):
+        tree: dict[Any, Any] = {}
+        for f in spec.fields:
+            node = tree
+            for step in f.path[:-1]:
+                node = node.setdefault(step, {})
+            node[f.path[-1]] = to_space(f.spec)
+        return _space_of(tree, spec.tuple_space)
+    dtype = env_numpy_dtype(spec)
+    if spec.low is not None and spec.high is not None:
+        return gym.spaces.Box(spec.low, spec.high, spec.shape, dtype)
+    if np.issubdtype(dtype, np.integer):
+        info = np.iinfo(dtype)
+        return gym.spaces.Box(int(info.min), int(info.max), spec.shape, dtype)
+    return gym.spaces.Box(-np.inf, np.inf, spec.shape, dtype)
+
+
+def _space_of(node: dict[Any, Any], tuple_here: bool) -> gym.Space:
+    """Nested dicts of spaces as Dict / Tuple spaces (int keys are a Tuple's entries)."""
+    parts = {k: _space_of(v, False) if isinstance(v, dict) else v for k, v in node.items()}
+    if tuple_here or all(isinstance(k, int) for k in parts):
+        return gym.spaces.Tuple([parts[k] for k in sorted(parts)])
+    return gym.spaces.Dict(parts)
+
+
 def numpy_dtype(spec: Spec) -> np.dtype:
     return _numpy_of(spec.dtype)
 

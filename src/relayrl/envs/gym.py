@@ -12,9 +12,7 @@ import dataclasses
 import difflib
 import importlib
 import inspect
-import os
 import pickle
-import traceback
 from collections.abc import Callable
 from typing import Any, SupportsFloat
 
@@ -36,6 +34,7 @@ from relayrl.specs import (
     value_limit,
 )
 from relayrl.types import EpisodeInfo, StepOutput
+from relayrl.user_code import import_user_module, load_callable
 
 EnvFn = Callable[[], gym.Env]
 
@@ -270,35 +269,6 @@ def _check_takes_an_env(wrapper: Callable[..., Any], env: gym.Env) -> None:
                         "the env that passes the rest, e.g. def wrap(env): return TimeLimit(env, 500)") from None
     except ValueError:  # no signature to read (a builtin): the call itself says
         pass
-
-
-def import_user_module(module_name: str, what: str) -> Any:
-    """Import a user's module, or fail in one line that says what was tried and how to fix it."""
-    try:
-        return importlib.import_module(module_name)
-    except ModuleNotFoundError as e:
-        if e.name is None or not module_name.startswith(e.name):
-            raise UserError(f"{what}: importing {module_name!r} failed: it imports {e.name!r}, which is "
-                            "not installed") from None
-        raise UserError(
-            f"{what}: no module {e.name!r} in the current directory ({os.getcwd()}) or the installed "
-            f"packages; run relayrl from the folder that holds {e.name.split('.')[0]}/, add that folder "
-            "to PYTHONPATH, or pip install -e your project") from None
-    except Exception as e:  # the user's module raised while it was imported
-        where = traceback.extract_tb(e.__traceback__)[-1]
-        raise UserError(f"{what}: importing {module_name!r} raised {type(e).__name__}: {e} "
-                        f"({where.filename}:{where.lineno})") from None
-
-
-def load_callable(path: str, what: str) -> Callable[..., Any]:
-    """`package.module:name` resolved to a callable (for env.wrappers)."""
-    if path.count(":") != 1:
-        raise UserError(f"{what}: {path!r} is not package.module:Callable")
-    module_name, name = path.split(":")
-    target = getattr(import_user_module(module_name, f"{what}: {path!r}"), name, None)
-    if not callable(target):
-        raise UserError(f"{what}: {path!r}: module {module_name!r} has no callable {name!r}")
-    return target
 
 
 def has_time_limit(env: gym.Env) -> bool:

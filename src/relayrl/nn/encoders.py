@@ -34,8 +34,12 @@ from relayrl.specs import (
     image_size,
     is_flat_vector,
     is_image,
+    spec_from_state,
+    spec_state,
+    to_space,
     unpack,
 )
+from relayrl.user_code import load_callable
 
 # (out_channels, kernel, stride, padding): frames from 8x8 (MiniGrid-like) to 35x35, where the
 # Nature CNN's 8x8 stride-4 first layer would leave almost nothing
@@ -138,11 +142,51 @@ def leaf_encoder(spec: Spec, kind: str) -> nn.Module:
     return ConvEncoder(spec, tuple((*c, 0) for c in NATURE_CONVS), NATURE_HIDDEN)
 
 
+class UserEncoder(nn.Module):
+    """A user's encoder, `agent.encoder = "package.module:make"`: `make(observation_space)` returns
+    a torch module taking a batch of observations as relayrl keeps them (float Boxes as float32,
+    integers as int64 or uint8, a Dict / Tuple as a dict of tensors by entry key: "pos", "a.b",
+    "0") and giving [B, features]. The space is rebuilt from what a policy file keeps (`to_space`
+    of the saved spec: a float Box's bounds are left out), so a loaded policy builds it alike."""
+
+    def __init__(self, spec: Spec, name: str) -> None:
+        super().__init__()
+        make = load_callable(name, "agent.encoder")
+        space = to_space(spec_from_state(spec_state(spec)))  # what a policy file rebuilds it from
+        module = make(space)
+        if not isinstance(module, nn.Module):
+            raise UserError(f"agent.encoder={name!r} returned {type(module).__name__}, not a torch.nn.Module")
+        self.module = module
+        self.packed = spec if isinstance(spec, PackedSpec) else None
+        with torch.no_grad():  # its features, from a batch of two; its own errors are its own
+            zeros = spec.zeros(2)
+            out = module(unpack(zeros, spec) if isinstance(spec, PackedSpec) else zeros)
+        if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != 2:
+            shape = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+            raise UserError(f"agent.encoder={name!r}: its module gave {shape} for a batch of 2 observations of "
+                            f"{describe(spec)}; it must give [B, features]")
+        self.out_dim = int(out.shape[1])
+
+    def forward(self, x: torch.Tensor | dict[str, torch.Tensor]) -> torch.Tensor:
+        """Observations [B, ...] (packed rows for a Dict / Tuple, or its entries by key)."""
+        if self.packed is not None and not isinstance(x, dict):
+            x = unpack(x, self.packed)
+        return self.module(x).float()
+
+
+def is_user_encoder(kind: str) -> bool:
+    """`package.module:callable`: a user's encoder (`UserEncoder`)."""
+    return ":" in kind
+
+
 def make_encoder(spec: Spec, kind: str = "auto") -> nn.Module | None:
     """The encoder for observations of `spec`, or None where the MLP takes them as they are
     (a Box that is not an image, or `kind="flatten"` on one)."""
+    if is_user_encoder(kind):
+        return UserEncoder(spec, kind)
     if kind not in ENCODERS:
-        raise UserError(f"agent.encoder={kind!r} is not valid; valid: {', '.join(ENCODERS)}")
+        raise UserError(f"agent.encoder={kind!r} is not valid; valid: {', '.join(ENCODERS)}, or "
+                        "package.module:callable (your own)")
     if isinstance(spec, PackedSpec):
         return DictEncoder(spec, kind)  # `kind` applies to its image entries
     if kind in ("nature_cnn", "small_cnn") and not is_image(spec):

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from relayrl.config_fields import ENCODERS, Section
+from relayrl.config_fields import Section
 from relayrl.errors import ConfigError
 
 
@@ -17,7 +17,8 @@ class DQNConfig(Section):
     hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of the Q-network MLP
     activation: str = "relu"  # relu | tanh | elu
     # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images 0..255,
-    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn
+    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn |
+    # package.module:make (your own: make(observation_space) returns a torch module, batch -> [B, features])
     encoder: str = "auto"
     init: str = "torch"  # torch | tf-agents (VarianceScaling hidden, small uniform head, bias -0.2)
     # mlp: hidden/activation/init above | nature_cnn: Mnih et al. 2015's conv net for uint8
@@ -48,7 +49,8 @@ class DQNConfig(Section):
         return [f"agent.lr_end={self.lr_end}"] * (self.lr_end >= 0) + ["agent.epsilon_decay_steps=-1"] * tenth
 
     def validate(self) -> None:
-        self.require_choice(encoder=ENCODERS, activation=("relu", "tanh", "elu"), init=("torch", "tf-agents"),
+        self.require_encoder(self.encoder)
+        self.require_choice(activation=("relu", "tanh", "elu"), init=("torch", "tf-agents"),
                             loss=("huber", "mse"), network=("mlp", "nature_cnn", "mario_cnn"),
                             epsilon_schedule=("linear", "exponential"))
         self.require_sizes("hidden")

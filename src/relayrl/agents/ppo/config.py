@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from relayrl.config_fields import ENCODERS, Section
+from relayrl.config_fields import Section
 from relayrl.errors import ConfigError
 
 
@@ -22,7 +22,8 @@ class PPOConfig(Section):
     hidden: list[int] = field(default_factory=lambda: [64, 64])  # hidden sizes of the actor and of the critic
     activation: str = "tanh"  # relu | tanh | elu
     # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images 0..255,
-    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn
+    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn |
+    # package.module:make (your own: make(observation_space) returns a torch module, batch -> [B, features])
     encoder: str = "auto"
     shared: bool = False  # true: one MLP whose last layer holds the policy and value heads
     lr: float = 3e-4  # Adam's learning rate
@@ -47,7 +48,8 @@ class PPOConfig(Section):
         return [f"agent.{k}={getattr(self, k)}" for k in ("lr_end", "clip_range_end") if getattr(self, k) >= 0]
 
     def validate(self) -> None:
-        self.require_choice(encoder=ENCODERS, squash=("clip", "tanh"), activation=("relu", "tanh", "elu"))
+        self.require_encoder(self.encoder)
+        self.require_choice(squash=("clip", "tanh"), activation=("relu", "tanh", "elu"))
         self.require_sizes("hidden")
         self.require("> 0", "lr", "clip_range")
         self.require(">= 0", "clip_range_vf", note=" (0: unclipped)")

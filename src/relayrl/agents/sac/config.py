@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from relayrl.config_fields import ENCODERS, Section
+from relayrl.config_fields import Section
 from relayrl.errors import ConfigError
 
 
@@ -18,7 +18,8 @@ class SACConfig(Section):
     critic_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of each critic MLP
     activation: str = "relu"  # relu | tanh | elu
     # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images 0..255,
-    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn
+    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn |
+    # package.module:make (your own: make(observation_space) returns a torch module, batch -> [B, features])
     encoder: str = "auto"
     actor_lr: float = 3e-4  # Adam learning rate of the actor
     critic_lr: float = 3e-4  # Adam learning rate of the critics
@@ -42,7 +43,8 @@ class SACConfig(Section):
         return [f"agent.lr_end={self.lr_end}"] * (self.lr_end >= 0)
 
     def validate(self) -> None:
-        self.require_choice(encoder=ENCODERS, activation=("relu", "tanh", "elu"))
+        self.require_encoder(self.encoder)
+        self.require_choice(activation=("relu", "tanh", "elu"))
         self.require_sizes("actor_hidden", "critic_hidden")
         self.require("> 0", "actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale")
         self.require("in (0, 1]", "tau")
