@@ -131,14 +131,15 @@ ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (
     Algorithm("dqn", DQNConfig, "q_greedy", _dqn_policy, agent=_dqn_agent,
               ray=True, defaults=dqn_config.DEFAULTS,
               description="DQN with Stable-Baselines3's defaults (64x64, lr 1e-4, batch 32, a gradient step every "
-                          "4 env steps), target copy every 1,000 env steps; 100,000 env steps (set env.id)"),
+                          "4 env steps), target copy every 1,000 env steps; 100,000 env steps on CartPole-v1 or "
+                          "--set env.id=..."),
     Algorithm("sac", SACConfig, "tanh_gaussian", _sac_policy, agent=_sac_agent, ray=True, defaults=sac_config.DEFAULTS,
               description="SAC with Stable-Baselines3's defaults (256x256, lr 3e-4, batch 256, 1M replay, "
-                          "auto entropy); 50,000 env steps (set env.id; continuous actions)"),
+                          "auto entropy); 50,000 env steps on Pendulum-v1 or --set env.id=... (continuous actions)"),
     Algorithm("ppo", PPOConfig, "ppo", _ppo_policy, agent=_ppo_agent,
               replay="rollouts", ray=True, defaults=ppo_config.DEFAULTS,
               description="PPO with Stable-Baselines3's defaults (rollouts of 2,048 steps x 1 env, batch 64, "
-                          "10 epochs, lr 3e-4, 64x64 tanh); 100,000 env steps (set env.id)"),
+                          "10 epochs, lr 3e-4, 64x64 tanh); 100,000 env steps on CartPole-v1 or --set env.id=..."),
     Algorithm("bptt", BpttConfig, "clamped_mlp", _bptt_policy, replay="none", trainer=_bptt_trainer,
               resumable=False),
 )}
