@@ -180,9 +180,9 @@ def test_discrete_samples_follow_the_logits():
     assert acts.float().mean().item() == pytest.approx(0.75, abs=0.03)
 
 
-def test_refuses_unbounded_actions_random_warmup_and_stale_actors(tmp_path):
+def test_refuses_a_box_without_bounds_random_warmup_and_stale_actors(tmp_path):
     with pytest.raises(UserError, match="PPO takes"):
-        agent(ArraySpec((2,), torch.float32))
+        agent(ArraySpec((2,), torch.float32))  # infinite bounds are taken: tests/test_spaces.py
     for key in ("initial_collect_steps", "pull_interval", "gradient_steps"):
         with pytest.raises(ConfigError, match=key):
             relayrl.load_config("ppo-cartpole", [f"train.{key}=100"])

@@ -38,7 +38,8 @@ def action_head(action_spec: Spec) -> ActionHead:
         return ActionHead(flat_dim(action_spec), True, binary=True, shape=action_spec.shape)
     # A Box's bounds may be infinite (Stable-Baselines3 takes those too): the Gaussian sample is
     # clipped to them, which leaves an unbounded dimension as sampled; tanh squashing needs them finite.
-    if type(action_spec) is not ArraySpec or not action_spec.dtype.is_floating_point:
+    if (type(action_spec) is not ArraySpec or not action_spec.dtype.is_floating_point
+            or action_spec.low is None or action_spec.high is None):
         raise UserError("PPO takes Discrete, MultiDiscrete, MultiBinary or Box (floats) action spaces; this "
                         f"env's action space is {describe(action_spec)}")
     return ActionHead(flat_dim(action_spec), False)
