@@ -202,6 +202,19 @@ def test_an_env_without_a_time_limit_is_capped_and_the_log_says_so(tmp_path, cap
     assert "no registered time limit" not in capfd.readouterr().err  # it ends its episodes itself: nothing cut
 
 
+def test_the_cap_counts_only_the_episodes_it_ended():
+    from relayrl.envs.gym import GymBatchEnv
+
+    for cap, length, truncate_at, cut in ((5, 5, 0, 0), (5, 9, 5, 0), (3, 9, 0, 1)):  # ended by the env: not cut
+        env = GymBatchEnv([functools.partial(toy_envs.Countdown, length=length, truncate_at=truncate_at)])
+        env.cap_episodes(cap)
+        env.reset(seed=0)
+        for _ in range(cap):
+            out = env.step(torch.zeros(1, dtype=torch.int64))
+        assert bool(out.terminated[0] or out.truncated[0]) and env.episodes_cut == cut, (cap, length, truncate_at)
+        env.close()
+
+
 def test_a_registered_env_without_a_time_limit_is_capped_too_but_not_an_atari_game():
     env = make_eval_env("CliffWalking-v1", 2)  # a policy that never reaches the goal walks forever
     assert env.capped_at == EVAL_MAX_EPISODE_STEPS

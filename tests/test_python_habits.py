@@ -288,6 +288,8 @@ def test_evaluating_a_loaded_policy_that_samples_repeats_with_the_same_seed(tmp_
 def test_train_given_an_env_instance_or_an_id_says_what_env_takes(tmp_path):
     with pytest.raises(UserError, match=r"is an env instance: relayrl makes its own copies .*env=lambda: Countdown"):
         relayrl.train(TINY, tmp_path / "a", progress=False, env=Countdown())
+    with pytest.raises(UserError, match=r"is an env instance: .*; set env.id='CartPole-v1' \(and env.kwargs\)"):
+        relayrl.train(TINY, tmp_path / "a", progress=False, env=gym.make("CartPole-v1"))
     with pytest.raises(UserError, match=r"env='CartPole-v1' is an env id: set it as the config's env.id"):
         relayrl.train(TINY, tmp_path / "b", progress=False, env="CartPole-v1")
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

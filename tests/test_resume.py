@@ -155,6 +155,26 @@ def test_ctrl_c_mid_run_saves_a_checkpoint_there_and_the_resumed_run_is_the_unin
     assert comparable(tmp_path / "cut") == comparable(tmp_path / "full")
 
 
+def test_ctrl_c_in_the_final_evaluation_keeps_the_policy_and_a_checkpoint_and_a_resume_evaluates(tmp_path):
+    import toy_envs
+
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:]
+                              + ["env.id=toy_envs:Interrupting", "env.check=false", "eval.interval=0",
+                                 "train.log_interval=100", "train.checkpoint_interval=250"])
+
+    def ctrl_c_in_the_final_evaluation(row):
+        if row["event"] == "log" and row["step"] == 600:
+            toy_envs.INTERRUPT["now"] = True
+
+    with pytest.raises(KeyboardInterrupt):
+        relayrl.train(cfg, tmp_path / "r", progress=False, callbacks=[ctrl_c_in_the_final_evaluation])
+    assert relayrl.load_policy(tmp_path / "r").env_steps == 600
+    assert load_latest_checkpoint(tmp_path / "r" / "checkpoints")["env_steps"] == 600
+    assert RunDir(tmp_path / "r").read_metrics() == []  # eval.interval = 0: nothing evaluated yet
+    result = relayrl.train(None, tmp_path / "r", resume=True, progress=False)
+    assert result.final["step"] == 600 and [r["step"] for r in RunDir(tmp_path / "r").read_metrics()] == [600]
+
+
 def test_ctrl_c_in_the_last_iteration_ends_the_run_as_finished(tmp_path):
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:]
                               + ["train.log_interval=100", "eval.interval=400"])
@@ -254,6 +274,22 @@ def test_a_resume_that_changes_total_steps_says_which_schedules_it_stretches(tmp
             "env step 800: from env step 400 on they follow the new length") in capsys.readouterr().err
     plain = relayrl.load_config("dqn", ["train.total_steps=400", "eval.episodes=1", "agent.epsilon_decay_steps=100"])
     assert plain.agent.over_total_steps() == []
+
+
+def test_an_old_ppo_runs_config_toml_with_a_replay_section_still_evaluates_and_resumes(tmp_path, capsys):
+    cfg = relayrl.load_config("ppo-cartpole", ["train.total_steps=1024", "train.collect_steps=512",
+                                               "agent.batch_size=64", "agent.n_epochs=1", "eval.episodes=1",
+                                               "train.checkpoint_interval=512"])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    toml = tmp_path / "r" / "config.toml"
+    toml.write_text(toml.read_text() + "\n[replay]\nsize = 5000\n")  # taken, and unused, before it was refused
+    capsys.readouterr()
+    longer = relayrl.load_config(str(toml), ["train.total_steps=1536"])
+    said = capsys.readouterr().err
+    assert "config.toml: replay.size=5000 left out (algo='ppo' learns without a replay table)" in said
+    relayrl.train(longer, tmp_path / "r", resume=True, progress=False)
+    with pytest.raises(relayrl.errors.UserError, match="replay.size=5000 is not valid for algo='ppo'"):
+        relayrl.load_config("ppo-cartpole", ["replay.size=5000"])  # a new config is still told
 
 
 def test_resume_refuses_another_number_of_envs(tmp_path):

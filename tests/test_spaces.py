@@ -13,7 +13,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from space_envs import OBS_KINDS, Spaces, observation_space
+from space_envs import OBS_KINDS, FlatEncoder, Spaces, observation_space
 
 import relayrl
 from relayrl.errors import UserError
@@ -144,6 +144,11 @@ def test_a_users_encoder_is_built_from_the_observation_space_and_checked():
     with pytest.raises(UserError, match=r"agent.encoder='my encoder' is not valid; valid: auto, flatten, nature_cnn, "
                                         r"small_cnn, or package.module:callable"):
         relayrl.load_config("ppo", ["agent.encoder='my encoder'"])
+    with pytest.raises(UserError, match=r"names a function of the script being run, .*'mymodule:make'"):
+        relayrl.load_config("ppo", ["agent.encoder='__main__:make'"])
+    config = relayrl.load_config("ppo")
+    with pytest.raises(UserError, match=r"expected str \(name it as a string: 'space_envs:FlatEncoder'\)"):
+        config.agent.encoder = FlatEncoder  # SB3's features_extractor_class=
 
 
 @pytest.mark.parametrize("kind", OBS_KINDS)
@@ -164,8 +169,10 @@ def test_a_uint8_grid_of_codes_is_numbers_not_an_image():
     assert np.array_equal(again.high, uneven.high) and not is_image(again)
     # a policy file from before bounds were kept: its uint8 frames stay an image, as it was trained
     assert is_image(spec_from_state({"kind": "box", "shape": [8, 8], "dtype": "uint8"}))
-    with pytest.raises(UserError, match=r"needs image observations \(.*bounds 0 and 255\), got Box\(0, 2, "):
-        make_encoder(board, "nature_cnn")
+    asked = make_encoder(board, "small_cnn")  # by name: a conv net on the codes / 255, as SB3 lets one force
+    assert isinstance(asked, ConvEncoder)
+    with pytest.raises(UserError, match=r"needs image observations \(.*sides >= 8\), got Box\(0, 2, shape=\(4, 4\)"):
+        make_encoder(spec_from_space(gym.spaces.Box(0, 2, (4, 4), np.uint8)), "small_cnn")
 
 
 def test_dict_observations_pack_each_entry_in_its_own_dtype():

@@ -410,3 +410,16 @@ class Repeated(gym.ObservationWrapper):
 
     def observation(self, obs):
         return np.tile(obs, 2).astype(np.float32)
+
+
+INTERRUPT = {"now": False}  # set by a test: the next step of an Interrupting env raises KeyboardInterrupt
+
+
+class Interrupting(Countdown):
+    """Countdown whose step is Ctrl-C once a test sets INTERRUPT["now"] (the final evaluation's)."""
+
+    def step(self, action):
+        if INTERRUPT["now"]:
+            INTERRUPT["now"] = False
+            raise KeyboardInterrupt
+        return super().step(action)

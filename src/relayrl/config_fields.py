@@ -65,7 +65,11 @@ class Section:
     def require_encoder(self, value: str) -> None:
         """An agent section's `encoder` (`value`): one of ENCODERS, or a user's
         `package.module:callable` (imported when the networks are built)."""
-        if value not in ENCODERS and not re.fullmatch(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*", value):
+        if value.startswith("__main__:"):  # a loaded policy is rebuilt elsewhere, where no such script runs
+            raise ConfigError(f"{self.SECTION}.encoder={value!r} names a function of the script being run, which "
+                              "relayrl eval and load_policy cannot import: put it in a module (mymodule.py beside "
+                              "the script) and name it 'mymodule:make'")
+        if value not in ENCODERS and not is_user_encoder(value):
             raise ConfigError(f"{self.SECTION}.encoder={value!r} is not valid; valid: {', '.join(ENCODERS)}, or "
                               "package.module:callable (your own encoder, called with the observation space)")
 
@@ -117,6 +121,11 @@ SB3_NAMES = {
     "policy_kwargs": "keys of [agent]: agent.hidden (net_arch), agent.activation (activation_fn), agent.encoder "
                      "(features_extractor_class)",
 }
+
+
+def is_user_encoder(kind: str) -> bool:
+    """`package.module:callable`: a user's encoder (nn/encoders.py `UserEncoder`)."""
+    return re.fullmatch(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*", kind) is not None
 
 
 def unknown_key(path: str, valid: list[str]) -> str:
@@ -179,6 +188,11 @@ def _tip(value: Any, hint: Any) -> str:
         return f" (true or false, in lower case: {value.lower()})"
     if hint is int and isinstance(value, float) and value.is_integer():
         return f" (write {int(value)}: TOML reads 1e4 and 10000.0 as floats)"
+    if hint is str and callable(value):  # agent.encoder = make: configs name code, as env.id does
+        module, name = getattr(value, "__module__", "package.module"), getattr(value, "__qualname__", "name")
+        if module == "__main__":
+            return f" (name it as a string, 'mymodule:{name}', with {name} in a module beside the script)"
+        return f" (name it as a string: '{module}:{name}')"
     return ""
 
 

@@ -88,9 +88,11 @@ def check_resume_networks(config: Config, rd: RunDir) -> None:
 def _use_factory(config: Config, env: Any, one_process: bool) -> None:
     """Check an env factory given to `train` and record it as the config's env.id."""
     if isinstance(env, gym.Env):  # SB3's habit: one instance, which cannot be the run's several copies
+        registered = env.spec.id if env.spec is not None else None
+        way = (f"set env.id={registered!r} (and env.kwargs)" if registered else
+               f"give a callable returning one (env=lambda: {type(env.unwrapped).__name__}(...)), or name it in env.id")
         raise UserError(f"env={env!r} is an env instance: relayrl makes its own copies to train and evaluate on; "
-                        f"give a callable returning one (env=lambda: {type(env.unwrapped).__name__}(...)), or "
-                        "name it in env.id")
+                        + way)
     if isinstance(env, str):
         raise UserError(f"env={env!r} is an env id: set it as the config's env.id (config.env.id = {env!r}, or "
                         f"--set env.id={env}); env= takes a callable returning an env")

@@ -200,14 +200,16 @@ def is_flat_vector(spec: Spec) -> bool:
     return type(spec) is ArraySpec and not is_image(spec)
 
 
-def is_image(spec: Spec) -> bool:
+def is_image(spec: Spec, any_bounds: bool = False) -> bool:
     """A uint8 Box shaped [H, W], [C, H, W] or [H, W, C] whose sides are at least 8 and whose
     bounds are 0 and 255 (Stable-Baselines3's rule): frames, which the conv encoders take
-    (scaled by 1/255). A uint8 grid of codes (a board, Box(0, 2)) is a vector of numbers. A
-    spec without bounds (a policy file from before they were kept) counts as having them."""
+    (scaled by 1/255). A uint8 grid of codes (a board, Box(0, 2)) is a vector of numbers, unless
+    a conv encoder is asked for by name (`any_bounds`). A spec without bounds (a policy file
+    from before they were kept) counts as having them."""
     if type(spec) is not ArraySpec or spec.dtype != torch.uint8 or len(spec.shape) not in (2, 3):
         return False
-    pixels = spec.low is None or spec.high is None or bool((spec.low == 0).all() and (spec.high == 255).all())
+    pixels = any_bounds or spec.low is None or spec.high is None or bool((spec.low == 0).all()
+                                                                         and (spec.high == 255).all())
     return pixels and min(image_size(spec)) >= 8
 
 

@@ -320,16 +320,24 @@ def _takes_seed(env: gym.Env) -> bool:
     return any(p.name == "seed" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
 
 
-class _StepCap(gym.wrappers.TimeLimit):
-    """Gymnasium's TimeLimit, counting the episodes it ended: an env that ends its own episodes
-    before the cap is never told about it."""
+class _StepCap(gym.Wrapper):
+    """A time limit that counts the episodes it ended (`cuts`): one the env ended itself, at
+    the cap's step too, is not one, so an env that ends its own episodes is never told about it."""
 
-    cuts = 0
+    def __init__(self, env: gym.Env, max_episode_steps: int) -> None:
+        super().__init__(env)
+        self.max_episode_steps, self.steps, self.cuts = max_episode_steps, 0, 0
+
+    def reset(self, **kwargs: Any) -> tuple[Any, dict[str, Any]]:
+        self.steps = 0
+        return self.env.reset(**kwargs)
 
     def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
-        obs, reward, terminated, truncated, info = super().step(action)
-        self.cuts += int(truncated and not terminated and self._elapsed_steps >= self._max_episode_steps)
-        return obs, reward, terminated, truncated, info
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self.steps += 1
+        cut = self.steps >= self.max_episode_steps and not (terminated or truncated)
+        self.cuts += cut
+        return obs, reward, terminated, truncated or cut, info
 
 
 class GymBatchEnv(BatchEnvBase):

@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from relayrl.config_fields import ENCODERS
+from relayrl.config_fields import ENCODERS, is_user_encoder
 from relayrl.errors import UserError
 from relayrl.nn.conv import NATURE_CONVS, NATURE_HIDDEN
 from relayrl.nn.mlp import MLP
@@ -131,7 +131,7 @@ def leaf_encoder(spec: Spec, kind: str) -> nn.Module:
         return OneHot((spec.n,)) if kind != "flatten" else Flatten(spec)
     if isinstance(spec, MultiDiscreteSpec):
         return OneHot(spec.nvec) if kind != "flatten" else Flatten(spec)
-    if isinstance(spec, MultiBinarySpec) or not is_image(spec) or kind == "flatten":
+    if isinstance(spec, MultiBinarySpec) or not is_image(spec, any_bounds=kind != "auto") or kind == "flatten":
         return Flatten(spec)
     small = kind == "small_cnn" or (kind == "auto" and min(image_size(spec)) < NATURE_MIN_SIDE)
     if not small and min(image_size(spec)) < NATURE_MIN_SIDE:
@@ -145,9 +145,10 @@ def leaf_encoder(spec: Spec, kind: str) -> nn.Module:
 class UserEncoder(nn.Module):
     """A user's encoder, `agent.encoder = "package.module:make"`: `make(observation_space)` returns
     a torch module taking a batch of observations as relayrl keeps them (float Boxes as float32,
-    integers as int64 or uint8, a Dict / Tuple as a dict of tensors by entry key: "pos", "a.b",
-    "0") and giving [B, features]. The space is rebuilt from what a policy file keeps (`to_space`
-    of the saved spec: a float Box's bounds are left out), so a loaded policy builds it alike."""
+    other integers as int64, uint8 as uint8, MultiBinary as int8, a Dict / Tuple as a dict of
+    tensors by entry key: "pos", "a.b", "0") and giving [B, features]. The space is rebuilt from
+    what a policy file keeps (`to_space` of the saved spec: a Box's bounds only where it is uint8,
+    else its dtype's range), so a loaded policy builds it alike."""
 
     def __init__(self, spec: Spec, name: str) -> None:
         super().__init__()
@@ -174,11 +175,6 @@ class UserEncoder(nn.Module):
         return self.module(x).float()
 
 
-def is_user_encoder(kind: str) -> bool:
-    """`package.module:callable`: a user's encoder (`UserEncoder`)."""
-    return ":" in kind
-
-
 def make_encoder(spec: Spec, kind: str = "auto") -> nn.Module | None:
     """The encoder for observations of `spec`, or None where the MLP takes them as they are
     (a Box that is not an image, or `kind="flatten"` on one)."""
@@ -189,9 +185,11 @@ def make_encoder(spec: Spec, kind: str = "auto") -> nn.Module | None:
                         "package.module:callable (your own)")
     if isinstance(spec, PackedSpec):
         return DictEncoder(spec, kind)  # `kind` applies to its image entries
-    if kind in ("nature_cnn", "small_cnn") and not is_image(spec):
-        raise UserError(f"agent.encoder={kind!r} needs image observations (uint8 [H, W], [C, H, W] or "
-                        f"[H, W, C], sides >= 8, bounds 0 and 255), got {describe(spec)}; use agent.encoder='auto'")
+    if kind in ("nature_cnn", "small_cnn"):
+        if not is_image(spec, any_bounds=True):
+            raise UserError(f"agent.encoder={kind!r} needs image observations (uint8 [H, W], [C, H, W] or "
+                            f"[H, W, C], sides >= 8), got {describe(spec)}; use agent.encoder='auto'")
+        return leaf_encoder(spec, kind)
     if is_flat_vector(spec) or (kind == "flatten" and type(spec) is ArraySpec):
         return None
     return leaf_encoder(spec, kind)

@@ -3,13 +3,15 @@ each algorithm's own default config under its name (`relayrl train ppo`), from t
 
 from __future__ import annotations
 
+import dataclasses
+import sys
 import tomllib
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from relayrl.agents.registry import ALGORITHMS
-from relayrl.config import Config, apply_overrides, from_dict, load_toml
+from relayrl.agents.registry import ALGORITHMS, DEFAULT_ALGO
+from relayrl.config import Config, ReplayConfig, apply_overrides, from_dict, load_toml
 from relayrl.config_fields import did_you_mean
 from relayrl.errors import ConfigError
 
@@ -53,10 +55,26 @@ def preset_dict(name: str) -> dict[str, Any]:
         return tomllib.load(f)
 
 
+def _without_unused_replay(data: dict[str, Any], path: str) -> dict[str, Any]:
+    """A run's config.toml written before algorithms without a replay table refused [replay] keys
+    (they were taken and had no effect): the section is left out, so the run still evaluates and
+    resumes. Any other TOML keeps it, and a key there that does not apply is refused."""
+    entry = ALGORITHMS.get(data.get("algo", DEFAULT_ALGO))
+    if (entry is None or entry.replay == "transitions" or "replay" not in data
+            or not (Path(path).name == "config.toml" and (Path(path).parent / "metrics.jsonl").exists())):
+        return data
+    defaults = dataclasses.asdict(ReplayConfig())
+    unused = [f"replay.{k}={v!r}" for k, v in data["replay"].items() if defaults.get(k, v) != v]
+    if unused:
+        print(f"relayrl: {path}: {', '.join(unused)} left out (algo={entry.name!r} learns without a replay table)",
+              file=sys.stderr)
+    return {k: v for k, v in data.items() if k != "replay"}
+
+
 def load_config(name_or_path: str, overrides: list[str] | None = None, seed: int | None = None) -> Config:
     """A preset name or a path to a config TOML, with `--set` overrides applied and checked."""
     if name_or_path.endswith(".toml"):
-        data = load_toml(name_or_path)
+        data = _without_unused_replay(load_toml(name_or_path), name_or_path)
     else:
         data = preset_dict(name_or_path)
     data = apply_overrides(data, overrides or [])

@@ -73,6 +73,7 @@ def caller_torch_state() -> Iterator[None]:
     before the run (`start_process` sets them for it), so that a notebook's own torch code after
     `relayrl.train` runs as it did before."""
     threads, generator = torch.get_num_threads(), torch.get_rng_state()
+    cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None  # manual_seed seeds these too
     flushing = torch.tensor([1e-39]).item() == 0.0  # torch has no getter: a float32 denormal reads 0 when flushed
     try:
         yield
@@ -80,6 +81,8 @@ def caller_torch_state() -> Iterator[None]:
         torch.set_num_threads(threads)
         torch.set_flush_denormal(flushing)
         torch.set_rng_state(generator)
+        if cuda is not None:
+            torch.cuda.set_rng_state_all(cuda)
 
 
 def check_user_env(config: Config, env_factory: Callable[[], Any] | None, say: Callable[[str], None]) -> None:
@@ -297,9 +300,10 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
 def _stopped_at(core: RunCore) -> str:
     """Where an interrupted run stopped and how it goes on, in Python's terms (the CLI says its own)."""
     root, step = str(core.rd.root), core.env_steps()
+    factory = ", env=<the same env factory>" if "<" in core.config.env.id else ""  # factory_env_id's label
     if core.config.train.checkpoint_interval > 0:
         return (f"the run stopped at env step {step:,} with a checkpoint in {root!r}: "
-                f"relayrl.train(None, {root!r}, resume=True) continues it")
+                f"relayrl.train(None, {root!r}, resume=True{factory}) continues it")
     return (f"the run stopped at env step {step:,}; its policy and metrics are in {root!r} "
             "(train.checkpoint_interval = 0: no checkpoint to resume from)")
 
@@ -322,6 +326,8 @@ def record_resumed_config(core: RunCore, saved: Config | None) -> None:
         core.say(f"resumed with changed settings, now in config.toml: {'; '.join(changed)}")
     total = core.config.train.total_steps
     stretched = core.config.agent.over_total_steps()
+    if core.config.replay.sampler == "prioritized":  # its importance exponent anneals to 1 at the total
+        stretched.append("replay.importance_exponent's annealing")
     if saved is not None and saved.train.total_steps != total and stretched:
         core.say(f"the schedules over train.total_steps ({', '.join(stretched)}) now run to env step {total:,}: "
                  f"from env step {core.env_steps():,} on they follow the new length (a learning rate or epsilon "
@@ -333,10 +339,19 @@ def finish(driver: Driver, p: Progress, evaluate: bool = True) -> None:
     checkpoint and log."""
     core = driver.core
     core.check_finite(p, weights=True)
-    if evaluate and core.report.last_eval.get("step") != p.env_steps:
-        driver.evaluate_now(p)
-    driver.settle_evals()
+    try:
+        if evaluate and core.report.last_eval.get("step") != p.env_steps:
+            driver.evaluate_now(p)
+        driver.settle_evals()
+    except KeyboardInterrupt:  # Ctrl-C in the final evaluation (the only one with eval.interval = 0):
+        _save(core, p)  # the run is kept without it; a resume evaluates it
+        raise
+    _save(core, p)
+    core.report.write_scalars(p, *core.report.run_sps(p))
+
+
+def _save(core: RunCore, p: Progress) -> None:
+    """The policy, and a checkpoint where the run writes them."""
     core.policy_saver.save(p)
     if core.config.train.checkpoint_interval > 0:
         core.checkpointer.save(p)
-    core.report.write_scalars(p, *core.report.run_sps(p))
