@@ -11,6 +11,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from relayrl.agents.registry import algorithm
 from relayrl.config import Config, config_toml, to_dict
 from relayrl.metrics import EpisodeStats
 from relayrl.training.heartbeat import ProgressLines
@@ -46,7 +47,10 @@ def log_config(tb: Any, config: Config) -> None:
             elif v is not None:
                 flat[prefix + k] = v if isinstance(v, (bool, int, float, str)) else str(v)
 
-    walk(to_dict(config), "")
+    data = to_dict(config)
+    if algorithm(config.algo).replay != "transitions":  # as its listing (config_toml): no replay keys
+        data.pop("replay")
+    walk(data, "")
     tb.add_hparams(flat, {}, run_name=".")  # ".": into the run's own folder, not a new one
 
 
