@@ -191,8 +191,9 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
         if not resume or run_dir is None:
             raise UserError("config=None continues a run with its own config.toml: give run_dir and resume=True "
                             "(a new run needs a config: a preset's name, a config TOML's path, a dict or a Config)")
-        RunDir(run_dir).require()
-        config = load_config(str(RunDir(run_dir).config))
+        own = RunDir(run_dir)
+        own.require()
+        config = load_config(str(own.config))
     elif isinstance(config, str | Path):
         config = load_config(str(config))
     elif not isinstance(config, Config | dict):
