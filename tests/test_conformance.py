@@ -48,7 +48,7 @@ def test_registry_entry_resolves(name):
     entry = algorithm(name)
     assert entry.config().validate() is None  # the defaults are valid
     module = entry.policy_module()
-    assert callable(module.load) and callable(module.deterministic_module)
+    assert callable(module.load) and callable(module.deterministic_module) and callable(module.action_space)
     if entry.agent is not None:
         assert isinstance(entry.agent(), type)
     if entry.trainer is not None:

@@ -80,7 +80,11 @@ def test_trained_policy_takes_the_envs_own_observations(algo, obs, act, tmp_path
     relayrl.train(short_config(algo, obs, act, vectorization), tmp_path, progress=False)
     policy = relayrl.load_policy(tmp_path)
     env = Spaces(obs, act)
+    assert policy.action_space == env.action_space  # SB3's model.action_space, from the file
+    assert type(policy.observation_space) is type(env.observation_space)
+    assert policy.observation_space.shape == env.observation_space.shape
     o, _ = env.reset(seed=0)
+    assert policy.observation_space.contains(policy.observation_space.sample())
     a = policy(o)
     assert_valid(env.action_space, a)
     env.step(a)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch
 
@@ -16,7 +17,7 @@ from relayrl.core import Policy
 from relayrl.errors import UserError
 from relayrl.policies import saved_obs_spec
 from relayrl.policy_file import env_action_dtype
-from relayrl.specs import PackedSpec, Spec, describe, entry, leaf_array, value_limit
+from relayrl.specs import PackedSpec, Spec, describe, entry, leaf_array, to_space, value_limit
 
 
 class LoadedPolicy(Policy):
@@ -51,6 +52,18 @@ class LoadedPolicy(Policy):
         action = f", action_shape={self.action_shape}" if self.action_shape is not None else ""
         return (f"LoadedPolicy(kind={self.kind!r}, observations={describe(self.obs_space)}{action}, "
                 f"deterministic={self.deterministic}, env_steps={self.env_steps})")
+
+    @property
+    def observation_space(self) -> gym.Space:
+        """What it takes, as a Gymnasium space (SB3's `model.observation_space`), as far as the file
+        keeps it: a Box's bounds where it is uint8, else unbounded (or its dtype's range)."""
+        return to_space(self.obs_space)
+
+    @property
+    def action_space(self) -> gym.Space:
+        """What it gives, as a Gymnasium space (SB3's `model.action_space`): a Box with its bounds, in
+        the env's shape and dtype."""
+        return self._module.action_space(self._state)
 
     def reseeded(self, seed: int | None) -> LoadedPolicy:
         """This policy again, its sampling (`deterministic=False`) drawn from `seed`."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch
 from torch import nn
@@ -192,6 +193,15 @@ class ClampedPolicy(Policy):
 def saved_bounds(state: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """A saved policy's action bounds as float32 arrays (policy.pt holds them as lists)."""
     return np.asarray(state["action_low"], np.float32), np.asarray(state["action_high"], np.float32)
+
+
+def box_action_space(state: dict[str, Any]) -> gym.spaces.Box:
+    """A saved policy's Box action space: its bounds, in the env's shape and dtype where the
+    file records them (`policy_file.env_action_entries`)."""
+    low, high = saved_bounds(state)
+    shape = tuple(int(d) for d in state.get("action_shape", low.shape))
+    dtype = np.dtype(state.get("action_dtype", "float32"))
+    return gym.spaces.Box(low.reshape(shape).astype(dtype), high.reshape(shape).astype(dtype), shape, dtype)
 
 
 def mlp_head(net: nn.Module) -> MLP:

@@ -285,7 +285,7 @@ def to_space(spec: Spec) -> gym.Space:
     if isinstance(spec, MultiDiscreteSpec):
         return gym.spaces.MultiDiscrete(np.asarray(spec.nvec).reshape(spec.shape), dtype=env_numpy_dtype(spec))
     if isinstance(spec, MultiBinarySpec):
-        return gym.spaces.MultiBinary(list(spec.shape))
+        return gym.spaces.MultiBinary(spec.shape[0] if len(spec.shape) == 1 else list(spec.shape))
     if isinstance(spec, PackedSpec):
         tree: dict[Any, Any] = {}
         for f in spec.fields:

@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from torch import nn
 
-from relayrl.policies import ClampedPolicy, saved_bounds, saved_network
+from relayrl.policies import ClampedPolicy, box_action_space, saved_bounds, saved_network
 
 
 def load(state: dict[str, Any], device: torch.device, deterministic: bool, seed: int | None) -> ClampedPolicy:
@@ -29,3 +29,6 @@ class Clamped(nn.Module):
 
 
 deterministic_module = Clamped  # the deterministic policy as a module, for export_policy
+
+
+action_space = box_action_space  # the env's Box, from the file (a saved policy's `action_space`)

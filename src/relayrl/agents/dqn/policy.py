@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import gymnasium as gym
 import torch
 from torch import nn
 
@@ -24,3 +25,7 @@ class ArgmaxQ(nn.Module):
 
 
 deterministic_module = ArgmaxQ  # the deterministic policy as a module, for export_policy
+
+
+def action_space(state: dict[str, Any]) -> gym.Space:
+    return gym.spaces.Discrete(int(state["num_actions"]))

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch
 from torch import nn
@@ -23,8 +24,8 @@ from relayrl.agents.ppo.distributions import greedy_logits_action, to_bounds
 from relayrl.agents.ppo.networks import ActionHead, PolicyNet, action_head
 from relayrl.agents.ppo.normalize import ObsNorm
 from relayrl.core import Policy
-from relayrl.policies import cpu_mlp, saved_bounds, saved_network
-from relayrl.specs import spec_from_state
+from relayrl.policies import box_action_space, cpu_mlp, saved_bounds, saved_network
+from relayrl.specs import spec_from_state, to_space
 
 
 class PPOPolicy(Policy):
@@ -162,3 +163,13 @@ class Greedy(nn.Module):
 
 
 deterministic_module = Greedy  # the deterministic policy as a module, for export_policy
+
+
+def action_space(state: dict[str, Any]) -> gym.Space:
+    """The env's action space, from the file: a Box from its bounds (`box_action_space`); else
+    the space it records (files before MultiDiscrete and MultiBinary actions: Discrete)."""
+    if not state["discrete"]:
+        return box_action_space(state)
+    if "action_space" in state:
+        return to_space(spec_from_state(state["action_space"]))
+    return gym.spaces.Discrete(int(state["action_dim"]))

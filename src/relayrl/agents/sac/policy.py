@@ -9,7 +9,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from relayrl.policies import TanhGaussianPolicy, saved_bounds, saved_network
+from relayrl.policies import TanhGaussianPolicy, box_action_space, saved_bounds, saved_network
 
 
 def load(state: dict[str, Any], device: torch.device, deterministic: bool, seed: int | None) -> TanhGaussianPolicy:
@@ -34,3 +34,6 @@ class TanhMean(nn.Module):
 
 
 deterministic_module = TanhMean  # the deterministic policy as a module, for export_policy
+
+
+action_space = box_action_space  # the env's Box, from the file (a saved policy's `action_space`)
