@@ -45,3 +45,9 @@ def test_sac_trains_on_a_batch_of_stateless_pendulums(tmp_path):
     result = relayrl.train(relayrl.load_config("sac-pendulum", over), tmp_path / "s", progress=False)
     assert result.final["step"] == 800 and result.final["losses/critic_loss"] > 0
     assert result.final["average_episode_length"] == 200.0  # the stateless pendulum's time limit
+
+
+def test_bptt_with_eval_interval_zero_writes_one_row_over_its_last_50_iterations(tmp_path):
+    cfg = relayrl.load_config("bptt-pendulum", ["train.total_steps=192000", "eval.interval=0"])  # 60 iterations
+    (row,) = RunDir(relayrl.train(cfg, tmp_path / "b", progress=False).run_dir).read_metrics()
+    assert row["step"] == 192000 and row["bptt/mean_reward"] == row["bptt/final50_mean_reward"]

@@ -3,14 +3,16 @@ driver (training/direct.py) runs into a run directory.
 
 No replay, actor or learner: each iteration differentiates the mean reward of `batch_size`
 rollouts of `rollout_steps` steps. A row goes to metrics.jsonl every `eval.interval` env steps
-(an iteration is batch_size * rollout_steps env steps; 0: one row, at the end) with the window's mean rollout return as
-`average_return`, so `relayrl plot` draws the tutorial's curve. Runs take seconds to minutes,
+(an iteration is batch_size * rollout_steps env steps; 0: one row, at the end, over the last 50
+iterations) with the window's mean rollout return as `average_return`, so `relayrl plot` draws
+the tutorial's curve. Runs take seconds to minutes,
 so they are not checkpointed; the policy is saved at the end (`relayrl.load_policy` reads it).
 """
 
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
@@ -55,9 +57,9 @@ def train(config: Config, device: torch.device, write_row: Callable[[dict[str, A
     c, a = config, config.agent
     iterations = check_config(c)
     per_iteration = a.batch_size * a.rollout_steps
-    # iterations per metrics row; eval.interval 0: one row, at the end
+    # iterations per metrics row; eval.interval 0: one row, at the end, over the last FINAL_WINDOW
     rows_every = max(1, c.eval.interval // per_iteration) if c.eval.interval > 0 else iterations
-    window: list[BpttLog] = []
+    window: deque[BpttLog] = deque(maxlen=None if c.eval.interval > 0 else FINAL_WINDOW)
     history: list[BpttLog] = []
     t0 = time.perf_counter()
 
