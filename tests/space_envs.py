@@ -134,3 +134,10 @@ def not_a_module(space: gym.Space) -> int:
 
 def wrong_shape(space: gym.Space) -> nn.Module:
     return nn.Identity()  # a Dict's entries, or [B, *shape]: not [B, features]
+
+
+class Squeezed(FlatEncoder):
+    """A common slip: squeeze() drops the batch dimension of a batch of one."""
+
+    def forward(self, obs):
+        return super().forward(obs).squeeze()

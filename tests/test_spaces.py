@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 from space_envs import OBS_KINDS, FlatEncoder, Spaces, observation_space
+from torch import nn
 
 import relayrl
 from relayrl.errors import UserError
@@ -132,6 +133,19 @@ def test_a_users_own_encoder_trains_and_its_policy_loads_and_exports(algo, tmp_p
     np.testing.assert_allclose(torch.export.load(path).module()(*feeds).numpy()[0], np.asarray(policy(o)), atol=1e-5)
 
 
+def test_a_policy_whose_encoder_code_changed_since_the_run_says_so(tmp_path, monkeypatch):
+    config = short_config("ppo", "dict", "discrete")
+    config.agent.encoder = "space_envs:FlatEncoder"
+    relayrl.train(config, tmp_path, progress=False)
+    import space_envs
+
+    monkeypatch.setattr(space_envs.FlatEncoder, "__init__", lambda self, space: (
+        nn.Module.__init__(self), setattr(self, "linear", nn.LazyLinear(16)))[0])  # 16 features now, not 8
+    with pytest.raises(UserError, match=r"its encoder 'space_envs:FlatEncoder' now builds other parameters than the "
+                                        r"ones saved \(did its code change since the run\?\)"):
+        relayrl.load_policy(tmp_path)
+
+
 def test_a_users_encoder_is_built_from_the_observation_space_and_checked():
     spec = spec_from_space(Spaces("dict").observation_space)
     encoder = make_encoder(spec, "space_envs:FlatEncoder")
@@ -141,8 +155,9 @@ def test_a_users_encoder_is_built_from_the_observation_space_and_checked():
     for name, words in (("nosuch_pkg.mod:make", "agent.encoder: 'nosuch_pkg.mod:make': no module 'nosuch_pkg'"),
                         ("space_envs:not_a_module", "agent.encoder='space_envs:not_a_module' returned int, not a "
                                                     "torch.nn.Module"),
-                        ("space_envs:wrong_shape", r"its module gave dict for a batch of 2 observations of Dict\(.*"
-                                                   r"it must give \[B, features\]")):
+                        ("space_envs:wrong_shape", r"its module gave dict for a batch of 1 observation of Dict\(.*"
+                                                   r"it must give \[B, features\]"),
+                        ("space_envs:Squeezed", r"its module gave \(8,\) for a batch of 1 observation of ")):
         with pytest.raises(UserError, match=words):
             make_encoder(spec, name)
     with pytest.raises(UserError, match=r"agent.encoder='my encoder' is not valid; valid: auto, flatten, nature_cnn, "

@@ -30,6 +30,7 @@ import torch
 
 from relayrl import atomic
 from relayrl.agents.registry import for_policy_kind
+from relayrl.config_fields import is_user_encoder
 from relayrl.errors import UserError
 from relayrl.loaded_policy import LoadedPolicy
 from relayrl.paths import is_folder, output_path, writing
@@ -57,6 +58,11 @@ def load_policy_state(path: str | Path) -> dict[str, Any]:
         module.load(state, torch.device("cpu"), True, None)  # every key load_policy and export read is there
         module.deterministic_module(state)
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
+        encoder = str(state.get("encoder", ""))
+        if isinstance(e, RuntimeError) and is_user_encoder(encoder):  # the user's code, not the file
+            raise UserError(f"policy file {str(f)!r}: its encoder {encoder!r} now builds other parameters than the "
+                            f"ones saved (did its code change since the run?): {str(e).splitlines()[-1].strip()}"
+                            ) from None
         raise UserError(f"policy file {str(f)!r} does not hold a complete {state['kind']} policy "
                         f"({type(e).__name__}: {e}); {REFUSED}") from None
     return state

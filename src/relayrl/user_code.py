@@ -20,9 +20,10 @@ def import_user_module(module_name: str, what: str) -> Any:
         if e.name is None or not module_name.startswith(e.name):
             raise UserError(f"{what}: importing {module_name!r} failed: it imports {e.name!r}, which is "
                             "not installed") from None
+        top = e.name.split(".")[0]
         raise UserError(
             f"{what}: no module {e.name!r} in the current directory ({os.getcwd()}) or the installed "
-            f"packages; run relayrl from the folder that holds {e.name.split('.')[0]}/, add that folder "
+            f"packages; run relayrl from the folder that holds {top}.py (or {top}/), add that folder "
             "to PYTHONPATH, or pip install -e your project") from None
     except Exception as e:  # the user's module raised while it was imported
         where = traceback.extract_tb(e.__traceback__)[-1]

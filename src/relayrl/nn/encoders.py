@@ -159,14 +159,20 @@ class UserEncoder(nn.Module):
             raise UserError(f"agent.encoder={name!r} returned {type(module).__name__}, not a torch.nn.Module")
         self.module = module
         self.packed = spec if isinstance(spec, PackedSpec) else None
-        with torch.no_grad():  # its features, from a batch of two; its own errors are its own
-            zeros = spec.zeros(2)
-            out = module(unpack(zeros, spec) if isinstance(spec, PackedSpec) else zeros)
-        if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != 2:
-            shape = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
-            raise UserError(f"agent.encoder={name!r}: its module gave {shape} for a batch of 2 observations of "
-                            f"{describe(spec)}; it must give [B, features]")
-        self.out_dim = int(out.shape[1])
+        features = set()
+        for b in (1, 2):  # a batch of one too: a squeeze() would pass a batch of two alone
+            with torch.no_grad():  # its own errors are its own
+                zeros = spec.zeros(b)
+                out = module(unpack(zeros, spec) if isinstance(spec, PackedSpec) else zeros)
+            if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != b:
+                shape = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
+                raise UserError(f"agent.encoder={name!r}: its module gave {shape} for a batch of {b} observation"
+                                f"{'s' * (b > 1)} of {describe(spec)}; it must give [B, features]")
+            features.add(int(out.shape[1]))
+        if len(features) > 1:
+            raise UserError(f"agent.encoder={name!r}: its module gave {sorted(features)} features for batches of 1 "
+                            "and 2; it must give the same number for any batch")
+        self.out_dim = features.pop()
 
     def forward(self, x: torch.Tensor | dict[str, torch.Tensor]) -> torch.Tensor:
         """Observations [B, ...] (packed rows for a Dict / Tuple, or its entries by key)."""

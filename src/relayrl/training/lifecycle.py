@@ -266,7 +266,8 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
             saved = saved_config(core.rd)  # read first: restoring cuts metrics.jsonl back to the checkpoint
             driver.restore()  # rewrites metrics.jsonl: open the log only afterwards
             if core.env_steps() >= c.train.total_steps:  # config.toml keeps the settings the run had
-                core.say(f"the run is at env step {core.env_steps():,}, past train.total_steps="
+                where = "past" if core.env_steps() > c.train.total_steps else "the end of"
+                core.say(f"the run is at env step {core.env_steps():,}, {where} train.total_steps="
                          f"{c.train.total_steps:,}: nothing is left to train (raise train.total_steps to go on)")
             else:
                 record_resumed_config(core, saved)

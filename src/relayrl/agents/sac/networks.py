@@ -16,8 +16,8 @@ from relayrl.specs import ArraySpec, Spec, describe, flat_dim, is_bounded_box
 def check_action_spec(action_spec: Spec) -> ArraySpec:
     if not is_bounded_box(action_spec):
         raise UserError("SAC takes a Box action space of floats with finite low and high; this env's action space "
-                        f"is {describe(action_spec)} (use DQN or PPO for Discrete actions, PPO for MultiDiscrete "
-                        "and MultiBinary)")
+                        f"is {describe(action_spec)} (use DQN or PPO for Discrete actions, PPO for MultiDiscrete, "
+                        "MultiBinary and infinite bounds; a wrapper such as ClipAction leaves the bounds infinite)")
     assert isinstance(action_spec, ArraySpec)
     fixed = np.flatnonzero(np.asarray(action_spec.high) <= np.asarray(action_spec.low))
     if fixed.size:
