@@ -144,6 +144,10 @@ def test_eval_of_a_policy_file_outside_a_run_directory_uses_the_env_it_records(t
     assert main(["eval", str(tmp_path / "run"), "--episodes", "1", "--env", "Acrobot-v1"]) == 2  # 6 obs, not 4
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert main(["eval", str(shared), "--episodes", "2", "--max-episode-steps", "3"]) == 0  # episodes cut at 3
+    assert json.loads(capsys.readouterr().out)["average_episode_length"] == 3.0
+    assert main(["eval", str(shared), "--max-episode-steps", "0"]) == 2
+    assert "--max-episode-steps 0 is not valid; it must be >= 1" in capsys.readouterr().err
 
 
 def test_eval_reads_the_policy_file_it_is_given(tmp_path, capsys):

@@ -89,6 +89,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="evaluate on this env (a Gymnasium id or package.module:Class) instead of the run's own "
                         "(config.toml's, with its env.kwargs and wrappers); for a policy file outside a run "
                         "directory the default is the env id the file records")
+    e.add_argument("--max-episode-steps", type=int, default=None, metavar="N",
+                   help="cut evaluation episodes at N steps (default: the run's env.max_episode_steps, else the "
+                        "env's own time limit, else 1,000)")
     pl = sub.add_parser("plot", help="PNG of average return against env steps")
     pl.add_argument("run_dir", metavar="RUN_DIR", help="a run directory")
     pl.add_argument("--out", metavar="PNG",
@@ -148,6 +151,8 @@ def _eval(args: argparse.Namespace) -> None:
 
     if args.episodes < 1:
         raise UserError(f"--episodes {args.episodes} is not valid; it must be >= 1")
+    if args.max_episode_steps is not None and args.max_episode_steps < 1:
+        raise UserError(f"--max-episode-steps {args.max_episode_steps} is not valid; it must be >= 1")
     given = Path(args.run_dir)
     rd = RunDir.of(given)  # its config.toml names the env
     if given.is_file() and not rd.config.is_file():  # a policy file on its own: the env id it records
@@ -155,7 +160,7 @@ def _eval(args: argparse.Namespace) -> None:
         env_id = args.env or policy.env_id
         if not env_id:
             raise UserError(f"policy file {args.run_dir!r} records no env id: pass --env ENV_ID")
-        env = make_eval_env(env_id, args.episodes, 0)
+        env = make_eval_env(env_id, args.episodes, args.max_episode_steps or 0)
     else:
         rd.require()
         config = load_config(str(rd.config))
@@ -163,13 +168,14 @@ def _eval(args: argparse.Namespace) -> None:
         env_id = args.env or config.env.id
         own: dict[str, Any] = {} if args.env else {"info_keys": config.env.info_keys, "kwargs": config.env.kwargs,
                                                    "wrappers": config.env.wrappers}
-        env = make_eval_env(env_id, args.episodes, 0 if args.env else config.env.max_episode_steps, **own)
+        cap = args.max_episode_steps or (0 if args.env else config.env.max_episode_steps)
+        env = make_eval_env(env_id, args.episodes, cap, **own)
     try:
         policy.check_fits(env.observation_spec)
         result = evaluate(env, policy, args.episodes, seed=args.seed)
         note = eval_cap_note(env, env_id)
         if note:
-            print(f"relayrl: {note}", file=sys.stderr)
+            print(f"relayrl: {note}; --max-episode-steps N sets the cut here", file=sys.stderr)
     except NonFiniteError as e:  # an env that returns NaN rewards: what it gave, not a run that stopped
         raise UserError(str(e)) from None
     finally:
