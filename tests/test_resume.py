@@ -88,6 +88,8 @@ def test_env_that_cannot_be_pickled_resumes_with_new_episodes(tmp_path, capsys, 
     over = DQN + ["env.id=toy_envs:Unpicklable", "env.max_episode_steps=50"] + envs
     cfg = relayrl.load_config("dqn-cartpole-fast", over, seed=3)
     relayrl.train(cfg, tmp_path / "full", progress=False)
+    said = capsys.readouterr().err  # while it trains, once: not only when it is resumed
+    assert said.count("the env cannot be pickled (a simulator handle, or a wrapper") == 1
     cut_back(tmp_path / "full", tmp_path / "resumed")
     assert load_latest_checkpoint(tmp_path / "resumed" / "checkpoints")["actor"]["env"] is None
     result = relayrl.train(cfg, tmp_path / "resumed", resume=True, progress=False)

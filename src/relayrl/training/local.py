@@ -92,7 +92,7 @@ class LocalDriver:
         learner = make_learner(c, self.agent, self.replay, device, self.variables, whole_rollouts)
         self.evaluator = Evaluate(c.eval.interval, self.eval_env, self.agent.eval_policy, c.eval.episodes,
                                   seed=seeds.base("evaluation"), on_result=self._record_eval)
-        self.cap_said = False
+        self.cap_said = self.env_state_said = False  # the notes said once a run
         self.core = RunCore(c, self.rd, self.agent, learner, self.stats, self.finite,
                             env_steps=lambda: self.actor.env_steps, checkpoint_state=self.checkpoint_state,
                             evaluation=self.evaluator, show_progress=progress, callbacks=callbacks)
@@ -139,6 +139,12 @@ class LocalDriver:
 
     def checkpoint_state(self) -> dict[str, Any]:
         """Everything a resume needs besides the env step, which the Checkpointer adds."""
+        actor = self.actor.state_dict()
+        if actor["env"] is None and not self.env_state_said:  # said when it happens, not only at a resume
+            self.env_state_said = True
+            self.core.say("the env cannot be pickled (a simulator handle, or a wrapper holding a local function "
+                          "such as Gymnasium's RescaleAction): checkpoints hold no env state, so a resumed run "
+                          "starts new episodes")
         return {
             **self.core.checkpoint_common(self.evaluator.count),
             # Very large tables may be left out (train.checkpoint_replay = false): a resumed
@@ -150,7 +156,7 @@ class LocalDriver:
             # Mid-episode state, so that a resumed run is the uninterrupted run bit for bit:
             # the envs (pickled, where they can be), the pending observation and the acting
             # copy of the policy (the common part holds the global RNGs and the latest losses).
-            "actor": self.actor.state_dict(),
+            "actor": actor,
             "variables_version": self.variables.version,
         }
 
