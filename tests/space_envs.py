@@ -118,8 +118,11 @@ class FlatEncoder(nn.Module):
     """A user's own encoder (agent.encoder = "space_envs:FlatEncoder"): every entry of the
     observation flattened as floats, then one linear layer (its input size found on first use)."""
 
+    built = 0  # how many were made (a costly encoder should be made once per load)
+
     def __init__(self, space: gym.Space) -> None:
         super().__init__()
+        FlatEncoder.built += 1
         self.space = space
         self.linear = nn.LazyLinear(8)
 

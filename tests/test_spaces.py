@@ -123,7 +123,9 @@ def test_a_users_own_encoder_trains_and_its_policy_loads_and_exports(algo, tmp_p
     config = short_config(algo, "dict", act)
     config.agent.encoder = "space_envs:FlatEncoder"
     relayrl.train(config, tmp_path, progress=False)
+    FlatEncoder.built = 0
     policy = relayrl.load_policy(tmp_path)  # built again from the module, by name
+    assert FlatEncoder.built == 1  # made once: a costly encoder (a pretrained backbone) is paid for once
     env = Spaces("dict", act)
     o, _ = env.reset(seed=0)
     assert_valid(env.action_space, policy(o))

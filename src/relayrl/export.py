@@ -22,9 +22,9 @@ import contextlib
 import json
 import logging
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 
@@ -38,6 +38,8 @@ from relayrl.policies import saved_obs_spec
 from relayrl.policy_file import REFUSED, env_action_dtype, load_policy_file
 from relayrl.specs import PackedSpec, Spec, env_torch_dtype
 
+T = TypeVar("T")
+
 
 def _policy_file(path: str | Path) -> Path:
     p = Path(path)
@@ -50,13 +52,10 @@ def _policy_file(path: str | Path) -> Path:
     raise UserError(f"no saved policy at {str(p)!r} (expected RUN_DIR/policy/policy.pt)")
 
 
-def load_policy_state(path: str | Path) -> dict[str, Any]:
-    f = _policy_file(path)
-    state = load_policy_file(f)
-    module = for_policy_kind(state.get("kind")).policy_module()  # UserError for a kind this version does not know
+def _built(f: Path, state: dict[str, Any], build: Callable[[], T]) -> T:
+    """`build()` of a saved policy's parts; a file that lacks what they read is one line."""
     try:
-        module.load(state, torch.device("cpu"), True, None)  # every key load_policy and export read is there
-        module.deterministic_module(state)
+        return build()
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         encoder = str(state.get("encoder", ""))
         if isinstance(e, RuntimeError) and is_user_encoder(encoder):  # the user's code, not the file
@@ -65,6 +64,14 @@ def load_policy_state(path: str | Path) -> dict[str, Any]:
                             ) from None
         raise UserError(f"policy file {str(f)!r} does not hold a complete {state['kind']} policy "
                         f"({type(e).__name__}: {e}); {REFUSED}") from None
+
+
+def load_policy_state(path: str | Path) -> dict[str, Any]:
+    """A policy file's state, checked: every key `load_policy` and `export_policy` read is there."""
+    f = _policy_file(path)
+    state = load_policy_file(f)
+    module = for_policy_kind(state.get("kind")).policy_module()  # UserError for a kind this version does not know
+    _built(f, state, lambda: (module.load(state, torch.device("cpu"), True, None), module.deterministic_module(state)))
     return state
 
 
@@ -79,8 +86,14 @@ def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = Tru
     `env_steps` is the run's env step when the policy was saved. During a run the file is
     replaced atomically, so a policy can be loaded at any moment.
     """
-    state = load_policy_state(path)
-    batched = for_policy_kind(state["kind"]).policy_module().load(state, torch.device(device), deterministic, seed)
+    f = _policy_file(path)
+    state = load_policy_file(f)
+    module = for_policy_kind(state.get("kind")).policy_module()
+    # Built once (a user's encoder may be costly to make); on another device the file is
+    # checked on the CPU first, so a device's own error is not taken for a broken file.
+    cpu = _built(f, state, lambda: module.load(state, torch.device("cpu"), deterministic, seed))
+    on = torch.device(device)
+    batched = cpu if on.type == "cpu" else module.load(state, on, deterministic, seed)
     return LoadedPolicy(batched, state, device, deterministic, seed)
 
 
