@@ -154,6 +154,8 @@ def test_a_users_encoder_is_built_from_the_observation_space_and_checked():
     assert encoder.out_dim == 8 and encoder.module.space == gym.spaces.Dict(
         {"cell": gym.spaces.Discrete(4), "frame": gym.spaces.Box(0, 255, (1, 8, 8), np.uint8),
          "pos": gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)})  # a float Box's bounds are not kept
+    pair = make_encoder(spec_from_space(Spaces("tuple").observation_space), "space_envs:FlatEncoder")
+    assert pair.module.space[1].dtype == np.float32  # the env's float64 entry, in the dtype its batches come in
     for name, words in (("nosuch_pkg.mod:make", "agent.encoder: 'nosuch_pkg.mod:make': no module 'nosuch_pkg'"),
                         ("space_envs:not_a_module", "agent.encoder='space_envs:not_a_module' returned int, not a "
                                                     "torch.nn.Module"),

@@ -277,13 +277,15 @@ def spec_from_state(state: dict[str, Any]) -> Spec:
     return ArraySpec(shape, dtype, env_dtype=env)
 
 
-def to_space(spec: Spec) -> gym.Space:
+def to_space(spec: Spec, stored: bool = False) -> gym.Space:
     """The Gymnasium space a spec describes, as far as the spec keeps it (a Box without bounds is
-    unbounded; integers within their dtype's range): what a user's encoder is built from."""
+    unbounded; integers within their dtype's range), in the env's dtypes, or with `stored` in
+    the dtypes relayrl keeps (float32, int64): what a user's encoder is given and fed."""
+    dtype_of = numpy_dtype if stored else env_numpy_dtype
     if isinstance(spec, DiscreteSpec):
         return gym.spaces.Discrete(spec.n)
     if isinstance(spec, MultiDiscreteSpec):
-        return gym.spaces.MultiDiscrete(np.asarray(spec.nvec).reshape(spec.shape), dtype=env_numpy_dtype(spec))
+        return gym.spaces.MultiDiscrete(np.asarray(spec.nvec).reshape(spec.shape), dtype=dtype_of(spec))
     if isinstance(spec, MultiBinarySpec):
         return gym.spaces.MultiBinary(spec.shape[0] if len(spec.shape) == 1 else list(spec.shape))
     if isinstance(spec, PackedSpec):
@@ -292,9 +294,9 @@ def to_space(spec: Spec) -> gym.Space:
             node = tree
             for step in f.path[:-1]:
                 node = node.setdefault(step, {})
-            node[f.path[-1]] = to_space(f.spec)
+            node[f.path[-1]] = to_space(f.spec, stored)
         return _space_of(tree, spec.tuple_space)
-    dtype = env_numpy_dtype(spec)
+    dtype = dtype_of(spec)
     if spec.low is not None and spec.high is not None:
         return gym.spaces.Box(spec.low, spec.high, spec.shape, dtype)
     if np.issubdtype(dtype, np.integer):

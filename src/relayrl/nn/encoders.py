@@ -146,14 +146,14 @@ class UserEncoder(nn.Module):
     """A user's encoder, `agent.encoder = "package.module:make"`: `make(observation_space)` returns
     a torch module taking a batch of observations as relayrl keeps them (float Boxes as float32,
     other integers as int64, uint8 as uint8, MultiBinary as int8, a Dict / Tuple as a dict of
-    tensors by entry key: "pos", "a.b", "0") and giving [B, features]. The space is rebuilt from
-    what a policy file keeps (`to_space` of the saved spec: a Box's bounds only where it is uint8,
-    else its dtype's range), so a loaded policy builds it alike."""
+    tensors by entry key: "pos", "a.b", "0") and giving [B, features]. The space it is given has
+    those dtypes, and is rebuilt from what a policy file keeps (`to_space` of the saved spec: a
+    Box's bounds only where it is uint8), so a loaded policy builds it alike."""
 
     def __init__(self, spec: Spec, name: str) -> None:
         super().__init__()
         make = load_callable(name, "agent.encoder")
-        space = to_space(spec_from_state(spec_state(spec)))  # what a policy file rebuilds it from
+        space = to_space(spec_from_state(spec_state(spec)), stored=True)  # as a policy file rebuilds it
         module = make(space)
         if not isinstance(module, nn.Module):
             raise UserError(f"agent.encoder={name!r} returned {type(module).__name__}, not a torch.nn.Module")
