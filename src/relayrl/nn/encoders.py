@@ -159,7 +159,7 @@ class UserEncoder(nn.Module):
             raise UserError(f"agent.encoder={name!r} returned {type(module).__name__}, not a torch.nn.Module")
         self.module = module
         self.packed = spec if isinstance(spec, PackedSpec) else None
-        features = set()
+        features: set[int] = set()
         for b in (1, 2):  # a batch of one too: a squeeze() would pass a batch of two alone
             with torch.no_grad():  # its own errors are its own
                 zeros = spec.zeros(b)
