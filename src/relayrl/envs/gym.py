@@ -151,6 +151,15 @@ def names_module(env_id: str) -> bool:
     return ":" in env_id and "/" not in env_id.split(":", 1)[0]
 
 
+def names_python_factory(env_id: str) -> bool:
+    """An env.id recorded for an env factory given to relayrl.train in Python that no import
+    finds (a lambda, a local function, one in `__main__`): only the same `env=` makes it again."""
+    if not names_module(env_id):
+        return False
+    module_name, name = env_id.split(":", 1)
+    return "<" in name or module_name == "__main__"
+
+
 def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | None = None,
                    kwargs: dict[str, Any] | None = None, wrappers: list[str] | tuple[str, ...] = (),
                    factory: EnvFn | None = None) -> EnvFn:
@@ -167,7 +176,7 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
         base = _custom_fn(env_id, factory, kwargs, max_episode_steps)
     elif names_module(env_id):
         module_name, name = env_id.split(":", 1)
-        if "<" in name or module_name == "__main__":
+        if names_python_factory(env_id):
             raise UserError(f"env.id={env_id!r} records an env factory given to relayrl.train in Python that "
                             "cannot be imported here (a lambda, a local function or __main__); pass the same "
                             "env= again in Python, or make it a function in a module and name it in env.id")

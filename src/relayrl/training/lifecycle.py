@@ -22,6 +22,7 @@ import torch
 from relayrl import interrupts
 from relayrl.config import Config, changes, from_dict, load_toml, save_toml, to_dict
 from relayrl.core import Agent
+from relayrl.envs.gym import names_python_factory
 from relayrl.envs.make import check_env, is_user_env
 from relayrl.errors import NonFiniteError, UserError
 from relayrl.metrics import EpisodeStats
@@ -301,7 +302,7 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
 def _stopped_at(core: RunCore) -> str:
     """Where an interrupted run stopped and how it goes on, in Python's terms (the CLI says its own)."""
     root, step = str(core.rd.root), core.env_steps()
-    factory = ", env=<the same env factory>" if "<" in core.config.env.id else ""  # factory_env_id's label
+    factory = ", env=<the same env factory>" if names_python_factory(core.config.env.id) else ""
     if core.config.train.checkpoint_interval > 0:
         return (f"the run stopped at env step {step:,} with a checkpoint in {root!r}: "
                 f"relayrl.train(None, {root!r}, resume=True{factory}) continues it")
