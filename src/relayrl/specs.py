@@ -16,7 +16,7 @@ and `pack_batch` build rows from what the env returns or what a user passes a po
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -289,13 +289,7 @@ def to_space(spec: Spec, stored: bool = False) -> gym.Space:
     if isinstance(spec, MultiBinarySpec):
         return gym.spaces.MultiBinary(spec.shape[0] if len(spec.shape) == 1 else list(spec.shape))
     if isinstance(spec, PackedSpec):
-        tree: dict[Any, Any] = {}
-        for f in spec.fields:
-            node = tree
-            for step in f.path[:-1]:
-                node = node.setdefault(step, {})
-            node[f.path[-1]] = to_space(f.spec, stored)
-        return _space_of(tree, spec.tuple_space)
+        return spec.nested([to_space(f.spec, stored) for f in spec.fields], gym.spaces.Tuple, gym.spaces.Dict)
     dtype = dtype_of(spec)
     if spec.low is not None and spec.high is not None:
         return gym.spaces.Box(spec.low, spec.high, spec.shape, dtype)
@@ -303,14 +297,6 @@ def to_space(spec: Spec, stored: bool = False) -> gym.Space:
         info = np.iinfo(dtype)
         return gym.spaces.Box(int(info.min), int(info.max), spec.shape, dtype)
     return gym.spaces.Box(-np.inf, np.inf, spec.shape, dtype)
-
-
-def _space_of(node: dict[Any, Any], tuple_here: bool) -> gym.Space:
-    """Nested dicts of spaces as Dict / Tuple spaces (int keys are a Tuple's entries)."""
-    parts = {k: _space_of(v, False) if isinstance(v, dict) else v for k, v in node.items()}
-    if tuple_here or all(isinstance(k, int) for k in parts):
-        return gym.spaces.Tuple([parts[k] for k in sorted(parts)])
-    return gym.spaces.Dict(parts)
 
 
 def numpy_dtype(spec: Spec) -> np.dtype:
@@ -381,14 +367,22 @@ class PackedSpec(ArraySpec):
     def observation(self, row: np.ndarray) -> Any:
         """`pack`'s inverse: one packed row [nbytes] -> the observation as the env returns it (nested
         dicts and tuples of arrays, a Discrete entry as an integer)."""
+        leaves = [row[f.offset:f.offset + f.nbytes].view(numpy_dtype(f.spec)).reshape(f.spec.shape)
+                  for f in self.fields]
+        return self.nested([leaf[()] if leaf.ndim == 0 else leaf.copy() for leaf in leaves])
+
+    def nested(self, leaves: list[Any], as_tuple: Callable[[list[Any]], Any] = tuple,
+               as_dict: Callable[[dict[Any, Any]], Any] = dict) -> Any:
+        """One value per field (in `fields`' order) put in the space's structure: a Tuple's
+        entries through `as_tuple`, a Dict's through `as_dict` (tuples and dicts of the values by
+        default; `gym.spaces.Tuple` and `gym.spaces.Dict` for spaces)."""
         tree: dict[Any, Any] = {}
-        for f in self.fields:
-            leaf = row[f.offset:f.offset + f.nbytes].view(numpy_dtype(f.spec)).reshape(f.spec.shape)
+        for f, leaf in zip(self.fields, leaves, strict=True):
             node = tree
             for step in f.path[:-1]:
                 node = node.setdefault(step, {})
-            node[f.path[-1]] = leaf[()] if leaf.ndim == 0 else leaf.copy()
-        return _as_space(tree, self.tuple_space and not isinstance(next(iter(tree)), str))
+            node[f.path[-1]] = leaf
+        return _as_space(tree, self.tuple_space and not isinstance(next(iter(tree)), str), as_tuple, as_dict)
 
     def batch_size(self, obs: Any) -> int | None:
         """None when `obs` is one observation, else the batch its leaves share."""
@@ -401,13 +395,14 @@ class PackedSpec(ArraySpec):
         return leaf.shape[0] if extra == 1 else None
 
 
-def _as_space(node: Any, tuple_here: bool) -> Any:
-    """Nested dicts from `observation` as the space's structure: int keys are a Tuple's entries."""
+def _as_space(node: Any, tuple_here: bool, as_tuple: Callable[[list[Any]], Any],
+              as_dict: Callable[[dict[Any, Any]], Any]) -> Any:
+    """Nested dicts from `nested` as the space's structure: int keys are a Tuple's entries."""
     if not isinstance(node, dict):
         return node
     if tuple_here or all(isinstance(k, int) for k in node):
-        return tuple(_as_space(node[k], False) for k in sorted(node))
-    return {k: _as_space(v, False) for k, v in node.items()}
+        return as_tuple([_as_space(node[k], False, as_tuple, as_dict) for k in sorted(node)])
+    return as_dict({k: _as_space(v, False, as_tuple, as_dict) for k, v in node.items()})
 
 
 def leaf_array(obs: Any, f: Field) -> np.ndarray:
