@@ -36,7 +36,8 @@ class Algorithm:
     name: str  # config's `algo`
     config: type  # the `agent` section's dataclass, with validate()
     policy_kind: str  # the `kind` its saved policy.pt carries
-    # Its saved policy's module: `load(state, device, deterministic, seed)` and `deterministic_module(state)`.
+    # Its saved policy's module: `load(state, device, deterministic, seed)`, `deterministic_module(state)`
+    # and `action_space(state)`.
     policy: Callable[[], ModuleType]
     # The agent class, built as Class(obs_spec, action_spec, cfg, device, rng, total_steps).
     agent: Callable[[], type[Agent]] | None = None
