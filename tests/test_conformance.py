@@ -197,3 +197,18 @@ def test_eval_interval_zero_evaluates_once_at_the_end(name, tmp_path):
 def test_eval_interval_must_not_be_negative():
     with pytest.raises(UserError, match=r"eval.interval=-1 is not valid; it must be >= 0 \(0: only the final"):
         relayrl.load_config("dqn", ["eval.interval=-1"])
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_metrics_rows_carry_the_schedules(runs, name):
+    """Each evaluation row holds the agent's schedule values where the run was, as TensorBoard's
+    charts/ does, so a plot of metrics.jsonl alone can show what the learning rate or epsilon was."""
+    cfg, root = runs(name)
+    rows = RunDir(root).read_metrics()
+    if not algorithm(name).agent:  # BPTT's rows carry its learning rate as `lr`
+        assert all("lr" in r for r in rows)
+        return
+    assert all("charts/learning_rate" in r for r in rows)
+    if name == "dqn":
+        eps = [r["charts/epsilon"] for r in rows]
+        assert eps[0] == cfg.agent.epsilon_start and eps == sorted(eps, reverse=True)

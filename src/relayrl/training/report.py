@@ -157,9 +157,13 @@ class RunReport:
     def log_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
         """perf/sps and perf/grad_sps, losses/*, charts/epsilon (DQN), charts/learning_rate and the
         info keys' means: what TensorBoard and the callbacks' "log" rows get."""
-        return {"perf/sps": env_sps, "perf/grad_sps": grad_sps, **self.losses(),
-                **{f"charts/{k}": v for k, v in self.schedules(p.env_steps).items()},
+        return {"perf/sps": env_sps, "perf/grad_sps": grad_sps, **self.losses(), **self.schedule_values(p),
                 **{f"charts/{k}": v for k, v in self.stats.info_means().items()}}
+
+    def schedule_values(self, p: Progress) -> dict[str, float]:
+        """The agent's schedules where the run is (charts/epsilon, charts/learning_rate, ...):
+        in TensorBoard, the callbacks' rows and each metrics.jsonl row."""
+        return {f"charts/{k}": v for k, v in self.schedules(p.env_steps).items()}
 
     def training_summary(self) -> dict[str, Any]:
         """The training episodes' side of a metrics row: their mean return, count and info means."""
@@ -183,7 +187,7 @@ class RunReport:
         wall = self.wall_time() if wall_time_s is None else wall_time_s
         row = {"step": p.env_steps, "train_step": p.train_step, **result,
                "wall_time_s": round(wall, 3), "eval_s": round(eval_s, 3), **self.training_summary(),
-               **self.losses(), **(extra or {})}
+               **self.losses(), **self.schedule_values(p), **(extra or {})}
         self.metrics_log.write(row)
         self.tb.add_scalar("eval/average_return", result["average_return"], p.env_steps)
         self.tb.add_scalar("eval/average_episode_length", result["average_episode_length"], p.env_steps)
