@@ -29,6 +29,7 @@ def observation_space(kind: str) -> gym.Space:
         "multi_binary": spaces.MultiBinary(3),
         "image": spaces.Box(0, 255, (1, 12, 12), np.uint8),
         "image_hwc": spaces.Box(0, 255, (10, 10, 3), np.uint8),
+        "image_chw": spaces.Box(0, 255, (3, 10, 10), np.uint8),  # image_hwc's conv weights: not in OBS_KINDS
         "board": spaces.Box(0, 2, (8, 8), np.uint8),  # cell codes, not pixels: an MLP on the numbers
         "dict": spaces.Dict({"frame": spaces.Box(0, 255, (1, 8, 8), np.uint8), "cell": spaces.Discrete(4),
                              "pos": spaces.Box(-1.0, 1.0, (2,), np.float32)}),
@@ -75,9 +76,9 @@ class Spaces(gym.Env):
             return np.array([g, self.t % 3])
         if k == "multi_binary":
             return np.array([g, 1 - g, self.t % 2], np.int8)
-        if k in ("image", "image_hwc"):
+        if k in ("image", "image_hwc", "image_chw"):
             img = np.zeros(self.observation_space.shape, np.uint8)
-            img[..., :4, :] = 255 * g if k == "image" else 0
+            img[..., :4, :] = 255 * g if k != "image_hwc" else 0
             if k == "image_hwc":
                 img[:4] = 255 * g
             return img

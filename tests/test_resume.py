@@ -228,8 +228,9 @@ def test_resume_with_another_network_is_one_line_and_keeps_the_run(tmp_path):
     # the same activation, sizes and encoder, but an env whose observations changed shape: found on loading
     other = relayrl.load_config(str(tmp_path / "r" / "config.toml"), ["train.total_steps=900",
                                                                      "env.wrappers=['toy_envs:Repeated']"])
-    with pytest.raises(relayrl.errors.UserError, match=r"the checkpoint's networks do not fit this config \(.*"
-                                                       r"size mismatch.*\): resume with the settings the run started"):
+    with pytest.raises(relayrl.errors.UserError, match=r"the env's observations are Box\(.*shape=\(8,\), .* but "
+                                                       r"the run was trained on Box\(.*shape=\(4,\), .*: resume with "
+                                                       r"the env settings the run started with"):
         relayrl.train(other, tmp_path / "r", resume=True, progress=False)
     assert (tmp_path / "r" / "metrics.jsonl").read_text() == before
     assert (tmp_path / "r" / "config.toml").read_text() == config_before  # the refused settings are not kept
@@ -513,3 +514,26 @@ def test_resume_naming_a_preset_with_other_networks_uses_the_runs_own_config(tmp
     assert main(["train", "dqn-cartpole-fast", "--run-dir", str(tmp_path / "r"), "--resume", "--no-progress",
                  "--set", "train.total_steps=900"]) == 0
     assert RunDir(tmp_path / "r").read_metrics()[-1]["step"] == 900
+
+
+def test_resume_with_env_settings_that_change_the_space_is_one_line_and_keeps_the_run(tmp_path):
+    """[H, W, C] frames turned [C, H, W] by an env kwarg fit the same conv weights (and a run
+    without its replay in the checkpoint has no other store to notice): the spaces the
+    checkpoint records refuse it before anything is loaded or rewritten."""
+    over = ["env.id=space_envs:Spaces", "env.kwargs={obs = 'image_hwc'}", "train.total_steps=200",
+            "train.initial_collect_steps=50", "eval.interval=0", "train.checkpoint_interval=100",
+            "agent.hidden=[16]", "agent.batch_size=8"]
+    for keep_replay in ("true", "false"):
+        root = tmp_path / keep_replay
+        relayrl.train(relayrl.load_config("dqn", [*over, f"train.checkpoint_replay={keep_replay}"]), root,
+                      progress=False)
+        before = {f: (root / f).read_text() for f in ("config.toml", "metrics.jsonl")}
+        other = relayrl.load_config(str(root / "config.toml"), ["train.total_steps=300",
+                                                                 "env.kwargs={obs = 'image_chw'}"])
+        with pytest.raises(relayrl.errors.UserError,
+                           match=r"^the env's observations are Box\(0, 255, shape=\(3, 10, 10\), dtype=uint8\) but "
+                                 r"the run was trained on Box\(0, 255, shape=\(10, 10, 3\), dtype=uint8\)"):
+            relayrl.train(other, root, resume=True, progress=False)
+        assert {f: (root / f).read_text() for f in before} == before
+        relayrl.train(relayrl.load_config(str(root / "config.toml"), ["train.total_steps=300"]), root, resume=True,
+                      progress=False)

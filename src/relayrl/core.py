@@ -89,6 +89,9 @@ class Observer(Protocol):
 class Agent(Saveable, Protocol):
     """What the train loop knows of an algorithm. The factory that builds one returns this type."""
 
+    # The env's spaces it was built for: what its checkpoints and policy files record.
+    obs_spec: Spec
+    action_spec: Spec
     # Training metrics that are NaN where they are undefined (PPO's explained variance when a
     # rollout's returns are all equal): logged as they are, not taken for a diverging run.
     undefined_metrics: frozenset[str] = frozenset()

@@ -186,7 +186,7 @@ def _bound(values: np.ndarray) -> str:
     flat = np.asarray(values).reshape(-1)
     if flat.size and (flat == flat[0]).all():
         return f"{flat[0]:g}" if np.issubdtype(flat.dtype, np.floating) else str(flat[0])
-    return np.array2string(flat, threshold=8, separator=", ")
+    return np.array2string(flat, threshold=8, separator=", ", max_line_width=10**9)  # a message is one line
 
 
 def flat_dim(spec: Spec) -> int:

@@ -29,6 +29,7 @@ from relayrl.metrics import EpisodeStats
 from relayrl.policy_file import env_action_entries
 from relayrl.schedules import linear_schedule
 from relayrl.seeding import RunSeeds
+from relayrl.specs import describe, spec_from_state, spec_state
 from relayrl.training.checkpoint import list_checkpoints
 from relayrl.training.finite import FiniteWatch, non_finite_metrics, non_finite_tensor, stop
 from relayrl.training.learner import Learner
@@ -186,13 +187,23 @@ class RunCore:
     def checkpoint_common(self, eval_count: int) -> dict[str, Any]:
         """What every driver's checkpoint holds: the config, the agent, the training episodes'
         stats, the evaluations so far, the wall time and the process's state."""
-        return {"version": 2, "config": to_dict(self.config), "agent": self.agent.state_dict(),
-                "episode_stats": self.stats.state_dict(), "eval_count": eval_count,
-                "wall_time_s": self.wall_time(), **self.process_state()}
+        return {"version": 2, "config": to_dict(self.config), "spaces": self.spaces(),
+                "agent": self.agent.state_dict(), "episode_stats": self.stats.state_dict(),
+                "eval_count": eval_count, "wall_time_s": self.wall_time(), **self.process_state()}
+
+    def spaces(self) -> dict[str, Any]:
+        """The env's observation and action spaces as the networks and the replay are laid out for them."""
+        return {"observation": spec_state(self.agent.obs_spec), "action": spec_state(self.agent.action_spec)}
 
     def restore_common(self, state: dict[str, Any]) -> int:
         """Load the agent, the episodes' stats and the wall time of `checkpoint_common`; returns
         the evaluations so far. The process's state is the driver's to load, once its envs are back."""
+        saved = state.get("spaces")  # checkpoints before spaces were recorded skip this check
+        for kind, now in self.spaces().items():
+            if saved is not None and saved[kind] != now:  # described as recorded: both in the same terms
+                raise UserError(f"the env's {kind}s are {describe(spec_from_state(now))} but the run was trained on "
+                                f"{describe(spec_from_state(saved[kind]))}: resume with the env settings the run "
+                                "started with (leave out the --set keys that change env.kwargs or env.wrappers)")
         try:
             self.agent.load_state_dict(state["agent"])
         except (RuntimeError, KeyError, ValueError) as e:  # torch's size-mismatch report runs over lines
