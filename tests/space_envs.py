@@ -145,3 +145,8 @@ class Squeezed(FlatEncoder):
 
     def forward(self, obs):
         return super().forward(obs).squeeze()
+
+
+def stacked(env: gym.Env) -> gym.Env:
+    """Three frames stacked along a new first side, as Gymnasium stacks RGB frames: [3, H, W, C]."""
+    return gym.wrappers.FrameStackObservation(env, 3)

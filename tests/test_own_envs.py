@@ -304,6 +304,16 @@ def test_what_relayrl_casts_or_tolerates_stays_a_warning(tmp_path, capfd):
     (gym.spaces.Discrete(3), np.array([2]), "has shape (1,)"),
     (gym.spaces.Dict({"a": gym.spaces.Discrete(2)}), {"b": 1}, "Dict with keys ['a']"),
     (gym.spaces.Tuple((gym.spaces.Discrete(2),) * 2), (1,), "a Tuple of 2"),
+    # an integer space: whole floats are cast without loss; fractions or wrapped values are not
+    (gym.spaces.Box(0, 255, (2, 2), np.uint8), np.full((2, 2), 3.0, np.float32), None),
+    (gym.spaces.Box(0, 255, (2, 2), np.uint8), np.full((2, 2), 0.5, np.float32),
+     "holds float32 values that are not whole numbers (such as 0.5) but observation_space is Box(0, 255, (2, 2), "
+     "uint8), which keeps uint8 integers: declare a float32 Box (frames scaled to [0, 1]"),
+    (gym.spaces.Box(0, 255, (2,), np.uint8), np.array([1, 300]), "holds 300, outside uint8's range [0, 255]"),
+    (gym.spaces.Box(0, 255, (2,), np.uint8), np.array([1, 256]), "holds 256, outside"),  # would train as 0
+    (gym.spaces.Box(0, 10, (2,), np.int32), np.array([1, 300]), None),  # outside the bounds only: harmless
+    (gym.spaces.Discrete(3), 1.5, "not whole numbers (such as 1.5)"),
+    (gym.spaces.MultiBinary(2), np.array([True, False]), None),
 ])
 def test_the_probe_flags_only_what_cannot_be_read(space, obs, fragment):
     from relayrl.envs.probe import _obs_problem

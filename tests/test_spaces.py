@@ -13,13 +13,22 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from space_envs import OBS_KINDS, FlatEncoder, Spaces, observation_space
+from space_envs import OBS_KINDS, FlatEncoder, Spaces, observation_space, stacked
 from torch import nn
 
 import relayrl
 from relayrl.errors import UserError
 from relayrl.nn.encoders import ConvEncoder, DictEncoder, OneHot, make_encoder
-from relayrl.specs import PackedSpec, is_image, spec_from_space, spec_from_state, spec_state, unpack
+from relayrl.specs import (
+    PackedSpec,
+    frame_layout,
+    image_layout,
+    is_image,
+    spec_from_space,
+    spec_from_state,
+    spec_state,
+    unpack,
+)
 
 # algo -> the action kinds it takes
 # (box_scalar: Box shape (), box2d: Box (2, 2): actions that travel flat, in the env's shape at its ends)
@@ -230,6 +239,55 @@ def test_encoders_one_hot_and_conv_by_size():
         make_encoder(spec_from_space(gym.spaces.Box(0, 255, (16, 16), np.uint8)), "nature_cnn")
     mixed = make_encoder(spec_from_space(Spaces("dict").observation_space))
     assert isinstance(mixed, DictEncoder) and mixed.out_dim == 4 + 256 + 2
+
+
+@pytest.mark.parametrize(("shape", "layout", "channels"), [
+    ((84, 84), "HW", 1), ((4, 84, 84), "CHW", 4), ((84, 84, 3), "HWC", 3), ((1, 12, 12), "CHW", 1),
+    ((64, 64, 12), "HWC", 12),  # four RGB frames side by side (SB3's VecFrameStack): the smaller side is channels
+    ((64, 64, 2), "HWC", 2),
+    ((4, 64, 64, 3), "SHWC", 12), ((4, 3, 64, 64), "SCHW", 12),  # FrameStackObservation over RGB frames
+    ((2, 2, 64), None, None), ((4, 4), None, None), ((2, 3, 4, 5, 6), None, None),  # no 8x8 frame: a vector
+])
+def test_frames_are_read_with_the_smaller_outer_side_as_channels(shape, layout, channels):
+    spec = spec_from_space(gym.spaces.Box(0, 255, shape, np.uint8))
+    assert frame_layout(shape) == layout and spec_state(spec)["layout"] == layout
+    encoder = make_encoder(spec)
+    if layout is None:
+        assert encoder is None
+        return
+    assert encoder.convs[0].in_channels == channels
+    frames = torch.randint(0, 256, (2, *shape), dtype=torch.uint8)
+    by_hand = frames.movedim(-1, -3) if layout.endswith("C") else frames  # [B, (S,) C, H, W]
+    by_hand = by_hand.reshape(2, channels, *by_hand.shape[-2:]).float() / 255.0
+    assert torch.allclose(encoder(frames), encoder.dense(encoder.convs(by_hand)), atol=1e-6)
+
+
+def test_a_policy_file_whose_frames_this_version_reads_another_way_is_one_line():
+    """Files without a "layout" were trained by the former rule ([H, W, C] only for 1, 3 or 4
+    channels): where it reads a shape as this rule does, they load; else they are refused."""
+    same = {"kind": "box", "shape": [84, 84, 3], "dtype": "uint8", "low": 0, "high": 255}
+    assert image_layout(spec_from_state(same)) == (3, True)
+    for shape, before in (([64, 64, 12], "CHW"), ([4, 64, 64, 3], "a flat vector")):
+        with pytest.raises(UserError, match=rf"observations were read as {before} when this policy was trained; this "
+                                            r"version reads them as S?HWC \(the smaller outer side is the channels\): "
+                                            "train it again"):
+            spec_from_state({**same, "shape": shape})
+    board = {**same, "shape": [64, 64, 12], "high": 2}  # not frames: an MLP either way
+    assert not is_image(spec_from_state(board))
+
+
+def test_frames_stacked_by_gymnasiums_wrapper_over_rgb_train_a_conv_net(tmp_path):
+    """[S, H, W, C] stacks (FrameStackObservation over RGB frames) get one conv net over S * C
+    channels, and the replay keeps each step's newest frame only."""
+    config = short_config("dqn", "image_hwc", "discrete")
+    config.env.wrappers = ["space_envs:stacked"]
+    relayrl.train(config, tmp_path / "r", progress=False)
+    policy = relayrl.load_policy(tmp_path / "r")
+    assert policy.obs_shape == (3, 10, 10, 3)
+    obs, _ = stacked(Spaces("image_hwc")).reset(seed=0)
+    assert int(policy(obs)) in (0, 1)
+    state = torch.load(tmp_path / "r" / "policy" / "policy.pt", weights_only=True)
+    assert state["state_dict"]["encoder.convs.0.weight"].shape[1] == 9
 
 
 @pytest.mark.parametrize(("algo", "act", "words"), [

@@ -201,35 +201,60 @@ def is_flat_vector(spec: Spec) -> bool:
 
 
 def is_image(spec: Spec, any_bounds: bool = False) -> bool:
-    """A uint8 Box shaped [H, W], [C, H, W] or [H, W, C] whose sides are at least 8 and whose
-    bounds are 0 and 255 (Stable-Baselines3's rule): frames, which the conv encoders take
-    (scaled by 1/255). A uint8 grid of codes (a board, Box(0, 2)) is a vector of numbers, unless
-    a conv encoder is asked for by name (`any_bounds`). A spec without bounds (a policy file
-    from before they were kept) counts as having them."""
-    if type(spec) is not ArraySpec or spec.dtype != torch.uint8 or len(spec.shape) not in (2, 3):
+    """A uint8 Box laid out as frames (`frame_layout`) whose bounds are 0 and 255 (Stable-Baselines3's
+    rule): frames, which the conv encoders take (scaled by 1/255). A uint8 grid of codes (a
+    board, Box(0, 2)) is a vector of numbers, unless a conv encoder is asked for by name
+    (`any_bounds`). A spec without bounds (a policy file from before they were kept) counts as
+    having them."""
+    if type(spec) is not ArraySpec or spec.dtype != torch.uint8 or frame_layout(spec.shape) is None:
         return False
-    pixels = any_bounds or spec.low is None or spec.high is None or bool((spec.low == 0).all()
-                                                                         and (spec.high == 255).all())
-    return pixels and min(image_size(spec)) >= 8
+    return any_bounds or _pixel_bounds(spec)
+
+
+def _pixel_bounds(spec: ArraySpec) -> bool:
+    return spec.low is None or spec.high is None or bool((spec.low == 0).all() and (spec.high == 255).all())
+
+
+def frame_layout(shape: Sequence[int]) -> str | None:
+    """How a shape reads as frames: "HW", "CHW", "HWC", or a stack of them along the first side,
+    "SCHW" / "SHWC" (Gymnasium's FrameStackObservation over RGB frames), the channels being the
+    smaller of the outer sides (Stable-Baselines3's rule: [84, 84, 12] is four RGB frames side by
+    side, [4, 84, 84] four gray ones); None where a side is under 8 pixels or the rank is another."""
+    if len(shape) not in (2, 3, 4):
+        return None
+    frame = tuple(shape[-3:]) if len(shape) > 2 else tuple(shape)
+    layout = "HW" if len(frame) == 2 else "HWC" if frame[2] < frame[0] else "CHW"
+    sides = frame if len(frame) == 2 else frame[:2] if layout == "HWC" else frame[1:]
+    if min(sides) < 8:
+        return None
+    return "S" + layout if len(shape) == 4 else layout
 
 
 def image_layout(spec: ArraySpec) -> tuple[int, bool]:
-    """(channels, channels last) of an image spec: [H, W, C] when the last side is 1, 3 or 4
-    and the first is not (an RGB or RGBA frame), else [C, H, W] (stacked frames)."""
-    shape = spec.shape
-    if len(shape) == 2:
+    """(channels, channels last) of an image spec, a stack's frames counting as channels."""
+    layout, shape = frame_layout(spec.shape), spec.shape
+    assert layout is not None, f"{shape} is not laid out as frames"
+    if layout == "HW":
         return 1, False
-    last = shape[-1] in (1, 3, 4) and shape[0] not in (1, 3, 4)
-    return (shape[-1], True) if last else (shape[0], False)
+    channels = shape[-1] if layout.endswith("C") else shape[-3]
+    return channels * (shape[0] if layout.startswith("S") else 1), layout.endswith("C")
 
 
 def image_size(spec: ArraySpec) -> tuple[int, int]:
     """(H, W) of an image-shaped spec."""
     shape = spec.shape
+    return (shape[-3], shape[-2]) if image_layout(spec)[1] else (shape[-2], shape[-1])
+
+
+def _frame_layout_before(shape: Sequence[int]) -> str | None:
+    """The layout policy files without a "layout" entry were trained with: ranks 2 and 3 only, [H, W,
+    C] where the last side was 1, 3 or 4 and the first was not."""
     if len(shape) == 2:
-        return shape[0], shape[1]
-    _, last = image_layout(spec)
-    return (shape[0], shape[1]) if last else (shape[1], shape[2])
+        return "HW" if min(shape) >= 8 else None
+    if len(shape) != 3:
+        return None
+    last = shape[-1] in (1, 3, 4) and shape[0] not in (1, 3, 4)
+    return ("HWC" if last else "CHW") if min(shape[:2] if last else shape[1:]) >= 8 else None
 
 
 def spec_state(spec: Spec) -> dict[str, Any]:
@@ -248,6 +273,7 @@ def spec_state(spec: Spec) -> dict[str, Any]:
         state["env_dtype"] = spec.env_dtype
     if kind == "box" and spec.dtype == torch.uint8 and spec.low is not None and spec.high is not None:
         state["low"], state["high"] = _compact(spec.low), _compact(spec.high)  # `is_image` reads them
+        state["layout"] = frame_layout(spec.shape)  # the layout its networks were built for
     return state
 
 
@@ -271,10 +297,16 @@ def spec_from_state(state: dict[str, Any]) -> Spec:
         return MultiDiscreteSpec(shape, dtype, env_dtype=env, nvec=tuple(int(n) for n in state["nvec"]))
     if kind == "multi_binary":
         return MultiBinarySpec(shape, dtype, env_dtype=env)
+    spec = ArraySpec(shape, dtype, env_dtype=env)
     if "low" in state:
         low, high = (np.broadcast_to(np.asarray(state[k], np.uint8), shape).copy() for k in ("low", "high"))
-        return ArraySpec(shape, dtype, low, high, env_dtype=env)
-    return ArraySpec(shape, dtype, env_dtype=env)
+        spec = ArraySpec(shape, dtype, low, high, env_dtype=env)
+    trained = state["layout"] if "layout" in state else _frame_layout_before(shape)
+    if dtype == torch.uint8 and _pixel_bounds(spec) and trained != frame_layout(shape):  # frames read another way
+        raise UserError(f"{describe(spec)} observations were read as {trained or 'a flat vector'} when this policy "
+                        f"was trained; this version reads them as {frame_layout(shape) or 'a flat vector'} "
+                        "(the smaller outer side is the channels): train it again")
+    return spec
 
 
 def to_space(spec: Spec, stored: bool = False) -> gym.Space:

@@ -2,9 +2,10 @@
 fresh copy, compared with the Gymnasium API and the env's own spaces.
 
 Only what relayrl cannot work with is reported (a `step` of 4 values, an observation whose shape
-or kind does not fit its space, a reward that is not a number); what it casts or tolerates
-(float64 observations of the right shape, values outside the bounds) is left to Gymnasium's
-checker, whose findings stay warnings.
+or kind does not fit its space, values that casting to an integer space would change, a reward
+that is not a number); what it casts or tolerates without loss (float64 observations of the
+right shape, values outside the bounds) is left to Gymnasium's checker, whose findings stay
+warnings.
 """
 
 from __future__ import annotations
@@ -86,6 +87,25 @@ def _obs_problem(obs: Any, space: gym.Space, method: str) -> str | None:
     if tuple(array.shape) != tuple(space.shape):
         return (f"{pre} has shape {tuple(array.shape)} but observation_space is {space} "
                 f"(shape {tuple(space.shape)}): return arrays of the space's shape, or declare the shape returned")
+    return _cast_problem(array, space, pre)
+
+
+def _cast_problem(array: np.ndarray, space: gym.Space, pre: str) -> str | None:
+    """Values an integer space's dtype would change: fractions (frames scaled to [0, 1] in a uint8
+    space would train as black) or numbers outside the dtype (wrapped around)."""
+    dtype = np.dtype(space.dtype) if space.dtype is not None else None
+    if dtype is None or dtype.kind not in "iu" or array.dtype.kind == "b" or not array.size:
+        return None
+    if array.dtype.kind == "f" and not np.array_equal(array, np.round(array)):
+        return (f"{pre} holds {array.dtype} values that are not whole numbers (such as "
+                f"{array[array != np.round(array)].flat[0]:g}) but observation_space is {space}, which keeps "
+                f"{dtype} integers: declare a float32 Box (frames scaled to [0, 1]: Box(0.0, 1.0, ...)), or "
+                "return the integers")
+    info = np.iinfo(dtype)
+    low, high = array.min(), array.max()
+    if low < info.min or high > info.max:
+        return (f"{pre} holds {low if low < info.min else high:g}, outside {dtype}'s range [{info.min}, "
+                f"{info.max}], but observation_space is {space}: declare a wider dtype, or return values in range")
     return None
 
 

@@ -79,7 +79,7 @@ class ConvEncoder(nn.Module):
     def __init__(self, spec: Spec, convs: tuple[tuple[int, ...], ...], hidden: int) -> None:
         super().__init__()
         channels, self.channels_last = image_layout(spec)
-        self.rank = len(spec.shape)
+        self.channels = channels
         h, w = image_size(spec)
         layers: list[nn.Module] = []
         c = channels
@@ -93,10 +93,9 @@ class ConvEncoder(nn.Module):
         self.out_dim = hidden
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if self.rank == 2:
-            x = x.unsqueeze(1)  # [B, 1, H, W]
-        elif self.channels_last:
-            x = x.permute(0, 3, 1, 2)  # [B, C, H, W]
+        if self.channels_last:
+            x = x.movedim(-1, -3)  # [B, (S,) C, H, W]
+        x = x.reshape(x.shape[0], self.channels, *x.shape[-2:])  # HW: one channel; a stack's frames: channels
         x = x.float().mul_(1.0 / 255.0) if x.dtype == torch.uint8 else x.float()
         return self.dense(self.convs(x))
 
