@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
-from toy_envs import Countdown
+from toy_envs import Countdown, Repeated
 
 import relayrl
 from relayrl.errors import UserError
@@ -82,6 +82,10 @@ def test_record_video_with_env(run_dir, tmp_path):
         relayrl.record_video(run_dir, tmp_path / "c.mp4", env=Countdown())
     with pytest.raises(UserError, match="must take render_mode"):
         relayrl.record_video(run_dir, tmp_path / "d.mp4", env=lambda: Countdown())
+    other = lambda render_mode=None: Repeated(Countdown(render_mode=render_mode))  # noqa: E731
+    with pytest.raises(UserError, match=r"this env's observations \(Box\(.*shape=\(4,\).*\) do not fit the policy"):
+        relayrl.record_video(run_dir, tmp_path / "e.mp4", env=other)
+    assert not (tmp_path / "e.mp4").exists()
 
 
 def test_video_shows_every_state_of_each_episode_including_the_last(run_dir, tmp_path):

@@ -42,6 +42,7 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     with making(config.env.id):
         env = GymBatchEnv([lambda: EndFrames(make_one(), frames)])
     try:
+        policy.check_fits(env.observation_spec)  # another env= than the run's: one line, as `evaluate` says it
         fps = int(env.envs[0].metadata.get("render_fps", 30))
         obs = env.reset(seed=seed)
         frames.append(first_frame(env, config.env.id))
