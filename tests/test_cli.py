@@ -120,6 +120,28 @@ def test_ci_runs_the_readme_test_command():
     assert ci in (root / "README.md").read_text()
 
 
+def test_a_shared_policy_file_evaluates_on_its_runs_env_kwargs_wrappers_and_time_limit(tmp_path, capsys):
+    import shutil
+
+    import relayrl
+    from relayrl.cli import main
+
+    cfg = relayrl.load_config("dqn-cartpole", ["train.total_steps=60", "train.initial_collect_steps=20",
+                                               "eval.interval=60", "eval.episodes=1", "agent.batch_size=8",
+                                               "env.id=toy_envs:Countdown", "env.kwargs={length = 7}",
+                                               "env.wrappers=['toy_envs:Repeated']", "env.max_episode_steps=5"])
+    relayrl.train(cfg, tmp_path / "run", progress=False)
+    capsys.readouterr()
+    shared = tmp_path / "policy.pt"
+    shutil.copy(tmp_path / "run" / "policy" / "policy.pt", shared)
+    policy = relayrl.load_policy(shared)
+    assert (policy.env_kwargs, policy.env_wrappers, policy.max_episode_steps) == ({"length": 7},
+                                                                                  ["toy_envs:Repeated"], 5)
+    assert main(["eval", str(shared), "--episodes", "2"]) == 0  # Repeated's 4 numbers, cut at 5 of 7 steps
+    assert json.loads(capsys.readouterr().out)["average_episode_length"] == 5.0
+    assert relayrl.evaluate(shared, episodes=2) == relayrl.evaluate(policy, episodes=2) == (5.0, 0.0)
+
+
 def test_eval_of_a_policy_file_outside_a_run_directory_uses_the_env_it_records(tmp_path, capsys):
     import shutil
 

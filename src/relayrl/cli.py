@@ -160,7 +160,9 @@ def _eval(args: argparse.Namespace) -> None:
         env_id = args.env or policy.env_id
         if not env_id:
             raise UserError(f"policy file {args.run_dir!r} records no env id: pass --env ENV_ID")
-        env = make_eval_env(env_id, args.episodes, args.max_episode_steps or 0)
+        own = {} if args.env else {"kwargs": policy.env_kwargs, "wrappers": policy.env_wrappers}
+        cap = args.max_episode_steps or (0 if args.env else policy.max_episode_steps)
+        env = make_eval_env(env_id, args.episodes, cap, **own)
     else:
         rd.require()
         config = load_config(str(rd.config))

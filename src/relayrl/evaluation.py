@@ -31,7 +31,8 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
     with SB3's `predict(obs, deterministic=...)`, or any callable taking one observation as the env
     returns it and returning one action. `env`: a Gymnasium env instance (used as it is and left
     open), a callable returning one (called once per env copy), or an env id; None: a run
-    directory's own env (its config.toml, as `relayrl eval`). The env copies (up to 16, one for an
+    directory's own env (its config.toml, as `relayrl eval`), or the env a policy file records
+    (its id, kwargs, wrappers and time limit). The env copies (up to 16, one for an
     instance) are reset with seed, seed + 1, ... (None: unseeded), as a run's evaluations are, and a
     loaded policy's samples (`deterministic=False`) are drawn from `seed` too. An
     env without a time limit has its episodes cut at `max_episode_steps`, or 1,000 steps if 0
@@ -95,13 +96,20 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
         # One copy: the user's own instance, its episodes one after another.
         return GymBatchEnv([lambda: env]), False
     if env is None:
-        if not isinstance(policy, (str, Path)):
-            raise UserError("env=None evaluates on a run directory's own env; with a policy object give env "
-                            "(a Gymnasium env, a callable returning one, or an env id)")
+        from relayrl.export import load_policy
+        from relayrl.loaded_policy import LoadedPolicy
         from relayrl.presets import load_config
         from relayrl.training.run_dir import RunDir
 
+        if isinstance(policy, LoadedPolicy) and policy.env_id:  # the env its file records
+            return make_eval_env(policy.env_id, episodes, max_episode_steps or policy.max_episode_steps,
+                                 kwargs=policy.env_kwargs, wrappers=policy.env_wrappers), True
+        if not isinstance(policy, (str, Path)):
+            raise UserError("env=None evaluates on the env a run directory or a policy file records; with this "
+                            "policy give env (a Gymnasium env, a callable returning one, or an env id)")
         rd = RunDir.of(policy)
+        if Path(policy).is_file() and not rd.config.is_file():  # a policy file on its own
+            return _batch_env(None, load_policy(policy), episodes, max_episode_steps)
         rd.require()
         c = load_config(str(rd.config)).env
         return make_eval_env(c.id, episodes, max_episode_steps or c.max_episode_steps, kwargs=c.kwargs,

@@ -39,6 +39,10 @@ class LoadedPolicy(Policy):
         self.obs_shape, self.obs_dtype = tuple(self.obs_space.shape), self.obs_space.dtype
         self.env_steps: int | None = state.get("env_steps")  # the run's env step when it was saved
         self.env_id: str | None = state.get("env_id")  # the env.id of the run that saved it
+        # that run's env.kwargs, env.wrappers and env.max_episode_steps (files from before: none)
+        self.env_kwargs: dict[str, Any] = dict(state.get("env_kwargs", {}))
+        self.env_wrappers: list[str] = list(state.get("env_wrappers", []))
+        self.max_episode_steps: int = int(state.get("max_episode_steps", 0))
         # a Box action the policy gives flat (a scalar, [2, 2]): the env's shape (None: as given)
         self.action_shape: tuple[int, ...] | None = tuple(state["action_shape"]) if "action_shape" in state else None
         # the env's action dtype where the policy's is another (a float64 Box, int32 MultiDiscrete)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import pickle
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -21,6 +21,9 @@ from relayrl import atomic
 from relayrl.arrays import torch_dtype
 from relayrl.errors import UserError
 from relayrl.specs import ArraySpec, Spec
+
+if TYPE_CHECKING:
+    from relayrl.config import Config
 
 REFUSED = "not a relayrl policy file, or one that would run code"
 
@@ -46,6 +49,14 @@ def plain(value: Any) -> Any:
     if isinstance(value, np.ndarray | np.generic):
         return value.tolist()
     return value
+
+
+def env_entries(config: Config) -> dict[str, Any]:
+    """The env a policy was trained on, so that a policy file shared on its own evaluates on the
+    same env (`relayrl eval POLICY.pt`): its id, and its kwargs, wrappers and time limit where set."""
+    e = config.env
+    extra = {"env_kwargs": dict(e.kwargs), "env_wrappers": list(e.wrappers), "max_episode_steps": e.max_episode_steps}
+    return {"env_id": e.id, **{k: v for k, v in extra.items() if v}}
 
 
 def env_action_entries(action_spec: Spec) -> dict[str, Any]:

@@ -26,7 +26,7 @@ from relayrl.envs.gym import names_python_factory
 from relayrl.envs.make import check_env, is_user_env
 from relayrl.errors import NonFiniteError, UserError
 from relayrl.metrics import EpisodeStats
-from relayrl.policy_file import env_action_entries
+from relayrl.policy_file import env_action_entries, env_entries
 from relayrl.schedules import linear_schedule
 from relayrl.seeding import RunSeeds
 from relayrl.specs import describe, spec_from_state, spec_state
@@ -126,7 +126,7 @@ class RunCore:
         self.beta_at = linear_schedule(c.replay.importance_exponent, 1.0, c.train.total_steps)
         self.collect_only = collect_only(c)
         self.policy_saver = PolicySaver(c.train.policy_save_interval, agent, rd.policy,
-                                        extra={"env_id": c.env.id, **env_action_entries(agent.action_spec)})
+                                        extra={**env_entries(c), **env_action_entries(agent.action_spec)})
         self.checkpointer = Checkpointer(c.train.checkpoint_interval, checkpoint_state, rd.checkpoints)
         self.sps_log = StepsPerSecondLog(c.train.log_interval, report=self.report.log_progress)
         self.triggers: list[IntervalTrigger] = [evaluation, self.policy_saver, self.checkpointer, self.sps_log]
