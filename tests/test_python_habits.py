@@ -222,6 +222,24 @@ def test_plot_panels_follow_what_the_run_logged(run_dir, tmp_path):
     assert relayrl.plot_run(one).stat().st_size > 0
 
 
+def test_several_runs_plot_in_one_panel(run_dir, tmp_path, capsys):
+    """A sweep's runs compared: compare.png beside them, or --out where they are in several folders."""
+    from relayrl.cli import main
+
+    sweep = tmp_path / "sweep"
+    for seed in (1, 2):
+        relayrl.train({**TINY, "seed": seed}, sweep / f"seed{seed}", progress=False)
+    capsys.readouterr()
+    assert main(["plot", str(sweep / "seed1"), str(sweep / "seed2")]) == 0
+    assert capsys.readouterr().out.strip() == str(sweep / "compare.png") and (sweep / "compare.png").stat().st_size
+    with pytest.raises(UserError, match="in different folders: give --out PATH"):
+        relayrl.plot_run([sweep / "seed1", run_dir])
+    assert relayrl.plot_run([sweep / "seed1", run_dir], tmp_path / "both.svg").stat().st_size > 0
+    (sweep / "empty").mkdir()
+    assert main(["plot", str(sweep / "seed1"), str(sweep / "empty")]) == 2
+    assert "is not a relayrl run directory (no config.toml)" in capsys.readouterr().err
+
+
 def test_the_progress_bar_ends_at_the_last_step_with_the_last_evaluation(tmp_path, monkeypatch):
     import tqdm
 

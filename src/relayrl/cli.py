@@ -92,10 +92,12 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--max-episode-steps", type=int, default=None, metavar="N",
                    help="cut evaluation episodes at N steps (default: the run's env.max_episode_steps, else the "
                         "env's own time limit, else 1,000)")
-    pl = sub.add_parser("plot", help="PNG of average return against env steps")
-    pl.add_argument("run_dir", metavar="RUN_DIR", help="a run directory")
+    pl = sub.add_parser("plot", help="PNG of average return against env steps (several runs: compared)")
+    pl.add_argument("run_dir", metavar="RUN_DIR", nargs="+",
+                    help="a run directory; several: their evaluation returns in one panel")
     pl.add_argument("--out", metavar="PNG",
-                    help="where to write it (default: RUN_DIR/returns.png; folders are created)")
+                    help="where to write it (default: RUN_DIR/returns.png, or compare.png beside several runs; "
+                         "folders are created)")
     v = sub.add_parser("video", help="MP4 of the greedy policy")
     v.add_argument("run_dir", metavar="RUN_DIR", help="a run directory")
     v.add_argument("--out", metavar="MP4", help="where to write it (default: RUN_DIR/video.mp4; folders are created)")
@@ -256,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "plot":
             from relayrl.plot import plot_run
 
-            print(plot_run(args.run_dir, args.out))
+            print(plot_run(args.run_dir[0] if len(args.run_dir) == 1 else args.run_dir, args.out))
         elif args.command == "video":
             from relayrl.video import record_video
 

@@ -1,9 +1,11 @@
 """`relayrl plot`: average evaluation return against env steps, from metrics.jsonl (and, for BPTT
 runs, the rollout's last-step reward beside it; for DQN runs, episode length, loss and mean Q,
-the four curves of the Mario tutorial's logger; a panel per `env.info_keys` key)."""
+the four curves of the Mario tutorial's logger; a panel per `env.info_keys` key). Several runs
+(a sweep's seeds or settings) share one panel of their evaluation returns."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -15,16 +17,15 @@ from relayrl.training.run_dir import RunDir
 Rows = list[dict[str, Any]]
 
 
-def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
+def plot_run(run_dir: str | Path | Sequence[str | Path], out: str | Path | None = None) -> Path:
+    """A PNG (or any format matplotlib writes, by `out`'s extension) of the run's curves, written
+    as RUN_DIR/returns.png by default; several run directories: their evaluation returns in one
+    panel, each labelled with its folder's name, as compare.png in their common parent folder."""
+    if not isinstance(run_dir, (str, Path)):
+        return _compare([RunDir(d) for d in run_dir], out)
     rd = RunDir(run_dir)
-    rd.require()
-    rows = [r for r in rd.read_metrics() if r.get("average_return") is not None]
-    if not rows:
-        raise UserError(f"{str(rd.metrics)!r} has no evaluations yet; train first")
-    import matplotlib
-
-    matplotlib.use("Agg")  # no display needed
-    import matplotlib.pyplot as plt
+    rows = _evaluations(rd)
+    plt = _pyplot()
 
     # BPTT runs (algo = "bptt") log training rollouts, not evaluations; like TorchRL's
     # tutorial, they get a second panel with the reward at the rollout's last step.
@@ -46,8 +47,53 @@ def plot_run(run_dir: str | Path, out: str | Path | None = None) -> Path:
         panels[i].legend()
     for ax in panels[panels_n:]:
         ax.set_visible(False)
+    return _save(fig, output_path(out, rd.root / "returns.png"))
+
+
+def _compare(runs: list[RunDir], out: str | Path | None) -> Path:
+    """One panel: each run's evaluation returns against env steps."""
+    if not runs:
+        raise UserError("no run directory given: give one or more")
+    rows = [_evaluations(rd) for rd in runs]
+    parents = {rd.root.resolve().parent for rd in runs}
+    if out is None and len(parents) > 1:
+        raise UserError("the run directories are in different folders: give --out PATH for the plot")
+    names = [rd.root.name for rd in runs]
+    if len(set(names)) < len(names):  # the same name in several folders: their paths tell them apart
+        names = [str(rd.root) for rd in runs]
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(8, 5))
+    for name, run_rows in zip(names, rows, strict=True):
+        ax.plot([r["step"] for r in run_rows], [r["average_return"] for r in run_rows], marker="o", ms=3, label=name)
+    _steps_axis(ax, [r["step"] for run_rows in rows for r in run_rows])
+    ax.set_ylabel("average return (eval)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small")
+    return _save(fig, output_path(out, parents.pop() / "compare.png"))
+
+
+def _evaluations(rd: RunDir) -> Rows:
+    rd.require()
+    rows = [r for r in rd.read_metrics() if r.get("average_return") is not None]
+    if not rows:
+        raise UserError(f"{str(rd.metrics)!r} has no evaluations yet; train first")
+    return rows
+
+
+def _pyplot() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")  # no display needed
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig: Any, path: Path) -> Path:
+    """`fig` into `path` in the format its extension names, atomically; the figure is closed."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout()
-    path = output_path(out, rd.root / "returns.png")
     kind = path.suffix[1:].lower() or "png"
     if kind not in fig.canvas.get_supported_filetypes():
         plt.close(fig)
