@@ -25,6 +25,10 @@ def run(args, env, cwd=None):
     (["plot", __file__], "is a file, not a run directory"),
     (["video", "/no/such/run"], "does not exist"),
     (["train", "dqn-cartpole", "--resume"], "--resume needs --run-dir"),
+    (["train", "dqn-cartpole", "--run-dir", "r", "--resume", "--overwrite"], "--overwrite replaces a run, --resume "
+                                                                             "continues it: pass one of them"),
+    (["train", "dqn-cartpole", "--seed", "5", "--set", "seed=7"], "--seed 5 and --set seed=7 name two seeds"),
+    (["train", "dqn-cartpole", "--set", "env.id=mymod.MyEnv"], "did you mean mymod:MyEnv?"),
     (["train"], "train needs PRESET|CONFIG.toml (see `relayrl presets`), or --run-dir DIR --resume"),
     (["frobnicate"], "invalid choice"),
     (["train", "dqn-cartpole", "--dir", "x"], "unrecognized arguments: --dir x; did you mean --run-dir?"),

@@ -124,6 +124,8 @@ def _train(args: argparse.Namespace) -> None:
     from relayrl.training.run_dir import RunDir
 
     if args.resume:
+        if args.overwrite:
+            raise UserError("--overwrite replaces a run, --resume continues it: pass one of them")
         if not args.run_dir:
             raise UserError("--resume needs --run-dir DIR (the run to continue)")
         rd = RunDir(args.run_dir)

@@ -198,6 +198,9 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
         _register_on_demand(env_id)
         if env_id not in gym.registry:
             close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
+            module_name, _, name = env_id.rpartition(".")
+            if not close and module_name and name.isidentifier():  # `mymod.MyEnv`: Python's dot for the colon
+                close = [f"{module_name}:{name}"]
             hint = f"; did you mean {', '.join(close)}?" if close else ""
             raise UserError(
                 f"env.id={env_id!r} is not a registered Gymnasium id{hint} "

@@ -79,5 +79,7 @@ def load_config(name_or_path: str, overrides: list[str] | None = None, seed: int
         data = preset_dict(name_or_path)
     data = apply_overrides(data, overrides or [])
     if seed is not None:
+        if any(o.strip().startswith("seed=") for o in overrides or []) and data.get("seed") != seed:
+            raise ConfigError(f"--seed {seed} and --set seed={data.get('seed')} name two seeds: pass one of them")
         data["seed"] = seed
     return from_dict(data)
