@@ -168,22 +168,22 @@ class Cluster:
 
         from relayrl.distributed.offpolicy import CALL_CHUNKS, CALLS_QUEUED
         from relayrl.distributed.server import ReplayServer
-        from relayrl.distributed.workers import ActorNames, RolloutWorker
+        from relayrl.distributed.workers import RolloutWorker
         from relayrl.training.variables import VariableContainer
 
         self.ray, self.queued = ray, CALLS_QUEUED
         self.call_steps = CALL_CHUNKS * c.distributed.chunk_steps
         cfg = to_dict(c)
         obs_spec, act_spec = specs(c.env.id)
-        names = ActorNames(f"bench-{uuid.uuid4().hex[:8]}")
+        names = f"bench-{uuid.uuid4().hex[:8]}"  # workers.named_actor(names, role)
         self.tmp = tempfile.TemporaryDirectory()
         self.server = ray.remote(num_cpus=0, max_concurrency=k + 8)(ReplayServer).options(
-            name=names.server).remote(cfg, obs_spec, act_spec, self.tmp.name, max(k, 1))
+            name=f"{names}-replay").remote(cfg, obs_spec, act_spec, self.tmp.name, max(k, 1))
         self.variables = ray.remote(num_cpus=0, max_concurrency=k + 8)(VariableContainer).options(
-            name=names.variables).remote(copy=True)
+            name=f"{names}-variables").remote(copy=True)
         worker = ray.remote(num_cpus=1, max_restarts=0)(RolloutWorker)
         path = [str(ROOT), *sys.path]
-        self.workers = [worker.remote(cfg, i, 1000 * (i + 1), names, path) for i in range(k)]
+        self.workers = [worker.remote(cfg, i, names, path) for i in range(k)]
         ray.get([w.pid.remote() for w in self.workers])  # env and import errors surface here
         self.inflight: dict[Any, int] = {}
 

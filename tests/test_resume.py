@@ -299,11 +299,11 @@ def test_resume_refuses_another_number_of_envs(tmp_path):
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
     relayrl.train(cfg, tmp_path / "r", progress=False)
     more = relayrl.load_config("dqn-cartpole-fast", DQN + ["env.num_envs=2"])
-    with pytest.raises(relayrl.errors.UserError, match="env.num_envs=2 but the run being resumed has 1"):
+    with pytest.raises(relayrl.errors.UserError, match="env.num_envs=2 but the run in .* has 1"):
         relayrl.train(more, tmp_path / "r", resume=True, progress=False)
     # async: the refusal closes the env's worker processes (a notebook would keep them otherwise)
     more = relayrl.load_config("dqn-cartpole-fast", DQN + ["env.num_envs=2", "env.vectorization=async"])
-    with pytest.raises(relayrl.errors.UserError, match="env.num_envs=2 but the run being resumed has 1"):
+    with pytest.raises(relayrl.errors.UserError, match="env.num_envs=2 but the run in .* has 1"):
         relayrl.train(more, tmp_path / "r", resume=True, progress=False)
     assert not [p for p in multiprocessing.active_children() if p.name.startswith("relayrl-env")]
 

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 import gymnasium as gym
 
 from relayrl.agents.registry import Algorithm, algorithm, ray_algorithms
-from relayrl.config import Config, algo_defaults, from_dict, load_toml, save_toml
+from relayrl.config import Config, algo_defaults, dotted, from_dict, load_toml, save_toml, to_dict
 from relayrl.errors import UserError
 from relayrl.presets import load_config
 from relayrl.training.direct import DirectDriver
@@ -53,36 +53,23 @@ def factory_env_id(factory: Callable[[], Any]) -> str:
     return f"{module}:{label}"
 
 
-_OWN_CONFIG = ("resume with the run's own config.toml: leave out PRESET|CONFIG.toml and --set {key} (in Python: "
-               "relayrl.load_config(RUN_DIR/config.toml), and env= again where the run was given one)")
+# What a resumed run keeps of the run it continues (config.toml's value; a key left out is the
+# algorithm's default), and the advice its refusal gives; `agent.*` keys that shape the networks too.
+_OWN = ("resume with the run's own config.toml: leave out PRESET|CONFIG.toml and --set {} (in Python: "
+        "relayrl.load_config(RUN_DIR/config.toml), and env= again where the run was given one)")
+IDENTITY = {"algo": _OWN.format("algo"), "env.id": _OWN.format("env.id"),
+            "seed": "a resumed run keeps its seed (leave out --seed; in Python, load the run's config.toml)"}
+KEPT = {**IDENTITY, "env.num_envs": "its replay and envs are laid out per copy: " + _OWN.format("env.num_envs"),
+        "distributed.num_actors": "its replay is laid out per actor: " + _OWN.format("distributed.num_actors")}
 
 
-def check_resume_matches(config: Config, rd: RunDir) -> None:
-    """A resumed run is the run in `rd`: a config that names another algorithm or env is one line."""
-    saved, defaults = load_toml(rd.config), Config()  # a key left out of config.toml is its default
-    saved_algo = saved.get("algo", defaults.algo)
-    saved_env = saved.get("env", {}).get("id", defaults.env.id)
-    if config.algo != saved_algo:
-        raise UserError(f"--resume: algo={config.algo!r} but the run in {str(rd.root)!r} is algo={saved_algo!r}; "
-                        + _OWN_CONFIG.format(key="algo"))
-    saved_seed = saved.get("seed", defaults.seed)
-    if config.seed != saved_seed:
-        raise UserError(f"--resume: seed={config.seed} but the run in {str(rd.root)!r} has seed={saved_seed}; "
-                        "a resumed run keeps its seed (leave out --seed; in Python, load the run's config.toml)")
-    if config.env.id != saved_env:
-        raise UserError(f"--resume: env.id={config.env.id!r} but the run in {str(rd.root)!r} is "
-                        f"env.id={saved_env!r}; " + _OWN_CONFIG.format(key="env.id"))
-
-
-def check_resume_networks(config: Config, rd: RunDir) -> None:
-    """The config a run resumes with keeps the keys that shape its networks (`NETWORK`)."""
-    saved, defaults = load_toml(rd.config).get("agent", {}), algo_defaults(config.algo).agent
-    for key in config.agent.NETWORK:
-        was, now = saved.get(key, getattr(defaults, key)), getattr(config.agent, key)
-        if now != was:
-            raise UserError(f"--resume: agent.{key}={now!r} but the run in {str(rd.root)!r} has {was!r}; a resumed "
-                            f"run keeps its networks (leave out --set agent.{key}; in Python, load the run's "
-                            "config.toml)")
+def check_resume_matches(config: Config, rd: RunDir, kept: dict[str, str] = IDENTITY) -> None:
+    """A resumed run is the run in `rd`: a config that changes one of `kept`'s keys is one line."""
+    saved = dotted(load_toml(rd.config))
+    defaults, now = dotted(to_dict(algo_defaults(saved.get("algo", config.algo)))), dotted(to_dict(config))
+    for key, advice in kept.items():
+        if now[key] != (was := saved.get(key, defaults[key])):
+            raise UserError(f"--resume: {key}={now[key]!r} but the run in {str(rd.root)!r} has {was!r}; {advice}")
 
 
 def _use_factory(config: Config, env: Any, one_process: bool) -> None:
@@ -217,8 +204,9 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
             raise UserError("--overwrite replaces a run, --resume continues it: pass one of them (in Python: "
                             "overwrite=True or resume=True)")
         rd.require()
-        check_resume_matches(config, rd)
-        check_resume_networks(config, rd)
+        networks = {f"agent.{k}": f"a resumed run keeps its networks (leave out --set agent.{k}; in Python, load "
+                    "the run's config.toml)" for k in config.agent.NETWORK}
+        check_resume_matches(config, rd, {**KEPT, **networks})
     takeover = None if resume else _takeover_notice(rd, overwrite)
     # files that are not a run's (looked at before the run's parts make a memmap replay's folder)
     beside = not resume and not takeover and rd.root.is_dir() and any(rd.root.iterdir())

@@ -1,16 +1,13 @@
 """docs/config.md, the config reference, generated from the config dataclasses: every key with its
 type, default and meaning (the comment beside the field, as `relayrl config PRESET` prints it).
 
-    python -m relayrl.docs_config            # rewrite docs/config.md (run from the repository root)
-    python -m relayrl.docs_config --check    # exit 1 if docs/config.md is not what this writes
+    python -m relayrl.docs_config    # rewrite docs/config.md (run from the repository root)
 
 tests/test_docs.py fails when the checked-in file is out of date.
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -85,22 +82,5 @@ def _per_algorithm() -> list[str]:
     return out
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m relayrl.docs_config", description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="the file to write (default: docs/config.md)")
-    parser.add_argument("--check", action="store_true", help="write nothing; exit 1 if the file is out of date")
-    args = parser.parse_args(argv)
-    text = render()
-    if args.check:
-        current = args.out.read_text() if args.out.exists() else ""
-        if current != text:
-            print(f"{args.out} is out of date: run `python -m relayrl.docs_config`", file=sys.stderr)
-            return 1
-        return 0
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(text)
-    return 0
-
-
 if __name__ == "__main__":
-    sys.exit(main())
+    DEFAULT_OUT.write_text(render())

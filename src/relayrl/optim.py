@@ -3,7 +3,7 @@
 `torch.optim.Adam(fused=True).step()` wraps the kernel in Python (profiler hooks,
 param-group bookkeeping) that, for small RL networks on a CPU, costs more than the math
 (docs/benchmarks.md has the figures). Same update as torch.optim.Adam (no weight decay, no
-amsgrad); state_dict round-trips. Falls back to torch.optim.Adam where the kernel is missing.
+amsgrad); state_dict round-trips.
 """
 
 from __future__ import annotations
@@ -12,8 +12,6 @@ from collections.abc import Iterable
 from typing import Any
 
 import torch
-
-_HAS_FUSED = hasattr(torch, "_fused_adam_")
 
 
 class FastAdam:
@@ -33,7 +31,6 @@ class FastAdam:
                             if len(devices) == 1 else None)
         self.steps = (list(self._steps_flat.unbind(0)) if self._steps_flat is not None else
                       [torch.zeros((), dtype=torch.float32, device=p.device) for p in self._data])
-        self._fallback = None if _HAS_FUSED else torch.optim.Adam(self.params, lr=lr, betas=betas, eps=eps)
         # On a GPU the kernel reads the learning rate from a device tensor, so a step captured
         # in a CUDA graph (nn/graphed.py) follows a schedule that changes it.
         cuda = self._steps_flat is not None and self._steps_flat.device.type == "cuda"
@@ -58,14 +55,6 @@ class FastAdam:
     def step(self, grads: list[torch.Tensor] | None = None) -> None:
         """One Adam step from the params' `.grad`, or from `grads` (same order as the params)
         when the caller computed gradients without autograd."""
-        if self._fallback is not None:
-            if grads is not None:
-                for p, g in zip(self.params, grads, strict=True):
-                    p.grad = g
-            for group in self._fallback.param_groups:
-                group["lr"] = self.lr
-            self._fallback.step()
-            return
         if grads is None:
             grads = [p.grad for p in self.params]
         elif len(grads) != len(self.params):
@@ -82,16 +71,11 @@ class FastAdam:
                            weight_decay=0.0, eps=self.eps, maximize=False)
 
     def state_dict(self) -> dict[str, Any]:
-        if self._fallback is not None:
-            return {"fallback": self._fallback.state_dict(), "lr": self.lr}
         return {"lr": self.lr, "exp_avg": [t.clone() for t in self.exp_avg],
                 "exp_avg_sq": [t.clone() for t in self.exp_avg_sq], "steps": [t.clone() for t in self.steps]}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.lr = float(state["lr"])
-        if self._fallback is not None:
-            self._fallback.load_state_dict(state["fallback"])
-            return
         for dst_list, key in ((self.exp_avg, "exp_avg"), (self.exp_avg_sq, "exp_avg_sq"), (self.steps, "steps")):
             for dst, src in zip(dst_list, state[key], strict=True):
                 dst.copy_(src)

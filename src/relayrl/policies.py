@@ -54,8 +54,6 @@ class GreedyPolicy(Policy):
     batches, lean torch ops for the rest).
     """
 
-    env_steps: int | None = None  # when a loaded policy was saved (see relayrl.load_policy)
-
     def __init__(self, q_net: nn.Module, device: torch.device) -> None:
         self.q_net = q_net
         self.device = device
@@ -106,8 +104,6 @@ class TanhGaussianPolicy(Policy):
     a GPU: then the actions stay on that device, noise from a torch generator seeded from
     `rng`, so env, policy and replay never copy through the host.
     """
-
-    env_steps: int | None = None  # when a loaded policy was saved (see relayrl.load_policy)
 
     def __init__(self, actor: nn.Module, low: np.ndarray, high: np.ndarray, device: torch.device,
                  deterministic: bool, rng: np.random.Generator | None = None,
@@ -175,8 +171,6 @@ class TanhGaussianPolicy(Policy):
 class ClampedPolicy(Policy):
     """a = clamp(net(obs), low, high): a deterministic policy whose env clamps its actions
     (the BPTT Pendulum policy, trained through the clamp). CPU float32 actions [B, A]."""
-
-    env_steps: int | None = None  # when a loaded policy was saved (see relayrl.load_policy)
 
     def __init__(self, net: nn.Module, low: np.ndarray, high: np.ndarray, device: torch.device) -> None:
         self.net = net

@@ -22,7 +22,6 @@ from relayrl.distributed.offpolicy import ReplayCollection
 from relayrl.distributed.onpolicy import RolloutCollection
 from relayrl.distributed.remote import RemotePusher
 from relayrl.envs import make_env
-from relayrl.errors import UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.seeding import EVAL_STRIDE
 from relayrl.specs import Spec
@@ -149,16 +148,8 @@ class RayDriver:
                 **self.collection.state_dict()}
 
     def restore(self) -> None:
-        c, core, k = self.config, self.core, self.pool.num_actors
+        core, k = self.core, self.pool.num_actors
         state = load_latest_checkpoint(self.rd.checkpoints)
-        saved = state.get("distributed")
-        if saved is None:
-            raise UserError("this run was trained in one process; resume it with distributed.num_actors=0 "
-                            "(its replay is laid out for one actor)")
-        if saved["num_actors"] != k or state["config"]["env"]["num_envs"] != c.env.num_envs:
-            raise UserError(f"the run being resumed has distributed.num_actors={saved['num_actors']} and "
-                            f"env.num_envs={state['config']['env']['num_envs']} (its replay is laid out per actor "
-                            f"and env copy); resume with the same")
         self.eval_count = core.restore_common(state)
         self.collection.load_state_dict(state, core.say)
         self.stats.reset_running()

@@ -19,7 +19,7 @@ from relayrl.core import Agent
 from relayrl.distributed.actors import RETRY_S, ActorPool
 from relayrl.distributed.remote import RemotePusher, RemoteTable
 from relayrl.distributed.server import ReplayServer
-from relayrl.distributed.workers import ActorNames, RolloutWorker
+from relayrl.distributed.workers import RolloutWorker
 from relayrl.errors import NonFiniteError
 from relayrl.metrics import EpisodeStats
 from relayrl.specs import Spec
@@ -44,9 +44,9 @@ class ReplayCollection:
         """The actors and the replay server; the table the learner samples and its pusher."""
         c, k = self.config, self.pool.num_actors
 
-        def server(ray: Any, names: ActorNames) -> Any:
+        def server(ray: Any, name: str) -> Any:
             return ray.remote(num_cpus=0, max_concurrency=k + 8)(ReplayServer).options(
-                name=names.server).remote(to_dict(c), obs_spec, act_spec, rd_root, k)
+                name=name).remote(to_dict(c), obs_spec, act_spec, rd_root, k)
 
         self.pool.start(self.worker_class, server)
         self.table = RemoteTable(self.pool.server, c.agent.batch_size)

@@ -14,7 +14,7 @@ import os
 import sys
 import uuid
 import warnings
-from typing import Any, NamedTuple
+from typing import Any
 
 import torch
 
@@ -46,29 +46,12 @@ def _setup(config: dict[str, Any], sys_path: list[str]) -> Config:
     return c
 
 
-class ActorNames(NamedTuple):
-    """Names of a run's replay server and variable container actors."""
+def named_actor(prefix: str, role: str) -> Any:
+    """A run's replay server (`role` "replay") or variable container ("variables"), found by name:
+    Ray cannot promise to keep handles passed to a restartable actor's constructor alive."""
+    import ray
 
-    prefix: str
-
-    @property
-    def server(self) -> str:
-        return f"{self.prefix}-replay"
-
-    @property
-    def variables(self) -> str:
-        return f"{self.prefix}-variables"
-
-    def handles(self) -> tuple[Any, Any]:
-        import ray
-
-        return ray.get_actor(self.server), self.container()
-
-    def container(self) -> Any:
-        """The variable container alone (a run without a replay server has only this one)."""
-        import ray
-
-        return ray.get_actor(self.variables)
+    return ray.get_actor(f"{prefix}-{role}")
 
 
 def _reconstructed() -> bool:
@@ -154,30 +137,48 @@ class EpisodeLog(EpisodeStats):
         return out
 
 
-class RolloutWorker:
-    """Env (batched, `env.num_envs` copies), acting policy and shipper; `collect(n)` per call."""
+class _RolloutActor:
+    """What both rollout actors hold: `env.num_envs` env copies, an acting copy of the policy
+    network kept fresh from the variable container (every `pull_interval` env steps), the
+    finished episodes and the non-finite watch whose findings go back with each answer."""
 
-    def __init__(self, config: dict[str, Any], index: int, names: ActorNames, sys_path: list[str]) -> None:
+    def __init__(self, config: dict[str, Any], index: int, names: str, sys_path: list[str],
+                 pull_interval: int | None = None) -> None:
+        c = self.config = _setup(config, sys_path)
+        self.seeds, self.env, agent = _acting_parts(c, index)
+        self.index, self.token = index, uuid.uuid4().hex  # one token per incarnation: the driver tells restarts by it
+        self.net = agent.policy_network().requires_grad_(False)
+        self.agent, self.episodes = agent, EpisodeLog()
+        self.finite = FiniteWatch(c.env.num_envs, self.env.observation_spec, where=f"rollout actor {index}'s ")
+        interval = c.distributed.pull_interval if pull_interval is None else pull_interval
+        self.puller = WeightPuller(RemoteVariables(named_actor(names, "variables")), self.net, interval)
+
+    def _answer(self, **extra: Any) -> dict[str, Any]:
+        """A collect call's answer: the episodes that finished, what the watch found, the policy version."""
+        returns, lengths, info = self.episodes.take()
+        return {"index": self.index, "token": self.token, "non_finite": self.finite.check(), "returns": returns,
+                "lengths": lengths, "info": info, "policy_version": self.puller.version, **extra}
+
+    def pid(self) -> int:
+        return os.getpid()
+
+
+class RolloutWorker(_RolloutActor):
+    """An off-policy algorithm's rollout actor: `collect(n)` ships its steps to the replay server."""
+
+    def __init__(self, config: dict[str, Any], index: int, names: str, sys_path: list[str]) -> None:
         import ray
 
-        c = _setup(config, sys_path)
-        server, variables = names.handles()
-        seeds, self.env, agent = _acting_parts(c, index)
-        self.index, self.num_actors = index, c.distributed.num_actors
-        net = agent.policy_network().requires_grad_(False)
+        super().__init__(config, index, names, sys_path)
+        server = named_actor(names, "replay")
+        self.num_actors, self.chunk_steps = self.config.distributed.num_actors, self.config.distributed.chunk_steps
         self.global_steps = 0  # the run's env steps, for env-step schedules (DQN's epsilon)
-        self.collect_policy = agent.collect_policy(lambda: self.global_steps, net)
-        self.random_policy = RandomPolicy(self.env.action_spec, seeds.generator("warmup"))
-        token = self.token = uuid.uuid4().hex  # one per incarnation: the driver tells restarts by it
-        ray.get(server.register.remote(index, token))
-        self.shipper = ChunkShipper(server, index, token, frame_stack(self.env.observation_spec))
-        self.episodes = EpisodeLog()
-        # what it finds goes back with the collect call's answer: the driver stops the run
-        self.finite = FiniteWatch(c.env.num_envs, self.env.observation_spec, where=f"rollout actor {index}'s ")
-        self.puller = WeightPuller(RemoteVariables(variables), net, c.distributed.pull_interval)
+        self.collect_policy = self.agent.collect_policy(lambda: self.global_steps, self.net)
+        self.random_policy = RandomPolicy(self.env.action_spec, self.seeds.generator("warmup"))
+        ray.get(server.register.remote(index, self.token))
+        self.shipper = ChunkShipper(server, index, self.token, frame_stack(self.env.observation_spec))
         self.actor = Actor(self.env, self.random_policy, [self.episodes, self.shipper, self.finite],
-                           seed=seeds.base("envs"), puller=self.puller)
-        self.chunk_steps = c.distributed.chunk_steps
+                           seed=self.seeds.base("envs"), puller=self.puller)
 
     def collect(self, steps: int, global_steps: int, random: bool) -> dict[str, Any]:
         """Take at least `steps` env steps (with the random policy while `random`), shipping
@@ -188,36 +189,21 @@ class RolloutWorker:
             self.global_steps = global_steps + taken * self.num_actors
             self.actor.collect(min(self.chunk_steps, steps - taken))
         self.shipper.wait()
-        returns, lengths, info = self.episodes.take()
-        return {"index": self.index, "token": self.token, "env_steps": self.actor.env_steps - start,
-                "accepted": self.shipper.accepted, "non_finite": self.finite.check(),
-                "returns": returns, "lengths": lengths, "info": info, "policy_version": self.puller.version}
-
-    def pid(self) -> int:
-        return os.getpid()
+        return self._answer(env_steps=self.actor.env_steps - start, accepted=self.shipper.accepted)
 
 
-class RolloutCollector:
+class RolloutCollector(_RolloutActor):
     """An on-policy algorithm's rollout actor (registry replay "rollouts", PPO): `collect(T)`
     pulls the newest weights, steps its `env.num_envs` copies T times with them through the
     one-process driver's `RolloutWriter`, and returns the [T, num_envs] rollout tagged with the
     policy version it was collected with. No replay server: the driver keeps only rollouts of
     the current version (`distributed.onpolicy.RolloutShares`)."""
 
-    def __init__(self, config: dict[str, Any], index: int, names: ActorNames, sys_path: list[str]) -> None:
-        c = _setup(config, sys_path)
-        variables = names.container()
-        seeds, self.env, agent = _acting_parts(c, index)
-        self.index = index
-        net = agent.policy_network().requires_grad_(False)
-        self.token = uuid.uuid4().hex  # one per incarnation: the driver tells restarts by it
+    def __init__(self, config: dict[str, Any], index: int, names: str, sys_path: list[str]) -> None:
+        super().__init__(config, index, names, sys_path, pull_interval=0)  # every collect call pulls
         self.writers: dict[int, RolloutWriter] = {}  # by steps per env copy, each into its own queue
-        self.episodes = EpisodeLog()
-        # what it finds goes back with the collect call's answer: the driver stops the run
-        self.finite = FiniteWatch(c.env.num_envs, self.env.observation_spec, where=f"rollout actor {index}'s ")
-        self.puller = WeightPuller(RemoteVariables(variables), net, 0)  # every collect call pulls
-        self.actor = Actor(self.env, agent.collect_policy(None, net), [self.episodes], seed=seeds.base("envs"),
-                           puller=self.puller)
+        self.actor = Actor(self.env, self.agent.collect_policy(None, self.net), [self.episodes],
+                           seed=self.seeds.base("envs"), puller=self.puller)
 
     def collect(self, steps_per_env: int) -> dict[str, Any]:
         writer = self.writers.get(steps_per_env)
@@ -226,21 +212,15 @@ class RolloutCollector:
         self.actor.observers = [self.episodes, writer, self.finite]
         self.actor.collect(steps_per_env * self.env.num_envs)
         item, _ = writer.table.sample(1)  # the writer's one finished rollout, taken out at once
-        returns, lengths, info = self.episodes.take()
-        return {"index": self.index, "token": self.token, "rollout": {k: v[0].numpy() for k, v in item.items()},
-                "non_finite": self.finite.check(),
-                "policy_version": self.puller.version, "returns": returns, "lengths": lengths, "info": info}
-
-    def pid(self) -> int:
-        return os.getpid()
+        return self._answer(rollout={k: v[0].numpy() for k, v in item.items()})
 
 
 class EvalWorker:
     """Evaluates the newest weights in the VariableContainer on its own envs."""
 
-    def __init__(self, config: dict[str, Any], names: ActorNames, sys_path: list[str]) -> None:
+    def __init__(self, config: dict[str, Any], names: str, sys_path: list[str]) -> None:
         c = _setup(config, sys_path)
-        variables = names.container()
+        variables = named_actor(names, "variables")
         self.episodes = c.eval.episodes
         self.env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, info_keys=c.env.info_keys,
                                  kwargs=c.env.kwargs, wrappers=c.env.wrappers)

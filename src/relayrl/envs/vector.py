@@ -405,8 +405,6 @@ class AsyncGymBatchEnv(BatchEnvBase):
         return None if any(p is None for p in parts) else [s for p in parts for s in p]
 
     def set_state(self, states: list[bytes]) -> None:
-        if len(states) != self.num_envs:
-            raise ValueError(f"env state for {len(states)} copies, but this env has {self.num_envs}")
         self._local.set_state(states[:self._k])
         self._command("set_state", per_worker=[states[lo:hi] for lo, hi in self.slices[1:]])
 

@@ -1,10 +1,10 @@
 """What a Table keeps its items in: the Storage protocols, and column storage (preallocated
-arrays in RAM, on a torch device, or memory-mapped files).
+NumPy arrays in RAM, or memory-mapped files).
 
-`Columns` is a fixed set of named arrays with a leading capacity dimension. RAM columns are
-NumPy arrays because indexing them costs several times less per call than torch indexing on
-CPU; device columns are torch tensors so gathers stay on the GPU; memmap columns are `.npy`
-files (with headers) so a table can be reopened from disk without copying.
+`Columns` is a fixed set of named arrays with a leading capacity dimension: NumPy arrays,
+because indexing them costs several times less per call than torch indexing on CPU (a step
+store keeps the columns that live on a torch device itself); memmap columns are `.npy` files
+(with headers) so a table can be reopened from disk without copying.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import numpy as np
 import torch
 
-from relayrl.arrays import to_numpy, torch_dtype
+from relayrl.arrays import to_numpy
 from relayrl.errors import UserError
 
 if TYPE_CHECKING:
@@ -53,14 +53,10 @@ class Storage(Protocol):
 
 
 class Columns:
-    def __init__(self, signature: Signature, leading: tuple[int, ...], path: str | Path | None = None,
-                 device: str | torch.device | None = None) -> None:
+    def __init__(self, signature: Signature, leading: tuple[int, ...], path: str | Path | None = None) -> None:
         self.signature = {k: (tuple(s), np.dtype(d)) for k, (s, d) in signature.items()}
         self.leading = tuple(leading)
         self.path = Path(path) if path is not None else None
-        self.device = torch.device(device) if device is not None else None
-        if self.path is not None and self.device is not None and self.device.type != "cpu":
-            raise ValueError("memmap storage lives on disk; it cannot also live on a device")
         self.arrays: dict[str, Any] = {}
         self.reopened = False  # memmap: files of this layout were there already, and are used as they are
         if self.path is not None:
@@ -82,16 +78,9 @@ class Columns:
                     self.arrays[name] = np.lib.format.open_memmap(file, mode="w+", dtype=dtype,
                                                                   shape=self.leading + shape)
             meta_file.write_text(json.dumps(meta))
-        elif self.device is not None and self.device.type != "cpu":
-            for name, (shape, dtype) in self.signature.items():
-                self.arrays[name] = torch.zeros(self.leading + shape, dtype=torch_dtype(dtype), device=self.device)
         else:
             for name, (shape, dtype) in self.signature.items():
                 self.arrays[name] = np.zeros(self.leading + shape, dtype=dtype)
-
-    @property
-    def on_device(self) -> bool:
-        return self.device is not None and self.device.type != "cpu"
 
     def nbytes(self) -> int:
         return sum(int(np.prod(self.leading + s)) * d.itemsize for s, d in self.signature.values())
@@ -112,8 +101,7 @@ class Columns:
             self.flush()  # the checkpoint refers to the files, wherever the resume starts from
             return {"memmap": str(self.path.resolve())}
         rows = self.used_rows(used)
-        return {"arrays": {k: (v[rows].cpu().clone() if isinstance(v, torch.Tensor) else v[rows].copy())
-                           for k, v in self.arrays.items()}}
+        return {"arrays": {k: v[rows].copy() for k, v in self.arrays.items()}}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if "memmap" in state:
@@ -125,21 +113,14 @@ class Columns:
                                 "run was started with")
             return  # the files were reopened in __init__
         for k, v in state["arrays"].items():
-            rows = self.used_rows(v.shape[len(self.leading) - 1])
-            if isinstance(self.arrays[k], torch.Tensor):
-                self.arrays[k][rows] = torch.as_tensor(v).to(self.arrays[k].device)
-            else:
-                self.arrays[k][rows] = to_numpy(v)
+            self.arrays[k][self.used_rows(v.shape[len(self.leading) - 1])] = to_numpy(v)
 
 
 class ItemStorage(Storage):
     """A table's storage for items inserted directly: one row per slot and field."""
 
-    def __init__(self, capacity: int, path: str | Path | None = None,
-                 device: str | torch.device | None = None) -> None:
+    def __init__(self, capacity: int) -> None:
         self.capacity = capacity
-        self.path = path
-        self.device = device
         self.columns: Columns | None = None  # built from the first item's structure
         self.single = False  # items are one array rather than a dict of arrays
         self.slot_key: np.ndarray | None = None  # the table's: which slots hold items (-1: none)
@@ -151,7 +132,7 @@ class ItemStorage(Storage):
         self.single = not isinstance(item, dict)
         fields = {"item": item} if self.single else item
         sig = {k: (to_numpy(v).shape[1:], to_numpy(v).dtype) for k, v in fields.items()}
-        self.columns = Columns(sig, (self.capacity,), self.path, self.device)
+        self.columns = Columns(sig, (self.capacity,))
 
     def write(self, slots: np.ndarray, items: Any) -> None:
         """Write a batch of items (leading dim = len(slots)) into `slots`."""
@@ -162,20 +143,11 @@ class ItemStorage(Storage):
         if set(fields) != set(self.columns.signature):
             raise ValueError(f"item fields {sorted(fields)} differ from the table's {sorted(self.columns.signature)}")
         for name, value in fields.items():
-            col = self.columns.arrays[name]
-            if self.columns.on_device:
-                col[torch.from_numpy(slots).to(col.device)] = torch.as_tensor(value).to(col.device, col.dtype)
-            else:
-                col[slots] = to_numpy(value)
+            self.columns.arrays[name][slots] = to_numpy(value)
 
     def read(self, slots: np.ndarray) -> Any:
         assert self.columns is not None
-        out = {}
-        for name, col in self.columns.arrays.items():
-            if self.columns.on_device:
-                out[name] = col[torch.from_numpy(slots).to(col.device)]
-            else:
-                out[name] = torch.from_numpy(np.ascontiguousarray(col[slots]))
+        out = {name: torch.from_numpy(np.ascontiguousarray(col[slots])) for name, col in self.columns.arrays.items()}
         return out["item"] if self.single else out
 
     def state_dict(self) -> dict[str, Any]:
@@ -192,5 +164,5 @@ class ItemStorage(Storage):
             return
         self.single = bool(state["single"])
         sig = {k: (tuple(s), np.dtype(d)) for k, (s, d) in state["signature"].items()}
-        self.columns = Columns(sig, (self.capacity,), self.path, self.device)
+        self.columns = Columns(sig, (self.capacity,))
         self.columns.load_state_dict(state["columns"])

@@ -14,7 +14,6 @@ from relayrl.agents.registry import algorithm
 from relayrl.config import Config
 from relayrl.envs import make_env
 from relayrl.envs.stateless.adapter import StatelessBatchEnv
-from relayrl.errors import UserError
 from relayrl.metrics import EnvironmentSteps, EpisodeStats
 from relayrl.policies import RandomPolicy
 from relayrl.training.actor import Actor
@@ -163,10 +162,6 @@ class LocalDriver:
     def restore(self) -> None:
         core = self.core
         state = load_latest_checkpoint(self.rd.checkpoints)
-        saved_envs = state["config"]["env"]["num_envs"]
-        if saved_envs != self.config.env.num_envs:
-            raise UserError(f"env.num_envs={self.config.env.num_envs} but the run being resumed has "
-                            f"{saved_envs} (its replay and envs are laid out per copy); resume with {saved_envs}")
         self.evaluator.count = core.restore_common(state)
         files_moved_on = False
         if state["replay"] is not None:

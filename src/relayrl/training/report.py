@@ -12,7 +12,7 @@ from collections.abc import Callable
 from typing import Any
 
 from relayrl.agents.registry import algorithm
-from relayrl.config import Config, config_toml, to_dict
+from relayrl.config import Config, config_toml, dotted, to_dict
 from relayrl.metrics import EpisodeStats
 from relayrl.training.heartbeat import ProgressLines
 from relayrl.training.run_dir import MetricsLog, RunDir
@@ -38,19 +38,11 @@ def log_config(tb: Any, config: Config) -> None:
     """The run's config in TensorBoard: as TOML text (with each key's meaning) and as hparams."""
     text = config_toml(config)
     tb.add_text("config", "\n".join("    " + line for line in text.splitlines()))  # a markdown code block
-    flat: dict[str, Any] = {}
-
-    def walk(d: dict[str, Any], prefix: str) -> None:
-        for k, v in d.items():
-            if isinstance(v, dict):
-                walk(v, f"{prefix}{k}.")
-            elif v is not None:
-                flat[prefix + k] = v if isinstance(v, (bool, int, float, str)) else str(v)
-
     data = to_dict(config)
     if algorithm(config.algo).replay != "transitions":  # as its listing (config_toml): no replay keys
         data.pop("replay")
-    walk(data, "")
+    flat = {k: v if isinstance(v, (bool, int, float, str)) else str(v)
+            for k, v in dotted(data).items() if v is not None}
     tb.add_hparams(flat, {}, run_name=".")  # ".": into the run's own folder, not a new one
 
 

@@ -29,8 +29,6 @@ from relayrl.specs import spec_from_state, to_space
 
 
 class PPOPolicy(Policy):
-    env_steps: int | None = None  # when a loaded policy was saved (see relayrl.load_policy)
-
     def __init__(self, net: nn.Module, log_std: torch.Tensor | None, bounds: tuple[np.ndarray, np.ndarray] | None,
                  device: torch.device, deterministic: bool, rng: np.random.Generator | None = None,
                  squash: str = "clip", head: ActionHead | None = None) -> None:
