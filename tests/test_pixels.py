@@ -16,7 +16,7 @@ from relayrl.envs import make_env
 from relayrl.envs.pixels import SkipFrame, frame_stack_of, mario_preprocessing
 from relayrl.errors import ConfigError, UserError
 from relayrl.export import load_policy
-from relayrl.nn import ConvQNet
+from relayrl.nn.encoders import ConvEncoder, Encoded
 from relayrl.policies import RandomPolicy
 from relayrl.replay import Table
 from relayrl.schedules import exponential_schedule
@@ -187,13 +187,15 @@ def test_conv_q_networks_shapes_and_uint8_scaling(network):
     agent = DQNAgent(ArraySpec((4, 84, 84), torch.uint8), DiscreteSpec(6), cfg, torch.device("cpu"),
                      np.random.default_rng(0))
     net = agent.online
-    assert isinstance(net, ConvQNet) and type(agent.update) is DQNUpdate  # hand-written: MLPs only
-    assert net.head[0].in_features == 3136  # 64 x 7 x 7 at 84x84, as in Mnih et al. 2015
+    assert isinstance(net, Encoded) and isinstance(net.encoder, ConvEncoder) and type(agent.update) is DQNUpdate
+    assert net.encoder.dense[0].in_features == 3136  # 64 x 7 x 7 at 84x84, as in Mnih et al. 2015
     x = torch.randint(0, 256, (5, 4, 84, 84), dtype=torch.uint8)
     q = net(x)
     assert q.shape == (5, 6) and q.dtype == torch.float32
     torch.testing.assert_close(q, net(x.float() / 255.0))
-    assert ConvQNet((2, 60, 40), 3)(torch.zeros(1, 2, 60, 40, dtype=torch.uint8)).shape == (1, 3)
+    other = DQNAgent(ArraySpec((2, 60, 40), torch.uint8), DiscreteSpec(3), cfg, torch.device("cpu"),
+                     np.random.default_rng(0)).online
+    assert other(torch.zeros(1, 2, 60, 40, dtype=torch.uint8)).shape == (1, 3)
 
 
 def test_conv_dqn_trains_on_uint8_batches_and_its_saved_policy_acts_the_same(tmp_path):
@@ -210,6 +212,34 @@ def test_conv_dqn_trains_on_uint8_batches_and_its_saved_policy_acts_the_same(tmp
     torch.save(agent.policy_state(), tmp_path / "policy.pt")
     policy = load_policy(tmp_path / "policy.pt")
     assert torch.equal(policy(obs), agent.eval_policy()(obs))
+
+
+def test_policy_files_and_checkpoints_of_the_former_conv_q_network_load(tmp_path):
+    """Before the Atari net was the Nature CNN encoder + a linear head it was its own module:
+    its policy files ("network", "obs_shape", keys convs.* / head.0.* / head.2.*) and agent
+    states load as today's network, acting the same."""
+    import relayrl
+    from relayrl.policy_file import save_policy_file
+
+    cfg = DQNConfig(network="nature_cnn", target_update_period=100)
+    agent = DQNAgent(ArraySpec((4, 84, 84), torch.uint8), DiscreteSpec(6), cfg, torch.device("cpu"),
+                     np.random.default_rng(0))
+    renames = {"encoder.convs.": "convs.", "encoder.dense.0.": "head.0.", "head.layers.0.": "head.2."}
+
+    def former(state_dict):
+        return {next(o + k[len(n):] for n, o in renames.items() if k.startswith(n)): v for k, v in state_dict.items()}
+
+    weights = {k: v.detach().clone() for k, v in agent.online.state_dict().items()}
+    save_policy_file({"kind": "q_greedy", "network": "nature_cnn", "obs_shape": [4, 84, 84], "num_actions": 6,
+                      "state_dict": former(weights), "env_id": "relayrl/Atari-Pong-v0"}, tmp_path / "old.pt")
+    frames = torch.randint(0, 256, (3, 4, 84, 84), dtype=torch.uint8)
+    assert torch.equal(relayrl.load_policy(tmp_path / "old.pt")(frames), agent.eval_policy()(frames))
+    state = agent.state_dict()
+    again = DQNAgent(ArraySpec((4, 84, 84), torch.uint8), DiscreteSpec(6), cfg, torch.device("cpu"),
+                     np.random.default_rng(1))
+    assert state["target"] is not None
+    again.load_state_dict({**state, "online": former(state["online"]), "target": former(state["target"])})
+    assert all(torch.equal(v, weights[k]) for k, v in again.online.state_dict().items())
 
 
 def test_conv_network_needs_image_observations():

@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from relayrl.core import Policy
-from relayrl.nn import CONV_NETWORKS, MLP, ConvQNet
+from relayrl.nn import MLP
 from relayrl.nn.encoders import Encoded, make_encoder
 from relayrl.nn.graphed import GraphedForward
 from relayrl.nn.mlp_fast import MLPInference
@@ -223,14 +223,10 @@ def saved_obs_spec(state: dict[str, Any]) -> Spec:
 
 
 def saved_network(state: dict[str, Any], out_dim: int) -> nn.Module:
-    """The network of a saved policy (policy.pt's dict), in eval mode: a conv Q-net on uint8
-    frames when `state["network"]` names one, else an MLP of `state["hidden"]` behind the
-    encoder of the saved observation space."""
-    if state.get("network") in CONV_NETWORKS:  # DQN on frames: uint8 [B, C, H, W] in
-        net: nn.Module = ConvQNet(tuple(state["obs_shape"]), state["num_actions"])
-    else:
-        mlp = MLP(state["obs_dim"], state["hidden"], out_dim, state["activation"])
-        encoder = make_encoder(saved_obs_spec(state), state.get("encoder", "auto")) if "obs_space" in state else None
-        net = mlp if encoder is None else Encoded(encoder, mlp)
+    """The network of a saved policy (policy.pt's dict), in eval mode: an MLP of `state["hidden"]`
+    behind the encoder of the saved observation space."""
+    mlp = MLP(state["obs_dim"], state["hidden"], out_dim, state["activation"])
+    encoder = make_encoder(saved_obs_spec(state), state.get("encoder", "auto")) if "obs_space" in state else None
+    net = mlp if encoder is None else Encoded(encoder, mlp)
     net.load_state_dict(state["state_dict"])
     return net.eval()

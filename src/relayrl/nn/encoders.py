@@ -19,7 +19,6 @@ from torch import nn
 
 from relayrl.config_fields import ENCODERS, is_user_encoder
 from relayrl.errors import UserError
-from relayrl.nn.conv import NATURE_CONVS, NATURE_HIDDEN
 from relayrl.nn.mlp import MLP
 from relayrl.specs import (
     ArraySpec,
@@ -41,8 +40,11 @@ from relayrl.specs import (
 )
 from relayrl.user_code import load_callable
 
-# (out_channels, kernel, stride, padding): frames from 8x8 (MiniGrid-like) to 35x35, where the
-# Nature CNN's 8x8 stride-4 first layer would leave almost nothing
+# (out_channels, kernel, stride, padding) per conv, then the dense width: Mnih et al. 2015's Nature
+# CNN (the Mario tutorial's net is the same, layer for layer)
+NATURE_CONVS, NATURE_HIDDEN = ((32, 8, 4, 0), (64, 4, 2, 0), (64, 3, 1, 0)), 512
+# for frames from 8x8 (MiniGrid-like) to 35x35, where the Nature CNN's 8x8 stride-4 first layer
+# would leave almost nothing
 SMALL_CONVS = ((32, 3, 1, 1), (64, 3, 2, 1), (64, 3, 2, 1))
 SMALL_HIDDEN = 256
 NATURE_MIN_SIDE = 36
@@ -138,7 +140,7 @@ def leaf_encoder(spec: Spec, kind: str) -> nn.Module:
                         f"got {describe(spec)}; use agent.encoder='small_cnn' or 'auto'")
     if small:
         return ConvEncoder(spec, SMALL_CONVS, SMALL_HIDDEN)
-    return ConvEncoder(spec, tuple((*c, 0) for c in NATURE_CONVS), NATURE_HIDDEN)
+    return ConvEncoder(spec, NATURE_CONVS, NATURE_HIDDEN)
 
 
 class UserEncoder(nn.Module):

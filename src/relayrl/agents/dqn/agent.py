@@ -10,14 +10,13 @@ import numpy as np
 import torch
 
 from relayrl.agents.dqn.config import DQNConfig
-from relayrl.agents.dqn.networks import q_network
+from relayrl.agents.dqn.networks import conv_state_dict, q_layout, q_network
 from relayrl.agents.dqn.update import make_update
 from relayrl.core import Agent
-from relayrl.nn import ConvQNet
 from relayrl.optim import FastAdam
 from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy, mlp_head, network_state
 from relayrl.schedules import exponential_schedule, linear_schedule
-from relayrl.specs import DiscreteSpec, Spec, spec_state
+from relayrl.specs import DiscreteSpec, Spec
 from relayrl.types import Batch
 
 
@@ -139,14 +138,8 @@ class DQNAgent(Agent):
             torch._foreach_lerp_(self._target_params, self._online_params, self.cfg.tau)
 
     def policy_state(self) -> dict[str, Any]:
-        if isinstance(self.online, ConvQNet):
-            weights = {k: v.detach().cpu() for k, v in self.online.state_dict().items()}
-            return {"kind": "q_greedy", "network": self.cfg.network, "obs_shape": list(self.online.obs_shape),
-                    "obs_space": spec_state(self.obs_spec), "num_actions": self.online.head[-1].out_features,
-                    "state_dict": weights}
-        c = self.cfg
         return {"kind": "q_greedy", "num_actions": mlp_head(self.online).layers[-1].out_features,
-                **network_state(self.online, self.obs_spec, c.encoder, c.hidden, c.activation)}
+                **network_state(self.online, self.obs_spec, *q_layout(self.cfg))}
 
     def state_dict(self) -> dict[str, Any]:
         return {
@@ -158,9 +151,9 @@ class DQNAgent(Agent):
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.online.load_state_dict(state["online"])
+        self.online.load_state_dict(conv_state_dict(state["online"]))
         if self.target is not None:
-            self.target.load_state_dict(state["target"])
+            self.target.load_state_dict(conv_state_dict(state["target"]))
         self.optimizer.load_state_dict(state["optimizer"])
         self._train_step = int(state["train_step"])
         self.rng.bit_generator.state = state["rng"]

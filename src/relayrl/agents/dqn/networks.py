@@ -1,13 +1,15 @@
 """The Q-network for discrete actions, built from specs: an MLP behind the observations'
-encoder, or the conv Q-network of the pixel presets (`agent.network`)."""
+encoder; the pixel presets' `agent.network` is the Nature CNN encoder with a linear head."""
 
 from __future__ import annotations
+
+from typing import Any
 
 from torch import nn
 
 from relayrl.agents.dqn.config import DQNConfig
 from relayrl.errors import UserError
-from relayrl.nn import CONV_NETWORKS, ConvQNet, tf_agents_init_
+from relayrl.nn import tf_agents_init_
 from relayrl.nn.encoders import Encoded, encoded_mlp
 from relayrl.specs import ArraySpec, DiscreteSpec, Spec, describe, image_layout, is_image
 
@@ -16,20 +18,33 @@ def q_network(obs_spec: Spec, action_spec: Spec, cfg: DQNConfig) -> nn.Module:
     if not isinstance(action_spec, DiscreteSpec):
         raise UserError(f"DQN takes a Discrete action space; this env's action space is {describe(action_spec)} "
                         "(use SAC or PPO for Box actions, PPO for MultiDiscrete and MultiBinary)")
-    if cfg.network in CONV_NETWORKS:
-        # the Atari presets' network: stacked frames channels first, as relayrl/Atari-Pong-v0 gives them
-        instead = "use agent.network='mlp' with agent.encoder='auto' or 'nature_cnn', which take any image layout"
+    if cfg.network != "mlp":
+        # the Atari presets' net: the Nature CNN encoder and one linear layer on its 512 features
         if not (isinstance(obs_spec, ArraySpec) and is_image(obs_spec) and len(obs_spec.shape) == 3
                 and not image_layout(obs_spec)[1]):
             raise UserError(f"agent.network={cfg.network!r} needs uint8 frames [C, H, W], channels first (as "
                             f"relayrl/Atari-Pong-v0's [4, 84, 84]); this env's observations are {describe(obs_spec)}: "
-                            + instead)
-        try:
-            return ConvQNet(tuple(obs_spec.shape), action_spec.n)
-        except RuntimeError:  # a conv kernel larger than its input
-            raise UserError(f"agent.network={cfg.network!r} needs frames of at least 36x36, got "
-                            f"{describe(obs_spec)}: {instead}") from None
-    net = encoded_mlp(obs_spec, cfg.encoder, list(cfg.hidden), action_spec.n, cfg.activation)
-    if cfg.init == "tf-agents":
+                            "use agent.network='mlp' with agent.encoder='auto' or 'nature_cnn', which take any "
+                            "image layout")
+    encoder, hidden, activation = q_layout(cfg)
+    net = encoded_mlp(obs_spec, encoder, hidden, action_spec.n, activation)
+    if cfg.init == "tf-agents" and cfg.network == "mlp":  # the conv net keeps torch's init, as Mnih et al.'s
         tf_agents_init_(net.head if isinstance(net, Encoded) else net)
     return net
+
+
+def q_layout(cfg: DQNConfig) -> tuple[str, list[int], str]:
+    """(encoder, hidden sizes, activation) of the Q-network: the Atari presets' `agent.network` is
+    the Nature CNN encoder with one linear layer on its 512 features."""
+    return (cfg.encoder, list(cfg.hidden), cfg.activation) if cfg.network == "mlp" else ("nature_cnn", [], "relu")
+
+
+def conv_state_dict(state_dict: dict[str, Any]) -> dict[str, Any]:
+    """A state dict of the conv Q-network as policy files and checkpoints before it became the
+    Nature CNN encoder + a linear head held it (convs.*, head.0.*, head.2.*), in today's keys."""
+    renames = (("convs.", "encoder.convs."), ("head.0.", "encoder.dense.0."), ("head.2.", "head.layers.0."))
+    out = {}
+    for key, value in state_dict.items():
+        old, new = next(((o, n) for o, n in renames if key.startswith(o)), ("", ""))
+        out[new + key[len(old):]] = value
+    return out

@@ -8,17 +8,28 @@ import gymnasium as gym
 import torch
 from torch import nn
 
+from relayrl.agents.dqn.networks import conv_state_dict
 from relayrl.policies import GreedyPolicy, saved_network
 
 
+def q_net(state: dict[str, Any]) -> nn.Module:
+    """The saved Q-network; a file from before the conv net was the Nature CNN encoder + a linear
+    head (`"network": "nature_cnn"`, its own keys) is read as today's."""
+    if state.get("network", "mlp") != "mlp":
+        space = state.get("obs_space", {"kind": "box", "shape": state["obs_shape"], "dtype": "uint8"})
+        state = {**state, "obs_space": space, "encoder": "nature_cnn", "obs_dim": 512, "hidden": [],
+                 "activation": "relu", "state_dict": conv_state_dict(state["state_dict"])}
+    return saved_network(state, state["num_actions"])
+
+
 def load(state: dict[str, Any], device: torch.device, deterministic: bool, seed: int | None) -> GreedyPolicy:
-    return GreedyPolicy(saved_network(state, state["num_actions"]).to(device), device)
+    return GreedyPolicy(q_net(state).to(device), device)
 
 
 class ArgmaxQ(nn.Module):
     def __init__(self, state: dict[str, Any]) -> None:
         super().__init__()
-        self.net = saved_network(state, state["num_actions"])
+        self.net = q_net(state)
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         return self.net(obs).argmax(dim=1)  # [B]
