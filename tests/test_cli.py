@@ -144,6 +144,16 @@ def test_a_shared_policy_file_evaluates_on_its_runs_env_kwargs_wrappers_and_time
     assert main(["eval", str(shared), "--episodes", "2"]) == 0  # Repeated's 4 numbers, cut at 5 of 7 steps
     assert json.loads(capsys.readouterr().out)["average_episode_length"] == 5.0
     assert relayrl.evaluate(shared, episodes=2) == relayrl.evaluate(policy, episodes=2) == (5.0, 0.0)
+    from relayrl.policy_file import load_policy_file, save_policy_file
+
+    state = load_policy_file(shared)
+    del state["env_id"]  # a file another tool wrote
+    save_policy_file(state, tmp_path / "anonymous.pt")
+    assert main(["eval", str(tmp_path / "anonymous.pt")]) == 2
+    assert "the policy file records no env id (it was written by another tool): give the env to evaluate on " \
+           "(--env ENV_ID; in Python, env=)" in capsys.readouterr().err
+    with pytest.raises(relayrl.errors.UserError, match="records no env id"):
+        relayrl.evaluate(tmp_path / "anonymous.pt")
 
 
 def test_eval_of_a_policy_file_outside_a_run_directory_uses_the_env_it_records(tmp_path, capsys):

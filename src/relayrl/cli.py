@@ -148,6 +148,7 @@ def _train(args: argparse.Namespace) -> None:
 
 
 def _eval(args: argparse.Namespace) -> None:
+    from relayrl.evaluation import recorded_env
     from relayrl.export import load_policy
     from relayrl.presets import load_config
     from relayrl.training.evaluate import eval_cap_note, evaluate, make_eval_env
@@ -158,24 +159,16 @@ def _eval(args: argparse.Namespace) -> None:
     if args.max_episode_steps is not None and args.max_episode_steps < 1:
         raise UserError(f"--max-episode-steps {args.max_episode_steps} is not valid; it must be >= 1")
     given = Path(args.run_dir)
-    rd = RunDir.of(given)  # its config.toml names the env
-    if given.is_file() and not rd.config.is_file():  # a policy file on its own: the env id it records
-        policy = load_policy(given)
-        env_id = args.env or policy.env_id
-        if not env_id:
-            raise UserError(f"policy file {args.run_dir!r} records no env id: pass --env ENV_ID")
-        own = {} if args.env else {"kwargs": policy.env_kwargs, "wrappers": policy.env_wrappers}
-        cap = args.max_episode_steps or (0 if args.env else policy.max_episode_steps)
-        env = make_eval_env(env_id, args.episodes, cap, **own)
-    else:
+    rd = RunDir.of(given)
+    lone = given.is_file() and not rd.config.is_file()  # a policy file on its own: the env it records
+    if not lone:
         rd.require()
-        config = load_config(str(rd.config))
-        policy = load_policy(rd.root if given.name == "config.toml" else given)  # the policy file given
-        env_id = args.env or config.env.id
-        own: dict[str, Any] = {} if args.env else {"info_keys": config.env.info_keys, "kwargs": config.env.kwargs,
-                                                   "wrappers": config.env.wrappers}
-        cap = args.max_episode_steps or (0 if args.env else config.env.max_episode_steps)
-        env = make_eval_env(env_id, args.episodes, cap, **own)
+    policy = load_policy(given if lone or given.name != "config.toml" else rd.root)
+    if args.env:  # another env, as it is registered: not the run's kwargs or wrappers
+        env_id, env = args.env, make_eval_env(args.env, args.episodes, args.max_episode_steps or 0)
+    else:
+        env = recorded_env(policy if lone else given, args.episodes, args.max_episode_steps or 0, info_keys=True)
+        env_id = policy.env_id if lone else load_config(str(rd.config)).env.id
     try:
         policy.check_fits(env.observation_spec)
         result = evaluate(env, policy, args.episodes, seed=args.seed)

@@ -96,24 +96,12 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
         # One copy: the user's own instance, its episodes one after another.
         return GymBatchEnv([lambda: env]), False
     if env is None:
-        from relayrl.export import load_policy
         from relayrl.loaded_policy import LoadedPolicy
-        from relayrl.presets import load_config
-        from relayrl.training.run_dir import RunDir
 
-        if isinstance(policy, LoadedPolicy) and policy.env_id:  # the env its file records
-            return make_eval_env(policy.env_id, episodes, max_episode_steps or policy.max_episode_steps,
-                                 kwargs=policy.env_kwargs, wrappers=policy.env_wrappers), True
-        if not isinstance(policy, (str, Path)):
+        if not isinstance(policy, (str, Path, LoadedPolicy)):
             raise UserError("env=None evaluates on the env a run directory or a policy file records; with this "
                             "policy give env (a Gymnasium env, a callable returning one, or an env id)")
-        rd = RunDir.of(policy)
-        if Path(policy).is_file() and not rd.config.is_file():  # a policy file on its own
-            return _batch_env(None, load_policy(policy), episodes, max_episode_steps)
-        rd.require()
-        c = load_config(str(rd.config)).env
-        return make_eval_env(c.id, episodes, max_episode_steps or c.max_episode_steps, kwargs=c.kwargs,
-                             wrappers=c.wrappers), True
+        return recorded_env(policy, episodes, max_episode_steps), True
     if isinstance(env, str):
         return make_eval_env(env, episodes, max_episode_steps), True
     if isinstance(env, gym.vector.VectorEnv) or hasattr(env, "step_async"):  # Gymnasium's or SB3's VecEnv
@@ -124,3 +112,30 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
 
         return make_eval_env(factory_env_id(env), episodes, max_episode_steps, factory=env), True
     raise UserError(f"env={env!r} is not an env: give a Gymnasium env, a callable returning one, or an env id")
+
+
+def recorded_env(source: Any, episodes: int, max_episode_steps: int = 0, info_keys: bool = False) -> Any:
+    """The eval env (`make_eval_env`) of the env a run directory's config.toml records (`source`
+    a run directory or a file in it), or else a policy file's own record (`source` a lone policy
+    file, or a loaded policy): its id, kwargs, wrappers and time limit, which `max_episode_steps`
+    overrides where it is not 0; with `info_keys`, a run's env.info_keys too."""
+    from relayrl.export import load_policy
+    from relayrl.loaded_policy import LoadedPolicy
+    from relayrl.presets import load_config
+    from relayrl.training.evaluate import make_eval_env
+    from relayrl.training.run_dir import RunDir
+
+    if isinstance(source, (str, Path)):
+        rd = RunDir.of(source)
+        if rd.config.is_file() or not Path(source).is_file():
+            rd.require()
+            c = load_config(str(rd.config)).env
+            return make_eval_env(c.id, episodes, max_episode_steps or c.max_episode_steps, kwargs=c.kwargs,
+                                 wrappers=c.wrappers, info_keys=c.info_keys if info_keys else ())
+        source = load_policy(source)  # a policy file on its own
+    assert isinstance(source, LoadedPolicy)
+    if not source.env_id:
+        raise UserError("the policy file records no env id (it was written by another tool): give the env to "
+                        "evaluate on (--env ENV_ID; in Python, env=)")
+    return make_eval_env(source.env_id, episodes, max_episode_steps or source.max_episode_steps,
+                         kwargs=source.env_kwargs, wrappers=source.env_wrappers)
