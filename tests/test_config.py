@@ -230,3 +230,12 @@ def test_an_unknown_agent_key_in_a_config_without_algo_says_the_section_is_dqns(
 def test_a_preset_name_in_other_letter_case_is_pointed_to():
     with pytest.raises(ConfigError, match="unknown preset 'PPO'; did you mean 'ppo'?"):
         load_config("PPO")
+
+
+def test_a_wrong_value_in_a_config_file_names_the_file(tmp_path):
+    path = tmp_path / "mine.toml"
+    path.write_text('algo = "dqn"\n[agent]\nlr = "fast"\n')
+    with pytest.raises(ConfigError, match=r"^config file '.*mine.toml': agent.lr='fast' has the wrong type; expected"):
+        load_config(str(path))
+    with pytest.raises(ConfigError, match=r"^train.total_steps='x' has the wrong type"):  # an override's: no file named
+        load_config(str(path), ["agent.lr=0.1", "train.total_steps=x"])

@@ -82,4 +82,18 @@ def load_config(name_or_path: str, overrides: list[str] | None = None, seed: int
         if any(o.strip().startswith("seed=") for o in overrides or []) and data.get("seed") != seed:
             raise ConfigError(f"--seed {seed} and --set seed={data.get('seed')} name two seeds: pass one of them")
         data["seed"] = seed
-    return from_dict(data)
+    try:
+        return from_dict(data)
+    except ConfigError as e:
+        if not name_or_path.endswith(".toml") or not _fails_alone(name_or_path, str(e)):
+            raise
+        raise ConfigError(f"config file {name_or_path!r}: {e}") from None
+
+
+def _fails_alone(path: str, message: str) -> bool:
+    """Whether the TOML file itself holds what `message` refuses (not an override given with it)."""
+    try:
+        from_dict(_without_unused_replay(load_toml(path), path))
+    except ConfigError as e:
+        return str(e) == message
+    return False
