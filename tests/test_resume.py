@@ -82,19 +82,39 @@ def test_async_run_gives_the_in_process_runs_numbers(tmp_path, workers):
     assert_same_state(tmp_path / "sync", tmp_path / "async")
 
 
-@pytest.mark.parametrize("envs", [["env.num_envs=1"], ["env.num_envs=3", "env.vectorization=async"]],
-                         ids=["1", "3async"])
-def test_env_that_cannot_be_pickled_resumes_with_new_episodes(tmp_path, capsys, envs):
-    over = DQN + ["env.id=toy_envs:Unpicklable", "env.max_episode_steps=50"] + envs
+@pytest.mark.parametrize("env, envs", [("Unpicklable", ["env.num_envs=1"]),
+                                       ("Unpicklable", ["env.num_envs=3", "env.vectorization=async"]),
+                                       ("ConstructorPickled", ["env.num_envs=1"])],
+                         ids=["1", "3async", "ezpickle"])
+def test_env_that_cannot_be_pickled_resumes_with_new_episodes(tmp_path, capsys, env, envs):
+    """Envs whose pickle keeps only their constructor's arguments (Gymnasium's EzPickle: MuJoCo,
+    Box2D) count as unpicklable: a copy would be a new simulator, not the one mid-episode. Their
+    resumed runs start new episodes, seeded, so two resumes from one checkpoint agree."""
+    over = DQN + [f"env.id=toy_envs:{env}", "env.max_episode_steps=50"] + envs
     cfg = relayrl.load_config("dqn-cartpole-fast", over, seed=3)
     relayrl.train(cfg, tmp_path / "full", progress=False)
     said = capsys.readouterr().err  # while it trains, once: not only when it is resumed
-    assert said.count("the env cannot be pickled (a simulator handle, or a wrapper") == 1
+    assert said.count("the env cannot be pickled mid-episode (a simulator handle, a wrapper") == 1
     cut_back(tmp_path / "full", tmp_path / "resumed")
     assert load_latest_checkpoint(tmp_path / "resumed" / "checkpoints")["actor"]["env"] is None
+    shutil.copytree(tmp_path / "resumed", tmp_path / "again")
     result = relayrl.train(cfg, tmp_path / "resumed", resume=True, progress=False)
     assert result.final["step"] == 1500
     assert "the resumed run starts new episodes" in capsys.readouterr().err
+    relayrl.train(cfg, tmp_path / "again", resume=True, progress=False)
+    assert comparable(tmp_path / "again") == comparable(tmp_path / "resumed")
+
+
+def test_gymnasiums_box2d_envs_are_not_snapshotted_mid_episode():
+    pytest.importorskip("Box2D")
+    import gymnasium as gym
+
+    from relayrl.envs.gym import env_snapshot
+
+    env = gym.make("LunarLander-v3")
+    env.reset(seed=0)
+    assert env_snapshot(env) is None  # unpickled, it would be an un-reset lander
+    assert env_snapshot(gym.make("CartPole-v1")) is not None
 
 
 def test_a_run_a_callback_stopped_at_its_first_evaluation_resumes_to_the_uninterrupted_run(tmp_path):

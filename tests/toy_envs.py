@@ -9,6 +9,7 @@ import time
 import gymnasium as gym
 import numpy as np
 from gymnasium.envs.classic_control import CartPoleEnv
+from gymnasium.utils import EzPickle
 
 
 class Countdown(gym.Env):
@@ -111,6 +112,15 @@ class Unpicklable(CartPoleEnv):
 
     def __getstate__(self):
         raise TypeError("holds a simulator handle")
+
+
+class ConstructorPickled(CartPoleEnv, EzPickle):
+    """CartPole pickled as Gymnasium's MuJoCo and Box2D envs are: by its constructor's arguments
+    alone, so an unpickled copy is a new env, not the one mid-episode."""
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        CartPoleEnv.__init__(self, render_mode=render_mode)
+        EzPickle.__init__(self, render_mode=render_mode)
 
 
 class CrashOnce(CartPoleEnv):

@@ -19,6 +19,7 @@ from typing import Any, SupportsFloat
 import gymnasium as gym
 import numpy as np
 import torch
+from gymnasium.utils import EzPickle
 
 from relayrl.core import BatchedEnv
 from relayrl.envs.pixels import frame_stack_of
@@ -65,7 +66,14 @@ def episode_info(keys: tuple[str, ...], num_envs: int, ended: list[int],
 def env_snapshot(env: gym.Env) -> bytes | None:
     """The env's whole state (dynamics, episode step count, RNGs) pickled, or None for envs
     that cannot be pickled (simulator handles such as pybullet's; an env may also opt out
-    by raising TypeError from `__getstate__`)."""
+    by raising TypeError from `__getstate__`) and for envs whose pickle keeps only their
+    constructor's arguments (Gymnasium's EzPickle: the MuJoCo and Box2D envs come back as new,
+    un-reset simulators, not mid-episode)."""
+    layer: Any = env
+    while layer is not None:
+        if type(layer).__getstate__ is EzPickle.__getstate__:
+            return None
+        layer = layer.env if isinstance(layer, gym.Wrapper) else None
     try:
         return pickle.dumps(env)
     except Exception:  # pickling runs arbitrary user code: any failure means "not checkpointable"
