@@ -29,6 +29,8 @@ def run(args, env, cwd=None):
                                                                              "continues it: pass one of them"),
     (["train", "dqn-cartpole", "--seed", "5", "--set", "seed=7"], "--seed 5 and --set seed=7 name two seeds"),
     (["train", "dqn-cartpole", "--set", "env.id=mymod.MyEnv"], "did you mean mymod:MyEnv?"),
+    (["train", "sac", "--set", "env.id=HalfCheetah-v3"], "env.id='HalfCheetah-v3' could not be made: ImportError: "
+                                                         "The mujoco v2 and v3 based environments have been moved"),
     (["train"], "train needs PRESET|CONFIG.toml (see `relayrl presets`), or --run-dir DIR --resume"),
     (["frobnicate"], "invalid choice"),
     (["train", "dqn-cartpole", "--dir", "x"], "unrecognized arguments: --dir x; did you mean --run-dir?"),

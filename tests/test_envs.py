@@ -479,3 +479,23 @@ def test_a_seed_typeerror_from_inside_a_gymnasium_reset_is_the_envs_own_error():
 
     with pytest.raises(TypeError, match="helper"):
         reset_seeded(Inner(), 0)
+
+
+def test_a_missing_opengl_library_names_the_setting_that_picks_another(monkeypatch):
+    """MuJoCo making or rendering an env on a machine without a display (MUJOCO_GL=osmesa without
+    libOSMesa fails inside PyOpenGL): one line that says what to set."""
+    from relayrl.envs.make import gl_hint, making
+
+    def broken() -> None:
+        raise AttributeError("'NoneType' object has no attribute 'glGetError'")
+
+    monkeypatch.setenv("MUJOCO_GL", "osmesa")
+    said = (r"^env.id='Hopper-v5' could not be made: AttributeError: .*glGetError'; MuJoCo renders without a "
+            r"display through MUJOCO_GL=egl .* \(MUJOCO_GL='osmesa' now\)")
+    with pytest.raises(UserError, match=said):
+        with making("Hopper-v5"):
+            broken()
+    with pytest.raises(AttributeError):  # in a user's own env: its traceback
+        with making("mymod:MyEnv"):
+            broken()
+    assert gl_hint(ValueError("bad kwarg")) == ""

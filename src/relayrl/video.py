@@ -12,7 +12,7 @@ import torch
 
 from relayrl import atomic
 from relayrl.envs.gym import GymBatchEnv, resolve_env_fn
-from relayrl.envs.make import making
+from relayrl.envs.make import gl_hint, making
 from relayrl.errors import UserError
 from relayrl.export import load_policy
 from relayrl.paths import output_path, writing
@@ -114,7 +114,7 @@ def first_frame(env: Any, env_id: str) -> np.ndarray:
     except Exception as e:  # the env's own error: what it said, in one line
         said = " ".join(str(e).split())
         raise UserError(f"env {env_id!r} cannot render: render() raised {type(e).__name__}"
-                        f"{': ' + said if said else ' (the env has no render())'}; {need}") from None
+                        f"{': ' + said if said else ' (the env has no render())'}; {need}{gl_hint(e)}") from None
     if frame is None:
         raise UserError(f"env {env_id!r} renders no frames: render() returned None; {need}")
     array = np.asarray(frame)

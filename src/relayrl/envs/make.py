@@ -4,6 +4,7 @@ as one stateless torch batch. It sits above gym.py and vector.py, which know not
 from __future__ import annotations
 
 import contextlib
+import os
 import random
 import re
 import warnings
@@ -70,13 +71,32 @@ def making(env_id: str) -> Iterator[None]:
         yield
     except gym.error.Error as e:
         raise UserError(f"env.id={env_id!r} could not be made: {e}{extra_hint(e)}") from None
+    except (ImportError, OSError, AttributeError) as e:  # a registered env's moved ids, a missing GL library
+        if names_module(env_id):  # the user's own code: its traceback is what they need
+            raise
+        said = " ".join(str(e).split())
+        raise UserError(f"env.id={env_id!r} could not be made: {type(e).__name__}: {said}{extra_hint(e)}") from None
 
 
 def extra_hint(error: Exception) -> str:
-    """For a Gymnasium env whose dependency is missing: the relayrl extra that brings it."""
+    """For a Gymnasium env whose dependency is missing: the relayrl extra that brings it; for
+    one whose OpenGL library is missing (MuJoCo rendering): the setting that picks another."""
     if isinstance(error, gym.error.DependencyNotInstalled) and "box2d" in str(error).lower():
         return " (with relayrl: pip install 'relayrl[box2d]')"
-    return ""
+    return gl_hint(error)
+
+
+_GL = re.compile(r"OpenGL|\bgl[A-Z]|EGL|OSMesa|GLFW|MUJOCO_GL")
+
+
+def gl_hint(error: Exception) -> str:
+    """Where `error` is a missing OpenGL library (MuJoCo making or rendering an env without a
+    display): the setting that picks another."""
+    if not _GL.search(f"{type(error).__name__} {error}"):
+        return ""
+    chosen = f" (MUJOCO_GL={os.environ['MUJOCO_GL']!r} now)" if "MUJOCO_GL" in os.environ else ""
+    return (f"; MuJoCo renders without a display through MUJOCO_GL=egl (a GPU driver) or MUJOCO_GL=osmesa "
+            f"(libOSMesa){chosen}")
 
 
 def is_user_env(env_id: str, factory: EnvFn | None = None) -> bool:
