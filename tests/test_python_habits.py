@@ -315,3 +315,11 @@ def test_train_given_an_env_instance_or_an_id_says_what_env_takes(tmp_path):
     with pytest.raises(UserError, match=r"env='CartPole-v1' is an env id: set it as the config's env.id"):
         relayrl.train(TINY, tmp_path / "b", progress=False, env="CartPole-v1")
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_load_policy_takes_what_names_a_run(run_dir):
+    """The run directory, its policy/ folder or file, or its config.toml (as `relayrl eval` takes)."""
+    obs = np.zeros(2, np.float32)
+    actions = {int(relayrl.load_policy(p)(obs)) for p in (run_dir, run_dir / "policy", run_dir / "policy" / "policy.pt",
+                                                           run_dir / "config.toml")}
+    assert len(actions) == 1

@@ -43,6 +43,8 @@ T = TypeVar("T")
 
 def _policy_file(path: str | Path) -> Path:
     p = Path(path)
+    if p.name == "config.toml" and p.is_file():  # a run's config names its run, as for `relayrl eval`
+        p = p.parent
     for candidate in (p / "policy" / "policy.pt", p / "policy.pt", p):
         if candidate.is_file():
             return candidate
