@@ -82,6 +82,7 @@ class ConvEncoder(nn.Module):
         super().__init__()
         channels, self.channels_last = image_layout(spec)
         self.channels = channels
+        self.merge = len(spec.shape) != 3  # [H, W] gains a channel, a stack's frames become channels
         h, w = image_size(spec)
         layers: list[nn.Module] = []
         c = channels
@@ -97,7 +98,8 @@ class ConvEncoder(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if self.channels_last:
             x = x.movedim(-1, -3)  # [B, (S,) C, H, W]
-        x = x.reshape(x.shape[0], self.channels, *x.shape[-2:])  # HW: one channel; a stack's frames: channels
+        if self.merge:
+            x = x.reshape(x.shape[0], self.channels, *x.shape[-2:])  # [B, C, H, W]
         x = x.float().mul_(1.0 / 255.0) if x.dtype == torch.uint8 else x.float()
         return self.dense(self.convs(x))
 
