@@ -126,36 +126,37 @@ def test_ci_runs_the_readme_test_command():
     assert ci in (root / "README.md").read_text()
 
 
-def test_a_shared_policy_file_evaluates_on_its_runs_env_kwargs_wrappers_and_time_limit(tmp_path, capsys):
+def test_a_shared_policy_file_evaluates_on_its_runs_env_kwargs_and_time_limit_but_runs_no_code(tmp_path, capsys):
     import shutil
 
     import relayrl
     from relayrl.cli import main
+    from relayrl.policy_file import load_policy_file, save_policy_file
 
-    cfg = relayrl.load_config("dqn-cartpole", ["train.total_steps=60", "train.initial_collect_steps=20",
-                                               "eval.interval=60", "eval.episodes=1", "agent.batch_size=8",
-                                               "env.id=toy_envs:Countdown", "env.kwargs={length = 7}",
-                                               "env.wrappers=['toy_envs:Repeated']", "env.max_episode_steps=5"])
+    short = ["train.total_steps=60", "train.initial_collect_steps=20", "eval.interval=60", "eval.episodes=1",
+             "agent.batch_size=8"]
+    cfg = relayrl.load_config("dqn-cartpole", [*short, "env.id=FrozenLake-v1", "env.kwargs={map_name = '8x8'}",
+                                               "env.max_episode_steps=5"])
     relayrl.train(cfg, tmp_path / "run", progress=False)
     capsys.readouterr()
     shared = tmp_path / "policy.pt"
     shutil.copy(tmp_path / "run" / "policy" / "policy.pt", shared)
     policy = relayrl.load_policy(shared)
-    assert (policy.env_kwargs, policy.env_wrappers, policy.max_episode_steps) == ({"length": 7},
-                                                                                  ["toy_envs:Repeated"], 5)
-    assert main(["eval", str(shared), "--episodes", "2"]) == 0  # Repeated's 4 numbers, cut at 5 of 7 steps
-    assert json.loads(capsys.readouterr().out)["average_episode_length"] == 5.0
-    assert relayrl.evaluate(shared, episodes=2) == relayrl.evaluate(policy, episodes=2) == (5.0, 0.0)
-    from relayrl.policy_file import load_policy_file, save_policy_file
-
+    assert (policy.env_kwargs, policy.max_episode_steps) == ({"map_name": "8x8"}, 5)
+    assert main(["eval", str(shared), "--episodes", "2"]) == 0  # Discrete(64): the 8x8 map, cut at 5 steps
+    assert json.loads(capsys.readouterr().out)["average_episode_length"] <= 5.0
+    assert relayrl.evaluate(shared, episodes=2) == relayrl.evaluate(policy, episodes=2)
     state = load_policy_file(shared)
-    del state["env_id"]  # a file another tool wrote
-    save_policy_file(state, tmp_path / "anonymous.pt")
-    assert main(["eval", str(tmp_path / "anonymous.pt")]) == 2
-    assert "the policy file records no env id (it was written by another tool): give the env to evaluate on " \
-           "(--env ENV_ID; in Python, env=)" in capsys.readouterr().err
-    with pytest.raises(relayrl.errors.UserError, match="records no env id"):
-        relayrl.evaluate(tmp_path / "anonymous.pt")
+    for name, changes in (("anonymous", {"env_id": None}), ("code", {"env_id": "os:system",
+                                                                      "env_kwargs": {"command": "true"}}),
+                          ("wrapped", {"env_wrappers": ["os:getcwd"]})):
+        save_policy_file({**state, **changes}, tmp_path / f"{name}.pt")
+        assert main(["eval", str(tmp_path / f"{name}.pt")]) == 2
+        said = capsys.readouterr().err
+        assert ("records no env id" if name == "anonymous" else "would import and run code it names") in said
+        assert "give the env to evaluate on (--env ENV_ID; in Python, env=)" in said
+    with pytest.raises(relayrl.errors.UserError, match=r"would import and run code it names \(os:system\)"):
+        relayrl.evaluate(tmp_path / "code.pt")
 
 
 def test_eval_of_a_policy_file_outside_a_run_directory_uses_the_env_it_records(tmp_path, capsys):

@@ -498,4 +498,7 @@ def test_a_missing_opengl_library_names_the_setting_that_picks_another(monkeypat
     with pytest.raises(AttributeError):  # in a user's own env: its traceback
         with making("mymod:MyEnv"):
             broken()
+    with pytest.raises(AttributeError):  # in a user's wrapper around a registered env, too
+        with making("CartPole-v1", users_code=True):
+            broken()
     assert gl_hint(ValueError("bad kwarg")) == ""

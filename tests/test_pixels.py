@@ -246,7 +246,8 @@ def test_conv_network_needs_image_observations():
     with pytest.raises(UserError, match="needs uint8 frames"):
         DQNAgent(ArraySpec((4,), torch.float32), DiscreteSpec(2), DQNConfig(network="nature_cnn"),
                  torch.device("cpu"), np.random.default_rng(0))
-    with pytest.raises(UserError, match="at least 36x36"):
+    said = r"agent.network=.* needs frames of at least 36x36, got .*: use agent.network=.mlp. with agent.encoder=.auto"
+    with pytest.raises(UserError, match=said):
         DQNAgent(ArraySpec((4, 12, 12), torch.uint8), DiscreteSpec(2), DQNConfig(network="nature_cnn"),
                  torch.device("cpu"), np.random.default_rng(0))
 

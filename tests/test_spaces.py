@@ -264,16 +264,38 @@ def test_frames_are_read_with_the_smaller_outer_side_as_channels(shape, layout, 
 
 def test_a_policy_file_whose_frames_this_version_reads_another_way_is_one_line():
     """Files without a "layout" were trained by the former rule ([H, W, C] only for 1, 3 or 4
-    channels): where it reads a shape as this rule does, they load; else they are refused."""
+    channels): where it reads a shape as this rule does, or no conv net reads the frames (a
+    flattening or a user's encoder), they load; else they are refused."""
+    from relayrl.specs import check_trained_layout
+
     same = {"kind": "box", "shape": [84, 84, 3], "dtype": "uint8", "low": 0, "high": 255}
+    check_trained_layout(same)
     assert image_layout(spec_from_state(same)) == (3, True)
     for shape, before in (([64, 64, 12], "CHW"), ([4, 64, 64, 3], "a flat vector")):
-        with pytest.raises(UserError, match=rf"observations were read as {before} when this policy was trained; this "
+        with pytest.raises(UserError, match=rf"observations were read as {before} when this run was trained; this "
                                             r"version reads them as S?HWC \(the smaller outer side is the channels\): "
                                             "train it again"):
-            spec_from_state({**same, "shape": shape})
+            check_trained_layout({**same, "shape": shape})
     board = {**same, "shape": [64, 64, 12], "high": 2}  # not frames: an MLP either way
-    assert not is_image(spec_from_state(board))
+    check_trained_layout(board)
+    with pytest.raises(UserError, match="were read as CHW"):  # unless a conv encoder was asked for by name
+        check_trained_layout(board, any_bounds=True)
+    check_trained_layout({**same, "shape": [64, 64, 12], "layout": "HWC"})  # recorded by this version
+    packed = {"kind": "packed", "tuple": False, "fields": [{"key": "f", "path": ["f"], "spec": {**same,
+                                                                                              "shape": [64, 64, 12]}}]}
+    with pytest.raises(UserError, match="were read as CHW"):
+        check_trained_layout(packed)
+
+
+def test_an_old_flattened_policy_on_frames_read_another_way_now_still_loads(tmp_path):
+    from relayrl.policies import network_state, saved_network
+
+    spec = spec_from_space(gym.spaces.Box(0, 255, (16, 16, 12), np.uint8))
+    net = relayrl.nn.MLP(16 * 16 * 12, [8], 2, "relu")
+    state = {**network_state(net, spec, "flatten", [8], "relu")}
+    del state["obs_space"]["layout"]  # written before layouts were recorded
+    frames = torch.randint(0, 256, (3, 16, 16, 12), dtype=torch.uint8)
+    assert torch.equal(saved_network(state, 2)(frames), net(frames))
 
 
 def test_frames_stacked_by_gymnasiums_wrapper_over_rgb_train_a_conv_net(tmp_path):

@@ -117,8 +117,10 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
 def recorded_env(source: Any, episodes: int, max_episode_steps: int = 0, info_keys: bool = False) -> Any:
     """The eval env (`make_eval_env`) of the env a run directory's config.toml records (`source`
     a run directory or a file in it), or else a policy file's own record (`source` a lone policy
-    file, or a loaded policy): its id, kwargs, wrappers and time limit, which `max_episode_steps`
-    overrides where it is not 0; with `info_keys`, a run's env.info_keys too."""
+    file, or a loaded policy): a registered id, its kwargs and time limit (`max_episode_steps`
+    overrides the time limit where it is not 0); with `info_keys`, a run's env.info_keys too. A
+    file naming code to import (`module:Name`, wrappers) is refused: a policy file runs no code."""
+    from relayrl.envs.gym import names_module
     from relayrl.export import load_policy
     from relayrl.loaded_policy import LoadedPolicy
     from relayrl.presets import load_config
@@ -134,8 +136,12 @@ def recorded_env(source: Any, episodes: int, max_episode_steps: int = 0, info_ke
                                  wrappers=c.wrappers, info_keys=c.info_keys if info_keys else ())
         source = load_policy(source)  # a policy file on its own
     assert isinstance(source, LoadedPolicy)
+    give = "give the env to evaluate on (--env ENV_ID; in Python, env=)"
     if not source.env_id:
-        raise UserError("the policy file records no env id (it was written by another tool): give the env to "
-                        "evaluate on (--env ENV_ID; in Python, env=)")
+        raise UserError(f"the policy file records no env id: {give}")
+    if names_module(source.env_id) or source.env_wrappers:  # a shared file runs no code: it names an env only
+        code = ", ".join([source.env_id] * names_module(source.env_id) + source.env_wrappers)
+        raise UserError(f"the policy file's env would import and run code it names ({code}), which a policy file "
+                        f"is not trusted to: {give}")
     return make_eval_env(source.env_id, episodes, max_episode_steps or source.max_episode_steps,
-                         kwargs=source.env_kwargs, wrappers=source.env_wrappers)
+                         kwargs=source.env_kwargs)

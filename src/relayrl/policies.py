@@ -13,10 +13,19 @@ from torch import nn
 
 from relayrl.core import Policy
 from relayrl.nn import MLP
-from relayrl.nn.encoders import Encoded, make_encoder
+from relayrl.nn.encoders import CONV_READY, Encoded, make_encoder
 from relayrl.nn.graphed import GraphedForward
 from relayrl.nn.mlp_fast import MLPInference
-from relayrl.specs import ArraySpec, DiscreteSpec, MultiBinarySpec, MultiDiscreteSpec, Spec, spec_from_state, spec_state
+from relayrl.specs import (
+    ArraySpec,
+    DiscreteSpec,
+    MultiBinarySpec,
+    MultiDiscreteSpec,
+    Spec,
+    check_trained_layout,
+    spec_from_state,
+    spec_state,
+)
 
 
 def cpu_mlp(net: nn.Module, device: torch.device) -> MLPInference | None:
@@ -226,7 +235,10 @@ def saved_network(state: dict[str, Any], out_dim: int) -> nn.Module:
     """The network of a saved policy (policy.pt's dict), in eval mode: an MLP of `state["hidden"]`
     behind the encoder of the saved observation space."""
     mlp = MLP(state["obs_dim"], state["hidden"], out_dim, state["activation"])
-    encoder = make_encoder(saved_obs_spec(state), state.get("encoder", "auto")) if "obs_space" in state else None
+    kind = state.get("encoder", "auto")
+    if "obs_space" in state and kind in CONV_READY:  # a conv net is built for its frames as they are read now
+        check_trained_layout(state["obs_space"], any_bounds=kind != "auto")
+    encoder = make_encoder(saved_obs_spec(state), kind) if "obs_space" in state else None
     net = mlp if encoder is None else Encoded(encoder, mlp)
     net.load_state_dict(state["state_dict"])
     return net.eval()

@@ -218,8 +218,8 @@ def _pixel_bounds(spec: ArraySpec) -> bool:
 def frame_layout(shape: Sequence[int]) -> str | None:
     """How a shape reads as frames: "HW", "CHW", "HWC", or a stack of them along the first side,
     "SCHW" / "SHWC" (Gymnasium's FrameStackObservation over RGB frames), the channels being the
-    smaller of the outer sides (Stable-Baselines3's rule: [84, 84, 12] is four RGB frames side by
-    side, [4, 84, 84] four gray ones); None where a side is under 8 pixels or the rank is another."""
+    smaller of the outer sides ([84, 84, 12] is four RGB frames side by side, as Stable-Baselines3
+    reads it; [4, 84, 84] four gray ones); None where a side is under 8 pixels or the rank is another."""
     if len(shape) not in (2, 3, 4):
         return None
     frame = tuple(shape[-3:]) if len(shape) > 2 else tuple(shape)
@@ -247,8 +247,8 @@ def image_size(spec: ArraySpec) -> tuple[int, int]:
 
 
 def _frame_layout_before(shape: Sequence[int]) -> str | None:
-    """The layout policy files without a "layout" entry were trained with: ranks 2 and 3 only, [H, W,
-    C] where the last side was 1, 3 or 4 and the first was not."""
+    """The layout of policy files and checkpoints without a "layout" entry: ranks 2 and 3 only,
+    [H, W, C] where the last side was 1, 3 or 4 and the first was not."""
     if len(shape) == 2:
         return "HW" if min(shape) >= 8 else None
     if len(shape) != 3:
@@ -297,16 +297,30 @@ def spec_from_state(state: dict[str, Any]) -> Spec:
         return MultiDiscreteSpec(shape, dtype, env_dtype=env, nvec=tuple(int(n) for n in state["nvec"]))
     if kind == "multi_binary":
         return MultiBinarySpec(shape, dtype, env_dtype=env)
-    spec = ArraySpec(shape, dtype, env_dtype=env)
     if "low" in state:
         low, high = (np.broadcast_to(np.asarray(state[k], np.uint8), shape).copy() for k in ("low", "high"))
-        spec = ArraySpec(shape, dtype, low, high, env_dtype=env)
-    trained = state["layout"] if "layout" in state else _frame_layout_before(shape)
-    if dtype == torch.uint8 and _pixel_bounds(spec) and trained != frame_layout(shape):  # frames read another way
-        raise UserError(f"{describe(spec)} observations were read as {trained or 'a flat vector'} when this policy "
+        return ArraySpec(shape, dtype, low, high, env_dtype=env)
+    return ArraySpec(shape, dtype, env_dtype=env)
+
+
+def check_trained_layout(state: dict[str, Any], any_bounds: bool = False, recorded: bool = True) -> None:
+    """UserError where frames in a saved observation space (`spec_state`'s form) were read with
+    another layout when its networks were trained than `frame_layout` reads them now: a conv
+    encoder would be built for other sides or channels. `recorded`: the state's own "layout"
+    entries count (a checkpoint's `spaces` lack them: the former rule then applies); `any_bounds`:
+    a conv encoder asked for by name reads any uint8 Box as frames."""
+    if state["kind"] == "packed":
+        for f in state["fields"]:
+            check_trained_layout(f["spec"], any_bounds, recorded)
+        return
+    if state["kind"] != "box" or state["dtype"] != "uint8":
+        return
+    spec, shape = spec_from_state(state), tuple(int(d) for d in state["shape"])
+    trained = state["layout"] if recorded and "layout" in state else _frame_layout_before(shape)
+    if (any_bounds or _pixel_bounds(spec)) and trained != frame_layout(shape):
+        raise UserError(f"{describe(spec)} observations were read as {trained or 'a flat vector'} when this run "
                         f"was trained; this version reads them as {frame_layout(shape) or 'a flat vector'} "
                         "(the smaller outer side is the channels): train it again")
-    return spec
 
 
 def to_space(spec: Spec, stored: bool = False) -> gym.Space:

@@ -39,7 +39,7 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     frames: list[Any] = []  # RGB arrays
     make_one = (resolve_env_fn(config.env.id, config.env.max_episode_steps, "rgb_array", config.env.kwargs,
                                config.env.wrappers) if given is None else lambda: _rgb_env(given))
-    with making(config.env.id):
+    with making(config.env.id, users_code=bool(config.env.wrappers) or given is not None):
         env = GymBatchEnv([lambda: EndFrames(make_one(), frames)])
     try:
         policy.check_fits(env.observation_spec)  # another env= than the run's: one line, as `evaluate` says it

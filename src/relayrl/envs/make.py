@@ -55,7 +55,7 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
         return ale
     fn = resolve_env_fn(env_id, max_episode_steps, render_mode, kwargs, wrappers, factory)
     env: BatchEnvBase
-    with making(env_id):
+    with making(env_id, users_code=bool(wrappers) or factory is not None):
         if vectorization == "async" and num_envs > 1:
             env = AsyncGymBatchEnv([fn] * num_envs, time_limit_terminates, num_workers)
         else:
@@ -65,14 +65,16 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
 
 
 @contextlib.contextmanager
-def making(env_id: str) -> Iterator[None]:
-    """Gymnasium's own errors while the copies are made (a missing dependency, a bad kwarg) as one line."""
+def making(env_id: str, users_code: bool = False) -> Iterator[None]:
+    """Gymnasium's own errors while the copies are made (a missing dependency, a bad kwarg) as one
+    line; a registered env's import, OS and attribute errors too, unless the user's code takes part
+    (`users_code`: their wrappers or factory; a `module:Name` id), whose traceback they need."""
     try:
         yield
     except gym.error.Error as e:
         raise UserError(f"env.id={env_id!r} could not be made: {e}{extra_hint(e)}") from None
     except (ImportError, OSError, AttributeError) as e:  # a registered env's moved ids, a missing GL library
-        if names_module(env_id):  # the user's own code: its traceback is what they need
+        if users_code or names_module(env_id):
             raise
         said = " ".join(str(e).split())
         raise UserError(f"env.id={env_id!r} could not be made: {type(e).__name__}: {said}{extra_hint(e)}") from None

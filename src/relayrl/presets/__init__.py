@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from relayrl.agents.registry import ALGORITHMS, DEFAULT_ALGO
-from relayrl.config import Config, ReplayConfig, apply_overrides, from_dict, load_toml
+from relayrl.config import Config, ReplayConfig, apply_overrides, from_dict, load_toml, parse_override
 from relayrl.config_fields import did_you_mean
 from relayrl.errors import ConfigError
 
@@ -79,7 +79,7 @@ def load_config(name_or_path: str, overrides: list[str] | None = None, seed: int
         data = preset_dict(name_or_path)
     data = apply_overrides(data, overrides or [])
     if seed is not None:
-        if any(o.strip().startswith("seed=") for o in overrides or []) and data.get("seed") != seed:
+        if any(parse_override(o)[0] == ["seed"] for o in overrides or []) and data.get("seed") != seed:
             raise ConfigError(f"--seed {seed} and --set seed={data.get('seed')} name two seeds: pass one of them")
         data["seed"] = seed
     try:

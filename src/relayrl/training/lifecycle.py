@@ -26,10 +26,11 @@ from relayrl.envs.gym import names_python_factory
 from relayrl.envs.make import check_env, is_user_env
 from relayrl.errors import NonFiniteError, UserError
 from relayrl.metrics import EpisodeStats
+from relayrl.nn.encoders import CONV_READY
 from relayrl.policy_file import env_action_entries, env_entries
 from relayrl.schedules import linear_schedule
 from relayrl.seeding import RunSeeds
-from relayrl.specs import describe, spec_from_state, spec_state
+from relayrl.specs import check_trained_layout, describe, spec_from_state, spec_state
 from relayrl.training.checkpoint import list_checkpoints
 from relayrl.training.finite import FiniteWatch, non_finite_metrics, non_finite_tensor, stop
 from relayrl.training.learner import Learner
@@ -198,9 +199,12 @@ class RunCore:
     def restore_common(self, state: dict[str, Any]) -> int:
         """Load the agent, the episodes' stats and the wall time of `checkpoint_common`; returns
         the evaluations so far. The process's state is the driver's to load, once its envs are back."""
-        saved = state.get("spaces")  # checkpoints before spaces were recorded skip this check
+        saved = state.get("spaces")  # checkpoints before spaces were recorded: only their frames' layout
+        encoder = self.config.agent.encoder
+        if saved is None and encoder in CONV_READY:
+            check_trained_layout(spec_state(self.agent.obs_spec), any_bounds=encoder != "auto", recorded=False)
         for kind, now in self.spaces().items():
-            if saved is not None and saved[kind] != now:  # described as recorded: both in the same terms
+            if saved is not None and spec_state(spec_from_state(saved[kind])) != now:  # both in today's terms
                 raise UserError(f"the env's {kind}s are {describe(spec_from_state(now))} but the run was trained on "
                                 f"{describe(spec_from_state(saved[kind]))}: resume with the env settings the run "
                                 "started with (leave out the --set keys that change env.kwargs or env.wrappers)")

@@ -143,8 +143,8 @@ class LocalDriver:
             self.env_state_said = True
             self.core.say("the env cannot be pickled mid-episode (a simulator handle, a wrapper holding a local "
                           "function such as Gymnasium's RescaleAction, or a pickle of only its constructor's "
-                          "arguments, as Gymnasium's MuJoCo and Box2D envs have): checkpoints hold no env state, so "
-                          "a resumed run starts new episodes")
+                          "arguments, as Gymnasium's MuJoCo and Box2D envs and ale-py's Atari envs have): "
+                          "checkpoints hold no env state, so a resumed run starts new episodes")
         return {
             **self.core.checkpoint_common(self.evaluator.count),
             # Very large tables may be left out (train.checkpoint_replay = false): a resumed

@@ -10,8 +10,8 @@ from torch import nn
 from relayrl.agents.dqn.config import DQNConfig
 from relayrl.errors import UserError
 from relayrl.nn import tf_agents_init_
-from relayrl.nn.encoders import Encoded, encoded_mlp
-from relayrl.specs import ArraySpec, DiscreteSpec, Spec, describe, image_layout, is_image
+from relayrl.nn.encoders import NATURE_MIN_SIDE, Encoded, encoded_mlp
+from relayrl.specs import ArraySpec, DiscreteSpec, Spec, describe, image_layout, image_size, is_image
 
 
 def q_network(obs_spec: Spec, action_spec: Spec, cfg: DQNConfig) -> nn.Module:
@@ -20,15 +20,19 @@ def q_network(obs_spec: Spec, action_spec: Spec, cfg: DQNConfig) -> nn.Module:
                         "(use SAC or PPO for Box actions, PPO for MultiDiscrete and MultiBinary)")
     if cfg.network != "mlp":
         # the Atari presets' net: the Nature CNN encoder and one linear layer on its 512 features
+        instead = "use agent.network='mlp' with agent.encoder='auto' or 'nature_cnn', which take any image layout"
         if not (isinstance(obs_spec, ArraySpec) and is_image(obs_spec) and len(obs_spec.shape) == 3
                 and not image_layout(obs_spec)[1]):
             raise UserError(f"agent.network={cfg.network!r} needs uint8 frames [C, H, W], channels first (as "
                             f"relayrl/Atari-Pong-v0's [4, 84, 84]); this env's observations are {describe(obs_spec)}: "
-                            "use agent.network='mlp' with agent.encoder='auto' or 'nature_cnn', which take any "
-                            "image layout")
+                            + instead)
+        if min(image_size(obs_spec)) < NATURE_MIN_SIDE:
+            small = instead.replace("nature_cnn", "small_cnn")
+            raise UserError(f"agent.network={cfg.network!r} needs frames of at least {NATURE_MIN_SIDE}x"
+                            f"{NATURE_MIN_SIDE}, got {describe(obs_spec)}: {small}")
     encoder, hidden, activation = q_layout(cfg)
     net = encoded_mlp(obs_spec, encoder, hidden, action_spec.n, activation)
-    if cfg.init == "tf-agents" and cfg.network == "mlp":  # the conv net keeps torch's init, as Mnih et al.'s
+    if cfg.init == "tf-agents" and cfg.network == "mlp":  # agent.init is the MLP's; the conv net keeps torch's
         tf_agents_init_(net.head if isinstance(net, Encoded) else net)
     return net
 
@@ -40,8 +44,8 @@ def q_layout(cfg: DQNConfig) -> tuple[str, list[int], str]:
 
 
 def conv_state_dict(state_dict: dict[str, Any]) -> dict[str, Any]:
-    """A state dict of the conv Q-network as policy files and checkpoints before it became the
-    Nature CNN encoder + a linear head held it (convs.*, head.0.*, head.2.*), in today's keys."""
+    """A conv Q-network's state dict in the keys of `q_network`'s modules: policy files with
+    `"network"` and checkpoints of such runs may hold it as convs.*, head.0.*, head.2.*."""
     renames = (("convs.", "encoder.convs."), ("head.0.", "encoder.dense.0."), ("head.2.", "head.layers.0."))
     out = {}
     for key, value in state_dict.items():

@@ -13,8 +13,8 @@ from relayrl.policies import GreedyPolicy, saved_network
 
 
 def q_net(state: dict[str, Any]) -> nn.Module:
-    """The saved Q-network; a file from before the conv net was the Nature CNN encoder + a linear
-    head (`"network": "nature_cnn"`, its own keys) is read as today's."""
+    """The saved Q-network. A file with `"network"` (a conv Q-network, "obs_shape" and keys
+    convs.*, head.0.*, head.2.*) is read as the Nature CNN encoder with its linear head."""
     if state.get("network", "mlp") != "mlp":
         space = state.get("obs_space", {"kind": "box", "shape": state["obs_shape"], "dtype": "uint8"})
         state = {**state, "obs_space": space, "encoder": "nature_cnn", "obs_dim": 512, "hidden": [],
