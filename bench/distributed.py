@@ -168,19 +168,19 @@ class Cluster:
 
         from relayrl.distributed.offpolicy import CALL_CHUNKS, CALLS_QUEUED
         from relayrl.distributed.server import ReplayServer
-        from relayrl.distributed.workers import RolloutWorker
+        from relayrl.distributed.workers import RolloutWorker, actor_name
         from relayrl.training.variables import VariableContainer
 
         self.ray, self.queued = ray, CALLS_QUEUED
         self.call_steps = CALL_CHUNKS * c.distributed.chunk_steps
         cfg = to_dict(c)
         obs_spec, act_spec = specs(c.env.id)
-        names = f"bench-{uuid.uuid4().hex[:8]}"  # workers.named_actor(names, role)
+        names = f"bench-{uuid.uuid4().hex[:8]}"
         self.tmp = tempfile.TemporaryDirectory()
         self.server = ray.remote(num_cpus=0, max_concurrency=k + 8)(ReplayServer).options(
-            name=f"{names}-replay").remote(cfg, obs_spec, act_spec, self.tmp.name, max(k, 1))
+            name=actor_name(names, "replay")).remote(cfg, obs_spec, act_spec, self.tmp.name, max(k, 1))
         self.variables = ray.remote(num_cpus=0, max_concurrency=k + 8)(VariableContainer).options(
-            name=f"{names}-variables").remote(copy=True)
+            name=actor_name(names, "variables")).remote(copy=True)
         worker = ray.remote(num_cpus=1, max_restarts=0)(RolloutWorker)
         path = [str(ROOT), *sys.path]
         self.workers = [worker.remote(cfg, i, names, path) for i in range(k)]

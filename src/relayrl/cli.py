@@ -119,13 +119,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _train(args: argparse.Namespace) -> None:
-    from relayrl.dispatch import check_resume_matches, default_run_dir, train
+    from relayrl.dispatch import RESUME_OR_OVERWRITE, check_resume_matches, default_run_dir, train
     from relayrl.presets import load_config
     from relayrl.training.run_dir import RunDir
 
     if args.resume:
         if args.overwrite:
-            raise UserError("--overwrite replaces a run, --resume continues it: pass one of them")
+            raise UserError(RESUME_OR_OVERWRITE)
         if not args.run_dir:
             raise UserError("--resume needs --run-dir DIR (the run to continue)")
         rd = RunDir(args.run_dir)

@@ -53,6 +53,8 @@ def factory_env_id(factory: Callable[[], Any]) -> str:
     return f"{module}:{label}"
 
 
+RESUME_OR_OVERWRITE = "--overwrite replaces a run, --resume continues it: pass one of them"
+
 # What a resumed run keeps of the run it continues (config.toml's value; a key left out is the
 # algorithm's default), and the advice its refusal gives; `agent.*` keys that shape the networks too.
 _OWN = ("resume with the run's own config.toml: leave out PRESET|CONFIG.toml and --set {} (in Python: "
@@ -201,8 +203,7 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
     rd.check_not_running()
     if resume:
         if overwrite:
-            raise UserError("--overwrite replaces a run, --resume continues it: pass one of them (in Python: "
-                            "overwrite=True or resume=True)")
+            raise UserError(RESUME_OR_OVERWRITE + " (in Python: overwrite=True or resume=True)")
         rd.require()
         networks = {f"agent.{k}": f"a resumed run keeps its networks (leave out --set agent.{k}; in Python, load "
                     "the run's config.toml)" for k in config.agent.NETWORK}

@@ -16,7 +16,7 @@ from collections.abc import Callable
 from typing import Any
 
 from relayrl.config import Config, to_dict
-from relayrl.distributed.workers import EvalWorker
+from relayrl.distributed.workers import EvalWorker, actor_name
 from relayrl.errors import UserError
 from relayrl.training.variables import VariableContainer
 
@@ -91,10 +91,10 @@ class ActorPool:
         cfg, path = to_dict(c), list(sys.path)
         # Restartable actors find the server and the container by name: Ray cannot promise to
         # keep actor handles passed as constructor arguments alive for a restart.
-        names = f"relayrl-{uuid.uuid4().hex[:12]}"  # workers.named_actor(names, role)
-        self.server = server(ray, f"{names}-replay") if server is not None else None
+        names = f"relayrl-{uuid.uuid4().hex[:12]}"
+        self.server = server(ray, actor_name(names, "replay")) if server is not None else None
         self.variables = ray.remote(num_cpus=0, max_concurrency=self.num_actors + 8)(VariableContainer).options(
-            name=f"{names}-variables").remote(copy=True)
+            name=actor_name(names, "variables")).remote(copy=True)
         worker = ray.remote(num_cpus=d.actor_cpus, max_restarts=d.max_restarts, max_task_retries=0)(worker_class)
         self.workers = [worker.remote(cfg, i, names, path) for i in range(self.num_actors)]
         evaluator = ray.remote(num_cpus=0, max_restarts=d.max_restarts, max_task_retries=0)(EvalWorker)

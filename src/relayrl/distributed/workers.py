@@ -46,12 +46,17 @@ def _setup(config: dict[str, Any], sys_path: list[str]) -> Config:
     return c
 
 
+def actor_name(prefix: str, role: str) -> str:
+    """The Ray name of a run's replay server (`role` "replay") or variable container ("variables")."""
+    return f"{prefix}-{role}"
+
+
 def named_actor(prefix: str, role: str) -> Any:
-    """A run's replay server (`role` "replay") or variable container ("variables"), found by name:
-    Ray cannot promise to keep handles passed to a restartable actor's constructor alive."""
+    """The actor `actor_name` names, found by name: Ray cannot promise to keep handles passed to a
+    restartable actor's constructor alive."""
     import ray
 
-    return ray.get_actor(f"{prefix}-{role}")
+    return ray.get_actor(actor_name(prefix, role))
 
 
 def _reconstructed() -> bool:
