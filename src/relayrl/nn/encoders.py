@@ -46,9 +46,9 @@ NATURE_CONVS, NATURE_HIDDEN = ((32, 8, 4, 0), (64, 4, 2, 0), (64, 3, 1, 0)), 512
 # for frames from 8x8 (MiniGrid-like) to 35x35, where the Nature CNN's 8x8 stride-4 first layer
 # would leave almost nothing
 SMALL_CONVS = ((32, 3, 1, 1), (64, 3, 2, 1), (64, 3, 2, 1))
-CONV_READY = ("auto", "nature_cnn", "small_cnn")  # the agent.encoder kinds that build a conv net for frames
 SMALL_HIDDEN = 256
 NATURE_MIN_SIDE = 36
+CONV_READY = ("auto", "nature_cnn", "small_cnn")  # the agent.encoder kinds that build a conv net for frames
 
 
 class Flatten(nn.Module):
