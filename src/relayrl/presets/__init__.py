@@ -3,6 +3,7 @@ each algorithm's own default config under its name (`relayrl train ppo`), from t
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import sys
 import tomllib
@@ -73,8 +74,10 @@ def _without_unused_replay(data: dict[str, Any], path: str) -> dict[str, Any]:
 
 def load_config(name_or_path: str, overrides: list[str] | None = None, seed: int | None = None) -> Config:
     """A preset name or a path to a config TOML, with `--set` overrides applied and checked."""
+    file_data: dict[str, Any] | None = None  # a config file's own settings: an error in them names the file
     if name_or_path.endswith(".toml"):
-        data = _without_unused_replay(load_toml(name_or_path), name_or_path)
+        file_data = _without_unused_replay(load_toml(name_or_path), name_or_path)
+        data = copy.deepcopy(file_data)
     else:
         data = preset_dict(name_or_path)
     data = apply_overrides(data, overrides or [])
@@ -85,15 +88,15 @@ def load_config(name_or_path: str, overrides: list[str] | None = None, seed: int
     try:
         return from_dict(data)
     except ConfigError as e:
-        if not name_or_path.endswith(".toml") or not _fails_alone(name_or_path, str(e)):
+        if file_data is None or not _fails_alone(file_data, str(e)):
             raise
         raise ConfigError(f"config file {name_or_path!r}: {e}") from None
 
 
-def _fails_alone(path: str, message: str) -> bool:
-    """Whether the TOML file itself holds what `message` refuses (not an override given with it)."""
+def _fails_alone(file_data: dict[str, Any], message: str) -> bool:
+    """Whether a config file's own settings hold what `message` refuses (not an override given with them)."""
     try:
-        from_dict(_without_unused_replay(load_toml(path), path))
+        from_dict(file_data)
     except ConfigError as e:
         return str(e) == message
     return False
