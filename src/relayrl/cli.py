@@ -150,7 +150,6 @@ def _train(args: argparse.Namespace) -> None:
 def _eval(args: argparse.Namespace) -> None:
     from relayrl.evaluation import recorded_env
     from relayrl.export import load_policy
-    from relayrl.presets import load_config
     from relayrl.training.evaluate import eval_cap_note, evaluate, make_eval_env
     from relayrl.training.run_dir import RunDir
 
@@ -163,12 +162,11 @@ def _eval(args: argparse.Namespace) -> None:
     lone = given.is_file() and not rd.config.is_file()  # a policy file on its own: the env it records
     if not lone:
         rd.require()
-    policy = load_policy(given if lone or given.name != "config.toml" else rd.root)
+    policy = load_policy(given)  # a run directory, its config.toml or policy file, or a lone policy file
     if args.env:  # another env, as it is registered: not the run's kwargs or wrappers
         env_id, env = args.env, make_eval_env(args.env, args.episodes, args.max_episode_steps or 0)
     else:
-        env = recorded_env(policy if lone else given, args.episodes, args.max_episode_steps or 0, info_keys=True)
-        env_id = policy.env_id if lone else load_config(str(rd.config)).env.id
+        env, env_id = recorded_env(given, args.episodes, args.max_episode_steps or 0, info_keys=True, policy=policy)
     try:
         policy.check_fits(env.observation_spec)
         result = evaluate(env, policy, args.episodes, seed=args.seed)

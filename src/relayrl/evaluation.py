@@ -101,7 +101,7 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
         if not isinstance(policy, (str, Path, LoadedPolicy)):
             raise UserError("env=None evaluates on the env a run directory or a policy file records; with this "
                             "policy give env (a Gymnasium env, a callable returning one, or an env id)")
-        return recorded_env(policy, episodes, max_episode_steps), True
+        return recorded_env(policy, episodes, max_episode_steps)[0], True
     if isinstance(env, str):
         return make_eval_env(env, episodes, max_episode_steps), True
     if isinstance(env, gym.vector.VectorEnv) or hasattr(env, "step_async"):  # Gymnasium's or SB3's VecEnv
@@ -114,12 +114,14 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
     raise UserError(f"env={env!r} is not an env: give a Gymnasium env, a callable returning one, or an env id")
 
 
-def recorded_env(source: Any, episodes: int, max_episode_steps: int = 0, info_keys: bool = False) -> Any:
-    """The eval env (`make_eval_env`) of the env a run directory's config.toml records (`source`
-    a run directory or a file in it), or else a policy file's own record (`source` a lone policy
-    file, or a loaded policy): a registered id, its kwargs and time limit (`max_episode_steps`
-    overrides the time limit where it is not 0); with `info_keys`, a run's env.info_keys too. A
-    file naming code to import (`module:Name`, wrappers) is refused: a policy file runs no code."""
+def recorded_env(source: Any, episodes: int, max_episode_steps: int = 0, info_keys: bool = False,
+                 policy: Any = None) -> tuple[Any, str]:
+    """The eval env (`make_eval_env`) and its id, of the env a run directory's config.toml records
+    (`source` a run directory or a file in it), or else a policy file's own record (`source` a
+    lone policy file, loaded again unless `policy` is that file's, or a loaded policy): a
+    registered id, its kwargs and time limit (`max_episode_steps` overrides the time limit where
+    it is not 0); with `info_keys`, a run's env.info_keys too. A file naming code to import
+    (`module:Name`, wrappers) is refused: a policy file runs no code."""
     from relayrl.envs.gym import names_module
     from relayrl.export import load_policy
     from relayrl.loaded_policy import LoadedPolicy
@@ -133,8 +135,8 @@ def recorded_env(source: Any, episodes: int, max_episode_steps: int = 0, info_ke
             rd.require()
             c = load_config(str(rd.config)).env
             return make_eval_env(c.id, episodes, max_episode_steps or c.max_episode_steps, kwargs=c.kwargs,
-                                 wrappers=c.wrappers, info_keys=c.info_keys if info_keys else ())
-        source = load_policy(source)  # a policy file on its own
+                                 wrappers=c.wrappers, info_keys=c.info_keys if info_keys else ()), c.id
+        source = policy if policy is not None else load_policy(source)  # a policy file on its own
     assert isinstance(source, LoadedPolicy)
     give = "give the env to evaluate on (--env ENV_ID; in Python, env=)"
     if not source.env_id:
@@ -144,4 +146,4 @@ def recorded_env(source: Any, episodes: int, max_episode_steps: int = 0, info_ke
         raise UserError(f"the policy file's env would import and run code it names ({code}), which a policy file "
                         f"is not trusted to: {give}")
     return make_eval_env(source.env_id, episodes, max_episode_steps or source.max_episode_steps,
-                         kwargs=source.env_kwargs)
+                         kwargs=source.env_kwargs), source.env_id
