@@ -5,6 +5,7 @@ every algorithm on the device.
     python bench/gpu.py [--device cuda] [--seconds 40] [--out gpu.json]
     python bench/gpu.py --smoke [--device cuda] [--steps 300]
     python bench/gpu.py --profile ddqn-pong [--device cuda] [--seconds 10]
+    python bench/gpu.py --syncs ppo-stateless-pendulum ddqn-pong [--seconds 5]
 
 Figures (env steps/s over the steady part of each run: from the first log row after learning
 starts to the last, evaluations excluded; each run capped by steps and by --seconds):
@@ -340,6 +341,44 @@ def profile(name: str, device: torch.device, seconds: float, out: Path) -> None:
     print(f"profile of {name}: {out}")
 
 
+def syncs(names: list[str], device: torch.device, seconds: float, out: Path) -> None:
+    """Where each run waits for the GPU: runs `names` under `torch.cuda.set_sync_debug_mode("warn")`
+    and counts the host syncs by the relayrl lines that caused them (the innermost three frames
+    in src/ or bench/); the counts per run go to `out`."""
+    import collections
+    import traceback as tb
+    import warnings
+
+    if device.type != "cuda":
+        fail("--syncs needs a CUDA device (host syncs exist only there)")
+    lines: list[str] = []
+    for name in names:
+        preset, overrides, steps = next((p, o, s) for n, p, o, s in RUNS if n == name)
+        counts: collections.Counter[str] = collections.Counter()
+        shown = warnings.showwarning
+
+        def record(message: Any, category: Any, filename: str, lineno: int, file: Any = None,
+                   line: Any = None, shown: Any = shown, counts: Any = counts) -> None:
+            if "synchroniz" not in str(message):
+                return shown(message, category, filename, lineno, file, line)
+            frames = [f for f in tb.extract_stack()[:-1] if "/src/relayrl/" in f.filename or "/bench/" in f.filename]
+            counts[" < ".join(f"{Path(f.filename).name}:{f.lineno}" for f in frames[-3:][::-1])] += 1
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("always")
+            warnings.showwarning = record
+            torch.cuda.set_sync_debug_mode("warn")
+            try:
+                figures = timed_run(preset, overrides, device, seconds, steps)
+            finally:
+                torch.cuda.set_sync_debug_mode("default")
+                warnings.showwarning = shown
+        lines.append(f"{name}: {figures}; {sum(counts.values())} host syncs")
+        lines += [f"  {n:7d}  {where}" for where, n in counts.most_common(25)]
+    out.write_text("\n".join(lines) + "\n")
+    print(f"host syncs: {out}")
+
+
 def table(figures: dict[str, Any]) -> str:
     runs, floor = figures["runs"], figures["floor"]
 
@@ -447,6 +486,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=300, help="--smoke: env steps per algorithm (default 300)")
     p.add_argument("--profile", choices=[r[0] for r in RUNS], default=None,
                    help="profile one run (cProfile, 40 functions by own time) instead")
+    p.add_argument("--syncs", nargs="+", choices=[r[0] for r in RUNS], default=None,
+                   help="count the host syncs of these runs by the lines causing them (CUDA) instead")
     p.add_argument("--only", nargs="+", choices=[r[0] for r in RUNS], default=None,
                    help="time these runs alone (no floors, no variants) and print their JSON")
     args = p.parse_args(argv)
@@ -458,6 +499,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0 if smoke(device, args.steps) else 1
     out = Path(args.out) if args.out else Path(os.environ["OUT"]) / "gpu.json" if os.environ.get("OUT") \
         else Path("gpu.json")
+    if args.syncs:
+        syncs(args.syncs, device, args.seconds, out.with_name("syncs.txt"))
+        return 0
     if args.profile:
         profile(args.profile, device, args.seconds, out.with_name(f"profile-{args.profile}.txt"))
         return 0
