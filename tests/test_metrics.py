@@ -138,3 +138,36 @@ def test_finished_episodes_not_yet_logged_survive_a_checkpoint():
     again = EpisodeStats()
     again.load_state_dict(stats.state_dict())
     assert again.take_finished() == stats.take_finished() == [(3, 3.0, 3)]
+
+
+@pytest.mark.parametrize("batch", [1, 7])
+def test_steps_from_a_device_are_read_once_per_collect_call_with_the_same_results(batch, monkeypatch):
+    # On a GPU each batched step's rewards and done flags are staged and read in one host copy
+    # at flush(): the windows, episode counts, info values and each episode's env step must be
+    # what reading every step at once gives. (CPU tensors stand in for a device's here.)
+    import relayrl.metrics as metrics
+
+    rng = np.random.default_rng(batch)
+    steps_ = [(rng.normal(size=batch).tolist(), (rng.random(batch) < 0.2).tolist(),
+               (rng.random(batch) < 0.1).tolist()) for _ in range(40)]
+
+    def run(staged: bool) -> EpisodeStats:
+        monkeypatch.setattr(metrics, "on_device", lambda x: staged)
+        stats, counter = EpisodeStats(buffer_size=None), EnvironmentSteps()
+        stats.step_fn = lambda: counter.value
+        for i, (r, term, trunc) in enumerate(steps_):
+            t = step(r, term, trunc)._replace(episode_info={"x": torch.full((batch,), float(i))})
+            counter(t)
+            stats(t)
+            if i % 9 == 8:  # the Actor flushes at the end of each collect call
+                stats.flush()
+        assert not staged or stats._staged or len(steps_) % 9 == 0  # the last 4 steps wait for flush
+        return stats
+
+    direct, staged = run(False), run(True)
+    a, b = staged.state_dict(), direct.state_dict()  # state_dict reads what is staged first
+    running_a, running_b = a.pop("running"), b.pop("running")
+    assert a == b
+    assert all(np.array_equal(x, y) for x, y in zip(running_a, running_b, strict=True))
+    assert staged.episodes == direct.episodes > 0
+    assert staged.take_finished() == direct.take_finished()

@@ -82,8 +82,9 @@ class ReplayConfig(Section):
     storage: str = "ram"  # ram | memmap
     path: str = ""  # memmap directory, one run's at a time (saved as an absolute path); "": <run_dir>/replay
     # Where frames and actions live: numpy (host arrays) or a torch device (cpu, cuda, cuda:N);
-    # auto: the run's device for a stateless torch env on a GPU (env, policy and replay on one
-    # device), else numpy, whose indexing from Python is cheapest on the CPU.
+    # auto: the run's GPU for image observations where the table takes at most half its free
+    # memory, and for a stateless torch env (env, policy and replay on one device); else numpy,
+    # whose indexing from Python is cheapest on the CPU.
     device: str = "auto"
 
 

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+import torch
 
 from relayrl.arrays import to_numpy
 from relayrl.compile import numba_available
@@ -18,6 +19,11 @@ from relayrl.core import Observer
 from relayrl.types import Transition
 
 FINISHED_KEPT = 100_000  # finished episodes kept for TensorBoard between logs (the oldest go first)
+
+
+def on_device(x: Any) -> bool:
+    """A tensor on a device other than the CPU (whose reads from the host wait for it)."""
+    return isinstance(x, torch.Tensor) and x.device.type != "cpu"
 
 
 class EnvironmentSteps(Observer):
@@ -58,12 +64,36 @@ class EpisodeStats(Observer):
         self._len: np.ndarray | None = None
         self._done: np.ndarray | None = None
         self._accumulate: Callable[..., Any] | None = None  # None: the NumPy path
+        self._staged: list[tuple[Transition, int | None]] = []  # device steps until `flush`
         if numba_available():
             from relayrl.metrics_fast import accumulate
             self._accumulate = accumulate
 
     def __call__(self, t: Transition) -> None:
-        reward = to_numpy(t.reward)  # a view for CPU tensors; device tensors are copied
+        if on_device(t.reward):
+            # A GPU's steps are read in one copy per collect call (`flush`), not three host
+            # syncs per batched step; each keeps the env step it was taken at.
+            self._staged.append((t, None if self.step_fn is None else self.step_fn()))
+            return
+        self._add(to_numpy(t.reward), to_numpy(t.terminated), to_numpy(t.truncated), t.episode_info,
+                  self.step_fn)
+
+    def flush(self) -> None:
+        """Accumulate the steps staged from a device (one host copy for all of them)."""
+        if not self._staged:
+            return
+        staged, self._staged = self._staged, []
+        ts = [t for t, _ in staged]
+        rows = torch.stack([torch.stack([t.reward.float(), t.terminated.float(), t.truncated.float()])
+                            for t in ts]).cpu().numpy()  # [T, 3, B]
+        for (t, step), (reward, terminated, truncated) in zip(staged, rows, strict=True):
+            info = None if not t.episode_info else {k: to_numpy(v) for k, v in t.episode_info.items()}
+            self._add(reward.astype(np.float32), terminated > 0, truncated > 0, info, step)
+
+    def _add(self, reward: np.ndarray, terminated: np.ndarray, truncated: np.ndarray,
+             episode_info: dict[str, Any] | None, step: Callable[[], int] | int | None) -> None:
+        """One batched step's bookkeeping; `step`: the env step it was taken at (or what reads
+        it, called only where an episode ended), None where no one asked."""
         if self._ret is None or self._ret.shape[0] != reward.shape[0]:
             self._ret = np.zeros(reward.shape[0], np.float64)
             self._len = np.zeros(reward.shape[0], np.int64)
@@ -71,23 +101,22 @@ class EpisodeStats(Observer):
         assert self._len is not None and self._done is not None
         # NumPy, not torch, for these [B] arrays: a tiny torch op costs several times more.
         if self._accumulate is not None:
-            if not self._accumulate(self._ret, self._len, reward, to_numpy(t.terminated), to_numpy(t.truncated),
-                                    self._done):
+            if not self._accumulate(self._ret, self._len, reward, terminated, truncated, self._done):
                 return
             done = self._done
         else:
             self._ret += reward
             self._len += 1
-            done = to_numpy(t.terminated) | to_numpy(t.truncated)
+            done = terminated | truncated
         if done.any():
             ended = np.flatnonzero(done)
             for i in ended:
                 self.returns.append(float(self._ret[i]))
                 self.lengths.append(int(self._len[i]))
-            if self.step_fn is not None:
-                step = self.step_fn()
-                self.finished.extend((step, float(self._ret[i]), int(self._len[i])) for i in ended)
-            for key, values in (t.episode_info or {}).items():
+            if step is not None:
+                at = step() if callable(step) else step
+                self.finished.extend((at, float(self._ret[i]), int(self._len[i])) for i in ended)
+            for key, values in (episode_info or {}).items():
                 self._info_window(key).extend(float(values[i]) for i in ended)
             self.episodes += int(done.sum())
             self._ret[done] = 0.0
@@ -125,8 +154,10 @@ class EpisodeStats(Observer):
         """Forget episodes in progress (after an env reset that the stats did not see)."""
         self._ret = None
         self._len = None
+        self._staged = []
 
     def state_dict(self) -> dict[str, Any]:
+        self.flush()
         running = None if self._ret is None else (self._ret.copy(), self._len.copy())  # type: ignore[union-attr]
         return {"returns": list(self.returns), "lengths": list(self.lengths), "episodes": self.episodes,
                 "running": running, "info": {k: list(w) for k, w in self.info.items()},

@@ -66,7 +66,7 @@ class LocalDriver:
             self.replay, self.writer = build_rollouts(c, device if stateless else None)
         else:
             self.replay, self.writer = build_replay(c, obs_spec, act_spec, self.rd.root,
-                                                    replay_device(c, device, stateless))
+                                                    replay_device(c, device, stateless, obs_spec, act_spec))
         # One thread collects and learns in turn: an insert waiting on the rate limiter could
         # never be released; the learner's `available_steps` after each collect call keeps the ratio.
         self.replay.inserts_wait = False

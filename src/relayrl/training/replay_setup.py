@@ -29,7 +29,7 @@ from relayrl.replay.group import WriterGroup
 from relayrl.replay.rollouts import RolloutWriter
 from relayrl.replay.rollouts_torch import TensorRolloutWriter, tensor_rollout_queue
 from relayrl.seeding import RunSeeds
-from relayrl.specs import ArraySpec, Spec
+from relayrl.specs import ArraySpec, Spec, is_image
 
 
 def collect_only(c: Config) -> bool:
@@ -100,10 +100,32 @@ def frame_stack(obs_spec: Spec) -> int:
     return k if ok else 1
 
 
-def replay_device(c: Config, run_device: torch.device, stateless_env: bool) -> torch.device | None:
-    """Where the writer keeps frames and actions (`replay.device`); None: NumPy arrays."""
+# auto keeps a CUDA run's frames on its GPU only where the table takes at most this share of the
+# GPU memory still free: the networks, their graphs and the batches need the rest.
+GPU_REPLAY_SHARE = 0.5
+
+
+def replay_bytes(c: Config, obs_spec: Spec, action_spec: Spec) -> int:
+    """What a full table holds: one observation (its newest frame, for frame stacks) and one
+    action per row, plus rewards, discounts and flags."""
+    obs = obs_spec.zeros(1)
+    row = obs.nbytes // frame_stack(obs_spec) + action_spec.zeros(1).nbytes + 16
+    return c.replay.size * row
+
+
+def replay_device(c: Config, run_device: torch.device, stateless_env: bool, obs_spec: Spec | None = None,
+                  action_spec: Spec | None = None) -> torch.device | None:
+    """Where the writer keeps frames and actions (`replay.device`); None: NumPy arrays. auto: a
+    CUDA run's device for image observations where the table fits (batches of frame stacks are
+    then gathered on the GPU instead of copied over each gradient step), a stateless torch env's
+    device, else NumPy arrays (small vector observations: the per-step writes to a GPU cost more
+    than the batches' copies save)."""
     d = c.replay.device
     if d == "auto":
+        if run_device.type == "cuda" and c.replay.storage == "ram" and obs_spec is not None \
+                and action_spec is not None and is_image(obs_spec):
+            free, _ = torch.cuda.mem_get_info(run_device)
+            return run_device if replay_bytes(c, obs_spec, action_spec) <= GPU_REPLAY_SHARE * free else None
         return run_device if stateless_env and run_device.type != "cpu" else None
     if d == "numpy":
         return None

@@ -149,17 +149,15 @@ class PPOAgent(Agent):
         adv, returns = gae(reward, values.reshape(t, b), next_values.reshape(t, b),
                            r["terminated"], r["truncated"], cfg.gamma, cfg.gae_lambda)
         adv, returns = adv.reshape(-1), returns.reshape(-1)
-        sums = torch.zeros(6, device=self.device)
-        for _ in range(cfg.n_epochs):
-            order = torch.randperm(n, generator=self.gen).to(self.device)
-            for start in range(0, n, cfg.batch_size):
-                idx = order[start:start + cfg.batch_size]
-                sums += self.update(obs[idx], action[idx], old_logp[idx], values[idx], adv[idx], returns[idx],
-                                    self.clip_range)
-                self._train_step += 1
+        orders = torch.stack([torch.randperm(n, generator=self.gen) for _ in range(cfg.n_epochs)])
+        if self.device.type == "cuda":  # pinned, so the copy does not make the host wait for the GPU
+            orders = orders.pin_memory()
+        orders = orders.to(self.device, non_blocking=True)
+        sums = self.update.epochs((obs, action, old_logp, values, adv, returns), orders, self.clip_range)
+        steps = cfg.n_epochs * -(-n // cfg.batch_size)
+        self._train_step += steps
         if self.net.policy.obs_norm is not None:
             self.net.policy.obs_norm.update(obs)  # after training: the next rollout's policy
-        steps = cfg.n_epochs * -(-n // cfg.batch_size)
         means = sums / steps
         return {"policy_loss": means[0], "value_loss": means[1], "entropy": means[2], "approx_kl": means[3],
                 "clip_fraction": means[4], "loss": means[5], "explained_variance": explained_variance(values, returns),

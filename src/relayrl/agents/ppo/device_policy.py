@@ -17,12 +17,14 @@ from torch import nn
 
 from relayrl.agents.ppo.distributions import to_bounds
 from relayrl.core import Policy
+from relayrl.nn.graphed import GraphedForward
 
 
 class PPODevicePolicy(Policy):
     def __init__(self, net: nn.Module, log_std: torch.Tensor | None, bounds: tuple[np.ndarray, np.ndarray] | None,
                  device: torch.device, seed: int, squash: str = "clip") -> None:
         self.net = net  # obs -> logits or mean [B, A]
+        self._forward = GraphedForward(net, device)  # a CUDA graph on CUDA
         self.log_std = log_std  # [A]; None for discrete actions (pulls update it in place)
         self.device = device
         self.squash = squash
@@ -35,7 +37,7 @@ class PPODevicePolicy(Policy):
     @torch.no_grad()
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
         """Discrete: the action [B]. Continuous: the Gaussian sample u [B, A], unbounded."""
-        out = self.net(obs.to(self.device)).float()  # [B, A]
+        out = self._forward(obs.to(self.device)).float()  # [B, A]
         if self.log_std is None:
             u = torch.rand((out.shape[0], 1), generator=self.gen, device=self.device, dtype=torch.float64)
             probs = torch.softmax(out.double(), dim=1)

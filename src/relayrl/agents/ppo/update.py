@@ -1,12 +1,13 @@
 """PPO's minibatch gradient step, chosen once when the agent is built: the autograd reference
-(the losses of `losses.py` + `backward()`); on CUDA, the reference replayed from a CUDA graph
-(`nn.graphed`); elsewhere its hand-written twin (`nn.mlp_fast`, `losses_fast.py`: the same
-loss, clip and Adam step up to float rounding, with less per-minibatch overhead on CPU). Both
-subclass the reference, overriding `__call__`; tests/test_ppo_fast.py and tests/test_graphed.py
-compare them with it."""
+(the losses of `losses.py` + `backward()`); on CUDA, a rollout's epochs of the reference
+replayed from one CUDA graph (`nn.graphed`; it overrides `epochs`); elsewhere its hand-written
+twin (`nn.mlp_fast`, `losses_fast.py`: the same loss, clip and Adam step up to float rounding,
+with less per-minibatch overhead on CPU; it overrides `__call__`). Both subclass the reference;
+tests/test_ppo_fast.py and tests/test_graphed.py compare them with it."""
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import torch
@@ -24,6 +25,20 @@ Tensor = torch.Tensor
 EvaluateActions = Callable[[Tensor, Tensor], tuple[Tensor, ...]]
 
 
+def run_epochs(step: Callable[..., Tensor], data: tuple[Tensor, ...], orders: Tensor, batch_size: int,
+               clip_range: float | Tensor) -> Tensor:
+    """`step` on each minibatch of `data` (obs, action, old log-probs, old values, advantages,
+    returns: [N, ...] each) in the order of each row of `orders` ([epochs, N]); the sums of the
+    steps' statistics."""
+    sums = torch.zeros(6, device=orders.device)
+    n = orders.shape[1]
+    for order in orders:
+        for start in range(0, n, batch_size):
+            idx = order[start:start + batch_size]
+            sums += step(*(x[idx] for x in data), clip_range)
+    return sums
+
+
 class PPOUpdate:
     """The reference: clipped surrogate + vf_coef * value loss - ent_coef * entropy, autograd,
     torch's global norm clip, the optimizer step."""
@@ -31,6 +46,10 @@ class PPOUpdate:
     def __init__(self, net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions) -> None:
         self.params = list(net.parameters())
         self.opt, self.cfg, self.evaluate_actions = opt, cfg, evaluate_actions
+
+    def epochs(self, data: tuple[Tensor, ...], orders: Tensor, clip_range: float) -> Tensor:
+        """Every minibatch step of one rollout, minibatches of `agent.batch_size` (see `run_epochs`)."""
+        return run_epochs(self, data, orders, self.cfg.batch_size, clip_range)
 
     def __call__(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
                  returns: Tensor, clip_range: float | Tensor) -> Tensor:
@@ -100,9 +119,10 @@ class HandWrittenPPOUpdate(PPOUpdate):
 
 
 class GraphedPPOUpdate(PPOUpdate):
-    """`PPOUpdate` replayed from a CUDA graph per minibatch signature (`nn.graphed.GraphedStep`;
-    an epoch's shorter last minibatch is a second signature). The clip range reaches the graph
-    as a device tensor, so its schedule reaches the replays."""
+    """`PPOUpdate` whose epochs over a rollout (every minibatch's gather and step) replay from one
+    CUDA graph per rollout signature (`nn.graphed.GraphedStep`): one launch per rollout instead
+    of a dozen per minibatch. The clip range reaches the graph as a device tensor, so its
+    schedule reaches the replays."""
 
     def __init__(self, net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions) -> None:
         super().__init__(net, opt, cfg, evaluate_actions)
@@ -111,17 +131,15 @@ class GraphedPPOUpdate(PPOUpdate):
         self._clip_value = float(cfg.clip_range)
 
     def _reference(self, *tensors: Tensor) -> dict[str, Tensor]:
-        return {"stats": PPOUpdate.__call__(self, *tensors)}
+        *data, orders, clip_range = tensors
+        step = functools.partial(PPOUpdate.__call__, self)
+        return {"sums": run_epochs(step, tuple(data), orders, self.cfg.batch_size, clip_range)}
 
-    def __call__(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
-                 returns: Tensor, clip_range: float | Tensor) -> Tensor:
-        if isinstance(clip_range, Tensor):
-            self.clip_range.copy_(clip_range)
-            self._clip_value = float("nan")  # unknown on the host: the next float is written
-        elif clip_range != self._clip_value:  # a launch only when the schedule moves it
+    def epochs(self, data: tuple[Tensor, ...], orders: Tensor, clip_range: float) -> Tensor:
+        if clip_range != self._clip_value:  # a launch only when the schedule moves it
             self.clip_range.fill_(clip_range)
             self._clip_value = clip_range
-        return self.graphed(obs, action, old_logp, old_values, adv, returns, self.clip_range)["stats"]
+        return self.graphed(*data, orders, self.clip_range)["sums"]
 
 
 def make_update(net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions,

@@ -44,7 +44,7 @@ class StatelessBatchEnv(BatchedEnv):
         self.action_spec: ArraySpec = env.action_spec
         # Old gym reported a time-limit cut as a termination; some presets reproduce that.
         self.time_limit_terminates = time_limit_terminates
-        # A CPU generator: the same seed gives the same episodes on every device.
+        # A CPU generator: the same seed gives the same first episodes on every device.
         self._gen = torch.Generator()
         if seed is None:
             self._gen.seed()
@@ -68,7 +68,10 @@ class StatelessBatchEnv(BatchedEnv):
         terminated, truncated = out.terminated, out.truncated
         done = terminated | truncated  # [B]
         state, obs = out.state, next_obs
-        if bool(done.any()):
+        # Rows are reset where an episode ended. Reading `done` is free on the CPU, which draws
+        # fresh states only then; on a GPU the read would make the host wait at every step, so
+        # fresh states are drawn every step there (another generator stream than the CPU's).
+        if self.device.type != "cpu" or bool(done.any()):
             fresh_state, fresh_obs = self.env.reset((self.num_envs,), self._gen, self.device)
             state = tree_where(done, fresh_state, out.state)
             obs = torch.where(done.view(-1, *([1] * (next_obs.dim() - 1))), fresh_obs[self.obs_key], next_obs)

@@ -104,8 +104,10 @@ def uniform(low: float | torch.Tensor, high: float | torch.Tensor, shape: tuple[
             generator: torch.Generator | None, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
     """U[low, high) of `shape`, drawn on the generator's device and moved to `device`."""
     where = generator.device if generator is not None else device
-    u = torch.rand(shape, generator=generator, device=where, dtype=dtype).to(device)
-    return low + (high - low) * u
+    u = torch.rand(shape, generator=generator, device=where, dtype=dtype)
+    if where.type == "cpu" and device.type == "cuda":  # pinned: the copy does not make the host wait
+        u = u.pin_memory()
+    return low + (high - low) * u.to(device, non_blocking=True)
 
 
 class StatelessEnv(ABC, Generic[S, P]):
