@@ -19,8 +19,8 @@ starts to the last, evaluations excluded; each run capped by steps and by --seco
   and one update per 4 env steps); a SAC update at batch 256 and a batch-1 action (ms), and the
   sac-pendulum loop they allow. Device times are taken with torch.cuda.synchronize on CUDA;
 - on CUDA, the runs of GRAPH_AB once more with RELAYRL_CUDA_GRAPHS=0 (gradient steps launched
-  kernel by kernel instead of replayed from a CUDA graph), and those of REPLAY_AB with the
-  replay's frames on the GPU, in the same process.
+  kernel by kernel instead of replayed from a CUDA graph), and those of REPLAY_AB with their
+  replay where replay.device = "auto" does not put it, in the same process.
 
 The table goes to stdout and the figures to a JSON file (--out; default $OUT/gpu.json when OUT
 is set, else gpu.json). docs/benchmarks.md ("GPU figures") says how to run it on a lent GPU.
@@ -59,9 +59,9 @@ LOG_ROWS = 20  # log rows per run: the seconds cap is checked at each
 # On CUDA these also run with RELAYRL_CUDA_GRAPHS=0 (every kernel launched one by one), same process:
 # what capturing the gradient step in a CUDA graph buys.
 GRAPH_AB = ("ddqn-pong", "sac-pendulum", "sac-batched", "ppo-stateless-pendulum", "dqn-cartpole-fast")
-# On CUDA these also run with the replay's frames on the GPU (replay.device = the run's device),
-# against the host arrays of replay.device = "auto": what sampling stacks on the device buys.
-REPLAY_AB = ("ddqn-pong", "dqn-pong-fast")
+# On CUDA these also run with their replay where replay.device = "auto" does not put it (image
+# runs' frames in host memory, vector observations on the GPU): what auto's choice buys.
+REPLAY_AB = {"ddqn-pong": "numpy", "dqn-pong-fast": "numpy", "sac-pendulum": "cuda"}
 
 
 def fail(message: str) -> None:
@@ -285,7 +285,8 @@ def variants(name: str, device: torch.device) -> list[tuple[str, torch.device, s
     if device.type == "cuda" and name in GRAPH_AB:
         out.append((f"{name}@no-graphs", device, "0", []))
     if device.type == "cuda" and name in REPLAY_AB:
-        out.append((f"{name}@replay-on-gpu", device, "1", [f"replay.device={device}"]))
+        where = REPLAY_AB[name]
+        out.append((f"{name}@replay.device={where}", device, "1", [f"replay.device={where}"]))
     if device.type == "cuda" and name == "dqn-cartpole-fast":
         out.append((f"{name}@cpu", torch.device("cpu"), "1", []))
     return out
@@ -394,7 +395,8 @@ def table(figures: dict[str, Any]) -> str:
 
     def graphs(key: str) -> str:
         out = f"; without CUDA graphs {sps(key + '@no-graphs')}" if key + "@no-graphs" in runs else ""
-        return out + (f"; replay on the GPU {sps(key + '@replay-on-gpu')}" if key + "@replay-on-gpu" in runs else "")
+        other = next((k for k in runs if k.startswith(key + "@replay.device=")), None)
+        return out + (f"; {other.split('@')[1]} {sps(other)}" if other else "")
 
     rows = [
         ("ddqn-pong (1 env, 1 gradient step / 4 env steps)", sps("ddqn-pong") + graphs("ddqn-pong"),

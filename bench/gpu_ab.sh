@@ -14,7 +14,8 @@ for _ in $(seq "$rounds"); do
     for run in "$@"; do
         for tree in .base/src src; do
             PYTHONPATH="/tmp/site:$(pwd)/$tree" python3 bench/gpu.py --only "$run" --seconds 8 \
-                --out "$out/ab-last.json" 2>/dev/null | grep "^{" | sed "s|^|$tree $run |" | tee -a "$out/ab.txt"
+                --out "$out/ab-last.json" 2>"$out/ab-stderr.txt" | grep "^{" | sed "s|^|$tree $run |" \
+                | tee -a "$out/ab.txt" || tail -5 "$out/ab-stderr.txt"  # a broken run says why
         done
     done
 done

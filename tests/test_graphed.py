@@ -224,7 +224,7 @@ def test_graphed_ppo_matches_eager(monkeypatch):
     monkeypatch.setenv("RELAYRL_CUDA_GRAPHS", "0")
     eager = ppo_agent("cuda", hand_written=False)
     assert isinstance(graphed.update, GraphedPPOUpdate) and not isinstance(eager.update, GraphedPPOUpdate)
-    for i in range(STEPS):  # two minibatch signatures, each called twice per rollout
+    for i in range(STEPS):  # one graph per rollout signature: warm-up, capture, replays
         if i == STEPS - 2:  # the schedule's end reaches the replays: clip range 0
             graphed.set_progress(100)
             eager.set_progress(100)

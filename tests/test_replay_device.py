@@ -3,6 +3,8 @@ replay on one device. CI has no GPU, so these run the torch path on the CPU ("cp
 torch device) and check that it leaves exactly what the NumPy path leaves, and that no
 observation or action goes through NumPy on the way in or out."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -155,12 +157,14 @@ def test_auto_keeps_a_cuda_runs_replay_on_its_gpu_where_the_table_fits(monkeypat
     # 2.12x on dqn-pong-fast on one H200); a table that would crowd the networks stays in host
     # memory, and so do vector observations (sac-pendulum: 0.75x with its replay on the GPU).
     from relayrl.specs import ArraySpec, DiscreteSpec
-    from relayrl.training.replay_setup import replay_bytes
+    from relayrl.training.replay_setup import build_replay, replay_bytes, replay_note
 
     cuda = torch.device("cuda")
     frames, actions = ArraySpec((4, 84, 84), torch.uint8, frame_stack=4), DiscreteSpec(6)  # bounds unknown: pixels
     c = load_config("dqn-pong-fast", [])  # 100,000 rows of one 84x84 frame
-    assert replay_bytes(c, frames, actions) == 100_000 * (84 * 84 + 8 + 16)
+    table, writer = build_replay(c, frames, actions, Path("unused"), torch.device("cpu"))
+    data = writer.table.storage.store.data  # what a device replay allocates there
+    assert replay_bytes(c, frames, actions) == sum(t.nbytes for t in data.values()) > 100_000 * 84 * 84
     free = {"bytes": 10 * 2**30}
     monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (free["bytes"], 80 * 2**30))
     assert replay_device(c, cuda, False, frames, actions) == cuda
@@ -172,6 +176,11 @@ def test_auto_keeps_a_cuda_runs_replay_on_its_gpu_where_the_table_fits(monkeypat
     assert replay_device(load_config("dqn-pong-fast", ["replay.device=numpy"]), cuda, False, frames,
                          actions) is None
     assert replay_device(c, torch.device("cpu"), False, frames, actions) is None
+    # The log says where auto put them, and how to override it.
+    assert replay_note(c, cuda, cuda, frames, actions) == "replay: frames on cuda (0.70 GiB when full)"
+    note = replay_note(c, cuda, None, frames, actions)
+    assert note is not None and "host memory" in note and "replay.device=cuda puts it there anyway" in note
+    assert replay_note(load_config("dqn-pong-fast", ["replay.device=cuda"]), cuda, cuda, frames, actions) is None
     vector = ArraySpec((3,), torch.float32)
     assert replay_device(load_config("sac-pendulum", []), cuda, False, vector, ArraySpec((1,), torch.float32)) is None
 

@@ -232,6 +232,29 @@ def test_params_per_row():
     assert out.state.thdot[0] == 0.0 and out.state.thdot[1] > 0  # no gravity in row 0
 
 
+def test_default_params_are_shared_views_and_where_keeps_them():
+    # A batched env on a GPU resets every step: the defaults' broadcast views are made once per
+    # shape, and tree_where passes one tensor on both sides through without a copy.
+    from relayrl.envs.stateless.base import tree_where
+
+    env = Pendulum()
+    (a, _), (b, _) = env.reset((4,), make_generator(0)), env.reset((4,), make_generator(1))
+    assert all(x is y for x, y in zip(a.params, b.params, strict=True))
+    assert env.reset((3,), make_generator(0))[0].params.g.shape == (3,)
+    done = torch.tensor([True, False, True, False])
+    picked = tree_where(done, a, b)
+    assert all(x is y for x, y in zip(picked.params, a.params, strict=True))
+    assert torch.equal(picked.th, torch.where(done, a.th, b.th))
+    given = env.params._replace(g=torch.tensor(9.0))  # params passed in are not cached
+    assert float(env.reset((4,), make_generator(0), params=given)[0].params.g[0]) == 9.0
+    assert float(env.reset((4,), make_generator(0))[0].params.g[0]) == 10.0
+    env.params = env.params._replace(g=torch.tensor(3.0))  # new defaults replace the cached views
+    assert float(env.reset((4,), make_generator(0))[0].params.g[0]) == 3.0
+    learnt = Pendulum(env.params._replace(g=torch.tensor(10.0, requires_grad=True)))
+    s1, s2 = learnt.reset((2,), make_generator(0))[0], learnt.reset((2,), make_generator(0))[0]
+    assert s1.params.g is not s2.params.g  # params that need grad get fresh views each reset
+
+
 def test_seeding_reproduces_and_seeds_differ():
     env = make_pendulum()
 

@@ -64,7 +64,8 @@ class EpisodeStats(Observer):
         self._len: np.ndarray | None = None
         self._done: np.ndarray | None = None
         self._accumulate: Callable[..., Any] | None = None  # None: the NumPy path
-        self._staged: list[tuple[Transition, int | None]] = []  # device steps until `flush`
+        # A device's (reward, terminated, truncated, episode_info, env step) until `flush`
+        self._staged: list[tuple[Any, Any, Any, dict[str, Any] | None, int | None]] = []
         if numba_available():
             from relayrl.metrics_fast import accumulate
             self._accumulate = accumulate
@@ -73,7 +74,8 @@ class EpisodeStats(Observer):
         if on_device(t.reward):
             # A GPU's steps are read in one copy per collect call (`flush`), not three host
             # syncs per batched step; each keeps the env step it was taken at.
-            self._staged.append((t, None if self.step_fn is None else self.step_fn()))
+            self._staged.append((t.reward, t.terminated, t.truncated, t.episode_info,
+                                 None if self.step_fn is None else self.step_fn()))
             return
         self._add(to_numpy(t.reward), to_numpy(t.terminated), to_numpy(t.truncated), t.episode_info,
                   self.step_fn)
@@ -83,11 +85,10 @@ class EpisodeStats(Observer):
         if not self._staged:
             return
         staged, self._staged = self._staged, []
-        ts = [t for t, _ in staged]
-        rows = torch.stack([torch.stack([t.reward.float(), t.terminated.float(), t.truncated.float()])
-                            for t in ts]).cpu().numpy()  # [T, 3, B]
-        for (t, step), (reward, terminated, truncated) in zip(staged, rows, strict=True):
-            info = None if not t.episode_info else {k: to_numpy(v) for k, v in t.episode_info.items()}
+        rows = torch.stack([torch.stack([r.float(), term.float(), trunc.float()])
+                            for r, term, trunc, _, _ in staged]).cpu().numpy()  # [T, 3, B]
+        for (*_, episode_info, step), (reward, terminated, truncated) in zip(staged, rows, strict=True):
+            info = None if not episode_info else {k: to_numpy(v) for k, v in episode_info.items()}
             self._add(reward.astype(np.float32), terminated > 0, truncated > 0, info, step)
 
     def _add(self, reward: np.ndarray, terminated: np.ndarray, truncated: np.ndarray,
@@ -151,10 +152,11 @@ class EpisodeStats(Observer):
         return {k: float(np.mean(w)) for k, w in self.info.items() if w}
 
     def reset_running(self) -> None:
-        """Forget episodes in progress (after an env reset that the stats did not see)."""
+        """Forget episodes in progress (after an env reset that the stats did not see); the
+        steps staged before it still count."""
+        self.flush()
         self._ret = None
         self._len = None
-        self._staged = []
 
     def state_dict(self) -> dict[str, Any]:
         self.flush()

@@ -50,6 +50,13 @@ class SequenceBatch(NamedTuple):
     terminated: torch.Tensor  # [N, L] bool, on last rows: the episode terminated (vs truncated)
 
 
+def ring_rows(capacity: int, num_envs: int, lookahead: int, frame_stack: int = 1) -> int:
+    """Rows of each env's ring for `capacity` items: final-observation rows and stacking
+    look-back take a little more than one row per item."""
+    per_env = -(-capacity // num_envs)
+    return per_env + per_env // 16 + lookahead + frame_stack + 2
+
+
 class StepStorage(Storage):
     """Steps of `num_envs` envs and the slot map of the items over them (see the module
     docstring). `lookahead`: rows after an item's first row that it reads. `rows`: each env's
@@ -60,9 +67,7 @@ class StepStorage(Storage):
     def __init__(self, capacity: int, num_envs: int, obs_spec: Spec, action_spec: Spec, *, lookahead: int,
                  frame_stack: int = 1, path: str | Path | None = None, rows: int | None = None,
                  device: str | torch.device | None = None, pin_memory: bool = False, fast: bool = True) -> None:
-        # Final-observation rows and stacking look-back take a little more than one row per item.
-        per_env = -(-capacity // num_envs)
-        rows = rows if rows is not None else per_env + per_env // 16 + lookahead + frame_stack + 2
+        rows = rows if rows is not None else ring_rows(capacity, num_envs, lookahead, frame_stack)
         self.store = StepStore(num_envs, rows, tuple(obs_spec.shape), numpy_dtype(obs_spec),
                                tuple(action_spec.shape), numpy_dtype(action_spec), frame_stack, path, device)
         self.capacity, self.num_envs, self.rows, self.lookahead = capacity, num_envs, rows, lookahead

@@ -21,7 +21,7 @@ from relayrl.training.checkpoint import load_latest_checkpoint
 from relayrl.training.evaluate import eval_cap_note, make_eval_env
 from relayrl.training.finite import FiniteWatch
 from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
-from relayrl.training.replay_setup import build_replay, build_rollouts, replay_device
+from relayrl.training.replay_setup import build_replay, build_rollouts, replay_device, replay_note
 from relayrl.training.report import Callback, say
 from relayrl.training.run_dir import RunDir
 from relayrl.training.triggers import Evaluate, Progress
@@ -62,11 +62,13 @@ class LocalDriver:
                                      c.train.total_steps)
         self.finite = FiniteWatch(c.env.num_envs, obs_spec)
         whole_rollouts = entry.replay == "rollouts"
+        self.replay_note: str | None = None
         if whole_rollouts:
             self.replay, self.writer = build_rollouts(c, device if stateless else None)
         else:
-            self.replay, self.writer = build_replay(c, obs_spec, act_spec, self.rd.root,
-                                                    replay_device(c, device, stateless, obs_spec, act_spec))
+            where = replay_device(c, device, stateless, obs_spec, act_spec)
+            self.replay_note = replay_note(c, device, where, obs_spec, act_spec)
+            self.replay, self.writer = build_replay(c, obs_spec, act_spec, self.rd.root, where)
         # One thread collects and learns in turn: an insert waiting on the rate limiter could
         # never be released; the learner's `available_steps` after each collect call keeps the ratio.
         self.replay.inserts_wait = False
@@ -128,7 +130,9 @@ class LocalDriver:
                 core.fire_triggers()
 
     def announce(self) -> None:
-        """One process says nothing about its layout."""
+        """One process says where auto put a GPU run's frames, and nothing else about its layout."""
+        if self.replay_note:
+            self.core.say(self.replay_note)
 
     def evaluate_now(self, p: Progress) -> None:
         self.evaluator.evaluate(p)

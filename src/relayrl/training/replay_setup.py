@@ -28,6 +28,7 @@ from relayrl.replay import (
 from relayrl.replay.group import WriterGroup
 from relayrl.replay.rollouts import RolloutWriter
 from relayrl.replay.rollouts_torch import TensorRolloutWriter, tensor_rollout_queue
+from relayrl.replay.step_storage import ring_rows
 from relayrl.seeding import RunSeeds
 from relayrl.specs import ArraySpec, Spec, is_image
 
@@ -106,11 +107,11 @@ GPU_REPLAY_SHARE = 0.5
 
 
 def replay_bytes(c: Config, obs_spec: Spec, action_spec: Spec) -> int:
-    """What a full table holds: one observation (its newest frame, for frame stacks) and one
-    action per row, plus rewards, discounts and flags."""
-    obs = obs_spec.zeros(1)
-    row = obs.nbytes // frame_stack(obs_spec) + action_spec.zeros(1).nbytes + 16
-    return c.replay.size * row
+    """What a device replay allocates there: each env's ring of frames (one per step: the newest
+    of a stack) and actions. Rewards, discounts and flags stay in host memory."""
+    k = frame_stack(obs_spec)
+    row = obs_spec.zeros(1).nbytes // k + action_spec.zeros(1).nbytes
+    return c.env.num_envs * ring_rows(c.replay.size, c.env.num_envs, c.replay.n_step, k) * row
 
 
 def replay_device(c: Config, run_device: torch.device, stateless_env: bool, obs_spec: Spec | None = None,
@@ -122,8 +123,8 @@ def replay_device(c: Config, run_device: torch.device, stateless_env: bool, obs_
     than the batches' copies save)."""
     d = c.replay.device
     if d == "auto":
-        if run_device.type == "cuda" and c.replay.storage == "ram" and obs_spec is not None \
-                and action_spec is not None and is_image(obs_spec):
+        if _frames_may_go_to_gpu(c, run_device, obs_spec) and action_spec is not None:
+            assert obs_spec is not None
             free, _ = torch.cuda.mem_get_info(run_device)
             return run_device if replay_bytes(c, obs_spec, action_spec) <= GPU_REPLAY_SHARE * free else None
         return run_device if stateless_env and run_device.type != "cpu" else None
@@ -132,6 +133,25 @@ def replay_device(c: Config, run_device: torch.device, stateless_env: bool, obs_
     if d.startswith("cuda") and not torch.cuda.is_available():
         raise ConfigError(f"replay.device={d!r} but CUDA is not available here; valid: auto, numpy, cpu")
     return torch.device(d)
+
+
+def _frames_may_go_to_gpu(c: Config, run_device: torch.device, obs_spec: Spec | None) -> bool:
+    """auto's case for a GPU replay: a one-process CUDA run of image observations in a RAM table
+    (a distributed run's replay server keeps host arrays)."""
+    return (c.replay.device == "auto" and run_device.type == "cuda" and c.replay.storage == "ram"
+            and obs_spec is not None and is_image(obs_spec))
+
+
+def replay_note(c: Config, run_device: torch.device, chosen: torch.device | None, obs_spec: Spec,
+                action_spec: Spec) -> str | None:
+    """The log line saying where auto put a CUDA run's frames, and why; None where it had no choice."""
+    if not _frames_may_go_to_gpu(c, run_device, obs_spec):
+        return None
+    size = replay_bytes(c, obs_spec, action_spec) / 2**30
+    if chosen is not None:
+        return f"replay: frames on {chosen} ({size:.2f} GiB when full)"
+    return (f"replay: frames in host memory: the full table ({size:.2f} GiB) would take more than half of "
+            f"{run_device}'s free memory (replay.device={run_device} puts it there anyway)")
 
 
 def build_replay(c: Config, obs_spec: Spec, action_spec: Spec, run_root: Path,

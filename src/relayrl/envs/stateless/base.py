@@ -90,6 +90,8 @@ def tree_where(mask: torch.Tensor, a: Any, b: Any) -> Any:
     """Leafwise `a where mask else b`; `mask` is `[*B]` bool, leaves are `[*B, ...]`."""
 
     def pick(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        if x is y:  # one tensor on both sides (a reset's shared params): nothing to choose
+            return x
         m = mask.reshape(*mask.shape, *([1] * (x.dim() - mask.dim())))
         return torch.where(m, x, y)
 
@@ -105,9 +107,10 @@ def uniform(low: float | torch.Tensor, high: float | torch.Tensor, shape: tuple[
     """U[low, high) of `shape`, drawn on the generator's device and moved to `device`."""
     where = generator.device if generator is not None else device
     u = torch.rand(shape, generator=generator, device=where, dtype=dtype)
-    if where.type == "cpu" and device.type == "cuda":  # pinned: the copy does not make the host wait
+    pinned = where.type == "cpu" and device.type == "cuda"
+    if pinned:  # the copy does not make the host wait (only this direction is safe without one)
         u = u.pin_memory()
-    return low + (high - low) * u.to(device, non_blocking=True)
+    return low + (high - low) * u.to(device, non_blocking=pinned)
 
 
 class StatelessEnv(ABC, Generic[S, P]):

@@ -82,6 +82,7 @@ class Pendulum(StatelessEnv[PendulumState, PendulumParams]):
         self.dtype = dtype
         self.max_episode_steps = max_episode_steps  # 0: never truncate
         self.params = params if params is not None else pendulum_params(dtype=dtype, device=self.device)
+        self._default_params: dict[tuple[tuple[int, ...], torch.device], tuple[PendulumParams, PendulumParams]] = {}
         max_speed, max_torque = float(self.params.max_speed.max()), float(self.params.max_torque.max())
         scalar = ArraySpec((), dtype)
         self.observation_spec = {"th": scalar, "thdot": bounded((), dtype, -max_speed, max_speed)}
@@ -99,14 +100,24 @@ class Pendulum(StatelessEnv[PendulumState, PendulumParams]):
               device: DeviceLike = None, params: PendulumParams | None = None) -> tuple[PendulumState, Obs]:
         shape = as_batch_shape(batch_shape)
         dev = torch.device(device) if device is not None else self.device
-        p = params if params is not None else self.params
-        # expand: views of the scalars, no copy per row
-        p = PendulumParams(*(x.to(dev, self.dtype).expand(shape) for x in p))
+        p = self._expanded(params if params is not None else self.params, shape, dev)
         # Gymnasium: uniform(low=-[pi, 1], high=[pi, 1]); th first, then thdot.
         th = uniform(-math.pi, math.pi, shape, generator, dev, self.dtype)
         thdot = uniform(-1.0, 1.0, shape, generator, dev, self.dtype)
         state = PendulumState(th, thdot, torch.zeros(shape, dtype=torch.int64, device=dev), p)
         return state, self.observe(state)
+
+    def _expanded(self, params: PendulumParams, shape: tuple[int, ...], dev: torch.device) -> PendulumParams:
+        """`params` broadcast to `shape` on `dev` (views of the scalars, no copy per row). The
+        defaults' are made once per shape and reused (batched envs reset every step on a GPU,
+        and `tree_where` passes one tensor on both sides through), unless they need grad."""
+        cached = self._default_params.get((shape, dev))
+        if cached is not None and params is cached[0]:
+            return cached[1]
+        p = PendulumParams(*(x.to(dev, self.dtype).expand(shape) for x in params))
+        if params is self.params and not any(x.requires_grad for x in params):
+            self._default_params[(shape, dev)] = (params, p)
+        return p
 
     def step(self, state: PendulumState, action: torch.Tensor) -> StepResult[PendulumState]:
         th, thdot, p = state.th, state.thdot, state.params
