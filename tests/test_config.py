@@ -239,3 +239,20 @@ def test_a_wrong_value_in_a_config_file_names_the_file(tmp_path):
         load_config(str(path))
     with pytest.raises(ConfigError, match=r"^train.total_steps='x' has the wrong type"):  # an override's: no file named
         load_config(str(path), ["agent.lr=0.1", "train.total_steps=x"])
+
+
+def test_env_kwargs_take_only_what_a_policy_file_holds():
+    # A TOML date would train, then leave a policy file that no reader accepts.
+    import datetime
+
+    ok = load_config("dqn", ['env.kwargs={a = 1, b = [1.5, "x", {c = true}]}'])
+    assert ok.env.kwargs == {"a": 1, "b": [1.5, "x", {"c": True}]}
+    for override, where in (("env.kwargs={when = 2024-01-02}", "env.kwargs.when"),
+                            ("env.kwargs={at = [07:30:00]}", "env.kwargs.at[0]")):
+        with pytest.raises(ConfigError, match=rf"^{re.escape(where)}=datetime\.\w+\(.*\) is a \w+; env.kwargs take "
+                                              "numbers, strings, booleans, lists and tables"):
+            load_config("dqn", [override])
+    config = load_config("dqn")
+    config.env.kwargs = {"when": datetime.date(2024, 1, 2)}
+    with pytest.raises(ConfigError, match="pass a date or time as a string"):
+        config.validate()

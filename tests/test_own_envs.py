@@ -329,3 +329,22 @@ def test_an_env_id_recorded_for_a_python_factory_is_known_as_one():
     assert names_python_factory("__main__:make_env") and names_python_factory("tests.envs:<lambda>")
     assert not names_python_factory("toy_envs:make_countdown") and not names_python_factory("CartPole-v1")
     assert not names_python_factory("relayrl/Atari-Pong-v0")
+
+
+def test_a_run_says_when_its_wrappers_change_the_rewards_its_evaluations_report():
+    from relayrl.envs.gym import reward_wrapper_note
+
+    for wrappers in (["gymnasium.wrappers:NormalizeReward"], ["gymnasium.wrappers:TransformReward"],
+                     ["toy_envs:shift_obs", "gymnasium.wrappers:ClipReward"]):
+        note = reward_wrapper_note(wrappers)
+        assert note is not None and wrappers[-1] in note and "not the env's own" in note, wrappers
+        assert "toy_envs:shift_obs" not in note
+    assert reward_wrapper_note([]) is None
+    assert reward_wrapper_note(["toy_envs:shift_obs"]) is None  # observations only
+    assert reward_wrapper_note(["not_a_module_here:Wrap"]) is None  # the envs say what is wrong
+
+
+def test_reward_wrapper_note_is_in_the_log(tmp_path, capsys):
+    config = load_config("dqn-cartpole", TINY + ['env.wrappers=["gymnasium.wrappers:NormalizeReward"]'])
+    train(config, tmp_path / "run", progress=False)
+    assert "evaluations report returns of those rewards" in capsys.readouterr().err

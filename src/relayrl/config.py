@@ -148,6 +148,7 @@ class Config(Section):
         if self.device not in ("cpu", "cuda", "auto") and not self.device.startswith("cuda:"):
             raise ConfigError(f"device={self.device!r} is not valid; valid: cpu, cuda, cuda:N, auto")
         self.env.require(">= 1", "num_envs")
+        _check_plain_kwargs(self.env.kwargs)
         self.train.require(">= 1", "total_steps", "collect_steps")
         self.replay.require(">= 1", "size", "n_step")
         self.eval.require(">= 1", "episodes")
@@ -317,6 +318,20 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
             _merge(current, value, path + ".")
         else:
             setattr(obj, key, value)  # Section.__setattr__ checks the type
+
+
+def _check_plain_kwargs(value: Any, path: str = "env.kwargs") -> None:
+    """env.kwargs hold what a policy file can hold (numbers, strings, booleans, lists, tables):
+    a TOML date would train, then leave a policy file that loads nowhere."""
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _check_plain_kwargs(v, f"{path}.{k}")
+    elif isinstance(value, list | tuple):
+        for i, v in enumerate(value):
+            _check_plain_kwargs(v, f"{path}[{i}]")
+    elif value is not None and not isinstance(value, str | int | float | bool):
+        raise ConfigError(f"{path}={value!r} is a {type(value).__name__}; env.kwargs take numbers, strings, "
+                          "booleans, lists and tables (pass a date or time as a string and parse it in the env)")
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:

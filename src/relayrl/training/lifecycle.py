@@ -22,7 +22,7 @@ import torch
 from relayrl import interrupts
 from relayrl.config import Config, changes, from_dict, load_toml, save_toml, to_dict
 from relayrl.core import Agent
-from relayrl.envs.gym import names_python_factory
+from relayrl.envs.gym import names_python_factory, reward_wrapper_note
 from relayrl.envs.make import check_env, is_user_env
 from relayrl.errors import NonFiniteError, UserError
 from relayrl.metrics import EpisodeStats
@@ -278,6 +278,9 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
     try:
         if not c.train.checkpoint_replay and c.train.checkpoint_interval > 0:
             core.say("train.checkpoint_replay = false: checkpoints leave the replay out; a resumed run refills it")
+        note = reward_wrapper_note(c.env.wrappers)
+        if note:
+            core.say(note)
         if resume:
             saved = saved_config(core.rd)  # read first: restoring cuts metrics.jsonl back to the checkpoint
             driver.restore()  # rewrites metrics.jsonl: open the log only afterwards
