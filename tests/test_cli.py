@@ -126,7 +126,8 @@ def test_ci_runs_the_readme_test_command():
     assert ci in (root / "README.md").read_text()
 
 
-def test_a_shared_policy_file_evaluates_on_its_runs_env_kwargs_and_time_limit_but_runs_no_code(tmp_path, capsys):
+def test_a_shared_policy_file_evaluates_on_its_runs_env_kwargs_and_time_limit_but_runs_no_code(tmp_path, capsys,
+                                                                                              monkeypatch):
     import shutil
 
     import relayrl
@@ -145,7 +146,13 @@ def test_a_shared_policy_file_evaluates_on_its_runs_env_kwargs_and_time_limit_bu
     assert (policy.env_kwargs, policy.max_episode_steps) == ({"map_name": "8x8"}, 5)
     assert main(["eval", str(shared), "--episodes", "2"]) == 0  # Discrete(64): the 8x8 map, cut at 5 steps
     assert json.loads(capsys.readouterr().out)["average_episode_length"] <= 5.0
+    import relayrl.export as export
+
+    loads = []
+    real = export.load_policy
+    monkeypatch.setattr(export, "load_policy", lambda *a, **k: loads.append(a) or real(*a, **k))
     assert relayrl.evaluate(shared, episodes=2) == relayrl.evaluate(policy, episodes=2)
+    assert len(loads) == 1  # the lone file is read once: for its env record and to act
     state = load_policy_file(shared)
     for name, changes in (("anonymous", {"env_id": None}), ("code", {"env_id": "os:system",
                                                                       "env_kwargs": {"command": "true"}}),

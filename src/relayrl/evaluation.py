@@ -43,6 +43,10 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
 
     if not isinstance(episodes, int) or episodes < 1:
         raise UserError(f"episodes={episodes!r} is not valid; it must be an integer >= 1")
+    if env is None and lone_policy_file(policy):  # read once: for its env record and to act
+        from relayrl.export import load_policy
+
+        policy = load_policy(policy, deterministic=deterministic, seed=seed)
     batch_env, owned = _batch_env(env, policy, episodes, max_episode_steps)
     try:
         act = _policy_fn(policy, deterministic, seed, batch_env.observation_spec)
@@ -114,6 +118,13 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
     raise UserError(f"env={env!r} is not an env: give a Gymnasium env, a callable returning one, or an env id")
 
 
+def lone_policy_file(source: Any) -> bool:
+    """A path to a policy file with no run directory's config.toml around it."""
+    from relayrl.training.run_dir import RunDir
+
+    return isinstance(source, (str, Path)) and Path(source).is_file() and not RunDir.of(source).config.is_file()
+
+
 def recorded_env(source: Any, episodes: int, max_episode_steps: int = 0, info_keys: bool = False,
                  policy: Any = None) -> tuple[Any, str]:
     """The eval env (`make_eval_env`) and its id, of the env a run directory's config.toml records
@@ -130,8 +141,8 @@ def recorded_env(source: Any, episodes: int, max_episode_steps: int = 0, info_ke
     from relayrl.training.run_dir import RunDir
 
     if isinstance(source, (str, Path)):
-        rd = RunDir.of(source)
-        if rd.config.is_file() or not Path(source).is_file():
+        if not lone_policy_file(source):
+            rd = RunDir.of(source)
             rd.require()
             c = load_config(str(rd.config)).env
             return make_eval_env(c.id, episodes, max_episode_steps or c.max_episode_steps, kwargs=c.kwargs,
