@@ -409,3 +409,37 @@ def test_a_ray_cluster_that_is_not_there_is_one_line(tmp_path):
     with pytest.raises(UserError, match=r"no Ray cluster answers at distributed.address=.*ray start --head"):
         relayrl.train(config, tmp_path / "run", progress=False)
     assert not (tmp_path / "run").exists()
+
+
+@needs_ray
+def test_an_env_a_ray_worker_cannot_make_is_one_line_naming_the_worker(tmp_path):
+    # The driver makes the env (its checks pass); the rollout actor's node cannot: the user
+    # gets the worker's own one-line reason, not Ray's 60-line ActorDiedError.
+    config = relayrl.load_config("dqn-cartpole-fast", ["distributed.num_actors=1", "train.total_steps=600",
+                                                       "env.id=toy_envs:MadeOnlyInTheDriver"])
+    with pytest.raises(UserError) as e:
+        relayrl.train(config, tmp_path / "run", progress=False)
+    assert str(e.value) == ("an actor could not start on a Ray worker: no module 'remoteonly' on this node "
+                            "(the test's stand-in)")
+    import ray
+
+    assert not ray.is_initialized()
+
+
+def test_actors_not_yet_placed_are_waited_for_with_a_line_every_so_often(monkeypatch):
+    # A cluster without the CPUs the actors ask for places them when some come free: the run
+    # says what it waits for instead of hanging without a word.
+    from types import SimpleNamespace
+
+    from relayrl.distributed import actors
+
+    waits = iter([(["a"], ["b"]), (["a"], ["b"]), (["a", "b"], [])])
+    said: list[str] = []
+    fake_ray = SimpleNamespace(
+        wait=lambda pending, num_returns, timeout: next(waits), get=lambda calls: [1, 2],
+        available_resources=lambda: {"CPU": 0.0}, cluster_resources=lambda: {"CPU": 2.0},
+        exceptions=SimpleNamespace(RayActorError=RuntimeError))
+    pool = actors.ActorPool(fake_ray, relayrl.load_config("ppo-cartpole", ["distributed.num_actors=4"]), said.append)
+    pool.wait_started(["a", "b"])
+    assert said == ["waiting for 1 actor to start: rollout actors ask for 1 CPU each (distributed.actor_cpus), "
+                    "the Ray cluster has 0 of 2 CPUs free"] * 2

@@ -433,3 +433,16 @@ class Interrupting(Countdown):
             INTERRUPT["now"] = False
             raise KeyboardInterrupt
         return super().step(action)
+
+
+class MadeOnlyInTheDriver(Countdown):
+    """A Countdown that a Ray worker cannot make: a stand-in for a module its node lacks."""
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        import ray
+
+        if ray.is_initialized() and ray.get_runtime_context().worker.mode == ray.WORKER_MODE:
+            from relayrl.errors import UserError
+
+            raise UserError("no module 'remoteonly' on this node (the test's stand-in)")
+        super().__init__(render_mode=render_mode)

@@ -62,7 +62,8 @@ _OWN = ("resume with the run's own config.toml: leave out PRESET|CONFIG.toml and
 IDENTITY = {"algo": _OWN.format("algo"), "env.id": _OWN.format("env.id"),
             "seed": "a resumed run keeps its seed (leave out --seed; in Python, load the run's config.toml)"}
 KEPT = {**IDENTITY, "env.num_envs": "its replay and envs are laid out per copy: " + _OWN.format("env.num_envs"),
-        "distributed.num_actors": "its replay is laid out per actor: " + _OWN.format("distributed.num_actors")}
+        "distributed.num_actors": "its checkpoint holds each actor's part (off-policy: of the replay too): "
+        + _OWN.format("distributed.num_actors")}
 
 
 def check_resume_matches(config: Config, rd: RunDir, kept: dict[str, str] = IDENTITY) -> None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import signal
 import socket
 import sys
@@ -18,12 +19,14 @@ from typing import Any
 from relayrl.config import Config, to_dict
 from relayrl.distributed.workers import EvalWorker, actor_name
 from relayrl.errors import UserError
+from relayrl.training.report import plural
 from relayrl.training.variables import VariableContainer
 
 # An actor Ray reports unavailable (restarting after a crash, or its connection lost) is asked
 # again every RETRY_S; this many such answers in a row count as a second failure.
 RETRY_S = 0.2
 UNAVAILABLE_LIMIT = 150
+WAIT_SAY_S = 30.0  # while actors are not yet placed, a line this often
 
 
 def init_ray(ray: Any, config: Config) -> bool:
@@ -52,7 +55,15 @@ def init_ray(ray: Any, config: Config) -> bool:
             raise UserError(f"something answers at distributed.address={d.address!r}, but Ray could not join it "
                             f"({reason}): check that it is a Ray head of a matching Ray version") from None
     else:
-        ray.init(num_cpus=max(os.cpu_count() or 1, math.ceil(d.num_actors * d.actor_cpus) + 1), **kw)
+        try:
+            ray.init(num_cpus=max(os.cpu_count() or 1, math.ceil(d.num_actors * d.actor_cpus) + 1), **kw)
+        except ValueError as e:  # Ray joined a cluster RAY_ADDRESS names, which takes no num_cpus
+            if "existing cluster" not in str(e):
+                raise
+            where = f"RAY_ADDRESS={os.environ['RAY_ADDRESS']!r}" if os.environ.get("RAY_ADDRESS") else "this machine"
+            raise UserError(f"a Ray cluster is running at {where}, and distributed.address is empty (a local Ray "
+                            "instance of the run's own): set distributed.address=auto to join that cluster, or "
+                            "unset RAY_ADDRESS") from None
     if callable(on_sigterm):
         # Ray's core replaces SIGTERM's handler in the driver with one that dumps a stack and
         # exits; the CLI's (stop like Ctrl-C: actors shut down) goes back.
@@ -99,7 +110,28 @@ class ActorPool:
         self.workers = [worker.remote(cfg, i, names, path) for i in range(self.num_actors)]
         evaluator = ray.remote(num_cpus=0, max_restarts=d.max_restarts, max_task_retries=0)(EvalWorker)
         self.eval_workers = [evaluator.remote(cfg, names, path) for _ in range(d.num_eval_actors)]
-        ray.get([w.pid.remote() for w in self.workers + self.eval_workers])
+        self.wait_started([w.pid.remote() for w in self.workers + self.eval_workers])
+
+    def wait_started(self, calls: list[Any]) -> None:
+        """Wait for every actor's first answer, saying every WAIT_SAY_S what is still waited for
+        (a cluster without the CPUs the actors ask for places them only when some come free);
+        an actor whose making fails on a worker (its env, its module) is one line."""
+        ray, d = self.ray, self.config.distributed
+        pending = calls
+        while pending:
+            _, pending = ray.wait(pending, num_returns=len(pending), timeout=WAIT_SAY_S)
+            if pending:
+                free, total = ray.available_resources().get("CPU", 0), ray.cluster_resources().get("CPU", 0)
+                self.say(f"waiting for {plural(len(pending), 'actor')} to start: rollout actors ask for "
+                         f"{d.actor_cpus:g} CPU each (distributed.actor_cpus), the Ray cluster has {free:g} of "
+                         f"{total:g} CPUs free")
+        try:
+            ray.get(calls)
+        except ray.exceptions.RayActorError as e:
+            found = re.findall(r"^relayrl\.errors\.\w+: (.+)$", str(e), flags=re.MULTILINE)
+            if not found:
+                raise
+            raise UserError(f"an actor could not start on a Ray worker: {found[-1]}") from None
 
     def close(self) -> None:
         """Stop every actor (and the local Ray instance this run started): no orphan processes."""
