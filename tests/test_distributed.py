@@ -443,3 +443,27 @@ def test_actors_not_yet_placed_are_waited_for_with_a_line_every_so_often(monkeyp
     pool.wait_started(["a", "b"])
     assert said == ["waiting for 1 actor to start: rollout actors ask for 1 CPU each (distributed.actor_cpus), "
                     "the Ray cluster has 0 of 2 CPUs free"] * 2
+
+
+def test_a_running_cluster_and_an_empty_address_is_one_line(monkeypatch):
+    # Ray joins the cluster RAY_ADDRESS names, and then refuses the local instance's CPU count.
+    from types import SimpleNamespace
+
+    from relayrl.distributed.actors import init_ray
+
+    def init(**kw):
+        raise ValueError("When connecting to an existing cluster, num_cpus and num_gpus must not be provided.")
+
+    monkeypatch.setenv("RAY_ADDRESS", "10.0.0.1:6379")
+    fake_ray = SimpleNamespace(is_initialized=lambda: False, init=init)
+    config = relayrl.load_config("sac-pendulum", ["distributed.num_actors=1"])
+    with pytest.raises(UserError, match=r"^a Ray cluster is running at RAY_ADDRESS='10.0.0.1:6379', and "
+                                        r"distributed.address is empty .* set distributed.address=auto"):
+        init_ray(fake_ray, config)
+
+
+def test_an_address_without_actors_says_the_run_is_one_process(tmp_path, capsys):
+    config = relayrl.load_config("dqn-cartpole-fast", ["distributed.address=auto", "train.total_steps=300",
+                                                       "train.initial_collect_steps=100", "eval.episodes=1"])
+    relayrl.train(config, tmp_path / "run", progress=False)
+    assert "with distributed.num_actors=0: the run trains in this process" in capsys.readouterr().err

@@ -281,6 +281,9 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         note = reward_wrapper_note(c.env.wrappers)
         if note:
             core.say(note)
+        if c.distributed.address and c.distributed.num_actors == 0:
+            core.say(f"distributed.address={c.distributed.address!r} with distributed.num_actors=0: the run trains "
+                     "in this process (set distributed.num_actors=K for K rollout actors on Ray)")
         if resume:
             saved = saved_config(core.rd)  # read first: restoring cuts metrics.jsonl back to the checkpoint
             driver.restore()  # rewrites metrics.jsonl: open the log only afterwards
