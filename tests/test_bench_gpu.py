@@ -30,3 +30,21 @@ def test_bad_input_is_one_line_and_exit_code_2(tmp_path):
         r = run(args, tmp_path)
         assert r.returncode == 2, (args, r.stdout, r.stderr)
         assert len(r.stderr.strip().splitlines()) == 1 and r.stderr.startswith("bench/gpu.py: "), r.stderr
+
+
+def test_on_cuda_each_run_is_also_timed_with_the_replay_where_auto_does_not_put_it():
+    # Image runs' frames go to the GPU under replay.device=auto and vector observations stay in
+    # NumPy arrays: the A/B variant is the other placement, so the table shows what auto buys.
+    import importlib.util
+
+    import torch
+
+    spec = importlib.util.spec_from_file_location("bench_gpu", SCRIPT)
+    gpu = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gpu)
+    cuda = torch.device("cuda")
+    keys = {name: [v[0] for v in gpu.variants(name, cuda)] for name in ("ddqn-pong", "dqn-pong-fast", "sac-pendulum")}
+    assert keys["dqn-pong-fast"] == ["dqn-pong-fast", "dqn-pong-fast@replay.device=numpy"]
+    assert "ddqn-pong@replay.device=numpy" in keys["ddqn-pong"] and "ddqn-pong@no-graphs" in keys["ddqn-pong"]
+    assert "sac-pendulum@replay.device=cuda" in keys["sac-pendulum"]
+    assert gpu.variants("sac-pendulum", torch.device("cpu")) == [("sac-pendulum", torch.device("cpu"), "1", [])]
