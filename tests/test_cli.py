@@ -146,6 +146,13 @@ def test_a_shared_policy_file_evaluates_on_its_runs_env_kwargs_and_time_limit_bu
     assert (policy.env_kwargs, policy.max_episode_steps) == ({"map_name": "8x8"}, 5)
     assert main(["eval", str(shared), "--episodes", "2"]) == 0  # Discrete(64): the 8x8 map, cut at 5 steps
     assert json.loads(capsys.readouterr().out)["average_episode_length"] <= 5.0
+    # --env naming the id the file records gets its kwargs and time limit (the 4x4 default would not fit)
+    assert main(["eval", str(shared), "--env", "FrozenLake-v1", "--episodes", "2"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["average_episode_length"] <= 5.0
+    assert "FrozenLake-v1 is the env the policy was trained on: env.kwargs {'map_name': '8x8'} and " \
+           "env.max_episode_steps=5 apply" in err
+    assert relayrl.evaluate(policy, "FrozenLake-v1", episodes=2) == relayrl.evaluate(policy, episodes=2)
     import relayrl.export as export
 
     loads = []

@@ -332,19 +332,22 @@ def test_an_env_id_recorded_for_a_python_factory_is_known_as_one():
 
 
 def test_a_run_says_when_its_wrappers_change_the_rewards_its_evaluations_report():
-    from relayrl.envs.gym import reward_wrapper_note
+    from relayrl.envs.make import reward_wrappers
 
-    for wrappers in (["gymnasium.wrappers:NormalizeReward"], ["gymnasium.wrappers:TransformReward"],
-                     ["toy_envs:shift_obs", "gymnasium.wrappers:ClipReward"]):
-        note = reward_wrapper_note(wrappers)
-        assert note is not None and wrappers[-1] in note and "not the env's own" in note, wrappers
-        assert "toy_envs:shift_obs" not in note
-    assert reward_wrapper_note([]) is None
-    assert reward_wrapper_note(["toy_envs:shift_obs"]) is None  # observations only
-    assert reward_wrapper_note(["not_a_module_here:Wrap"]) is None  # the envs say what is wrong
+    assert reward_wrappers("CartPole-v1", wrappers=["gymnasium.wrappers:NormalizeReward"]) == ["NormalizeReward"]
+    # A function returning one (README's pattern), behind an observation wrapper
+    assert reward_wrappers("toy_envs:Countdown", wrappers=["toy_envs:double_reward", "toy_envs:shift_obs"]) == [
+        "TransformReward"]
+    assert reward_wrappers("CartPole-v1", wrappers=["toy_envs:shift_obs"]) == []  # observations only
+    assert reward_wrappers("CartPole-v1") == []
+    assert reward_wrappers("CartPole-v1", wrappers=["not_a_module_here:Wrap"]) == []  # the run says what is wrong
+    state = np.random.get_state()[1].copy()
+    reward_wrappers("CartPole-v1", wrappers=["toy_envs:double_reward"])
+    assert np.array_equal(np.random.get_state()[1], state)  # a checked run is the unchecked one
 
 
 def test_reward_wrapper_note_is_in_the_log(tmp_path, capsys):
-    config = load_config("dqn-cartpole", TINY + ['env.wrappers=["gymnasium.wrappers:NormalizeReward"]'])
+    config = load_config("dqn-cartpole", TINY + ['env.wrappers=["toy_envs:double_reward"]'])
     train(config, tmp_path / "run", progress=False)
-    assert "evaluations report returns of those rewards" in capsys.readouterr().err
+    assert "env.wrappers put TransformReward over the env: evaluations report returns of those rewards" in \
+        capsys.readouterr().err

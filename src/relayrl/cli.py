@@ -87,7 +87,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seed of the evaluation episodes: copy i is reset with seed + i (default: 0)")
     e.add_argument("--env", metavar="ENV_ID",
                    help="evaluate on this env (a Gymnasium id or package.module:Class) instead of the run's own "
-                        "(config.toml's, with its env.kwargs and wrappers); for a policy file outside a run "
+                        "(config.toml's, with its env.kwargs and wrappers); the id the policy was trained on gets "
+                        "the env.kwargs and time limit the policy file records; for a policy file outside a run "
                         "directory the default is the env id the file records")
     e.add_argument("--max-episode-steps", type=int, default=None, metavar="N",
                    help="cut evaluation episodes at N steps (default: the run's env.max_episode_steps, else the "
@@ -148,9 +149,9 @@ def _train(args: argparse.Namespace) -> None:
 
 
 def _eval(args: argparse.Namespace) -> None:
-    from relayrl.evaluation import recorded_env
+    from relayrl.evaluation import named_env, recorded_env
     from relayrl.export import load_policy
-    from relayrl.training.evaluate import eval_cap_note, evaluate, make_eval_env
+    from relayrl.training.evaluate import eval_cap_note, evaluate
     from relayrl.training.run_dir import RunDir
 
     if args.episodes < 1:
@@ -163,8 +164,9 @@ def _eval(args: argparse.Namespace) -> None:
     if not lone:
         rd.require()
     policy = load_policy(given)  # a run directory, its config.toml or policy file, or a lone policy file
-    if args.env:  # another env, as it is registered: not the run's kwargs or wrappers
-        env_id, env = args.env, make_eval_env(args.env, args.episodes, args.max_episode_steps or 0)
+    if args.env:  # as it is registered, or with the kwargs the policy records for that same id
+        env_id, env = args.env, named_env(args.env, policy, args.episodes, args.max_episode_steps or 0,
+                                          say=lambda line: print(f"relayrl: {line}", file=sys.stderr))
     else:
         env, env_id = recorded_env(given, args.episodes, args.max_episode_steps or 0, info_keys=True, policy=policy)
     try:

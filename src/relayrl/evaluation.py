@@ -43,7 +43,7 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
 
     if not isinstance(episodes, int) or episodes < 1:
         raise UserError(f"episodes={episodes!r} is not valid; it must be an integer >= 1")
-    if env is None and lone_policy_file(policy):  # read once: for its env record and to act
+    if lone_policy_file(policy):  # read once: for its env record and to act
         from relayrl.export import load_policy
 
         policy = load_policy(policy, deterministic=deterministic, seed=seed)
@@ -107,7 +107,9 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
                             "policy give env (a Gymnasium env, a callable returning one, or an env id)")
         return recorded_env(policy, episodes, max_episode_steps)[0], True
     if isinstance(env, str):
-        return make_eval_env(env, episodes, max_episode_steps), True
+        from relayrl.training.report import say
+
+        return named_env(env, policy, episodes, max_episode_steps, say=say), True
     if isinstance(env, gym.vector.VectorEnv) or hasattr(env, "step_async"):  # Gymnasium's or SB3's VecEnv
         raise UserError(f"env={type(env).__name__} is a vector env; give one env, an env id, or a callable "
                         "returning one env: relayrl.evaluate runs its own copies of it (up to 16)")
@@ -116,6 +118,27 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
 
         return make_eval_env(factory_env_id(env), episodes, max_episode_steps, factory=env), True
     raise UserError(f"env={env!r} is not an env: give a Gymnasium env, a callable returning one, or an env id")
+
+
+def named_env(env_id: str, policy: Any, episodes: int, max_episode_steps: int = 0,
+              say: Callable[[str], None] | None = None) -> Any:
+    """The eval env for an env id the user names. Where it is the id a loaded policy records,
+    the env.kwargs and time limit it was trained with apply (not its wrappers: a policy file runs
+    no code); `say` gets a line saying so."""
+    from relayrl.loaded_policy import LoadedPolicy
+    from relayrl.training.evaluate import make_eval_env
+
+    if not isinstance(policy, LoadedPolicy) or policy.env_id != env_id or not (
+            policy.env_kwargs or policy.max_episode_steps or policy.env_wrappers):
+        return make_eval_env(env_id, episodes, max_episode_steps)
+    if say is not None:
+        kept = [f"env.kwargs {policy.env_kwargs}"] * bool(policy.env_kwargs) + [
+            f"env.max_episode_steps={policy.max_episode_steps}"] * bool(policy.max_episode_steps)
+        dropped = f"; its env.wrappers {policy.env_wrappers} do not (a policy file runs no code)" \
+            if policy.env_wrappers else ""
+        say(f"{env_id} is the env the policy was trained on: {' and '.join(kept) or 'nothing it records'} "
+            f"apply{dropped}")
+    return make_eval_env(env_id, episodes, max_episode_steps or policy.max_episode_steps, kwargs=policy.env_kwargs)
 
 
 def lone_policy_file(source: Any) -> bool:

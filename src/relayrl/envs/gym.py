@@ -168,28 +168,6 @@ def names_python_factory(env_id: str) -> bool:
     return "<" in name or module_name == "__main__"
 
 
-# Gymnasium's wrappers whose rewards are not the env's own: evaluations report their returns too.
-REWARD_WRAPPERS = ("NormalizeReward", "ClipReward", "TransformReward")
-
-
-def reward_wrapper_note(wrappers: list[str] | tuple[str, ...]) -> str | None:
-    """A line for a run whose env.wrappers change the rewards (evaluations report those returns,
-    not the env's own), or None."""
-    changing = [w for w in wrappers if w.rsplit(":", 1)[-1] in REWARD_WRAPPERS or _is_reward_wrapper(w)]
-    if not changing:
-        return None
-    return (f"the rewards pass through env.wrappers {', '.join(changing)}: evaluations report returns of those "
-            "rewards, not the env's own (PPO's agent.normalize_reward scales rewards for learning only)")
-
-
-def _is_reward_wrapper(path: str) -> bool:
-    try:  # where this process cannot import it (a Ray worker's module), the envs will say so
-        target = load_callable(path, "env.wrappers")
-    except UserError:
-        return False
-    return isinstance(target, type) and issubclass(target, gym.RewardWrapper)
-
-
 def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | None = None,
                    kwargs: dict[str, Any] | None = None, wrappers: list[str] | tuple[str, ...] = (),
                    factory: EnvFn | None = None) -> EnvFn:

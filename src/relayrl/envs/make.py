@@ -20,6 +20,7 @@ from relayrl.envs.probe import first_problem
 from relayrl.envs.stateless.adapter import STATELESS_ENVS, StatelessBatchEnv, make_batch_env
 from relayrl.envs.vector import AsyncGymBatchEnv
 from relayrl.errors import UserError
+from relayrl.user_code import load_callable
 
 
 def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_mode: str | None = None,
@@ -105,6 +106,40 @@ def is_user_env(env_id: str, factory: EnvFn | None = None) -> bool:
     """A user's own env (`module:Class`, `module:EnvId-v0`, a factory), not a known id: the
     envs that are checked at the start of a run and whose missing time limit is worth a line."""
     return factory is not None or names_module(env_id)
+
+
+# Gymnasium's wrappers that change rewards without being a RewardWrapper.
+REWARD_CHANGING = ("NormalizeReward",)
+
+
+def reward_wrappers(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple[str, ...] | list[str] = (),
+                    factory: EnvFn | None = None, max_episode_steps: int = 0) -> list[str]:
+    """The reward-changing layers (a `gym.RewardWrapper`, NormalizeReward) that `wrappers` put
+    over one fresh copy of the env, by class name, innermost first: evaluations report returns
+    of those rewards. [] where the env cannot be made here (the run says why when it makes its
+    own). The global RNGs are left as they were."""
+    if not wrappers:
+        return []
+    rng = (torch.get_rng_state(), np.random.get_state(), random.getstate())
+    found: list[str] = []
+    try:
+        base = resolve_env_fn(env_id, max_episode_steps, None, kwargs, (), factory)()
+        env = base
+        for w in wrappers:
+            env = load_callable(w, "env.wrappers")(env)
+        layer = env
+        while layer is not base and isinstance(layer, gym.Wrapper):
+            if isinstance(layer, gym.RewardWrapper) or type(layer).__name__ in REWARD_CHANGING:
+                found.append(type(layer).__name__)
+            layer = layer.env
+        env.close()
+    except Exception:  # the run makes its envs next and reports what is wrong there
+        return []
+    finally:
+        torch.set_rng_state(rng[0])
+        np.random.set_state(rng[1])
+        random.setstate(rng[2])
+    return found[::-1]
 
 
 def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple[str, ...] | list[str] = (),

@@ -22,8 +22,8 @@ import torch
 from relayrl import interrupts
 from relayrl.config import Config, changes, from_dict, load_toml, save_toml, to_dict
 from relayrl.core import Agent
-from relayrl.envs.gym import names_python_factory, reward_wrapper_note
-from relayrl.envs.make import check_env, is_user_env
+from relayrl.envs.gym import names_python_factory
+from relayrl.envs.make import check_env, is_user_env, reward_wrappers
 from relayrl.errors import NonFiniteError, UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.nn.encoders import CONV_READY
@@ -89,11 +89,16 @@ def caller_torch_state() -> Iterator[None]:
 
 
 def check_user_env(config: Config, env_factory: Callable[[], Any] | None, say: Callable[[str], None]) -> None:
-    """Gymnasium's env checker, once, on a user's own env (env.check): its findings as lines."""
+    """Gymnasium's env checker, once, on a user's own env (env.check): its findings as lines;
+    and a line where env.wrappers change the rewards (which the evaluations then report)."""
     e = config.env
     if e.check and is_user_env(e.id, env_factory):
         for line in check_env(e.id, e.kwargs, e.wrappers, env_factory, e.max_episode_steps):
             say(f"env check (env.check = false turns it off): {line}")
+    changing = reward_wrappers(e.id, e.kwargs, e.wrappers, env_factory, e.max_episode_steps)
+    if changing:
+        say(f"env.wrappers put {', '.join(changing)} over the env: evaluations report returns of those rewards, "
+            "not the env's own (PPO's agent.normalize_reward scales rewards for learning only)")
 
 
 def make_learner(config: Config, agent: Agent, table: Any, device: torch.device, variables: Any,
@@ -278,9 +283,6 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
     try:
         if not c.train.checkpoint_replay and c.train.checkpoint_interval > 0:
             core.say("train.checkpoint_replay = false: checkpoints leave the replay out; a resumed run refills it")
-        note = reward_wrapper_note(c.env.wrappers)
-        if note:
-            core.say(note)
         if c.distributed.address and c.distributed.num_actors == 0:
             core.say(f"distributed.address={c.distributed.address!r} with distributed.num_actors=0: the run trains "
                      "in this process (set distributed.num_actors=K for K rollout actors on Ray)")
