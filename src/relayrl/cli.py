@@ -149,7 +149,7 @@ def _train(args: argparse.Namespace) -> None:
 
 
 def _eval(args: argparse.Namespace) -> None:
-    from relayrl.evaluation import named_env, recorded_env
+    from relayrl.evaluation import lone_policy_file, named_env, recorded_env
     from relayrl.export import load_policy
     from relayrl.training.evaluate import eval_cap_note, evaluate
     from relayrl.training.run_dir import RunDir
@@ -159,10 +159,8 @@ def _eval(args: argparse.Namespace) -> None:
     if args.max_episode_steps is not None and args.max_episode_steps < 1:
         raise UserError(f"--max-episode-steps {args.max_episode_steps} is not valid; it must be >= 1")
     given = Path(args.run_dir)
-    rd = RunDir.of(given)
-    lone = given.is_file() and not rd.config.is_file()  # a policy file on its own: the env it records
-    if not lone:
-        rd.require()
+    if not lone_policy_file(given):  # a policy file on its own names the env it records
+        RunDir.of(given).require()
     policy = load_policy(given)  # a run directory, its config.toml or policy file, or a lone policy file
     if args.env:  # as it is registered, or with the kwargs the policy records for that same id
         env_id, env = args.env, named_env(args.env, policy, args.episodes, args.max_episode_steps or 0,

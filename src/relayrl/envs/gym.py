@@ -269,15 +269,19 @@ def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, 
 
 def _wrapped(base: EnvFn, wrappers: list[Callable[[gym.Env], gym.Env]]) -> EnvFn:
     def make_wrapped() -> gym.Env:
-        env = base()
-        for w in wrappers:
-            _check_takes_an_env(w, env)
-            env = w(env)
-            if not isinstance(env, gym.Env):
-                raise UserError(f"env.wrappers: {w!r} returned {type(env).__name__}, not a gymnasium.Env")
-        return env
+        return apply_wrappers(base(), wrappers)
 
     return make_wrapped
+
+
+def apply_wrappers(env: gym.Env, wrappers: list[Callable[[gym.Env], gym.Env]]) -> gym.Env:
+    """`env` in each of `wrappers` (env.wrappers' callables), in order."""
+    for w in wrappers:
+        _check_takes_an_env(w, env)
+        env = w(env)
+        if not isinstance(env, gym.Env):
+            raise UserError(f"env.wrappers: {w!r} returned {type(env).__name__}, not a gymnasium.Env")
+    return env
 
 
 def _check_takes_an_env(wrapper: Callable[..., Any], env: gym.Env) -> None:

@@ -15,7 +15,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from relayrl.envs.gym import BatchEnvBase, EnvFn, GymBatchEnv, names_module, resolve_env_fn
+from relayrl.envs.gym import BatchEnvBase, EnvFn, GymBatchEnv, apply_wrappers, names_module, resolve_env_fn
 from relayrl.envs.probe import first_problem
 from relayrl.envs.stateless.adapter import STATELESS_ENVS, StatelessBatchEnv, make_batch_env
 from relayrl.envs.vector import AsyncGymBatchEnv
@@ -120,26 +120,33 @@ def reward_wrappers(env_id: str, kwargs: dict[str, Any] | None = None, wrappers:
     own). The global RNGs are left as they were."""
     if not wrappers:
         return []
-    rng = (torch.get_rng_state(), np.random.get_state(), random.getstate())
     found: list[str] = []
+    with global_rngs_kept():
+        try:
+            base = resolve_env_fn(env_id, max_episode_steps, None, kwargs, (), factory)()
+            env = apply_wrappers(base, [load_callable(w, "env.wrappers") for w in wrappers])
+            layer = env
+            while layer is not base and isinstance(layer, gym.Wrapper):
+                if isinstance(layer, gym.RewardWrapper) or type(layer).__name__ in REWARD_CHANGING:
+                    found.append(type(layer).__name__)
+                layer = layer.env
+            env.close()
+        except Exception:  # the run makes its envs next and reports what is wrong there
+            return []
+    return found[::-1]
+
+
+@contextlib.contextmanager
+def global_rngs_kept() -> Iterator[None]:
+    """torch's, NumPy's and Python's global generators as they were before: an env made only to
+    look at it leaves a run as it would have been without the look."""
+    rng = (torch.get_rng_state(), np.random.get_state(), random.getstate())
     try:
-        base = resolve_env_fn(env_id, max_episode_steps, None, kwargs, (), factory)()
-        env = base
-        for w in wrappers:
-            env = load_callable(w, "env.wrappers")(env)
-        layer = env
-        while layer is not base and isinstance(layer, gym.Wrapper):
-            if isinstance(layer, gym.RewardWrapper) or type(layer).__name__ in REWARD_CHANGING:
-                found.append(type(layer).__name__)
-            layer = layer.env
-        env.close()
-    except Exception:  # the run makes its envs next and reports what is wrong there
-        return []
+        yield
     finally:
         torch.set_rng_state(rng[0])
         np.random.set_state(rng[1])
         random.setstate(rng[2])
-    return found[::-1]
 
 
 def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple[str, ...] | list[str] = (),
@@ -149,32 +156,29 @@ def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple
     global RNGs are left as they were, so a checked run is the unchecked one."""
     from gymnasium.utils.env_checker import check_env as gym_check_env
 
-    rng = (torch.get_rng_state(), np.random.get_state(), random.getstate())
-    env = resolve_env_fn(env_id, max_episode_steps, None, kwargs, wrappers, factory)()
     lines: list[str] = []
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # the checker below reports what it finds once
-            problem = first_problem(env)
-        if problem is not None:
-            who = "the env from the factory given to relayrl.train" if factory is not None else f"env.id={env_id!r}"
-            raise UserError(f"{who}: {problem}")
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            try:
-                gym_check_env(env, skip_render_check=True, skip_close_check=True)
-            except Exception as e:  # the checker's assertions: reported, the run goes on
-                lines.append(f"{type(e).__name__}: {e}")
-        for w in caught:
-            text = str(w.message)
-            # Wrappers (a TimeLimit, env.wrappers) are ours to add; the checker would rather have none.
-            if "is different from the unwrapped version" not in text:
-                lines.append(text)
-    finally:
-        env.close()
-        torch.set_rng_state(rng[0])
-        np.random.set_state(rng[1])
-        random.setstate(rng[2])
+    with global_rngs_kept():
+        env = resolve_env_fn(env_id, max_episode_steps, None, kwargs, wrappers, factory)()
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # the checker below reports what it finds once
+                problem = first_problem(env)
+            if problem is not None:
+                who = "the env from the factory given to relayrl.train" if factory is not None else f"env.id={env_id!r}"
+                raise UserError(f"{who}: {problem}")
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                try:
+                    gym_check_env(env, skip_render_check=True, skip_close_check=True)
+                except Exception as e:  # the checker's assertions: reported, the run goes on
+                    lines.append(f"{type(e).__name__}: {e}")
+            for w in caught:
+                text = str(w.message)
+                # Wrappers (a TimeLimit, env.wrappers) are ours to add; the checker would rather have none.
+                if "is different from the unwrapped version" not in text:
+                    lines.append(text)
+        finally:
+            env.close()
     clean = (" ".join(_ANSI.sub("", line).removeprefix("WARN: ").split()) for line in lines)
     return list(dict.fromkeys(clean))
 
