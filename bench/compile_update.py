@@ -46,12 +46,12 @@ def dqn_batch(n: int) -> Batch:
                  next_obs=next_obs, discount=torch.full((n,), 0.99), weight=None)
 
 
-def dqn_steps(batch_size: int) -> dict[str, Callable[[], object]]:
-    cfg = DQNConfig(hidden=[64, 64], batch_size=batch_size, lr=2.3e-3, target_update_period=10**9, grad_clip=10.0)
+def dqn_steps(batch_size: int, hidden: list[int]) -> dict[str, Callable[[], object]]:
+    cfg = DQNConfig(hidden=hidden, batch_size=batch_size, lr=2.3e-3, target_update_period=10**9, grad_clip=10.0)
     agent = DQNAgent(ArraySpec((4,), torch.float32), DiscreteSpec(2), cfg, torch.device("cpu"),
                      np.random.default_rng(0))
     batch = dqn_batch(batch_size)
-    online, target = MLP(4, [64, 64], 2, "relu"), MLP(4, [64, 64], 2, "relu")
+    online, target = MLP(4, hidden, 2, "relu"), MLP(4, hidden, 2, "relu")
     target.load_state_dict(online.state_dict())
     opt = torch.optim.Adam(online.parameters(), lr=2.3e-3)
 
@@ -72,9 +72,7 @@ def one_graph_dqn_step(online: MLP, target: MLP, batch: Batch) -> Callable[[], t
     clipping to norm 10 and Adam (lr 2.3e-3) in place, so nothing breaks the graph."""
     params = {k: v.detach().clone() for k, v in online.named_parameters()}
     target_params = {k: v.detach().clone() for k, v in target.named_parameters()}
-    m1 = {k: torch.zeros_like(v) for k, v in params.items()}
-    m2 = {k: torch.zeros_like(v) for k, v in params.items()}
-    count = torch.zeros(())
+    adam = InPlaceAdam(params, 2.3e-3)
 
     def loss_fn(p: dict[str, torch.Tensor]) -> torch.Tensor:
         loss, _ = dqn_loss(lambda x: functional_call(online, p, (x,)),
@@ -87,16 +85,29 @@ def one_graph_dqn_step(online: MLP, target: MLP, batch: Batch) -> Callable[[], t
         grads, loss = grad_fn(params)
         norm = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads.values()]))
         scale = (10.0 / (norm + 1e-6)).clamp(max=1.0)
-        count.add_(1)
-        c1, c2 = 1 - 0.9 ** count, 1 - 0.999 ** count
-        for k, p in params.items():
-            g = grads[k] * scale
-            m1[k].lerp_(g, 0.1)
-            m2[k].mul_(0.999).addcmul_(g, g, value=0.001)
-            p.sub_(2.3e-3 * (m1[k] / c1) / ((m2[k] / c2).sqrt() + 1e-8))
+        adam.step({k: g * scale for k, g in grads.items()})
         return loss
 
     return step
+
+
+class InPlaceAdam:
+    """Adam (no weight decay) written out in tensor ops, so a compiled graph holds it."""
+
+    def __init__(self, params: dict[str, torch.Tensor], lr: float) -> None:
+        self.params, self.lr = params, lr
+        self.m1 = {k: torch.zeros_like(v) for k, v in params.items()}
+        self.m2 = {k: torch.zeros_like(v) for k, v in params.items()}
+        self.count = torch.zeros(())
+
+    def step(self, grads: dict[str, torch.Tensor]) -> None:
+        self.count.add_(1)
+        c1, c2 = 1 - 0.9 ** self.count, 1 - 0.999 ** self.count
+        for k, p in self.params.items():
+            g = grads[k]
+            self.m1[k].lerp_(g, 0.1)
+            self.m2[k].mul_(0.999).addcmul_(g, g, value=0.001)
+            p.sub_(self.lr * (self.m1[k] / c1) / ((self.m2[k] / c2).sqrt() + 1e-8))
 
 
 def sac_steps(batch_size: int) -> dict[str, Callable[[], object]]:
@@ -152,7 +163,61 @@ def sac_steps(batch_size: int) -> dict[str, Callable[[], object]]:
                     pt.lerp_(pc, 0.005)
         return F.relu(c_loss.detach())
 
-    return {"hand-written": lambda: agent.train(batch), "eager": reference, "compiled": torch.compile(reference)}
+    one = one_graph_sac_step(actor, critics, targets, batch, -float(a))
+    return {"hand-written": lambda: agent.train(batch), "eager": reference, "compiled": torch.compile(reference),
+            "one graph": torch.compile(one, fullgraph=True)}
+
+
+def one_graph_sac_step(actor: MLP, critics: list[MLP], targets: list[MLP], batch: Batch,
+                       target_entropy: float) -> Callable[[], torch.Tensor]:
+    """The reference SAC step (critic, actor, temperature, Polyak) as one function of tensors:
+    gradients by torch.func, Adam (lr 3e-4) in place."""
+    actor_p = {k: v.detach().clone() for k, v in actor.named_parameters()}
+    critic_p = {f"{i}.{k}": v.detach().clone() for i, c in enumerate(critics) for k, v in c.named_parameters()}
+    target_p = {k: v.clone() for k, v in critic_p.items()}
+    log_alpha = {"log_alpha": torch.zeros(())}
+    adams = [InPlaceAdam(d, 3e-4) for d in (critic_p, actor_p, log_alpha)]
+    g = torch.Generator().manual_seed(0)
+    noise = torch.randn(2, batch.obs.shape[0], batch.action.shape[1], generator=g)
+
+    def policy(p: dict[str, torch.Tensor], obs: torch.Tensor, eps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, log_std = functional_call(actor, p, (obs,)).chunk(2, dim=-1)
+        return tanh_gaussian(mean, log_std.clamp(-20, 2), eps)
+
+    def q(p: dict[str, torch.Tensor], obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        x = torch.cat([obs, act], dim=-1)
+        return torch.stack([functional_call(critics[i], {k.split(".", 1)[1]: v for k, v in p.items()
+                                                        if k.startswith(f"{i}.")}, (x,)).squeeze(-1)
+                            for i in range(2)])  # [2, N]
+
+    def critic_fn(p: dict[str, torch.Tensor], y: torch.Tensor) -> torch.Tensor:
+        return critic_loss(q(p, batch.obs, batch.action), y)[0]
+
+    def actor_fn(p: dict[str, torch.Tensor], alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        act, logp = policy(p, batch.obs, noise[1])
+        return actor_loss(logp, q(critic_p, batch.obs, act), alpha), logp.detach()
+
+    def alpha_fn(p: dict[str, torch.Tensor], logp: torch.Tensor) -> torch.Tensor:
+        return alpha_loss(p["log_alpha"], logp, target_entropy)
+
+    critic_grad, actor_grad, alpha_grad = (grad_and_value(critic_fn), grad_and_value(actor_fn, has_aux=True),
+                                           grad_and_value(alpha_fn))
+
+    def step() -> torch.Tensor:
+        alpha = log_alpha["log_alpha"].exp()
+        next_a, next_logp = policy(actor_p, batch.next_obs, noise[0])
+        y = critic_targets(batch.reward, batch.discount, q(target_p, batch.next_obs, next_a), next_logp, alpha, 1.0)
+        grads, c_loss = critic_grad(critic_p, y)
+        adams[0].step(grads)
+        grads, (_, logp) = actor_grad(actor_p, alpha)
+        adams[1].step(grads)
+        grads, _ = alpha_grad(log_alpha, logp)
+        adams[2].step(grads)
+        for k, t in target_p.items():
+            t.lerp_(critic_p[k], 0.005)
+        return c_loss
+
+    return step
 
 
 def per_step_us(fn: Callable[[], object], steps: int) -> float:
@@ -168,17 +233,25 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--only", nargs="+", choices=["dqn", "sac"], default=["dqn", "sac"])
+    p.add_argument("--dqn-hidden", nargs="+", default=["64,64"],
+                   help="DQN hidden sizes to time, e.g. 64,64 256,256 (RL Zoo's CartPole, dqn-cartpole-fast)")
     args = p.parse_args()
     torch.set_flush_denormal(True)  # as a run does (training/lifecycle.py)
     torch.set_num_threads(args.threads)
-    settings = {"dqn": (dqn_steps, 64), "sac": (sac_steps, 256)}
+    work: list[tuple[str, Callable[[], dict[str, Callable[[], object]]]]] = []
+    for name in args.only:
+        if name == "dqn":
+            for h in args.dqn_hidden:
+                sizes = [int(x) for x in h.split(",")]
+                work.append((f"dqn {tuple(sizes)} (batch 64)", lambda sizes=sizes: dqn_steps(64, sizes)))
+        else:
+            work.append(("sac (256, 256) (batch 256)", lambda: sac_steps(256)))
     print(f"torch {torch.__version__}, {args.threads} thread(s), medians of {args.rounds} rounds x {args.steps} steps")
     print("| update | hand-written us | eager us | compiled us | one graph us | best compiled / hand-written "
           "| compiled / eager | compile s |")
     print("|---|---|---|---|---|---|---|---|")
-    for name in args.only:
-        make, batch_size = settings[name]
-        steps = make(batch_size)
+    for name, make in work:
+        steps = make()
         t0 = time.perf_counter()
         for key in ("compiled", "one graph"):
             for _ in range(3 if key in steps else 0):
@@ -193,7 +266,7 @@ def main() -> None:
         med = {k: statistics.median(v) for k, v in times.items()}
         one = med.get("one graph")
         best = min(med["compiled"], one or float("inf"))
-        print(f"| {name} (batch {batch_size}) | {med['hand-written']:.0f} | {med['eager']:.0f} | "
+        print(f"| {name} | {med['hand-written']:.0f} | {med['eager']:.0f} | "
               f"{med['compiled']:.0f} | {'-' if one is None else f'{one:.0f}'} | {best / med['hand-written']:.2f} | "
               f"{med['compiled'] / med['eager']:.2f} | {compile_s:.1f} |")
 
