@@ -1,6 +1,7 @@
 """Does torch.compile make the reference update as fast as the hand-written gradients on a CPU?
 
     python bench/compile_update.py [--rounds 5] [--steps 300] [--threads 1] [--only dqn sac]
+                                   [--dqn-hidden 64,64 256,256]
 
 One gradient step, three ways, timed in the same process round by round (medians; ratios
 carry over between machines, absolute times do not):
@@ -8,12 +9,14 @@ carry over between machines, absolute times do not):
   hand-written  the agent's `train(batch)` as relayrl runs it (nn/mlp_fast.py + losses_fast.py)
   eager         the reference: the pure loss (agents/*/losses.py), autograd, torch.optim.Adam
   compiled      the same reference step under torch.compile (inductor, default mode)
-  one graph     DQN only: the reference loss through torch.func.grad_and_value, gradient
-                clipping and Adam written out, the whole step one torch.compile(fullgraph=True)
-                graph (LeanRL's shape, less the CUDA graph)
+  one graph     the reference losses through torch.func.grad_and_value, gradient clipping
+                (DQN) and Adam written out, the whole step one torch.compile(fullgraph=True)
+                graph (LeanRL's shape, less the CUDA graph); SAC's draws its noise once, so
+                it times the maths, not the agent's exact step
 
-Settings: DQN with RL Zoo's CartPole network (64x64 ReLU, batch 64, Huber, grad clip 10) and
-SAC with SB3's Pendulum defaults (256x256, batch 256, auto entropy). The compiled column
+Settings: DQN with `--dqn-hidden` ReLU layers (64x64 by default; RL Zoo's CartPole network and
+dqn-cartpole-fast's are 256x256), batch 64, Huber, grad clip 10; SAC with SB3's Pendulum
+defaults (256x256, batch 256, auto entropy). The compiled column
 excludes compilation (done in warm-up); its compile time is printed on its own.
 """
 
