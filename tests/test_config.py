@@ -37,6 +37,10 @@ def test_overrides_are_typed():
     ("agent.net_arch=[64]", "here, Stable-Baselines3's net_arch is agent.hidden (SAC: agent.actor_hidden"),
     ("agent.ent_coef=0.1", "here, Stable-Baselines3's ent_coef is PPO's agent.ent_coef; SAC's entropy weight is"),
     ("agent.gradient_steps=2", "here, Stable-Baselines3's gradient_steps is train.gradient_steps"),
+    ("agent.target_update_interval=500", "agent.target_update_period (counted in gradient steps, SB3's in env"),
+    ("agent.n_timesteps=1000", "here, Stable-Baselines3's n_timesteps is train.total_steps"),
+    ("total_steps=1000", "unknown config key 'total_steps'; did you mean 'train.total_steps'? (keys sit in their"),
+    ("batch_size=64", "did you mean 'agent.batch_size'?"),
     ("replay.n_steps=3", "did you mean 'replay.n_step'?"),  # the section's own near miss comes first
     ("train.total_steps=abc", "train.total_steps='abc' has the wrong type; expected int"),
     ("train.total_steps=1.5", "expected int"),

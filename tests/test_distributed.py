@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -288,14 +289,19 @@ def test_a_killed_rollout_actor_is_restarted_and_the_run_finishes(tmp_path, monk
     assert r[-1]["step"] == 1200 and r[-1]["train_step"] > 0
 
 
+def checkpoint_steps(run: Path) -> list[int]:
+    return sorted(int(f.name[5:17]) for f in (run / "checkpoints").glob("ckpt-*.pt"))
+
+
 @needs_ray
-@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])  # Ctrl-C; kill / preemption
-def test_ctrl_c_stops_every_actor_and_the_run_resumes(tmp_path, cli_env, sig, code):
+@pytest.mark.parametrize("sig, code, group", [(signal.SIGINT, 130, True),  # Ctrl-C in a terminal: the whole group
+                                              (signal.SIGINT, 130, False), (signal.SIGTERM, 143, False)])  # kill
+def test_ctrl_c_stops_every_actor_and_the_run_resumes(tmp_path, cli_env, sig, code, group):
     run = tmp_path / "run"
     cmd = [sys.executable, "-m", "relayrl", "train", "sac-pendulum", "--run-dir", str(run), "--no-progress"]
     sets = [a for o in SAC_SMALL + ["distributed.num_actors=2", "train.total_steps=1600",
                                     "train.checkpoint_interval=200"] for a in ("--set", o)]
-    p = subprocess.Popen(cmd + sets, env=cli_env, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(cmd + sets, env=cli_env, stderr=subprocess.PIPE, text=True, start_new_session=group)
     try:
         deadline = time.monotonic() + 240
         while not list((run / "checkpoints").glob("ckpt-*.pt")) and p.poll() is None and time.monotonic() < deadline:
@@ -303,13 +309,17 @@ def test_ctrl_c_stops_every_actor_and_the_run_resumes(tmp_path, cli_env, sig, co
         assert p.poll() is None, f"the run ended before the interrupt: {p.stderr.read() if p.stderr else ''}"
         tree = process_tree(p.pid)
         assert len(tree) > 3, "no Ray processes were seen under the run"
-        p.send_signal(sig)
+        before = checkpoint_steps(run)
+        os.killpg(p.pid, sig) if group else p.send_signal(sig)
         _, err = p.communicate(timeout=120)
     finally:
         if p.poll() is None:
             p.kill()
     assert p.returncode == code, err
-    assert "resume with --resume" in err
+    assert "resume with --resume" in err and "Traceback" not in err, err
+    if sig == signal.SIGINT:  # the run stops at its loop's next turn and saves a checkpoint there; Ray lives on
+        assert "stopping at the end of this iteration" in err, err
+        assert checkpoint_steps(run)[-1] >= before[-1]
     deadline = time.monotonic() + 90  # Ray's own processes take tens of seconds to go on a loaded machine
     while alive(tree - {p.pid}) and time.monotonic() < deadline:
         time.sleep(0.5)
@@ -467,3 +477,33 @@ def test_an_address_without_actors_says_the_run_is_one_process(tmp_path, capsys)
                                                        "train.initial_collect_steps=100", "eval.episodes=1"])
     relayrl.train(config, tmp_path / "run", progress=False)
     assert "with distributed.num_actors=0: the run trains in this process" in capsys.readouterr().err
+
+
+@needs_ray
+@pytest.mark.parametrize("preset, over", [
+    ("dqn-cartpole-fast", ["train.initial_collect_steps=200", "distributed.chunk_steps=50"]),
+    ("ppo-cartpole", ["env.num_envs=2", "train.collect_steps=64", "agent.hidden=[16]", "agent.n_epochs=2",
+                      "agent.batch_size=32"])])
+def test_a_callback_stops_a_distributed_run_with_its_policy_and_checkpoint(tmp_path, preset, over):
+    """A callback's False stops a Ray run as it stops one process: the loop ends at its next
+    turn, the final evaluation, policy and checkpoint are written there."""
+    config = relayrl.load_config(preset, over + ["train.total_steps=100000", "eval.interval=400", "eval.episodes=1",
+                                                 "train.checkpoint_interval=100000", "distributed.num_actors=2",
+                                                 "train.torch_threads=1"])
+    result = relayrl.train(config, tmp_path / "run", progress=False,
+                           callbacks=[lambda row: row.get("event") != "eval" or row["step"] < 400])
+    assert result.stopped_early
+    steps = checkpoint_steps(tmp_path / "run")
+    assert steps and 400 <= steps[-1] < 100000
+    last = rows(tmp_path / "run")[-1]
+    assert last["step"] == steps[-1] and last["step"] < 100000
+    assert relayrl.load_policy(tmp_path / "run").env_steps == steps[-1]
+
+
+@pytest.mark.parametrize("env_id", ["__main__:MyEnv", "mymodule:<lambda>"])
+def test_an_env_made_in_the_script_is_refused_for_ray_in_one_line(tmp_path, env_id):
+    """Ray's workers import env.id; one the script itself made cannot be (no Ray needed to say so)."""
+    config = relayrl.load_config("dqn-cartpole-fast", [f"env.id={env_id}", "distributed.num_actors=2"])
+    with pytest.raises(UserError, match="Ray's workers cannot import: put it in a module"):
+        relayrl.train(config, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run" / "metrics.jsonl").exists()

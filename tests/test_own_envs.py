@@ -235,6 +235,14 @@ def test_a_users_env_is_checked_once_unless_turned_off(tmp_path, capfd):
     assert "env check" not in capfd.readouterr().err
 
 
+def test_the_check_says_nothing_of_an_unbounded_box(tmp_path, capfd):
+    """CartPole's own space (infinite bounds) through a factory: relayrl takes such a Box, so
+    Gymnasium's "minimum value is -infinity" is no finding."""
+    config = load_config("dqn-cartpole", TINY)
+    train(config, tmp_path / "a", progress=False, env=lambda: gym.make("CartPole-v1"))
+    assert "env check" not in capfd.readouterr().err
+
+
 def test_the_check_leaves_the_run_as_it_would_be_without_it(tmp_path):
     for check in ("true", "false"):
         config = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:BetterAction", f"env.check={check}"])

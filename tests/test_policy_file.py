@@ -115,3 +115,14 @@ def test_a_file_that_is_not_a_torch_file_is_one_line_error(tmp_path):
     with pytest.raises(UserError, match=r"is unreadable \(RuntimeError: PytorchStreamReader failed reading zip "
                                         r"archive: failed finding central directory\): damaged, or not a relayrl"):
         relayrl.load_policy(tmp_path / "policy.pt")
+
+
+def test_a_stable_baselines3_model_file_says_how_to_evaluate_it(tmp_path):
+    import zipfile
+
+    with zipfile.ZipFile(tmp_path / "ppo_cartpole.zip", "w") as z:  # SB3's model.save() layout
+        z.writestr("data", "{}")
+        z.writestr("policy.pth", b"weights")
+        z.writestr("_stable_baselines3_version", "2.4.0")
+    with pytest.raises(UserError, match=r"is a Stable-Baselines3 model file: load it with SB3 .* relayrl.evaluate"):
+        relayrl.load_policy(tmp_path / "ppo_cartpole.zip")

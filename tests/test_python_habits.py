@@ -55,6 +55,8 @@ def test_evaluate_a_run_dir_and_a_loaded_policy(run_dir):
     # a greedy policy has no sampling mode: SB3-style code asking for one gets the greedy actions
     assert tuple(relayrl.evaluate(run_dir, Countdown(), episodes=3, deterministic=False)) == (3.0, 0.0)
     assert policy.predict(np.zeros(2, np.float32), deterministic=False)[0] == policy(np.zeros(2, np.float32))
+    with pytest.raises(UserError, match=r"an \(observation, info\) pair, what env.reset\(\) returns"):
+        policy.predict(Countdown().reset(seed=0))  # SB3 habit from the old Gym API
     with pytest.raises(UserError, match=r"env.s observations \(Box\(.*shape=\(4,\).* do not fit the policy"):
         relayrl.evaluate(policy, "CartPole-v1")  # said before any episode, in the env's terms
 
@@ -105,13 +107,17 @@ def test_callbacks_see_every_eval_and_log_and_false_stops(algo, tmp_path):
                      "policy_save_interval": 10_000, "log_interval": 50},
            "eval": {"interval": 100, "episodes": 1}, "agent": {"batch_size": 16}}
     rows: list[dict] = []
+    evaluated: list[int] = []
 
     def cb(row):
         rows.append(row)
+        if row["event"] == "eval":  # the policy file is the policy just evaluated (SB3's "save best" needs it)
+            evaluated.append(relayrl.load_policy(tmp_path / "r").env_steps)
         # stop at the 2nd evaluation after 0; NumPy's False stops as Python's does (None goes on)
         return np.logical_not(row["event"] == "eval" and row["step"] >= 200)
 
     result = relayrl.train(cfg, tmp_path / "r", progress=False, callbacks=[cb])
+    assert evaluated == [0, 100, 200]
     assert result.stopped_early and result.final["step"] == 200
     evals = [r for r in rows if r["event"] == "eval"]
     assert [r["step"] for r in evals] == [0, 100, 200] and "average_return" in evals[0]
@@ -150,8 +156,8 @@ def test_a_callback_that_raises_propagates_and_keeps_the_checkpoint(tmp_path):
 
 
 def test_callbacks_refused_where_not_supported(tmp_path):
-    with pytest.raises(UserError, match="one-process"):
-        relayrl.train({**TINY, "distributed": {"num_actors": 1}}, tmp_path / "r", callbacks=[print])
+    with pytest.raises(UserError, match="trains by its own loop"):  # bptt: no Actor + Learner loop
+        relayrl.train(relayrl.load_config("bptt-pendulum"), tmp_path / "r", callbacks=[print])
     with pytest.raises(UserError, match="not callable"):
         relayrl.train(TINY, tmp_path / "r", callbacks=[3])
 
@@ -323,3 +329,25 @@ def test_load_policy_takes_what_names_a_run(run_dir):
     actions = {int(relayrl.load_policy(p)(obs)) for p in (run_dir, run_dir / "policy", run_dir / "policy" / "policy.pt",
                                                            run_dir / "config.toml")}
     assert len(actions) == 1
+
+
+@pytest.mark.parametrize("env_id, answer, fragment", [
+    ("CartPole-v1", lambda o: 5, r"answered 5 \(int64, shape \(\)\) to one observation; this env takes Discrete\(2\)"),
+    ("CartPole-v1", lambda o: "x", r"answered x .* this env takes Discrete\(2\) actions"),
+    ("Pendulum-v1", lambda o: np.array([0.5, 0.5]), r"shape \(2,\)\) to one observation; this env takes Box\(-2, 2"),
+])
+def test_a_callable_policy_answering_what_the_env_does_not_take_is_one_line(env_id, answer, fragment):
+    with pytest.raises(UserError, match=fragment):
+        relayrl.evaluate(answer, env_id, episodes=1)
+
+
+def test_a_callable_policy_may_answer_a_scalar_where_the_env_takes_one_value():
+    assert relayrl.evaluate(lambda o: 0.0, "Pendulum-v1", episodes=1) == relayrl.evaluate(
+        lambda o: np.zeros(1, np.float32), "Pendulum-v1", episodes=1)
+
+
+def test_a_vector_env_given_as_env_says_how_relayrl_batches(tmp_path):
+    vec = gym.vector.SyncVectorEnv([lambda: gym.make("CartPole-v1")] * 2)
+    with pytest.raises(UserError, match="is a vector env: relayrl makes and batches its own copies; give a callable"):
+        relayrl.train(TINY, tmp_path / "r", env=vec)
+    vec.close()

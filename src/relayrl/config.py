@@ -309,6 +309,11 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
     for key, value in data.items():
         path = prefix + key
         if key not in names:
+            home = [f"{n}.{key}" for n in names if dataclasses.is_dataclass(section := getattr(obj, n))
+                    and key in {f.name for f in dataclasses.fields(section)}]
+            if home:  # {"total_steps": ...} at the top: the key sits in a section
+                raise ConfigError(f"unknown config key {path!r}; did you mean {home[0]!r}? (keys sit in their "
+                                  "sections)")
             raise ConfigError(unknown_key(path, [prefix + n for n in names]))
         current = getattr(obj, key)
         if dataclasses.is_dataclass(current):

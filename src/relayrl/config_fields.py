@@ -105,9 +105,12 @@ SB3_NAMES = {
     "learning_starts": "train.initial_collect_steps",
     "buffer_size": "replay.size",
     "total_timesteps": "train.total_steps",
+    "n_timesteps": "train.total_steps",  # RL Zoo's files
+    "normalize": "PPO's agent.normalize_obs and agent.normalize_reward (RL Zoo's VecNormalize)",
     "n_envs": "env.num_envs",
     "learning_rate": "agent.lr (SAC: agent.actor_lr, agent.critic_lr, agent.alpha_lr)",
-    "target_update_interval": "agent.target_update_period",
+    "target_update_interval": "agent.target_update_period (counted in gradient steps, SB3's in env steps: "
+                              "SB3's value x train.gradient_steps / train.collect_steps)",
     "exploration_final_eps": "agent.epsilon_end",
     "exploration_initial_eps": "agent.epsilon_start",
     "exploration_fraction": "agent.epsilon_decay_steps (in env steps: SB3's fraction x train.total_steps, "

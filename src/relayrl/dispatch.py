@@ -18,6 +18,7 @@ import gymnasium as gym
 
 from relayrl.agents.registry import Algorithm, algorithm, ray_algorithms
 from relayrl.config import Config, algo_defaults, dotted, from_dict, load_toml, save_toml, to_dict
+from relayrl.envs.gym import names_python_factory
 from relayrl.errors import UserError
 from relayrl.presets import load_config
 from relayrl.training.direct import DirectDriver
@@ -83,6 +84,10 @@ def _use_factory(config: Config, env: Any, one_process: bool) -> None:
                f"give a callable returning one (env=lambda: {type(env.unwrapped).__name__}(...)), or name it in env.id")
         raise UserError(f"env={env!r} is an env instance: relayrl makes its own copies to train and evaluate on; "
                         + way)
+    if isinstance(env, gym.vector.VectorEnv):  # SB3's make_vec_env habit
+        raise UserError(f"env={type(env).__name__} is a vector env: relayrl makes and batches its own copies; "
+                        "give a callable returning one env, and set env.num_envs (env.vectorization = async for "
+                        "worker processes)")
     if isinstance(env, str):
         raise UserError(f"env={env!r} is an env id: set it as the config's env.id (config.env.id = {env!r}, or "
                         f"--set env.id={env}); env= takes a callable returning an env")
@@ -94,7 +99,7 @@ def _use_factory(config: Config, env: Any, one_process: bool) -> None:
     config.env.id = factory_env_id(env)
 
 
-def _check_callbacks(callbacks: Sequence[Callback] | None, one_process: bool) -> list[Callback]:
+def _check_callbacks(callbacks: Sequence[Callback] | None, actor_learner: bool) -> list[Callback]:
     if callbacks is None:
         return []
     if callable(callbacks):  # callbacks=cb: one callback is a list of one
@@ -103,9 +108,9 @@ def _check_callbacks(callbacks: Sequence[Callback] | None, one_process: bool) ->
     for cb in callbacks:
         if not callable(cb):
             raise UserError(f"callbacks: {cb!r} is not callable; give functions taking a metrics row (a dict)")
-    if callbacks and not one_process:
-        raise UserError("callbacks= works with the one-process Actor + Learner run (algo dqn, sac or ppo with "
-                        "distributed.num_actors = 0); this run's evaluations happen elsewhere")
+    if callbacks and not actor_learner:
+        raise UserError("callbacks= works with the Actor + Learner runs (algo dqn, sac or ppo, in one process or "
+                        "on Ray); this algorithm trains by its own loop")
     return callbacks
 
 
@@ -175,7 +180,8 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
     One returning False stops the run cleanly: the final policy and checkpoint are saved and
     the result's `stopped_early` is True. Early stopping at a return of 400:
     `callbacks=[lambda row: row.get("average_return", -1e9) < 400]`. What a callback raises
-    propagates; the run's checkpoints so far stay. One-process Actor + Learner runs only.
+    propagates; the run's checkpoints so far stay. Actor + Learner runs (dqn, sac, ppo), in one
+    process or on Ray.
     """
     if config is None:
         if not resume or run_dir is None:
@@ -198,7 +204,11 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
     one_process = entry.replay != "none" and config.distributed.num_actors == 0
     if env is not None:
         _use_factory(config, env, one_process)
-    callbacks = _check_callbacks(callbacks, one_process)
+    callbacks = _check_callbacks(callbacks, entry.replay != "none")
+    if config.distributed.num_actors > 0 and names_python_factory(config.env.id):
+        raise UserError(f"env.id={config.env.id!r} names an env made in the script itself (a lambda, a local "
+                        "function or __main__), which Ray's workers cannot import: put it in a module beside the "
+                        "script and name it in env.id as module:name")
     rd = RunDir(run_dir if run_dir is not None else default_run_dir(config))
     rd.check_writable()
     rd.check_not_running()
@@ -274,5 +284,5 @@ def _make_driver(entry: Algorithm, config: Config, rd: RunDir, progress: bool, e
     if config.distributed.num_actors > 0:
         from relayrl.distributed.driver import RayDriver
 
-        return RayDriver(config, rd, progress)
+        return RayDriver(config, rd, progress, callbacks=callbacks)
     return LocalDriver(config, rd, progress, env_factory=env, callbacks=callbacks)

@@ -4,6 +4,7 @@ through `training.evaluate.evaluate`, the function every run's evaluations use."
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -13,7 +14,7 @@ import numpy as np
 import torch
 
 from relayrl.errors import UserError
-from relayrl.specs import PackedSpec, Spec
+from relayrl.specs import DiscreteSpec, PackedSpec, Spec, describe
 
 
 class EvalResult(NamedTuple):
@@ -49,7 +50,7 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
         policy = load_policy(policy, deterministic=deterministic, seed=seed)
     batch_env, owned = _batch_env(env, policy, episodes, max_episode_steps)
     try:
-        act = _policy_fn(policy, deterministic, seed, batch_env.observation_spec)
+        act = _policy_fn(policy, deterministic, seed, batch_env.observation_spec, batch_env.action_spec)
         cap_untimed(batch_env, max_episode_steps)  # so that it ends
         returns: list[float] = []
         run_episodes(batch_env, act, episodes, seed=seed, episode_returns=returns)
@@ -59,7 +60,8 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
     return EvalResult(float(np.mean(returns)), float(np.std(returns)))
 
 
-def _policy_fn(policy: Any, deterministic: bool, seed: int | None, obs_spec: Spec) -> Callable[[torch.Tensor], Any]:
+def _policy_fn(policy: Any, deterministic: bool, seed: int | None, obs_spec: Spec,
+               act_spec: Spec) -> Callable[[torch.Tensor], Any]:
     """A batched policy (a [B, ...] observation tensor -> [B, ...] actions) from what the user gave."""
     from relayrl.loaded_policy import LoadedPolicy
 
@@ -73,20 +75,31 @@ def _policy_fn(policy: Any, deterministic: bool, seed: int | None, obs_spec: Spe
             policy = policy.reseeded(seed)
         return lambda obs: policy.predict(obs, deterministic=deterministic)[0]
     if hasattr(policy, "predict"):  # an SB3 model, or anything with its spelling
-        return _one_at_a_time(lambda o: policy.predict(o, deterministic=deterministic)[0], obs_spec)
+        return _one_at_a_time(lambda o: policy.predict(o, deterministic=deterministic)[0], obs_spec, act_spec)
     if callable(policy):
-        return _one_at_a_time(policy, obs_spec)
+        return _one_at_a_time(policy, obs_spec, act_spec)
     raise UserError(f"policy={policy!r} is not a policy: give relayrl.load_policy(...)'s result, a run "
                     "directory, or a callable taking an observation and returning an action")
 
 
-def _one_at_a_time(fn: Callable[[Any], Any], obs_spec: Spec) -> Callable[[torch.Tensor], torch.Tensor]:
+def _one_at_a_time(fn: Callable[[Any], Any], obs_spec: Spec, act_spec: Spec) -> Callable[[torch.Tensor], torch.Tensor]:
     """A user's function sees one NumPy observation at a time, as the env returns them (a Dict
-    observation as its dict, not the packed row the batched env carries)."""
+    observation as its dict, not the packed row the batched env carries); what it answers is
+    checked against the env's actions, so a wrong one is said in the user's terms."""
     as_env = obs_spec.observation if isinstance(obs_spec, PackedSpec) else (lambda row: row)
 
+    def one(o: np.ndarray) -> np.ndarray:
+        a = np.asarray(fn(as_env(o)))
+        fits = a.dtype.kind in "biuf" and a.size == math.prod(act_spec.shape)  # [1] for () and the like: reshaped
+        if fits and isinstance(act_spec, DiscreteSpec):
+            fits = a.dtype.kind in "biu" and 0 <= int(a.reshape(())) < act_spec.n
+        if not fits:
+            raise UserError(f"the policy answered {str(a.tolist())[:60]} ({a.dtype}, shape {a.shape}) to one "
+                            f"observation; this env takes {describe(act_spec)} actions")
+        return a.reshape(act_spec.shape)
+
     def act(obs: torch.Tensor) -> torch.Tensor:
-        return torch.as_tensor(np.stack([np.asarray(fn(as_env(o))) for o in obs.cpu().numpy()]))
+        return torch.as_tensor(np.stack([one(o) for o in obs.cpu().numpy()]))
 
     return act
 

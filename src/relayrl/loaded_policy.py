@@ -106,6 +106,10 @@ class LoadedPolicy(Policy):
         return self._act(self._other_mode, observation), None
 
     def _act(self, policy: Any, obs: Any) -> Any:
+        if isinstance(obs, tuple) and len(obs) == 2 and isinstance(obs[1], dict) and not (
+                isinstance(self.obs_space, PackedSpec) and self.obs_space.tuple_space):
+            raise UserError("the policy was given an (observation, info) pair, what env.reset() returns: give it "
+                            "the observation (obs, info = env.reset())")
         if isinstance(self.obs_space, PackedSpec):
             t, single, numpy_in = self._packed(obs)
         else:

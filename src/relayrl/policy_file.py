@@ -11,6 +11,7 @@ state and are as trusted as code (`training/checkpoint.py`).
 from __future__ import annotations
 
 import pickle
+import zipfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -86,6 +87,9 @@ def load_policy_file(path: Path) -> dict[str, Any]:
     except pickle.UnpicklingError:
         state = _load_old_layout(path)
     except Exception as e:  # truncated, not a torch file at all, ...
+        if _is_sb3_model(path):
+            raise UserError(f"{str(path)!r} is a Stable-Baselines3 model file: load it with SB3 (e.g. "
+                            "PPO.load(path)) and give the model to relayrl.evaluate(model, env)") from None
         raise UserError(f"policy file {str(path)!r} is unreadable ({type(e).__name__}: {_first_line(e)}): "
                         "damaged, or not a relayrl policy file") from None
     if not isinstance(state, dict):
@@ -105,3 +109,12 @@ def _load_old_layout(path: Path) -> Any:
 def _first_line(e: Exception) -> str:
     text = str(e).strip()
     return text.splitlines()[0].split(". ")[0] if text else "no details"  # torch's run on for sentences
+
+
+def _is_sb3_model(path: Path) -> bool:
+    """SB3's `model.save()` zip: a `data` JSON beside `policy.pth`."""
+    try:
+        with zipfile.ZipFile(path) as z:
+            return {"data", "policy.pth"} <= set(z.namelist())
+    except (OSError, zipfile.BadZipFile):
+        return False

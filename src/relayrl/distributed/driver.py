@@ -8,11 +8,13 @@ as in one process.
 
 from __future__ import annotations
 
+import signal
 import time
 from collections import deque
 from collections.abc import Callable
 from typing import Any, Protocol
 
+from relayrl import interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config
 from relayrl.core import Agent
@@ -29,7 +31,7 @@ from relayrl.training.checkpoint import load_latest_checkpoint
 from relayrl.training.finite import FiniteWatch
 from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
 from relayrl.training.replay_setup import replay_path
-from relayrl.training.report import plural, say
+from relayrl.training.report import Callback, plural, say
 from relayrl.training.run_dir import RunDir
 from relayrl.training.triggers import IntervalTrigger, Progress, covers_boundary
 
@@ -51,7 +53,8 @@ class Collection(Protocol):
 
 
 class RayDriver:
-    def __init__(self, config: Config, rd: RunDir, progress: bool = True) -> None:
+    def __init__(self, config: Config, rd: RunDir, progress: bool = True,
+                 callbacks: list[Callback] | None = None) -> None:
         c = self.config = config
         self.rd = rd
         self.seeds, self.device = start_process(c)
@@ -81,7 +84,7 @@ class RayDriver:
             self.core = RunCore(c, rd, self.agent, learner, self.stats, finite, env_steps=self.collection.env_steps,
                                 checkpoint_state=self.checkpoint_state,
                                 evaluation=IntervalTrigger(c.eval.interval, self._interval_eval),
-                                show_progress=progress, postfix=self.collection.postfix,
+                                show_progress=progress, callbacks=callbacks, postfix=self.collection.postfix,
                                 extra_scalars=self.collection.extra_scalars)
         except BaseException:  # Ray actors: none is left behind by a failure here
             self.close()
@@ -92,7 +95,12 @@ class RayDriver:
         return run_to_end(self, resume)
 
     def iterate(self) -> None:
-        self.collection.iterate(self.core, self._finish_evals)
+        # Ctrl-C stops the loop at its next turn, as a callback's False does, so the run ends
+        # with its policy and a checkpoint at the step it reached (run_to_end); Ray's own
+        # processes ignore it (actors.sigint_ignored). SIGTERM, which a scheduler sends to the
+        # whole process group, ends a local Ray instance at once: it stops the run at once too.
+        with interrupts.stop_request(self.core.report.request_stop, (signal.SIGINT,)):
+            self.collection.iterate(self.core, self._finish_evals)
 
     def announce(self) -> None:
         self.core.say(f"distributed: {self.collection.layout()}, {plural(len(self.pool.eval_workers), 'eval actor')}, "

@@ -125,7 +125,7 @@ class ReplayCollection:
         core.sps_log.rates.reset(core.progress())
         self._top_up()
         collected_at = None  # the sample request current when collection ended
-        while True:
+        while not core.report.stop_requested:  # a callback's False, Ctrl-C
             moved = self._poll()
             n = 0 if core.collect_only else self.table.poll()
             if n:

@@ -189,7 +189,7 @@ class RolloutCollection:
         core.sps_log.rates.reset(core.progress())
         self._new_version()
         total = self.config.train.total_steps
-        while self.trained < total:
+        while self.trained < total and not core.report.stop_requested:  # a callback's False, Ctrl-C
             moved = self._poll(core.say)
             if self.shares.ready():
                 self._update(core)

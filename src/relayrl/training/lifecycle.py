@@ -283,6 +283,9 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
     try:
         if not c.train.checkpoint_replay and c.train.checkpoint_interval > 0:
             core.say("train.checkpoint_replay = false: checkpoints leave the replay out; a resumed run refills it")
+        if 0 < c.train.total_steps <= c.train.initial_collect_steps:
+            core.say(f"train.initial_collect_steps={c.train.initial_collect_steps:,} >= train.total_steps="
+                     f"{c.train.total_steps:,}: the run takes random actions only and learns nothing")
         if c.distributed.address and c.distributed.num_actors == 0:
             core.say(f"distributed.address={c.distributed.address!r} with distributed.num_actors=0: the run trains "
                      "in this process (set distributed.num_actors=K for K rollout actors on Ray)")
@@ -299,9 +302,9 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         driver.announce()
         if core.env_steps() == 0 and not resume:  # a run a callback stopped at step 0 has evaluated it
             log_config(report.tb, c)
+            core.policy_saver.save(Progress(0, 0))  # `relayrl eval` (and a callback at step 0) works from the start
             if c.eval.interval > 0:  # 0: the final evaluation only (an env whose episodes take minutes)
                 driver.evaluate_now(Progress(0, 0))  # the untrained policy, before any collection
-            core.policy_saver.save(Progress(0, 0))  # `relayrl eval` works from the start
         if not report.stop_requested:
             driver.iterate()
         stopped = report.stop_requested and core.env_steps() < c.train.total_steps
