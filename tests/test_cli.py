@@ -235,3 +235,20 @@ def test_ctrl_c_outside_a_run_says_interrupted_and_inside_one_that_nothing_is_lo
 
 def torch_half_imported():
     raise AttributeError("partially initialized module 'torch' has no attribute 'distributed'")
+
+
+def test_eval_stochastic_samples_the_policy_repeatably(tmp_path, capsys):
+    import relayrl
+    from relayrl.cli import main
+
+    cfg = relayrl.load_config("ppo", ["env.id=Pendulum-v1", "train.total_steps=256", "train.collect_steps=128",
+                                      "agent.batch_size=64", "eval.interval=0", "eval.episodes=1",
+                                      "env.max_episode_steps=20", "train.torch_threads=1"])
+    relayrl.train(cfg, tmp_path / "run", progress=False)
+    capsys.readouterr()
+    results = []
+    for flags in ([], ["--stochastic"], ["--stochastic"], ["--stochastic", "--seed", "1"]):
+        assert main(["eval", str(tmp_path / "run"), "--episodes", "2", *flags]) == 0
+        results.append(json.loads(capsys.readouterr().out)["average_return"])
+    mean, sampled, again, other_seed = results
+    assert sampled == again and sampled != mean and other_seed != sampled

@@ -93,6 +93,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--max-episode-steps", type=int, default=None, metavar="N",
                    help="cut evaluation episodes at N steps (default: the run's env.max_episode_steps, else the "
                         "env's own time limit, else 1,000)")
+    e.add_argument("--stochastic", action="store_true",
+                   help="sample the SAC or PPO policy's actions (drawn from --seed) instead of taking its mean or "
+                        "most likely action; DQN's greedy policy acts the same")
     pl = sub.add_parser("plot", help="PNG of average return against env steps (several runs: compared)")
     pl.add_argument("run_dir", metavar="RUN_DIR", nargs="+",
                     help="a run directory; several: their evaluation returns in one panel")
@@ -161,7 +164,8 @@ def _eval(args: argparse.Namespace) -> None:
     given = Path(args.run_dir)
     if not lone_policy_file(given):  # a policy file on its own names the env it records
         RunDir.of(given).require()
-    policy = load_policy(given)  # a run directory, its config.toml or policy file, or a lone policy file
+    # a run directory, its config.toml or policy file, or a lone policy file
+    policy = load_policy(given, deterministic=not args.stochastic, seed=args.seed)
     if args.env:  # as it is registered, or with the kwargs the policy records for that same id
         env_id, env = args.env, named_env(args.env, policy, args.episodes, args.max_episode_steps or 0,
                                           say=lambda line: print(f"relayrl: {line}", file=sys.stderr))
