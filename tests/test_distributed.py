@@ -326,9 +326,10 @@ def test_ctrl_c_stops_every_actor_and_the_run_resumes(tmp_path, cli_env, sig, co
     assert not alive(tree - {p.pid}), "processes of the interrupted run are still alive"
     # Evaluations run beside training: a checkpoint may come before the first eval row.
     steps_at_interrupt = max((row["step"] for row in rows(run)), default=0)
+    latest = checkpoint_steps(run)[-1]
     done = subprocess.run(cmd + ["--resume"], env=cli_env, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
-    assert "resumed from env step" in done.stderr
+    assert f"resumed from env step {latest:,} " in done.stderr  # the checkpoint's name is what it resumes from
     r = rows(run)
     steps = [row["step"] for row in r]
     assert steps == sorted(set(steps)), "metrics.jsonl has repeated or unordered rows after the resume"

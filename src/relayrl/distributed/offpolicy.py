@@ -148,8 +148,9 @@ class ReplayCollection:
     def state_dict(self) -> dict[str, Any]:
         """The replay server's contents and the env steps it took from each actor."""
         server = self.pool.ray.get(self.pool.server.state_dict.remote(self.config.train.checkpoint_replay))
-        return {"replay": server["table"],
-                "shipped": server["shipped"] if server["table"] is not None else list(self.accepted)}
+        shipped = server["shipped"] if server["table"] is not None else list(self.accepted)
+        # The server may hold steps this driver has not heard of yet: a resume starts from its count.
+        return {"replay": server["table"], "shipped": shipped, "env_steps": int(sum(shipped))}
 
     def load_state_dict(self, state: dict[str, Any], say: Callable[[str], None]) -> None:
         self.pool.ray.get(self.pool.server.load_state_dict.remote({"table": state["replay"],

@@ -88,8 +88,10 @@ class Checkpointer(IntervalTrigger):
     def save(self, progress: Progress) -> None:
         from relayrl.training.checkpoint import save_checkpoint
 
-        save_checkpoint(self.folder, progress.env_steps, {"env_steps": progress.env_steps, **self.state_fn()},
-                        keep=self.keep)
+        # A state may count its own env steps (a Ray run's replay server, ahead of the driver's
+        # count by what the actors shipped since): the file is named for what it resumes from.
+        state = {"env_steps": progress.env_steps, **self.state_fn()}
+        save_checkpoint(self.folder, state["env_steps"], state, keep=self.keep)
 
 
 def covers_boundary(steps: int, interval: int, evaluations: int) -> bool:
