@@ -557,3 +557,19 @@ def test_resume_with_env_settings_that_change_the_space_is_one_line_and_keeps_th
         assert {f: (root / f).read_text() for f in before} == before
         relayrl.train(relayrl.load_config(str(root / "config.toml"), ["train.total_steps=300"]), root, resume=True,
                       progress=False)
+
+
+def test_a_resume_that_changes_how_the_envs_are_made_starts_new_episodes_with_them(tmp_path, capsys):
+    """The checkpoint's envs, pickled mid-episode, were made with its env.kwargs: a resume that
+    changes them (a simulator setting fixed after a crash) trains on envs made with the new ones."""
+    over = ["env.id=toy_envs:Countdown", "env.kwargs={length = 1000}", "env.check=false", "train.total_steps=200",
+            "train.initial_collect_steps=50", "eval.interval=0", "eval.episodes=1", "train.checkpoint_interval=100",
+            "agent.hidden=[16]", "agent.batch_size=8", "env.max_episode_steps=2000"]
+    relayrl.train(relayrl.load_config("dqn", over), tmp_path / "run", progress=False)
+    capsys.readouterr()
+    resumed = relayrl.load_config(str(tmp_path / "run" / "config.toml"),
+                                  ["train.total_steps=300", "env.kwargs={length = 5}"])
+    result = relayrl.train(resumed, tmp_path / "run", resume=True, progress=False)
+    assert "env.kwargs changed: the envs start new episodes with the new settings" in capsys.readouterr().err
+    assert result.final["train/average_return"] == 5.0  # episodes of the new length were trained on
+    assert result.final["train/episodes"] == 20  # 100 steps / 5: none of the old envs' episode was kept

@@ -11,7 +11,7 @@ from typing import Any
 
 from relayrl import interrupts
 from relayrl.agents.registry import algorithm
-from relayrl.config import Config
+from relayrl.config import Config, to_dict
 from relayrl.envs import make_env
 from relayrl.envs.stateless.adapter import StatelessBatchEnv
 from relayrl.metrics import EnvironmentSteps, EpisodeStats
@@ -197,9 +197,13 @@ class LocalDriver:
         """The actor, its envs mid-episode where they can be, and what observes them."""
         continued = False
         reset_seed = self.seeds.base("resume") + steps
+        changed = self._env_settings_changed(state)
         if "actor" in state:  # checkpoints before mid-episode state (version 1) lack it
             self.variables.load_state_dict({"version": state["variables_version"], "weights": None})
-            actor_state = {**state["actor"], "env": None} if files_moved_on else state["actor"]
+            # Envs pickled mid-episode were made with the checkpoint's settings: where a resume
+            # changes them, the pickles would bring the old ones back, so the new envs start afresh.
+            fresh = files_moved_on or bool(changed)
+            actor_state = {**state["actor"], "env": None} if fresh else state["actor"]
             continued = self.actor.load_state_dict(actor_state, reset_seed=reset_seed)
             self.core.load_process_state(state)
         else:
@@ -212,9 +216,17 @@ class LocalDriver:
             self.stats.reset_running()
             if "actor" not in state:
                 self.core.say("this checkpoint (format 1) holds no env state: the resumed run starts new episodes")
+            elif changed:
+                self.core.say(f"{', '.join(changed)} changed: the envs start new episodes with the new settings")
             elif not files_moved_on:
                 self.core.say("env state is not checkpointable (the env cannot be pickled): "
                               "the resumed run starts new episodes")
+
+    def _env_settings_changed(self, state: dict[str, Any]) -> list[str]:
+        """The env.* settings that make the envs (kwargs, wrappers, time limit) and differ from
+        the checkpoint's."""
+        saved, now = state.get("config", {}).get("env", {}), to_dict(self.config)["env"]
+        return [f"env.{k}" for k in ("kwargs", "wrappers", "max_episode_steps") if k in saved and saved[k] != now[k]]
 
     def close(self) -> None:
         """The envs end with the run, however it ends: async envs' worker processes included."""
