@@ -27,6 +27,25 @@ def test_a_failed_write_keeps_the_old_file_and_leaves_no_temp_file(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f.json"]
 
 
+def test_a_full_disk_is_one_line_that_says_what_is_kept(tmp_path):
+    import errno
+
+    from relayrl.errors import UserError
+
+    path = tmp_path / "ckpt.pt"
+    atomic.write_text(path, "old")
+
+    def full(f):
+        try:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        except OSError:  # as torch's zip writer reports it: a RuntimeError raised while handling the OSError
+            raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 64 vs 0") from None
+
+    with pytest.raises(UserError, match=r"^no space left on the device writing .*ckpt.pt \(its previous version, "):
+        atomic.write_with(path, full)
+    assert path.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pt"]
+
+
 def test_torch_save_round_trips_and_replaces(tmp_path):
     path = tmp_path / "x.pt"
     atomic.torch_save({"a": torch.arange(3)}, path)

@@ -77,6 +77,13 @@ def test_bad_info_keys_fail_with_one_clear_line(key, message):
     assert str(e.value) == message
 
 
+def test_info_keys_with_an_env_whose_info_is_not_a_dict_is_one_line():
+    from relayrl.envs.gym import episode_info
+
+    with pytest.raises(UserError, match=r"^env.info_keys: the env's info at an episode's end is NoneType None, not a "):
+        episode_info(("x",), 2, [1], lambda i: None)
+
+
 def test_stateless_envs_refuse_info_keys():
     with pytest.raises(UserError, match="env.info_keys is not supported by stateless envs"):
         make_env("relayrl/StatelessPendulum-v0", 2, info_keys=["x"])

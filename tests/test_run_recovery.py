@@ -237,3 +237,38 @@ def test_overwriting_a_memmap_run_keeps_the_new_runs_replay_files(tmp_path, caps
     train(load_config("dqn-cartpole-fast", memmap + ["train.total_steps=90"]), tmp_path / "m", resume=True,
           progress=False)
     assert "replay files were overwritten" not in capsys.readouterr().err
+
+
+def test_an_env_error_mid_run_says_what_is_kept_and_a_fixed_env_resumes(tmp_path):
+    """The env's own exception propagates (it is the user's to read), ending with what the run
+    keeps and how it goes on; a resume with the env setting fixed trains to the end."""
+    run = tmp_path / "run"
+    flaky = TINY + ["env.id=toy_envs:BrokenAt", "env.kwargs={at = 45}", "train.checkpoint_interval=20"]
+    with pytest.raises(RuntimeError, match="simulator lost connection") as caught:
+        train(load_config("dqn-cartpole", flaky), run, progress=False)
+    note = " ".join(getattr(caught.value, "__notes__", []))
+    assert "the run stopped at env step 4" in note and "checkpoint (env step 40)" in note
+    assert f"relayrl train --run-dir {run} --resume" in note
+    fixed = load_config(str(run / "config.toml"), ["env.kwargs={at = 0}"])
+    assert train(fixed, run, resume=True, progress=False).final["step"] == 60
+
+
+@pytest.mark.parametrize("vectorization", ["sync", "async"])
+def test_an_observation_that_stops_fitting_mid_run_is_one_line(tmp_path, cli, vectorization):
+    run = tmp_path / "run"
+    over = TINY + ["env.id=toy_envs:ShapeShifts", "env.kwargs={at = 45}", f"env.vectorization={vectorization}"]
+    r = cli(["train", "dqn-cartpole", "--run-dir", str(run), "--no-progress", *sets(over)])
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert "the observation from step() of env copy 0 has shape (3,) but observation_space is Box(" in r.stderr
+
+
+@pytest.mark.parametrize("blocker, kind", [("checkpoints", "file"), ("config.toml", "directory")])
+def test_a_run_directory_whose_entries_are_blocked_is_one_line(tmp_path, cli, blocker, kind):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / blocker).mkdir() if kind == "directory" else (run / blocker).write_text("mine")
+    for extra in ([], ["--overwrite"]):
+        r = cli(["train", "dqn-cartpole", "--run-dir", str(run), "--no-progress", *extra, *sets(TINY)])
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+        assert f"'{blocker}' there is a {kind}, where a run keeps its" in r.stderr
+    assert (run / blocker).exists()

@@ -152,6 +152,30 @@ class Broken(Countdown):
         raise ValueError("the simulator lost its state")
 
 
+class BrokenAt(Countdown):
+    """Countdown whose `at`-th step (counted over episodes) raises, as a flaky simulator's
+    would; `at=0` never."""
+
+    def __init__(self, at: int = 0, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.at, self.steps = at, 0
+
+    def step(self, action):
+        self.steps += 1
+        if self.steps == self.at:
+            raise RuntimeError("simulator lost connection")
+        return super().step(action)
+
+
+class ShapeShifts(BrokenAt):
+    """Countdown whose observations turn (3,) from its `at`-th step on."""
+
+    def step(self, action):
+        self.steps += 1
+        obs, reward, terminated, truncated, info = Countdown.step(self, action)
+        return (np.zeros(3, np.float32) if self.steps >= self.at else obs), reward, terminated, truncated, info
+
+
 class RefusedInWorker(Countdown):
     """Countdown that refuses to be made in a worker process, as a user's env refuses a bad
     setting with relayrl's UserError (a copy-specific resource, say)."""

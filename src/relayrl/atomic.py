@@ -4,12 +4,14 @@ new one, never a partial file, and a failed write leaves no temp file behind."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import IO, Any
 
 from relayrl import interrupts
+from relayrl.errors import UserError
 
 
 @contextlib.contextmanager
@@ -21,11 +23,24 @@ def replacing(path: Path, tmp_name: str | None = None) -> Iterator[Path]:
     try:
         yield tmp
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(OSError):
             tmp.unlink()
+        if _disk_full(e):  # torch's writer wraps the OSError in a RuntimeError of its own
+            raise UserError(f"no space left on the device writing {path} (its previous version, if any, is kept): "
+                            "free some space; a run goes on from its last checkpoint with --resume") from None
         raise
     _fsync_folder(path.parent)
+
+
+def _disk_full(error: BaseException | None) -> bool:
+    """ENOSPC or EDQUOT anywhere in the chain of `error` and what it was raised from."""
+    seen = 0
+    while error is not None and seen < 10:
+        if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        error, seen = error.__cause__ or error.__context__, seen + 1
+    return False
 
 
 def write_with(path: Path, write: Callable[[IO[bytes]], Any], tmp_name: str | None = None) -> None:

@@ -52,6 +52,9 @@ def episode_info(keys: tuple[str, ...], num_envs: int, ended: list[int],
     out = {k: np.full(num_envs, np.nan) for k in keys}
     for i in ended:
         info = info_of(i)
+        if not isinstance(info, dict):
+            raise UserError(f"env.info_keys: the env's info at an episode's end is {type(info).__name__} "
+                            f"{str(info)[:60]}, not a dict: return a dict from step(), or leave env.info_keys empty")
         for k in keys:
             if k not in info:
                 raise UserError(f"env.info_keys: {k!r} is not in the env's info at an episode's end; "
@@ -451,7 +454,10 @@ class GymBatchEnv(BatchEnvBase):
         pack = self._pack
         for i, env in enumerate(self.envs):
             o, r, term, trunc, info = env.step(actions[i])
-            next_obs[i] = o if pack is None else pack(o)
+            try:
+                next_obs[i] = o if pack is None else pack(o)
+            except (ValueError, TypeError, KeyError) as e:  # an env whose observations change mid-run
+                raise self._unfit(o, i, "step()", e) from None
             reward[i] = r
             if self.time_limit_terminates:
                 term, trunc = term or trunc, False
@@ -467,8 +473,20 @@ class GymBatchEnv(BatchEnvBase):
             obs = next_obs.copy()
         for i in ended:
             o = self.envs[i].reset()[0]
-            obs[i] = o if pack is None else pack(o)
+            try:
+                obs[i] = o if pack is None else pack(o)
+            except (ValueError, TypeError, KeyError) as e:
+                raise self._unfit(o, i, "reset()", e) from None
         return obs, episode_info(self.info_keys, len(self.envs), ended, infos.__getitem__)
+
+    def _unfit(self, obs: Any, i: int, method: str, error: Exception) -> UserError:
+        """One line for an observation that does not fit the env's space, met mid-run (the
+        start's check saw fitting ones)."""
+        from relayrl.envs.probe import observation_problem  # the error path only
+
+        problem = observation_problem(obs, self.envs[i].observation_space, f"{method} of env copy {i}")
+        return UserError(problem or f"the observation from {method} of env copy {i} does not fit its observation "
+                                    f"space {self.envs[i].observation_space} ({type(error).__name__}: {error})")
 
     def render(self) -> np.ndarray | None:
         return self.envs[0].render()

@@ -29,8 +29,8 @@ def first_problem(env: gym.Env) -> str | None:
     problem, reset_out, step_out = _api_problem(env)
     if problem is not None:
         return problem
-    return (_obs_problem(reset_out[0], env.observation_space, "reset()")
-            or _obs_problem(step_out[0], env.observation_space, "step()") or _reward_problem(step_out[1]))
+    return (observation_problem(reset_out[0], env.observation_space, "reset()")
+            or observation_problem(step_out[0], env.observation_space, "step()") or _reward_problem(step_out[1]))
 
 
 def _api_problem(env: gym.Env) -> tuple[str | None, Any, Any]:
@@ -56,7 +56,7 @@ def _api_problem(env: gym.Env) -> tuple[str | None, Any, Any]:
     return None, out, step
 
 
-def _obs_problem(obs: Any, space: gym.Space, method: str) -> str | None:
+def observation_problem(obs: Any, space: gym.Space, method: str) -> str | None:
     """Where `obs` cannot be read as `space` says (shape, structure, a non-numeric kind)."""
     pre = f"the observation from {method}"
     if isinstance(space, gym.spaces.Dict):
@@ -64,7 +64,7 @@ def _obs_problem(obs: Any, space: gym.Space, method: str) -> str | None:
             got = sorted(obs) if isinstance(obs, dict) else type(obs).__name__
             return f"{pre} is {got}; observation_space is a Dict with keys {sorted(space.spaces)}"
         for key, sub in space.spaces.items():
-            problem = _obs_problem(obs[key], sub, f"{method}[{key!r}]")
+            problem = observation_problem(obs[key], sub, f"{method}[{key!r}]")
             if problem is not None:
                 return problem
         return None
@@ -72,7 +72,7 @@ def _obs_problem(obs: Any, space: gym.Space, method: str) -> str | None:
         if not isinstance(obs, (tuple, list)) or len(obs) != len(space.spaces):
             return f"{pre} is {_kind(obs)}; observation_space is a Tuple of {len(space.spaces)}"
         for i, (x, sub) in enumerate(zip(obs, space.spaces, strict=True)):
-            problem = _obs_problem(x, sub, f"{method}[{i}]")
+            problem = observation_problem(x, sub, f"{method}[{i}]")
             if problem is not None:
                 return problem
         return None

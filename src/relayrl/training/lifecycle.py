@@ -321,8 +321,22 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
             raise
         # the cause, where it was collected: a NaN reward is named, not the TD error it made
         raise stop(core.finite.check() or str(e), core.kept()) from None
+    except Exception as e:  # the env's own exception, or a failure: the traceback ends with what is kept
+        if not isinstance(e, UserError):  # one line of its own, said by whoever catches it
+            e.add_note(f"relayrl: the run stopped at env step {core.env_steps():,} on the error above; "
+                       f"{crash_kept(core)}")
+        raise
     finally:
         report.close()
+
+
+def crash_kept(core: RunCore) -> str:
+    """What a run that an exception stopped leaves, and how it goes on once the cause is fixed."""
+    root = str(core.rd.root)
+    if not list_checkpoints(core.rd.checkpoints):
+        return core.kept()
+    return (f"{core.kept()}: once the cause is fixed, `relayrl train --run-dir {root} --resume` (in Python: "
+            f"relayrl.train(None, {root!r}, resume=True)) continues it")
 
 
 def _stopped_at(core: RunCore) -> str:

@@ -66,6 +66,13 @@ class RunDir:
             raise UserError(f"--run-dir {str(self.root)!r}: {str(existing)!r} is a file, not a directory")
         if not os.access(existing, os.W_OK | os.X_OK):
             raise UserError(f"--run-dir {str(self.root)!r}: no permission to write in {str(existing)!r}")
+        for path, folder in ((self.config, False), (self.metrics, False), (self.tb, True), (self.checkpoints, True),
+                             (self.policy, True)):
+            if path.exists() and path.is_dir() != folder:
+                raise UserError(f"--run-dir {str(self.root)!r}: {path.name!r} there is a "
+                                f"{'file' if folder else 'directory'}, where a run keeps its "
+                                f"{'folder' if folder else 'file'} of that name: move it away, or choose another "
+                                "--run-dir")
 
     def has_checkpoint(self) -> bool:
         from relayrl.training.checkpoint import list_checkpoints
@@ -87,7 +94,8 @@ class RunDir:
             for d in (self.root, self.tb, self.checkpoints, self.policy):
                 d.mkdir(parents=True, exist_ok=True)
         except OSError as e:
-            raise UserError(f"--run-dir {str(self.root)!r} cannot be created: {e.strerror}") from None
+            where = f" ({e.filename})" if e.filename else ""
+            raise UserError(f"--run-dir {str(self.root)!r} cannot be created: {e.strerror}{where}") from None
 
     @classmethod
     def of(cls, path: str | Path) -> RunDir:
