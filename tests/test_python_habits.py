@@ -351,3 +351,9 @@ def test_a_vector_env_given_as_env_says_how_relayrl_batches(tmp_path):
     with pytest.raises(UserError, match="is a vector env: relayrl makes and batches its own copies; give a callable"):
         relayrl.train(TINY, tmp_path / "r", env=vec)
     vec.close()
+
+
+def test_evaluate_gives_each_episode_as_sb3s_return_episode_rewards_does():
+    returns, lengths = relayrl.evaluate(lambda o: 0, "toy_envs:Countdown", episodes=3, return_episode_rewards=True)
+    assert returns == [3.0, 3.0, 3.0] and lengths == [3, 3, 3]
+    assert tuple(relayrl.evaluate(lambda o: 0, "toy_envs:Countdown", episodes=3)) == (3.0, 0.0)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, Literal, NamedTuple, overload
 
 import gymnasium as gym
 import numpy as np
@@ -24,9 +24,22 @@ class EvalResult(NamedTuple):
     std: float
 
 
+@overload
+def evaluate(policy: Any, env: Any = ..., episodes: int = ..., deterministic: bool = ..., seed: int | None = ...,
+             max_episode_steps: int = ..., return_episode_rewards: Literal[False] = ...) -> EvalResult: ...
+
+
+@overload
+def evaluate(policy: Any, env: Any = ..., episodes: int = ..., deterministic: bool = ..., seed: int | None = ...,
+             max_episode_steps: int = ..., *,
+             return_episode_rewards: Literal[True]) -> tuple[list[float], list[int]]: ...
+
+
 def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bool = True,
-             seed: int | None = 0, max_episode_steps: int = 0) -> EvalResult:
-    """Run `episodes` whole episodes and return the returns' mean and (population) std.
+             seed: int | None = 0, max_episode_steps: int = 0,
+             return_episode_rewards: bool = False) -> EvalResult | tuple[list[float], list[int]]:
+    """Run `episodes` whole episodes and return the returns' mean and (population) std; with
+    `return_episode_rewards` (SB3's name), each episode's return and length as two lists instead.
 
     `policy`: what `relayrl.load_policy` returns, a run directory (or its policy file), an object
     with SB3's `predict(obs, deterministic=...)`, or any callable taking one observation as the env
@@ -53,10 +66,13 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
         act = _policy_fn(policy, deterministic, seed, batch_env.observation_spec, batch_env.action_spec)
         cap_untimed(batch_env, max_episode_steps)  # so that it ends
         returns: list[float] = []
-        run_episodes(batch_env, act, episodes, seed=seed, episode_returns=returns)
+        lengths: list[int] = []
+        run_episodes(batch_env, act, episodes, seed=seed, episode_returns=returns, episode_lengths=lengths)
     finally:
         if owned:
             batch_env.close()
+    if return_episode_rewards:
+        return returns, lengths
     return EvalResult(float(np.mean(returns)), float(np.std(returns)))
 
 

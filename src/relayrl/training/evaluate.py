@@ -56,13 +56,15 @@ def eval_cap_note(env: BatchedEnv, env_id: str) -> str | None:
 
 
 def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = None,
-             max_steps: int = 1_000_000, episode_returns: list[float] | None = None) -> dict[str, float]:
+             max_steps: int = 1_000_000, episode_returns: list[float] | None = None,
+             episode_lengths: list[int] | None = None) -> dict[str, float]:
     """Run `episodes` full episodes and average their return and length (and, as `eval/<key>`,
     each `env.info_keys` value at the episodes' ends).
 
     Copy i of the batch runs a fixed quota of episodes, so short episodes are not
     over-represented (stopping at the first `episodes` finishers would bias the mean).
-    `episode_returns`, if given, gets each episode's return (relayrl.evaluate's std).
+    `episode_returns` and `episode_lengths`, if given, get each episode's return and length
+    (relayrl.evaluate's std, and its per-episode lists).
     """
     b = env.num_envs
     quota = np.full(b, episodes // b) + (np.arange(b) < episodes % b)
@@ -99,6 +101,8 @@ def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = 
         obs = out.obs
     if episode_returns is not None:
         episode_returns.extend(returns)
+    if episode_lengths is not None:
+        episode_lengths.extend(lengths)
     return {
         "average_return": float(np.mean(returns)) if returns else float("nan"),
         "average_episode_length": float(np.mean(lengths)) if lengths else float("nan"),
