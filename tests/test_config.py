@@ -41,6 +41,8 @@ def test_overrides_are_typed():
     ("agent.n_timesteps=1000", "here, Stable-Baselines3's n_timesteps is train.total_steps"),
     ("total_steps=1000", "unknown config key 'total_steps'; did you mean 'train.total_steps'? (keys sit in their"),
     ("batch_size=64", "did you mean 'agent.batch_size'?"),
+    ("agent.n_epochs=3", "unknown config key 'agent.n_epochs': a setting of ppo's agent, not of this algorithm's; "
+                         "valid: agent."),
     ("replay.n_steps=3", "did you mean 'replay.n_step'?"),  # the section's own near miss comes first
     ("train.total_steps=abc", "train.total_steps='abc' has the wrong type; expected int"),
     ("train.total_steps=1.5", "expected int"),

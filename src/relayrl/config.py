@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from relayrl import atomic
-from relayrl.agents.registry import DEFAULT_ALGO, algorithm
+from relayrl.agents.registry import ALGORITHMS, DEFAULT_ALGO, algorithm
 from relayrl.config_fields import Section, commented_toml, unknown_key
 from relayrl.errors import ConfigError
 from relayrl.seeding import MAX_SEED
@@ -314,7 +314,13 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
             if home:  # {"total_steps": ...} at the top: the key sits in a section
                 raise ConfigError(f"unknown config key {path!r}; did you mean {home[0]!r}? (keys sit in their "
                                   "sections)")
-            raise ConfigError(unknown_key(path, [prefix + n for n in names]))
+            owners = sorted(a for a, entry in ALGORITHMS.items() if prefix == "agent."
+                            and key in {f.name for f in dataclasses.fields(entry.config)})
+            said = unknown_key(path, [prefix + n for n in names])
+            if owners:  # agent.normalize_obs on a SAC run
+                said = (f"unknown config key {path!r}: a setting of {' and '.join(owners)}'s agent, not of this "
+                        f"algorithm's; {said.split('; ', 1)[1]}")
+            raise ConfigError(said)
         current = getattr(obj, key)
         if dataclasses.is_dataclass(current):
             if not isinstance(value, dict):
