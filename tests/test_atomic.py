@@ -41,7 +41,7 @@ def test_a_full_disk_is_one_line_that_says_what_is_kept(tmp_path):
         except OSError:  # as torch's zip writer reports it: a RuntimeError raised while handling the OSError
             raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 64 vs 0") from None
 
-    with pytest.raises(UserError, match=r"^no space left on the device writing .*ckpt.pt \(its previous version, "):
+    with pytest.raises(UserError, match=r"^cannot write '.*ckpt.pt': No space left on device \(its previous version"):
         atomic.write_with(path, full)
     assert path.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pt"]
 

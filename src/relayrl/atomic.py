@@ -26,21 +26,23 @@ def replacing(path: Path, tmp_name: str | None = None) -> Iterator[Path]:
     except BaseException as e:
         with contextlib.suppress(OSError):
             tmp.unlink()
-        if _disk_full(e):  # torch's writer wraps the OSError in a RuntimeError of its own
-            raise UserError(f"no space left on the device writing {path} (its previous version, if any, is kept): "
-                            "free some space; a run goes on from its last checkpoint with --resume") from None
+        full = _disk_full(e)  # torch's writer wraps the OSError in a RuntimeError of its own
+        if full is not None:
+            raise UserError(f"cannot write {str(path)!r}: {full.strerror or full} (its previous version, if any, is "
+                            "kept): free some space") from None
         raise
     _fsync_folder(path.parent)
 
 
-def _disk_full(error: BaseException | None) -> bool:
-    """ENOSPC or EDQUOT anywhere in the chain of `error` and what it was raised from."""
-    seen = 0
-    while error is not None and seen < 10:
+def _disk_full(error: BaseException | None) -> OSError | None:
+    """The ENOSPC or EDQUOT OSError in the chain of `error` and what it was raised from."""
+    for _ in range(10):
+        if error is None:
+            break
         if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):
-            return True
-        error, seen = error.__cause__ or error.__context__, seen + 1
-    return False
+            return error
+        error = error.__cause__ or error.__context__
+    return None
 
 
 def write_with(path: Path, write: Callable[[IO[bytes]], Any], tmp_name: str | None = None) -> None:

@@ -280,6 +280,7 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
     core = driver.core
     c, report = core.config, core.report
     core.t0 = time.perf_counter()
+    training = False
     try:
         if not c.train.checkpoint_replay and c.train.checkpoint_interval > 0:
             core.say("train.checkpoint_replay = false: checkpoints leave the replay out; a resumed run refills it")
@@ -305,6 +306,7 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
             core.policy_saver.save(Progress(0, 0))  # `relayrl eval` (and a callback at step 0) works from the start
             if c.eval.interval > 0:  # 0: the final evaluation only (an env whose episodes take minutes)
                 driver.evaluate_now(Progress(0, 0))  # the untrained policy, before any collection
+        training = True  # from here on a failure has stopped a run under way
         if not report.stop_requested:
             driver.iterate()
         stopped = report.stop_requested and core.env_steps() < c.train.total_steps
@@ -321,10 +323,14 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
             raise
         # the cause, where it was collected: a NaN reward is named, not the TD error it made
         raise stop(core.finite.check() or str(e), core.kept()) from None
-    except Exception as e:  # the env's own exception, or a failure: the traceback ends with what is kept
-        if not isinstance(e, UserError):  # one line of its own, said by whoever catches it
-            e.add_note(f"relayrl: the run stopped at env step {core.env_steps():,} on the error above; "
-                       f"{crash_kept(core)}")
+    except Exception as e:  # the env's own exception, or a failure: what is kept is said with it
+        if not training:
+            raise
+        stopped_at = f"the run stopped at env step {core.env_steps():,}"
+        if isinstance(e, UserError):  # one line, said by whoever catches it: the same line says it
+            e.args = (f"{e}; {stopped_at}: {crash_kept(core)}",)
+        else:  # the user's own traceback (an env's exception) ends with it
+            e.add_note(f"relayrl: {stopped_at} on the error above; {crash_kept(core)}")
         raise
     finally:
         report.close()
