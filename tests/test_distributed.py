@@ -320,6 +320,7 @@ def test_ctrl_c_stops_every_actor_and_the_run_resumes(tmp_path, cli_env, sig, co
     if sig == signal.SIGINT:  # the run stops at its loop's next turn and saves a checkpoint there; Ray lives on
         assert "stopping at the end of this iteration" in err, err
         assert checkpoint_steps(run)[-1] >= before[-1]
+        assert relayrl.load_policy(run).env_steps == checkpoint_steps(run)[-1]  # the final save: one env step
     deadline = time.monotonic() + 90  # Ray's own processes take tens of seconds to go on a loaded machine
     while alive(tree - {p.pid}) and time.monotonic() < deadline:
         time.sleep(0.5)

@@ -124,5 +124,6 @@ def test_a_stable_baselines3_model_file_says_how_to_evaluate_it(tmp_path):
         z.writestr("data", "{}")
         z.writestr("policy.pth", b"weights")
         z.writestr("_stable_baselines3_version", "2.4.0")
-    with pytest.raises(UserError, match=r"is a Stable-Baselines3 model file: load it with SB3 .* relayrl.evaluate"):
+    with pytest.raises(UserError, match=r"is a Stable-Baselines3 model file, which relayrl does not read: in "
+                                        r"Python, load it with SB3 .* relayrl.evaluate"):
         relayrl.load_policy(tmp_path / "ppo_cartpole.zip")

@@ -357,3 +357,10 @@ def test_evaluate_gives_each_episode_as_sb3s_return_episode_rewards_does():
     returns, lengths = relayrl.evaluate(lambda o: 0, "toy_envs:Countdown", episodes=3, return_episode_rewards=True)
     assert returns == [3.0, 3.0, 3.0] and lengths == [3, 3, 3]
     assert tuple(relayrl.evaluate(lambda o: 0, "toy_envs:Countdown", episodes=3)) == (3.0, 0.0)
+
+
+def test_a_callable_policy_may_answer_a_whole_float_index_and_is_told_about_sb3s_pair():
+    assert relayrl.evaluate(lambda o: 1.0, "CartPole-v1", episodes=1) == relayrl.evaluate(
+        lambda o: 1, "CartPole-v1", episodes=1)
+    with pytest.raises(UserError, match=r"answered a pair \(action, None\), as SB3's predict\(\) does"):
+        relayrl.evaluate(lambda o: (np.zeros(1, np.float32), None), "Pendulum-v1", episodes=1)

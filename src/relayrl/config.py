@@ -312,8 +312,8 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
             home = [f"{n}.{key}" for n in names if dataclasses.is_dataclass(section := getattr(obj, n))
                     and key in {f.name for f in dataclasses.fields(section)}]
             if home:  # {"total_steps": ...} at the top: the key sits in a section
-                raise ConfigError(f"unknown config key {path!r}; did you mean {home[0]!r}? (keys sit in their "
-                                  "sections)")
+                raise ConfigError(f"unknown config key {path!r}; did you mean {' or '.join(map(repr, home))}? (keys "
+                                  "sit in their sections)")
             owners = sorted(a for a, entry in ALGORITHMS.items() if prefix == "agent."
                             and key in {f.name for f in dataclasses.fields(entry.config)})
             said = unknown_key(path, [prefix + n for n in names])

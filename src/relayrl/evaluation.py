@@ -104,14 +104,27 @@ def _one_at_a_time(fn: Callable[[Any], Any], obs_spec: Spec, act_spec: Spec) -> 
     checked against the env's actions, so a wrong one is said in the user's terms."""
     as_env = obs_spec.observation if isinstance(obs_spec, PackedSpec) else (lambda row: row)
 
+    env_shape = getattr(act_spec, "env_shape", None) or act_spec.shape
+    takes = f"this env takes {describe(act_spec)} actions" + (
+        f" of shape {env_shape}" if env_shape != act_spec.shape else "")
+
     def one(o: np.ndarray) -> np.ndarray:
-        a = np.asarray(fn(as_env(o)))
+        answer = fn(as_env(o))
+        if isinstance(answer, tuple) and len(answer) == 2 and answer[1] is None:  # SB3's predict(): (action, state)
+            raise UserError(f"the policy answered a pair (action, None), as SB3's predict() does; {takes}: answer "
+                            "the action (lambda obs: model.predict(obs)[0]), or give the model itself")
+        try:
+            a = np.asarray(answer)
+        except (ValueError, TypeError):  # ragged pieces
+            raise UserError(f"the policy answered {str(answer)[:60]}, not an array; {takes}") from None
         fits = a.dtype.kind in "biuf" and a.size == math.prod(act_spec.shape)  # [1] for () and the like: reshaped
-        if fits and isinstance(act_spec, DiscreteSpec):
-            fits = a.dtype.kind in "biu" and 0 <= int(a.reshape(())) < act_spec.n
+        if fits and isinstance(act_spec, DiscreteSpec):  # an index, 1.0 included
+            index = float(a.reshape(()))
+            fits = index.is_integer() and 0 <= index < act_spec.n
+            a = a.astype(np.int64)
         if not fits:
             raise UserError(f"the policy answered {str(a.tolist())[:60]} ({a.dtype}, shape {a.shape}) to one "
-                            f"observation; this env takes {describe(act_spec)} actions")
+                            f"observation; {takes}")
         return a.reshape(act_spec.shape)
 
     def act(obs: torch.Tensor) -> torch.Tensor:

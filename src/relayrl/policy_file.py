@@ -88,8 +88,9 @@ def load_policy_file(path: Path) -> dict[str, Any]:
         state = _load_old_layout(path)
     except Exception as e:  # truncated, not a torch file at all, ...
         if _is_sb3_model(path):
-            raise UserError(f"{str(path)!r} is a Stable-Baselines3 model file: load it with SB3 (e.g. "
-                            "PPO.load(path)) and give the model to relayrl.evaluate(model, env)") from None
+            raise UserError(f"{str(path)!r} is a Stable-Baselines3 model file, which relayrl does not read: in "
+                            "Python, load it with SB3 (e.g. PPO.load(path)) and give the model to "
+                            "relayrl.evaluate(model, env)") from None
         raise UserError(f"policy file {str(path)!r} is unreadable ({type(e).__name__}: {_first_line(e)}): "
                         "damaged, or not a relayrl policy file") from None
     if not isinstance(state, dict):

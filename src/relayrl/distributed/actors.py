@@ -5,17 +5,15 @@ failures and restarts. What the actors are asked to collect is the collection's
 
 from __future__ import annotations
 
-import contextlib
 import math
 import os
 import re
 import signal
 import socket
 import sys
-import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from typing import Any
 
 from relayrl.config import Config, to_dict
@@ -58,8 +56,7 @@ def init_ray(ray: Any, config: Config) -> bool:
                             f"({reason}): check that it is a Ray head of a matching Ray version") from None
     else:
         try:
-            with sigint_ignored():
-                ray.init(num_cpus=max(os.cpu_count() or 1, math.ceil(d.num_actors * d.actor_cpus) + 1), **kw)
+            ray.init(num_cpus=max(os.cpu_count() or 1, math.ceil(d.num_actors * d.actor_cpus) + 1), **kw)
         except ValueError as e:  # Ray joined a cluster RAY_ADDRESS names, which takes no num_cpus
             if "existing cluster" not in str(e):
                 raise
@@ -72,23 +69,6 @@ def init_ray(ray: Any, config: Config) -> bool:
         # exits; the CLI's (stop like Ctrl-C: actors shut down) goes back.
         signal.signal(signal.SIGTERM, on_sigterm)
     return True
-
-
-@contextlib.contextmanager
-def sigint_ignored() -> Iterator[None]:
-    """SIGINT ignored while Ray starts its own processes, which inherit it: a local instance's
-    GCS server and raylet share the driver's process group, and a terminal's Ctrl-C, sent to
-    the whole group, would end them (and with them every actor) before the driver could stop
-    the run cleanly. The actors run in process groups of their own. Only the main thread can
-    set handlers; elsewhere Ray starts as it would."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
 
 
 class ActorPool:
@@ -152,6 +132,17 @@ class ActorPool:
             if not found:
                 raise
             raise UserError(f"an actor could not start on a Ray worker: {found[-1]}") from None
+
+    def halt_rollouts(self) -> None:
+        """End the rollout actors and forget their calls: a run that stops early (Ctrl-C, a
+        callback) saves its final policy and checkpoint at one env step, while the eval actors
+        and the replay server stay for its final evaluation and save."""
+        for w in self.workers:
+            try:
+                self.ray.kill(w, no_restart=True)
+            except Exception:  # already gone
+                pass
+        self.inflight.clear()
 
     def close(self) -> None:
         """Stop every actor (and the local Ray instance this run started): no orphan processes."""

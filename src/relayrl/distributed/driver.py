@@ -97,8 +97,9 @@ class RayDriver:
     def iterate(self) -> None:
         # Ctrl-C stops the loop at its next turn, as a callback's False does, so the run ends
         # with its policy and a checkpoint at the step it reached (run_to_end); Ray's own
-        # processes ignore it (actors.sigint_ignored). SIGTERM, which a scheduler sends to the
-        # whole process group, ends a local Ray instance at once: it stops the run at once too.
+        # processes block SIGINT, so a terminal's Ctrl-C to the whole process group leaves them
+        # up. SIGTERM, which a scheduler sends to the whole group, ends a local Ray instance at
+        # once: it stops the run at once too.
         with interrupts.stop_request(self.core.report.request_stop, (signal.SIGINT,)):
             self.collection.iterate(self.core, self._finish_evals)
 

@@ -143,6 +143,10 @@ class ReplayCollection:
             if not n and not moved:  # nothing to do: sleep until an actor or the server answers
                 also = [] if core.collect_only else [self.table.pending]
                 self.pool.wait(also, RETRY_S if self._retry_pending() else 1.0)
+        if core.report.stop_requested:  # the count the final save is named by: what the server took
+            self.pool.halt_rollouts()
+            shipped = self.pool.ray.get(self.pool.server.info.remote())["shipped"]
+            self.accepted = [max(a, int(n)) for a, n in zip(self.accepted, shipped, strict=True)]
 
     # ---- checkpoints ----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

@@ -199,6 +199,8 @@ class RolloutCollection:
             finish_evals()
             if not moved:
                 self.pool.wait([], RETRY_S if self.pool.retry_pending() else 1.0)
+        if core.report.stop_requested:  # their rollouts would not be trained on
+            self.pool.halt_rollouts()
         if self.shares.dropped:
             core.say(f"{self.shares.dropped} stale rollouts ({self.shares.dropped_steps:,} env steps) were "
                      "collected with an older policy and dropped")

@@ -101,7 +101,7 @@ class LocalDriver:
     def _record_eval(self, p: Progress, result: dict[str, Any]) -> None:
         # The policy file is the evaluated policy when the row is written, so a callback can keep
         # the best one (`relayrl.load_policy(run_dir)`, or a copy of policy/policy.pt).
-        if self.core.policy_saver.saved_at != p.env_steps:
+        if self.core.policy_saver.saved_progress != p:
             self.core.check_finite(p, weights=True)  # nothing non-finite is saved
             self.core.policy_saver.save(p)
         self.core.report.record_eval(p, result, self.evaluator.seconds)

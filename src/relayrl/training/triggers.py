@@ -67,14 +67,19 @@ class PolicySaver(IntervalTrigger):
         super().__init__(interval, self.save, unit)
         self.agent, self.folder, self.extra = agent, Path(folder), dict(extra or {})
         self.saved_at: int | None = None  # env steps of the policy this saver last wrote
+        self.saved_progress: Progress | None = None
 
     def save(self, progress: Progress) -> None:
+        """Write the policy as it is at `progress` (once: an evaluation, the interval and the
+        run's end may all fall on one step)."""
         from relayrl.policy_file import save_policy_file
 
+        if progress == self.saved_progress:
+            return
         self.folder.mkdir(parents=True, exist_ok=True)
         state = {**self.agent.policy_state(), "env_steps": progress.env_steps, **self.extra}
         save_policy_file(state, self.folder / "policy.pt")
-        self.saved_at = progress.env_steps
+        self.saved_at, self.saved_progress = progress.env_steps, Progress(progress.env_steps, progress.train_step)
 
 
 class Checkpointer(IntervalTrigger):
