@@ -163,3 +163,26 @@ def test_bad_replay_settings_fail_before_anything_is_written(tmp_path, setting, 
     with pytest.raises(UserError, match=message.replace("(", r"\(")):
         relayrl.train(relayrl.load_config("dqn-cartpole-fast", SMALL + [setting]), tmp_path / "x", progress=False)
     assert not (tmp_path / "x").exists()
+
+
+def test_the_progress_bar_moves_between_log_rows(tmp_path, monkeypatch):
+    """A slow env's log rows are far apart: in a terminal the bar still moves each second."""
+    import io
+
+    import tqdm
+
+    moves: list[int] = []
+
+    class TerminalBar(tqdm.tqdm):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **{**kwargs, "disable": False, "file": io.StringIO()})
+
+        def update(self, n=1):
+            moves.append(self.n + n)
+            return super().update(n)
+
+    monkeypatch.setattr(tqdm, "tqdm", TerminalBar)
+    over = ["env.id=toy_envs:Sleepy", "env.check=false", "train.total_steps=1400", "train.log_interval=100000",
+            "eval.interval=0", "eval.episodes=1", "train.initial_collect_steps=100", "train.checkpoint_interval=0"]
+    relayrl.train(relayrl.load_config("dqn-cartpole", over), tmp_path / "run")  # 2 ms a step: ~3 s
+    assert len([m for m in moves if 0 < m < 1400]) >= 1, moves

@@ -153,6 +153,7 @@ class RunCore:
 
     def fire_triggers(self) -> None:
         p = self.progress()
+        self.report.tick(p.env_steps)
         due = [trigger for trigger in self.triggers if trigger.due(p)]
         if due or self.finite.due():
             self.check_finite(p, weights=self.policy_saver in due or self.checkpointer in due)

@@ -69,6 +69,7 @@ class RunReport:
         self.metrics_log: MetricsLog | None = None
         self.bar: Any = None
         self.bar_fields: dict[str, Any] = {}
+        self.next_tick = 0.0  # time.monotonic() from which `tick` moves the bar again
         self.lines: ProgressLines | None = None
 
     def open(self, initial_steps: int) -> None:
@@ -88,13 +89,19 @@ class RunReport:
         if self.lines is not None:
             self.lines.stop()
         if self.bar is not None:
-            # the bar moves every train.log_interval env steps: the run's last steps and evaluation too
+            # the bar moves every train.log_interval env steps and each second: the run's last steps too
             self.bar.update(self.progress().env_steps - self.bar.n)
             self._bar_fields()
             self.bar.close()
         for log in (self.tb, self.metrics_log):
             if log is not None:
                 log.close()
+
+    def tick(self, env_steps: int) -> None:
+        """The bar between log rows, at most once a second: a slow env's rows are minutes apart."""
+        if self.bar is not None and not self.bar.disable and (now := time.monotonic()) >= self.next_tick:
+            self.next_tick = now + 1.0
+            self.bar.update(env_steps - self.bar.n)
 
     def request_stop(self, signum: int) -> None:
         """A signal asked the run to stop: the driver stops at its next check, as for a callback."""
