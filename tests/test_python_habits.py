@@ -293,6 +293,22 @@ def test_train_leaves_the_callers_torch_threads_flushing_and_generator_as_they_w
         torch.set_flush_denormal(flushing)
 
 
+def test_a_resume_leaves_the_callers_numpy_and_python_generators_as_they_were(tmp_path):
+    """A checkpoint holds the process's NumPy and Python generators (for envs drawing from them);
+    restoring them is the run's business only."""
+    import random
+
+    relayrl.train(TINY, tmp_path / "r", progress=False)
+    np.random.seed(7)
+    random.seed(7)
+    expected = (np.random.rand(), random.random())
+    np.random.seed(7)
+    random.seed(7)
+    longer = relayrl.load_config(str(tmp_path / "r" / "config.toml"), ["train.total_steps=300"])
+    relayrl.train(longer, tmp_path / "r", resume=True, progress=False)
+    assert (np.random.rand(), random.random()) == expected
+
+
 def test_runs_started_in_the_same_second_get_their_own_default_directories(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr("time.strftime", lambda fmt: "20261127-081716")  # the same second each time
@@ -364,3 +380,31 @@ def test_a_callable_policy_may_answer_a_whole_float_index_and_is_told_about_sb3s
         lambda o: 1, "CartPole-v1", episodes=1)
     with pytest.raises(UserError, match=r"answered a pair \(action, None\), as SB3's predict\(\) does"):
         relayrl.evaluate(lambda o: (np.zeros(1, np.float32), None), "Pendulum-v1", episodes=1)
+
+
+def test_loading_and_evaluating_a_policy_leave_the_callers_torch_generator_as_it_was(run_dir, tmp_path):
+    """Building a saved policy's networks draws initial weights before the saved ones replace
+    them: a notebook's own torch.manual_seed stream must not move."""
+    for act in (lambda: relayrl.load_policy(run_dir), lambda: relayrl.evaluate(run_dir, Countdown(), episodes=1),
+                lambda: relayrl.load_policy(run_dir).reseeded(3),
+                lambda: relayrl.export_policy(run_dir, tmp_path / "p.pt2")):
+        torch.manual_seed(1)
+        expected = torch.rand(3)
+        torch.manual_seed(1)
+        act()
+        assert torch.equal(torch.rand(3), expected)
+
+
+def test_plot_run_leaves_the_callers_matplotlib_backend_and_figures_alone(run_dir, tmp_path):
+    import matplotlib
+
+    before = matplotlib.get_backend()
+    matplotlib.use("pdf")  # a stand-in for a notebook's inline backend
+    try:
+        relayrl.plot_run(run_dir, tmp_path / "r.png")
+        assert matplotlib.get_backend() == "pdf" and (tmp_path / "r.png").stat().st_size > 1000
+        import matplotlib.pyplot as plt
+
+        assert plt.get_fignums() == []
+    finally:
+        matplotlib.use(before)

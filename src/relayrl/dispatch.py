@@ -22,7 +22,7 @@ from relayrl.envs.gym import names_python_factory
 from relayrl.errors import UserError
 from relayrl.presets import load_config
 from relayrl.training.direct import DirectDriver
-from relayrl.training.lifecycle import RunResult, caller_torch_state
+from relayrl.training.lifecycle import RunResult, caller_state_kept
 from relayrl.training.local import LocalDriver
 from relayrl.training.report import Callback
 from relayrl.training.run_dir import RunDir
@@ -227,7 +227,7 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
     if config.distributed.num_actors > 0 and not entry.ray:
         raise UserError(f"algo={entry.name!r} runs in one process only; distributed.num_actors works with "
                         f"{', '.join(ray_algorithms())}")
-    with caller_torch_state():  # the run's threads, flushing and seeds are the run's alone
+    with caller_state_kept():  # the run's threads, flushing and seeds are the run's alone
         return _build_and_train(entry, config, rd, resume, progress, env, callbacks, takeover, beside)
 
 

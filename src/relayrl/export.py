@@ -32,7 +32,7 @@ from relayrl import atomic
 from relayrl.agents.registry import for_policy_kind
 from relayrl.config_fields import is_user_encoder
 from relayrl.errors import UserError
-from relayrl.loaded_policy import LoadedPolicy
+from relayrl.loaded_policy import LoadedPolicy, built_quietly, rng_kept
 from relayrl.paths import is_folder, output_path, writing
 from relayrl.policies import saved_obs_spec
 from relayrl.policy_file import REFUSED, env_action_dtype, load_policy_file
@@ -55,9 +55,10 @@ def _policy_file(path: str | Path) -> Path:
 
 
 def _built(f: Path, state: dict[str, Any], build: Callable[[], T]) -> T:
-    """`build()` of a saved policy's parts; a file that lacks what they read is one line."""
+    """`build()` of a saved policy's parts on the CPU; a file that lacks what they read is one line."""
     try:
-        return build()
+        with rng_kept(torch.device("cpu")):
+            return build()
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         encoder = str(state.get("encoder", ""))
         if isinstance(e, RuntimeError) and is_user_encoder(encoder):  # the user's code, not the file
@@ -95,7 +96,7 @@ def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = Tru
     # checked on the CPU first, so a device's own error is not taken for a broken file.
     cpu = _built(f, state, lambda: module.load(state, torch.device("cpu"), deterministic, seed))
     on = torch.device(device)
-    batched = cpu if on.type == "cpu" else module.load(state, on, deterministic, seed)
+    batched = cpu if on.type == "cpu" else built_quietly(module, state, on, deterministic, seed)
     return LoadedPolicy(batched, state, device, deterministic, seed)
 
 
@@ -125,7 +126,9 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
             raise UserError("--format onnx needs the onnx and onnxscript packages: "
                             "pip install 'relayrl[onnx]'") from None
     state = load_policy_state(path)
-    module = for_policy_kind(state["kind"]).policy_module().deterministic_module(state).requires_grad_(False).eval()
+    with rng_kept(torch.device("cpu")):
+        module = for_policy_kind(state["kind"]).policy_module().deterministic_module(state)
+    module = module.requires_grad_(False).eval()
     inputs = input_specs(state)
     if "action_shape" in state or "action_dtype" in state:  # actions as the env takes them
         module = EnvShaped(module, state.get("action_shape"), env_action_dtype(state))

@@ -7,6 +7,7 @@ batched tensor of the right dtype straight through, so evaluation pays nothing f
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any
 
 import gymnasium as gym
@@ -71,7 +72,7 @@ class LoadedPolicy(Policy):
 
     def reseeded(self, seed: int | None) -> LoadedPolicy:
         """This policy again, its sampling (`deterministic=False`) drawn from `seed`."""
-        batched = self._module.load(self._state, torch.device(self._device), self.deterministic, seed)
+        batched = built_quietly(self._module, self._state, torch.device(self._device), self.deterministic, seed)
         return LoadedPolicy(batched, self._state, self._device, self.deterministic, seed)
 
     def check_fits(self, obs_spec: Spec) -> None:
@@ -101,8 +102,8 @@ class LoadedPolicy(Policy):
         if deterministic is None or bool(deterministic) == self.deterministic:
             return self(observation), None
         if self._other_mode is None:
-            self._other_mode = self._module.load(self._state, torch.device(self._device), bool(deterministic),
-                                                 self._seed)
+            self._other_mode = built_quietly(self._module, self._state, torch.device(self._device),
+                                             bool(deterministic), self._seed)
         return self._act(self._other_mode, observation), None
 
     def _act(self, policy: Any, obs: Any) -> Any:
@@ -199,3 +200,17 @@ def _layout(spec: Spec) -> tuple:
     if isinstance(spec, PackedSpec):
         return tuple((f.key, tuple(f.spec.shape)) for f in spec.fields)
     return tuple(spec.shape)
+
+
+def rng_kept(device: torch.device) -> contextlib.AbstractContextManager[Any]:
+    """Around building a saved policy's networks, which draw initial weights from torch's global
+    generator before the saved ones replace them: the caller's generator (a notebook's
+    `torch.manual_seed`) is left as it was."""
+    return torch.random.fork_rng(devices=[device.index or 0] if device.type == "cuda" else [])
+
+
+def built_quietly(module: Any, state: dict[str, Any], device: torch.device, deterministic: bool,
+                  seed: int | None) -> Any:
+    """`module.load(...)` of a saved policy, inside `rng_kept`."""
+    with rng_kept(device):
+        return module.load(state, device, deterministic, seed)

@@ -25,7 +25,6 @@ def plot_run(run_dir: str | Path | Sequence[str | Path], out: str | Path | None 
         return _compare([RunDir(d) for d in run_dir], out)
     rd = RunDir(run_dir)
     rows = _evaluations(rd)
-    plt = _pyplot()
 
     # BPTT runs (algo = "bptt") log training rollouts, not evaluations; like TorchRL's
     # tutorial, they get a second panel with the reward at the rollout's last step.
@@ -35,7 +34,8 @@ def plot_run(run_dir: str | Path | Sequence[str | Path], out: str | Path | None 
     info_keys = sorted({k[5:] for r in rows for k in r if k.startswith("eval/")})
     panels_n = 1 + len(curves) + len(info_keys)
     shape = (1, 1) if panels_n == 1 else ((panels_n + 1) // 2, 2)
-    fig, axes = plt.subplots(*shape, figsize=(7 * shape[1] ** 0.8, 4 * shape[0]), squeeze=False)
+    fig = _figure(figsize=(7 * shape[1] ** 0.8, 4 * shape[0]))
+    axes = fig.subplots(*shape, squeeze=False)
     panels = axes.ravel()
     _returns(panels[0], rows, bptt)
     panels[0].set_title(rd.root.name)
@@ -61,8 +61,8 @@ def _compare(runs: list[RunDir], out: str | Path | None) -> Path:
     names = [rd.root.name for rd in runs]
     if len(set(names)) < len(names):  # the same name in several folders: their paths tell them apart
         names = [str(rd.root) for rd in runs]
-    plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(8, 5))
+    fig = _figure(figsize=(8, 5))
+    ax = fig.subplots()
     for name, run_rows in zip(names, rows, strict=True):
         ax.plot([r["step"] for r in run_rows], [r["average_return"] for r in run_rows], marker="o", ms=3, label=name)
     _steps_axis(ax, [r["step"] for run_rows in rows for r in run_rows])
@@ -80,31 +80,24 @@ def _evaluations(rd: RunDir) -> Rows:
     return rows
 
 
-def _pyplot() -> Any:
-    import matplotlib
+def _figure(figsize: tuple[float, float]) -> Any:
+    """A figure of its own, made without pyplot: the caller's backend (a notebook's inline one)
+    is never switched, and nothing is left open in pyplot's list of figures."""
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")  # no display needed
-    import matplotlib.pyplot as plt
-
-    return plt
+    return Figure(figsize=figsize)
 
 
 def _save(fig: Any, path: Path) -> Path:
-    """`fig` into `path` in the format its extension names, atomically; the figure is closed."""
-    import matplotlib.pyplot as plt
-
+    """`fig` into `path` in the format its extension names, atomically."""
     fig.tight_layout()
     kind = path.suffix[1:].lower() or "png"
     if kind not in fig.canvas.get_supported_filetypes():
-        plt.close(fig)
         raise UserError(f"--out {str(path)!r}: .{kind} is not an image format matplotlib writes; "
                         f"valid: {', '.join(sorted(fig.canvas.get_supported_filetypes()))}")
-    try:
-        # a plot already there stays until the new one is complete
-        with writing(path), atomic.replacing(path, ".tmp-" + path.name) as tmp:
-            fig.savefig(tmp, dpi=100, format=kind)
-    finally:
-        plt.close(fig)
+    # a plot already there stays until the new one is complete
+    with writing(path), atomic.replacing(path, ".tmp-" + path.name) as tmp:
+        fig.savefig(tmp, dpi=100, format=kind)
     return path
 
 

@@ -71,11 +71,12 @@ def start_process(config: Config) -> tuple[RunSeeds, torch.device]:
 
 
 @contextlib.contextmanager
-def caller_torch_state() -> Iterator[None]:
-    """The caller's torch thread count, denormal flushing and global generator as they were
-    before the run (`start_process` sets them for it), so that a notebook's own torch code after
-    `relayrl.train` runs as it did before."""
+def caller_state_kept() -> Iterator[None]:
+    """The caller's torch thread count, denormal flushing and torch, NumPy and Python global
+    generators as they were before the run (`start_process` sets them for it, a resume loads
+    the checkpoint's), so that a notebook's own code after `relayrl.train` runs as it did before."""
     threads, generator = torch.get_num_threads(), torch.get_rng_state()
+    numpy_state, python_state = np.random.get_state(), random.getstate()
     cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None  # manual_seed seeds these too
     flushing = torch.tensor([1e-39]).item() == 0.0  # torch has no getter: a float32 denormal reads 0 when flushed
     try:
@@ -84,6 +85,8 @@ def caller_torch_state() -> Iterator[None]:
         torch.set_num_threads(threads)
         torch.set_flush_denormal(flushing)
         torch.set_rng_state(generator)
+        np.random.set_state(numpy_state)
+        random.setstate(python_state)
         if cuda is not None:
             torch.cuda.set_rng_state_all(cuda)
 
