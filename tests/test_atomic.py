@@ -163,3 +163,12 @@ def test_interrupts_pass_through_off_the_main_thread(tmp_path):
     thread.start()
     thread.join()
     assert done and (tmp_path / "f").read_text() == "x"
+
+
+def test_an_interrupt_in_a_write_inside_a_write_is_said_once(tmp_path, capsys):
+    from relayrl import interrupts
+
+    with pytest.raises(KeyboardInterrupt), interrupts.deferred():
+        atomic.write_with(tmp_path / "f", lambda f: (f.write(b"x"), signal.raise_signal(signal.SIGINT)))
+    assert capsys.readouterr().err.count("stopping once the file being written is complete") == 1
+    assert (tmp_path / "f").read_bytes() == b"x"

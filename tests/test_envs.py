@@ -502,3 +502,21 @@ def test_a_missing_opengl_library_names_the_setting_that_picks_another(monkeypat
         with making("CartPole-v1", users_code=True):
             broken()
     assert gl_hint(ValueError("bad kwarg")) == ""
+
+
+def test_closing_an_async_env_frees_its_file_descriptors_at_once():
+    """A notebook makes many runs in one process: the worker pipes go with close(), not with the
+    garbage collector."""
+    import gc
+
+    gc.disable()
+    try:
+        make_env("CartPole-v1", 2, vectorization="async", num_workers=2).close()  # what stays open once (a server)
+        before = len(os.listdir("/proc/self/fd"))
+        closed = []  # still referenced, as a finished run's parts are until the collector runs
+        for _ in range(3):
+            closed.append(make_env("CartPole-v1", 2, vectorization="async", num_workers=2))
+            closed[-1].close()
+        assert len(os.listdir("/proc/self/fd")) == before
+    finally:
+        gc.enable()

@@ -8,6 +8,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 import warnings
 
@@ -188,7 +189,7 @@ def test_ctrl_c_in_the_final_evaluation_keeps_the_policy_and_a_checkpoint_and_a_
         if row["event"] == "log" and row["step"] == 600:
             toy_envs.INTERRUPT["now"] = True
 
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(KeyboardInterrupt, match=r"^the run reached its last env step \(600\) with a checkpoint"):
         relayrl.train(cfg, tmp_path / "r", progress=False, callbacks=[ctrl_c_in_the_final_evaluation])
     assert relayrl.load_policy(tmp_path / "r").env_steps == 600
     assert load_latest_checkpoint(tmp_path / "r" / "checkpoints")["env_steps"] == 600
@@ -573,3 +574,18 @@ def test_a_resume_that_changes_how_the_envs_are_made_starts_new_episodes_with_th
     assert "env.kwargs changed: the envs start new episodes with the new settings" in capsys.readouterr().err
     assert result.final["train/average_return"] == 5.0  # episodes of the new length were trained on
     assert result.final["train/episodes"] == 20  # 100 steps / 5: none of the old envs' episode was kept
+
+
+def test_ctrl_c_in_the_random_warm_up_says_where_the_run_stopped(tmp_path):
+    """Python's own KeyboardInterrupt (no stop requested: the warm-up stops at once) gets the same
+    message a requested stop gets."""
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=100000"] + DQN[2:]
+                              + ["env.id=toy_envs:Sleepy", "env.check=false",  # 2 ms a step: a long warm-up
+                                 "train.initial_collect_steps=50000", "eval.interval=0"])
+    timer = threading.Timer(1.5, lambda: os.kill(os.getpid(), signal.SIGINT))
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt, match=r"before its first checkpoint: nothing to resume; a new run in"):
+            relayrl.train(cfg, tmp_path / "r", progress=False)
+    finally:
+        timer.cancel()

@@ -61,7 +61,7 @@ def test_resume_needs_a_checkpoint(tmp_path):
     cfg = relayrl.load_config("dqn-cartpole-fast", SMALL)
     RunDir(tmp_path / "r").create()
     (tmp_path / "r" / "config.toml").write_text("")
-    with pytest.raises(CheckpointError, match="no checkpoint"):
+    with pytest.raises(CheckpointError, match=r"no checkpoint .*: start the run again without --resume"):
         relayrl.train(cfg, tmp_path / "r", resume=True, progress=False)
 
 

@@ -35,16 +35,28 @@ def deferred() -> Iterator[None]:
     pending: list[int] = []
 
     def hold(signum: int, frame: object) -> None:
-        if not pending:  # a large checkpoint takes a while: say why the stop waits
+        if not _Deferring.said:  # a large checkpoint takes a while: say why the stop waits, once
             print("relayrl: stopping once the file being written is complete", file=sys.stderr, flush=True)
+            _Deferring.said = True
         pending.append(signum)
 
+    _Deferring.depth += 1  # a write inside a write (a checkpoint's file) holds a signal twice
     try:
         _install(dict.fromkeys(WANTED, hold))
         yield
     finally:
+        _Deferring.depth -= 1
+        if _Deferring.depth == 0:
+            _Deferring.said = False
         _install(previous)
         _deliver([sig for sig in WANTED if sig in pending], previous)
+
+
+class _Deferring:
+    """Across nested `deferred` blocks (the main thread's only): how deep, and whether the wait was said."""
+
+    depth = 0
+    said = False
 
 
 def _deliver(signals: list[int], handlers: dict[int, Any]) -> None:

@@ -485,6 +485,8 @@ class AsyncGymBatchEnv(BatchEnvBase):
             if proc.is_alive():
                 proc.kill()
                 proc.join(timeout=2)
+            if not proc.is_alive():
+                proc.close()  # its sentinel pipe now, not when the garbage collector finds it
         for conn in self._conns:
             _MAIN_ENDS.discard(conn)
         if hasattr(self, "_local"):

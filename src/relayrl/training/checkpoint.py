@@ -39,7 +39,9 @@ def load_latest_checkpoint(folder: Path) -> dict[str, Any]:
     """The newest readable checkpoint; a corrupt one is reported and the one before it used."""
     candidates = list_checkpoints(folder)
     if not candidates:
-        raise CheckpointError(f"no checkpoint in {folder} (nothing to resume from)")
+        raise CheckpointError(f"no checkpoint in {folder} (nothing to resume from): start the run again without "
+                              "--resume (in Python: resume=False); a run that trained past step 0 needs --overwrite "
+                              "(overwrite=True)")
     for path in reversed(candidates):
         try:
             return torch.load(path, map_location="cpu", weights_only=False)

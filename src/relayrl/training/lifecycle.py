@@ -322,6 +322,10 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if interrupted is not None:  # KeyboardInterrupt, or the SIGTERM handler's stop
             interrupts.redeliver(interrupted, _stopped_at(core))
         return RunResult(core.rd.root, report.last_eval, stopped_early=stopped)
+    except KeyboardInterrupt as e:  # Ctrl-C where no stop was requested (the warm-up, an evaluation, a save)
+        if not e.args:  # Python's own: say where the run stopped, as a requested stop says it
+            e.args = (_stopped_at(core),)
+        raise
     except NonFiniteError as e:  # found below the run (the learner): it says what the run keeps
         if e.kept:
             raise
@@ -353,9 +357,15 @@ def _stopped_at(core: RunCore) -> str:
     """Where an interrupted run stopped and how it goes on, in Python's terms (the CLI says its own)."""
     root, step = str(core.rd.root), core.env_steps()
     factory = ", env=<the same env factory>" if names_python_factory(core.config.env.id) else ""
-    if core.config.train.checkpoint_interval > 0:
+    if list_checkpoints(core.rd.checkpoints):
+        if step >= core.config.train.total_steps:  # Ctrl-C in the final evaluation or save
+            return (f"the run reached its last env step ({step:,}) with a checkpoint in {root!r}: "
+                    f"relayrl.train(None, {root!r}, resume=True{factory}) does what was left (its final evaluation)")
         return (f"the run stopped at env step {step:,} with a checkpoint in {root!r}: "
                 f"relayrl.train(None, {root!r}, resume=True{factory}) continues it")
+    if core.config.train.checkpoint_interval > 0:
+        return (f"the run stopped at env step {step:,}, before its first checkpoint: nothing to resume; a new run "
+                f"in {root!r} starts over (overwrite=True where it trained past step 0)")
     return (f"the run stopped at env step {step:,}; its policy and metrics are in {root!r} "
             "(train.checkpoint_interval = 0: no checkpoint to resume from)")
 
