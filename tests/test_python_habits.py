@@ -408,3 +408,16 @@ def test_plot_run_leaves_the_callers_matplotlib_backend_and_figures_alone(run_di
         assert plt.get_fignums() == []
     finally:
         matplotlib.use(before)
+
+
+def test_video_refuses_a_file_that_is_no_video_before_playing_and_leaves_sdl_as_it_was(run_dir, tmp_path, monkeypatch):
+    import os
+
+    played = []
+    factory = lambda render_mode=None: played.append(1) or Countdown(render_mode=render_mode)  # noqa: E731
+    with pytest.raises(UserError, match=r"\.txt is not a video format relayrl writes; valid: \.mp4, \.gif"):
+        relayrl.record_video(run_dir, tmp_path / "x.txt", env=factory)
+    assert not played
+    monkeypatch.delenv("SDL_VIDEODRIVER", raising=False)
+    relayrl.record_video(run_dir, tmp_path / "v.gif", env=factory)
+    assert "SDL_VIDEODRIVER" not in os.environ and (tmp_path / "v.gif").stat().st_size > 100

@@ -1,10 +1,12 @@
-"""`relayrl video`: an MP4 of the saved greedy policy, from Gymnasium `rgb_array` frames."""
+"""`relayrl video`: an MP4 (or GIF, MKV, ...) of the saved greedy policy, from Gymnasium `rgb_array` frames."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 import numpy as np
@@ -18,6 +20,9 @@ from relayrl.export import load_policy
 from relayrl.paths import output_path, writing
 from relayrl.presets import load_config
 
+if TYPE_CHECKING:
+    from relayrl.training.run_dir import RunDir
+
 
 def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: int = 1,
                  seed: int = 0, max_steps: int = 10_000, env: Any = None) -> Path:
@@ -29,12 +34,49 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     rd = RunDir(run_dir)
     rd.require()
     path = output_path(out, rd.root / "video.mp4")
-    # Off-screen rendering needs no display or sound: without these, pygame-based envs
-    # (Pendulum) print an SDL "XDG_RUNTIME_DIR is invalid" error on headless machines.
-    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")
-    os.environ.setdefault("SDL_AUDIODRIVER", "dummy")
+    if path.suffix.lower() not in VIDEO_SUFFIXES:  # said before the episodes are played, not after
+        raise UserError(f"--out {str(path)!r}: {path.suffix} is not a video format relayrl writes; valid: "
+                        f"{', '.join(VIDEO_SUFFIXES)}")
+    with _headless_sdl():
+        frames, fps = _frames(rd, policy=load_policy(rd.root), env=env, episodes=episodes, seed=seed,
+                              max_steps=max_steps)
+    import imageio.v2 as imageio
+
+    # macro_block_size=1 keeps odd frame sizes as they are instead of resizing with a warning;
+    # the temp name keeps the suffix imageio picks the format from, and a video already
+    # there stays until the new one is complete.
+    # (A GIF, written by Pillow, takes each frame's duration in ms instead.)
+    timing = {"duration": 1000 / fps} if path.suffix.lower() == ".gif" else {"fps": fps, "macro_block_size": 1}
+    with writing(path), atomic.replacing(path, ".tmp-" + path.name) as tmp:
+        imageio.mimwrite(tmp, frames, **timing)
+    return path
+
+
+VIDEO_SUFFIXES = (".mp4", ".gif", ".mkv", ".mov", ".avi", ".webm")
+
+
+@contextlib.contextmanager
+def _headless_sdl() -> Iterator[None]:
+    """Off-screen rendering needs no display or sound: without these, pygame-based envs
+    (Pendulum) print an SDL "XDG_RUNTIME_DIR is invalid" error on headless machines. Put back
+    afterwards, so a notebook's own `render_mode="human"` env later gets its window."""
+    keys = ("SDL_VIDEODRIVER", "SDL_AUDIODRIVER")
+    before = {k: os.environ.get(k) for k in keys}
+    for k in keys:
+        os.environ.setdefault(k, "dummy")
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _frames(rd: RunDir, policy: Any, env: Any, episodes: int, seed: int, max_steps: int) -> tuple[list[Any], int]:
+    """The RGB frames of `episodes` episodes of `policy` on the run's env (or `env`), and its fps."""
     config = load_config(str(rd.config))
-    policy = load_policy(rd.root)
     given = env
     frames: list[Any] = []  # RGB arrays
     make_one = (resolve_env_fn(config.env.id, config.env.max_episode_steps, "rgb_array", config.env.kwargs,
@@ -59,14 +101,7 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     finally:
         if not isinstance(given, gym.Env):  # the caller's own instance stays open
             env.close()
-    import imageio.v2 as imageio
-
-    # macro_block_size=1 keeps odd frame sizes as they are instead of resizing with a warning;
-    # the temp name keeps the .mp4 suffix imageio picks the format from, and a video already
-    # there stays until the new one is complete.
-    with writing(path), atomic.replacing(path, ".tmp-" + path.name) as tmp:
-        imageio.mimwrite(tmp, frames, fps=fps, macro_block_size=1)
-    return path
+    return frames, fps
 
 
 class EndFrames(gym.Wrapper):
