@@ -99,9 +99,10 @@ class LocalDriver:
                             evaluation=self.evaluator, show_progress=progress, callbacks=callbacks)
 
     def _record_eval(self, p: Progress, result: dict[str, Any]) -> None:
-        # The policy file is the evaluated policy when the row is written, so a callback can keep
-        # the best one (`relayrl.load_policy(run_dir)`, or a copy of policy/policy.pt).
-        if self.core.policy_saver.saved_progress != p:
+        # With callbacks, the policy file is the evaluated policy when they get the row, so one
+        # can keep the best (`relayrl.load_policy(run_dir)`, or a copy of policy/policy.pt).
+        # Without, the file keeps train.policy_save_interval's pace (each save is an fsync).
+        if self.core.report.callbacks and self.core.policy_saver.saved_progress != p:
             self.core.check_finite(p, weights=True)  # nothing non-finite is saved
             self.core.policy_saver.save(p)
         self.core.report.record_eval(p, result, self.evaluator.seconds)
