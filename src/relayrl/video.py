@@ -60,18 +60,13 @@ def _headless_sdl() -> Iterator[None]:
     """Off-screen rendering needs no display or sound: without these, pygame-based envs
     (Pendulum) print an SDL "XDG_RUNTIME_DIR is invalid" error on headless machines. Put back
     afterwards, so a notebook's own `render_mode="human"` env later gets its window."""
-    keys = ("SDL_VIDEODRIVER", "SDL_AUDIODRIVER")
-    before = {k: os.environ.get(k) for k in keys}
-    for k in keys:
-        os.environ.setdefault(k, "dummy")
+    added = [k for k in ("SDL_VIDEODRIVER", "SDL_AUDIODRIVER") if k not in os.environ]  # a user's own stay
+    os.environ.update(dict.fromkeys(added, "dummy"))
     try:
         yield
     finally:
-        for k, v in before.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
+        for k in added:
+            os.environ.pop(k, None)
 
 
 def _frames(rd: RunDir, policy: Any, env: Any, episodes: int, seed: int, max_steps: int) -> tuple[list[Any], int]:
