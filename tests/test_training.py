@@ -186,3 +186,13 @@ def test_the_progress_bar_moves_between_log_rows(tmp_path, monkeypatch):
             "eval.interval=0", "eval.episodes=1", "train.initial_collect_steps=100", "train.checkpoint_interval=0"]
     relayrl.train(relayrl.load_config("dqn-cartpole", over), tmp_path / "run")  # 2 ms a step: ~3 s
     assert len([m for m in moves if 0 < m < 1400]) >= 1, moves
+
+
+@pytest.mark.parametrize("keep, expected", [(2, [400, 500]), (0, [100, 200, 300, 400, 500]), (1, [500])])
+def test_checkpoint_keep_says_how_many_of_the_newest_stay(tmp_path, keep, expected):
+    cfg = relayrl.load_config("dqn-cartpole-fast", ["train.total_steps=500", "train.initial_collect_steps=50",
+                                                    "train.collect_steps=50", "train.checkpoint_interval=100",
+                                                    f"train.checkpoint_keep={keep}",
+                                                    "eval.interval=0", "eval.episodes=1", "train.torch_threads=1"])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    assert [int(p.stem.split("-")[1]) for p in list_checkpoints(tmp_path / "r" / "checkpoints")] == expected

@@ -60,6 +60,7 @@ class TrainConfig(Section):
     gradient_steps: int = 1  # gradient steps per iteration
     checkpoint_interval: int = 10_000  # env steps; 0 disables
     checkpoint_replay: bool = True  # false: checkpoints leave the replay out (huge tables)
+    checkpoint_keep: int = 2  # the newest checkpoints kept; 0 keeps every one (each holds the replay)
     policy_save_interval: int = 5_000  # env steps; 0 disables
     log_interval: int = 1_000  # env steps between progress / TensorBoard scalars
     pull_interval: int = 0  # env steps between the actor's weight pulls; 0: every collect iteration
@@ -159,7 +160,7 @@ class Config(Section):
         if algorithm(self.algo).replay == "rollouts":
             self._check_on_policy()
         self.train.require(">= 0", "initial_collect_steps", "gradient_steps", "checkpoint_interval",
-                           "policy_save_interval", "log_interval", "pull_interval", "torch_threads")
+                           "checkpoint_keep", "policy_save_interval", "log_interval", "pull_interval", "torch_threads")
         self.env.require(">= 0", "num_workers", note=" (0: one worker process per CPU core beside the main one)")
         self.env.require_choice(vectorization=("sync", "async", "ale"))
         r = self.replay

@@ -24,11 +24,12 @@ def list_checkpoints(folder: Path) -> list[Path]:
 
 
 def save_checkpoint(folder: Path, env_steps: int, state: dict[str, Any], keep: int = 2) -> Path:
+    """Write `state` as `folder/ckpt-<env steps>.pt` atomically, keeping the newest `keep` (0: all)."""
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"ckpt-{env_steps:012d}.pt"
     with interrupts.deferred():  # Ctrl-C waits for the pruning too: `keep` files stay
         atomic.torch_save(state, path)  # the temp name (ckpt-*.pt.tmp) never matches a checkpoint's
-        for old in list_checkpoints(folder)[:-keep]:
+        for old in list_checkpoints(folder)[:-keep] if keep else []:
             old.unlink(missing_ok=True)
         for partial in folder.glob("ckpt-*.pt.tmp"):  # left by writes that a kill interrupted
             partial.unlink(missing_ok=True)

@@ -136,7 +136,8 @@ class RunCore:
         self.collect_only = collect_only(c)
         self.policy_saver = PolicySaver(c.train.policy_save_interval, agent, rd.policy,
                                         extra={**env_entries(c), **env_action_entries(agent.action_spec)})
-        self.checkpointer = Checkpointer(c.train.checkpoint_interval, checkpoint_state, rd.checkpoints)
+        self.checkpointer = Checkpointer(c.train.checkpoint_interval, checkpoint_state, rd.checkpoints,
+                                         keep=c.train.checkpoint_keep)
         self.sps_log = StepsPerSecondLog(c.train.log_interval, report=self.report.log_progress)
         self.triggers: list[IntervalTrigger] = [evaluation, self.policy_saver, self.checkpointer, self.sps_log]
 
