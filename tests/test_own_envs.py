@@ -324,7 +324,7 @@ def test_what_relayrl_casts_or_tolerates_stays_a_warning(tmp_path, capfd):
     (gym.spaces.MultiBinary(2), np.array([True, False]), None),
 ])
 def test_the_probe_flags_only_what_cannot_be_read(space, obs, fragment):
-    from relayrl.envs.probe import observation_problem
+    from relayrl.envs.observations import observation_problem
 
     problem = observation_problem(obs, space, "step()")
     assert (problem is None) if fragment is None else (fragment in problem)

@@ -22,6 +22,7 @@ import torch
 from gymnasium.utils import EzPickle
 
 from relayrl.core import BatchedEnv
+from relayrl.envs.observations import observation_problem
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
 from relayrl.specs import (
@@ -482,8 +483,6 @@ class GymBatchEnv(BatchEnvBase):
     def _unfit(self, obs: Any, i: int, method: str, error: Exception) -> UserError:
         """One line for an observation that does not fit the env's space, met mid-run (the
         start's check saw fitting ones)."""
-        from relayrl.envs.probe import observation_problem  # the error path only
-
         problem = observation_problem(obs, self.envs[i].observation_space, f"{method} of env copy {i}")
         return UserError(problem or f"the observation from {method} of env copy {i} does not fit its observation "
                                     f"space {self.envs[i].observation_space} ({type(error).__name__}: {error})")
