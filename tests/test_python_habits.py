@@ -350,6 +350,7 @@ def test_load_policy_takes_what_names_a_run(run_dir):
 @pytest.mark.parametrize("env_id, answer, fragment", [
     ("CartPole-v1", lambda o: 5, r"answered 5 \(int64, shape \(\)\) to one observation; this env takes Discrete\(2\)"),
     ("CartPole-v1", lambda o: "x", r"answered x .* this env takes Discrete\(2\) actions"),
+    ("CartPole-v1", lambda o: 1.5, r"answered 1.5 \(float64, shape \(\)\) to one observation"),
     ("Pendulum-v1", lambda o: np.array([0.5, 0.5]), r"shape \(2,\)\) to one observation; this env takes Box\(-2, 2"),
 ])
 def test_a_callable_policy_answering_what_the_env_does_not_take_is_one_line(env_id, answer, fragment):

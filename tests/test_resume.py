@@ -589,3 +589,18 @@ def test_ctrl_c_in_the_random_warm_up_says_where_the_run_stopped(tmp_path):
             relayrl.train(cfg, tmp_path / "r", progress=False)
     finally:
         timer.cancel()
+
+
+def test_a_resume_with_kwargs_given_as_tuples_in_python_changes_nothing(tmp_path, capsys):
+    """config.toml keeps (2, 3) as [2, 3]: the same settings, so the envs go on mid-episode."""
+    over = ["env.id=toy_envs:Tupled", "env.check=false", "train.total_steps=200", "train.initial_collect_steps=50",
+            "eval.interval=0", "eval.episodes=1", "train.checkpoint_interval=100", "agent.hidden=[16]",
+            "agent.batch_size=8", "env.max_episode_steps=2000"]
+    cfg = relayrl.load_config("dqn", over)
+    cfg.env.kwargs = {"length": 1000, "dims": (2, 3)}
+    relayrl.train(cfg, tmp_path / "run", progress=False)
+    capsys.readouterr()
+    resumed = relayrl.load_config(str(tmp_path / "run" / "config.toml"), ["train.total_steps=300"])
+    result = relayrl.train(resumed, tmp_path / "run", resume=True, progress=False)
+    assert "changed: the envs start new episodes" not in capsys.readouterr().err
+    assert result.final["train/episodes"] == 0  # the 1,000-step episodes went on

@@ -176,6 +176,14 @@ class ShapeShifts(BrokenAt):
         return (np.zeros(3, np.float32) if self.steps >= self.at else obs), reward, terminated, truncated, info
 
 
+class Tupled(Countdown):
+    """Countdown taking a tuple kwarg, which config.toml keeps as a list."""
+
+    def __init__(self, dims: tuple = (2,), **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.dims = tuple(dims)
+
+
 class RefusedInWorker(Countdown):
     """Countdown that refuses to be made in a worker process, as a user's env refuses a bad
     setting with relayrl's UserError (a copy-specific resource, say)."""

@@ -319,7 +319,8 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
                             and key in {f.name for f in dataclasses.fields(entry.config)})
             said = unknown_key(path, [prefix + n for n in names])
             if owners:  # agent.normalize_obs on a SAC run
-                said = (f"unknown config key {path!r}: a setting of {' and '.join(owners)}'s agent, not of this "
+                who = owners[0] if len(owners) == 1 else f"{', '.join(owners[:-1])} and {owners[-1]}"
+                said = (f"unknown config key {path!r}: a setting of {who}'s agent, not of this "
                         f"algorithm's; {said.split('; ', 1)[1]}")
             raise ConfigError(said)
         current = getattr(obj, key)

@@ -35,6 +35,12 @@ def evaluate(policy: Any, env: Any = ..., episodes: int = ..., deterministic: bo
              return_episode_rewards: Literal[True]) -> tuple[list[float], list[int]]: ...
 
 
+@overload
+def evaluate(policy: Any, env: Any = ..., episodes: int = ..., deterministic: bool = ..., seed: int | None = ...,
+             max_episode_steps: int = ..., *,
+             return_episode_rewards: bool) -> EvalResult | tuple[list[float], list[int]]: ...
+
+
 def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bool = True,
              seed: int | None = 0, max_episode_steps: int = 0,
              return_episode_rewards: bool = False) -> EvalResult | tuple[list[float], list[int]]:
@@ -121,11 +127,10 @@ def _one_at_a_time(fn: Callable[[Any], Any], obs_spec: Spec, act_spec: Spec) -> 
         if fits and isinstance(act_spec, DiscreteSpec):  # an index, 1.0 included
             index = float(a.reshape(()))
             fits = index.is_integer() and 0 <= index < act_spec.n
-            a = a.astype(np.int64)
         if not fits:
             raise UserError(f"the policy answered {str(a.tolist())[:60]} ({a.dtype}, shape {a.shape}) to one "
                             f"observation; {takes}")
-        return a.reshape(act_spec.shape)
+        return (a.astype(np.int64) if isinstance(act_spec, DiscreteSpec) else a).reshape(act_spec.shape)
 
     def act(obs: torch.Tensor) -> torch.Tensor:
         return torch.as_tensor(np.stack([one(o) for o in obs.cpu().numpy()]))

@@ -206,7 +206,9 @@ def rng_kept(device: torch.device) -> contextlib.AbstractContextManager[Any]:
     """Around building a saved policy's networks, which draw initial weights from torch's global
     generator before the saved ones replace them: the caller's generator (a notebook's
     `torch.manual_seed`) is left as it was."""
-    return torch.random.fork_rng(devices=[device.index or 0] if device.type == "cuda" else [])
+    if device.type != "cuda":
+        return torch.random.fork_rng(devices=[])
+    return torch.random.fork_rng(devices=[torch.cuda.current_device() if device.index is None else device.index])
 
 
 def built_quietly(module: Any, state: dict[str, Any], device: torch.device, deterministic: bool,

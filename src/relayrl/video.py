@@ -52,7 +52,7 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     return path
 
 
-VIDEO_SUFFIXES = (".mp4", ".gif", ".mkv", ".mov", ".avi", ".webm")
+VIDEO_SUFFIXES = (".mp4", ".gif", ".mkv", ".mov", ".avi")  # not .webm: ffmpeg's default H.264 writes a broken one
 
 
 @contextlib.contextmanager

@@ -261,7 +261,8 @@ class ActorPool:
             self.restarting.discard(i)
             self.say(f"rollout actor {i} died and is not restarted again (distributed.max_restarts={d.max_restarts})")
             if len(self.dead) == self.num_actors:
-                raise RuntimeError("every rollout actor died; continue from the last checkpoint with --resume")
+                # run_to_end's note says what the run keeps and how it resumes
+                raise RuntimeError("every rollout actor died, each past distributed.max_restarts")
             return
         self.restarting.add(i)
         self.say(f"rollout actor {i} died ({why}); Ray restarts it and it goes on from the "

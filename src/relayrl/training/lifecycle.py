@@ -183,7 +183,7 @@ class RunCore:
             raise stop(finding, self.kept())
 
     def kept(self) -> str:
-        """What a run stopped for a non-finite number leaves: its last checkpoint and policy."""
+        """What a stopped run leaves (a non-finite number, a failure): its last checkpoint and policy."""
         ckpts = list_checkpoints(self.rd.checkpoints)
         parts = [f"the last good checkpoint (env step {int(ckpts[-1].stem.split('-')[1]):,})"] if ckpts else []
         saved = self.policy_saver.saved_at
@@ -336,7 +336,9 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if not training:
             raise
         stopped_at = f"the run stopped at env step {core.env_steps():,}"
-        if isinstance(e, UserError):  # one line, said by whoever catches it: the same line says it
+        # A UserError is one line, said by whoever catches it: the same line says what is kept
+        # (where its message is its args; a class of its own making gets a note instead).
+        if isinstance(e, UserError) and type(e).__str__ is BaseException.__str__:
             e.args = (f"{e}; {stopped_at}: {crash_kept(core)}",)
         else:  # the user's own traceback (an env's exception) ends with it
             e.add_note(f"relayrl: {stopped_at} on the error above; {crash_kept(core)}")
@@ -350,6 +352,9 @@ def crash_kept(core: RunCore) -> str:
     root = str(core.rd.root)
     if not list_checkpoints(core.rd.checkpoints):
         return core.kept()
+    if names_python_factory(core.config.env.id):  # only Python can pass the factory again
+        return (f"{core.kept()}: once the cause is fixed, relayrl.train(None, {root!r}, resume=True, "
+                "env=<the same env factory>) continues it")
     return (f"{core.kept()}: once the cause is fixed, `relayrl train --run-dir {root} --resume` (in Python: "
             f"relayrl.train(None, {root!r}, resume=True)) continues it")
 

@@ -5,6 +5,7 @@ driven by `iterate`: collect, train what the rate limiter allows, fire the trigg
 from __future__ import annotations
 
 import copy
+import json
 import signal
 from collections.abc import Callable
 from typing import Any
@@ -227,7 +228,12 @@ class LocalDriver:
         """The env.* settings that make the envs (kwargs, wrappers, time limit) and differ from
         the checkpoint's."""
         saved, now = state.get("config", {}).get("env", {}), to_dict(self.config)["env"]
-        return [f"env.{k}" for k in ("kwargs", "wrappers", "max_episode_steps") if k in saved and saved[k] != now[k]]
+
+        def plain(value: Any) -> str:  # (2, 3) given in Python and [2, 3] read back from config.toml are one
+            return json.dumps(value, sort_keys=True, default=repr)
+
+        return [f"env.{k}" for k in ("kwargs", "wrappers", "max_episode_steps")
+                if k in saved and plain(saved[k]) != plain(now[k])]
 
     def close(self) -> None:
         """The envs end with the run, however it ends: async envs' worker processes included."""
