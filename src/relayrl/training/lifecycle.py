@@ -23,7 +23,7 @@ from relayrl import interrupts
 from relayrl.config import Config, changes, from_dict, load_toml, save_toml, to_dict
 from relayrl.core import Agent
 from relayrl.envs.gym import names_python_factory
-from relayrl.envs.make import check_env, is_user_env, reward_wrappers
+from relayrl.envs.make import check_env, global_rngs_kept, is_user_env, reward_wrappers
 from relayrl.errors import NonFiniteError, UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.nn.encoders import CONV_READY
@@ -75,18 +75,15 @@ def caller_state_kept() -> Iterator[None]:
     """The caller's torch thread count, denormal flushing and torch, NumPy and Python global
     generators as they were before the run (`start_process` sets them for it, a resume loads
     the checkpoint's), so that a notebook's own code after `relayrl.train` runs as it did before."""
-    threads, generator = torch.get_num_threads(), torch.get_rng_state()
-    numpy_state, python_state = np.random.get_state(), random.getstate()
+    threads = torch.get_num_threads()
     cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None  # manual_seed seeds these too
     flushing = torch.tensor([1e-39]).item() == 0.0  # torch has no getter: a float32 denormal reads 0 when flushed
     try:
-        yield
+        with global_rngs_kept():
+            yield
     finally:
         torch.set_num_threads(threads)
         torch.set_flush_denormal(flushing)
-        torch.set_rng_state(generator)
-        np.random.set_state(numpy_state)
-        random.setstate(python_state)
         if cuda is not None:
             torch.cuda.set_rng_state_all(cuda)
 
@@ -353,22 +350,26 @@ def crash_kept(core: RunCore) -> str:
     if not list_checkpoints(core.rd.checkpoints):
         return core.kept()
     if names_python_factory(core.config.env.id):  # only Python can pass the factory again
-        return (f"{core.kept()}: once the cause is fixed, relayrl.train(None, {root!r}, resume=True, "
-                "env=<the same env factory>) continues it")
+        return f"{core.kept()}: once the cause is fixed, {_python_resume(core)} continues it"
     return (f"{core.kept()}: once the cause is fixed, `relayrl train --run-dir {root} --resume` (in Python: "
-            f"relayrl.train(None, {root!r}, resume=True)) continues it")
+            f"{_python_resume(core)}) continues it")
+
+
+def _python_resume(core: RunCore) -> str:
+    """The Python call that resumes the run, with the env factory a run trained on one needs again."""
+    factory = ", env=<the same env factory>" if names_python_factory(core.config.env.id) else ""
+    return f"relayrl.train(None, {str(core.rd.root)!r}, resume=True{factory})"
 
 
 def _stopped_at(core: RunCore) -> str:
     """Where an interrupted run stopped and how it goes on, in Python's terms (the CLI says its own)."""
     root, step = str(core.rd.root), core.env_steps()
-    factory = ", env=<the same env factory>" if names_python_factory(core.config.env.id) else ""
     if list_checkpoints(core.rd.checkpoints):
         if step >= core.config.train.total_steps:  # Ctrl-C in the final evaluation or save
             return (f"the run reached its last env step ({step:,}) with a checkpoint in {root!r}: "
-                    f"relayrl.train(None, {root!r}, resume=True{factory}) does what was left (its final evaluation)")
-        return (f"the run stopped at env step {step:,} with a checkpoint in {root!r}: "
-                f"relayrl.train(None, {root!r}, resume=True{factory}) continues it")
+                    f"{_python_resume(core)} does what was left (its final evaluation)")
+        return (f"the run stopped at env step {step:,} with a checkpoint in {root!r}: {_python_resume(core)} "
+                "continues it")
     if core.config.train.checkpoint_interval > 0:
         return (f"the run stopped at env step {step:,}, before its first checkpoint: nothing to resume; a new run "
                 f"in {root!r} starts over (overwrite=True where it trained past step 0)")

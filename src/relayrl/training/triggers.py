@@ -66,8 +66,7 @@ class PolicySaver(IntervalTrigger):
                  extra: dict[str, Any] | None = None) -> None:
         super().__init__(interval, self.save, unit)
         self.agent, self.folder, self.extra = agent, Path(folder), dict(extra or {})
-        self.saved_at: int | None = None  # env steps of the policy this saver last wrote
-        self.saved_progress: Progress | None = None
+        self.saved_progress: Progress | None = None  # where the policy this saver last wrote was
 
     def save(self, progress: Progress) -> None:
         """Write the policy as it is at `progress` (once: an evaluation, the interval and the
@@ -79,7 +78,12 @@ class PolicySaver(IntervalTrigger):
         self.folder.mkdir(parents=True, exist_ok=True)
         state = {**self.agent.policy_state(), "env_steps": progress.env_steps, **self.extra}
         save_policy_file(state, self.folder / "policy.pt")
-        self.saved_at, self.saved_progress = progress.env_steps, Progress(progress.env_steps, progress.train_step)
+        self.saved_progress = Progress(progress.env_steps, progress.train_step)
+
+    @property
+    def saved_at(self) -> int | None:
+        """Env steps of the policy this saver last wrote."""
+        return None if self.saved_progress is None else self.saved_progress.env_steps
 
 
 class Checkpointer(IntervalTrigger):
