@@ -57,9 +57,6 @@ class DQNAgent(Agent):
                        if cfg.lr_end >= 0 and total_steps > 0 else None)
         self._online_params = list(self.online.parameters())
         self._target_params = list(self.target.parameters()) if self.target is not None else []
-        # The gradient step (`update.py`): on CUDA autograd's replayed from a CUDA graph; on CPU
-        # hand-written for MLPs (the same values as autograd's, with less per-update overhead),
-        # else autograd's.
         self.update = make_update(self.online, self.target, self.optimizer, cfg, hand_written)
 
     @property

@@ -71,8 +71,6 @@ class PPOAgent(Agent):
         self.gen = torch.Generator()  # minibatch shuffles (on the CPU: the same on any device)
         self.gen.manual_seed(int(rng.integers(2**62)))
         self._train_step = 0
-        # The minibatch step: hand-written where it models the networks (the same update as
-        # autograd's up to float rounding, with less overhead on CPU), else autograd's (update.py).
         self.update = make_update(self.net, self.opt, cfg, self.evaluate_actions, self.squash_scale is not None,
                                   hand_written)
 

@@ -144,8 +144,7 @@ class GraphedPPOUpdate(PPOUpdate):
 
 def make_update(net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions,
                 squashed: bool, hand_written: bool = True) -> PPOUpdate:
-    """On CUDA the graphed reference (unless RELAYRL_CUDA_GRAPHS=0); elsewhere the hand-written
-    update where it models the networks (and `hand_written`), else autograd's."""
+    """The step of the module doc (RELAYRL_CUDA_GRAPHS=0 turns graphs off, `hand_written=False` the twin)."""
     if cuda_graphs_enabled(next(net.parameters()).device):
         return GraphedPPOUpdate(net, opt, cfg, evaluate_actions)
     if hand_written and HandWrittenPPOUpdate.supports(net, cfg, squashed):

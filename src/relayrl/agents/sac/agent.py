@@ -1,9 +1,5 @@
-"""SAC agent: owns the actor, twin critics, their targets, alpha, optimizers and counters.
-
-One `train(batch)` is: critic step on soft TD targets, actor step through the freshly
-updated critics, alpha step towards the target entropy, Polyak update of the target critics
-(the order of SB3 and TF-Agents). The losses are the pure functions of `losses.py`.
-"""
+"""SAC agent: owns the actor, twin critics, their targets, alpha, optimizers and counters;
+`update.py` holds the gradient steps, in the order of SB3 and TF-Agents."""
 
 from __future__ import annotations
 
@@ -62,9 +58,6 @@ class SACAgent(Agent):
         self._target_params = list(self.target_critic.parameters())
         self._train_step = 0
         self._eval_policy: TanhGaussianPolicy | None = None
-        # The gradient steps (`update.py`): on CUDA autograd's replayed from a CUDA graph; on
-        # CPU hand-written for the usual MLPs (the same values as autograd's, with less
-        # per-update overhead), else autograd's.
         self.update = make_update(SACParts(self.actor, self.critic, self.target_critic, self.log_alpha,
                                            self.actor_opt, self.critic_opt, self.alpha_opt, self.gen, loc, half,
                                            self.target_entropy, cfg), hand_written)
@@ -106,16 +99,11 @@ class SACAgent(Agent):
 
     def train(self, batch: Batch) -> dict[str, torch.Tensor]:
         metrics = self.update(batch)
-        self._count_step()
-        return metrics
-
-    @torch.no_grad()
-    def _count_step(self) -> None:
-        """One more train step; the target critics follow by Polyak averaging every
-        `target_update_period` steps (one fused op over every tensor)."""
         self._train_step += 1
-        if self._train_step % self.cfg.target_update_period == 0:
-            torch._foreach_lerp_(self._target_params, self._critic_params, self.cfg.tau)
+        if self._train_step % self.cfg.target_update_period == 0:  # Polyak, one fused op over every tensor
+            with torch.no_grad():
+                torch._foreach_lerp_(self._target_params, self._critic_params, self.cfg.tau)
+        return metrics
 
     def policy_state(self) -> dict[str, Any]:
         s = self.action_spec

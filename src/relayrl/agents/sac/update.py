@@ -166,8 +166,7 @@ class GraphedSACUpdate(SACUpdate):
 
 
 def make_update(parts: SACParts, hand_written: bool = True) -> SACUpdate:
-    """On CUDA the graphed reference (unless RELAYRL_CUDA_GRAPHS=0); elsewhere the hand-written
-    update where it supports the networks (and `hand_written`), else autograd's."""
+    """The step of the module doc (RELAYRL_CUDA_GRAPHS=0 turns graphs off, `hand_written=False` the twin)."""
     if cuda_graphs_enabled(parts.log_alpha.device):
         return GraphedSACUpdate(parts)
     twin = hand_written and mlp_fast.supports(parts.actor) and mlp_fast.supports(parts.critic)
