@@ -54,13 +54,14 @@ class PPOAgent(Agent):
         # tanh squashing: the log-probabilities are those of loc + scale * tanh(u). The scale adds a
         # constant to them, which a dimension with low == high (one value) leaves out instead of log 0.
         bounds = self._bounds()
-        if cfg.squash == "tanh" and bounds is not None and not (np.isfinite(bounds[0]).all()
-                                                                and np.isfinite(bounds[1]).all()):
-            raise UserError(f"agent.squash='tanh' squashes actions into finite bounds; this env's action space is "
-                            f"{describe(action_spec)}: use agent.squash='clip' (the default)")
-        self.squash_scale = (torch.as_tensor(np.where(bounds[1] > bounds[0], (bounds[1] - bounds[0]) / 2, 1.0),
-                                             dtype=torch.float32, device=device)
-                             if cfg.squash == "tanh" and bounds is not None and not self.net.discrete else None)
+        self.squash_scale: torch.Tensor | None = None
+        if cfg.squash == "tanh" and bounds is not None:
+            low, high = bounds
+            if not (np.isfinite(low).all() and np.isfinite(high).all()):
+                raise UserError(f"agent.squash='tanh' squashes actions into finite bounds; this env's action space "
+                                f"is {describe(action_spec)}: use agent.squash='clip' (the default)")
+            self.squash_scale = torch.as_tensor(np.where(high > low, (high - low) / 2, 1.0), dtype=torch.float32,
+                                                device=device)
         self.reward_scaler = RewardScaler(cfg.gamma) if cfg.normalize_reward else None
         self.params = list(self.net.parameters())
         self.opt = FastAdam(self.params, lr=cfg.lr, eps=1e-5)  # SB3's PPO eps
