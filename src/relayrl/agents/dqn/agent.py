@@ -77,7 +77,6 @@ class DQNAgent(Agent):
                 else linear_schedule(c.epsilon_start, c.epsilon_end, self.epsilon_decay_steps))
 
     def scalars(self, env_steps: int) -> dict[str, float]:
-        """Schedules at `env_steps`, for TensorBoard (charts/epsilon, charts/learning_rate)."""
         return {"epsilon": float(self.epsilon_schedule()(env_steps)), "learning_rate": float(self.optimizer.lr)}
 
     def policy_network(self) -> torch.nn.Module:
@@ -90,23 +89,18 @@ class DQNAgent(Agent):
         return self._eval_policy
 
     def set_progress(self, env_steps: int) -> None:
-        """Follow schedules that run on env steps (the learning-rate decay)."""
         if self._lr_at is not None:
             self.optimizer.lr = self._lr_at(env_steps)
 
     def prepare_horizon(self) -> int:
-        """How many of the next train() calls see the current target network; 0 where there
-        is none or it changes after every call (nothing to compute ahead then)."""
         if self.target is None or self.cfg.target_update_period == 1:
             return 0
         return self.cfg.target_update_period - self._train_step % self.cfg.target_update_period
 
     @torch.no_grad()
     def prepare(self, batch: Batch, steps: int) -> Batch | PreparedBatch:
-        """`batch` holding the next `steps` train() calls' batches, with the target network's
-        Q-values of their next observations computed ahead when that network stays the same
-        for those calls. Why: one forward pass over the whole chunk replaces `steps` small ones.
-        The values are what train() would compute itself, up to float rounding."""
+        """The target network's Q-values of the chunk's next observations, computed ahead: one
+        forward pass replaces `steps` small ones, with train()'s values up to float rounding."""
         if steps < 2 or steps > self.prepare_horizon():
             return batch
         next_obs = batch.next_obs.to(self.device, non_blocking=True)  # [steps * N, *obs_shape]

@@ -106,7 +106,6 @@ class PPOAgent(Agent):
         return self.net.policy
 
     def device_collect_policy(self, network: torch.nn.Module | None = None) -> PPODevicePolicy:
-        """The collect policy for a stateless torch env: actions and noise stay on the device."""
         net = self._acting(network)
         if self.net.head.binary or len(self.net.head.nvec) > 1:
             raise UserError("PPO on a stateless torch env takes Discrete or Box actions")
@@ -115,11 +114,9 @@ class PPOAgent(Agent):
                                int(self.rng.integers(2**62)), self.cfg.squash)
 
     def scalars(self, env_steps: int) -> dict[str, float]:
-        """Schedules at `env_steps`, for TensorBoard (charts/learning_rate, charts/clip_range)."""
         return {"learning_rate": float(self.lr_at(env_steps)), "clip_range": float(self.clip_at(env_steps))}
 
     def set_progress(self, env_steps: int) -> None:
-        """Learning rate and clip range follow their linear schedules in env steps."""
         self.opt.lr = self.lr_at(env_steps)
         self.clip_range = self.clip_at(env_steps)
 

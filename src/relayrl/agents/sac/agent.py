@@ -89,12 +89,11 @@ class SACAgent(Agent):
         return self._eval_policy
 
     def set_progress(self, env_steps: int) -> None:
-        """Follow schedules that run on env steps (the learning rates, with agent.lr_end >= 0)."""
         for opt, lr_at in self._lr_at:
             opt.lr = lr_at(env_steps)
 
     def scalars(self, env_steps: int) -> dict[str, float]:
-        """For TensorBoard: charts/learning_rate (the actor's; the critics' and alpha's are in the config)."""
+        # the actor's; the critics' and alpha's follow from the config
         return {"learning_rate": float(self.actor_opt.lr)}
 
     def train(self, batch: Batch) -> dict[str, torch.Tensor]:
