@@ -86,6 +86,7 @@ class Agent(Protocol):
     # Training metrics that are NaN where they are undefined (PPO's explained variance when a
     # rollout's returns are all equal): logged as they are, not taken for a diverging run.
     undefined_metrics: frozenset[str] = frozenset()
+    train_step: int  # gradient steps so far
 
     def collect_policy(self, env_step: Callable[[], int], network: nn.Module | None = None) -> Policy:
         """The exploring policy. `env_step` drives schedules (epsilon); `network` is the copy
@@ -114,9 +115,6 @@ class Agent(Protocol):
     def scalars(self, env_steps: int) -> dict[str, float]:
         """Schedules' current values (epsilon, learning_rate), logged as TensorBoard's charts/<name>."""
         ...
-
-    @property
-    def train_step(self) -> int: ...
 
     def state_dict(self) -> dict[str, Any]: ...
 

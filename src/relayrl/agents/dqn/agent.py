@@ -50,7 +50,7 @@ class DQNAgent(Agent):
         self.target = (None if cfg.target_update_period == 1 and cfg.tau >= 1.0
                        else copy.deepcopy(self.online).requires_grad_(False))
         self.optimizer = FastAdam(self.online.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
-        self._train_step = 0
+        self.train_step = 0
         self._eval_policy: GreedyPolicy | None = None
         self.epsilon_decay_steps = cfg.epsilon_decay_steps if cfg.epsilon_decay_steps >= 0 else total_steps // 10
         self._lr_at = (linear_schedule(cfg.lr, cfg.lr_end, total_steps)
@@ -58,10 +58,6 @@ class DQNAgent(Agent):
         self._online_params = list(self.online.parameters())
         self._target_params = list(self.target.parameters()) if self.target is not None else []
         self.update = make_update(self.online, self.target, self.optimizer, cfg, hand_written)
-
-    @property
-    def train_step(self) -> int:
-        return self._train_step
 
     def collect_policy(self, env_step: Callable[[], int], network: torch.nn.Module | None = None
                        ) -> EpsilonGreedyPolicy:
@@ -95,7 +91,7 @@ class DQNAgent(Agent):
     def prepare_horizon(self) -> int:
         if self.target is None or self.cfg.target_update_period == 1:
             return 0
-        return self.cfg.target_update_period - self._train_step % self.cfg.target_update_period
+        return self.cfg.target_update_period - self.train_step % self.cfg.target_update_period
 
     @torch.no_grad()
     def prepare(self, batch: Batch, steps: int) -> Batch | PreparedBatch:
@@ -115,8 +111,8 @@ class DQNAgent(Agent):
             metrics = self.update(Batch(*batch[:-1]), batch.target_q)
         else:
             metrics = self.update(batch, None)
-        self._train_step += 1
-        if self.target is not None and self._train_step % self.cfg.target_update_period == 0:
+        self.train_step += 1
+        if self.target is not None and self.train_step % self.cfg.target_update_period == 0:
             self._update_target()
         return metrics
 
@@ -137,7 +133,7 @@ class DQNAgent(Agent):
             "online": self.online.state_dict(),
             "target": self.target.state_dict() if self.target is not None else None,
             "optimizer": self.optimizer.state_dict(),
-            "train_step": self._train_step,
+            "train_step": self.train_step,
             "rng": self.rng.bit_generator.state,
         }
 
@@ -146,5 +142,5 @@ class DQNAgent(Agent):
         if self.target is not None:
             self.target.load_state_dict(conv_state_dict(state["target"]))
         self.optimizer.load_state_dict(state["optimizer"])
-        self._train_step = int(state["train_step"])
+        self.train_step = int(state["train_step"])
         self.rng.bit_generator.state = state["rng"]

@@ -71,14 +71,9 @@ class PPOAgent(Agent):
         self.clip_range = cfg.clip_range
         self.gen = torch.Generator()  # minibatch shuffles (on the CPU: the same on any device)
         self.gen.manual_seed(int(rng.integers(2**62)))
-        self._train_step = 0
+        self.train_step = 0
         self.update = make_update(self.net, self.opt, cfg, self.evaluate_actions, self.squash_scale is not None,
                                   hand_written)
-
-    @property
-    def train_step(self) -> int:
-        """Gradient steps (minibatches) so far."""
-        return self._train_step
 
     def _bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
         s = self.action_spec
@@ -151,7 +146,7 @@ class PPOAgent(Agent):
         orders = orders.to(self.device, non_blocking=True)
         sums = self.update.epochs((obs, action, old_logp, values, adv, returns), orders, self.clip_range)
         steps = cfg.n_epochs * -(-n // cfg.batch_size)
-        self._train_step += steps
+        self.train_step += steps
         if self.net.policy.obs_norm is not None:
             self.net.policy.obs_norm.update(obs)  # after training: the next rollout's policy
         means = sums / steps
@@ -176,14 +171,14 @@ class PPOAgent(Agent):
         return state
 
     def state_dict(self) -> dict[str, Any]:
-        return {"net": self.net.state_dict(), "opt": self.opt.state_dict(), "train_step": self._train_step,
+        return {"net": self.net.state_dict(), "opt": self.opt.state_dict(), "train_step": self.train_step,
                 "clip_range": self.clip_range, "rng": self.rng.bit_generator.state, "gen": self.gen.get_state(),
                 "reward_scaler": None if self.reward_scaler is None else self.reward_scaler.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.net.load_state_dict(state["net"])
         self.opt.load_state_dict(state["opt"])
-        self._train_step = int(state["train_step"])
+        self.train_step = int(state["train_step"])
         self.clip_range = float(state["clip_range"])
         self.rng.bit_generator.state = state["rng"]
         self.gen.set_state(state["gen"])

@@ -56,15 +56,11 @@ class SACAgent(Agent):
         self.gen.manual_seed(int(rng.integers(2**62)))
         self._critic_params = list(self.critic.parameters())
         self._target_params = list(self.target_critic.parameters())
-        self._train_step = 0
+        self.train_step = 0
         self._eval_policy: TanhGaussianPolicy | None = None
         self.update = make_update(SACParts(self.actor, self.critic, self.target_critic, self.log_alpha,
                                            self.actor_opt, self.critic_opt, self.alpha_opt, self.gen, loc, half,
                                            self.target_entropy, cfg), hand_written)
-
-    @property
-    def train_step(self) -> int:
-        return self._train_step
 
     @property
     def alpha(self) -> float:
@@ -98,8 +94,8 @@ class SACAgent(Agent):
 
     def train(self, batch: Batch) -> dict[str, torch.Tensor]:
         metrics = self.update(batch)
-        self._train_step += 1
-        if self._train_step % self.cfg.target_update_period == 0:  # Polyak, one fused op over every tensor
+        self.train_step += 1
+        if self.train_step % self.cfg.target_update_period == 0:  # Polyak, one fused op over every tensor
             with torch.no_grad():
                 torch._foreach_lerp_(self._target_params, self._critic_params, self.cfg.tau)
         return metrics
@@ -119,7 +115,7 @@ class SACAgent(Agent):
             "actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
             "target_critic": self.target_critic.state_dict(), "log_alpha": self.log_alpha.detach().clone(),
             "actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict(),
-            "alpha_opt": self.alpha_opt.state_dict(), "train_step": self._train_step,
+            "alpha_opt": self.alpha_opt.state_dict(), "train_step": self.train_step,
             "rng": self.rng.bit_generator.state, "gen": self.gen.get_state(),
         }
 
@@ -132,6 +128,6 @@ class SACAgent(Agent):
         self.actor_opt.load_state_dict(state["actor_opt"])
         self.critic_opt.load_state_dict(state["critic_opt"])
         self.alpha_opt.load_state_dict(state["alpha_opt"])
-        self._train_step = int(state["train_step"])
+        self.train_step = int(state["train_step"])
         self.rng.bit_generator.state = state["rng"]
         self.gen.set_state(state["gen"])
