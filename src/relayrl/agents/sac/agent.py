@@ -12,7 +12,7 @@ import torch
 
 from relayrl.agents.sac.config import SACConfig
 from relayrl.agents.sac.networks import actor_network, check_action_spec, critic_network
-from relayrl.agents.sac.update import SACParts, make_update
+from relayrl.agents.sac.update import make_update
 from relayrl.core import Agent
 from relayrl.optim import FastAdam
 from relayrl.policies import TanhGaussianPolicy, network_state
@@ -49,8 +49,9 @@ class SACAgent(Agent):
         a_dim = int(np.prod(self.action_spec.shape))
         self.target_entropy = float(-a_dim if cfg.target_entropy is None else cfg.target_entropy)
         low, high = self.action_spec.low, self.action_spec.high
-        loc = torch.as_tensor((high + low) / 2.0, dtype=torch.float32, device=device)
-        half = torch.as_tensor((high - low) / 2.0, dtype=torch.float32, device=device)
+        # [A] replay holds env-scale actions; the critics see them rescaled to [-1, 1] as (action - loc) / half
+        self.action_loc = torch.as_tensor((high + low) / 2.0, dtype=torch.float32, device=device)
+        self.action_half = torch.as_tensor((high - low) / 2.0, dtype=torch.float32, device=device)
         # Training noise from its own generator, so a checkpoint restores it exactly.
         self.gen = torch.Generator(device=device)
         self.gen.manual_seed(int(rng.integers(2**62)))
@@ -58,9 +59,7 @@ class SACAgent(Agent):
         self._target_params = list(self.target_critic.parameters())
         self.train_step = 0
         self._eval_policy: TanhGaussianPolicy | None = None
-        self.update = make_update(SACParts(self.actor, self.critic, self.target_critic, self.log_alpha,
-                                           self.actor_opt, self.critic_opt, self.alpha_opt, self.gen, loc, half,
-                                           self.target_entropy, cfg), hand_written)
+        self.update = make_update(self, hand_written)
 
     @property
     def alpha(self) -> float:
