@@ -129,11 +129,10 @@ class PPOAgent(Agent):
         r = {k: v[0].to(self.device) for k, v in rollout.items()}  # one item: [T, B, ...]
         t, b = r["reward"].shape
         n = t * b
-        obs = r["obs"].reshape(n, *r["obs"].shape[2:])
-        action = r["action"].reshape(n, *r["action"].shape[2:])
+        obs, action = r["obs"].flatten(0, 1), r["action"].flatten(0, 1)  # [T * B, ...]
         with torch.no_grad():
             old_logp, _, values = self.evaluate_actions(obs, action)
-            next_values = self.net(r["next_obs"].reshape(n, *r["next_obs"].shape[2:]))[1]
+            next_values = self.net(r["next_obs"].flatten(0, 1))[1]
         reward = r["reward"].float()
         if self.reward_scaler is not None:
             reward = self.reward_scaler(reward, r["terminated"] | r["truncated"])
