@@ -9,22 +9,13 @@ instead of probing for it.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, Protocol, runtime_checkable
+from typing import Any, Protocol
 
 import torch
 from torch import nn
 
 from relayrl.specs import Spec
 from relayrl.types import Batch, StepOutput, Transition
-
-
-@runtime_checkable
-class Saveable(Protocol):
-    """Anything whose state goes into a checkpoint as a plain dict."""
-
-    def state_dict(self) -> dict[str, Any]: ...
-
-    def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
 
 class BatchedEnv(Protocol):
@@ -86,8 +77,8 @@ class Observer(Protocol):
         return None
 
 
-class Agent(Saveable, Protocol):
-    """What the train loop knows of an algorithm. The factory that builds one returns this type."""
+class Agent(Protocol):
+    """What the train loop knows of an algorithm; its state goes into a checkpoint as a plain dict."""
 
     # The env's spaces it was built for: what its checkpoints and policy files record.
     obs_spec: Spec
@@ -95,6 +86,7 @@ class Agent(Saveable, Protocol):
     # Training metrics that are NaN where they are undefined (PPO's explained variance when a
     # rollout's returns are all equal): logged as they are, not taken for a diverging run.
     undefined_metrics: frozenset[str] = frozenset()
+    train_step: int  # gradient steps so far
 
     def collect_policy(self, env_step: Callable[[], int], network: nn.Module | None = None) -> Policy:
         """The exploring policy. `env_step` drives schedules (epsilon); `network` is the copy
@@ -124,8 +116,9 @@ class Agent(Saveable, Protocol):
         """Schedules' current values (epsilon, learning_rate), logged as TensorBoard's charts/<name>."""
         ...
 
-    @property
-    def train_step(self) -> int: ...
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
     def set_progress(self, env_steps: int) -> None:
         """Follow schedules that run on env steps (learning rates, clip ranges), called after

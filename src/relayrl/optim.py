@@ -23,18 +23,15 @@ class FastAdam:
         self._data = [p.detach() for p in self.params]
         self.exp_avg = [torch.zeros_like(p) for p in self._data]
         self.exp_avg_sq = [torch.zeros_like(p) for p in self._data]
-        # One step counter per tensor, as the kernel expects (on the params' device); where
-        # all params share a device the counters are views of one tensor, so counting a step
-        # is one op (torch._foreach_add_ on CPU loops over the tensors one by one).
-        devices = {p.device for p in self._data}
-        self._steps_flat = (torch.zeros(len(self._data), dtype=torch.float32, device=devices.pop())
-                            if len(devices) == 1 else None)
-        self.steps = (list(self._steps_flat.unbind(0)) if self._steps_flat is not None else
-                      [torch.zeros((), dtype=torch.float32, device=p.device) for p in self._data])
+        # One step counter per tensor, as the kernel expects, on the params' one device (an agent's
+        # networks share it): views of one tensor, so counting a step is one op
+        # (torch._foreach_add_ on CPU loops over the tensors one by one).
+        device = self._data[0].device
+        self._steps_flat = torch.zeros(len(self._data), dtype=torch.float32, device=device)
+        self.steps = list(self._steps_flat.unbind(0))
         # On a GPU the kernel reads the learning rate from a device tensor, so a step captured
         # in a CUDA graph (nn/graphed.py) follows a schedule that changes it.
-        cuda = self._steps_flat is not None and self._steps_flat.device.type == "cuda"
-        self._lr_tensor = torch.tensor(float(lr), device=self._steps_flat.device) if cuda else None
+        self._lr_tensor = torch.tensor(float(lr), device=device) if device.type == "cuda" else None
         self._lr = float(lr)
 
     @property
@@ -61,10 +58,7 @@ class FastAdam:
             raise ValueError(f"FastAdam.step() got {len(grads)} gradients for {len(self.params)} parameters")
         if any(g is None for g in grads):
             raise RuntimeError("FastAdam.step() called before backward(): a parameter has no grad")
-        if self._steps_flat is not None:
-            self._steps_flat.add_(1.0)
-        else:
-            torch._foreach_add_(self.steps, 1.0)
+        self._steps_flat.add_(1.0)
         lr = self._lr if self._lr_tensor is None else self._lr_tensor
         torch._fused_adam_(self._data, grads, self.exp_avg, self.exp_avg_sq, [], self.steps,
                            amsgrad=False, lr=lr, beta1=self.betas[0], beta2=self.betas[1],

@@ -9,6 +9,8 @@ classes, import no torch (`relayrl presets` and config errors stay fast).
 
 from __future__ import annotations
 
+import functools
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import ModuleType
@@ -76,52 +78,14 @@ class Algorithm:
         return self.trainer()
 
 
-def _dqn_agent() -> type[Agent]:
-    from relayrl.agents.dqn.agent import DQNAgent
-
-    return DQNAgent
-
-
-def _dqn_policy() -> ModuleType:
-    from relayrl.agents.dqn import policy
-
-    return policy
+def _load(module: str, name: str = "") -> Callable[[], Any]:
+    """A factory that imports `module` (and takes `name` from it) when called: see the module doc."""
+    return functools.partial(_import, module, name)
 
 
-def _sac_agent() -> type[Agent]:
-    from relayrl.agents.sac.agent import SACAgent
-
-    return SACAgent
-
-
-def _sac_policy() -> ModuleType:
-    from relayrl.agents.sac import policy
-
-    return policy
-
-
-def _ppo_agent() -> type[Agent]:
-    from relayrl.agents.ppo.agent import PPOAgent
-
-    return PPOAgent
-
-
-def _ppo_policy() -> ModuleType:
-    from relayrl.agents.ppo import policy
-
-    return policy
-
-
-def _bptt_policy() -> ModuleType:
-    from relayrl.agents.bptt import policy
-
-    return policy
-
-
-def _bptt_trainer() -> ModuleType:
-    from relayrl.agents.bptt import trainer
-
-    return trainer
+def _import(module: str, name: str) -> Any:
+    loaded = importlib.import_module(module)
+    return getattr(loaded, name) if name else loaded
 
 
 # `algo` when a config does not name one, named here so that the config layer names none. A
@@ -129,20 +93,23 @@ def _bptt_trainer() -> ModuleType:
 DEFAULT_ALGO = "dqn"
 
 ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (
-    Algorithm("dqn", DQNConfig, "q_greedy", _dqn_policy, agent=_dqn_agent,
+    Algorithm("dqn", DQNConfig, "q_greedy", _load("relayrl.agents.dqn.policy"),
+              agent=_load("relayrl.agents.dqn.agent", "DQNAgent"),
               ray=True, defaults=dqn_config.DEFAULTS,
               description="DQN with Stable-Baselines3's defaults (64x64, lr 1e-4, batch 32, a gradient step every "
                           "4 env steps), target copy every 1,000 env steps; 100,000 env steps on CartPole-v1 or "
                           "--set env.id=..."),
-    Algorithm("sac", SACConfig, "tanh_gaussian", _sac_policy, agent=_sac_agent, ray=True, defaults=sac_config.DEFAULTS,
+    Algorithm("sac", SACConfig, "tanh_gaussian", _load("relayrl.agents.sac.policy"),
+              agent=_load("relayrl.agents.sac.agent", "SACAgent"), ray=True, defaults=sac_config.DEFAULTS,
               description="SAC with Stable-Baselines3's defaults (256x256, lr 3e-4, batch 256, 1M replay, "
                           "auto entropy); 50,000 env steps on Pendulum-v1 or --set env.id=... (continuous actions)"),
-    Algorithm("ppo", PPOConfig, "ppo", _ppo_policy, agent=_ppo_agent,
+    Algorithm("ppo", PPOConfig, "ppo", _load("relayrl.agents.ppo.policy"),
+              agent=_load("relayrl.agents.ppo.agent", "PPOAgent"),
               replay="rollouts", ray=True, defaults=ppo_config.DEFAULTS,
               description="PPO with Stable-Baselines3's defaults (rollouts of 2,048 steps x 1 env, batch 64, "
                           "10 epochs, lr 3e-4, 64x64 tanh); 100,000 env steps on CartPole-v1 or --set env.id=..."),
-    Algorithm("bptt", BpttConfig, "clamped_mlp", _bptt_policy, replay="none", trainer=_bptt_trainer,
-              resumable=False),
+    Algorithm("bptt", BpttConfig, "clamped_mlp", _load("relayrl.agents.bptt.policy"), replay="none",
+              trainer=_load("relayrl.agents.bptt.trainer"), resumable=False),
 )}
 
 

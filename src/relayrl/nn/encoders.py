@@ -87,8 +87,8 @@ class ConvEncoder(nn.Module):
         h, w = image_size(spec)
         layers: list[nn.Module] = []
         c = channels
-        for out, kernel, stride, *pad in convs:
-            layers += [nn.Conv2d(c, out, kernel, stride, padding=pad[0] if pad else 0), nn.ReLU()]
+        for out, kernel, stride, padding in convs:
+            layers += [nn.Conv2d(c, out, kernel, stride, padding=padding), nn.ReLU()]
             c = out
         self.convs = nn.Sequential(*layers, nn.Flatten())
         with torch.no_grad():  # the flattened size for this frame size
@@ -111,7 +111,7 @@ class DictEncoder(nn.Module):
     def __init__(self, spec: PackedSpec, kind: str) -> None:
         super().__init__()
         self.spec = spec
-        keys = [_module_key(f.key) for f in spec.fields]
+        keys = [f.key.replace(".", "/") for f in spec.fields]  # ModuleDict keys may not hold dots
         if len(set(keys)) < len(keys):  # "a.b" beside {"a": {"b": ...}} (or "a/b"): one name for two entries
             same = sorted({f.key for f, k in zip(spec.fields, keys, strict=True) if keys.count(k) > 1})
             raise UserError(f"observation entries {', '.join(map(repr, same))} are one name once nested keys are "
@@ -125,23 +125,19 @@ class DictEncoder(nn.Module):
         return torch.cat([m(leaves[f.key]) for f, m in zip(self.spec.fields, self.parts.values(), strict=True)], dim=1)
 
 
-def _module_key(key: str) -> str:
-    return key.replace(".", "/")  # ModuleDict keys may not hold dots
-
-
 def leaf_encoder(spec: Spec, kind: str) -> nn.Module:
     """The encoder of one non-structured spec (Flatten where nothing more is needed)."""
-    if isinstance(spec, DiscreteSpec):
-        return OneHot((spec.n,)) if kind != "flatten" else Flatten(spec)
-    if isinstance(spec, MultiDiscreteSpec):
-        return OneHot(spec.nvec) if kind != "flatten" else Flatten(spec)
-    if isinstance(spec, MultiBinarySpec) or not is_image(spec, any_bounds=kind != "auto") or kind == "flatten":
+    if kind == "flatten" or isinstance(spec, MultiBinarySpec):
         return Flatten(spec)
-    small = kind == "small_cnn" or (kind == "auto" and min(image_size(spec)) < NATURE_MIN_SIDE)
-    if not small and min(image_size(spec)) < NATURE_MIN_SIDE:
+    if isinstance(spec, (DiscreteSpec, MultiDiscreteSpec)):
+        return OneHot((spec.n,) if isinstance(spec, DiscreteSpec) else spec.nvec)
+    if not is_image(spec, any_bounds=kind != "auto"):
+        return Flatten(spec)
+    tiny = min(image_size(spec)) < NATURE_MIN_SIDE
+    if kind == "nature_cnn" and tiny:
         raise UserError(f"agent.encoder='nature_cnn' needs frames of at least {NATURE_MIN_SIDE}x{NATURE_MIN_SIDE}, "
                         f"got {describe(spec)}; use agent.encoder='small_cnn' or 'auto'")
-    if small:
+    if kind == "small_cnn" or tiny:
         return ConvEncoder(spec, SMALL_CONVS, SMALL_HIDDEN)
     return ConvEncoder(spec, NATURE_CONVS, NATURE_HIDDEN)
 

@@ -113,7 +113,12 @@ class _Fast:
     def _input_grad(self, i: int, g: Tensor) -> Tensor:
         raise NotImplementedError
 
-    def _forward(self, x: Tensor) -> tuple[Tensor, Saved]:
+    def forward(self, x: Tensor) -> tuple[Tensor, Saved]:
+        """The output ([B, out]; a twin's Q [copies, N]) of x [B, *in_shape], and what `backward` needs."""
+        if x.dim() != 2:
+            x = x.reshape(x.shape[0], -1)  # [B, *obs_shape] -> [B, obs_dim]
+        if x.dtype != torch.float32:
+            x = x.float()
         fwd, keep_pre, last = self._fwd, self._keep_pre, self._last
         inputs: list[Tensor] = []
         pre: list[Tensor | None] = []
@@ -125,10 +130,11 @@ class _Fast:
                 x = fwd(x)
         return x, Saved(inputs, pre)
 
-    def _backward(self, g: Tensor, saved: Saved, out: list[Tensor] | None, rows: int | None,
-                  input_grad: bool) -> Tensor | None:
-        """From g = d loss / d output: parameter gradients into `out` (when given) and, when
-        `input_grad`, d loss / d input. Only the first `rows` saved rows took part in the loss."""
+    def backward(self, g: Tensor, saved: Saved, out: list[Tensor] | None, rows: int | None = None,
+                 input_grad: bool = False) -> Tensor | None:
+        """Parameter gradients from g = d loss / d output into `out` (None: skip them); returns
+        d loss / d input [N, in] (a twin's summed over the copies) when `input_grad`. Only the
+        first `rows` rows of an MLP's forward pass took part in the loss (None: all)."""
         back = self._back
         for i in range(self._last, -1, -1):
             x = saved.inputs[i]
@@ -160,21 +166,6 @@ class MLPFast(_Fast):
     def new_grads(self) -> list[Tensor]:
         return [torch.empty_like(t) for pair in zip(self.weight, self.bias, strict=True) for t in pair]
 
-    def forward(self, x: Tensor) -> tuple[Tensor, Saved]:
-        """Output [B, out] of x [B, *in_shape], and what `backward` needs."""
-        if x.dim() != 2:
-            x = x.reshape(x.shape[0], -1)  # [B, *obs_shape] -> [B, obs_dim]
-        if x.dtype != torch.float32:
-            x = x.float()
-        return self._forward(x)
-
-    def backward(self, g: Tensor, saved: Saved, out: list[Tensor] | None, rows: int | None = None,
-                 input_grad: bool = False) -> Tensor | None:
-        """Parameter gradients from g = d loss / d output [N, out] into `out` (None: skip them);
-        returns d loss / d input [N, in] when `input_grad`. Only the first `rows` rows of the
-        forward pass took part in the loss (None: all)."""
-        return self._backward(g, saved, out, rows, input_grad)
-
     def _affine(self, i: int, x: Tensor) -> Tensor:
         return torch.addmm(self.bias[i], x, self.weight_t[i])  # [B, out], what F.linear computes
 
@@ -199,17 +190,6 @@ class TwinMLPFast(_Fast):
     def new_grads(self) -> list[Tensor]:
         """A list for `backward` to fill (its entries are replaced, not written into)."""
         return [torch.empty(0)] * (2 * len(self.weight))
-
-    def forward(self, x: Tensor) -> tuple[Tensor, Saved]:
-        """Q [copies, N] from x [N, in] (TwinMLP's concatenated [obs, action]), and what
-        `backward` needs."""
-        return self._forward(x)
-
-    def backward(self, gq: Tensor, saved: Saved, out: list[Tensor] | None,
-                 input_grad: bool = False) -> Tensor | None:
-        """Parameter gradients from gq = d loss / d Q [copies, N] into `out` (None: skip them);
-        returns d loss / d x [N, in] summed over the copies when `input_grad`."""
-        return self._backward(gq, saved, out, None, input_grad)
 
     def _affine(self, i: int, x: Tensor) -> Tensor:
         if i == self._last:  # the 1-wide head as multiply-and-sum, as TwinMLP.forward does

@@ -50,21 +50,14 @@ class DQNAgent(Agent):
         self.target = (None if cfg.target_update_period == 1 and cfg.tau >= 1.0
                        else copy.deepcopy(self.online).requires_grad_(False))
         self.optimizer = FastAdam(self.online.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
-        self._train_step = 0
+        self.train_step = 0
         self._eval_policy: GreedyPolicy | None = None
         self.epsilon_decay_steps = cfg.epsilon_decay_steps if cfg.epsilon_decay_steps >= 0 else total_steps // 10
         self._lr_at = (linear_schedule(cfg.lr, cfg.lr_end, total_steps)
                        if cfg.lr_end >= 0 and total_steps > 0 else None)
         self._online_params = list(self.online.parameters())
         self._target_params = list(self.target.parameters()) if self.target is not None else []
-        # The gradient step (`update.py`): on CUDA autograd's replayed from a CUDA graph; on CPU
-        # hand-written for MLPs (the same values as autograd's, with less per-update overhead),
-        # else autograd's.
         self.update = make_update(self.online, self.target, self.optimizer, cfg, hand_written)
-
-    @property
-    def train_step(self) -> int:
-        return self._train_step
 
     def collect_policy(self, env_step: Callable[[], int], network: torch.nn.Module | None = None
                        ) -> EpsilonGreedyPolicy:
@@ -80,7 +73,6 @@ class DQNAgent(Agent):
                 else linear_schedule(c.epsilon_start, c.epsilon_end, self.epsilon_decay_steps))
 
     def scalars(self, env_steps: int) -> dict[str, float]:
-        """Schedules at `env_steps`, for TensorBoard (charts/epsilon, charts/learning_rate)."""
         return {"epsilon": float(self.epsilon_schedule()(env_steps)), "learning_rate": float(self.optimizer.lr)}
 
     def policy_network(self) -> torch.nn.Module:
@@ -93,23 +85,18 @@ class DQNAgent(Agent):
         return self._eval_policy
 
     def set_progress(self, env_steps: int) -> None:
-        """Follow schedules that run on env steps (the learning-rate decay)."""
         if self._lr_at is not None:
             self.optimizer.lr = self._lr_at(env_steps)
 
     def prepare_horizon(self) -> int:
-        """How many of the next train() calls see the current target network; 0 where there
-        is none or it changes after every call (nothing to compute ahead then)."""
         if self.target is None or self.cfg.target_update_period == 1:
             return 0
-        return self.cfg.target_update_period - self._train_step % self.cfg.target_update_period
+        return self.cfg.target_update_period - self.train_step % self.cfg.target_update_period
 
     @torch.no_grad()
     def prepare(self, batch: Batch, steps: int) -> Batch | PreparedBatch:
-        """`batch` holding the next `steps` train() calls' batches, with the target network's
-        Q-values of their next observations computed ahead when that network stays the same
-        for those calls. Why: one forward pass over the whole chunk replaces `steps` small ones.
-        The values are what train() would compute itself, up to float rounding."""
+        """The target network's Q-values of the chunk's next observations, computed ahead: one
+        forward pass replaces `steps` small ones, with train()'s values up to float rounding."""
         if steps < 2 or steps > self.prepare_horizon():
             return batch
         next_obs = batch.next_obs.to(self.device, non_blocking=True)  # [steps * N, *obs_shape]
@@ -124,8 +111,8 @@ class DQNAgent(Agent):
             metrics = self.update(Batch(*batch[:-1]), batch.target_q)
         else:
             metrics = self.update(batch, None)
-        self._train_step += 1
-        if self.target is not None and self._train_step % self.cfg.target_update_period == 0:
+        self.train_step += 1
+        if self.target is not None and self.train_step % self.cfg.target_update_period == 0:
             self._update_target()
         return metrics
 
@@ -146,7 +133,7 @@ class DQNAgent(Agent):
             "online": self.online.state_dict(),
             "target": self.target.state_dict() if self.target is not None else None,
             "optimizer": self.optimizer.state_dict(),
-            "train_step": self._train_step,
+            "train_step": self.train_step,
             "rng": self.rng.bit_generator.state,
         }
 
@@ -155,5 +142,5 @@ class DQNAgent(Agent):
         if self.target is not None:
             self.target.load_state_dict(conv_state_dict(state["target"]))
         self.optimizer.load_state_dict(state["optimizer"])
-        self._train_step = int(state["train_step"])
+        self.train_step = int(state["train_step"])
         self.rng.bit_generator.state = state["rng"]

@@ -18,8 +18,7 @@ def q_network(obs_spec: Spec, action_spec: Spec, cfg: DQNConfig) -> nn.Module:
     if not isinstance(action_spec, DiscreteSpec):
         raise UserError(f"DQN takes a Discrete action space; this env's action space is {describe(action_spec)} "
                         "(use SAC or PPO for Box actions, PPO for MultiDiscrete and MultiBinary)")
-    if cfg.network != "mlp":
-        # the Atari presets' net: the Nature CNN encoder and one linear layer on its 512 features
+    if cfg.network != "mlp":  # the Atari presets' net (q_layout)
         instead = "use agent.network='mlp' with agent.encoder='auto' or 'nature_cnn', which take any image layout"
         if not (isinstance(obs_spec, ArraySpec) and is_image(obs_spec) and len(obs_spec.shape) == 3
                 and not image_layout(obs_spec)[1]):

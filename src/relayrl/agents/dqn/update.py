@@ -2,7 +2,7 @@
 autograd reference (`dqn_loss` + `backward()`); on CUDA, the reference replayed from a CUDA
 graph (`nn.graphed`); on CPU, its hand-written twin for MLP Q-networks
 (`losses_fast.dqn_loss_and_grads`: the same values, with less per-update overhead). Both
-subclass the reference, overriding its methods; tests/test_dqn_fast.py and
+subclass the reference; tests/test_dqn_fast.py and
 tests/test_graphed.py compare them with it."""
 
 from __future__ import annotations
@@ -89,8 +89,7 @@ class GraphedDQNUpdate(DQNUpdate):
 
 def make_update(online: nn.Module, target: nn.Module | None, optimizer: FastAdam, cfg: DQNConfig,
                 hand_written: bool = True) -> DQNUpdate:
-    """On CUDA the graphed reference (unless RELAYRL_CUDA_GRAPHS=0); elsewhere the hand-written
-    update where it supports the network (and `hand_written`), else autograd's."""
+    """The step of the module doc (RELAYRL_CUDA_GRAPHS=0 turns graphs off, `hand_written=False` the twin)."""
     if cuda_graphs_enabled(next(online.parameters()).device):
         return GraphedDQNUpdate(online, target, optimizer, cfg)
     twin = hand_written and mlp_fast.supports(online)

@@ -54,13 +54,14 @@ class PPOAgent(Agent):
         # tanh squashing: the log-probabilities are those of loc + scale * tanh(u). The scale adds a
         # constant to them, which a dimension with low == high (one value) leaves out instead of log 0.
         bounds = self._bounds()
-        if cfg.squash == "tanh" and bounds is not None and not (np.isfinite(bounds[0]).all()
-                                                                and np.isfinite(bounds[1]).all()):
-            raise UserError(f"agent.squash='tanh' squashes actions into finite bounds; this env's action space is "
-                            f"{describe(action_spec)}: use agent.squash='clip' (the default)")
-        self.squash_scale = (torch.as_tensor(np.where(bounds[1] > bounds[0], (bounds[1] - bounds[0]) / 2, 1.0),
-                                             dtype=torch.float32, device=device)
-                             if cfg.squash == "tanh" and bounds is not None and not self.net.discrete else None)
+        self.squash_scale: torch.Tensor | None = None
+        if cfg.squash == "tanh" and bounds is not None:
+            low, high = bounds
+            if not (np.isfinite(low).all() and np.isfinite(high).all()):
+                raise UserError(f"agent.squash='tanh' squashes actions into finite bounds; this env's action space "
+                                f"is {describe(action_spec)}: use agent.squash='clip' (the default)")
+            self.squash_scale = torch.as_tensor(np.where(high > low, (high - low) / 2, 1.0), dtype=torch.float32,
+                                                device=device)
         self.reward_scaler = RewardScaler(cfg.gamma) if cfg.normalize_reward else None
         self.params = list(self.net.parameters())
         self.opt = FastAdam(self.params, lr=cfg.lr, eps=1e-5)  # SB3's PPO eps
@@ -70,16 +71,9 @@ class PPOAgent(Agent):
         self.clip_range = cfg.clip_range
         self.gen = torch.Generator()  # minibatch shuffles (on the CPU: the same on any device)
         self.gen.manual_seed(int(rng.integers(2**62)))
-        self._train_step = 0
-        # The minibatch step: hand-written where it models the networks (the same update as
-        # autograd's up to float rounding, with less overhead on CPU), else autograd's (update.py).
+        self.train_step = 0
         self.update = make_update(self.net, self.opt, cfg, self.evaluate_actions, self.squash_scale is not None,
                                   hand_written)
-
-    @property
-    def train_step(self) -> int:
-        """Gradient steps (minibatches) so far."""
-        return self._train_step
 
     def _bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
         s = self.action_spec
@@ -107,7 +101,6 @@ class PPOAgent(Agent):
         return self.net.policy
 
     def device_collect_policy(self, network: torch.nn.Module | None = None) -> PPODevicePolicy:
-        """The collect policy for a stateless torch env: actions and noise stay on the device."""
         net = self._acting(network)
         if self.net.head.binary or len(self.net.head.nvec) > 1:
             raise UserError("PPO on a stateless torch env takes Discrete or Box actions")
@@ -116,11 +109,9 @@ class PPOAgent(Agent):
                                int(self.rng.integers(2**62)), self.cfg.squash)
 
     def scalars(self, env_steps: int) -> dict[str, float]:
-        """Schedules at `env_steps`, for TensorBoard (charts/learning_rate, charts/clip_range)."""
         return {"learning_rate": float(self.lr_at(env_steps)), "clip_range": float(self.clip_at(env_steps))}
 
     def set_progress(self, env_steps: int) -> None:
-        """Learning rate and clip range follow their linear schedules in env steps."""
         self.opt.lr = self.lr_at(env_steps)
         self.clip_range = self.clip_at(env_steps)
 
@@ -138,11 +129,10 @@ class PPOAgent(Agent):
         r = {k: v[0].to(self.device) for k, v in rollout.items()}  # one item: [T, B, ...]
         t, b = r["reward"].shape
         n = t * b
-        obs = r["obs"].reshape(n, *r["obs"].shape[2:])
-        action = r["action"].reshape(n, *r["action"].shape[2:])
+        obs, action = r["obs"].flatten(0, 1), r["action"].flatten(0, 1)  # [T * B, ...]
         with torch.no_grad():
             old_logp, _, values = self.evaluate_actions(obs, action)
-            next_values = self.net(r["next_obs"].reshape(n, *r["next_obs"].shape[2:]))[1]
+            next_values = self.net(r["next_obs"].flatten(0, 1))[1]
         reward = r["reward"].float()
         if self.reward_scaler is not None:
             reward = self.reward_scaler(reward, r["terminated"] | r["truncated"])
@@ -155,7 +145,7 @@ class PPOAgent(Agent):
         orders = orders.to(self.device, non_blocking=True)
         sums = self.update.epochs((obs, action, old_logp, values, adv, returns), orders, self.clip_range)
         steps = cfg.n_epochs * -(-n // cfg.batch_size)
-        self._train_step += steps
+        self.train_step += steps
         if self.net.policy.obs_norm is not None:
             self.net.policy.obs_norm.update(obs)  # after training: the next rollout's policy
         means = sums / steps
@@ -180,14 +170,14 @@ class PPOAgent(Agent):
         return state
 
     def state_dict(self) -> dict[str, Any]:
-        return {"net": self.net.state_dict(), "opt": self.opt.state_dict(), "train_step": self._train_step,
+        return {"net": self.net.state_dict(), "opt": self.opt.state_dict(), "train_step": self.train_step,
                 "clip_range": self.clip_range, "rng": self.rng.bit_generator.state, "gen": self.gen.get_state(),
                 "reward_scaler": None if self.reward_scaler is None else self.reward_scaler.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.net.load_state_dict(state["net"])
         self.opt.load_state_dict(state["opt"])
-        self._train_step = int(state["train_step"])
+        self.train_step = int(state["train_step"])
         self.clip_range = float(state["clip_range"])
         self.rng.bit_generator.state = state["rng"]
         self.gen.set_state(state["gen"])

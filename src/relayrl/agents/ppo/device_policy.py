@@ -1,11 +1,7 @@
-"""PPO's collect policy in torch ops on the observations' device, for stateless torch envs:
-actions stay tensors there and the sampling noise comes from a torch Generator on that
-device (checkpointed through `state_dict`), so env, policy and rollout never go through the
-host. The distribution is the collect policy's: a categorical over logits (inverse CDF of one
-uniform per row), or a Gaussian sample u around the mean with the state-independent std,
-which the rollout keeps while the env receives `env_action(u)`: u clipped to the action
-bounds, or squashed into them (loc + scale * tanh(u), squash = "tanh").
-"""
+"""PPO's collect policy (`policy.PPOCollectPolicy`'s distribution and `env_action`) in torch ops
+on the observations' device, for stateless torch envs: actions stay tensors there and the noise
+comes from a torch Generator on that device (checkpointed through `state_dict`), so env, policy
+and rollout never go through the host."""
 
 from __future__ import annotations
 

@@ -40,11 +40,6 @@ def value_loss(values: torch.Tensor, old_values: torch.Tensor, returns: torch.Te
     return torch.maximum(err, (v_clipped - returns).square()).mean()
 
 
-def entropy_loss(entropy: torch.Tensor) -> torch.Tensor:
-    """-E[H]: adding ent_coef times it to the loss rewards entropy."""
-    return -entropy.mean()
-
-
 def explained_variance(values: torch.Tensor, returns: torch.Tensor) -> torch.Tensor:
     """1 - Var[R - V] / Var[R]: 1 for perfect values, 0 for a constant; NaN when Var[R] = 0
     (undefined, as in SB3 and CleanRL). No host sync: the choice is made on the device."""

@@ -100,7 +100,6 @@ class PPONetworks(nn.Module):
         self.head = action_head(action_spec)
         self.discrete = self.head.discrete
         out = self.head.outputs
-        self.shared = shared
         self.policy = PolicyNet(obs_spec, hidden, out, activation, shared,
                                 None if self.discrete else log_std_init, normalize_obs, encoder)
         self.critic: MLP | None = None

@@ -1,14 +1,10 @@
 """PPO's acting policies, and its saved policy (kind "ppo") for `load_policy` and `export_policy`.
 
-Discrete actions: a categorical over the actor's logits, argmax when deterministic (one per
-entry for MultiDiscrete; MultiBinary: a Bernoulli per entry, logit > 0 when deterministic).
-Continuous: a Gaussian sample u around the actor's mean with a state-independent std, u = the
-mean when deterministic; the env receives u clipped to the action bounds, or squashed into them
-(loc + scale * tanh(u), `agent.squash = "tanh"`). `PPOPolicy` returns what the env receives;
-`PPOCollectPolicy` returns u itself, which the rollout keeps, and maps it with `env_action`
-where the Actor steps the env. Noise comes from a NumPy generator (the agent's, checkpointed
-with it); actions are CPU tensors. A policy saved with observation normalisation normalises
-its observations with the statistics it was saved with.
+The distributions are those of distributions.py, at their mode when deterministic. `PPOPolicy`
+returns what the env receives; `PPOCollectPolicy` returns the Gaussian sample u itself, which the
+rollout keeps, and maps it with `env_action` where the Actor steps the env. Noise comes from a
+NumPy generator (the agent's, checkpointed with it); actions are CPU tensors. A policy saved with
+observation normalisation normalises its observations with the statistics it was saved with.
 """
 
 from __future__ import annotations

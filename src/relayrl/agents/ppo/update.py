@@ -14,7 +14,7 @@ import torch
 
 from relayrl.agents.ppo import losses_fast
 from relayrl.agents.ppo.config import PPOConfig
-from relayrl.agents.ppo.losses import entropy_loss, normalize, policy_loss, value_loss
+from relayrl.agents.ppo.losses import normalize, policy_loss, value_loss
 from relayrl.agents.ppo.networks import PPONetworks
 from relayrl.nn import mlp_fast
 from relayrl.nn.graphed import GraphedStep, cuda_graphs_enabled
@@ -61,7 +61,7 @@ class PPOUpdate:
         logp, entropy, values = self.evaluate_actions(obs, action)
         pg_loss, approx_kl, clip_fraction = policy_loss(logp, old_logp, adv, clip_range)
         v_loss = value_loss(values, old_values, returns, cfg.clip_range_vf)
-        ent_loss = entropy_loss(entropy)
+        ent_loss = -entropy.mean()  # -E[H]: ent_coef times it rewards entropy
         loss = pg_loss + cfg.ent_coef * ent_loss + cfg.vf_coef * v_loss
         self.opt.zero_grad()
         loss.backward()
@@ -144,8 +144,7 @@ class GraphedPPOUpdate(PPOUpdate):
 
 def make_update(net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions,
                 squashed: bool, hand_written: bool = True) -> PPOUpdate:
-    """On CUDA the graphed reference (unless RELAYRL_CUDA_GRAPHS=0); elsewhere the hand-written
-    update where it models the networks (and `hand_written`), else autograd's."""
+    """The step of the module doc (RELAYRL_CUDA_GRAPHS=0 turns graphs off, `hand_written=False` the twin)."""
     if cuda_graphs_enabled(next(net.parameters()).device):
         return GraphedPPOUpdate(net, opt, cfg, evaluate_actions)
     if hand_written and HandWrittenPPOUpdate.supports(net, cfg, squashed):

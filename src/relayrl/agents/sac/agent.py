@@ -1,9 +1,5 @@
-"""SAC agent: owns the actor, twin critics, their targets, alpha, optimizers and counters.
-
-One `train(batch)` is: critic step on soft TD targets, actor step through the freshly
-updated critics, alpha step towards the target entropy, Polyak update of the target critics
-(the order of SB3 and TF-Agents). The losses are the pure functions of `losses.py`.
-"""
+"""SAC agent: owns the actor, twin critics, their targets, alpha, optimizers and counters;
+`update.py` holds the gradient steps, in the order of SB3 and TF-Agents."""
 
 from __future__ import annotations
 
@@ -16,7 +12,7 @@ import torch
 
 from relayrl.agents.sac.config import SACConfig
 from relayrl.agents.sac.networks import actor_network, check_action_spec, critic_network
-from relayrl.agents.sac.update import SACParts, make_update
+from relayrl.agents.sac.update import make_update
 from relayrl.core import Agent
 from relayrl.optim import FastAdam
 from relayrl.policies import TanhGaussianPolicy, network_state
@@ -53,25 +49,17 @@ class SACAgent(Agent):
         a_dim = int(np.prod(self.action_spec.shape))
         self.target_entropy = float(-a_dim if cfg.target_entropy is None else cfg.target_entropy)
         low, high = self.action_spec.low, self.action_spec.high
-        loc = torch.as_tensor((high + low) / 2.0, dtype=torch.float32, device=device)
-        half = torch.as_tensor((high - low) / 2.0, dtype=torch.float32, device=device)
+        # [A] replay holds env-scale actions; the critics see them rescaled to [-1, 1] as (action - loc) / half
+        self.action_loc = torch.as_tensor((high + low) / 2.0, dtype=torch.float32, device=device)
+        self.action_half = torch.as_tensor((high - low) / 2.0, dtype=torch.float32, device=device)
         # Training noise from its own generator, so a checkpoint restores it exactly.
         self.gen = torch.Generator(device=device)
         self.gen.manual_seed(int(rng.integers(2**62)))
         self._critic_params = list(self.critic.parameters())
         self._target_params = list(self.target_critic.parameters())
-        self._train_step = 0
+        self.train_step = 0
         self._eval_policy: TanhGaussianPolicy | None = None
-        # The gradient steps (`update.py`): on CUDA autograd's replayed from a CUDA graph; on
-        # CPU hand-written for the usual MLPs (the same values as autograd's, with less
-        # per-update overhead), else autograd's.
-        self.update = make_update(SACParts(self.actor, self.critic, self.target_critic, self.log_alpha,
-                                           self.actor_opt, self.critic_opt, self.alpha_opt, self.gen, loc, half,
-                                           self.target_entropy, cfg), hand_written)
-
-    @property
-    def train_step(self) -> int:
-        return self._train_step
+        self.update = make_update(self, hand_written)
 
     @property
     def alpha(self) -> float:
@@ -96,26 +84,20 @@ class SACAgent(Agent):
         return self._eval_policy
 
     def set_progress(self, env_steps: int) -> None:
-        """Follow schedules that run on env steps (the learning rates, with agent.lr_end >= 0)."""
         for opt, lr_at in self._lr_at:
             opt.lr = lr_at(env_steps)
 
     def scalars(self, env_steps: int) -> dict[str, float]:
-        """For TensorBoard: charts/learning_rate (the actor's; the critics' and alpha's are in the config)."""
+        # the actor's; the critics' and alpha's follow from the config
         return {"learning_rate": float(self.actor_opt.lr)}
 
     def train(self, batch: Batch) -> dict[str, torch.Tensor]:
         metrics = self.update(batch)
-        self._count_step()
+        self.train_step += 1
+        if self.train_step % self.cfg.target_update_period == 0:  # Polyak, one fused op over every tensor
+            with torch.no_grad():
+                torch._foreach_lerp_(self._target_params, self._critic_params, self.cfg.tau)
         return metrics
-
-    @torch.no_grad()
-    def _count_step(self) -> None:
-        """One more train step; the target critics follow by Polyak averaging every
-        `target_update_period` steps (one fused op over every tensor)."""
-        self._train_step += 1
-        if self._train_step % self.cfg.target_update_period == 0:
-            torch._foreach_lerp_(self._target_params, self._critic_params, self.cfg.tau)
 
     def policy_state(self) -> dict[str, Any]:
         s = self.action_spec
@@ -132,7 +114,7 @@ class SACAgent(Agent):
             "actor": self.actor.state_dict(), "critic": self.critic.state_dict(),
             "target_critic": self.target_critic.state_dict(), "log_alpha": self.log_alpha.detach().clone(),
             "actor_opt": self.actor_opt.state_dict(), "critic_opt": self.critic_opt.state_dict(),
-            "alpha_opt": self.alpha_opt.state_dict(), "train_step": self._train_step,
+            "alpha_opt": self.alpha_opt.state_dict(), "train_step": self.train_step,
             "rng": self.rng.bit_generator.state, "gen": self.gen.get_state(),
         }
 
@@ -145,6 +127,6 @@ class SACAgent(Agent):
         self.actor_opt.load_state_dict(state["actor_opt"])
         self.critic_opt.load_state_dict(state["critic_opt"])
         self.alpha_opt.load_state_dict(state["alpha_opt"])
-        self._train_step = int(state["train_step"])
+        self.train_step = int(state["train_step"])
         self.rng.bit_generator.state = state["rng"]
         self.gen.set_state(state["gen"])

@@ -3,6 +3,8 @@ that run as one batched network."""
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import torch
 from torch import nn
@@ -44,10 +46,7 @@ class EncodedTwin(nn.Module):
         self.twin = twin
 
     def forward(self, obs: torch.Tensor, action: torch.Tensor, detach_params: bool = False) -> torch.Tensor:
-        if detach_params:  # the actor's loss needs dQ/da only
-            with torch.no_grad():
-                features = self.encoder(obs)
-        else:
+        with torch.no_grad() if detach_params else contextlib.nullcontext():  # the actor's loss needs dQ/da only
             features = self.encoder(obs)
         return self.twin(features, action, detach_params)
 

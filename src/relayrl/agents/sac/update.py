@@ -7,37 +7,21 @@ tests/test_graphed.py compare them with it."""
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING
 
 import torch
-from torch import nn
 
 from relayrl.agents.sac import losses_fast
-from relayrl.agents.sac.config import SACConfig
 from relayrl.agents.sac.losses import actor_loss, alpha_loss, critic_loss, critic_targets, tanh_gaussian
 from relayrl.nn import mlp_fast
 from relayrl.nn.graphed import GraphedStep, cuda_graphs_enabled
 from relayrl.optim import FastAdam
 from relayrl.types import Batch
 
+if TYPE_CHECKING:
+    from relayrl.agents.sac.agent import SACAgent
+
 Tensor = torch.Tensor
-
-
-class SACParts(NamedTuple):
-    """What the updates work on, built, owned and checkpointed by `SACAgent`."""
-
-    actor: nn.Module
-    critic: nn.Module  # the twin critics: (obs, action) -> [2, N]
-    target_critic: nn.Module
-    log_alpha: Tensor
-    actor_opt: FastAdam
-    critic_opt: FastAdam
-    alpha_opt: FastAdam
-    gen: torch.Generator  # the training noise
-    action_loc: Tensor  # [A] replay holds env-scale actions; the critics see them
-    action_half: Tensor  # [A] rescaled to [-1, 1] as (action - loc) / half
-    target_entropy: float
-    cfg: SACConfig
 
 
 class SACUpdate:
@@ -46,10 +30,10 @@ class SACUpdate:
     updated critics and an alpha step towards the target entropy; the agent then moves the
     target critics."""
 
-    def __init__(self, parts: SACParts) -> None:
-        self.p = parts
-        self.critic_params = list(parts.critic.parameters())
-        self.actor_params = list(parts.actor.parameters())
+    def __init__(self, agent: SACAgent) -> None:
+        self.p = agent  # its networks, optimizers and noise generator, which it builds, owns and checkpoints
+        self.critic_params = list(agent.critic.parameters())
+        self.actor_params = list(agent.actor.parameters())
 
     def _sample(self, obs: Tensor) -> tuple[Tensor, Tensor]:
         cfg = self.p.cfg
@@ -92,12 +76,12 @@ class SACUpdate:
 class HandWrittenSACUpdate(SACUpdate):
     """`SACUpdate` for MLP actor and critics (`mlp_fast.supports`), with the gradients by hand."""
 
-    def __init__(self, parts: SACParts) -> None:
-        super().__init__(parts)
-        self.actor = mlp_fast.MLPFast(parts.actor)
-        self.critic = mlp_fast.TwinMLPFast(parts.critic)
-        self.target = mlp_fast.TwinMLPFast(parts.target_critic)
-        self.actor_grads = mlp_fast.grad_buffers(parts.actor)[1]  # views of one flat buffer
+    def __init__(self, agent: SACAgent) -> None:
+        super().__init__(agent)
+        self.actor = mlp_fast.MLPFast(agent.actor)
+        self.critic = mlp_fast.TwinMLPFast(agent.critic)
+        self.target = mlp_fast.TwinMLPFast(agent.target_critic)
+        self.actor_grads = mlp_fast.grad_buffers(agent.actor)[1]  # views of one flat buffer
 
     def _step_with(self, opt: FastAdam, grads: list[Tensor]) -> None:
         if self.p.cfg.grad_clip > 0:
@@ -154,9 +138,9 @@ class GraphedSACUpdate(SACUpdate):
     """`SACUpdate` replayed from a CUDA graph per batch signature (`nn.graphed.GraphedStep`); the
     training noise's generator is registered with each graph, so replays draw fresh noise."""
 
-    def __init__(self, parts: SACParts) -> None:
-        super().__init__(parts)
-        self.graphed = GraphedStep(self._reference, generators=[parts.gen])
+    def __init__(self, agent: SACAgent) -> None:
+        super().__init__(agent)
+        self.graphed = GraphedStep(self._reference, generators=[agent.gen])
 
     def _reference(self, *fields: Tensor | None) -> dict[str, Tensor]:
         return SACUpdate.__call__(self, Batch(*fields))
@@ -165,10 +149,9 @@ class GraphedSACUpdate(SACUpdate):
         return self.graphed(*batch)
 
 
-def make_update(parts: SACParts, hand_written: bool = True) -> SACUpdate:
-    """On CUDA the graphed reference (unless RELAYRL_CUDA_GRAPHS=0); elsewhere the hand-written
-    update where it supports the networks (and `hand_written`), else autograd's."""
-    if cuda_graphs_enabled(parts.log_alpha.device):
-        return GraphedSACUpdate(parts)
-    twin = hand_written and mlp_fast.supports(parts.actor) and mlp_fast.supports(parts.critic)
-    return HandWrittenSACUpdate(parts) if twin else SACUpdate(parts)
+def make_update(agent: SACAgent, hand_written: bool = True) -> SACUpdate:
+    """The step of the module doc (RELAYRL_CUDA_GRAPHS=0 turns graphs off, `hand_written=False` the twin)."""
+    if cuda_graphs_enabled(agent.log_alpha.device):
+        return GraphedSACUpdate(agent)
+    twin = hand_written and mlp_fast.supports(agent.actor) and mlp_fast.supports(agent.critic)
+    return HandWrittenSACUpdate(agent) if twin else SACUpdate(agent)
