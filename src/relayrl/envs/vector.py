@@ -72,29 +72,13 @@ def worker_slices(num_envs: int, num_workers: int) -> list[tuple[int, int]]:
     return [(int(lo), int(hi)) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-class _Buffers:
-    """The shared arrays: actions in; next_obs, reset obs, reward, terminated, truncated out."""
+Layout = dict[str, tuple[tuple[int, ...], np.dtype]]  # a shared array's name -> (shape, dtype)
 
-    def __init__(self, ctx: Any, num_envs: int, obs_shape: tuple[int, ...], obs_dtype: np.dtype,
-                 act_shape: tuple[int, ...], act_dtype: np.dtype) -> None:
-        self.layout = {"action": ((num_envs, *act_shape), act_dtype), "next_obs": ((num_envs, *obs_shape), obs_dtype),
-                       "obs": ((num_envs, *obs_shape), obs_dtype), "reward": ((num_envs,), np.dtype(np.float32)),
-                       "terminated": ((num_envs,), np.dtype(np.bool_)), "truncated": ((num_envs,), np.dtype(np.bool_))}
-        self.raw = {k: ctx.RawArray("b", max(1, int(np.prod(shape)) * dtype.itemsize))
-                    for k, (shape, dtype) in self.layout.items()}
-        self.views()
 
-    def views(self) -> None:
-        """NumPy views on the raw arrays (again in a spawned worker, which gets `raw` pickled)."""
-        self.arrays = {k: np.frombuffer(self.raw[k], dtype=dtype, count=int(np.prod(shape))).reshape(shape)
-                       for k, (shape, dtype) in self.layout.items()}
-
-    def __getstate__(self) -> dict:
-        return {"layout": self.layout, "raw": self.raw}
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
-        self.views()
+def _views(raw: dict[str, Any], layout: Layout) -> dict[str, np.ndarray]:
+    """NumPy views on the shared raw arrays (made again in a spawned worker, which gets `raw` pickled)."""
+    return {k: np.frombuffer(raw[k], dtype=dtype, count=int(np.prod(shape))).reshape(shape)
+            for k, (shape, dtype) in layout.items()}
 
 
 # The main process's ends of every async env's pipes, its own env's included. A forked worker
@@ -123,8 +107,8 @@ _MAGIC = b"RLRW"
 _LENGTH = struct.Struct("!i")  # multiprocessing's Connection length header
 
 
-def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Buffers, time_limit_terminates: bool,
-            rng_seed: int) -> None:
+def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, raw: dict[str, Any], layout: Layout,
+            time_limit_terminates: bool, rng_seed: int) -> None:
     """Serve commands until "close": step, reset, info_keys, get_state, set_state."""
     for end in list(_MAIN_ENDS):  # see _MAIN_ENDS
         end.close()
@@ -136,7 +120,7 @@ def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Bu
     np.random.seed(rng_seed)  # forked, they would repeat the main process's draws (module docstring)
     random.seed(rng_seed)
     torch.manual_seed(rng_seed)
-    a = buffers.arrays
+    a = _views(raw, layout)
     env: GymBatchEnv | None = None
     try:
         made = _outcome(0, lambda: GymBatchEnv(cloudpickle.loads(fns_pickled), time_limit_terminates))
@@ -195,8 +179,6 @@ class AsyncGymBatchEnv(BatchEnvBase):
     `num_workers` worker processes (0: one per core beside this one)."""
 
     def __init__(self, env_fns: list[EnvFn], time_limit_terminates: bool = False, num_workers: int = 0) -> None:
-        if not env_fns:
-            raise UserError("env.num_envs must be >= 1")
         self._conns: list[Connection] = []
         self._procs: list[Any] = []
         self._inbox: list[bytearray] = []  # bytes read from each pipe, not yet taken as replies
@@ -220,15 +202,21 @@ class AsyncGymBatchEnv(BatchEnvBase):
             ctx = mp.get_context("fork" if sys.platform.startswith("linux") else "spawn")
             # actions in the env's own shape, as `_actions` hands them on
             act_shape = tuple(self.action_spec.shape) if self._env_action_shape is None else self._env_action_shape
-            self._buf = _Buffers(ctx, self.num_envs, tuple(self.observation_spec.shape), np.dtype(self._obs_dtype),
-                                 act_shape, act_dtype)
+            b, obs = self.num_envs, ((self.num_envs, *self.observation_spec.shape), np.dtype(self._obs_dtype))
+            # actions in; next_obs, reset obs, reward, terminated, truncated out
+            layout: Layout = {"action": ((b, *act_shape), act_dtype), "next_obs": obs, "obs": obs,
+                              "reward": ((b,), np.dtype(np.float32)), "terminated": ((b,), np.dtype(np.bool_)),
+                              "truncated": ((b,), np.dtype(np.bool_))}
+            raw = {k: ctx.RawArray("b", max(1, int(np.prod(shape)) * dtype.itemsize))
+                   for k, (shape, dtype) in layout.items()}
+            self._arrays = _views(raw, layout)
             for lo, hi in self.slices[1:]:
                 parent, child = ctx.Pipe()
                 _MAIN_ENDS.add(parent)  # before the fork: the worker closes its copy of it too
                 fns = cloudpickle.dumps(env_fns[lo:hi])
                 seed = _global_rng_seed(lo)
                 proc = ctx.Process(target=_worker, name=f"relayrl-env-{lo}-{hi}", daemon=True,
-                                   args=(child, fns, lo, hi, self._buf, time_limit_terminates, seed))
+                                   args=(child, fns, lo, hi, raw, layout, time_limit_terminates, seed))
                 proc.start()
                 child.close()
                 self._conns.append(parent)
@@ -238,14 +226,6 @@ class AsyncGymBatchEnv(BatchEnvBase):
         except BaseException:
             self.close()
             raise
-
-    @property
-    def time_limited(self) -> bool:
-        return self._local.time_limited
-
-    @property
-    def num_workers(self) -> int:
-        return len(self._procs)
 
     @property
     def info_keys(self) -> tuple[str, ...]:
@@ -417,13 +397,13 @@ class AsyncGymBatchEnv(BatchEnvBase):
             self._settle(seq)
             raise
         self._gather(seq)
-        obs = self._buf.arrays["obs"].copy()
+        obs = self._arrays["obs"].copy()
         obs[:self._k] = local.numpy()  # (the in-process rows were checked by their own reset)
         self._check_observations(obs[self._k:], "reset")
         return torch.from_numpy(obs)
 
     def step(self, action: torch.Tensor) -> StepOutput:
-        a, k, b = self._buf.arrays, self._k, self.num_envs
+        a, k, b = self._arrays, self._k, self.num_envs
         act = self._actions(action)
         self._ready()  # before the actions are written: a worker may still be reading the last ones
         a["action"][k:] = act[k:]
