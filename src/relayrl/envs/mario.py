@@ -28,6 +28,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from relayrl.envs.legacy_gym import importing_without_gym
 from relayrl.errors import UserError
 
 ENV_ID = "relayrl/SuperMarioBros-1-1-v0"
@@ -93,24 +94,11 @@ def _load() -> tuple[types.ModuleType, types.ModuleType]:
 def _load_without_gym() -> tuple[types.ModuleType, types.ModuleType]:
     nes, smb = _package(_NES, "nes_py"), _package(_SMB, "gym_super_mario_bros")
     # smb_env does `from nes_py import NESEnv`: answer it with our copy while it imports.
-    shims: dict[str, types.ModuleType] = {"gym": _GymShim(), "gym.spaces": gym.spaces, "nes_py": nes}
-    saved = {name: sys.modules.get(name) for name in shims}
-    sys.modules.update(shims)
-    sys.modules[_NES], sys.modules[_SMB] = nes, smb
-    try:
+    with importing_without_gym({_NES: nes, _SMB: smb},
+                               {"gym": _GymShim(), "gym.spaces": gym.spaces, "nes_py": nes}):
         nes.NESEnv = importlib.import_module(f"{_NES}.nes_env").NESEnv  # loads the C++ emulator (ctypes)
         joypad = importlib.import_module(f"{_NES}.wrappers.joypad_space")
         return importlib.import_module(f"{_SMB}.smb_env"), joypad
-    except BaseException:
-        for name in [n for n in sys.modules if n.split(".")[0] in (_NES, _SMB)]:
-            del sys.modules[name]
-        raise
-    finally:
-        for name, module in saved.items():
-            if module is None:
-                sys.modules.pop(name, None)
-            else:
-                sys.modules[name] = module
 
 
 def _patch_for_numpy2(rom: type, smb: type) -> None:
