@@ -22,6 +22,7 @@ import torch
 from gymnasium.utils import EzPickle
 
 from relayrl.core import BatchedEnv
+from relayrl.envs.atari import register_on_demand
 from relayrl.envs.observations import observation_problem
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
@@ -207,7 +208,7 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
             raise UserError(f"env.id={env_id!r}: module {module_name!r} has no {name!r} and registers no "
                             f"Gymnasium id {name!r}{hint} (valid: package.module:Class or package.module:EnvId-v0)")
     else:
-        _register_on_demand(env_id)
+        register_on_demand(env_id)
         if env_id not in gym.registry:
             close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
             module_name, _, name = env_id.rpartition(".")
@@ -253,7 +254,7 @@ def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, 
         # Again in a worker process that starts with a fresh registry.
         if module:
             importlib.import_module(module)
-        _register_on_demand(env_id)
+        register_on_demand(env_id)
         # disable_env_checker: the passive checker costs a measurable share of a tiny env's step
         # and only warns. No OrderEnforcing either (as for a user's class above): it only raises
         # on a step or render before the first reset, which the batched envs never do, and it
@@ -290,16 +291,6 @@ def _check_takes_an_env(wrapper: Callable[..., Any], env: gym.Env) -> None:
                         "the env that passes the rest, e.g. def wrap(env): return TimeLimit(env, 500)") from None
     except ValueError:  # no signature to read (a builtin): the call itself says
         pass
-
-
-def _register_on_demand(env_id: str) -> None:
-    """Ids registered only when used: `ALE/...` (importing ale-py registers them) and
-    `relayrl/Atari-<Game>-v0` (see envs/atari.py)."""
-    from relayrl.envs.atari import import_ale, register_atari_id
-
-    if env_id.startswith("ALE/") and env_id not in gym.registry:
-        import_ale(env_id)
-    register_atari_id(env_id)
 
 
 def missing_spaces(env: gym.Env) -> str | None:
