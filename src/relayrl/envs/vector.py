@@ -28,6 +28,7 @@ command per worker per step and, when an episode ends, its info values.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import os
 import pickle
@@ -352,10 +353,8 @@ class AsyncGymBatchEnv(BatchEnvBase):
         """After this process's copies failed: the workers' replies to `seq` read, their errors
         dropped (the local failure is the one raised; a worker killed by the same SIGTERM to the
         process group would otherwise replace it, and the env says so at its next call)."""
-        try:
+        with contextlib.suppress(Exception):
             self._gather(seq, drop_errors=True)
-        except Exception:
-            pass
 
     def _send(self, cmd: str, arg: Any = None, per_worker: list[Any] | None = None) -> int:
         """Sends a command to every worker; its seq, for `_gather`."""
