@@ -1,10 +1,7 @@
-"""`check_env`: run a stateless env and compare everything it returns with its specs.
-
-Checked at each batch shape, for `reset` and a few `step`s with random actions: observation
-names; for every observation entry, the reward, both done flags and every state leaf: type,
-shape (batch dims included), dtype, device, no NaN, and bounds. Also that `step` leaves its
-input state unchanged (purity) and that `reset` with equally seeded generators gives equal
-states. The first mismatch raises `SpecError`, e.g.
+"""`check_env`: run a stateless env and compare everything it returns with its specs (type,
+shape with the batch dims, dtype, device, no NaN, bounds); also that `step` leaves its input
+state unchanged and that equally seeded resets give equal states. The first mismatch raises
+`SpecError`, e.g.
 
     observation 'th': expected shape (32,), got (32, 1) (after reset, batch shape (32,))
 """
