@@ -60,17 +60,6 @@ class _LegacyWrapper(_LegacyEnv):
         self.env = env
 
 
-class _GymShim(types.ModuleType):
-    """What nes-py's modules use of old `gym`: Env, Wrapper, spaces.Box, spaces.Discrete."""
-
-    def __init__(self) -> None:
-        super().__init__("gym")
-        self.Env = _LegacyEnv
-        self.Wrapper = _LegacyWrapper
-        self.spaces = gym.spaces
-        self.__version__ = "0.26.2"
-
-
 def _package(name: str, real: str) -> types.ModuleType:
     """An empty package `name` whose submodules are `real`'s files (`real`'s __init__ never runs)."""
     spec = importlib.util.find_spec(real)  # locates the package without importing it
@@ -94,8 +83,7 @@ def _load() -> tuple[types.ModuleType, types.ModuleType]:
 def _load_without_gym() -> tuple[types.ModuleType, types.ModuleType]:
     nes, smb = _package(_NES, "nes_py"), _package(_SMB, "gym_super_mario_bros")
     # smb_env does `from nes_py import NESEnv`: answer it with our copy while it imports.
-    with importing_without_gym({_NES: nes, _SMB: smb},
-                               {"gym": _GymShim(), "gym.spaces": gym.spaces, "nes_py": nes}):
+    with importing_without_gym({_NES: nes, _SMB: smb}, _LegacyEnv, _LegacyWrapper, {"nes_py": nes}):
         nes.NESEnv = importlib.import_module(f"{_NES}.nes_env").NESEnv  # loads the C++ emulator (ctypes)
         joypad = importlib.import_module(f"{_NES}.wrappers.joypad_space")
         return importlib.import_module(f"{_SMB}.smb_env"), joypad

@@ -37,18 +37,6 @@ _load_lock = threading.Lock()
 _module: types.ModuleType | None = None
 
 
-class _GymShim(types.ModuleType):
-    """What minitaur_gym_env uses of old `gym`: Env, spaces, utils.seeding, __version__."""
-
-    def __init__(self) -> None:
-        super().__init__("gym")
-        self.Env = gym.Env
-        self.spaces = gym.spaces
-        self.utils = types.ModuleType("gym.utils")
-        self.utils.seeding = gym.utils.seeding
-        self.__version__ = "0.26.2"  # only compared with 0.9.6, to skip pre-0.9.6 method aliases
-
-
 def _parse_version(version: str) -> tuple[int, ...]:
     return tuple(int(part) for part in version.split(".") if part.isdigit())
 
@@ -74,12 +62,10 @@ def _minitaur_gym_env() -> types.ModuleType:
 def _load_without_gym(bullet_dir: str) -> types.ModuleType:
     package = types.ModuleType(_PACKAGE)
     package.__path__ = [bullet_dir]  # relative imports (`from . import minitaur`) resolve in here
-    gym_shim = _GymShim()
     # pkg_resources always shimmed: gone from setuptools >= 81, and a deprecation warning where it exists.
     pkg_resources = types.ModuleType("pkg_resources")
     pkg_resources.parse_version = _parse_version
-    with importing_without_gym({_PACKAGE: package},
-                               {"gym": gym_shim, "gym.utils": gym_shim.utils, "pkg_resources": pkg_resources}):
+    with importing_without_gym({_PACKAGE: package}, gym.Env, gym.Wrapper, {"pkg_resources": pkg_resources}):
         return importlib.import_module(f"{_PACKAGE}.minitaur_gym_env")
 
 
