@@ -14,9 +14,7 @@ interrupt that cuts a big message (a get_state or set_state of large envs) in tw
 say it is broken at its next call, rather than hang (`AsyncGymBatchEnv._fill`).
 
 Envs that draw from the global RNGs (`np.random`, `random`, torch's) instead of their own
-`self.np_random` cannot give sync's numbers: every worker has its own streams, seeded from this
-process's `np.random` state (so a script that seeds it runs the same twice) and its slice's
-first copy, so copies in different workers never repeat each other's draws.
+`self.np_random` cannot give sync's numbers: every worker seeds its own (`_global_rng_seed`).
 
 Why this shape: more processes than cores never speeds up CPU-bound envs, and one process per
 copy (Gymnasium's `AsyncVectorEnv`) pays a pipe round trip per copy per step, which for light
@@ -118,7 +116,7 @@ def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, raw: dict[st
     # multiprocessing's at exit) kills, whatever handler the forked main process had installed.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    np.random.seed(rng_seed)  # forked, they would repeat the main process's draws (module docstring)
+    np.random.seed(rng_seed)  # forked, they would repeat the main process's draws
     random.seed(rng_seed)
     torch.manual_seed(rng_seed)
     a = _views(raw, layout)
@@ -345,8 +343,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
     def _resync(self) -> None:
         """After an interrupted call (Ctrl-C during a step): a "sync" to every worker, answered
         after whatever it was still doing, so no worker still reads the shared actions or writes
-        results when the next command starts. The interrupted call's replies, read or not, are
-        dropped by their seq, so none is taken for a later command's, and none is waited for."""
+        results when the next command starts (the interrupted call's replies are dropped by seq)."""
         self._gather(self._send("sync"), drop_errors=True)
 
     def _settle(self, seq: int) -> None:
