@@ -29,6 +29,7 @@ import gymnasium as gym
 import numpy as np
 
 from relayrl.envs.legacy_gym import importing_without_gym
+from relayrl.envs.pixels import mario_preprocessing
 from relayrl.errors import UserError
 
 ENV_ID = "relayrl/SuperMarioBros-1-1-v0"
@@ -169,8 +170,6 @@ def make_preprocessed(render_mode: str | None = None, max_episode_frames: int = 
     """The Mario tutorial's env: MarioEnv, then skip 4 (summed rewards), grayscale, 84x84, stack 4
     (uint8 [4, 84, 84]; keyword overrides: skip, screen_size, stack, max_pool). The time limit sits
     under the frame skip, so it counts frames. `render()` gives full RGB frames."""
-    from relayrl.envs.pixels import mario_preprocessing  # here, so MarioEnv alone needs no OpenCV
-
     env = gym.wrappers.TimeLimit(MarioEnv(render_mode=render_mode), max_episode_frames)
     return mario_preprocessing(env, **preprocessing)
 
