@@ -465,5 +465,4 @@ class AsyncGymBatchEnv(BatchEnvBase):
                 proc.close()  # its sentinel pipe now, not when the garbage collector finds it
         for conn in self._conns:
             _MAIN_ENDS.discard(conn)
-        if hasattr(self, "_local"):
-            self._local.close()
+        self._local.close()
