@@ -71,10 +71,10 @@ def worker_slices(num_envs: int, num_workers: int) -> list[tuple[int, int]]:
     return [(int(lo), int(hi)) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-Layout = dict[str, tuple[tuple[int, ...], np.dtype]]  # a shared array's name -> (shape, dtype)
+_SharedLayout = dict[str, tuple[tuple[int, ...], np.dtype]]  # a shared array's name -> (shape, dtype)
 
 
-def _views(raw: dict[str, Any], layout: Layout) -> dict[str, np.ndarray]:
+def _views(raw: dict[str, Any], layout: _SharedLayout) -> dict[str, np.ndarray]:
     """NumPy views on the shared raw arrays (made again in a spawned worker, which gets `raw` pickled)."""
     return {k: np.frombuffer(raw[k], dtype=dtype, count=int(np.prod(shape))).reshape(shape)
             for k, (shape, dtype) in layout.items()}
@@ -106,7 +106,7 @@ _MAGIC = b"RLRW"
 _LENGTH = struct.Struct("!i")  # multiprocessing's Connection length header
 
 
-def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, raw: dict[str, Any], layout: Layout,
+def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, raw: dict[str, Any], layout: _SharedLayout,
             time_limit_terminates: bool, rng_seed: int) -> None:
     """Serve commands until "close": step, reset, info_keys, get_state, set_state."""
     for end in list(_MAIN_ENDS):  # see _MAIN_ENDS
@@ -203,9 +203,9 @@ class AsyncGymBatchEnv(BatchEnvBase):
             act_shape = tuple(self.action_spec.shape) if self._env_action_shape is None else self._env_action_shape
             b, obs = self.num_envs, ((self.num_envs, *self.observation_spec.shape), np.dtype(self._obs_dtype))
             # actions in; next_obs, reset obs, reward, terminated, truncated out
-            layout: Layout = {"action": ((b, *act_shape), act_dtype), "next_obs": obs, "obs": obs,
-                              "reward": ((b,), np.dtype(np.float32)), "terminated": ((b,), np.dtype(np.bool_)),
-                              "truncated": ((b,), np.dtype(np.bool_))}
+            layout: _SharedLayout = {"action": ((b, *act_shape), act_dtype), "next_obs": obs, "obs": obs,
+                                     "reward": ((b,), np.dtype(np.float32)), "terminated": ((b,), np.dtype(np.bool_)),
+                                     "truncated": ((b,), np.dtype(np.bool_))}
             raw = {k: ctx.RawArray("b", max(1, int(np.prod(shape)) * dtype.itemsize))
                    for k, (shape, dtype) in layout.items()}
             self._arrays = _views(raw, layout)
