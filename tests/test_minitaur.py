@@ -53,7 +53,8 @@ def test_spaces_and_step_types(bullet):
     finally:
         env.close()
     # The old-gym and pkg_resources stand-ins exist only while pybullet's module is imported.
-    from relayrl.envs.minitaur import _GymShim, _parse_version
+    from relayrl.envs.legacy_gym import _GymShim
+    from relayrl.envs.minitaur import _parse_version
 
     assert not isinstance(sys.modules.get("gym"), _GymShim)
     assert getattr(sys.modules.get("pkg_resources"), "parse_version", None) is not _parse_version

@@ -1,28 +1,17 @@
 """`env.vectorization = "ale"`: the copies of a `relayrl/Atari-<Game>-v0` env stepped by ale-py's
-own vector env (`ale_py.vector_env.AtariVectorEnv`: C++ threads doing the frame skip, max-pool,
-grayscale and resize), behind the batched env protocol.
-
-The game settings are `ALE/<Game>-v5`'s and the preprocessing is `pixels.atari_preprocessing`'s
-(sticky actions 0.25, minimal action set, at most 108,000 frames an episode, up to 30 no-ops at
-reset, skip 4 with a max over the last two frames, 84x84 grayscale, stacks of 4, no fire reset,
-no life-loss terminations, rewards not clipped: returns are the game's scores), so a policy
-trained here is evaluated on the Gymnasium path (`make_env`'s default), which `relayrl eval`
-and `relayrl video` use.
+own vector env (`AtariVectorEnv`: C++ threads doing the frame skip, max-pool, grayscale and
+resize) with the game settings and preprocessing of the Gymnasium path (envs/atari.py), so a
+policy trained here is evaluated there (`make_env`'s default, `relayrl eval`, `relayrl video`).
 
 Two things are done here rather than in ale-py, to match the other envs exactly:
 - The frame stack. ale-py pads a new episode's stack with zeros; relayrl's envs repeat the
-  first frame (`FrameStackObservation(padding_type="reset")`), which is what the replay
-  rebuilds from one stored frame per step. So ale-py returns single frames and the stacks are
-  built here, with the same padding.
-- Auto-reset. ale-py runs in its "SameStep" mode: a copy whose episode ended is reset within
-  the step, with the last frame in `info["final_obs"]`; the step output then carries the true
-  final stack (`next_obs`) beside the reset one (`obs`), as `GymBatchEnv` does.
+  first frame, which is what the replay rebuilds from one stored frame per step.
+- Auto-reset. In ale-py's "SameStep" mode a copy whose episode ended is reset within the step,
+  its last frame in `info["final_obs"]`; the step output carries that true final stack
+  (`next_obs`) beside the reset one (`obs`), as `GymBatchEnv` does.
 
 `env.info_keys` read ale-py's per-step info (`lives`, `frame_number`, `episode_frame_number`);
 for a copy reset within the step it already describes the new episode.
-
-On a CUDA run the observations come back in pinned host memory, so the policy's
-`obs.to(device, non_blocking=True)` copies them without blocking the host.
 """
 
 from __future__ import annotations
@@ -73,7 +62,8 @@ class AleBatchEnv(BatchEnvBase):
         self._all = np.arange(num_envs)
 
     def _empty(self) -> torch.Tensor:
-        """A fresh [B, k, H, W] uint8 host tensor (pinned on a CUDA run). Fresh each step: the
+        """A fresh [B, k, H, W] uint8 host tensor, pinned on a CUDA run (so the policy's
+        `obs.to(device, non_blocking=True)` does not block the host). Fresh each step: the
         replay writers keep the step's tensors until they flush."""
         return torch.empty((self.num_envs, *self._stack.shape[1:]), dtype=torch.uint8, pin_memory=self.pin_memory)
 

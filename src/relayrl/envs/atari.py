@@ -35,10 +35,9 @@ def import_ale(env_id: str) -> None:
 def make_atari(game: str, render_mode: str | None = None, **preprocessing: Any) -> gym.Env:
     """`ALE/<game>-v5` with the standard preprocessing (keyword overrides: frame_skip,
     screen_size, stack, noop_max, terminal_on_life_loss)."""
-    ale_id = f"ALE/{game}-v5"
     make_atari_spec_kwargs(game)  # one line if ale-py or the game is missing
     # frameskip=1: AtariPreprocessing skips frames itself, max-pooling the last two.
-    env = gym.make(ale_id, frameskip=1, render_mode=render_mode, disable_env_checker=True)
+    env = gym.make(f"ALE/{game}-v5", frameskip=1, render_mode=render_mode, disable_env_checker=True)
     env = atari_preprocessing(env, **preprocessing)
     # One step shows every frame_skip-th of the console's 60 frames/s: videos play in real time.
     env.metadata = {**env.metadata, "render_fps": ATARI_FPS // preprocessing.get("frame_skip", SKIP)}
@@ -56,11 +55,11 @@ def make_atari_spec_kwargs(game: str) -> dict[str, Any]:
     return dict(gym.spec(ale_id).kwargs)
 
 
-def register_atari_id(env_id: str) -> bool:
-    """Register `relayrl/Atari-<Game>-v0` with Gymnasium if `env_id` is one; whether it is."""
+def register_on_demand(env_id: str) -> None:
+    """Register `env_id` if it is one of the ids registered only when used: `ALE/...` (importing
+    ale-py registers them) and `relayrl/Atari-<Game>-v0`."""
+    if env_id.startswith("ALE/") and env_id not in gym.registry:
+        import_ale(env_id)
     match = ATARI_ID.fullmatch(env_id)
-    if match is None:
-        return False
-    if env_id not in gym.registry:
+    if match is not None and env_id not in gym.registry:
         gym.register(env_id, entry_point="relayrl.envs.atari:make_atari", kwargs={"game": match["game"]})
-    return True

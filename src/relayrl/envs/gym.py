@@ -22,6 +22,7 @@ import torch
 from gymnasium.utils import EzPickle
 
 from relayrl.core import BatchedEnv
+from relayrl.envs.atari import register_on_demand
 from relayrl.envs.observations import observation_problem
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
@@ -29,6 +30,7 @@ from relayrl.specs import (
     ArraySpec,
     PackedSpec,
     Spec,
+    describe,
     env_numpy_dtype,
     flat_action,
     numpy_dtype,
@@ -123,8 +125,6 @@ class BatchEnvBase(BatchedEnv):
             values = values.reshape(len(obs), -1)  # [B, entries]
             out = ((values < 0) | (values >= np.asarray(high).reshape(-1))).any(axis=1)
             if out.any():
-                from relayrl.specs import describe  # the error path only
-
                 row = values[int(np.flatnonzero(out)[0])]
                 bad = row[0] if row.size == 1 else row
                 entry = "" if f is None else f"[{f.key!r}]"
@@ -208,7 +208,7 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
             raise UserError(f"env.id={env_id!r}: module {module_name!r} has no {name!r} and registers no "
                             f"Gymnasium id {name!r}{hint} (valid: package.module:Class or package.module:EnvId-v0)")
     else:
-        _register_on_demand(env_id)
+        register_on_demand(env_id)
         if env_id not in gym.registry:
             close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
             module_name, _, name = env_id.rpartition(".")
@@ -221,7 +221,7 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
                 "package.module:EnvId-v0 for an id that module registers with gymnasium.register)"
             )
         base = _registered_fn(env_id, kwargs, max_episode_steps)
-    return _wrapped(base, wrap) if wrap else base
+    return (lambda: apply_wrappers(base(), wrap)) if wrap else base
 
 
 def _custom_fn(env_id: str, make: Callable[..., Any], kwargs: dict[str, Any], max_episode_steps: int) -> EnvFn:
@@ -254,7 +254,7 @@ def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, 
         # Again in a worker process that starts with a fresh registry.
         if module:
             importlib.import_module(module)
-        _register_on_demand(env_id)
+        register_on_demand(env_id)
         # disable_env_checker: the passive checker costs a measurable share of a tiny env's step
         # and only warns. No OrderEnforcing either (as for a user's class above): it only raises
         # on a step or render before the first reset, which the batched envs never do, and it
@@ -269,13 +269,6 @@ def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, 
                             f"env.kwargs passed: {sorted(kwargs)}") from None
 
     return make_registered
-
-
-def _wrapped(base: EnvFn, wrappers: list[Callable[[gym.Env], gym.Env]]) -> EnvFn:
-    def make_wrapped() -> gym.Env:
-        return apply_wrappers(base(), wrappers)
-
-    return make_wrapped
 
 
 def apply_wrappers(env: gym.Env, wrappers: list[Callable[[gym.Env], gym.Env]]) -> gym.Env:
@@ -298,26 +291,6 @@ def _check_takes_an_env(wrapper: Callable[..., Any], env: gym.Env) -> None:
                         "the env that passes the rest, e.g. def wrap(env): return TimeLimit(env, 500)") from None
     except ValueError:  # no signature to read (a builtin): the call itself says
         pass
-
-
-def has_time_limit(env: gym.Env) -> bool:
-    """Whether a TimeLimit wrapper anywhere in the env's chain ends its episodes."""
-    e: Any = env
-    while e is not None:
-        if isinstance(e, gym.wrappers.TimeLimit):
-            return True
-        e = getattr(e, "env", None)
-    return False
-
-
-def _register_on_demand(env_id: str) -> None:
-    """Ids registered only when used: `ALE/...` (importing ale-py registers them) and
-    `relayrl/Atari-<Game>-v0` (see envs/atari.py)."""
-    from relayrl.envs.atari import import_ale, register_atari_id
-
-    if env_id.startswith("ALE/") and env_id not in gym.registry:
-        import_ale(env_id)
-    register_atari_id(env_id)
 
 
 def missing_spaces(env: gym.Env) -> str | None:
@@ -393,8 +366,13 @@ class GymBatchEnv(BatchEnvBase):
 
     @property
     def time_limited(self) -> bool:
-        """Whether the copies' episodes end at a step limit (else only the env ends them)."""
-        return has_time_limit(self.envs[0])
+        """Whether a TimeLimit anywhere in the copies' wrappers ends their episodes (else only the env does)."""
+        e: Any = self.envs[0]
+        while e is not None:
+            if isinstance(e, gym.wrappers.TimeLimit):
+                return True
+            e = getattr(e, "env", None)
+        return False
 
     def cap_episodes(self, max_episode_steps: int) -> None:
         """Cut every copy's episodes at `max_episode_steps` (for an env without a time limit)."""

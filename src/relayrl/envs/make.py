@@ -15,6 +15,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from relayrl.envs.ale_vector import make_ale_env
 from relayrl.envs.gym import BatchEnvBase, EnvFn, GymBatchEnv, apply_wrappers, names_module, resolve_env_fn
 from relayrl.envs.probe import first_problem
 from relayrl.envs.stateless.adapter import STATELESS_ENVS, StatelessBatchEnv, make_batch_env
@@ -49,8 +50,6 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
             what = "render_mode" if render_mode is not None else "env.wrappers" if wrappers else "an env factory"
             raise UserError(f"{what} is not supported with env.vectorization='ale' (ale-py steps the copies "
                             "in C++); use env.vectorization='sync'")
-        from relayrl.envs.ale_vector import make_ale_env
-
         ale = make_ale_env(env_id, num_envs, max_episode_steps, time_limit_terminates, device, num_workers, kwargs)
         ale.info_keys = tuple(info_keys)
         return ale

@@ -28,6 +28,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from relayrl.envs.legacy_gym import importing_without_gym
+from relayrl.envs.pixels import mario_preprocessing
 from relayrl.errors import UserError
 
 ENV_ID = "relayrl/SuperMarioBros-1-1-v0"
@@ -59,17 +61,6 @@ class _LegacyWrapper(_LegacyEnv):
         self.env = env
 
 
-class _GymShim(types.ModuleType):
-    """What nes-py's modules use of old `gym`: Env, Wrapper, spaces.Box, spaces.Discrete."""
-
-    def __init__(self) -> None:
-        super().__init__("gym")
-        self.Env = _LegacyEnv
-        self.Wrapper = _LegacyWrapper
-        self.spaces = gym.spaces
-        self.__version__ = "0.26.2"
-
-
 def _package(name: str, real: str) -> types.ModuleType:
     """An empty package `name` whose submodules are `real`'s files (`real`'s __init__ never runs)."""
     spec = importlib.util.find_spec(real)  # locates the package without importing it
@@ -93,24 +84,10 @@ def _load() -> tuple[types.ModuleType, types.ModuleType]:
 def _load_without_gym() -> tuple[types.ModuleType, types.ModuleType]:
     nes, smb = _package(_NES, "nes_py"), _package(_SMB, "gym_super_mario_bros")
     # smb_env does `from nes_py import NESEnv`: answer it with our copy while it imports.
-    shims: dict[str, types.ModuleType] = {"gym": _GymShim(), "gym.spaces": gym.spaces, "nes_py": nes}
-    saved = {name: sys.modules.get(name) for name in shims}
-    sys.modules.update(shims)
-    sys.modules[_NES], sys.modules[_SMB] = nes, smb
-    try:
+    with importing_without_gym({_NES: nes, _SMB: smb}, _LegacyEnv, _LegacyWrapper, {"nes_py": nes}):
         nes.NESEnv = importlib.import_module(f"{_NES}.nes_env").NESEnv  # loads the C++ emulator (ctypes)
         joypad = importlib.import_module(f"{_NES}.wrappers.joypad_space")
         return importlib.import_module(f"{_SMB}.smb_env"), joypad
-    except BaseException:
-        for name in [n for n in sys.modules if n.split(".")[0] in (_NES, _SMB)]:
-            del sys.modules[name]
-        raise
-    finally:
-        for name, module in saved.items():
-            if module is None:
-                sys.modules.pop(name, None)
-            else:
-                sys.modules[name] = module
 
 
 def _patch_for_numpy2(rom: type, smb: type) -> None:
@@ -193,8 +170,6 @@ def make_preprocessed(render_mode: str | None = None, max_episode_frames: int = 
     """The Mario tutorial's env: MarioEnv, then skip 4 (summed rewards), grayscale, 84x84, stack 4
     (uint8 [4, 84, 84]; keyword overrides: skip, screen_size, stack, max_pool). The time limit sits
     under the frame skip, so it counts frames. `render()` gives full RGB frames."""
-    from relayrl.envs.pixels import mario_preprocessing  # here, so MarioEnv alone needs no OpenCV
-
     env = gym.wrappers.TimeLimit(MarioEnv(render_mode=render_mode), max_episode_frames)
     return mario_preprocessing(env, **preprocessing)
 

@@ -28,24 +28,13 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from relayrl.envs.legacy_gym import importing_without_gym
 from relayrl.errors import UserError
 
 ENV_ID = "relayrl/MinitaurBullet-v0"
 _PACKAGE = "_relayrl_pybullet_bullet"  # private name for pybullet_envs/bullet, loaded without its __init__
 _load_lock = threading.Lock()
 _module: types.ModuleType | None = None
-
-
-class _GymShim(types.ModuleType):
-    """What minitaur_gym_env uses of old `gym`: Env, spaces, utils.seeding, __version__."""
-
-    def __init__(self) -> None:
-        super().__init__("gym")
-        self.Env = gym.Env
-        self.spaces = gym.spaces
-        self.utils = types.ModuleType("gym.utils")
-        self.utils.seeding = gym.utils.seeding
-        self.__version__ = "0.26.2"  # only compared with 0.9.6, to skip pre-0.9.6 method aliases
 
 
 def _parse_version(version: str) -> tuple[int, ...]:
@@ -73,28 +62,11 @@ def _minitaur_gym_env() -> types.ModuleType:
 def _load_without_gym(bullet_dir: str) -> types.ModuleType:
     package = types.ModuleType(_PACKAGE)
     package.__path__ = [bullet_dir]  # relative imports (`from . import minitaur`) resolve in here
-    shims: dict[str, types.ModuleType] = {"gym": _GymShim()}
-    shims["gym.utils"] = shims["gym"].utils
-    # Always shimmed: gone from setuptools >= 81, and a deprecation warning where it exists.
-    shims["pkg_resources"] = types.ModuleType("pkg_resources")
-    shims["pkg_resources"].parse_version = _parse_version
-    saved = {name: sys.modules.get(name) for name in shims}
-    saved_path = list(sys.path)  # the module puts site-packages first on sys.path when it runs
-    sys.modules.update(shims)
-    sys.modules[_PACKAGE] = package
-    try:
+    # pkg_resources always shimmed: gone from setuptools >= 81, and a deprecation warning where it exists.
+    pkg_resources = types.ModuleType("pkg_resources")
+    pkg_resources.parse_version = _parse_version
+    with importing_without_gym({_PACKAGE: package}, gym.Env, gym.Wrapper, {"pkg_resources": pkg_resources}):
         return importlib.import_module(f"{_PACKAGE}.minitaur_gym_env")
-    except BaseException:
-        for name in [n for n in sys.modules if n == _PACKAGE or n.startswith(_PACKAGE + ".")]:
-            del sys.modules[name]
-        raise
-    finally:
-        sys.path[:] = saved_path
-        for name, module in saved.items():
-            if module is None:
-                sys.modules.pop(name, None)
-            else:
-                sys.modules[name] = module
 
 
 class _SeededRandomizer:

@@ -14,9 +14,7 @@ interrupt that cuts a big message (a get_state or set_state of large envs) in tw
 say it is broken at its next call, rather than hang (`AsyncGymBatchEnv._fill`).
 
 Envs that draw from the global RNGs (`np.random`, `random`, torch's) instead of their own
-`self.np_random` cannot give sync's numbers: every worker has its own streams, seeded from this
-process's `np.random` state (so a script that seeds it runs the same twice) and its slice's
-first copy, so copies in different workers never repeat each other's draws.
+`self.np_random` cannot give sync's numbers: every worker seeds its own (`_global_rng_seed`).
 
 Why this shape: more processes than cores never speeds up CPU-bound envs, and one process per
 copy (Gymnasium's `AsyncVectorEnv`) pays a pipe round trip per copy per step, which for light
@@ -28,6 +26,7 @@ command per worker per step and, when an episode ends, its info values.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import os
 import pickle
@@ -72,29 +71,13 @@ def worker_slices(num_envs: int, num_workers: int) -> list[tuple[int, int]]:
     return [(int(lo), int(hi)) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-class _Buffers:
-    """The shared arrays: actions in; next_obs, reset obs, reward, terminated, truncated out."""
+_SharedLayout = dict[str, tuple[tuple[int, ...], np.dtype]]  # a shared array's name -> (shape, dtype)
 
-    def __init__(self, ctx: Any, num_envs: int, obs_shape: tuple[int, ...], obs_dtype: np.dtype,
-                 act_shape: tuple[int, ...], act_dtype: np.dtype) -> None:
-        self.layout = {"action": ((num_envs, *act_shape), act_dtype), "next_obs": ((num_envs, *obs_shape), obs_dtype),
-                       "obs": ((num_envs, *obs_shape), obs_dtype), "reward": ((num_envs,), np.dtype(np.float32)),
-                       "terminated": ((num_envs,), np.dtype(np.bool_)), "truncated": ((num_envs,), np.dtype(np.bool_))}
-        self.raw = {k: ctx.RawArray("b", max(1, int(np.prod(shape)) * dtype.itemsize))
-                    for k, (shape, dtype) in self.layout.items()}
-        self.views()
 
-    def views(self) -> None:
-        """NumPy views on the raw arrays (again in a spawned worker, which gets `raw` pickled)."""
-        self.arrays = {k: np.frombuffer(self.raw[k], dtype=dtype, count=int(np.prod(shape))).reshape(shape)
-                       for k, (shape, dtype) in self.layout.items()}
-
-    def __getstate__(self) -> dict:
-        return {"layout": self.layout, "raw": self.raw}
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
-        self.views()
+def _views(raw: dict[str, Any], layout: _SharedLayout) -> dict[str, np.ndarray]:
+    """NumPy views on the shared raw arrays (made again in a spawned worker, which gets `raw` pickled)."""
+    return {k: np.frombuffer(raw[k], dtype=dtype, count=int(np.prod(shape))).reshape(shape)
+            for k, (shape, dtype) in layout.items()}
 
 
 # The main process's ends of every async env's pipes, its own env's included. A forked worker
@@ -123,8 +106,8 @@ _MAGIC = b"RLRW"
 _LENGTH = struct.Struct("!i")  # multiprocessing's Connection length header
 
 
-def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Buffers, time_limit_terminates: bool,
-            rng_seed: int) -> None:
+def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, raw: dict[str, Any], layout: _SharedLayout,
+            time_limit_terminates: bool, rng_seed: int) -> None:
     """Serve commands until "close": step, reset, info_keys, get_state, set_state."""
     for end in list(_MAIN_ENDS):  # see _MAIN_ENDS
         end.close()
@@ -133,10 +116,10 @@ def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, buffers: _Bu
     # multiprocessing's at exit) kills, whatever handler the forked main process had installed.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    np.random.seed(rng_seed)  # forked, they would repeat the main process's draws (module docstring)
+    np.random.seed(rng_seed)  # forked, they would repeat the main process's draws
     random.seed(rng_seed)
     torch.manual_seed(rng_seed)
-    a = buffers.arrays
+    a = _views(raw, layout)
     env: GymBatchEnv | None = None
     try:
         made = _outcome(0, lambda: GymBatchEnv(cloudpickle.loads(fns_pickled), time_limit_terminates))
@@ -195,8 +178,6 @@ class AsyncGymBatchEnv(BatchEnvBase):
     `num_workers` worker processes (0: one per core beside this one)."""
 
     def __init__(self, env_fns: list[EnvFn], time_limit_terminates: bool = False, num_workers: int = 0) -> None:
-        if not env_fns:
-            raise UserError("env.num_envs must be >= 1")
         self._conns: list[Connection] = []
         self._procs: list[Any] = []
         self._inbox: list[bytearray] = []  # bytes read from each pipe, not yet taken as replies
@@ -220,15 +201,21 @@ class AsyncGymBatchEnv(BatchEnvBase):
             ctx = mp.get_context("fork" if sys.platform.startswith("linux") else "spawn")
             # actions in the env's own shape, as `_actions` hands them on
             act_shape = tuple(self.action_spec.shape) if self._env_action_shape is None else self._env_action_shape
-            self._buf = _Buffers(ctx, self.num_envs, tuple(self.observation_spec.shape), np.dtype(self._obs_dtype),
-                                 act_shape, act_dtype)
+            b, obs = self.num_envs, ((self.num_envs, *self.observation_spec.shape), np.dtype(self._obs_dtype))
+            # actions in; next_obs, reset obs, reward, terminated, truncated out
+            layout: _SharedLayout = {"action": ((b, *act_shape), act_dtype), "next_obs": obs, "obs": obs,
+                                     "reward": ((b,), np.dtype(np.float32)), "terminated": ((b,), np.dtype(np.bool_)),
+                                     "truncated": ((b,), np.dtype(np.bool_))}
+            raw = {k: ctx.RawArray("b", max(1, int(np.prod(shape)) * dtype.itemsize))
+                   for k, (shape, dtype) in layout.items()}
+            self._arrays = _views(raw, layout)
             for lo, hi in self.slices[1:]:
                 parent, child = ctx.Pipe()
                 _MAIN_ENDS.add(parent)  # before the fork: the worker closes its copy of it too
                 fns = cloudpickle.dumps(env_fns[lo:hi])
                 seed = _global_rng_seed(lo)
                 proc = ctx.Process(target=_worker, name=f"relayrl-env-{lo}-{hi}", daemon=True,
-                                   args=(child, fns, lo, hi, self._buf, time_limit_terminates, seed))
+                                   args=(child, fns, lo, hi, raw, layout, time_limit_terminates, seed))
                 proc.start()
                 child.close()
                 self._conns.append(parent)
@@ -238,14 +225,6 @@ class AsyncGymBatchEnv(BatchEnvBase):
         except BaseException:
             self.close()
             raise
-
-    @property
-    def time_limited(self) -> bool:
-        return self._local.time_limited
-
-    @property
-    def num_workers(self) -> int:
-        return len(self._procs)
 
     @property
     def info_keys(self) -> tuple[str, ...]:
@@ -364,18 +343,15 @@ class AsyncGymBatchEnv(BatchEnvBase):
     def _resync(self) -> None:
         """After an interrupted call (Ctrl-C during a step): a "sync" to every worker, answered
         after whatever it was still doing, so no worker still reads the shared actions or writes
-        results when the next command starts. The interrupted call's replies, read or not, are
-        dropped by their seq, so none is taken for a later command's, and none is waited for."""
+        results when the next command starts (the interrupted call's replies are dropped by seq)."""
         self._gather(self._send("sync"), drop_errors=True)
 
     def _settle(self, seq: int) -> None:
         """After this process's copies failed: the workers' replies to `seq` read, their errors
         dropped (the local failure is the one raised; a worker killed by the same SIGTERM to the
         process group would otherwise replace it, and the env says so at its next call)."""
-        try:
+        with contextlib.suppress(Exception):
             self._gather(seq, drop_errors=True)
-        except Exception:
-            pass
 
     def _send(self, cmd: str, arg: Any = None, per_worker: list[Any] | None = None) -> int:
         """Sends a command to every worker; its seq, for `_gather`."""
@@ -417,13 +393,13 @@ class AsyncGymBatchEnv(BatchEnvBase):
             self._settle(seq)
             raise
         self._gather(seq)
-        obs = self._buf.arrays["obs"].copy()
+        obs = self._arrays["obs"].copy()
         obs[:self._k] = local.numpy()  # (the in-process rows were checked by their own reset)
         self._check_observations(obs[self._k:], "reset")
         return torch.from_numpy(obs)
 
     def step(self, action: torch.Tensor) -> StepOutput:
-        a, k, b = self._buf.arrays, self._k, self.num_envs
+        a, k, b = self._arrays, self._k, self.num_envs
         act = self._actions(action)
         self._ready()  # before the actions are written: a worker may still be reading the last ones
         a["action"][k:] = act[k:]
@@ -489,5 +465,4 @@ class AsyncGymBatchEnv(BatchEnvBase):
                 proc.close()  # its sentinel pipe now, not when the garbage collector finds it
         for conn in self._conns:
             _MAIN_ENDS.discard(conn)
-        if hasattr(self, "_local"):
-            self._local.close()
+        self._local.close()

@@ -1,10 +1,7 @@
-"""`check_env`: run a stateless env and compare everything it returns with its specs.
-
-Checked at each batch shape, for `reset` and a few `step`s with random actions: observation
-names; for every observation entry, the reward, both done flags and every state leaf: type,
-shape (batch dims included), dtype, device, no NaN, and bounds. Also that `step` leaves its
-input state unchanged (purity) and that `reset` with equally seeded generators gives equal
-states. The first mismatch raises `SpecError`, e.g.
+"""`check_env`: run a stateless env and compare everything it returns with its specs (type,
+shape with the batch dims, dtype, device, no NaN, bounds); also that `step` leaves its input
+state unchanged and that equally seeded resets give equal states. The first mismatch raises
+`SpecError`, e.g.
 
     observation 'th': expected shape (32,), got (32, 1) (after reset, batch shape (32,))
 """
@@ -71,16 +68,6 @@ def check_state(state: Any, spec: Any, batch_shape: tuple[int, ...], device: tor
         check_tensor(f"state {path!r}", leaf, leaf_spec, batch_shape, device, where)
 
 
-def _snapshot(state: Any) -> list[torch.Tensor]:
-    return [leaf.detach().clone() for _, leaf in tree_leaves(state)]
-
-
-def _check_unchanged(before: list[torch.Tensor], state: Any, where: str) -> None:
-    for old, (path, leaf) in zip(before, tree_leaves(state), strict=True):
-        if not torch.equal(old, leaf):
-            raise SpecError(f"state {path!r}: step modified its input state in place ({where})")
-
-
 def check_env(env: StatelessEnv, batch_shapes: Sequence[tuple[int, ...]] = ((), (32,), (2, 3)),
               steps: int = 3, seed: int = 0, device: DeviceLike = None) -> None:
     """Run `env` at each batch shape (reset, then `steps` random steps) and raise SpecError
@@ -100,9 +87,11 @@ def check_env(env: StatelessEnv, batch_shapes: Sequence[tuple[int, ...]] = ((), 
             where = f"after step {i + 1}, batch shape {shape}"
             action = env.rand_action(shape, gen, dev)
             check_tensor("action (rand_action)", action, env.action_spec, shape, dev, where)
-            before = _snapshot(state)
+            before = [leaf.detach().clone() for _, leaf in tree_leaves(state)]
             out = env.step(state, action)
-            _check_unchanged(before, state, where)
+            for old, (path, leaf) in zip(before, tree_leaves(state), strict=True):
+                if not torch.equal(old, leaf):
+                    raise SpecError(f"state {path!r}: step modified its input state in place ({where})")
             check_obs(out.obs, env.observation_spec, shape, dev, where)
             check_tensor("reward", out.reward, env.reward_spec, shape, dev, where)
             check_tensor("terminated", out.terminated, env.done_spec, shape, dev, where)

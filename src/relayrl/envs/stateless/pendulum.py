@@ -1,17 +1,11 @@
 """Gymnasium's Pendulum-v1 as a stateless torch env (the TorchRL Pendulum tutorial's env).
 
 Dynamics, reward, bounds and the reset distribution are Gymnasium's
-(gymnasium/envs/classic_control/pendulum.py), written for tensors of any batch shape:
-
-    u       = clip(action, -max_torque, max_torque)
-    reward  = -(angle_normalize(th)^2 + 0.1 thdot^2 + 0.001 u^2)     from the pre-step state
-    thdot' = clip(thdot + (3g/(2l) sin th + 3/(m l^2) u) dt, -max_speed, max_speed)
-    th'    = th + thdot' dt
-
-Episodes are truncated after `max_episode_steps` (200, Gymnasium's TimeLimit), counted by
-the `step` field of the state; they never terminate. Raw observations are `th` and `thdot`
-(shape `()` each, as in the tutorial); `make_pendulum` adds the transforms that give
-Gymnasium's observation `[cos th, sin th, thdot]`.
+(gymnasium/envs/classic_control/pendulum.py), written for tensors of any batch shape. Episodes
+are truncated after `max_episode_steps` (200, Gymnasium's TimeLimit), counted by the `step`
+field of the state; they never terminate. Raw observations are `th` and `thdot` (shape `()`
+each, as in the tutorial); `make_pendulum` adds the transforms that give Gymnasium's
+observation `[cos th, sin th, thdot]`.
 
 Precision: Gymnasium integrates in float64. With `dtype=torch.float64` a rollout matches it to
 ~1e-12 over 200 steps; in float32 (the default, for speed) each single step matches to ~1e-6,

@@ -28,7 +28,7 @@ Writing your own (the TorchRL tutorial's SinTransform):
 from __future__ import annotations
 
 import functools
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -101,16 +101,12 @@ class Unsqueeze(Transform):
 
 
 class _Elementwise(Transform):
-    """out_key = fn(in_key), bounded to [low, high]."""
+    """out_key = fn(in_key), bounded to [-1, 1]."""
 
-    low: float = -1.0
-    high: float = 1.0
+    fn: Callable[[torch.Tensor], torch.Tensor]
 
     def __init__(self, in_key: str, out_key: str | None = None) -> None:
         self.in_key, self.out_key = in_key, out_key or in_key
-
-    def fn(self, x: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
 
     def forward(self, obs: Obs) -> Obs:
         return {**obs, self.out_key: self.fn(obs[self.in_key])}
@@ -118,17 +114,15 @@ class _Elementwise(Transform):
     def observation_spec(self, spec: ObsSpec) -> ObsSpec:
         _missing([self.in_key], spec, type(self).__name__)
         s = spec[self.in_key]
-        return {**spec, self.out_key: bounded(s.shape, s.dtype, self.low, self.high)}
+        return {**spec, self.out_key: bounded(s.shape, s.dtype, -1.0, 1.0)}
 
 
 class Sin(_Elementwise):
-    def fn(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.sin(x)
+    fn = staticmethod(torch.sin)
 
 
 class Cos(_Elementwise):
-    def fn(self, x: torch.Tensor) -> torch.Tensor:
-        return torch.cos(x)
+    fn = staticmethod(torch.cos)
 
 
 class Cat(Transform):
