@@ -142,10 +142,7 @@ class EpisodeStats(Observer):
 
     def _info_window(self, key: str) -> deque[float]:
         """The window of `key`'s values, as long as the returns' window."""
-        window = self.info.get(key)
-        if window is None:
-            window = self.info[key] = deque(maxlen=self.returns.maxlen)
-        return window
+        return self.info.setdefault(key, deque(maxlen=self.returns.maxlen))
 
     def info_means(self) -> dict[str, float]:
         """Mean of each info key over its window (keys with no finished episode left out)."""
@@ -168,13 +165,10 @@ class EpisodeStats(Observer):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restores episodes in progress too; call `reset_running()` after if the envs were
         reset rather than restored."""
-        self.returns.clear()
-        self.returns.extend(state["returns"])
-        self.lengths.clear()
-        self.lengths.extend(state["lengths"])
+        self.returns = deque(state["returns"], maxlen=self.returns.maxlen)
+        self.lengths = deque(state["lengths"], maxlen=self.lengths.maxlen)
         self.episodes = int(state["episodes"])
-        self.finished.clear()
-        self.finished.extend(tuple(e) for e in state.get("finished", []))
+        self.finished = deque((tuple(e) for e in state.get("finished", [])), maxlen=FINISHED_KEPT)
         self.info = {}
         for key, values in state.get("info", {}).items():
             self._info_window(key).extend(values)
