@@ -87,7 +87,6 @@ class Section:
     def check_rollout(self, steps: int) -> None:
         """An on-policy agent section's check of its settings against one rollout of `steps`
         env steps (`Config.steps_per_iteration`); other sections take any."""
-        return None
 
 
 @functools.cache

@@ -112,7 +112,7 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
     if named and named not in FORMATS:  # torch.export's reader and onnxruntime go by the extension
         raise UserError(f"--out {str(out)!r}: give a file name ending in .pt2 or .onnx (or a folder)")
     if format is None:
-        format = named if named in FORMATS else "pt2"
+        format = named or "pt2"  # `named` is one of FORMATS here, or ""
     if format not in FORMATS:
         raise UserError(f"export format {format!r} is not known; valid: {', '.join(FORMATS)}")
     if named and named != format:
