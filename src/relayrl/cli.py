@@ -42,9 +42,7 @@ class _Parser(argparse.ArgumentParser):
         self.error(message)
 
     def error(self, message: str) -> NoReturn:
-        print(f"relayrl: error: {message} (see 'relayrl {self.prog.split()[-1]} --help')"
-              if " " in self.prog else f"relayrl: error: {message} (see 'relayrl --help')",
-              file=sys.stderr)
+        print(f"relayrl: error: {message} (see '{self.prog} --help')", file=sys.stderr)  # prog: "relayrl train"
         sys.exit(EXIT_USAGE)
 
 

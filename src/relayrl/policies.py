@@ -45,11 +45,7 @@ class RandomPolicy(Policy):
 
 
 class GreedyPolicy(Policy):
-    """argmax_a Q(obs, a). Runs the network on its device and returns CPU actions.
-
-    A float32 MLP on the CPU runs through `MLPInference` (NumPy views of its weights for small
-    batches, lean torch ops for the rest).
-    """
+    """argmax_a Q(obs, a). Runs the network on its device (`cpu_mlp` where it can) and returns CPU actions."""
 
     def __init__(self, q_net: nn.Module, device: torch.device) -> None:
         self.q_net = q_net
