@@ -118,7 +118,6 @@ def value_limit(spec: Spec) -> Any:
 def spec_from_space(space: gym.Space, role: str = "observation") -> Spec:
     """The spec of one element of `space` (`role`: "observation" or "action", for messages);
     UserError, naming the space and what is valid, for spaces relayrl cannot take."""
-    valid = OBSERVATION_SPACES if role == "observation" else ACTION_SPACES
     if role == "action" and space.shape is not None and math.prod(space.shape) == 0:  # Box, MultiDiscrete: (0,)
         raise UserError(f"action space {space} has no dimensions: there is no action to learn")
     if isinstance(space, gym.spaces.Discrete):
@@ -147,6 +146,7 @@ def spec_from_space(space: gym.Space, role: str = "observation") -> Spec:
                                env_dtype=_other_dtype(space.dtype, torch.int8))
     if isinstance(space, gym.spaces.Dict | gym.spaces.Tuple) and role == "observation":
         return packed_spec(space)
+    valid = OBSERVATION_SPACES if role == "observation" else ACTION_SPACES
     raise UserError(f"{role} space {space} is not supported; valid {role} spaces: {valid}")
 
 
