@@ -179,27 +179,25 @@ class EpisodeStats(Observer):
             self._done = np.zeros(self._ret.shape[0], np.bool_)
 
 
-class AverageReturn:
-    """Mean return of the last `buffer_size` completed episodes (nan before the first)."""
+class _Reading:
+    """One number read off an `EpisodeStats` (TF-Agents' metric objects, `result()`)."""
 
     def __init__(self, stats: EpisodeStats) -> None:
         self.stats = stats
+
+
+class AverageReturn(_Reading):
+    """Mean return of the last `buffer_size` completed episodes (nan before the first)."""
 
     def result(self) -> float:
         return float(np.mean(self.stats.returns)) if self.stats.returns else float("nan")
 
 
-class AverageEpisodeLength:
-    def __init__(self, stats: EpisodeStats) -> None:
-        self.stats = stats
-
+class AverageEpisodeLength(_Reading):
     def result(self) -> float:
         return float(np.mean(self.stats.lengths)) if self.stats.lengths else float("nan")
 
 
-class NumberOfEpisodes:
-    def __init__(self, stats: EpisodeStats) -> None:
-        self.stats = stats
-
+class NumberOfEpisodes(_Reading):
     def result(self) -> int:
         return self.stats.episodes
