@@ -42,9 +42,7 @@ class _Parser(argparse.ArgumentParser):
         self.error(message)
 
     def error(self, message: str) -> NoReturn:
-        print(f"relayrl: error: {message} (see 'relayrl {self.prog.split()[-1]} --help')"
-              if " " in self.prog else f"relayrl: error: {message} (see 'relayrl --help')",
-              file=sys.stderr)
+        print(f"relayrl: error: {message} (see '{self.prog} --help')", file=sys.stderr)  # prog: "relayrl train"
         sys.exit(EXIT_USAGE)
 
 
@@ -186,14 +184,6 @@ def _eval(args: argparse.Namespace) -> None:
     print(json.dumps({**rounded, "policy_env_steps": policy.env_steps}))
 
 
-def _export(args: argparse.Namespace) -> None:
-    from relayrl.export import describe, export_policy
-
-    path = export_policy(args.run_dir, args.out, args.format)
-    sig = json.loads(path.with_name(path.name + ".json").read_text())
-    print(f"{path} ({describe(sig)}; signature in {path.name}.json)")
-
-
 class Terminated(KeyboardInterrupt):
     """SIGTERM (`kill`, a cluster scheduler's preemption) during `train`: the run stops as on
     Ctrl-C, so Ray actors and env worker processes are shut down instead of orphaned."""
@@ -263,7 +253,11 @@ def main(argv: list[str] | None = None) -> int:
                 raise UserError(f"--episodes {args.episodes} is not valid; it must be >= 1")
             print(record_video(args.run_dir, args.out, args.episodes, args.seed))
         elif args.command == "export":
-            _export(args)
+            from relayrl.export import describe, export_policy
+
+            path = export_policy(args.run_dir, args.out, args.format)
+            sig = json.loads(path.with_name(path.name + ".json").read_text())
+            print(f"{path} ({describe(sig)}; signature in {path.name}.json)")
         elif args.command == "config":
             from relayrl.config import config_toml
             from relayrl.presets import load_config

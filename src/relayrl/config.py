@@ -6,6 +6,7 @@ closest key), from TOML, --set or an assignment in Python (`config_fields.Sectio
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import re
@@ -246,7 +247,6 @@ def changes(old: Config, new: Config) -> list[str]:
 def from_dict(data: dict[str, Any]) -> Config:
     """Build a Config from nested dicts (e.g. parsed TOML); every key is checked. A key the
     dict does not name is the algorithm's default (`algo_defaults`)."""
-    data = dict(data)
     config = Config(algo=algorithm(data.get("algo", DEFAULT_ALGO)).name)  # a name this version knows, first
     try:
         _merge(config, data, prefix="")
@@ -294,10 +294,8 @@ def _rebase(obj: Any, old: Any, new: Any) -> None:
                 shared = {g.name for g in dataclasses.fields(section)} & {g.name for g in dataclasses.fields(current)}
                 for key in sorted(shared):
                     if type(current) is not type(was) or getattr(current, key) != getattr(was, key):
-                        try:
+                        with contextlib.suppress(ConfigError):  # the same name with another type: the new default stays
                             setattr(section, key, getattr(current, key))
-                        except ConfigError:  # the same name with another type: the new default stays
-                            pass
                 object.__setattr__(obj, f.name, section)
             else:
                 _rebase(current, was, becomes)

@@ -6,6 +6,7 @@ each field's one-line meaning, read from the comment beside it in the source (on
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import difflib
 import functools
@@ -87,7 +88,6 @@ class Section:
     def check_rollout(self, steps: int) -> None:
         """An on-policy agent section's check of its settings against one rollout of `steps`
         env steps (`Config.steps_per_iteration`); other sections take any."""
-        return None
 
 
 @functools.cache
@@ -154,13 +154,9 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
     """Check `value` against the field's type; ints are accepted where floats are expected."""
     origin = typing.get_origin(hint)
     if origin in (types.UnionType, typing.Union):
-        for arg in typing.get_args(hint):
-            if arg is type(None) and value is None:
-                return None
-            try:
+        for arg in typing.get_args(hint):  # NoneType takes None
+            with contextlib.suppress(ConfigError):
                 return coerce(value, arg, path)
-            except ConfigError:
-                continue
         raise ConfigError(f"{path}={value!r} has the wrong type; expected {type_name(hint)}")
     if origin is dict:
         if not isinstance(value, dict):

@@ -68,9 +68,7 @@ def _per_algorithm() -> list[str]:
     DEFAULTS, whose comments say where and why they differ from Stable-Baselines3's)."""
     algos = [a for a in ALGORITHMS.values() if a.defaults]
     defaults = [dotted(a.defaults) for a in algos]
-    keys: list[str] = []
-    for d in defaults:
-        keys += [k for k in d if k not in keys]
+    keys = list(dict.fromkeys(k for d in defaults for k in d))  # in first-seen order
     out = ["", "## Defaults per algorithm", "",
            "What `relayrl train ALGO` (and a config naming only `algo`) holds where it differs from the "
            "tables above; `-`: the table's default. Why each differs from Stable-Baselines3's: the "

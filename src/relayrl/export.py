@@ -32,7 +32,7 @@ from relayrl import atomic
 from relayrl.agents.registry import for_policy_kind
 from relayrl.config_fields import is_user_encoder
 from relayrl.errors import UserError
-from relayrl.loaded_policy import LoadedPolicy, built_quietly, rng_kept
+from relayrl.loaded_policy import LoadedPolicy, built_quietly, env_shaped, rng_kept
 from relayrl.paths import is_folder, output_path, writing
 from relayrl.policies import saved_obs_spec
 from relayrl.policy_file import REFUSED, env_action_dtype, load_policy_file
@@ -112,7 +112,7 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
     if named and named not in FORMATS:  # torch.export's reader and onnxruntime go by the extension
         raise UserError(f"--out {str(out)!r}: give a file name ending in .pt2 or .onnx (or a folder)")
     if format is None:
-        format = named if named in FORMATS else "pt2"
+        format = named or "pt2"  # `named` is one of FORMATS here, or ""
     if format not in FORMATS:
         raise UserError(f"export format {format!r} is not known; valid: {', '.join(FORMATS)}")
     if named and named != format:
@@ -187,14 +187,11 @@ class EnvShaped(torch.nn.Module):
     def __init__(self, module: torch.nn.Module, shape: list[int] | None, dtype: torch.dtype | None) -> None:
         super().__init__()
         self.module = module
-        self.shape = None if shape is None else tuple(shape)
+        self.shape = shape
         self.dtype = dtype
 
     def forward(self, obs: Any) -> torch.Tensor:
-        action = self.module(obs)
-        if self.dtype is not None:
-            action = action.to(self.dtype)
-        return action if self.shape is None else action.reshape(action.shape[0], *self.shape)
+        return env_shaped(self.module(obs), self.shape, self.dtype)
 
 
 class EnvInputs(torch.nn.Module):

@@ -8,6 +8,7 @@ batched tensor of the right dtype straight through, so evaluation pays nothing f
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -85,14 +86,8 @@ class LoadedPolicy(Policy):
     def __call__(self, obs: Any) -> Any:
         if isinstance(obs, torch.Tensor) and obs.dtype == self.obs_dtype and obs.dim() == len(self.obs_shape) + 1:
             _check_finite(obs)
-            return self._env_shaped(self.batched(obs))
+            return env_shaped(self.batched(obs), self.action_shape, self.action_dtype)
         return self._act(self.batched, obs)
-
-    def _env_shaped(self, actions: torch.Tensor) -> torch.Tensor:
-        """[B, ...] actions in the env's action shape and dtype."""
-        if self.action_dtype is not None:
-            actions = actions.to(self.action_dtype)
-        return actions if self.action_shape is None else actions.reshape(actions.shape[0], *self.action_shape)
 
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool | None = None) -> tuple[Any, None]:
@@ -116,7 +111,7 @@ class LoadedPolicy(Policy):
         else:
             t, single, numpy_in = self._array(obs)
         with torch.no_grad():
-            actions = self._env_shaped(policy(t))
+            actions = env_shaped(policy(t), self.action_shape, self.action_dtype)
         if single:
             actions = actions[0]
         if not numpy_in:
@@ -160,11 +155,21 @@ class LoadedPolicy(Policy):
 
 
 def _check_values(t: torch.Tensor, s: Spec, where: str = "") -> None:
-    """An observation (or a Dict / Tuple entry) as given, before its cast to the spec's dtype:
-    finite, whole numbers for an integer spec, and inside a Discrete-kind range."""
+    """An observation (or a Dict / Tuple entry) as given, before its cast to the spec's dtype, in
+    one line where it is unfit. Floats given for integer values (uint8 frames, counts) are cast as
+    the env would give them: fractions would be cut to other values (frames scaled to [0, 1] to
+    zeros), values past the dtype's range would wrap. Discrete entries outside their range would
+    index past a one-hot (and a MultiBinary 2 is no bit)."""
     _check_finite(t, where)
-    _check_integral(t, s, where)
-    _check_range(t, s, where)
+    if t.is_floating_point() and t.numel() and not s.dtype.is_floating_point and s.dtype != torch.bool:
+        info = torch.iinfo(s.dtype)
+        if bool((t != t.round()).any() or (t < info.min).any() or (t > info.max).any()):
+            raise UserError(f"observation{where} holds {str(t.dtype).removeprefix('torch.')} values that are not "
+                            f"whole numbers in {str(s.dtype).removeprefix('torch.')}'s range; this policy takes "
+                            f"{describe(s)} values as the env gives them (frames as 0..255, not scaled to [0, 1])")
+    high = value_limit(s)  # floats too: whole numbers by now
+    if high is not None and t.numel() and bool((t < 0).any() or (t >= torch.as_tensor(high)).any()):
+        raise UserError(f"observation{where} {t.tolist()} is outside this policy's {describe(s)} space")
 
 
 def _check_finite(t: torch.Tensor, where: str = "") -> None:
@@ -173,33 +178,18 @@ def _check_finite(t: torch.Tensor, where: str = "") -> None:
         raise UserError(f"observation{where} holds NaN or inf; give finite values (the policy's actions would be NaN)")
 
 
-def _check_integral(t: torch.Tensor, s: Spec, where: str = "") -> None:
-    """Floats given for integer values (uint8 frames, counts) are cast as the env would give
-    them; fractions would be cut to other values (frames scaled to [0, 1] to zeros), and values
-    past the dtype's range would wrap: one line."""
-    if not t.is_floating_point() or s.dtype.is_floating_point or not t.numel() or s.dtype == torch.bool:
-        return
-    info = torch.iinfo(s.dtype)
-    if bool((t != t.round()).any() or (t < info.min).any() or (t > info.max).any()):
-        raise UserError(f"observation{where} holds {str(t.dtype).removeprefix('torch.')} values that are not "
-                        f"whole numbers in {str(s.dtype).removeprefix('torch.')}'s range; this policy takes "
-                        f"{describe(s)} values as the env gives them (frames as 0..255, not scaled to [0, 1])")
-
-
-def _check_range(t: torch.Tensor, s: Spec, where: str = "") -> None:
-    """Discrete entries outside their range would index past a one-hot (and a MultiBinary 2 is no
-    bit): one line instead."""
-    high = value_limit(s)
-    if high is not None and t.numel():  # floats too: whole numbers by now (`_check_integral`)
-        if bool((t < 0).any() or (t >= torch.as_tensor(high)).any()):
-            raise UserError(f"observation{where} {t.tolist()} is outside this policy's {describe(s)} space")
-
-
 def _layout(spec: Spec) -> tuple:
     """What a policy's observations must match: each Dict / Tuple entry's key and shape, or the shape."""
     if isinstance(spec, PackedSpec):
         return tuple((f.key, tuple(f.spec.shape)) for f in spec.fields)
     return tuple(spec.shape)
+
+
+def env_shaped(actions: torch.Tensor, shape: Sequence[int] | None, dtype: torch.dtype | None) -> torch.Tensor:
+    """[B, ...] actions in the env's action shape and dtype (None: the policy's own)."""
+    if dtype is not None:
+        actions = actions.to(dtype)
+    return actions if shape is None else actions.reshape(actions.shape[0], *shape)
 
 
 def rng_kept(device: torch.device) -> contextlib.AbstractContextManager[Any]:

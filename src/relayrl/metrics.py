@@ -142,10 +142,7 @@ class EpisodeStats(Observer):
 
     def _info_window(self, key: str) -> deque[float]:
         """The window of `key`'s values, as long as the returns' window."""
-        window = self.info.get(key)
-        if window is None:
-            window = self.info[key] = deque(maxlen=self.returns.maxlen)
-        return window
+        return self.info.setdefault(key, deque(maxlen=self.returns.maxlen))
 
     def info_means(self) -> dict[str, float]:
         """Mean of each info key over its window (keys with no finished episode left out)."""
@@ -168,13 +165,10 @@ class EpisodeStats(Observer):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restores episodes in progress too; call `reset_running()` after if the envs were
         reset rather than restored."""
-        self.returns.clear()
-        self.returns.extend(state["returns"])
-        self.lengths.clear()
-        self.lengths.extend(state["lengths"])
+        self.returns = deque(state["returns"], maxlen=self.returns.maxlen)
+        self.lengths = deque(state["lengths"], maxlen=self.lengths.maxlen)
         self.episodes = int(state["episodes"])
-        self.finished.clear()
-        self.finished.extend(tuple(e) for e in state.get("finished", []))
+        self.finished = deque((tuple(e) for e in state.get("finished", [])), maxlen=FINISHED_KEPT)
         self.info = {}
         for key, values in state.get("info", {}).items():
             self._info_window(key).extend(values)
@@ -185,27 +179,25 @@ class EpisodeStats(Observer):
             self._done = np.zeros(self._ret.shape[0], np.bool_)
 
 
-class AverageReturn:
-    """Mean return of the last `buffer_size` completed episodes (nan before the first)."""
+class _Reading:
+    """One number read off an `EpisodeStats` (TF-Agents' metric objects, `result()`)."""
 
     def __init__(self, stats: EpisodeStats) -> None:
         self.stats = stats
+
+
+class AverageReturn(_Reading):
+    """Mean return of the last `buffer_size` completed episodes (nan before the first)."""
 
     def result(self) -> float:
         return float(np.mean(self.stats.returns)) if self.stats.returns else float("nan")
 
 
-class AverageEpisodeLength:
-    def __init__(self, stats: EpisodeStats) -> None:
-        self.stats = stats
-
+class AverageEpisodeLength(_Reading):
     def result(self) -> float:
         return float(np.mean(self.stats.lengths)) if self.stats.lengths else float("nan")
 
 
-class NumberOfEpisodes:
-    def __init__(self, stats: EpisodeStats) -> None:
-        self.stats = stats
-
+class NumberOfEpisodes(_Reading):
     def result(self) -> int:
         return self.stats.episodes

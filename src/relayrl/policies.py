@@ -16,16 +16,7 @@ from relayrl.nn import MLP
 from relayrl.nn.encoders import CONV_READY, Encoded, make_encoder
 from relayrl.nn.graphed import GraphedForward
 from relayrl.nn.mlp_fast import MLPInference
-from relayrl.specs import (
-    ArraySpec,
-    DiscreteSpec,
-    MultiBinarySpec,
-    MultiDiscreteSpec,
-    Spec,
-    check_trained_layout,
-    spec_from_state,
-    spec_state,
-)
+from relayrl.specs import ArraySpec, Spec, check_trained_layout, numpy_dtype, spec_from_state, spec_state, value_limit
 
 
 def cpu_mlp(net: nn.Module, device: torch.device) -> MLPInference | None:
@@ -41,27 +32,20 @@ class RandomPolicy(Policy):
     def __init__(self, action_spec: Spec, rng: np.random.Generator) -> None:
         self.spec = action_spec
         self.rng = rng
+        self.limit = value_limit(action_spec)  # Discrete, MultiDiscrete, MultiBinary: draws in [0, limit)
+        self.dtype = numpy_dtype(action_spec)
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
         b = obs.shape[0]
-        if isinstance(self.spec, DiscreteSpec):
-            return torch.from_numpy(self.rng.integers(0, self.spec.n, b))
-        if isinstance(self.spec, MultiDiscreteSpec):
-            nvec = np.asarray(self.spec.nvec).reshape(self.spec.shape)
-            return torch.from_numpy(self.rng.integers(0, nvec, (b, *self.spec.shape)))
-        if isinstance(self.spec, MultiBinarySpec):
-            return torch.from_numpy(self.rng.integers(0, 2, (b, *self.spec.shape), dtype=np.int8))
+        if self.limit is not None:
+            return torch.from_numpy(self.rng.integers(0, self.limit, (b, *self.spec.shape), dtype=self.dtype))
         assert isinstance(self.spec, ArraySpec) and self.spec.low is not None and self.spec.high is not None
         u = self.rng.uniform(self.spec.low, self.spec.high, (b, *self.spec.shape))
         return torch.from_numpy(u.astype(np.float32))
 
 
 class GreedyPolicy(Policy):
-    """argmax_a Q(obs, a). Runs the network on its device and returns CPU actions.
-
-    A float32 MLP on the CPU runs through `MLPInference` (NumPy views of its weights for small
-    batches, lean torch ops for the rest).
-    """
+    """argmax_a Q(obs, a). Runs the network on its device (`cpu_mlp` where it can) and returns CPU actions."""
 
     def __init__(self, q_net: nn.Module, device: torch.device) -> None:
         self.q_net = q_net

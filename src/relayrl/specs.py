@@ -118,7 +118,6 @@ def value_limit(spec: Spec) -> Any:
 def spec_from_space(space: gym.Space, role: str = "observation") -> Spec:
     """The spec of one element of `space` (`role`: "observation" or "action", for messages);
     UserError, naming the space and what is valid, for spaces relayrl cannot take."""
-    valid = OBSERVATION_SPACES if role == "observation" else ACTION_SPACES
     if role == "action" and space.shape is not None and math.prod(space.shape) == 0:  # Box, MultiDiscrete: (0,)
         raise UserError(f"action space {space} has no dimensions: there is no action to learn")
     if isinstance(space, gym.spaces.Discrete):
@@ -147,6 +146,7 @@ def spec_from_space(space: gym.Space, role: str = "observation") -> Spec:
                                env_dtype=_other_dtype(space.dtype, torch.int8))
     if isinstance(space, gym.spaces.Dict | gym.spaces.Tuple) and role == "observation":
         return packed_spec(space)
+    valid = OBSERVATION_SPACES if role == "observation" else ACTION_SPACES
     raise UserError(f"{role} space {space} is not supported; valid {role} spaces: {valid}")
 
 
@@ -183,10 +183,17 @@ def describe(spec: Spec) -> str:
 
 def _bound(values: np.ndarray) -> str:
     """A Box bound for messages: one number where every entry is the same, else the entries."""
+    one = _same_everywhere(values)
+    if one is not None:
+        return f"{one:g}" if np.issubdtype(one.dtype, np.floating) else str(one)
+    return np.array2string(np.asarray(values).reshape(-1), threshold=8, separator=", ",
+                           max_line_width=10**9)  # a message is one line
+
+
+def _same_everywhere(values: np.ndarray) -> np.generic | None:
+    """The one value every entry of `values` holds, else None."""
     flat = np.asarray(values).reshape(-1)
-    if flat.size and (flat == flat[0]).all():
-        return f"{flat[0]:g}" if np.issubdtype(flat.dtype, np.floating) else str(flat[0])
-    return np.array2string(flat, threshold=8, separator=", ", max_line_width=10**9)  # a message is one line
+    return flat[0] if flat.size and (flat == flat[0]).all() else None
 
 
 def flat_dim(spec: Spec) -> int:
@@ -272,15 +279,11 @@ def spec_state(spec: Spec) -> dict[str, Any]:
     if spec.env_dtype:
         state["env_dtype"] = spec.env_dtype
     if kind == "box" and spec.dtype == torch.uint8 and spec.low is not None and spec.high is not None:
-        state["low"], state["high"] = _compact(spec.low), _compact(spec.high)  # `is_image` reads them
+        for key, bound in (("low", spec.low), ("high", spec.high)):  # `is_image` reads them
+            one = _same_everywhere(bound)  # a frame's 0 or 255
+            state[key] = np.asarray(bound).tolist() if one is None else int(one)
         state["layout"] = frame_layout(spec.shape)  # the layout its networks were built for
     return state
-
-
-def _compact(bound: np.ndarray) -> int | list[Any]:
-    """A uint8 bound as one number where it is the same everywhere (a frame's 0 or 255)."""
-    flat = np.asarray(bound).reshape(-1)
-    return int(flat[0]) if flat.size and (flat == flat[0]).all() else np.asarray(bound).tolist()
 
 
 def spec_from_state(state: dict[str, Any]) -> Spec:
@@ -297,10 +300,9 @@ def spec_from_state(state: dict[str, Any]) -> Spec:
         return MultiDiscreteSpec(shape, dtype, env_dtype=env, nvec=tuple(int(n) for n in state["nvec"]))
     if kind == "multi_binary":
         return MultiBinarySpec(shape, dtype, env_dtype=env)
-    if "low" in state:
-        low, high = (np.broadcast_to(np.asarray(state[k], np.uint8), shape).copy() for k in ("low", "high"))
-        return ArraySpec(shape, dtype, low, high, env_dtype=env)
-    return ArraySpec(shape, dtype, env_dtype=env)
+    low, high = ((np.broadcast_to(np.asarray(state[k], np.uint8), shape).copy() for k in ("low", "high"))
+                 if "low" in state else (None, None))
+    return ArraySpec(shape, dtype, low, high, env_dtype=env)
 
 
 def check_trained_layout(state: dict[str, Any], any_bounds: bool = False, recorded: bool = True) -> None:
@@ -315,11 +317,12 @@ def check_trained_layout(state: dict[str, Any], any_bounds: bool = False, record
         return
     if state["kind"] != "box" or state["dtype"] != "uint8":
         return
-    spec, shape = spec_from_state(state), tuple(int(d) for d in state["shape"])
-    trained = state["layout"] if recorded and "layout" in state else _frame_layout_before(shape)
-    if (any_bounds or _pixel_bounds(spec)) and trained != frame_layout(shape):
+    spec = spec_from_state(state)
+    assert isinstance(spec, ArraySpec)
+    trained = state["layout"] if recorded and "layout" in state else _frame_layout_before(spec.shape)
+    if (any_bounds or _pixel_bounds(spec)) and trained != frame_layout(spec.shape):
         raise UserError(f"{describe(spec)} observations were read as {trained or 'a flat vector'} when this run "
-                        f"was trained; this version reads them as {frame_layout(shape) or 'a flat vector'} "
+                        f"was trained; this version reads them as {frame_layout(spec.shape) or 'a flat vector'} "
                         "(the smaller outer side is the channels): train it again")
 
 
