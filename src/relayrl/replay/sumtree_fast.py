@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from relayrl.compile import njit
-from relayrl.replay.sumtree import flat_updates
+from relayrl.replay.sumtree import SumTreeBase, flat_updates
 
 
 @njit
@@ -119,7 +119,7 @@ def _find_items(tree: np.ndarray, base: int, u: np.ndarray, node: np.ndarray, pr
         prio[j] = priority[node[j]]
 
 
-class CompiledSumTree:
+class CompiledSumTree(SumTreeBase):
     """`SumTree`'s interface on a flat binary tree; see the module docstring."""
 
     def __init__(self, capacity: int) -> None:
@@ -134,9 +134,6 @@ class CompiledSumTree:
     def total(self) -> float:
         return float(self.tree[1])
 
-    def get(self, idx: np.ndarray) -> np.ndarray:
-        return self.leaves.take(idx)
-
     def set(self, idx: np.ndarray, values: np.ndarray) -> None:
         _set(self.tree, self.base, *flat_updates(idx, values))
 
@@ -145,27 +142,22 @@ class CompiledSumTree:
         _set_power(self.tree, self.base, np.ascontiguousarray(idx, dtype=np.int64), priority, float(exponent))
 
     def rebuild(self) -> None:
-        """Recompute every total from the leaves."""
         level = self.base
         while level > 1:
             half = level // 2
             self.tree[half:level] = self.tree[level: 2 * level: 2] + self.tree[level + 1: 2 * level: 2]
             level = half
 
-    def find(self, u: np.ndarray) -> np.ndarray:
-        """Leaf indices i with prefix(i) <= u < prefix(i) + leaf(i), for u in [0, total)."""
-        return self.find_with_mass(u)[0]
-
     def find_with_mass(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """`find(u)` and the values of the leaves found."""
-        return self._find(np.ascontiguousarray(u, dtype=np.float64).reshape(-1), 1.0)
-
-    def sample(self, uniform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """`find_with_mass(uniform * total)` for `uniform` in [0, 1), and each leaf's
-        probability (mass / total). The total must be > 0."""
-        total = self.total
-        node, mass = self._find(uniform, total)
-        return node, mass / total
+        u = np.ascontiguousarray(u, dtype=np.float64).reshape(-1)
+        node = np.empty(u.size, np.int64)
+        mass = np.empty(u.size, np.float64)
+        if self.tree[1] > 0.0:
+            _find(self.tree, self.base, u, 1.0, node, mass)
+        else:  # nothing to find (callers check the total first)
+            node[:] = 0
+            mass[:] = 0.0
+        return node, mass
 
     def update_live(self, slot_key: np.ndarray, priority: np.ndarray, keys: np.ndarray, prios: np.ndarray,
                     exponent: float) -> float:
@@ -191,22 +183,3 @@ class CompiledSumTree:
         key, prio = np.empty(n, np.int64), np.empty(n, np.float64)
         _find_items(self.tree, self.base, uniform, node, prob, slot_key, priority, key, prio)
         return node, prob, key, prio
-
-    def _find(self, u: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
-        node = np.empty(u.size, np.int64)
-        mass = np.empty(u.size, np.float64)
-        if self.tree[1] > 0.0:
-            _find(self.tree, self.base, u, scale, node, mass)
-        else:  # nothing to find (callers check the total first)
-            node[:] = 0
-            mass[:] = 0.0
-        return node, mass
-
-    def state_dict(self) -> dict[str, np.ndarray]:
-        return {"leaves": self.leaves.copy()}
-
-    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
-        leaves = np.asarray(state["leaves"], dtype=np.float64)
-        self.tree[:] = 0.0
-        self.leaves[: leaves.size] = leaves
-        self.rebuild()
