@@ -104,16 +104,9 @@ class StepStore:
         q-T+k-1 is the newest to need. Older ones were evicted by earlier writes.
         """
         p = pos - self.rows + self.frame_stack - 1
-        ok = p >= 0
-        n_ok = np.count_nonzero(ok)
-        if n_ok < len(p):  # the ring's first lap: nothing to evict before row 0
-            if n_ok == 0:
-                return np.full(len(p), -1, dtype=np.int64)
-            keys = np.full(len(p), -1, dtype=np.int64)
-            keys[ok] = self.evictable(envs[ok], pos[ok])
-            return keys
         i = envs * self.rows + p % self.rows
-        return np.where(self._flat["stamp"].take(i) == p + 1, self._flat["item_key"].take(i), -1)
+        written = (self._flat["stamp"].take(i) == p + 1) & (p >= 0)  # p < 0: the ring's first lap
+        return np.where(written, self._flat["item_key"].take(i), -1)
 
     def flat(self, name: str) -> np.ndarray:
         """A column as [B * T, ...] (a view), so (env, row) is one flat index."""
