@@ -371,7 +371,12 @@ class Table:
             got += k
             if self._waiting:
                 self._cv.notify_all()  # an inserter may be waiting for these samples
-        return parts[0] if len(parts) == 1 else _concat(parts)
+        if len(parts) == 1:
+            return parts[0]
+        infos = [i for _, i in parts]
+        info = SampleInfo(np.concatenate([i.key for i in infos]), np.concatenate([i.probability for i in infos]),
+                          infos[-1].table_size, np.concatenate([i.priority for i in infos]))
+        return _concat([d for d, _ in parts]), info
 
     def _sample_locked(self, n: int) -> tuple[Any, SampleInfo]:
         if self.max_times_sampled > 0:
@@ -397,8 +402,7 @@ class Table:
             self.rate_limiter.samples += 1
             if self.times_sampled[slot] >= self.max_times_sampled:
                 self._delete_slots(np.array([slot]))
-        merged = _concat([(d, None) for d in data])[0] if n > 1 else data[0]
-        return merged, SampleInfo(keys, probs, self.size, prios)
+        return (_concat(data) if n > 1 else data[0]), SampleInfo(keys, probs, self.size, prios)
 
     def _wait(self, available: Callable[[], int], timeout: float | None, what: str) -> int:
         deadline = None if timeout is None else time.monotonic() + timeout
@@ -478,21 +482,13 @@ def _slice(items: Any, part: slice) -> Any:
     return items[part]
 
 
-def _concat(parts: list[tuple[Any, SampleInfo | None]]) -> tuple[Any, SampleInfo]:
+def _concat(datas: list[Any]) -> Any:
+    """Samples read in parts as one batch: a dict or a NamedTuple (fields None stay None) of tensors, or a tensor."""
     import torch
 
-    datas = [d for d, _ in parts]
     first = datas[0]
     if isinstance(first, dict):
-        data: Any = {k: torch.cat([d[k] for d in datas]) for k in first}
-    elif isinstance(first, tuple) and hasattr(first, "_fields"):
-        data = type(first)(*(None if getattr(first, f) is None else torch.cat([getattr(d, f) for d in datas])
-                             for f in first._fields))
-    else:
-        data = torch.cat(datas)
-    infos = [i for _, i in parts if i is not None]
-    if not infos:
-        return data, None  # type: ignore[return-value]
-    info = SampleInfo(np.concatenate([i.key for i in infos]), np.concatenate([i.probability for i in infos]),
-                      infos[-1].table_size, np.concatenate([i.priority for i in infos]))
-    return data, info
+        return {k: torch.cat([d[k] for d in datas]) for k in first}
+    if isinstance(first, tuple) and hasattr(first, "_fields"):
+        return type(first)(*(None if f[0] is None else torch.cat(f) for f in zip(*datas, strict=True)))
+    return torch.cat(datas)
