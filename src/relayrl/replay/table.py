@@ -78,10 +78,8 @@ class Table:
         if uniform_fifo and numba_available():
             from relayrl.replay.table_fast import insert
             self._insert_kernel = insert
-        self.storage: Storage = ItemStorage(max_size)
+        self.storage: Storage = storage if storage is not None else ItemStorage(max_size)
         self.storage.bind(self.slot_key)
-        if storage is not None:
-            self.set_storage(storage)
 
     def set_storage(self, storage: Storage) -> None:
         """Keep items in `storage` from now on; only before the first insert. A writer hands
@@ -203,8 +201,8 @@ class Table:
         return keys
 
     def _insert_compiled(self, items: Any, n: int) -> np.ndarray:
-        """`_insert_many_locked` for a Uniform sampler and a Fifo remover, no priorities given:
-        the same writes in compiled loops (table_fast): free slots first, then Fifo victims."""
+        """`_insert_many_locked` for a Uniform sampler and a Fifo remover, no priorities given, in
+        compiled loops (table_fast)."""
         sampler, remover = self.sampler, self.remover
         assert isinstance(sampler, Uniform) and isinstance(remover, Fifo) and self._insert_kernel is not None
         remover.reserve(n)
@@ -276,7 +274,6 @@ class Table:
         return True
 
     def _append(self, evicted: np.ndarray, append: Callable[[], np.ndarray]) -> None:
-        """Delete the `evicted` items, then `append()` the steps and insert the items it closes."""
         if evicted.size:
             self.delete(evicted)
         items = append()
