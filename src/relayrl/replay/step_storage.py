@@ -12,9 +12,6 @@ row, flat row of its next observation). Per slot the storage keeps that referenc
 record of what a read needs before the frames (`SLOT_RECORD`), so a sampled item costs one
 gather there. Each item's key is noted at its first row (`item_key`): the item to evict when
 that row is reused. No item ever spans an episode boundary.
-
-`TransitionStorage` makes n-step transitions and reads them as a `Batch`;
-`SequenceStorage` makes sequences of rows and reads them as a `SequenceBatch`.
 """
 
 from __future__ import annotations
@@ -91,7 +88,6 @@ class StepStorage(Storage):
             self._write_records = write_records
 
     def bind(self, slot_key: np.ndarray) -> None:
-        """The owning table's key map (slot -> live key, -1: empty), read-only, as its selectors get it."""
         self.slot_key = slot_key
         # What `write_records` reads and writes besides the slot map, as plain ndarray views.
         self._columns = (np.asarray(self._ret), np.asarray(self._disc), slot_key, np.asarray(self._item_key))
@@ -156,8 +152,7 @@ class StepStorage(Storage):
 
     # ---- the Table's storage interface ---------------------------------------------------
     def write(self, slots: np.ndarray, items: np.ndarray) -> None:
-        """items: [n, 3] rows of (pos * num_envs + env, flat row, flat next row). Each item's key
-        (from the table's key map) is noted at its row: the item to evict when the row is reused."""
+        """items: [n, 3] rows of (pos * num_envs + env, flat row, flat next row)."""
         if len(slots) == 1:
             slot, (ref, row, nxt) = slots[0], items[0].tolist()
             self.slot_ref[slot] = ref
@@ -175,7 +170,6 @@ class StepStorage(Storage):
         raise NotImplementedError
 
     def stale(self, slots: np.ndarray) -> np.ndarray:
-        """Which items' rows no longer hold what they were written from (memmap files reopened)."""
         envs, pos = self.refs(slots)
         return ~self.store.valid(envs, pos, self.ahead(envs, pos))
 

@@ -27,8 +27,6 @@ if TYPE_CHECKING:
 @njit
 def write_records(slot_ref: np.ndarray, slot_rows: np.ndarray, slots: np.ndarray, items: np.ndarray,
                   ret: np.ndarray, disc: np.ndarray, slot_key: np.ndarray, item_key: np.ndarray) -> None:
-    """Each slot's ref and its record (row, next row, and the row's return and discount), and
-    each item's key at its row."""
     for j in range(slots.size):
         slot = slots[j]
         row = items[j, 1]

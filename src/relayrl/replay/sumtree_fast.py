@@ -161,10 +161,8 @@ class CompiledSumTree(SumTreeBase):
 
     def update_live(self, slot_key: np.ndarray, priority: np.ndarray, keys: np.ndarray, prios: np.ndarray,
                     exponent: float) -> float:
-        """For each key still live in its slot (`slot_key[key % size] == key`), set
-        `priority[slot] = p` and the leaf to `p ** exponent`. Returns the largest priority
-        written (-1.0: no key was live); raises, writing nothing, on a priority not finite
-        and >= 0. One compiled pass: a Table's `update_priorities` for a prioritized sampler."""
+        """A Table's `update_priorities` for a prioritized sampler (see `_update_live`); raises,
+        writing nothing, on a priority not finite and >= 0."""
         keys = np.ascontiguousarray(keys, dtype=np.int64)
         prios = np.ascontiguousarray(prios, dtype=np.float64)
         if keys.size != prios.size:  # the loop reads prios[j] for every key, unchecked
