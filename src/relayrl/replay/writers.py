@@ -76,21 +76,15 @@ class _Writer:
         # the group sets to this writer's before every call it makes on it.
         return cast(StepStorage, self.table.storage.appending)
 
-    # ---- checkpoints (the steps' state is in the table's) ------------------------------------
+    # ---- episodes across checkpoints and restarts: the step storage's (see there) -----------
     def saved_episodes_intact(self) -> bool:
-        """After the table loaded a checkpoint: whether the rows of the episodes open at the
-        checkpoint still hold what it saw (memmap files reopened after the run went on may not)."""
         return self._steps().saved_episodes_intact()
 
     def continue_episodes(self) -> None:
-        """After the table loaded a checkpoint, when the actor's envs were restored mid-episode
-        as well: the next step continues the interrupted episodes (their last steps become items)."""
         self._staged.clear()
         self._steps().continue_episodes()
 
     def restart_episodes(self) -> None:
-        """Forget the episodes in progress: the next steps start new ones. For an actor that
-        died mid-episode and was restarted: its last steps never become items."""
         self._staged.clear()
         self._steps().restart_episodes()
 
