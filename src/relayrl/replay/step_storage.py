@@ -117,8 +117,7 @@ class StepStorage(Storage):
     def append(self, chunk: StepChunk) -> np.ndarray:
         """Append a chunk's rows (after the table deleted its `evictions`); returns the items it
         closes, [n, 3] as `write` takes them, oldest first."""
-        self.store.write_chunk(chunk.frames, chunk.actions, chunk.rewards, chunk.done, chunk.terminated,
-                               chunk.finals)
+        self.store.write_chunk(chunk)
         return self._close_items()
 
     # ---- episodes across checkpoints and restarts -------------------------------------------

@@ -112,13 +112,8 @@ class StepStore:
         """A column as [B * T, ...] (a view), so (env, row) is one flat index."""
         return self._flat[name]
 
-    def write_chunk(self, frames: np.ndarray, actions: np.ndarray, rewards: np.ndarray, done: np.ndarray,
-                    terminated: np.ndarray, final_frames: np.ndarray) -> None:
-        """Append C batched steps: frames/actions [C, B, ...], rewards/done/terminated [C, B];
-        final_frames [D, ...] are the final observations where `done`, in (step, env) order.
-
-        Each step is one row per env, plus a final-observation row where the episode ended.
-        """
+    def write_chunk(self, chunk: StepChunk) -> None:
+        frames, actions, rewards, done, terminated, final_frames = chunk
         c, b = done.shape
         any_done = np.count_nonzero(done) > 0
         if any_done:
