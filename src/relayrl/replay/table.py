@@ -486,6 +486,6 @@ def _concat(datas: list[Any]) -> Any:
     first = datas[0]
     if isinstance(first, dict):
         return {k: torch.cat([d[k] for d in datas]) for k in first}
-    if isinstance(first, tuple) and hasattr(first, "_fields"):
+    if hasattr(first, "_fields"):
         return type(first)(*(None if f[0] is None else torch.cat(f) for f in zip(*datas, strict=True)))
     return torch.cat(datas)
