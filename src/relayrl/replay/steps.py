@@ -164,23 +164,19 @@ class StepStore:
 
     def _put(self, name: str, i: np.ndarray, values: np.ndarray | torch.Tensor) -> None:
         """flat(name)[i] = values, through the row view where the column has one."""
-        if name in self.data:
-            col = self._flat[name]
-            if len(i):
-                v = torch.as_tensor(values).to(col.device, col.dtype)  # no-op for the env's device tensors
-                col.index_copy_(0, self.index(i), v.expand((len(i), *col.shape[1:])))
-            return
-        rows = self._row_views.get(name)
-        if rows is None:
-            self._flat[name][i] = values
-            return
-        col = self._flat[name]
+        col, rows = self._flat[name], self._row_views.get(name)
         if len(i) == 0:
             return
-        shape = (len(i),) + col.shape[1:]
-        if np.shape(values) != shape:
-            values = np.broadcast_to(values, shape)
-        rows[i] = np.ascontiguousarray(values, dtype=col.dtype).reshape(len(i), -1).view(rows.dtype).reshape(-1)
+        if name in self.data:
+            v = torch.as_tensor(values).to(col.device, col.dtype)  # no-op for the env's device tensors
+            col.index_copy_(0, self.index(i), v.expand((len(i), *col.shape[1:])))
+        elif rows is None:
+            col[i] = values
+        else:
+            shape = (len(i),) + col.shape[1:]
+            if np.shape(values) != shape:
+                values = np.broadcast_to(values, shape)
+            rows[i] = np.ascontiguousarray(values, dtype=col.dtype).reshape(len(i), -1).view(rows.dtype).reshape(-1)
 
     def index(self, i: np.ndarray) -> torch.Tensor:
         """Flat row indices as a tensor on the data's device."""
