@@ -37,8 +37,7 @@ class SampleInfo(NamedTuple):
 class Table:
     def __init__(self, name: str, max_size: int, sampler: Selector | None = None, remover: Selector | None = None,
                  rate_limiter: RateLimiter | None = None, max_times_sampled: int = 0,
-                 seed: int | np.random.SeedSequence | None = None, storage: Storage | None = None,
-                 fast: bool = True) -> None:
+                 seed: int | np.random.SeedSequence | None = None, fast: bool = True) -> None:
         if max_size < 1:
             raise ValueError(f"Table {name!r}: max_size={max_size} is not valid; it must be >= 1")
         sampler = sampler if sampler is not None else Uniform()
@@ -73,12 +72,11 @@ class Table:
         self._update_keys: Callable[[np.ndarray, np.ndarray], float] = one_pass or self._update_slots
         # `fast`: inserts of n > 1 items in compiled loops (table_fast) for the usual pair of
         # selectors, when numba is there; else (and with fast=False) the NumPy path.
-        uniform_fifo = fast and type(sampler) is Uniform and type(remover) is Fifo
         self._insert_kernel: Callable[..., tuple[int, bool]] | None = None
-        if uniform_fifo and numba_available():
+        if fast and type(sampler) is Uniform and type(remover) is Fifo and numba_available():
             from relayrl.replay.table_fast import insert
             self._insert_kernel = insert
-        self.storage: Storage = storage if storage is not None else ItemStorage(max_size)
+        self.storage: Storage = ItemStorage(max_size)
         self.storage.bind(self.slot_key)
 
     def set_storage(self, storage: Storage) -> None:
