@@ -63,14 +63,13 @@ class StepStorage(Storage):
 
     def __init__(self, capacity: int, num_envs: int, obs_spec: Spec, action_spec: Spec, *, lookahead: int,
                  frame_stack: int = 1, path: str | Path | None = None, rows: int | None = None,
-                 device: str | torch.device | None = None, pin_memory: bool = False, fast: bool = True) -> None:
+                 device: str | torch.device | None = None, fast: bool = True) -> None:
         rows = rows if rows is not None else ring_rows(capacity, num_envs, lookahead, frame_stack)
         self.store = StepStore(num_envs, rows, tuple(obs_spec.shape), numpy_dtype(obs_spec),
                                tuple(action_spec.shape), numpy_dtype(action_spec), frame_stack, path, device)
         self.capacity, self.num_envs, self.rows, self.lookahead = capacity, num_envs, rows, lookahead
         # Batched steps one `append` may take: reused rows must never be inside the chunk being written.
         self.max_append_steps = max(1, (rows - frame_stack - lookahead - 2) // 2)
-        self.pin_memory = pin_memory
         self.slot_ref = np.zeros(capacity, dtype=np.int64)  # slot -> pos * num_envs + env
         self.slot_rows = np.zeros(capacity, dtype=SLOT_RECORD)
         self.open_from = np.zeros(num_envs, dtype=np.int64)  # per env: first position that may still become an item
@@ -224,7 +223,7 @@ class StepStorage(Storage):
         t = torch.from_numpy(x)  # gathers are fresh contiguous arrays
         if self.store.on_device:  # the small host columns join the data on its device
             return t.to(self.store.device, non_blocking=True)
-        return t.pin_memory() if self.pin_memory else t
+        return t
 
     # ---- closing items (subclasses say which windows are items) ---------------------------
     def _close_items(self) -> np.ndarray:
@@ -276,11 +275,11 @@ class TransitionStorage(StepStorage):
 
     def __init__(self, capacity: int, num_envs: int, obs_spec: Spec, action_spec: Spec, *, gamma: float,
                  n_step: int = 1, frame_stack: int = 1, path: str | Path | None = None, rows: int | None = None,
-                 device: str | torch.device | None = None, pin_memory: bool = False, fast: bool = True) -> None:
+                 device: str | torch.device | None = None, fast: bool = True) -> None:
         if n_step < 1:
             raise ValueError(f"n_step={n_step} is not valid; it must be >= 1")
         super().__init__(capacity, num_envs, obs_spec, action_spec, lookahead=n_step, frame_stack=frame_stack,
-                         path=path, rows=rows, device=device, pin_memory=pin_memory, fast=fast)
+                         path=path, rows=rows, device=device, fast=fast)
         self.n_step = n_step
         self.gamma = gamma
         self.powers = gamma ** np.arange(n_step + 1, dtype=np.float64)  # [n+1]
@@ -343,13 +342,11 @@ class SequenceStorage(StepStorage):
 
     def __init__(self, capacity: int, num_envs: int, obs_spec: Spec, action_spec: Spec, *, sequence_length: int,
                  stride_length: int = 1, frame_stack: int = 1, path: str | Path | None = None,
-                 rows: int | None = None, device: str | torch.device | None = None, pin_memory: bool = False,
-                 fast: bool = True) -> None:
+                 rows: int | None = None, device: str | torch.device | None = None) -> None:
         if sequence_length < 1 or stride_length < 1:
             raise ValueError(f"sequence_length={sequence_length} and stride_length={stride_length} must be >= 1")
         super().__init__(capacity, num_envs, obs_spec, action_spec, lookahead=sequence_length - 1,
-                         frame_stack=frame_stack, path=path, rows=rows, device=device, pin_memory=pin_memory,
-                         fast=fast)
+                         frame_stack=frame_stack, path=path, rows=rows, device=device)
         self.sequence_length = sequence_length
         self.stride_length = stride_length
 

@@ -131,11 +131,10 @@ class TransitionWriter(_Writer):
 
     def __init__(self, table: Table, num_envs: int, obs_spec: Spec, action_spec: Spec, *,
                  gamma: float, n_step: int = 1, frame_stack: int = 1, path: str | Path | None = None,
-                 rows: int | None = None, pin_memory: bool = False, chunk_length: int = 1024,
-                 device: str | torch.device | None = None, fast: bool = True) -> None:
+                 rows: int | None = None, chunk_length: int = 1024, device: str | torch.device | None = None,
+                 fast: bool = True) -> None:
         storage = TransitionStorage(table.max_size, num_envs, obs_spec, action_spec, gamma=gamma, n_step=n_step,
-                                    frame_stack=frame_stack, path=path, rows=rows, device=device,
-                                    pin_memory=pin_memory, fast=fast)
+                                    frame_stack=frame_stack, path=path, rows=rows, device=device, fast=fast)
         super().__init__(table, storage, chunk_length)
 
 
@@ -145,9 +144,9 @@ class SequenceWriter(_Writer):
 
     def __init__(self, table: Table, num_envs: int, obs_spec: Spec, action_spec: Spec, *,
                  sequence_length: int, stride_length: int = 1, frame_stack: int = 1,
-                 path: str | Path | None = None, rows: int | None = None, pin_memory: bool = False,
-                 chunk_length: int = 1024, device: str | torch.device | None = None) -> None:
+                 path: str | Path | None = None, rows: int | None = None, chunk_length: int = 1024,
+                 device: str | torch.device | None = None) -> None:
         storage = SequenceStorage(table.max_size, num_envs, obs_spec, action_spec, sequence_length=sequence_length,
                                   stride_length=stride_length, frame_stack=frame_stack, path=path, rows=rows,
-                                  device=device, pin_memory=pin_memory)
+                                  device=device)
         super().__init__(table, storage, chunk_length)
