@@ -50,7 +50,7 @@ class StorageGroup(Storage):
     def __init__(self, storages: list[StepStorage], capacity: int) -> None:
         self.storages = storages
         for st in storages[1:]:
-            st.share_slot_map(storages[0])
+            st.slot_ref, st.slot_rows = storages[0].slot_ref, storages[0].slot_rows
         self.owner = np.zeros(capacity, dtype=np.int32)  # slot -> storage
         self.active = 0
 

@@ -91,10 +91,6 @@ class StepStorage(Storage):
         # What `write_records` reads and writes besides the slot map, as plain ndarray views.
         self._columns = (np.asarray(self._ret), np.asarray(self._disc), slot_key, np.asarray(self._item_key))
 
-    def share_slot_map(self, other: StepStorage) -> None:
-        """Use `other`'s slot map: storages of one table (a StorageGroup's) own disjoint slots."""
-        self.slot_ref, self.slot_rows = other.slot_ref, other.slot_rows
-
     # ---- appending steps (the table calls these) ------------------------------------------
     @property
     def appending(self) -> StepStorage:

@@ -158,7 +158,7 @@ class OneStep:
         valid until the next call)."""
         s, st, b = self.store, self.storage, self.store.num_envs
         if s.on_device:
-            s.write_data(s.head_rows(), frames, actions)
+            s.write_data(s.envs * s.rows + s.head % s.rows, frames, actions)  # the next step's rows
             frames_np = actions_np = np.empty((b, 0), np.float32)
         else:
             frames_np = np.ascontiguousarray(to_numpy(frames)).reshape(b, -1)

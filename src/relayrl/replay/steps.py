@@ -138,10 +138,6 @@ class StepStore:
         else:
             self.head = self.head + c
 
-    def head_rows(self) -> np.ndarray:
-        """The flat rows each env's next step takes: [B]."""
-        return self.envs * self.rows + self.head % self.rows
-
     def write_data(self, i: np.ndarray, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor) -> None:
         """Frames and actions of flat rows `i` alone (the compiled one-step append writes the rest)."""
         self._put("frame", i, frames)
