@@ -376,10 +376,9 @@ class Table:
     def _sample_locked(self, n: int) -> tuple[Any, SampleInfo]:
         if self.max_times_sampled > 0:
             return self._sample_counted(n)
-        size = self.size
         slots, probs, keys, prios = self.sampler.select_items(n, self.rng)
         self.rate_limiter.samples += n
-        return self.storage.read(slots), SampleInfo(keys, probs, size, prios)
+        return self.storage.read(slots), SampleInfo(keys, probs, self.size, prios)
 
     def _sample_counted(self, n: int) -> tuple[Any, SampleInfo]:
         # One item at a time, so an item is never handed out more often than max_times_sampled,
