@@ -149,15 +149,12 @@ class CompiledSumTree(SumTreeBase):
             level = half
 
     def find_with_mass(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        u = np.ascontiguousarray(u, dtype=np.float64).reshape(-1)
-        node = np.empty(u.size, np.int64)
-        mass = np.empty(u.size, np.float64)
-        if self.tree[1] > 0.0:
-            _find(self.tree, self.base, u, 1.0, node, mass)
-        else:  # nothing to find (callers check the total first)
-            node[:] = 0
-            mass[:] = 0.0
-        return node, mass
+        return self._find(np.ascontiguousarray(u, dtype=np.float64).reshape(-1), 1.0)
+
+    def sample(self, uniform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        total = self.total
+        node, mass = self._find(uniform, total)  # scaled in the loop, with no array for uniform * total
+        return node, mass / total
 
     def update_live(self, slot_key: np.ndarray, priority: np.ndarray, keys: np.ndarray, prios: np.ndarray,
                     exponent: float) -> float:
@@ -181,3 +178,13 @@ class CompiledSumTree(SumTreeBase):
         key, prio = np.empty(n, np.int64), np.empty(n, np.float64)
         _find_items(self.tree, self.base, uniform, node, prob, slot_key, priority, key, prio)
         return node, prob, key, prio
+
+    def _find(self, u: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+        node = np.empty(u.size, np.int64)
+        mass = np.empty(u.size, np.float64)
+        if self.tree[1] > 0.0:
+            _find(self.tree, self.base, u, scale, node, mass)
+        else:  # nothing to find (callers check the total first)
+            node[:] = 0
+            mass[:] = 0.0
+        return node, mass
