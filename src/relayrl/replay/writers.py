@@ -60,11 +60,9 @@ class _Writer:
     def __init__(self, table: Table, storage: StepStorage, chunk_length: int) -> None:
         if table.size > 0:
             raise ValueError(f"table {table.name!r} already holds items; a writer needs an empty table")
-        self.num_envs = storage.num_envs
         self.frame_stack = storage.store.frame_stack
-        self.chunk_length = chunk_length
         self.max_staged = storage.max_append_steps  # batched steps one `Table.append_steps` may take
-        self._stage_limit = min(self.max_staged, max(1, -(-chunk_length // self.num_envs)))
+        self._stage_limit = min(self.max_staged, max(1, -(-chunk_length // storage.num_envs)))
         self._keep_tensors = storage.store.on_device  # staged tensors stay on the store's device
         self._one_step = storage.one_step is not None
         self._staged: list[Transition] = []
