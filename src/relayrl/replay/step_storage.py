@@ -67,7 +67,7 @@ class StepStorage(Storage):
         rows = rows if rows is not None else ring_rows(capacity, num_envs, lookahead, frame_stack)
         self.store = StepStore(num_envs, rows, tuple(obs_spec.shape), numpy_dtype(obs_spec),
                                tuple(action_spec.shape), numpy_dtype(action_spec), frame_stack, path, device)
-        self.capacity, self.num_envs, self.rows, self.lookahead = capacity, num_envs, rows, lookahead
+        self.capacity, self.num_envs, self.rows = capacity, num_envs, rows
         # Batched steps one `append` may take: reused rows must never be inside the chunk being written.
         self.max_append_steps = max(1, (rows - frame_stack - lookahead - 2) // 2)
         self.slot_ref = np.zeros(capacity, dtype=np.int64)  # slot -> pos * num_envs + env

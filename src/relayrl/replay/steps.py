@@ -79,8 +79,8 @@ class StepStore:
         self.cols = Columns(sig, (num_envs, rows), path=path)
         c = {**self.cols.arrays, **self.data}
         self.frame, self.action, self.reward, self.stamp = c["frame"], c["action"], c["reward"], c["stamp"]
-        self.start, self.last, self.terminated, self.item_key = c["start"], c["last"], c["terminated"], c["item_key"]
-        self.ret, self.disc, self.nlen = c["ret"], c["disc"], c["nlen"]
+        self.start, self.last, self.terminated = c["start"], c["last"], c["terminated"]
+        self.ret, self.nlen = c["ret"], c["nlen"]
         self._flat = {k: a.reshape((num_envs * rows,) + tuple(a.shape[2:])) for k, a in c.items()}
         # Columns with a row shape (frames, vector actions) as one opaque element per row:
         # assigning rows by index is then a 1-D scatter, several times cheaper than a 2-D one.
