@@ -30,11 +30,6 @@ def flat_updates(idx: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.nd
     return idx, values
 
 
-def _cumsum(x: np.ndarray, axis: int) -> np.ndarray:
-    """Left-to-right cumulative sums (torch's CPU scan, faster than NumPy's here)."""
-    return torch.cumsum(torch.from_numpy(x), axis).numpy()
-
-
 class SumTreeBase:
     """What both trees (this module's and `sumtree_fast.CompiledSumTree`) do alike, over their
     `leaves`, `find_with_mass`, `total` and `rebuild`."""
@@ -147,7 +142,7 @@ class SumTree(SumTreeBase):
         u -= cs.take(node)
         for d in range(len(self.sums) - 2, -1, -1):
             rows = self.sums[d].reshape(-1, f).take(node, axis=0)  # [n, f] children
-            inc = _cumsum(rows, 1)  # [n, f] inclusive prefix sums
+            inc = torch.cumsum(torch.from_numpy(rows), 1).numpy()  # [n, f] inclusive prefix sums (torch's scan: faster)
             child = (inc > u[:, None]).argmax(axis=1)  # the first child whose interval ends above u
             over = inc[:, -1] <= u  # rounding put u past the group's total: the last child
             if np.count_nonzero(over):
