@@ -44,14 +44,13 @@ def split_chunk(chunk: StepChunk, max_steps: int) -> list[StepChunk]:
 
 
 class StorageGroup(Storage):
-    """A Table's storage over several step storages, one per writer: `active` names the one
-    whose steps are being appended; each slot remembers its storage, which reads it. Each
-    slot belongs to one storage at a time, so the storages share one slot map (saved once)."""
+    """See the module docstring. Each slot belongs to one storage at a time, so the storages
+    share one slot map (saved once)."""
 
     def __init__(self, storages: list[StepStorage], capacity: int) -> None:
         self.storages = storages
         for st in storages[1:]:
-            st.share_slot_map(storages[0])
+            st.slot_ref, st.slot_rows = storages[0].slot_ref, storages[0].slot_rows
         self.owner = np.zeros(capacity, dtype=np.int32)  # slot -> storage
         self.active = 0
 
@@ -61,10 +60,8 @@ class StorageGroup(Storage):
 
     @property
     def appending(self) -> StepStorage:
-        """The active writer's storage: it takes the steps being appended."""
         return self.storages[self.active]
 
-    # ---- the Table's storage interface -------------------------------------------------------
     def write(self, slots: np.ndarray, items: np.ndarray) -> None:
         self.owner[slots] = self.active
         self.storages[self.active].write(slots, items)

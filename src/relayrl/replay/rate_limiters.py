@@ -31,11 +31,6 @@ class RateLimiter:
         self.samples = 0
         self.deletes = 0
 
-    def can_insert(self, n: int = 1) -> bool:
-        if self.inserts + n - self.deletes <= self.min_size_to_sample:
-            return True
-        return (self.inserts + n) * self.samples_per_insert - self.samples <= self.max_diff
-
     def can_sample(self, n: int = 1) -> bool:
         if self.inserts - self.deletes < self.min_size_to_sample:
             return False
@@ -113,9 +108,5 @@ class Queue(RateLimiter):
         super().__init__(1.0, 1, 0.0, float(size))
 
 
-class Stack(RateLimiter):
-    """Every item sampled exactly once, newest first, at most `size` waiting (Reverb's stack
-    preset: use it with a Lifo sampler and remover and max_times_sampled=1, as `Table.stack`)."""
-
-    def __init__(self, size: int) -> None:
-        super().__init__(1.0, 1, 0.0, float(size))
+class Stack(Queue):
+    """Reverb's stack preset: `Queue`'s limits, for a Lifo sampler and remover (as `Table.stack`)."""

@@ -1,11 +1,7 @@
 """Rollouts that stay torch tensors on the run's device: for a stateless torch env, whose
 observations, actions and rewards are tensors there already (the PureJaxRL / Brax layout:
-env, policy, rollout and GAE on one device, no host round trip).
-
-`TensorRolloutWriter` is `RolloutWriter` gathering each field into a `[steps, B, ...]` tensor
-on the device, allocated fresh per rollout; `TensorItemStorage` is a Table storage that keeps
-inserted items as the tensors they are (by reference: no copy, no NumPy), so the learner
-samples the very tensors the actor wrote. Only live items are checkpointed, as CPU copies.
+env, policy, rollout and GAE on one device, no host round trip). The table keeps the tensors
+the actor wrote by reference, so the learner samples them without a copy.
 """
 
 from __future__ import annotations
@@ -22,7 +18,8 @@ from relayrl.replay.table import Table
 
 class TensorItemStorage(Storage):
     """A table's storage holding each slot's item as a dict of tensors (views of what was
-    inserted). `read` of one slot returns views; of several, stacked tensors."""
+    inserted). `read` of one slot returns views; of several, stacked tensors. Only live items
+    are checkpointed, as CPU copies."""
 
     def __init__(self, capacity: int, device: torch.device) -> None:
         self.device = device

@@ -11,6 +11,7 @@ compacted when stale entries outnumber live ones.
 from __future__ import annotations
 
 import heapq
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -30,8 +31,6 @@ def make_sum_tree(capacity: int) -> tuple[Any, bool]:
 
 class Selector:
     """Base class. `slot_key[slot]` is the live key in a slot (-1 when empty)."""
-
-    deterministic = False  # True: select() returns the same front item until it changes
 
     def bind(self, capacity: int, slot_key: np.ndarray, priority: np.ndarray) -> None:
         self.capacity = capacity
@@ -151,7 +150,7 @@ class Prioritized(Selector):
         super().bind(capacity, slot_key, priority)
         self.tree, self.compiled = make_sum_tree(capacity)
         if self.compiled:
-            self.update_keys = self._update_keys_compiled
+            self.update_keys = partial(self.tree.update_live, slot_key, priority, exponent=self.priority_exponent)
 
     def insert(self, slots: np.ndarray, keys: np.ndarray) -> None:
         self.tree.set_power(slots, self.priority, self.priority_exponent)
@@ -178,10 +177,6 @@ class Prioritized(Selector):
         if not self.compiled or self.tree.total <= 0.0:
             return super().select_items(n, rng)
         return self.tree.sample_items(rng.random(n), self.slot_key, self.priority)
-
-    def _update_keys_compiled(self, keys: np.ndarray, priorities: np.ndarray) -> float:
-        """Priorities and leaves of the keys still live, in one pass (the table's lock held)."""
-        return self.tree.update_live(self.slot_key, self.priority, keys, priorities, self.priority_exponent)
 
     def pop(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """n distinct slots, each drawn by priority from the items not drawn yet; once those
@@ -210,7 +205,6 @@ class _KeyQueue(Selector):
     stale (deleted) keys with one gather, so removing 1,024 items is a few array calls.
     """
 
-    deterministic = True
     newest_first = False
 
     def bind(self, capacity: int, slot_key: np.ndarray, priority: np.ndarray) -> None:
@@ -322,7 +316,6 @@ class _Heap(Selector):
     so an update leaves exactly one live entry per item, whatever the priorities.
     """
 
-    deterministic = True
     sign = 1.0  # +1: smallest priority at the front (MinHeap); -1: largest (MaxHeap)
 
     def bind(self, capacity: int, slot_key: np.ndarray, priority: np.ndarray) -> None:

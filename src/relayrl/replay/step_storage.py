@@ -12,9 +12,6 @@ row, flat row of its next observation). Per slot the storage keeps that referenc
 record of what a read needs before the frames (`SLOT_RECORD`), so a sampled item costs one
 gather there. Each item's key is noted at its first row (`item_key`): the item to evict when
 that row is reused. No item ever spans an episode boundary.
-
-`TransitionStorage` makes n-step transitions and reads them as a `Batch`;
-`SequenceStorage` makes sequences of rows and reads them as a `SequenceBatch`.
 """
 
 from __future__ import annotations
@@ -66,14 +63,13 @@ class StepStorage(Storage):
 
     def __init__(self, capacity: int, num_envs: int, obs_spec: Spec, action_spec: Spec, *, lookahead: int,
                  frame_stack: int = 1, path: str | Path | None = None, rows: int | None = None,
-                 device: str | torch.device | None = None, pin_memory: bool = False, fast: bool = True) -> None:
+                 device: str | torch.device | None = None, fast: bool = True) -> None:
         rows = rows if rows is not None else ring_rows(capacity, num_envs, lookahead, frame_stack)
         self.store = StepStore(num_envs, rows, tuple(obs_spec.shape), numpy_dtype(obs_spec),
                                tuple(action_spec.shape), numpy_dtype(action_spec), frame_stack, path, device)
-        self.capacity, self.num_envs, self.rows, self.lookahead = capacity, num_envs, rows, lookahead
+        self.capacity, self.num_envs, self.rows = capacity, num_envs, rows
         # Batched steps one `append` may take: reused rows must never be inside the chunk being written.
         self.max_append_steps = max(1, (rows - frame_stack - lookahead - 2) // 2)
-        self.pin_memory = pin_memory
         self.slot_ref = np.zeros(capacity, dtype=np.int64)  # slot -> pos * num_envs + env
         self.slot_rows = np.zeros(capacity, dtype=SLOT_RECORD)
         self.open_from = np.zeros(num_envs, dtype=np.int64)  # per env: first position that may still become an item
@@ -91,14 +87,9 @@ class StepStorage(Storage):
             self._write_records = write_records
 
     def bind(self, slot_key: np.ndarray) -> None:
-        """The owning table's key map (slot -> live key, -1: empty), read-only, as its selectors get it."""
         self.slot_key = slot_key
         # What `write_records` reads and writes besides the slot map, as plain ndarray views.
         self._columns = (np.asarray(self._ret), np.asarray(self._disc), slot_key, np.asarray(self._item_key))
-
-    def share_slot_map(self, other: StepStorage) -> None:
-        """Use `other`'s slot map: storages of one table (a StorageGroup's) own disjoint slots."""
-        self.slot_ref, self.slot_rows = other.slot_ref, other.slot_rows
 
     # ---- appending steps (the table calls these) ------------------------------------------
     @property
@@ -121,8 +112,7 @@ class StepStorage(Storage):
     def append(self, chunk: StepChunk) -> np.ndarray:
         """Append a chunk's rows (after the table deleted its `evictions`); returns the items it
         closes, [n, 3] as `write` takes them, oldest first."""
-        self.store.write_chunk(chunk.frames, chunk.actions, chunk.rewards, chunk.done, chunk.terminated,
-                               chunk.finals)
+        self.store.write_chunk(chunk)
         return self._close_items()
 
     # ---- episodes across checkpoints and restarts -------------------------------------------
@@ -156,8 +146,7 @@ class StepStorage(Storage):
 
     # ---- the Table's storage interface ---------------------------------------------------
     def write(self, slots: np.ndarray, items: np.ndarray) -> None:
-        """items: [n, 3] rows of (pos * num_envs + env, flat row, flat next row). Each item's key
-        (from the table's key map) is noted at its row: the item to evict when the row is reused."""
+        """items: [n, 3] rows of (pos * num_envs + env, flat row, flat next row)."""
         if len(slots) == 1:
             slot, (ref, row, nxt) = slots[0], items[0].tolist()
             self.slot_ref[slot] = ref
@@ -175,7 +164,6 @@ class StepStorage(Storage):
         raise NotImplementedError
 
     def stale(self, slots: np.ndarray) -> np.ndarray:
-        """Which items' rows no longer hold what they were written from (memmap files reopened)."""
         envs, pos = self.refs(slots)
         return ~self.store.valid(envs, pos, self.ahead(envs, pos))
 
@@ -231,7 +219,7 @@ class StepStorage(Storage):
         t = torch.from_numpy(x)  # gathers are fresh contiguous arrays
         if self.store.on_device:  # the small host columns join the data on its device
             return t.to(self.store.device, non_blocking=True)
-        return t.pin_memory() if self.pin_memory else t
+        return t
 
     # ---- closing items (subclasses say which windows are items) ---------------------------
     def _close_items(self) -> np.ndarray:
@@ -283,11 +271,11 @@ class TransitionStorage(StepStorage):
 
     def __init__(self, capacity: int, num_envs: int, obs_spec: Spec, action_spec: Spec, *, gamma: float,
                  n_step: int = 1, frame_stack: int = 1, path: str | Path | None = None, rows: int | None = None,
-                 device: str | torch.device | None = None, pin_memory: bool = False, fast: bool = True) -> None:
+                 device: str | torch.device | None = None, fast: bool = True) -> None:
         if n_step < 1:
             raise ValueError(f"n_step={n_step} is not valid; it must be >= 1")
         super().__init__(capacity, num_envs, obs_spec, action_spec, lookahead=n_step, frame_stack=frame_stack,
-                         path=path, rows=rows, device=device, pin_memory=pin_memory, fast=fast)
+                         path=path, rows=rows, device=device, fast=fast)
         self.n_step = n_step
         self.gamma = gamma
         self.powers = gamma ** np.arange(n_step + 1, dtype=np.float64)  # [n+1]
@@ -350,13 +338,11 @@ class SequenceStorage(StepStorage):
 
     def __init__(self, capacity: int, num_envs: int, obs_spec: Spec, action_spec: Spec, *, sequence_length: int,
                  stride_length: int = 1, frame_stack: int = 1, path: str | Path | None = None,
-                 rows: int | None = None, device: str | torch.device | None = None, pin_memory: bool = False,
-                 fast: bool = True) -> None:
+                 rows: int | None = None, device: str | torch.device | None = None) -> None:
         if sequence_length < 1 or stride_length < 1:
             raise ValueError(f"sequence_length={sequence_length} and stride_length={stride_length} must be >= 1")
         super().__init__(capacity, num_envs, obs_spec, action_spec, lookahead=sequence_length - 1,
-                         frame_stack=frame_stack, path=path, rows=rows, device=device, pin_memory=pin_memory,
-                         fast=fast)
+                         frame_stack=frame_stack, path=path, rows=rows, device=device)
         self.sequence_length = sequence_length
         self.stride_length = stride_length
 

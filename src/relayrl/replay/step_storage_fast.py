@@ -27,8 +27,6 @@ if TYPE_CHECKING:
 @njit
 def write_records(slot_ref: np.ndarray, slot_rows: np.ndarray, slots: np.ndarray, items: np.ndarray,
                   ret: np.ndarray, disc: np.ndarray, slot_key: np.ndarray, item_key: np.ndarray) -> None:
-    """Each slot's ref and its record (row, next row, and the row's return and discount), and
-    each item's key at its row."""
     for j in range(slots.size):
         slot = slots[j]
         row = items[j, 1]
@@ -160,7 +158,7 @@ class OneStep:
         valid until the next call)."""
         s, st, b = self.store, self.storage, self.store.num_envs
         if s.on_device:
-            s.write_data(s.head_rows(), frames, actions)
+            s.write_data(s.envs * s.rows + s.head % s.rows, frames, actions)  # the next step's rows
             frames_np = actions_np = np.empty((b, 0), np.float32)
         else:
             frames_np = np.ascontiguousarray(to_numpy(frames)).reshape(b, -1)

@@ -79,8 +79,8 @@ class StepStore:
         self.cols = Columns(sig, (num_envs, rows), path=path)
         c = {**self.cols.arrays, **self.data}
         self.frame, self.action, self.reward, self.stamp = c["frame"], c["action"], c["reward"], c["stamp"]
-        self.start, self.last, self.terminated, self.item_key = c["start"], c["last"], c["terminated"], c["item_key"]
-        self.ret, self.disc, self.nlen = c["ret"], c["disc"], c["nlen"]
+        self.start, self.last, self.terminated = c["start"], c["last"], c["terminated"]
+        self.ret, self.nlen = c["ret"], c["nlen"]
         self._flat = {k: a.reshape((num_envs * rows,) + tuple(a.shape[2:])) for k, a in c.items()}
         # Columns with a row shape (frames, vector actions) as one opaque element per row:
         # assigning rows by index is then a 1-D scatter, several times cheaper than a 2-D one.
@@ -104,28 +104,16 @@ class StepStore:
         q-T+k-1 is the newest to need. Older ones were evicted by earlier writes.
         """
         p = pos - self.rows + self.frame_stack - 1
-        ok = p >= 0
-        n_ok = np.count_nonzero(ok)
-        if n_ok < len(p):  # the ring's first lap: nothing to evict before row 0
-            if n_ok == 0:
-                return np.full(len(p), -1, dtype=np.int64)
-            keys = np.full(len(p), -1, dtype=np.int64)
-            keys[ok] = self.evictable(envs[ok], pos[ok])
-            return keys
         i = envs * self.rows + p % self.rows
-        return np.where(self._flat["stamp"].take(i) == p + 1, self._flat["item_key"].take(i), -1)
+        written = (self._flat["stamp"].take(i) == p + 1) & (p >= 0)  # p < 0: the ring's first lap
+        return np.where(written, self._flat["item_key"].take(i), -1)
 
     def flat(self, name: str) -> np.ndarray:
         """A column as [B * T, ...] (a view), so (env, row) is one flat index."""
         return self._flat[name]
 
-    def write_chunk(self, frames: np.ndarray, actions: np.ndarray, rewards: np.ndarray, done: np.ndarray,
-                    terminated: np.ndarray, final_frames: np.ndarray) -> None:
-        """Append C batched steps: frames/actions [C, B, ...], rewards/done/terminated [C, B];
-        final_frames [D, ...] are the final observations where `done`, in (step, env) order.
-
-        Each step is one row per env, plus a final-observation row where the episode ended.
-        """
+    def write_chunk(self, chunk: StepChunk) -> None:
+        frames, actions, rewards, done, terminated, final_frames = chunk
         c, b = done.shape
         any_done = np.count_nonzero(done) > 0
         if any_done:
@@ -150,10 +138,6 @@ class StepStore:
         else:
             self.head = self.head + c
 
-    def head_rows(self) -> np.ndarray:
-        """The flat rows each env's next step takes: [B]."""
-        return self.envs * self.rows + self.head % self.rows
-
     def write_data(self, i: np.ndarray, frames: np.ndarray | torch.Tensor, actions: np.ndarray | torch.Tensor) -> None:
         """Frames and actions of flat rows `i` alone (the compiled one-step append writes the rest)."""
         self._put("frame", i, frames)
@@ -176,23 +160,19 @@ class StepStore:
 
     def _put(self, name: str, i: np.ndarray, values: np.ndarray | torch.Tensor) -> None:
         """flat(name)[i] = values, through the row view where the column has one."""
-        if name in self.data:
-            col = self._flat[name]
-            if len(i):
-                v = torch.as_tensor(values).to(col.device, col.dtype)  # no-op for the env's device tensors
-                col.index_copy_(0, self.index(i), v.expand((len(i), *col.shape[1:])))
-            return
-        rows = self._row_views.get(name)
-        if rows is None:
-            self._flat[name][i] = values
-            return
-        col = self._flat[name]
+        col, rows = self._flat[name], self._row_views.get(name)
         if len(i) == 0:
             return
-        shape = (len(i),) + col.shape[1:]
-        if np.shape(values) != shape:
-            values = np.broadcast_to(values, shape)
-        rows[i] = np.ascontiguousarray(values, dtype=col.dtype).reshape(len(i), -1).view(rows.dtype).reshape(-1)
+        if name in self.data:
+            v = torch.as_tensor(values).to(col.device, col.dtype)  # no-op for the env's device tensors
+            col.index_copy_(0, self.index(i), v.expand((len(i), *col.shape[1:])))
+        elif rows is None:
+            col[i] = values
+        else:
+            shape = (len(i),) + col.shape[1:]
+            if np.shape(values) != shape:
+                values = np.broadcast_to(values, shape)
+            rows[i] = np.ascontiguousarray(values, dtype=col.dtype).reshape(len(i), -1).view(rows.dtype).reshape(-1)
 
     def index(self, i: np.ndarray) -> torch.Tensor:
         """Flat row indices as a tensor on the data's device."""

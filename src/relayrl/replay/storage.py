@@ -85,11 +85,6 @@ class Columns:
     def nbytes(self) -> int:
         return sum(int(np.prod(self.leading + s)) * d.itemsize for s, d in self.signature.values())
 
-    def flush(self) -> None:
-        for a in self.arrays.values():
-            if isinstance(a, np.memmap):
-                a.flush()
-
     def used_rows(self, used: int | None) -> tuple[slice, ...]:
         """The index of the first `used` rows along the last leading dimension (None: all)."""
         return (slice(None),) * (len(self.leading) - 1) + (slice(0, used),)
@@ -98,7 +93,8 @@ class Columns:
         """The arrays' first `used` rows along the last leading dimension (None: all): a
         checkpoint grows with what the storage holds, not with what it can hold."""
         if self.path is not None:
-            self.flush()  # the checkpoint refers to the files, wherever the resume starts from
+            for a in self.arrays.values():
+                a.flush()  # the checkpoint refers to the files, wherever the resume starts from
             return {"memmap": str(self.path.resolve())}
         rows = self.used_rows(used)
         return {"arrays": {k: v[rows].copy() for k, v in self.arrays.items()}}
@@ -135,7 +131,6 @@ class ItemStorage(Storage):
         self.columns = Columns(sig, (self.capacity,))
 
     def write(self, slots: np.ndarray, items: Any) -> None:
-        """Write a batch of items (leading dim = len(slots)) into `slots`."""
         if self.columns is None:
             self._build(items)
         assert self.columns is not None

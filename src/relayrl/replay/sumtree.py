@@ -30,12 +30,50 @@ def flat_updates(idx: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.nd
     return idx, values
 
 
-def _cumsum(x: np.ndarray, axis: int) -> np.ndarray:
-    """Left-to-right cumulative sums (torch's CPU scan, faster than NumPy's here)."""
-    return torch.cumsum(torch.from_numpy(x), axis).numpy()
+class SumTreeBase:
+    """What both trees (this module's and `sumtree_fast.CompiledSumTree`) do alike, over their
+    `leaves`, `find_with_mass`, `total` and `rebuild`."""
+
+    capacity: int
+    leaves: np.ndarray
+
+    @property
+    def total(self) -> float:
+        raise NotImplementedError
+
+    def find_with_mass(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Leaf indices i with prefix(i) <= u < prefix(i) + leaf(i), for u in [0, total), and
+        the values of the leaves found."""
+        raise NotImplementedError
+
+    def rebuild(self) -> None:
+        """Recompute every total from the leaves."""
+        raise NotImplementedError
+
+    def get(self, idx: np.ndarray) -> np.ndarray:
+        return self.leaves.take(idx)
+
+    def find(self, u: np.ndarray) -> np.ndarray:
+        return self.find_with_mass(u)[0]
+
+    def sample(self, uniform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`find_with_mass(uniform * total)` for `uniform` in [0, 1), and each leaf's
+        probability (mass / total). The total must be > 0."""
+        total = self.total
+        node, mass = self.find_with_mass(uniform * total)
+        return node, mass / total
+
+    def state_dict(self) -> dict[str, np.ndarray]:
+        return {"leaves": self.leaves[: self.capacity].copy()}
+
+    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
+        leaves = np.asarray(state["leaves"], dtype=np.float64)
+        self.leaves[:] = 0.0
+        self.leaves[: leaves.size] = leaves
+        self.rebuild()
 
 
-class SumTree:
+class SumTree(SumTreeBase):
     def __init__(self, capacity: int, fanout: int = 32, top_size: int = 32768) -> None:
         if capacity < 1:
             raise ValueError("SumTree capacity must be >= 1")
@@ -58,9 +96,6 @@ class SumTree:
     @property
     def total(self) -> float:
         return float(self._top_prefix()[-1])
-
-    def get(self, idx: np.ndarray) -> np.ndarray:
-        return self.leaves.take(idx)
 
     def set(self, idx: np.ndarray, values: np.ndarray) -> None:
         idx, values = flat_updates(idx, values)
@@ -86,15 +121,7 @@ class SumTree:
             values[p == 0.0] = 0.0
         self.set(idx, values)
 
-    def sample(self, uniform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """`find_with_mass(uniform * total)` for `uniform` in [0, 1), and each leaf's
-        probability (mass / total). The total must be > 0."""
-        total = self.total
-        node, mass = self.find_with_mass(uniform * total)
-        return node, mass / total
-
     def rebuild(self) -> None:
-        """Recompute every total from the leaves."""
         f = self.fanout
         for d in range(len(self.sums) - 1):
             self.sums[d + 1][:] = self.sums[d].reshape(-1, f).sum(axis=1)
@@ -106,12 +133,7 @@ class SumTree:
             self._top_stale = False
         return self._top_cs
 
-    def find(self, u: np.ndarray) -> np.ndarray:
-        """Leaf indices i with prefix(i) <= u < prefix(i) + leaf(i), for u in [0, total)."""
-        return self.find_with_mass(u)[0]
-
     def find_with_mass(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """`find(u)` and the values of the leaves found."""
         f = self.fanout
         u = np.array(u, dtype=np.float64).reshape(-1)  # a copy: it is consumed level by level
         cs = self._top_prefix()
@@ -120,7 +142,7 @@ class SumTree:
         u -= cs.take(node)
         for d in range(len(self.sums) - 2, -1, -1):
             rows = self.sums[d].reshape(-1, f).take(node, axis=0)  # [n, f] children
-            inc = _cumsum(rows, 1)  # [n, f] inclusive prefix sums
+            inc = torch.cumsum(torch.from_numpy(rows), 1).numpy()  # [n, f] inclusive prefix sums (torch's scan: faster)
             child = (inc > u[:, None]).argmax(axis=1)  # the first child whose interval ends above u
             over = inc[:, -1] <= u  # rounding put u past the group's total: the last child
             if np.count_nonzero(over):
@@ -152,12 +174,3 @@ class SumTree:
         node = node.copy()
         node[bad] = live[np.maximum(np.searchsorted(live, node[bad], side="right") - 1, 0)]
         return node, self.leaves.take(node)
-
-    def state_dict(self) -> dict[str, np.ndarray]:
-        return {"leaves": self.leaves[: self.capacity].copy()}
-
-    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
-        leaves = np.asarray(state["leaves"], dtype=np.float64)
-        self.leaves[:] = 0.0
-        self.leaves[: leaves.size] = leaves
-        self.rebuild()

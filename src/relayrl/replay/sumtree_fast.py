@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from relayrl.compile import njit
-from relayrl.replay.sumtree import flat_updates
+from relayrl.replay.sumtree import SumTreeBase, flat_updates
 
 
 @njit
@@ -119,7 +119,7 @@ def _find_items(tree: np.ndarray, base: int, u: np.ndarray, node: np.ndarray, pr
         prio[j] = priority[node[j]]
 
 
-class CompiledSumTree:
+class CompiledSumTree(SumTreeBase):
     """`SumTree`'s interface on a flat binary tree; see the module docstring."""
 
     def __init__(self, capacity: int) -> None:
@@ -134,9 +134,6 @@ class CompiledSumTree:
     def total(self) -> float:
         return float(self.tree[1])
 
-    def get(self, idx: np.ndarray) -> np.ndarray:
-        return self.leaves.take(idx)
-
     def set(self, idx: np.ndarray, values: np.ndarray) -> None:
         _set(self.tree, self.base, *flat_updates(idx, values))
 
@@ -145,34 +142,24 @@ class CompiledSumTree:
         _set_power(self.tree, self.base, np.ascontiguousarray(idx, dtype=np.int64), priority, float(exponent))
 
     def rebuild(self) -> None:
-        """Recompute every total from the leaves."""
         level = self.base
         while level > 1:
             half = level // 2
             self.tree[half:level] = self.tree[level: 2 * level: 2] + self.tree[level + 1: 2 * level: 2]
             level = half
 
-    def find(self, u: np.ndarray) -> np.ndarray:
-        """Leaf indices i with prefix(i) <= u < prefix(i) + leaf(i), for u in [0, total)."""
-        return self.find_with_mass(u)[0]
-
     def find_with_mass(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """`find(u)` and the values of the leaves found."""
         return self._find(np.ascontiguousarray(u, dtype=np.float64).reshape(-1), 1.0)
 
     def sample(self, uniform: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """`find_with_mass(uniform * total)` for `uniform` in [0, 1), and each leaf's
-        probability (mass / total). The total must be > 0."""
         total = self.total
-        node, mass = self._find(uniform, total)
+        node, mass = self._find(uniform, total)  # scaled in the loop, with no array for uniform * total
         return node, mass / total
 
     def update_live(self, slot_key: np.ndarray, priority: np.ndarray, keys: np.ndarray, prios: np.ndarray,
                     exponent: float) -> float:
-        """For each key still live in its slot (`slot_key[key % size] == key`), set
-        `priority[slot] = p` and the leaf to `p ** exponent`. Returns the largest priority
-        written (-1.0: no key was live); raises, writing nothing, on a priority not finite
-        and >= 0. One compiled pass: a Table's `update_priorities` for a prioritized sampler."""
+        """A Table's `update_priorities` for a prioritized sampler (see `_update_live`); raises,
+        writing nothing, on a priority not finite and >= 0."""
         keys = np.ascontiguousarray(keys, dtype=np.int64)
         prios = np.ascontiguousarray(prios, dtype=np.float64)
         if keys.size != prios.size:  # the loop reads prios[j] for every key, unchecked
@@ -201,12 +188,3 @@ class CompiledSumTree:
             node[:] = 0
             mass[:] = 0.0
         return node, mass
-
-    def state_dict(self) -> dict[str, np.ndarray]:
-        return {"leaves": self.leaves.copy()}
-
-    def load_state_dict(self, state: dict[str, np.ndarray]) -> None:
-        leaves = np.asarray(state["leaves"], dtype=np.float64)
-        self.tree[:] = 0.0
-        self.leaves[: leaves.size] = leaves
-        self.rebuild()

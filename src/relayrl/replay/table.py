@@ -37,8 +37,7 @@ class SampleInfo(NamedTuple):
 class Table:
     def __init__(self, name: str, max_size: int, sampler: Selector | None = None, remover: Selector | None = None,
                  rate_limiter: RateLimiter | None = None, max_times_sampled: int = 0,
-                 seed: int | np.random.SeedSequence | None = None, storage: Storage | None = None,
-                 fast: bool = True) -> None:
+                 seed: int | np.random.SeedSequence | None = None, fast: bool = True) -> None:
         if max_size < 1:
             raise ValueError(f"Table {name!r}: max_size={max_size} is not valid; it must be >= 1")
         sampler = sampler if sampler is not None else Uniform()
@@ -73,15 +72,12 @@ class Table:
         self._update_keys: Callable[[np.ndarray, np.ndarray], float] = one_pass or self._update_slots
         # `fast`: inserts of n > 1 items in compiled loops (table_fast) for the usual pair of
         # selectors, when numba is there; else (and with fast=False) the NumPy path.
-        uniform_fifo = fast and type(sampler) is Uniform and type(remover) is Fifo
         self._insert_kernel: Callable[..., tuple[int, bool]] | None = None
-        if uniform_fifo and numba_available():
+        if fast and type(sampler) is Uniform and type(remover) is Fifo and numba_available():
             from relayrl.replay.table_fast import insert
             self._insert_kernel = insert
         self.storage: Storage = ItemStorage(max_size)
         self.storage.bind(self.slot_key)
-        if storage is not None:
-            self.set_storage(storage)
 
     def set_storage(self, storage: Storage) -> None:
         """Keep items in `storage` from now on; only before the first insert. A writer hands
@@ -203,8 +199,8 @@ class Table:
         return keys
 
     def _insert_compiled(self, items: Any, n: int) -> np.ndarray:
-        """`_insert_many_locked` for a Uniform sampler and a Fifo remover, no priorities given:
-        the same writes in compiled loops (table_fast): free slots first, then Fifo victims."""
+        """`_insert_many_locked` for a Uniform sampler and a Fifo remover, no priorities given, in
+        compiled loops (table_fast)."""
         sampler, remover = self.sampler, self.remover
         assert isinstance(sampler, Uniform) and isinstance(remover, Fifo) and self._insert_kernel is not None
         remover.reserve(n)
@@ -276,7 +272,6 @@ class Table:
         return True
 
     def _append(self, evicted: np.ndarray, append: Callable[[], np.ndarray]) -> None:
-        """Delete the `evicted` items, then `append()` the steps and insert the items it closes."""
         if evicted.size:
             self.delete(evicted)
         items = append()
@@ -371,15 +366,19 @@ class Table:
             got += k
             if self._waiting:
                 self._cv.notify_all()  # an inserter may be waiting for these samples
-        return parts[0] if len(parts) == 1 else _concat(parts)
+        if len(parts) == 1:
+            return parts[0]
+        infos = [i for _, i in parts]
+        info = SampleInfo(np.concatenate([i.key for i in infos]), np.concatenate([i.probability for i in infos]),
+                          infos[-1].table_size, np.concatenate([i.priority for i in infos]))
+        return _concat([d for d, _ in parts]), info
 
     def _sample_locked(self, n: int) -> tuple[Any, SampleInfo]:
         if self.max_times_sampled > 0:
             return self._sample_counted(n)
-        size = self.size
         slots, probs, keys, prios = self.sampler.select_items(n, self.rng)
         self.rate_limiter.samples += n
-        return self.storage.read(slots), SampleInfo(keys, probs, size, prios)
+        return self.storage.read(slots), SampleInfo(keys, probs, self.size, prios)
 
     def _sample_counted(self, n: int) -> tuple[Any, SampleInfo]:
         # One item at a time, so an item is never handed out more often than max_times_sampled,
@@ -397,8 +396,7 @@ class Table:
             self.rate_limiter.samples += 1
             if self.times_sampled[slot] >= self.max_times_sampled:
                 self._delete_slots(np.array([slot]))
-        merged = _concat([(d, None) for d in data])[0] if n > 1 else data[0]
-        return merged, SampleInfo(keys, probs, self.size, prios)
+        return (_concat(data) if n > 1 else data[0]), SampleInfo(keys, probs, self.size, prios)
 
     def _wait(self, available: Callable[[], int], timeout: float | None, what: str) -> int:
         deadline = None if timeout is None else time.monotonic() + timeout
@@ -478,21 +476,13 @@ def _slice(items: Any, part: slice) -> Any:
     return items[part]
 
 
-def _concat(parts: list[tuple[Any, SampleInfo | None]]) -> tuple[Any, SampleInfo]:
+def _concat(datas: list[Any]) -> Any:
+    """Samples read in parts as one batch: a dict or a NamedTuple (fields None stay None) of tensors, or a tensor."""
     import torch
 
-    datas = [d for d, _ in parts]
     first = datas[0]
     if isinstance(first, dict):
-        data: Any = {k: torch.cat([d[k] for d in datas]) for k in first}
-    elif isinstance(first, tuple) and hasattr(first, "_fields"):
-        data = type(first)(*(None if getattr(first, f) is None else torch.cat([getattr(d, f) for d in datas])
-                             for f in first._fields))
-    else:
-        data = torch.cat(datas)
-    infos = [i for _, i in parts if i is not None]
-    if not infos:
-        return data, None  # type: ignore[return-value]
-    info = SampleInfo(np.concatenate([i.key for i in infos]), np.concatenate([i.probability for i in infos]),
-                      infos[-1].table_size, np.concatenate([i.priority for i in infos]))
-    return data, info
+        return {k: torch.cat([d[k] for d in datas]) for k in first}
+    if hasattr(first, "_fields"):
+        return type(first)(*(None if f[0] is None else torch.cat(f) for f in zip(*datas, strict=True)))
+    return torch.cat(datas)

@@ -60,11 +60,9 @@ class _Writer:
     def __init__(self, table: Table, storage: StepStorage, chunk_length: int) -> None:
         if table.size > 0:
             raise ValueError(f"table {table.name!r} already holds items; a writer needs an empty table")
-        self.num_envs = storage.num_envs
         self.frame_stack = storage.store.frame_stack
-        self.chunk_length = chunk_length
         self.max_staged = storage.max_append_steps  # batched steps one `Table.append_steps` may take
-        self._stage_limit = min(self.max_staged, max(1, -(-chunk_length // self.num_envs)))
+        self._stage_limit = min(self.max_staged, max(1, -(-chunk_length // storage.num_envs)))
         self._keep_tensors = storage.store.on_device  # staged tensors stay on the store's device
         self._one_step = storage.one_step is not None
         self._staged: list[Transition] = []
@@ -76,21 +74,15 @@ class _Writer:
         # the group sets to this writer's before every call it makes on it.
         return cast(StepStorage, self.table.storage.appending)
 
-    # ---- checkpoints (the steps' state is in the table's) ------------------------------------
+    # ---- episodes across checkpoints and restarts: the step storage's (see there) -----------
     def saved_episodes_intact(self) -> bool:
-        """After the table loaded a checkpoint: whether the rows of the episodes open at the
-        checkpoint still hold what it saw (memmap files reopened after the run went on may not)."""
         return self._steps().saved_episodes_intact()
 
     def continue_episodes(self) -> None:
-        """After the table loaded a checkpoint, when the actor's envs were restored mid-episode
-        as well: the next step continues the interrupted episodes (their last steps become items)."""
         self._staged.clear()
         self._steps().continue_episodes()
 
     def restart_episodes(self) -> None:
-        """Forget the episodes in progress: the next steps start new ones. For an actor that
-        died mid-episode and was restarted: its last steps never become items."""
         self._staged.clear()
         self._steps().restart_episodes()
 
@@ -137,11 +129,10 @@ class TransitionWriter(_Writer):
 
     def __init__(self, table: Table, num_envs: int, obs_spec: Spec, action_spec: Spec, *,
                  gamma: float, n_step: int = 1, frame_stack: int = 1, path: str | Path | None = None,
-                 rows: int | None = None, pin_memory: bool = False, chunk_length: int = 1024,
-                 device: str | torch.device | None = None, fast: bool = True) -> None:
+                 rows: int | None = None, chunk_length: int = 1024, device: str | torch.device | None = None,
+                 fast: bool = True) -> None:
         storage = TransitionStorage(table.max_size, num_envs, obs_spec, action_spec, gamma=gamma, n_step=n_step,
-                                    frame_stack=frame_stack, path=path, rows=rows, device=device,
-                                    pin_memory=pin_memory, fast=fast)
+                                    frame_stack=frame_stack, path=path, rows=rows, device=device, fast=fast)
         super().__init__(table, storage, chunk_length)
 
 
@@ -151,9 +142,9 @@ class SequenceWriter(_Writer):
 
     def __init__(self, table: Table, num_envs: int, obs_spec: Spec, action_spec: Spec, *,
                  sequence_length: int, stride_length: int = 1, frame_stack: int = 1,
-                 path: str | Path | None = None, rows: int | None = None, pin_memory: bool = False,
-                 chunk_length: int = 1024, device: str | torch.device | None = None) -> None:
+                 path: str | Path | None = None, rows: int | None = None, chunk_length: int = 1024,
+                 device: str | torch.device | None = None) -> None:
         storage = SequenceStorage(table.max_size, num_envs, obs_spec, action_spec, sequence_length=sequence_length,
                                   stride_length=stride_length, frame_stack=frame_stack, path=path, rows=rows,
-                                  device=device, pin_memory=pin_memory)
+                                  device=device)
         super().__init__(table, storage, chunk_length)

@@ -15,17 +15,9 @@ import torch
 from relayrl import atomic
 from relayrl.config import Config
 from relayrl.errors import ConfigError, UserError
-from relayrl.replay import (
-    Fifo,
-    MinSize,
-    Prioritized,
-    RateLimiter,
-    SampleToInsertRatio,
-    Table,
-    TransitionWriter,
-    Uniform,
-)
+from relayrl.replay import Fifo, Prioritized, Table, TransitionWriter, Uniform
 from relayrl.replay.group import WriterGroup
+from relayrl.replay.rate_limiters import MinSize, RateLimiter, SampleToInsertRatio
 from relayrl.replay.rollouts import RolloutWriter
 from relayrl.replay.rollouts_torch import TensorRolloutWriter, tensor_rollout_queue
 from relayrl.replay.step_storage import ring_rows
