@@ -5,6 +5,7 @@ failures and restarts. What the actors are asked to collect is the collection's
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -137,26 +138,22 @@ class ActorPool:
         """End the rollout actors and forget their calls: a run that stops early (Ctrl-C, a
         callback) saves its final policy and checkpoint at one env step, while the eval actors
         and the replay server stay for its final evaluation and save."""
-        for w in self.workers:
-            try:
-                self.ray.kill(w, no_restart=True)
-            except Exception:  # already gone
-                pass
+        self._kill(self.workers)
         self.inflight.clear()
 
     def close(self) -> None:
         """Stop every actor (and the local Ray instance this run started): no orphan processes."""
-        ray = self.ray
-        if not ray.is_initialized():
+        if not self.ray.is_initialized():
             return
-        for handle in [*self.workers, *self.eval_workers, self.server, self.variables]:
-            if handle is not None:
-                try:
-                    ray.kill(handle, no_restart=True)
-                except Exception:  # already gone
-                    pass
+        self._kill([*self.workers, *self.eval_workers, self.server, self.variables])
         if self.owns_ray:
-            ray.shutdown()
+            self.ray.shutdown()
+
+    def _kill(self, handles: list[Any]) -> None:
+        for handle in handles:
+            if handle is not None:
+                with contextlib.suppress(Exception):  # already gone
+                    self.ray.kill(handle, no_restart=True)
 
     @property
     def alive(self) -> int:

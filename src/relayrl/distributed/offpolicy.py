@@ -11,7 +11,7 @@ none waits for the driver) and trains on whatever batches the server's rate limi
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from relayrl.config import Config, to_dict
@@ -34,8 +34,6 @@ class ReplayCollection:
     """Rollout actors ship transitions to the replay server; the env steps it took from each
     actor are the run's env steps."""
 
-    worker_class = RolloutWorker
-
     def __init__(self, config: Config, pool: ActorPool, stats: EpisodeStats) -> None:
         self.config, self.pool, self.stats = config, pool, stats
         self.accepted = [0] * pool.num_actors  # env steps the replay server took from each actor
@@ -48,7 +46,7 @@ class ReplayCollection:
             return ray.remote(num_cpus=0, max_concurrency=k + 8)(ReplayServer).options(
                 name=name).remote(to_dict(c), obs_spec, act_spec, rd_root, k)
 
-        self.pool.start(self.worker_class, server)
+        self.pool.start(RolloutWorker, server)
         self.table = RemoteTable(self.pool.server, c.agent.batch_size)
         self.pusher = RemotePusher(self.pool.variables, agent, c.distributed.push_interval)
         return self.table, self.pusher
@@ -106,14 +104,16 @@ class ReplayCollection:
         self.stats.add_finished(r["returns"], r["lengths"], r["info"])
         self._submit(i)
 
-    def _dropped(self, i: int) -> None:
-        """Count the steps the replay server already took from actor i, whose calls failed."""
+    def _count_shipped(self, actors: Iterable[int]) -> None:
+        """Count the steps the replay server took from `actors` that no answer reported (their
+        calls failed, or were halted)."""
         shipped = self.pool.ray.get(self.pool.server.info.remote())["shipped"]
-        self.accepted[i] = max(self.accepted[i], int(shipped[i]))
+        for i in actors:
+            self.accepted[i] = max(self.accepted[i], int(shipped[i]))
 
     def _poll(self) -> bool:
         """Take what the actors answered and ask them again; True when any answered."""
-        moved = self.pool.poll(self._take, self._dropped)
+        moved = self.pool.poll(self._take, lambda i: self._count_shipped([i]))
         self._top_up()
         return moved
 
@@ -122,7 +122,7 @@ class ReplayCollection:
 
     def iterate(self, core: RunCore, finish_evals: Callable[[], None]) -> None:
         self.pusher.push(force=True)
-        core.sps_log.rates.reset(core.progress())
+        core.sps_log.reset(core.progress())
         self._top_up()
         collected_at = None  # the sample request current when collection ended
         while not core.report.stop_requested:  # a callback's False, Ctrl-C
@@ -145,8 +145,7 @@ class ReplayCollection:
                 self.pool.wait(also, RETRY_S if self._retry_pending() else 1.0)
         if core.report.stop_requested:  # the count the final save is named by: what the server took
             self.pool.halt_rollouts()
-            shipped = self.pool.ray.get(self.pool.server.info.remote())["shipped"]
-            self.accepted = [max(a, int(n)) for a, n in zip(self.accepted, shipped, strict=True)]
+            self._count_shipped(range(self.pool.num_actors))
 
     # ---- checkpoints ----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:

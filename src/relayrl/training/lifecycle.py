@@ -183,9 +183,9 @@ class RunCore:
         """What a stopped run leaves (a non-finite number, a failure): its last checkpoint and policy."""
         ckpts = list_checkpoints(self.rd.checkpoints)
         parts = [f"the last good checkpoint (env step {int(ckpts[-1].stem.split('-')[1]):,})"] if ckpts else []
-        saved = self.policy_saver.saved_at
+        saved = self.policy_saver.saved_progress
         if saved is not None:
-            parts.append(f"the policy saved at env step {saved:,}")
+            parts.append(f"the policy saved at env step {saved.env_steps:,}")
         elif (self.rd.policy / "policy.pt").is_file():
             parts.append("the policy saved before")
         if not parts:
@@ -197,7 +197,11 @@ class RunCore:
         stats, the evaluations so far, the wall time and the process's state."""
         return {"version": 2, "config": to_dict(self.config), "spaces": self.spaces(),
                 "agent": self.agent.state_dict(), "episode_stats": self.stats.state_dict(),
-                "eval_count": eval_count, "wall_time_s": self.wall_time(), **self.process_state()}
+                "eval_count": eval_count, "wall_time_s": self.wall_time(),
+                # the global RNGs (a user's env may draw from them) and the latest losses
+                "global_rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
+                               "python": random.getstate()},
+                "last_metrics": {k: v.detach().cpu() for k, v in self.learner.last_metrics.items()}}
 
     def spaces(self) -> dict[str, Any]:
         """The env's observation and action spaces as the networks and the replay are laid out for them."""
@@ -227,12 +231,6 @@ class RunCore:
         self.stats.load_state_dict(state["episode_stats"])
         self.wall_offset = float(state["wall_time_s"])
         return int(state["eval_count"])
-
-    def process_state(self) -> dict[str, Any]:
-        """The global RNGs (a user's env may draw from them) and the latest losses."""
-        return {"global_rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
-                               "python": random.getstate()},
-                "last_metrics": {k: v.detach().cpu() for k, v in self.learner.last_metrics.items()}}
 
     def load_process_state(self, state: dict[str, Any]) -> None:
         rng = state["global_rng"]
@@ -346,13 +344,12 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
 
 def crash_kept(core: RunCore) -> str:
     """What a run that an exception stopped leaves, and how it goes on once the cause is fixed."""
-    root = str(core.rd.root)
     if not list_checkpoints(core.rd.checkpoints):
         return core.kept()
-    if names_python_factory(core.config.env.id):  # only Python can pass the factory again
-        return f"{core.kept()}: once the cause is fixed, {_python_resume(core)} continues it"
-    return (f"{core.kept()}: once the cause is fixed, `relayrl train --run-dir {root} --resume` (in Python: "
-            f"{_python_resume(core)}) continues it")
+    resume = _python_resume(core)
+    if not names_python_factory(core.config.env.id):  # only Python can pass the factory again
+        resume = f"`relayrl train --run-dir {core.rd.root} --resume` (in Python: {resume})"
+    return f"{core.kept()}: once the cause is fixed, {resume} continues it"
 
 
 def _python_resume(core: RunCore) -> str:

@@ -120,7 +120,7 @@ class LocalDriver:
         total = c.train.total_steps
         if self.actor.env_steps == 0:  # the random warm-up: nothing is learned in it, so Ctrl-C stops it at once
             self.actor.collect(min(c.train.initial_collect_steps, total))  # never past total_steps
-        core.sps_log.rates.reset(core.progress())
+        core.sps_log.reset(core.progress())
         self.variables.push(network_variables(self.agent.policy_network()))  # fresh or restored weights
         self.actor.policy = self.collect_policy
         # Ctrl-C or SIGTERM stops the loop between iterations, as a callback's False does, so

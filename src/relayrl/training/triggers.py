@@ -80,11 +80,6 @@ class PolicySaver(IntervalTrigger):
         save_policy_file(state, self.folder / "policy.pt")
         self.saved_progress = Progress(progress.env_steps, progress.train_step)
 
-    @property
-    def saved_at(self) -> int | None:
-        """Env steps of the policy this saver last wrote."""
-        return None if self.saved_progress is None else self.saved_progress.env_steps
-
 
 class Checkpointer(IntervalTrigger):
     """Writes `state_fn()` as `folder/ckpt-<env steps>.pt` atomically, keeping the last `keep`."""
@@ -143,27 +138,6 @@ class Evaluate(IntervalTrigger):
             self.on_result(progress, result)
 
 
-class StepsPerSecond:
-    """Env steps/s and gradient steps/s since the previous call."""
-
-    def __init__(self) -> None:
-        self._t = time.perf_counter()
-        self._env = 0
-        self._train = 0
-
-    def reset(self, progress: Progress) -> None:
-        self._t = time.perf_counter()
-        self._env = progress.env_steps
-        self._train = progress.train_step
-
-    def __call__(self, progress: Progress) -> tuple[float, float]:
-        now = time.perf_counter()
-        dt = max(now - self._t, 1e-9)
-        rates = ((progress.env_steps - self._env) / dt, (progress.train_step - self._train) / dt)
-        self._t, self._env, self._train = now, progress.env_steps, progress.train_step
-        return rates
-
-
 class StepsPerSecondLog(IntervalTrigger):
     """Env steps/s and gradient steps/s since the previous log (TF-Agents' StepPerSecondLogTrigger):
     `report(progress, env_sps, grad_sps)` gets them; by default a line goes to `log`."""
@@ -171,12 +145,20 @@ class StepsPerSecondLog(IntervalTrigger):
     def __init__(self, interval: int, unit: str = "env_steps", log: Callable[[str], None] | None = None,
                  report: Callable[[Progress, float, float], None] | None = None) -> None:
         super().__init__(interval, self.log_rates, unit)
-        self.rates = StepsPerSecond()
         self.log = log or (lambda text: print(text, file=sys.stderr, flush=True))
         self.report = report or self._line
+        self.reset(Progress(0, 0))
+
+    def reset(self, progress: Progress) -> None:
+        """Count the rates from `progress`, now (where collection starts)."""
+        self._t, self._last = time.perf_counter(), progress
 
     def log_rates(self, progress: Progress) -> None:
-        env_sps, grad_sps = self.rates(progress)
+        now = time.perf_counter()
+        dt = max(now - self._t, 1e-9)
+        env_sps, grad_sps = ((progress.env_steps - self._last.env_steps) / dt,
+                             (progress.train_step - self._last.train_step) / dt)
+        self._t, self._last = now, Progress(progress.env_steps, progress.train_step)
         self.report(progress, env_sps, grad_sps)
 
     def _line(self, progress: Progress, env_sps: float, grad_sps: float) -> None:
