@@ -105,7 +105,5 @@ class Learner:
 
     def scalar_metrics(self) -> dict[str, float]:
         """Latest training scalars as floats, named like CleanRL's `losses/...`."""
-        out = {}
-        for k, v in self.last_metrics.items():
-            out[f"losses/{k}"] = float(v.abs().mean() if k == "td_error" else v.float().mean())
-        return out
+        return {f"losses/{k}": float(v.abs().mean() if k == "td_error" else v.float().mean())
+                for k, v in self.last_metrics.items()}

@@ -1,10 +1,6 @@
 """Triggers: actions fired every `interval` env steps or gradient steps (eval, policy save,
 checkpoint, steps/s log), as TF-Agents' learner triggers. Batched envs advance by B steps,
-so a trigger fires once per interval boundary crossed, never more.
-
-The local loop fires them after each collect/train iteration; a `Learner` given triggers
-fires them after each gradient step (TF-Agents' `Learner(..., triggers=[...])`).
-"""
+so a trigger fires once per interval boundary crossed, never more."""
 
 from __future__ import annotations
 
@@ -48,7 +44,6 @@ class IntervalTrigger:
             self._next = (count // self.interval + 1) * self.interval
 
     def due(self, progress: Progress) -> bool:
-        """Whether a call with `progress` would fire."""
         return self.interval > 0 and self._count(progress) >= self._next
 
     def __call__(self, progress: Progress) -> bool:
@@ -108,13 +103,9 @@ def covers_boundary(steps: int, interval: int, evaluations: int) -> bool:
 
 
 class Evaluate(IntervalTrigger):
-    """Runs `episodes` episodes of `policy_fn()` on `env`; results go to `results` and `on_result`.
-
-    Evaluation k (from 0, counted in `count`, which a resumed run restores) resets the env with
-    seed + EVAL_STRIDE * k; `seconds` is how long the latest one took. An evaluation that
-    covers no new boundary of the interval grid (`covers_boundary`) takes the next one's seed
-    without using it up.
-    """
+    """Runs `episodes` episodes of `policy_fn()` on `env`; results go to `on_result`.
+    Evaluation k (`count`, which a resumed run restores) resets the env with seed + EVAL_STRIDE * k;
+    `seconds` is how long the latest one took."""
 
     def __init__(self, interval: int, env: Any, policy_fn: Callable[[], Any], episodes: int = 10,
                  unit: str = "env_steps", seed: int = 0,
@@ -122,7 +113,6 @@ class Evaluate(IntervalTrigger):
         super().__init__(interval, self.evaluate, unit)
         self.env, self.policy_fn, self.episodes, self.seed = env, policy_fn, episodes, seed
         self.on_result = on_result
-        self.results: list[tuple[Progress, dict[str, float]]] = []
         self.count = 0
         self.seconds = 0.0
 
@@ -133,7 +123,6 @@ class Evaluate(IntervalTrigger):
         result = evaluate(self.env, self.policy_fn(), self.episodes, seed=self.seed + EVAL_STRIDE * self.count)
         self.seconds = time.perf_counter() - t0
         self.count += covers_boundary(self._count(progress), self.interval, self.count)
-        self.results.append((progress, result))
         if self.on_result is not None:
             self.on_result(progress, result)
 
