@@ -96,10 +96,8 @@ class RolloutCollection:
         self.shares = RolloutShares(0, pool.num_actors)
 
     def start(self, rd_root: str, obs_spec: Spec, act_spec: Spec, agent: Agent) -> tuple[Table, RemotePusher]:
-        """The actors; the rollout queue the learner takes from and its pusher."""
-        table, _ = build_rollouts(self.config)
+        self.table, _ = build_rollouts(self.config)
         self.pool.start(RolloutCollector, None)  # shares go to the driver in the collect calls' answers
-        self.table = table
         self.pusher = RemotePusher(self.pool.variables, agent, 1)  # every update: the actors wait for it
         return self.table, self.pusher
 
@@ -120,7 +118,6 @@ class RolloutCollection:
     def extra_scalars(self) -> dict[str, float]:
         return {"charts/stale_rollouts": self.shares.dropped}
 
-    # ---- collection ------------------------------------------------------------------------
     def _full_share(self) -> int:
         return -(-self.config.train.collect_steps // (self.pool.num_actors * self.config.env.num_envs))
 
@@ -161,7 +158,6 @@ class RolloutCollection:
         self._top_up()
         return moved
 
-    # ---- the loop ---------------------------------------------------------------------------
     def _new_version(self) -> None:
         """After a push: the version the actors pull now (waited for, so every later call acts
         with it) and the shares it needs."""
@@ -203,7 +199,6 @@ class RolloutCollection:
             core.say(f"{self.shares.dropped} stale rollouts ({self.shares.dropped_steps:,} env steps) were "
                      "collected with an older policy and dropped")
 
-    # ---- checkpoints --------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         # Checkpoints come between updates: no share is kept, and calls in flight are made anew.
         return {"replay": None, "shipped": [], "onpolicy": {"trained": self.trained, **self.shares.state_dict()}}

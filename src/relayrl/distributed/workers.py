@@ -1,12 +1,6 @@
-"""Rollout and eval workers: plain classes the distributed run turns into Ray actors.
-
-A rollout worker is the one-process loop's `Actor` with two different observers: a
-`ChunkShipper` in place of the replay writer (its steps go to the replay server, a chunk per
-RPC) and an `EpisodeLog` whose finished episodes go back to the driver with each call. Its
-acting network pulls weights from the VariableContainer actor through `RemoteVariables`, so
-`WeightPuller` is the same as in one process. An on-policy algorithm's actor, `RolloutCollector`,
-has the one-process driver's `RolloutWriter` instead and answers each call with its rollout.
-"""
+"""Rollout and eval workers: plain classes the distributed run turns into Ray actors. A rollout
+worker is the one-process loop's `Actor` whose steps go to the replay server (`ChunkShipper`)
+or, on-policy, back to the driver as a rollout, and whose episodes go back with each call."""
 
 from __future__ import annotations
 
@@ -47,13 +41,11 @@ def _setup(config: dict[str, Any], sys_path: list[str]) -> Config:
 
 
 def actor_name(prefix: str, role: str) -> str:
-    """The Ray name of a run's replay server (`role` "replay") or variable container ("variables")."""
     return f"{prefix}-{role}"
 
 
 def named_actor(prefix: str, role: str) -> Any:
-    """The actor `actor_name` names, found by name: Ray cannot promise to keep handles passed to a
-    restartable actor's constructor alive."""
+    """Found by name: Ray cannot promise to keep handles passed to a restartable actor's constructor alive."""
     import ray
 
     return ray.get_actor(actor_name(prefix, role))
@@ -86,7 +78,7 @@ def _acting_parts(c: Config, index: int) -> tuple[RunSeeds, Any, Any]:
 
 
 class RemoteVariables:
-    """`pull()` of a VariableContainer living in a Ray actor (what WeightPuller calls)."""
+    """`pull()` of a VariableContainer living in a Ray actor."""
 
     def __init__(self, handle: Any) -> None:
         self.handle = handle
@@ -98,10 +90,9 @@ class RemoteVariables:
 
 
 class ChunkShipper:
-    """Observer: stages batched steps and ships them to the replay server as one StepChunk
-    per flush (the Actor flushes at the end of each collect call). One insert stays in flight while
-    the next chunk is collected; waiting for it is how the server's rate limiter slows
-    collection down when the learner lags."""
+    """Observer: ships the staged steps to the replay server as one StepChunk per flush. One
+    insert stays in flight while the next chunk is collected; waiting for it is how the server's
+    rate limiter slows collection down when the learner lags."""
 
     def __init__(self, server: Any, index: int, token: str, frame_stack: int = 1) -> None:
         self.server, self.index, self.token, self.k = server, index, token, frame_stack
@@ -143,9 +134,8 @@ class EpisodeLog(EpisodeStats):
 
 
 class _RolloutActor:
-    """What both rollout actors hold: `env.num_envs` env copies, an acting copy of the policy
-    network kept fresh from the variable container (every `pull_interval` env steps), the
-    finished episodes and the non-finite watch whose findings go back with each answer."""
+    """What both rollout actors hold: env copies, an acting copy of the policy network, the
+    finished episodes and the non-finite watch, whose findings go back with each answer."""
 
     def __init__(self, config: dict[str, Any], index: int, names: str, sys_path: list[str],
                  pull_interval: int | None = None) -> None:
@@ -159,7 +149,6 @@ class _RolloutActor:
         self.puller = WeightPuller(RemoteVariables(named_actor(names, "variables")), self.net, interval)
 
     def _answer(self, **extra: Any) -> dict[str, Any]:
-        """A collect call's answer: the episodes that finished, what the watch found, the policy version."""
         returns, lengths, info = self.episodes.take()
         return {"index": self.index, "token": self.token, "non_finite": self.finite.check(), "returns": returns,
                 "lengths": lengths, "info": info, "policy_version": self.puller.version, **extra}
@@ -198,11 +187,8 @@ class RolloutWorker(_RolloutActor):
 
 
 class RolloutCollector(_RolloutActor):
-    """An on-policy algorithm's rollout actor (registry replay "rollouts", PPO): `collect(T)`
-    pulls the newest weights, steps its `env.num_envs` copies T times with them through the
-    one-process driver's `RolloutWriter`, and returns the [T, num_envs] rollout tagged with the
-    policy version it was collected with. No replay server: the driver keeps only rollouts of
-    the current version (`distributed.onpolicy.RolloutShares`)."""
+    """An on-policy algorithm's rollout actor: `collect(T)` pulls the newest weights, steps its
+    copies T times and returns the [T, num_envs] rollout tagged with the policy version."""
 
     def __init__(self, config: dict[str, Any], index: int, names: str, sys_path: list[str]) -> None:
         super().__init__(config, index, names, sys_path, pull_interval=0)  # every collect call pulls
