@@ -39,7 +39,7 @@ class IntervalTrigger:
         return progress.env_steps if self.unit == "env_steps" else progress.train_step
 
     def start_at(self, count: int) -> None:
-        """Skip the boundaries already passed (after a resume)."""
+        """Skip the boundaries already passed (after a resume, or a call)."""
         if self.interval > 0:
             self._next = (count // self.interval + 1) * self.interval
 
@@ -49,7 +49,7 @@ class IntervalTrigger:
     def __call__(self, progress: Progress) -> bool:
         if not self.due(progress):
             return False
-        self._next = (self._count(progress) // self.interval + 1) * self.interval
+        self.start_at(self._count(progress))
         self.fn(progress)
         return True
 
