@@ -59,24 +59,6 @@ def _reconstructed() -> bool:
         return bool(ray.get_runtime_context().was_current_actor_reconstructed)
 
 
-def _acting_parts(c: Config, index: int) -> tuple[RunSeeds, Any, Any]:
-    """Rollout actor `index`'s seed streams, its `env.num_envs` env copies and an agent to act
-    with (on the CPU), seeded apart from the learner and the other actors."""
-    seeds = RunSeeds(c.seed).actor(index)
-    if _reconstructed():  # a restarted actor must not replay its episodes: fresh streams
-        seeds = seeds.actor(int.from_bytes(os.urandom(4), "little"))
-    torch.manual_seed(seeds.base("torch"))
-    env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
-                   time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
-                   # async: by default one worker per CPU Ray reserved for this actor beyond
-                   # its own (at least one), not one per core of the machine it landed on
-                   num_workers=c.env.num_workers or max(1, round(c.distributed.actor_cpus) - 1),
-                   info_keys=c.env.info_keys, kwargs=c.env.kwargs, wrappers=c.env.wrappers)
-    agent = algorithm(c.algo).make_agent(c.agent, env.observation_spec, env.action_spec, torch.device("cpu"),
-                                         seeds.generator("exploration"), c.train.total_steps)
-    return seeds, env, agent
-
-
 class RemoteVariables:
     """`pull()` of a VariableContainer living in a Ray actor."""
 
@@ -140,10 +122,22 @@ class _RolloutActor:
     def __init__(self, config: dict[str, Any], index: int, names: str, sys_path: list[str],
                  pull_interval: int | None = None) -> None:
         c = self.config = _setup(config, sys_path)
-        self.seeds, self.env, agent = _acting_parts(c, index)
+        self.seeds = RunSeeds(c.seed).actor(index)  # apart from the learner's and the other actors'
+        if _reconstructed():  # a restarted actor must not replay its episodes: fresh streams
+            self.seeds = self.seeds.actor(int.from_bytes(os.urandom(4), "little"))
+        torch.manual_seed(self.seeds.base("torch"))
+        self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
+                            time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
+                            # async: by default one worker per CPU Ray reserved for this actor beyond
+                            # its own (at least one), not one per core of the machine it landed on
+                            num_workers=c.env.num_workers or max(1, round(c.distributed.actor_cpus) - 1),
+                            info_keys=c.env.info_keys, kwargs=c.env.kwargs, wrappers=c.env.wrappers)
+        self.agent: Any = algorithm(c.algo).make_agent(c.agent, self.env.observation_spec, self.env.action_spec,
+                                                       torch.device("cpu"), self.seeds.generator("exploration"),
+                                                       c.train.total_steps)
         self.index, self.token = index, uuid.uuid4().hex  # one token per incarnation: the driver tells restarts by it
-        self.net = agent.policy_network().requires_grad_(False)
-        self.agent, self.episodes = agent, EpisodeLog()
+        self.net = self.agent.policy_network().requires_grad_(False)
+        self.episodes = EpisodeLog()
         self.finite = FiniteWatch(c.env.num_envs, self.env.observation_spec, where=f"rollout actor {index}'s ")
         interval = c.distributed.pull_interval if pull_interval is None else pull_interval
         self.puller = WeightPuller(RemoteVariables(named_actor(names, "variables")), self.net, interval)
@@ -211,14 +205,14 @@ class EvalWorker:
 
     def __init__(self, config: dict[str, Any], names: str, sys_path: list[str]) -> None:
         c = _setup(config, sys_path)
-        variables = named_actor(names, "variables")
         self.episodes = c.eval.episodes
         self.env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, info_keys=c.env.info_keys,
                                  kwargs=c.env.kwargs, wrappers=c.env.wrappers)
         self.agent = algorithm(c.algo).make_agent(c.agent, self.env.observation_spec, self.env.action_spec,
                                                   torch.device("cpu"), RunSeeds(c.seed).generator("evaluation"),
                                                   c.train.total_steps)
-        self.puller = WeightPuller(RemoteVariables(variables), self.agent.policy_network().requires_grad_(False))
+        self.puller = WeightPuller(RemoteVariables(named_actor(names, "variables")),
+                                   self.agent.policy_network().requires_grad_(False))
 
     def evaluate(self, seed: int) -> dict[str, Any]:
         self.puller.maybe_pull(0)
