@@ -22,6 +22,7 @@ from relayrl.specs import PackedSpec, Spec, unpack
 from relayrl.types import Transition
 
 CHECK_STEPS = 256  # batched steps held before a check: the check's cost spread over them
+DIVERGED = "check the learning rate (too high diverges), the reward scale and the env's observations"
 
 
 def _first_bad(stacked: torch.Tensor) -> tuple[int, int, float] | None:

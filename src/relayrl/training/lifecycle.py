@@ -28,7 +28,7 @@ from relayrl.schedules import linear_schedule
 from relayrl.seeding import RunSeeds
 from relayrl.specs import check_trained_layout, describe, spec_from_state, spec_state
 from relayrl.training.checkpoint import list_checkpoints
-from relayrl.training.finite import FiniteWatch, non_finite_metrics, non_finite_tensor, stop
+from relayrl.training.finite import DIVERGED, FiniteWatch, non_finite_metrics, non_finite_tensor, stop
 from relayrl.training.learner import Learner
 from relayrl.training.replay_setup import collect_only
 from relayrl.training.report import Callback, RunReport, log_config
@@ -169,8 +169,7 @@ class RunCore:
         if finding is None and weights:
             name = non_finite_tensor(self.agent.state_dict())
             if name is not None:
-                finding = (f"the agent's {name} held a NaN or inf {where}: check the learning rate "
-                           "(too high diverges), the reward scale and the env's observations")
+                finding = f"the agent's {name} held a NaN or inf {where}: {DIVERGED}"
         if finding is not None:
             raise stop(finding, self.kept())
 
