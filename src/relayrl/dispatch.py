@@ -42,14 +42,12 @@ def default_run_dir(config: Config) -> Path:
 
 def factory_env_id(factory: Callable[[], Any]) -> str:
     """The env.id a factory given in Python is recorded as: `module:name` for a module-level
-    function or class, which a later `relayrl eval` or resume from the command line can import
-    where the factory is importable; `module:<type>` for anything else (a functools.partial, a
-    callable object, a method), which no import finds, so those commands ask for the same env=."""
+    function or class, which a later `relayrl eval` or resume can import; `module:<...>` for
+    anything else, which no import finds, so those commands ask for the same env=."""
     module = getattr(factory, "__module__", None) or type(factory).__module__
     name: str | None = getattr(factory, "__qualname__", None)
     if isinstance(factory, (types.FunctionType, type)) and name is not None and name.isidentifier():
         return f"{module}:{name}"
-    # `<` keeps it from resolving: a lambda, a local or class-level function, a method, a partial
     label = name if name and "<" in name else f"<{name or type(factory).__qualname__}>"
     return f"{module}:{label}"
 
@@ -100,11 +98,7 @@ def _use_factory(config: Config, env: Any, one_process: bool) -> None:
 
 
 def _check_callbacks(callbacks: Sequence[Callback] | None, actor_learner: bool) -> list[Callback]:
-    if callbacks is None:
-        return []
-    if callable(callbacks):  # callbacks=cb: one callback is a list of one
-        callbacks = [callbacks]
-    callbacks = list(callbacks)
+    callbacks = [callbacks] if callable(callbacks) else list(callbacks or [])  # callbacks=cb: a list of one
     for cb in callbacks:
         if not callable(cb):
             raise UserError(f"callbacks: {cb!r} is not callable; give functions taking a metrics row (a dict)")
@@ -114,10 +108,12 @@ def _check_callbacks(callbacks: Sequence[Callback] | None, actor_learner: bool) 
     return callbacks
 
 
+_REPLACE = "pass --overwrite to replace it, or choose another --run-dir (in Python: overwrite=True, or another run_dir)"
+
+
 def _takeover_notice(rd: RunDir, overwrite: bool) -> str | None:
-    """What a new run in `rd` does to what is there: None (nothing there, or not a run's), a
-    notice when it replaces a run (`overwrite`, or a run that stopped before its first
-    checkpoint), or a UserError when that run has a checkpoint or finished."""
+    """The notice of a new run that replaces the run in `rd` (None: no run there), or a UserError
+    where that run is worth keeping (a checkpoint, finished, trained past step 0)."""
     if not (rd.metrics.exists() or rd.config.exists()):
         if overwrite and rd.root.is_dir() and any(rd.root.iterdir()):
             raise UserError(f"--overwrite: {str(rd.root)!r} is not a relayrl run directory (no config.toml); "
@@ -131,19 +127,16 @@ def _takeover_notice(rd: RunDir, overwrite: bool) -> str | None:
             return (f"run directory {str(rd.root)!r} holds a run that stopped before its first checkpoint: "
                     "starting over in it")
         raise UserError(f"run directory {str(rd.root)!r} holds a run that stopped at env step {reached:,}, "
-                        "before its first checkpoint (its policy and metrics so far are there); pass --overwrite "
-                        "to replace it, or choose another --run-dir (in Python: overwrite=True, or another run_dir)")
+                        f"before its first checkpoint (its policy and metrics so far are there); {_REPLACE}")
     if not rd.has_checkpoint():  # finished without checkpoints (bptt's runs write none): nothing to resume
         raise UserError(f"run directory {str(rd.root)!r} already holds a run (finished, with no checkpoint to resume "
-                        "from); pass --overwrite to replace it, or choose another --run-dir (in Python: "
-                        "overwrite=True, or another run_dir)")
+                        f"from); {_REPLACE}")
     raise UserError(f"run directory {str(rd.root)!r} already holds a run; pass --resume to continue it, "
                     "--overwrite to replace it, or choose another --run-dir (in Python: relayrl.train(..., "
                     "resume=True) or overwrite=True, or another run_dir)")
 
 
 def _finished(rd: RunDir) -> bool:
-    """Whether the run in `rd` got to its end (kept even though it has no checkpoint)."""
     try:
         saved = from_dict(load_toml(rd.config))
     except Exception:  # a config.toml this version cannot read: keep the run, as if finished
@@ -234,8 +227,7 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
 def _build_and_train(entry: Algorithm, config: Config, rd: RunDir, resume: bool, progress: bool,
                      env: Callable[[], Any] | None, callbacks: list[Callback], takeover: str | None,
                      beside: bool) -> RunResult:
-    """The run's parts, then the run into `rd` (a taken-over directory cleared first)."""
-    # Each run builds its parts (envs, agent) before anything is written: bad input fails first.
+    """The run's parts (bad input fails before anything is written), then the run into `rd`."""
     try:
         driver = _make_driver(entry, config, rd, progress, env, callbacks)
     except (MemoryError, RuntimeError) as e:
@@ -277,8 +269,6 @@ def out_of_memory(e: BaseException) -> str | None:
 
 def _make_driver(entry: Algorithm, config: Config, rd: RunDir, progress: bool, env: Callable[[], Any] | None,
                  callbacks: list[Callback]) -> LocalDriver | DirectDriver | RayDriver:
-    """The driver of the config's topology: its own for an algorithm that trains by itself,
-    Ray's with distributed.num_actors > 0, else the one-process Actor + Learner."""
     if entry.replay == "none":
         return DirectDriver(config, rd, progress)
     if config.distributed.num_actors > 0:

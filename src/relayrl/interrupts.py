@@ -75,23 +75,15 @@ def _deliver(signals: list[int], handlers: dict[int, Any]) -> None:
 
 
 def _install(handlers: dict[int, Any]) -> None:
-    """Put `handlers` in place; no signal lands between two of the swaps."""
-    with _blocked(WANTED):
+    """Put `handlers` in place; no signal lands between two of the swaps (POSIX masks them meanwhile)."""
+    masking = hasattr(signal, "pthread_sigmask")
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, WANTED) if masking else None
+    try:
         for sig, handler in handlers.items():
             signal.signal(sig, handler)
-
-
-@contextlib.contextmanager
-def _blocked(signals: tuple[int, ...]) -> Iterator[None]:
-    """`signals` held back by the OS while inside (POSIX); elsewhere nothing is held."""
-    if not hasattr(signal, "pthread_sigmask"):
-        yield
-        return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, signals)
-    try:
-        yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        if old is not None:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 @contextlib.contextmanager

@@ -1,10 +1,10 @@
-"""The Ray side of a distributed run: Ray started (or joined), K restartable rollout actors,
-the eval actors and the variable container, with the rollout actors' calls in flight, their
-failures and restarts. What the actors are asked to collect is the collection's
-(distributed/offpolicy.py, distributed/onpolicy.py); this module only keeps them answering."""
+"""The Ray side of a distributed run: Ray started (or joined), the actors, and the rollout
+actors' calls in flight, failures and restarts. What they are asked to collect is the
+collection's (distributed/offpolicy.py, distributed/onpolicy.py)."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -30,8 +30,8 @@ WAIT_SAY_S = 30.0  # while actors are not yet placed, a line this often
 
 
 def init_ray(ray: Any, config: Config) -> bool:
-    """Join distributed.address, or start a local Ray instance with room for every actor's CPU
-    reservation; True when this process started it (and so shuts it down)."""
+    """Join distributed.address, or start a local Ray instance with room for every actor; True
+    when this process started it (and so shuts it down)."""
     d = config.distributed
     if ray.is_initialized():
         return False
@@ -72,10 +72,8 @@ def init_ray(ray: Any, config: Config) -> bool:
 
 
 class ActorPool:
-    """`start(worker_class, server)` starts the actors; `ask(i, steps, *args)` queues a collect
-    call on rollout actor i; `poll(take, dropped)` hands over the answers that came in and
-    the actors whose calls a failure dropped. An actor that fails is restarted by Ray up to
-    distributed.max_restarts times, then counted dead."""
+    """The actors and their collect calls in flight. An actor that fails is restarted by Ray up
+    to distributed.max_restarts times, then counted dead."""
 
     def __init__(self, ray: Any, config: Config, say: Callable[[str], None]) -> None:
         self.ray, self.config, self.say = ray, config, say
@@ -95,8 +93,8 @@ class ActorPool:
         self.owns_ray = False
 
     def start(self, worker_class: type, server: Callable[[Any, str], Any] | None) -> None:
-        """Ray, the replay server (`server(ray, name)`, where the collection has one), the
-        variable container, the rollout and the eval actors; env errors surface here."""
+        """Ray, the replay server (`server(ray, name)`, where the collection has one) and every
+        actor; env errors surface here."""
         ray, c, d = self.ray, self.config, self.config.distributed
         self.owns_ray = init_ray(ray, c)
         cfg, path = to_dict(c), list(sys.path)
@@ -114,8 +112,8 @@ class ActorPool:
 
     def wait_started(self, calls: list[Any]) -> None:
         """Wait for every actor's first answer, saying every WAIT_SAY_S what is still waited for
-        (a cluster without the CPUs the actors ask for places them only when some come free);
-        an actor whose making fails on a worker (its env, its module) is one line."""
+        (a cluster without free CPUs places them only when some come free); an actor that fails
+        to start on a worker (its env, its module) is one line."""
         ray, d = self.ray, self.config.distributed
         pending = calls
         while pending:
@@ -134,29 +132,24 @@ class ActorPool:
             raise UserError(f"an actor could not start on a Ray worker: {found[-1]}") from None
 
     def halt_rollouts(self) -> None:
-        """End the rollout actors and forget their calls: a run that stops early (Ctrl-C, a
-        callback) saves its final policy and checkpoint at one env step, while the eval actors
-        and the replay server stay for its final evaluation and save."""
-        for w in self.workers:
-            try:
-                self.ray.kill(w, no_restart=True)
-            except Exception:  # already gone
-                pass
+        """End the rollout actors and forget their calls, so that a run that stops early saves at
+        one env step; the eval actors and the replay server stay for its final evaluation and save."""
+        self._kill(self.workers)
         self.inflight.clear()
 
     def close(self) -> None:
         """Stop every actor (and the local Ray instance this run started): no orphan processes."""
-        ray = self.ray
-        if not ray.is_initialized():
+        if not self.ray.is_initialized():
             return
-        for handle in [*self.workers, *self.eval_workers, self.server, self.variables]:
-            if handle is not None:
-                try:
-                    ray.kill(handle, no_restart=True)
-                except Exception:  # already gone
-                    pass
+        self._kill([*self.workers, *self.eval_workers, self.server, self.variables])
         if self.owns_ray:
-            ray.shutdown()
+            self.ray.shutdown()
+
+    def _kill(self, handles: list[Any]) -> None:
+        for handle in handles:
+            if handle is not None:
+                with contextlib.suppress(Exception):  # already gone
+                    self.ray.kill(handle, no_restart=True)
 
     @property
     def alive(self) -> int:
@@ -169,17 +162,16 @@ class ActorPool:
         return i not in self.dead and time.monotonic() >= self.retry_at[i]
 
     def ask(self, i: int, steps: int, *args: Any) -> Any:
-        """Queue `collect(*args)` on actor i, counted as `steps` env steps asked; its ref."""
+        """Queue `collect(*args)` on actor i, counted as `steps` env steps asked."""
         ref = self.workers[i].collect.remote(*args)
         self.inflight[ref] = (i, steps)
         return ref
 
-    def asked(self, i: int | None = None) -> int:
-        """Env steps the calls in flight ask for (of actor i, or of all)."""
-        return sum(n for j, n in self.inflight.values() if i in (None, j))
+    def asked(self) -> int:
+        """Env steps the calls in flight ask for."""
+        return sum(n for _, n in self.inflight.values())
 
     def retry_pending(self) -> bool:
-        """An actor waits out RETRY_S before it is asked again."""
         now = time.monotonic()
         return any(i not in self.dead and now < self.retry_at[i] for i in range(self.num_actors))
 
@@ -193,10 +185,9 @@ class ActorPool:
 
     def poll(self, take: Callable[[int, dict[str, Any]], None], dropped: Callable[[int], None] = lambda i: None
              ) -> bool:
-        """Hand each call that answered to `take(actor, result)`, in arrival order, each as it
-        leaves the calls in flight (so `take` sees the others still in flight); `dropped(actor)`
-        after a failure dropped an actor's calls (their steps are free to ask again). True when
-        any call answered."""
+        """Hand each call that answered to `take(actor, result)`, in arrival order, once it has
+        left the calls in flight; `dropped(actor)` after a failure dropped an actor's calls (their
+        steps are free to ask again). True when any call answered."""
         ray = self.ray
         if not self.inflight:
             return False

@@ -1,10 +1,6 @@
-"""The Ray driver: the learner trains here, everything else runs in Ray actors. Put together
-top to bottom in `RayDriver.__init__`: the env's specs from a probe copy, the agent, the actor
-pool (distributed/actors.py) and the algorithm's collection (distributed/offpolicy.py: a replay
-server fed by the actors; distributed/onpolicy.py: rollout shares to the learner here), the
-learner and the run's core. Evaluations run in eval actors; metrics.jsonl has the same schema
-as in one process.
-"""
+"""The Ray driver: the learner trains here, everything else runs in Ray actors (distributed/actors.py),
+fed by the algorithm's collection (distributed/offpolicy.py, distributed/onpolicy.py). metrics.jsonl
+has the same schema as in one process."""
 
 from __future__ import annotations
 
@@ -38,8 +34,7 @@ from relayrl.training.triggers import IntervalTrigger, Progress, covers_boundary
 
 class Collection(Protocol):
     """What the driver asks of an algorithm's collection on Ray (offpolicy.ReplayCollection,
-    onpolicy.RolloutCollection): start the actors, say the run's env steps, run the loop, and
-    put its state into the checkpoint."""
+    onpolicy.RolloutCollection)."""
 
     def start(self, rd_root: str, obs_spec: Spec, act_spec: Spec, agent: Agent) -> tuple[Any, RemotePusher]: ...
     def env_steps(self) -> int: ...
@@ -110,7 +105,6 @@ class RayDriver:
     def close(self) -> None:
         self.pool.close()
 
-    # ---- evaluation ---------------------------------------------------------------------
     def _interval_eval(self, p: Progress) -> None:
         # The last collect call can cross the final interval while the learner still has
         # steps to take; the final evaluation, after them, covers that boundary.
@@ -151,7 +145,6 @@ class RayDriver:
                                          extra={"policy_version": version, "actors_alive": self.pool.alive,
                                                 **self.collection.eval_extra()})
 
-    # ---- checkpoints ----------------------------------------------------------------------
     def checkpoint_state(self) -> dict[str, Any]:
         return {**self.core.checkpoint_common(self.eval_count), "distributed": {"num_actors": self.pool.num_actors},
                 **self.collection.state_dict()}

@@ -11,7 +11,7 @@ none waits for the driver) and trains on whatever batches the server's rate limi
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from relayrl.config import Config, to_dict
@@ -23,6 +23,7 @@ from relayrl.distributed.workers import RolloutWorker
 from relayrl.errors import NonFiniteError
 from relayrl.metrics import EpisodeStats
 from relayrl.specs import Spec
+from relayrl.training.checkpoint import NO_REPLAY
 from relayrl.training.lifecycle import RunCore
 from relayrl.training.report import plural
 
@@ -34,21 +35,18 @@ class ReplayCollection:
     """Rollout actors ship transitions to the replay server; the env steps it took from each
     actor are the run's env steps."""
 
-    worker_class = RolloutWorker
-
     def __init__(self, config: Config, pool: ActorPool, stats: EpisodeStats) -> None:
         self.config, self.pool, self.stats = config, pool, stats
         self.accepted = [0] * pool.num_actors  # env steps the replay server took from each actor
 
     def start(self, rd_root: str, obs_spec: Spec, act_spec: Spec, agent: Agent) -> tuple[RemoteTable, RemotePusher]:
-        """The actors and the replay server; the table the learner samples and its pusher."""
         c, k = self.config, self.pool.num_actors
 
         def server(ray: Any, name: str) -> Any:
             return ray.remote(num_cpus=0, max_concurrency=k + 8)(ReplayServer).options(
                 name=name).remote(to_dict(c), obs_spec, act_spec, rd_root, k)
 
-        self.pool.start(self.worker_class, server)
+        self.pool.start(RolloutWorker, server)
         self.table = RemoteTable(self.pool.server, c.agent.batch_size)
         self.pusher = RemotePusher(self.pool.variables, agent, c.distributed.push_interval)
         return self.table, self.pusher
@@ -68,11 +66,6 @@ class ReplayCollection:
     def extra_scalars(self) -> dict[str, float]:
         return {}
 
-    # ---- collection -----------------------------------------------------------------------
-    def _call_steps(self) -> int:
-        b = self.config.env.num_envs
-        return -(-CALL_CHUNKS * self.config.distributed.chunk_steps // b) * b
-
     def _submit(self, i: int) -> None:
         """Queue a collect call on actor i for its share of the steps still to take."""
         if not self.pool.may_ask(i):
@@ -83,14 +76,13 @@ class ReplayCollection:
         if remaining <= 0:
             return
         b = c.env.num_envs
-        n = -(-min(self._call_steps(), remaining) // b) * b
+        n = -(-min(CALL_CHUNKS * c.distributed.chunk_steps, remaining) // b) * b  # whole batched steps
         explore = self.env_steps() + asked < c.train.initial_collect_steps
         self.pool.ask(i, n, n, self.env_steps(), explore)
 
     def _top_up(self) -> None:
-        """Give every live actor its CALLS_QUEUED calls while steps remain. Steps that a failed
-        actor's calls had asked for are free again: the other actors must take them, or a run
-        whose calls all ended before a failure would stop short of total_steps."""
+        """Give every live actor its CALLS_QUEUED calls while steps remain (a failed actor's steps
+        included: a run whose calls all ended before a failure would stop short otherwise)."""
         queued = [0] * self.pool.num_actors
         for i, _ in self.pool.inflight.values():
             queued[i] += 1
@@ -99,21 +91,22 @@ class ReplayCollection:
                 self._submit(i)
 
     def _take(self, i: int, r: dict[str, Any]) -> None:
-        """What a collect call of actor i answered; the actor's next call."""
         if r.get("non_finite"):  # run_to_end adds what the run keeps
             raise NonFiniteError(r["non_finite"])
         self.accepted[i] = max(self.accepted[i], int(r["accepted"]))
         self.stats.add_finished(r["returns"], r["lengths"], r["info"])
         self._submit(i)
 
-    def _dropped(self, i: int) -> None:
-        """Count the steps the replay server already took from actor i, whose calls failed."""
+    def _count_shipped(self, actors: Iterable[int]) -> None:
+        """Count the steps the replay server took from `actors` that no answer reported (their
+        calls failed, or were halted)."""
         shipped = self.pool.ray.get(self.pool.server.info.remote())["shipped"]
-        self.accepted[i] = max(self.accepted[i], int(shipped[i]))
+        for i in actors:
+            self.accepted[i] = max(self.accepted[i], int(shipped[i]))
 
     def _poll(self) -> bool:
         """Take what the actors answered and ask them again; True when any answered."""
-        moved = self.pool.poll(self._take, self._dropped)
+        moved = self.pool.poll(self._take, lambda i: self._count_shipped([i]))
         self._top_up()
         return moved
 
@@ -122,7 +115,7 @@ class ReplayCollection:
 
     def iterate(self, core: RunCore, finish_evals: Callable[[], None]) -> None:
         self.pusher.push(force=True)
-        core.sps_log.rates.reset(core.progress())
+        core.sps_log.reset(core.progress())
         self._top_up()
         collected_at = None  # the sample request current when collection ended
         while not core.report.stop_requested:  # a callback's False, Ctrl-C
@@ -145,12 +138,9 @@ class ReplayCollection:
                 self.pool.wait(also, RETRY_S if self._retry_pending() else 1.0)
         if core.report.stop_requested:  # the count the final save is named by: what the server took
             self.pool.halt_rollouts()
-            shipped = self.pool.ray.get(self.pool.server.info.remote())["shipped"]
-            self.accepted = [max(a, int(n)) for a, n in zip(self.accepted, shipped, strict=True)]
+            self._count_shipped(range(self.pool.num_actors))
 
-    # ---- checkpoints ----------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
-        """The replay server's contents and the env steps it took from each actor."""
         server = self.pool.ray.get(self.pool.server.state_dict.remote(self.config.train.checkpoint_replay))
         shipped = server["shipped"] if server["table"] is not None else list(self.accepted)
         # The server may hold steps this driver has not heard of yet: a resume starts from its count.
@@ -160,6 +150,5 @@ class ReplayCollection:
         self.pool.ray.get(self.pool.server.load_state_dict.remote({"table": state["replay"],
                                                                    "shipped": state["shipped"]}))
         if state["replay"] is None:
-            say("the checkpoint has no replay contents (train.checkpoint_replay = false): "
-                "the replay refills from the resumed policy before learning continues")
+            say(NO_REPLAY)
         self.accepted = [int(x) for x in state["shipped"]]

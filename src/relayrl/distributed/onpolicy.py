@@ -43,7 +43,7 @@ class RolloutShares:
 
     def __init__(self, version: int, needed: int) -> None:
         self.version, self.needed = version, needed
-        self.kept: list[tuple[int, int, dict[str, np.ndarray]]] = []  # (actor, arrival, share)
+        self.kept: list[tuple[int, dict[str, np.ndarray]]] = []  # (actor, share), in arrival order
         self.dropped = 0  # stale shares dropped, over the whole run
         self.dropped_steps = 0  # their env steps
 
@@ -53,7 +53,7 @@ class RolloutShares:
         if version != self.version or self.ready():
             self._drop(share)
             return False
-        self.kept.append((actor, len(self.kept), share))
+        self.kept.append((actor, share))
         return True
 
     def _drop(self, share: dict[str, np.ndarray]) -> None:
@@ -66,13 +66,13 @@ class RolloutShares:
     def take(self) -> dict[str, np.ndarray]:
         """The kept shares side by side, [T, sum of their env copies, ...], in actor order (the
         same rollout whichever actor answered first)."""
-        shares = [s for _, _, s in sorted(self.kept, key=lambda k: k[:2])]
+        shares = [s for _, s in sorted(self.kept, key=lambda k: k[0])]  # stable: one actor's in arrival order
         self.kept = []
         return {k: np.concatenate([s[k] for s in shares], axis=1) for k in shares[0]}
 
     def advance(self, version: int) -> None:
         """A new policy version: shares kept of the old one are stale now."""
-        for _, _, share in self.kept:
+        for _, share in self.kept:
             self._drop(share)
         self.kept = []
         self.version = version
@@ -88,8 +88,6 @@ class RolloutCollection:
     """RolloutCollector actors, no replay server: the learner's rollout queue here is fed
     with K shares per update; the env steps of the shares trained on are the run's."""
 
-    worker_class = RolloutCollector
-
     def __init__(self, config: Config, pool: ActorPool, stats: EpisodeStats) -> None:
         self.config, self.pool, self.stats = config, pool, stats
         self.trained = 0  # env steps of the current-version shares taken (the run's env steps)
@@ -98,10 +96,8 @@ class RolloutCollection:
         self.shares = RolloutShares(0, pool.num_actors)
 
     def start(self, rd_root: str, obs_spec: Spec, act_spec: Spec, agent: Agent) -> tuple[Table, RemotePusher]:
-        """The actors; the rollout queue the learner takes from and its pusher."""
-        table, _ = build_rollouts(self.config)
-        self.pool.start(self.worker_class, None)  # shares go to the driver in the collect calls' answers
-        self.table = table
+        self.table, _ = build_rollouts(self.config)
+        self.pool.start(RolloutCollector, None)  # shares go to the driver in the collect calls' answers
         self.pusher = RemotePusher(self.pool.variables, agent, 1)  # every update: the actors wait for it
         return self.table, self.pusher
 
@@ -122,7 +118,6 @@ class RolloutCollection:
     def extra_scalars(self) -> dict[str, float]:
         return {"charts/stale_rollouts": self.shares.dropped}
 
-    # ---- collection ------------------------------------------------------------------------
     def _full_share(self) -> int:
         return -(-self.config.train.collect_steps // (self.pool.num_actors * self.config.env.num_envs))
 
@@ -163,7 +158,6 @@ class RolloutCollection:
         self._top_up()
         return moved
 
-    # ---- the loop ---------------------------------------------------------------------------
     def _new_version(self) -> None:
         """After a push: the version the actors pull now (waited for, so every later call acts
         with it) and the shares it needs."""
@@ -186,7 +180,7 @@ class RolloutCollection:
 
     def iterate(self, core: RunCore, finish_evals: Callable[[], None]) -> None:
         self.pusher.push(force=True)  # fresh or restored weights
-        core.sps_log.rates.reset(core.progress())
+        core.sps_log.reset(core.progress())
         self._new_version()
         total = self.config.train.total_steps
         while self.trained < total and not core.report.stop_requested:  # a callback's False, Ctrl-C
@@ -205,7 +199,6 @@ class RolloutCollection:
             core.say(f"{self.shares.dropped} stale rollouts ({self.shares.dropped_steps:,} env steps) were "
                      "collected with an older policy and dropped")
 
-    # ---- checkpoints --------------------------------------------------------------------------
     def state_dict(self) -> dict[str, Any]:
         # Checkpoints come between updates: no share is kept, and calls in flight are made anew.
         return {"replay": None, "shipped": [], "onpolicy": {"trained": self.trained, **self.shares.state_dict()}}

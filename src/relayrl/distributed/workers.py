@@ -1,12 +1,6 @@
-"""Rollout and eval workers: plain classes the distributed run turns into Ray actors.
-
-A rollout worker is the one-process loop's `Actor` with two different observers: a
-`ChunkShipper` in place of the replay writer (its steps go to the replay server, a chunk per
-RPC) and an `EpisodeLog` whose finished episodes go back to the driver with each call. Its
-acting network pulls weights from the VariableContainer actor through `RemoteVariables`, so
-`WeightPuller` is the same as in one process. An on-policy algorithm's actor, `RolloutCollector`,
-has the one-process driver's `RolloutWriter` instead and answers each call with its rollout.
-"""
+"""Rollout and eval workers: plain classes the distributed run turns into Ray actors. A rollout
+worker is the one-process loop's `Actor` whose steps go to the replay server (`ChunkShipper`)
+or, on-policy, back to the driver as a rollout, and whose episodes go back with each call."""
 
 from __future__ import annotations
 
@@ -47,13 +41,11 @@ def _setup(config: dict[str, Any], sys_path: list[str]) -> Config:
 
 
 def actor_name(prefix: str, role: str) -> str:
-    """The Ray name of a run's replay server (`role` "replay") or variable container ("variables")."""
     return f"{prefix}-{role}"
 
 
 def named_actor(prefix: str, role: str) -> Any:
-    """The actor `actor_name` names, found by name: Ray cannot promise to keep handles passed to a
-    restartable actor's constructor alive."""
+    """Found by name: Ray cannot promise to keep handles passed to a restartable actor's constructor alive."""
     import ray
 
     return ray.get_actor(actor_name(prefix, role))
@@ -67,26 +59,8 @@ def _reconstructed() -> bool:
         return bool(ray.get_runtime_context().was_current_actor_reconstructed)
 
 
-def _acting_parts(c: Config, index: int) -> tuple[RunSeeds, Any, Any]:
-    """Rollout actor `index`'s seed streams, its `env.num_envs` env copies and an agent to act
-    with (on the CPU), seeded apart from the learner and the other actors."""
-    seeds = RunSeeds(c.seed).actor(index)
-    if _reconstructed():  # a restarted actor must not replay its episodes: fresh streams
-        seeds = seeds.actor(int.from_bytes(os.urandom(4), "little"))
-    torch.manual_seed(seeds.base("torch"))
-    env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
-                   time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
-                   # async: by default one worker per CPU Ray reserved for this actor beyond
-                   # its own (at least one), not one per core of the machine it landed on
-                   num_workers=c.env.num_workers or max(1, round(c.distributed.actor_cpus) - 1),
-                   info_keys=c.env.info_keys, kwargs=c.env.kwargs, wrappers=c.env.wrappers)
-    agent = algorithm(c.algo).make_agent(c.agent, env.observation_spec, env.action_spec, torch.device("cpu"),
-                                         seeds.generator("exploration"), c.train.total_steps)
-    return seeds, env, agent
-
-
 class RemoteVariables:
-    """`pull()` of a VariableContainer living in a Ray actor (what WeightPuller calls)."""
+    """`pull()` of a VariableContainer living in a Ray actor."""
 
     def __init__(self, handle: Any) -> None:
         self.handle = handle
@@ -98,10 +72,9 @@ class RemoteVariables:
 
 
 class ChunkShipper:
-    """Observer: stages batched steps and ships them to the replay server as one StepChunk
-    per flush (the Actor flushes at the end of each collect call). One insert stays in flight while
-    the next chunk is collected; waiting for it is how the server's rate limiter slows
-    collection down when the learner lags."""
+    """Observer: ships the staged steps to the replay server as one StepChunk per flush. One
+    insert stays in flight while the next chunk is collected; waiting for it is how the server's
+    rate limiter slows collection down when the learner lags."""
 
     def __init__(self, server: Any, index: int, token: str, frame_stack: int = 1) -> None:
         self.server, self.index, self.token, self.k = server, index, token, frame_stack
@@ -143,23 +116,33 @@ class EpisodeLog(EpisodeStats):
 
 
 class _RolloutActor:
-    """What both rollout actors hold: `env.num_envs` env copies, an acting copy of the policy
-    network kept fresh from the variable container (every `pull_interval` env steps), the
-    finished episodes and the non-finite watch whose findings go back with each answer."""
+    """What both rollout actors hold: env copies, an acting copy of the policy network, the
+    finished episodes and the non-finite watch, whose findings go back with each answer."""
 
     def __init__(self, config: dict[str, Any], index: int, names: str, sys_path: list[str],
                  pull_interval: int | None = None) -> None:
         c = self.config = _setup(config, sys_path)
-        self.seeds, self.env, agent = _acting_parts(c, index)
+        self.seeds = RunSeeds(c.seed).actor(index)  # apart from the learner's and the other actors'
+        if _reconstructed():  # a restarted actor must not replay its episodes: fresh streams
+            self.seeds = self.seeds.actor(int.from_bytes(os.urandom(4), "little"))
+        torch.manual_seed(self.seeds.base("torch"))
+        self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
+                            time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
+                            # async: by default one worker per CPU Ray reserved for this actor beyond
+                            # its own (at least one), not one per core of the machine it landed on
+                            num_workers=c.env.num_workers or max(1, round(c.distributed.actor_cpus) - 1),
+                            info_keys=c.env.info_keys, kwargs=c.env.kwargs, wrappers=c.env.wrappers)
+        self.agent: Any = algorithm(c.algo).make_agent(c.agent, self.env.observation_spec, self.env.action_spec,
+                                                       torch.device("cpu"), self.seeds.generator("exploration"),
+                                                       c.train.total_steps)
         self.index, self.token = index, uuid.uuid4().hex  # one token per incarnation: the driver tells restarts by it
-        self.net = agent.policy_network().requires_grad_(False)
-        self.agent, self.episodes = agent, EpisodeLog()
+        self.net = self.agent.policy_network().requires_grad_(False)
+        self.episodes = EpisodeLog()
         self.finite = FiniteWatch(c.env.num_envs, self.env.observation_spec, where=f"rollout actor {index}'s ")
         interval = c.distributed.pull_interval if pull_interval is None else pull_interval
         self.puller = WeightPuller(RemoteVariables(named_actor(names, "variables")), self.net, interval)
 
     def _answer(self, **extra: Any) -> dict[str, Any]:
-        """A collect call's answer: the episodes that finished, what the watch found, the policy version."""
         returns, lengths, info = self.episodes.take()
         return {"index": self.index, "token": self.token, "non_finite": self.finite.check(), "returns": returns,
                 "lengths": lengths, "info": info, "policy_version": self.puller.version, **extra}
@@ -198,11 +181,8 @@ class RolloutWorker(_RolloutActor):
 
 
 class RolloutCollector(_RolloutActor):
-    """An on-policy algorithm's rollout actor (registry replay "rollouts", PPO): `collect(T)`
-    pulls the newest weights, steps its `env.num_envs` copies T times with them through the
-    one-process driver's `RolloutWriter`, and returns the [T, num_envs] rollout tagged with the
-    policy version it was collected with. No replay server: the driver keeps only rollouts of
-    the current version (`distributed.onpolicy.RolloutShares`)."""
+    """An on-policy algorithm's rollout actor: `collect(T)` pulls the newest weights, steps its
+    copies T times and returns the [T, num_envs] rollout tagged with the policy version."""
 
     def __init__(self, config: dict[str, Any], index: int, names: str, sys_path: list[str]) -> None:
         super().__init__(config, index, names, sys_path, pull_interval=0)  # every collect call pulls
@@ -225,14 +205,14 @@ class EvalWorker:
 
     def __init__(self, config: dict[str, Any], names: str, sys_path: list[str]) -> None:
         c = _setup(config, sys_path)
-        variables = named_actor(names, "variables")
         self.episodes = c.eval.episodes
         self.env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, info_keys=c.env.info_keys,
                                  kwargs=c.env.kwargs, wrappers=c.env.wrappers)
         self.agent = algorithm(c.algo).make_agent(c.agent, self.env.observation_spec, self.env.action_spec,
                                                   torch.device("cpu"), RunSeeds(c.seed).generator("evaluation"),
                                                   c.train.total_steps)
-        self.puller = WeightPuller(RemoteVariables(variables), self.agent.policy_network().requires_grad_(False))
+        self.puller = WeightPuller(RemoteVariables(named_actor(names, "variables")),
+                                   self.agent.policy_network().requires_grad_(False))
 
     def evaluate(self, seed: int) -> dict[str, Any]:
         self.puller.maybe_pull(0)

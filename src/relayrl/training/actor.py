@@ -13,13 +13,10 @@ from relayrl.types import Transition
 
 
 class Actor:
-    """env + policy + observers. `collect(n)` takes at least `n` env steps (B per batched step).
-
-    Observers are flushed at the end of every collect call (replay writers hand on what they staged).
-    With a `puller`, each call starts by pulling newer policy weights (every `interval` env
-    steps). The env receives `policy.env_action(action)` (PPO's Gaussian samples, bounded),
-    while observers see the actions themselves.
-    """
+    """env + policy + observers. `collect(n)` takes at least `n` env steps (B per batched step),
+    after pulling newer weights (with a `puller`), and flushes the observers at its end. The env
+    receives `policy.env_action(action)` (PPO's Gaussian samples, bounded); observers see the
+    actions themselves."""
 
     def __init__(self, env: BatchedEnv, policy: Policy, observers: Sequence[Observer],
                  seed: int | None = None, puller: WeightPuller | None = None) -> None:

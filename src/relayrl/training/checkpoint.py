@@ -14,6 +14,8 @@ from relayrl import atomic, interrupts
 from relayrl.errors import CheckpointError
 
 _NAME = re.compile(r"^ckpt-(\d{12})\.pt$")
+NO_REPLAY = ("the checkpoint has no replay contents (train.checkpoint_replay = false): the replay refills from the "
+             "resumed policy before learning continues")
 
 
 def list_checkpoints(folder: Path) -> list[Path]:

@@ -26,8 +26,7 @@ def make_eval_env(env_id: str, episodes: int, max_episode_steps: int = 0,
                   device: str | torch.device = "cpu", info_keys: tuple[str, ...] | list[str] = (),
                   kwargs: dict[str, Any] | None = None, wrappers: tuple[str, ...] | list[str] = (),
                   factory: EnvFn | None = None) -> BatchedEnv:
-    """The env `evaluate` runs `episodes` episodes on: min(episodes, EVAL_BATCH) copies, their
-    episodes cut at EVAL_MAX_EPISODE_STEPS if the env has no time limit (`capped_at` says so)."""
+    """min(episodes, EVAL_BATCH) copies, their episodes capped where the env has no time limit."""
     env = make_env(env_id, min(episodes, EVAL_BATCH), max_episode_steps, device=device, info_keys=info_keys,
                    kwargs=kwargs, wrappers=wrappers, factory=factory)
     cap_untimed(env)

@@ -22,6 +22,7 @@ from relayrl.specs import PackedSpec, Spec, unpack
 from relayrl.types import Transition
 
 CHECK_STEPS = 256  # batched steps held before a check: the check's cost spread over them
+DIVERGED = "check the learning rate (too high diverges), the reward scale and the env's observations"
 
 
 def _first_bad(stacked: torch.Tensor) -> tuple[int, int, float] | None:
@@ -41,11 +42,8 @@ def describe(value: float) -> str:
 
 
 class FiniteWatch(Observer):
-    """Actor observer: checks the observations and rewards it was shown, on `check()`.
-
-    `checked` counts env steps already checked (a resumed run sets it), so a finding names the
-    env step it happened at: the step's number counting every env copy, B per batched step.
-    `where` names whose env steps they are (a rollout actor's on Ray)."""
+    """Actor observer: checks the observations and rewards it was shown, on `check()`. `checked`
+    counts env steps already checked (a resumed run sets it), so a finding names its env step."""
 
     def __init__(self, num_envs: int, obs_spec: Spec | None = None, checked: int = 0, where: str = "") -> None:
         self.num_envs = num_envs
@@ -82,7 +80,6 @@ class FiniteWatch(Observer):
         return f"{what} was {describe(value)} at {self.where}env step {step:,} (env copy {copy}): check {check}"
 
     def _parts(self, obs: torch.Tensor) -> list[torch.Tensor]:
-        """Observations [T, B, ...] as the arrays to check: themselves, or a Dict / Tuple's entries."""
         if not isinstance(self.obs_spec, PackedSpec):
             return [obs]
         t, b = obs.shape[:2]

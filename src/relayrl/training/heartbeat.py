@@ -1,6 +1,5 @@
-"""Progress lines without a terminal: where stderr is not a TTY (a log file, a batch job) the
-progress bar is off, and a daemon thread prints a line every `interval_s` instead, so the
-training loop does no work for it."""
+"""Progress lines without a terminal (a log file, a batch job): a daemon thread prints a line
+every `interval_s`, so the training loop does no work for it."""
 
 from __future__ import annotations
 

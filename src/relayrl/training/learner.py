@@ -11,7 +11,7 @@ import torch
 from relayrl.core import Agent
 from relayrl.errors import NonFiniteError
 from relayrl.replay import SampleInfo, Table
-from relayrl.training.finite import describe
+from relayrl.training.finite import DIVERGED, describe
 from relayrl.training.triggers import IntervalTrigger, Progress
 from relayrl.training.variables import VariableContainer, network_variables
 
@@ -93,8 +93,7 @@ class Learner:
                 td = self.last_metrics["td_error"].abs().cpu().numpy().astype(np.float64)
                 if not np.isfinite(td).all():  # on the host already: the check costs no sync
                     raise NonFiniteError(f"the TD error was {describe(float(td[~np.isfinite(td)][0]))} at train step "
-                                         f"{self.agent.train_step:,}: check the learning rate (too high diverges), "
-                                         "the reward scale and the env's observations")
+                                         f"{self.agent.train_step:,}: {DIVERGED}")
                 self.table.update_priorities(info.key, td + self.priority_eps)
             if self.triggers:
                 progress = Progress(self.env_steps(), self.agent.train_step)
@@ -105,7 +104,5 @@ class Learner:
 
     def scalar_metrics(self) -> dict[str, float]:
         """Latest training scalars as floats, named like CleanRL's `losses/...`."""
-        out = {}
-        for k, v in self.last_metrics.items():
-            out[f"losses/{k}"] = float(v.abs().mean() if k == "td_error" else v.float().mean())
-        return out
+        return {f"losses/{k}": float(v.abs().mean() if k == "td_error" else v.float().mean())
+                for k, v in self.last_metrics.items()}

@@ -1,10 +1,6 @@
 """What every driver (training/local.py, distributed/driver.py) does the same way: start the
-process (threads, seeds, device), build the learner and the triggers around the agent the
-registry makes, and take a run from its first evaluation to its last checkpoint (`run_to_end`).
-
-A driver builds its own envs and replay, then a `RunCore`, top to bottom when it is made;
-`run_to_end(driver)` calls only the `Driver` methods below.
-"""
+process, hold the learner and triggers (`RunCore`), and take a run from its first evaluation
+to its last checkpoint (`run_to_end`, through the `Driver` methods only)."""
 
 from __future__ import annotations
 
@@ -32,7 +28,7 @@ from relayrl.schedules import linear_schedule
 from relayrl.seeding import RunSeeds
 from relayrl.specs import check_trained_layout, describe, spec_from_state, spec_state
 from relayrl.training.checkpoint import list_checkpoints
-from relayrl.training.finite import FiniteWatch, non_finite_metrics, non_finite_tensor, stop
+from relayrl.training.finite import DIVERGED, FiniteWatch, non_finite_metrics, non_finite_tensor, stop
 from relayrl.training.learner import Learner
 from relayrl.training.replay_setup import collect_only
 from relayrl.training.report import Callback, RunReport, log_config
@@ -103,8 +99,8 @@ def check_user_env(config: Config, env_factory: Callable[[], Any] | None, say: C
 
 def make_learner(config: Config, agent: Agent, table: Any, device: torch.device, variables: Any,
                  whole_rollouts: bool) -> Learner:
-    """The learner over `table`; a rollout queue's (`whole_rollouts`) takes one rollout per
-    step, which the agent cuts into its minibatches."""
+    """A rollout queue's learner (`whole_rollouts`) takes one rollout per step, which the agent
+    cuts into its minibatches."""
     c = config
     return Learner(agent, table, 1 if whole_rollouts else c.agent.batch_size, device,
                    prioritized=c.replay.sampler == "prioritized", importance_exponent=c.replay.importance_exponent,
@@ -112,9 +108,9 @@ def make_learner(config: Config, agent: Agent, table: Any, device: torch.device,
 
 
 class RunCore:
-    """The parts every driver holds the same way: agent, learner, report, triggers (the
-    evaluation the driver gives, policy save, checkpoint, steps/s log), the finite watch and
-    the run's clock. `env_steps()` and `checkpoint_state()` are the driver's."""
+    """The parts every driver holds the same way: agent, learner, report, triggers, the finite
+    watch and the run's clock; `env_steps()`, `checkpoint_state()` and the evaluation trigger
+    are the driver's."""
 
     def __init__(self, config: Config, rd: RunDir, agent: Agent, learner: Learner, stats: EpisodeStats,
                  finite: FiniteWatch, *, env_steps: Callable[[], int], checkpoint_state: Callable[[], dict[str, Any]],
@@ -148,7 +144,6 @@ class RunCore:
         return self.wall_offset + time.perf_counter() - self.t0
 
     def step_schedules(self, env_steps: int) -> None:
-        """What follows collection: the agent's env-step schedules, the importance exponent."""
         self.agent.set_progress(env_steps)
         self.learner.importance_exponent = self.beta_at(env_steps)
 
@@ -174,8 +169,7 @@ class RunCore:
         if finding is None and weights:
             name = non_finite_tensor(self.agent.state_dict())
             if name is not None:
-                finding = (f"the agent's {name} held a NaN or inf {where}: check the learning rate "
-                           "(too high diverges), the reward scale and the env's observations")
+                finding = f"the agent's {name} held a NaN or inf {where}: {DIVERGED}"
         if finding is not None:
             raise stop(finding, self.kept())
 
@@ -183,9 +177,9 @@ class RunCore:
         """What a stopped run leaves (a non-finite number, a failure): its last checkpoint and policy."""
         ckpts = list_checkpoints(self.rd.checkpoints)
         parts = [f"the last good checkpoint (env step {int(ckpts[-1].stem.split('-')[1]):,})"] if ckpts else []
-        saved = self.policy_saver.saved_at
+        saved = self.policy_saver.saved_progress
         if saved is not None:
-            parts.append(f"the policy saved at env step {saved:,}")
+            parts.append(f"the policy saved at env step {saved.env_steps:,}")
         elif (self.rd.policy / "policy.pt").is_file():
             parts.append("the policy saved before")
         if not parts:
@@ -193,19 +187,21 @@ class RunCore:
         return f"{' and '.join(parts)} {'are' if len(parts) > 1 else 'is'} kept in {self.rd.root}"
 
     def checkpoint_common(self, eval_count: int) -> dict[str, Any]:
-        """What every driver's checkpoint holds: the config, the agent, the training episodes'
-        stats, the evaluations so far, the wall time and the process's state."""
+        """What every driver's checkpoint holds."""
         return {"version": 2, "config": to_dict(self.config), "spaces": self.spaces(),
                 "agent": self.agent.state_dict(), "episode_stats": self.stats.state_dict(),
-                "eval_count": eval_count, "wall_time_s": self.wall_time(), **self.process_state()}
+                "eval_count": eval_count, "wall_time_s": self.wall_time(),
+                # the global RNGs (a user's env may draw from them) and the latest losses
+                "global_rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
+                               "python": random.getstate()},
+                "last_metrics": {k: v.detach().cpu() for k, v in self.learner.last_metrics.items()}}
 
     def spaces(self) -> dict[str, Any]:
-        """The env's observation and action spaces as the networks and the replay are laid out for them."""
         return {"observation": spec_state(self.agent.obs_spec), "action": spec_state(self.agent.action_spec)}
 
     def restore_common(self, state: dict[str, Any]) -> int:
-        """Load the agent, the episodes' stats and the wall time of `checkpoint_common`; returns
-        the evaluations so far. The process's state is the driver's to load, once its envs are back."""
+        """Load `checkpoint_common`'s parts but the process's state (the driver's to load, once its
+        envs are back); returns the evaluations so far."""
         saved = state.get("spaces")  # checkpoints before spaces were recorded: only their frames' layout
         encoder = self.config.agent.encoder
         if saved is None and encoder in CONV_READY:
@@ -228,12 +224,6 @@ class RunCore:
         self.wall_offset = float(state["wall_time_s"])
         return int(state["eval_count"])
 
-    def process_state(self) -> dict[str, Any]:
-        """The global RNGs (a user's env may draw from them) and the latest losses."""
-        return {"global_rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
-                               "python": random.getstate()},
-                "last_metrics": {k: v.detach().cpu() for k, v in self.learner.last_metrics.items()}}
-
     def load_process_state(self, state: dict[str, Any]) -> None:
         rng = state["global_rng"]
         torch.set_rng_state(rng["torch"])
@@ -242,7 +232,6 @@ class RunCore:
         self.learner.last_metrics = dict(state["last_metrics"])
 
     def resume_at(self, steps: int) -> None:
-        """Drop metrics rows past the checkpoint and let the triggers carry on from it."""
         kept = self.rd.truncate_metrics(after_step=steps)
         if kept and kept[-1].get("step") == steps:
             self.report.last_eval = kept[-1]  # a finished run resumed again needs no second final eval
@@ -252,28 +241,18 @@ class RunCore:
 
 
 class Driver(Protocol):
-    """What `run_to_end` asks of a driver (training/local.py, distributed/driver.py)."""
+    """What `run_to_end` asks of a driver. `evaluate_now` may leave its evaluation in flight
+    (its row is written when it finishes) until `settle_evals`; `close` is called once by
+    whoever made the driver, however the run ends (`dispatch.train`)."""
 
     core: RunCore
 
-    def restore(self) -> None:
-        """Load the latest checkpoint into every part (`--resume`)."""
-
-    def announce(self) -> None:
-        """A line about the run's layout, once it starts."""
-
-    def evaluate_now(self, p: Progress) -> None:
-        """Start an evaluation of the current policy (its row is written when it finishes)."""
-
-    def iterate(self) -> None:
-        """Collect and train up to train.total_steps, firing the core's triggers."""
-
-    def settle_evals(self) -> None:
-        """Wait for evaluations still in flight."""
-
-    def close(self) -> None:
-        """End the envs, processes or actors the driver started; whoever made the driver calls
-        it, once, however the run ends (`dispatch.train`)."""
+    def restore(self) -> None: ...
+    def announce(self) -> None: ...
+    def evaluate_now(self, p: Progress) -> None: ...
+    def iterate(self) -> None: ...
+    def settle_evals(self) -> None: ...
+    def close(self) -> None: ...
 
 
 def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
@@ -346,17 +325,15 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
 
 def crash_kept(core: RunCore) -> str:
     """What a run that an exception stopped leaves, and how it goes on once the cause is fixed."""
-    root = str(core.rd.root)
     if not list_checkpoints(core.rd.checkpoints):
         return core.kept()
-    if names_python_factory(core.config.env.id):  # only Python can pass the factory again
-        return f"{core.kept()}: once the cause is fixed, {_python_resume(core)} continues it"
-    return (f"{core.kept()}: once the cause is fixed, `relayrl train --run-dir {root} --resume` (in Python: "
-            f"{_python_resume(core)}) continues it")
+    resume = _python_resume(core)
+    if not names_python_factory(core.config.env.id):  # only Python can pass the factory again
+        resume = f"`relayrl train --run-dir {core.rd.root} --resume` (in Python: {resume})"
+    return f"{core.kept()}: once the cause is fixed, {resume} continues it"
 
 
 def _python_resume(core: RunCore) -> str:
-    """The Python call that resumes the run, with the env factory a run trained on one needs again."""
     factory = ", env=<the same env factory>" if names_python_factory(core.config.env.id) else ""
     return f"relayrl.train(None, {str(core.rd.root)!r}, resume=True{factory})"
 
@@ -378,7 +355,7 @@ def _stopped_at(core: RunCore) -> str:
 
 
 def saved_config(rd: RunDir) -> Config | None:
-    """The run's config.toml as a Config; None where it is missing or this version cannot read it."""
+    """None where config.toml is missing or this version cannot read it."""
     try:
         return from_dict(load_toml(rd.config))
     except (OSError, ValueError, UserError):  # ConfigError is a UserError; TOML errors are ValueErrors
@@ -420,7 +397,6 @@ def finish(driver: Driver, p: Progress, evaluate: bool = True) -> None:
 
 
 def _save(core: RunCore, p: Progress) -> None:
-    """The policy, and a checkpoint where the run writes them."""
     core.policy_saver.save(p)
     if core.config.train.checkpoint_interval > 0:
         core.checkpointer.save(p)

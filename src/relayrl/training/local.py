@@ -1,6 +1,6 @@
 """The one-process driver: envs, Actor, replay, Learner and triggers in this process (the envs
-stepped here or in worker processes), put together top to bottom in `LocalDriver._build` and
-driven by `iterate`: collect, train what the rate limiter allows, fire the triggers."""
+stepped here or in worker processes); `iterate` collects, trains what the rate limiter allows
+and fires the triggers."""
 
 from __future__ import annotations
 
@@ -18,7 +18,7 @@ from relayrl.envs.stateless.adapter import StatelessBatchEnv
 from relayrl.metrics import EnvironmentSteps, EpisodeStats
 from relayrl.policies import RandomPolicy
 from relayrl.training.actor import Actor
-from relayrl.training.checkpoint import load_latest_checkpoint
+from relayrl.training.checkpoint import NO_REPLAY, load_latest_checkpoint
 from relayrl.training.evaluate import eval_cap_note, make_eval_env
 from relayrl.training.finite import FiniteWatch
 from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
@@ -46,7 +46,6 @@ class LocalDriver:
     def _build(self, progress: bool, env_factory: Callable[[], Any] | None, callbacks: list[Callback]) -> None:
         c, seeds, device = self.config, self.seeds, self.device
         entry = algorithm(c.algo)
-        # Envs: stateless torch envs live on the agent's device; Gymnasium envs on the CPU.
         check_user_env(c, env_factory, say)
         made = {"kwargs": c.env.kwargs, "wrappers": c.env.wrappers, "factory": env_factory}
         self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
@@ -57,15 +56,13 @@ class LocalDriver:
         obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
         stateless = isinstance(self.env, StatelessBatchEnv)
 
-        # The algorithm's agent and the replay it learns from: a rate-limited transitions table,
-        # or a queue of rollouts (a stateless torch env's stay tensors on the run's device).
         self.agent = entry.make_agent(c.agent, obs_spec, act_spec, device, seeds.generator("exploration"),
                                      c.train.total_steps)
         self.finite = FiniteWatch(c.env.num_envs, obs_spec)
         whole_rollouts = entry.replay == "rollouts"
         self.replay_note: str | None = None
         if whole_rollouts:
-            self.replay, self.writer = build_rollouts(c, device if stateless else None)
+            self.replay, self.writer = build_rollouts(c, device if stateless else None)  # tensors stay on it
         else:
             where = replay_device(c, device, stateless, obs_spec, act_spec)
             self.replay_note = replay_note(c, device, where, obs_spec, act_spec)
@@ -120,7 +117,7 @@ class LocalDriver:
         total = c.train.total_steps
         if self.actor.env_steps == 0:  # the random warm-up: nothing is learned in it, so Ctrl-C stops it at once
             self.actor.collect(min(c.train.initial_collect_steps, total))  # never past total_steps
-        core.sps_log.rates.reset(core.progress())
+        core.sps_log.reset(core.progress())
         self.variables.push(network_variables(self.agent.policy_network()))  # fresh or restored weights
         self.actor.policy = self.collect_policy
         # Ctrl-C or SIGTERM stops the loop between iterations, as a callback's False does, so
@@ -137,7 +134,6 @@ class LocalDriver:
                 core.fire_triggers()
 
     def announce(self) -> None:
-        """One process says where auto put a GPU run's frames, and nothing else about its layout."""
         if self.replay_note:
             self.core.say(self.replay_note)
 
@@ -148,7 +144,6 @@ class LocalDriver:
         """Evaluations run in turn here: none is in flight."""
 
     def checkpoint_state(self) -> dict[str, Any]:
-        """Everything a resume needs besides the env step, which the Checkpointer adds."""
         actor = self.actor.state_dict()
         if actor["env"] is None and not self.env_state_said:  # said when it happens, not only at a resume
             self.env_state_said = True
@@ -185,8 +180,7 @@ class LocalDriver:
             if files_moved_on:
                 core.say("the replay files were overwritten after this checkpoint: the envs start new episodes")
         else:
-            core.say("the checkpoint has no replay contents (train.checkpoint_replay = false): "
-                     "the replay refills from the resumed policy before learning continues")
+            core.say(NO_REPLAY)
         self.random_rng.bit_generator.state = state["random_rng"]
         self.collect_policy.load_state_dict(state.get("collect_policy", {}))
         steps = int(state["env_steps"])
@@ -196,7 +190,6 @@ class LocalDriver:
         core.say(f"resumed from env step {steps:,} (train step {self.agent.train_step:,})")
 
     def _restore_episodes(self, state: dict[str, Any], steps: int, files_moved_on: bool) -> None:
-        """The actor, its envs mid-episode where they can be, and what observes them."""
         continued = False
         reset_seed = self.seeds.base("resume") + steps
         changed = self._env_settings_changed(state)
@@ -236,7 +229,6 @@ class LocalDriver:
                 if k in saved and plain(saved[k]) != plain(now[k])]
 
     def close(self) -> None:
-        """The envs end with the run, however it ends: async envs' worker processes included."""
         for env in (self.env, self.eval_env):
             if env is not None:
                 env.close()

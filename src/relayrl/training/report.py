@@ -1,8 +1,6 @@
 """What a run shows and writes as it goes: console lines, the progress bar (or a line every 30 s
 without a terminal), TensorBoard, the evaluation rows of metrics.jsonl and the user's callbacks.
-Every driver (one process, Ray) reports through one of these; it reads the run's progress and
-losses through the functions it is given and never steers the run, except that a callback
-returning False sets `stop_requested`."""
+It never steers the run, except that a callback returning False sets `stop_requested`."""
 
 from __future__ import annotations
 
@@ -18,9 +16,6 @@ from relayrl.training.heartbeat import ProgressLines
 from relayrl.training.run_dir import MetricsLog, RunDir
 from relayrl.training.triggers import Progress
 
-# relayrl.train(callbacks=[...]): each is called with a metrics row (the `event` key says which:
-# "eval", the row metrics.jsonl gets at an evaluation, or "log", every train.log_interval env
-# steps); returning False stops the run as if it had reached train.total_steps.
 Callback = Callable[[dict[str, Any]], Any]
 
 
@@ -47,9 +42,8 @@ def log_config(tb: Any, config: Config) -> None:
 
 
 class RunReport:
-    """`progress()` and `wall_time()` say where the run is; `losses()` the learner's latest
-    scalars; `schedules(env_steps)` the agent's (epsilon, learning_rate); `postfix()` extra
-    progress-bar fields and `extra_scalars()` extra TensorBoard scalars of a driver's own."""
+    """`schedules(env_steps)` gives the agent's schedules (epsilon, learning_rate); `postfix()`
+    and `extra_scalars()` a driver's own progress-bar fields and TensorBoard scalars."""
 
     def __init__(self, config: Config, rd: RunDir, stats: EpisodeStats, *, show_progress: bool,
                  callbacks: list[Callback], progress: Callable[[], Progress], wall_time: Callable[[], float],
@@ -115,15 +109,14 @@ class RunReport:
             say(text)
 
     def run_sps(self, p: Progress) -> tuple[float, float]:
-        """Env and gradient steps per second since reporting began."""
+        """Env and gradient steps per second since `open`."""
         t0, p0 = self.started
         dt = max(time.perf_counter() - t0, 1e-9)
         return (p.env_steps - p0.env_steps) / dt, (p.train_step - p0.train_step) / dt
 
     def log_progress(self, p: Progress, env_sps: float, grad_sps: float) -> None:
-        """Every train.log_interval env steps: TensorBoard scalars and the progress bar. The final
-        step's scalars are the driver's last `write_scalars` (the run's steps/s), so none is
-        written twice."""
+        """Every train.log_interval env steps. The final step's scalars are the driver's last
+        `write_scalars` (the run's steps/s), so none is written twice."""
         scalars = None
         if p.env_steps < self.config.train.total_steps:
             scalars = self.write_scalars(p, env_sps, grad_sps)
@@ -136,15 +129,14 @@ class RunReport:
             self._bar_fields(sps=f"{env_sps:.0f}")
 
     def _bar_fields(self, **fields: str) -> None:
-        """The bar's fields: these, the latest evaluation's return and the driver's `postfix()`."""
         last = self.last_eval.get("average_return")
         self.bar_fields = {**self.bar_fields, **fields, "eval": f"{last:.1f}" if last is not None else "-",
                            **self.postfix()}
         self.bar.set_postfix(self.bar_fields)
 
     def write_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
-        """TensorBoard as CleanRL names it: charts/episodic_return and charts/episodic_length, one
-        point per training episode at the env step it finished; then `log_scalars`, returned."""
+        """TensorBoard as CleanRL names it: one point per training episode at the env step it
+        finished, then `log_scalars`, returned."""
         for step, ret, length in self.stats.take_finished():
             self.tb.add_scalar("charts/episodic_return", ret, step)
             self.tb.add_scalar("charts/episodic_length", length, step)
@@ -154,18 +146,14 @@ class RunReport:
         return scalars
 
     def log_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
-        """perf/sps and perf/grad_sps, losses/*, charts/epsilon (DQN), charts/learning_rate and the
-        info keys' means: what TensorBoard and the callbacks' "log" rows get."""
+        """What TensorBoard and the callbacks' "log" rows get."""
         return {"perf/sps": env_sps, "perf/grad_sps": grad_sps, **self.losses(), **self.schedule_values(p),
                 **{f"charts/{k}": v for k, v in self.stats.info_means().items()}}
 
     def schedule_values(self, p: Progress) -> dict[str, float]:
-        """The agent's schedules where the run is (charts/epsilon, charts/learning_rate, ...):
-        in TensorBoard, the callbacks' rows and each metrics.jsonl row."""
         return {f"charts/{k}": v for k, v in self.schedules(p.env_steps).items()}
 
     def training_summary(self) -> dict[str, Any]:
-        """The training episodes' side of a metrics row: their mean return, count and info means."""
         returns = self.stats.returns
         return {"train/average_return": sum(returns) / len(returns) if returns else float("nan"),
                 "train/episodes": self.stats.episodes,
@@ -181,7 +169,6 @@ class RunReport:
 
     def record_eval(self, p: Progress, result: dict[str, Any], eval_s: float, wall_time_s: float | None = None,
                     extra: dict[str, Any] | None = None) -> None:
-        """One metrics.jsonl row (and TensorBoard scalars, and a console line) for an evaluation."""
         assert self.metrics_log is not None, "record_eval before open"
         wall = self.wall_time() if wall_time_s is None else wall_time_s
         row = {"step": p.env_steps, "train_step": p.train_step, **result,

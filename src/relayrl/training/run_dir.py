@@ -29,8 +29,7 @@ class RunDir:
         self._lock_fd: int | None = None
 
     def check_not_running(self) -> None:
-        """One line when another process is running a run here now: it must not be taken over,
-        overwritten or resumed under it."""
+        """One line when another process is running a run here now."""
         if self._lock_fd is None and self.lock_file.is_file():
             self.hold_lock()  # raises when another process holds it
             self.release_lock()
@@ -54,9 +53,7 @@ class RunDir:
             self._lock_fd = None
 
     def check_writable(self) -> None:
-        """One line, before anything is built or written, where the run directory cannot be
-        made: a file in its place or above it, or a folder above it that cannot be written.
-        (Missing folders above it are created with it, once the run is built.)"""
+        """One line, before anything is built or written, where the run directory cannot be made."""
         if self.root.exists() and not self.root.is_dir():
             raise UserError(f"--run-dir {str(self.root)!r} is a file, not a directory")
         existing = self.root.absolute()
@@ -109,7 +106,6 @@ class RunDir:
         return cls(p)
 
     def require(self) -> None:
-        """Fail with a clear message unless this is an existing run directory."""
         if self.root.is_file():
             raise UserError(f"{str(self.root)!r} is a file, not a run directory (give the run's folder)")
         if not self.root.is_dir():
@@ -142,7 +138,7 @@ class RunDir:
         return max(int(rows[-1].get("step", 0)) if rows else 0, saved)
 
     def truncate_metrics(self, after_step: int) -> list[dict[str, Any]]:
-        """Drop rows logged after `after_step` (a resumed run logs them again); returns the rows kept."""
+        """Drop rows logged after `after_step` (a resumed run logs them again); the rows kept."""
         rows = [r for r in self.read_metrics() if r.get("step", 0) <= after_step]
         tmp = self.metrics.with_suffix(".jsonl.tmp")
         tmp.write_text("".join(json.dumps(r) + "\n" for r in rows))

@@ -1,10 +1,6 @@
 """Triggers: actions fired every `interval` env steps or gradient steps (eval, policy save,
 checkpoint, steps/s log), as TF-Agents' learner triggers. Batched envs advance by B steps,
-so a trigger fires once per interval boundary crossed, never more.
-
-The local loop fires them after each collect/train iteration; a `Learner` given triggers
-fires them after each gradient step (TF-Agents' `Learner(..., triggers=[...])`).
-"""
+so a trigger fires once per interval boundary crossed, never more."""
 
 from __future__ import annotations
 
@@ -43,18 +39,17 @@ class IntervalTrigger:
         return progress.env_steps if self.unit == "env_steps" else progress.train_step
 
     def start_at(self, count: int) -> None:
-        """Skip the boundaries already passed (after a resume)."""
+        """Skip the boundaries already passed (after a resume, or a call)."""
         if self.interval > 0:
             self._next = (count // self.interval + 1) * self.interval
 
     def due(self, progress: Progress) -> bool:
-        """Whether a call with `progress` would fire."""
         return self.interval > 0 and self._count(progress) >= self._next
 
     def __call__(self, progress: Progress) -> bool:
         if not self.due(progress):
             return False
-        self._next = (self._count(progress) // self.interval + 1) * self.interval
+        self.start_at(self._count(progress))
         self.fn(progress)
         return True
 
@@ -79,11 +74,6 @@ class PolicySaver(IntervalTrigger):
         state = {**self.agent.policy_state(), "env_steps": progress.env_steps, **self.extra}
         save_policy_file(state, self.folder / "policy.pt")
         self.saved_progress = Progress(progress.env_steps, progress.train_step)
-
-    @property
-    def saved_at(self) -> int | None:
-        """Env steps of the policy this saver last wrote."""
-        return None if self.saved_progress is None else self.saved_progress.env_steps
 
 
 class Checkpointer(IntervalTrigger):
@@ -113,13 +103,9 @@ def covers_boundary(steps: int, interval: int, evaluations: int) -> bool:
 
 
 class Evaluate(IntervalTrigger):
-    """Runs `episodes` episodes of `policy_fn()` on `env`; results go to `results` and `on_result`.
-
-    Evaluation k (from 0, counted in `count`, which a resumed run restores) resets the env with
-    seed + EVAL_STRIDE * k; `seconds` is how long the latest one took. An evaluation that
-    covers no new boundary of the interval grid (`covers_boundary`) takes the next one's seed
-    without using it up.
-    """
+    """Runs `episodes` episodes of `policy_fn()` on `env`; results go to `on_result`.
+    Evaluation k (`count`, which a resumed run restores) resets the env with seed + EVAL_STRIDE * k;
+    `seconds` is how long the latest one took."""
 
     def __init__(self, interval: int, env: Any, policy_fn: Callable[[], Any], episodes: int = 10,
                  unit: str = "env_steps", seed: int = 0,
@@ -127,7 +113,6 @@ class Evaluate(IntervalTrigger):
         super().__init__(interval, self.evaluate, unit)
         self.env, self.policy_fn, self.episodes, self.seed = env, policy_fn, episodes, seed
         self.on_result = on_result
-        self.results: list[tuple[Progress, dict[str, float]]] = []
         self.count = 0
         self.seconds = 0.0
 
@@ -138,30 +123,8 @@ class Evaluate(IntervalTrigger):
         result = evaluate(self.env, self.policy_fn(), self.episodes, seed=self.seed + EVAL_STRIDE * self.count)
         self.seconds = time.perf_counter() - t0
         self.count += covers_boundary(self._count(progress), self.interval, self.count)
-        self.results.append((progress, result))
         if self.on_result is not None:
             self.on_result(progress, result)
-
-
-class StepsPerSecond:
-    """Env steps/s and gradient steps/s since the previous call."""
-
-    def __init__(self) -> None:
-        self._t = time.perf_counter()
-        self._env = 0
-        self._train = 0
-
-    def reset(self, progress: Progress) -> None:
-        self._t = time.perf_counter()
-        self._env = progress.env_steps
-        self._train = progress.train_step
-
-    def __call__(self, progress: Progress) -> tuple[float, float]:
-        now = time.perf_counter()
-        dt = max(now - self._t, 1e-9)
-        rates = ((progress.env_steps - self._env) / dt, (progress.train_step - self._train) / dt)
-        self._t, self._env, self._train = now, progress.env_steps, progress.train_step
-        return rates
 
 
 class StepsPerSecondLog(IntervalTrigger):
@@ -171,12 +134,20 @@ class StepsPerSecondLog(IntervalTrigger):
     def __init__(self, interval: int, unit: str = "env_steps", log: Callable[[str], None] | None = None,
                  report: Callable[[Progress, float, float], None] | None = None) -> None:
         super().__init__(interval, self.log_rates, unit)
-        self.rates = StepsPerSecond()
         self.log = log or (lambda text: print(text, file=sys.stderr, flush=True))
         self.report = report or self._line
+        self.reset(Progress(0, 0))
+
+    def reset(self, progress: Progress) -> None:
+        """Count the rates from `progress`, now (where collection starts)."""
+        self._t, self._last = time.perf_counter(), progress
 
     def log_rates(self, progress: Progress) -> None:
-        env_sps, grad_sps = self.rates(progress)
+        now = time.perf_counter()
+        dt = max(now - self._t, 1e-9)
+        env_sps, grad_sps = ((progress.env_steps - self._last.env_steps) / dt,
+                             (progress.train_step - self._last.train_step) / dt)
+        self._t, self._last = now, Progress(progress.env_steps, progress.train_step)
         self.report(progress, env_sps, grad_sps)
 
     def _line(self, progress: Progress, env_sps: float, grad_sps: float) -> None:

@@ -1,10 +1,6 @@
-"""VariableContainer: versioned policy weights the learner pushes and actors pull.
-
-TF-Agents' actors read their policy's variables from a (Reverb) variable container; ours is
-the same idea as a plain object, and the Ray layer puts one in a Ray actor. Weights travel
-as a list of tensors (`network_variables`: the parameters, then the buffers), so applying
-them is one fused copy: CPU snapshots by default, references in the one-process loop.
-"""
+"""VariableContainer: versioned policy weights the learner pushes and actors pull (TF-Agents'
+variable container, as a plain object the Ray layer puts in a Ray actor). Weights travel as a
+list of tensors, so applying them is one fused copy."""
 
 from __future__ import annotations
 
@@ -29,35 +25,30 @@ class VariableContainer:
     def __init__(self, copy: bool = True) -> None:
         self.copy = copy
         self._lock = threading.Lock()
-        self._version = 0
+        self.version = 0
         self._weights: list[torch.Tensor] | None = None
 
-    @property
-    def version(self) -> int:
-        return self._version
-
     def push(self, weights: list[torch.Tensor]) -> int:
-        """Store `weights`, as a CPU snapshot that later in-place updates do not reach (or, with
-        copy=False, as references); returns the new version."""
+        """Store `weights` (a CPU snapshot, or with copy=False references); returns the new version."""
         snapshot = [w.detach().to("cpu", copy=True) if self.copy else w.detach() for w in weights]
         with self._lock:
             self._weights = snapshot
-            self._version += 1
-            return self._version
+            self.version += 1
+            return self.version
 
     def pull(self, newer_than: int = 0) -> tuple[int, list[torch.Tensor] | None]:
         """(version, weights), or (version, None) when nothing newer than `newer_than` exists."""
         with self._lock:
-            if self._version <= newer_than:
-                return self._version, None
-            return self._version, self._weights
+            if self.version <= newer_than:
+                return self.version, None
+            return self.version, self._weights
 
     def state_dict(self) -> dict:
-        return {"version": self._version, "weights": self._weights}
+        return {"version": self.version, "weights": self._weights}
 
     def load_state_dict(self, state: dict) -> None:
         with self._lock:
-            self._version, self._weights = int(state["version"]), state["weights"]
+            self.version, self._weights = int(state["version"]), state["weights"]
 
 
 class WeightPuller:
