@@ -53,7 +53,7 @@ class RemoteTable:
     def samples_available(self) -> int:
         return len(self._queue) * self.batch_size
 
-    def sample(self, batch_size: int) -> tuple[Any, SampleInfo]:
+    def sample(self, batch_size: int, timeout: float | None = None) -> tuple[Any, SampleInfo]:  # as Table.sample
         if not self._queue:
             raise RuntimeError("RemoteTable.sample: no batch fetched; call poll() first")
         return self._queue.popleft()

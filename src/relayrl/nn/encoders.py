@@ -87,8 +87,8 @@ class ConvEncoder(nn.Module):
         h, w = image_size(spec)
         layers: list[nn.Module] = []
         c = channels
-        for out, kernel, stride, padding in convs:
-            layers += [nn.Conv2d(c, out, kernel, stride, padding=padding), nn.ReLU()]
+        for out, kernel, stride, *pad in convs:  # (out, kernel, stride[, padding]): padding 0 unless given
+            layers += [nn.Conv2d(c, out, kernel, stride, padding=pad[0] if pad else 0), nn.ReLU()]
             c = out
         self.convs = nn.Sequential(*layers, nn.Flatten())
         with torch.no_grad():  # the flattened size for this frame size

@@ -105,7 +105,8 @@ def covers_boundary(steps: int, interval: int, evaluations: int) -> bool:
 class Evaluate(IntervalTrigger):
     """Runs `episodes` episodes of `policy_fn()` on `env`; results go to `on_result`.
     Evaluation k (`count`, which a resumed run restores) resets the env with seed + EVAL_STRIDE * k;
-    `seconds` is how long the latest one took."""
+    one that covers no new boundary of the interval grid (`covers_boundary`) takes the next one's
+    seed without using it up. `seconds` is how long the latest one took."""
 
     def __init__(self, interval: int, env: Any, policy_fn: Callable[[], Any], episodes: int = 10,
                  unit: str = "env_steps", seed: int = 0,
