@@ -18,6 +18,14 @@ from relayrl.specs import Spec
 from relayrl.types import Batch, StepOutput, Transition
 
 
+class Saveable(Protocol):
+    """Anything whose state goes into a checkpoint as a plain dict."""
+
+    def state_dict(self) -> dict[str, Any]: ...
+
+    def load_state_dict(self, state: dict[str, Any]) -> None: ...
+
+
 class BatchedEnv(Protocol):
     """An environment that always works on a batch of `num_envs` >= 1 copies."""
 
@@ -77,8 +85,8 @@ class Observer(Protocol):
         return None
 
 
-class Agent(Protocol):
-    """What the train loop knows of an algorithm; its state goes into a checkpoint as a plain dict."""
+class Agent(Saveable, Protocol):
+    """What the train loop knows of an algorithm. The factory that builds one returns this type."""
 
     # The env's spaces it was built for: what its checkpoints and policy files record.
     obs_spec: Spec
@@ -115,10 +123,6 @@ class Agent(Protocol):
     def scalars(self, env_steps: int) -> dict[str, float]:
         """Schedules' current values (epsilon, learning_rate), logged as TensorBoard's charts/<name>."""
         ...
-
-    def state_dict(self) -> dict[str, Any]: ...
-
-    def load_state_dict(self, state: dict[str, Any]) -> None: ...
 
     def set_progress(self, env_steps: int) -> None:
         """Follow schedules that run on env steps (learning rates, clip ranges), called after
