@@ -171,3 +171,11 @@ def test_steps_from_a_device_are_read_once_per_collect_call_with_the_same_result
     assert all(np.array_equal(x, y) for x, y in zip(running_a, running_b, strict=True))
     assert staged.episodes == direct.episodes > 0
     assert staged.take_finished() == direct.take_finished()
+
+
+def test_tensorboard_gets_one_point_per_step_with_the_mean_of_the_episodes_that_ended_there():
+    from relayrl.training.report import step_means
+
+    finished = [(10, 1.0, 10), (20, 2.0, 20), (20, 4.0, 10), (20, 6.0, 30), (35, -1.5, 5)]
+    assert step_means(finished) == [(10, 1.0, 10.0), (20, 4.0, 20.0), (35, -1.5, 5.0)]
+    assert step_means([]) == []

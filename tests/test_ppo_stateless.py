@@ -124,6 +124,18 @@ def test_same_seed_same_run_and_resume_is_bit_exact(tmp_path):
     assert_same_state(tmp_path / "a", tmp_path / "resumed")
 
 
+def test_envs_that_end_their_episodes_together_write_one_tensorboard_point_per_step(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    train(tmp_path, ["train.total_steps=6400", "eval.interval=0", "train.log_interval=3200"])  # 2 episodes each
+    tb = EventAccumulator(str(tmp_path / "tb"), size_guidance={"scalars": 0})
+    tb.Reload()
+    lengths = [(e.step, e.value) for e in tb.Scalars("charts/episodic_length")]
+    assert lengths == [(3200, 200.0), (6400, 200.0)]  # the 16 copies' 200-step episodes, not 16 points a step
+    returns = [e.value for e in tb.Scalars("charts/episodic_return")]
+    assert len(returns) == 2 and all(-3300 < r < 0 for r in returns)  # a mean of Pendulum returns (>= -16.3 a step)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_preset_ends_better_than_minus_300(tmp_path, seed):

@@ -4,6 +4,7 @@ It never steers the run, except that a callback returning False sets `stop_reque
 
 from __future__ import annotations
 
+import itertools
 import sys
 import time
 from collections.abc import Callable
@@ -17,6 +18,17 @@ from relayrl.training.run_dir import MetricsLog, RunDir
 from relayrl.training.triggers import Progress
 
 Callback = Callable[[dict[str, Any]], Any]
+
+
+def step_means(finished: list[tuple[int, float, int]]) -> list[tuple[int, float, float]]:
+    """(env step, mean return, mean length) of the episodes that finished at each step, oldest
+    first. One point per step, not per episode: TensorBoard draws points at one step as one
+    vertical line, and 1,024 stateless envs that end their episodes together would write 1,024."""
+    out: list[tuple[int, float, float]] = []
+    for step, group in itertools.groupby(finished, key=lambda e: e[0]):  # `finished` is in step order
+        episodes = list(group)
+        out.append((step, sum(e[1] for e in episodes) / len(episodes), sum(e[2] for e in episodes) / len(episodes)))
+    return out
 
 
 def say(text: str) -> None:
@@ -135,9 +147,9 @@ class RunReport:
         self.bar.set_postfix(self.bar_fields)
 
     def write_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
-        """TensorBoard as CleanRL names it: one point per training episode at the env step it
-        finished, then `log_scalars`, returned."""
-        for step, ret, length in self.stats.take_finished():
+        """TensorBoard as CleanRL names it: the training episodes' return and length at the env
+        step they finished (`step_means`), then `log_scalars`, returned."""
+        for step, ret, length in step_means(self.stats.take_finished()):
             self.tb.add_scalar("charts/episodic_return", ret, step)
             self.tb.add_scalar("charts/episodic_length", length, step)
         scalars = self.log_scalars(p, env_sps, grad_sps)
