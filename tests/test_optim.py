@@ -1,5 +1,6 @@
 """FastAdam makes the same updates as torch.optim.Adam and round-trips its state."""
 
+import pytest
 import torch
 
 from relayrl.nn import MLP
@@ -35,3 +36,8 @@ def test_state_dict_round_trip():
     assert other.lr == 1e-2
     assert all(torch.equal(a, b) for a, b in zip(other.exp_avg, opt.exp_avg, strict=False))
     assert all(torch.equal(a, b) for a, b in zip(other.steps, opt.steps, strict=False))
+
+
+def test_parameters_on_no_device_or_several_are_refused_when_built():
+    with pytest.raises(ValueError, match=r"on one device; got them on \[\]"):
+        FastAdam([torch.zeros(2)], lr=1e-3)  # a tensor that needs no grad is no trainable parameter

@@ -26,7 +26,11 @@ class FastAdam:
         # One step counter per tensor, as the kernel expects, on the params' one device (an agent's
         # networks share it): views of one tensor, so counting a step is one op
         # (torch._foreach_add_ on CPU loops over the tensors one by one).
-        device = self._data[0].device
+        devices = {p.device for p in self._data}
+        if len(devices) != 1:
+            raise ValueError("FastAdam takes trainable parameters on one device; got them on "
+                             f"{sorted(map(str, devices))}")
+        device = devices.pop()
         self._steps_flat = torch.zeros(len(self._data), dtype=torch.float32, device=device)
         self.steps = list(self._steps_flat.unbind(0))
         # On a GPU the kernel reads the learning rate from a device tensor, so a step captured
