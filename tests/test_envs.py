@@ -234,8 +234,8 @@ def test_async_steps_stay_right_under_interrupts_at_random_moments():
             env.reset(seed=0)
             deadline = time.monotonic() + 3.0
             while time.monotonic() < deadline:
-                arm("interrupt", rng.uniform(1e-4, 2e-3))
-                try:
+                try:  # armed in the try: an alarm that fires before the step starts is caught too
+                    arm("interrupt", rng.uniform(1e-4, 2e-3))
                     env.step(action)
                     arm("interrupt", 0)  # in the try: an alarm up to here is caught below
                 except KeyboardInterrupt:
@@ -262,8 +262,8 @@ def test_an_interrupt_while_a_large_reply_is_read_never_hangs_the_next_call():
                 env.reset(seed=0)
                 t0 = time.monotonic()
                 env.get_state()
-                arm("interrupt", float(fraction) * (time.monotonic() - t0))
-                try:
+                try:  # armed in the try, as above
+                    arm("interrupt", float(fraction) * (time.monotonic() - t0))
                     env.get_state()
                     arm("interrupt", 0)
                 except KeyboardInterrupt:
