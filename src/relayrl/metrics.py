@@ -142,7 +142,10 @@ class EpisodeStats(Observer):
 
     def _info_window(self, key: str) -> deque[float]:
         """The window of `key`'s values, as long as the returns' window."""
-        return self.info.setdefault(key, deque(maxlen=self.returns.maxlen))
+        window = self.info.get(key)
+        if window is None:  # made once per key, not at every episode's end as setdefault's argument would be
+            window = self.info[key] = deque(maxlen=self.returns.maxlen)
+        return window
 
     def info_means(self) -> dict[str, float]:
         """Mean of each info key over its window (keys with no finished episode left out)."""
