@@ -212,12 +212,18 @@ def _alarms(watchdog: str) -> Iterator[Callable[[str, float], None]]:
         mode[0] = what
         signal.setitimer(signal.ITIMER_REAL, seconds)
 
+    # No garbage collection while alarms are armed: the collector runs other tests' finalizers
+    # (multiprocessing's heap frees), and an interrupt inside one breaks that heap for every
+    # later test. The interrupts are meant for the env under test.
+    gc.collect()
+    gc.disable()
     previous = signal.signal(signal.SIGALRM, alarm)
     try:
         yield arm
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
+        gc.enable()
 
 
 def test_async_steps_stay_right_under_interrupts_at_random_moments():

@@ -465,4 +465,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
                 proc.close()  # its sentinel pipe now, not when the garbage collector finds it
         for conn in self._conns:
             _MAIN_ENDS.discard(conn)
+        # the shared memory goes back now, not when the garbage collector meets this env: a
+        # Ctrl-C during that late free, at a moment no one chose, breaks multiprocessing's heap
+        self._arrays = {}
         self._local.close()
