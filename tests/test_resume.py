@@ -210,6 +210,26 @@ def test_ctrl_c_in_the_last_iteration_ends_the_run_as_finished(tmp_path):
     assert not result.stopped_early and result.final["step"] == 600  # its final evaluation, as a finished run
 
 
+# evaluations at 0, 500, 1000, 1500 in the loop; at 0, 400, 800, 1200 and a final one off the
+# grid (which uses up no seed index); only the final one, which uses one up
+@pytest.mark.parametrize("eval_interval,final_writes,eval_count", [(500, 1, 4), (400, 2, 4), (0, 2, 1)])
+def test_the_last_checkpoint_is_written_again_only_where_the_final_evaluation_may_change_it(
+        tmp_path, monkeypatch, eval_interval, final_writes, eval_count):
+    """1,500 steps, a checkpoint every 500: where the loop evaluated at step 1,500, its
+    checkpoint there is the final one (a large replay is not written twice); where the final
+    evaluation came after it, the checkpoint is written again and holds that evaluation's count."""
+    from relayrl.training import checkpoint
+
+    written = []
+    save = checkpoint.save_checkpoint
+    monkeypatch.setattr(checkpoint, "save_checkpoint",
+                        lambda folder, steps, state, keep=2: written.append(steps) or save(folder, steps, state, keep))
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN + [f"eval.interval={eval_interval}"])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    assert written == [500, 1000] + [1500] * final_writes
+    assert load_latest_checkpoint(tmp_path / "r" / "checkpoints")["eval_count"] == eval_count
+
+
 def test_an_ignored_sigint_leaves_sigterm_to_stop_at_the_iterations_end():
     from relayrl import interrupts
 

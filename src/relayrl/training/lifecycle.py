@@ -385,18 +385,22 @@ def finish(driver: Driver, p: Progress, evaluate: bool = True) -> None:
     checkpoint and log."""
     core = driver.core
     core.check_finite(p, weights=True)
+    evaluated = evaluate and core.report.last_eval.get("step") != p.env_steps
     try:
-        if evaluate and core.report.last_eval.get("step") != p.env_steps:
+        if evaluated:
             driver.evaluate_now(p)
         driver.settle_evals()
     except KeyboardInterrupt:  # Ctrl-C in the final evaluation (the only one with eval.interval = 0):
-        _save(core, p)  # the run is kept without it; a resume evaluates it
+        _save(core, p, changed=True)  # the run is kept without it; a resume evaluates it
         raise
-    _save(core, p)
+    _save(core, p, changed=evaluated)
     core.report.write_scalars(p, *core.report.run_sps(p))
 
 
-def _save(core: RunCore, p: Progress) -> None:
+def _save(core: RunCore, p: Progress, changed: bool) -> None:
+    """The policy and a checkpoint at `p`. A checkpoint the loop wrote at `p` is written again
+    only where the run `changed` since (its final evaluation's count): with a large replay
+    the write takes a while and as much disk again."""
     core.policy_saver.save(p)
-    if core.config.train.checkpoint_interval > 0:
+    if core.config.train.checkpoint_interval > 0 and (changed or core.checkpointer.saved_progress != p):
         core.checkpointer.save(p)

@@ -83,6 +83,7 @@ class Checkpointer(IntervalTrigger):
                  unit: str = "env_steps", keep: int = 2) -> None:
         super().__init__(interval, self.save, unit)
         self.state_fn, self.folder, self.keep = state_fn, Path(folder), keep
+        self.saved_progress: Progress | None = None  # where the checkpoint this process last wrote was
 
     def save(self, progress: Progress) -> None:
         from relayrl.training.checkpoint import save_checkpoint
@@ -91,6 +92,7 @@ class Checkpointer(IntervalTrigger):
         # count by what the actors shipped since): the file is named for what it resumes from.
         state = {"env_steps": progress.env_steps, **self.state_fn()}
         save_checkpoint(self.folder, state["env_steps"], state, keep=self.keep)
+        self.saved_progress = Progress(progress.env_steps, progress.train_step)
 
 
 def covers_boundary(steps: int, interval: int, evaluations: int) -> bool:
