@@ -478,3 +478,20 @@ class MadeOnlyInTheDriver(Countdown):
 
             raise UserError("no module 'remoteonly' on this node (the test's stand-in)")
         super().__init__(render_mode=render_mode)
+
+
+class NarrowBox(gym.Env):
+    """A Box(0.1, 0.3) action in `dtype`; obs[0] = 1 when the action was inside the space, obs[1]
+    the action as given (float32 rounds each bound to a value just past it on one side)."""
+
+    def __init__(self, dtype: str = "float32", render_mode: str | None = None) -> None:
+        self.observation_space = gym.spaces.Box(-1, 1, (2,), np.float64)
+        self.action_space = gym.spaces.Box(0.1, 0.3, (1,), np.dtype(dtype))
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        return np.zeros(2), {}
+
+    def step(self, action):
+        inside = self.action_space.contains(np.asarray(action))
+        return np.array([float(inside), float(np.asarray(action)[0])]), 0.0, False, False, {}

@@ -104,6 +104,7 @@ class BatchEnvBase(BatchedEnv):
         self._obs_dtype = numpy_dtype(self.observation_spec)
         # actions are given in the space's own dtype (an env may check action_space.contains)
         self._env_action_dtype = env_numpy_dtype(self.action_spec) if isinstance(self.action_spec, ArraySpec) else None
+        self._action_bounds = box_bounds(action_space)
         # Dict / Tuple observations travel as packed byte rows (specs.PackedSpec); None: as they are
         self._pack = self.observation_spec.pack if isinstance(self.observation_spec, PackedSpec) else None
         self._discrete = isinstance(action_space, gym.spaces.Discrete)
@@ -148,7 +149,21 @@ class BatchEnvBase(BatchedEnv):
             act = act.reshape(self.num_envs, *want)
         if self._env_action_dtype is not None and act.dtype != self._env_action_dtype:
             act = act.astype(self._env_action_dtype)
-        return act if self._env_action_shape is None else act.reshape(self.num_envs, *self._env_action_shape)
+        act = act if self._env_action_shape is None else act.reshape(self.num_envs, *self._env_action_shape)
+        if self._action_bounds is not None:
+            # A policy's float32 arithmetic can land a rounding step past a bound (SAC's loc + half *
+            # tanh(u) at tanh = +-1; a float64 bound rounded to float32): the env gets an action its own
+            # space contains. A new array: the policy's tensor may be what a rollout keeps (PPO's sample).
+            act = np.clip(act, *self._action_bounds)
+        return act
+
+
+def box_bounds(space: gym.Space) -> tuple[np.ndarray, np.ndarray] | None:
+    """A Box action space's (low, high) in its own dtype and shape; None for other spaces and
+    for a Box unbounded on every side (nothing to clip to)."""
+    if not isinstance(space, gym.spaces.Box) or not (space.bounded_below.any() or space.bounded_above.any()):
+        return None
+    return np.asarray(space.low, space.dtype), np.asarray(space.high, space.dtype)
 
 
 def _drop_trailing_ones(shape: tuple[int, ...]) -> tuple[int, ...]:
