@@ -125,6 +125,25 @@ def test_policies_respect_action_bounds_at_any_batch_size():
     assert not torch.equal(ag.collect_policy()(obs), ag.collect_policy()(obs))
 
 
+def test_saturated_actions_stay_inside_bounds_that_float32_rounds_past():
+    """loc - half is 0.099999994 for Box(0.1, 0.3) in float32: a saturated tanh must give the bound,
+    in the collect, eval and on-device policies and in the exported module."""
+    from relayrl.agents.sac.policy import TanhMean
+
+    act = ArraySpec((1,), torch.float32, np.array([0.1], np.float32), np.array([0.3], np.float32))
+    torch.manual_seed(0)
+    ag = SACAgent(OBS, act, SACConfig(actor_hidden=[16], critic_hidden=[16]), torch.device("cpu"),
+                  np.random.default_rng(0))
+    obs = torch.randn(256, 3) * 1e6  # tanh saturates at +-1 both ways
+    low, high = np.float32(0.1), np.float32(0.3)
+    policies = [ag.collect_policy(), ag.eval_policy()]
+    outs = [p(obs) for p in policies] + [policies[1].act_on_device(obs)]
+    with torch.no_grad():
+        outs.append(TanhMean(ag.policy_state())(obs))
+    for a in outs:
+        assert float(a.min()) == low and float(a.max()) == high
+
+
 def test_sac_refuses_discrete_actions():
     with pytest.raises(UserError, match="SAC takes a Box action space of floats with finite low and high"):
         SACAgent(OBS, DiscreteSpec(2), SACConfig(), torch.device("cpu"), np.random.default_rng(0))

@@ -108,11 +108,14 @@ class TanhGaussianPolicy(Policy):
         self.log_std_bounds = (log_std_min, log_std_max)
         self.loc = ((high + low) / 2.0).astype(np.float32)  # [A]
         self.half = ((high - low) / 2.0).astype(np.float32)  # [A]
+        # loc + half * tanh(u) at tanh = +-1 can round a float32 step past a bound (loc - half is
+        # 0.099999994 for Box(0.1, 0.3)): actions are clamped to the bounds, so the space contains them.
+        self.low, self.high = np.asarray(low, np.float32), np.asarray(high, np.float32)  # [A]
         self._cpu = cpu_mlp(actor, device)
         self._forward = GraphedForward(actor, device)  # a CUDA graph on CUDA
         self._gen: torch.Generator | None = None  # noise on the device (see act_on_device)
         self._gen_state: torch.Tensor | None = None  # a checkpointed state for it, applied when it is made
-        self._bounds: tuple[torch.Tensor, torch.Tensor] | None = None  # loc, half there
+        self._bounds: tuple[torch.Tensor, ...] | None = None  # loc, half, low, high there
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
         if obs.device.type != "cpu" and obs.device.type == self.device.type:  # ("cuda" is "cuda:0" here)
@@ -128,7 +131,8 @@ class TanhGaussianPolicy(Policy):
             lo, hi = self.log_std_bounds
             log_std = np.minimum(np.maximum(out[:, a_dim:], lo), hi)  # np.clip's values, without its wrapper
             u = u + np.exp(log_std) * self.rng.standard_normal(u.shape, dtype=np.float32)
-        return torch.from_numpy((self.loc + self.half * np.tanh(u)).astype(np.float32, copy=False))
+        a = (self.loc + self.half * np.tanh(u)).astype(np.float32, copy=False)
+        return torch.from_numpy(np.minimum(np.maximum(a, self.low), self.high))
 
     def act_on_device(self, obs: torch.Tensor) -> torch.Tensor:
         """The same policy in torch ops on the observations' device: actions [B, A] there."""
@@ -145,9 +149,10 @@ class TanhGaussianPolicy(Policy):
                 noise = torch.randn(u.shape, generator=self._gen, device=obs.device, dtype=u.dtype)
                 u = u + log_std.clamp(*self.log_std_bounds).exp() * noise
             if self._bounds is None or self._bounds[0].device != obs.device:  # moved once, not every step
-                self._bounds = (torch.from_numpy(self.loc).to(obs.device), torch.from_numpy(self.half).to(obs.device))
-            loc, half = self._bounds
-            return loc + half * torch.tanh(u)
+                bounds = (self.loc, self.half, self.low, self.high)
+                self._bounds = tuple(torch.from_numpy(b).to(obs.device) for b in bounds)
+            loc, half, low, high = self._bounds
+            return torch.minimum(torch.maximum(loc + half * torch.tanh(u), low), high)
 
     def state_dict(self) -> dict[str, Any]:
         """The on-device noise generator's state (None until it is first used). Noise on the

@@ -27,10 +27,14 @@ class TanhMean(nn.Module):
         low, high = saved_bounds(state)
         self.register_buffer("loc", torch.as_tensor((high + low) / 2.0, dtype=torch.float32))
         self.register_buffer("scale", torch.as_tensor((high - low) / 2.0, dtype=torch.float32))
+        # clamped as TanhGaussianPolicy's actions are: loc +- scale can round a step past a bound
+        self.register_buffer("low", torch.as_tensor(low, dtype=torch.float32))
+        self.register_buffer("high", torch.as_tensor(high, dtype=torch.float32))
         self.action_dim = int(state["action_dim"])
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.loc + self.scale * torch.tanh(self.net(obs)[:, : self.action_dim])  # [B, A]
+        a = self.loc + self.scale * torch.tanh(self.net(obs)[:, : self.action_dim])  # [B, A]
+        return torch.minimum(torch.maximum(a, self.low), self.high)
 
 
 deterministic_module = TanhMean  # the deterministic policy as a module, for export_policy
