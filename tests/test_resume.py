@@ -295,6 +295,25 @@ def test_resume_with_overrides_records_them_in_config_toml(tmp_path, capsys):
     assert relayrl.load_config(str(tmp_path / "r" / "config.toml")).agent.lr == 0.002
 
 
+@pytest.mark.parametrize("preset,over,lrs", [
+    ("dqn-cartpole-fast", DQN + ["agent.lr_end=-1.0"], {"agent.lr": ("optimizer", 0.002)}),  # constant
+    ("sac-pendulum", SAC, {"agent.actor_lr": ("actor_opt", 0.001), "agent.critic_lr": ("critic_opt", 0.002),
+                           "agent.alpha_lr": ("alpha_opt", 0.0005)}),
+], ids=["dqn", "sac"])
+def test_a_resume_that_changes_a_constant_learning_rate_trains_with_it(tmp_path, preset, over, lrs):
+    """The optimizers took their learning rate back from the checkpoint, so `--resume --set
+    agent.lr=...` was logged and written to config.toml but did not change the training."""
+    cfg = relayrl.load_config(preset, over + ["train.checkpoint_interval=300"])
+    total = cfg.train.total_steps
+    cfg.train.total_steps = total // 2
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    longer = relayrl.load_config(str(tmp_path / "r" / "config.toml"),
+                                 [f"train.total_steps={total}"] + [f"{k}={lr}" for k, (_, lr) in lrs.items()])
+    relayrl.train(longer, tmp_path / "r", resume=True, progress=False)
+    agent = load_latest_checkpoint(tmp_path / "r" / "checkpoints")["agent"]
+    assert {key: agent[key]["lr"] for key, _ in lrs.values()} == {key: lr for key, lr in lrs.values()}
+
+
 def test_python_resume_without_a_config_goes_on_with_the_runs_own(tmp_path, capsys):
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
     relayrl.train(cfg, tmp_path / "r", progress=False)

@@ -142,5 +142,9 @@ class DQNAgent(Agent):
         if self.target is not None:
             self.target.load_state_dict(conv_state_dict(state["target"]))
         self.optimizer.load_state_dict(state["optimizer"])
+        if self._lr_at is None:
+            # A constant learning rate is the config's, not the checkpoint's: a resume may change it
+            # (--set agent.lr=...). A schedule (agent.lr_end) sets it at every step.
+            self.optimizer.lr = self.cfg.lr
         self.train_step = int(state["train_step"])
         self.rng.bit_generator.state = state["rng"]

@@ -127,6 +127,11 @@ class SACAgent(Agent):
         self.actor_opt.load_state_dict(state["actor_opt"])
         self.critic_opt.load_state_dict(state["critic_opt"])
         self.alpha_opt.load_state_dict(state["alpha_opt"])
+        if not self._lr_at:
+            # Constant learning rates are the config's, not the checkpoint's: a resume may change
+            # them (--set agent.actor_lr=...). A schedule (agent.lr_end) sets them at every step.
+            cfg = self.cfg
+            self.actor_opt.lr, self.critic_opt.lr, self.alpha_opt.lr = cfg.actor_lr, cfg.critic_lr, cfg.alpha_lr
         self.train_step = int(state["train_step"])
         self.rng.bit_generator.state = state["rng"]
         self.gen.set_state(state["gen"])
