@@ -68,6 +68,19 @@ def test_bad_overrides_fail_with_a_clear_message(override, fragment):
     assert fragment in str(e.value)
 
 
+def test_load_config_takes_a_dict_or_a_path_object_as_train_does(tmp_path):
+    c = load_config({"algo": "sac", "env": {"id": "Pendulum-v1"}}, ["train.total_steps=1000"], seed=3)
+    assert (c.algo, c.env.id, c.train.total_steps, c.seed) == ("sac", "Pendulum-v1", 1000, 3)
+    assert c.agent.actor_lr == load_config("sac").agent.actor_lr  # the rest: the algorithm's defaults
+    path = tmp_path / "mine.toml"
+    path.write_text('algo = "ppo"\n[env]\nid = "CartPole-v1"\n')
+    assert load_config(path).algo == "ppo"
+    with pytest.raises(ConfigError, match="^load_config takes a preset name, a path to a .toml file or a dict"):
+        load_config(3)
+    with pytest.raises(ConfigError, match="unknown config key 'agent.lr'"):
+        load_config({"algo": "sac", "agent": {"lr": 0.1}})
+
+
 def test_an_on_policy_run_shorter_than_one_rollout_is_refused():
     with pytest.raises(ConfigError, match=r"total_steps=1000 is less than one rollout \(train.collect_steps=2048"):
         load_config("ppo", ["train.total_steps=1000"])

@@ -84,3 +84,22 @@ def test_random_policy_respects_specs():
     c = RandomPolicy(spec, rng)(torch.zeros(500, 1))
     assert c.shape == (500, 2) and c.dtype == torch.float32
     assert (c[:, 0] >= -1).all() and (c[:, 1] <= 5).all() and c[:, 1].max() > 4
+
+
+@pytest.mark.parametrize("kwargs,steps,wrappers,line", [
+    ({}, 50, [], "CartPole-v1 is the env the policy was trained on: env.max_episode_steps=50 applies"),
+    ({"sutton_barto_reward": True}, 50, [], "env.kwargs {'sutton_barto_reward': True} and env.max_episode_steps=50 "
+                                            "apply"),
+    ({}, 0, ["m:W"], "CartPole-v1 is the env the policy was trained on: its env.wrappers ['m:W'] do not apply "
+                     "(a policy file runs no code)"),
+])
+def test_evaluating_on_the_env_a_policy_records_says_what_of_its_run_applies(kwargs, steps, wrappers, line):
+    from relayrl.evaluation import named_env
+    from relayrl.loaded_policy import LoadedPolicy
+
+    policy = LoadedPolicy.__new__(LoadedPolicy)  # only what named_env reads
+    policy.env_id, policy.env_kwargs, policy.max_episode_steps, policy.env_wrappers = (
+        "CartPole-v1", kwargs, steps, wrappers)
+    said: list[str] = []
+    named_env("CartPole-v1", policy, 2, say=said.append).close()
+    assert len(said) == 1 and line in said[0], said

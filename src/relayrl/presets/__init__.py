@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import os
 import sys
 import tomllib
 from importlib import resources
@@ -72,10 +73,17 @@ def _without_unused_replay(data: dict[str, Any], path: str) -> dict[str, Any]:
     return {k: v for k, v in data.items() if k != "replay"}
 
 
-def load_config(name_or_path: str, overrides: list[str] | None = None, seed: int | None = None) -> Config:
-    """A preset name or a path to a config TOML, with `--set` overrides applied and checked."""
+def load_config(name_or_path: str | os.PathLike[str] | dict[str, Any], overrides: list[str] | None = None,
+                seed: int | None = None) -> Config:
+    """A preset name, a path to a config TOML or a dict of settings (`{"algo": "sac", "env":
+    {"id": ...}}`, the rest the algorithm's defaults), with `--set` overrides applied and checked."""
     file_data: dict[str, Any] | None = None  # a config file's own settings: an error in them names the file
-    if name_or_path.endswith(".toml"):
+    if isinstance(name_or_path, dict):
+        data = copy.deepcopy(name_or_path)
+    elif not isinstance(name_or_path, (str, os.PathLike)):
+        raise ConfigError(f"load_config takes a preset name, a path to a .toml file or a dict of settings, not "
+                          f"{type(name_or_path).__name__}")
+    elif (name_or_path := os.fspath(name_or_path)).endswith(".toml"):
         file_data = _without_unused_replay(load_toml(name_or_path), name_or_path)
         data = copy.deepcopy(file_data)
     else:
