@@ -314,6 +314,24 @@ def test_a_resume_that_changes_a_constant_learning_rate_trains_with_it(tmp_path,
     assert {key: agent[key]["lr"] for key, _ in lrs.values()} == {key: lr for key, lr in lrs.values()}
 
 
+@pytest.mark.parametrize("autotune,alpha", [(False, 0.05), (True, None)])
+def test_a_resume_that_changes_a_fixed_sac_alpha_trains_with_it(tmp_path, autotune, alpha):
+    """A fixed alpha (agent.autotune_alpha = false) is a setting, as a constant lr is: a resume
+    with another agent.init_alpha uses it. A tuned one goes on from where tuning left it."""
+    over = SAC + [f"agent.autotune_alpha={str(autotune).lower()}", "agent.init_alpha=0.2"]
+    relayrl.train(relayrl.load_config("sac-pendulum", over + ["train.total_steps=300"]), tmp_path / "r",
+                  progress=False)
+    tuned = float(load_latest_checkpoint(tmp_path / "r" / "checkpoints")["agent"]["log_alpha"])
+    relayrl.train(relayrl.load_config(str(tmp_path / "r" / "config.toml"),
+                                      ["train.total_steps=600", "agent.init_alpha=0.05"]),
+                  tmp_path / "r", resume=True, progress=False)
+    log_alpha = float(load_latest_checkpoint(tmp_path / "r" / "checkpoints")["agent"]["log_alpha"])
+    if alpha is not None:
+        assert log_alpha == pytest.approx(np.log(alpha))
+    else:
+        assert tuned != pytest.approx(np.log(0.2)) and log_alpha != pytest.approx(np.log(0.05))
+
+
 def test_python_resume_without_a_config_goes_on_with_the_runs_own(tmp_path, capsys):
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
     relayrl.train(cfg, tmp_path / "r", progress=False)

@@ -123,7 +123,9 @@ class SACAgent(Agent):
         self.critic.load_state_dict(state["critic"])
         self.target_critic.load_state_dict(state["target_critic"])
         with torch.no_grad():
-            self.log_alpha.copy_(state["log_alpha"])
+            # a fixed alpha (agent.autotune_alpha = false) is the config's, as a constant lr is
+            saved = state["log_alpha"] if self.cfg.autotune_alpha else float(np.log(self.cfg.init_alpha))
+            self.log_alpha.copy_(torch.as_tensor(saved))
         self.actor_opt.load_state_dict(state["actor_opt"])
         self.critic_opt.load_state_dict(state["critic_opt"])
         self.alpha_opt.load_state_dict(state["alpha_opt"])
