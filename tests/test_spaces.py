@@ -314,6 +314,8 @@ def test_frames_stacked_by_gymnasiums_wrapper_over_rgb_train_a_conv_net(tmp_path
 
 @pytest.mark.parametrize(("algo", "act", "words"), [
     ("dqn", "box", "DQN takes a Discrete action space; this env's action space is Box(-1, 1, shape=(2,)"),
+    # a Box of another rank travels flat: the message names the env's own shape, not (4,)
+    ("dqn", "box2d", "this env's action space is Box(-1, 1, shape=(2, 2), dtype=float32)"),
     ("sac", "discrete", "SAC takes a Box action space of floats with finite low and high; this env's action "
                         "space is Discrete(2)"),
     ("sac", "multi_binary", "action space is MultiBinary([2])"),
