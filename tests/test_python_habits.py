@@ -9,6 +9,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from space_envs import Spaces
 from toy_envs import Countdown, Repeated
 
 import relayrl
@@ -352,6 +353,9 @@ def test_load_policy_takes_what_names_a_run(run_dir):
     ("CartPole-v1", lambda o: "x", r"answered x .* this env takes Discrete\(2\) actions"),
     ("CartPole-v1", lambda o: 1.5, r"answered 1.5 \(float64, shape \(\)\) to one observation"),
     ("Pendulum-v1", lambda o: np.array([0.5, 0.5]), r"shape \(2,\)\) to one observation; this env takes Box\(-2, 2"),
+    # a [2, 2] Box travels flat inside relayrl: the message names the env's shape once, as the env has it
+    (lambda: Spaces("box", "box2d"), lambda o: np.zeros(3), r"this env takes Box\(-1, 1, shape=\(2, 2\), "
+                                                            r"dtype=float32\) actions$"),
 ])
 def test_a_callable_policy_answering_what_the_env_does_not_take_is_one_line(env_id, answer, fragment):
     with pytest.raises(UserError, match=fragment):

@@ -314,6 +314,8 @@ def test_frames_stacked_by_gymnasiums_wrapper_over_rgb_train_a_conv_net(tmp_path
 
 @pytest.mark.parametrize(("algo", "act", "words"), [
     ("dqn", "box", "DQN takes a Discrete action space; this env's action space is Box(-1, 1, shape=(2,)"),
+    # a Box of another rank travels flat: the message names the env's own shape, not (4,)
+    ("dqn", "box2d", "this env's action space is Box(-1, 1, shape=(2, 2), dtype=float32)"),
     ("sac", "discrete", "SAC takes a Box action space of floats with finite low and high; this env's action "
                         "space is Discrete(2)"),
     ("sac", "multi_binary", "action space is MultiBinary([2])"),
@@ -435,6 +437,14 @@ def test_an_image_policy_takes_the_envs_frames_as_numbers_and_bits_in_range(tmp_
         policy(frame.astype(np.float32) / 255.0 + 0.5 / 255)
     with pytest.raises(UserError, match="not whole numbers in uint8's range"):
         policy(frame.astype(np.float32) + 300)  # would wrap round in a uint8
+    # integers too: an int64 300 (or -1) would wrap to 44 (255) and act on another frame
+    assert policy(frame.astype(np.int64)) == policy(frame)
+    for wrapped in (frame.astype(np.int64) + 300, frame.astype(np.int64) - 1):
+        with pytest.raises(UserError, match=r"observation holds values outside uint8's range \[0, 255\]"):
+            policy(wrapped)
+    relayrl.train(short_config("dqn", "tuple", "discrete"), tmp_path / "f64", progress=False)
+    with pytest.raises(UserError, match=r"observation\['1'\] holds values outside float32's range"):
+        relayrl.load_policy(tmp_path / "f64")((1, np.array([1e300, 0.0])))  # float64: would turn inf
     relayrl.train(short_config("dqn", "multi_binary", "discrete"), tmp_path / "bits", progress=False)
     with pytest.raises(UserError, match=r"observation \[0, 2, 1\] is outside this policy's MultiBinary\(\[3\]\)"):
         relayrl.load_policy(tmp_path / "bits")(np.array([0, 2, 1], np.int8))

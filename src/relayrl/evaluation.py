@@ -110,9 +110,7 @@ def _one_at_a_time(fn: Callable[[Any], Any], obs_spec: Spec, act_spec: Spec) -> 
     checked against the env's actions, so a wrong one is said in the user's terms."""
     as_env = obs_spec.observation if isinstance(obs_spec, PackedSpec) else (lambda row: row)
 
-    env_shape = getattr(act_spec, "env_shape", None) or act_spec.shape
-    takes = f"this env takes {describe(act_spec)} actions" + (
-        f" of shape {env_shape}" if env_shape != act_spec.shape else "")
+    takes = f"this env takes {describe(act_spec)} actions"  # describe gives the env's own shape
 
     def one(o: np.ndarray) -> np.ndarray:
         answer = fn(as_env(o))

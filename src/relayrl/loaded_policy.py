@@ -167,9 +167,31 @@ def _check_values(t: torch.Tensor, s: Spec, where: str = "") -> None:
             raise UserError(f"observation{where} holds {str(t.dtype).removeprefix('torch.')} values that are not "
                             f"whole numbers in {str(s.dtype).removeprefix('torch.')}'s range; this policy takes "
                             f"{describe(s)} values as the env gives them (frames as 0..255, not scaled to [0, 1])")
+    _check_range(t, s, where)
     high = value_limit(s)  # floats too: whole numbers by now
     if high is not None and t.numel() and bool((t < 0).any() or (t >= torch.as_tensor(high)).any()):
         raise UserError(f"observation{where} {t.tolist()} is outside this policy's {describe(s)} space")
+
+
+def _check_range(t: torch.Tensor, s: Spec, where: str) -> None:
+    """Values the cast to the spec's dtype would not keep: integers given in a wider dtype would wrap
+    (an int64 300 for a uint8 frame to 44), float64 past float32's range would turn inf."""
+    if not t.numel() or torch.bool in (s.dtype, t.dtype) or t.dtype == s.dtype:
+        return
+    if s.dtype.is_floating_point:
+        info: torch.finfo | torch.iinfo = torch.finfo(s.dtype)
+        if not t.is_floating_point() or t.dtype.itemsize <= s.dtype.itemsize:
+            return
+    else:
+        info = torch.iinfo(s.dtype)
+        if t.is_floating_point():
+            return  # _check_values has said it
+        t = t.to(torch.int64)  # compared in int64, where every bound of an integer dtype is a value
+    if bool((t < info.min).any() or (t > info.max).any()):
+        name = str(s.dtype).removeprefix("torch.")
+        raise UserError(f"observation{where} holds values outside {name}'s range [{info.min:g}, {info.max:g}], "
+                        f"which the cast to {name} would not keep; this policy takes {describe(s)} values "
+                        "as the env gives them")
 
 
 def _check_finite(t: torch.Tensor, where: str = "") -> None:

@@ -178,7 +178,8 @@ def describe(spec: Spec) -> str:
                             for f in spec.fields)
         return f"{'Tuple' if spec.tuple_space else 'Dict'}({entries})"
     bounds = "" if spec.low is None or spec.high is None else f"{_bound(spec.low)}, {_bound(spec.high)}, "
-    return f"Box({bounds}shape={tuple(spec.shape)}, dtype={env_numpy_dtype(spec).name})"  # the env's dtype
+    shape = spec.shape if spec.env_shape is None else spec.env_shape  # a flattened action: the env's shape
+    return f"Box({bounds}shape={tuple(shape)}, dtype={env_numpy_dtype(spec).name})"  # the env's dtype
 
 
 def _bound(values: np.ndarray) -> str:
