@@ -448,6 +448,9 @@ def test_an_image_policy_takes_the_envs_frames_as_numbers_and_bits_in_range(tmp_
     relayrl.train(short_config("dqn", "multi_binary", "discrete"), tmp_path / "bits", progress=False)
     with pytest.raises(UserError, match=r"observation \[0, 2, 1\] is outside this policy's MultiBinary\(\[3\]\)"):
         relayrl.load_policy(tmp_path / "bits")(np.array([0, 2, 1], np.int8))
+    relayrl.train(short_config("dqn", "box_i32", "discrete"), tmp_path / "counts", progress=False)
+    with pytest.raises(UserError, match=r"not whole numbers in int64's range; .* values as the env gives them$"):
+        relayrl.load_policy(tmp_path / "counts")(np.array([0.5, 1.0, 2.0]))  # counts, not frames: no frame advice
 
 
 @pytest.mark.parametrize(("preset", "over"), [

@@ -19,7 +19,7 @@ from relayrl.core import Policy
 from relayrl.errors import UserError
 from relayrl.policies import saved_obs_spec
 from relayrl.policy_file import env_action_dtype
-from relayrl.specs import PackedSpec, Spec, describe, entry, leaf_array, to_space, value_limit
+from relayrl.specs import PackedSpec, Spec, describe, entry, is_image, leaf_array, to_space, value_limit
 
 
 class LoadedPolicy(Policy):
@@ -166,7 +166,8 @@ def _check_values(t: torch.Tensor, s: Spec, where: str = "") -> None:
         if bool((t != t.round()).any() or (t < info.min).any() or (t > info.max).any()):
             raise UserError(f"observation{where} holds {str(t.dtype).removeprefix('torch.')} values that are not "
                             f"whole numbers in {str(s.dtype).removeprefix('torch.')}'s range; this policy takes "
-                            f"{describe(s)} values as the env gives them (frames as 0..255, not scaled to [0, 1])")
+                            f"{describe(s)} values as the env gives them"
+                            + (" (frames as 0..255, not scaled to [0, 1])" if is_image(s, any_bounds=True) else ""))
     _check_range(t, s, where)
     high = value_limit(s)  # floats too: whole numbers by now
     if high is not None and t.numel() and bool((t < 0).any() or (t >= torch.as_tensor(high)).any()):
