@@ -377,6 +377,12 @@ def test_spaces_are_described_with_their_bounds_and_kind():
     assert describe(spec_from_space(gym.spaces.Box(-np.inf, np.inf, (3,)))).startswith("Box(-inf, inf, ")
     tup = gym.spaces.Tuple((gym.spaces.Discrete(32), gym.spaces.Discrete(11)))
     assert describe(spec_from_space(tup)) == "Tuple(Discrete(32), Discrete(11))"
+    for role in ("observation", "action"):  # actions are flattened inside: named in the env's own shape
+        assert describe(spec_from_space(gym.spaces.MultiDiscrete([[2, 3], [4, 5]]), role)) == \
+            "MultiDiscrete([[2, 3], [4, 5]])"
+        assert describe(spec_from_space(gym.spaces.MultiBinary([2, 3]), role)) == "MultiBinary([2, 3])"
+        box = spec_from_space(gym.spaces.Box(-1.0, 1.0, (2, 2)), role)
+        assert describe(box).endswith("shape=(2, 2), dtype=float32)")
 
 
 def test_loaded_policy_says_what_it_takes(tmp_path):

@@ -169,16 +169,17 @@ def describe(spec: Spec) -> str:
     """The space a spec came from, in Gymnasium's words, for messages."""
     if isinstance(spec, DiscreteSpec):
         return f"Discrete({spec.n})"
+    # a flattened action: the env's own shape
+    shape = spec.env_shape if isinstance(spec, ArraySpec) and spec.env_shape is not None else spec.shape
     if isinstance(spec, MultiDiscreteSpec):
-        return f"MultiDiscrete({list(spec.nvec)})"
+        return f"MultiDiscrete({np.reshape(spec.nvec, shape).tolist()})"
     if isinstance(spec, MultiBinarySpec):
-        return f"MultiBinary({list(spec.shape)})"
+        return f"MultiBinary({list(shape)})"
     if isinstance(spec, PackedSpec):
         entries = ", ".join(describe(f.spec) if spec.tuple_space else f"{f.key}: {describe(f.spec)}"
                             for f in spec.fields)
         return f"{'Tuple' if spec.tuple_space else 'Dict'}({entries})"
     bounds = "" if spec.low is None or spec.high is None else f"{_bound(spec.low)}, {_bound(spec.high)}, "
-    shape = spec.shape if spec.env_shape is None else spec.env_shape  # a flattened action: the env's shape
     return f"Box({bounds}shape={tuple(shape)}, dtype={env_numpy_dtype(spec).name})"  # the env's dtype
 
 
