@@ -100,6 +100,23 @@ def test_video_shows_every_state_of_each_episode_including_the_last(run_dir, tmp
     assert shades == [0, 1, 2, 3, 0, 1, 2, 3]  # states t = 0..3 (Countdown renders 40 t), twice
 
 
+class OddFrames(Countdown):
+    """Countdown rendering 15x21 frames: sides H.264 (yuv420p) does not take as they are."""
+
+    def render(self):
+        return np.full((15, 21, 3), 40 * self.t % 255, np.uint8)
+
+
+@pytest.mark.parametrize("suffix", [".mp4", ".mkv"])
+def test_video_of_frames_with_odd_sides_is_a_playable_file(run_dir, tmp_path, suffix):
+    import imageio.v2 as imageio
+
+    factory = lambda render_mode=None: OddFrames(render_mode=render_mode)  # noqa: E731
+    path = relayrl.record_video(run_dir, tmp_path / f"v{suffix}", env=factory)
+    frames = imageio.mimread(path)  # ffmpeg wrote an empty file here before
+    assert len(frames) == 4 and frames[0].shape == (16, 22, 3)  # one edge row and column repeated
+
+
 @pytest.mark.parametrize("algo", ["dqn", "ppo", "sac"])
 def test_callbacks_see_every_eval_and_log_and_false_stops(algo, tmp_path):
     cfg = {"algo": algo, "env": {"id": "Pendulum-v1" if algo == "sac" else "toy_envs:Countdown", "check": False},
