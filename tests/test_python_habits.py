@@ -100,6 +100,14 @@ def test_video_shows_every_state_of_each_episode_including_the_last(run_dir, tmp
     assert shades == [0, 1, 2, 3, 0, 1, 2, 3]  # states t = 0..3 (Countdown renders 40 t), twice
 
 
+@pytest.mark.parametrize("given", [{"episodes": 0}, {"episodes": -1}, {"max_steps": 0}])
+def test_video_refuses_no_episodes_instead_of_recording_one(run_dir, tmp_path, given):
+    factory = lambda render_mode=None: Countdown(render_mode=render_mode)  # noqa: E731
+    with pytest.raises(UserError, match=f"{next(iter(given))}=-?[0-9] is not valid; it must be an integer >= 1"):
+        relayrl.record_video(run_dir, tmp_path / "v.mp4", env=factory, **given)
+    assert not (tmp_path / "v.mp4").exists()
+
+
 class OddFrames(Countdown):
     """Countdown rendering 15x21 frames: sides H.264 (yuv420p) does not take as they are."""
 

@@ -26,11 +26,18 @@ if TYPE_CHECKING:
 
 def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: int = 1,
                  seed: int = 0, max_steps: int = 10_000, env: Any = None) -> Path:
-    """`env`: instead of the run's env.id (a run trained on an env factory in a notebook), a
+    """A video of the run's saved greedy policy playing `episodes` whole episodes (copy reset
+    with `seed`; at most `max_steps` steps in all), written as RUN_DIR/video.mp4 or `out` (.mp4,
+    .gif, .mkv, .mov, .avi); returns its path.
+
+    `env`: instead of the run's env.id (a run trained on an env factory in a notebook), a
     callable taking `render_mode` and returning an env, or an env made with render_mode="rgb_array"
     (used as it is and left open)."""
     from relayrl.training.run_dir import RunDir
 
+    for name, value in (("episodes", episodes), ("max_steps", max_steps)):  # not one episode in their place
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise UserError(f"{name}={value!r} is not valid; it must be an integer >= 1")
     rd = RunDir(run_dir)
     rd.require()
     path = output_path(out, rd.root / "video.mp4")
