@@ -239,6 +239,18 @@ def test_train_takes_a_config_toml_path_and_a_run_directory_gets_a_hint(run_dir,
         relayrl.load_config(str(run_dir))
 
 
+def test_plot_of_a_run_under_way_without_evaluations_says_when_it_gets_one(tmp_path):
+    from relayrl.config import from_dict, save_toml
+
+    for interval, why in ((0, "its eval.interval is 0, so it evaluates once, at the end of training"),
+                          (50, "train first")):
+        run = tmp_path / f"run{interval}"
+        run.mkdir()  # a run under way writes config.toml first and metrics.jsonl at its evaluations
+        save_toml(from_dict({**TINY, "eval": {"interval": interval, "episodes": 2}}), run / "config.toml")
+        with pytest.raises(UserError, match=rf"has no evaluations yet; {why}"):
+            relayrl.plot_run(run)
+
+
 def test_plot_panels_follow_what_the_run_logged(run_dir, tmp_path):
     from relayrl.plot import panels_for
 
