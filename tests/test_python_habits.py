@@ -225,6 +225,16 @@ def test_dir_shows_the_public_api():
     assert not {"Any", "TYPE_CHECKING", "annotations", "ModuleType"} & set(names)
 
 
+def test_help_says_what_train_returns():
+    from relayrl.training.lifecycle import RunResult
+
+    doc = RunResult.__doc__ or ""
+    assert not doc.startswith("RunResult(")  # the dataclass's own: its signature, nothing about the fields
+    for field in ("run_dir", "final", "stopped_early", "last evaluation row"):
+        assert field in doc
+    assert "returns a `RunResult`" in (relayrl.train.__doc__ or "")
+
+
 def test_train_takes_a_config_toml_path_and_a_run_directory_gets_a_hint(run_dir, tmp_path):
     from relayrl.config import from_dict, save_toml
 
