@@ -127,3 +127,23 @@ def test_a_stable_baselines3_model_file_says_how_to_evaluate_it(tmp_path):
     with pytest.raises(UserError, match=r"is a Stable-Baselines3 model file, which relayrl does not read: in "
                                         r"Python, load it with SB3 .* relayrl.evaluate"):
         relayrl.load_policy(tmp_path / "ppo_cartpole.zip")
+
+
+@pytest.mark.parametrize("fmt, run", [("pt2", r"torch\.export\.load\(path\)\.module\(\)"),
+                                      ("onnx", r"onnxruntime\.InferenceSession\(path\)")], ids=["pt2", "onnx"])
+def test_an_exported_program_given_as_a_policy_says_how_to_run_it(runs, tmp_path, fmt, run):
+    if fmt == "onnx":
+        pytest.importorskip("onnxscript")
+    path = relayrl.export_policy(runs / "dqn", out=tmp_path / f"policy.{fmt}")
+    with pytest.raises(UserError, match=rf"is a program written by relayrl export, not a policy file: run it "
+                                        rf"with {run}; relayrl.load_policy, .* take the run directory"):
+        relayrl.load_policy(path)  # was "damaged" (pt2) or "one that would run code" (onnx)
+
+
+def test_a_checkpoint_given_as_a_policy_is_named_as_one_and_not_read(runs, tmp_path):
+    marker = tmp_path / "ran"
+    torch.save({"env": _Payload(marker)}, tmp_path / "ckpt-000000000300.pt")  # checkpoints hold pickles
+    with pytest.raises(UserError, match=r"is a training checkpoint \(what --resume reads\), not a policy file; "
+                                        r"relayrl.load_policy, .* take the run directory or its policy/policy.pt"):
+        relayrl.load_policy(tmp_path / "ckpt-000000000300.pt")
+    assert not marker.exists()

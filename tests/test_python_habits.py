@@ -100,6 +100,31 @@ def test_video_shows_every_state_of_each_episode_including_the_last(run_dir, tmp
     assert shades == [0, 1, 2, 3, 0, 1, 2, 3]  # states t = 0..3 (Countdown renders 40 t), twice
 
 
+@pytest.mark.parametrize("given", [{"episodes": 0}, {"episodes": -1}, {"max_steps": 0}])
+def test_video_refuses_no_episodes_instead_of_recording_one(run_dir, tmp_path, given):
+    factory = lambda render_mode=None: Countdown(render_mode=render_mode)  # noqa: E731
+    with pytest.raises(UserError, match=f"{next(iter(given))}=-?[0-9] is not valid; it must be an integer >= 1"):
+        relayrl.record_video(run_dir, tmp_path / "v.mp4", env=factory, **given)
+    assert not (tmp_path / "v.mp4").exists()
+
+
+class OddFrames(Countdown):
+    """Countdown rendering 15x21 frames: sides H.264 (yuv420p) does not take as they are."""
+
+    def render(self):
+        return np.full((15, 21, 3), 40 * self.t % 255, np.uint8)
+
+
+@pytest.mark.parametrize("suffix", [".mp4", ".mkv"])
+def test_video_of_frames_with_odd_sides_is_a_playable_file(run_dir, tmp_path, suffix):
+    import imageio.v2 as imageio
+
+    factory = lambda render_mode=None: OddFrames(render_mode=render_mode)  # noqa: E731
+    path = relayrl.record_video(run_dir, tmp_path / f"v{suffix}", env=factory)
+    frames = imageio.mimread(path)  # ffmpeg wrote an empty file here before
+    assert len(frames) == 4 and frames[0].shape == (16, 22, 3)  # one edge row and column repeated
+
+
 @pytest.mark.parametrize("algo", ["dqn", "ppo", "sac"])
 def test_callbacks_see_every_eval_and_log_and_false_stops(algo, tmp_path):
     cfg = {"algo": algo, "env": {"id": "Pendulum-v1" if algo == "sac" else "toy_envs:Countdown", "check": False},
@@ -200,6 +225,16 @@ def test_dir_shows_the_public_api():
     assert not {"Any", "TYPE_CHECKING", "annotations", "ModuleType"} & set(names)
 
 
+def test_help_says_what_train_returns():
+    from relayrl.training.lifecycle import RunResult
+
+    doc = RunResult.__doc__ or ""
+    assert not doc.startswith("RunResult(")  # the dataclass's own: its signature, nothing about the fields
+    for field in ("run_dir", "final", "stopped_early", "last evaluation row"):
+        assert field in doc
+    assert "returns a `RunResult`" in (relayrl.train.__doc__ or "")
+
+
 def test_train_takes_a_config_toml_path_and_a_run_directory_gets_a_hint(run_dir, tmp_path):
     from relayrl.config import from_dict, save_toml
 
@@ -212,6 +247,18 @@ def test_train_takes_a_config_toml_path_and_a_run_directory_gets_a_hint(run_dir,
                                         r"--run-dir .* --resume` \(in Python: resume=True\), or start a new run "
                                         r"from its settings with"):
         relayrl.load_config(str(run_dir))
+
+
+def test_plot_of_a_run_under_way_without_evaluations_says_when_it_gets_one(tmp_path):
+    from relayrl.config import from_dict, save_toml
+
+    for interval, why in ((0, "its eval.interval is 0, so it evaluates once, at the end of training"),
+                          (50, "train first")):
+        run = tmp_path / f"run{interval}"
+        run.mkdir()  # a run under way writes config.toml first and metrics.jsonl at its evaluations
+        save_toml(from_dict({**TINY, "eval": {"interval": interval, "episodes": 2}}), run / "config.toml")
+        with pytest.raises(UserError, match=rf"has no evaluations yet; {why}"):
+            relayrl.plot_run(run)
 
 
 def test_plot_panels_follow_what_the_run_logged(run_dir, tmp_path):

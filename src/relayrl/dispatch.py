@@ -151,7 +151,8 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
           progress: bool = True, env: Callable[[], Any] | None = None, overwrite: bool = False,
           callbacks: Sequence[Callback] | None = None) -> RunResult:
     """Train from a Config (or a nested dict of config values, a preset's name or a config
-    TOML's path, as `load_config` takes them) into a run directory.
+    TOML's path, as `load_config` takes them) into a run directory; returns a `RunResult`
+    (`.run_dir`, `.final`: the last evaluation's metrics row, `.stopped_early`).
 
     A new run refuses a directory that already holds a run with a checkpoint (or a finished
     one, or one that trained past step 0), unless `overwrite=True` replaces it; a run that

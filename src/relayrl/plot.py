@@ -10,7 +10,8 @@ from pathlib import Path
 from typing import Any
 
 from relayrl import atomic
-from relayrl.errors import UserError
+from relayrl.config import load_toml
+from relayrl.errors import ConfigError, UserError
 from relayrl.paths import output_path, writing
 from relayrl.training.run_dir import RunDir
 
@@ -76,8 +77,20 @@ def _evaluations(rd: RunDir) -> Rows:
     rd.require()
     rows = [r for r in rd.read_metrics() if r.get("average_return") is not None]
     if not rows:
-        raise UserError(f"{str(rd.metrics)!r} has no evaluations yet; train first")
+        raise UserError(f"{str(rd.metrics)!r} has no evaluations yet; {_why_none(rd)}")
     return rows
+
+
+def _why_none(rd: RunDir) -> str:
+    """What to do about a run without evaluations: "train first" misleads for a run under way
+    with eval.interval = 0, whose only evaluation is its last."""
+    try:
+        interval = load_toml(rd.config).get("eval", {}).get("interval")
+    except ConfigError:
+        interval = None
+    if interval == 0:
+        return "its eval.interval is 0, so it evaluates once, at the end of training: plot it then"
+    return "train first"
 
 
 def _figure(figsize: tuple[float, float]) -> Any:

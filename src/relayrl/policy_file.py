@@ -11,6 +11,7 @@ state and are as trusted as code (`training/checkpoint.py`).
 from __future__ import annotations
 
 import pickle
+import re
 import zipfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -82,6 +83,10 @@ def save_policy_file(state: dict[str, Any], path: Path) -> None:
 
 def load_policy_file(path: Path) -> dict[str, Any]:
     """The state dict in a policy file, read without running any code it may carry."""
+    other = _other_relayrl_file(Path(path))
+    if other:  # told by its name, before it is read: "damaged" or "would run code" would mislead
+        raise UserError(f"{str(path)!r} is {other}; relayrl.load_policy, relayrl eval and relayrl video take the "
+                        "run directory or its policy/policy.pt")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:
@@ -96,6 +101,21 @@ def load_policy_file(path: Path) -> dict[str, Any]:
     if not isinstance(state, dict):
         raise UserError(f"policy file {str(path)!r} holds a {type(state).__name__}, not a policy: {REFUSED}")
     return state
+
+
+# what `relayrl export` writes, by the extension it insists on, and how to run each
+_EXPORTED = {".pt2": "torch.export.load(path).module()", ".onnx": "onnxruntime.InferenceSession(path)"}
+
+
+def _other_relayrl_file(path: Path) -> str | None:
+    """What `path` is where its name says it is a relayrl file other than a policy file: an
+    exported program or a run's checkpoint; None otherwise."""
+    run = _EXPORTED.get(path.suffix.lower())
+    if run:
+        return f"a program written by relayrl export, not a policy file: run it with {run}"
+    if re.fullmatch(r"ckpt-\d{12}\.pt", path.name):
+        return "a training checkpoint (what --resume reads), not a policy file"
+    return None
 
 
 def _load_old_layout(path: Path) -> Any:

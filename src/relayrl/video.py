@@ -26,11 +26,18 @@ if TYPE_CHECKING:
 
 def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: int = 1,
                  seed: int = 0, max_steps: int = 10_000, env: Any = None) -> Path:
-    """`env`: instead of the run's env.id (a run trained on an env factory in a notebook), a
+    """A video of the run's saved greedy policy playing `episodes` whole episodes (copy reset
+    with `seed`; at most `max_steps` steps in all), written as RUN_DIR/video.mp4 or `out` (.mp4,
+    .gif, .mkv, .mov, .avi); returns its path.
+
+    `env`: instead of the run's env.id (a run trained on an env factory in a notebook), a
     callable taking `render_mode` and returning an env, or an env made with render_mode="rgb_array"
     (used as it is and left open)."""
     from relayrl.training.run_dir import RunDir
 
+    for name, value in (("episodes", episodes), ("max_steps", max_steps)):  # not one episode in their place
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise UserError(f"{name}={value!r} is not valid; it must be an integer >= 1")
     rd = RunDir(run_dir)
     rd.require()
     path = output_path(out, rd.root / "video.mp4")
@@ -42,14 +49,29 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
                               max_steps=max_steps)
     import imageio.v2 as imageio
 
-    # macro_block_size=1 keeps odd frame sizes as they are instead of resizing with a warning;
-    # the temp name keeps the suffix imageio picks the format from, and a video already
-    # there stays until the new one is complete.
+    # macro_block_size=1: imageio does not resize frames to multiples of 16 (with a warning);
+    # `even_sized` pads an odd side by one pixel instead. The temp name keeps the suffix imageio
+    # picks the format from, and a video already there stays until the new one is complete.
     # (A GIF, written by Pillow, takes each frame's duration in ms instead.)
-    timing = {"duration": 1000 / fps} if path.suffix.lower() == ".gif" else {"fps": fps, "macro_block_size": 1}
+    gif = path.suffix.lower() == ".gif"
+    timing = {"duration": 1000 / fps} if gif else {"fps": fps, "macro_block_size": 1}
     with writing(path), atomic.replacing(path, ".tmp-" + path.name) as tmp:
-        imageio.mimwrite(tmp, frames, **timing)
+        imageio.mimwrite(tmp, frames if gif else [even_sized(f) for f in frames], **timing)
+        if tmp.stat().st_size == 0:  # ffmpeg failed without imageio raising: no empty file under the name
+            raise UserError(f"--out {str(path)!r}: ffmpeg wrote no video from frames of shape "
+                            f"{np.shape(frames[0])}; try --out with .gif")
     return path
+
+
+def even_sized(frame: Any) -> np.ndarray:
+    """`frame` with its last row / column repeated where its height / width is odd: ffmpeg's
+    H.264 (yuv420p) takes only even sides, and on an odd one it writes an empty file without
+    imageio raising (a GIF keeps any size)."""
+    array = np.asarray(frame)
+    h, w = array.shape[:2]
+    if h % 2 == 0 and w % 2 == 0:
+        return array
+    return np.pad(array, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
 
 
 VIDEO_SUFFIXES = (".mp4", ".gif", ".mkv", ".mov", ".avi")  # not .webm: ffmpeg's default H.264 writes a broken one

@@ -38,6 +38,11 @@ from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver
 
 @dataclass
 class RunResult:
+    """What `relayrl.train` returns: `run_dir`, the run directory (plot_run, record_video and
+    load_policy take it); `final`, the run's last evaluation row as metrics.jsonl has it (step,
+    average_return, average_episode_length, train/..., losses/...; {} where the run logged
+    none); `stopped_early`, True where a callback stopped the run before train.total_steps."""
+
     run_dir: Path
     final: dict[str, Any]  # the last evaluation row of metrics.jsonl
     stopped_early: bool = False  # a callback returned False before train.total_steps
