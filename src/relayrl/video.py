@@ -71,7 +71,7 @@ def even_sized(frame: Any) -> np.ndarray:
     h, w = array.shape[:2]
     if h % 2 == 0 and w % 2 == 0:
         return array
-    return np.pad(array, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+    return np.pad(array, [(0, h % 2), (0, w % 2)] + [(0, 0)] * (array.ndim - 2), mode="edge")  # gray or RGB
 
 
 VIDEO_SUFFIXES = (".mp4", ".gif", ".mkv", ".mov", ".avi")  # not .webm: ffmpeg's default H.264 writes a broken one
