@@ -219,7 +219,8 @@ def test_sac_lr_schedule_reaches_every_optimizer(fast):
 
 def test_dir_shows_the_public_api():
     names = dir(relayrl)
-    for name in ("train", "evaluate", "load_policy", "record_video", "load_config", "Config", "EvalResult"):
+    for name in ("train", "evaluate", "load_policy", "record_video", "load_config", "Config", "EvalResult",
+                 "RunResult"):
         assert name in names and name in relayrl.__all__
     assert callable(relayrl.evaluate)
     assert not {"Any", "TYPE_CHECKING", "annotations", "ModuleType"} & set(names)

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 __version__ = "0.1.0"
 
 __all__ = ["load_config", "list_presets", "train", "evaluate", "load_policy", "export_policy", "plot_run",
-           "record_video", "Config", "EvalResult"]
+           "record_video", "Config", "EvalResult", "RunResult"]
 
 _LAZY = {
     "load_config": "relayrl.presets",
@@ -34,6 +34,7 @@ _LAZY = {
     "plot_run": "relayrl.plot",
     "record_video": "relayrl.video",
     "Config": "relayrl.config",
+    "RunResult": "relayrl.training.lifecycle",
 }
 
 if TYPE_CHECKING:
@@ -43,6 +44,7 @@ if TYPE_CHECKING:
     from relayrl.export import export_policy, load_policy
     from relayrl.plot import plot_run
     from relayrl.presets import list_presets, load_config
+    from relayrl.training.lifecycle import RunResult
     from relayrl.video import record_video
 
 
