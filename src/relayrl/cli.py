@@ -203,7 +203,10 @@ def _interrupted_line(what: str, args: argparse.Namespace) -> str:
 
         rd = RunDir(run_dir) if run_dir else None
         resumable = rd is not None and rd.has_checkpoint()
-        trained = rd is not None and not resumable and rd.trained_to() > 0  # reads the policy file: only if needed
+        # A signal during torch's first import leaves parts of it loaded, and importing it again raises or
+        # crashes the process: the policy file (read with torch) is looked at only once torch is whole.
+        whole = "torch" in sys.modules  # an import that failed took it out again
+        trained = rd is not None and not resumable and rd.trained_to(read_policy=whole) > 0  # only if needed
     except (ImportError, AttributeError, OSError):  # torch still importing (no run has started), or unreadable
         resumable = trained = False
     if resumable:
