@@ -195,6 +195,18 @@ def test_run_dir_in_an_unwritable_folder_is_one_line(tmp_path, cli):
     assert r.returncode == 2 and "no permission to write in" in r.stderr and "Traceback" not in r.stderr
 
 
+@pytest.mark.parametrize("folder", ["tb", "checkpoints", "policy"])
+def test_a_run_directory_with_a_read_only_folder_is_one_line_before_the_run(tmp_path, monkeypatch, folder):
+    run = tmp_path / "run"
+    (run / folder).mkdir(parents=True)
+    access = os.access  # as a read-only mount answers, to root too (a chmod would not stop root)
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: os.path.basename(path) != folder and
+                        access(path, mode, **kw))
+    with pytest.raises(UserError, match=rf"no permission to write in '.*run/{folder}': make it writable"):
+        train(load_config("dqn-cartpole", TINY), run, progress=False)
+    assert [p.name for p in run.iterdir()] == [folder] and not any((run / folder).iterdir())
+
+
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc")
 def test_run_dir_that_cannot_be_created_is_one_line(cli):
     """/proc refuses new folders even to root."""

@@ -82,6 +82,11 @@ class RunDir:
                                 f"{'file' if folder else 'directory'}, where a run keeps its "
                                 f"{'folder' if folder else 'file'} of that name: move it away, or choose another "
                                 "--run-dir")
+            # a read-only folder (or mount) inside a writable run directory: TensorBoard's writer thread
+            # would fail on it with a traceback once the run has started
+            if path.exists() and not os.access(path, os.W_OK | (os.X_OK if folder else 0)):
+                raise UserError(f"--run-dir {str(self.root)!r}: no permission to write in {str(path)!r}: make it "
+                                "writable, or choose another --run-dir")
 
     def has_checkpoint(self) -> bool:
         return bool(list_checkpoints(self.checkpoints))
