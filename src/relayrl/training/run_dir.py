@@ -132,11 +132,14 @@ class RunDir:
         if not self.metrics.is_file():
             return []
         rows = []
-        for line in self.metrics.read_text().splitlines():
+        # bytes that are not UTF-8 spoil only their own line: it is then not JSON and is passed over
+        for line in self.metrics.read_text(errors="replace").splitlines():
             try:
-                rows.append(json.loads(line))
+                row = json.loads(line)
             except json.JSONDecodeError:
                 continue  # a line cut short by a crash; the rest is intact
+            if isinstance(row, dict) and type(row.get("step")) is int:  # a run's rows; not a line added by hand
+                rows.append(row)
         return rows
 
     def trained_to(self, read_policy: bool = True) -> int:
