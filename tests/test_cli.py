@@ -55,6 +55,14 @@ def test_running_out_of_memory_during_a_run_is_one_line(cli_env, tmp_path):
     assert r.stderr.strip().splitlines()[-1].startswith("relayrl: error: out of memory (Unable to allocate")
 
 
+def test_video_help_names_every_format_it_writes():
+    from relayrl.cli import build_parser
+    from relayrl.video import VIDEO_SUFFIXES
+
+    text = build_parser().parse_args(["video", "r"]).parsers["video"].format_help()
+    assert all(suffix in text for suffix in VIDEO_SUFFIXES), text
+
+
 def test_presets_lists_one_per_line(cli_env):
     r = run(["presets"], cli_env)
     assert r.returncode == 0

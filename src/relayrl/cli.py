@@ -100,9 +100,12 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--out", metavar="PNG",
                     help="where to write it (default: RUN_DIR/returns.png, or compare.png beside several runs; "
                          "folders are created)")
-    v = sub.add_parser("video", help="MP4 of the greedy policy")
+    v = sub.add_parser("video", help="a video (MP4, GIF, ...) of the greedy policy")
     v.add_argument("run_dir", metavar="RUN_DIR", help="a run directory")
-    v.add_argument("--out", metavar="MP4", help="where to write it (default: RUN_DIR/video.mp4; folders are created)")
+    # video.VIDEO_SUFFIXES, written out: that module imports torch, which --help does not wait for
+    v.add_argument("--out", metavar="MP4|GIF|MKV|MOV|AVI",
+                   help="where to write it, the format from its extension: .mp4, .gif, .mkv, .mov or .avi "
+                        "(default: RUN_DIR/video.mp4; folders are created)")
     v.add_argument("--episodes", type=int, default=1, help="episodes to record (default: 1)")
     v.add_argument("--seed", type=_seed, default=0, help="seed of the recorded episodes (default: 0)")
     x = sub.add_parser("export", help="write RUN_DIR/policy/policy.pt2, the policy for plain PyTorch (torch.export), "
