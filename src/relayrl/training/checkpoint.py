@@ -39,7 +39,10 @@ def load_latest_checkpoint(folder: Path) -> dict[str, Any]:
                               "(overwrite=True)")
     for path in reversed(candidates):
         try:
-            return torch.load(path, map_location="cpu", weights_only=False)
+            state = torch.load(path, map_location="cpu", weights_only=False)
+            if not isinstance(state, dict) or "env_steps" not in state:  # another program's file under its name
+                raise ValueError(f"it holds a {type(state).__name__} that is not a relayrl checkpoint")
+            return state
         except Exception as e:  # a truncated or corrupt file: fall back to an older one
             detail = (str(e).strip().splitlines() or [""])[0][:120]
             print(f"relayrl: checkpoint {path} is unreadable ({type(e).__name__}: {detail}); trying an older one",
