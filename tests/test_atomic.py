@@ -46,6 +46,26 @@ def test_a_full_disk_is_one_line_that_says_what_is_kept(tmp_path):
     assert path.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pt"]
 
 
+@pytest.mark.parametrize("code, text", [("EROFS", "Read-only file system"), ("EACCES", "Permission denied")])
+def test_a_folder_that_cannot_be_written_is_one_line_that_says_what_is_kept(code, text, tmp_path, monkeypatch):
+    import errno
+
+    from relayrl.errors import UserError
+
+    path = tmp_path / "checkpoints" / "ckpt.pt"
+    path.parent.mkdir()
+    atomic.write_text(path, "old")
+
+    def refused(name, mode="r"):  # as open() is answered in a read-only mount, or a folder of another user's
+        raise OSError(getattr(errno, code), text, str(name))
+
+    monkeypatch.setattr(atomic, "open", refused, raising=False)
+    with pytest.raises(UserError, match=rf"^cannot write '.*ckpt.pt': {text} \(its previous version, if any, is "
+                                        r"kept\): make '.*checkpoints' writable$"):
+        atomic.torch_save({"a": 1}, path)
+    assert path.read_text() == "old" and sorted(p.name for p in path.parent.iterdir()) == ["ckpt.pt"]
+
+
 def test_torch_save_round_trips_and_replaces(tmp_path):
     path = tmp_path / "x.pt"
     atomic.torch_save({"a": torch.arange(3)}, path)

@@ -55,6 +55,14 @@ def test_running_out_of_memory_during_a_run_is_one_line(cli_env, tmp_path):
     assert r.stderr.strip().splitlines()[-1].startswith("relayrl: error: out of memory (Unable to allocate")
 
 
+def test_video_help_names_every_format_it_writes():
+    from relayrl.cli import build_parser
+    from relayrl.video import VIDEO_SUFFIXES
+
+    text = build_parser().parse_args(["video", "r"]).parsers["video"].format_help()
+    assert all(suffix in text for suffix in VIDEO_SUFFIXES), text
+
+
 def test_presets_lists_one_per_line(cli_env):
     r = run(["presets"], cli_env)
     assert r.returncode == 0
@@ -235,6 +243,37 @@ def test_ctrl_c_outside_a_run_says_interrupted_and_inside_one_that_nothing_is_lo
 
 def torch_half_imported():
     raise AttributeError("partially initialized module 'torch' has no attribute 'distributed'")
+
+
+# Stands for torch left half-imported by a Ctrl-C: importing it again raised (or crashed the process).
+_HALF_IMPORTED_TORCH = """
+import sys
+class HalfImported:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] == "torch":
+            raise RuntimeError("duplicate registrations for aten.linspace.Tensor_Tensor")
+sys.meta_path.insert(0, HalfImported())
+from relayrl import cli
+def interrupted(args):
+    raise KeyboardInterrupt
+cli._train = interrupted
+sys.exit(cli.main(sys.argv[1:]))
+"""
+
+
+@pytest.mark.parametrize("files, line", [
+    ({"checkpoints/ckpt-000000001000.pt": ""}, "interrupted; resume with --resume from the last checkpoint"),
+    ({"metrics.jsonl": '{"step": 0}\n{"step": 500}\n'}, "interrupted before the first checkpoint: nothing to "
+                                                        "resume; the policy and metrics so far stay in"),
+])
+def test_ctrl_c_while_torch_imports_reads_the_run_dir_without_torch(files, line, cli_env, tmp_path):
+    run_dir = tmp_path / "run"
+    for name, text in {"config.toml": "", **files}.items():
+        (run_dir / name).parent.mkdir(parents=True, exist_ok=True)
+        (run_dir / name).write_text(text)
+    r = subprocess.run([sys.executable, "-c", _HALF_IMPORTED_TORCH, "train", "--run-dir", str(run_dir), "--resume"],
+                       capture_output=True, text=True, env=cli_env, timeout=60)
+    assert (r.returncode, r.stderr.startswith(f"relayrl: {line}")) == (130, True), r.stderr
 
 
 def test_eval_stochastic_samples_the_policy_repeatably(tmp_path, capsys):

@@ -133,6 +133,16 @@ def test_unknown_preset_lists_valid_ones():
         load_config("dqn-cartpol")
 
 
+def test_a_config_file_that_is_not_text_or_not_a_file_is_one_line(tmp_path):
+    damaged = tmp_path / "config.toml"
+    damaged.write_bytes(b"\xff\xfe\x00seed = 0")  # a run's config.toml overwritten with binary bytes
+    with pytest.raises(ConfigError, match=r"^config file '.*config.toml' is not valid TOML: 'utf-8' codec can't "):
+        load_config(str(damaged))
+    (tmp_path / "dir.toml").mkdir()
+    with pytest.raises(ConfigError, match=r"^config file '.*dir.toml' cannot be read: Is a directory$"):
+        load_config(str(tmp_path / "dir.toml"))
+
+
 def test_toml_round_trip(tmp_path):
     c = load_config("dqn-cartpole-fast", ["seed=3"])
     save_toml(c, tmp_path / "c.toml")

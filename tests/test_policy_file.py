@@ -96,10 +96,11 @@ def test_the_cli_refuses_it_in_one_line(crafted_run, command, cli_env, tmp_path)
 
 @pytest.mark.parametrize("content", [
     torch.zeros(3),  # not a dict
+    {"weights": torch.zeros(3)},  # another program's dict: it was called a policy of an unknown kind
     {"kind": "q_greedy", "obs_dim": 4},  # keys missing
     {"kind": "q_greedy", "obs_dim": 4, "hidden": [8], "num_actions": 2, "activation": "relu",
      "state_dict": {"layers.0.weight": torch.zeros(8, 3)}},  # weights of the wrong shape
-], ids=["tensor", "missing-keys", "wrong-shapes"])
+], ids=["tensor", "no-kind", "missing-keys", "wrong-shapes"])
 def test_plain_files_that_are_not_policies_are_one_line_errors(tmp_path, content):
     torch.save(content, tmp_path / "policy.pt")
     with pytest.raises(UserError, match=REFUSED):

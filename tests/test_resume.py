@@ -152,6 +152,22 @@ def test_a_run_a_callback_stopped_between_evaluations_resumes_to_the_uninterrupt
     assert [r for r in cut if r is not extra[0]] == comparable(tmp_path / "full")
 
 
+def test_ctrl_c_with_checkpoints_off_says_it_saves_the_policy_only(tmp_path, capsys):
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN + ["train.log_interval=100", "train.checkpoint_interval=0"])
+
+    def ctrl_c_at_700(row):
+        if row["step"] == 700:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    with pytest.raises(KeyboardInterrupt):
+        relayrl.train(cfg, tmp_path / "cut", progress=False, callbacks=[ctrl_c_at_700])
+    err = capsys.readouterr().err
+    assert "stopping at the end of this iteration to save the policy (train.checkpoint_interval = 0: no " \
+           "checkpoint)" in err and "a checkpoint (Ctrl-C" not in err
+    assert relayrl.load_policy(tmp_path / "cut").env_steps == 700
+    assert not list((tmp_path / "cut" / "checkpoints").glob("*"))
+
+
 def test_ctrl_c_mid_run_saves_a_checkpoint_there_and_the_resumed_run_is_the_uninterrupted_one(tmp_path, capsys):
     """The first Ctrl-C ends the iteration, saves the policy and a checkpoint at that step
     (no final evaluation), then raises KeyboardInterrupt; resuming gives the uninterrupted run."""

@@ -61,6 +61,16 @@ def test_a_run_that_failed_before_its_first_checkpoint_is_taken_over(tmp_path, c
     assert [row["step"] for row in RunDir(run).read_metrics()] == [0, 30, 60]
 
 
+def test_metrics_lines_that_are_no_row_of_a_run_are_passed_over(tmp_path):
+    (tmp_path / "config.toml").write_text("")
+    (tmp_path / "metrics.jsonl").write_bytes(b'{"step": 0, "average_return": 9.0}\n'
+                                             b'\xff\xfe not text\n'  # bytes a crash or a disk left there
+                                             b'[1, 2]\n{"step": "late"}\n"a note"\n'  # lines added by hand
+                                             b'{"step": 30, "average_return": 12.0}\n{"step": 6')
+    assert [row["step"] for row in RunDir(tmp_path).read_metrics()] == [0, 30]
+    assert RunDir(tmp_path).truncate_metrics(10) == [{"step": 0, "average_return": 9.0}]
+
+
 def test_a_run_with_a_checkpoint_is_kept_unless_overwrite(tmp_path, cli):
     run = tmp_path / "run"
     train(load_config("dqn-cartpole", TINY), run, progress=False)
@@ -193,6 +203,18 @@ def test_run_dir_in_an_unwritable_folder_is_one_line(tmp_path, cli):
     finally:
         locked.chmod(0o700)
     assert r.returncode == 2 and "no permission to write in" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("folder", ["tb", "checkpoints", "policy"])
+def test_a_run_directory_with_a_read_only_folder_is_one_line_before_the_run(tmp_path, monkeypatch, folder):
+    run = tmp_path / "run"
+    (run / folder).mkdir(parents=True)
+    access = os.access  # as a read-only mount answers, to root too (a chmod would not stop root)
+    monkeypatch.setattr(os, "access", lambda path, mode, **kw: os.path.basename(path) != folder and
+                        access(path, mode, **kw))
+    with pytest.raises(UserError, match=rf"no permission to write in '.*run/{folder}': make it writable"):
+        train(load_config("dqn-cartpole", TINY), run, progress=False)
+    assert [p.name for p in run.iterdir()] == [folder] and not any((run / folder).iterdir())
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="uses /proc")

@@ -83,6 +83,15 @@ def test_checkpoints_are_atomic_and_fall_back_past_a_corrupt_one(tmp_path, capsy
         load_latest_checkpoint(folder)
 
 
+@pytest.mark.parametrize("other", [[1, 2], {"weights": 1}])
+def test_a_file_that_is_no_checkpoint_under_a_checkpoints_name_is_passed_over(tmp_path, capsys, other):
+    folder = tmp_path / "ck"
+    save_checkpoint(folder, 100, {"x": torch.ones(3), "env_steps": 100})
+    torch.save(other, folder / "ckpt-000000000200.pt")  # another program's file, or a copy put there by hand
+    assert load_latest_checkpoint(folder)["env_steps"] == 100
+    assert "that is not a relayrl checkpoint); trying an older one" in capsys.readouterr().err
+
+
 def test_dqn_refuses_continuous_actions(tmp_path):
     with pytest.raises(UserError, match="DQN takes a Discrete action space"):
         relayrl.train(relayrl.load_config("dqn-cartpole-fast", ["env.id=Pendulum-v1"]), tmp_path / "p",

@@ -26,20 +26,28 @@ def replacing(path: Path, tmp_name: str | None = None) -> Iterator[Path]:
     except BaseException as e:
         with contextlib.suppress(OSError):
             tmp.unlink()
-        full = _disk_full(e)  # torch's writer wraps the OSError in a RuntimeError of its own
+        full = _os_error(e, _FULL)  # torch's writer wraps the OSError in a RuntimeError of its own
         if full is not None:
             raise UserError(f"cannot write {str(path)!r}: {full.strerror or full} (its previous version, if any, is "
                             "kept): free some space") from None
+        denied = _os_error(e, _DENIED)  # a read-only folder (or mount) inside a writable run directory
+        if denied is not None:
+            raise UserError(f"cannot write {str(path)!r}: {denied.strerror or denied} (its previous version, if any, "
+                            f"is kept): make {str(path.parent)!r} writable") from None
         raise
     _fsync_folder(path.parent)
 
 
-def _disk_full(error: BaseException | None) -> OSError | None:
-    """The ENOSPC or EDQUOT OSError in the chain of `error` and what it was raised from."""
+_FULL = (errno.ENOSPC, errno.EDQUOT)
+_DENIED = (errno.EROFS, errno.EACCES, errno.EPERM)
+
+
+def _os_error(error: BaseException | None, errnos: tuple[int, ...]) -> OSError | None:
+    """The OSError with one of `errnos` in the chain of `error` and what it was raised from."""
     for _ in range(10):
         if error is None:
             break
-        if isinstance(error, OSError) and error.errno in (errno.ENOSPC, errno.EDQUOT):
+        if isinstance(error, OSError) and error.errno in errnos:
             return error
         error = error.__cause__ or error.__context__
     return None

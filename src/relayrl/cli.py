@@ -100,9 +100,12 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--out", metavar="PNG",
                     help="where to write it (default: RUN_DIR/returns.png, or compare.png beside several runs; "
                          "folders are created)")
-    v = sub.add_parser("video", help="MP4 of the greedy policy")
+    v = sub.add_parser("video", help="a video (MP4, GIF, ...) of the greedy policy")
     v.add_argument("run_dir", metavar="RUN_DIR", help="a run directory")
-    v.add_argument("--out", metavar="MP4", help="where to write it (default: RUN_DIR/video.mp4; folders are created)")
+    # video.VIDEO_SUFFIXES, written out: that module imports torch, which --help does not wait for
+    v.add_argument("--out", metavar="MP4|GIF|MKV|MOV|AVI",
+                   help="where to write it, the format from its extension: .mp4, .gif, .mkv, .mov or .avi "
+                        "(default: RUN_DIR/video.mp4; folders are created)")
     v.add_argument("--episodes", type=int, default=1, help="episodes to record (default: 1)")
     v.add_argument("--seed", type=_seed, default=0, help="seed of the recorded episodes (default: 0)")
     x = sub.add_parser("export", help="write RUN_DIR/policy/policy.pt2, the policy for plain PyTorch (torch.export), "
@@ -203,7 +206,10 @@ def _interrupted_line(what: str, args: argparse.Namespace) -> str:
 
         rd = RunDir(run_dir) if run_dir else None
         resumable = rd is not None and rd.has_checkpoint()
-        trained = rd is not None and not resumable and rd.trained_to() > 0  # reads the policy file: only if needed
+        # A signal during torch's first import leaves parts of it loaded, and importing it again raises or
+        # crashes the process: the policy file (read with torch) is looked at only once torch is whole.
+        whole = "torch" in sys.modules  # an import that failed took it out again
+        trained = rd is not None and not resumable and rd.trained_to(read_policy=whole) > 0  # only if needed
     except (ImportError, AttributeError, OSError):  # torch still importing (no run has started), or unreadable
         resumable = trained = False
     if resumable:

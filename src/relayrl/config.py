@@ -380,8 +380,10 @@ def load_toml(path: str | Path) -> dict[str, Any]:
             return tomllib.load(f)
     except FileNotFoundError:
         raise ConfigError(f"config file {str(path)!r} does not exist") from None
-    except tomllib.TOMLDecodeError as e:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:  # a damaged file: its bytes need not be UTF-8
         raise ConfigError(f"config file {str(path)!r} is not valid TOML: {e}") from None
+    except OSError as e:  # a folder of that name, a file this user may not read
+        raise ConfigError(f"config file {str(path)!r} cannot be read: {e.strerror or e}") from None
 
 
 def config_toml(config: Config) -> str:

@@ -100,6 +100,8 @@ def load_policy_file(path: Path) -> dict[str, Any]:
                         "damaged, or not a relayrl policy file") from None
     if not isinstance(state, dict):
         raise UserError(f"policy file {str(path)!r} holds a {type(state).__name__}, not a policy: {REFUSED}")
+    if "kind" not in state:  # another program's dict: not a policy of an older or newer relayrl either
+        raise UserError(f"policy file {str(path)!r} holds a dict with no policy 'kind', not a policy: {REFUSED}")
     return state
 
 

@@ -3,7 +3,6 @@ is complete, and a corrupt newest checkpoint falls back to the one before it."""
 
 from __future__ import annotations
 
-import re
 import sys
 from pathlib import Path
 from typing import Any
@@ -12,17 +11,10 @@ import torch
 
 from relayrl import atomic, interrupts
 from relayrl.errors import CheckpointError
+from relayrl.training.run_dir import list_checkpoints
 
-_NAME = re.compile(r"^ckpt-(\d{12})\.pt$")
 NO_REPLAY = ("the checkpoint has no replay contents (train.checkpoint_replay = false): the replay refills from the "
              "resumed policy before learning continues")
-
-
-def list_checkpoints(folder: Path) -> list[Path]:
-    """Complete checkpoints, oldest first."""
-    if not folder.is_dir():
-        return []
-    return sorted(p for p in folder.iterdir() if _NAME.match(p.name))
 
 
 def save_checkpoint(folder: Path, env_steps: int, state: dict[str, Any], keep: int = 2) -> Path:
@@ -47,7 +39,10 @@ def load_latest_checkpoint(folder: Path) -> dict[str, Any]:
                               "(overwrite=True)")
     for path in reversed(candidates):
         try:
-            return torch.load(path, map_location="cpu", weights_only=False)
+            state = torch.load(path, map_location="cpu", weights_only=False)
+            if not isinstance(state, dict) or "env_steps" not in state:  # another program's file under its name
+                raise ValueError(f"it holds a {type(state).__name__} that is not a relayrl checkpoint")
+            return state
         except Exception as e:  # a truncated or corrupt file: fall back to an older one
             detail = (str(e).strip().splitlines() or [""])[0][:120]
             print(f"relayrl: checkpoint {path} is unreadable ({type(e).__name__}: {detail}); trying an older one",

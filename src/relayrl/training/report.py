@@ -112,7 +112,10 @@ class RunReport:
     def request_stop(self, signum: int) -> None:
         """A signal asked the run to stop: the driver stops at its next check, as for a callback."""
         self.stop_requested, self.interrupted = True, signum
-        self.say("relayrl: stopping at the end of this iteration to save a checkpoint (Ctrl-C again stops at once)")
+        # with checkpoints off, only the policy is saved: promising a checkpoint would mislead
+        saved = "a checkpoint" if self.config.train.checkpoint_interval else \
+            "the policy (train.checkpoint_interval = 0: no checkpoint)"
+        self.say(f"relayrl: stopping at the end of this iteration to save {saved} (Ctrl-C again stops at once)")
 
     def say(self, text: str) -> None:
         if self.bar is not None and not self.bar.disable:

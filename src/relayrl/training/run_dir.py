@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import shutil
 from pathlib import Path
 from typing import Any
@@ -15,6 +16,17 @@ try:
     import fcntl
 except ImportError:  # Windows: runs are not locked against each other there
     fcntl = None  # type: ignore[assignment]
+
+_CHECKPOINT = re.compile(r"^ckpt-(\d{12})\.pt$")
+
+
+def list_checkpoints(folder: Path) -> list[Path]:
+    """Complete checkpoints, oldest first. Here, not in checkpoint.py, because listing them needs no
+    torch: the line printed on Ctrl-C asks for them, when torch may be half-imported (importing it
+    again then raises or crashes)."""
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if _CHECKPOINT.match(p.name))
 
 
 class RunDir:
@@ -70,10 +82,13 @@ class RunDir:
                                 f"{'file' if folder else 'directory'}, where a run keeps its "
                                 f"{'folder' if folder else 'file'} of that name: move it away, or choose another "
                                 "--run-dir")
+            # a read-only folder (or mount) inside a writable run directory: TensorBoard's writer thread
+            # would fail on it with a traceback once the run has started
+            if path.exists() and not os.access(path, os.W_OK | (os.X_OK if folder else 0)):
+                raise UserError(f"--run-dir {str(self.root)!r}: no permission to write in {str(path)!r}: make it "
+                                "writable, or choose another --run-dir")
 
     def has_checkpoint(self) -> bool:
-        from relayrl.training.checkpoint import list_checkpoints
-
         return bool(list_checkpoints(self.checkpoints))
 
     def clear(self) -> None:
@@ -117,24 +132,30 @@ class RunDir:
         if not self.metrics.is_file():
             return []
         rows = []
-        for line in self.metrics.read_text().splitlines():
+        # bytes that are not UTF-8 spoil only their own line: it is then not JSON and is passed over
+        for line in self.metrics.read_text(errors="replace").splitlines():
             try:
-                rows.append(json.loads(line))
+                row = json.loads(line)
             except json.JSONDecodeError:
                 continue  # a line cut short by a crash; the rest is intact
+            if isinstance(row, dict) and type(row.get("step")) is int:  # a run's rows; not a line added by hand
+                rows.append(row)
         return rows
 
-    def trained_to(self) -> int:
+    def trained_to(self, read_policy: bool = True) -> int:
         """How far the run got, as far as its files say: the later of metrics.jsonl's last
-        evaluation and the saved policy's env step (0: it never trained past the start)."""
-        from relayrl.policy_file import load_policy_file
-
+        evaluation and the saved policy's env step (0: it never trained past the start).
+        `read_policy=False` leaves the policy file (read with torch) out."""
         rows = self.read_metrics()
         policy = self.policy / "policy.pt"
-        try:
-            saved = int(load_policy_file(policy).get("env_steps", 0)) if policy.is_file() else 0
-        except UserError:  # an unreadable policy file says nothing about how far the run got
-            saved = 0
+        saved = 0
+        if read_policy and policy.is_file():
+            from relayrl.policy_file import load_policy_file
+
+            try:
+                saved = int(load_policy_file(policy).get("env_steps", 0))
+            except UserError:  # an unreadable policy file says nothing about how far the run got
+                pass
         return max(int(rows[-1].get("step", 0)) if rows else 0, saved)
 
     def truncate_metrics(self, after_step: int) -> list[dict[str, Any]]:
