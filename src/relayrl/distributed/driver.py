@@ -115,6 +115,11 @@ class RayDriver:
         workers = self.pool.eval_workers
         self._finish_evals(until=len(workers) - 1)  # one in flight per eval actor; rows stay in step order
         self.pusher.push(force=True)  # the eval actor evaluates these weights (or newer)
+        if self.pusher.last_ref is not None:
+            # Ray orders nothing between two actors: unwaited, the eval actor's pull could reach
+            # the container before the push and evaluate older weights (at step 0 its own
+            # untrained network, policy version 0, not the learner's).
+            self.ray.get(self.pusher.last_ref)
         seed = self.seeds.base("evaluation") + EVAL_STRIDE * self.eval_count
         w = self.eval_count % len(workers)
         self.evals.append((workers[w].evaluate.remote(seed), p, time.perf_counter(), self.core.wall_time(), w, seed))
