@@ -555,3 +555,17 @@ def test_an_evaluation_on_ray_waits_for_the_push_of_the_weights_it_evaluates():
     d, _ = fake_eval_driver(calls, {})
     d.evaluate_now(Progress(0, 0))
     assert calls == ["push", "get push", "evaluate"]
+
+
+def test_a_ray_evaluation_row_has_the_training_state_of_its_step_not_of_its_answer():
+    # The eval actor answers while the learner trains on: the row written then must not carry
+    # losses and training returns from later steps (a step-0 row with losses from training).
+    from relayrl.training.triggers import Progress
+
+    losses: dict[str, float] = {}
+    d, rows = fake_eval_driver([], losses)
+    d.evaluate_now(Progress(0, 0))
+    losses["losses/loss"] = 1.5  # the learner trained before the evaluation answered
+    d.settle_evals()
+    assert rows[0]["p"] == Progress(0, 0)
+    assert "losses/loss" not in rows[0]["at_step"] and rows[0]["at_step"]["train/episodes"] == 0
