@@ -569,3 +569,24 @@ def test_a_ray_evaluation_row_has_the_training_state_of_its_step_not_of_its_answ
     d.settle_evals()
     assert rows[0]["p"] == Progress(0, 0)
     assert "losses/loss" not in rows[0]["at_step"] and rows[0]["at_step"]["train/episodes"] == 0
+
+
+def test_every_rollout_actor_given_up_is_one_line(tmp_path):
+    # An env that kills its worker process each time: past max_restarts the run stops with one
+    # line (the CLI's exit 2), not Ray's chained ActorDiedError traceback.
+    from types import SimpleNamespace
+
+    from relayrl.distributed.actors import ActorPool
+
+    said: list[str] = []
+    config = relayrl.load_config("dqn-cartpole-fast", ["distributed.num_actors=1", "distributed.max_restarts=0"])
+    pool = ActorPool(SimpleNamespace(), config, said.append)
+    with pytest.raises(UserError) as e:
+        try:
+            raise RuntimeError("Ray's ActorDiedError")
+        except RuntimeError as died:
+            pool._on_death(0, died)
+    assert str(e.value) == ("every rollout actor died, each past distributed.max_restarts=0 (the lines above say "
+                            "why)")
+    assert e.value.__suppress_context__
+    assert said == ["rollout actor 0 died and is not restarted again (distributed.max_restarts=0)"]
