@@ -509,3 +509,84 @@ def test_an_env_made_in_the_script_is_refused_for_ray_in_one_line(tmp_path, env_
     with pytest.raises(UserError, match="Ray's workers cannot import: put it in a module"):
         relayrl.train(config, tmp_path / "run", progress=False)
     assert not (tmp_path / "run" / "metrics.jsonl").exists()
+
+
+def fake_eval_driver(calls: list[str], losses: dict[str, float]):
+    """A RayDriver with fake Ray, pusher, actors and report: evaluate_now's order of calls and
+    the rows it records, without a Ray instance."""
+    from collections import deque
+    from types import SimpleNamespace
+
+    from relayrl.distributed.driver import RayDriver
+    from relayrl.seeding import RunSeeds
+
+    class Pusher:
+        last_ref = "push"
+
+        def push(self, force: bool = False) -> None:
+            calls.append("push")
+
+    def evaluate(seed: int) -> str:
+        calls.append("evaluate")
+        return "eval"
+
+    rows: list[dict] = []
+    stats = {"train/average_return": float("nan"), "train/episodes": 0}
+    report = SimpleNamespace(training_summary=lambda: dict(stats), losses=lambda: dict(losses),
+                             record_eval=lambda p, result, eval_s, **kw: rows.append({"p": p, **kw}))
+    d = object.__new__(RayDriver)
+    d.config = relayrl.load_config("dqn-cartpole-fast", ["distributed.num_actors=1"])
+    d.ray = SimpleNamespace(get=lambda ref: calls.append(f"get {ref}") or {"policy_version": 1},
+                            wait=lambda refs, timeout: (refs, []))
+    d.pusher, d.seeds, d.evals, d.eval_count = Pusher(), RunSeeds(0), deque(), 0
+    d.pool = SimpleNamespace(eval_workers=[SimpleNamespace(evaluate=SimpleNamespace(remote=evaluate))], alive=1)
+    d.collection = SimpleNamespace(eval_extra=dict)
+    d.core = SimpleNamespace(report=report, wall_time=lambda: 0.0)
+    return d, rows
+
+
+def test_an_evaluation_on_ray_waits_for_the_push_of_the_weights_it_evaluates():
+    # Ray orders nothing between the learner's push (to the variable container) and the eval
+    # actor's pull: unwaited, the step-0 evaluation could run the eval actor's own untrained
+    # network (policy_version 0) instead of the learner's.
+    from relayrl.training.triggers import Progress
+
+    calls: list[str] = []
+    d, _ = fake_eval_driver(calls, {})
+    d.evaluate_now(Progress(0, 0))
+    assert calls == ["push", "get push", "evaluate"]
+
+
+def test_a_ray_evaluation_row_has_the_training_state_of_its_step_not_of_its_answer():
+    # The eval actor answers while the learner trains on: the row written then must not carry
+    # losses and training returns from later steps (a step-0 row with losses from training).
+    from relayrl.training.triggers import Progress
+
+    losses: dict[str, float] = {}
+    d, rows = fake_eval_driver([], losses)
+    d.evaluate_now(Progress(0, 0))
+    losses["losses/loss"] = 1.5  # the learner trained before the evaluation answered
+    d.settle_evals()
+    assert rows[0]["p"] == Progress(0, 0)
+    assert "losses/loss" not in rows[0]["at_step"] and rows[0]["at_step"]["train/episodes"] == 0
+
+
+def test_every_rollout_actor_given_up_is_one_line(tmp_path):
+    # An env that kills its worker process each time: past max_restarts the run stops with one
+    # line (the CLI's exit 2), not Ray's chained ActorDiedError traceback.
+    from types import SimpleNamespace
+
+    from relayrl.distributed.actors import ActorPool
+
+    said: list[str] = []
+    config = relayrl.load_config("dqn-cartpole-fast", ["distributed.num_actors=1", "distributed.max_restarts=0"])
+    pool = ActorPool(SimpleNamespace(), config, said.append)
+    with pytest.raises(UserError) as e:
+        try:
+            raise RuntimeError("Ray's ActorDiedError")
+        except RuntimeError as died:
+            pool._on_death(0, died)
+    assert str(e.value) == ("every rollout actor died, each past distributed.max_restarts=0 (the lines above say "
+                            "why)")
+    assert e.value.__suppress_context__
+    assert said == ["rollout actor 0 died and is not restarted again (distributed.max_restarts=0)"]

@@ -252,8 +252,10 @@ class ActorPool:
             self.restarting.discard(i)
             self.say(f"rollout actor {i} died and is not restarted again (distributed.max_restarts={d.max_restarts})")
             if len(self.dead) == self.num_actors:
-                # run_to_end's note says what the run keeps and how it resumes
-                raise RuntimeError("every rollout actor died, each past distributed.max_restarts")
+                # One line, not Ray's chained traceback: why each died was said above, and
+                # run_to_end adds what the run keeps and how --resume continues it.
+                raise UserError(f"every rollout actor died, each past distributed.max_restarts={d.max_restarts} "
+                                "(the lines above say why)") from None
             return
         self.restarting.add(i)
         self.say(f"rollout actor {i} died ({why}); Ray restarts it and it goes on from the "

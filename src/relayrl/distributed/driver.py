@@ -55,7 +55,8 @@ class RayDriver:
         self.seeds, self.device = start_process(c)
         ray = self.ray = require_ray()
         self.eval_count = 0
-        self.evals: deque[tuple[Any, Progress, float, float, int, int]] = deque()  # in flight, oldest first
+        # in flight, oldest first: (call, progress, start, wall time, eval actor, seed, the row's training state)
+        self.evals: deque[tuple[Any, Progress, float, float, int, int, dict[str, Any]]] = deque()
         check_user_env(c, None, say)
         # The specs, from one copy of the env here (a bad env id fails before any actor starts).
         probe = make_env(c.env.id, 1, c.env.max_episode_steps, kwargs=c.env.kwargs, wrappers=c.env.wrappers)
@@ -115,9 +116,19 @@ class RayDriver:
         workers = self.pool.eval_workers
         self._finish_evals(until=len(workers) - 1)  # one in flight per eval actor; rows stay in step order
         self.pusher.push(force=True)  # the eval actor evaluates these weights (or newer)
+        if self.pusher.last_ref is not None:
+            # Ray orders nothing between two actors: unwaited, the eval actor's pull could reach
+            # the container before the push and evaluate older weights (at step 0 its own
+            # untrained network, policy version 0, not the learner's).
+            self.ray.get(self.pusher.last_ref)
         seed = self.seeds.base("evaluation") + EVAL_STRIDE * self.eval_count
         w = self.eval_count % len(workers)
-        self.evals.append((workers[w].evaluate.remote(seed), p, time.perf_counter(), self.core.wall_time(), w, seed))
+        # The row's training returns and losses are this step's: training goes on while the
+        # eval actor runs, and the row is written when it answers.
+        report = self.core.report
+        state = {**report.training_summary(), **report.losses(), **self.collection.eval_extra()}
+        self.evals.append((workers[w].evaluate.remote(seed), p, time.perf_counter(), self.core.wall_time(), w, seed,
+                           state))
         self.eval_count += covers_boundary(p.env_steps, self.config.eval.interval, self.eval_count)
 
     def settle_evals(self) -> None:
@@ -128,7 +139,7 @@ class RayDriver:
         are in flight (None: never wait)."""
         ray = self.ray
         while self.evals:
-            ref, p, t0, wall, w, seed = self.evals[0]
+            ref, p, t0, wall, w, seed, state = self.evals[0]
             must = until is not None and len(self.evals) > until
             if not must and not ray.wait([ref], timeout=0)[0]:
                 return
@@ -137,13 +148,12 @@ class RayDriver:
             except ray.exceptions.RayActorError as e:  # restarted by Ray: evaluate again
                 self.core.say(f"eval actor {w} died ({type(e).__name__}); Ray restarts it and the evaluation "
                               "is repeated")
-                self.evals[0] = (self.pool.eval_workers[w].evaluate.remote(seed), p, t0, wall, w, seed)
+                self.evals[0] = (self.pool.eval_workers[w].evaluate.remote(seed), p, t0, wall, w, seed, state)
                 continue
             self.evals.popleft()
             version = result.pop("policy_version")
-            self.core.report.record_eval(p, result, time.perf_counter() - t0, wall_time_s=wall,
-                                         extra={"policy_version": version, "actors_alive": self.pool.alive,
-                                                **self.collection.eval_extra()})
+            self.core.report.record_eval(p, result, time.perf_counter() - t0, wall_time_s=wall, at_step=state,
+                                         extra={"policy_version": version, "actors_alive": self.pool.alive})
 
     def checkpoint_state(self) -> dict[str, Any]:
         return {**self.core.checkpoint_common(self.eval_count), "distributed": {"num_actors": self.pool.num_actors},

@@ -183,12 +183,15 @@ class RunReport:
                 f"| last eval return {'-' if last is None else f'{last:.2f}'} | {self.wall_time():.0f}s")
 
     def record_eval(self, p: Progress, result: dict[str, Any], eval_s: float, wall_time_s: float | None = None,
-                    extra: dict[str, Any] | None = None) -> None:
+                    extra: dict[str, Any] | None = None, at_step: dict[str, Any] | None = None) -> None:
+        """`wall_time_s` and `at_step` (the training summary and losses) as they were at `p`, for
+        an evaluation recorded later than it ran (on Ray); by default, now."""
         assert self.metrics_log is not None, "record_eval before open"
         wall = self.wall_time() if wall_time_s is None else wall_time_s
+        state = {**self.training_summary(), **self.losses()} if at_step is None else at_step
         row = {"step": p.env_steps, "train_step": p.train_step, **result,
-               "wall_time_s": round(wall, 3), "eval_s": round(eval_s, 3), **self.training_summary(),
-               **self.losses(), **self.schedule_values(p), **(extra or {})}
+               "wall_time_s": round(wall, 3), "eval_s": round(eval_s, 3), **state,
+               **self.schedule_values(p), **(extra or {})}
         self.metrics_log.write(row)
         self.tb.add_scalar("eval/average_return", result["average_return"], p.env_steps)
         self.tb.add_scalar("eval/average_episode_length", result["average_episode_length"], p.env_steps)
