@@ -275,3 +275,16 @@ def test_continuous_shared_async_run_resumes_bit_exact(tmp_path):
     policy = relayrl.load_policy(tmp_path / "full", deterministic=False, seed=0)
     a = policy(torch.zeros(100, 2))
     assert a.shape == (100, 2) and a.std(0).min() > 0.1  # sampled around the mean
+
+
+def test_squashed_and_clipped_actions_stay_inside_float32_bounds():
+    """loc + scale * tanh(u) at tanh = -1 is 0.099999994 for Box(0.1, 0.3) in float32: to_bounds
+    clips the squashed action too, so an env checking action_space.contains takes it."""
+    from relayrl.agents.ppo.distributions import to_bounds
+
+    low, high = torch.tensor([0.1]), torch.tensor([0.3])
+    u = torch.tensor([[-50.0], [50.0], [0.0]])
+    for tanh in (True, False):
+        a = to_bounds(u, low, high, tanh)
+        assert a.dtype == torch.float32 and bool(((a >= low) & (a <= high)).all()), (tanh, a)
+    assert to_bounds(u, low, high, True)[:2, 0].tolist() == [low.item(), high.item()]

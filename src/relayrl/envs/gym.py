@@ -104,7 +104,12 @@ class BatchEnvBase(BatchedEnv):
         self._obs_dtype = numpy_dtype(self.observation_spec)
         # actions are given in the space's own dtype (an env may check action_space.contains)
         self._env_action_dtype = env_numpy_dtype(self.action_spec) if isinstance(self.action_spec, ArraySpec) else None
-        self._action_bounds = box_bounds(action_space)
+        # relayrl's policies keep their float32 actions inside the float32 bounds; where the env's
+        # dtype is another, the cast can land a rounding step past its own bounds (0.3 in float32
+        # is 0.30000001192 in float64): those actions are clipped again, in the env's dtype
+        # (np.dtype(None) is float64: `in (None, ...)` would match it)
+        other = self._env_action_dtype is not None and self._env_action_dtype != np.float32
+        self._action_bounds = box_bounds(action_space) if other else None
         # Dict / Tuple observations travel as packed byte rows (specs.PackedSpec); None: as they are
         self._pack = self.observation_spec.pack if isinstance(self.observation_spec, PackedSpec) else None
         self._discrete = isinstance(action_space, gym.spaces.Discrete)
@@ -150,10 +155,7 @@ class BatchEnvBase(BatchedEnv):
         if self._env_action_dtype is not None and act.dtype != self._env_action_dtype:
             act = act.astype(self._env_action_dtype)
         act = act if self._env_action_shape is None else act.reshape(self.num_envs, *self._env_action_shape)
-        if self._action_bounds is not None:
-            # A policy's float32 arithmetic can land a rounding step past a bound (SAC's loc + half *
-            # tanh(u) at tanh = +-1; a float64 bound rounded to float32): the env gets an action its own
-            # space contains. A new array: the policy's tensor may be what a rollout keeps (PPO's sample).
+        if self._action_bounds is not None:  # a new array (astype's, or the policy's tensor a rollout keeps)
             act = np.clip(act, *self._action_bounds)
         return act
 

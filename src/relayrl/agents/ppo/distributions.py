@@ -59,9 +59,10 @@ def log_prob_entropy(out: torch.Tensor, log_std: torch.Tensor | None, action: to
 
 def to_bounds(u: torch.Tensor, low: torch.Tensor, high: torch.Tensor, tanh: bool) -> torch.Tensor:
     """The env action for a Gaussian sample (or mean) u: clip(u, low, high), or with tanh
-    squashing loc + scale * tanh(u), loc and scale the bounds' midpoint and half-width."""
+    squashing loc + scale * tanh(u), loc and scale the bounds' midpoint and half-width (clipped
+    too: at tanh = +-1 that sum can round a float32 step past a bound)."""
     if tanh:
-        return (high + low) / 2 + (high - low) / 2 * torch.tanh(u)
+        u = (high + low) / 2 + (high - low) / 2 * torch.tanh(u)
     return torch.minimum(torch.maximum(u, low), high)
 
 
