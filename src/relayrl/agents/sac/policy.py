@@ -21,6 +21,9 @@ def load(state: dict[str, Any], device: torch.device, deterministic: bool, seed:
 class TanhMean(nn.Module):
     """loc + scale * tanh(mean): the action at the Gaussian's mean."""
 
+    low: torch.Tensor  # buffers
+    high: torch.Tensor
+
     def __init__(self, state: dict[str, Any]) -> None:
         super().__init__()
         self.net = saved_network(state, 2 * state["action_dim"])
