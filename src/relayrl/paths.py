@@ -1,13 +1,18 @@
-"""Where `plot`, `video` and `export` write: a file the user names (`--out`), its folder created."""
+"""Where `plot`, `video` and `export` write: a file the user names (`--out`), its folder created;
+and the name a run's checkpoints have."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
 from relayrl.errors import UserError
+
+# RUN_DIR/checkpoints/ckpt-<env steps, 12 digits>.pt (the temp name of one being written never matches)
+CHECKPOINT_NAME = re.compile(r"^ckpt-(\d{12})\.pt$")
 
 
 def is_folder(out: str | Path) -> bool:

@@ -11,7 +11,6 @@ state and are as trusted as code (`training/checkpoint.py`).
 from __future__ import annotations
 
 import pickle
-import re
 import zipfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -22,6 +21,7 @@ import torch
 from relayrl import atomic
 from relayrl.arrays import torch_dtype
 from relayrl.errors import UserError
+from relayrl.paths import CHECKPOINT_NAME
 from relayrl.specs import ArraySpec, Spec
 
 if TYPE_CHECKING:
@@ -115,7 +115,7 @@ def _other_relayrl_file(path: Path) -> str | None:
     run = _EXPORTED.get(path.suffix.lower())
     if run:
         return f"a program written by relayrl export, not a policy file: run it with {run}"
-    if re.fullmatch(r"ckpt-\d{12}\.pt", path.name):
+    if CHECKPOINT_NAME.match(path.name):
         return "a training checkpoint (what --resume reads), not a policy file"
     return None
 

@@ -5,20 +5,17 @@ from __future__ import annotations
 import json
 import math
 import os
-import re
 import shutil
 from pathlib import Path
 from typing import Any
 
 from relayrl.errors import UserError
+from relayrl.paths import CHECKPOINT_NAME
 
 try:
     import fcntl
 except ImportError:  # Windows: runs are not locked against each other there
     fcntl = None  # type: ignore[assignment]
-
-_CHECKPOINT = re.compile(r"^ckpt-(\d{12})\.pt$")
-
 
 def list_checkpoints(folder: Path) -> list[Path]:
     """Complete checkpoints, oldest first. Here, not in checkpoint.py, because listing them needs no
@@ -26,7 +23,7 @@ def list_checkpoints(folder: Path) -> list[Path]:
     again then raises or crashes)."""
     if not folder.is_dir():
         return []
-    return sorted(p for p in folder.iterdir() if _CHECKPOINT.match(p.name))
+    return sorted(p for p in folder.iterdir() if CHECKPOINT_NAME.match(p.name))
 
 
 class RunDir:
