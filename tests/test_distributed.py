@@ -532,7 +532,7 @@ def fake_eval_driver(calls: list[str], losses: dict[str, float]):
 
     rows: list[dict] = []
     stats = {"train/average_return": float("nan"), "train/episodes": 0}
-    report = SimpleNamespace(training_summary=lambda: dict(stats), losses=lambda: dict(losses),
+    report = SimpleNamespace(training_state=lambda: {**stats, **losses},
                              record_eval=lambda p, result, eval_s, **kw: rows.append({"p": p, **kw}))
     d = object.__new__(RayDriver)
     d.config = relayrl.load_config("dqn-cartpole-fast", ["distributed.num_actors=1"])

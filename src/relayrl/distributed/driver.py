@@ -125,8 +125,7 @@ class RayDriver:
         w = self.eval_count % len(workers)
         # The row's training returns and losses are this step's: training goes on while the
         # eval actor runs, and the row is written when it answers.
-        report = self.core.report
-        state = {**report.training_summary(), **report.losses(), **self.collection.eval_extra()}
+        state = {**self.core.report.training_state(), **self.collection.eval_extra()}
         self.evals.append((workers[w].evaluate.remote(seed), p, time.perf_counter(), self.core.wall_time(), w, seed,
                            state))
         self.eval_count += covers_boundary(p.env_steps, self.config.eval.interval, self.eval_count)

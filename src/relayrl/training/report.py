@@ -174,6 +174,10 @@ class RunReport:
                 "train/episodes": self.stats.episodes,
                 **{f"train/{k}": v for k, v in self.stats.info_means().items()}}
 
+    def training_state(self) -> dict[str, Any]:
+        """What an evaluation row says of training at its step: the training episodes and losses."""
+        return {**self.training_summary(), **self.losses()}
+
     def progress_line(self) -> str:
         """The line printed every 30 s where there is no progress bar (no terminal)."""
         p, total = self.progress(), self.config.train.total_steps
@@ -184,11 +188,11 @@ class RunReport:
 
     def record_eval(self, p: Progress, result: dict[str, Any], eval_s: float, wall_time_s: float | None = None,
                     extra: dict[str, Any] | None = None, at_step: dict[str, Any] | None = None) -> None:
-        """`wall_time_s` and `at_step` (the training summary and losses) as they were at `p`, for
-        an evaluation recorded later than it ran (on Ray); by default, now."""
+        """`wall_time_s` and `at_step` (`training_state`) as they were at `p`, for an evaluation
+        recorded later than it ran (on Ray); by default, now."""
         assert self.metrics_log is not None, "record_eval before open"
         wall = self.wall_time() if wall_time_s is None else wall_time_s
-        state = {**self.training_summary(), **self.losses()} if at_step is None else at_step
+        state = self.training_state() if at_step is None else at_step
         row = {"step": p.env_steps, "train_step": p.train_step, **result,
                "wall_time_s": round(wall, 3), "eval_s": round(eval_s, 3), **state,
                **self.schedule_values(p), **(extra or {})}
