@@ -40,11 +40,11 @@ class SACAgent(Agent):
         self.actor_opt = FastAdam(self.actor.parameters(), lr=cfg.actor_lr)
         self.critic_opt = FastAdam(self.critic.parameters(), lr=cfg.critic_lr)
         self.alpha_opt = FastAdam([self.log_alpha], lr=cfg.alpha_lr)
+        # each optimizer with its configured rate: the schedule starts from it, a resume restores it
+        self._rates = ((self.actor_opt, cfg.actor_lr), (self.critic_opt, cfg.critic_lr), (self.alpha_opt, cfg.alpha_lr))
         # agent.lr_end >= 0: each optimizer's lr linear in env steps to lr_end (set_progress), as
         # SB3 applies its one schedule to actor, critic and alpha; both updates read opt.lr.
-        self._lr_at = ([(opt, linear_schedule(lr, cfg.lr_end, total_steps)) for opt, lr in
-                        ((self.actor_opt, cfg.actor_lr), (self.critic_opt, cfg.critic_lr),
-                         (self.alpha_opt, cfg.alpha_lr))]
+        self._lr_at = ([(opt, linear_schedule(lr, cfg.lr_end, total_steps)) for opt, lr in self._rates]
                        if cfg.lr_end >= 0 and total_steps > 0 else [])
         a_dim = int(np.prod(self.action_spec.shape))
         self.target_entropy = float(-a_dim if cfg.target_entropy is None else cfg.target_entropy)
@@ -132,8 +132,8 @@ class SACAgent(Agent):
         if not self._lr_at:
             # Constant learning rates are the config's, not the checkpoint's: a resume may change
             # them (--set agent.actor_lr=...). A schedule (agent.lr_end) sets them at every step.
-            cfg = self.cfg
-            self.actor_opt.lr, self.critic_opt.lr, self.alpha_opt.lr = cfg.actor_lr, cfg.critic_lr, cfg.alpha_lr
+            for opt, lr in self._rates:
+                opt.lr = lr
         self.train_step = int(state["train_step"])
         self.rng.bit_generator.state = state["rng"]
         self.gen.set_state(state["gen"])
