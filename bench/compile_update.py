@@ -1,28 +1,35 @@
 """Does torch.compile make the reference update as fast as the hand-written gradients on a CPU?
 
-    python bench/compile_update.py [--rounds 5] [--steps 300] [--threads 1] [--only dqn sac]
+    python bench/compile_update.py [--rounds 5] [--steps 300] [--threads 1] [--only dqn sac ppo]
                                    [--dqn-hidden 64,64 256,256]
 
-One gradient step, three ways, timed in the same process round by round (medians; ratios
+One gradient step, several ways, timed in the same process round by round (medians; ratios
 carry over between machines, absolute times do not):
 
   hand-written  the agent's `train(batch)` as relayrl runs it (nn/mlp_fast.py + losses_fast.py)
-  eager         the reference: the pure loss (agents/*/losses.py), autograd, torch.optim.Adam
+  autograd      the agent's autograd update (`hand_written=False`): its reference on a CPU
+  eager         a bare reference: the pure loss (agents/*/losses.py), autograd, torch.optim.Adam
   compiled      the same reference step under torch.compile (inductor, default mode)
   one graph     the reference losses through torch.func.grad_and_value, gradient clipping
                 (DQN) and Adam written out, the whole step one torch.compile(fullgraph=True)
                 graph (LeanRL's shape, less the CUDA graph); SAC's draws its noise once, so
                 it times the maths, not the agent's exact step
+  losses compiled  the agent's autograd update with RELAYRL_COMPILE=1 (nn/graphed.py: its loss
+                functions through torch.compile, the backward pass and Adam as they are):
+                relayrl's own compiled path, which its CUDA graphs capture on a GPU
 
 Settings: DQN with `--dqn-hidden` ReLU layers (64x64 by default; RL Zoo's CartPole network and
 dqn-cartpole-fast's are 256x256), batch 64, Huber, grad clip 10; SAC with SB3's Pendulum
-defaults (256x256, batch 256, auto entropy). The compiled column
-excludes compilation (done in warm-up); its compile time is printed on its own.
+defaults (256x256, batch 256, auto entropy); PPO with ppo-stateless-pendulum's (separate 64x64
+tanh actor and critic, a minibatch of 2,048, no gradient clip). The compiled columns exclude
+compilation (done in warm-up); the compile time is printed on its own, and after the table the
+operators one step launches, autograd against losses compiled.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 from collections.abc import Callable
@@ -34,6 +41,7 @@ from torch.func import functional_call, grad_and_value
 
 from relayrl.agents.dqn import DQNAgent, DQNConfig
 from relayrl.agents.dqn.losses import dqn_loss
+from relayrl.agents.ppo import PPOAgent, PPOConfig
 from relayrl.agents.sac import SACAgent, SACConfig
 from relayrl.agents.sac.losses import actor_loss, alpha_loss, critic_loss, critic_targets, tanh_gaussian
 from relayrl.envs import make_env
@@ -66,8 +74,53 @@ def dqn_steps(batch_size: int, hidden: list[int]) -> dict[str, Callable[[], obje
         opt.step()
         return loss.detach()
 
-    return {"hand-written": lambda: agent.train(batch), "eager": reference, "compiled": torch.compile(reference),
-            "one graph": torch.compile(one_graph_dqn_step(online, target, batch), fullgraph=True)}
+    def autograd() -> DQNAgent:
+        return DQNAgent(ArraySpec((4,), torch.float32), DiscreteSpec(2), cfg, torch.device("cpu"),
+                        np.random.default_rng(0), hand_written=False)
+
+    relayrl_eager = autograd()
+    with compiled_losses():
+        relayrl_compiled = autograd()
+    return {"hand-written": lambda: agent.train(batch), "autograd": lambda: relayrl_eager.train(batch),
+            "eager": reference, "compiled": torch.compile(reference),
+            "one graph": torch.compile(one_graph_dqn_step(online, target, batch), fullgraph=True),
+            "losses compiled": lambda: relayrl_compiled.train(batch)}
+
+
+class compiled_losses:
+    """Agents built inside it compile their losses (RELAYRL_COMPILE=1, read when they are built)."""
+
+    def __enter__(self) -> None:
+        self.before = os.environ.get("RELAYRL_COMPILE")
+        os.environ["RELAYRL_COMPILE"] = "1"
+
+    def __exit__(self, *exc: object) -> None:
+        if self.before is None:
+            os.environ.pop("RELAYRL_COMPILE", None)
+        else:
+            os.environ["RELAYRL_COMPILE"] = self.before
+
+
+def ppo_steps(batch_size: int) -> dict[str, Callable[[], object]]:
+    """One minibatch step of ppo-stateless-pendulum's agent: hand-written, autograd, autograd
+    with compiled losses."""
+    cfg = PPOConfig(hidden=[64, 64], activation="tanh", shared=False, batch_size=batch_size, max_grad_norm=0.0,
+                    ent_coef=0.0, gamma=0.9)
+    obs_spec = ArraySpec((3,), torch.float32)
+    act_spec = ArraySpec((1,), torch.float32, np.full(1, -2.0), np.full(1, 2.0))
+
+    def agent(hand_written: bool) -> PPOAgent:
+        return PPOAgent(obs_spec, act_spec, cfg, torch.device("cpu"), np.random.default_rng(0),
+                        hand_written=hand_written)
+
+    fast, eager = agent(True), agent(False)
+    with compiled_losses():
+        relayrl_compiled = agent(False)
+    g = torch.Generator().manual_seed(0)
+    n = batch_size
+    minibatch = (torch.randn(n, 3, generator=g), torch.randn(n, 1, generator=g), *torch.randn(4, n, generator=g))
+    return {"hand-written": lambda: fast.update(*minibatch, 0.2), "autograd": lambda: eager.update(*minibatch, 0.2),
+            "losses compiled": lambda: relayrl_compiled.update(*minibatch, 0.2)}
 
 
 def one_graph_dqn_step(online: MLP, target: MLP, batch: Batch) -> Callable[[], torch.Tensor]:
@@ -167,8 +220,14 @@ def sac_steps(batch_size: int) -> dict[str, Callable[[], object]]:
         return F.relu(c_loss.detach())
 
     one = one_graph_sac_step(actor, critics, targets, batch, -float(a))
-    return {"hand-written": lambda: agent.train(batch), "eager": reference, "compiled": torch.compile(reference),
-            "one graph": torch.compile(one, fullgraph=True)}
+    relayrl_eager = SACAgent(obs_spec, act_spec, cfg, torch.device("cpu"), np.random.default_rng(0),
+                             hand_written=False)
+    with compiled_losses():
+        relayrl_compiled = SACAgent(obs_spec, act_spec, cfg, torch.device("cpu"), np.random.default_rng(0),
+                                    hand_written=False)
+    return {"hand-written": lambda: agent.train(batch), "autograd": lambda: relayrl_eager.train(batch),
+            "eager": reference, "compiled": torch.compile(reference),
+            "one graph": torch.compile(one, fullgraph=True), "losses compiled": lambda: relayrl_compiled.train(batch)}
 
 
 def one_graph_sac_step(actor: MLP, critics: list[MLP], targets: list[MLP], batch: Batch,
@@ -223,6 +282,16 @@ def one_graph_sac_step(actor: MLP, critics: list[MLP], targets: list[MLP], batch
     return step
 
 
+def top_level_ops(fn: Callable[[], object]) -> int:
+    """Operators one step launches, as torch.profiler sees them at the top level (on a GPU,
+    about the kernels a CUDA graph of the step holds)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        fn()
+    return sum(1 for e in prof.events() if e.cpu_parent is None)
+
+
 def per_step_us(fn: Callable[[], object], steps: int) -> float:
     t0 = time.perf_counter()
     for _ in range(steps):
@@ -235,7 +304,7 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=5)
     p.add_argument("--steps", type=int, default=300)
     p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--only", nargs="+", choices=["dqn", "sac"], default=["dqn", "sac"])
+    p.add_argument("--only", nargs="+", choices=["dqn", "sac", "ppo"], default=["dqn", "sac", "ppo"])
     p.add_argument("--dqn-hidden", nargs="+", default=["64,64"],
                    help="DQN hidden sizes to time, e.g. 64,64 256,256 (RL Zoo's CartPole, dqn-cartpole-fast)")
     args = p.parse_args()
@@ -247,16 +316,19 @@ def main() -> None:
             for h in args.dqn_hidden:
                 sizes = [int(x) for x in h.split(",")]
                 work.append((f"dqn {tuple(sizes)} (batch 64)", lambda sizes=sizes: dqn_steps(64, sizes)))
-        else:
+        elif name == "sac":
             work.append(("sac (256, 256) (batch 256)", lambda: sac_steps(256)))
+        else:
+            work.append(("ppo (64, 64) tanh (minibatch 2,048)", lambda: ppo_steps(2048)))
+    columns = ("hand-written", "autograd", "eager", "compiled", "one graph", "losses compiled")
+    ops: list[str] = []
     print(f"torch {torch.__version__}, {args.threads} thread(s), medians of {args.rounds} rounds x {args.steps} steps")
-    print("| update | hand-written us | eager us | compiled us | one graph us | best compiled / hand-written "
-          "| compiled / eager | compile s |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| update | " + " | ".join(f"{c} us" for c in columns) + " | best compiled / hand-written | compile s |")
+    print("|---|" + "---|" * (len(columns) + 2))
     for name, make in work:
         steps = make()
         t0 = time.perf_counter()
-        for key in ("compiled", "one graph"):
+        for key in ("compiled", "one graph", "losses compiled"):
             for _ in range(3 if key in steps else 0):
                 steps[key]()
         compile_s = time.perf_counter() - t0
@@ -267,11 +339,12 @@ def main() -> None:
             for k, fn in steps.items():
                 times[k].append(per_step_us(fn, args.steps))
         med = {k: statistics.median(v) for k, v in times.items()}
-        one = med.get("one graph")
-        best = min(med["compiled"], one or float("inf"))
-        print(f"| {name} | {med['hand-written']:.0f} | {med['eager']:.0f} | "
-              f"{med['compiled']:.0f} | {'-' if one is None else f'{one:.0f}'} | {best / med['hand-written']:.2f} | "
-              f"{med['compiled'] / med['eager']:.2f} | {compile_s:.1f} |")
+        best = min(v for k, v in med.items() if k not in ("hand-written", "autograd", "eager"))
+        cells = " | ".join(f"{med[c]:.0f}" if c in med else "-" for c in columns)
+        print(f"| {name} | {cells} | {best / med['hand-written']:.2f} | {compile_s:.1f} |")
+        ops.append(f"{name}: autograd {top_level_ops(steps['autograd'])}, "
+                   f"losses compiled {top_level_ops(steps['losses compiled'])}")
+    print("\noperators per step (torch.profiler, top level):\n" + "\n".join(ops))
 
 
 if __name__ == "__main__":

@@ -19,8 +19,11 @@ starts to the last, evaluations excluded; each run capped by steps and by --seco
   and one update per 4 env steps); a SAC update at batch 256 and a batch-1 action (ms), and the
   sac-pendulum loop they allow. Device times are taken with torch.cuda.synchronize on CUDA;
 - on CUDA, the runs of GRAPH_AB once more with RELAYRL_CUDA_GRAPHS=0 (gradient steps launched
-  kernel by kernel instead of replayed from a CUDA graph), and those of REPLAY_AB with their
-  replay where replay.device = "auto" does not put it, in the same process.
+  kernel by kernel instead of replayed from a CUDA graph), those of COMPILE_AB with
+  RELAYRL_COMPILE=1 (their losses through torch.compile inside the graphs; the figure counts from
+  the first log row after learning starts, so it leaves the compiling out, which the run's
+  `wall_s` keeps), and those of REPLAY_AB with their replay where replay.device = "auto" does
+  not put it, in the same process.
 
 The table goes to stdout and the figures to a JSON file (--out; default $OUT/gpu.json when OUT
 is set, else gpu.json). docs/benchmarks.md ("GPU figures") says how to run it on a lent GPU.
@@ -61,6 +64,8 @@ LOG_ROWS = 20  # log rows per run: the seconds cap is checked at each
 GRAPH_AB = ("ddqn-pong", "sac-pendulum", "sac-batched", "ppo-stateless-pendulum", "dqn-cartpole-fast")
 # On CUDA these also run with their replay where replay.device = "auto" does not put it (image
 # runs' frames in host memory, vector observations on the GPU): what auto's choice buys.
+# On CUDA these also run with RELAYRL_COMPILE=1 (nn/graphed.py: losses through torch.compile).
+COMPILE_AB = ("ppo-stateless-pendulum", "sac-pendulum")
 REPLAY_AB = {"ddqn-pong": "numpy", "dqn-pong-fast": "numpy", "sac-pendulum": "cuda"}
 
 
@@ -279,16 +284,19 @@ def sac_floor(device: torch.device) -> dict[str, Any]:
     return {k: round(v, 3) for k, v in out.items()}
 
 
-def variants(name: str, device: torch.device) -> list[tuple[str, torch.device, str, list[str]]]:
-    """(key, device, RELAYRL_CUDA_GRAPHS, extra overrides) for each timed run of `name`."""
-    out: list[tuple[str, torch.device, str, list[str]]] = [(name, device, "1", [])]
+def variants(name: str, device: torch.device) -> list[tuple[str, torch.device, dict[str, str], list[str]]]:
+    """(key, device, environment settings, extra overrides) for each timed run of `name`."""
+    base = {"RELAYRL_CUDA_GRAPHS": "1", "RELAYRL_COMPILE": "0"}
+    out: list[tuple[str, torch.device, dict[str, str], list[str]]] = [(name, device, base, [])]
     if device.type == "cuda" and name in GRAPH_AB:
-        out.append((f"{name}@no-graphs", device, "0", []))
+        out.append((f"{name}@no-graphs", device, {**base, "RELAYRL_CUDA_GRAPHS": "0"}, []))
+    if device.type == "cuda" and name in COMPILE_AB:
+        out.append((f"{name}@compiled", device, {**base, "RELAYRL_COMPILE": "1"}, []))
     if device.type == "cuda" and name in REPLAY_AB:
         where = REPLAY_AB[name]
-        out.append((f"{name}@replay.device={where}", device, "1", [f"replay.device={where}"]))
+        out.append((f"{name}@replay.device={where}", device, base, [f"replay.device={where}"]))
     if device.type == "cuda" and name == "dqn-cartpole-fast":
-        out.append((f"{name}@cpu", torch.device("cpu"), "1", []))
+        out.append((f"{name}@cpu", torch.device("cpu"), base, []))
     return out
 
 
@@ -301,11 +309,11 @@ def bench(device: torch.device, seconds: float, out: Path, max_steps: int = 0,
     for name, preset, overrides, steps in RUNS:
         if only and name not in only:
             continue
-        for key, dev, graphs, extra in variants(name, device)[:1] if only else variants(name, device):
+        for key, dev, settings, extra in variants(name, device)[:1] if only else variants(name, device):
             t0 = time.perf_counter()
-            before = os.environ.get("RELAYRL_CUDA_GRAPHS")
-            if not only:  # an --only run keeps the caller's setting
-                os.environ["RELAYRL_CUDA_GRAPHS"] = graphs
+            before = {k: os.environ.get(k) for k in settings}
+            if not only:  # an --only run keeps the caller's settings
+                os.environ.update(settings)
             try:
                 cap = min(steps, max_steps) if max_steps else steps
                 figures["runs"][key] = timed_run(preset, [*overrides, *extra], dev, seconds, cap)
@@ -313,10 +321,11 @@ def bench(device: torch.device, seconds: float, out: Path, max_steps: int = 0,
                 figures["runs"][key] = {"error": f"{type(e).__name__}: {e}"}
                 traceback.print_exc()
             finally:
-                if before is None:
-                    os.environ.pop("RELAYRL_CUDA_GRAPHS", None)
-                else:
-                    os.environ["RELAYRL_CUDA_GRAPHS"] = before
+                for k, v in before.items():
+                    if v is None:
+                        os.environ.pop(k, None)
+                    else:
+                        os.environ[k] = v
             print(f"  {key}: {figures['runs'][key]} ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
             out.write_text(json.dumps(figures, indent=1) + "\n")
     if not only:
@@ -395,6 +404,7 @@ def table(figures: dict[str, Any]) -> str:
 
     def graphs(key: str) -> str:
         out = f"; without CUDA graphs {sps(key + '@no-graphs')}" if key + "@no-graphs" in runs else ""
+        out += f"; losses compiled {sps(key + '@compiled')}" if key + "@compiled" in runs else ""
         other = next((k for k in runs if k.startswith(key + "@replay.device=")), None)
         return out + (f"; {other.split('@')[1]} {sps(other)}" if other else "")
 
@@ -410,7 +420,8 @@ def table(figures: dict[str, Any]) -> str:
          "LeanRL reports 725, CleanRL 127"),
         ("sac-batched (32 copies, 16 gradient steps / batched step)", sps("sac-batched") + graphs("sac-batched"),
          f"eager update b256 {floor['sac_update_b256_ms']:.2f} ms"),
-        ("ppo-stateless-pendulum (whole loop)", sps("ppo-stateless-pendulum"), "PureJaxRL-style: millions"),
+        ("ppo-stateless-pendulum (whole loop)", sps("ppo-stateless-pendulum") + graphs("ppo-stateless-pendulum"),
+         "PureJaxRL-style: millions"),
         ("dqn-cartpole-fast", sps("dqn-cartpole-fast") + graphs("dqn-cartpole-fast"),
          f"same preset on the CPU: {sps('dqn-cartpole-fast@cpu')}" if "dqn-cartpole-fast@cpu" in runs else "-"),
     ]

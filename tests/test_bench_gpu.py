@@ -46,5 +46,9 @@ def test_on_cuda_each_run_is_also_timed_with_the_replay_where_auto_does_not_put_
     keys = {name: [v[0] for v in gpu.variants(name, cuda)] for name in ("ddqn-pong", "dqn-pong-fast", "sac-pendulum")}
     assert keys["dqn-pong-fast"] == ["dqn-pong-fast", "dqn-pong-fast@replay.device=numpy"]
     assert "ddqn-pong@replay.device=numpy" in keys["ddqn-pong"] and "ddqn-pong@no-graphs" in keys["ddqn-pong"]
-    assert "sac-pendulum@replay.device=cuda" in keys["sac-pendulum"]
-    assert gpu.variants("sac-pendulum", torch.device("cpu")) == [("sac-pendulum", torch.device("cpu"), "1", [])]
+    assert "sac-pendulum@replay.device=cuda" in keys["sac-pendulum"] and "sac-pendulum@compiled" in keys["sac-pendulum"]
+    settings = {v[0]: v[2] for v in gpu.variants("sac-pendulum", cuda)}
+    assert settings["sac-pendulum@compiled"] == {"RELAYRL_CUDA_GRAPHS": "1", "RELAYRL_COMPILE": "1"}
+    assert settings["sac-pendulum@no-graphs"]["RELAYRL_CUDA_GRAPHS"] == "0"
+    base = {"RELAYRL_CUDA_GRAPHS": "1", "RELAYRL_COMPILE": "0"}
+    assert gpu.variants("sac-pendulum", torch.device("cpu")) == [("sac-pendulum", torch.device("cpu"), base, [])]

@@ -14,7 +14,7 @@ from relayrl.agents.dqn.config import DQNConfig
 from relayrl.agents.dqn.losses import dqn_loss
 from relayrl.agents.dqn.losses_fast import dqn_loss_and_grads
 from relayrl.nn import mlp_fast
-from relayrl.nn.graphed import GraphedStep, cuda_graphs_enabled
+from relayrl.nn.graphed import GraphedStep, compiled, cuda_graphs_enabled
 from relayrl.optim import FastAdam
 from relayrl.types import Batch
 
@@ -28,13 +28,18 @@ class DQNUpdate:
     def __init__(self, online: nn.Module, target: nn.Module | None, optimizer: FastAdam, cfg: DQNConfig) -> None:
         self.online, self.target, self.optimizer, self.cfg = online, target, optimizer, cfg
         self.params = list(online.parameters())
+        self.loss = compiled(self.losses)  # the losses themselves unless RELAYRL_COMPILE asks (nn/graphed.py)
+
+    def losses(self, batch: Batch, target_q: Tensor | None) -> tuple[Tensor, dict[str, Tensor]]:
+        cfg = self.cfg
+        return dqn_loss(self.online, self.target, batch, double=cfg.double, loss=cfg.loss,
+                        huber_delta=cfg.huber_delta, target_q=target_q)
 
     def __call__(self, batch: Batch, target_q: Tensor | None) -> dict[str, Tensor]:
         """One loss, gradient, clip and optimizer step; `target_q` [N, A]: the target network's
         Q(next_obs, .) computed ahead (None: computed here)."""
         cfg = self.cfg
-        loss, metrics = dqn_loss(self.online, self.target, batch, double=cfg.double, loss=cfg.loss,
-                                 huber_delta=cfg.huber_delta, target_q=target_q)
+        loss, metrics = self.loss(batch, target_q)
         self.optimizer.zero_grad()
         loss.backward()
         if cfg.grad_clip > 0:

@@ -17,7 +17,7 @@ from relayrl.agents.ppo.config import PPOConfig
 from relayrl.agents.ppo.losses import normalize, policy_loss, value_loss
 from relayrl.agents.ppo.networks import PPONetworks
 from relayrl.nn import mlp_fast
-from relayrl.nn.graphed import GraphedStep, cuda_graphs_enabled
+from relayrl.nn.graphed import GraphedStep, compiled, cuda_graphs_enabled
 from relayrl.optim import FastAdam
 
 Tensor = torch.Tensor
@@ -46,15 +46,16 @@ class PPOUpdate:
     def __init__(self, net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions) -> None:
         self.params = list(net.parameters())
         self.opt, self.cfg, self.evaluate_actions = opt, cfg, evaluate_actions
+        self.loss = compiled(self.losses)  # the losses themselves unless RELAYRL_COMPILE asks (nn/graphed.py)
 
     def epochs(self, data: tuple[Tensor, ...], orders: Tensor, clip_range: float) -> Tensor:
         """Every minibatch step of one rollout, minibatches of `agent.batch_size` (see `run_epochs`)."""
         return run_epochs(self, data, orders, self.cfg.batch_size, clip_range)
 
-    def __call__(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
-                 returns: Tensor, clip_range: float | Tensor) -> Tensor:
-        """One gradient step on a minibatch; returns [policy loss, value loss, entropy,
-        approx KL, clip fraction, loss]."""
+    def losses(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
+               returns: Tensor, clip_range: float | Tensor) -> tuple[Tensor, Tensor]:
+        """The minibatch's loss and [policy loss, value loss, entropy, approx KL, clip fraction,
+        loss] (detached)."""
         cfg = self.cfg
         if cfg.normalize_advantage:
             adv = normalize(adv)
@@ -63,13 +64,19 @@ class PPOUpdate:
         v_loss = value_loss(values, old_values, returns, cfg.clip_range_vf)
         ent_loss = -entropy.mean()  # -E[H]: ent_coef times it rewards entropy
         loss = pg_loss + cfg.ent_coef * ent_loss + cfg.vf_coef * v_loss
+        return loss, torch.stack([pg_loss.detach(), v_loss.detach(), -ent_loss.detach(), approx_kl, clip_fraction,
+                                  loss.detach()])
+
+    def __call__(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
+                 returns: Tensor, clip_range: float | Tensor) -> Tensor:
+        """One gradient step on a minibatch; returns the statistics of `losses`."""
+        loss, stats = self.loss(obs, action, old_logp, old_values, adv, returns, clip_range)
         self.opt.zero_grad()
         loss.backward()
-        if cfg.max_grad_norm > 0:
-            torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm)
+        if self.cfg.max_grad_norm > 0:
+            torch.nn.utils.clip_grad_norm_(self.params, self.cfg.max_grad_norm)
         self.opt.step()
-        return torch.stack([pg_loss.detach(), v_loss.detach(), -ent_loss.detach(), approx_kl, clip_fraction,
-                            loss.detach()])
+        return stats
 
 
 class HandWrittenPPOUpdate(PPOUpdate):

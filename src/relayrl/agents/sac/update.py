@@ -14,7 +14,7 @@ import torch
 from relayrl.agents.sac import losses_fast
 from relayrl.agents.sac.losses import actor_loss, alpha_loss, critic_loss, critic_targets, tanh_gaussian
 from relayrl.nn import mlp_fast
-from relayrl.nn.graphed import GraphedStep, cuda_graphs_enabled
+from relayrl.nn.graphed import GraphedStep, compiled, cuda_graphs_enabled
 from relayrl.optim import FastAdam
 from relayrl.types import Batch
 
@@ -34,14 +34,34 @@ class SACUpdate:
         self.p = agent  # its networks, optimizers and noise generator, which it builds, owns and checkpoints
         self.critic_params = list(agent.critic.parameters())
         self.actor_params = list(agent.actor.parameters())
+        # The losses themselves unless RELAYRL_COMPILE asks (nn/graphed.py); their noise comes in.
+        self.critic_loss, self.actor_loss = compiled(self.critic_losses), compiled(self.actor_losses)
 
-    def _sample(self, obs: Tensor) -> tuple[Tensor, Tensor]:
+    def _sample(self, obs: Tensor, noise: Tensor) -> tuple[Tensor, Tensor]:
         cfg = self.p.cfg
         out = self.p.actor(obs)  # [N, 2A]
         mean, log_std = out.chunk(2, dim=-1)
         log_std = log_std.clamp(cfg.log_std_min, cfg.log_std_max)
-        noise = torch.randn(mean.shape, generator=self.p.gen, device=mean.device)
         return tanh_gaussian(mean, log_std, noise)  # actions in [-1, 1]: [N, A], [N]
+
+    def critic_losses(self, batch: Batch, alpha: Tensor, noise: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The critics' loss on soft TD targets (next actions drawn with `noise` [N, A]), the TD
+        errors and the first critic's Q [N] (both detached)."""
+        p, cfg = self.p, self.p.cfg
+        with torch.no_grad():
+            next_a, next_logp = self._sample(batch.next_obs, noise)
+            y = critic_targets(batch.reward, batch.discount, p.target_critic(batch.next_obs, next_a),
+                               next_logp, alpha, cfg.reward_scale)  # [N]
+        action = (batch.action.reshape(batch.action.shape[0], -1) - p.action_loc) / p.action_half  # [N, A]
+        q = p.critic(batch.obs, action)  # [2, N]
+        c_loss, td = critic_loss(q, y, batch.weight)
+        return c_loss, td, q[0].detach()
+
+    def actor_losses(self, obs: Tensor, weight: Tensor | None, alpha: Tensor, noise: Tensor) -> tuple[Tensor, Tensor]:
+        """The actor's loss through the critics (actions drawn with `noise`) and log pi [N]."""
+        a_pi, logp = self._sample(obs, noise)
+        q_pi = self.p.critic(obs, a_pi, detach_params=True)  # [2, N]: grads to a only
+        return actor_loss(logp, q_pi, alpha, weight), logp
 
     def _step(self, opt: FastAdam, params: list[Tensor], loss: Tensor) -> None:
         opt.zero_grad()
@@ -53,24 +73,19 @@ class SACUpdate:
     def __call__(self, batch: Batch) -> dict[str, Tensor]:
         p, cfg = self.p, self.p.cfg
         alpha = p.log_alpha.detach().exp()
-        with torch.no_grad():
-            next_a, next_logp = self._sample(batch.next_obs)
-            y = critic_targets(batch.reward, batch.discount, p.target_critic(batch.next_obs, next_a),
-                               next_logp, alpha, cfg.reward_scale)  # [N]
-        action = (batch.action.reshape(batch.action.shape[0], -1) - p.action_loc) / p.action_half  # [N, A]
-        q = p.critic(batch.obs, action)  # [2, N]
-        c_loss, td = critic_loss(q, y, batch.weight)
+        shape = (batch.reward.shape[0], p.action_loc.numel())  # [N, A]
+        next_noise = torch.randn(shape, generator=p.gen, device=alpha.device)  # the critic step's, then the actor's
+        noise = torch.randn(shape, generator=p.gen, device=alpha.device)
+        c_loss, td, q = self.critic_loss(batch, alpha, next_noise)
         self._step(p.critic_opt, self.critic_params, c_loss)
 
-        a_pi, logp = self._sample(batch.obs)
-        q_pi = p.critic(batch.obs, a_pi, detach_params=True)  # [2, N]: updated critics, grads to a only
-        a_loss = actor_loss(logp, q_pi, alpha, batch.weight)
+        a_loss, logp = self.actor_loss(batch.obs, batch.weight, alpha, noise)  # through the updated critics
         self._step(p.actor_opt, self.actor_params, a_loss)
 
         if cfg.autotune_alpha:
             self._step(p.alpha_opt, [p.log_alpha], alpha_loss(p.log_alpha, logp, p.target_entropy))
         return {"critic_loss": c_loss.detach(), "actor_loss": a_loss.detach(), "alpha": alpha,
-                "entropy": -logp.detach().mean(), "q": q[0].detach(), "td_error": td}
+                "entropy": -logp.detach().mean(), "q": q, "td_error": td}
 
 
 class HandWrittenSACUpdate(SACUpdate):
