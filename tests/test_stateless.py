@@ -2,6 +2,7 @@
 batch shapes, seeding, differentiable rollouts, the fast BPTT gradient, and the adapter."""
 
 import math
+import pickle
 import statistics
 
 import gymnasium as gym
@@ -352,6 +353,62 @@ def test_adapter_state_round_trip():
     for _ in range(3):
         x, y = a.step(torch.full((3, 1), 0.3)), b.step(torch.full((3, 1), 0.3))
         assert torch.equal(x.next_obs, y.next_obs) and torch.equal(x.reward, y.reward)
+
+
+def test_adapter_graph_step_is_the_step_on_flat_tensors():
+    """What a CUDA graph captures (the state as its leaves, outputs by name) steps as `step`."""
+    a = StatelessBatchEnv(make_pendulum(max_episode_steps=4), num_envs=5, seed=2)
+    b = StatelessBatchEnv(make_pendulum(max_episode_steps=4), num_envs=5, seed=2)
+    a.reset(seed=2), b.reset(seed=2)
+    for t in range(6):  # an episode end at t = 3, after which rows are reset
+        action = torch.linspace(-2, 2, 5).unsqueeze(1) * (t - 2)
+        x = a.step(action)
+        out = b._graph_step(*b._leaves(), action)
+        b._state = b._rebuild([out[f"state/{i}"] for i in range(len(b._leaves()))])
+        assert torch.equal(x.next_obs, out["next_obs"]) and torch.equal(x.obs, out["obs"])
+        assert torch.equal(x.reward, out["reward"]) and torch.equal(x.truncated, out["truncated"])
+    for (_, u), (_, v) in zip(tree_leaves(a._state), tree_leaves(b._state), strict=True):
+        assert torch.equal(u, v)
+
+
+def test_adapter_resumes_a_checkpoint_from_before_the_device_generator():
+    """Rows pickled with the CPU generator's state alone (older checkpoints) still load."""
+    a = StatelessBatchEnv(make_pendulum(), num_envs=2, seed=1)
+    a.reset(seed=1)
+    rows = [pickle.loads(r) for r in a.get_state()]
+    assert isinstance(rows[0][1], tuple) and rows[0][1][1] is None  # (CPU state, no device generator)
+    old = [pickle.dumps((state, None if rng is None else rng[0])) for state, rng in rows]
+    b = StatelessBatchEnv(make_pendulum(), num_envs=2, seed=7)
+    b.reset()
+    b.set_state(old)
+    for _ in range(3):
+        assert torch.equal(a.step(torch.ones(2, 1)).next_obs, b.step(torch.ones(2, 1)).next_obs)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_adapter_graphed_on_cuda_steps_as_launched_op_by_op(monkeypatch):
+    """A CUDA graph per batched step (fresh states from the device's generator every step)
+    against the same steps launched kernel by kernel; observers' copies outlive the next step."""
+    envs = []
+    for graphs in ("1", "0"):
+        monkeypatch.setenv("RELAYRL_CUDA_GRAPHS", graphs)
+        envs.append(StatelessBatchEnv(make_pendulum(max_episode_steps=7), num_envs=6, device="cuda", seed=3))
+    graphed, eager = envs
+    assert graphed._graphed is not None and eager._graphed is None
+    assert torch.equal(graphed.reset(seed=3), eager.reset(seed=3))
+    kept = []
+    for t in range(20):  # warm-up, capture, replays; episodes end at 7 and 14
+        action = torch.full((6, 1), 0.1 * t, device="cuda")
+        x, y = graphed.step(action), eager.step(action)
+        kept.append((x.reward, y.reward))
+        for u, v in zip(x, y, strict=True):
+            assert torch.equal(u, v), t
+    assert all(torch.equal(u, v) for u, v in kept)
+    c = StatelessBatchEnv(make_pendulum(max_episode_steps=7), num_envs=6, device="cuda", seed=0)
+    c.reset()
+    c.set_state(graphed.get_state())  # the device generator's state rides along
+    for _ in range(10):
+        assert torch.equal(c.step(action).obs, graphed.step(action).obs)
 
 
 def test_adapter_trains_sac_a_few_hundred_steps():

@@ -3,11 +3,17 @@
 tools that go through Gymnasium (video, `gymnasium.make`).
 
 `StatelessBatchEnv` holds the state the stateless env does not: the current state of
-`num_envs` rows and one generator. Rows whose episode ended are reset inside `step`, and
+`num_envs` rows and its generators. Rows whose episode ended are reset inside `step`, and
 `StepOutput` keeps the true final observation (`next_obs`) apart from the observation the
 next action is taken from (`obs`), as `envs/gym.py` does. Every tensor stays on the adapter's
 device, so env, policy and replay can share one GPU. Stepping runs under `no_grad`: this is
 for RL loops; differentiate through `rollout` instead.
+
+On a GPU a batched step is launch-bound (dozens of kernels on a few thousand numbers), so it
+replays from a CUDA graph (`nn.graphed.GraphedStep`; `RELAYRL_CUDA_GRAPHS=0` launches it op by
+op): the env's step and the fresh states of rows whose episode ended, drawn every step from a
+generator on the GPU (seeded from the CPU one at `reset`) and kept where `done`, so nothing
+branches on a value. The first states come from the CPU generator on every device.
 """
 
 from __future__ import annotations
@@ -21,11 +27,14 @@ import numpy as np
 import torch
 
 from relayrl.core import BatchedEnv
-from relayrl.envs.stateless.base import DeviceLike, StatelessEnv, tree_map, tree_where
+from relayrl.envs.stateless.base import DeviceLike, StatelessEnv, tree_leaves, tree_map, tree_where
 from relayrl.envs.stateless.pendulum import make_pendulum
 from relayrl.errors import UserError
+from relayrl.nn.graphed import GraphedStep, cuda_graphs_enabled
 from relayrl.specs import ArraySpec
 from relayrl.types import StepOutput
+
+STEP_FIELDS = ("next_obs", "reward", "terminated", "truncated", "obs")  # a graphed step's outputs besides the state
 
 
 class StatelessBatchEnv(BatchedEnv):
@@ -50,6 +59,10 @@ class StatelessBatchEnv(BatchedEnv):
             self._gen.seed()
         else:
             self._gen.manual_seed(seed)
+        # Off the CPU, fresh states are drawn on the device every step (see the module doc).
+        self._device_gen = torch.Generator(device=self.device) if self.device.type != "cpu" else None
+        self._graphed = GraphedStep(self._graph_step, generators=[self._device_gen]) \
+            if self._device_gen is not None and cuda_graphs_enabled(self.device) else None
         self._state: Any = None
 
     def reset(self, seed: int | None = None) -> torch.Tensor:
@@ -57,40 +70,78 @@ class StatelessBatchEnv(BatchedEnv):
         if seed is not None:
             self._gen.manual_seed(seed)
         self._state, obs = self.env.reset((self.num_envs,), self._gen, self.device)
+        if self._device_gen is not None:
+            self._device_gen.manual_seed(int(torch.randint(2**62, (), generator=self._gen)))
         return obs[self.obs_key]
 
     @torch.no_grad()
     def step(self, action: torch.Tensor) -> StepOutput:
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        out = self.env.step(self._state, action.to(self.device))
+        action = action.to(self.device)
+        if self._graphed is None:
+            self._state, *fields = self._advance(self._state, action)
+        else:
+            out = self._graphed(*self._leaves(), action)
+            self._state = self._rebuild([out[f"state/{i}"] for i in range(len(out) - len(STEP_FIELDS))])
+            # The graph's outputs are overwritten by its next replay: observers may keep a step's
+            # tensors until they flush (episode statistics do), so they get copies.
+            fields = [out[k].clone() for k in STEP_FIELDS]
+        next_obs, reward, terminated, truncated, obs = fields
+        if self.time_limit_terminates:
+            terminated, truncated = terminated | truncated, torch.zeros_like(truncated)
+        return StepOutput(next_obs, reward, terminated, truncated, obs)
+
+    def _advance(self, state: Any, action: torch.Tensor) -> tuple[Any, ...]:
+        """One batched step: the new state, the true next observations, rewards, terminated and
+        truncated flags, and the observations the next action sees (fresh where `done`)."""
+        out = self.env.step(state, action)
         next_obs = out.obs[self.obs_key]  # [B, *obs_shape]
-        terminated, truncated = out.terminated, out.truncated
-        done = terminated | truncated  # [B]
+        done = out.terminated | out.truncated  # [B]
         state, obs = out.state, next_obs
-        # Rows are reset where an episode ended. Reading `done` is free on the CPU, which draws
-        # fresh states only then; on a GPU the read would make the host wait at every step, so
-        # fresh states are drawn every step there (another generator stream than the CPU's).
-        if self.device.type != "cpu" or bool(done.any()):
-            fresh_state, fresh_obs = self.env.reset((self.num_envs,), self._gen, self.device)
+        # Rows are reset where an episode ended: on the CPU only when one did (reading `done`
+        # is free there); on a device every step, from its own generator (no branch on a value).
+        gen = self._gen if self._device_gen is None else self._device_gen
+        if self._device_gen is not None or bool(done.any()):
+            fresh_state, fresh_obs = self.env.reset((self.num_envs,), gen, self.device)
             state = tree_where(done, fresh_state, out.state)
             obs = torch.where(done.view(-1, *([1] * (next_obs.dim() - 1))), fresh_obs[self.obs_key], next_obs)
-        self._state = state
-        if self.time_limit_terminates:
-            terminated, truncated = done, torch.zeros_like(done)
-        return StepOutput(next_obs, out.reward.to(torch.float32), terminated, truncated, obs)
+        return state, next_obs, out.reward.to(torch.float32), out.terminated, out.truncated, obs
+
+    def _graph_step(self, *tensors: torch.Tensor) -> dict[str, torch.Tensor]:
+        """`_advance` on the state's leaves and the action, as a CUDA graph captures it: the
+        new state's leaves (`state/<i>`) and the STEP_FIELDS."""
+        *leaves, action = tensors
+        state, *fields = self._advance(self._rebuild(list(leaves)), action)
+        return {**{f"state/{i}": leaf for i, (_, leaf) in enumerate(tree_leaves(state))},
+                **dict(zip(STEP_FIELDS, fields, strict=True))}
+
+    def _leaves(self) -> list[torch.Tensor]:
+        return [leaf for _, leaf in tree_leaves(self._state)]
+
+    def _rebuild(self, leaves: list[torch.Tensor]) -> Any:
+        """The state's structure with `leaves` in its leaves' order."""
+        it = iter(leaves)
+        return tree_map(lambda _: next(it), self._state)
 
     def get_state(self) -> list[bytes]:
-        """One pickled row per env copy (the generator's state rides with row 0), for
+        """One pickled row per env copy (the generators' states ride with row 0), for
         checkpoints that resume mid-episode (see training/actor.py)."""
-        rng = self._gen.get_state()
+        rng = (self._gen.get_state(), None if self._device_gen is None else self._device_gen.get_state())
         return [pickle.dumps((tree_map(lambda x, i=i: x[i].detach().cpu().clone(), self._state),
                               rng if i == 0 else None)) for i in range(self.num_envs)]
 
     def set_state(self, states: list[bytes]) -> None:
         rows = [pickle.loads(s) for s in states]
         self._state = tree_map(lambda *xs: torch.stack(xs).to(self.device), *(r[0] for r in rows))
-        self._gen.set_state(rows[0][1])
+        rng = rows[0][1]
+        cpu, device = rng if isinstance(rng, tuple) else (rng, None)  # checkpoints before the device's generator
+        self._gen.set_state(cpu)
+        if self._device_gen is not None:
+            if device is not None:
+                self._device_gen.set_state(device)
+            else:  # saved on the CPU: seeded as a reset seeds it
+                self._device_gen.manual_seed(int(torch.randint(2**62, (), generator=self._gen)))
 
     def close(self) -> None:
         pass
