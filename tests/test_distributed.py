@@ -408,6 +408,18 @@ def test_a_memmap_folder_another_run_holds_is_refused_before_any_actor_starts(tm
 
 
 @needs_ray
+def test_eval_env_kwargs_that_change_the_spaces_are_refused_before_any_actor_starts(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(Path(__file__).parent))  # toy_envs
+    over = ["distributed.num_actors=1", "env.id=toy_envs:Resized", "eval.env_kwargs={size=3}",
+            "train.total_steps=600"]
+    with pytest.raises(relayrl.errors.UserError, match="give evaluation envs observations"):
+        relayrl.train(relayrl.load_config("dqn-cartpole-fast", over), tmp_path / "run", progress=False)
+    import ray
+
+    assert not ray.is_initialized()
+
+
+@needs_ray
 def test_a_ray_cluster_that_is_not_there_is_one_line(tmp_path):
     import socket
 

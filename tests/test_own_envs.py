@@ -149,6 +149,33 @@ def test_kwargs_and_wrappers_survive_config_toml_and_resume(tmp_path):
     assert {(r["average_episode_length"], r["average_return"]) for r in rows} == {(5.0, 10.0)}
 
 
+def test_eval_env_kwargs_apply_to_evaluations_only(tmp_path):
+    """Training episodes take env.kwargs; evaluations, `relayrl.evaluate` of the run and the
+    policy file's record take eval.env_kwargs over them (the other keys stay)."""
+    from relayrl.evaluation import evaluate as evaluate_run
+    from relayrl.export import load_policy
+
+    config = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:Countdown", "env.kwargs={length=5, truncate_at=9}",
+                                                 "eval.env_kwargs={length=7}", "train.policy_save_interval=30"])
+    result = train(config, tmp_path / "run", progress=False)
+    rows = RunDir(tmp_path / "run").read_metrics()
+    assert {r["average_episode_length"] for r in rows if "average_episode_length" in r} == {7.0}
+    assert result.final["train/average_return"] == 5.0  # a reward of 1 a step
+    assert evaluate_run(tmp_path / "run", episodes=2).mean == 7.0
+    assert load_policy(tmp_path / "run").env_kwargs == {"length": 7, "truncate_at": 9}
+    assert config.eval_env_kwargs() == {"length": 7, "truncate_at": 9} and config.env.kwargs["length"] == 5
+
+
+def test_eval_env_kwargs_that_change_the_spaces_are_one_line(tmp_path):
+    config = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:Countdown", "eval.env_kwargs={nope=1}"])
+    with pytest.raises(UserError, match=r"does not take the arguments given .*arguments passed: \['nope'\]"):
+        train(config, tmp_path / "a", progress=False)
+    config = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:Resized", "eval.env_kwargs={size=3}"])
+    with pytest.raises(UserError, match=r"eval.env_kwargs \{'size': 3\} give evaluation envs observations .* but "
+                                        "the training envs' are"):
+        train(config, tmp_path / "b", progress=False)
+
+
 @pytest.mark.parametrize("vectorization", ["sync", "async"])
 def test_train_takes_an_env_factory(tmp_path, vectorization):
     config = load_config("dqn-cartpole", TINY + ["env.num_envs=2", f"env.vectorization={vectorization}",

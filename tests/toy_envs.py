@@ -46,6 +46,22 @@ class Countdown(gym.Env):
         return np.full((16, 16, 3), 40 * self.t % 255, np.uint8)
 
 
+class Resized(Countdown):
+    """Countdown whose observation has `size` entries (the steps taken, repeated)."""
+
+    def __init__(self, size: int = 2) -> None:
+        super().__init__()
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (size,), np.float32)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = super().reset(seed=seed)
+        return np.full(self.observation_space.shape, obs[0], np.float32), info
+
+    def step(self, action):
+        obs, *rest = super().step(action)
+        return np.full(self.observation_space.shape, obs[0], np.float32), *rest
+
+
 class Travel(Countdown):
     """Countdown whose info has `x` = 10 * episode index + steps taken (so each episode ends at
     x = 10 * episode + length) and a non-numeric `name`. The episode index counts per copy."""

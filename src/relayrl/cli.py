@@ -85,7 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="seed of the evaluation episodes: copy i is reset with seed + i (default: 0)")
     e.add_argument("--env", metavar="ENV_ID",
                    help="evaluate on this env (a Gymnasium id or package.module:Class) instead of the run's own "
-                        "(config.toml's, with its env.kwargs and wrappers); the id the policy was trained on gets "
+                        "(config.toml's, with its env.kwargs, eval.env_kwargs and wrappers); the id the policy was "
+                        "trained on gets "
                         "the env.kwargs and time limit the policy file records; for a policy file outside a run "
                         "directory the default is the env id the file records")
     e.add_argument("--max-episode-steps", type=int, default=None, metavar="N",

@@ -96,6 +96,9 @@ class EvalConfig(Section):
 
     interval: int = 5_000  # env steps between evaluations; 0: only the final one (no step-0 evaluation)
     episodes: int = 10  # episodes per evaluation
+    # keyword arguments evaluation envs take in place of env.kwargs' (the other keys stay), e.g.
+    # {terminal_on_life_loss = false} for whole Atari games where training ends episodes at a life lost
+    env_kwargs: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -138,6 +141,10 @@ class Config(Section):
             # default takes the new one's (and the agent section becomes the new algorithm's).
             _rebase(self, algo_defaults(previous), algo_defaults(value))
 
+    def eval_env_kwargs(self) -> dict[str, Any]:
+        """The keyword arguments of evaluation envs: env.kwargs with eval.env_kwargs over them."""
+        return {**self.env.kwargs, **self.eval.env_kwargs}
+
     def validate(self) -> None:
         """Cross-field checks that types alone cannot express."""
         section: Any = algorithm(self.algo).config
@@ -151,6 +158,7 @@ class Config(Section):
             raise ConfigError(f"device={self.device!r} is not valid; valid: cpu, cuda, cuda:N, auto")
         self.env.require(">= 1", "num_envs")
         _check_plain_kwargs(self.env.kwargs)
+        _check_plain_kwargs(self.eval.env_kwargs, "eval.env_kwargs")
         self.train.require(">= 1", "total_steps", "collect_steps")
         self.replay.require(">= 1", "size", "n_step")
         self.eval.require(">= 1", "episodes")

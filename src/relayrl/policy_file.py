@@ -55,9 +55,11 @@ def plain(value: Any) -> Any:
 
 def env_entries(config: Config) -> dict[str, Any]:
     """The env a policy was trained on, so that a policy file shared on its own evaluates on the
-    same env (`relayrl eval POLICY.pt`): its id, and its kwargs, wrappers and time limit where set."""
+    same env as the run did (`relayrl eval POLICY.pt`): its id, and its evaluation kwargs
+    (`Config.eval_env_kwargs`), wrappers and time limit where set."""
     e = config.env
-    extra = {"env_kwargs": dict(e.kwargs), "env_wrappers": list(e.wrappers), "max_episode_steps": e.max_episode_steps}
+    extra = {"env_kwargs": config.eval_env_kwargs(), "env_wrappers": list(e.wrappers),
+             "max_episode_steps": e.max_episode_steps}
     return {"env_id": e.id, **{k: v for k, v in extra.items() if v}}
 
 

@@ -96,7 +96,7 @@ def _frames(rd: RunDir, policy: Any, env: Any, episodes: int, seed: int, max_ste
     config = load_config(str(rd.config))
     given = env
     frames: list[Any] = []  # RGB arrays
-    make_one = (resolve_env_fn(config.env.id, config.env.max_episode_steps, "rgb_array", config.env.kwargs,
+    make_one = (resolve_env_fn(config.env.id, config.env.max_episode_steps, "rgb_array", config.eval_env_kwargs(),
                                config.env.wrappers) if given is None else lambda: _rgb_env(given))
     with making(config.env.id, users_code=bool(config.env.wrappers) or given is not None):
         env = GymBatchEnv([lambda: EndFrames(make_one(), frames)])

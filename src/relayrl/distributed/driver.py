@@ -24,6 +24,7 @@ from relayrl.metrics import EpisodeStats
 from relayrl.seeding import EVAL_STRIDE
 from relayrl.specs import Spec
 from relayrl.training.checkpoint import load_latest_checkpoint
+from relayrl.training.evaluate import check_same_spaces
 from relayrl.training.finite import FiniteWatch
 from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
 from relayrl.training.replay_setup import replay_path
@@ -62,6 +63,11 @@ class RayDriver:
         probe = make_env(c.env.id, 1, c.env.max_episode_steps, kwargs=c.env.kwargs, wrappers=c.env.wrappers)
         obs_spec, act_spec = probe.observation_spec, probe.action_spec
         probe.close()
+        if c.eval.env_kwargs:  # the eval actors' envs, likewise
+            eval_probe = make_env(c.env.id, 1, c.env.max_episode_steps, kwargs=c.eval_env_kwargs(),
+                                  wrappers=c.env.wrappers)
+            eval_probe.close()
+            check_same_spaces(eval_probe, probe, c.eval.env_kwargs)
         entry = algorithm(c.algo)
         self.agent = entry.make_agent(c.agent, obs_spec, act_spec, self.device, self.seeds.generator("exploration"),
                                       c.train.total_steps)

@@ -11,7 +11,9 @@ from relayrl.arrays import to_numpy
 from relayrl.core import BatchedEnv, Policy
 from relayrl.envs import make_env
 from relayrl.envs.gym import EnvFn, GymBatchEnv
-from relayrl.errors import NonFiniteError
+from relayrl.errors import NonFiniteError, UserError
+from relayrl.specs import describe as describe_spec
+from relayrl.specs import spec_state
 from relayrl.training.finite import describe
 
 EVAL_BATCH = 16  # eval episodes run as one batch of at most this many env copies
@@ -31,6 +33,17 @@ def make_eval_env(env_id: str, episodes: int, max_episode_steps: int = 0,
                    kwargs=kwargs, wrappers=wrappers, factory=factory)
     cap_untimed(env)
     return env
+
+
+def check_same_spaces(eval_env: BatchedEnv, env: BatchedEnv, eval_kwargs: dict[str, Any]) -> None:
+    """One line where eval.env_kwargs give evaluation envs other spaces than training's (the
+    policy takes the training env's)."""
+    for kind, got, want in (("observation", eval_env.observation_spec, env.observation_spec),
+                            ("action", eval_env.action_spec, env.action_spec)):
+        if spec_state(got) != spec_state(want):
+            raise UserError(f"eval.env_kwargs {eval_kwargs} give evaluation envs {kind}s "
+                            f"{describe_spec(got)}, but the training envs' are {describe_spec(want)}: the policy "
+                            f"takes the training env's; leave out the keys that change the {kind} space")
 
 
 def cap_untimed(env: BatchedEnv, max_episode_steps: int = 0) -> None:

@@ -19,7 +19,7 @@ from relayrl.metrics import EnvironmentSteps, EpisodeStats
 from relayrl.policies import RandomPolicy
 from relayrl.training.actor import Actor
 from relayrl.training.checkpoint import NO_REPLAY, load_latest_checkpoint
-from relayrl.training.evaluate import eval_cap_note, make_eval_env
+from relayrl.training.evaluate import check_same_spaces, eval_cap_note, make_eval_env
 from relayrl.training.finite import FiniteWatch
 from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
 from relayrl.training.replay_setup import build_replay, build_rollouts, replay_device, replay_note
@@ -52,7 +52,9 @@ class LocalDriver:
                             time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
                             num_workers=c.env.num_workers, device=device, info_keys=c.env.info_keys, **made)
         self.eval_env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, device,
-                                      c.env.info_keys, **made)
+                                      c.env.info_keys, **{**made, "kwargs": c.eval_env_kwargs()})
+        if c.eval.env_kwargs:
+            check_same_spaces(self.eval_env, self.env, c.eval.env_kwargs)
         obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
         stateless = isinstance(self.env, StatelessBatchEnv)
 
