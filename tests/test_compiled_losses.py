@@ -39,6 +39,12 @@ def test_compiled_is_the_function_itself_unless_asked(monkeypatch):
     assert fn is not losses and torch.equal(fn(torch.ones(2)), torch.full((2,), 2.0))
 
 
+def once_on_cuda(backend, first_case: bool) -> None:
+    """One case per algorithm on CUDA: a cold compile there costs seconds each."""
+    if backend[0] == "cuda" and not first_case:
+        pytest.skip("on CUDA the first case of each algorithm stands for the rest")
+
+
 def pair(monkeypatch, backend, make):
     """Two agents in the same state on the autograd reference: losses compiled, and as written."""
     device, setting = backend
@@ -69,6 +75,7 @@ def image_batch(n, seed):
 @pytest.mark.parametrize("obs", ["vector", "image"])
 @pytest.mark.parametrize("options", [{"double": True}, {"double": False, "loss": "mse", "grad_clip": 0.0}])
 def test_dqn(monkeypatch, backend, obs, options):
+    once_on_cuda(backend, obs == "vector" and options["double"])
     spec = VEC if obs == "vector" else IMAGE
     cfg = DQNConfig(hidden=[16, 16], lr=1e-3, target_update_period=3, **options)
     made = pair(monkeypatch, backend, lambda device: DQNAgent(spec, DiscreteSpec(3), cfg, device,
@@ -91,6 +98,7 @@ def test_dqn(monkeypatch, backend, obs, options):
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("options", [{}, {"autotune_alpha": False, "grad_clip": 0.5}])
 def test_sac(monkeypatch, backend, options):
+    once_on_cuda(backend, not options)
     cfg = SACConfig(actor_hidden=[16, 16], critic_hidden=[16, 16], batch_size=8, **options)
     made = pair(monkeypatch, backend, lambda device: SACAgent(VEC, BOX, cfg, device, np.random.default_rng(0),
                                                               hand_written=False))
@@ -112,6 +120,7 @@ def test_sac(monkeypatch, backend, options):
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("action", ["discrete", "box", "box-tanh", "box-shared-vf-clip"])
 def test_ppo(monkeypatch, backend, action):
+    once_on_cuda(backend, action == "box")
     options = {"box-tanh": {"squash": "tanh"}, "box-shared-vf-clip": {"shared": True, "clip_range_vf": 0.2}}
     cfg = PPOConfig(hidden=[16, 16], batch_size=8, n_epochs=2, max_grad_norm=0.5, **options.get(action, {}))
     spec = DiscreteSpec(3) if action == "discrete" else BOX
