@@ -176,6 +176,34 @@ def test_greedy_policy_replays_see_weights_updated_in_place(monkeypatch):
 
 
 @cuda
+@pytest.mark.parametrize("discrete", [False, True])
+def test_ppo_device_policy_graphed_draws_as_eager(monkeypatch, discrete):
+    """The forward pass and the draw in one graph, its generator registered: the same actions
+    as launched op by op from the same seed, through a weight change."""
+    from relayrl.agents.ppo.device_policy import PPODevicePolicy
+    from relayrl.nn import MLP
+
+    net = MLP(3, [16], 2, "tanh").cuda()
+    log_std = None if discrete else torch.full((2,), -0.5, device="cuda")
+    policies = []
+    for graphs in ("1", "0"):
+        monkeypatch.setenv("RELAYRL_CUDA_GRAPHS", graphs)
+        policies.append(PPODevicePolicy(net, log_std, None, torch.device("cuda"), seed=7))
+    graphed, eager = policies
+    kept = []
+    for i in range(2 * STEPS):
+        if i == STEPS:
+            with torch.no_grad():
+                for p in net.parameters():
+                    p.mul_(-1.5)
+        obs = torch.randn(6, 3, device="cuda")
+        a, b = graphed(obs), eager(obs)
+        kept.append((a, b))
+        assert torch.equal(a, b), i
+    assert all(torch.equal(a, b) for a, b in kept)  # each call's action is its own tensor
+
+
+@cuda
 def test_signatures_beyond_max_graphs_run_eagerly():
     total = torch.zeros((), device="cuda")
 
