@@ -367,18 +367,23 @@ def test_an_env_id_recorded_for_a_python_factory_is_known_as_one():
 
 
 def test_a_run_says_when_its_wrappers_change_the_rewards_its_evaluations_report():
-    from relayrl.envs.make import reward_wrappers
+    from relayrl.envs.make import reward_wrappers, statistics_wrappers, wrapper_layers
 
-    assert reward_wrappers("CartPole-v1", wrappers=["gymnasium.wrappers:NormalizeReward"]) == ["NormalizeReward"]
+    def rewards(*args, **kw):
+        return reward_wrappers(wrapper_layers(*args, **kw))
+
+    assert rewards("CartPole-v1", wrappers=["gymnasium.wrappers:NormalizeReward"]) == ["NormalizeReward"]
     # A function returning one (README's pattern), behind an observation wrapper
-    assert reward_wrappers("toy_envs:Countdown", wrappers=["toy_envs:double_reward", "toy_envs:shift_obs"]) == [
+    assert rewards("toy_envs:Countdown", wrappers=["toy_envs:double_reward", "toy_envs:shift_obs"]) == [
         "TransformReward"]
-    assert reward_wrappers("CartPole-v1", wrappers=["toy_envs:shift_obs"]) == []  # observations only
-    assert reward_wrappers("CartPole-v1") == []
-    assert reward_wrappers("CartPole-v1", wrappers=["not_a_module_here:Wrap"]) == []  # the run says what is wrong
+    assert rewards("CartPole-v1", wrappers=["toy_envs:shift_obs"]) == []  # observations only
+    assert rewards("CartPole-v1") == []
+    assert rewards("CartPole-v1", wrappers=["not_a_module_here:Wrap"]) == []  # the run says what is wrong
     state = np.random.get_state()[1].copy()
-    reward_wrappers("CartPole-v1", wrappers=["toy_envs:double_reward"])
+    rewards("CartPole-v1", wrappers=["toy_envs:double_reward"])
     assert np.array_equal(np.random.get_state()[1], state)  # a checked run is the unchecked one
+    layers = wrapper_layers("CartPole-v1", wrappers=["gymnasium.wrappers:NormalizeObservation", "toy_envs:shift_obs"])
+    assert statistics_wrappers(layers) == ["NormalizeObservation"] and reward_wrappers(layers) == []
 
 
 def test_reward_wrapper_note_is_in_the_log(tmp_path, capsys):
@@ -386,3 +391,8 @@ def test_reward_wrapper_note_is_in_the_log(tmp_path, capsys):
     train(config, tmp_path / "run", progress=False)
     assert "env.wrappers put TransformReward over the env: evaluations report returns of those rewards" in \
         capsys.readouterr().err
+    config = load_config("dqn-cartpole", TINY + ['env.wrappers=["gymnasium.wrappers:NormalizeObservation"]'])
+    train(config, tmp_path / "run2", progress=False)
+    err = capsys.readouterr().err
+    assert "env.wrappers put NormalizeObservation over the env: its running statistics live in each env copy" in err
+    assert "PPO's agent.normalize_obs keeps the statistics with the policy" in err

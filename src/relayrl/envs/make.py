@@ -109,30 +109,41 @@ def is_user_env(env_id: str, factory: EnvFn | None = None) -> bool:
 
 # Gymnasium's wrappers that change rewards without being a RewardWrapper.
 REWARD_CHANGING = ("NormalizeReward",)
+# Gymnasium's wrappers whose running statistics live in each env copy, not in the policy.
+OWN_STATISTICS = ("NormalizeObservation",)
 
 
-def reward_wrappers(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple[str, ...] | list[str] = (),
-                    factory: EnvFn | None = None, max_episode_steps: int = 0) -> list[str]:
-    """The reward-changing layers (a `gym.RewardWrapper`, NormalizeReward) that `wrappers` put
-    over one fresh copy of the env, by class name, innermost first: evaluations report returns
-    of those rewards. [] where the env cannot be made here (the run says why when it makes its
-    own). The global RNGs are left as they were."""
+def wrapper_layers(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple[str, ...] | list[str] = (),
+                   factory: EnvFn | None = None, max_episode_steps: int = 0) -> list[type]:
+    """The classes of the layers `wrappers` put over one fresh copy of the env, innermost first;
+    [] where the env cannot be made here (the run says why when it makes its own). The global
+    RNGs are left as they were."""
     if not wrappers:
         return []
-    found: list[str] = []
+    found: list[type] = []
     with global_rngs_kept():
         try:
             base = resolve_env_fn(env_id, max_episode_steps, None, kwargs, (), factory)()
             env = apply_wrappers(base, [load_callable(w, "env.wrappers") for w in wrappers])
             layer = env
             while layer is not base and isinstance(layer, gym.Wrapper):
-                if isinstance(layer, gym.RewardWrapper) or type(layer).__name__ in REWARD_CHANGING:
-                    found.append(type(layer).__name__)
+                found.append(type(layer))
                 layer = layer.env
             env.close()
         except Exception:  # the run makes its envs next and reports what is wrong there
             return []
     return found[::-1]
+
+
+def reward_wrappers(layers: list[type]) -> list[str]:
+    """The reward-changing ones of `wrapper_layers` (a `gym.RewardWrapper`, NormalizeReward), by
+    class name: evaluations report returns of those rewards."""
+    return [t.__name__ for t in layers if issubclass(t, gym.RewardWrapper) or t.__name__ in REWARD_CHANGING]
+
+
+def statistics_wrappers(layers: list[type]) -> list[str]:
+    """The ones of `wrapper_layers` that keep running statistics in each env copy (OWN_STATISTICS)."""
+    return [t.__name__ for t in layers if t.__name__ in OWN_STATISTICS]
 
 
 @contextlib.contextmanager

@@ -19,7 +19,14 @@ from relayrl import interrupts
 from relayrl.config import Config, changes, from_dict, load_toml, save_toml, to_dict
 from relayrl.core import Agent
 from relayrl.envs.gym import names_python_factory
-from relayrl.envs.make import check_env, global_rngs_kept, is_user_env, reward_wrappers
+from relayrl.envs.make import (
+    check_env,
+    global_rngs_kept,
+    is_user_env,
+    reward_wrappers,
+    statistics_wrappers,
+    wrapper_layers,
+)
 from relayrl.errors import NonFiniteError, UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.nn.encoders import CONV_READY
@@ -91,15 +98,23 @@ def caller_state_kept() -> Iterator[None]:
 
 def check_user_env(config: Config, env_factory: Callable[[], Any] | None, say: Callable[[str], None]) -> None:
     """Gymnasium's env checker, once, on a user's own env (env.check): its findings as lines;
-    and a line where env.wrappers change the rewards (which the evaluations then report)."""
+    and a line where env.wrappers change the rewards (which the evaluations then report), and
+    one where they keep statistics of their own in each env copy."""
     e = config.env
     if e.check and is_user_env(e.id, env_factory):
         for line in check_env(e.id, e.kwargs, e.wrappers, env_factory, e.max_episode_steps):
             say(f"env check (env.check = false turns it off): {line}")
-    changing = reward_wrappers(e.id, e.kwargs, e.wrappers, env_factory, e.max_episode_steps)
+    layers = wrapper_layers(e.id, e.kwargs, e.wrappers, env_factory, e.max_episode_steps)
+    changing = reward_wrappers(layers)
     if changing:
         say(f"env.wrappers put {', '.join(changing)} over the env: evaluations report returns of those rewards, "
             "not the env's own (PPO's agent.normalize_reward scales rewards for learning only)")
+    own = statistics_wrappers(layers)
+    if own:
+        say(f"env.wrappers put {', '.join(own)} over the env: its running statistics live in each env copy, so "
+            "evaluation envs normalise with their own, gathered from their first steps, and the policy file does "
+            "not hold them (a loaded policy needs observations normalised as in training); PPO's "
+            "agent.normalize_obs keeps the statistics with the policy")
 
 
 def make_learner(config: Config, agent: Agent, table: Any, device: torch.device, variables: Any,
