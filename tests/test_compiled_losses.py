@@ -139,3 +139,23 @@ def test_ppo(monkeypatch, backend, action):
         for key in ("policy_loss", "value_loss", "approx_kl", "loss"):
             assert_same([metrics[0][key]], [metrics[1][key]], f"{key} at step {step}")
     assert_same(list(made[0].net.parameters()), list(made[1].net.parameters()), "parameters")
+
+
+def test_ppo_clip_schedule_compiles_once(monkeypatch):
+    """A clip range a schedule moves goes into the compiled losses as a tensor: a Python float
+    would compile a graph per value and soon hit torch's recompile limit (an error with
+    fullgraph)."""
+    cfg = PPOConfig(hidden=[8], batch_size=10, n_epochs=1, clip_range_end=0.0)
+    made = pair(monkeypatch, ("cpu", "aot_eager"), lambda device: PPOAgent(
+        VEC, BOX, cfg, device, np.random.default_rng(0), total_steps=120, hand_written=False))
+    for step in range(12):  # twelve clip ranges, more than the recompile limit of 8
+        g = torch.Generator().manual_seed(step)
+        rollout = {"obs": torch.randn(1, 5, 2, 3, generator=g), "action": torch.randn(1, 5, 2, 2, generator=g),
+                   "reward": torch.randn(1, 5, 2, generator=g), "next_obs": torch.randn(1, 5, 2, 3, generator=g),
+                   "terminated": torch.zeros(1, 5, 2, dtype=torch.bool),
+                   "truncated": torch.zeros(1, 5, 2, dtype=torch.bool)}
+        for agent in made:
+            agent.set_progress(step * 10)
+        metrics = [agent.train(rollout) for agent in made]
+        assert_same([metrics[0]["loss"]], [metrics[1]["loss"]], f"loss at step {step}")
+    assert made[0].clip_range < 0.02

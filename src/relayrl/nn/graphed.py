@@ -50,8 +50,9 @@ def compiled(losses: F) -> F:
     setting = os.environ.get("RELAYRL_COMPILE", "0")
     if setting == "0":
         return losses
-    return torch.compile(losses, fullgraph=True, dynamic=False,  # type: ignore[return-value]
-                         backend="inductor" if setting == "1" else setting)
+    # dynamic left to torch: a value that changes between calls (a Python float such as a
+    # scheduled clip range, a shorter last minibatch) gets one general graph, not one per value.
+    return torch.compile(losses, fullgraph=True, backend="inductor" if setting == "1" else setting)  # type: ignore[return-value]
 
 
 class _Captured(NamedTuple):

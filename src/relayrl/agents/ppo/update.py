@@ -47,6 +47,9 @@ class PPOUpdate:
         self.params = list(net.parameters())
         self.opt, self.cfg, self.evaluate_actions = opt, cfg, evaluate_actions
         self.loss = compiled(self.losses)  # the losses themselves unless RELAYRL_COMPILE asks (nn/graphed.py)
+        # A compiled graph specialises on a Python float's value: a clip range that a schedule
+        # moves goes into it as a tensor, or every value would compile a graph of its own.
+        self.clip_as_tensor = self.loss is not self.losses
 
     def epochs(self, data: tuple[Tensor, ...], orders: Tensor, clip_range: float) -> Tensor:
         """Every minibatch step of one rollout, minibatches of `agent.batch_size` (see `run_epochs`)."""
@@ -70,6 +73,8 @@ class PPOUpdate:
     def __call__(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
                  returns: Tensor, clip_range: float | Tensor) -> Tensor:
         """One gradient step on a minibatch; returns the statistics of `losses`."""
+        if self.clip_as_tensor and not isinstance(clip_range, Tensor):
+            clip_range = torch.tensor(clip_range)
         loss, stats = self.loss(obs, action, old_logp, old_values, adv, returns, clip_range)
         self.opt.zero_grad()
         loss.backward()
