@@ -12,6 +12,7 @@ import torch
 from relayrl.agents.dqn import DQNAgent, DQNConfig
 from relayrl.agents.ppo import PPOAgent, PPOConfig
 from relayrl.agents.sac import SACAgent, SACConfig
+from relayrl.errors import UserError
 from relayrl.nn.graphed import WARMUP, compiled
 from relayrl.specs import ArraySpec, DiscreteSpec
 from relayrl.types import Batch
@@ -37,6 +38,18 @@ def test_compiled_is_the_function_itself_unless_asked(monkeypatch):
     monkeypatch.setenv("RELAYRL_COMPILE", "aot_eager")
     fn = compiled(losses)
     assert fn is not losses and torch.equal(fn(torch.ones(2)), torch.full((2,), 2.0))
+    monkeypatch.setenv("RELAYRL_COMPILE", "true")
+    with pytest.raises(UserError, match=r"RELAYRL_COMPILE='true' is not valid; valid: 0 \(off\), 1 \(inductor\), or a "
+                                        r"torch.compile backend: .*inductor"):
+        compiled(losses)
+
+
+def test_ppo_clip_range_goes_in_as_a_tensor_only_where_compiled(monkeypatch):
+    for setting, as_tensor in (("0", False), ("aot_eager", True)):
+        monkeypatch.setenv("RELAYRL_COMPILE", setting)
+        agent = PPOAgent(VEC, BOX, PPOConfig(squash="tanh"), torch.device("cpu"), np.random.default_rng(0),
+                         hand_written=False)
+        assert agent.update.clip_as_tensor is as_tensor
 
 
 def once_on_cuda(backend, first_case: bool) -> None:

@@ -33,6 +33,8 @@ from typing import NamedTuple, TypeVar
 
 import torch
 
+from relayrl.errors import UserError
+
 Tensor = torch.Tensor
 Signature = tuple[tuple[torch.Size, torch.dtype, torch.device] | None, ...]
 WARMUP = 3  # eager calls per signature before capture (lazy cuBLAS / autograd set-up)
@@ -50,9 +52,13 @@ def compiled(losses: F) -> F:
     setting = os.environ.get("RELAYRL_COMPILE", "0")
     if setting == "0":
         return losses
+    backend = "inductor" if setting == "1" else setting
+    if backend not in torch._dynamo.list_backends(exclude_tags=()):
+        raise UserError(f"RELAYRL_COMPILE={setting!r} is not valid; valid: 0 (off), 1 (inductor), or a "
+                        f"torch.compile backend: {', '.join(torch._dynamo.list_backends())}")
     # dynamic left to torch: a value that changes between calls (a Python float such as a
     # scheduled clip range, a shorter last minibatch) gets one general graph, not one per value.
-    return torch.compile(losses, fullgraph=True, backend="inductor" if setting == "1" else setting)  # type: ignore[return-value]
+    return torch.compile(losses, fullgraph=True, backend=backend)  # type: ignore[return-value]
 
 
 class _Captured(NamedTuple):

@@ -49,7 +49,7 @@ class PPOUpdate:
         self.loss = compiled(self.losses)  # the losses themselves unless RELAYRL_COMPILE asks (nn/graphed.py)
         # A compiled graph specialises on a Python float's value: a clip range that a schedule
         # moves goes into it as a tensor, or every value would compile a graph of its own.
-        self.clip_as_tensor = self.loss is not self.losses
+        self.clip_as_tensor = self.loss != self.losses  # (each `self.losses` is a new bound method: not `is`)
 
     def epochs(self, data: tuple[Tensor, ...], orders: Tensor, clip_range: float) -> Tensor:
         """Every minibatch step of one rollout, minibatches of `agent.batch_size` (see `run_epochs`)."""
