@@ -1,5 +1,6 @@
 """algo = "bptt" as a run (the bptt-pendulum preset) and stateless envs in the train loop."""
-
+import os
+import signal
 
 import pytest
 import torch
@@ -51,3 +52,28 @@ def test_bptt_with_eval_interval_zero_writes_one_row_over_its_last_50_iterations
     cfg = relayrl.load_config("bptt-pendulum", ["train.total_steps=192000", "eval.interval=0"])  # 60 iterations
     (row,) = RunDir(relayrl.train(cfg, tmp_path / "b", progress=False).run_dir).read_metrics()
     assert row["step"] == 192000 and row["bptt/mean_reward"] == row["bptt/final50_mean_reward"]
+
+
+def test_bptt_ctrl_c_keeps_the_policy_trained_so_far(tmp_path, monkeypatch, capsys):
+    """A bptt run has no checkpoints: the first Ctrl-C ends the iteration and saves its policy
+    there (the CLI then says the policy stays), instead of losing the whole run's training."""
+    from relayrl.agents.bptt import trainer
+
+    real = trainer.train_bptt
+
+    def ctrl_c_in_iteration_12(config, callback, **kwargs):
+        def on_iteration(entry):
+            callback(entry)
+            if entry.iteration == 11:
+                os.kill(os.getpid(), signal.SIGINT)
+        return real(config, on_iteration, **kwargs)
+
+    monkeypatch.setattr(trainer, "train_bptt", ctrl_c_in_iteration_12)
+    root = str(tmp_path / "b")
+    with pytest.raises(KeyboardInterrupt, match=f"the run stopped at env step 38,400; its policy and metrics are in "
+                                                f"'{root}'"):
+        relayrl.train(relayrl.load_config("bptt-pendulum", SHORT), root, progress=False)
+    assert "stopping at the end of this iteration to save the policy" in capsys.readouterr().err
+    assert relayrl.load_policy(root).env_steps == 12 * 32 * 100
+    assert [r["step"] for r in RunDir(root).read_metrics()] == [32000]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is put back

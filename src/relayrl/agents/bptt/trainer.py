@@ -51,9 +51,11 @@ def policy_state(net: MLP, hidden: list[int], env_steps: int) -> dict[str, Any]:
 
 
 def train(config: Config, device: torch.device, write_row: Callable[[dict[str, Any]], None],
-          add_scalar: Callable[[str, float, int], None], say: Callable[[str], None] | None) -> dict[str, Any]:
+          add_scalar: Callable[[str, float, int], None], say: Callable[[str], None] | None,
+          stop: Callable[[], bool] | None = None) -> dict[str, Any]:
     """Train; rows go to `write_row`, per-iteration scalars to `add_scalar`, a console line per
-    row to `say` (None: quiet). Returns the trained policy's state (`policy_state`)."""
+    row to `say` (None: quiet); `stop()` True ends training after the current iteration.
+    Returns the trained policy's state (`policy_state`), at the env step it reached."""
     c, a = config, config.agent
     iterations = check_config(c)
     per_iteration = a.batch_size * a.rollout_steps
@@ -88,5 +90,5 @@ def train(config: Config, device: torch.device, write_row: Callable[[dict[str, A
                 f"{row['bptt/last_reward']:7.3f} | {row['wall_time_s']:6.1f}s")
 
     result = train_bptt(a, on_iteration, iterations=iterations, seed=c.seed, device=str(device),
-                        torch_threads=c.train.torch_threads)
-    return policy_state(result.policy, a.hidden, iterations * per_iteration)
+                        torch_threads=c.train.torch_threads, stop=stop)
+    return policy_state(result.policy, a.hidden, len(result.mean_reward) * per_iteration)
