@@ -1,5 +1,6 @@
 """algo = "bptt" as a run (the bptt-pendulum preset) and stateless envs in the train loop."""
 import os
+import re
 import signal
 
 import pytest
@@ -28,6 +29,17 @@ def test_bptt_refuses_other_envs(tmp_path):  # resume and CLI errors: tests/test
     with pytest.raises(ConfigError, match="trains through relayrl/StatelessPendulum-v0 only"):
         relayrl.train(relayrl.load_config("bptt-pendulum", SHORT + ["env.id=Pendulum-v1"]), tmp_path / "x",
                       progress=False)
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.parametrize("setting, why", [("env.num_envs=4", "set agent.batch_size"),
+                                          ("eval.episodes=3", "it runs no evaluation episodes"),
+                                          ("env.kwargs={'g': 5.0}", "without the env copies"),
+                                          ("train.checkpoint_interval=100", "without the env copies")])
+def test_bptt_refuses_settings_it_would_ignore(tmp_path, setting, why):
+    toml = setting.replace("{'g': 5.0}", "{g = 5.0}")
+    with pytest.raises(ConfigError, match=f"{re.escape(setting)} does not apply to algo='bptt'.*{why}"):
+        relayrl.train(relayrl.load_config("bptt-pendulum", SHORT + [toml]), tmp_path / "x", progress=False)
     assert not (tmp_path / "x").exists()
 
 

@@ -11,6 +11,7 @@ so they are not checkpointed; the policy is saved at the end (`relayrl.load_poli
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import deque
 from collections.abc import Callable
@@ -20,6 +21,7 @@ import numpy as np
 import torch
 
 from relayrl.agents.bptt.bptt import BpttLog, train_bptt
+from relayrl.config import algo_defaults
 from relayrl.errors import ConfigError
 from relayrl.nn import MLP
 
@@ -34,11 +36,34 @@ def check_config(c: Config) -> int:
     """Iterations the config asks for; ConfigError for settings BPTT cannot honour."""
     if c.env.id != ENV_ID:
         raise ConfigError(f"algo='bptt' trains through {ENV_ID} only; env.id={c.env.id!r} is not valid")
+    _check_unused(c)
     per_iteration = c.agent.batch_size * c.agent.rollout_steps
     if c.train.total_steps < per_iteration:
         raise ConfigError(f"train.total_steps={c.train.total_steps} is less than one iteration "
                           f"(agent.batch_size * agent.rollout_steps = {per_iteration} env steps)")
     return c.train.total_steps // per_iteration
+
+
+# The [env], [train] and [eval] keys a bptt run reads; the others set the actor-learner loop it
+# does not run, so a value other than the default is refused rather than silently ignored.
+USED = ("env.id", "train.total_steps", "train.torch_threads", "eval.interval")
+WHY_UNUSED = {
+    "env.num_envs": "each iteration rolls out agent.batch_size pendulums as one batch (set agent.batch_size)",
+    "eval.episodes": "it runs no evaluation episodes (a metrics row averages the training rollouts of its "
+                     "eval.interval env steps)",
+}
+
+
+def _check_unused(c: Config) -> None:
+    defaults = algo_defaults(c.algo)
+    for name in ("env", "train", "eval"):
+        section, default_section = getattr(c, name), getattr(defaults, name)
+        for f in dataclasses.fields(section):
+            key, value, default = f"{name}.{f.name}", getattr(section, f.name), getattr(default_section, f.name)
+            if key not in USED and value != default:
+                why = WHY_UNUSED.get(key, f"it trains through {ENV_ID} by itself, without the env copies, "
+                                          "collection, checkpoints and evaluations this key sets")
+                raise ConfigError(f"{key}={value!r} does not apply to algo='bptt': {why}; leave it at {default!r}")
 
 
 def policy_state(net: MLP, hidden: list[int], env_steps: int) -> dict[str, Any]:
