@@ -94,3 +94,14 @@ def test_loaded_policy_docs_give_actions_in_the_env_action_shape():
         text = " ".join(doc.split())
         assert "[B, *action_shape]" in text and "[B, A]" not in text
     assert "greedy in Q" not in relayrl.export.load_policy.__doc__  # PPO's discrete action is its most likely one
+
+
+def test_readme_run_directory_names_every_column_of_an_evaluation_row(tmp_path):
+    import relayrl
+
+    cfg = relayrl.load_config("dqn", ["train.total_steps=200", "eval.interval=0", "eval.episodes=1"])
+    row = relayrl.train(cfg, tmp_path / "r", progress=False).final
+    listing = (ROOT / "README.md").read_text().split("RUN_DIR/metrics.jsonl", 1)[1].split("RUN_DIR/tb/", 1)[0]
+    named = set(re.findall(r"[\w/]+", listing))
+    missing = [k for k in row if k not in named and k.split("/")[0] + "/..." not in listing]
+    assert not missing, f"metrics.jsonl columns the README's run directory listing does not name: {missing}"
