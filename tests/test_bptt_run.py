@@ -1,5 +1,7 @@
 """algo = "bptt" as a run (the bptt-pendulum preset) and stateless envs in the train loop."""
-
+import os
+import re
+import signal
 
 import pytest
 import torch
@@ -30,6 +32,17 @@ def test_bptt_refuses_other_envs(tmp_path):  # resume and CLI errors: tests/test
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize("setting, why", [("env.num_envs=4", "set agent.batch_size"),
+                                          ("eval.episodes=3", "it runs no evaluation episodes"),
+                                          ("env.kwargs={'g': 5.0}", "without the env copies"),
+                                          ("train.checkpoint_interval=100", "without the env copies")])
+def test_bptt_refuses_settings_it_would_ignore(tmp_path, setting, why):
+    toml = setting.replace("{'g': 5.0}", "{g = 5.0}")
+    with pytest.raises(ConfigError, match=f"{re.escape(setting)} does not apply to algo='bptt'.*{why}"):
+        relayrl.train(relayrl.load_config("bptt-pendulum", SHORT + [toml]), tmp_path / "x", progress=False)
+    assert not (tmp_path / "x").exists()
+
+
 def test_bptt_runs_in_one_process_only(tmp_path):
     with pytest.raises(UserError, match="algo='bptt' runs in one process only"):
         relayrl.train(relayrl.load_config("bptt-pendulum", SHORT + ["distributed.num_actors=2"]), tmp_path / "x",
@@ -51,3 +64,28 @@ def test_bptt_with_eval_interval_zero_writes_one_row_over_its_last_50_iterations
     cfg = relayrl.load_config("bptt-pendulum", ["train.total_steps=192000", "eval.interval=0"])  # 60 iterations
     (row,) = RunDir(relayrl.train(cfg, tmp_path / "b", progress=False).run_dir).read_metrics()
     assert row["step"] == 192000 and row["bptt/mean_reward"] == row["bptt/final50_mean_reward"]
+
+
+def test_bptt_ctrl_c_keeps_the_policy_trained_so_far(tmp_path, monkeypatch, capsys):
+    """A bptt run has no checkpoints: the first Ctrl-C ends the iteration and saves its policy
+    there (the CLI then says the policy stays), instead of losing the whole run's training."""
+    from relayrl.agents.bptt import trainer
+
+    real = trainer.train_bptt
+
+    def ctrl_c_in_iteration_12(config, callback, **kwargs):
+        def on_iteration(entry):
+            callback(entry)
+            if entry.iteration == 11:
+                os.kill(os.getpid(), signal.SIGINT)
+        return real(config, on_iteration, **kwargs)
+
+    monkeypatch.setattr(trainer, "train_bptt", ctrl_c_in_iteration_12)
+    root = str(tmp_path / "b")
+    with pytest.raises(KeyboardInterrupt, match=f"the run stopped at env step 38,400; its policy and metrics are in "
+                                                f"'{root}'"):
+        relayrl.train(relayrl.load_config("bptt-pendulum", SHORT), root, progress=False)
+    assert "stopping at the end of this iteration to save the policy" in capsys.readouterr().err
+    assert relayrl.load_policy(root).env_steps == 12 * 32 * 100
+    assert [r["step"] for r in RunDir(root).read_metrics()] == [32000]
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is put back

@@ -80,3 +80,28 @@ def test_readme_links_to_benchmark_sections_resolve():
     assert links and not [a for a in links if a not in anchors]
     own = {anchor(h) for h in re.findall(r"^#+ (.+)$", readme, flags=re.M)}
     assert not [a for a in re.findall(r"\]\(#([^)]+)\)", readme) if a not in own]
+
+
+def test_loaded_policy_docs_give_actions_in_the_env_action_shape():
+    """A Box action [2, 2] comes out of a loaded or exported policy as [2, 2] ([B, 2, 2] for a
+    batch: tests/test_spaces.py); the docs that promised [A] / [B, A] misled users of such envs."""
+    import relayrl.export
+    import relayrl.loaded_policy
+
+    readme = " ".join((ROOT / "README.md").read_text().split())
+    assert "a batch `[B, *obs_shape]` in, `[B]` or `[B, *action_shape]` out" in readme
+    for doc in (relayrl.export.__doc__, relayrl.export.load_policy.__doc__, relayrl.loaded_policy.LoadedPolicy.__doc__):
+        text = " ".join(doc.split())
+        assert "[B, *action_shape]" in text and "[B, A]" not in text
+    assert "greedy in Q" not in relayrl.export.load_policy.__doc__  # PPO's discrete action is its most likely one
+
+
+def test_readme_run_directory_names_every_column_of_an_evaluation_row(tmp_path):
+    import relayrl
+
+    cfg = relayrl.load_config("dqn", ["train.total_steps=200", "eval.interval=0", "eval.episodes=1"])
+    row = relayrl.train(cfg, tmp_path / "r", progress=False).final
+    listing = (ROOT / "README.md").read_text().split("RUN_DIR/metrics.jsonl", 1)[1].split("RUN_DIR/tb/", 1)[0]
+    named = set(re.findall(r"[\w/]+", listing))
+    missing = [k for k in row if k not in named and k.split("/")[0] + "/..." not in listing]
+    assert not missing, f"metrics.jsonl columns the README's run directory listing does not name: {missing}"

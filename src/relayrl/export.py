@@ -8,7 +8,7 @@ a few seconds, so not done on every save) writes `policy.pt2`, a
 runs with nothing but PyTorch:
 
     program = torch.export.load("run/policy/policy.pt2").module()
-    actions = program(obs)  # [B, *obs_shape] in the space's dtype -> [B] or [B, A]
+    actions = program(obs)  # [B, *obs_shape] in the space's dtype -> [B] or [B, *action_shape]
 
 A policy on Dict or Tuple observations takes one input per entry, in the space's order (a
 Dict's keys, a Tuple's "0", "1", ...; nested entries as "outer.inner"). `relayrl export --format
@@ -83,11 +83,13 @@ def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = Tru
     """A run directory, its `policy/` folder or the file itself -> the policy, for plain Python.
 
     It takes NumPy or torch observations, one [*obs_shape] or a batch [B, *obs_shape], and
-    returns actions of the same kind: for a batch [B] for discrete (greedy in Q), [B, A] for
-    continuous (tanh(mean), or sampled with `deterministic=False`); for one observation, one
-    action. `policy.predict(obs)` returns `(action, None)` as Stable-Baselines3's does. Its
-    `env_steps` is the run's env step when the policy was saved. During a run the file is
-    replaced atomically, so a policy can be loaded at any moment.
+    returns actions of the same kind, in the env's action shape: for a batch [B] for discrete
+    (DQN's greedy action, PPO's most likely one), [B, *action_shape] for Box (SAC's tanh(mean),
+    PPO's mean clipped or squashed into the bounds, or sampled with `deterministic=False`) and
+    MultiDiscrete / MultiBinary; for one observation, one action. `policy.predict(obs)` returns
+    `(action, None)` as Stable-Baselines3's does. Its `env_steps` is the run's env step when the
+    policy was saved. During a run the file is replaced atomically, so a policy can be loaded
+    at any moment.
     """
     f = _policy_file(path)
     state = load_policy_file(f)

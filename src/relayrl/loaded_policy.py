@@ -24,10 +24,10 @@ from relayrl.specs import PackedSpec, Spec, describe, entry, is_image, leaf_arra
 
 class LoadedPolicy(Policy):
     """obs -> action, of the kind it is given: NumPy in, NumPy out; torch in, torch out; one
-    observation as the env returns it in, one action out (an integer for discrete actions, [A]
-    else); a batch [B, ...] in, [B] or [B, A] out. A Dict observation is a dict of arrays (a
-    Tuple's a tuple), each entry batched or not; a Discrete one an integer. Float64
-    observations are cast to the policy's dtype. `predict` is Stable-Baselines3's spelling;
+    observation as the env returns it in, one action out (an integer for discrete actions, else
+    the action space's shape); a batch [B, ...] in, [B] or [B, *action_shape] out. A Dict
+    observation is a dict of arrays (a Tuple's a tuple), each entry batched or not; a Discrete
+    one an integer. Float64 observations are cast to the policy's dtype. `predict` is Stable-Baselines3's spelling;
     `batched` is the policy the run itself used.
     """
 

@@ -1,11 +1,13 @@
 """The direct driver: an algorithm that trains by itself (registry `replay = "none"`: BPTT
 through a differentiable env) writes its run directory through this: metrics rows,
-TensorBoard, the config, and the policy file at the end. No actor, replay or learner."""
+TensorBoard, the config, and the policy file at the end (at the iteration a Ctrl-C or SIGTERM
+stopped it, too: its runs have no checkpoints). No actor, replay or learner."""
 
 from __future__ import annotations
 
 from typing import Any
 
+from relayrl import interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config
 from relayrl.policy_file import save_policy_file
@@ -28,19 +30,35 @@ class DirectDriver:
 
         rows: list[dict[str, Any]] = []
         log, tb = MetricsLog(self.rd.metrics), SummaryWriter(str(self.rd.tb))
+        signals: list[int] = []  # the first Ctrl-C / SIGTERM: stop after this iteration, keep the policy
+        stopped: list[bool] = []  # whether the trainer stopped early for it (not in its last iteration)
 
         def write_row(row: dict[str, Any]) -> None:
             log.write(row)
             rows.append(row)
 
+        def on_signal(signum: int) -> None:
+            signals.append(signum)
+            say("relayrl: stopping at the end of this iteration to save the policy (no checkpoints for "
+                f"algo={self.config.algo!r}; Ctrl-C again stops at once)")
+
+        def stop() -> bool:
+            stopped.append(bool(signals))
+            return bool(signals)
+
         try:
             log_config(tb, self.config)
-            state = self.trainer.train(self.config, resolve_device(self.config.device), write_row, tb.add_scalar,
-                                       say if self.progress else None)
+            with interrupts.stop_request(on_signal):
+                state = self.trainer.train(self.config, resolve_device(self.config.device), write_row,
+                                           tb.add_scalar, say if self.progress else None, stop)
         finally:
             log.close()
             tb.close()
         save_policy_file(state, self.rd.policy / "policy.pt")
+        if signals and any(stopped):  # a signal in the last iteration: the run finished
+            interrupts.redeliver(signals[0], f"the run stopped at env step {state['env_steps']:,}; its policy and "
+                                 f"metrics are in {str(self.rd.root)!r} (algo={self.config.algo!r} runs have no "
+                                 "checkpoints: a new run starts over)")
         return RunResult(self.rd.root, rows[-1] if rows else {})
 
     def close(self) -> None:

@@ -228,23 +228,25 @@ def pendulum_mlp_rewards(policy: MLP, th0: torch.Tensor, thdot0: torch.Tensor, s
 
 
 def train_bptt(config: BpttConfig | None = None, callback: Callable[[BpttLog], None] | None = None, *,
-               iterations: int = 625, seed: int = 0, device: str = "cpu", torch_threads: int = 1) -> BpttResult:
+               iterations: int = 625, seed: int = 0, device: str = "cpu", torch_threads: int = 1,
+               stop: Callable[[], bool] | None = None) -> BpttResult:
     """Train a Pendulum policy by backpropagation through rollouts (see module doc).
     `callback` gets a BpttLog after every iteration (forcing a device sync when given).
     `iterations`: the tutorial's 625 (`20_000 // batch_size`); `torch_threads`: 0 leaves
-    torch's setting, 1 is fastest for tensors this small."""
+    torch's setting, 1 is fastest for tensors this small. `stop`, asked after every iteration
+    but the last: True ends training there (a Ctrl-C), with the policy trained so far."""
     c = config or BpttConfig()
     threads = torch.get_num_threads()
     if torch_threads > 0:
         torch.set_num_threads(torch_threads)
     try:
-        return _train(c, callback, iterations, seed, torch.device(device))
+        return _train(c, callback, iterations, seed, torch.device(device), stop)
     finally:
         torch.set_num_threads(threads)
 
 
 def _train(c: BpttConfig, callback: Callable[[BpttLog], None] | None, iterations: int, seed: int,
-           device: torch.device) -> BpttResult:
+           device: torch.device, stop: Callable[[], bool] | None = None) -> BpttResult:
     env = make_pendulum(device=device)
     params = env.base_env.params
     seeds = RunSeeds(seed)
@@ -272,6 +274,9 @@ def _train(c: BpttConfig, callback: Callable[[BpttLog], None] | None, iterations
         if callback is not None:
             mean_r, last_r, gn = stats[i].tolist()
             callback(BpttLog(i, mean_r, last_r, gn, sched.get_last_lr()[0]))
+        if stop is not None and i + 1 < iterations and stop():
+            stats = stats[: i + 1]  # the iterations done: the policy is theirs
+            break
     values = stats.cpu()  # the sync happens before the clock stops
     seconds = time.perf_counter() - start
     return BpttResult(values[:, 0].tolist(), values[:, 1].tolist(), policy, seconds)

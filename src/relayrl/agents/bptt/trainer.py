@@ -11,6 +11,7 @@ so they are not checkpointed; the policy is saved at the end (`relayrl.load_poli
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections import deque
 from collections.abc import Callable
@@ -20,6 +21,7 @@ import numpy as np
 import torch
 
 from relayrl.agents.bptt.bptt import BpttLog, train_bptt
+from relayrl.config import algo_defaults
 from relayrl.errors import ConfigError
 from relayrl.nn import MLP
 
@@ -34,11 +36,34 @@ def check_config(c: Config) -> int:
     """Iterations the config asks for; ConfigError for settings BPTT cannot honour."""
     if c.env.id != ENV_ID:
         raise ConfigError(f"algo='bptt' trains through {ENV_ID} only; env.id={c.env.id!r} is not valid")
+    _check_unused(c)
     per_iteration = c.agent.batch_size * c.agent.rollout_steps
     if c.train.total_steps < per_iteration:
         raise ConfigError(f"train.total_steps={c.train.total_steps} is less than one iteration "
                           f"(agent.batch_size * agent.rollout_steps = {per_iteration} env steps)")
     return c.train.total_steps // per_iteration
+
+
+# The [env], [train] and [eval] keys a bptt run reads; the others set the actor-learner loop it
+# does not run, so a value other than the default is refused rather than silently ignored.
+USED = ("env.id", "train.total_steps", "train.torch_threads", "eval.interval")
+WHY_UNUSED = {
+    "env.num_envs": "each iteration rolls out agent.batch_size pendulums as one batch (set agent.batch_size)",
+    "eval.episodes": "it runs no evaluation episodes (a metrics row averages the training rollouts of its "
+                     "eval.interval env steps)",
+}
+
+
+def _check_unused(c: Config) -> None:
+    defaults = algo_defaults(c.algo)
+    for name in ("env", "train", "eval"):
+        section, default_section = getattr(c, name), getattr(defaults, name)
+        for f in dataclasses.fields(section):
+            key, value, default = f"{name}.{f.name}", getattr(section, f.name), getattr(default_section, f.name)
+            if key not in USED and value != default:
+                why = WHY_UNUSED.get(key, f"it trains through {ENV_ID} by itself, without the env copies, "
+                                          "collection, checkpoints and evaluations this key sets")
+                raise ConfigError(f"{key}={value!r} does not apply to algo='bptt': {why}; leave it at {default!r}")
 
 
 def policy_state(net: MLP, hidden: list[int], env_steps: int) -> dict[str, Any]:
@@ -51,9 +76,11 @@ def policy_state(net: MLP, hidden: list[int], env_steps: int) -> dict[str, Any]:
 
 
 def train(config: Config, device: torch.device, write_row: Callable[[dict[str, Any]], None],
-          add_scalar: Callable[[str, float, int], None], say: Callable[[str], None] | None) -> dict[str, Any]:
+          add_scalar: Callable[[str, float, int], None], say: Callable[[str], None] | None,
+          stop: Callable[[], bool] | None = None) -> dict[str, Any]:
     """Train; rows go to `write_row`, per-iteration scalars to `add_scalar`, a console line per
-    row to `say` (None: quiet). Returns the trained policy's state (`policy_state`)."""
+    row to `say` (None: quiet); `stop()` True ends training after the current iteration.
+    Returns the trained policy's state (`policy_state`), at the env step it reached."""
     c, a = config, config.agent
     iterations = check_config(c)
     per_iteration = a.batch_size * a.rollout_steps
@@ -88,5 +115,5 @@ def train(config: Config, device: torch.device, write_row: Callable[[dict[str, A
                 f"{row['bptt/last_reward']:7.3f} | {row['wall_time_s']:6.1f}s")
 
     result = train_bptt(a, on_iteration, iterations=iterations, seed=c.seed, device=str(device),
-                        torch_threads=c.train.torch_threads)
-    return policy_state(result.policy, a.hidden, iterations * per_iteration)
+                        torch_threads=c.train.torch_threads, stop=stop)
+    return policy_state(result.policy, a.hidden, len(result.mean_reward) * per_iteration)
