@@ -75,6 +75,17 @@ def test_evaluate_bad_input_is_one_line():
     vector.close()
 
 
+@pytest.mark.parametrize("seed", [-1, "a", 1.5, True])
+def test_a_seed_that_is_no_seed_is_one_line_not_a_broken_policy_file(run_dir, seed):
+    # evaluate() raised Gymnasium's or NumPy's own error (TypeError for "a"); load_policy said the
+    # policy file "does not hold a complete ... policy" and blamed the file.
+    with pytest.raises(UserError, match=rf"^seed={seed!r} is not valid; it must be an integer in \[0, "):
+        relayrl.evaluate(run_dir, episodes=1, seed=seed)
+    with pytest.raises(UserError, match=rf"^seed={seed!r} is not valid"):
+        relayrl.load_policy(run_dir, deterministic=False, seed=seed)
+    assert relayrl.load_policy(run_dir, seed=np.int64(3)) is not None
+
+
 def test_record_video_with_env(run_dir, tmp_path):
     factory = lambda render_mode=None: Countdown(render_mode=render_mode)  # noqa: E731
     out = relayrl.record_video(run_dir, tmp_path / "a.mp4", env=factory)

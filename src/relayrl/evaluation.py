@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from relayrl.errors import UserError
+from relayrl.seeding import check_seed
 from relayrl.specs import DiscreteSpec, PackedSpec, Spec, describe
 
 
@@ -63,6 +64,7 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
 
     if not isinstance(episodes, int) or episodes < 1:
         raise UserError(f"episodes={episodes!r} is not valid; it must be an integer >= 1")
+    check_seed(seed)
     if lone_policy_file(policy):  # read once: for its env record and to act
         from relayrl.export import load_policy
 

@@ -36,6 +36,7 @@ from relayrl.loaded_policy import LoadedPolicy, built_quietly, env_shaped, rng_k
 from relayrl.paths import is_folder, output_path, writing
 from relayrl.policies import saved_obs_spec
 from relayrl.policy_file import REFUSED, env_action_dtype, load_policy_file
+from relayrl.seeding import check_seed
 from relayrl.specs import PackedSpec, Spec, env_torch_dtype
 
 T = TypeVar("T")
@@ -89,6 +90,7 @@ def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = Tru
     `env_steps` is the run's env step when the policy was saved. During a run the file is
     replaced atomically, so a policy can be loaded at any moment.
     """
+    check_seed(seed)  # else a bad seed read as a broken policy file
     f = _policy_file(path)
     state = load_policy_file(f)
     module = for_policy_kind(state.get("kind")).policy_module()
