@@ -353,6 +353,36 @@ def test_train_leaves_the_callers_torch_threads_flushing_and_generator_as_they_w
         torch.set_flush_denormal(flushing)
 
 
+def test_runs_started_in_threads_take_turns_and_repeat_their_seeds(tmp_path, capsys):
+    """Optuna's n_jobs > 1 runs trials in threads: two runs at once drew network weights from one
+    global torch generator, so a seed gave another run. The second waits for the first, and says so."""
+    import json
+    import threading
+
+    def rows(root):
+        return [{k: v for k, v in json.loads(line).items() if k not in ("wall_time_s", "eval_s")}
+                for line in (root / "metrics.jsonl").read_text().splitlines()]
+
+    alone = relayrl.train({**TINY, "seed": 1}, tmp_path / "alone", progress=False).run_dir
+    events: list[str] = []
+    second_started = threading.Event()
+    other = threading.Thread(target=lambda: relayrl.train({**TINY, "seed": 1}, tmp_path / "b", progress=False,
+                                                          callbacks=[lambda row: (events.append("b"),
+                                                                                  second_started.set())]))
+
+    def first(row):
+        events.append("a")
+        if not other.is_alive() and len(events) == 1:
+            other.start()
+            second_started.wait(timeout=3)  # it did start, while this run was under way
+
+    relayrl.train(TINY, tmp_path / "a", progress=False, callbacks=[first])
+    other.join()
+    assert events == sorted(events) and "b" in events  # every "a" before the first "b"
+    assert rows(tmp_path / "b") == rows(alone)
+    assert "another relayrl.train is running in this process: this one starts when it ends" in capsys.readouterr().err
+
+
 def test_a_resume_leaves_the_callers_numpy_and_python_generators_as_they_were(tmp_path):
     """A checkpoint holds the process's NumPy and Python generators (for envs drawing from them);
     restoring them is the run's business only."""
