@@ -199,6 +199,26 @@ def test_callbacks_refused_where_not_supported(tmp_path):
         relayrl.train(TINY, tmp_path / "r", callbacks=[3])
 
 
+def test_a_callback_that_cannot_take_one_row_is_refused_before_the_run_starts(tmp_path):
+    # SB3's old (locals, globals) callbacks raised TypeError from the step-0 evaluation, with the
+    # run directory made and a half run in it.
+    def two(locals_, globals_):
+        return True
+
+    for cb in (two, lambda: True):
+        with pytest.raises(UserError, match=r"cannot be called with one argument; a callback takes the metrics row"):
+            relayrl.train(TINY, tmp_path / "r", callbacks=[lambda row: None, cb])
+        assert not (tmp_path / "r").exists()
+
+    class Pruner:
+        def __call__(self, row, *rest, trial=None):
+            return True
+
+    from relayrl.dispatch import _check_callbacks
+
+    assert len(_check_callbacks([print, Pruner(), lambda row, k=1: None], True)) == 3
+
+
 @pytest.mark.parametrize("fast", [True, False])
 def test_sac_lr_schedule_reaches_every_optimizer(fast):
     from relayrl.agents.sac.agent import SACAgent

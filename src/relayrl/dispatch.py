@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import inspect
 import itertools
 import sys
 import threading
@@ -104,10 +105,27 @@ def _check_callbacks(callbacks: Sequence[Callback] | None, actor_learner: bool) 
     for cb in callbacks:
         if not callable(cb):
             raise UserError(f"callbacks: {cb!r} is not callable; give functions taking a metrics row (a dict)")
+        if not _takes_one_argument(cb):  # else a TypeError from the step-0 evaluation, the run half made
+            raise UserError(f"callbacks: {getattr(cb, '__qualname__', cb)!r} cannot be called with one argument; a "
+                            "callback takes the metrics row (a dict) alone: def cb(row) (SB3's callback objects "
+                            "and (locals, globals) functions are not taken)")
     if callbacks and not actor_learner:
         raise UserError("callbacks= works with the Actor + Learner runs (algo dqn, sac or ppo, in one process or "
                         "on Ray); this algorithm trains by its own loop")
     return callbacks
+
+
+def _takes_one_argument(fn: Callable[..., Any]) -> bool:
+    """Whether `fn(row)` binds; True where Python cannot tell (a builtin without a signature)."""
+    try:
+        signature = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return True
+    try:
+        signature.bind(None)
+    except TypeError:
+        return False
+    return True
 
 
 _REPLACE = "pass --overwrite to replace it, or choose another --run-dir (in Python: overwrite=True, or another run_dir)"
