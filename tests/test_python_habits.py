@@ -86,6 +86,18 @@ def test_a_seed_that_is_no_seed_is_one_line_not_a_broken_policy_file(run_dir, se
     assert relayrl.load_policy(run_dir, seed=np.int64(3)) is not None
 
 
+def test_max_episode_steps_cuts_an_env_instances_episodes_as_it_does_an_ids_and_a_factorys():
+    # An instance with a time limit of its own ran its episodes to that limit: the setting was ignored.
+    def timed():
+        return gym.wrappers.TimeLimit(Countdown(length=50), 100)
+
+    for env in (timed(), timed):
+        returns, lengths = relayrl.evaluate(lambda o: 0, env, episodes=2, max_episode_steps=5,
+                                            return_episode_rewards=True)
+        assert lengths == [5, 5], env
+    assert relayrl.evaluate(lambda o: 0, timed(), episodes=1, return_episode_rewards=True)[1] == [50]
+
+
 def test_record_video_with_env(run_dir, tmp_path):
     factory = lambda render_mode=None: Countdown(render_mode=render_mode)  # noqa: E731
     out = relayrl.record_video(run_dir, tmp_path / "a.mp4", env=factory)
