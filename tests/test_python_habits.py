@@ -333,6 +333,12 @@ def test_several_runs_plot_in_one_panel(run_dir, tmp_path, capsys):
     with pytest.raises(UserError, match="in different folders: give --out PATH"):
         relayrl.plot_run([sweep / "seed1", run_dir])
     assert relayrl.plot_run([sweep / "seed1", run_dir], tmp_path / "both.svg").stat().st_size > 0
+    # plot_run(a, b), as the command line's `plot A B`, wrote a's plot over b's returns.png
+    with pytest.raises(UserError, match=r"is another run's directory: to plot several runs in one panel give them "
+                                        r"as one list, plot_run\(\["):
+        relayrl.plot_run(sweep / "seed1", sweep / "seed2")
+    assert not (sweep / "seed2" / "returns.png").exists()
+    assert relayrl.plot_run(sweep / "seed1", sweep / "seed1") == sweep / "seed1" / "returns.png"
     (sweep / "empty").mkdir()
     assert main(["plot", str(sweep / "seed1"), str(sweep / "empty")]) == 2
     assert "is not a relayrl run directory (no config.toml)" in capsys.readouterr().err
