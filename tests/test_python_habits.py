@@ -98,6 +98,18 @@ def test_max_episode_steps_cuts_an_env_instances_episodes_as_it_does_an_ids_and_
     assert relayrl.evaluate(lambda o: 0, timed(), episodes=1, return_episode_rewards=True)[1] == [50]
 
 
+def test_load_policy_takes_a_configs_device_names_and_says_which_it_cannot_use(run_dir):
+    # "auto" (a config's device) and "gpu" raised torch's RuntimeError; "cuda" on a machine
+    # without CUDA, torch's AssertionError ("Torch not compiled with CUDA enabled").
+    policy = relayrl.load_policy(run_dir, device="auto")
+    assert policy(np.zeros(2, np.float32)) in (0, 1)
+    with pytest.raises(UserError, match=r"^device='gpu' is not a device; valid: cpu, cuda, cuda:N, auto$"):
+        relayrl.load_policy(run_dir, device="gpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(UserError, match=r"^device='cuda' but CUDA is not available here"):
+            relayrl.load_policy(run_dir, device="cuda")
+
+
 def test_record_video_with_env(run_dir, tmp_path):
     factory = lambda render_mode=None: Countdown(render_mode=render_mode)  # noqa: E731
     out = relayrl.record_video(run_dir, tmp_path / "a.mp4", env=factory)

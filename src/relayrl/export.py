@@ -88,18 +88,21 @@ def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = Tru
     continuous (tanh(mean), or sampled with `deterministic=False`); for one observation, one
     action. `policy.predict(obs)` returns `(action, None)` as Stable-Baselines3's does. Its
     `env_steps` is the run's env step when the policy was saved. During a run the file is
-    replaced atomically, so a policy can be loaded at any moment.
+    replaced atomically, so a policy can be loaded at any moment. `device`: cpu, cuda, cuda:N or
+    auto (the GPU where there is one), as a config's.
     """
+    from relayrl.training.lifecycle import resolve_device
+
     check_seed(seed)  # else a bad seed read as a broken policy file
+    on = resolve_device(device)  # "auto" as a run's device is; a device not here is one line, not torch's assertion
     f = _policy_file(path)
     state = load_policy_file(f)
     module = for_policy_kind(state.get("kind")).policy_module()
     # Built once (a user's encoder may be costly to make); on another device the file is
     # checked on the CPU first, so a device's own error is not taken for a broken file.
     cpu = _built(f, state, lambda: module.load(state, torch.device("cpu"), deterministic, seed))
-    on = torch.device(device)
     batched = cpu if on.type == "cpu" else built_quietly(module, state, on, deterministic, seed)
-    return LoadedPolicy(batched, state, device, deterministic, seed)
+    return LoadedPolicy(batched, state, str(on), deterministic, seed)
 
 
 FORMATS = ("pt2", "onnx")

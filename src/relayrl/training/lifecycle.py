@@ -53,7 +53,10 @@ def resolve_device(name: str) -> torch.device:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise UserError(f"device={name!r} but CUDA is not available here; valid: cpu, auto")
-    return torch.device(name)
+    try:
+        return torch.device(name)
+    except RuntimeError:  # load_policy's device is not checked as a config's is
+        raise UserError(f"device={name!r} is not a device; valid: cpu, cuda, cuda:N, auto") from None
 
 
 def start_process(config: Config) -> tuple[RunSeeds, torch.device]:
