@@ -98,6 +98,12 @@ def test_max_episode_steps_cuts_an_env_instances_episodes_as_it_does_an_ids_and_
     assert relayrl.evaluate(lambda o: 0, timed(), episodes=1, return_episode_rewards=True)[1] == [50]
 
 
+def test_load_policy_given_a_list_of_runs_says_one_policy_per_call(run_dir):
+    with pytest.raises(UserError, match=r"is not a run directory or a policy file; one policy per call: "
+                                        r"\[relayrl.load_policy\(d\) for d in run_dirs\]"):
+        relayrl.load_policy([run_dir, run_dir])  # was pathlib's TypeError ("not list")
+
+
 def test_load_policy_takes_a_configs_device_names_and_says_which_it_cannot_use(run_dir):
     # "auto" (a config's device) and "gpu" raised torch's RuntimeError; "cuda" on a machine
     # without CUDA, torch's AssertionError ("Torch not compiled with CUDA enabled").

@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
 import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -43,6 +44,9 @@ T = TypeVar("T")
 
 
 def _policy_file(path: str | Path) -> Path:
+    if not isinstance(path, (str, os.PathLike)):  # several runs of a sweep: pathlib's TypeError said only "not list"
+        raise UserError(f"{path!r} is not a run directory or a policy file; one policy per call: "
+                        "[relayrl.load_policy(d) for d in run_dirs]")
     p = Path(path)
     if p.name == "config.toml" and p.is_file():  # a run's config names its run, as for `relayrl eval`
         p = p.parent
