@@ -81,6 +81,15 @@ def test_load_config_takes_a_dict_or_a_path_object_as_train_does(tmp_path):
         load_config({"algo": "sac", "agent": {"lr": 0.1}})
 
 
+def test_overrides_given_as_one_string_or_a_dict_are_not_read_a_character_or_a_key_at_a_time():
+    # One string was iterated by character ("--set 't' is not KEY=VALUE"), a sweep's dict of
+    # values by key ("--set 'train.total_steps' is not KEY=VALUE"): both misled.
+    assert load_config("ppo", "train.total_steps=4096").train.total_steps == 4096
+    with pytest.raises(ConfigError, match=r"^overrides=\{'train.total_steps': 100\} is a dict; load_config takes a "
+                       r"list of KEY=VALUE strings"):
+        load_config("ppo", {"train.total_steps": 100})
+
+
 def test_an_on_policy_run_shorter_than_one_rollout_is_refused():
     with pytest.raises(ConfigError, match=r"total_steps=1000 is less than one rollout \(train.collect_steps=2048"):
         load_config("ppo", ["train.total_steps=1000"])

@@ -75,6 +75,47 @@ def test_evaluate_bad_input_is_one_line():
     vector.close()
 
 
+@pytest.mark.parametrize("seed", [-1, "a", 1.5, True])
+def test_a_seed_that_is_no_seed_is_one_line_not_a_broken_policy_file(run_dir, seed):
+    # evaluate() raised Gymnasium's or NumPy's own error (TypeError for "a"); load_policy said the
+    # policy file "does not hold a complete ... policy" and blamed the file.
+    with pytest.raises(UserError, match=rf"^seed={seed!r} is not valid; it must be an integer in \[0, "):
+        relayrl.evaluate(run_dir, episodes=1, seed=seed)
+    with pytest.raises(UserError, match=rf"^seed={seed!r} is not valid"):
+        relayrl.load_policy(run_dir, deterministic=False, seed=seed)
+    assert relayrl.load_policy(run_dir, seed=np.int64(3)) is not None
+
+
+def test_max_episode_steps_cuts_an_env_instances_episodes_as_it_does_an_ids_and_a_factorys():
+    # An instance with a time limit of its own ran its episodes to that limit: the setting was ignored.
+    def timed():
+        return gym.wrappers.TimeLimit(Countdown(length=50), 100)
+
+    for env in (timed(), timed):
+        returns, lengths = relayrl.evaluate(lambda o: 0, env, episodes=2, max_episode_steps=5,
+                                            return_episode_rewards=True)
+        assert lengths == [5, 5], env
+    assert relayrl.evaluate(lambda o: 0, timed(), episodes=1, return_episode_rewards=True)[1] == [50]
+
+
+def test_load_policy_given_a_list_of_runs_says_one_policy_per_call(run_dir):
+    with pytest.raises(UserError, match=r"is not a run directory or a policy file; one policy per call: "
+                                        r"\[relayrl.load_policy\(d\) for d in run_dirs\]"):
+        relayrl.load_policy([run_dir, run_dir])  # was pathlib's TypeError ("not list")
+
+
+def test_load_policy_takes_a_configs_device_names_and_says_which_it_cannot_use(run_dir):
+    # "auto" (a config's device) and "gpu" raised torch's RuntimeError; "cuda" on a machine
+    # without CUDA, torch's AssertionError ("Torch not compiled with CUDA enabled").
+    policy = relayrl.load_policy(run_dir, device="auto")
+    assert policy(np.zeros(2, np.float32)) in (0, 1)
+    with pytest.raises(UserError, match=r"^device='gpu' is not a device; valid: cpu, cuda, cuda:N, auto$"):
+        relayrl.load_policy(run_dir, device="gpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(UserError, match=r"^device='cuda' but CUDA is not available here"):
+            relayrl.load_policy(run_dir, device="cuda")
+
+
 def test_record_video_with_env(run_dir, tmp_path):
     factory = lambda render_mode=None: Countdown(render_mode=render_mode)  # noqa: E731
     out = relayrl.record_video(run_dir, tmp_path / "a.mp4", env=factory)
@@ -188,6 +229,26 @@ def test_callbacks_refused_where_not_supported(tmp_path):
         relayrl.train(TINY, tmp_path / "r", callbacks=[3])
 
 
+def test_a_callback_that_cannot_take_one_row_is_refused_before_the_run_starts(tmp_path):
+    # SB3's old (locals, globals) callbacks raised TypeError from the step-0 evaluation, with the
+    # run directory made and a half run in it.
+    def two(locals_, globals_):
+        return True
+
+    for cb in (two, lambda: True):
+        with pytest.raises(UserError, match=r"cannot be called with one argument; a callback takes the metrics row"):
+            relayrl.train(TINY, tmp_path / "r", callbacks=[lambda row: None, cb])
+        assert not (tmp_path / "r").exists()
+
+    class Pruner:
+        def __call__(self, row, *rest, trial=None):
+            return True
+
+    from relayrl.dispatch import _check_callbacks
+
+    assert len(_check_callbacks([print, Pruner(), lambda row, k=1: None], True)) == 3
+
+
 @pytest.mark.parametrize("fast", [True, False])
 def test_sac_lr_schedule_reaches_every_optimizer(fast):
     from relayrl.agents.sac.agent import SACAgent
@@ -290,6 +351,12 @@ def test_several_runs_plot_in_one_panel(run_dir, tmp_path, capsys):
     with pytest.raises(UserError, match="in different folders: give --out PATH"):
         relayrl.plot_run([sweep / "seed1", run_dir])
     assert relayrl.plot_run([sweep / "seed1", run_dir], tmp_path / "both.svg").stat().st_size > 0
+    # plot_run(a, b), as the command line's `plot A B`, wrote a's plot over b's returns.png
+    with pytest.raises(UserError, match=r"is another run's directory: to plot several runs in one panel give them "
+                                        r"as one list, plot_run\(\["):
+        relayrl.plot_run(sweep / "seed1", sweep / "seed2")
+    assert not (sweep / "seed2" / "returns.png").exists()
+    assert relayrl.plot_run(sweep / "seed1", sweep / "seed1") == sweep / "seed1" / "returns.png"
     (sweep / "empty").mkdir()
     assert main(["plot", str(sweep / "seed1"), str(sweep / "empty")]) == 2
     assert "is not a relayrl run directory (no config.toml)" in capsys.readouterr().err
@@ -340,6 +407,36 @@ def test_train_leaves_the_callers_torch_threads_flushing_and_generator_as_they_w
     finally:
         torch.set_num_threads(threads)
         torch.set_flush_denormal(flushing)
+
+
+def test_runs_started_in_threads_take_turns_and_repeat_their_seeds(tmp_path, capsys):
+    """Optuna's n_jobs > 1 runs trials in threads: two runs at once drew network weights from one
+    global torch generator, so a seed gave another run. The second waits for the first, and says so."""
+    import json
+    import threading
+
+    def rows(root):
+        return [{k: v for k, v in json.loads(line).items() if k not in ("wall_time_s", "eval_s")}
+                for line in (root / "metrics.jsonl").read_text().splitlines()]
+
+    alone = relayrl.train({**TINY, "seed": 1}, tmp_path / "alone", progress=False).run_dir
+    events: list[str] = []
+    second_started = threading.Event()
+    other = threading.Thread(target=lambda: relayrl.train({**TINY, "seed": 1}, tmp_path / "b", progress=False,
+                                                          callbacks=[lambda row: (events.append("b"),
+                                                                                  second_started.set())]))
+
+    def first(row):
+        events.append("a")
+        if not other.is_alive() and len(events) == 1:
+            other.start()
+            second_started.wait(timeout=3)  # it did start, while this run was under way
+
+    relayrl.train(TINY, tmp_path / "a", progress=False, callbacks=[first])
+    other.join()
+    assert events == sorted(events) and "b" in events  # every "a" before the first "b"
+    assert rows(tmp_path / "b") == rows(alone)
+    assert "another relayrl.train is running in this process: this one starts when it ends" in capsys.readouterr().err
 
 
 def test_a_resume_leaves_the_callers_numpy_and_python_generators_as_they_were(tmp_path):

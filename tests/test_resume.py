@@ -194,6 +194,23 @@ def test_ctrl_c_mid_run_saves_a_checkpoint_there_and_the_resumed_run_is_the_unin
     assert comparable(tmp_path / "cut") == comparable(tmp_path / "full")
 
 
+def test_an_interrupt_between_checkpoints_names_the_checkpoint_a_resume_starts_from(tmp_path):
+    """A KeyboardInterrupt that stops at once (a second Ctrl-C, or one a callback raises) leaves
+    the last periodic checkpoint: the message said "stopped at env step 700 with a checkpoint"
+    as if one were there."""
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN + ["train.log_interval=100"])
+
+    def interrupt_at_700(row):
+        if row["step"] == 700:
+            raise KeyboardInterrupt
+
+    root = str(tmp_path / "cut")
+    with pytest.raises(KeyboardInterrupt, match=rf"^the run stopped at env step 700 with a checkpoint \(env step "
+                                                rf"500; the steps after it are trained again\) in '{root}': "):
+        relayrl.train(cfg, root, progress=False, callbacks=[interrupt_at_700])
+    assert load_latest_checkpoint(tmp_path / "cut" / "checkpoints")["env_steps"] == 500
+
+
 def test_ctrl_c_in_the_final_evaluation_keeps_the_policy_and_a_checkpoint_and_a_resume_evaluates(tmp_path):
     import toy_envs
 

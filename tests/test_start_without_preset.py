@@ -4,6 +4,7 @@ Python, never another algorithm's; presets load exactly as before."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 
 import pytest
@@ -45,6 +46,18 @@ def test_setting_algo_afterwards_keeps_what_the_user_changed():
     assert (c.train.total_steps, c.env.id, c.train.collect_steps) == (777, "Pendulum-v1", 2048)
     c.algo = "dqn"
     assert c.train.collect_steps == 4 and c.agent.batch_size == 32 and c.train.total_steps == 777
+
+
+@pytest.mark.parametrize("algo", ["dqn", "ppo", "sac"])
+def test_dataclasses_replace_of_a_config_keeps_it_and_changes_only_what_is_named(algo):
+    # A sweep's habit: replace(base, seed=s). PPO's and SAC's raised AttributeError ('DQNConfig'
+    # object has no attribute ...): the agent section was rebased against DQN's defaults.
+    base = relayrl.load_config(algo, ["train.total_steps=7000"])
+    base.agent.gamma = 0.9
+    c = dataclasses.replace(base, seed=4)
+    assert c.seed == 4 and dotted(to_dict(c)) == {**dotted(to_dict(base)), "seed": 4}
+    section = Config(algo=algo, agent=ALGORITHMS[algo].config(gamma=0.8))
+    assert dotted(to_dict(section)) == {**dotted(to_dict(Config(algo=algo))), "agent.gamma": 0.8}
 
 
 @pytest.mark.parametrize("total, decay", [(100_000, 10_000), (5_000, 500)])

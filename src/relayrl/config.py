@@ -306,7 +306,10 @@ def _rebase(obj: Any, old: Any, new: Any) -> None:
                             setattr(section, key, getattr(current, key))
                 object.__setattr__(obj, f.name, section)
             else:
-                _rebase(current, was, becomes)
+                # A section already of the new class (Config(algo="ppo", agent=PPOConfig(...)),
+                # dataclasses.replace(config, seed=s)) against another class's defaults: its
+                # own class's defaults are what "left at the default" means for it.
+                _rebase(current, was if type(was) is type(current) else type(current)(), becomes)
         elif current == was and current != becomes:
             object.__setattr__(obj, f.name, copy.deepcopy(becomes))
 

@@ -5,12 +5,15 @@ a rollout queue), or, for an algorithm that trains by itself, training/direct.py
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import inspect
 import itertools
 import sys
+import threading
 import time
 import types
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -102,10 +105,27 @@ def _check_callbacks(callbacks: Sequence[Callback] | None, actor_learner: bool) 
     for cb in callbacks:
         if not callable(cb):
             raise UserError(f"callbacks: {cb!r} is not callable; give functions taking a metrics row (a dict)")
+        if not _takes_one_argument(cb):  # else a TypeError from the step-0 evaluation, the run half made
+            raise UserError(f"callbacks: {getattr(cb, '__qualname__', cb)!r} cannot be called with one argument; a "
+                            "callback takes the metrics row (a dict) alone: def cb(row) (SB3's callback objects "
+                            "and (locals, globals) functions are not taken)")
     if callbacks and not actor_learner:
         raise UserError("callbacks= works with the Actor + Learner runs (algo dqn, sac or ppo, in one process or "
                         "on Ray); this algorithm trains by its own loop")
     return callbacks
+
+
+def _takes_one_argument(fn: Callable[..., Any]) -> bool:
+    """Whether `fn(row)` binds; True where Python cannot tell (a builtin without a signature)."""
+    try:
+        signature = inspect.signature(fn)
+    except (TypeError, ValueError):
+        return True
+    try:
+        signature.bind(None)
+    except TypeError:
+        return False
+    return True
 
 
 _REPLACE = "pass --overwrite to replace it, or choose another --run-dir (in Python: overwrite=True, or another run_dir)"
@@ -177,6 +197,13 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
     propagates; the run's checkpoints so far stay. Actor + Learner runs (dqn, sac, ppo), in one
     process or on Ray.
     """
+    with _one_run_at_a_time():  # from the run directory's checks on: another thread's run may be writing it
+        return _train(config, run_dir, resume, progress, env, overwrite, callbacks)
+
+
+def _train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Path | None, resume: bool,
+           progress: bool, env: Callable[[], Any] | None, overwrite: bool,
+           callbacks: Sequence[Callback] | None) -> RunResult:
     if config is None:
         if not resume or run_dir is None:
             raise UserError("config=None continues a run with its own config.toml: give run_dir and resume=True "
@@ -223,6 +250,27 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
                         f"{', '.join(ray_algorithms())}")
     with caller_state_kept():  # the run's threads, flushing and seeds are the run's alone
         return _build_and_train(entry, config, rd, resume, progress, env, callbacks, takeover, beside)
+
+
+# A run seeds torch's global generator (network initialisation) and sets the process's thread
+# count and denormal flushing, then puts back the caller's: two runs at once in threads of one
+# process (Optuna's n_jobs > 1) drew each other's numbers, and a fixed seed gave another run.
+# Reentrant: a callback may start a run of its own.
+_RUNNING = threading.RLock()
+
+
+@contextlib.contextmanager
+def _one_run_at_a_time() -> Iterator[None]:
+    """Runs started in several threads take turns; a run that waits says why, once."""
+    if not _RUNNING.acquire(blocking=False):
+        print("relayrl: another relayrl.train is running in this process: this one starts when it ends (a run "
+              "sets torch's global generator and thread count; run trials in processes to run them side by side)",
+              file=sys.stderr, flush=True)
+        _RUNNING.acquire()
+    try:
+        yield
+    finally:
+        _RUNNING.release()
 
 
 def _build_and_train(entry: Algorithm, config: Config, rd: RunDir, resume: bool, progress: bool,

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from relayrl.errors import UserError
+from relayrl.seeding import check_seed
 from relayrl.specs import DiscreteSpec, PackedSpec, Spec, describe
 
 
@@ -54,15 +55,17 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
     directory's own env (its config.toml, as `relayrl eval`), or the env a policy file records
     (its id, kwargs, wrappers and time limit). The env copies (up to 16, one for an
     instance) are reset with seed, seed + 1, ... (None: unseeded), as a run's evaluations are, and a
-    loaded policy's samples (`deterministic=False`) are drawn from `seed` too. An
-    env without a time limit has its episodes cut at `max_episode_steps`, or 1,000 steps if 0
-    (Atari games end their own episodes).
+    loaded policy's samples (`deterministic=False`) are drawn from `seed` too. Episodes are cut
+    at `max_episode_steps` where it is > 0 (an instance's own time limit may end them sooner); 0:
+    the env's time limit, and an env without one is cut at 1,000 steps (Atari games end their own
+    episodes).
     """
     from relayrl.training.evaluate import cap_untimed
     from relayrl.training.evaluate import evaluate as run_episodes
 
     if not isinstance(episodes, int) or episodes < 1:
         raise UserError(f"episodes={episodes!r} is not valid; it must be an integer >= 1")
+    check_seed(seed)
     if lone_policy_file(policy):  # read once: for its env record and to act
         from relayrl.export import load_policy
 
@@ -143,7 +146,10 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
 
     if isinstance(env, gym.Env):
         # One copy: the user's own instance, its episodes one after another.
-        return GymBatchEnv([lambda: env]), False
+        batch = GymBatchEnv([lambda: env])
+        if max_episode_steps > 0:  # as an id's or a factory's copies take it for their time limit (else ignored)
+            batch.cap_episodes(max_episode_steps)
+        return batch, False
     if env is None:
         from relayrl.loaded_policy import LoadedPolicy
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
 import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -36,12 +37,16 @@ from relayrl.loaded_policy import LoadedPolicy, built_quietly, env_shaped, rng_k
 from relayrl.paths import is_folder, output_path, writing
 from relayrl.policies import saved_obs_spec
 from relayrl.policy_file import REFUSED, env_action_dtype, load_policy_file
+from relayrl.seeding import check_seed
 from relayrl.specs import PackedSpec, Spec, env_torch_dtype
 
 T = TypeVar("T")
 
 
 def _policy_file(path: str | Path) -> Path:
+    if not isinstance(path, (str, os.PathLike)):  # several runs of a sweep: pathlib's TypeError said only "not list"
+        raise UserError(f"{path!r} is not a run directory or a policy file; one policy per call: "
+                        "[relayrl.load_policy(d) for d in run_dirs]")
     p = Path(path)
     if p.name == "config.toml" and p.is_file():  # a run's config names its run, as for `relayrl eval`
         p = p.parent
@@ -89,17 +94,21 @@ def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = Tru
     MultiDiscrete / MultiBinary; for one observation, one action. `policy.predict(obs)` returns
     `(action, None)` as Stable-Baselines3's does. Its `env_steps` is the run's env step when the
     policy was saved. During a run the file is replaced atomically, so a policy can be loaded
-    at any moment.
+    at any moment. `device`: cpu, cuda, cuda:N or auto (the GPU where there is one), as a
+    config's.
     """
+    from relayrl.training.lifecycle import resolve_device
+
+    check_seed(seed)  # else a bad seed read as a broken policy file
+    on = resolve_device(device)  # "auto" as a run's device is; a device not here is one line, not torch's assertion
     f = _policy_file(path)
     state = load_policy_file(f)
     module = for_policy_kind(state.get("kind")).policy_module()
     # Built once (a user's encoder may be costly to make); on another device the file is
     # checked on the CPU first, so a device's own error is not taken for a broken file.
     cpu = _built(f, state, lambda: module.load(state, torch.device("cpu"), deterministic, seed))
-    on = torch.device(device)
     batched = cpu if on.type == "cpu" else built_quietly(module, state, on, deterministic, seed)
-    return LoadedPolicy(batched, state, device, deterministic, seed)
+    return LoadedPolicy(batched, state, str(on), deterministic, seed)
 
 
 FORMATS = ("pt2", "onnx")

@@ -25,6 +25,10 @@ def plot_run(run_dir: str | Path | Sequence[str | Path], out: str | Path | None 
     if not isinstance(run_dir, (str, Path)):
         return _compare([RunDir(d) for d in run_dir], out)
     rd = RunDir(run_dir)
+    if out is not None and Path(out).resolve() != rd.root.resolve() and RunDir(out).metrics.is_file():
+        # plot_run(a, b), as `relayrl plot A B` is written: b's returns.png was replaced by a's plot
+        raise UserError(f"out={str(out)!r} is another run's directory: to plot several runs in one panel give "
+                        f"them as one list, plot_run([{str(run_dir)!r}, {str(out)!r}])")
     rows = _evaluations(rd)
 
     # BPTT runs (algo = "bptt") log training rollouts, not evaluations; like TorchRL's

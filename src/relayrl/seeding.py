@@ -23,9 +23,21 @@ from __future__ import annotations
 
 import numpy as np
 
+from relayrl.errors import UserError
+
 STREAMS = ("envs", "exploration", "replay", "warmup", "evaluation", "resume", "torch", "actors")
 MAX_SEED = 2**63 - 1  # what every consumer of a seed accepts (torch.manual_seed, SeedSequence, JSON)
 EVAL_STRIDE = 10_000  # evaluation k resets its copies from base + EVAL_STRIDE * k
+
+
+def check_seed(seed: object, name: str = "seed") -> None:
+    """A seed a caller passes (None: unseeded): refused in one line where it is not an integer in
+    [0, MAX_SEED], before NumPy or Gymnasium say it in their own words (or the error is taken for
+    a broken file)."""
+    if seed is None:
+        return
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or not 0 <= seed <= MAX_SEED:
+        raise UserError(f"{name}={seed!r} is not valid; it must be an integer in [0, {MAX_SEED}], or None (unseeded)")
 
 
 class RunSeeds:

@@ -73,6 +73,21 @@ def _without_unused_replay(data: dict[str, Any], path: str) -> dict[str, Any]:
     return {k: v for k, v in data.items() if k != "replay"}
 
 
+def _override_list(overrides: Any) -> list[str]:
+    """`overrides` as a list of KEY=VALUE strings. One string is a list of one (it was read a
+    character at a time: "--set 't' is not KEY=VALUE"); a dict of values (a sweep's parameters)
+    was read as its keys alone, so it is one line saying what load_config takes."""
+    if overrides is None:
+        return []
+    if isinstance(overrides, str):
+        return [overrides]
+    if isinstance(overrides, dict):
+        raise ConfigError(f"overrides={overrides!r} is a dict; load_config takes a list of KEY=VALUE strings as "
+                          "--set does (['train.total_steps=20000']): set a dict's values on the config it returns "
+                          "(config.train.total_steps = 20000), or give load_config one dict of nested settings")
+    return list(overrides)
+
+
 def load_config(name_or_path: str | os.PathLike[str] | dict[str, Any], overrides: list[str] | None = None,
                 seed: int | None = None) -> Config:
     """A preset name, a path to a config TOML or a dict of settings (`{"algo": "sac", "env":
@@ -88,9 +103,10 @@ def load_config(name_or_path: str | os.PathLike[str] | dict[str, Any], overrides
         data = copy.deepcopy(file_data)
     else:
         data = preset_dict(name_or_path)
-    data = apply_overrides(data, overrides or [])
+    overrides = _override_list(overrides)
+    data = apply_overrides(data, overrides)
     if seed is not None:
-        if any(parse_override(o)[0] == ["seed"] for o in overrides or []) and data.get("seed") != seed:
+        if any(parse_override(o)[0] == ["seed"] for o in overrides) and data.get("seed") != seed:
             raise ConfigError(f"--seed {seed} and --set seed={data.get('seed')} name two seeds: pass one of them")
         data["seed"] = seed
     try:

@@ -60,7 +60,10 @@ def resolve_device(name: str) -> torch.device:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise UserError(f"device={name!r} but CUDA is not available here; valid: cpu, auto")
-    return torch.device(name)
+    try:
+        return torch.device(name)
+    except RuntimeError:  # load_policy's device is not checked as a config's is
+        raise UserError(f"device={name!r} is not a device; valid: cpu, cuda, cuda:N, auto") from None
 
 
 def start_process(config: Config) -> tuple[RunSeeds, torch.device]:
@@ -361,12 +364,15 @@ def _python_resume(core: RunCore) -> str:
 def _stopped_at(core: RunCore) -> str:
     """Where an interrupted run stopped and how it goes on, in Python's terms (the CLI says its own)."""
     root, step = str(core.rd.root), core.env_steps()
-    if list_checkpoints(core.rd.checkpoints):
+    if ckpts := list_checkpoints(core.rd.checkpoints):
         if step >= core.config.train.total_steps:  # Ctrl-C in the final evaluation or save
             return (f"the run reached its last env step ({step:,}) with a checkpoint in {root!r}: "
                     f"{_python_resume(core)} does what was left (its final evaluation)")
-        return (f"the run stopped at env step {step:,} with a checkpoint in {root!r}: {_python_resume(core)} "
-                "continues it")
+        # a second Ctrl-C (or a callback's KeyboardInterrupt) stops between checkpoints: say which one resumes
+        at = int(ckpts[-1].stem.split("-")[1])
+        since = "" if at == step else f" (env step {at:,}; the steps after it are trained again)"
+        return (f"the run stopped at env step {step:,} with a checkpoint{since} in {root!r}: "
+                f"{_python_resume(core)} continues it")
     if core.config.train.checkpoint_interval > 0:
         return (f"the run stopped at env step {step:,}, before its first checkpoint: nothing to resume; a new run "
                 f"in {root!r} starts over (overwrite=True where it trained past step 0)")
