@@ -309,7 +309,8 @@ def _rebase(obj: Any, old: Any, new: Any) -> None:
                 # A section already of the new class (Config(algo="ppo", agent=PPOConfig(...)),
                 # dataclasses.replace(config, seed=s)) against another class's defaults: its
                 # own class's defaults are what "left at the default" means for it.
-                _rebase(current, was if type(was) is type(current) else type(current)(), becomes)
+                section_class: Any = type(current)
+                _rebase(current, was if type(was) is section_class else section_class(), becomes)
         elif current == was and current != becomes:
             object.__setattr__(obj, f.name, copy.deepcopy(becomes))
 

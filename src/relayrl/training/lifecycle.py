@@ -39,7 +39,7 @@ from relayrl.training.finite import DIVERGED, FiniteWatch, non_finite_metrics, n
 from relayrl.training.learner import Learner
 from relayrl.training.replay_setup import collect_only
 from relayrl.training.report import Callback, RunReport, log_config
-from relayrl.training.run_dir import RunDir
+from relayrl.training.run_dir import RunDir, checkpoint_step
 from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver, Progress, StepsPerSecondLog
 
 
@@ -369,7 +369,7 @@ def _stopped_at(core: RunCore) -> str:
             return (f"the run reached its last env step ({step:,}) with a checkpoint in {root!r}: "
                     f"{_python_resume(core)} does what was left (its final evaluation)")
         # a second Ctrl-C (or a callback's KeyboardInterrupt) stops between checkpoints: say which one resumes
-        at = int(ckpts[-1].stem.split("-")[1])
+        at = checkpoint_step(ckpts[-1])
         since = "" if at == step else f" (env step {at:,}; the steps after it are trained again)"
         return (f"the run stopped at env step {step:,} with a checkpoint{since} in {root!r}: "
                 f"{_python_resume(core)} continues it")

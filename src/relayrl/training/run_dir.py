@@ -26,6 +26,13 @@ def list_checkpoints(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if CHECKPOINT_NAME.match(p.name))
 
 
+def checkpoint_step(path: Path) -> int:
+    """The env step a checkpoint of `list_checkpoints` resumes from, read from its name."""
+    match = CHECKPOINT_NAME.match(path.name)
+    assert match is not None, path
+    return int(match[1])
+
+
 class RunDir:
     def __init__(self, root: str | Path) -> None:
         self.root = Path(root)
