@@ -196,6 +196,9 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
     `callbacks=[lambda row: row.get("average_return", -1e9) < 400]`. What a callback raises
     propagates; the run's checkpoints so far stay. Actor + Learner runs (dqn, sac, ppo), in one
     process or on Ray.
+
+    `progress=False` turns the progress bar off; the run's lines (evaluations, notes) still go
+    to stderr, which `contextlib.redirect_stderr(io.StringIO())` silences (a sweep's trials).
     """
     with _one_run_at_a_time():  # from the run directory's checks on: another thread's run may be writing it
         return _train(config, run_dir, resume, progress, env, overwrite, callbacks)
