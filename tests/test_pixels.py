@@ -276,6 +276,15 @@ def test_config_keys_for_pixels_are_checked():
             from_dict({"agent": bad})
 
 
+@pytest.mark.parametrize("encoder", ["small_cnn", "flatten", "tests.space_envs:FlatEncoder"])
+def test_an_encoder_beside_the_conv_network_is_refused_not_ignored(encoder):
+    # agent.network builds the Nature CNN whatever agent.encoder says: naming one was silently unused
+    with pytest.raises(ConfigError, match="agent.encoder.*does not apply with agent.network='nature_cnn'"):
+        from_dict({"agent": {"network": "nature_cnn", "encoder": encoder}})
+    for fine in ("auto", "nature_cnn"):
+        assert from_dict({"agent": {"network": "nature_cnn", "encoder": fine}}).agent.encoder == fine
+
+
 def test_a_table_writer_rejects_stacked_specs_that_do_not_match():
     with pytest.raises(ValueError, match="frame_stack"):
         from relayrl.replay import TransitionWriter
