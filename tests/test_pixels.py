@@ -20,7 +20,7 @@ from relayrl.nn.encoders import ConvEncoder, Encoded
 from relayrl.policies import RandomPolicy
 from relayrl.replay import Table
 from relayrl.schedules import exponential_schedule
-from relayrl.specs import ArraySpec, DiscreteSpec
+from relayrl.specs import ArraySpec, DiscreteSpec, spec_from_space
 from relayrl.training.actor import Actor
 from relayrl.training.replay_setup import build_replay, frame_stack
 from relayrl.types import Batch, Transition
@@ -214,6 +214,26 @@ def test_conv_dqn_trains_on_uint8_batches_and_its_saved_policy_acts_the_same(tmp
     assert torch.equal(policy(obs), agent.eval_policy()(obs))
 
 
+@pytest.mark.parametrize("dict_obs", [False, True])
+def test_a_saved_policy_takes_flipped_frames(tmp_path, dict_obs):
+    # img[..., ::-1] (BGR -> RGB) and np.flip give views with negative strides, which torch.as_tensor
+    # refuses: the policy raised torch's ValueError instead of acting
+    frame = gym.spaces.Box(0, 255, (16, 16, 3), np.uint8)
+    space = gym.spaces.Dict({"image": frame, "vec": gym.spaces.Box(-1.0, 1.0, (2,), np.float32)}) if dict_obs else frame
+    agent = DQNAgent(spec_from_space(space, "observation"), DiscreteSpec(3), DQNConfig(), torch.device("cpu"),
+                     np.random.default_rng(0))
+    torch.save(agent.policy_state(), tmp_path / "policy.pt")
+    policy = load_policy(tmp_path / "policy.pt")
+    frames = np.random.default_rng(0).integers(0, 256, (5, 16, 16, 3), dtype=np.uint8)[..., ::-1]
+    one, batch = frames[0], frames
+    if dict_obs:
+        vec = np.zeros((5, 2), np.float32)
+        one, batch = {"image": frames[0], "vec": vec[0]}, {"image": frames, "vec": vec}
+    copied = {k: np.ascontiguousarray(v) for k, v in batch.items()} if dict_obs else np.ascontiguousarray(batch)
+    assert np.array_equal(policy(batch), policy(copied))
+    assert policy(one) == policy(copied)[0] and policy.predict(one)[0] == policy(copied)[0]
+
+
 def test_policy_files_and_checkpoints_of_the_former_conv_q_network_load(tmp_path):
     """Before the Atari net was the Nature CNN encoder + a linear head it was its own module:
     its policy files ("network", "obs_shape", keys convs.* / head.0.* / head.2.*) and agent
@@ -274,6 +294,15 @@ def test_config_keys_for_pixels_are_checked():
     for bad in ({"network": "resnet"}, {"epsilon_schedule": "cosine"}, {"epsilon_decay": 1.5}):
         with pytest.raises(ConfigError):
             from_dict({"agent": bad})
+
+
+@pytest.mark.parametrize("encoder", ["small_cnn", "flatten", "tests.space_envs:FlatEncoder"])
+def test_an_encoder_beside_the_conv_network_is_refused_not_ignored(encoder):
+    # agent.network builds the Nature CNN whatever agent.encoder says: naming one was silently unused
+    with pytest.raises(ConfigError, match="agent.encoder.*does not apply with agent.network='nature_cnn'"):
+        from_dict({"agent": {"network": "nature_cnn", "encoder": encoder}})
+    for fine in ("auto", "nature_cnn"):
+        assert from_dict({"agent": {"network": "nature_cnn", "encoder": fine}}).agent.encoder == fine
 
 
 def test_a_table_writer_rejects_stacked_specs_that_do_not_match():

@@ -185,6 +185,33 @@ def test_auto_keeps_a_cuda_runs_replay_on_its_gpu_where_the_table_fits(monkeypat
     assert replay_device(load_config("sac-pendulum", []), cuda, False, vector, ArraySpec((1,), torch.float32)) is None
 
 
+def test_a_host_replay_that_outgrows_the_memory_available_is_said_at_the_start(tmp_path, monkeypatch, capsys):
+    # The arrays are allocated lazily: a table larger than the memory available started, and the run
+    # was killed once it had written that many rows (SAC's 1M default of 64x64 RGB frames: ~12 GiB).
+    # Stable-Baselines3 warns at the start; so does relayrl now.
+    import relayrl
+    import relayrl.training.local as local
+    from relayrl.specs import ArraySpec
+    from relayrl.training.replay_setup import host_memory_note
+
+    frames, actions = ArraySpec((64, 64, 3), torch.uint8), ArraySpec((2,), torch.float32)
+    c = load_config("sac", ["train.total_steps=1000000"])
+    note = host_memory_note(c, None, frames, actions, 8 * 2**30)
+    assert note is not None and "~12.2 GiB of host memory, more than the 8.0 GiB available" in note
+    assert "lower replay.size, or set replay.storage=memmap" in note
+    assert host_memory_note(c, None, frames, actions, 64 * 2**30) is None  # it fits
+    assert host_memory_note(c, torch.device("cpu"), frames, actions, 8 * 2**30) is not None
+    assert host_memory_note(c, None, frames, actions, None) is None  # no figure for this OS
+    assert host_memory_note(load_config("sac", []), None, frames, actions, 8 * 2**30) is None  # 50,000 rows
+    for other in (["replay.storage=memmap"], ["replay.size=10000"]):
+        assert host_memory_note(load_config("sac", ["train.total_steps=1000000", *other]), None, frames, actions,
+                                8 * 2**30) is None
+    monkeypatch.setattr(local, "available_host_memory", lambda: 1000)  # bytes: CartPole's 200 rows outgrow it
+    relayrl.train(load_config("dqn", ["train.total_steps=200", "eval.interval=0", "eval.episodes=1"]),
+                  tmp_path / "run")
+    assert "more than the 0.0 GiB available here" in capsys.readouterr().err
+
+
 def test_sac_trains_with_a_stateless_env_and_its_replay_as_torch_tensors(tmp_path):
     c = load_config("sac-pendulum", ["env.id=relayrl/StatelessPendulum-v0", "env.num_envs=16",
                                      "replay.device=cpu", "train.total_steps=640",

@@ -13,6 +13,15 @@ def torch_dtype(dtype: np.dtype) -> torch.dtype:
     return torch.from_numpy(np.zeros(0, dtype)).dtype
 
 
+def as_tensor(a: np.ndarray) -> torch.Tensor:
+    """`torch.as_tensor` of a NumPy array, sharing its memory where torch can: a view with a
+    negative stride (a flipped image, BGR -> RGB as `img[..., ::-1]`), which torch refuses, is
+    copied first."""
+    if any(s < 0 for s in a.strides):
+        a = a.copy()
+    return torch.as_tensor(a)
+
+
 def to_numpy(x: Any) -> np.ndarray:
     """A NumPy view of a CPU tensor without grad (no copy), a host copy of any other tensor,
     or `np.asarray` of anything else."""

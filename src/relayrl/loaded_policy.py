@@ -15,6 +15,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from relayrl.arrays import as_tensor
 from relayrl.core import Policy
 from relayrl.errors import UserError
 from relayrl.policies import saved_obs_spec
@@ -127,7 +128,7 @@ class LoadedPolicy(Policy):
             if a.dtype.kind not in "biuf":  # a dict, text, or pieces that make no array of numbers
                 raise UserError(f"this policy takes {describe(self.obs_space)} observations: an array of numbers "
                                 f"(or a batch of them), not a {type(obs).__name__} like {str(obs)[:60]}")
-            t = torch.as_tensor(a)
+            t = as_tensor(a)
         else:
             t = obs
         n = len(self.obs_shape)
@@ -150,7 +151,7 @@ class LoadedPolicy(Policy):
         batch = spec.batch_size(obs)
         numpy_in = not isinstance(entry(obs, spec.fields[0]), torch.Tensor)
         for f in spec.fields:
-            _check_values(torch.as_tensor(leaf_array(obs, f)), f.spec, f"[{f.key!r}]")
+            _check_values(as_tensor(leaf_array(obs, f)), f.spec, f"[{f.key!r}]")
         return torch.from_numpy(spec.pack_batch(obs, batch)), batch is None, numpy_in
 
 

@@ -22,7 +22,14 @@ from relayrl.training.checkpoint import NO_REPLAY, load_latest_checkpoint
 from relayrl.training.evaluate import check_same_spaces, eval_cap_note, make_eval_env
 from relayrl.training.finite import FiniteWatch
 from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
-from relayrl.training.replay_setup import build_replay, build_rollouts, replay_device, replay_note
+from relayrl.training.replay_setup import (
+    available_host_memory,
+    build_replay,
+    build_rollouts,
+    host_memory_note,
+    replay_device,
+    replay_note,
+)
 from relayrl.training.report import Callback, say
 from relayrl.training.run_dir import RunDir
 from relayrl.training.triggers import Evaluate, Progress
@@ -67,7 +74,9 @@ class LocalDriver:
             self.replay, self.writer = build_rollouts(c, device if stateless else None)  # tensors stay on it
         else:
             where = replay_device(c, device, stateless, obs_spec, act_spec)
-            self.replay_note = replay_note(c, device, where, obs_spec, act_spec)
+            notes = (replay_note(c, device, where, obs_spec, act_spec),  # a CUDA run's: where auto put it
+                     host_memory_note(c, where, obs_spec, act_spec, available_host_memory()))
+            self.replay_note = "\n".join(n for n in notes if n) or None
             self.replay, self.writer = build_replay(c, obs_spec, act_spec, self.rd.root, where)
         # One thread collects and learns in turn: an insert waiting on the rate limiter could
         # never be released; the learner's `available_steps` after each collect call keeps the ratio.

@@ -22,7 +22,7 @@ from relayrl.replay.rollouts import RolloutWriter
 from relayrl.replay.rollouts_torch import TensorRolloutWriter, tensor_rollout_queue
 from relayrl.replay.step_storage import ring_rows
 from relayrl.seeding import RunSeeds
-from relayrl.specs import ArraySpec, Spec, is_image
+from relayrl.specs import ArraySpec, Spec, describe, is_image
 
 
 def collect_only(c: Config) -> bool:
@@ -98,12 +98,42 @@ def frame_stack(obs_spec: Spec) -> int:
 GPU_REPLAY_SHARE = 0.5
 
 
-def replay_bytes(c: Config, obs_spec: Spec, action_spec: Spec) -> int:
+def replay_bytes(c: Config, obs_spec: Spec, action_spec: Spec, items: int | None = None) -> int:
     """What a device replay allocates there: each env's ring of frames (one per step: the newest
-    of a stack) and actions. Rewards, discounts and flags stay in host memory."""
+    of a stack) and actions. Rewards, discounts and flags stay in host memory. `items`: the
+    rows that holding this many items takes (default: replay.size, the full table)."""
     k = frame_stack(obs_spec)
     row = obs_spec.zeros(1).nbytes // k + action_spec.zeros(1).nbytes
-    return c.env.num_envs * ring_rows(c.replay.size, c.env.num_envs, c.replay.n_step, k) * row
+    return c.env.num_envs * ring_rows(items or c.replay.size, c.env.num_envs, c.replay.n_step, k) * row
+
+
+def available_host_memory() -> int | None:
+    """Bytes of host memory available to a new allocation (Linux's MemAvailable); None elsewhere."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024  # in kB
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def host_memory_note(c: Config, chosen: torch.device | None, obs_spec: Spec, action_spec: Spec,
+                     available: int | None) -> str | None:
+    """The log line warning that a host-memory replay outgrows the memory available (`available`
+    bytes) before the run ends, as Stable-Baselines3 warns: its arrays are allocated lazily, so
+    such a run starts and is killed hours later, once it has written that many rows (SAC's 1M
+    default of RGB frames: ~12 GiB at 64x64). None where it fits, or where the table is on a GPU or in files."""
+    if available is None or c.replay.storage != "ram" or (chosen is not None and chosen.type != "cpu"):
+        return None
+    items = min(c.replay.size, c.train.total_steps)  # what this run writes, at most
+    need = replay_bytes(c, obs_spec, action_spec, items)
+    if need <= available:
+        return None
+    return (f"replay: {items:,} transitions of {describe(obs_spec)} take ~{need / 2**30:.1f} GiB of host memory, "
+            f"more than the {available / 2**30:.1f} GiB available here: the run will run out of memory as its "
+            "replay fills; lower replay.size, or set replay.storage=memmap")
 
 
 def replay_device(c: Config, run_device: torch.device, stateless_env: bool, obs_spec: Spec | None = None,

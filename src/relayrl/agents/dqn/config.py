@@ -53,6 +53,11 @@ class DQNConfig(Section):
         self.require_choice(activation=("relu", "tanh", "elu"), init=("torch", "tf-agents"),
                             loss=("huber", "mse"), network=("mlp", "nature_cnn", "mario_cnn"),
                             epsilon_schedule=("linear", "exponential"))
+        if self.network != "mlp" and self.encoder not in ("auto", "nature_cnn"):
+            # the conv net is its own encoder (q_layout): another one named beside it would go unused
+            raise ConfigError(f"agent.encoder={self.encoder!r} does not apply with agent.network={self.network!r}, "
+                              "a conv net of its own; set agent.network='mlp' to use agent.encoder, or leave "
+                              "agent.encoder='auto'")
         self.require_sizes("hidden")
         self.require("in (0, 1]", "tau")
         self.require(">= 1", "target_update_period", "batch_size")
