@@ -139,7 +139,18 @@ def test_async_worker_errors_reach_the_main_process():
     env = make_env("toy_envs:BrokenInWorker", 4, vectorization="async", num_workers=2)
     try:
         env.reset(seed=0)
-        with pytest.raises(RuntimeError, match="(?s)env worker 0 failed.*ValueError: the simulator lost its state"):
+        # the env's own exception, as a sync env raises it, with the worker's traceback as a note
+        with pytest.raises(ValueError, match="the simulator lost its state") as raised:
+            env.step(torch.zeros(4, dtype=torch.int64))
+        note = "\n".join(raised.value.__notes__)
+        assert "(raised in env worker 0; its traceback there:)" in note and "in step" in note
+    finally:
+        env.close()
+    env = make_env("toy_envs:OddInWorker", 4, vectorization="async", num_workers=2)
+    try:
+        env.reset(seed=0)
+        # an exception that does not load back: a RuntimeError with the worker's traceback
+        with pytest.raises(RuntimeError, match="(?s)env worker 0 failed.*OddError: the simulator lost its state at"):
             env.step(torch.zeros(4, dtype=torch.int64))
     finally:
         env.close()

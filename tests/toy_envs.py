@@ -221,6 +221,22 @@ class BrokenInWorker(Countdown):
         return super().step(action)
 
 
+class OddError(Exception):
+    """An exception whose pickle does not rebuild it (two arguments, one message)."""
+
+    def __init__(self, what: str, where: str) -> None:
+        super().__init__(f"{what} at {where}")
+
+
+class OddInWorker(Countdown):
+    """Countdown whose step raises an OddError when it runs in a worker process."""
+
+    def step(self, action):
+        if multiprocessing.parent_process() is not None:
+            raise OddError("the simulator lost its state", "step 1")
+        return super().step(action)
+
+
 class DiesInWorker(Countdown):
     """Countdown whose process dies at its first step when it runs in a worker process."""
 

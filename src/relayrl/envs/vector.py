@@ -144,13 +144,40 @@ def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, raw: dict[st
 def _outcome(seq: int, work: Callable[..., Any], *args: Any) -> tuple[str, int, Any]:
     """A worker's reply to command `seq`: ("ok", seq, work(*args)), or its failure as the main
     process raises it: a UserError as its one line (bad input met while making or stepping a
-    copy), any other failure of the env's code with its traceback."""
+    copy), any other failure of the env's code with its traceback and, where it pickles, the
+    exception itself (`worker_failure`)."""
     try:
         return ("ok", seq, work(*args))
     except UserError as e:
         return ("user_error", seq, str(e))
+    except Exception as e:
+        return ("error", seq, (traceback.format_exc(), _pickled(e)))
+
+
+def _pickled(e: Exception) -> bytes | None:
+    """`e` pickled, where it pickles and loads back (an exception class whose arguments do not
+    rebuild it does not)."""
+    try:
+        data = cloudpickle.dumps(e)
+        pickle.loads(data)
     except Exception:
-        return ("error", seq, traceback.format_exc())
+        return None
+    return data
+
+
+def worker_failure(w: int, trace: str, pickled: bytes | None) -> Exception:
+    """What the main process raises for worker w's failure: the env's own exception, as a sync
+    env raises it (so `except` clauses, and tools that catch some types, such as Optuna's
+    `catch`, see the same type), with its traceback in the worker as a note; a RuntimeError
+    carrying that traceback where the exception does not load here."""
+    exc = None
+    if pickled is not None:
+        with contextlib.suppress(Exception):
+            exc = pickle.loads(pickled)
+    if isinstance(exc, Exception):
+        exc.add_note(f"(raised in env worker {w}; its traceback there:)\n{trace.rstrip()}")
+        return exc
+    return RuntimeError(f"env worker {w} failed:\n{trace}")
 
 
 def _serve(env: GymBatchEnv, a: dict[str, np.ndarray], lo: int, hi: int, cmd: str, arg: Any) -> Any:
@@ -324,7 +351,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
             if status == "user_error":
                 failure = failure or UserError(value)
             elif status == "error":
-                failure = failure or RuntimeError(f"env worker {w} failed:\n{value}")
+                failure = failure or worker_failure(w, *value)
             replies.append(value)
         self._unsettled = False
         if failure is not None and not drop_errors:  # raised once every reply is read
