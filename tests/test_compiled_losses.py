@@ -38,10 +38,12 @@ def test_compiled_is_the_function_itself_unless_asked(monkeypatch):
     monkeypatch.setenv("RELAYRL_COMPILE", "aot_eager")
     fn = compiled(losses)
     assert fn is not losses and torch.equal(fn(torch.ones(2)), torch.full((2,), 2.0))
-    monkeypatch.setenv("RELAYRL_COMPILE", "true")
-    with pytest.raises(UserError, match=r"RELAYRL_COMPILE='true' is not valid; valid: 0 \(off\), 1 \(inductor\), or a "
-                                        r"torch.compile backend: .*inductor"):
-        compiled(losses)
+    for bad in ("true", "cudagraphs"):
+        monkeypatch.setenv("RELAYRL_COMPILE", bad)
+        with pytest.raises(UserError, match=rf"RELAYRL_COMPILE='{bad}' is not valid; valid: 0 \(off\), 1 "
+                                            r"\(inductor\), or a torch.compile backend other than cudagraphs: "
+                                            r"aot_eager, .*inductor"):
+            compiled(losses)
 
 
 def test_ppo_clip_range_goes_in_as_a_tensor_only_where_compiled(monkeypatch):

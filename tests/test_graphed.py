@@ -196,6 +196,8 @@ def test_ppo_device_policy_graphed_draws_as_eager(monkeypatch, discrete):
             with torch.no_grad():
                 for p in net.parameters():
                     p.mul_(-1.5)
+        if i == STEPS + 2:  # a checkpoint's generator state loaded after capture
+            graphed.load_state_dict(eager.state_dict())
         obs = torch.randn(6, 3, device="cuda")
         a, b = graphed(obs), eager(obs)
         kept.append((a, b))

@@ -109,6 +109,7 @@ def test_load_policy_takes_a_configs_device_names_and_says_which_it_cannot_use(r
     # without CUDA, torch's AssertionError ("Torch not compiled with CUDA enabled").
     policy = relayrl.load_policy(run_dir, device="auto")
     assert policy(np.zeros(2, np.float32)) in (0, 1)
+    assert relayrl.load_policy(run_dir, device=torch.device("cpu"))(np.zeros(2, np.float32)) in (0, 1)
     with pytest.raises(UserError, match=r"^device='gpu' is not a device; valid: cpu, cuda, cuda:N, auto$"):
         relayrl.load_policy(run_dir, device="gpu")
     if not torch.cuda.is_available():

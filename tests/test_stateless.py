@@ -385,6 +385,20 @@ def test_adapter_resumes_a_checkpoint_from_before_the_device_generator():
         assert torch.equal(a.step(torch.ones(2, 1)).next_obs, b.step(torch.ones(2, 1)).next_obs)
 
 
+def test_envs_say_whether_a_cuda_graph_may_capture_them():
+    """Pendulum and the transforms of `make_pendulum` are pure tensor maps; transforms that copy
+    host tensors in per call (or read values on the host), and envs or transforms of one's own
+    that do not say, are stepped op by op."""
+    assert make_pendulum().graph_safe
+    assert not make_pendulum().append(RescaleAction()).graph_safe
+    assert not TransformedEnv(Pendulum(), [ObservationNorm("th", 0.0, 2.0)]).graph_safe
+
+    class Own(Transform):
+        pass
+
+    assert not make_pendulum().append(Own()).graph_safe
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_adapter_graphed_on_cuda_steps_as_launched_op_by_op(monkeypatch):
     """A CUDA graph per batched step (fresh states from the device's generator every step)
@@ -404,11 +418,23 @@ def test_adapter_graphed_on_cuda_steps_as_launched_op_by_op(monkeypatch):
         for u, v in zip(x, y, strict=True):
             assert torch.equal(u, v), t
     assert all(torch.equal(u, v) for u, v in kept)
+    # reseeded after capture (an evaluation's reset), and a state set into a captured env
+    assert torch.equal(graphed.reset(seed=5), eager.reset(seed=5))
+    for _ in range(10):
+        assert torch.equal(graphed.step(action).obs, eager.step(action).obs)
+    graphed.set_state(eager.get_state())
+    for _ in range(10):
+        assert torch.equal(graphed.step(action).obs, eager.step(action).obs)
     c = StatelessBatchEnv(make_pendulum(max_episode_steps=7), num_envs=6, device="cuda", seed=0)
     c.reset()
     c.set_state(graphed.get_state())  # the device generator's state rides along
     for _ in range(10):
         assert torch.equal(c.step(action).obs, graphed.step(action).obs)
+    unsafe = StatelessBatchEnv(make_pendulum().append(RescaleAction()), num_envs=2, device="cuda", seed=0)
+    assert unsafe._graphed is None  # stepped op by op
+    unsafe.reset()
+    for _ in range(5):
+        unsafe.step(torch.zeros(2, 1, device="cuda"))
 
 
 def test_adapter_trains_sac_a_few_hundred_steps():

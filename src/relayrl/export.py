@@ -83,7 +83,7 @@ def load_policy_state(path: str | Path) -> dict[str, Any]:
     return state
 
 
-def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = True,
+def load_policy(path: str | Path, device: str | torch.device = "cpu", deterministic: bool = True,
                 seed: int | None = None) -> LoadedPolicy:
     """A run directory, its `policy/` folder or the file itself -> the policy, for plain Python.
 
@@ -100,7 +100,7 @@ def load_policy(path: str | Path, device: str = "cpu", deterministic: bool = Tru
     from relayrl.training.lifecycle import resolve_device
 
     check_seed(seed)  # else a bad seed read as a broken policy file
-    on = resolve_device(device)  # "auto" as a run's device is; a device not here is one line, not torch's assertion
+    on = resolve_device(str(device))  # "auto" as a run's is; a device not here is one line, not torch's assertion
     f = _policy_file(path)
     state = load_policy_file(f)
     module = for_policy_kind(state.get("kind")).policy_module()

@@ -42,7 +42,8 @@ class LoadedPolicy(Policy):
         self.obs_shape, self.obs_dtype = tuple(self.obs_space.shape), self.obs_space.dtype
         self.env_steps: int | None = state.get("env_steps")  # the run's env step when it was saved
         self.env_id: str | None = state.get("env_id")  # the env.id of the run that saved it
-        # that run's env.kwargs, env.wrappers and env.max_episode_steps (files from before: none)
+        # that run's evaluation kwargs (env.kwargs, eval.env_kwargs over them), env.wrappers and
+        # env.max_episode_steps (files from before: none)
         self.env_kwargs: dict[str, Any] = dict(state.get("env_kwargs", {}))
         self.env_wrappers: list[str] = list(state.get("env_wrappers", []))
         self.max_episode_steps: int = int(state.get("max_episode_steps", 0))

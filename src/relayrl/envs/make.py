@@ -41,7 +41,7 @@ def make_env(env_id: str, num_envs: int = 1, max_episode_steps: int = 0, render_
     env factory given to `relayrl.train`)."""
     if env_id in STATELESS_ENVS and render_mode is None and factory is None:
         if info_keys or kwargs or wrappers:
-            what = "env.info_keys" if info_keys else "env.kwargs" if kwargs else "env.wrappers"
+            what = "env.info_keys" if info_keys else "env.kwargs (eval.env_kwargs)" if kwargs else "env.wrappers"
             raise UserError(f"{what} is not supported by stateless envs ({env_id!r} is a batch of tensors)")
         return make_batch_env(env_id, num_envs, device, max_episode_steps=max_episode_steps,
                               time_limit_terminates=time_limit_terminates)

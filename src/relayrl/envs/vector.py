@@ -345,7 +345,8 @@ class AsyncGymBatchEnv(BatchEnvBase):
     def _gather(self, seq: int, drop_errors: bool = False) -> list[Any]:
         """Every worker's reply to command `seq`, in order; a worker's failure is raised here
         (unless `drop_errors`: after a failure in this process, which is the one raised)."""
-        replies, failure = [], None
+        replies: list[Any] = []
+        failure: Exception | None = None
         for w in range(len(self._conns)):
             status, value = self._read(w, seq)
             if status == "user_error":

@@ -53,9 +53,11 @@ def compiled(losses: F) -> F:
     if setting == "0":
         return losses
     backend = "inductor" if setting == "1" else setting
-    if backend not in torch._dynamo.list_backends(exclude_tags=()):
+    # cudagraphs captures graphs of its own, which cannot sit inside GraphedStep's capture
+    valid = [b for b in torch.compiler.list_backends(exclude_tags=()) if b != "cudagraphs"]
+    if backend not in valid:
         raise UserError(f"RELAYRL_COMPILE={setting!r} is not valid; valid: 0 (off), 1 (inductor), or a "
-                        f"torch.compile backend: {', '.join(torch._dynamo.list_backends())}")
+                        f"torch.compile backend other than cudagraphs: {', '.join(valid)}")
     # dynamic left to torch: a value that changes between calls (a Python float such as a
     # scheduled clip range, a shorter last minibatch) gets one general graph, not one per value.
     return torch.compile(losses, fullgraph=True, backend=backend)  # type: ignore[return-value]

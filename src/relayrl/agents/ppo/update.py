@@ -50,10 +50,21 @@ class PPOUpdate:
         # A compiled graph specialises on a Python float's value: a clip range that a schedule
         # moves goes into it as a tensor, or every value would compile a graph of its own.
         self.clip_as_tensor = self.loss != self.losses  # (each `self.losses` is a new bound method: not `is`)
+        self._clip = torch.tensor(float(cfg.clip_range), device=self.params[0].device)
+        self._clip_value = float(cfg.clip_range)
+
+    def clip_tensor(self, clip_range: float) -> Tensor:
+        """`clip_range` as a 0-d tensor on the parameters' device, refilled only when a schedule
+        moves it (a launch, on a GPU)."""
+        if clip_range != self._clip_value:
+            self._clip.fill_(clip_range)
+            self._clip_value = clip_range
+        return self._clip
 
     def epochs(self, data: tuple[Tensor, ...], orders: Tensor, clip_range: float) -> Tensor:
         """Every minibatch step of one rollout, minibatches of `agent.batch_size` (see `run_epochs`)."""
-        return run_epochs(self, data, orders, self.cfg.batch_size, clip_range)
+        clip = self.clip_tensor(clip_range) if self.clip_as_tensor else clip_range
+        return run_epochs(self, data, orders, self.cfg.batch_size, clip)
 
     def losses(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
                returns: Tensor, clip_range: float | Tensor) -> tuple[Tensor, Tensor]:
@@ -73,8 +84,6 @@ class PPOUpdate:
     def __call__(self, obs: Tensor, action: Tensor, old_logp: Tensor, old_values: Tensor, adv: Tensor,
                  returns: Tensor, clip_range: float | Tensor) -> Tensor:
         """One gradient step on a minibatch; returns the statistics of `losses`."""
-        if self.clip_as_tensor and not isinstance(clip_range, Tensor):
-            clip_range = torch.tensor(clip_range)
         loss, stats = self.loss(obs, action, old_logp, old_values, adv, returns, clip_range)
         self.opt.zero_grad()
         loss.backward()
@@ -139,8 +148,6 @@ class GraphedPPOUpdate(PPOUpdate):
     def __init__(self, net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions) -> None:
         super().__init__(net, opt, cfg, evaluate_actions)
         self.graphed = GraphedStep(self._reference)
-        self.clip_range = torch.tensor(float(cfg.clip_range), device=self.params[0].device)
-        self._clip_value = float(cfg.clip_range)
 
     def _reference(self, *tensors: Tensor) -> dict[str, Tensor]:
         *data, orders, clip_range = tensors
@@ -148,10 +155,7 @@ class GraphedPPOUpdate(PPOUpdate):
         return {"sums": run_epochs(step, tuple(data), orders, self.cfg.batch_size, clip_range)}
 
     def epochs(self, data: tuple[Tensor, ...], orders: Tensor, clip_range: float) -> Tensor:
-        if clip_range != self._clip_value:  # a launch only when the schedule moves it
-            self.clip_range.fill_(clip_range)
-            self._clip_value = clip_range
-        return self.graphed(*data, orders, self.clip_range)["sums"]
+        return self.graphed(*data, orders, self.clip_tensor(clip_range))["sums"]
 
 
 def make_update(net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions,

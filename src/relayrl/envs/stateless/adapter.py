@@ -11,9 +11,10 @@ for RL loops; differentiate through `rollout` instead.
 
 On a GPU a batched step is launch-bound (dozens of kernels on a few thousand numbers), so it
 replays from a CUDA graph (`nn.graphed.GraphedStep`; `RELAYRL_CUDA_GRAPHS=0` launches it op by
-op): the env's step and the fresh states of rows whose episode ended, drawn every step from a
-generator on the GPU (seeded from the CPU one at `reset`) and kept where `done`, so nothing
-branches on a value. The first states come from the CPU generator on every device.
+op) where the env is `graph_safe`: the env's step and the fresh states of rows whose episode
+ended, drawn every step from a generator on the GPU (seeded from the CPU one at `reset`) and
+kept where `done`, so nothing branches on a value. The first states come from the CPU
+generator on every device.
 """
 
 from __future__ import annotations
@@ -61,8 +62,9 @@ class StatelessBatchEnv(BatchedEnv):
             self._gen.manual_seed(seed)
         # Off the CPU, fresh states are drawn on the device every step (see the module doc).
         self._device_gen = torch.Generator(device=self.device) if self.device.type != "cpu" else None
-        self._graphed = GraphedStep(self._graph_step, generators=[self._device_gen]) \
-            if self._device_gen is not None and cuda_graphs_enabled(self.device) else None
+        self._graphed = None
+        if self._device_gen is not None and env.graph_safe and cuda_graphs_enabled(self.device):
+            self._graphed = GraphedStep(self._graph_step, generators=[self._device_gen])
         self._state: Any = None
 
     def reset(self, seed: int | None = None) -> torch.Tensor:

@@ -123,6 +123,10 @@ class StatelessEnv(ABC, Generic[S, P]):
     done_spec: ArraySpec  # of `terminated` and `truncated`
     state_spec: S  # the state NamedTuple with an ArraySpec in every leaf
     device: torch.device  # where `reset` puts the state when no device is given
+    # True where `step` and `reset` on a device may be captured in a CUDA graph (`StatelessBatchEnv`
+    # replays one per batched step there): no value read on the host, no Python branch on a
+    # value, no host tensor copied in per call. An env that is not says False, the default.
+    graph_safe: bool = False
 
     @abstractmethod
     def reset(self, batch_shape: BatchShape = (), generator: torch.Generator | None = None,

@@ -70,6 +70,8 @@ def angle_normalize(x: torch.Tensor) -> torch.Tensor:
 class Pendulum(StatelessEnv[PendulumState, PendulumParams]):
     """Stateless Pendulum-v1. `params` set the defaults `reset` uses when given none."""
 
+    graph_safe = True  # pure tensor maps; the default params are broadcast once per shape (`_expanded`)
+
     def __init__(self, params: PendulumParams | None = None, max_episode_steps: int = 200,
                  dtype: torch.dtype = torch.float32, device: DeviceLike = "cpu") -> None:
         self.device = torch.device(device or "cpu")

@@ -39,7 +39,10 @@ from relayrl.specs import ArraySpec
 
 
 class Transform:
-    """Identity on everything; subclasses override the maps they change (see module doc)."""
+    """Identity on everything; subclasses override the maps they change (see module doc).
+    `graph_safe` as `StatelessEnv.graph_safe` says it, for the maps a subclass adds."""
+
+    graph_safe = False
 
     def forward(self, obs: Obs) -> Obs:
         return obs
@@ -80,6 +83,8 @@ class Unsqueeze(Transform):
     """Add a size-1 dim at `dim` < 0, counted from the end (batch dims lead, so a negative
     dim means the same place at every batch shape)."""
 
+    graph_safe = True
+
     def __init__(self, keys: Sequence[str], dim: int = -1) -> None:
         if dim >= 0:
             raise ValueError(f"Unsqueeze: dim must be negative (counted from the end), got {dim}")
@@ -102,6 +107,8 @@ class Unsqueeze(Transform):
 
 class _Elementwise(Transform):
     """out_key = fn(in_key), bounded to [-1, 1]."""
+
+    graph_safe = True
 
     fn: Callable[[torch.Tensor], torch.Tensor]
 
@@ -127,6 +134,8 @@ class Cos(_Elementwise):
 
 class Cat(Transform):
     """Concatenate entries along their last dim into `out_key`; `delete` drops the inputs."""
+
+    graph_safe = True
 
     def __init__(self, keys: Sequence[str], out_key: str = "observation", delete: bool = True) -> None:
         self.keys, self.out_key, self.delete = tuple(keys), out_key, delete
@@ -161,6 +170,8 @@ class Cat(Transform):
 
 class Select(Transform):
     """Keep only `keys`."""
+
+    graph_safe = True
 
     def __init__(self, keys: Sequence[str]) -> None:
         self.keys = tuple(keys)
@@ -236,6 +247,8 @@ class RunningObservationNorm(ObservationNorm):
 class RewardScale(Transform):
     """`reward * scale + loc`."""
 
+    graph_safe = True
+
     def __init__(self, scale: float, loc: float = 0.0) -> None:
         self.scale, self.loc = scale, loc
 
@@ -289,6 +302,10 @@ class TransformedEnv(StatelessEnv):
     @property
     def base_env(self) -> StatelessEnv:
         return self.env.base_env
+
+    @property
+    def graph_safe(self) -> bool:  # type: ignore[override]
+        return self.env.graph_safe and all(t.graph_safe for t in self.transforms)
 
     def _obs(self, obs: Obs) -> Obs:
         for t in self.transforms:
