@@ -185,7 +185,8 @@ def test_ctrl_c_mid_run_saves_a_checkpoint_there_and_the_resumed_run_is_the_unin
                                                 rf"relayrl.train\(None, '{root}', resume=True\) continues it"):
         relayrl.train(cfg, tmp_path / "cut", progress=False, callbacks=[ctrl_c_at_700])
     assert seen[-1] == ("log", 700)  # no call after the interrupt
-    assert "stopping at the end of this iteration to save a checkpoint" in capsys.readouterr().err
+    assert "stopping at the end of this iteration to save a checkpoint (Ctrl-C again stops at once)" in \
+        capsys.readouterr().err
     assert load_latest_checkpoint(tmp_path / "cut" / "checkpoints")["env_steps"] == 700  # periodic ones: 500
     assert relayrl.load_policy(tmp_path / "cut").env_steps == 700
     assert RunDir(tmp_path / "cut").trained_to() == 700  # its policy's step (the last evaluation: 500)
@@ -276,6 +277,9 @@ def test_an_ignored_sigint_leaves_sigterm_to_stop_at_the_iterations_end():
         assert got == [signal.SIGTERM]
     finally:
         signal.signal(signal.SIGINT, old)
+    # what the console says a second signal does: a SIGTERM's sender may have no Ctrl-C to press
+    assert interrupts.again(signal.SIGINT) == "Ctrl-C again stops at once"
+    assert interrupts.again(signal.SIGTERM) == "a second signal stops at once"
 
 
 def test_resuming_a_run_already_past_total_steps_says_so(tmp_path, capsys):
@@ -529,6 +533,7 @@ def test_sigterm_stops_a_run_like_ctrl_c_and_it_resumes(tmp_path, envs):
     _, err = p.communicate(timeout=60)
     assert p.returncode == 143, err  # 128 + SIGTERM: handled, not killed (-15)
     assert "relayrl: terminated; resume with --resume from the last checkpoint" in err
+    assert "Ctrl-C again" not in err  # where it says what a second signal does, it names no Ctrl-C
     assert "Traceback" not in err
     assert not [w for w in workers if running(w)], "env workers outlived the run"
     done = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)

@@ -108,6 +108,11 @@ def stop_request(on_signal: Callable[[int], None], signals: tuple[int, ...] = WA
         _install(previous)
 
 
+def again(signum: int) -> str:
+    """What stops at once after the signal `stop_request` held back: the words for the console."""
+    return "Ctrl-C again stops at once" if signum == signal.SIGINT else "a second signal stops at once"
+
+
 def redeliver(signum: int, message: str = "") -> None:
     """Act on a signal that `stop_request` recorded as its handler, now back in place, would;
     Python's own Ctrl-C handler's KeyboardInterrupt carries `message` (what a notebook shows)."""

@@ -40,7 +40,7 @@ class DirectDriver:
         def on_signal(signum: int) -> None:
             signals.append(signum)
             say("relayrl: stopping at the end of this iteration to save the policy (no checkpoints for "
-                f"algo={self.config.algo!r}; Ctrl-C again stops at once)")
+                f"algo={self.config.algo!r}; {interrupts.again(signum)})")
 
         def stop() -> bool:
             stopped.append(bool(signals))

@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from relayrl import interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config, config_toml, dotted, to_dict
 from relayrl.metrics import EpisodeStats
@@ -115,7 +116,7 @@ class RunReport:
         # with checkpoints off, only the policy is saved: promising a checkpoint would mislead
         saved = "a checkpoint" if self.config.train.checkpoint_interval else \
             "the policy (train.checkpoint_interval = 0: no checkpoint)"
-        self.say(f"relayrl: stopping at the end of this iteration to save {saved} (Ctrl-C again stops at once)")
+        self.say(f"relayrl: stopping at the end of this iteration to save {saved} ({interrupts.again(signum)})")
 
     def say(self, text: str) -> None:
         if self.bar is not None and not self.bar.disable:
