@@ -135,42 +135,38 @@ def test_worker_slices_share_the_copies_out_evenly():
     assert len(worker_slices(64, 0)) == max(2, usable_cpus())  # 0: one per core beside the main's
 
 
+@contextlib.contextmanager
+def async_env(env_id: str, num_envs: int):
+    """`env_id`'s copies over two workers, reset, closed at the end."""
+    env = make_env(env_id, num_envs, vectorization="async", num_workers=2)
+    try:
+        env.reset(seed=0)
+        yield env
+    finally:
+        env.close()
+
+
 def test_async_worker_errors_reach_the_main_process():
-    env = make_env("toy_envs:BrokenInWorker", 4, vectorization="async", num_workers=2)
-    try:
-        env.reset(seed=0)
-        # the env's own exception, as a sync env raises it, with the worker's traceback as a note
-        with pytest.raises(ValueError, match="the simulator lost its state") as raised:
-            env.step(torch.zeros(4, dtype=torch.int64))
-        note = "\n".join(raised.value.__notes__)
-        assert "(raised in env worker 0; its traceback there:)" in note and "in step" in note
-    finally:
-        env.close()
-    env = make_env("toy_envs:OddInWorker", 4, vectorization="async", num_workers=2)
-    try:
-        env.reset(seed=0)
-        # an exception that does not load back: a RuntimeError with the worker's traceback
-        with pytest.raises(RuntimeError, match="(?s)env worker 0 failed.*OddError: the simulator lost its state at"):
-            env.step(torch.zeros(4, dtype=torch.int64))
-    finally:
-        env.close()
-    env = make_env("toy_envs:Broken", 4, vectorization="async", num_workers=2)
-    try:
-        env.reset(seed=0)
+    step = torch.zeros(4, dtype=torch.int64)
+    # the env's own exception, as a sync env raises it, with the worker's traceback as a note
+    with async_env("toy_envs:BrokenInWorker", 4) as env, \
+            pytest.raises(ValueError, match="the simulator lost its state") as raised:
+        env.step(step)
+    note = "\n".join(raised.value.__notes__)
+    assert "(raised in env worker 0; its traceback there:)" in note and "in step" in note
+    # an exception that does not load back: a RuntimeError with the worker's traceback
+    with async_env("toy_envs:OddInWorker", 4) as env, \
+            pytest.raises(RuntimeError, match="(?s)env worker 0 failed.*OddError: the simulator lost its state at"):
+        env.step(step)
+    with async_env("toy_envs:Broken", 4) as env:
         # this process's copies failed too: their own error, as in-process, not a worker's report
         with pytest.raises(ValueError, match="the simulator lost its state"):
-            env.step(torch.zeros(4, dtype=torch.int64))
+            env.step(step)
         with pytest.raises(ValueError):  # the workers' replies to the failed step were read: in step
-            env.step(torch.zeros(4, dtype=torch.int64))
-    finally:
-        env.close()
-    env = make_env("toy_envs:DiesInWorker", 3, vectorization="async", num_workers=2)
-    try:
-        env.reset(seed=0)
-        with pytest.raises(RuntimeError, match=r"env worker 0 \(copy 1\) died \(exit code 3\)"):
-            env.step(torch.zeros(3, dtype=torch.int64))
-    finally:
-        env.close()
+            env.step(step)
+    with async_env("toy_envs:DiesInWorker", 3) as env, \
+            pytest.raises(RuntimeError, match=r"env worker 0 \(copy 1\) died \(exit code 3\)"):
+        env.step(torch.zeros(3, dtype=torch.int64))
 
 
 def test_a_user_error_while_a_worker_makes_its_copies_stays_a_user_error():
