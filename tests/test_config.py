@@ -38,6 +38,8 @@ def test_overrides_are_typed():
     ("agent.ent_coef=0.1", "here, Stable-Baselines3's ent_coef is PPO's agent.ent_coef; SAC's entropy weight is"),
     ("agent.gradient_steps=2", "here, Stable-Baselines3's gradient_steps is train.gradient_steps"),
     ("agent.target_update_interval=500", "agent.target_update_period (counted in gradient steps, SB3's in env"),
+    # RL Zoo's CartPole (10 env steps, train_freq 256, gradient_steps 128) copies once a phase: 128, not 5
+    ("agent.target_update_interval=10", "and no less than train.gradient_steps, as SB3 copies the target only between"),
     ("agent.n_timesteps=1000", "here, Stable-Baselines3's n_timesteps is train.total_steps"),
     ("total_steps=1000", "unknown config key 'total_steps'; did you mean 'train.total_steps'? (keys sit in their"),
     ("batch_size=64", "did you mean 'agent.batch_size'?"),

@@ -109,8 +109,11 @@ SB3_NAMES = {
     "normalize": "PPO's agent.normalize_obs and agent.normalize_reward (RL Zoo's VecNormalize)",
     "n_envs": "env.num_envs",
     "learning_rate": "agent.lr (SAC: agent.actor_lr, agent.critic_lr, agent.alpha_lr)",
+    # SB3 copies the target in its env-step callback, never inside a gradient phase: a value
+    # below train_freq (RL Zoo's CartPole: 10 with train_freq 256) copies once per phase.
     "target_update_interval": "agent.target_update_period (counted in gradient steps, SB3's in env steps: "
-                              "SB3's value x train.gradient_steps / train.collect_steps)",
+                              "SB3's value x train.gradient_steps / train.collect_steps, and no less than "
+                              "train.gradient_steps, as SB3 copies the target only between gradient phases)",
     "exploration_final_eps": "agent.epsilon_end",
     "exploration_initial_eps": "agent.epsilon_start",
     "exploration_fraction": "agent.epsilon_decay_steps (in env steps: SB3's fraction x train.total_steps, "
