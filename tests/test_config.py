@@ -55,6 +55,9 @@ def test_overrides_are_typed():
     ("agent.loss=l1", "agent.loss='l1' is not valid; valid: huber, mse"),
     ("eval.episodes=0", "eval.episodes=0 is not valid"),
     ("env.max_episode_steps=-1", "env.max_episode_steps=-1 is not valid; it must be >= 0"),
+    # RL Zoo's Acrobot and LunarLander DQN settings: gradient_steps -1
+    ("train.gradient_steps=-1", "it must be >= 0 (Stable-Baselines3's -1, a gradient step per env step collected, "
+                                "is train.gradient_steps = train.collect_steps)"),
     ("train=3", "train is a section"),
     ("novalue", "is not KEY=VALUE"),
     ("env.kwargs={kind=md0}", "the value is not a valid TOML table or list; quote the strings in it"),

@@ -118,7 +118,8 @@ SB3_NAMES = {
     "exploration_initial_eps": "agent.epsilon_start",
     "exploration_fraction": "agent.epsilon_decay_steps (in env steps: SB3's fraction x train.total_steps, "
                             "-1 takes 0.1)",
-    "gradient_steps": "train.gradient_steps",
+    "gradient_steps": "train.gradient_steps (SB3's -1, a gradient step per env step collected: train.gradient_steps "
+                      "= train.collect_steps)",
     "net_arch": "agent.hidden (SAC: agent.actor_hidden and agent.critic_hidden), a list of layer sizes",
     "ent_coef": "PPO's agent.ent_coef; SAC's entropy weight is agent.init_alpha (agent.autotune_alpha = false "
                 "holds it); DQN has none",
