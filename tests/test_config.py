@@ -49,6 +49,10 @@ def test_overrides_are_typed():
     ("train.total_steps=abc", "train.total_steps='abc' has the wrong type; expected int"),
     ("train.total_steps=1.5", "expected int"),
     ("agent.double=1", "expected bool"),
+    # RL Zoo's linear schedules (ppo.yml's CartPole: learning_rate lin_1e-3, clip_range lin_0.2)
+    ("agent.lr='lin_1e-3'", "expected float (RL Zoo's lin_1e-3, linear from 1e-3 to 0, is this key = 1e-3 with its "
+                            "end key = 0: agent.lr_end or agent.clip_range_end)"),
+    ("learning_rate=1e-3", "RL Zoo's lin_X: those = X with agent.lr_end = 0"),
     ("agent.lr=nan", "agent.lr=nan is not valid; it must be a finite number"),  # nan passes `lr <= 0`
     ("agent.gamma=inf", "agent.gamma=inf is not valid; it must be a finite number"),
     ("agent.hidden=[1, 'a']", "agent.hidden[1]"),

@@ -108,7 +108,8 @@ SB3_NAMES = {
     "n_timesteps": "train.total_steps",  # RL Zoo's files
     "normalize": "PPO's agent.normalize_obs and agent.normalize_reward (RL Zoo's VecNormalize)",
     "n_envs": "env.num_envs",
-    "learning_rate": "agent.lr (SAC: agent.actor_lr, agent.critic_lr, agent.alpha_lr)",
+    "learning_rate": "agent.lr (SAC: agent.actor_lr, agent.critic_lr, agent.alpha_lr; RL Zoo's lin_X: those = X "
+                     "with agent.lr_end = 0)",
     # SB3 copies the target in its env-step callback, never inside a gradient phase: a value
     # below train_freq (RL Zoo's CartPole: 10 with train_freq 256) copies once per phase.
     "target_update_interval": "agent.target_update_period (counted in gradient steps, SB3's in env steps: "
@@ -189,6 +190,9 @@ def _tip(value: Any, hint: Any) -> str:
     """How to write the value TOML's way, where it looks written Python's way."""
     if hint is bool and isinstance(value, str) and value.lower() in ("true", "false"):
         return f" (true or false, in lower case: {value.lower()})"
+    if hint is float and isinstance(value, str) and value.startswith("lin_"):  # RL Zoo's linear schedules
+        return (f" (RL Zoo's {value}, linear from {value[4:]} to 0, is this key = {value[4:]} with its end key = 0: "
+                "agent.lr_end or agent.clip_range_end)")
     if hint is int and isinstance(value, float) and value.is_integer():
         return f" (write {int(value)}: TOML reads 1e4 and 10000.0 as floats)"
     if hint is str and callable(value):  # agent.encoder = make: configs name code, as env.id does
