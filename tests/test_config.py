@@ -41,6 +41,14 @@ def test_overrides_are_typed():
     # RL Zoo's CartPole (10 env steps, train_freq 256, gradient_steps 128) copies once a phase: 128, not 5
     ("agent.target_update_interval=10", "and no less than train.gradient_steps, as SB3 copies the target only between"),
     ("agent.n_timesteps=1000", "here, Stable-Baselines3's n_timesteps is train.total_steps"),
+    # RL Zoo's hyperparameter files name these too
+    ("activation_fn=1", "here, Stable-Baselines3's activation_fn is agent.activation (relu, tanh or elu)"),
+    ("agent.use_sde=true", "here, Stable-Baselines3's use_sde is none: relayrl has no gSDE"),
+    ("frame_stack=4", "here, Stable-Baselines3's frame_stack is an env wrapper in env.wrappers"),
+    ("policy=1", "here, Stable-Baselines3's policy is none: the networks follow the observation space"),
+    ("agent.max_grad_norm=10", "not of this algorithm's; here, Stable-Baselines3's max_grad_norm is PPO's "
+                               "agent.max_grad_norm; DQN's and SAC's agent.grad_clip"),
+    ("agent.train_freq=4", "SB3's train_freq x env.num_envs; a train_freq in episodes has no counterpart"),
     ("total_steps=1000", "unknown config key 'total_steps'; did you mean 'train.total_steps'? (keys sit in their"),
     ("batch_size=64", "did you mean 'agent.batch_size'?"),
     ("agent.n_epochs=3", "unknown config key 'agent.n_epochs': a setting of ppo's agent, not of this algorithm's; "

@@ -101,7 +101,8 @@ def _hints(cls: type) -> dict[str, Any]:
 SB3_NAMES = {
     "n_steps": "train.collect_steps (env steps per rollout over all env.num_envs copies: SB3's n_steps "
                "x env.num_envs)",
-    "train_freq": "train.collect_steps (env steps between gradient phases)",
+    "train_freq": "train.collect_steps (env steps between gradient phases over all env.num_envs copies: SB3's "
+                  "train_freq x env.num_envs; a train_freq in episodes has no counterpart)",
     "learning_starts": "train.initial_collect_steps",
     "buffer_size": "replay.size",
     "total_timesteps": "train.total_steps",
@@ -122,8 +123,20 @@ SB3_NAMES = {
     "gradient_steps": "train.gradient_steps (SB3's -1, a gradient step per env step collected: train.gradient_steps "
                       "= train.collect_steps)",
     "net_arch": "agent.hidden (SAC: agent.actor_hidden and agent.critic_hidden), a list of layer sizes",
-    "ent_coef": "PPO's agent.ent_coef; SAC's entropy weight is agent.init_alpha (agent.autotune_alpha = false "
-                "holds it); DQN has none",
+    "ent_coef": "PPO's agent.ent_coef; SAC's entropy weight is agent.init_alpha (SAC's 'auto' and 'auto_X': "
+                "agent.init_alpha = 1 or X, tuned; a number X: agent.init_alpha = X with agent.autotune_alpha = "
+                "false); DQN has none",
+    "max_grad_norm": "PPO's agent.max_grad_norm; DQN's and SAC's agent.grad_clip",
+    "activation_fn": "agent.activation (relu, tanh or elu)",
+    "ortho_init": "none: PPO's networks are always orthogonally initialised (SB3's ortho_init = true)",
+    "use_sde": "none: relayrl has no gSDE (state-dependent exploration); PPO and SAC draw fresh Gaussian noise "
+               "each step, as SB3 without use_sde",
+    "sde_sample_freq": "none: relayrl has no gSDE (state-dependent exploration)",
+    "frame_stack": "an env wrapper in env.wrappers, a function returning gymnasium.wrappers.FrameStackObservation(env, "
+                   "N) (relayrl's Atari envs stack their own frames, 4 by default)",
+    "env_wrapper": "env.wrappers (package.module:Callable names, applied in order)",
+    "policy": "none: the networks follow the observation space (agent.encoder = auto: an MLP on vectors, a conv net "
+              "on uint8 images, one input per entry of a Dict)",
     "features_extractor_class": "agent.encoder = \"package.module:make\" (make(observation_space) returns your "
                                 "torch module)",
     "policy_kwargs": "keys of [agent]: agent.hidden (net_arch), agent.activation (activation_fn), agent.encoder "
