@@ -49,6 +49,8 @@ def test_overrides_are_typed():
     ("agent.max_grad_norm=10", "not of this algorithm's; here, Stable-Baselines3's max_grad_norm is PPO's "
                                "agent.max_grad_norm; DQN's and SAC's agent.grad_clip"),
     ("agent.train_freq=4", "SB3's train_freq x env.num_envs; a train_freq in episodes has no counterpart"),
+    ("agent.target_kl=0.01", "here, Stable-Baselines3's target_kl is none: PPO runs all agent.n_epochs epochs"),
+    ("agent.n_critics=3", "here, Stable-Baselines3's n_critics is none: SAC has two critics"),
     ("total_steps=1000", "unknown config key 'total_steps'; did you mean 'train.total_steps'? (keys sit in their"),
     ("batch_size=64", "did you mean 'agent.batch_size'?"),
     ("agent.n_epochs=3", "unknown config key 'agent.n_epochs': a setting of ppo's agent, not of this algorithm's; "

@@ -135,6 +135,8 @@ SB3_NAMES = {
     "frame_stack": "an env wrapper in env.wrappers, a function returning gymnasium.wrappers.FrameStackObservation(env, "
                    "N) (relayrl's Atari envs stack their own frames, 4 by default)",
     "env_wrapper": "env.wrappers (package.module:Callable names, applied in order)",
+    "target_kl": "none: PPO runs all agent.n_epochs epochs over each rollout (no early stop on the KL divergence)",
+    "n_critics": "none: SAC has two critics (SB3's default n_critics = 2)",
     "policy": "none: the networks follow the observation space (agent.encoder = auto: an MLP on vectors, a conv net "
               "on uint8 images, one input per entry of a Dict)",
     "features_extractor_class": "agent.encoder = \"package.module:make\" (make(observation_space) returns your "
