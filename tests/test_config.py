@@ -38,7 +38,19 @@ def test_overrides_are_typed():
     ("agent.ent_coef=0.1", "here, Stable-Baselines3's ent_coef is PPO's agent.ent_coef; SAC's entropy weight is"),
     ("agent.gradient_steps=2", "here, Stable-Baselines3's gradient_steps is train.gradient_steps"),
     ("agent.target_update_interval=500", "agent.target_update_period (counted in gradient steps, SB3's in env"),
+    # RL Zoo's CartPole (10 env steps, train_freq 256, gradient_steps 128) copies once a phase: 128, not 5
+    ("agent.target_update_interval=10", "and no less than train.gradient_steps, as SB3 copies the target only between"),
     ("agent.n_timesteps=1000", "here, Stable-Baselines3's n_timesteps is train.total_steps"),
+    # RL Zoo's hyperparameter files name these too
+    ("activation_fn=1", "here, Stable-Baselines3's activation_fn is agent.activation (relu, tanh or elu)"),
+    ("agent.use_sde=true", "here, Stable-Baselines3's use_sde is none: relayrl has no gSDE"),
+    ("frame_stack=4", "here, Stable-Baselines3's frame_stack is an env wrapper in env.wrappers"),
+    ("policy=1", "here, Stable-Baselines3's policy is none: the networks follow the observation space"),
+    ("agent.max_grad_norm=10", "not of this algorithm's; here, Stable-Baselines3's max_grad_norm is PPO's "
+                               "agent.max_grad_norm; DQN's and SAC's agent.grad_clip"),
+    ("agent.train_freq=4", "SB3's train_freq x env.num_envs; a train_freq in episodes has no counterpart"),
+    ("agent.target_kl=0.01", "here, Stable-Baselines3's target_kl is none: PPO runs all agent.n_epochs epochs"),
+    ("agent.n_critics=3", "here, Stable-Baselines3's n_critics is none: SAC has two critics"),
     ("total_steps=1000", "unknown config key 'total_steps'; did you mean 'train.total_steps'? (keys sit in their"),
     ("batch_size=64", "did you mean 'agent.batch_size'?"),
     ("agent.n_epochs=3", "unknown config key 'agent.n_epochs': a setting of ppo's agent, not of this algorithm's; "
@@ -47,12 +59,19 @@ def test_overrides_are_typed():
     ("train.total_steps=abc", "train.total_steps='abc' has the wrong type; expected int"),
     ("train.total_steps=1.5", "expected int"),
     ("agent.double=1", "expected bool"),
+    # RL Zoo's linear schedules (ppo.yml's CartPole: learning_rate lin_1e-3, clip_range lin_0.2)
+    ("agent.lr='lin_1e-3'", "expected float (RL Zoo's lin_1e-3, linear from 1e-3 to 0, is this key = 1e-3 with its "
+                            "end key = 0: agent.lr_end or agent.clip_range_end)"),
+    ("learning_rate=1e-3", "RL Zoo's lin_X: those = X with agent.lr_end = 0"),
     ("agent.lr=nan", "agent.lr=nan is not valid; it must be a finite number"),  # nan passes `lr <= 0`
     ("agent.gamma=inf", "agent.gamma=inf is not valid; it must be a finite number"),
     ("agent.hidden=[1, 'a']", "agent.hidden[1]"),
     ("agent.loss=l1", "agent.loss='l1' is not valid; valid: huber, mse"),
     ("eval.episodes=0", "eval.episodes=0 is not valid"),
     ("env.max_episode_steps=-1", "env.max_episode_steps=-1 is not valid; it must be >= 0"),
+    # RL Zoo's Acrobot and LunarLander DQN settings: gradient_steps -1
+    ("train.gradient_steps=-1", "it must be >= 0 (Stable-Baselines3's -1, a gradient step per env step collected, "
+                                "is train.gradient_steps = train.collect_steps)"),
     ("train=3", "train is a section"),
     ("novalue", "is not KEY=VALUE"),
     ("env.kwargs={kind=md0}", "the value is not a valid TOML table or list; quote the strings in it"),

@@ -43,6 +43,16 @@ def test_config_reference_covers_every_section_and_algorithm():
         assert key in text, key
 
 
+def test_config_reference_lists_stable_baselines3_names():
+    # A user porting RL Zoo's hyperparameter files met these only as error messages.
+    from relayrl.config_fields import SB3_NAMES
+
+    text = render()
+    assert "## Stable-Baselines3 and RL Zoo names" in text
+    for name in ("target_update_interval", "gradient_steps", "exploration_fraction", "n_steps", *SB3_NAMES):
+        assert f"| `{name}` |" in text, name
+
+
 def test_readme_preset_tables_list_exactly_the_presets():
     tables = preset_tables((ROOT / "README.md").read_text())
     assert tables, "the README has no table whose first column is `preset`"

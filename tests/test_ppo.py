@@ -47,6 +47,15 @@ def test_value_loss_by_hand_with_and_without_clipping():
     assert value_loss(v, old, ret, 0.5).item() == pytest.approx((2.25 + 1.0) / 2)
 
 
+def test_clip_range_vf_says_it_is_ppo2s_max_not_sb3s_clipped_error():
+    # The key's meaning read "clip the value prediction", SB3's form, where the loss takes the max (PPO2's).
+    from relayrl.agents.ppo.config import PPOConfig
+    from relayrl.config_fields import meanings
+
+    meaning = meanings(PPOConfig)["clip_range_vf"]
+    assert "the larger of the squared errors" in meaning and "SB3's clip_range_vf takes the clipped one only" in meaning
+
+
 def test_normalize_and_explained_variance():
     a = torch.tensor([1.0, 2.0, 3.0])
     assert torch.allclose(normalize(a), torch.tensor([-1.0, 0.0, 1.0]), atol=1e-6)

@@ -168,8 +168,11 @@ class Config(Section):
             self._check_no_replay()
         if algorithm(self.algo).replay == "rollouts":
             self._check_on_policy()
-        self.train.require(">= 0", "initial_collect_steps", "gradient_steps", "checkpoint_interval",
+        self.train.require(">= 0", "initial_collect_steps", "checkpoint_interval",
                            "checkpoint_keep", "policy_save_interval", "log_interval", "pull_interval", "torch_threads")
+        # SB3's gradient_steps = -1 (one gradient step per env step collected) is brought from RL Zoo's files
+        self.train.require(">= 0", "gradient_steps", note=" (Stable-Baselines3's -1, a gradient step per env step "
+                           "collected, is train.gradient_steps = train.collect_steps)")
         self.env.require(">= 0", "num_workers", note=" (0: one worker process per CPU core beside the main one)")
         self.env.require_choice(vectorization=("sync", "async", "ale"))
         r = self.replay

@@ -101,24 +101,44 @@ def _hints(cls: type) -> dict[str, Any]:
 SB3_NAMES = {
     "n_steps": "train.collect_steps (env steps per rollout over all env.num_envs copies: SB3's n_steps "
                "x env.num_envs)",
-    "train_freq": "train.collect_steps (env steps between gradient phases)",
+    "train_freq": "train.collect_steps (env steps between gradient phases over all env.num_envs copies: SB3's "
+                  "train_freq x env.num_envs; a train_freq in episodes has no counterpart)",
     "learning_starts": "train.initial_collect_steps",
     "buffer_size": "replay.size",
     "total_timesteps": "train.total_steps",
     "n_timesteps": "train.total_steps",  # RL Zoo's files
     "normalize": "PPO's agent.normalize_obs and agent.normalize_reward (RL Zoo's VecNormalize)",
     "n_envs": "env.num_envs",
-    "learning_rate": "agent.lr (SAC: agent.actor_lr, agent.critic_lr, agent.alpha_lr)",
+    "learning_rate": "agent.lr (SAC: agent.actor_lr, agent.critic_lr, agent.alpha_lr; RL Zoo's lin_X: those = X "
+                     "with agent.lr_end = 0)",
+    # SB3 copies the target in its env-step callback, never inside a gradient phase: a value
+    # below train_freq (RL Zoo's CartPole: 10 with train_freq 256) copies once per phase.
     "target_update_interval": "agent.target_update_period (counted in gradient steps, SB3's in env steps: "
-                              "SB3's value x train.gradient_steps / train.collect_steps)",
+                              "SB3's value x train.gradient_steps / train.collect_steps, and no less than "
+                              "train.gradient_steps, as SB3 copies the target only between gradient phases)",
     "exploration_final_eps": "agent.epsilon_end",
     "exploration_initial_eps": "agent.epsilon_start",
     "exploration_fraction": "agent.epsilon_decay_steps (in env steps: SB3's fraction x train.total_steps, "
                             "-1 takes 0.1)",
-    "gradient_steps": "train.gradient_steps",
+    "gradient_steps": "train.gradient_steps (SB3's -1, a gradient step per env step collected: train.gradient_steps "
+                      "= train.collect_steps)",
     "net_arch": "agent.hidden (SAC: agent.actor_hidden and agent.critic_hidden), a list of layer sizes",
-    "ent_coef": "PPO's agent.ent_coef; SAC's entropy weight is agent.init_alpha (agent.autotune_alpha = false "
-                "holds it); DQN has none",
+    "ent_coef": "PPO's agent.ent_coef; SAC's entropy weight is agent.init_alpha (SAC's 'auto' and 'auto_X': "
+                "agent.init_alpha = 1 or X, tuned; a number X: agent.init_alpha = X with agent.autotune_alpha = "
+                "false); DQN has none",
+    "max_grad_norm": "PPO's agent.max_grad_norm; DQN's and SAC's agent.grad_clip",
+    "activation_fn": "agent.activation (relu, tanh or elu)",
+    "ortho_init": "none: PPO's networks are always orthogonally initialised (SB3's ortho_init = true)",
+    "use_sde": "none: relayrl has no gSDE (state-dependent exploration); PPO and SAC draw fresh Gaussian noise "
+               "each step, as SB3 without use_sde",
+    "sde_sample_freq": "none: relayrl has no gSDE (state-dependent exploration)",
+    "frame_stack": "an env wrapper in env.wrappers, a function returning gymnasium.wrappers.FrameStackObservation(env, "
+                   "N) (relayrl's Atari envs stack their own frames, 4 by default)",
+    "env_wrapper": "env.wrappers (package.module:Callable names, applied in order)",
+    "target_kl": "none: PPO runs all agent.n_epochs epochs over each rollout (no early stop on the KL divergence)",
+    "n_critics": "none: SAC has two critics (SB3's default n_critics = 2)",
+    "policy": "none: the networks follow the observation space (agent.encoder = auto: an MLP on vectors, a conv net "
+              "on uint8 images, one input per entry of a Dict)",
     "features_extractor_class": "agent.encoder = \"package.module:make\" (make(observation_space) returns your "
                                 "torch module)",
     "policy_kwargs": "keys of [agent]: agent.hidden (net_arch), agent.activation (activation_fn), agent.encoder "
@@ -185,6 +205,9 @@ def _tip(value: Any, hint: Any) -> str:
     """How to write the value TOML's way, where it looks written Python's way."""
     if hint is bool and isinstance(value, str) and value.lower() in ("true", "false"):
         return f" (true or false, in lower case: {value.lower()})"
+    if hint is float and isinstance(value, str) and value.startswith("lin_"):  # RL Zoo's linear schedules
+        return (f" (RL Zoo's {value}, linear from {value[4:]} to 0, is this key = {value[4:]} with its end key = 0: "
+                "agent.lr_end or agent.clip_range_end)")
     if hint is int and isinstance(value, float) and value.is_integer():
         return f" (write {int(value)}: TOML reads 1e4 and 10000.0 as floats)"
     if hint is str and callable(value):  # agent.encoder = make: configs name code, as env.id does

@@ -13,7 +13,7 @@ from typing import Any
 
 from relayrl.agents.registry import ALGORITHMS
 from relayrl.config import class_defaults, dotted
-from relayrl.config_fields import field_docs, toml_literal
+from relayrl.config_fields import SB3_NAMES, field_docs, toml_literal
 
 DEFAULT_OUT = Path("docs") / "config.md"
 
@@ -60,7 +60,7 @@ def render() -> str:
     out += ["", "## [agent]", "", "What the `agent` section holds depends on `algo`."]
     for algo in ALGORITHMS.values():
         out += ["", f'### [agent] with algo = "{algo.name}"', "", *_table(algo.config(), "agent.")]
-    return "\n".join(out + _per_algorithm()) + "\n"
+    return "\n".join(out + _per_algorithm() + _sb3_names()) + "\n"
 
 
 def _per_algorithm() -> list[str]:
@@ -78,6 +78,17 @@ def _per_algorithm() -> list[str]:
         cells = [d.get(key) for d in defaults]
         out.append(f"| `{key}` | " + " | ".join("-" if v is None else f"`{toml_literal(v)}`" for v in cells) + " |")
     return out
+
+
+def _sb3_names() -> list[str]:
+    """Stable-Baselines3's and RL Zoo's names and their counterparts here: the hints an unknown
+    key gets, listed where a user porting hyperparameters looks for them."""
+    out = ["", "## Stable-Baselines3 and RL Zoo names", "",
+           "Where a Stable-Baselines3 argument or an RL Zoo hyperparameter file names a setting otherwise "
+           "(an unknown key of these names gets the same line). Names the two share (`batch_size`, `gamma`, "
+           "`tau`, `n_epochs`, `gae_lambda`, `clip_range`, `vf_coef`, ...) are the `agent.` keys above.", "",
+           "| SB3 / RL Zoo | here |", "|---|---|"]
+    return out + [f"| `{name}` | {_cell(what)} |" for name, what in SB3_NAMES.items()]
 
 
 if __name__ == "__main__":

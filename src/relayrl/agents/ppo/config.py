@@ -30,7 +30,9 @@ class PPOConfig(Section):
     lr_end: float = -1.0  # < 0: constant lr; else linear in env steps to lr_end at train.total_steps
     clip_range: float = 0.2  # the surrogate's ratio clip
     clip_range_end: float = -1.0  # < 0: constant clip_range; else linear to clip_range_end at train.total_steps
-    clip_range_vf: float = 0.0  # clip the value prediction to old value +- this; 0: no value clipping
+    # value clipping as PPO2 / CleanRL: the larger of the squared errors of the value and of the value
+    # clipped to old value +- this (SB3's clip_range_vf takes the clipped one only); 0: no value clipping
+    clip_range_vf: float = 0.0
     n_epochs: int = 10  # passes over each rollout
     batch_size: int = 64  # steps per minibatch
     gamma: float = 0.99  # discount factor
