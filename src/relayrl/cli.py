@@ -86,9 +86,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--env", metavar="ENV_ID",
                    help="evaluate on this env (a Gymnasium id or package.module:Class) instead of the run's own "
                         "(config.toml's, with its env.kwargs, eval.env_kwargs and wrappers); the id the policy was "
-                        "trained on gets "
-                        "the env.kwargs and time limit the policy file records; for a policy file outside a run "
-                        "directory the default is the env id the file records")
+                        "trained on gets the env.kwargs and time limit the policy file records; for a policy file "
+                        "outside a run directory the default is the env id the file records")
     e.add_argument("--max-episode-steps", type=int, default=None, metavar="N",
                    help="cut evaluation episodes at N steps (default: the run's env.max_episode_steps, else the "
                         "env's own time limit, else 1,000)")

@@ -17,6 +17,7 @@ try:
 except ImportError:  # Windows: runs are not locked against each other there
     fcntl = None  # type: ignore[assignment]
 
+
 def list_checkpoints(folder: Path) -> list[Path]:
     """Complete checkpoints, oldest first. Here, not in checkpoint.py, because listing them needs no
     torch: the line printed on Ctrl-C asks for them, when torch may be half-imported (importing it
