@@ -19,6 +19,7 @@ def run(args, env, cwd=None):
     (["train", "dqn-cartpole", "--set", "agent.nope=1"], "unknown config key 'agent.nope'"),
     (["train", "dqn-cartpole", "--set", "train.total_steps=ten"], "expected int"),
     (["train", "dqn-cartpole", "--seed", "x"], "invalid int value"),
+    (["train", "dqn-cartpole", "--seed", "-3"], "argument --seed: -3 is not valid; it must be an integer in [0, 9223"),
     (["train", "missing.toml"], "config file 'missing.toml' does not exist"),
     (["eval", "/no/such/run"], "run directory '/no/such/run' does not exist"),
     (["plot", "/no/such/run"], "does not exist"),

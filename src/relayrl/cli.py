@@ -48,14 +48,14 @@ class _Parser(argparse.ArgumentParser):
 
 def _seed(text: str) -> int:
     """--seed's type: an integer in [0, 2**63 - 1], which every consumer of a seed accepts."""
-    from relayrl.seeding import MAX_SEED
+    from relayrl.seeding import seed_problem
 
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"invalid int value: {text!r}") from None
-    if not 0 <= value <= MAX_SEED:
-        raise argparse.ArgumentTypeError(f"{value} is not valid; a seed is an integer in [0, {MAX_SEED}]")
+    if (problem := seed_problem(value, None)) is not None:
+        raise argparse.ArgumentTypeError(problem)
     return value
 
 

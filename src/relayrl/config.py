@@ -19,7 +19,7 @@ from relayrl import atomic
 from relayrl.agents.registry import ALGORITHMS, DEFAULT_ALGO, algorithm
 from relayrl.config_fields import Section, commented_toml, unknown_key
 from relayrl.errors import ConfigError
-from relayrl.seeding import MAX_SEED
+from relayrl.seeding import seed_problem
 
 
 @dataclass
@@ -152,8 +152,8 @@ class Config(Section):
             raise ConfigError(f"agent={self.agent!r} has the wrong type; expected the {section.__name__} of "
                               f"algo={self.algo!r}: set its keys one by one (config.agent.<key> = value), or "
                               "load the config with overrides (relayrl.load_config(name, ['agent.<key>=value']))")
-        if not 0 <= self.seed <= MAX_SEED:
-            raise ConfigError(f"seed={self.seed} is not valid; it must be an integer in [0, {MAX_SEED}]")
+        if (problem := seed_problem(self.seed)) is not None:
+            raise ConfigError(problem)
         if self.device not in ("cpu", "cuda", "auto") and not self.device.startswith("cuda:"):
             raise ConfigError(f"device={self.device!r} is not valid; valid: cpu, cuda, cuda:N, auto")
         self.env.require(">= 1", "num_envs")

@@ -30,22 +30,29 @@ MAX_SEED = 2**63 - 1  # what every consumer of a seed accepts (torch.manual_seed
 EVAL_STRIDE = 10_000  # evaluation k resets its copies from base + EVAL_STRIDE * k
 
 
+def seed_problem(seed: object, name: str | None = "seed") -> str | None:
+    """Why `seed` cannot seed a run, in one line (naming it `name`=, unless None: argparse names
+    the flag itself); None where it is an integer in [0, MAX_SEED]."""
+    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or not 0 <= seed <= MAX_SEED:
+        given = repr(seed) if name is None else f"{name}={seed!r}"
+        return f"{given} is not valid; it must be an integer in [0, {MAX_SEED}]"
+    return None
+
+
 def check_seed(seed: object, name: str = "seed") -> None:
     """A seed a caller passes (None: unseeded): refused in one line where it is not an integer in
     [0, MAX_SEED], before NumPy or Gymnasium say it in their own words (or the error is taken for
     a broken file)."""
-    if seed is None:
-        return
-    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)) or not 0 <= seed <= MAX_SEED:
-        raise UserError(f"{name}={seed!r} is not valid; it must be an integer in [0, {MAX_SEED}], or None (unseeded)")
+    if seed is not None and (problem := seed_problem(seed, name)) is not None:
+        raise UserError(f"{problem}, or None (unseeded)")
 
 
 class RunSeeds:
     """The streams of one run (or, below `actor(k)`, of one of its Ray actors)."""
 
     def __init__(self, seed: int, key: tuple[int, ...] = ()) -> None:
-        if not 0 <= seed <= MAX_SEED:
-            raise ValueError(f"seed={seed} is not valid; it must be an integer in [0, {MAX_SEED}]")
+        if (problem := seed_problem(seed)) is not None:
+            raise ValueError(problem)
         self.seed, self.key = seed, key
 
     def sequence(self, stream: str) -> np.random.SeedSequence:
