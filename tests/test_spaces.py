@@ -245,6 +245,7 @@ def test_encoders_one_hot_and_conv_by_size():
     ((84, 84), "HW", 1), ((4, 84, 84), "CHW", 4), ((84, 84, 3), "HWC", 3), ((1, 12, 12), "CHW", 1),
     ((64, 64, 12), "HWC", 12),  # four RGB frames side by side (SB3's VecFrameStack): the smaller side is channels
     ((64, 64, 2), "HWC", 2),
+    ((12, 8, 8), "CHW", 12), ((16, 10, 10), "CHW", 16),  # FrameStackObservation(12) over 8x8 gray frames
     ((4, 64, 64, 3), "SHWC", 12), ((4, 3, 64, 64), "SCHW", 12),  # FrameStackObservation over RGB frames
     ((2, 2, 64), None, None), ((4, 4), None, None), ((2, 3, 4, 5, 6), None, None),  # no 8x8 frame: a vector
 ])
@@ -273,14 +274,16 @@ def test_a_policy_file_whose_frames_this_version_reads_another_way_is_one_line()
     assert image_layout(spec_from_state(same)) == (3, True)
     for shape, before in (([64, 64, 12], "CHW"), ([4, 64, 64, 3], "a flat vector")):
         with pytest.raises(UserError, match=rf"observations were read as {before} when this run was trained; this "
-                                            r"version reads them as S?HWC \(the smaller outer side is the channels\): "
-                                            "train it again"):
+                                            r"version reads them as S?HWC \(the smaller outer side is the channels, "
+                                            r"the first where only the last two are equal\): train it again"):
             check_trained_layout({**same, "shape": shape})
     board = {**same, "shape": [64, 64, 12], "high": 2}  # not frames: an MLP either way
     check_trained_layout(board)
     with pytest.raises(UserError, match="were read as CHW"):  # unless a conv encoder was asked for by name
         check_trained_layout(board, any_bounds=True)
     check_trained_layout({**same, "shape": [64, 64, 12], "layout": "HWC"})  # recorded by this version
+    with pytest.raises(UserError, match="were read as HWC when .* reads them as CHW"):  # stacked 8x8 frames, once HWC
+        check_trained_layout({**same, "shape": [12, 8, 8], "layout": "HWC"})
     packed = {"kind": "packed", "tuple": False, "fields": [{"key": "f", "path": ["f"], "spec": {**same,
                                                                                               "shape": [64, 64, 12]}}]}
     with pytest.raises(UserError, match="were read as CHW"):

@@ -228,11 +228,14 @@ def frame_layout(shape: Sequence[int]) -> str | None:
     """How a shape reads as frames: "HW", "CHW", "HWC", or a stack of them along the first side,
     "SCHW" / "SHWC" (Gymnasium's FrameStackObservation over RGB frames), the channels being the
     smaller of the outer sides ([84, 84, 12] is four RGB frames side by side, as Stable-Baselines3
-    reads it; [4, 84, 84] four gray ones); None where a side is under 8 pixels or the rank is another."""
+    reads it; [4, 84, 84] four gray ones), unless only the last two sides are equal: [12, 8, 8] is
+    twelve square 8x8 frames stacked, not a 12x8 image of 8 channels; None where a side is under 8
+    pixels or the rank is another."""
     if len(shape) not in (2, 3, 4):
         return None
     frame = tuple(shape[-3:]) if len(shape) > 2 else tuple(shape)
-    layout = "HW" if len(frame) == 2 else "HWC" if frame[2] < frame[0] else "CHW"
+    square_last = len(frame) == 3 and frame[1] == frame[2] != frame[0]
+    layout = "HW" if len(frame) == 2 else "HWC" if frame[2] < frame[0] and not square_last else "CHW"
     sides = frame if len(frame) == 2 else frame[:2] if layout == "HWC" else frame[1:]
     if min(sides) < 8:
         return None
@@ -325,7 +328,8 @@ def check_trained_layout(state: dict[str, Any], any_bounds: bool = False, record
     if (any_bounds or _pixel_bounds(spec)) and trained != frame_layout(spec.shape):
         raise UserError(f"{describe(spec)} observations were read as {trained or 'a flat vector'} when this run "
                         f"was trained; this version reads them as {frame_layout(spec.shape) or 'a flat vector'} "
-                        "(the smaller outer side is the channels): train it again")
+                        "(the smaller outer side is the channels, the first where only the last two are equal): "
+                        "train it again")
 
 
 def to_space(spec: Spec, stored: bool = False) -> gym.Space:
