@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from relayrl import interrupts
+from relayrl.agents.registry import algorithm
 from relayrl.config import Config, changes, from_dict, load_toml, save_toml, to_dict
 from relayrl.core import Agent
 from relayrl.envs.gym import names_python_factory
@@ -118,6 +119,20 @@ def check_user_env(config: Config, env_factory: Callable[[], Any] | None, say: C
             "evaluation envs normalise with their own, gathered from their first steps, and the policy file does "
             "not hold them (a loaded policy needs observations normalised as in training); PPO's "
             "agent.normalize_obs keeps the statistics with the policy")
+
+
+def minibatch_note(config: Config) -> str | None:
+    """A line where agent.batch_size does not divide an on-policy rollout: each epoch then ends
+    with a shorter minibatch that takes a whole Adam step of its own (one of a single step keeps
+    its advantage unnormalised), which CleanRL's num_minibatches never gives and SB3 warns of."""
+    if algorithm(config.algo).replay != "rollouts":
+        return None
+    steps, size = config.steps_per_iteration(), config.agent.batch_size
+    if steps % size == 0:
+        return None
+    return (f"agent.batch_size={size} does not divide a rollout of {steps:,} env steps (train.collect_steps in "
+            f"whole batched steps of env.num_envs={config.env.num_envs}): each epoch ends with a minibatch of "
+            f"{steps % size}, which takes a whole gradient step; a batch_size that divides {steps:,} avoids it")
 
 
 def make_learner(config: Config, agent: Agent, table: Any, device: torch.device, variables: Any,
@@ -291,6 +306,8 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if 0 < c.train.total_steps <= c.train.initial_collect_steps:
             core.say(f"train.initial_collect_steps={c.train.initial_collect_steps:,} >= train.total_steps="
                      f"{c.train.total_steps:,}: the run takes random actions only and learns nothing")
+        if (note := minibatch_note(c)) is not None:
+            core.say(note)
         if c.distributed.address and c.distributed.num_actors == 0:
             core.say(f"distributed.address={c.distributed.address!r} with distributed.num_actors=0: the run trains "
                      "in this process (set distributed.num_actors=K for K rollout actors on Ray)")
