@@ -112,8 +112,11 @@ def check_user_env(config: Config, env_factory: Callable[[], Any] | None, say: C
     layers = wrapper_layers(e.id, e.kwargs, e.wrappers, env_factory, e.max_episode_steps)
     changing = reward_wrappers(layers)
     if changing:
+        # CleanRL reads its returns from a RecordEpisodeStatistics beneath the reward wrappers: raw ones
         say(f"env.wrappers put {', '.join(changing)} over the env: evaluations report returns of those rewards, "
-            "not the env's own (PPO's agent.normalize_reward scales rewards for learning only)")
+            "and so do the training returns (train/average_return, TensorBoard's charts/episodic_return), not "
+            "the env's own (a RecordEpisodeStatistics beneath them is not read; PPO's agent.normalize_reward "
+            "scales rewards for learning only)")
     own = statistics_wrappers(layers)
     if own:
         say(f"env.wrappers put {', '.join(own)} over the env: its running statistics live in each env copy, so "
