@@ -147,6 +147,43 @@ def test_the_keys_stable_baselines3_names_are_pointed_to_exist():
                 assert word in keys, word
 
 
+@pytest.mark.parametrize("over, words", [
+    ("agent.clip_coef=0.2", "CleanRL's clip_coef is agent.clip_range"),  # was: did you mean 'agent.clip_range_vf'?
+    ("train.num_steps=128", "CleanRL's num_steps is train.collect_steps"),  # was: 'train.gradient_steps'
+    ("agent.num_minibatches=4", "CleanRL's num_minibatches is agent.batch_size"),
+    ("agent.update_epochs=4", "CleanRL's update_epochs is agent.n_epochs"),
+    ("agent.anneal_lr=true", "CleanRL's anneal_lr is agent.lr_end = 0"),
+    ("track=true", "CleanRL's track is none"),  # was: did you mean 'train'?
+])
+def test_cleanrl_names_point_to_their_counterparts(over, words):
+    with pytest.raises(ConfigError, match=re.escape(words)):
+        load_config("ppo", [over])
+
+
+@pytest.mark.parametrize("algo, over, words", [
+    ("dqn", "agent.end_e=0.05", "CleanRL's end_e is agent.epsilon_end"),  # was: did you mean 'agent.encoder'?
+    ("dqn", "agent.target_network_frequency=500", "CleanRL's target_network_frequency is agent.target_update_period"),
+    ("sac", "agent.alpha=0.2", "CleanRL's alpha is agent.init_alpha"),  # was: did you mean 'agent.alpha_lr'?
+    ("sac", "agent.q_lr=0.001", "CleanRL's q_lr is agent.critic_lr"),
+])
+def test_cleanrl_names_of_dqn_and_sac_point_to_their_counterparts(algo, over, words):
+    with pytest.raises(ConfigError, match=re.escape(words)):
+        load_config(algo, [over])
+
+
+def test_the_keys_cleanrl_names_are_pointed_to_exist():
+    from relayrl.config import dotted, to_dict
+    from relayrl.config_fields import CLEANRL_NAMES
+
+    keys = set()
+    for algo in ("dqn", "sac", "ppo"):
+        keys |= set(dotted(to_dict(load_config(algo))))
+    for target in CLEANRL_NAMES.values():
+        for word in target.replace(",", " ").replace(";", " ").replace("(", " ").replace(")", " ").split():
+            if word.startswith(("train.", "agent.", "replay.", "env.")):
+                assert word in keys, word
+
+
 def test_a_replay_smaller_than_what_learning_waits_for_names_the_key_that_set_it(tmp_path):
     import relayrl
 

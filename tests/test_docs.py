@@ -53,6 +53,15 @@ def test_config_reference_lists_stable_baselines3_names():
         assert f"| `{name}` |" in text, name
 
 
+def test_config_reference_lists_cleanrl_names():
+    from relayrl.config_fields import CLEANRL_NAMES
+
+    text = render()
+    assert "## CleanRL names" in text and "CleanRL's `vf_coef = 0.5` is `agent.vf_coef = 0.25`" in text
+    for name in CLEANRL_NAMES:
+        assert f"| `{name}` |" in text, name
+
+
 def test_readme_preset_tables_list_exactly_the_presets():
     tables = preset_tables((ROOT / "README.md").read_text())
     assert tables, "the README has no table whose first column is `preset`"

@@ -389,8 +389,10 @@ def test_a_run_says_when_its_wrappers_change_the_rewards_its_evaluations_report(
 def test_reward_wrapper_note_is_in_the_log(tmp_path, capsys):
     config = load_config("dqn-cartpole", TINY + ['env.wrappers=["toy_envs:double_reward"]'])
     train(config, tmp_path / "run", progress=False)
-    assert "env.wrappers put TransformReward over the env: evaluations report returns of those rewards" in \
-        capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "env.wrappers put TransformReward over the env: evaluations report returns of those rewards" in err
+    # the training returns too, which a CleanRL user reads as the raw RecordEpisodeStatistics ones
+    assert "and so do the training returns (train/average_return, TensorBoard's charts/episodic_return)" in err
     config = load_config("dqn-cartpole", TINY + ['env.wrappers=["gymnasium.wrappers:NormalizeObservation"]'])
     train(config, tmp_path / "run2", progress=False)
     err = capsys.readouterr().err

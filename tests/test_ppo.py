@@ -211,6 +211,17 @@ def test_refuses_a_minibatch_larger_than_a_rollout():
     relayrl.load_config("ppo-cartpole", ["env.num_envs=4", "train.collect_steps=10", "agent.batch_size=12"])
 
 
+def test_a_batch_size_that_does_not_divide_the_rollout_is_said_at_the_start(tmp_path, capsys):
+    # 3 copies x 43 steps = 129: minibatches of 64, 64 and 1, whose one step took an Adam step unsaid.
+    over = ["env.num_envs=3", "train.collect_steps=128", "train.total_steps=129", "eval.interval=0"]
+    relayrl.train(relayrl.load_config("ppo", over), tmp_path / "r", progress=False)
+    assert ("agent.batch_size=64 does not divide a rollout of 129 env steps (train.collect_steps in whole batched "
+            "steps of env.num_envs=3): each epoch ends with a minibatch of 1") in capsys.readouterr().err
+    relayrl.train(relayrl.load_config("ppo", over[:3] + ["agent.batch_size=43", "eval.interval=0"]), tmp_path / "s",
+                  progress=False)
+    assert "does not divide" not in capsys.readouterr().err
+
+
 def test_an_undefined_explained_variance_is_not_taken_for_divergence():
     """A rollout of equal returns (gamma 0 on CartPole) makes Var[R] = 0: the explained variance
     is NaN there, as in SB3, and the run goes on; a NaN loss still stops it."""

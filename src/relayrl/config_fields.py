@@ -146,6 +146,39 @@ SB3_NAMES = {
 }
 
 
+# CleanRL's argument names (the Args of ppo.py, dqn.py, sac_continuous_action.py) for settings
+# relayrl names otherwise, where SB3's differ: users bring them from those scripts, and a near
+# miss of a relayrl key would point elsewhere (clip_coef: clip_range_vf; end_e: encoder).
+CLEANRL_NAMES = {
+    "env_id": "env.id",
+    "num_steps": "train.collect_steps (env steps per rollout over all env.num_envs copies: CleanRL's num_steps x "
+                 "num_envs)",
+    "num_minibatches": "agent.batch_size (steps per minibatch: CleanRL's num_steps x num_envs / num_minibatches)",
+    "update_epochs": "agent.n_epochs",
+    "clip_coef": "agent.clip_range (with clip_vloss, as CleanRL's default: agent.clip_range_vf = the same value)",
+    "clip_vloss": "agent.clip_range_vf = CleanRL's clip_coef (0, the default: no value clipping)",
+    "anneal_lr": "agent.lr_end = 0 (linear in env steps to 0 at train.total_steps)",
+    "norm_adv": "agent.normalize_advantage",
+    "train_frequency": "train.collect_steps (env steps between gradient steps over all env.num_envs copies)",
+    "target_network_frequency": "agent.target_update_period (counted in gradient steps: DQN's CleanRL value / "
+                                "train_frequency; SAC's 1 is 1)",
+    "start_e": "agent.epsilon_start",
+    "end_e": "agent.epsilon_end",
+    "policy_lr": "agent.actor_lr",
+    "q_lr": "agent.critic_lr (CleanRL's entropy temperature learns at q_lr too: agent.alpha_lr)",
+    "policy_frequency": "none: SAC updates its actor once per gradient step, as CleanRL's policy_frequency = 1 "
+                        "(its default 2 makes two actor updates every second step: as many, delayed)",
+    "autotune": "agent.autotune_alpha",
+    "alpha": "agent.init_alpha (CleanRL's fixed alpha: with agent.autotune_alpha = false)",
+    "torch_deterministic": "none: a run on the CPU with one seed repeats bit for bit; GPU runs do not (README: "
+                           "Seeding and reproducibility)",
+    "cuda": "device (cpu, cuda or auto)",
+    "capture_video": "the command relayrl video RUN_DIR (the saved policy playing)",
+    "track": "none: TensorBoard scalars go to RUN_DIR/tb under CleanRL's names, metrics.jsonl beside them",
+    "exp_name": "the --run-dir flag",
+}
+
+
 def is_user_encoder(kind: str) -> bool:
     """`package.module:callable`: a user's encoder (nn/encoders.py `UserEncoder`)."""
     return re.fullmatch(r"[A-Za-z_][\w.]*:[A-Za-z_]\w*", kind) is not None
@@ -155,11 +188,14 @@ def unknown_key(path: str, valid: list[str]) -> str:
     """"unknown config key 'train.total_step'; did you mean 'train.total_steps'?" (or the valid keys)."""
     prefix, _, key = path.rpartition(".")
     names = {v.rpartition(".")[2]: v for v in valid}  # compared without the shared section prefix
-    close = difflib.get_close_matches(key, list(names), n=1, cutoff=0.8 if key in SB3_NAMES else 0.6)
+    known = key in SB3_NAMES or key in CLEANRL_NAMES
+    close = difflib.get_close_matches(key, list(names), n=1, cutoff=0.8 if known else 0.6)
     if close:  # a near miss of the section's own key first (replay.n_steps: replay.n_step)
         return f"unknown config key {path!r}; did you mean {names[close[0]]!r}?"
     if key in SB3_NAMES:
         return f"unknown config key {path!r}; here, Stable-Baselines3's {key} is {SB3_NAMES[key]}"
+    if key in CLEANRL_NAMES:
+        return f"unknown config key {path!r}; here, CleanRL's {key} is {CLEANRL_NAMES[key]}"
     return f"unknown config key {path!r}; valid: {', '.join(valid)}"
 
 

@@ -13,7 +13,7 @@ from typing import Any
 
 from relayrl.agents.registry import ALGORITHMS
 from relayrl.config import class_defaults, dotted
-from relayrl.config_fields import SB3_NAMES, field_docs, toml_literal
+from relayrl.config_fields import CLEANRL_NAMES, SB3_NAMES, field_docs, toml_literal
 
 DEFAULT_OUT = Path("docs") / "config.md"
 
@@ -60,7 +60,7 @@ def render() -> str:
     out += ["", "## [agent]", "", "What the `agent` section holds depends on `algo`."]
     for algo in ALGORITHMS.values():
         out += ["", f'### [agent] with algo = "{algo.name}"', "", *_table(algo.config(), "agent.")]
-    return "\n".join(out + _per_algorithm() + _sb3_names()) + "\n"
+    return "\n".join(out + _per_algorithm() + _sb3_names() + _cleanrl_names()) + "\n"
 
 
 def _per_algorithm() -> list[str]:
@@ -89,6 +89,20 @@ def _sb3_names() -> list[str]:
            "`tau`, `n_epochs`, `gae_lambda`, `clip_range`, `vf_coef`, ...) are the `agent.` keys above.", "",
            "| SB3 / RL Zoo | here |", "|---|---|"]
     return out + [f"| `{name}` | {_cell(what)} |" for name, what in SB3_NAMES.items()]
+
+
+def _cleanrl_names() -> list[str]:
+    """CleanRL's argument names and their counterparts here (the hints an unknown key gets), and
+    the one shared name whose meaning differs in scale."""
+    out = ["", "## CleanRL names", "",
+           "Where an argument of CleanRL's single-file scripts (`ppo.py`, `dqn.py`, "
+           "`sac_continuous_action.py`) names a setting otherwise and Stable-Baselines3's name (above) does not "
+           "cover it (an unknown key of these names gets the same line). Names CleanRL shares (`gamma`, "
+           "`gae_lambda`, `ent_coef`, `max_grad_norm`, `batch_size`, `tau`, ...) are the `agent.` keys above; "
+           "`vf_coef` weighs E[(V - R)^2] here, as in SB3, where CleanRL's value loss carries a factor 0.5: "
+           "CleanRL's `vf_coef = 0.5` is `agent.vf_coef = 0.25`.", "",
+           "| CleanRL | here |", "|---|---|"]
+    return out + [f"| `{name}` | {_cell(what)} |" for name, what in CLEANRL_NAMES.items()]
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 
 from relayrl import interrupts
+from relayrl.agents.registry import algorithm
 from relayrl.config import Config, changes, from_dict, load_toml, save_toml, to_dict
 from relayrl.core import Agent
 from relayrl.envs.gym import names_python_factory
@@ -30,6 +31,7 @@ from relayrl.envs.make import (
 from relayrl.errors import NonFiniteError, UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.nn.encoders import CONV_READY
+from relayrl.nn.graphed import compile_requested
 from relayrl.policy_file import env_action_entries, env_entries
 from relayrl.schedules import linear_schedule
 from relayrl.seeding import RunSeeds
@@ -110,14 +112,43 @@ def check_user_env(config: Config, env_factory: Callable[[], Any] | None, say: C
     layers = wrapper_layers(e.id, e.kwargs, e.wrappers, env_factory, e.max_episode_steps)
     changing = reward_wrappers(layers)
     if changing:
+        # CleanRL reads its returns from a RecordEpisodeStatistics beneath the reward wrappers: raw ones
         say(f"env.wrappers put {', '.join(changing)} over the env: evaluations report returns of those rewards, "
-            "not the env's own (PPO's agent.normalize_reward scales rewards for learning only)")
+            "and so do the training returns (train/average_return, TensorBoard's charts/episodic_return), not "
+            "the env's own (a RecordEpisodeStatistics beneath them is not read; PPO's agent.normalize_reward "
+            "scales rewards for learning only)")
     own = statistics_wrappers(layers)
     if own:
         say(f"env.wrappers put {', '.join(own)} over the env: its running statistics live in each env copy, so "
             "evaluation envs normalise with their own, gathered from their first steps, and the policy file does "
             "not hold them (a loaded policy needs observations normalised as in training); PPO's "
             "agent.normalize_obs keeps the statistics with the policy")
+
+
+def minibatch_note(config: Config) -> str | None:
+    """A line where agent.batch_size does not divide an on-policy rollout: each epoch then ends
+    with a shorter minibatch that takes a whole Adam step of its own (one of a single step keeps
+    its advantage unnormalised), which CleanRL's num_minibatches never gives and SB3 warns of."""
+    if algorithm(config.algo).replay != "rollouts":
+        return None
+    steps, size = config.steps_per_iteration(), config.agent.batch_size
+    if steps % size == 0:
+        return None
+    return (f"agent.batch_size={size} does not divide a rollout of {steps:,} env steps (train.collect_steps in "
+            f"whole batched steps of env.num_envs={config.env.num_envs}): each epoch ends with a minibatch of "
+            f"{steps % size}, which takes a whole gradient step; a batch_size that divides {steps:,} avoids it")
+
+
+def compile_note(agent: Agent) -> str | None:
+    """A line where RELAYRL_COMPILE asks for compiled losses and the agent's update is a
+    hand-written twin (MLPs on the CPU), whose step calls no loss function: the setting would
+    otherwise do nothing, unsaid."""
+    if not compile_requested() or getattr(getattr(agent, "update", None), "runs_losses", True):
+        return None
+    return ("RELAYRL_COMPILE is set, but this run's update has no loss function to compile: on the CPU an MLP "
+            "network trains with relayrl's hand-written gradients (docs/benchmarks.md, 'Compiled reference "
+            "updates against hand-written gradients'); it compiles autograd updates only (a GPU run, conv or "
+            "own encoders)")
 
 
 def make_learner(config: Config, agent: Agent, table: Any, device: torch.device, variables: Any,
@@ -291,6 +322,9 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if 0 < c.train.total_steps <= c.train.initial_collect_steps:
             core.say(f"train.initial_collect_steps={c.train.initial_collect_steps:,} >= train.total_steps="
                      f"{c.train.total_steps:,}: the run takes random actions only and learns nothing")
+        for note in (minibatch_note(c), compile_note(core.agent)):
+            if note is not None:
+                core.say(note)
         if c.distributed.address and c.distributed.num_actors == 0:
             core.say(f"distributed.address={c.distributed.address!r} with distributed.num_actors=0: the run trains "
                      "in this process (set distributed.num_actors=K for K rollout actors on Ray)")
