@@ -175,19 +175,3 @@ def test_ppo_clip_schedule_compiles_once(monkeypatch):
         assert_same([metrics[0]["loss"]], [metrics[1]["loss"]], f"loss at step {step}")
     assert made[0].clip_range < 0.02
 
-
-def test_a_run_says_when_relayrl_compile_has_nothing_to_compile(monkeypatch, tmp_path, capsys):
-    # On the CPU an MLP's update is hand-written: RELAYRL_COMPILE=1 did nothing, and nothing said so.
-    import relayrl
-
-    monkeypatch.setenv("RELAYRL_COMPILE", "aot_eager")
-    over = ["train.total_steps=200", "eval.interval=0"]
-    relayrl.train(relayrl.load_config("dqn", over), tmp_path / "mlp", progress=False)
-    assert "RELAYRL_COMPILE is set, but this run's update has no loss function to compile" in capsys.readouterr().err
-    clipped = ["train.total_steps=64", "train.collect_steps=64", "agent.n_epochs=1", "agent.clip_range_vf=0.2",
-               "eval.interval=0"]  # value clipping: the autograd update, whose losses are compiled
-    relayrl.train(relayrl.load_config("ppo", clipped), tmp_path / "ppo", progress=False)
-    assert "RELAYRL_COMPILE" not in capsys.readouterr().err
-    monkeypatch.setenv("RELAYRL_COMPILE", "0")
-    relayrl.train(relayrl.load_config("dqn", over), tmp_path / "off", progress=False)
-    assert "RELAYRL_COMPILE" not in capsys.readouterr().err

@@ -46,11 +46,6 @@ def cuda_graphs_enabled(device: torch.device) -> bool:
     return device.type == "cuda" and os.environ.get("RELAYRL_CUDA_GRAPHS", "1") != "0"
 
 
-def compile_requested() -> bool:
-    """Whether `RELAYRL_COMPILE` asks for compiled losses (any value but 0)."""
-    return os.environ.get("RELAYRL_COMPILE", "0") != "0"
-
-
 def compiled(losses: F) -> F:
     """`losses` through `torch.compile` where `RELAYRL_COMPILE` (read now, when an update is
     built) is 1 or a backend's name; else `losses` itself (see the module doc)."""

@@ -31,7 +31,6 @@ from relayrl.envs.make import (
 from relayrl.errors import NonFiniteError, UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.nn.encoders import CONV_READY
-from relayrl.nn.graphed import compile_requested
 from relayrl.policy_file import env_action_entries, env_entries
 from relayrl.schedules import linear_schedule
 from relayrl.seeding import RunSeeds
@@ -137,18 +136,6 @@ def minibatch_note(config: Config) -> str | None:
     return (f"agent.batch_size={size} does not divide a rollout of {steps:,} env steps (train.collect_steps in "
             f"whole batched steps of env.num_envs={config.env.num_envs}): each epoch ends with a minibatch of "
             f"{steps % size}, which takes a whole gradient step; a batch_size that divides {steps:,} avoids it")
-
-
-def compile_note(agent: Agent) -> str | None:
-    """A line where RELAYRL_COMPILE asks for compiled losses and the agent's update is a
-    hand-written twin (MLPs on the CPU), whose step calls no loss function: the setting would
-    otherwise do nothing, unsaid."""
-    if not compile_requested() or getattr(getattr(agent, "update", None), "runs_losses", True):
-        return None
-    return ("RELAYRL_COMPILE is set, but this run's update has no loss function to compile: on the CPU an MLP "
-            "network trains with relayrl's hand-written gradients (docs/benchmarks.md, 'Compiled reference "
-            "updates against hand-written gradients'); it compiles autograd updates only (a GPU run, conv or "
-            "own encoders)")
 
 
 def make_learner(config: Config, agent: Agent, table: Any, device: torch.device, variables: Any,
@@ -322,9 +309,8 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if 0 < c.train.total_steps <= c.train.initial_collect_steps:
             core.say(f"train.initial_collect_steps={c.train.initial_collect_steps:,} >= train.total_steps="
                      f"{c.train.total_steps:,}: the run takes random actions only and learns nothing")
-        for note in (minibatch_note(c), compile_note(core.agent)):
-            if note is not None:
-                core.say(note)
+        if (note := minibatch_note(c)) is not None:
+            core.say(note)
         if c.distributed.address and c.distributed.num_actors == 0:
             core.say(f"distributed.address={c.distributed.address!r} with distributed.num_actors=0: the run trains "
                      "in this process (set distributed.num_actors=K for K rollout actors on Ray)")

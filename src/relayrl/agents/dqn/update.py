@@ -25,8 +25,6 @@ class DQNUpdate:
     """The reference: `dqn_loss`, autograd, torch's norm clip, the optimizer step. The agent
     counts steps and moves the target network; an update does the rest."""
 
-    runs_losses = True  # its step calls `self.loss`, which RELAYRL_COMPILE compiles
-
     def __init__(self, online: nn.Module, target: nn.Module | None, optimizer: FastAdam, cfg: DQNConfig) -> None:
         self.online, self.target, self.optimizer, self.cfg = online, target, optimizer, cfg
         self.params = list(online.parameters())
@@ -58,8 +56,6 @@ class DQNUpdate:
 class HandWrittenDQNUpdate(DQNUpdate):
     """`DQNUpdate` for MLP Q-networks (`mlp_fast.supports`), with the gradients written into
     one flat buffer (so clipping is one norm and one multiply)."""
-
-    runs_losses = False  # its step calls no loss function: RELAYRL_COMPILE has nothing to compile (the run says so)
 
     def __init__(self, online: nn.Module, target: nn.Module | None, optimizer: FastAdam, cfg: DQNConfig) -> None:
         super().__init__(online, target, optimizer, cfg)

@@ -43,8 +43,6 @@ class PPOUpdate:
     """The reference: clipped surrogate + vf_coef * value loss - ent_coef * entropy, autograd,
     torch's global norm clip, the optimizer step."""
 
-    runs_losses = True  # its step calls `self.loss`, which RELAYRL_COMPILE compiles
-
     def __init__(self, net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions) -> None:
         self.params = list(net.parameters())
         self.opt, self.cfg, self.evaluate_actions = opt, cfg, evaluate_actions
@@ -97,8 +95,6 @@ class PPOUpdate:
 
 class HandWrittenPPOUpdate(PPOUpdate):
     """`PPOUpdate` with the gradients by hand, where `supports` says it models the networks."""
-
-    runs_losses = False  # its step calls no loss function: RELAYRL_COMPILE has nothing to compile (the run says so)
 
     def __init__(self, net: PPONetworks, opt: FastAdam, cfg: PPOConfig, evaluate_actions: EvaluateActions) -> None:
         super().__init__(net, opt, cfg, evaluate_actions)

@@ -30,8 +30,6 @@ class SACUpdate:
     updated critics and an alpha step towards the target entropy; the agent then moves the
     target critics."""
 
-    runs_losses = True  # its step calls the loss functions, which RELAYRL_COMPILE compiles
-
     def __init__(self, agent: SACAgent) -> None:
         self.p = agent  # its networks, optimizers and noise generator, which it builds, owns and checkpoints
         self.critic_params = list(agent.critic.parameters())
@@ -92,8 +90,6 @@ class SACUpdate:
 
 class HandWrittenSACUpdate(SACUpdate):
     """`SACUpdate` for MLP actor and critics (`mlp_fast.supports`), with the gradients by hand."""
-
-    runs_losses = False  # its step calls no loss function: RELAYRL_COMPILE has nothing to compile (the run says so)
 
     def __init__(self, agent: SACAgent) -> None:
         super().__init__(agent)
