@@ -51,6 +51,11 @@ def test_overrides_are_typed():
     ("agent.train_freq=4", "SB3's train_freq x env.num_envs; a train_freq in episodes has no counterpart"),
     ("agent.target_kl=0.01", "here, Stable-Baselines3's target_kl is none: PPO runs all agent.n_epochs epochs"),
     ("agent.n_critics=3", "here, Stable-Baselines3's n_critics is none: SAC has two critics"),
+    # SB3's HER for goal envs, and DDPG/TD3-style action noise: refused with what relayrl does instead
+    ("replay_buffer_class='HerReplayBuffer'", "here, Stable-Baselines3's replay_buffer_class is none: relayrl "
+                                              "has no HerReplayBuffer (no goal relabelling); SAC and PPO take"),
+    ("replay_buffer_kwargs={n_sampled_goal=4}", "replay_buffer_kwargs is none: relayrl has no HerReplayBuffer"),
+    ("agent.action_noise=0.1", "here, Stable-Baselines3's action_noise is none: SAC explores by sampling its own"),
     ("total_steps=1000", "unknown config key 'total_steps'; did you mean 'train.total_steps'? (keys sit in their"),
     ("batch_size=64", "did you mean 'agent.batch_size'?"),
     ("agent.n_epochs=3", "unknown config key 'agent.n_epochs': a setting of ppo's agent, not of this algorithm's; "
