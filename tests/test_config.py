@@ -92,6 +92,15 @@ def test_bad_overrides_fail_with_a_clear_message(override, fragment):
     assert fragment in str(e.value)
 
 
+def test_an_unset_default_key_given_a_wrong_type_says_to_leave_it_out():
+    # SB3's target_entropy = "auto" is relayrl's unset (-|A|); TOML cannot write None
+    with pytest.raises(ConfigError) as e:
+        load_config("sac", ["agent.target_entropy='auto'"])
+    assert str(e.value) == ("agent.target_entropy='auto' has the wrong type; expected float, or leave the key out: "
+                            "unset is its default")
+    assert load_config("sac", ["agent.target_entropy=-3"]).agent.target_entropy == -3.0
+
+
 def test_load_config_takes_a_dict_or_a_path_object_as_train_does(tmp_path):
     c = load_config({"algo": "sac", "env": {"id": "Pendulum-v1"}}, ["train.total_steps=1000"], seed=3)
     assert (c.algo, c.env.id, c.train.total_steps, c.seed) == ("sac", "Pendulum-v1", 1000, 3)

@@ -186,9 +186,14 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
     """Check `value` against the field's type; ints are accepted where floats are expected."""
     origin = typing.get_origin(hint)
     if origin in (types.UnionType, typing.Union):
-        for arg in typing.get_args(hint):  # NoneType takes None
+        args = typing.get_args(hint)
+        for arg in args:  # NoneType takes None
             with contextlib.suppress(ConfigError):
                 return coerce(value, arg, path)
+        if type(None) in args:  # TOML has no None to write (SB3's target_entropy = "auto" is relayrl's unset)
+            kinds = " | ".join(type_name(a) for a in args if a is not type(None))
+            raise ConfigError(f"{path}={value!r} has the wrong type; expected {kinds}, or leave the key out: "
+                              "unset is its default")
         raise ConfigError(f"{path}={value!r} has the wrong type; expected {type_name(hint)}")
     if origin is dict:
         if not isinstance(value, dict):
