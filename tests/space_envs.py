@@ -42,6 +42,8 @@ def action_space(kind: str) -> gym.Space:
             "box_scalar": spaces.Box(-1.0, 1.0, (), np.float32), "box2d": spaces.Box(-1.0, 1.0, (2, 2), np.float32),
             "box_fixed": spaces.Box(np.array([-1.0, 0.5], np.float32), np.array([1.0, 0.5], np.float32)),  # low == high
             "box_f16": spaces.Box(-1.0, 1.0, (2,), np.float16),  # policies act in float32
+            # float64 bounds whose float32 roundings (-0.30000001, 0.30000001) lie outside them: not in ACTION_KINDS
+            "box_f64": spaces.Box(np.array([-0.3, -0.7]), np.array([0.3, 0.7]), (2,), np.float64),
             "box_unbounded": spaces.Box(np.array([-np.inf, -1.0], np.float32), np.array([np.inf, 1.0], np.float32)),
             "multi_discrete": spaces.MultiDiscrete([2, 3]),
             "multi_discrete_i32": spaces.MultiDiscrete([2, 3], np.int32),

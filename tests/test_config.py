@@ -51,6 +51,11 @@ def test_overrides_are_typed():
     ("agent.train_freq=4", "SB3's train_freq x env.num_envs; a train_freq in episodes has no counterpart"),
     ("agent.target_kl=0.01", "here, Stable-Baselines3's target_kl is none: PPO runs all agent.n_epochs epochs"),
     ("agent.n_critics=3", "here, Stable-Baselines3's n_critics is none: SAC has two critics"),
+    # SB3's HER for goal envs, and DDPG/TD3-style action noise: refused with what relayrl does instead
+    ("replay_buffer_class='HerReplayBuffer'", "here, Stable-Baselines3's replay_buffer_class is none: relayrl "
+                                              "has no HerReplayBuffer (no goal relabelling); SAC and PPO take"),
+    ("replay_buffer_kwargs={n_sampled_goal=4}", "replay_buffer_kwargs is none: relayrl has no HerReplayBuffer"),
+    ("agent.action_noise=0.1", "here, Stable-Baselines3's action_noise is none: SAC explores by sampling its own"),
     ("total_steps=1000", "unknown config key 'total_steps'; did you mean 'train.total_steps'? (keys sit in their"),
     ("batch_size=64", "did you mean 'agent.batch_size'?"),
     ("agent.n_epochs=3", "unknown config key 'agent.n_epochs': a setting of ppo's agent, not of this algorithm's; "
@@ -85,6 +90,15 @@ def test_bad_overrides_fail_with_a_clear_message(override, fragment):
     with pytest.raises(ConfigError, match=None) as e:
         load_config("dqn-cartpole", [override])
     assert fragment in str(e.value)
+
+
+def test_an_unset_default_key_given_a_wrong_type_says_to_leave_it_out():
+    # SB3's target_entropy = "auto" is relayrl's unset (-|A|); TOML cannot write None
+    with pytest.raises(ConfigError) as e:
+        load_config("sac", ["agent.target_entropy='auto'"])
+    assert str(e.value) == ("agent.target_entropy='auto' has the wrong type; expected float, or leave the key out: "
+                            "unset is its default")
+    assert load_config("sac", ["agent.target_entropy=-3"]).agent.target_entropy == -3.0
 
 
 def test_load_config_takes_a_dict_or_a_path_object_as_train_does(tmp_path):

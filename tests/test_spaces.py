@@ -341,6 +341,26 @@ def test_ppo_squashing_into_a_box_with_a_fixed_dimension_gives_its_value(tmp_pat
     assert (actions[:, 1] == 0.5).all() and (np.abs(actions[:, 0]) <= 1).all()
 
 
+@pytest.mark.parametrize("algo", ["ppo", "sac"])
+def test_a_loaded_policy_keeps_a_float64_boxs_own_bounds(algo, tmp_path):
+    """float32's rounding of -0.3 is below -0.3: a loaded policy's clipped or saturated action must
+    not come out there, and its action_space is the env's own."""
+    config = short_config(algo, "box", "box_f64")
+    if algo == "ppo":
+        config.agent.log_std_init = 3.0  # samples far past the bounds: clipped onto them
+    relayrl.train(config, tmp_path, progress=False)
+    space = Spaces("box", "box_f64").action_space
+    policy = relayrl.load_policy(tmp_path, deterministic=False, seed=0)
+    got = policy.action_space  # Box's == is np.allclose: the bounds compared exactly
+    assert (got.dtype, got.low.tolist(), got.high.tolist()) == (space.dtype, space.low.tolist(), space.high.tolist())
+    actions = policy(np.zeros((256, 3), np.float32))
+    if algo == "ppo":
+        assert (actions[:, 0] == -0.3).any() and (actions[:, 0] == 0.3).any()
+    assert all(space.contains(a) for a in actions)
+    one = policy(torch.zeros(1, 3))  # the batched tensor path
+    assert one.dtype == torch.float64 and bool(((one >= -0.7) & (one <= 0.7)).all())
+
+
 def test_ppo_clips_to_an_unbounded_box_and_refuses_to_squash_into_it(tmp_path):
     relayrl.train(short_config("ppo", "box", "box_unbounded"), tmp_path / "clip", progress=False)
     actions = relayrl.load_policy(tmp_path / "clip", deterministic=False, seed=0)(np.zeros((64, 3), np.float32))

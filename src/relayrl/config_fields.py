@@ -96,6 +96,11 @@ def _hints(cls: type) -> dict[str, Any]:
     return {k: v for k, v in typing.get_type_hints(cls).items() if k in names}
 
 
+_NO_HER = ("none: relayrl has no HerReplayBuffer (no goal relabelling); SAC and PPO take a goal env's Dict "
+           "observation (observation, achieved_goal, desired_goal) as it is and learn from the rewards the env "
+           "returns (a sparse goal reward may need a dense one); env.info_keys = [\"is_success\"] logs the success "
+           "rate")
+
 # Stable-Baselines3's names for settings relayrl names otherwise: users bring them from SB3 and
 # RL Zoo's hyperparameter files.
 SB3_NAMES = {
@@ -143,6 +148,13 @@ SB3_NAMES = {
                                 "torch module)",
     "policy_kwargs": "keys of [agent]: agent.hidden (net_arch), agent.activation (activation_fn), agent.encoder "
                      "(features_extractor_class)",
+    # Goal-conditioned (robotics) users bring HER's settings from SB3 and RL Zoo's her.yml.
+    "replay_buffer_class": _NO_HER,
+    "replay_buffer_kwargs": _NO_HER,
+    "goal_selection_strategy": _NO_HER,
+    "n_sampled_goal": _NO_HER,
+    "action_noise": "none: SAC explores by sampling its own tanh-squashed Gaussian (how widely: agent.init_alpha "
+                    "and agent.target_entropy), PPO its Gaussian (agent.log_std_init); no noise is added on top",
 }
 
 
@@ -210,9 +222,14 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
     """Check `value` against the field's type; ints are accepted where floats are expected."""
     origin = typing.get_origin(hint)
     if origin in (types.UnionType, typing.Union):
-        for arg in typing.get_args(hint):  # NoneType takes None
+        args = typing.get_args(hint)
+        for arg in args:  # NoneType takes None
             with contextlib.suppress(ConfigError):
                 return coerce(value, arg, path)
+        if type(None) in args:  # TOML has no None to write (SB3's target_entropy = "auto" is relayrl's unset)
+            kinds = " | ".join(type_name(a) for a in args if a is not type(None))
+            raise ConfigError(f"{path}={value!r} has the wrong type; expected {kinds}, or leave the key out: "
+                              "unset is its default")
         raise ConfigError(f"{path}={value!r} has the wrong type; expected {type_name(hint)}")
     if origin is dict:
         if not isinstance(value, dict):

@@ -18,7 +18,7 @@ import torch
 from relayrl.arrays import as_tensor
 from relayrl.core import Policy
 from relayrl.errors import UserError
-from relayrl.policies import saved_obs_spec
+from relayrl.policies import box_action_space, saved_obs_spec
 from relayrl.policy_file import env_action_dtype
 from relayrl.specs import PackedSpec, Spec, describe, entry, is_image, leaf_array, to_space, value_limit
 
@@ -51,6 +51,7 @@ class LoadedPolicy(Policy):
         self.action_shape: tuple[int, ...] | None = tuple(state["action_shape"]) if "action_shape" in state else None
         # the env's action dtype where the policy's is another (a float64 Box, int32 MultiDiscrete)
         self.action_dtype = env_action_dtype(state)
+        self._action_bounds = env_box_bounds(state, self.action_dtype)
         self.deterministic = deterministic
         self._state, self._device, self._seed = state, device, seed
         self._module = for_policy_kind(self.kind).policy_module()
@@ -88,7 +89,7 @@ class LoadedPolicy(Policy):
     def __call__(self, obs: Any) -> Any:
         if isinstance(obs, torch.Tensor) and obs.dtype == self.obs_dtype and obs.dim() == len(self.obs_shape) + 1:
             _check_finite(obs)
-            return env_shaped(self.batched(obs), self.action_shape, self.action_dtype)
+            return self._to_env(self.batched(obs))
         return self._act(self.batched, obs)
 
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
@@ -103,6 +104,14 @@ class LoadedPolicy(Policy):
                                              bool(deterministic), self._seed)
         return self._act(self._other_mode, observation), None
 
+    def _to_env(self, actions: torch.Tensor) -> torch.Tensor:
+        """The policy's actions in the env's shape and dtype, inside the env's own bounds."""
+        actions = env_shaped(actions, self.action_shape, self.action_dtype)
+        if self._action_bounds is None:
+            return actions
+        low, high = (b.to(actions.device) for b in self._action_bounds)
+        return torch.minimum(torch.maximum(actions, low), high)
+
     def _act(self, policy: Any, obs: Any) -> Any:
         if isinstance(obs, tuple) and len(obs) == 2 and isinstance(obs[1], dict) and not (
                 isinstance(self.obs_space, PackedSpec) and self.obs_space.tuple_space):
@@ -113,7 +122,7 @@ class LoadedPolicy(Policy):
         else:
             t, single, numpy_in = self._array(obs)
         with torch.no_grad():
-            actions = env_shaped(policy(t), self.action_shape, self.action_dtype)
+            actions = self._to_env(policy(t))
         if single:
             actions = actions[0]
         if not numpy_in:
@@ -215,6 +224,16 @@ def env_shaped(actions: torch.Tensor, shape: Sequence[int] | None, dtype: torch.
     if dtype is not None:
         actions = actions.to(dtype)
     return actions if shape is None else actions.reshape(actions.shape[0], *shape)
+
+
+def env_box_bounds(state: dict[str, Any], dtype: torch.dtype | None) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """A Box action's bounds in the env's dtype where that is another float dtype than the
+    policy's float32 (float64), else None: float32's rounding of a bound (-0.3 to
+    -0.30000001) lies outside the env's Box, so such actions are clipped again after the cast."""
+    if dtype is None or not dtype.is_floating_point or "action_low" not in state:
+        return None
+    space = box_action_space(state)
+    return torch.as_tensor(space.low, dtype=dtype), torch.as_tensor(space.high, dtype=dtype)
 
 
 def rng_kept(device: torch.device) -> contextlib.AbstractContextManager[Any]:

@@ -190,7 +190,7 @@ def saved_bounds(state: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
 def box_action_space(state: dict[str, Any]) -> gym.spaces.Box:
     """A saved policy's Box action space: its bounds, in the env's shape and dtype where the
     file records them (`policy_file.env_action_entries`)."""
-    low, high = saved_bounds(state)
+    low, high = (np.asarray(state[k], np.float64) for k in ("action_low", "action_high"))  # not float32's rounding
     shape = tuple(int(d) for d in state.get("action_shape", low.shape))
     dtype = np.dtype(state.get("action_dtype", "float32"))
     return gym.spaces.Box(low.reshape(shape).astype(dtype), high.reshape(shape).astype(dtype), shape, dtype)

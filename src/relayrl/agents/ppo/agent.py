@@ -163,8 +163,9 @@ class PPOAgent(Agent):
         }
         if p.log_std is not None:
             low, high = self._bounds()  # type: ignore[misc]
-            state.update(log_std=p.log_std.detach().cpu().tolist(), action_low=np.asarray(low, np.float32),
-                         action_high=np.asarray(high, np.float32), squash=self.cfg.squash)
+            # the env's own bounds (a float64 Box's too): the loaded policy's action_space and clip use them
+            state.update(log_std=p.log_std.detach().cpu().tolist(), action_low=np.asarray(low, np.float64),
+                         action_high=np.asarray(high, np.float64), squash=self.cfg.squash)
         if p.obs_norm is not None:
             state.update(p.obs_norm.saved())
         return state

@@ -105,7 +105,8 @@ class SACAgent(Agent):
             "kind": "tanh_gaussian",
             **network_state(self.actor, self.obs_spec, self.cfg.encoder, self.cfg.actor_hidden, self.cfg.activation),
             "action_dim": flat_dim(s),
-            "action_low": np.asarray(s.low, np.float32), "action_high": np.asarray(s.high, np.float32),
+            # the env's own bounds (a float64 Box's too): the loaded policy's action_space and clip use them
+            "action_low": np.asarray(s.low, np.float64), "action_high": np.asarray(s.high, np.float64),
             "log_std_min": self.cfg.log_std_min, "log_std_max": self.cfg.log_std_max,
         }
 
