@@ -18,6 +18,7 @@ from torch import nn
 
 import relayrl
 from relayrl.errors import UserError
+from relayrl.export import EnvShaped
 from relayrl.nn.encoders import ConvEncoder, DictEncoder, OneHot, make_encoder
 from relayrl.specs import (
     PackedSpec,
@@ -359,6 +360,11 @@ def test_a_loaded_policy_keeps_a_float64_boxs_own_bounds(algo, tmp_path):
     assert all(space.contains(a) for a in actions)
     one = policy(torch.zeros(1, 3))  # the batched tensor path
     assert one.dtype == torch.float64 and bool(((one >= -0.7) & (one <= 0.7)).all())
+    program = torch.export.load(relayrl.export_policy(tmp_path)).module()  # the exported policy clips so too
+    np.testing.assert_array_equal(program(torch.zeros(4, 3)).numpy(), relayrl.load_policy(tmp_path)(np.zeros((4, 3))))
+    bounds = tuple(torch.tensor(b, dtype=torch.float64) for b in ([-0.3, -0.7], [0.3, 0.7]))
+    at_bounds = EnvShaped(torch.nn.Identity(), None, torch.float64, bounds)(torch.tensor([[-0.3, 0.3]]))  # float32
+    assert at_bounds.tolist() == [[-0.3, 0.30000001192092896]]  # float32's -0.3 is below the bound, its 0.3 inside
 
 
 def test_ppo_clips_to_an_unbounded_box_and_refuses_to_squash_into_it(tmp_path):

@@ -33,7 +33,7 @@ from relayrl import atomic
 from relayrl.agents.registry import for_policy_kind
 from relayrl.config_fields import is_user_encoder
 from relayrl.errors import UserError
-from relayrl.loaded_policy import LoadedPolicy, built_quietly, env_shaped, rng_kept
+from relayrl.loaded_policy import LoadedPolicy, built_quietly, env_box_bounds, env_shaped, rng_kept
 from relayrl.paths import is_folder, output_path, writing
 from relayrl.policies import saved_obs_spec
 from relayrl.policy_file import REFUSED, env_action_dtype, load_policy_file
@@ -142,7 +142,8 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
     module = module.requires_grad_(False).eval()
     inputs = input_specs(state)
     if "action_shape" in state or "action_dtype" in state:  # actions as the env takes them
-        module = EnvShaped(module, state.get("action_shape"), env_action_dtype(state))
+        dtype = env_action_dtype(state)
+        module = EnvShaped(module, state.get("action_shape"), dtype, env_box_bounds(state, dtype))
     # one input per Dict / Tuple entry, each in the env's own dtype (cast to the one the policy takes)
     module = EnvInputs(module, [(name, spec.dtype) for name, spec in inputs], packed=inputs[0][0] != "obs"
                        or len(inputs) > 1).eval()
@@ -193,16 +194,19 @@ def _quiet_onnx() -> Iterator[None]:
 
 
 class EnvShaped(torch.nn.Module):
-    """A policy whose flat [B, A] actions come out in the env's action shape [B, *shape] and dtype."""
+    """A policy whose flat [B, A] actions come out in the env's action shape [B, *shape] and dtype,
+    inside the env's own `bounds` where given (`loaded_policy.env_box_bounds`)."""
 
-    def __init__(self, module: torch.nn.Module, shape: list[int] | None, dtype: torch.dtype | None) -> None:
+    def __init__(self, module: torch.nn.Module, shape: list[int] | None, dtype: torch.dtype | None,
+                 bounds: tuple[torch.Tensor, torch.Tensor] | None = None) -> None:
         super().__init__()
         self.module = module
         self.shape = shape
         self.dtype = dtype
+        self.bounds = bounds
 
     def forward(self, obs: Any) -> torch.Tensor:
-        return env_shaped(self.module(obs), self.shape, self.dtype)
+        return env_shaped(self.module(obs), self.shape, self.dtype, self.bounds)
 
 
 class EnvInputs(torch.nn.Module):

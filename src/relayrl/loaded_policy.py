@@ -106,11 +106,7 @@ class LoadedPolicy(Policy):
 
     def _to_env(self, actions: torch.Tensor) -> torch.Tensor:
         """The policy's actions in the env's shape and dtype, inside the env's own bounds."""
-        actions = env_shaped(actions, self.action_shape, self.action_dtype)
-        if self._action_bounds is None:
-            return actions
-        low, high = (b.to(actions.device) for b in self._action_bounds)
-        return torch.minimum(torch.maximum(actions, low), high)
+        return env_shaped(actions, self.action_shape, self.action_dtype, self._action_bounds)
 
     def _act(self, policy: Any, obs: Any) -> Any:
         if isinstance(obs, tuple) and len(obs) == 2 and isinstance(obs[1], dict) and not (
@@ -219,11 +215,17 @@ def _layout(spec: Spec) -> tuple:
     return tuple(spec.shape)
 
 
-def env_shaped(actions: torch.Tensor, shape: Sequence[int] | None, dtype: torch.dtype | None) -> torch.Tensor:
-    """[B, ...] actions in the env's action shape and dtype (None: the policy's own)."""
+def env_shaped(actions: torch.Tensor, shape: Sequence[int] | None, dtype: torch.dtype | None,
+               bounds: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+    """[B, ...] actions in the env's action shape and dtype (None: the policy's own), inside
+    `bounds` where given (`env_box_bounds`, in that dtype and shape)."""
     if dtype is not None:
         actions = actions.to(dtype)
-    return actions if shape is None else actions.reshape(actions.shape[0], *shape)
+    actions = actions if shape is None else actions.reshape(actions.shape[0], *shape)
+    if bounds is None:
+        return actions
+    low, high = (b.to(actions.device) for b in bounds)
+    return torch.minimum(torch.maximum(actions, low), high)
 
 
 def env_box_bounds(state: dict[str, Any], dtype: torch.dtype | None) -> tuple[torch.Tensor, torch.Tensor] | None:
