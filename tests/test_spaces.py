@@ -391,6 +391,9 @@ def test_loaded_policy_says_what_it_takes(tmp_path):
     assert int(policy(3)) in (0, 1) and policy(np.array([0, 1, 2])).shape == (3,)
     with pytest.raises(UserError, match=r"outside this policy's Discrete\(4\) space"):
         policy(7)
+    for batch in (torch.tensor([0, 7]), torch.tensor([0, -1])):  # int64 batches, the dtype passed straight through
+        with pytest.raises(UserError, match=r"outside this policy's Discrete\(4\) space"):
+            policy(batch)  # was torch's "index 7 is out of bounds" from the one-hot
     with pytest.raises(UserError, match=r"takes Discrete\(4\) observations"):
         policy(np.zeros((2, 3)))
     with pytest.raises(UserError, match=r"takes Discrete\(4\) observations: an array of numbers .*, not a dict"):

@@ -87,7 +87,9 @@ class LoadedPolicy(Policy):
 
     def __call__(self, obs: Any) -> Any:
         if isinstance(obs, torch.Tensor) and obs.dtype == self.obs_dtype and obs.dim() == len(self.obs_shape) + 1:
-            _check_finite(obs)
+            # a Discrete / MultiDiscrete value out of range would index past its one-hot (torch's
+            # traceback): checked here too; for floats and frames this is the finiteness check alone
+            _check_values(obs, self.obs_space)
             return env_shaped(self.batched(obs), self.action_shape, self.action_dtype)
         return self._act(self.batched, obs)
 
