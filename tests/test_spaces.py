@@ -414,6 +414,9 @@ def test_a_loaded_policy_refuses_nan_observations_however_they_come(tmp_path):
     policy = relayrl.load_policy(tmp_path / "box")
     with pytest.raises(UserError, match="observation holds NaN or inf"):
         policy(torch.full((4, 3), float("nan")))  # a batched tensor of the policy's own dtype
+    needs_grad = torch.zeros((4, 3), requires_grad=True)  # a batch from a differentiable rollout
+    np.testing.assert_array_equal(policy(needs_grad).numpy(), policy(np.zeros((4, 3), np.float32)))  # was
+    # "Can't call numpy() on Tensor that requires grad" from the CPU MLP
 
 
 def test_a_discrete_entry_of_a_dict_outside_its_range_is_one_line(tmp_path):

@@ -87,6 +87,7 @@ class LoadedPolicy(Policy):
 
     def __call__(self, obs: Any) -> Any:
         if isinstance(obs, torch.Tensor) and obs.dtype == self.obs_dtype and obs.dim() == len(self.obs_shape) + 1:
+            obs = obs.detach()  # a tensor needing grad (a differentiable rollout's): the CPU MLP reads it via NumPy
             # a Discrete / MultiDiscrete value out of range would index past its one-hot (torch's
             # traceback): checked here too; for floats and frames this is the finiteness check alone
             _check_values(obs, self.obs_space)
