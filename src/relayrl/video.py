@@ -101,7 +101,8 @@ def _frames(rd: RunDir, policy: Any, env: Any, episodes: int, seed: int, max_ste
     with making(config.env.id, users_code=bool(config.env.wrappers) or given is not None):
         env = GymBatchEnv([lambda: EndFrames(make_one(), frames)])
     try:
-        policy.check_fits(env.observation_spec)  # another env= than the run's: one line, as `evaluate` says it
+        # another env= than the run's: one line, as `evaluate` says it
+        policy.check_fits(env.observation_spec, env.action_spec)
         fps = int(env.envs[0].metadata.get("render_fps", 30))
         obs = env.reset(seed=seed)
         frames.append(first_frame(env, config.env.id))
