@@ -163,6 +163,19 @@ def test_record_video_with_env(run_dir, tmp_path):
     assert not (tmp_path / "e.mp4").exists()
 
 
+def test_record_video_takes_the_runs_policy_file_or_config_as_eval_does(run_dir, tmp_path):
+    # was "'.../policy/policy.pt' is a file, not a run directory", though the error for a checkpoint
+    # given as a policy says video takes "the run directory or its policy/policy.pt"
+    factory = lambda render_mode=None: Countdown(render_mode=render_mode)  # noqa: E731
+    for given in (run_dir / "policy" / "policy.pt", run_dir / "config.toml"):
+        assert relayrl.record_video(given, tmp_path / f"{given.stem}.mp4", env=factory).stat().st_size > 0
+    lone = tmp_path / "shared" / "policy.pt"
+    lone.parent.mkdir()
+    lone.write_bytes((run_dir / "policy" / "policy.pt").read_bytes())
+    with pytest.raises(UserError, match=r"is a file, not a run directory"):
+        relayrl.record_video(lone, tmp_path / "lone.mp4", env=factory)
+
+
 def test_video_shows_every_state_of_each_episode_including_the_last(run_dir, tmp_path):
     import imageio.v2 as imageio
 

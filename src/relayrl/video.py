@@ -38,7 +38,9 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     for name, value in (("episodes", episodes), ("max_steps", max_steps)):  # not one episode in their place
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise UserError(f"{name}={value!r} is not valid; it must be an integer >= 1")
-    rd = RunDir(run_dir)
+    rd = RunDir.of(run_dir)  # RUN_DIR/policy/policy.pt and RUN_DIR/config.toml name the run, as for `relayrl eval`
+    if not rd.config.is_file():
+        rd = RunDir(run_dir)  # a lone policy file or another folder: `require` says which
     rd.require()
     path = output_path(out, rd.root / "video.mp4")
     if path.suffix.lower() not in VIDEO_SUFFIXES:  # said before the episodes are played, not after
