@@ -32,6 +32,14 @@ class Growing(Countdown):
         return obs, 1.0 + self.episode, terminated, truncated, info
 
 
+class MoreActions(Countdown):
+    """Countdown's observations with a third action: not the Discrete(2) a TINY run's policy gives."""
+
+    def __init__(self, render_mode: str | None = None) -> None:
+        super().__init__(render_mode=render_mode)
+        self.action_space = gym.spaces.Discrete(3)
+
+
 @pytest.fixture(scope="module")
 def run_dir(tmp_path_factory):
     root = tmp_path_factory.mktemp("habits") / "run"
@@ -60,6 +68,28 @@ def test_evaluate_a_run_dir_and_a_loaded_policy(run_dir):
         policy.predict(Countdown().reset(seed=0))  # SB3 habit from the old Gym API
     with pytest.raises(UserError, match=r"env.s observations \(Box\(.*shape=\(4,\).* do not fit the policy"):
         relayrl.evaluate(policy, "CartPole-v1")  # said before any episode, in the env's terms
+
+
+def test_an_env_whose_actions_or_discrete_sizes_are_not_the_policys_is_one_line(run_dir, tmp_path):
+    # Only the observations' shapes were compared: a Discrete(2) policy ran on a Discrete(3) env
+    # (never taking the third action), a [-2, 2] one on a [-1, 1] env, and a Discrete(16)
+    # observation policy on Discrete(64) raised torch's one-hot IndexError.
+    with pytest.raises(UserError, match=r"^this env's actions \(Discrete\(3\)\) are not the policy's: it gives "
+                                        r"Discrete\(2\) actions$"):
+        relayrl.evaluate(run_dir, MoreActions(), episodes=1)
+    with pytest.raises(UserError, match=r"this env's actions \(Discrete\(3\)\) are not the policy's"):
+        relayrl.record_video(run_dir, tmp_path / "v.mp4", env=MoreActions)
+    assert not (tmp_path / "v.mp4").exists()
+    lake = {**TINY, "env": {"id": "FrozenLake-v1", "kwargs": {"is_slippery": False}}}
+    relayrl.train(lake, tmp_path / "lake", progress=False)
+    with pytest.raises(UserError, match=r"^this env's observations \(Discrete\(64\)\) do not fit the policy: it "
+                                        r"takes Discrete\(16\) observations$"):
+        relayrl.evaluate(tmp_path / "lake", "FrozenLake8x8-v1", episodes=1)
+    relayrl.train({**TINY, "algo": "sac", "env": {"id": "Pendulum-v1"}}, tmp_path / "sac", progress=False)
+    rescaled = lambda: gym.wrappers.RescaleAction(gym.make("Pendulum-v1"), -1.0, 1.0)  # noqa: E731
+    with pytest.raises(UserError, match=r"this env's actions \(Box\(-1, 1, .*not the policy's: it gives Box\(-2, 2"):
+        relayrl.evaluate(tmp_path / "sac", rescaled, episodes=1)
+    assert relayrl.evaluate(tmp_path / "sac", "Pendulum-v1", episodes=1).mean < 0  # its own env still runs
 
 
 def test_evaluate_bad_input_is_one_line():
@@ -131,6 +161,19 @@ def test_record_video_with_env(run_dir, tmp_path):
     with pytest.raises(UserError, match=r"this env's observations \(Box\(.*shape=\(4,\).*\) do not fit the policy"):
         relayrl.record_video(run_dir, tmp_path / "e.mp4", env=other)
     assert not (tmp_path / "e.mp4").exists()
+
+
+def test_record_video_takes_the_runs_policy_file_or_config_as_eval_does(run_dir, tmp_path):
+    # was "'.../policy/policy.pt' is a file, not a run directory", though the error for a checkpoint
+    # given as a policy says video takes "the run directory or its policy/policy.pt"
+    factory = lambda render_mode=None: Countdown(render_mode=render_mode)  # noqa: E731
+    for given in (run_dir / "policy" / "policy.pt", run_dir / "config.toml"):
+        assert relayrl.record_video(given, tmp_path / f"{given.stem}.mp4", env=factory).stat().st_size > 0
+    lone = tmp_path / "shared" / "policy.pt"
+    lone.parent.mkdir()
+    lone.write_bytes((run_dir / "policy" / "policy.pt").read_bytes())
+    with pytest.raises(UserError, match=r"is a file, not a run directory"):
+        relayrl.record_video(lone, tmp_path / "lone.mp4", env=factory)
 
 
 def test_video_shows_every_state_of_each_episode_including_the_last(run_dir, tmp_path):

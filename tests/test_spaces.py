@@ -420,6 +420,9 @@ def test_loaded_policy_says_what_it_takes(tmp_path):
     assert int(policy(3)) in (0, 1) and policy(np.array([0, 1, 2])).shape == (3,)
     with pytest.raises(UserError, match=r"outside this policy's Discrete\(4\) space"):
         policy(7)
+    for batch in (torch.tensor([0, 7]), torch.tensor([0, -1])):  # int64 batches, the dtype passed straight through
+        with pytest.raises(UserError, match=r"outside this policy's Discrete\(4\) space"):
+            policy(batch)  # was torch's "index 7 is out of bounds" from the one-hot
     with pytest.raises(UserError, match=r"takes Discrete\(4\) observations"):
         policy(np.zeros((2, 3)))
     with pytest.raises(UserError, match=r"takes Discrete\(4\) observations: an array of numbers .*, not a dict"):
@@ -440,6 +443,9 @@ def test_a_loaded_policy_refuses_nan_observations_however_they_come(tmp_path):
     policy = relayrl.load_policy(tmp_path / "box")
     with pytest.raises(UserError, match="observation holds NaN or inf"):
         policy(torch.full((4, 3), float("nan")))  # a batched tensor of the policy's own dtype
+    needs_grad = torch.zeros((4, 3), requires_grad=True)  # a batch from a differentiable rollout
+    np.testing.assert_array_equal(policy(needs_grad).numpy(), policy(np.zeros((4, 3), np.float32)))  # was
+    # "Can't call numpy() on Tensor that requires grad" from the CPU MLP
 
 
 def test_a_discrete_entry_of_a_dict_outside_its_range_is_one_line(tmp_path):

@@ -173,7 +173,7 @@ def _eval(args: argparse.Namespace) -> None:
     else:
         env, env_id = recorded_env(given, args.episodes, args.max_episode_steps or 0, info_keys=True, policy=policy)
     try:
-        policy.check_fits(env.observation_spec)
+        policy.check_fits(env.observation_spec, env.action_spec)
         result = evaluate(env, policy, args.episodes, seed=args.seed)
         note = eval_cap_note(env, env_id)
         if note:

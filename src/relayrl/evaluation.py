@@ -95,7 +95,7 @@ def _policy_fn(policy: Any, deterministic: bool, seed: int | None, obs_spec: Spe
 
         policy = load_policy(policy, deterministic=deterministic, seed=seed)
     if isinstance(policy, LoadedPolicy):
-        policy.check_fits(obs_spec)
+        policy.check_fits(obs_spec, act_spec)
         if not deterministic:  # its samples drawn from `seed`, as a run directory's are: a repeatable evaluation
             policy = policy.reseeded(seed)
         return lambda obs: policy.predict(obs, deterministic=deterministic)[0]

@@ -20,7 +20,18 @@ from relayrl.core import Policy
 from relayrl.errors import UserError
 from relayrl.policies import box_action_space, saved_obs_spec
 from relayrl.policy_file import env_action_dtype
-from relayrl.specs import PackedSpec, Spec, describe, entry, is_image, leaf_array, to_space, value_limit
+from relayrl.specs import (
+    ArraySpec,
+    PackedSpec,
+    Spec,
+    describe,
+    entry,
+    is_image,
+    leaf_array,
+    spec_from_space,
+    to_space,
+    value_limit,
+)
 
 
 class LoadedPolicy(Policy):
@@ -79,16 +90,24 @@ class LoadedPolicy(Policy):
         batched = built_quietly(self._module, self._state, torch.device(self._device), self.deterministic, seed)
         return LoadedPolicy(batched, self._state, self._device, self.deterministic, seed)
 
-    def check_fits(self, obs_spec: Spec) -> None:
+    def check_fits(self, obs_spec: Spec, action_spec: Spec | None = None) -> None:
         """UserError unless an env's observations (`obs_spec`) are what this policy takes: each
-        Dict / Tuple entry's key and shape, or the shape."""
+        Dict / Tuple entry's key, shape and range of values (a Discrete's n, a MultiDiscrete's
+        nvec), or those of the one array; and, given `action_spec`, unless the env's actions are
+        the ones it gives (kind, shape, n, bounds; dtype aside, as actions are cast to the env's)."""
         if _layout(self.obs_space) != _layout(obs_spec):
             raise UserError(f"this env's observations ({describe(obs_spec)}) do not fit the policy: it takes "
                             f"{describe(self.obs_space)} observations")
+        if action_spec is not None and not _same_actions(self.action_space, _env_action_space(action_spec)):
+            raise UserError(f"this env's actions ({describe(action_spec)}) are not the policy's: it gives "
+                            f"{describe(spec_from_space(self.action_space, 'action'))} actions")
 
     def __call__(self, obs: Any) -> Any:
         if isinstance(obs, torch.Tensor) and obs.dtype == self.obs_dtype and obs.dim() == len(self.obs_shape) + 1:
-            _check_finite(obs)
+            obs = obs.detach()  # a tensor needing grad (a differentiable rollout's): the CPU MLP reads it via NumPy
+            # a Discrete / MultiDiscrete value out of range would index past its one-hot (torch's
+            # traceback): checked here too; for floats and frames this is the finiteness check alone
+            _check_values(obs, self.obs_space)
             return self._to_env(self.batched(obs))
         return self._act(self.batched, obs)
 
@@ -209,10 +228,34 @@ def _check_finite(t: torch.Tensor, where: str = "") -> None:
 
 
 def _layout(spec: Spec) -> tuple:
-    """What a policy's observations must match: each Dict / Tuple entry's key and shape, or the shape."""
+    """What a policy's observations must match: each Dict / Tuple entry's key, shape and values'
+    range, or those of the array. A Discrete(64) env on a Discrete(16) policy has the same shape,
+    but its values would index past the policy's one-hot."""
     if isinstance(spec, PackedSpec):
-        return tuple((f.key, tuple(f.spec.shape)) for f in spec.fields)
-    return tuple(spec.shape)
+        return tuple((f.key, *_layout(f.spec)) for f in spec.fields)
+    limit = value_limit(spec)
+    return tuple(spec.shape), None if limit is None else np.asarray(limit).tolist()
+
+
+def _env_action_space(spec: Spec) -> gym.Space:
+    """An env's action space from its spec, in the env's own shape (a Box travels flat)."""
+    space = to_space(spec)
+    shape = spec.env_shape if isinstance(spec, ArraySpec) else None
+    if shape is None or not isinstance(space, gym.spaces.Box):
+        return space
+    return gym.spaces.Box(space.low.reshape(shape), space.high.reshape(shape), shape, space.dtype)
+
+
+def _same_actions(policy: gym.Space, env: gym.Space) -> bool:
+    """The same action space, dtype aside: the kind, shape, n / nvec and a Box's bounds (a policy
+    for [-2, 2] on a [-1, 1] env would give actions outside it; a Discrete(2) one on a
+    Discrete(3) env would never take the third)."""
+    if isinstance(policy, gym.spaces.Box) and isinstance(env, gym.spaces.Box):
+        bounds = np.allclose(policy.low, env.low) and np.allclose(policy.high, env.high)
+        return policy.shape == env.shape and bool(bounds)
+    if isinstance(policy, gym.spaces.MultiDiscrete) and isinstance(env, gym.spaces.MultiDiscrete):
+        return policy.shape == env.shape and bool(np.all(policy.nvec == env.nvec))
+    return policy == env  # Discrete: n (both start at 0); MultiBinary: n
 
 
 def env_shaped(actions: torch.Tensor, shape: Sequence[int] | None, dtype: torch.dtype | None,

@@ -38,7 +38,9 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     for name, value in (("episodes", episodes), ("max_steps", max_steps)):  # not one episode in their place
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise UserError(f"{name}={value!r} is not valid; it must be an integer >= 1")
-    rd = RunDir(run_dir)
+    rd = RunDir.of(run_dir)  # RUN_DIR/policy/policy.pt and RUN_DIR/config.toml name the run, as for `relayrl eval`
+    if not rd.config.is_file():
+        rd = RunDir(run_dir)  # a lone policy file or another folder: `require` says which
     rd.require()
     path = output_path(out, rd.root / "video.mp4")
     if path.suffix.lower() not in VIDEO_SUFFIXES:  # said before the episodes are played, not after
@@ -101,7 +103,8 @@ def _frames(rd: RunDir, policy: Any, env: Any, episodes: int, seed: int, max_ste
     with making(config.env.id, users_code=bool(config.env.wrappers) or given is not None):
         env = GymBatchEnv([lambda: EndFrames(make_one(), frames)])
     try:
-        policy.check_fits(env.observation_spec)  # another env= than the run's: one line, as `evaluate` says it
+        # another env= than the run's: one line, as `evaluate` says it
+        policy.check_fits(env.observation_spec, env.action_spec)
         fps = int(env.envs[0].metadata.get("render_fps", 30))
         obs = env.reset(seed=seed)
         frames.append(first_frame(env, config.env.id))
