@@ -169,6 +169,14 @@ def test_async_worker_errors_reach_the_main_process():
         env.step(torch.zeros(3, dtype=torch.int64))
 
 
+def test_a_workers_copy_is_named_by_its_index_in_the_whole_batch():
+    """4 copies over two workers: the main process steps copy 0, the workers 1 and 2..3; the
+    first worker's copy is copy 1 of the batch, not its own copy 0."""
+    with async_env("toy_envs:ShapeShiftsInWorker", 4) as env, \
+            pytest.raises(UserError, match=r"^the observation from step\(\) of env copy 1 has shape \(3,\)"):
+        env.step(torch.zeros(4, dtype=torch.int64))
+
+
 def test_a_user_error_while_a_worker_makes_its_copies_stays_a_user_error():
     """Bad input met in a worker comes back as the one line it is in this process, and the
     workers already started are gone."""

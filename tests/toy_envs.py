@@ -221,6 +221,16 @@ class BrokenInWorker(Countdown):
         return super().step(action)
 
 
+class ShapeShiftsInWorker(Countdown):
+    """Countdown whose observations turn (3,) when it runs in a worker process."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        if multiprocessing.parent_process() is not None:
+            obs = np.zeros(3, np.float32)
+        return obs, reward, terminated, truncated, info
+
+
 class OddError(Exception):
     """An exception whose pickle does not rebuild it (two arguments, one message)."""
 

@@ -376,6 +376,9 @@ class GymBatchEnv(BatchEnvBase):
             self.close()  # the copies already made (their windows, files, processes) go with the failure
             raise
         self.capped_at = 0  # cap_episodes: the step cap put on an env without a time limit
+        # The batch index of copy 0 here: an async worker steps a slice of a larger batch, and
+        # its messages name the copy by the batch's index, as the main process's do.
+        self.first_copy = 0
         self._caps: list[_StepCap] = []
         first = self.envs[0]
         self._init_specs(len(self.envs), first.observation_space, first.action_space, time_limit_terminates,
@@ -478,8 +481,9 @@ class GymBatchEnv(BatchEnvBase):
     def _unfit(self, obs: Any, i: int, method: str, error: Exception) -> UserError:
         """One line for an observation that does not fit the env's space, met mid-run (the
         start's check saw fitting ones)."""
-        problem = observation_problem(obs, self.envs[i].observation_space, f"{method} of env copy {i}")
-        return UserError(problem or f"the observation from {method} of env copy {i} does not fit its observation "
+        copy = self.first_copy + i
+        problem = observation_problem(obs, self.envs[i].observation_space, f"{method} of env copy {copy}")
+        return UserError(problem or f"the observation from {method} of env copy {copy} does not fit its observation "
                                     f"space {self.envs[i].observation_space} ({type(error).__name__}: {error})")
 
     def render(self) -> np.ndarray | None:
