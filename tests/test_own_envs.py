@@ -305,14 +305,31 @@ def test_what_will_break_the_run_stops_it_before_training_in_one_line(algo_prese
 
 
 @pytest.mark.parametrize("vectorization", ["sync", "async"])
-@pytest.mark.parametrize(("env_id", "fragment"), [("toy_envs:OldReset", "the env's reset() takes no seed"),
-                                                  ("toy_envs:NoActionSpace", "the env has no action_space")])
+@pytest.mark.parametrize(("env_id", "fragment"), [
+    ("toy_envs:OldReset", "the env's reset() takes no seed"),
+    ("toy_envs:NoActionSpace", "the env has no action_space"),
+    ("toy_envs:BareReset", "reset() of env copy 0 returned a ndarray; Gymnasium envs return (obs, info)"),
+])
 def test_an_env_off_the_gymnasium_api_is_one_line_with_the_check_off(env_id, fragment, vectorization, tmp_path):
     config = load_config("dqn-cartpole", TINY + [f"env.id={env_id}", "env.check=false", "env.num_envs=2",
                                                  f"env.vectorization={vectorization}", "env.num_workers=1"])
     with pytest.raises(UserError, match=re.escape(fragment)):
         train(config, tmp_path / "run", progress=False)
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("vectorization", ["sync", "async"])
+@pytest.mark.parametrize(("env_id", "fragment"), [
+    ("toy_envs:FourValueStep", "step() of env copy 0 returned 4 values; Gymnasium envs return 5"),
+    ("toy_envs:ArrayReward", "the reward from step() of env copy 0 has shape (1,); it must be one number"),
+])
+def test_a_step_off_the_gymnasium_api_is_one_line_with_the_check_off(env_id, fragment, vectorization, tmp_path):
+    """Found at the first step (the step-0 evaluation's, through the cap on an env without a
+    time limit) rather than by the start's check: the same line, naming the copy."""
+    config = load_config("dqn-cartpole", TINY + [f"env.id={env_id}", "env.check=false", "env.num_envs=2",
+                                                 f"env.vectorization={vectorization}", "env.num_workers=1"])
+    with pytest.raises(UserError, match=re.escape(fragment)):
+        train(config, tmp_path / "run", progress=False)
 
 
 def test_an_env_factorys_broken_env_is_one_line_too(tmp_path):

@@ -417,6 +417,21 @@ class OldReset(Countdown):
         return super().reset()[0]
 
 
+class BareReset(Countdown):
+    """Half the old Gym API: `reset` takes a seed but returns the observation alone."""
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):  # type: ignore[override]
+        return super().reset(seed=seed, options=options)[0]
+
+
+class ArrayReward(Countdown):
+    """Rewards as one-element arrays, np.array([1.0]), not numbers."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        return obs, np.array([reward]), terminated, truncated, info
+
+
 class NoActionSpace(Countdown):
     """An env that forgot to set its action_space."""
 

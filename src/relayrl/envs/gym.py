@@ -23,7 +23,7 @@ from gymnasium.utils import EzPickle
 
 from relayrl.core import BatchedEnv
 from relayrl.envs.atari import register_on_demand
-from relayrl.envs.observations import observation_problem
+from relayrl.envs.observations import kind, observation_problem
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
 from relayrl.specs import (
@@ -339,6 +339,35 @@ def _takes_seed(env: gym.Env) -> bool:
     return any(p.name == "seed" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
 
 
+def reset_problem(out: Any, method: str = "reset()") -> str | None:
+    """What is wrong with what an env's reset returned (the Gymnasium API's (obs, info)), or None."""
+    if isinstance(out, tuple) and len(out) == 2:
+        return None
+    what = f"{len(out)} values" if isinstance(out, tuple) else f"a {type(out).__name__}"
+    return f"{method} returned {what}; Gymnasium envs return (obs, info) (gymnasium.Env.reset: `return obs, {{}}`)"
+
+
+def step_problem(out: Any, method: str = "step()") -> str | None:
+    """What is wrong with what an env's step returned (the Gymnasium API's 5 values), or None."""
+    if isinstance(out, tuple) and len(out) == 5:
+        return None
+    what = f"{len(out)} values" if isinstance(out, tuple) else f"a {type(out).__name__}"
+    old = " (the old Gym API's obs, reward, done, info: split done into terminated and truncated)" \
+        if isinstance(out, tuple) and len(out) == 4 else ""
+    return f"{method} returned {what}; Gymnasium envs return 5: obs, reward, terminated, truncated, info{old}"
+
+
+def reward_problem(reward: Any, method: str = "step()") -> str | None:
+    """What is wrong with a reward an env's step returned (it must be one number), or None."""
+    try:
+        value = np.asarray(reward, dtype=np.float64)
+    except (TypeError, ValueError):
+        return f"the reward from {method} is {kind(reward)}; it must be a number"
+    if value.shape != ():
+        return f"the reward from {method} has shape {value.shape}; it must be one number"
+    return None
+
+
 class _StepCap(gym.Wrapper):
     """A time limit that counts the episodes it ended (`cuts`): one the env ended itself, at
     the cap's step too, is not one, so an env that ends its own episodes is never told about it."""
@@ -352,7 +381,11 @@ class _StepCap(gym.Wrapper):
         return self.env.reset(**kwargs)
 
     def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
-        obs, reward, terminated, truncated, info = self.env.step(action)
+        out = self.env.step(action)
+        try:
+            obs, reward, terminated, truncated, info = out
+        except (TypeError, ValueError):  # off the Gymnasium API: GymBatchEnv.step_into says so in one line
+            return out
         self.steps += 1
         cut = self.steps >= self.max_episode_steps and not (terminated or truncated)
         self.cuts += cut
@@ -419,7 +452,7 @@ class GymBatchEnv(BatchEnvBase):
     def reset(self, seed: int | None = None) -> torch.Tensor:
         obs = []
         for i, env in enumerate(self.envs):
-            o, _ = reset_seeded(env, None if seed is None else seed + i)
+            o = self._reset_obs(reset_seeded(env, None if seed is None else seed + i), i)
             if seed is not None:
                 env.action_space.seed(seed + i)
             obs.append(o if self._pack is None else self._pack(o))
@@ -452,12 +485,21 @@ class GymBatchEnv(BatchEnvBase):
         infos: dict[int, dict] = {}
         pack = self._pack
         for i, env in enumerate(self.envs):
-            o, r, term, trunc, info = env.step(actions[i])
+            out = env.step(actions[i])
+            try:  # the start's check (env.check) finds an env off the API; without it, or mid-run, this does
+                o, r, term, trunc, info = out
+            except (TypeError, ValueError):
+                raise UserError(step_problem(out, self._method("step()", i))) from None
             try:
                 next_obs[i] = o if pack is None else pack(o)
             except (ValueError, TypeError, KeyError) as e:  # an env whose observations change mid-run
                 raise self._unfit(o, i, "step()", e) from None
-            reward[i] = r
+            try:
+                reward[i] = r
+            except (TypeError, ValueError):
+                method = self._method("step()", i)
+                said = reward_problem(r, method) or f"the reward from {method} is {r!r}; it must be a number"
+                raise UserError(said) from None
             if self.time_limit_terminates:
                 term, trunc = term or trunc, False
             terminated[i] = term
@@ -471,12 +513,24 @@ class GymBatchEnv(BatchEnvBase):
             # would carry unwritten rows of later copies into obs).
             obs = next_obs.copy()
         for i in ended:
-            o = self.envs[i].reset()[0]
+            o = self._reset_obs(self.envs[i].reset(), i)
             try:
                 obs[i] = o if pack is None else pack(o)
             except (ValueError, TypeError, KeyError) as e:
                 raise self._unfit(o, i, "reset()", e) from None
         return obs, episode_info(self.info_keys, len(self.envs), ended, infos.__getitem__)
+
+    def _method(self, method: str, i: int) -> str:
+        """`method` of copy i, named by its index in the whole batch (see first_copy)."""
+        return f"{method} of env copy {self.first_copy + i}"
+
+    def _reset_obs(self, out: Any, i: int) -> Any:
+        """The observation of what copy i's reset returned; one line where that is not (obs, info)
+        (`reset()[0]` of a bare observation would be its first entry)."""
+        problem = reset_problem(out, self._method("reset()", i))
+        if problem is not None:
+            raise UserError(problem)
+        return out[0]
 
     def _unfit(self, obs: Any, i: int, method: str, error: Exception) -> UserError:
         """One line for an observation that does not fit the env's space, met mid-run (the
