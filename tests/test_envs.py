@@ -154,6 +154,7 @@ def test_async_worker_errors_reach_the_main_process():
         env.step(step)
     note = "\n".join(raised.value.__notes__)
     assert "(raised in env worker 0; its traceback there:)" in note and "in step" in note
+    assert "relayrl: raised by step() of env copy 1" in note  # worker 0's first copy is the batch's copy 1
     # an exception that does not load back: a RuntimeError with the worker's traceback
     with async_env("toy_envs:OddInWorker", 4) as env, \
             pytest.raises(RuntimeError, match="(?s)env worker 0 failed.*OddError: the simulator lost its state at"):

@@ -485,7 +485,11 @@ class GymBatchEnv(BatchEnvBase):
         infos: dict[int, dict] = {}
         pack = self._pack
         for i, env in enumerate(self.envs):
-            out = env.step(actions[i])
+            try:
+                out = env.step(actions[i])
+            except Exception as e:
+                self._name_copy(e, "step()", i)
+                raise
             try:  # the start's check (env.check) finds an env off the API; without it, or mid-run, this does
                 o, r, term, trunc, info = out
             except (TypeError, ValueError):
@@ -513,7 +517,11 @@ class GymBatchEnv(BatchEnvBase):
             # would carry unwritten rows of later copies into obs).
             obs = next_obs.copy()
         for i in ended:
-            o = self._reset_obs(self.envs[i].reset(), i)
+            try:
+                o = self._reset_obs(self.envs[i].reset(), i)
+            except Exception as e:
+                self._name_copy(e, "reset()", i)
+                raise
             try:
                 obs[i] = o if pack is None else pack(o)
             except (ValueError, TypeError, KeyError) as e:
@@ -523,6 +531,12 @@ class GymBatchEnv(BatchEnvBase):
     def _method(self, method: str, i: int) -> str:
         """`method` of copy i, named by its index in the whole batch (see first_copy)."""
         return f"{method} of env copy {self.first_copy + i}"
+
+    def _name_copy(self, error: Exception, method: str, i: int) -> None:
+        """A note on the env's own exception from copy i's `method` naming the copy (a user's env's
+        traceback says where in its code, not which of the copies); UserErrors name theirs."""
+        if not isinstance(error, UserError):
+            error.add_note(f"relayrl: raised by {self._method(method, i)}")
 
     def _reset_obs(self, out: Any, i: int) -> Any:
         """The observation of what copy i's reset returned; one line where that is not (obs, info)

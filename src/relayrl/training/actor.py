@@ -8,6 +8,7 @@ from typing import Any
 import torch
 
 from relayrl.core import BatchedEnv, Observer, Policy
+from relayrl.errors import UserError
 from relayrl.training.variables import WeightPuller
 from relayrl.types import Transition
 
@@ -36,7 +37,12 @@ class Actor:
         while taken < num_steps:
             obs = self._obs
             action = policy(obs)
-            out = self.env.step(policy.env_action(action))
+            try:
+                out = self.env.step(policy.env_action(action))
+            except Exception as e:  # the env's own: which env steps it broke, beside the step the run is kept at
+                if not isinstance(e, UserError):
+                    e.add_note(f"relayrl: raised at {_steps(self.env_steps + taken, b)}")
+                raise
             t = Transition(obs, action, out.reward, out.next_obs, out.terminated, out.truncated, out.episode_info)
             for observer in self.observers:
                 observer(t)
@@ -66,3 +72,10 @@ class Actor:
             return True
         self._obs = self.env.reset(seed=reset_seed)
         return False
+
+
+def _steps(done: int, b: int) -> str:
+    """The env steps a batched step of `b` copies takes after `done` ones."""
+    if b == 1:
+        return f"env step {done + 1:,} of training"
+    return f"env steps {done + 1:,}-{done + b:,} of training ({b} copies step together)"

@@ -91,7 +91,12 @@ def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = 
         if (done_count >= quota).all():
             break
         with torch.inference_mode():
-            out = env.step(policy(obs))
+            try:
+                out = env.step(policy(obs))
+            except Exception as e:  # the env's own: an evaluation env's, not a training one's
+                if not isinstance(e, UserError):
+                    e.add_note("relayrl: raised in an evaluation episode")
+                raise
         reward = to_numpy(out.reward)
         bad = ~np.isfinite(reward) & (done_count < quota)  # copies past their quota count for nothing
         if bad.any():  # the env's fault: named, not averaged into a NaN return
