@@ -262,6 +262,19 @@ def test_a_users_env_is_checked_once_unless_turned_off(tmp_path, capfd):
     assert "env check" not in capfd.readouterr().err
 
 
+def test_float64_observations_are_one_line_and_the_checks_after_it_still_run():
+    """Gymnasium's checker asserts that float64 observations are "not within the observation
+    space" (of values inside its bounds) and stops there: the seed it ignores went unsaid."""
+    from relayrl.envs.make import check_env
+
+    lines = check_env("toy_envs:SloppyFloat64")
+    assert lines[0] == ("observations come as float64 where observation_space is Box(-inf, inf, (2,), float32): "
+                        "relayrl casts them to float32 (return float32 arrays, or declare the space's dtype, to "
+                        "silence this line)")
+    assert any("does not call `super().reset(seed=seed)`" in line for line in lines)
+    assert not any("not within the observation space" in line for line in lines)
+
+
 def test_the_check_says_nothing_of_an_unbounded_box(tmp_path, capfd):
     """CartPole's own space (infinite bounds) through a factory: relayrl takes such a Box, so
     Gymnasium's "minimum value is -infinity" is no finding."""
