@@ -275,6 +275,17 @@ def test_float64_observations_are_one_line_and_the_checks_after_it_still_run():
     assert not any("not within the observation space" in line for line in lines)
 
 
+def test_env_num_workers_without_async_says_the_copies_step_here(tmp_path, capfd):
+    """SB3's n_envs with SubprocVecEnv is env.num_workers with env.vectorization='async': the
+    workers alone (sync, the default) would be a setting silently unused."""
+    workers = TINY + ["env.id=toy_envs:Countdown", "env.num_envs=2", "env.num_workers=1"]
+    train(load_config("dqn-cartpole", workers), tmp_path / "a", progress=False)
+    said = "env.num_workers=1 with env.vectorization='sync': the 2 env copies step in this process"
+    assert said in capfd.readouterr().err
+    train(load_config("dqn-cartpole", workers + ["env.vectorization=async"]), tmp_path / "b", progress=False)
+    assert "env.num_workers=1 with" not in capfd.readouterr().err
+
+
 def test_the_check_says_nothing_of_an_unbounded_box(tmp_path, capfd):
     """CartPole's own space (infinite bounds) through a factory: relayrl takes such a Box, so
     Gymnasium's "minimum value is -infinity" is no finding."""
