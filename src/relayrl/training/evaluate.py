@@ -67,6 +67,21 @@ def eval_cap_note(env: BatchedEnv, env_id: str) -> str | None:
             "(env.max_episode_steps caps training and evaluation episodes)")
 
 
+def _check_observations(obs: Any, live: np.ndarray) -> None:
+    """The env's fault, named (as training's FiniteWatch names it), where a copy still running its
+    quota of episodes has a NaN or infinite observation: a policy acting on it would give a return
+    that means nothing. Integer observations (pixels) cannot hold one."""
+    if not isinstance(obs, torch.Tensor) or not obs.is_floating_point():
+        return
+    bad = to_numpy(~torch.isfinite(obs.reshape(len(obs), -1)).all(dim=1)) & live
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        row = obs[i].reshape(-1)
+        value = float(row[~torch.isfinite(row)][0])
+        raise NonFiniteError(f"observation was {describe(value)} in an evaluation episode (env copy {i}): "
+                             "check the env's observations (reset and step)")
+
+
 def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = None,
              max_steps: int = 1_000_000, episode_returns: list[float] | None = None,
              episode_lengths: list[int] | None = None) -> dict[str, float]:
@@ -90,6 +105,7 @@ def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = 
     for _ in range(max_steps):
         if (done_count >= quota).all():
             break
+        _check_observations(obs, done_count < quota)
         with torch.inference_mode():
             try:
                 out = env.step(policy(obs))
