@@ -65,7 +65,10 @@ def episode_info(keys: tuple[str, ...], num_envs: int, ended: list[int],
             try:
                 out[k][i] = float(info[k])
             except (TypeError, ValueError):
-                raise UserError(f"env.info_keys: info[{k!r}] = {info[k]!r} is not a number") from None
+                # an array of one value (np.array([x]), a simulator's habit) reads as a number: say why not
+                shape = getattr(info[k], "shape", ())
+                hint = f" (an array of shape {tuple(shape)}: give one number, such as x.item())" if shape else ""
+                raise UserError(f"env.info_keys: info[{k!r}] = {info[k]!r} is not a number{hint}") from None
     return out
 
 
