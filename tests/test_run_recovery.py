@@ -287,6 +287,16 @@ def test_an_evaluation_envs_error_says_it_came_from_an_evaluation(tmp_path):
     assert "of training" not in note
 
 
+def test_an_evaluation_envs_reset_error_says_it_came_from_an_evaluation(tmp_path):
+    """The evaluation envs' third reset is the second evaluation's first (each of the two copies
+    reset at the start of the first and once when its episode ended)."""
+    broken = TINY + ["env.id=toy_envs:ResetBreaksAt", "env.kwargs={at = 0}", "eval.env_kwargs={at = 3}"]
+    with pytest.raises(RuntimeError, match="simulator refused to reset") as caught:
+        train(load_config("dqn-cartpole", broken), tmp_path / "run", progress=False)
+    note = " ".join(getattr(caught.value, "__notes__", []))
+    assert "relayrl: raised by reset() of env copy 0" in note and "relayrl: raised in an evaluation episode" in note
+
+
 @pytest.mark.parametrize("vectorization", ["sync", "async"])
 def test_an_observation_that_stops_fitting_mid_run_is_one_line(tmp_path, cli, vectorization):
     run = tmp_path / "run"

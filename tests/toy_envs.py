@@ -183,6 +183,20 @@ class BrokenAt(Countdown):
         return super().step(action)
 
 
+class ResetBreaksAt(Countdown):
+    """Countdown whose `at`-th reset raises, as a simulator that fails to restart would; `at=0` never."""
+
+    def __init__(self, at: int = 0, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.at, self.resets = at, 0
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        self.resets += 1
+        if self.resets == self.at:
+            raise RuntimeError("simulator refused to reset")
+        return super().reset(seed=seed, options=options)
+
+
 class ShapeShifts(BrokenAt):
     """Countdown whose observations turn (3,) from its `at`-th step on."""
 

@@ -455,7 +455,11 @@ class GymBatchEnv(BatchEnvBase):
     def reset(self, seed: int | None = None) -> torch.Tensor:
         obs = []
         for i, env in enumerate(self.envs):
-            o = self._reset_obs(reset_seeded(env, None if seed is None else seed + i), i)
+            try:
+                o = self._reset_obs(reset_seeded(env, None if seed is None else seed + i), i)
+            except Exception as e:
+                self._name_copy(e, "reset()", i)
+                raise
             if seed is not None:
                 env.action_space.seed(seed + i)
             obs.append(o if self._pack is None else self._pack(o))

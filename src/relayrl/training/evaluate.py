@@ -67,6 +67,12 @@ def eval_cap_note(env: BatchedEnv, env_id: str) -> str | None:
             "(env.max_episode_steps caps training and evaluation episodes)")
 
 
+def _say_evaluation(error: Exception) -> None:
+    """A note on the env's own exception: an evaluation env's, not a training one's."""
+    if not isinstance(error, UserError):
+        error.add_note("relayrl: raised in an evaluation episode")
+
+
 def _check_observations(obs: Any, live: np.ndarray) -> None:
     """The env's fault, named (as training's FiniteWatch names it), where a copy still running its
     quota of episodes has a NaN or infinite observation: a policy acting on it would give a return
@@ -101,7 +107,11 @@ def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = 
     returns: list[float] = []
     lengths: list[int] = []
     info: dict[str, list[float]] = {}
-    obs = env.reset(seed=seed)
+    try:
+        obs = env.reset(seed=seed)
+    except Exception as e:
+        _say_evaluation(e)
+        raise
     for _ in range(max_steps):
         if (done_count >= quota).all():
             break
@@ -109,9 +119,8 @@ def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = 
         with torch.inference_mode():
             try:
                 out = env.step(policy(obs))
-            except Exception as e:  # the env's own: an evaluation env's, not a training one's
-                if not isinstance(e, UserError):
-                    e.add_note("relayrl: raised in an evaluation episode")
+            except Exception as e:
+                _say_evaluation(e)
                 raise
         reward = to_numpy(out.reward)
         bad = ~np.isfinite(reward) & (done_count < quota)  # copies past their quota count for nothing
