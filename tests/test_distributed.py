@@ -289,6 +289,19 @@ def test_a_killed_rollout_actor_is_restarted_and_the_run_finishes(tmp_path, monk
     assert r[-1]["step"] == 1200 and r[-1]["train_step"] > 0
 
 
+@needs_ray
+def test_an_env_error_in_a_rollout_actor_names_that_actors_env_step(tmp_path):
+    """The actor counts its own env steps (the run's are the sum over the actors): the note
+    says whose they are."""
+    over = ["env.id=toy_envs:BrokenAt", "env.kwargs={at = 45}", "train.total_steps=400",
+            "train.initial_collect_steps=100", "eval.interval=0", "eval.episodes=1", "distributed.num_actors=1",
+            "distributed.chunk_steps=50", "train.checkpoint_interval=0"]
+    with pytest.raises(RuntimeError, match="simulator lost connection") as caught:
+        relayrl.train(relayrl.load_config("dqn-cartpole-fast", over), tmp_path / "run", progress=False)
+    said = str(caught.value) + " ".join(getattr(caught.value, "__notes__", []))
+    assert "relayrl: raised at env step 45 of rollout actor 0" in said and "of training" not in said
+
+
 def checkpoint_steps(run: Path) -> list[int]:
     return sorted(int(f.name[5:17]) for f in (run / "checkpoints").glob("ckpt-*.pt"))
 

@@ -154,6 +154,7 @@ def test_async_worker_errors_reach_the_main_process():
         env.step(step)
     note = "\n".join(raised.value.__notes__)
     assert "(raised in env worker 0; its traceback there:)" in note and "in step" in note
+    assert "relayrl: raised by step() of env copy 1" in note  # worker 0's first copy is the batch's copy 1
     # an exception that does not load back: a RuntimeError with the worker's traceback
     with async_env("toy_envs:OddInWorker", 4) as env, \
             pytest.raises(RuntimeError, match="(?s)env worker 0 failed.*OddError: the simulator lost its state at"):
@@ -167,6 +168,14 @@ def test_async_worker_errors_reach_the_main_process():
     with async_env("toy_envs:DiesInWorker", 3) as env, \
             pytest.raises(RuntimeError, match=r"env worker 0 \(copy 1\) died \(exit code 3\)"):
         env.step(torch.zeros(3, dtype=torch.int64))
+
+
+def test_a_workers_copy_is_named_by_its_index_in_the_whole_batch():
+    """4 copies over two workers: the main process steps copy 0, the workers 1 and 2..3; the
+    first worker's copy is copy 1 of the batch, not its own copy 0."""
+    with async_env("toy_envs:ShapeShiftsInWorker", 4) as env, \
+            pytest.raises(UserError, match=r"^the observation from step\(\) of env copy 1 has shape \(3,\)"):
+        env.step(torch.zeros(4, dtype=torch.int64))
 
 
 def test_a_user_error_while_a_worker_makes_its_copies_stays_a_user_error():

@@ -246,6 +246,14 @@ def test_a_non_finite_reward_in_an_evaluation_stops_the_run_in_one_line(tmp_path
         train(c, tmp_path / "run", progress=False)
 
 
+def test_a_non_finite_observation_in_an_evaluation_stops_the_run_in_one_line(tmp_path):
+    """The policy would act on it and the evaluation report a return that means nothing."""
+    c = config("dqn", "env.kwargs.at=5", "env.kwargs.what='obs'")
+    with pytest.raises(NonFiniteError, match=r"^observation was NaN in an evaluation episode \(env copy 0\): check "
+                                             r"the env's observations"):
+        train(c, tmp_path / "run", progress=False)
+
+
 def test_an_evaluation_ignores_what_a_copy_past_its_quota_returns():
     import gymnasium as gym
     import numpy as np

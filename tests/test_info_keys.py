@@ -77,6 +77,15 @@ def test_bad_info_keys_fail_with_one_clear_line(key, message):
     assert str(e.value) == message
 
 
+def test_an_info_value_in_a_one_element_array_says_its_shape():
+    from relayrl.envs.gym import episode_info
+
+    with pytest.raises(UserError) as e:
+        episode_info(("x",), 1, [0], lambda i: {"x": np.array([1.5])})
+    assert str(e.value) == ("env.info_keys: info['x'] = array([1.5]) is not a number (an array of shape (1,): give "
+                            "one number, such as x.item())")
+
+
 def test_info_keys_with_an_env_whose_info_is_not_a_dict_is_one_line():
     from relayrl.envs.gym import episode_info
 

@@ -262,6 +262,30 @@ def test_a_users_env_is_checked_once_unless_turned_off(tmp_path, capfd):
     assert "env check" not in capfd.readouterr().err
 
 
+def test_float64_observations_are_one_line_and_the_checks_after_it_still_run():
+    """Gymnasium's checker asserts that float64 observations are "not within the observation
+    space" (of values inside its bounds) and stops there: the seed it ignores went unsaid."""
+    from relayrl.envs.make import check_env
+
+    lines = check_env("toy_envs:SloppyFloat64")
+    assert lines[0] == ("observations come as float64 where observation_space is Box(-inf, inf, (2,), float32): "
+                        "relayrl casts them to float32 (return float32 arrays, or declare the space's dtype, to "
+                        "silence this line)")
+    assert any("does not call `super().reset(seed=seed)`" in line for line in lines)
+    assert not any("not within the observation space" in line for line in lines)
+
+
+def test_env_num_workers_without_async_says_the_copies_step_here(tmp_path, capfd):
+    """SB3's n_envs with SubprocVecEnv is env.num_workers with env.vectorization='async': the
+    workers alone (sync, the default) would be a setting silently unused."""
+    workers = TINY + ["env.id=toy_envs:Countdown", "env.num_envs=2", "env.num_workers=1"]
+    train(load_config("dqn-cartpole", workers), tmp_path / "a", progress=False)
+    said = "env.num_workers=1 with env.vectorization='sync': the 2 env copies step in this process"
+    assert said in capfd.readouterr().err
+    train(load_config("dqn-cartpole", workers + ["env.vectorization=async"]), tmp_path / "b", progress=False)
+    assert "env.num_workers=1 with" not in capfd.readouterr().err
+
+
 def test_the_check_says_nothing_of_an_unbounded_box(tmp_path, capfd):
     """CartPole's own space (infinite bounds) through a factory: relayrl takes such a Box, so
     Gymnasium's "minimum value is -infinity" is no finding."""
@@ -305,14 +329,31 @@ def test_what_will_break_the_run_stops_it_before_training_in_one_line(algo_prese
 
 
 @pytest.mark.parametrize("vectorization", ["sync", "async"])
-@pytest.mark.parametrize(("env_id", "fragment"), [("toy_envs:OldReset", "the env's reset() takes no seed"),
-                                                  ("toy_envs:NoActionSpace", "the env has no action_space")])
+@pytest.mark.parametrize(("env_id", "fragment"), [
+    ("toy_envs:OldReset", "the env's reset() takes no seed"),
+    ("toy_envs:NoActionSpace", "the env has no action_space"),
+    ("toy_envs:BareReset", "reset() of env copy 0 returned a ndarray; Gymnasium envs return (obs, info)"),
+])
 def test_an_env_off_the_gymnasium_api_is_one_line_with_the_check_off(env_id, fragment, vectorization, tmp_path):
     config = load_config("dqn-cartpole", TINY + [f"env.id={env_id}", "env.check=false", "env.num_envs=2",
                                                  f"env.vectorization={vectorization}", "env.num_workers=1"])
     with pytest.raises(UserError, match=re.escape(fragment)):
         train(config, tmp_path / "run", progress=False)
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("vectorization", ["sync", "async"])
+@pytest.mark.parametrize(("env_id", "fragment"), [
+    ("toy_envs:FourValueStep", "step() of env copy 0 returned 4 values; Gymnasium envs return 5"),
+    ("toy_envs:ArrayReward", "the reward from step() of env copy 0 has shape (1,); it must be one number"),
+])
+def test_a_step_off_the_gymnasium_api_is_one_line_with_the_check_off(env_id, fragment, vectorization, tmp_path):
+    """Found at the first step (the step-0 evaluation's, through the cap on an env without a
+    time limit) rather than by the start's check: the same line, naming the copy."""
+    config = load_config("dqn-cartpole", TINY + [f"env.id={env_id}", "env.check=false", "env.num_envs=2",
+                                                 f"env.vectorization={vectorization}", "env.num_workers=1"])
+    with pytest.raises(UserError, match=re.escape(fragment)):
+        train(config, tmp_path / "run", progress=False)
 
 
 def test_an_env_factorys_broken_env_is_one_line_too(tmp_path):

@@ -270,9 +270,31 @@ def test_an_env_error_mid_run_says_what_is_kept_and_a_fixed_env_resumes(tmp_path
         train(load_config("dqn-cartpole", flaky), run, progress=False)
     note = " ".join(getattr(caught.value, "__notes__", []))
     assert "the run stopped at env step 4" in note and "checkpoint (env step 40)" in note
+    # which copy and which env step raised it: the env's traceback says neither
+    assert "relayrl: raised by step() of env copy 0" in note and "relayrl: raised at env step 45 of training" in note
     assert f"relayrl train --run-dir {run} --resume" in note
     fixed = load_config(str(run / "config.toml"), ["env.kwargs={at = 0}"])
     assert train(fixed, run, resume=True, progress=False).final["step"] == 60
+
+
+def test_an_evaluation_envs_error_says_it_came_from_an_evaluation(tmp_path):
+    """The training envs are fine (at = 0: never); the evaluation envs' third step raises."""
+    broken = TINY + ["env.id=toy_envs:BrokenAt", "env.kwargs={at = 0}", "eval.env_kwargs={at = 3}"]
+    with pytest.raises(RuntimeError, match="simulator lost connection") as caught:
+        train(load_config("dqn-cartpole", broken), tmp_path / "run", progress=False)
+    note = " ".join(getattr(caught.value, "__notes__", []))
+    assert "relayrl: raised by step() of env copy 0" in note and "relayrl: raised in an evaluation episode" in note
+    assert "of training" not in note
+
+
+def test_an_evaluation_envs_reset_error_says_it_came_from_an_evaluation(tmp_path):
+    """The evaluation envs' third reset is the second evaluation's first (each of the two copies
+    reset at the start of the first and once when its episode ended)."""
+    broken = TINY + ["env.id=toy_envs:ResetBreaksAt", "env.kwargs={at = 0}", "eval.env_kwargs={at = 3}"]
+    with pytest.raises(RuntimeError, match="simulator refused to reset") as caught:
+        train(load_config("dqn-cartpole", broken), tmp_path / "run", progress=False)
+    note = " ".join(getattr(caught.value, "__notes__", []))
+    assert "relayrl: raised by reset() of env copy 0" in note and "relayrl: raised in an evaluation episode" in note
 
 
 @pytest.mark.parametrize("vectorization", ["sync", "async"])

@@ -183,6 +183,20 @@ class BrokenAt(Countdown):
         return super().step(action)
 
 
+class ResetBreaksAt(Countdown):
+    """Countdown whose `at`-th reset raises, as a simulator that fails to restart would; `at=0` never."""
+
+    def __init__(self, at: int = 0, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.at, self.resets = at, 0
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        self.resets += 1
+        if self.resets == self.at:
+            raise RuntimeError("simulator refused to reset")
+        return super().reset(seed=seed, options=options)
+
+
 class ShapeShifts(BrokenAt):
     """Countdown whose observations turn (3,) from its `at`-th step on."""
 
@@ -219,6 +233,16 @@ class BrokenInWorker(Countdown):
         if multiprocessing.parent_process() is not None:
             raise ValueError("the simulator lost its state")
         return super().step(action)
+
+
+class ShapeShiftsInWorker(Countdown):
+    """Countdown whose observations turn (3,) when it runs in a worker process."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        if multiprocessing.parent_process() is not None:
+            obs = np.zeros(3, np.float32)
+        return obs, reward, terminated, truncated, info
 
 
 class OddError(Exception):
@@ -350,6 +374,18 @@ class Sloppy(Countdown):
         return np.array([self.t, 0], np.float32), {}
 
 
+class SloppyFloat64(Sloppy):
+    """Sloppy whose observations are float64 where its space says float32, as a simulator's are."""
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = super().reset(seed=seed, options=options)
+        return obs.astype(np.float64), info
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        return obs.astype(np.float64), reward, terminated, truncated, info
+
+
 def double_reward(env: gym.Env) -> gym.Env:
     """An env.wrappers entry: rewards times 2."""
     return gym.wrappers.TransformReward(env, lambda r: 2 * r)
@@ -405,6 +441,21 @@ class OldReset(Countdown):
 
     def reset(self):  # type: ignore[override]
         return super().reset()[0]
+
+
+class BareReset(Countdown):
+    """Half the old Gym API: `reset` takes a seed but returns the observation alone."""
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):  # type: ignore[override]
+        return super().reset(seed=seed, options=options)[0]
+
+
+class ArrayReward(Countdown):
+    """Rewards as one-element arrays, np.array([1.0]), not numbers."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        return obs, np.array([reward]), terminated, truncated, info
 
 
 class NoActionSpace(Countdown):

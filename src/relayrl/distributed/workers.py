@@ -167,6 +167,7 @@ class RolloutWorker(_RolloutActor):
         self.shipper = ChunkShipper(server, index, self.token, frame_stack(self.env.observation_spec))
         self.actor = Actor(self.env, self.random_policy, [self.episodes, self.shipper, self.finite],
                            seed=self.seeds.base("envs"), puller=self.puller)
+        self.actor.whose = f"rollout actor {index}"
 
     def collect(self, steps: int, global_steps: int, random: bool) -> dict[str, Any]:
         """Take at least `steps` env steps (with the random policy while `random`), shipping
@@ -189,6 +190,7 @@ class RolloutCollector(_RolloutActor):
         self.writers: dict[int, RolloutWriter] = {}  # by steps per env copy, each into its own queue
         self.actor = Actor(self.env, self.agent.collect_policy(None, self.net), [self.episodes],
                            seed=self.seeds.base("envs"), puller=self.puller)
+        self.actor.whose = f"rollout actor {index}"
 
     def collect(self, steps_per_env: int) -> dict[str, Any]:
         writer = self.writers.get(steps_per_env)

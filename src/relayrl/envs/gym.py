@@ -23,7 +23,7 @@ from gymnasium.utils import EzPickle
 
 from relayrl.core import BatchedEnv
 from relayrl.envs.atari import register_on_demand
-from relayrl.envs.observations import observation_problem
+from relayrl.envs.observations import kind, observation_problem
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError
 from relayrl.specs import (
@@ -65,7 +65,10 @@ def episode_info(keys: tuple[str, ...], num_envs: int, ended: list[int],
             try:
                 out[k][i] = float(info[k])
             except (TypeError, ValueError):
-                raise UserError(f"env.info_keys: info[{k!r}] = {info[k]!r} is not a number") from None
+                # an array of one value (np.array([x]), a simulator's habit) reads as a number: say why not
+                shape = getattr(info[k], "shape", ())
+                hint = f" (an array of shape {tuple(shape)}: give one number, such as x.item())" if shape else ""
+                raise UserError(f"env.info_keys: info[{k!r}] = {info[k]!r} is not a number{hint}") from None
     return out
 
 
@@ -339,6 +342,35 @@ def _takes_seed(env: gym.Env) -> bool:
     return any(p.name == "seed" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
 
 
+def reset_problem(out: Any, method: str = "reset()") -> str | None:
+    """What is wrong with what an env's reset returned (the Gymnasium API's (obs, info)), or None."""
+    if isinstance(out, tuple) and len(out) == 2:
+        return None
+    what = f"{len(out)} values" if isinstance(out, tuple) else f"a {type(out).__name__}"
+    return f"{method} returned {what}; Gymnasium envs return (obs, info) (gymnasium.Env.reset: `return obs, {{}}`)"
+
+
+def step_problem(out: Any, method: str = "step()") -> str | None:
+    """What is wrong with what an env's step returned (the Gymnasium API's 5 values), or None."""
+    if isinstance(out, tuple) and len(out) == 5:
+        return None
+    what = f"{len(out)} values" if isinstance(out, tuple) else f"a {type(out).__name__}"
+    old = " (the old Gym API's obs, reward, done, info: split done into terminated and truncated)" \
+        if isinstance(out, tuple) and len(out) == 4 else ""
+    return f"{method} returned {what}; Gymnasium envs return 5: obs, reward, terminated, truncated, info{old}"
+
+
+def reward_problem(reward: Any, method: str = "step()") -> str | None:
+    """What is wrong with a reward an env's step returned (it must be one number), or None."""
+    try:
+        value = np.asarray(reward, dtype=np.float64)
+    except (TypeError, ValueError):
+        return f"the reward from {method} is {kind(reward)}; it must be a number"
+    if value.shape != ():
+        return f"the reward from {method} has shape {value.shape}; it must be one number"
+    return None
+
+
 class _StepCap(gym.Wrapper):
     """A time limit that counts the episodes it ended (`cuts`): one the env ended itself, at
     the cap's step too, is not one, so an env that ends its own episodes is never told about it."""
@@ -352,7 +384,11 @@ class _StepCap(gym.Wrapper):
         return self.env.reset(**kwargs)
 
     def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
-        obs, reward, terminated, truncated, info = self.env.step(action)
+        out = self.env.step(action)
+        try:
+            obs, reward, terminated, truncated, info = out
+        except (TypeError, ValueError):  # off the Gymnasium API: GymBatchEnv.step_into says so in one line
+            return out
         self.steps += 1
         cut = self.steps >= self.max_episode_steps and not (terminated or truncated)
         self.cuts += cut
@@ -376,6 +412,9 @@ class GymBatchEnv(BatchEnvBase):
             self.close()  # the copies already made (their windows, files, processes) go with the failure
             raise
         self.capped_at = 0  # cap_episodes: the step cap put on an env without a time limit
+        # The batch index of copy 0 here: an async worker steps a slice of a larger batch, and
+        # its messages name the copy by the batch's index, as the main process's do.
+        self.first_copy = 0
         self._caps: list[_StepCap] = []
         first = self.envs[0]
         self._init_specs(len(self.envs), first.observation_space, first.action_space, time_limit_terminates,
@@ -416,7 +455,11 @@ class GymBatchEnv(BatchEnvBase):
     def reset(self, seed: int | None = None) -> torch.Tensor:
         obs = []
         for i, env in enumerate(self.envs):
-            o, _ = reset_seeded(env, None if seed is None else seed + i)
+            try:
+                o = self._reset_obs(reset_seeded(env, None if seed is None else seed + i), i)
+            except Exception as e:
+                self._name_copy(e, "reset()", i)
+                raise
             if seed is not None:
                 env.action_space.seed(seed + i)
             obs.append(o if self._pack is None else self._pack(o))
@@ -449,12 +492,25 @@ class GymBatchEnv(BatchEnvBase):
         infos: dict[int, dict] = {}
         pack = self._pack
         for i, env in enumerate(self.envs):
-            o, r, term, trunc, info = env.step(actions[i])
+            try:
+                out = env.step(actions[i])
+            except Exception as e:
+                self._name_copy(e, "step()", i)
+                raise
+            try:  # the start's check (env.check) finds an env off the API; without it, or mid-run, this does
+                o, r, term, trunc, info = out
+            except (TypeError, ValueError):
+                raise UserError(step_problem(out, self._method("step()", i))) from None
             try:
                 next_obs[i] = o if pack is None else pack(o)
             except (ValueError, TypeError, KeyError) as e:  # an env whose observations change mid-run
                 raise self._unfit(o, i, "step()", e) from None
-            reward[i] = r
+            try:
+                reward[i] = r
+            except (TypeError, ValueError):
+                method = self._method("step()", i)
+                said = reward_problem(r, method) or f"the reward from {method} is {r!r}; it must be a number"
+                raise UserError(said) from None
             if self.time_limit_terminates:
                 term, trunc = term or trunc, False
             terminated[i] = term
@@ -468,18 +524,41 @@ class GymBatchEnv(BatchEnvBase):
             # would carry unwritten rows of later copies into obs).
             obs = next_obs.copy()
         for i in ended:
-            o = self.envs[i].reset()[0]
+            try:
+                o = self._reset_obs(self.envs[i].reset(), i)
+            except Exception as e:
+                self._name_copy(e, "reset()", i)
+                raise
             try:
                 obs[i] = o if pack is None else pack(o)
             except (ValueError, TypeError, KeyError) as e:
                 raise self._unfit(o, i, "reset()", e) from None
         return obs, episode_info(self.info_keys, len(self.envs), ended, infos.__getitem__)
 
+    def _method(self, method: str, i: int) -> str:
+        """`method` of copy i, named by its index in the whole batch (see first_copy)."""
+        return f"{method} of env copy {self.first_copy + i}"
+
+    def _name_copy(self, error: Exception, method: str, i: int) -> None:
+        """A note on the env's own exception from copy i's `method` naming the copy (a user's env's
+        traceback says where in its code, not which of the copies); UserErrors name theirs."""
+        if not isinstance(error, UserError):
+            error.add_note(f"relayrl: raised by {self._method(method, i)}")
+
+    def _reset_obs(self, out: Any, i: int) -> Any:
+        """The observation of what copy i's reset returned; one line where that is not (obs, info)
+        (`reset()[0]` of a bare observation would be its first entry)."""
+        problem = reset_problem(out, self._method("reset()", i))
+        if problem is not None:
+            raise UserError(problem)
+        return out[0]
+
     def _unfit(self, obs: Any, i: int, method: str, error: Exception) -> UserError:
         """One line for an observation that does not fit the env's space, met mid-run (the
         start's check saw fitting ones)."""
-        problem = observation_problem(obs, self.envs[i].observation_space, f"{method} of env copy {i}")
-        return UserError(problem or f"the observation from {method} of env copy {i} does not fit its observation "
+        copy = self.first_copy + i
+        problem = observation_problem(obs, self.envs[i].observation_space, f"{method} of env copy {copy}")
+        return UserError(problem or f"the observation from {method} of env copy {copy} does not fit its observation "
                                     f"space {self.envs[i].observation_space} ({type(error).__name__}: {error})")
 
     def render(self) -> np.ndarray | None:

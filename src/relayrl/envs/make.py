@@ -177,10 +177,13 @@ def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple
             if problem is not None:
                 who = "the env from the factory given to relayrl.train" if factory is not None else f"env.id={env_id!r}"
                 raise UserError(f"{who}: {problem}")
+            checked, cast = _cast_observations(env)
+            if cast is not None:
+                lines.append(cast)
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 try:
-                    gym_check_env(env, skip_render_check=True, skip_close_check=True)
+                    gym_check_env(checked, skip_render_check=True, skip_close_check=True)
                 except Exception as e:  # the checker's assertions: reported, the run goes on
                     lines.append(f"{type(e).__name__}: {e}")
             for w in caught:
@@ -191,6 +194,22 @@ def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple
             env.close()
     clean = (" ".join(_ANSI.sub("", line).removeprefix("WARN: ").split()) for line in lines)
     return list(dict.fromkeys(clean))
+
+
+def _cast_observations(env: gym.Env) -> tuple[gym.Env, str | None]:
+    """`env` with its observations cast to its float Box's dtype, and a line saying so, where it
+    returns arrays of another number dtype (float64, int64): relayrl casts them, and Gymnasium's
+    checker would stop at its first assertion ("not within the observation space", of values
+    inside the bounds), before its seed and determinism checks ever ran."""
+    space = env.observation_space
+    if not isinstance(space, gym.spaces.Box) or not np.issubdtype(space.dtype, np.floating):
+        return env, None
+    obs = env.reset(seed=0)[0]  # a list is no finding: Box.contains reads it in the space's dtype
+    if not isinstance(obs, (np.ndarray, np.generic)) or obs.dtype == space.dtype or obs.dtype.kind not in "biuf":
+        return env, None
+    line = (f"observations come as {obs.dtype} where observation_space is {space}: relayrl casts them to "
+            f"{space.dtype} (return {space.dtype} arrays, or declare the space's dtype, to silence this line)")
+    return gym.wrappers.TransformObservation(env, lambda o: np.asarray(o, space.dtype), space), line
 
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")  # gymnasium's logger colours its warnings

@@ -13,10 +13,9 @@ from __future__ import annotations
 from typing import Any
 
 import gymnasium as gym
-import numpy as np
 
-from relayrl.envs.gym import missing_spaces, reset_seeded
-from relayrl.envs.observations import kind, observation_problem
+from relayrl.envs.gym import missing_spaces, reset_problem, reset_seeded, reward_problem, step_problem
+from relayrl.envs.observations import observation_problem
 from relayrl.errors import UserError
 
 
@@ -31,7 +30,7 @@ def first_problem(env: gym.Env) -> str | None:
     if problem is not None:
         return problem
     return (observation_problem(reset_out[0], env.observation_space, "reset()")
-            or observation_problem(step_out[0], env.observation_space, "step()") or _reward_problem(step_out[1]))
+            or observation_problem(step_out[0], env.observation_space, "step()") or reward_problem(step_out[1]))
 
 
 def _api_problem(env: gym.Env) -> tuple[str | None, Any, Any]:
@@ -43,25 +42,8 @@ def _api_problem(env: gym.Env) -> tuple[str | None, Any, Any]:
         out = reset_seeded(env, 0)
     except UserError as e:  # the old Gym API's reset(self)
         return str(e), None, None
-    if not isinstance(out, tuple) or len(out) != 2:
-        what = f"{len(out)} values" if isinstance(out, tuple) else f"a {type(out).__name__}"
-        return (f"reset() returned {what}; Gymnasium envs return (obs, info) "
-                "(gymnasium.Env.reset: `return obs, {}`)"), out, None
+    problem = reset_problem(out)
+    if problem is not None:
+        return problem, out, None
     step = env.step(env.action_space.sample())
-    if not isinstance(step, tuple) or len(step) != 5:
-        what = f"{len(step)} values" if isinstance(step, tuple) else f"a {type(step).__name__}"
-        old = " (the old Gym API's obs, reward, done, info: split done into terminated and truncated)" \
-            if isinstance(step, tuple) and len(step) == 4 else ""
-        problem = f"step() returned {what}; Gymnasium envs return 5: obs, reward, terminated, truncated, info{old}"
-        return problem, out, step
-    return None, out, step
-
-
-def _reward_problem(reward: Any) -> str | None:
-    try:
-        value = np.asarray(reward, dtype=np.float64)
-    except (TypeError, ValueError):
-        return f"the reward from step() is {kind(reward)}; it must be a number"
-    if value.shape != ():
-        return f"the reward from step() has shape {value.shape}; it must be one number"
-    return None
+    return step_problem(step), out, step

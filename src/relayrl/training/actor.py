@@ -8,6 +8,7 @@ from typing import Any
 import torch
 
 from relayrl.core import BatchedEnv, Observer, Policy
+from relayrl.errors import UserError
 from relayrl.training.variables import WeightPuller
 from relayrl.types import Transition
 
@@ -25,6 +26,9 @@ class Actor:
         self.puller = puller  # refreshes the policy's weights from a VariableContainer
         self.observers = list(observers)
         self.env_steps = 0
+        # whose env steps these are, as an env's exception names them: the run's, or on Ray one
+        # rollout actor's own (the run's are the sum over the actors)
+        self.whose = "training"
         self._obs: torch.Tensor = env.reset(seed=seed)
 
     def collect(self, num_steps: int) -> None:
@@ -36,7 +40,12 @@ class Actor:
         while taken < num_steps:
             obs = self._obs
             action = policy(obs)
-            out = self.env.step(policy.env_action(action))
+            try:
+                out = self.env.step(policy.env_action(action))
+            except Exception as e:  # the env's own: which env steps it broke, beside the step the run is kept at
+                if not isinstance(e, UserError):
+                    e.add_note(f"relayrl: raised at {_steps(self.env_steps + taken, b, self.whose)}")
+                raise
             t = Transition(obs, action, out.reward, out.next_obs, out.terminated, out.truncated, out.episode_info)
             for observer in self.observers:
                 observer(t)
@@ -66,3 +75,10 @@ class Actor:
             return True
         self._obs = self.env.reset(seed=reset_seed)
         return False
+
+
+def _steps(done: int, b: int, whose: str) -> str:
+    """The env steps (of `whose`) a batched step of `b` copies takes after `done` ones."""
+    if b == 1:
+        return f"env step {done + 1:,} of {whose}"
+    return f"env steps {done + 1:,}-{done + b:,} of {whose} ({b} copies step together)"

@@ -67,6 +67,27 @@ def eval_cap_note(env: BatchedEnv, env_id: str) -> str | None:
             "(env.max_episode_steps caps training and evaluation episodes)")
 
 
+def _say_evaluation(error: Exception) -> None:
+    """A note on the env's own exception: an evaluation env's, not a training one's."""
+    if not isinstance(error, UserError):
+        error.add_note("relayrl: raised in an evaluation episode")
+
+
+def _check_observations(obs: Any, live: np.ndarray) -> None:
+    """The env's fault, named (as training's FiniteWatch names it), where a copy still running its
+    quota of episodes has a NaN or infinite observation: a policy acting on it would give a return
+    that means nothing. Integer observations (pixels) cannot hold one."""
+    if not isinstance(obs, torch.Tensor) or not obs.is_floating_point():
+        return
+    bad = to_numpy(~torch.isfinite(obs.reshape(len(obs), -1)).all(dim=1)) & live
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        row = obs[i].reshape(-1)
+        value = float(row[~torch.isfinite(row)][0])
+        raise NonFiniteError(f"observation was {describe(value)} in an evaluation episode (env copy {i}): "
+                             "check the env's observations (reset and step)")
+
+
 def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = None,
              max_steps: int = 1_000_000, episode_returns: list[float] | None = None,
              episode_lengths: list[int] | None = None) -> dict[str, float]:
@@ -86,12 +107,21 @@ def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = 
     returns: list[float] = []
     lengths: list[int] = []
     info: dict[str, list[float]] = {}
-    obs = env.reset(seed=seed)
+    try:
+        obs = env.reset(seed=seed)
+    except Exception as e:
+        _say_evaluation(e)
+        raise
     for _ in range(max_steps):
         if (done_count >= quota).all():
             break
+        _check_observations(obs, done_count < quota)
         with torch.inference_mode():
-            out = env.step(policy(obs))
+            try:
+                out = env.step(policy(obs))
+            except Exception as e:
+                _say_evaluation(e)
+                raise
         reward = to_numpy(out.reward)
         bad = ~np.isfinite(reward) & (done_count < quota)  # copies past their quota count for nothing
         if bad.any():  # the env's fault: named, not averaged into a NaN return

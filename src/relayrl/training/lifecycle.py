@@ -314,6 +314,9 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if c.distributed.address and c.distributed.num_actors == 0:
             core.say(f"distributed.address={c.distributed.address!r} with distributed.num_actors=0: the run trains "
                      "in this process (set distributed.num_actors=K for K rollout actors on Ray)")
+        if c.env.num_workers > 0 and c.env.vectorization == "sync":  # an SB3 user's n_envs + SubprocVecEnv
+            core.say(f"env.num_workers={c.env.num_workers} with env.vectorization='sync': the {c.env.num_envs:,} env "
+                     "copies step in this process, none in worker processes (env.vectorization='async' uses them)")
         if resume:
             saved = saved_config(core.rd)  # read first: restoring cuts metrics.jsonl back to the checkpoint
             driver.restore()  # rewrites metrics.jsonl: open the log only afterwards
