@@ -166,8 +166,7 @@ class RolloutWorker(_RolloutActor):
         ray.get(server.register.remote(index, self.token))
         self.shipper = ChunkShipper(server, index, self.token, frame_stack(self.env.observation_spec))
         self.actor = Actor(self.env, self.random_policy, [self.episodes, self.shipper, self.finite],
-                           seed=self.seeds.base("envs"), puller=self.puller)
-        self.actor.whose = f"rollout actor {index}"
+                           seed=self.seeds.base("envs"), puller=self.puller, whose=f"rollout actor {index}")
 
     def collect(self, steps: int, global_steps: int, random: bool) -> dict[str, Any]:
         """Take at least `steps` env steps (with the random policy while `random`), shipping
@@ -189,8 +188,7 @@ class RolloutCollector(_RolloutActor):
         super().__init__(config, index, names, sys_path, pull_interval=0)  # every collect call pulls
         self.writers: dict[int, RolloutWriter] = {}  # by steps per env copy, each into its own queue
         self.actor = Actor(self.env, self.agent.collect_policy(None, self.net), [self.episodes],
-                           seed=self.seeds.base("envs"), puller=self.puller)
-        self.actor.whose = f"rollout actor {index}"
+                           seed=self.seeds.base("envs"), puller=self.puller, whose=f"rollout actor {index}")
 
     def collect(self, steps_per_env: int) -> dict[str, Any]:
         writer = self.writers.get(steps_per_env)

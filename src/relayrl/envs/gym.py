@@ -398,7 +398,7 @@ class _StepCap(gym.Wrapper):
 class GymBatchEnv(BatchEnvBase):
     """`num_envs` Gymnasium envs stepped in this process, as one batched env."""
 
-    def __init__(self, env_fns: list[EnvFn], time_limit_terminates: bool = False) -> None:
+    def __init__(self, env_fns: list[EnvFn], time_limit_terminates: bool = False, first_copy: int = 0) -> None:
         if not env_fns:
             raise UserError("env.num_envs must be >= 1")
         self.envs = []
@@ -414,7 +414,7 @@ class GymBatchEnv(BatchEnvBase):
         self.capped_at = 0  # cap_episodes: the step cap put on an env without a time limit
         # The batch index of copy 0 here: an async worker steps a slice of a larger batch, and
         # its messages name the copy by the batch's index, as the main process's do.
-        self.first_copy = 0
+        self.first_copy = first_copy
         self._caps: list[_StepCap] = []
         first = self.envs[0]
         self._init_specs(len(self.envs), first.observation_space, first.action_space, time_limit_terminates,

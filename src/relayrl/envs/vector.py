@@ -122,10 +122,8 @@ def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, raw: dict[st
     a = _views(raw, layout)
     env: GymBatchEnv | None = None
     try:
-        made = _outcome(0, lambda: GymBatchEnv(cloudpickle.loads(fns_pickled), time_limit_terminates))
+        made = _outcome(0, lambda: GymBatchEnv(cloudpickle.loads(fns_pickled), time_limit_terminates, first_copy=lo))
         env = made[2] if made[0] == "ok" else None
-        if env is not None:
-            env.first_copy = lo
         reply = made if env is None else ("ok", 0, None)  # the main process waits for this "ok"
         while True:
             conn.send_bytes(_MAGIC + pickle.dumps(reply))

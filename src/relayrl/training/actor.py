@@ -20,7 +20,7 @@ class Actor:
     actions themselves."""
 
     def __init__(self, env: BatchedEnv, policy: Policy, observers: Sequence[Observer],
-                 seed: int | None = None, puller: WeightPuller | None = None) -> None:
+                 seed: int | None = None, puller: WeightPuller | None = None, whose: str = "training") -> None:
         self.env = env
         self.policy = policy
         self.puller = puller  # refreshes the policy's weights from a VariableContainer
@@ -28,7 +28,7 @@ class Actor:
         self.env_steps = 0
         # whose env steps these are, as an env's exception names them: the run's, or on Ray one
         # rollout actor's own (the run's are the sum over the actors)
-        self.whose = "training"
+        self.whose = whose
         self._obs: torch.Tensor = env.reset(seed=seed)
 
     def collect(self, num_steps: int) -> None:
