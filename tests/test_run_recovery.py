@@ -316,3 +316,18 @@ def test_a_run_directory_whose_entries_are_blocked_is_one_line(tmp_path, cli, bl
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         assert f"'{blocker}' there is a {kind}, where a run keeps its" in r.stderr
     assert (run / blocker).exists()
+
+
+def test_an_env_whose_close_raises_after_the_run_finished_leaves_a_finished_run(tmp_path, cli):
+    """Every file is written when the envs are closed: the env's failing close() is one line, the
+    run's result stands, and the evaluation env is closed too."""
+    import toy_envs
+
+    toy_envs.CloseRaises.closed = 0
+    r = cli(["train", "dqn-cartpole", "--run-dir", str(tmp_path / "run"), "--no-progress",
+             *sets(TINY + ["env.id=toy_envs:CloseRaises", "env.num_envs=2"])])
+    assert r.returncode == 0, r.stderr
+    assert ("the run finished and its files are written; then closing its envs raised RuntimeError: the "
+            "simulator's socket was already gone") in r.stderr
+    assert toy_envs.CloseRaises.closed >= 4  # both training copies, then the evaluation env's
+    assert load_policy(tmp_path / "run") is not None

@@ -578,3 +578,13 @@ class NarrowBox(gym.Env):
     def step(self, action):
         inside = self.action_space.contains(np.asarray(action))
         return np.array([float(inside), float(np.asarray(action)[0])]), 0.0, False, False, {}
+
+
+class CloseRaises(Countdown):
+    """Countdown whose close() raises (a simulator's teardown bug), counting the copies closed."""
+
+    closed = 0
+
+    def close(self):
+        CloseRaises.closed += 1
+        raise RuntimeError("the simulator's socket was already gone")

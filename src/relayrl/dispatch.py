@@ -290,6 +290,7 @@ def _build_and_train(entry: Algorithm, config: Config, rd: RunDir, resume: bool,
                 else f"train.collect_steps={config.train.collect_steps:,}")
         raise UserError(f"not enough memory to build the run ({detail}): lower {data} or the networks' sizes "
                         "(the agent's hidden sizes)") from None
+    result: RunResult | None = None
     try:
         if takeover:
             print(f"relayrl: {takeover}", file=sys.stderr, flush=True)
@@ -302,11 +303,25 @@ def _build_and_train(entry: Algorithm, config: Config, rd: RunDir, resume: bool,
         try:
             if not resume:
                 save_toml(config, rd.config)
-            return driver.train(resume=resume)
+            result = driver.train(resume=resume)
+            return result
         finally:
             rd.release_lock()
     finally:
-        driver.close()  # env processes and Ray actors end with the run, or before it where it never started
+        _close(driver, result is not None)
+
+
+def _close(driver: Any, finished: bool) -> None:
+    """The driver's envs and Ray actors closed: they end with the run, or before it where it never
+    started. An env whose own close() raises after the run finished does not turn a finished run,
+    whose files are all written, into a failure: one line says so."""
+    try:
+        driver.close()
+    except Exception as e:
+        if not finished:
+            raise
+        print(f"relayrl: the run finished and its files are written; then closing its envs raised "
+              f"{type(e).__name__}: {e}", file=sys.stderr, flush=True)
 
 
 def out_of_memory(e: BaseException) -> str | None:

@@ -565,5 +565,13 @@ class GymBatchEnv(BatchEnvBase):
         return self.envs[0].render()
 
     def close(self) -> None:
+        """Every copy closed (its window, files, processes), also where one's own close() raises:
+        the first such error is raised after the rest are closed."""
+        failure: Exception | None = None
         for env in self.envs:
-            env.close()
+            try:
+                env.close()
+            except Exception as e:
+                failure = failure or e
+        if failure is not None:
+            raise failure

@@ -240,6 +240,11 @@ class LocalDriver:
                 if k in saved and plain(saved[k]) != plain(now[k])]
 
     def close(self) -> None:
-        for env in (self.env, self.eval_env):
-            if env is not None:
-                env.close()
+        """Both envs closed, the evaluation one (its worker processes) also where the training
+        env's own close() raises."""
+        try:
+            if self.env is not None:
+                self.env.close()
+        finally:
+            if self.eval_env is not None:
+                self.eval_env.close()
