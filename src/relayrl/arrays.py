@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
 
+if TYPE_CHECKING:
+    from numpy.typing import DTypeLike
 
-def torch_dtype(dtype: np.dtype) -> torch.dtype:
+
+def torch_dtype(dtype: DTypeLike) -> torch.dtype:
     """The torch dtype of a NumPy dtype (for columns allocated as tensors)."""
     return torch.from_numpy(np.zeros(0, dtype)).dtype
 

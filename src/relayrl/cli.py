@@ -59,7 +59,7 @@ def _seed(text: str) -> int:
     return value
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser() -> _Parser:
     from relayrl import __version__
 
     p = _Parser(prog="relayrl", description="Deep RL on PyTorch and Gymnasium.")

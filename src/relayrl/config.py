@@ -139,6 +139,7 @@ class Config(Section):
         if name == "algo" and "agent" in self.__dict__ and previous != value:
             # config.algo = "sac" after construction: every key still at the old algorithm's
             # default takes the new one's (and the agent section becomes the new algorithm's).
+            assert previous is not None  # set before `agent`, in the dataclass's field order
             _rebase(self, algo_defaults(previous), algo_defaults(value))
 
     def eval_env_kwargs(self) -> dict[str, Any]:

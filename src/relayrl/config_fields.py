@@ -43,7 +43,7 @@ class Section:
     NETWORK: ClassVar[tuple[str, ...]] = ()
 
     def __setattr__(self, name: str, value: Any) -> None:
-        hints = _hints(type(self))
+        hints = _hints(type(self))  # type: ignore[arg-type]  # classes hash; mypy reads __hash__ unbound
         path = f"{self.SECTION}.{name}" if self.SECTION else name
         if name not in hints:
             raise ConfigError(unknown_key(path, [f"{self.SECTION}.{n}" if self.SECTION else n for n in hints]))
@@ -309,7 +309,7 @@ class FieldDoc:
 
 def field_docs(section: Any) -> list[FieldDoc]:
     """The non-section fields of a config dataclass object, in source order."""
-    about, hints = meanings(type(section)), _hints(type(section))
+    about, hints = meanings(type(section)), _hints(type(section))  # type: ignore[arg-type]  # as in __setattr__
     return [FieldDoc(f.name, type_text(hints[f.name]), getattr(section, f.name), about.get(f.name, ""))
             for f in dataclasses.fields(section) if not dataclasses.is_dataclass(getattr(section, f.name))]
 

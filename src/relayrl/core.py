@@ -50,7 +50,10 @@ class BatchedEnv(Protocol):
 
     def set_state(self, states: list[bytes]) -> None:
         """Restore what `get_state` returned. Only called with a state `get_state` gave."""
-        raise NotImplementedError(f"{type(self).__name__} cannot restore its copies' state")
+        # The name first: mypy reads a body that only raises NotImplementedError as abstract, and
+        # envs that cannot save (AleBatchEnv) inherit this one.
+        name = type(self).__name__
+        raise NotImplementedError(f"{name} cannot restore its copies' state")
 
 
 class Policy(Protocol):

@@ -86,7 +86,7 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
 
 
 def _policy_fn(policy: Any, deterministic: bool, seed: int | None, obs_spec: Spec,
-               act_spec: Spec) -> Callable[[torch.Tensor], Any]:
+               act_spec: Spec) -> Callable[[torch.Tensor], torch.Tensor]:
     """A batched policy (a [B, ...] observation tensor -> [B, ...] actions) from what the user gave."""
     from relayrl.loaded_policy import LoadedPolicy
 

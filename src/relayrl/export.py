@@ -165,6 +165,7 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
                 raise UserError(f"this policy cannot be exported to ONNX ({type(e).__name__}: "
                                 f"{str(e).strip().splitlines()[0] if str(e).strip() else 'no details'}); "
                                 "use --format pt2") from None
+            assert program is not None  # dynamo=True returns the program (None is the legacy exporter's)
             program.save(str(tmp))
     with torch.no_grad():
         action = module(*examples)

@@ -9,7 +9,7 @@ amsgrad); state_dict round-trips.
 from __future__ import annotations
 
 from collections.abc import Iterable
-from typing import Any
+from typing import Any, cast
 
 import torch
 
@@ -57,7 +57,7 @@ class FastAdam:
         """One Adam step from the params' `.grad`, or from `grads` (same order as the params)
         when the caller computed gradients without autograd."""
         if grads is None:
-            grads = [p.grad for p in self.params]
+            grads = cast("list[torch.Tensor]", [p.grad for p in self.params])  # a None is refused below
         elif len(grads) != len(self.params):
             raise ValueError(f"FastAdam.step() got {len(grads)} gradients for {len(self.params)} parameters")
         if any(g is None for g in grads):

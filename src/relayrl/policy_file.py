@@ -32,7 +32,7 @@ REFUSED = "not a relayrl policy file, or one that would run code"
 try:
     from numpy._core.multiarray import _reconstruct
 except ImportError:  # NumPy 1.x
-    from numpy.core.multiarray import _reconstruct
+    from numpy.core.multiarray import _reconstruct  # type: ignore[no-redef]  # the same function, NumPy 1.x's path
 
 # What a policy file written before bounds were lists needs beyond plain types: float arrays.
 _OLD_LAYOUT_GLOBALS: list[Any] = [

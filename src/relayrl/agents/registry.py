@@ -41,8 +41,9 @@ class Algorithm:
     # Its saved policy's module: `load(state, device, deterministic, seed)`, `deterministic_module(state)`
     # and `action_space(state)`.
     policy: Callable[[], ModuleType]
-    # The agent class, built as Class(obs_spec, action_spec, cfg, device, rng, total_steps).
-    agent: Callable[[], type[Agent]] | None = None
+    # The agent class, built as Class(obs_spec, action_spec, cfg, device, rng, total_steps) (a
+    # callable: the Agent protocol's type has no such constructor).
+    agent: Callable[[], Callable[..., Agent]] | None = None
     replay: str = "transitions"  # one of REPLAYS
     ray: bool = False  # runs with distributed.num_actors > 0
     # replay "none": the module that trains by itself (`check_config(config)`, `train(...)`),

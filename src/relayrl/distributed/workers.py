@@ -14,6 +14,7 @@ import torch
 
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config, from_dict
+from relayrl.core import Observer
 from relayrl.envs import make_env
 from relayrl.metrics import EpisodeStats
 from relayrl.policies import RandomPolicy
@@ -71,7 +72,7 @@ class RemoteVariables:
         return ray.get(self.handle.pull.remote(newer_than))
 
 
-class ChunkShipper:
+class ChunkShipper(Observer):
     """Observer: ships the staged steps to the replay server as one StepChunk per flush. One
     insert stays in flight while the next chunk is collected; waiting for it is how the server's
     rate limiter slows collection down when the learner lags."""

@@ -14,7 +14,7 @@ import importlib
 import inspect
 import pickle
 from collections.abc import Callable
-from typing import Any, SupportsFloat
+from typing import Any, SupportsFloat, cast
 
 import gymnasium as gym
 import numpy as np
@@ -562,7 +562,8 @@ class GymBatchEnv(BatchEnvBase):
                                     f"space {self.envs[i].observation_space} ({type(error).__name__}: {error})")
 
     def render(self) -> np.ndarray | None:
-        return self.envs[0].render()
+        # An rgb_array frame (the mode the video command makes envs in), or None without a render mode
+        return cast("np.ndarray | None", self.envs[0].render())
 
     def close(self) -> None:
         """Every copy closed (its window, files, processes), also where one's own close() raises:

@@ -6,6 +6,7 @@ import contextlib
 import sys
 import types
 from collections.abc import Iterator
+from typing import Any
 
 import gymnasium as gym
 
@@ -17,8 +18,9 @@ class _GymShim(types.ModuleType):
     def __init__(self, env: type, wrapper: type) -> None:
         super().__init__("gym")
         self.Env, self.Wrapper, self.spaces = env, wrapper, gym.spaces
-        self.utils = types.ModuleType("gym.utils")
-        self.utils.seeding = gym.utils.seeding
+        utils: Any = types.ModuleType("gym.utils")  # Any: ModuleType's type has no attributes to set
+        utils.seeding = gym.utils.seeding
+        self.utils = utils
         self.__version__ = "0.26.2"
 
 

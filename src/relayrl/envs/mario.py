@@ -23,7 +23,7 @@ import sys
 import threading
 import types
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, cast
 
 import gymnasium as gym
 import numpy as np
@@ -85,15 +85,16 @@ def _load_without_gym() -> tuple[types.ModuleType, types.ModuleType]:
     nes, smb = _package(_NES, "nes_py"), _package(_SMB, "gym_super_mario_bros")
     # smb_env does `from nes_py import NESEnv`: answer it with our copy while it imports.
     with importing_without_gym({_NES: nes, _SMB: smb}, _LegacyEnv, _LegacyWrapper, {"nes_py": nes}):
-        nes.NESEnv = importlib.import_module(f"{_NES}.nes_env").NESEnv  # loads the C++ emulator (ctypes)
+        cast(Any, nes).NESEnv = importlib.import_module(f"{_NES}.nes_env").NESEnv  # loads the C++ emulator (ctypes)
         joypad = importlib.import_module(f"{_NES}.wrappers.joypad_space")
         return importlib.import_module(f"{_SMB}.smb_env"), joypad
 
 
-def _patch_for_numpy2(rom: type, smb: type) -> None:
+def _patch_for_numpy2(rom: Any, smb: Any) -> None:
     """Under NumPy 2 (NEP 50) `uint8 <op> python int` stays uint8: `header[4] * 16 * 2**10` raises
     "Python integer 1024 out of bounds for uint8", and RAM reads like `ram[0x6d] * 0x100` would too.
-    NumPy 1 computed these in int64, so do the arithmetic on Python ints (same values as NumPy 1)."""
+    NumPy 1 computed these in int64, so do the arithmetic on Python ints (same values as NumPy 1).
+    `rom` and `smb` are classes, typed Any: a type's type has no attributes to set."""
     rom.header = property(lambda self: self.raw_data[:16].astype(np.int64))
     ram = lambda env, address: int(env.ram[address])  # noqa: E731
     smb._x_position = property(lambda self: ram(self, 0x6D) * 0x100 + ram(self, 0x86))
@@ -177,4 +178,5 @@ def make_preprocessed(render_mode: str | None = None, max_episode_frames: int = 
 def _rom_path() -> str:
     """Where the vanilla ROM lies inside the installed package (for tests: nothing is downloaded)."""
     smb_env, _ = _load()
+    assert smb_env.__file__ is not None  # a module imported from its file
     return os.path.join(os.path.dirname(smb_env.__file__), "_roms", "super-mario-bros.nes")

@@ -63,7 +63,7 @@ def _load_without_gym(bullet_dir: str) -> types.ModuleType:
     package = types.ModuleType(_PACKAGE)
     package.__path__ = [bullet_dir]  # relative imports (`from . import minitaur`) resolve in here
     # pkg_resources always shimmed: gone from setuptools >= 81, and a deprecation warning where it exists.
-    pkg_resources = types.ModuleType("pkg_resources")
+    pkg_resources: Any = types.ModuleType("pkg_resources")  # Any: ModuleType's type has no attributes to set
     pkg_resources.parse_version = _parse_version
     with importing_without_gym({_PACKAGE: package}, gym.Env, gym.Wrapper, {"pkg_resources": pkg_resources}):
         return importlib.import_module(f"{_PACKAGE}.minitaur_gym_env")

@@ -39,7 +39,7 @@ import weakref
 import zlib
 from collections.abc import Callable
 from multiprocessing.connection import Connection
-from typing import Any
+from typing import Any, cast
 
 import cloudpickle
 import numpy as np
@@ -92,7 +92,9 @@ def _global_rng_seed(lo: int) -> int:
     this process's `np.random` state without drawing from it, distinct per worker. So it is a
     function of that state, as everything else a seeded script does: two envs made with no
     draw from `np.random` between them give their workers the same streams."""
-    return (zlib.crc32(np.random.get_state()[1].tobytes()) + lo) % 2**32
+    # The legacy tuple (numpy's stub types get_state()'s default as the dict of legacy=False)
+    state = cast("tuple[str, np.ndarray, int, int, float]", np.random.get_state())
+    return (zlib.crc32(state[1].tobytes()) + lo) % 2**32
 
 
 # Pickled commands up to this size go out in one write (multiprocessing's Connection writes
@@ -222,7 +224,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
             act_dtype = np.dtype(space_dtype if space_dtype is not None else numpy_dtype(self.action_spec))
             # fork on Linux: workers start in milliseconds and inherit what they need. Elsewhere
             # spawn: macOS has fork, but its system libraries are not safe to use after one.
-            ctx = mp.get_context("fork" if sys.platform.startswith("linux") else "spawn")
+            ctx = mp.get_context("fork") if sys.platform.startswith("linux") else mp.get_context("spawn")
             # actions in the env's own shape, as `_actions` hands them on
             act_shape = tuple(self.action_spec.shape) if self._env_action_shape is None else self._env_action_shape
             b, obs = self.num_envs, ((self.num_envs, *self.observation_spec.shape), np.dtype(self._obs_dtype))

@@ -14,6 +14,8 @@ unscaled), "nature_cnn" or "small_cnn" (that conv net for images).
 
 from __future__ import annotations
 
+from typing import cast
+
 import torch
 from torch import nn
 
@@ -65,6 +67,8 @@ class Flatten(nn.Module):
 class OneHot(nn.Module):
     """Integers [B, *shape], entry i in [0, nvec[i]) -> concatenated one-hots [B, sum(nvec)]."""
 
+    offsets: torch.Tensor  # a buffer, declared for the type checker
+
     def __init__(self, nvec: tuple[int, ...]) -> None:
         super().__init__()
         offsets = torch.tensor([0, *nvec[:-1]], dtype=torch.int64).cumsum(0)
@@ -79,7 +83,7 @@ class OneHot(nn.Module):
 class ConvEncoder(nn.Module):
     """uint8 frames -> [B, hidden]: convs + ReLU, flatten, one dense layer + ReLU."""
 
-    def __init__(self, spec: Spec, convs: tuple[tuple[int, ...], ...], hidden: int) -> None:
+    def __init__(self, spec: ArraySpec, convs: tuple[tuple[int, ...], ...], hidden: int) -> None:
         super().__init__()
         channels, self.channels_last = image_layout(spec)
         self.channels = channels
@@ -117,12 +121,18 @@ class DictEncoder(nn.Module):
             raise UserError(f"observation entries {', '.join(map(repr, same))} are one name once nested keys are "
                             "joined with '.': rename the env's Dict keys so that none holds '.' or '/'")
         self.parts = nn.ModuleDict({k: leaf_encoder(f.spec, kind) for f, k in zip(spec.fields, keys, strict=True)})
-        self.out_dim = sum(int(m.out_dim) for m in self.parts.values())
+        self.out_dim = sum(encoder_dim(m) for m in self.parts.values())
 
     def forward(self, x: torch.Tensor | dict[str, torch.Tensor]) -> torch.Tensor:
         """Packed rows [B, nbytes], or the entries themselves by key (an exported policy's inputs)."""
         leaves = x if isinstance(x, dict) else unpack(x, self.spec)
         return torch.cat([m(leaves[f.key]) for f, m in zip(self.spec.fields, self.parts.values(), strict=True)], dim=1)
+
+
+def encoder_dim(encoder: nn.Module) -> int:
+    """The features an encoder gives per observation: each one here sets an int `out_dim`, which
+    Module's attribute typing reads as Tensor | Module."""
+    return int(cast(int, encoder.out_dim))
 
 
 def leaf_encoder(spec: Spec, kind: str) -> nn.Module:
@@ -213,11 +223,11 @@ class Encoded(nn.Module):
         return self.head(self.encoder(x))
 
 
-def encoded_mlp(spec: Spec, kind: str, hidden: list[int], out_dim: int, activation: str) -> nn.Module:
+def encoded_mlp(spec: Spec, kind: str, hidden: list[int], out_dim: int, activation: str) -> MLP | Encoded:
     """An MLP on `spec`'s observations, behind their encoder when they need one."""
     encoder = make_encoder(spec, kind)
     if encoder is None:
         return MLP(flat_dim(spec), hidden, out_dim, activation)
-    return Encoded(encoder, MLP(int(encoder.out_dim), hidden, out_dim, activation))
+    return Encoded(encoder, MLP(encoder_dim(encoder), hidden, out_dim, activation))
 
 

@@ -102,6 +102,7 @@ class GraphedStep:
             captured = self._graphs[key] = self._capture(device, args)
         for buffer, a in zip(captured.inputs, args, strict=True):
             if buffer is not None:
+                assert a is not None  # the key records which args are None: a buffer stands for a tensor
                 buffer.copy_(a, non_blocking=True)
         captured.graph.replay()
         return captured.outputs

@@ -9,6 +9,8 @@ inference path and hand-written gradients.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
+from typing import cast
 
 import torch
 import torch.nn.functional as F
@@ -33,14 +35,20 @@ class MLP(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         if x.dim() != 2:
             x = x.reshape(x.shape[0], -1)  # [B, *obs_shape] -> [B, obs_dim]
+        layers = linear_layers(self)
         if x.dtype != torch.float32:
-            x = x.to(self.layers[0].weight.dtype)  # observations in the network's dtype (float32 unless .double())
-        last = len(self.layers) - 1
-        for i, layer in enumerate(self.layers):
+            x = x.to(layers[0].weight.dtype)  # observations in the network's dtype (float32 unless .double())
+        last = len(layers) - 1
+        for i, layer in enumerate(layers):
             x = F.linear(x, layer.weight, layer.bias)
             if i < last:
                 x = self._act(x)
         return x
+
+
+def linear_layers(net: MLP) -> Sequence[nn.Linear]:
+    """`net.layers` as the nn.Linear layers they are (ModuleList types its items as Module)."""
+    return cast("Sequence[nn.Linear]", net.layers)
 
 
 class TwinMLP(nn.Module):
@@ -95,7 +103,7 @@ def tf_agents_init_(net: MLP) -> None:
     Hidden: VarianceScaling(scale=2, fan_in, truncated normal), zero bias. Head: uniform
     (-0.03, 0.03) weights and bias -0.2, so initial Q-values start small and equal.
     """
-    layers = list(net.layers)
+    layers = list(linear_layers(net))
     for layer in layers[:-1]:
         # Keras truncates at 2 std and divides std by 0.8796 to keep the variance.
         std = math.sqrt(2.0 / layer.in_features) / 0.87962566103423978

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from relayrl.nn.activations import ACTIVATIONS
-from relayrl.nn.mlp import MLP, TwinMLP
+from relayrl.nn.mlp import MLP, TwinMLP, linear_layers
 
 Tensor = torch.Tensor
 
@@ -41,9 +41,10 @@ class MLPInference:
         if any(p.device.type != "cpu" or p.dtype != torch.float32 for p in net.parameters()):
             raise ValueError("MLPInference needs a float32 MLP on the CPU")
         act = ACTIVATIONS[net.activation]
-        self._np_layers = [(layer.weight.detach().numpy().T, layer.bias.detach().numpy()) for layer in net.layers]
+        layers = linear_layers(net)
+        self._np_layers = [(layer.weight.detach().numpy().T, layer.bias.detach().numpy()) for layer in layers]
         self._np_act = act.numpy
-        self.layers = [(layer.weight.detach().t(), layer.bias.detach()) for layer in net.layers]  # [in, out], [out]
+        self.layers = [(layer.weight.detach().t(), layer.bias.detach()) for layer in layers]  # [in, out], [out]
         self._act_ = act.inplace
         self.max_rows = max(1, NUMPY_MAX_MACS // sum(w.size for w, _ in self._np_layers))
 
@@ -159,9 +160,10 @@ class MLPFast(_Fast):
 
     def __init__(self, net: MLP) -> None:
         super().__init__(net.activation, len(net.layers))
-        self.weight = [layer.weight.detach() for layer in net.layers]  # [out, in]
+        layers = linear_layers(net)
+        self.weight = [layer.weight.detach() for layer in layers]  # [out, in]
         self.weight_t = [w.t() for w in self.weight]  # [in, out]
-        self.bias = [layer.bias.detach() for layer in net.layers]  # [out]
+        self.bias = [layer.bias.detach() for layer in layers]  # [out]
 
     def new_grads(self) -> list[Tensor]:
         return [torch.empty_like(t) for pair in zip(self.weight, self.bias, strict=True) for t in pair]

@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from relayrl.arrays import to_numpy, torch_dtype
-from relayrl.replay.storage import Columns
+from relayrl.replay.storage import Columns, Signature
 
 DATA = ("frame", "action")  # the columns that live on `device` when the store has one
 
@@ -61,7 +61,7 @@ class StepStore:
         self.rows = rows  # per env: the length of its ring
         self.frame_stack = frame_stack
         frame_shape = obs_shape[1:] if frame_stack > 1 else obs_shape
-        sig = {
+        sig: Signature = {
             "frame": (frame_shape, obs_dtype), "action": (action_shape, action_dtype),
             "reward": ((), np.float32), "stamp": ((), np.int64), "start": ((), np.int64),
             "last": ((), np.bool_), "terminated": ((), np.bool_), "item_key": ((), np.int64),
@@ -205,7 +205,8 @@ class StepStore:
 
     def state_dict(self) -> dict[str, Any]:
         used = min(int(self.head.max(initial=0)), self.rows)  # ring positions written so far
-        state = {"columns": self.cols.state_dict(used), "head": self.head.copy(), "ep_start": self.ep_start.copy()}
+        state: dict[str, Any] = {"columns": self.cols.state_dict(used), "head": self.head.copy(),
+                                 "ep_start": self.ep_start.copy()}
         if self.data:  # as host arrays, so a checkpoint loads on a machine without the device
             state["columns"].setdefault("arrays", {}).update({k: t[:, :used].cpu().numpy()
                                                               for k, t in self.data.items()})

@@ -20,9 +20,12 @@ from relayrl.arrays import to_numpy
 from relayrl.errors import UserError
 
 if TYPE_CHECKING:
+    from numpy.typing import DTypeLike
+
     from relayrl.replay.step_storage import StepStorage
 
-Signature = dict[str, tuple[tuple[int, ...], np.dtype]]  # name -> (shape per row, dtype)
+# name -> (shape per row, dtype: a NumPy dtype or what np.dtype takes, e.g. np.float32)
+Signature = dict[str, tuple[tuple[int, ...], "DTypeLike"]]
 
 
 class Storage(Protocol):
@@ -127,7 +130,7 @@ class ItemStorage(Storage):
     def _build(self, item: Any) -> None:
         self.single = not isinstance(item, dict)
         fields = {"item": item} if self.single else item
-        sig = {k: (to_numpy(v).shape[1:], to_numpy(v).dtype) for k, v in fields.items()}
+        sig: Signature = {k: (to_numpy(v).shape[1:], to_numpy(v).dtype) for k, v in fields.items()}
         self.columns = Columns(sig, (self.capacity,))
 
     def write(self, slots: np.ndarray, items: Any) -> None:

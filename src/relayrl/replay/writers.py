@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from relayrl.arrays import to_numpy
+from relayrl.core import Observer
 from relayrl.replay.step_storage import SequenceBatch, SequenceStorage, StepStorage, TransitionStorage
 from relayrl.replay.steps import StepChunk
 from relayrl.replay.table import Table
@@ -54,7 +55,7 @@ def stack_steps(staged: list[Transition], frame_stack: int = 1, keep_tensors: bo
     return StepChunk(frames, actions, rewards, done, term, final[:, -1] if finals and frame_stack > 1 else final)
 
 
-class _Writer:
+class _Writer(Observer):
     """Staging shared by both writers; the table and its step storage do the rest."""
 
     def __init__(self, table: Table, storage: StepStorage, chunk_length: int) -> None:

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import torch
 
 from relayrl.arrays import to_numpy
-from relayrl.core import BatchedEnv, Policy
+from relayrl.core import BatchedEnv
 from relayrl.envs import make_env
 from relayrl.envs.gym import EnvFn, GymBatchEnv
 from relayrl.errors import NonFiniteError, UserError
@@ -88,7 +89,7 @@ def _check_observations(obs: Any, live: np.ndarray) -> None:
                              "check the env's observations (reset and step)")
 
 
-def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = None,
+def evaluate(env: BatchedEnv, policy: Callable[[torch.Tensor], torch.Tensor], episodes: int, seed: int | None = None,
              max_steps: int = 1_000_000, episode_returns: list[float] | None = None,
              episode_lengths: list[int] | None = None) -> dict[str, float]:
     """Run `episodes` full episodes and average their return and length (and, as `eval/<key>`,
@@ -125,9 +126,9 @@ def evaluate(env: BatchedEnv, policy: Policy, episodes: int, seed: int | None = 
         reward = to_numpy(out.reward)
         bad = ~np.isfinite(reward) & (done_count < quota)  # copies past their quota count for nothing
         if bad.any():  # the env's fault: named, not averaged into a NaN return
-            i = int(np.flatnonzero(bad)[0])
-            raise NonFiniteError(f"reward was {describe(float(reward[i]))} in an evaluation episode (env copy {i}): "
-                                 "check the env's reward")
+            first = int(np.flatnonzero(bad)[0])  # (not `i`: the loop below binds NumPy ints to it)
+            raise NonFiniteError(f"reward was {describe(float(reward[first]))} in an evaluation episode "
+                                 f"(env copy {first}): check the env's reward")
         ret += reward
         length += 1
         done = to_numpy(out.terminated | out.truncated)

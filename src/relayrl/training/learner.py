@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -77,7 +77,8 @@ class Learner:
             batch = self.agent.prepare(batch, k)  # what stays valid for the chunk, computed once
             for j in range(k):
                 rows = slice(j * n, (j + 1) * n)
-                yield (type(batch)(*(x[rows] if isinstance(x, torch.Tensor) else x for x in batch)),
+                # cast: a NamedTuple's class, built from its fields (mypy takes it for tuple's, of one iterable)
+                yield (cast(Any, type(batch))(*(x[rows] if isinstance(x, torch.Tensor) else x for x in batch)),
                        SampleInfo(info.key[rows], info.probability[rows], info.table_size, info.priority[rows]))
             iterations -= k
 
@@ -87,7 +88,9 @@ class Learner:
                 w = np.power(info.table_size * info.probability, -self.importance_exponent)  # [N]
                 batch = batch._replace(weight=torch.from_numpy((w / w.max()).astype(np.float32)))
             if self.device.type != "cpu" and isinstance(batch, tuple):  # a rollout (dict) is moved by its agent
-                batch = type(batch)(*(None if x is None else x.to(self.device, non_blocking=True) for x in batch))
+                # cast: a NamedTuple's class, built from its fields (mypy takes it for tuple's, of one iterable)
+                batch = cast(Any, type(batch))(*(None if x is None else x.to(self.device, non_blocking=True)
+                                                 for x in batch))
             self.last_metrics = self.agent.train(batch)
             if self.prioritized:
                 td = self.last_metrics["td_error"].abs().cpu().numpy().astype(np.float64)

@@ -8,7 +8,7 @@ import copy
 import json
 import signal
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from relayrl import interrupts
 from relayrl.agents.registry import algorithm
@@ -35,6 +35,10 @@ from relayrl.training.run_dir import RunDir
 from relayrl.training.triggers import Evaluate, Progress
 from relayrl.training.variables import VariableContainer, WeightPuller, network_variables
 
+if TYPE_CHECKING:
+    from relayrl.replay.rollouts import RolloutWriter
+    from relayrl.replay.writers import TransitionWriter
+
 
 class LocalDriver:
     def __init__(self, config: Config, rd: RunDir, progress: bool = True,
@@ -54,7 +58,7 @@ class LocalDriver:
         c, seeds, device = self.config, self.seeds, self.device
         entry = algorithm(c.algo)
         check_user_env(c, env_factory, say)
-        made = {"kwargs": c.env.kwargs, "wrappers": c.env.wrappers, "factory": env_factory}
+        made: dict[str, Any] = {"kwargs": c.env.kwargs, "wrappers": c.env.wrappers, "factory": env_factory}
         self.env = make_env(c.env.id, c.env.num_envs, c.env.max_episode_steps,
                             time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
                             num_workers=c.env.num_workers, device=device, info_keys=c.env.info_keys, **made)
@@ -70,6 +74,7 @@ class LocalDriver:
         self.finite = FiniteWatch(c.env.num_envs, obs_spec)
         whole_rollouts = entry.replay == "rollouts"
         self.replay_note: str | None = None
+        self.writer: RolloutWriter | TransitionWriter
         if whole_rollouts:
             self.replay, self.writer = build_rollouts(c, device if stateless else None)  # tensors stay on it
         else:

@@ -5,6 +5,7 @@ list of tensors, so applying them is one fused copy."""
 from __future__ import annotations
 
 import threading
+from typing import Protocol
 
 import torch
 from torch import nn
@@ -51,6 +52,12 @@ class VariableContainer:
             self.version, self._weights = int(state["version"]), state["weights"]
 
 
+class WeightSource(Protocol):
+    """What a WeightPuller pulls from: a VariableContainer, or a handle on one in another process."""
+
+    def pull(self, newer_than: int = 0) -> tuple[int, list[torch.Tensor] | None]: ...
+
+
 class WeightPuller:
     """Keeps an actor's copy of the policy network in step with a container.
 
@@ -58,7 +65,7 @@ class WeightPuller:
     for fast CPU inference stay valid) at most once every `interval` calls' worth of env steps.
     """
 
-    def __init__(self, container: VariableContainer, network: nn.Module, interval: int = 0) -> None:
+    def __init__(self, container: WeightSource, network: nn.Module, interval: int = 0) -> None:
         self.container = container
         self.params = [p.detach() for p in network_variables(network)]
         self.interval = interval

@@ -33,13 +33,13 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, cast
 
 import torch
 
 from relayrl.agents.bptt.config import BpttConfig
 from relayrl.envs.stateless.base import make_generator
-from relayrl.envs.stateless.pendulum import PendulumParams, make_pendulum
+from relayrl.envs.stateless.pendulum import Pendulum, PendulumParams, make_pendulum
 from relayrl.envs.stateless.rollout import rollout
 from relayrl.nn import MLP
 from relayrl.seeding import RunSeeds
@@ -248,7 +248,7 @@ def train_bptt(config: BpttConfig | None = None, callback: Callable[[BpttLog], N
 def _train(c: BpttConfig, callback: Callable[[BpttLog], None] | None, iterations: int, seed: int,
            device: torch.device, stop: Callable[[], bool] | None = None) -> BpttResult:
     env = make_pendulum(device=device)
-    params = env.base_env.params
+    params = cast(Pendulum, env.base_env).params  # make_pendulum's base env
     seeds = RunSeeds(seed)
     with torch.random.fork_rng(devices=[]):  # seed the init without touching the caller's RNG
         torch.manual_seed(seeds.base("torch"))
@@ -273,7 +273,7 @@ def _train(c: BpttConfig, callback: Callable[[BpttLog], None] | None, iterations
         stats[i] = torch.stack([mean.detach(), rewards[-1].detach().mean(), grad_norm])
         if callback is not None:
             mean_r, last_r, gn = stats[i].tolist()
-            callback(BpttLog(i, mean_r, last_r, gn, sched.get_last_lr()[0]))
+            callback(BpttLog(i, mean_r, last_r, gn, cast(float, sched.get_last_lr()[0])))  # Adam's lr=c.lr
         if stop is not None and i + 1 < iterations and stop():
             stats = stats[: i + 1]  # the iterations done: the policy is theirs
             break

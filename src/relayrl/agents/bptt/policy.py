@@ -17,6 +17,9 @@ def load(state: dict[str, Any], device: torch.device, deterministic: bool, seed:
 
 
 class Clamped(nn.Module):
+    low: torch.Tensor  # buffers
+    high: torch.Tensor
+
     def __init__(self, state: dict[str, Any]) -> None:
         super().__init__()
         self.net = saved_network(state, state["action_dim"])

@@ -55,8 +55,8 @@ class DQNAgent(Agent):
         self.epsilon_decay_steps = cfg.epsilon_decay_steps if cfg.epsilon_decay_steps >= 0 else total_steps // 10
         self._lr_at = (linear_schedule(cfg.lr, cfg.lr_end, total_steps)
                        if cfg.lr_end >= 0 and total_steps > 0 else None)
-        self._online_params = list(self.online.parameters())
-        self._target_params = list(self.target.parameters()) if self.target is not None else []
+        self._online_params: list[torch.Tensor] = list(self.online.parameters())
+        self._target_params: list[torch.Tensor] = list(self.target.parameters()) if self.target is not None else []
         self.update = make_update(self.online, self.target, self.optimizer, cfg, hand_written)
 
     def collect_policy(self, env_step: Callable[[], int], network: torch.nn.Module | None = None

@@ -7,13 +7,15 @@ tests/test_graphed.py compare them with it."""
 
 from __future__ import annotations
 
+from typing import Any, cast
+
 import torch
 from torch import nn
 
 from relayrl.agents.dqn.config import DQNConfig
 from relayrl.agents.dqn.losses import dqn_loss
 from relayrl.agents.dqn.losses_fast import dqn_loss_and_grads
-from relayrl.nn import mlp_fast
+from relayrl.nn import MLP, mlp_fast
 from relayrl.nn.graphed import GraphedStep, compiled, cuda_graphs_enabled
 from relayrl.optim import FastAdam
 from relayrl.types import Batch
@@ -59,8 +61,9 @@ class HandWrittenDQNUpdate(DQNUpdate):
 
     def __init__(self, online: nn.Module, target: nn.Module | None, optimizer: FastAdam, cfg: DQNConfig) -> None:
         super().__init__(online, target, optimizer, cfg)
-        self.fast_online = mlp_fast.MLPFast(online)
-        self.fast_target = mlp_fast.MLPFast(target) if target is not None else None
+        # make_update checked mlp_fast.supports: a plain MLP (the target its copy)
+        self.fast_online = mlp_fast.MLPFast(cast(MLP, online))
+        self.fast_target = mlp_fast.MLPFast(cast(MLP, target)) if target is not None else None
         self.flat_grad, self.grads = mlp_fast.grad_buffers(online)
 
     def __call__(self, batch: Batch, target_q: Tensor | None) -> dict[str, Tensor]:
@@ -86,7 +89,7 @@ class GraphedDQNUpdate(DQNUpdate):
         self.graphed = GraphedStep(self._reference)
 
     def _reference(self, *fields: Tensor | None) -> dict[str, Tensor]:
-        return DQNUpdate.__call__(self, Batch(*fields[:-1]), fields[-1])
+        return DQNUpdate.__call__(self, Batch(*cast("tuple[Any, ...]", fields[:-1])), fields[-1])  # as passed below
 
     def __call__(self, batch: Batch, target_q: Tensor | None) -> dict[str, Tensor]:
         return self.graphed(*batch, target_q)

@@ -77,7 +77,10 @@ class PPOAgent(Agent):
 
     def _bounds(self) -> tuple[np.ndarray, np.ndarray] | None:
         s = self.action_spec
-        return (s.low, s.high) if isinstance(s, ArraySpec) and not self.net.discrete else None
+        if not isinstance(s, ArraySpec) or self.net.discrete:
+            return None
+        assert s.low is not None and s.high is not None  # action_head refuses a Box without them
+        return s.low, s.high
 
     def collect_policy(self, env_step: Callable[[], int] | None = None,
                        network: torch.nn.Module | None = None) -> PPOPolicy:

@@ -50,7 +50,9 @@ class PPODevicePolicy(Policy):
 
     def env_action(self, action: torch.Tensor) -> torch.Tensor:
         """What the env receives for `action`: clipped or squashed into the bounds."""
-        return action if self.low is None else to_bounds(action, self.low, self.high, self.squash == "tanh")
+        if self.low is None or self.high is None:  # set together, from `bounds`
+            return action
+        return to_bounds(action, self.low, self.high, self.squash == "tanh")
 
     def state_dict(self) -> dict[str, Any]:
         return {"gen": self.gen.get_state()}

@@ -21,7 +21,8 @@ def policy_loss(log_prob: torch.Tensor, old_log_prob: torch.Tensor, advantages: 
     log_ratio = log_prob - old_log_prob
     ratio = log_ratio.exp()
     unclipped = ratio * advantages
-    clipped = ratio.clamp(1.0 - clip_range, 1.0 + clip_range) * advantages
+    # Both bounds floats or both tensors, which clamp's overloads take; mypy splits the union per argument.
+    clipped = ratio.clamp(1.0 - clip_range, 1.0 + clip_range) * advantages  # type: ignore[arg-type]
     loss = -torch.minimum(unclipped, clipped).mean()
     with torch.no_grad():
         approx_kl = ((ratio - 1.0) - log_ratio).mean()

@@ -26,7 +26,7 @@ class HeadGrads(NamedTuple):
     value: Tensor  # d loss / d values [N, 1]
 
 
-def _surrogate(logp: Tensor, old_logp: Tensor, adv: Tensor, clip_range: float) -> tuple[Tensor, Tensor]:
+def _surrogate(logp: Tensor, old_logp: Tensor, adv: Tensor, clip_range: float | Tensor) -> tuple[Tensor, Tensor]:
     """(policy loss, approx KL, clip fraction) as `losses.policy_loss`, and d loss / d logp [N].
 
     d/dr of -min(r A, clip(r) A) is -A where the unclipped term is the smaller or the two are
@@ -36,7 +36,8 @@ def _surrogate(logp: Tensor, old_logp: Tensor, adv: Tensor, clip_range: float) -
     log_ratio = logp - old_logp
     ratio = log_ratio.exp()
     unclipped = ratio * adv
-    clipped = ratio.clamp(1.0 - clip_range, 1.0 + clip_range) * adv
+    # Both bounds floats or both tensors, which clamp's overloads take; mypy splits the union per argument.
+    clipped = ratio.clamp(1.0 - clip_range, 1.0 + clip_range) * adv  # type: ignore[arg-type]
     loss = -torch.minimum(unclipped, clipped).mean()
     approx_kl = ((ratio - 1.0) - log_ratio).mean()
     clip_fraction = ((ratio - 1.0).abs() > clip_range).float().mean()
@@ -45,8 +46,8 @@ def _surrogate(logp: Tensor, old_logp: Tensor, adv: Tensor, clip_range: float) -
 
 
 @torch.no_grad()
-def head_grads(out: Tensor, log_std: Tensor | None, action: Tensor, values: Tensor, returns: Tensor,
-               old_logp: Tensor, adv: Tensor, clip_range: float, ent_coef: float, vf_coef: float) -> HeadGrads:
+def head_grads(out: Tensor, log_std: Tensor | None, action: Tensor, values: Tensor, returns: Tensor, old_logp: Tensor,
+               adv: Tensor, clip_range: float | Tensor, ent_coef: float, vf_coef: float) -> HeadGrads:
     """The minibatch's statistics and the loss's gradients at the heads (advantages as the loss
     sees them, i.e. already normalised where the run normalises them)."""
     n = out.shape[0]

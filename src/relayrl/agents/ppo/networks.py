@@ -14,7 +14,8 @@ from torch import nn
 from relayrl.agents.ppo.normalize import ObsNorm
 from relayrl.errors import UserError
 from relayrl.nn import MLP
-from relayrl.nn.encoders import make_encoder
+from relayrl.nn.encoders import encoder_dim, make_encoder
+from relayrl.nn.mlp import linear_layers
 from relayrl.specs import ArraySpec, DiscreteSpec, MultiBinarySpec, MultiDiscreteSpec, Spec, describe, flat_dim
 
 
@@ -47,7 +48,7 @@ def action_head(action_spec: Spec) -> ActionHead:
 
 def orthogonal_init_(net: MLP, head_gains: list[tuple[int, int, float]]) -> None:
     """Hidden layers: orthogonal, gain sqrt(2); the last layer's rows [a, b) get their gain."""
-    layers = list(net.layers)
+    layers = list(linear_layers(net))
     for layer in layers[:-1]:
         nn.init.orthogonal_(layer.weight, math.sqrt(2.0))
         nn.init.zeros_(layer.bias)
@@ -76,7 +77,7 @@ class PolicyNet(nn.Module):
             raise UserError(f"agent.normalize_obs=true normalises observations the MLP takes as they are; this env's "
                             f"{describe(obs_spec)} goes through an encoder ({type(self.encoder).__name__}) "
                             "first: set agent.normalize_obs=false")
-        self.features_dim = flat_dim(obs_spec) if self.encoder is None else int(self.encoder.out_dim)
+        self.features_dim = flat_dim(obs_spec) if self.encoder is None else encoder_dim(self.encoder)
         self.obs_norm = ObsNorm(self.features_dim) if normalize_obs else None
         self.mlp = MLP(self.features_dim, list(hidden), out + int(shared), activation)
         gains = [(0, out, 0.01)] + ([(out, out + 1, 1.0)] if shared else [])

@@ -28,6 +28,11 @@ PRIOR_COUNT = 1e-4
 class RunningMeanStd(nn.Module):
     """Mean and (population) variance over every row folded in, per element of `shape`."""
 
+    # Buffers, declared for the type checker (Module's __getattr__ types them Tensor | Module).
+    mean: torch.Tensor
+    var: torch.Tensor
+    count: torch.Tensor
+
     def __init__(self, shape: tuple[int, ...] = ()) -> None:
         super().__init__()
         self.register_buffer("mean", torch.zeros(shape, dtype=torch.float64))

@@ -94,7 +94,9 @@ class PPOPolicy(Policy):
 
     def bound(self, u: torch.Tensor) -> torch.Tensor:
         """The action the env receives for `sample`'s u: clipped or squashed into the bounds."""
-        return u if self.low is None else to_bounds(u, self.low, self.high, self.squash == "tanh")
+        if self.low is None or self.high is None:  # set together, from `bounds`
+            return u
+        return to_bounds(u, self.low, self.high, self.squash == "tanh")
 
 
 class PPOCollectPolicy(PPOPolicy):
@@ -135,6 +137,9 @@ def load(state: dict[str, Any], device: torch.device, deterministic: bool, seed:
 
 class Greedy(nn.Module):
     """argmax of the logits, or the mean clipped or squashed into the bounds: the deterministic action."""
+
+    low: torch.Tensor  # buffers of a continuous policy, declared for the type checker
+    high: torch.Tensor
 
     def __init__(self, state: dict[str, Any]) -> None:
         super().__init__()

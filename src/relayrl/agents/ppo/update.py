@@ -132,6 +132,7 @@ class HandWrittenPPOUpdate(PPOUpdate):
         self.actor.backward(g.out, saved_actor, self.actor_grads)
         self.critic.backward(g.value, saved_critic, self.critic_grads)
         if self.log_std_grad is not None:
+            assert g.log_std is not None  # head_grads gives it where there is a log_std, as here
             self.log_std_grad.copy_(g.log_std)
         if cfg.max_grad_norm > 0:
             mlp_fast.clip_flat_grad_norm_(self.flat_grad, cfg.max_grad_norm)

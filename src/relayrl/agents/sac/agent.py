@@ -49,14 +49,15 @@ class SACAgent(Agent):
         a_dim = int(np.prod(self.action_spec.shape))
         self.target_entropy = float(-a_dim if cfg.target_entropy is None else cfg.target_entropy)
         low, high = self.action_spec.low, self.action_spec.high
+        assert low is not None and high is not None  # check_action_spec takes bounded Boxes only
         # [A] replay holds env-scale actions; the critics see them rescaled to [-1, 1] as (action - loc) / half
         self.action_loc = torch.as_tensor((high + low) / 2.0, dtype=torch.float32, device=device)
         self.action_half = torch.as_tensor((high - low) / 2.0, dtype=torch.float32, device=device)
         # Training noise from its own generator, so a checkpoint restores it exactly.
         self.gen = torch.Generator(device=device)
         self.gen.manual_seed(int(rng.integers(2**62)))
-        self._critic_params = list(self.critic.parameters())
-        self._target_params = list(self.target_critic.parameters())
+        self._critic_params: list[torch.Tensor] = list(self.critic.parameters())
+        self._target_params: list[torch.Tensor] = list(self.target_critic.parameters())
         self.train_step = 0
         self._eval_policy: TanhGaussianPolicy | None = None
         self.update = make_update(self, hand_written)
@@ -67,6 +68,7 @@ class SACAgent(Agent):
 
     def _policy(self, deterministic: bool, network: torch.nn.Module | None = None) -> TanhGaussianPolicy:
         s = self.action_spec
+        assert s.low is not None and s.high is not None  # check_action_spec takes bounded Boxes only
         return TanhGaussianPolicy(network if network is not None else self.actor, s.low, s.high, self.device,
                                   deterministic, self.rng, self.cfg.log_std_min, self.cfg.log_std_max)
 

@@ -11,7 +11,7 @@ from torch import nn
 
 from relayrl.errors import UserError
 from relayrl.nn import TwinMLP
-from relayrl.nn.encoders import encoded_mlp, make_encoder
+from relayrl.nn.encoders import encoded_mlp, encoder_dim, make_encoder
 from relayrl.specs import ArraySpec, Spec, describe, flat_dim, is_bounded_box
 
 
@@ -57,4 +57,4 @@ def critic_network(obs_spec: Spec, action_spec: ArraySpec, hidden: list[int], ac
     enc = make_encoder(obs_spec, encoder)
     if enc is None:
         return TwinMLP(flat_dim(obs_spec) + flat_dim(action_spec), list(hidden), activation)
-    return EncodedTwin(enc, TwinMLP(int(enc.out_dim) + flat_dim(action_spec), list(hidden), activation))
+    return EncodedTwin(enc, TwinMLP(encoder_dim(enc) + flat_dim(action_spec), list(hidden), activation))

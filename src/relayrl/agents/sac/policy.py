@@ -21,7 +21,9 @@ def load(state: dict[str, Any], device: torch.device, deterministic: bool, seed:
 class TanhMean(nn.Module):
     """loc + scale * tanh(mean): the action at the Gaussian's mean."""
 
-    low: torch.Tensor  # buffers
+    loc: torch.Tensor  # buffers
+    scale: torch.Tensor
+    low: torch.Tensor
     high: torch.Tensor
 
     def __init__(self, state: dict[str, Any]) -> None:

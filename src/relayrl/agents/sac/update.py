@@ -7,13 +7,14 @@ tests/test_graphed.py compare them with it."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, cast
 
 import torch
 
 from relayrl.agents.sac import losses_fast
 from relayrl.agents.sac.losses import actor_loss, alpha_loss, critic_loss, critic_targets, tanh_gaussian
-from relayrl.nn import mlp_fast
+from relayrl.nn import MLP, TwinMLP, mlp_fast
 from relayrl.nn.graphed import GraphedStep, compiled, cuda_graphs_enabled
 from relayrl.optim import FastAdam
 from relayrl.types import Batch
@@ -63,7 +64,7 @@ class SACUpdate:
         q_pi = self.p.critic(obs, a_pi, detach_params=True)  # [2, N]: grads to a only
         return actor_loss(logp, q_pi, alpha, weight), logp
 
-    def _step(self, opt: FastAdam, params: list[Tensor], loss: Tensor) -> None:
+    def _step(self, opt: FastAdam, params: Sequence[Tensor], loss: Tensor) -> None:
         opt.zero_grad()
         loss.backward()
         if self.p.cfg.grad_clip > 0:
@@ -93,9 +94,10 @@ class HandWrittenSACUpdate(SACUpdate):
 
     def __init__(self, agent: SACAgent) -> None:
         super().__init__(agent)
-        self.actor = mlp_fast.MLPFast(agent.actor)
-        self.critic = mlp_fast.TwinMLPFast(agent.critic)
-        self.target = mlp_fast.TwinMLPFast(agent.target_critic)
+        # make_update checked mlp_fast.supports: a plain MLP actor and TwinMLP critics (the target a copy)
+        self.actor = mlp_fast.MLPFast(cast(MLP, agent.actor))
+        self.critic = mlp_fast.TwinMLPFast(cast(TwinMLP, agent.critic))
+        self.target = mlp_fast.TwinMLPFast(cast(TwinMLP, agent.target_critic))
         self.actor_grads = mlp_fast.grad_buffers(agent.actor)[1]  # views of one flat buffer
 
     def _step_with(self, opt: FastAdam, grads: list[Tensor]) -> None:
@@ -158,7 +160,7 @@ class GraphedSACUpdate(SACUpdate):
         self.graphed = GraphedStep(self._reference, generators=[agent.gen])
 
     def _reference(self, *fields: Tensor | None) -> dict[str, Tensor]:
-        return SACUpdate.__call__(self, Batch(*fields))
+        return SACUpdate.__call__(self, Batch(*cast("tuple[Any, ...]", fields)))  # the fields `__call__` passed
 
     def __call__(self, batch: Batch) -> dict[str, Tensor]:
         return self.graphed(*batch)

@@ -175,11 +175,14 @@ class StatelessGymEnv(gym.Env):
         self.env = STATELESS_ENVS[env_id](max_episode_steps, "cpu")
         spec = self.env.observation_spec["observation"]
         act = self.env.action_spec
+        # STATELESS_ENVS' observations and actions are bounded, as a Box needs
+        assert spec.low is not None and spec.high is not None and act.low is not None and act.high is not None
         self.observation_space = gym.spaces.Box(spec.low.astype(np.float32), spec.high.astype(np.float32),
                                                 dtype=np.float32)
         self.action_space = gym.spaces.Box(act.low.astype(np.float32), act.high.astype(np.float32), dtype=np.float32)
         self.render_mode = render_mode
-        self._gen, self._state, self._last_u = torch.Generator(), None, None
+        self._gen, self._state = torch.Generator(), None
+        self._last_u: float | None = None  # the last torque, for the renderer
         self._renderer = gym.make("Pendulum-v1", render_mode="rgb_array").unwrapped if render_mode else None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:

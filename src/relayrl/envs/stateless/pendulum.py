@@ -16,7 +16,7 @@ over long free runs (up to ~1e-2 after 200 steps from some states).
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Any, NamedTuple, cast
 
 import torch
 
@@ -87,9 +87,11 @@ class Pendulum(StatelessEnv[PendulumState, PendulumParams]):
         worst = math.pi**2 + 0.1 * max_speed**2 + 0.001 * max_torque**2
         self.reward_spec = bounded((), dtype, -worst, 0.0)
         self.done_spec = ArraySpec((), torch.bool)
+        # Specs where the state holds tensors (StatelessEnv.state_spec), which the NamedTuples' fields do not say.
+        leaf: Any = scalar
         self.state_spec = PendulumState(
-            th=scalar, thdot=self.observation_spec["thdot"], step=bounded((), torch.int64, 0, None),
-            params=PendulumParams(*([scalar] * len(PendulumParams._fields))),
+            th=leaf, thdot=cast(Any, self.observation_spec["thdot"]), step=cast(Any, bounded((), torch.int64, 0, None)),
+            params=PendulumParams(*([leaf] * len(PendulumParams._fields))),
         )
 
     def reset(self, batch_shape: BatchShape = (), generator: torch.Generator | None = None,
