@@ -148,14 +148,15 @@ def test_an_algorithm_without_a_replay_takes_no_replay_key_and_lists_none(name, 
     assert "\n[replay]\n" in config_toml(load_config("dqn"))
 
 
-def test_the_keys_stable_baselines3_names_are_pointed_to_exist():
+@pytest.mark.parametrize("table", ["SB3_NAMES", "CLEANRL_NAMES"])
+def test_the_keys_other_libraries_names_are_pointed_to_exist(table):
+    from relayrl import config_fields
     from relayrl.config import dotted, to_dict
-    from relayrl.config_fields import SB3_NAMES
 
     keys = set()
     for algo in ("dqn", "sac", "ppo"):
         keys |= set(dotted(to_dict(load_config(algo))))
-    for target in SB3_NAMES.values():
+    for target in getattr(config_fields, table).values():
         for word in target.replace(",", " ").replace(";", " ").replace("(", " ").replace(")", " ").split():
             if word.startswith(("train.", "agent.", "replay.", "env.")):
                 assert word in keys, word
@@ -183,19 +184,6 @@ def test_cleanrl_names_point_to_their_counterparts(over, words):
 def test_cleanrl_names_of_dqn_and_sac_point_to_their_counterparts(algo, over, words):
     with pytest.raises(ConfigError, match=re.escape(words)):
         load_config(algo, [over])
-
-
-def test_the_keys_cleanrl_names_are_pointed_to_exist():
-    from relayrl.config import dotted, to_dict
-    from relayrl.config_fields import CLEANRL_NAMES
-
-    keys = set()
-    for algo in ("dqn", "sac", "ppo"):
-        keys |= set(dotted(to_dict(load_config(algo))))
-    for target in CLEANRL_NAMES.values():
-        for word in target.replace(",", " ").replace(";", " ").replace("(", " ").replace(")", " ").split():
-            if word.startswith(("train.", "agent.", "replay.", "env.")):
-                assert word in keys, word
 
 
 def test_a_replay_smaller_than_what_learning_waits_for_names_the_key_that_set_it(tmp_path):

@@ -374,18 +374,6 @@ class Sloppy(Countdown):
         return np.array([self.t, 0], np.float32), {}
 
 
-class SloppyFloat64(Sloppy):
-    """Sloppy whose observations are float64 where its space says float32, as a simulator's are."""
-
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        obs, info = super().reset(seed=seed, options=options)
-        return obs.astype(np.float64), info
-
-    def step(self, action):
-        obs, reward, terminated, truncated, info = super().step(action)
-        return obs.astype(np.float64), reward, terminated, truncated, info
-
-
 def double_reward(env: gym.Env) -> gym.Env:
     """An env.wrappers entry: rewards times 2."""
     return gym.wrappers.TransformReward(env, lambda r: 2 * r)
@@ -488,6 +476,10 @@ class Float64Obs(Countdown):
     def step(self, action):
         obs, reward, terminated, truncated, info = super().step(action)
         return obs.astype(np.float64), reward, terminated, truncated, info
+
+
+class SloppyFloat64(Float64Obs, Sloppy):
+    """Sloppy whose observations are float64 where its space says float32, as a simulator's are."""
 
 
 class NoRender(Countdown):
