@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import time
+import traceback
 from collections.abc import Callable, Iterator
 
 import numpy as np
@@ -144,6 +145,16 @@ def async_env(env_id: str, num_envs: int):
         yield env
     finally:
         env.close()
+
+
+def test_an_async_workers_env_error_names_its_copy_once():
+    """The worker's traceback (a note) ends where the exception's own notes begin: the copy that
+    raised is named once, not again at the end of that traceback."""
+    with async_env("toy_envs:BrokenInWorker", 4) as env, pytest.raises(ValueError) as raised:
+        env.step(torch.zeros(4, dtype=torch.int64))
+    shown = "".join(traceback.format_exception(raised.value))
+    assert shown.count("relayrl: raised by step() of env copy 1") == 1
+    assert "(raised in env worker 0; its traceback there:)" in shown and "in step" in shown
 
 
 def test_async_worker_errors_reach_the_main_process():

@@ -174,7 +174,13 @@ def worker_failure(w: int, trace: str, pickled: bytes | None) -> Exception:
         with contextlib.suppress(Exception):
             exc = pickle.loads(pickled)
     if isinstance(exc, Exception):
-        exc.add_note(f"(raised in env worker {w}; its traceback there:)\n{trace.rstrip()}")
+        trace = trace.rstrip()
+        # the traceback ends with the exception's notes (GymBatchEnv's copy it names), which it
+        # carries here too: said once, as its own notes
+        said = "\n".join(getattr(exc, "__notes__", []))
+        if said and trace.endswith("\n" + said):
+            trace = trace[:-len(said)].rstrip()
+        exc.add_note(f"(raised in env worker {w}; its traceback there:)\n{trace}")
         return exc
     return RuntimeError(f"env worker {w} failed:\n{trace}")
 
