@@ -14,6 +14,7 @@ import subprocess
 import sys
 import threading
 import time
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -300,6 +301,9 @@ def test_an_env_error_in_a_rollout_actor_names_that_actors_env_step(tmp_path):
         relayrl.train(relayrl.load_config("dqn-cartpole-fast", over), tmp_path / "run", progress=False)
     said = str(caught.value) + " ".join(getattr(caught.value, "__notes__", []))
     assert "relayrl: raised at env step 45 of rollout actor 0" in said and "of training" not in said
+    shown = "".join(traceback.format_exception(caught.value))  # the remote traceback's notes, said once
+    assert shown.count("relayrl: raised by step() of env copy 0") == 1
+    assert shown.count("relayrl: raised at env step 45") == 1 and shown.count("the run stopped at") == 1
 
 
 def checkpoint_steps(run: Path) -> list[int]:

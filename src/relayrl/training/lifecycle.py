@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import random
+import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -355,6 +356,7 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         # the cause, where it was collected: a NaN reward is named, not the TD error it made
         raise stop(core.finite.check() or str(e), core.kept()) from None
     except Exception as e:  # the env's own exception, or a failure: what is kept is said with it
+        _own_notes(e)
         if not training:
             raise
         stopped_at = f"the run stopped at env step {core.env_steps():,}"
@@ -367,6 +369,16 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         raise
     finally:
         report.close()
+
+
+def _own_notes(e: BaseException) -> None:
+    """Ray's exception for a remote one (a RayTaskError that is also the cause's class) reads its
+    notes through the cause (its __getattr__), while its message already holds the remote
+    traceback that ends with them (the env copy and the rollout actor's env steps): a list of its
+    own, so each is said once and the run's note is its own."""
+    ray_errors = sys.modules.get("ray.exceptions")
+    if ray_errors is not None and isinstance(e, ray_errors.RayTaskError) and "__notes__" not in vars(e):
+        e.__notes__ = []
 
 
 def crash_kept(core: RunCore) -> str:
