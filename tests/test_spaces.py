@@ -638,3 +638,15 @@ def test_dqns_atari_network_on_other_frames_names_their_layout_and_the_way_round
     with pytest.raises(UserError, match=r"needs uint8 frames \[C, H, W\], channels first .* are (Box|Dict)\(.*use "
                                         r"agent.network='mlp' with agent.encoder"):
         q_network(spec_from_space(space), spec_from_space(gym.spaces.Discrete(2), "action"), cfg)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_a_loaded_policy_on_cuda_takes_a_multidiscrete_batch_on_cuda(tmp_path):
+    """The batched tensor path checks a MultiDiscrete's values against its nvec on the
+    observations' device (a CPU nvec against CUDA observations was a device mismatch)."""
+    relayrl.train(short_config("dqn", "multi_discrete", "discrete"), tmp_path, progress=False)
+    policy = relayrl.load_policy(tmp_path, device="cuda")
+    obs = torch.tensor([[0, 2], [1, 0]], device="cuda")
+    assert policy(obs).device.type == "cuda"
+    with pytest.raises(UserError, match="outside this policy's"):
+        policy(torch.tensor([[0, 3]], device="cuda"))

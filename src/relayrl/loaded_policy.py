@@ -196,7 +196,8 @@ def _check_values(t: torch.Tensor, s: Spec, where: str = "") -> None:
                             + (" (frames as 0..255, not scaled to [0, 1])" if is_image(s, any_bounds=True) else ""))
     _check_range(t, s, where)
     high = value_limit(s)  # floats too: whole numbers by now
-    if high is not None and t.numel() and bool((t < 0).any() or (t >= torch.as_tensor(high)).any()):
+    # on t's device: a MultiDiscrete's nvec is no 0-dim tensor, which alone may stay on the CPU
+    if high is not None and t.numel() and bool((t < 0).any() or (t >= torch.as_tensor(high, device=t.device)).any()):
         raise UserError(f"observation{where} {t.tolist()} is outside this policy's {describe(s)} space")
 
 
