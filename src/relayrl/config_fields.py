@@ -110,7 +110,8 @@ SB3_NAMES = {
                   "train_freq x env.num_envs; a train_freq in episodes has no counterpart)",
     "learning_starts": "train.initial_collect_steps",
     "buffer_size": "replay.size",
-    "total_timesteps": "train.total_steps",
+    "total_timesteps": "train.total_steps (a hard end: PPO's last rollout, where it does not fit, is collected but "
+                       "not learned from, where SB3 runs it whole past total_timesteps)",
     "n_timesteps": "train.total_steps",  # RL Zoo's files
     "normalize": "PPO's agent.normalize_obs and agent.normalize_reward (RL Zoo's VecNormalize)",
     "n_envs": "env.num_envs",
