@@ -1,6 +1,7 @@
 """Config: presets, --set overrides, type checks, TOML round trip."""
 
 import re
+import tomllib
 
 import pytest
 
@@ -156,10 +157,38 @@ def test_the_keys_other_libraries_names_are_pointed_to_exist(table):
     keys = set()
     for algo in ("dqn", "sac", "ppo"):
         keys |= set(dotted(to_dict(load_config(algo))))
+    keys.add("env.kwargs")  # a table: dotted() lists its entries, and the defaults have none
     for target in getattr(config_fields, table).values():
         for word in target.replace(",", " ").replace(";", " ").replace("(", " ").replace(")", " ").split():
             if word.startswith(("train.", "agent.", "replay.", "env.")):
                 assert word in keys, word
+
+
+@pytest.mark.parametrize("over, words", [
+    ("env_kwargs={length=8}", "Stable-Baselines3's env_kwargs is env.kwargs"),  # was: did you mean 'eval.env_kwargs'?
+    ("env.env_kwargs={length=8}", "Stable-Baselines3's env_kwargs is env.kwargs"),
+    ("eval.eval_freq=1000", "Stable-Baselines3's eval_freq is eval.interval"),  # was: the eval section's keys
+    ("eval_freq=1000", "Stable-Baselines3's eval_freq is eval.interval"),  # was: did you mean 'eval'?
+    ("n_eval_episodes=5", "Stable-Baselines3's n_eval_episodes is eval.episodes"),
+    ("train.save_freq=1000", "Stable-Baselines3's save_freq is train.checkpoint_interval"),
+    ("reset_num_timesteps=false", "train.total_steps is then the new total, not the steps to add"),
+])
+def test_a_ported_sb3_scripts_argument_names_point_to_their_counterparts(over, words):
+    """make_vec_env's, EvalCallback's, CheckpointCallback's and learn()'s names, as a ported script
+    brings them; env_kwargs is not eval.env_kwargs (evaluation's only), where its name sits."""
+    with pytest.raises(ConfigError, match=re.escape(words)):
+        load_config("ppo", [over])
+    with pytest.raises(ConfigError, match=re.escape(words)):  # in Python, as a dict
+        from_dict({"algo": "ppo", **nest(over)})
+
+
+def nest(over: str) -> dict:
+    key, _, value = over.partition("=")
+    *sections, last = key.split(".")
+    out: dict = {last: tomllib.loads(f"v = {value}")["v"]}
+    for section in reversed(sections):
+        out = {section: out}
+    return out
 
 
 @pytest.mark.parametrize("over, words", [

@@ -124,3 +124,13 @@ def test_readme_run_directory_names_every_column_of_an_evaluation_row(tmp_path):
     named = set(re.findall(r"[\w/]+", listing))
     missing = [k for k in row if k not in named and k.split("/")[0] + "/..." not in listing]
     assert not missing, f"metrics.jsonl columns the README's run directory listing does not name: {missing}"
+
+
+def test_readme_says_predict_defaults_otherwise_than_sb3s():
+    """SB3's model.predict(obs) samples; a loaded policy's predict(obs) acts as it was loaded
+    (greedy by default): a ported script's bare predict changes meaning, and the README says so."""
+    import relayrl.loaded_policy as lp
+
+    text = " ".join((ROOT / "README.md").read_text().split())
+    assert "Stable-Baselines3's `predict` defaults to `deterministic=False`" in text
+    assert "deterministic: bool | None = None" in Path(lp.__file__).read_text()  # still the loaded mode's default

@@ -222,6 +222,21 @@ def test_a_batch_size_that_does_not_divide_the_rollout_is_said_at_the_start(tmp_
     assert "does not divide" not in capsys.readouterr().err
 
 
+def test_a_total_that_ends_in_a_partial_rollout_is_said_at_the_start(tmp_path, capsys):
+    """SB3's learn(6000) with rollouts of 1024 trains on 6 (to 6,144 steps); here the run ends at
+    6,000 and its last 880 steps, collected, are never learned from: said, not silent."""
+    over = ["env.num_envs=4", "train.collect_steps=128", "train.total_steps=300", "eval.interval=0"]
+    rows: list[dict] = []
+    relayrl.train(relayrl.load_config("ppo", over), tmp_path / "r", progress=False, callbacks=[rows.append])
+    assert ("train.total_steps=300 is not a whole number of rollouts of 128 env steps: the last 44 env steps are "
+            "collected but not learned from (SB3's learn() would run one more whole rollout, to 384); "
+            "train.total_steps=256 or 384 avoids it") in capsys.readouterr().err
+    assert rows[-1]["step"] == 300 and rows[-1]["train_step"] == 2 * 10 * 2  # 2 rollouts x 10 epochs x 2 minibatches
+    relayrl.train(relayrl.load_config("ppo", over[:2] + ["train.total_steps=256", "eval.interval=0"]), tmp_path / "s",
+                  progress=False)
+    assert "whole number of rollouts" not in capsys.readouterr().err
+
+
 def test_an_undefined_explained_variance_is_not_taken_for_divergence():
     """A rollout of equal returns (gamma 0 on CartPole) makes Var[R] = 0: the explained variance
     is NaN there, as in SB3, and the run goes on; a NaN loss still stops it."""

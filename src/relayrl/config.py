@@ -17,7 +17,7 @@ from typing import Any
 
 from relayrl import atomic
 from relayrl.agents.registry import ALGORITHMS, DEFAULT_ALGO, algorithm
-from relayrl.config_fields import Section, commented_toml, unknown_key
+from relayrl.config_fields import SB3_NAMES, Section, commented_toml, unknown_key
 from relayrl.errors import ConfigError
 from relayrl.seeding import seed_problem
 
@@ -326,7 +326,9 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
         if key not in names:
             home = [f"{n}.{key}" for n in names if dataclasses.is_dataclass(section := getattr(obj, n))
                     and key in {f.name for f in dataclasses.fields(section)}]
-            if home:  # {"total_steps": ...} at the top: the key sits in a section
+            # SB3's env_kwargs is env.kwargs, not the eval.env_kwargs its name sits in: SB3's own line
+            sb3_elsewhere = key in SB3_NAMES and not any(h in SB3_NAMES[key] for h in home)
+            if home and not sb3_elsewhere:  # {"total_steps": ...} at the top: the key sits in a section
                 raise ConfigError(f"unknown config key {path!r}; did you mean {' or '.join(map(repr, home))}? (keys "
                                   "sit in their sections)")
             owners = sorted(a for a, entry in ALGORITHMS.items() if prefix == "agent."

@@ -110,7 +110,8 @@ SB3_NAMES = {
                   "train_freq x env.num_envs; a train_freq in episodes has no counterpart)",
     "learning_starts": "train.initial_collect_steps",
     "buffer_size": "replay.size",
-    "total_timesteps": "train.total_steps",
+    "total_timesteps": "train.total_steps (a hard end: PPO's last rollout, where it does not fit, is collected but "
+                       "not learned from, where SB3 runs it whole past total_timesteps)",
     "n_timesteps": "train.total_steps",  # RL Zoo's files
     "normalize": "PPO's agent.normalize_obs and agent.normalize_reward (RL Zoo's VecNormalize)",
     "n_envs": "env.num_envs",
@@ -153,6 +154,22 @@ SB3_NAMES = {
     "replay_buffer_kwargs": _NO_HER,
     "goal_selection_strategy": _NO_HER,
     "n_sampled_goal": _NO_HER,
+    # make_vec_env's, the callbacks' and learn()'s arguments: a ported training script's, where a
+    # near miss would point elsewhere (env_kwargs: eval.env_kwargs, which is evaluation's only).
+    "env_kwargs": "env.kwargs (make_vec_env's env_kwargs: keyword arguments of the env class or gymnasium.make, "
+                  "for training and evaluation envs alike)",
+    "vec_env_cls": "env.vectorization (SubprocVecEnv: async, worker processes; DummyVecEnv: sync)",
+    "eval_freq": "eval.interval, in env steps over all env.num_envs copies (EvalCallback counts one per batched "
+                 "step: SB3's eval_freq x env.num_envs); relayrl also evaluates at step 0 and at the end",
+    "n_eval_episodes": "eval.episodes",
+    "save_freq": "train.checkpoint_interval (CheckpointCallback's save_freq x env.num_envs, in env steps; "
+                 "train.policy_save_interval for the policy file alone)",
+    "reward_threshold": "a callback: relayrl.train(config, run_dir, callbacks=[lambda row: "
+                        "row.get('average_return', -1e9) < X]) stops at an evaluation return of X "
+                        "(StopTrainingOnRewardThreshold)",
+    "reset_num_timesteps": "none: relayrl.train(None, run_dir, resume=True) (--resume) goes on, and "
+                           "train.total_steps is then the new total, not the steps to add (SB3's learn(N, "
+                           "reset_num_timesteps=False) after M steps: train.total_steps = M + N)",
     "action_noise": "none: SAC explores by sampling its own tanh-squashed Gaussian (how widely: agent.init_alpha "
                     "and agent.target_entropy), PPO its Gaussian (agent.log_std_init); no noise is added on top",
 }

@@ -139,6 +139,21 @@ def minibatch_note(config: Config) -> str | None:
             f"{steps % size}, which takes a whole gradient step; a batch_size that divides {steps:,} avoids it")
 
 
+def partial_rollout_note(config: Config) -> str | None:
+    """A line where train.total_steps is not a whole number of on-policy rollouts: the last,
+    shorter one is collected (and counted) but never learned from, where SB3's learn() runs one
+    more whole rollout past total_timesteps and trains on it."""
+    if algorithm(config.algo).replay != "rollouts" or config.train.gradient_steps == 0:
+        return None
+    steps, total = config.steps_per_iteration(), config.train.total_steps
+    if (left := total % steps) == 0:
+        return None
+    whole = total - left
+    return (f"train.total_steps={total:,} is not a whole number of rollouts of {steps:,} env steps: the last "
+            f"{left:,} env steps are collected but not learned from (SB3's learn() would run one more whole rollout, "
+            f"to {whole + steps:,}); train.total_steps={whole:,} or {whole + steps:,} avoids it")
+
+
 def make_learner(config: Config, agent: Agent, table: Any, device: torch.device, variables: Any,
                  whole_rollouts: bool) -> Learner:
     """A rollout queue's learner (`whole_rollouts`) takes one rollout per step, which the agent
@@ -310,8 +325,9 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if 0 < c.train.total_steps <= c.train.initial_collect_steps:
             core.say(f"train.initial_collect_steps={c.train.initial_collect_steps:,} >= train.total_steps="
                      f"{c.train.total_steps:,}: the run takes random actions only and learns nothing")
-        if (note := minibatch_note(c)) is not None:
-            core.say(note)
+        for note in (minibatch_note(c), partial_rollout_note(c)):
+            if note is not None:
+                core.say(note)
         if c.distributed.address and c.distributed.num_actors == 0:
             core.say(f"distributed.address={c.distributed.address!r} with distributed.num_actors=0: the run trains "
                      "in this process (set distributed.num_actors=K for K rollout actors on Ray)")
