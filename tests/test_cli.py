@@ -292,3 +292,14 @@ def test_eval_stochastic_samples_the_policy_repeatably(tmp_path, capsys):
         results.append(json.loads(capsys.readouterr().out)["average_return"])
     mean, sampled, again, other_seed = results
     assert sampled == again and sampled != mean and other_seed != sampled
+
+
+def test_a_windows_style_run_dir_gets_a_note_on_posix():
+    """`--run-dir runs\\lab1` on Linux is one folder named with a backslash, not lab1 in runs."""
+    from relayrl.cli import backslash_note
+
+    assert backslash_note("runs/lab1") is None
+    if sys.platform != "win32":
+        note = backslash_note("C:\\Users\\me\\lab1")
+        assert note is not None and "--run-dir 'C:\\Users\\me\\lab1' has a backslash" in note
+        assert "write 'C:/Users/me/lab1' for nested folders" in note

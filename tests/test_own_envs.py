@@ -125,6 +125,14 @@ def test_kwargs_reach_gymnasium_make():
         make_env("toy_envs:Countdown", 1, kwargs={"nope": 1})
 
 
+def test_a_registered_envs_rejected_kwarg_value_is_one_line():
+    """FrozenLake's map_name="8X8" raises KeyError in its constructor: a typo in env.kwargs."""
+    with pytest.raises(UserError, match=r"does not take the env.kwargs values given \(KeyError: '8X8'\); "
+                                        r"env.kwargs passed: \{'map_name': '8X8'\}"):
+        make_env("FrozenLake-v1", 1, kwargs={"map_name": "8X8"})
+    make_env("FrozenLake-v1", 1, kwargs={"map_name": "8x8"}, max_episode_steps=50).close()  # a valid value
+
+
 def test_bad_wrappers_are_one_line():
     with pytest.raises(UserError, match="is not package.module:Callable"):
         make_env("CartPole-v1", wrappers=["toy_envs.double_reward"])

@@ -123,6 +123,19 @@ def build_parser() -> _Parser:
     return p
 
 
+def backslash_note(run_dir: str) -> str | None:
+    """A Windows-style --run-dir (`runs\\lab1`, `C:\\Users\\...`) on an OS whose separator is "/":
+    there the backslash is part of one folder's name, so the run would not land where it was meant
+    to. A note, not a refusal: such a name is legal, only almost never wanted."""
+    if os.sep != "/" or "\\" not in run_dir:
+        return None
+    slashed = run_dir.replace("\\", "/")
+    # quoted by hand: repr would double every backslash of the name the user typed
+    return (f"relayrl: note: --run-dir '{run_dir}' has a backslash, which on this OS is part of a folder's "
+            f"name, not a separator: the run goes into one folder of that name (write '{slashed}' for "
+            f"nested folders)")
+
+
 def _train(args: argparse.Namespace) -> None:
     from relayrl.dispatch import RESUME_OR_OVERWRITE, check_resume_matches, default_run_dir, train
     from relayrl.presets import load_config
@@ -143,6 +156,8 @@ def _train(args: argparse.Namespace) -> None:
     else:
         config = load_config(args.config, args.overrides, args.seed)
     args.run_dir = args.run_dir or str(default_run_dir(config))  # named here: an interrupt's line names it
+    if not args.resume and (note := backslash_note(args.run_dir)):
+        print(note, file=sys.stderr, flush=True)
     result = train(config, args.run_dir, resume=args.resume, progress=not args.no_progress,
                    overwrite=args.overwrite)
     final = result.final

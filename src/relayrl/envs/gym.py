@@ -267,6 +267,7 @@ def _custom_fn(env_id: str, make: Callable[..., Any], kwargs: dict[str, Any], ma
 
 
 def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, module: str = "") -> EnvFn:
+    given = dict(kwargs)  # the user's env.kwargs, without the time limit added below
     if max_episode_steps > 0:
         kwargs = {**kwargs, "max_episode_steps": max_episode_steps}
 
@@ -287,6 +288,14 @@ def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, 
                 raise
             raise UserError(f"env.id={env_id!r} does not take the arguments given ({e}); "
                             f"env.kwargs passed: {sorted(kwargs)}") from None
+        except (KeyError, ValueError) as e:
+            # a registered env that rejects a value it was given (FrozenLake's map_name="8X8": a
+            # KeyError of its map table) is a typo in env.kwargs, not a bug of the env; without
+            # env.kwargs, or from a user's module, it is their code's traceback that helps
+            if not given or module:
+                raise
+            raise UserError(f"env.id={env_id!r} does not take the env.kwargs values given "
+                            f"({type(e).__name__}: {e}); env.kwargs passed: {given}") from None
 
     return make_registered
 
