@@ -303,3 +303,24 @@ def test_a_windows_style_run_dir_gets_a_note_on_posix():
         note = backslash_note("C:\\Users\\me\\lab1")
         assert note is not None and "--run-dir 'C:\\Users\\me\\lab1' has a backslash" in note
         assert "write 'C:/Users/me/lab1' for nested folders" in note
+
+
+def test_a_sigterm_that_ray_turned_into_a_plain_keyboard_interrupt_still_exits_143(monkeypatch, capsys):
+    """Ray's blocking calls catch the Terminated that the SIGTERM handler raised in them and raise
+    a plain KeyboardInterrupt: the run was still terminated, and says so as a kill (143), not as
+    Ctrl-C (130)."""
+    import signal
+
+    from relayrl import cli
+
+    def train_inside_ray_get(args):
+        try:
+            cli._on_sigterm(signal.SIGTERM, None)
+        except KeyboardInterrupt:
+            raise KeyboardInterrupt from None  # what ray.get raises
+
+    monkeypatch.setattr(cli, "_train", train_inside_ray_get)
+    assert cli.main(["train", "dqn-cartpole"]) == 143
+    assert "relayrl: terminated" in capsys.readouterr().err
+    monkeypatch.setattr(cli, "_train", lambda args: (_ for _ in ()).throw(KeyboardInterrupt))  # Ctrl-C
+    assert cli.main(["train", "dqn-cartpole"]) == 130

@@ -207,7 +207,13 @@ class Terminated(KeyboardInterrupt):
     Ctrl-C, so Ray actors and env worker processes are shut down instead of orphaned."""
 
 
+# The SIGTERMs `_on_sigterm` acted on: Ray's blocking calls catch a KeyboardInterrupt raised in
+# them (a Terminated too) and raise a plain one, so the exception's type alone can lose the signal.
+_TERMINATED: set[int] = set()
+
+
 def _on_sigterm(signum: int, frame: object) -> NoReturn:
+    _TERMINATED.add(signum)
     raise Terminated
 
 
@@ -256,6 +262,7 @@ def main(argv: list[str] | None = None) -> int:
             for name, desc in list_presets().items():
                 print(f"{name}\t{desc}")
         elif args.command == "train":
+            _TERMINATED.clear()
             previous = signal.signal(signal.SIGTERM, _on_sigterm)
             try:
                 _train(args)
@@ -302,7 +309,8 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt as e:
         # 128 + the signal's number, as shells report it
-        what, code = ("terminated", 143) if isinstance(e, Terminated) else ("interrupted", 130)
+        terminated = isinstance(e, Terminated) or signal.SIGTERM in _TERMINATED
+        what, code = ("terminated", 143) if terminated else ("interrupted", 130)
         print(_interrupted_line(what, args), file=sys.stderr)
         return code
     return 0
