@@ -47,10 +47,11 @@ EITHER = "created, or one line"  # the run succeeds, or says in one line why not
 
 # Every item of the "No tracebacks from user input" list: CLI arguments (one line on
 # stderr, exit 2) or a Python callable (a clear exception).
+SEED_RANGE = "it must be an integer in [0, 9223372036854775807]"
 CASES = [
-    pytest.param(lambda tmp, run: ["train", "dqn-cartpole-fast", "--seed", "-1"], "it must be an integer in [0, 9223372036854775807]", id="seed -1"),
+    pytest.param(lambda tmp, run: ["train", "dqn-cartpole-fast", "--seed", "-1"], SEED_RANGE, id="seed -1"),
     pytest.param(lambda tmp, run: ["train", "dqn-cartpole-fast", "--seed", "99999999999999999999"],
-                 "it must be an integer in [0, 9223372036854775807]", id="seed too large"),
+                 SEED_RANGE, id="seed too large"),
     pytest.param(lambda tmp, run: ["train", "dqn-cartpole-fast", "--run-dir", str(run / "config.toml"), *TINY_SET],
                  "", id="run-dir on an existing file"),
     pytest.param(lambda tmp, run: ["train", "dqn-cartpole-fast", "--run-dir", "/proc/relayrl-no/run", *TINY_SET],
@@ -67,8 +68,8 @@ CASES = [
                  id="export --out into a missing folder"),
     pytest.param(lambda tmp, run: ["plot", str(run), "--out", str(run / "config.toml" / "r.png")],
                  "cannot create the folder of --out", id="plot --out under a file"),
-    pytest.param(lambda tmp, run: ["eval", str(run), "--seed", "-1"], "it must be an integer in [0, 9223372036854775807]", id="eval --seed -1"),
-    pytest.param(lambda tmp, run: ["video", str(run), "--seed", "-1"], "it must be an integer in [0, 9223372036854775807]", id="video --seed -1"),
+    pytest.param(lambda tmp, run: ["eval", str(run), "--seed", "-1"], SEED_RANGE, id="eval --seed -1"),
+    pytest.param(lambda tmp, run: ["video", str(run), "--seed", "-1"], SEED_RANGE, id="video --seed -1"),
     pytest.param(_python_wrong_type, None, id="python total_steps = 'abc'"),
     pytest.param(_python_mistyped_key, None, id="python total_step = 100"),
 ]
