@@ -205,3 +205,11 @@ def test_checkpoint_keep_says_how_many_of_the_newest_stay(tmp_path, keep, expect
                                                     "eval.interval=0", "eval.episodes=1", "train.torch_threads=1"])
     relayrl.train(cfg, tmp_path / "r", progress=False)
     assert [int(p.stem.split("-")[1]) for p in list_checkpoints(tmp_path / "r" / "checkpoints")] == expected
+
+
+def test_the_console_says_once_what_an_evaluation_line_holds(tmp_path, capsys):
+    relayrl.train(relayrl.load_config("dqn-cartpole-fast", SMALL), tmp_path / "r",
+                  progress=False)
+    err = capsys.readouterr().err
+    legend = "evaluations: mean return and length of 3 episodes of the policy acting without exploration"
+    assert err.count(legend) == 1 and err.index(legend) < err.index("eval return"), err

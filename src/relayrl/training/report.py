@@ -71,6 +71,7 @@ class RunReport:
         self.interrupted: int | None = None  # the signal (Ctrl-C, SIGTERM) that asked the run to stop
         self.stopped_by: set[int] = set()  # the callbacks (by index) that returned False
         self.last_eval: dict[str, Any] = {}
+        self.legend_said = False  # what an evaluation's console line holds, said above the first
         self.started = (time.perf_counter(), Progress(0, 0))  # when and where reporting began: the run's sps
         self.tb: Any = None
         self.metrics_log: MetricsLog | None = None
@@ -204,6 +205,10 @@ class RunReport:
             if k.startswith("eval/"):
                 self.tb.add_scalar(k, v, p.env_steps)
         self.last_eval = row
+        if not self.legend_said:
+            self.legend_said = True
+            self.say(f"evaluations: mean return and length of {self.config.eval.episodes} episodes of the policy "
+                     "acting without exploration (its greedy or mean action), then the run's wall-clock time so far")
         self.say(f"step {p.env_steps:>9,} | eval return {result['average_return']:8.2f} "
                  f"| length {result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
         self.call_back("eval", row)
