@@ -14,6 +14,8 @@ from toy_envs import Countdown, Repeated
 
 import relayrl
 from relayrl.errors import UserError
+from relayrl.plot import seed_groups
+from relayrl.training.run_dir import RunDir
 
 TINY = {"algo": "dqn", "env": {"id": "toy_envs:Countdown", "check": False},
         "train": {"total_steps": 200, "initial_collect_steps": 50, "checkpoint_interval": 100,
@@ -392,6 +394,11 @@ def test_several_runs_plot_in_one_panel(run_dir, tmp_path, capsys):
     capsys.readouterr()
     assert main(["plot", str(sweep / "seed1"), str(sweep / "seed2")]) == 0
     assert capsys.readouterr().out.strip() == str(sweep / "compare.png") and (sweep / "compare.png").stat().st_size
+    # one setting's seeds are one curve (mean, min-max band); another setting is a curve of its own
+    relayrl.train({**TINY, "seed": 1, "agent": {"lr": 3e-4}}, sweep / "other", progress=False)
+    runs = [RunDir(sweep / n) for n in ("seed1", "other", "seed2")]
+    assert seed_groups(runs) == [[0, 2], [1]]
+    assert relayrl.plot_run([r.root for r in runs]).stat().st_size > 0
     with pytest.raises(UserError, match="in different folders: give --out PATH"):
         relayrl.plot_run([sweep / "seed1", run_dir])
     assert relayrl.plot_run([sweep / "seed1", run_dir], tmp_path / "both.svg").stat().st_size > 0

@@ -1,10 +1,12 @@
 """`relayrl plot`: average evaluation return against env steps, from metrics.jsonl (and, for BPTT
 runs, the rollout's last-step reward beside it; for DQN runs, episode length, loss and mean Q,
 the four curves of the Mario tutorial's logger; a panel per `env.info_keys` key). Several runs
-(a sweep's seeds or settings) share one panel of their evaluation returns."""
+(a sweep's seeds or settings) share one panel of their evaluation returns; runs that differ only
+in their seed are one curve, their mean, with a band from their lowest to their highest."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -68,13 +70,44 @@ def _compare(runs: list[RunDir], out: str | Path | None) -> Path:
         names = [str(rd.root) for rd in runs]
     fig = _figure(figsize=(8, 5))
     ax = fig.subplots()
-    for name, run_rows in zip(names, rows, strict=True):
-        ax.plot([r["step"] for r in run_rows], [r["average_return"] for r in run_rows], marker="o", ms=3, label=name)
+    for group in seed_groups(runs):
+        _group_curve(ax, [names[i] for i in group], [rows[i] for i in group])
     _steps_axis(ax, [r["step"] for run_rows in rows for r in run_rows])
     ax.set_ylabel("average return (eval)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize="small")
     return _save(fig, output_path(out, parents.pop() / "compare.png"))
+
+
+def seed_groups(runs: list[RunDir]) -> list[list[int]]:
+    """The runs (by index, in order of first appearance) whose config.toml are the same but for
+    their seed: one setting's seeds, drawn as one curve. A run without a readable config is its
+    own group."""
+    groups: dict[str, list[int]] = {}
+    for i, rd in enumerate(runs):
+        try:
+            config = {k: v for k, v in load_toml(rd.config).items() if k != "seed"}
+            key = json.dumps(config, sort_keys=True, default=str)
+        except (ConfigError, OSError):
+            key = f"run {i}"
+        groups.setdefault(key, []).append(i)
+    return list(groups.values())
+
+
+def _group_curve(ax: Any, names: list[str], rows: list[Rows]) -> None:
+    """One run's evaluation returns; several seeds' mean at the env steps all of them evaluated at,
+    in a band from the lowest to the highest (each run on its own where they share no step)."""
+    returns = [{r["step"]: r["average_return"] for r in run_rows} for run_rows in rows]
+    steps = sorted(set.intersection(*(set(by_step) for by_step in returns)))
+    if len(rows) == 1 or not steps:
+        for name, by_step in zip(names, returns, strict=True):
+            ax.plot(list(by_step), list(by_step.values()), marker="o", ms=3, label=name)
+        return
+    values = [[by_step[s] for by_step in returns] for s in steps]
+    shown = ", ".join(names if len(names) <= 3 else [*names[:2], "..."])
+    line, = ax.plot(steps, [sum(v) / len(v) for v in values], marker="o", ms=3,
+                    label=f"{shown} ({len(names)} seeds: mean, min to max)")
+    ax.fill_between(steps, [min(v) for v in values], [max(v) for v in values], color=line.get_color(), alpha=0.2)
 
 
 def _evaluations(rd: RunDir) -> Rows:
