@@ -23,7 +23,8 @@ Rows = list[dict[str, Any]]
 def plot_run(run_dir: str | Path | Sequence[str | Path], out: str | Path | None = None) -> Path:
     """A PNG (or any format matplotlib writes, by `out`'s extension) of the run's curves, written
     as RUN_DIR/returns.png by default; several run directories: their evaluation returns in one
-    panel, each labelled with its folder's name, as compare.png in their common parent folder."""
+    panel, each labelled with its folder's name (runs that differ only in their seed as one mean
+    curve in a min-to-max band, `seed_groups`), as compare.png in their common parent folder."""
     if not isinstance(run_dir, (str, Path)):
         return _compare([RunDir(d) for d in run_dir], out)
     rd = RunDir(run_dir)
