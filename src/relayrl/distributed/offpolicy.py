@@ -123,10 +123,14 @@ class ReplayCollection:
             # A collect call that failed (the env's exception, an actor's last death) never
             # answered, nor did the calls behind it: the steps their actors shipped are counted
             # from the server, with the actors ended first so that the count holds still.
-            # run_to_end names the run's env steps by it.
+            # run_to_end names the run's env steps by it, and a checkpoint due by then is written.
+            counted = False
             with contextlib.suppress(Exception):  # the server gone too: the driver's count stands
                 self.pool.halt_rollouts()
                 self._count_shipped(range(self.pool.num_actors))
+                counted = True
+            if counted:
+                core.checkpoint_if_due()
             raise
 
     def _iterate(self, core: RunCore, finish_evals: Callable[[], None]) -> None:
