@@ -306,6 +306,25 @@ def test_an_env_error_in_a_rollout_actor_names_that_actors_env_step(tmp_path):
     assert shown.count("relayrl: raised at env step 45") == 1 and shown.count("the run stopped at") == 1
 
 
+@needs_ray
+def test_an_env_error_in_a_rollout_actor_names_the_env_steps_the_replay_server_took_and_checkpoints_them(tmp_path):
+    # A collect call of 400 steps (4 chunks of 100) fails at its 301st step and never answers:
+    # the driver has heard of no steps, the replay server took the call's first 3 chunks; the
+    # one-process run stops at 300 too, with its checkpoint at 300.
+    config = relayrl.load_config("sac-pendulum", SAC_SMALL + [
+        "distributed.num_actors=1", "distributed.chunk_steps=100", "train.checkpoint_interval=100",
+        "env.id=toy_envs:BrokenAt", "env.kwargs={at = 301, continuous = true}", "env.check=false"])
+    with pytest.raises(RuntimeError, match="simulator lost connection") as e:
+        relayrl.train(config, tmp_path / "run", progress=False)
+    notes = "\n".join(getattr(e.value, "__notes__", []))
+    assert "relayrl: the run stopped at env step 300 on the error above" in notes
+    # the checkpoints due at 100, 200 and 300 are one, at 300 (where the driver heard of the steps)
+    assert checkpoint_steps(tmp_path / "run") == [300] and "the last good checkpoint (env step 300)" in notes
+    import ray
+
+    assert not ray.is_initialized(), "the run left its Ray instance running"
+
+
 def checkpoint_steps(run: Path) -> list[int]:
     return sorted(int(f.name[5:17]) for f in (run / "checkpoints").glob("ckpt-*.pt"))
 

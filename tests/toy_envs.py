@@ -170,11 +170,13 @@ class Broken(Countdown):
 
 class BrokenAt(Countdown):
     """Countdown whose `at`-th step (counted over episodes) raises, as a flaky simulator's
-    would; `at=0` never."""
+    would; `at=0` never. `continuous`: a Box action (for SAC)."""
 
-    def __init__(self, at: int = 0, **kwargs) -> None:
+    def __init__(self, at: int = 0, continuous: bool = False, **kwargs) -> None:
         super().__init__(**kwargs)
         self.at, self.steps = at, 0
+        if continuous:
+            self.action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
 
     def step(self, action):
         self.steps += 1

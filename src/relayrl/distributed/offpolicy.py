@@ -11,6 +11,7 @@ none waits for the driver) and trains on whatever batches the server's rate limi
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -114,6 +115,25 @@ class ReplayCollection:
         return self.pool.retry_pending() and self.env_steps() < self.config.train.total_steps
 
     def iterate(self, core: RunCore, finish_evals: Callable[[], None]) -> None:
+        try:
+            self._iterate(core, finish_evals)
+        except NonFiniteError:  # what the server took holds the non-finite number: nothing more is kept
+            raise
+        except Exception:
+            # A collect call that failed (the env's exception, an actor's last death) never
+            # answered, nor did the calls behind it: the steps their actors shipped are counted
+            # from the server, with the actors ended first so that the count holds still.
+            # run_to_end names the run's env steps by it, and a checkpoint due by then is written.
+            counted = False
+            with contextlib.suppress(Exception):  # the server gone too: the driver's count stands
+                self.pool.halt_rollouts()
+                self._count_shipped(range(self.pool.num_actors))
+                counted = True
+            if counted:
+                core.checkpoint_if_due()
+            raise
+
+    def _iterate(self, core: RunCore, finish_evals: Callable[[], None]) -> None:
         self.pusher.push(force=True)
         core.sps_log.reset(core.progress())
         self._top_up()

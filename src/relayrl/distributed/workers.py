@@ -4,6 +4,7 @@ or, on-policy, back to the driver as a rollout, and whose episodes go back with 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import uuid
@@ -174,9 +175,16 @@ class RolloutWorker(_RolloutActor):
         a chunk every `distributed.chunk_steps`; returns what the driver aggregates."""
         self.actor.policy = self.random_policy if random else self.collect_policy
         start = self.actor.env_steps
-        while (taken := self.actor.env_steps - start) < steps:
-            self.global_steps = global_steps + taken * self.num_actors
-            self.actor.collect(min(self.chunk_steps, steps - taken))
+        try:
+            while (taken := self.actor.env_steps - start) < steps:
+                self.global_steps = global_steps + taken * self.num_actors
+                self.actor.collect(min(self.chunk_steps, steps - taken))
+        except Exception:
+            # The chunk already shipped is counted by the server before the driver hears of the
+            # failure: the driver then reads what the server took (distributed/offpolicy.py).
+            with contextlib.suppress(Exception):
+                self.shipper.wait()
+            raise
         self.shipper.wait()
         return self._answer(env_steps=self.actor.env_steps - start, accepted=self.shipper.accepted)
 

@@ -215,6 +215,20 @@ class RunCore:
         for trigger in due:  # the others would find nothing due
             trigger(p)
 
+    def checkpoint_if_due(self) -> None:
+        """After a failure that ended collection: the checkpoint due by the env steps the run
+        reached, which the loop could not write (a Ray run hears of an actor's steps from its
+        answers, and a failed call gives none). One that cannot be written (a non-finite weight,
+        a full disk) is a line: the failure stays the run's error."""
+        p = self.progress()
+        if not self.checkpointer.due(p):
+            return
+        try:
+            self.check_finite(p, weights=True)
+            self.checkpointer(p)
+        except Exception as e:
+            self.say(f"the checkpoint due at env step {p.env_steps:,} was not written: {e}")
+
     def check_finite(self, p: Progress, weights: bool) -> None:
         """Stop the run (NonFiniteError) at a NaN or inf in what was collected, the latest losses
         or, before a save, the weights: nothing non-finite is ever evaluated or saved."""
