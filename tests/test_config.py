@@ -229,6 +229,19 @@ def test_unknown_preset_lists_valid_ones():
         load_config("dqn-cartpol")
 
 
+@pytest.mark.parametrize(("name", "nearest"), [
+    ("a2c", "ppo"), ("MaskablePPO", "ppo"), ("recurrent_ppo", "ppo"), ("QR-DQN", "dqn"), ("tqc", "sac"),
+    ("crossq", "sac"), ("trpo", "ppo"), ("ars", "ppo"), ("her", "sac"),
+])
+def test_another_librarys_algorithm_names_relayrls_nearest_not_the_closest_spelling(name, nearest):
+    # a2c once read "did you mean 'sac'?": an off-policy algorithm for an on-policy one
+    fragment = f"relayrl has no .*: the nearest is '{nearest}'"
+    with pytest.raises(ConfigError, match=f"unknown preset '{name}'; {fragment}"):
+        load_config(name)
+    with pytest.raises(ConfigError, match=f"algo='{name}' is not known; {fragment}"):
+        from_dict({"algo": name})
+
+
 def test_a_config_file_that_is_not_text_or_not_a_file_is_one_line(tmp_path):
     damaged = tmp_path / "config.toml"
     damaged.write_bytes(b"\xff\xfe\x00seed = 0")  # a run's config.toml overwritten with binary bytes

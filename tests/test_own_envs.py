@@ -283,6 +283,15 @@ def test_float64_observations_are_one_line_and_the_checks_after_it_still_run():
     assert not any("not within the observation space" in line for line in lines)
 
 
+@pytest.mark.parametrize("env_id", ["toy_envs:Maskable", "toy_envs:MaskInInfo"])
+def test_an_env_with_action_masks_is_told_they_are_not_read(env_id):
+    """MaskablePPO's masks: no relayrl algorithm reads them, which the run once left unsaid."""
+    from relayrl.envs.make import check_env
+
+    assert any("relayrl does not read them" in line for line in check_env(env_id))
+    assert not any("action masks" in line for line in check_env("toy_envs:Countdown"))
+
+
 def test_env_num_workers_without_async_says_the_copies_step_here(tmp_path, capfd):
     """SB3's n_envs with SubprocVecEnv is env.num_workers with env.vectorization='async': the
     workers alone (sync, the default) would be a setting silently unused."""

@@ -376,6 +376,21 @@ class Sloppy(Countdown):
         return np.array([self.t, 0], np.float32), {}
 
 
+class Maskable(Countdown):
+    """Countdown with MaskablePPO's masks: `action_masks()` (action 1 invalid on odd steps)."""
+
+    def action_masks(self) -> np.ndarray:
+        return np.array([True, self.t % 2 == 0])
+
+
+class MaskInInfo(Countdown):
+    """Countdown that gives its mask only as `info["action_mask"]`."""
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, _ = super().reset(seed=seed, options=options)
+        return obs, {"action_mask": np.array([1, 1], np.int8)}
+
+
 def double_reward(env: gym.Env) -> gym.Env:
     """An env.wrappers entry: rewards times 2."""
     return gym.wrappers.TransformReward(env, lambda r: 2 * r)

@@ -228,9 +228,36 @@ def unknown_key(path: str, valid: list[str]) -> str:
     return f"unknown config key {path!r}; valid: {', '.join(valid)}"
 
 
+# Algorithms of Stable-Baselines3 and sb3-contrib that relayrl has not, by their name folded
+# (lower case, no "-" or "_"): their name there, relayrl's nearest algorithm and how it differs.
+# The closest spelling is no guide to them (a2c reads as 'sac', an off-policy algorithm).
+ELSEWHERE: dict[str, tuple[str, str, str]] = {
+    "a2c": ("A2C", "ppo", "its on-policy actor-critic"),
+    "trpo": ("TRPO", "ppo", "its on-policy actor-critic with a trust region (clipped)"),
+    "ars": ("ARS", "ppo", "its on-policy algorithm"),
+    "maskableppo": ("MaskablePPO", "ppo", "without action masks: the env receives invalid actions and must "
+                    "handle them"),
+    "recurrentppo": ("RecurrentPPO", "ppo", "without memory: Gymnasium's FrameStackObservation in env.wrappers "
+                     "gives it the last frames"),
+    "ppolstm": ("RecurrentPPO", "ppo", "without memory: Gymnasium's FrameStackObservation in env.wrappers "
+                "gives it the last frames"),
+    "qrdqn": ("QR-DQN", "dqn", "its value-based algorithm, with an expected-value Q-network"),
+    "tqc": ("TQC", "sac", "its off-policy algorithm for Box actions"),
+    "crossq": ("CrossQ", "sac", "its off-policy algorithm for Box actions"),
+    "td3": ("TD3", "sac", "its off-policy algorithm for Box actions"),
+    "ddpg": ("DDPG", "sac", "its off-policy algorithm for Box actions"),
+    "her": ("HER (goal relabelling)", "sac", "or 'dqn', learning from the env's own rewards only"),
+}
+
+
 def did_you_mean(value: str, valid: list[str]) -> str:
-    """"; did you mean 'x'?" for the closest of `valid`, else "" (for names: presets, algorithms)."""
+    """"; did you mean 'x'?" for the closest of `valid`, or the nearest algorithm of `valid` to
+    one relayrl has not (ELSEWHERE), else "" (for names: presets, algorithms)."""
     same_letters = [v for v in valid if v.lower() == value.lower()]  # PPO: ppo
+    elsewhere = ELSEWHERE.get(re.sub(r"[-_ ]", "", value.lower()))
+    if not same_letters and elsewhere is not None and elsewhere[1] in valid:
+        name, nearest, how = elsewhere
+        return f"; relayrl has no {name}: the nearest is {nearest!r}, {how}"
     close = same_letters or difflib.get_close_matches(value, valid, n=1, cutoff=0.6)
     return f"; did you mean {close[0]!r}?" if close else ""
 

@@ -180,6 +180,9 @@ def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple
             checked, cast = _cast_observations(env)
             if cast is not None:
                 lines.append(cast)
+            masks = _action_masks_line(env)
+            if masks is not None:
+                lines.append(masks)
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 try:
@@ -194,6 +197,17 @@ def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple
             env.close()
     clean = (" ".join(_ANSI.sub("", line).removeprefix("WARN: ").split()) for line in lines)
     return list(dict.fromkeys(clean))
+
+
+def _action_masks_line(env: gym.Env) -> str | None:
+    """A line where the env offers invalid-action masks (sb3-contrib's MaskablePPO reads
+    `action_masks()` or `info["action_mask"]`): no relayrl algorithm reads them, so its policies
+    pick masked actions too, which a run would otherwise leave unsaid."""
+    if not callable(getattr(env.unwrapped, "action_masks", None)) and "action_mask" not in env.reset(seed=0)[1]:
+        return None
+    return ("the env gives action masks (action_masks() or info['action_mask']): relayrl does not read them, so "
+            "its policies also pick the actions they mask out; the env must handle those (a penalty, or "
+            "mapping them to a valid action)")
 
 
 def _cast_observations(env: gym.Env) -> tuple[gym.Env, str | None]:
