@@ -177,12 +177,9 @@ def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple
             if problem is not None:
                 who = "the env from the factory given to relayrl.train" if factory is not None else f"env.id={env_id!r}"
                 raise UserError(f"{who}: {problem}")
-            checked, cast = _cast_observations(env)
-            if cast is not None:
-                lines.append(cast)
-            masks = _action_masks_line(env)
-            if masks is not None:
-                lines.append(masks)
+            obs, info = env.reset(seed=0)  # (first_problem found a Gymnasium reset)
+            checked, cast = _cast_observations(env, obs)
+            lines += [line for line in (cast, _action_masks_line(env, info)) if line is not None]
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 try:
@@ -199,26 +196,27 @@ def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple
     return list(dict.fromkeys(clean))
 
 
-def _action_masks_line(env: gym.Env) -> str | None:
+def _action_masks_line(env: gym.Env, info: dict[str, Any]) -> str | None:
     """A line where the env offers invalid-action masks (sb3-contrib's MaskablePPO reads
-    `action_masks()` or `info["action_mask"]`): no relayrl algorithm reads them, so its policies
-    pick masked actions too, which a run would otherwise leave unsaid."""
-    if not callable(getattr(env.unwrapped, "action_masks", None)) and "action_mask" not in env.reset(seed=0)[1]:
+    `action_masks()` or `info["action_mask"]`, `info` being a reset's): no relayrl algorithm reads
+    them, so its policies pick masked actions too, which a run would otherwise leave unsaid."""
+    if not callable(getattr(env.unwrapped, "action_masks", None)) and not (isinstance(info, dict)
+                                                                         and "action_mask" in info):
         return None
     return ("the env gives action masks (action_masks() or info['action_mask']): relayrl does not read them, so "
             "its policies also pick the actions they mask out; the env must handle those (a penalty, or "
             "mapping them to a valid action)")
 
 
-def _cast_observations(env: gym.Env) -> tuple[gym.Env, str | None]:
+def _cast_observations(env: gym.Env, obs: Any) -> tuple[gym.Env, str | None]:
     """`env` with its observations cast to its float Box's dtype, and a line saying so, where it
-    returns arrays of another number dtype (float64, int64): relayrl casts them, and Gymnasium's
-    checker would stop at its first assertion ("not within the observation space", of values
-    inside the bounds), before its seed and determinism checks ever ran."""
+    returns arrays of another number dtype (float64, int64; `obs` is a reset's): relayrl casts
+    them, and Gymnasium's checker would stop at its first assertion ("not within the observation
+    space", of values inside the bounds), before its seed and determinism checks ever ran."""
     space = env.observation_space
     if not isinstance(space, gym.spaces.Box) or not np.issubdtype(space.dtype, np.floating):
         return env, None
-    obs = env.reset(seed=0)[0]  # a list is no finding: Box.contains reads it in the space's dtype
+    # a list is no finding: Box.contains reads it in the space's dtype
     if not isinstance(obs, (np.ndarray, np.generic)) or obs.dtype == space.dtype or obs.dtype.kind not in "biuf":
         return env, None
     line = (f"observations come as {obs.dtype} where observation_space is {space}: relayrl casts them to "
