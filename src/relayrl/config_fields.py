@@ -231,16 +231,15 @@ def unknown_key(path: str, valid: list[str]) -> str:
 # Algorithms of Stable-Baselines3 and sb3-contrib that relayrl has not, by their name folded
 # (lower case, no "-" or "_"): their name there, relayrl's nearest algorithm and how it differs.
 # The closest spelling is no guide to them (a2c reads as 'sac', an off-policy algorithm).
+_NO_MEMORY = "without memory: Gymnasium's FrameStackObservation in env.wrappers gives it the last frames"
 ELSEWHERE: dict[str, tuple[str, str, str]] = {
     "a2c": ("A2C", "ppo", "its on-policy actor-critic"),
     "trpo": ("TRPO", "ppo", "its on-policy actor-critic with a trust region (clipped)"),
     "ars": ("ARS", "ppo", "its on-policy algorithm"),
     "maskableppo": ("MaskablePPO", "ppo", "without action masks: the env receives invalid actions and must "
                     "handle them"),
-    "recurrentppo": ("RecurrentPPO", "ppo", "without memory: Gymnasium's FrameStackObservation in env.wrappers "
-                     "gives it the last frames"),
-    "ppolstm": ("RecurrentPPO", "ppo", "without memory: Gymnasium's FrameStackObservation in env.wrappers "
-                "gives it the last frames"),
+    "recurrentppo": ("RecurrentPPO", "ppo", _NO_MEMORY),
+    "ppolstm": ("RecurrentPPO", "ppo", _NO_MEMORY),
     "qrdqn": ("QR-DQN", "dqn", "its value-based algorithm, with an expected-value Q-network"),
     "tqc": ("TQC", "sac", "its off-policy algorithm for Box actions"),
     "crossq": ("CrossQ", "sac", "its off-policy algorithm for Box actions"),

@@ -83,26 +83,29 @@ def _per_algorithm() -> list[str]:
 def _sb3_names() -> list[str]:
     """Stable-Baselines3's and RL Zoo's names and their counterparts here: the hints an unknown
     key gets, listed where a user porting hyperparameters looks for them."""
-    out = ["", "## Stable-Baselines3 and RL Zoo names", "",
-           "Where a Stable-Baselines3 argument or an RL Zoo hyperparameter file names a setting otherwise "
-           "(an unknown key of these names gets the same line). Names the two share (`batch_size`, `gamma`, "
-           "`tau`, `n_epochs`, `gae_lambda`, `clip_range`, `vf_coef`, ...) are the `agent.` keys above.", "",
-           "| SB3 / RL Zoo | here |", "|---|---|"]
-    return out + [f"| `{name}` | {_cell(what)} |" for name, what in SB3_NAMES.items()]
+    return _names_table("Stable-Baselines3 and RL Zoo names", "SB3 / RL Zoo", SB3_NAMES,
+                        "Where a Stable-Baselines3 argument or an RL Zoo hyperparameter file names a setting "
+                        "otherwise (an unknown key of these names gets the same line). Names the two share "
+                        "(`batch_size`, `gamma`, `tau`, `n_epochs`, `gae_lambda`, `clip_range`, `vf_coef`, ...) are "
+                        "the `agent.` keys above.")
 
 
 def _cleanrl_names() -> list[str]:
     """CleanRL's argument names and their counterparts here (the hints an unknown key gets), and
     the one shared name whose meaning differs in scale."""
-    out = ["", "## CleanRL names", "",
-           "Where an argument of CleanRL's single-file scripts (`ppo.py`, `dqn.py`, "
-           "`sac_continuous_action.py`) names a setting otherwise and Stable-Baselines3's name (above) does not "
-           "cover it (an unknown key of these names gets the same line). Names CleanRL shares (`gamma`, "
-           "`gae_lambda`, `ent_coef`, `max_grad_norm`, `batch_size`, `tau`, ...) are the `agent.` keys above; "
-           "`vf_coef` weighs E[(V - R)^2] here, as in SB3, where CleanRL's value loss carries a factor 0.5: "
-           "CleanRL's `vf_coef = 0.5` is `agent.vf_coef = 0.25`.", "",
-           "| CleanRL | here |", "|---|---|"]
-    return out + [f"| `{name}` | {_cell(what)} |" for name, what in CLEANRL_NAMES.items()]
+    return _names_table("CleanRL names", "CleanRL", CLEANRL_NAMES,
+                        "Where an argument of CleanRL's single-file scripts (`ppo.py`, `dqn.py`, "
+                        "`sac_continuous_action.py`) names a setting otherwise and Stable-Baselines3's name (above) "
+                        "does not cover it (an unknown key of these names gets the same line). Names CleanRL shares "
+                        "(`gamma`, `gae_lambda`, `ent_coef`, `max_grad_norm`, `batch_size`, `tau`, ...) are the "
+                        "`agent.` keys above; `vf_coef` weighs E[(V - R)^2] here, as in SB3, where CleanRL's value "
+                        "loss carries a factor 0.5: CleanRL's `vf_coef = 0.5` is `agent.vf_coef = 0.25`.")
+
+
+def _names_table(title: str, column: str, names: dict[str, str], intro: str) -> list[str]:
+    """A section listing another library's names (`column`) and what each is here."""
+    out = ["", f"## {title}", "", intro, "", f"| {column} | here |", "|---|---|"]
+    return out + [f"| `{name}` | {_cell(what)} |" for name, what in names.items()]
 
 
 if __name__ == "__main__":

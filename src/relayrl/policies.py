@@ -182,15 +182,16 @@ class ClampedPolicy(Policy):
             return torch.minimum(torch.maximum(a, self.low), self.high).cpu()
 
 
-def saved_bounds(state: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-    """A saved policy's action bounds as float32 arrays (policy.pt holds them as lists)."""
-    return np.asarray(state["action_low"], np.float32), np.asarray(state["action_high"], np.float32)
+def saved_bounds(state: dict[str, Any], dtype: type[np.floating] = np.float32) -> tuple[np.ndarray, np.ndarray]:
+    """A saved policy's action bounds as arrays of `dtype` (policy.pt holds them as lists):
+    float32 for its networks, float64 for the env's own bounds (not float32's rounding)."""
+    return np.asarray(state["action_low"], dtype), np.asarray(state["action_high"], dtype)
 
 
 def box_action_space(state: dict[str, Any]) -> gym.spaces.Box:
     """A saved policy's Box action space: its bounds, in the env's shape and dtype where the
     file records them (`policy_file.env_action_entries`)."""
-    low, high = (np.asarray(state[k], np.float64) for k in ("action_low", "action_high"))  # not float32's rounding
+    low, high = saved_bounds(state, np.float64)
     shape = tuple(int(d) for d in state.get("action_shape", low.shape))
     dtype = np.dtype(state.get("action_dtype", "float32"))
     return gym.spaces.Box(low.reshape(shape).astype(dtype), high.reshape(shape).astype(dtype), shape, dtype)

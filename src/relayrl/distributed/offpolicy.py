@@ -11,7 +11,6 @@ none waits for the driver) and trains on whatever batches the server's rate limi
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -124,12 +123,12 @@ class ReplayCollection:
             # answered, nor did the calls behind it: the steps their actors shipped are counted
             # from the server, with the actors ended first so that the count holds still.
             # run_to_end names the run's env steps by it, and a checkpoint due by then is written.
-            counted = False
-            with contextlib.suppress(Exception):  # the server gone too: the driver's count stands
+            try:
                 self.pool.halt_rollouts()
                 self._count_shipped(range(self.pool.num_actors))
-                counted = True
-            if counted:
+            except Exception:  # the server gone too: the driver's count stands
+                pass
+            else:
                 core.checkpoint_if_due()
             raise
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import importlib
 import inspect
 import pickle
@@ -464,11 +465,7 @@ class GymBatchEnv(BatchEnvBase):
     def reset(self, seed: int | None = None) -> torch.Tensor:
         obs = []
         for i, env in enumerate(self.envs):
-            try:
-                o = self._reset_obs(reset_seeded(env, None if seed is None else seed + i), i)
-            except Exception as e:
-                self._name_copy(e, "reset()", i)
-                raise
+            o = self._reset_obs(i, functools.partial(reset_seeded, env, None if seed is None else seed + i))
             if seed is not None:
                 env.action_space.seed(seed + i)
             obs.append(o if self._pack is None else self._pack(o))
@@ -533,11 +530,7 @@ class GymBatchEnv(BatchEnvBase):
             # would carry unwritten rows of later copies into obs).
             obs = next_obs.copy()
         for i in ended:
-            try:
-                o = self._reset_obs(self.envs[i].reset(), i)
-            except Exception as e:
-                self._name_copy(e, "reset()", i)
-                raise
+            o = self._reset_obs(i, self.envs[i].reset)
             try:
                 obs[i] = o if pack is None else pack(o)
             except (ValueError, TypeError, KeyError) as e:
@@ -554,9 +547,15 @@ class GymBatchEnv(BatchEnvBase):
         if not isinstance(error, UserError):
             error.add_note(f"relayrl: raised by {self._method(method, i)}")
 
-    def _reset_obs(self, out: Any, i: int) -> Any:
-        """The observation of what copy i's reset returned; one line where that is not (obs, info)
-        (`reset()[0]` of a bare observation would be its first entry)."""
+    def _reset_obs(self, i: int, reset: Callable[[], Any]) -> Any:
+        """The observation `reset()` of copy i returns; one line where it returns no (obs, info)
+        (`reset()[0]` of a bare observation would be its first entry), and the env's own
+        exception names the copy."""
+        try:
+            out = reset()
+        except Exception as e:
+            self._name_copy(e, "reset()", i)
+            raise
         problem = reset_problem(out, self._method("reset()", i))
         if problem is not None:
             raise UserError(problem)
@@ -565,9 +564,9 @@ class GymBatchEnv(BatchEnvBase):
     def _unfit(self, obs: Any, i: int, method: str, error: Exception) -> UserError:
         """One line for an observation that does not fit the env's space, met mid-run (the
         start's check saw fitting ones)."""
-        copy = self.first_copy + i
-        problem = observation_problem(obs, self.envs[i].observation_space, f"{method} of env copy {copy}")
-        return UserError(problem or f"the observation from {method} of env copy {copy} does not fit its observation "
+        where = self._method(method, i)
+        problem = observation_problem(obs, self.envs[i].observation_space, where)
+        return UserError(problem or f"the observation from {where} does not fit its observation "
                                     f"space {self.envs[i].observation_space} ({type(error).__name__}: {error})")
 
     def render(self) -> np.ndarray | None:
