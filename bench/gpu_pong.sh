@@ -13,6 +13,7 @@ start)
     . bench/gpu_site.sh
     setsid python3 -m relayrl train dqn-pong-fast --run-dir "$run" --no-progress \
         >/tmp/pong.log 2>&1 </dev/null &
+    echo $! >/tmp/pong.pid
     echo "started: $run" ;;
 wait)
     end=$(( $(date +%s) + ${2:-540} ))
@@ -25,9 +26,11 @@ print("evaluations (step, return, s):", evals[-3:], flush=True)
 sys.exit(0 if any(ret >= 18 and t <= 900 for _, ret, t in evals) else 1)
 PY
         then echo "target met"; break; fi
-        sleep 30
+        kill -0 "$(cat /tmp/pong.pid)" 2>/dev/null || { echo "the run has ended"; break; }
+        sleep 20
     done
-    cp "$run/metrics.jsonl" "${OUT:-.}/pong-metrics.jsonl" 2>/dev/null; tail -3 /tmp/pong.log ;;
+    cp "$run/metrics.jsonl" "${OUT:-.}/pong-metrics.jsonl" 2>/dev/null
+    cp /tmp/pong.log "${OUT:-.}/pong.log" 2>/dev/null; tail -3 /tmp/pong.log ;;
 *)
     echo "usage: sh bench/gpu_pong.sh start | wait SECONDS"; exit 2 ;;
 esac

@@ -93,6 +93,26 @@ def test_ale_vectorization_refuses_what_it_cannot_do_in_one_line():
         make_env("relayrl/Atari-NoSuchGame-v0", 2, vectorization="ale")
 
 
+@needs_ale
+def test_evaluations_of_an_ale_run_step_in_ale_py_where_its_kwargs_allow():
+    from relayrl.envs.ale_vector import AleBatchEnv
+    from relayrl.envs.gym import GymBatchEnv
+    from relayrl.training.evaluate import evaluate, make_eval_env
+
+    ale = make_eval_env(PONG, 5, vectorization="ale", kwargs={"noop_max": 0})
+    assert isinstance(ale, AleBatchEnv) and ale.num_envs == 5
+    gym = make_eval_env(PONG, 5, kwargs={"noop_max": 0})  # a sync run's, and relayrl eval's default
+    assert isinstance(gym, GymBatchEnv)
+    assert torch.equal(ale.reset(seed=3), gym.reset(seed=3))  # the same first frames
+    # Life-loss episodes (eval.env_kwargs) are the Gymnasium path's: evaluated there, not refused.
+    lives = make_eval_env(PONG, 2, vectorization="ale", kwargs={"terminal_on_life_loss": False})
+    assert isinstance(lives, GymBatchEnv)
+    out = evaluate(ale, lambda obs: torch.zeros(len(obs), dtype=torch.int64), 5, seed=0)
+    assert out["episodes"] == 5 and -21 <= out["average_return"] <= -15  # NOOP loses every point
+    for env in (ale, gym, lives):
+        env.close()
+
+
 def test_config_takes_ale_and_names_it_among_the_valid_values():
     c = Config()
     c.env.vectorization = "ale"

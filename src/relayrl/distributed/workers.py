@@ -216,7 +216,8 @@ class EvalWorker:
         c = _setup(config, sys_path)
         self.episodes = c.eval.episodes
         self.env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, info_keys=c.env.info_keys,
-                                 kwargs=c.eval_env_kwargs(), wrappers=c.env.wrappers)
+                                 kwargs=c.eval_env_kwargs(), wrappers=c.env.wrappers,
+                                 vectorization=c.env.vectorization)
         self.agent = algorithm(c.algo).make_agent(c.agent, self.env.observation_spec, self.env.action_spec,
                                                   torch.device("cpu"), RunSeeds(c.seed).generator("evaluation"),
                                                   c.train.total_steps)

@@ -11,6 +11,7 @@ import torch
 from relayrl.arrays import to_numpy
 from relayrl.core import BatchedEnv
 from relayrl.envs import make_env
+from relayrl.envs.ale_vector import ALE_KWARGS
 from relayrl.envs.gym import EnvFn, GymBatchEnv
 from relayrl.errors import NonFiniteError, UserError
 from relayrl.specs import describe as describe_spec
@@ -28,10 +29,15 @@ EVAL_MAX_EPISODE_STEPS = 1_000
 def make_eval_env(env_id: str, episodes: int, max_episode_steps: int = 0,
                   device: str | torch.device = "cpu", info_keys: tuple[str, ...] | list[str] = (),
                   kwargs: dict[str, Any] | None = None, wrappers: tuple[str, ...] | list[str] = (),
-                  factory: EnvFn | None = None) -> BatchedEnv:
-    """min(episodes, EVAL_BATCH) copies, their episodes capped where the env has no time limit."""
+                  factory: EnvFn | None = None, vectorization: str = "sync") -> BatchedEnv:
+    """min(episodes, EVAL_BATCH) copies, their episodes capped where the env has no time limit.
+    `vectorization` is training's: "ale" steps the copies in ale-py's C++ threads where these
+    kwargs allow it (they give the Gymnasium path's frames: tests/test_ale_vector.py), since an
+    evaluation of long Atari games one copy after another takes a large share of a fast run;
+    anything else evaluates in this process (worker processes would outlive their use)."""
+    ale = vectorization == "ale" and set(kwargs or {}) <= set(ALE_KWARGS) and not wrappers and factory is None
     env = make_env(env_id, min(episodes, EVAL_BATCH), max_episode_steps, device=device, info_keys=info_keys,
-                   kwargs=kwargs, wrappers=wrappers, factory=factory)
+                   kwargs=kwargs, wrappers=wrappers, factory=factory, vectorization="ale" if ale else "sync")
     cap_untimed(env)
     return env
 

@@ -63,7 +63,8 @@ class LocalDriver:
                             time_limit_terminates=c.env.time_limit_terminates, vectorization=c.env.vectorization,
                             num_workers=c.env.num_workers, device=device, info_keys=c.env.info_keys, **made)
         self.eval_env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, device,
-                                      c.env.info_keys, **{**made, "kwargs": c.eval_env_kwargs()})
+                                      c.env.info_keys, vectorization=c.env.vectorization,
+                                      **{**made, "kwargs": c.eval_env_kwargs()})
         if c.eval.env_kwargs:
             check_same_spaces(self.eval_env, self.env, c.eval.env_kwargs)
         obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
