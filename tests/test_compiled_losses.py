@@ -13,7 +13,7 @@ from relayrl.agents.dqn import DQNAgent, DQNConfig
 from relayrl.agents.ppo import PPOAgent, PPOConfig
 from relayrl.agents.sac import SACAgent, SACConfig
 from relayrl.errors import UserError
-from relayrl.nn.graphed import WARMUP, compiled
+from relayrl.nn.graphed import RECOMPILE_LIMIT, WARMUP, compiled
 from relayrl.specs import ArraySpec, DiscreteSpec
 from relayrl.types import Batch
 
@@ -44,6 +44,16 @@ def test_compiled_is_the_function_itself_unless_asked(monkeypatch):
                                             r"\(inductor\), or a torch.compile backend other than cudagraphs: "
                                             r"aot_eager, .*inductor"):
             compiled(losses)
+
+
+def test_compiling_leaves_room_for_the_variants_of_many_agents(monkeypatch):
+    with torch._dynamo.config.patch(recompile_limit=8):  # torch's default, restored after
+        monkeypatch.setenv("RELAYRL_COMPILE", "0")
+        compiled(lambda x: x)
+        assert torch._dynamo.config.recompile_limit == 8  # nothing compiled: torch's setting is left alone
+        monkeypatch.setenv("RELAYRL_COMPILE", "aot_eager")
+        compiled(lambda x: x)
+        assert torch._dynamo.config.recompile_limit == RECOMPILE_LIMIT
 
 
 def test_ppo_clip_range_goes_in_as_a_tensor_only_where_compiled(monkeypatch):

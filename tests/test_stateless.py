@@ -416,7 +416,7 @@ def test_adapter_graphed_on_cuda_steps_as_launched_op_by_op(monkeypatch):
         x, y = graphed.step(action), eager.step(action)
         kept.append((x.reward, y.reward))
         for u, v in zip(x, y, strict=True):
-            assert torch.equal(u, v), t
+            assert (u is None and v is None) or torch.equal(u, v), t  # episode_info is None: no info_keys
     assert all(torch.equal(u, v) for u, v in kept)
     # reseeded after capture (an evaluation's reset), and a state set into a captured env
     assert torch.equal(graphed.reset(seed=5), eager.reset(seed=5))

@@ -8,11 +8,13 @@ from relayrl.envs.make import make_env
 # By entry-point string, so importing relayrl.envs never imports an extra (pybullet, nes-py).
 # StatelessPendulum: a stateless torch env as one Gymnasium env (videos, gym.make) that truncates
 # itself at 200 steps; the train loop batches it directly (envs/stateless/adapter.py) instead.
+# PixelCatch: a pixel env learnt in seconds (envs/catch.py).
 # Super Mario Bros: the raw NES screen (the level clock ends episodes within ~8,000 frames), and
 # the tutorial's preprocessed stack on top (skip 4, summed rewards, grayscale, 84x84, stack 4;
 # its frame limit sits under the skip).
 for _id, _entry_point, _max_steps in (
     ("relayrl/MinitaurBullet-v0", "relayrl.envs.minitaur:MinitaurEnv", 1000),
+    ("relayrl/PixelCatch-v0", "relayrl.envs.catch:make_pixel_catch", None),
     ("relayrl/StatelessPendulum-v0", "relayrl.envs.stateless.adapter:StatelessGymEnv", None),
     ("relayrl/SuperMarioBros-1-1-v0", "relayrl.envs.mario:MarioEnv", 10_000),
     ("relayrl/SuperMarioBros-1-1-pixels-v0", "relayrl.envs.mario:make_preprocessed", None),

@@ -38,6 +38,7 @@ from relayrl.errors import UserError
 Tensor = torch.Tensor
 Signature = tuple[tuple[torch.Size, torch.dtype, torch.device] | None, ...]
 WARMUP = 3  # eager calls per signature before capture (lazy cuBLAS / autograd set-up)
+RECOMPILE_LIMIT = 64  # compiled variants of one loss function a process may hold (see `compiled`)
 F = TypeVar("F", bound=Callable)
 
 
@@ -58,6 +59,12 @@ def compiled(losses: F) -> F:
     if backend not in valid:
         raise UserError(f"RELAYRL_COMPILE={setting!r} is not valid; valid: 0 (off), 1 (inductor), or a "
                         f"torch.compile backend other than cudagraphs: {', '.join(valid)}")
+    # Every agent's losses are one code object to dynamo, recompiled for each new set of guards
+    # (a config's constants, an observation kind, weighted batches or not, another agent's
+    # modules on some torch versions): a process building several agents (a sweep, the tests)
+    # passes dynamo's default of 8, where fullgraph=True turns the next one into an error.
+    dynamo = torch._dynamo.config
+    dynamo.recompile_limit = max(dynamo.recompile_limit, RECOMPILE_LIMIT)
     # dynamic left to torch: a value that changes between calls (a Python float such as a
     # scheduled clip range, a shorter last minibatch) gets one general graph, not one per value.
     return torch.compile(losses, fullgraph=True, backend=backend)  # type: ignore[return-value]
