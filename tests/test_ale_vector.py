@@ -132,8 +132,8 @@ def test_frames_come_in_pinned_memory_on_a_cuda_run():
     env.close()
 
 
-def test_dqn_pong_fast_preset_is_listed_and_says_its_target_is_unchecked():
-    assert "NOT yet checked" in list_presets()["dqn-pong-fast"]
+def test_dqn_pong_fast_preset_is_listed_and_says_its_target_is_not_met():
+    assert "NOT met" in list_presets()["dqn-pong-fast"]
     c = load_config("dqn-pong-fast")
     c.validate()
     a = c.agent

@@ -175,6 +175,79 @@ def test_greedy_policy_replays_see_weights_updated_in_place(monkeypatch):
         assert torch.equal(graphed(obs), eager(obs))
 
 
+FRAMES = ArraySpec((4, 84, 84), torch.uint8, np.zeros((4, 84, 84)), np.full((4, 84, 84), 255.0))
+
+
+def block_frames(g: torch.Generator, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """uint8 [n, 4, 84, 84] stacks with a bright block in one of three bands, and the band."""
+    band = torch.randint(3, (n,), generator=g)
+    x = torch.zeros(n, *FRAMES.shape, dtype=torch.uint8)
+    for j in range(3):
+        x[band == j, :, 28 * j:28 * j + 28, 30:54] = 255
+    return x, band
+
+
+@cuda
+def test_graphed_pixel_dqn_matches_eager_as_the_learner_drives_it(monkeypatch):
+    """Pong's net and frames, fed as the Learner feeds them: chunks of two batches with the
+    target network's Q-values prepared ahead, and a lone unprepared batch where a chunk is cut at
+    a target copy (two graphs sharing the parameters and Adam's state). The reward says which
+    band the block is in, so Q must come to depend on the frames."""
+    monkeypatch.setattr(torch.backends.cudnn, "deterministic", True)  # the same kernels each way
+    monkeypatch.setattr(torch.backends.cudnn, "benchmark", False)
+    cfg = DQNConfig(network="nature_cnn", batch_size=32, lr=2.5e-4, target_update_period=5, double=True,
+                    grad_clip=10.0)
+    agents = []
+    for graphs in ("1", "0"):
+        monkeypatch.setenv("RELAYRL_CUDA_GRAPHS", graphs)
+        torch.manual_seed(0)
+        agents.append(DQNAgent(FRAMES, DiscreteSpec(6), cfg, torch.device("cuda"), np.random.default_rng(0)))
+    for agent in agents:
+        g, trained, n = torch.Generator().manual_seed(1), 0, 32
+        while trained < 40:
+            k = min(2, agent.prepare_horizon())
+            obs, band = block_frames(g, k * n)
+            action = torch.randint(6, (k * n,), generator=g)
+            reward = (action % 3 == band).float() * 2 - 1
+            nxt, _ = block_frames(g, k * n)
+            chunk = agent.prepare(Batch(*(x.cuda() for x in (obs, action, reward, nxt)),
+                                        torch.full((k * n,), 0.97, device="cuda"), None), k)
+            for j in range(k):
+                agent.train(type(chunk)(*(x[j * n:(j + 1) * n] if isinstance(x, torch.Tensor) else x
+                                          for x in chunk)))
+                trained += 1
+    graphed, eager = agents
+    for p, q in zip(graphed.online.parameters(), eager.online.parameters(), strict=True):
+        torch.testing.assert_close(p, q, atol=1e-4, rtol=1e-3)
+    probe, _ = block_frames(torch.Generator().manual_seed(9), 30)
+    with torch.no_grad():
+        q = graphed.online(probe.cuda())
+    assert q.std(dim=0).mean() > 1e-3  # Q differs between frames
+
+
+@cuda
+def test_greedy_policy_on_pixels_replays_as_eager_on_pinned_frames_in_inference_mode(monkeypatch):
+    """As a run's evaluations call it: pinned uint8 stacks (ale-py's frames on a CUDA run),
+    inference_mode, the network trained in place between calls."""
+    from relayrl.policies import GreedyPolicy
+
+    agent = DQNAgent(FRAMES, DiscreteSpec(6), DQNConfig(network="nature_cnn", batch_size=8), torch.device("cuda"),
+                     np.random.default_rng(0))
+    graphed = GreedyPolicy(agent.online, torch.device("cuda"))
+    monkeypatch.setenv("RELAYRL_CUDA_GRAPHS", "0")
+    eager = GreedyPolicy(agent.online, torch.device("cuda"))
+    g = torch.Generator().manual_seed(0)
+    for i in range(2 * STEPS):
+        obs = block_frames(g, 5)[0].pin_memory()
+        with torch.inference_mode():
+            a, b = graphed(obs), eager(obs)
+        assert torch.equal(a, b), i
+        if i == STEPS:
+            with torch.no_grad():
+                for p in agent.online.parameters():
+                    p.add_(torch.randn(p.shape, generator=g).cuda() * 0.05)
+
+
 @cuda
 @pytest.mark.parametrize("discrete", [False, True])
 def test_ppo_device_policy_graphed_draws_as_eager(monkeypatch, discrete):

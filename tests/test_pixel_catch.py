@@ -9,6 +9,7 @@ import json
 import gymnasium as gym
 import numpy as np
 import pytest
+import torch
 
 import relayrl
 from relayrl.envs import make_env
@@ -50,9 +51,10 @@ def test_the_registered_env_stacks_frames_the_replay_rebuilds():
     assert gym.make("relayrl/PixelCatch-v0", stack=1).observation_space.shape == (36, 36)
 
 
-def learn_catch(tmp_path, replay_device: str, cell: int, num_envs: int, steps: int) -> list[float]:
+def learn_catch(tmp_path, replay_device: str, cell: int, num_envs: int, steps: int, device: str = "cpu"
+                ) -> list[float]:
     config = {
-        "algo": "dqn", "seed": 0,
+        "algo": "dqn", "seed": 0, "device": device,
         "env": {"id": "relayrl/PixelCatch-v0", "num_envs": num_envs, "kwargs": {"cell": cell}},
         "train": {"total_steps": steps, "initial_collect_steps": 500, "collect_steps": num_envs,
                   "gradient_steps": 2, "checkpoint_interval": 0, "log_interval": 0},
@@ -77,4 +79,12 @@ def test_dqn_learns_catch_from_pixels(tmp_path):
 def test_dqn_learns_catch_from_36x36_frames_with_the_nature_cnn(tmp_path):
     """The Atari net on the frame side it starts at, 8 copies, replay in NumPy arrays."""
     returns = learn_catch(tmp_path, "numpy", cell=4, num_envs=8, steps=10_000)
+    assert max(returns[-2:]) >= 3.0, returns
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_dqn_learns_catch_from_pixels_on_cuda(tmp_path):
+    """The CUDA path as shipped: frames on the GPU (replay.device auto), updates and forward
+    passes replayed from CUDA graphs. bench/gpu_pixels.py turns each of those off in turn."""
+    returns = learn_catch(tmp_path, "auto", cell=4, num_envs=8, steps=10_000, device="cuda")
     assert max(returns[-2:]) >= 3.0, returns
