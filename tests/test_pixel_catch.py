@@ -52,7 +52,8 @@ def test_the_registered_env_stacks_frames_the_replay_rebuilds():
 
 
 def learn_catch(tmp_path, replay_device: str, cell: int, num_envs: int, steps: int, device: str = "cpu"
-                ) -> list[float]:
+                ) -> list[tuple[float, float | None]]:
+    """(greedy evaluation, training episodes' mean return) at each evaluation."""
     config = {
         "algo": "dqn", "seed": 0, "device": device,
         "env": {"id": "relayrl/PixelCatch-v0", "num_envs": num_envs, "kwargs": {"cell": cell}},
@@ -65,26 +66,32 @@ def learn_catch(tmp_path, replay_device: str, cell: int, num_envs: int, steps: i
     }
     run = relayrl.train(config, run_dir=tmp_path / "run", progress=False)
     rows = [json.loads(line) for line in (run.run_dir / "metrics.jsonl").read_text().splitlines()]
-    return [row["average_return"] for row in rows if "average_return" in row]
+    return [(row["average_return"], row["train/average_return"]) for row in rows if "average_return" in row]
+
+
+def assert_learnt(returns: list[tuple[float, float | None]], at_least: float) -> None:
+    """The greedy evaluations, and the training episodes too: the collect policy acts with the
+    learner's weights (a copy that stayed at its first weights would play at random, about -3.5,
+    while the evaluations rose, as learning from random play alone can)."""
+    evaluations, training = zip(*returns, strict=True)
+    assert evaluations[0] < 0 and max(evaluations[-2:]) >= at_least, returns
+    assert training[-1] is not None and training[-1] >= at_least - 1.0, returns
 
 
 def test_dqn_learns_catch_from_pixels(tmp_path):
     """9x9 frames and the small conv net; the replay's frames in torch tensors (replay.device
     "cpu"), the store a GPU run keeps on the device. Random play scores about -3.5 of -5..5."""
-    returns = learn_catch(tmp_path, "cpu", cell=1, num_envs=4, steps=6_000)
-    assert returns[0] < 0 and max(returns[-2:]) >= 2.0, returns
+    assert_learnt(learn_catch(tmp_path, "cpu", cell=1, num_envs=4, steps=6_000), 2.0)
 
 
 @pytest.mark.slow
 def test_dqn_learns_catch_from_36x36_frames_with_the_nature_cnn(tmp_path):
     """The Atari net on the frame side it starts at, 8 copies, replay in NumPy arrays."""
-    returns = learn_catch(tmp_path, "numpy", cell=4, num_envs=8, steps=10_000)
-    assert max(returns[-2:]) >= 3.0, returns
+    assert_learnt(learn_catch(tmp_path, "numpy", cell=4, num_envs=8, steps=10_000), 3.0)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_dqn_learns_catch_from_pixels_on_cuda(tmp_path):
     """The CUDA path as shipped: frames on the GPU (replay.device auto), updates and forward
     passes replayed from CUDA graphs. bench/gpu_pixels.py turns each of those off in turn."""
-    returns = learn_catch(tmp_path, "auto", cell=4, num_envs=8, steps=10_000, device="cuda")
-    assert max(returns[-2:]) >= 3.0, returns
+    assert_learnt(learn_catch(tmp_path, "auto", cell=4, num_envs=8, steps=10_000, device="cuda"), 3.0)
