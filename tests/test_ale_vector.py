@@ -108,9 +108,21 @@ def test_evaluations_of_an_ale_run_step_in_ale_py_where_its_kwargs_allow():
     lives = make_eval_env(PONG, 2, vectorization="ale", kwargs={"terminal_on_life_loss": False})
     assert isinstance(lives, GymBatchEnv)
     out = evaluate(ale, lambda obs: torch.zeros(len(obs), dtype=torch.int64), 5, seed=0)
-    assert out["episodes"] == 5 and -21 <= out["average_return"] <= -15  # NOOP loses every point
+    assert out["episodes"] == 5 and -21 <= out["average_return"] <= -15  # NOOP loses nearly every point
     for env in (ale, gym, lives):
         env.close()
+
+
+@needs_ale
+def test_relayrl_eval_of_an_ale_run_directory_steps_in_ale_py(tmp_path):
+    from relayrl.config import save_toml
+    from relayrl.envs.ale_vector import AleBatchEnv
+    from relayrl.evaluation import recorded_env
+
+    save_toml(load_config("dqn-pong-fast"), tmp_path / "config.toml")
+    env, env_id = recorded_env(tmp_path, 3)
+    assert isinstance(env, AleBatchEnv) and (env.num_envs, env_id) == (3, PONG)
+    env.close()
 
 
 def test_config_takes_ale_and_names_it_among_the_valid_values():
