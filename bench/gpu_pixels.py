@@ -76,7 +76,8 @@ def main() -> int:
         done = subprocess.run([sys.executable, __file__, "--one", name, "--steps", str(args.steps)], env=env,
                               capture_output=True, text=True)
         lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
-        print(lines[-1] if lines else json.dumps({"variant": name, "failed": done.stderr.strip()[-800:]}), flush=True)
+        said = done.stderr.strip().splitlines()[-1:]  # a traceback's last line: what went wrong
+        print(lines[-1] if lines else json.dumps({"variant": name, "failed": said}), flush=True)
     return 0
 
 
