@@ -1,6 +1,6 @@
 #!/bin/sh
 # Why pixel DQN learns on a CPU but dqn-pong-fast learned nothing on a GPU (docs/benchmarks.md,
-# "dqn-pong-fast"), in one call of the device tool (~6-8 minutes; carry [".whl"], timeout_s 600):
+# "dqn-pong-fast"), in one call of the device tool (~7-9 minutes; carry [".whl"], timeout_s 600):
 #
 #     sh bench/gpu_diagnose.sh
 #
@@ -10,7 +10,9 @@
 # 2. bench/gpu_pixels.py: PixelCatch on CUDA as shipped and with each CUDA-only path turned off
 #    in turn, then on the CPU; the variant that learns where the shipped one does not names the
 #    broken path.
-# Output: tests-pixels.txt and pixels.txt in $OUT (or the current folder).
+# 3. bench/gpu_policies.py: a 30,000-step dqn-pong-fast run, then its collect and evaluation
+#    policies against its networks run eagerly, on fresh Pong frames.
+# Output: tests-pixels.txt, pixels.txt and policies.txt in $OUT (or the current folder).
 set -u
 out="${OUT:-.}"
 . bench/gpu_site.sh
@@ -18,4 +20,5 @@ nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
 timeout 150 python3 -m pytest -q -p no:cacheprovider -m "not slow" tests/test_graphed.py tests/test_pixel_catch.py \
     >"$out/tests-pixels.txt" 2>&1
 tail -5 "$out/tests-pixels.txt"
-timeout 360 python3 bench/gpu_pixels.py | tee "$out/pixels.txt"
+timeout 300 python3 bench/gpu_pixels.py | tee "$out/pixels.txt"
+timeout 90 python3 bench/gpu_policies.py 2>"$out/policies-stderr.txt" | tee "$out/policies.txt"
