@@ -20,5 +20,5 @@ nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
 timeout 150 python3 -m pytest -q -p no:cacheprovider -m "not slow" tests/test_graphed.py tests/test_pixel_catch.py \
     >"$out/tests-pixels.txt" 2>&1
 tail -5 "$out/tests-pixels.txt"
-timeout 300 python3 bench/gpu_pixels.py | tee "$out/pixels.txt"
+timeout 300 python3 bench/gpu_pixels.py --variants shipped no-graphs host-replay no-graphs-host-replay cpu | tee "$out/pixels.txt"
 timeout 90 python3 bench/gpu_policies.py 2>"$out/policies-stderr.txt" | tee "$out/policies.txt"
