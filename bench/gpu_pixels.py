@@ -66,6 +66,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--steps", type=int, default=10_000, help="env steps per variant (default 10000)")
     p.add_argument("--variants", nargs="+", choices=list(VARIANTS), default=list(VARIANTS))
+    p.add_argument("--timeout", type=float, default=120.0, help="seconds a variant may take (default 120)")
     p.add_argument("--one", choices=list(VARIANTS), help=argparse.SUPPRESS)  # a child process's variant
     args = p.parse_args()
     if args.one:
@@ -73,8 +74,12 @@ def main() -> int:
         return 0
     for name in args.variants:
         env = {**os.environ, **VARIANTS[name][1]}
-        done = subprocess.run([sys.executable, __file__, "--one", name, "--steps", str(args.steps)], env=env,
-                              capture_output=True, text=True)
+        try:
+            done = subprocess.run([sys.executable, __file__, "--one", name, "--steps", str(args.steps)], env=env,
+                                  capture_output=True, text=True, timeout=args.timeout)
+        except subprocess.TimeoutExpired:
+            print(json.dumps({"variant": name, "failed": f"still running after {args.timeout:g} s"}), flush=True)
+            continue
         lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
         said = done.stderr.strip().splitlines()[-1:]  # a traceback's last line: what went wrong
         print(lines[-1] if lines else json.dumps({"variant": name, "failed": said}), flush=True)

@@ -26,7 +26,9 @@ print("evaluations (step, return, s):", evals[-3:], flush=True)
 sys.exit(0 if any(ret >= 18 and t <= 900 for _, ret, t in evals) else 1)
 PY
         then echo "target met"; break; fi
-        kill -0 "$(cat /tmp/pong.pid)" 2>/dev/null || { echo "the run has ended"; break; }
+        if [ -f /tmp/pong.pid ] && ! kill -0 "$(cat /tmp/pong.pid)" 2>/dev/null; then
+            echo "the run has ended"; break
+        fi
         sleep 20
     done
     cp "$run/metrics.jsonl" "${OUT:-.}/pong-metrics.jsonl" 2>/dev/null

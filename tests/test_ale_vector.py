@@ -107,6 +107,10 @@ def test_evaluations_of_an_ale_run_step_in_ale_py_where_its_kwargs_allow():
     # Life-loss episodes (eval.env_kwargs) are the Gymnasium path's: evaluated there, not refused.
     lives = make_eval_env(PONG, 2, vectorization="ale", kwargs={"terminal_on_life_loss": False})
     assert isinstance(lives, GymBatchEnv)
+    # eval/<info key> values describe the episode that ended: ale-py's describe the next one
+    with_info = make_eval_env(PONG, 2, vectorization="ale", info_keys=["episode_frame_number"])
+    assert isinstance(with_info, GymBatchEnv)
+    with_info.close()
     out = evaluate(ale, lambda obs: torch.zeros(len(obs), dtype=torch.int64), 5, seed=0)
     assert out["episodes"] == 5 and -21 <= out["average_return"] <= -15  # NOOP loses nearly every point
     for env in (ale, gym, lives):

@@ -13,7 +13,7 @@ from relayrl.agents.dqn import DQNAgent, DQNConfig
 from relayrl.agents.ppo import PPOAgent, PPOConfig
 from relayrl.agents.sac import SACAgent, SACConfig
 from relayrl.errors import UserError
-from relayrl.nn.graphed import RECOMPILE_LIMIT, WARMUP, compiled
+from relayrl.nn.graphed import RECOMPILE_LIMIT, WARMUP, compiled, recompile_limit_name
 from relayrl.specs import ArraySpec, DiscreteSpec
 from relayrl.types import Batch
 
@@ -47,13 +47,14 @@ def test_compiled_is_the_function_itself_unless_asked(monkeypatch):
 
 
 def test_compiling_leaves_room_for_the_variants_of_many_agents(monkeypatch):
-    with torch._dynamo.config.patch(recompile_limit=8):  # torch's default, restored after
+    name = recompile_limit_name()
+    with torch._dynamo.config.patch(**{name: 8}):  # torch's default, restored after
         monkeypatch.setenv("RELAYRL_COMPILE", "0")
         compiled(lambda x: x)
-        assert torch._dynamo.config.recompile_limit == 8  # nothing compiled: torch's setting is left alone
+        assert getattr(torch._dynamo.config, name) == 8  # nothing compiled: torch's setting is left alone
         monkeypatch.setenv("RELAYRL_COMPILE", "aot_eager")
         compiled(lambda x: x)
-        assert torch._dynamo.config.recompile_limit == RECOMPILE_LIMIT
+        assert getattr(torch._dynamo.config, name) == RECOMPILE_LIMIT
 
 
 def test_ppo_clip_range_goes_in_as_a_tensor_only_where_compiled(monkeypatch):

@@ -191,38 +191,37 @@ def block_frames(g: torch.Generator, n: int) -> tuple[torch.Tensor, torch.Tensor
 def test_graphed_pixel_dqn_matches_eager_as_the_learner_drives_it(monkeypatch):
     """Pong's net and frames, fed as the Learner feeds them: chunks of two batches with the
     target network's Q-values prepared ahead, and a lone unprepared batch where a chunk is cut at
-    a target copy (two graphs sharing the parameters and Adam's state). The reward says which
-    band the block is in, so Q must come to depend on the frames."""
+    a target copy (every third step: two graphs sharing the parameters and Adam's state, each
+    warmed up, captured and replayed within the 18 steps)."""
     monkeypatch.setattr(torch.backends.cudnn, "deterministic", True)  # the same kernels each way
     monkeypatch.setattr(torch.backends.cudnn, "benchmark", False)
-    cfg = DQNConfig(network="nature_cnn", batch_size=32, lr=2.5e-4, target_update_period=5, double=True,
+    cfg = DQNConfig(network="nature_cnn", batch_size=32, lr=2.5e-4, target_update_period=3, double=True,
                     grad_clip=10.0)
-    agents = []
+    agents, losses = [], []
     for graphs in ("1", "0"):
         monkeypatch.setenv("RELAYRL_CUDA_GRAPHS", graphs)
         torch.manual_seed(0)
         agents.append(DQNAgent(FRAMES, DiscreteSpec(6), cfg, torch.device("cuda"), np.random.default_rng(0)))
     for agent in agents:
-        g, trained, n = torch.Generator().manual_seed(1), 0, 32
-        while trained < 40:
+        g, n, seen = torch.Generator().manual_seed(1), 32, []
+        while len(seen) < 18:
             k = min(2, agent.prepare_horizon())
             obs, band = block_frames(g, k * n)
             action = torch.randint(6, (k * n,), generator=g)
-            reward = (action % 3 == band).float() * 2 - 1
+            reward = (action % 3 == band).float() * 2 - 1  # which band the block is in
             nxt, _ = block_frames(g, k * n)
             chunk = agent.prepare(Batch(*(x.cuda() for x in (obs, action, reward, nxt)),
                                         torch.full((k * n,), 0.97, device="cuda"), None), k)
             for j in range(k):
-                agent.train(type(chunk)(*(x[j * n:(j + 1) * n] if isinstance(x, torch.Tensor) else x
-                                          for x in chunk)))
-                trained += 1
+                metrics = agent.train(type(chunk)(*(x[j * n:(j + 1) * n] if isinstance(x, torch.Tensor) else x
+                                                    for x in chunk)))
+                seen.append(float(metrics["loss"]))
+        losses.append(seen)
+    torch.testing.assert_close(torch.tensor(losses[0]), torch.tensor(losses[1]), atol=1e-4, rtol=1e-3)
     graphed, eager = agents
+    # Adam's normalised steps magnify rounding where a gradient is ~0: a bound of a few steps' size
     for p, q in zip(graphed.online.parameters(), eager.online.parameters(), strict=True):
-        torch.testing.assert_close(p, q, atol=1e-4, rtol=1e-3)
-    probe, _ = block_frames(torch.Generator().manual_seed(9), 30)
-    with torch.no_grad():
-        q = graphed.online(probe.cuda())
-    assert q.std(dim=0).mean() > 1e-3  # Q differs between frames
+        torch.testing.assert_close(p, q, atol=2e-3, rtol=1e-2)
 
 
 @cuda

@@ -222,7 +222,8 @@ def recorded_env(source: Any, episodes: int, max_episode_steps: int = 0, info_ke
             c = config.env
             return make_eval_env(c.id, episodes, max_episode_steps or c.max_episode_steps,
                                  kwargs=config.eval_env_kwargs(), wrappers=c.wrappers,
-                                 info_keys=c.info_keys if info_keys else (), vectorization=c.vectorization), c.id
+                                 info_keys=c.info_keys if info_keys else (), vectorization=c.vectorization,
+                                 num_workers=c.num_workers), c.id
         source = policy if policy is not None else load_policy(source)  # a policy file on its own
     assert isinstance(source, LoadedPolicy)
     give = "give the env to evaluate on (--env ENV_ID; in Python, env=)"

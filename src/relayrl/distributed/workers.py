@@ -217,7 +217,7 @@ class EvalWorker:
         self.episodes = c.eval.episodes
         self.env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, info_keys=c.env.info_keys,
                                  kwargs=c.eval_env_kwargs(), wrappers=c.env.wrappers,
-                                 vectorization=c.env.vectorization)
+                                 vectorization=c.env.vectorization, num_workers=1)  # beside the rollout actors
         self.agent = algorithm(c.algo).make_agent(c.agent, self.env.observation_spec, self.env.action_spec,
                                                   torch.device("cpu"), RunSeeds(c.seed).generator("evaluation"),
                                                   c.train.total_steps)

@@ -1,7 +1,8 @@
 """`env.vectorization = "ale"`: the copies of a `relayrl/Atari-<Game>-v0` env stepped by ale-py's
 own vector env (`AtariVectorEnv`: C++ threads doing the frame skip, max-pool, grayscale and
 resize) with the game settings and preprocessing of the Gymnasium path (envs/atari.py), so a
-policy trained here is evaluated there (`make_env`'s default, `relayrl eval`, `relayrl video`).
+policy trained here runs there too (`make_env`'s default, `relayrl video`, a policy file's own
+evaluation); a run's evaluations take this path where they can (`make_eval_env`).
 
 Two things are done here rather than in ale-py, to match the other envs exactly:
 - The frame stack. ale-py pads a new episode's stack with zeros; relayrl's envs repeat the
@@ -128,6 +129,11 @@ class AleBatchEnv(BatchEnvBase):
         self.ale.close()
 
 
+def unsupported_kwargs(kwargs: dict[str, Any] | None) -> list[str]:
+    """The env.kwargs this path cannot honour (sorted); [] where it takes them all."""
+    return sorted(set(kwargs or {}) - set(ALE_KWARGS))
+
+
 def make_ale_env(env_id: str, num_envs: int, max_episode_steps: int = 0, time_limit_terminates: bool = False,
                  device: str | torch.device = "cpu", num_workers: int = 0,
                  kwargs: dict[str, Any] | None = None) -> AleBatchEnv:
@@ -138,7 +144,7 @@ def make_ale_env(env_id: str, num_envs: int, max_episode_steps: int = 0, time_li
         raise UserError(f"env.vectorization='ale' needs an Atari id relayrl/Atari-<Game>-v0 (e.g. "
                         f"relayrl/Atari-Pong-v0), not env.id={env_id!r}; other envs: sync or async")
     kwargs = dict(kwargs or {})
-    unknown = sorted(set(kwargs) - set(ALE_KWARGS))
+    unknown = unsupported_kwargs(kwargs)
     if unknown:
         raise UserError(f"env.kwargs {unknown} are not supported with env.vectorization='ale' "
                         f"(valid: {', '.join(ALE_KWARGS)}); use env.vectorization='sync' for them")

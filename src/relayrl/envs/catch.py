@@ -79,5 +79,7 @@ class PixelCatch(gym.Env[np.ndarray, np.int64]):
 def make_pixel_catch(cell: int = 4, balls: int = 5, stack: int = 4, render_mode: str | None = None
                      ) -> gym.Env:
     """PixelCatch with its frames stacked `stack` deep (1: single frames)."""
+    if stack < 1:
+        raise ValueError(f"stack={stack} must be >= 1")
     env: gym.Env = PixelCatch(cell, balls, render_mode)
     return FrameStackObservation(env, stack, padding_type="reset") if stack > 1 else env

@@ -63,11 +63,16 @@ def compiled(losses: F) -> F:
     # (a config's constants, an observation kind, weighted batches or not, another agent's
     # modules on some torch versions): a process building several agents (a sweep, the tests)
     # passes dynamo's default of 8, where fullgraph=True turns the next one into an error.
-    dynamo = torch._dynamo.config
-    dynamo.recompile_limit = max(dynamo.recompile_limit, RECOMPILE_LIMIT)
+    dynamo, name = torch._dynamo.config, recompile_limit_name()
+    setattr(dynamo, name, max(getattr(dynamo, name), RECOMPILE_LIMIT))
     # dynamic left to torch: a value that changes between calls (a Python float such as a
     # scheduled clip range, a shorter last minibatch) gets one general graph, not one per value.
     return torch.compile(losses, fullgraph=True, backend=backend)  # type: ignore[return-value]
+
+
+def recompile_limit_name() -> str:
+    """dynamo's setting for compiled variants per function: `cache_size_limit` before torch 2.6."""
+    return "recompile_limit" if hasattr(torch._dynamo.config, "recompile_limit") else "cache_size_limit"
 
 
 class _Captured(NamedTuple):

@@ -11,7 +11,7 @@ import torch
 from relayrl.arrays import to_numpy
 from relayrl.core import BatchedEnv
 from relayrl.envs import make_env
-from relayrl.envs.ale_vector import ALE_KWARGS
+from relayrl.envs.ale_vector import unsupported_kwargs
 from relayrl.envs.gym import EnvFn, GymBatchEnv
 from relayrl.errors import NonFiniteError, UserError
 from relayrl.specs import describe as describe_spec
@@ -29,15 +29,20 @@ EVAL_MAX_EPISODE_STEPS = 1_000
 def make_eval_env(env_id: str, episodes: int, max_episode_steps: int = 0,
                   device: str | torch.device = "cpu", info_keys: tuple[str, ...] | list[str] = (),
                   kwargs: dict[str, Any] | None = None, wrappers: tuple[str, ...] | list[str] = (),
-                  factory: EnvFn | None = None, vectorization: str = "sync") -> BatchedEnv:
+                  factory: EnvFn | None = None, vectorization: str = "sync", num_workers: int = 0
+                  ) -> BatchedEnv:
     """min(episodes, EVAL_BATCH) copies, their episodes capped where the env has no time limit.
-    `vectorization` is training's: "ale" steps the copies in ale-py's C++ threads where these
-    kwargs allow it (they give the Gymnasium path's frames: tests/test_ale_vector.py), since an
-    evaluation of long Atari games one copy after another takes a large share of a fast run;
-    anything else evaluates in this process (worker processes would outlive their use)."""
-    ale = vectorization == "ale" and set(kwargs or {}) <= set(ALE_KWARGS) and not wrappers and factory is None
+    `vectorization` and `num_workers` are training's: "ale" steps the copies in ale-py's C++
+    threads (they give the Gymnasium path's frames: tests/test_ale_vector.py), since an evaluation
+    of long Atari games one copy after another takes a large share of a fast run; except where
+    the kwargs need the Gymnasium path, or `info_keys` are asked for (ale-py's info at an episode's
+    end already describes the next one). Anything else evaluates in this process (worker
+    processes would outlive their use)."""
+    ale = (vectorization == "ale" and not unsupported_kwargs(kwargs) and not info_keys and not wrappers
+           and factory is None)
     env = make_env(env_id, min(episodes, EVAL_BATCH), max_episode_steps, device=device, info_keys=info_keys,
-                   kwargs=kwargs, wrappers=wrappers, factory=factory, vectorization="ale" if ale else "sync")
+                   kwargs=kwargs, wrappers=wrappers, factory=factory, vectorization="ale" if ale else "sync",
+                   num_workers=num_workers if ale else 0)
     cap_untimed(env)
     return env
 

@@ -64,7 +64,7 @@ class LocalDriver:
                             num_workers=c.env.num_workers, device=device, info_keys=c.env.info_keys, **made)
         self.eval_env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, device,
                                       c.env.info_keys, vectorization=c.env.vectorization,
-                                      **{**made, "kwargs": c.eval_env_kwargs()})
+                                      num_workers=c.env.num_workers, **{**made, "kwargs": c.eval_env_kwargs()})
         if c.eval.env_kwargs:
             check_same_spaces(self.eval_env, self.env, c.eval.env_kwargs)
         obs_spec, act_spec = self.env.observation_spec, self.env.action_spec
