@@ -26,7 +26,7 @@ from relayrl.core import BatchedEnv
 from relayrl.envs.atari import register_on_demand
 from relayrl.envs.observations import kind, observation_problem
 from relayrl.envs.pixels import frame_stack_of
-from relayrl.errors import UserError
+from relayrl.errors import UserError, note_where
 from relayrl.specs import (
     ArraySpec,
     PackedSpec,
@@ -501,7 +501,7 @@ class GymBatchEnv(BatchEnvBase):
             try:
                 out = env.step(actions[i])
             except Exception as e:
-                self._name_copy(e, "step()", i)
+                note_where(e, f"by {self._method('step()', i)}")
                 raise
             try:  # the start's check (env.check) finds an env off the API; without it, or mid-run, this does
                 o, r, term, trunc, info = out
@@ -541,12 +541,6 @@ class GymBatchEnv(BatchEnvBase):
         """`method` of copy i, named by its index in the whole batch (see first_copy)."""
         return f"{method} of env copy {self.first_copy + i}"
 
-    def _name_copy(self, error: Exception, method: str, i: int) -> None:
-        """A note on the env's own exception from copy i's `method` naming the copy (a user's env's
-        traceback says where in its code, not which of the copies); UserErrors name theirs."""
-        if not isinstance(error, UserError):
-            error.add_note(f"relayrl: raised by {self._method(method, i)}")
-
     def _reset_obs(self, i: int, reset: Callable[[], Any]) -> Any:
         """The observation `reset()` of copy i returns; one line where it returns no (obs, info)
         (`reset()[0]` of a bare observation would be its first entry), and the env's own
@@ -554,7 +548,7 @@ class GymBatchEnv(BatchEnvBase):
         try:
             out = reset()
         except Exception as e:
-            self._name_copy(e, "reset()", i)
+            note_where(e, f"by {self._method('reset()', i)}")
             raise
         problem = reset_problem(out, self._method("reset()", i))
         if problem is not None:

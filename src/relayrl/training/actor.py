@@ -8,7 +8,7 @@ from typing import Any
 import torch
 
 from relayrl.core import BatchedEnv, Observer, Policy
-from relayrl.errors import UserError
+from relayrl.errors import note_where
 from relayrl.training.variables import WeightPuller
 from relayrl.types import Transition
 
@@ -43,8 +43,7 @@ class Actor:
             try:
                 out = self.env.step(policy.env_action(action))
             except Exception as e:  # the env's own: which env steps it broke, beside the step the run is kept at
-                if not isinstance(e, UserError):
-                    e.add_note(f"relayrl: raised at {_steps(self.env_steps + taken, b, self.whose)}")
+                note_where(e, f"at {_steps(self.env_steps + taken, b, self.whose)}")
                 raise
             t = Transition(obs, action, out.reward, out.next_obs, out.terminated, out.truncated, out.episode_info)
             for observer in self.observers:

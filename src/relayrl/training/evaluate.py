@@ -13,7 +13,7 @@ from relayrl.core import BatchedEnv
 from relayrl.envs import make_env
 from relayrl.envs.ale_vector import unsupported_kwargs
 from relayrl.envs.gym import EnvFn, GymBatchEnv
-from relayrl.errors import NonFiniteError, UserError
+from relayrl.errors import NonFiniteError, UserError, note_where
 from relayrl.specs import describe as describe_spec
 from relayrl.specs import spec_state
 from relayrl.training.finite import describe
@@ -79,12 +79,6 @@ def eval_cap_note(env: BatchedEnv, env_id: str) -> str | None:
             "(env.max_episode_steps caps training and evaluation episodes)")
 
 
-def _say_evaluation(error: Exception) -> None:
-    """A note on the env's own exception: an evaluation env's, not a training one's."""
-    if not isinstance(error, UserError):
-        error.add_note("relayrl: raised in an evaluation episode")
-
-
 def _check_observations(obs: Any, live: np.ndarray) -> None:
     """The env's fault, named (as training's FiniteWatch names it), where a copy still running its
     quota of episodes has a NaN or infinite observation: a policy acting on it would give a return
@@ -122,7 +116,7 @@ def evaluate(env: BatchedEnv, policy: Callable[[torch.Tensor], torch.Tensor], ep
     try:
         obs = env.reset(seed=seed)
     except Exception as e:
-        _say_evaluation(e)
+        note_where(e, "in an evaluation episode")
         raise
     for _ in range(max_steps):
         if (done_count >= quota).all():
@@ -132,7 +126,7 @@ def evaluate(env: BatchedEnv, policy: Callable[[torch.Tensor], torch.Tensor], ep
             try:
                 out = env.step(policy(obs))
             except Exception as e:
-                _say_evaluation(e)
+                note_where(e, "in an evaluation episode")
                 raise
         reward = to_numpy(out.reward)
         bad = ~np.isfinite(reward) & (done_count < quota)  # copies past their quota count for nothing
