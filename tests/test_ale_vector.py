@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 
+import numpy as np
 import pytest
 import torch
 
@@ -36,6 +37,37 @@ def test_ale_vector_env_gives_what_the_gymnasium_path_gives():
     assert out.reward.dtype == torch.float32 and out.terminated.dtype == torch.bool
     ale.close()
     gym.close()
+
+
+@needs_ale
+def test_without_sticky_actions_both_paths_play_the_same_games_frame_for_frame():
+    # Sticky actions off and no no-op starts make Pong deterministic: the two paths must then agree
+    # on every stack, reward and episode end, across auto-resets, whatever the actions.
+    kwargs = {"repeat_action_probability": 0.0, "noop_max": 0}
+    ale, gym = make_env(PONG, 2, vectorization="ale", kwargs=kwargs), make_env(PONG, 2, kwargs=kwargs)
+    assert torch.equal(ale.reset(seed=0), gym.reset(seed=0))
+    rng, ends = np.random.default_rng(0), 0
+    for _ in range(1_000):
+        action = torch.from_numpy(rng.integers(0, 6, 2))
+        a, g = ale.step(action), gym.step(action)
+        for field in ("next_obs", "reward", "terminated", "truncated", "obs"):
+            assert torch.equal(getattr(a, field), getattr(g, field)), field
+        ends += int(a.terminated.sum())
+    assert ends >= 1  # random play loses a game in ~850 steps
+    ale.close()
+    gym.close()
+
+
+@needs_ale
+@pytest.mark.parametrize("vectorization", ["sync", "ale"])
+def test_game_settings_reach_the_game_and_wrong_ones_are_refused_in_one_line(vectorization):
+    full = make_env(PONG, 1, vectorization=vectorization, kwargs={"full_action_space": True})
+    assert full.action_spec.n == 18
+    full.close()
+    with pytest.raises(UserError, match=r"repeat_action_probability=1.5 is not valid; it must be a number in \[0, 1\]"):
+        make_env(PONG, 1, vectorization=vectorization, kwargs={"repeat_action_probability": 1.5})
+    with pytest.raises(UserError, match="full_action_space='yes' is not valid; it must be true or false"):
+        make_env(PONG, 1, vectorization=vectorization, kwargs={"full_action_space": "yes"})
 
 
 @needs_ale

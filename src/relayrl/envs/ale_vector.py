@@ -23,14 +23,14 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from relayrl.envs.atari import ATARI_ID, make_atari_spec_kwargs
+from relayrl.envs.atari import ATARI_ID, GAME_KWARGS, game_settings, make_atari_spec_kwargs
 from relayrl.envs.gym import BatchEnvBase, episode_info
 from relayrl.envs.pixels import SCREEN, SKIP, STACK
 from relayrl.errors import UserError
 from relayrl.types import StepOutput
 
 # env.kwargs this path takes (`make_atari`'s preprocessing keywords it can honour exactly).
-ALE_KWARGS = ("frame_skip", "screen_size", "stack", "noop_max")
+ALE_KWARGS = ("frame_skip", "screen_size", "stack", "noop_max", *GAME_KWARGS)
 
 
 class AleBatchEnv(BatchEnvBase):
@@ -38,7 +38,8 @@ class AleBatchEnv(BatchEnvBase):
 
     def __init__(self, game: str, num_envs: int, max_episode_steps: int = 0, time_limit_terminates: bool = False,
                  num_threads: int = 0, pin_memory: bool = False, frame_skip: int = SKIP,
-                 screen_size: int = SCREEN, stack: int = STACK, noop_max: int = 30) -> None:
+                 screen_size: int = SCREEN, stack: int = STACK, noop_max: int = 30,
+                 repeat_action_probability: float | None = None, full_action_space: bool | None = None) -> None:
         from ale_py.vector_env import AtariVectorEnv
 
         if num_envs < 1:
@@ -46,7 +47,8 @@ class AleBatchEnv(BatchEnvBase):
         for key, value in (("frame_skip", frame_skip), ("screen_size", screen_size), ("stack", stack)):
             if value < 1:
                 raise UserError(f"env.kwargs.{key}={value} is not valid; it must be >= 1")
-        v5 = make_atari_spec_kwargs(game)
+        v5 = {**make_atari_spec_kwargs(game), **game_settings(
+            {"repeat_action_probability": repeat_action_probability, "full_action_space": full_action_space})}
         self.ale = AtariVectorEnv(
             v5["game"], num_envs, num_threads=num_threads, autoreset_mode="SameStep",
             repeat_action_probability=v5.get("repeat_action_probability", 0.25),

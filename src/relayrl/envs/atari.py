@@ -1,7 +1,8 @@
 """Atari through ale-py (the `[atari]` extra; ale-py ships its ROMs, nothing is downloaded).
 
 `relayrl/Atari-<Game>-v0` is `ALE/<Game>-v5` (sticky actions 0.25, minimal action set, at
-most 108,000 frames an episode) made with `frameskip=1` under the standard DQN preprocessing
+most 108,000 frames an episode; env.kwargs `repeat_action_probability` and `full_action_space`
+change the first two) made with `frameskip=1` under the standard DQN preprocessing
 (`pixels.atari_preprocessing`): uint8 observations [4, 84, 84], one step = 4 frames. Any ALE
 game works; an id is registered with Gymnasium the first time `resolve_env_fn` sees it, so
 the registry is not filled with a hundred games that may never be played. `render()` gives
@@ -20,6 +21,10 @@ from relayrl.errors import UserError
 
 ATARI_ID = re.compile(r"relayrl/Atari-(?P<game>[A-Za-z0-9]+)-v0")
 INSTALL = "pip install 'relayrl[atari]'"
+# The game's settings an env.kwargs may change from v5's: sticky actions (0.0 gives the
+# deterministic games of the NoFrameskip-v4 ids that CleanRL's and many papers' results use) and
+# all 18 actions instead of the game's minimal set.
+GAME_KWARGS = ("repeat_action_probability", "full_action_space")
 ATARI_FPS = 60  # NTSC frames per second
 
 
@@ -34,14 +39,28 @@ def import_ale(env_id: str) -> None:
 
 def make_atari(game: str, render_mode: str | None = None, **preprocessing: Any) -> gym.Env:
     """`ALE/<game>-v5` with the standard preprocessing (keyword overrides: frame_skip,
-    screen_size, stack, noop_max, terminal_on_life_loss)."""
+    screen_size, stack, noop_max, terminal_on_life_loss; and the game's own GAME_KWARGS)."""
     make_atari_spec_kwargs(game)  # one line if ale-py or the game is missing
+    game_kwargs = game_settings({k: preprocessing.pop(k) for k in GAME_KWARGS if k in preprocessing})
     # frameskip=1: AtariPreprocessing skips frames itself, max-pooling the last two.
-    env = gym.make(f"ALE/{game}-v5", frameskip=1, render_mode=render_mode, disable_env_checker=True)
+    env = gym.make(f"ALE/{game}-v5", frameskip=1, render_mode=render_mode, disable_env_checker=True, **game_kwargs)
     env = atari_preprocessing(env, **preprocessing)
     # One step shows every frame_skip-th of the console's 60 frames/s: videos play in real time.
     env.metadata = {**env.metadata, "render_fps": ATARI_FPS // preprocessing.get("frame_skip", SKIP)}
     return env
+
+
+def game_settings(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """GAME_KWARGS given in env.kwargs, checked (one line for a wrong value)."""
+    sticky = kwargs.get("repeat_action_probability")
+    if sticky is not None and (isinstance(sticky, bool) or not isinstance(sticky, (int, float))
+                               or not 0.0 <= sticky <= 1.0):
+        raise UserError(f"env.kwargs.repeat_action_probability={sticky!r} is not valid; it must be a number "
+                        "in [0, 1] (0.0: no sticky actions)")
+    full = kwargs.get("full_action_space")
+    if full is not None and not isinstance(full, bool):
+        raise UserError(f"env.kwargs.full_action_space={full!r} is not valid; it must be true or false")
+    return {k: float(v) if k == "repeat_action_probability" else v for k, v in kwargs.items() if v is not None}
 
 
 def make_atari_spec_kwargs(game: str) -> dict[str, Any]:

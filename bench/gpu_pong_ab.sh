@@ -1,0 +1,72 @@
+#!/bin/sh
+# Whose is dqn-pong-fast's failure on a GPU (docs/benchmarks.md, "dqn-pong-fast"): relayrl's GPU
+# path, relayrl's shared code, or the recipe? One call of the device tool (carry [".whl"],
+# timeout_s 600) runs side by side, for SECONDS (default 470) each:
+#
+#     sh bench/gpu_pong_ab.sh [SECONDS]
+#
+#   shipped      relayrl train dqn-pong-fast as shipped (CUDA graphs, frames in GPU replay)
+#   no-graphs    the same with RELAYRL_CUDA_GRAPHS=0 (every kernel launched, as on a CPU)
+#   host-replay  no graphs and replay.device=numpy (the CPU's replay; batches copied over)
+#   reference    bench/pong_reference.py: the same recipe written without relayrl
+# and, in its first two minutes, the CUDA tests of tests/test_graphed.py and bench/gpu_policies.py
+# (a 30,000-step run's collect and evaluation policies against its networks run eagerly: every
+# count should be 0).
+#
+# Reading it: a variant whose training returns climb from random play's -20.5 (to -19 and
+# beyond) where `shipped` stays flat names the broken path; if `reference` climbs and no relayrl
+# variant does, the defect is in code every path shares; if nothing climbs, the recipe is too
+# slow for this many steps. Four runs share 16 cores and one GPU, so each is slower than alone:
+# learning is compared at equal env steps, not speed.
+# Output in $OUT: pong-VARIANT.log and .jsonl (metrics), tests-graphed.txt, policies.txt and
+# summary.txt.
+set -u
+out="${OUT:-.}"
+secs="${1:-470}"
+. bench/gpu_site.sh
+export OMP_NUM_THREADS=1
+nvidia-smi --query-gpu=name,driver_version --format=csv,noheader
+timeout -k 10 80 python3 -m pytest -q -p no:cacheprovider -m "not slow" tests/test_graphed.py \
+    >"$out/tests-graphed.txt" 2>&1 &
+timeout -k 10 120 python3 bench/gpu_policies.py >"$out/policies.txt" 2>"$out/policies-stderr.txt" &
+relayrl_run() {  # NAME [VAR=VALUE ...] -- [--set ...]
+    name=$1; shift
+    vars=""
+    while [ "$1" != "--" ]; do vars="$vars $1"; shift; done
+    shift
+    # shellcheck disable=SC2086
+    env $vars timeout -k 20 "$secs" python3 -m relayrl train dqn-pong-fast --run-dir "/tmp/pong-ab/$name" \
+        --overwrite --no-progress --set env.num_workers=3 "$@" >"$out/pong-$name.log" 2>&1 &
+}
+relayrl_run shipped --
+relayrl_run no-graphs RELAYRL_CUDA_GRAPHS=0 --
+relayrl_run host-replay RELAYRL_CUDA_GRAPHS=0 -- --set replay.device=numpy
+timeout -k 20 "$secs" python3 bench/pong_reference.py --seconds "$((secs - 15))" --threads 3 \
+    >"$out/pong-reference.log" 2>&1 &
+wait
+echo "--- tests/test_graphed.py"; tail -3 "$out/tests-graphed.txt"
+echo "--- bench/gpu_policies.py"; cat "$out/policies.txt"; tail -2 "$out/policies-stderr.txt"
+for name in shipped no-graphs host-replay; do
+    cp "/tmp/pong-ab/$name/metrics.jsonl" "$out/pong-$name.jsonl" 2>/dev/null
+done
+python3 - "$out" <<'PY' | tee "$out/summary.txt"
+import json, os, sys
+out = sys.argv[1]
+def rows(path):
+    return [json.loads(line) for line in open(path) if line.startswith("{")] if os.path.exists(path) else []
+for name in ("shipped", "no-graphs", "host-replay"):
+    rs = rows(f"{out}/pong-{name}.jsonl")
+    print(f"--- {name}: step, training return, evaluation, losses/q, wall s")
+    for r in rs:
+        if r["step"] % 50_000 == 0 or r is rs[-1]:
+            print(" ", r["step"], r.get("train/average_return"), r.get("average_return"),
+                  None if r.get("losses/q") is None else round(r["losses/q"], 3), r.get("wall_time_s"))
+    if not rs:
+        print("  no metrics: see", f"pong-{name}.log")
+print("--- reference: step, training return (last 20 episodes), q, s")
+for r in rows(f"{out}/pong-reference.log"):
+    if "step" in r and r["step"] % 50_000 < 8:
+        print(" ", r["step"], r["train_return_last20"], r["q"], round(r["step"] / r["sps"]))
+    elif "done" in r:
+        print("  end:", r)
+PY
