@@ -6,8 +6,9 @@
 #     sh bench/gpu_pong_ab.sh [SECONDS]
 #
 #   shipped      relayrl train dqn-pong-fast as shipped (CUDA graphs, frames in GPU replay)
-#   no-graphs    the same with RELAYRL_CUDA_GRAPHS=0 (every kernel launched, as on a CPU)
-#   host-replay  no graphs and replay.device=numpy (the CPU's replay; batches copied over)
+#   no-sticky    the same without sticky actions (env.kwargs.repeat_action_probability=0.0)
+#   host-replay  RELAYRL_CUDA_GRAPHS=0 (every kernel launched, as on a CPU) and replay.device=numpy
+#                (the CPU's replay; batches copied over): none of the CUDA-only paths
 #   reference    bench/pong_reference.py: the same recipe written without relayrl
 # and, in its first two minutes, the CUDA tests of tests/test_graphed.py and bench/gpu_policies.py
 # (a 30,000-step run's collect and evaluation policies against its networks run eagerly: every
@@ -15,9 +16,11 @@
 #
 # Reading it: a variant whose training returns climb from random play's -20.5 (to -19 and
 # beyond) where `shipped` stays flat names the broken path; if `reference` climbs and no relayrl
-# variant does, the defect is in code every path shares; if nothing climbs, the recipe is too
-# slow for this many steps. Four runs share 16 cores and one GPU, so each is slower than alone:
-# learning is compared at equal env steps, not speed.
+# variant does, the defect is in code every path shares; if only `no-sticky` climbs, v5's sticky
+# actions make the recipe too slow; if nothing climbs, the recipe is too slow for this many
+# steps. Four runs share 16 cores and one GPU (time-sliced between the processes), so each is
+# slower than alone: learning is compared at equal env steps, not speed. Once a path is named,
+# bench/gpu_diagnose.sh narrows it (graphs or the GPU replay) on PixelCatch.
 # Output in $OUT: pong-VARIANT.log and .jsonl (metrics), tests-graphed.txt, policies.txt and
 # summary.txt.
 set -u
@@ -36,17 +39,17 @@ relayrl_run() {  # NAME [VAR=VALUE ...] -- [--set ...]
     shift
     # shellcheck disable=SC2086
     env $vars timeout -k 20 "$secs" python3 -m relayrl train dqn-pong-fast --run-dir "/tmp/pong-ab/$name" \
-        --overwrite --no-progress --set env.num_workers=3 "$@" >"$out/pong-$name.log" 2>&1 &
+        --overwrite --no-progress --set env.num_workers=2 "$@" >"$out/pong-$name.log" 2>&1 &
 }
 relayrl_run shipped --
-relayrl_run no-graphs RELAYRL_CUDA_GRAPHS=0 --
+relayrl_run no-sticky -- --set env.kwargs.repeat_action_probability=0.0
 relayrl_run host-replay RELAYRL_CUDA_GRAPHS=0 -- --set replay.device=numpy
-timeout -k 20 "$secs" python3 bench/pong_reference.py --seconds "$((secs - 15))" --threads 3 \
+timeout -k 20 "$secs" python3 bench/pong_reference.py --seconds "$((secs - 15))" --threads 2 \
     >"$out/pong-reference.log" 2>&1 &
 wait
 echo "--- tests/test_graphed.py"; tail -3 "$out/tests-graphed.txt"
 echo "--- bench/gpu_policies.py"; cat "$out/policies.txt"; tail -2 "$out/policies-stderr.txt"
-for name in shipped no-graphs host-replay; do
+for name in shipped no-sticky host-replay; do
     cp "/tmp/pong-ab/$name/metrics.jsonl" "$out/pong-$name.jsonl" 2>/dev/null
 done
 python3 - "$out" <<'PY' | tee "$out/summary.txt"
@@ -54,7 +57,7 @@ import json, os, sys
 out = sys.argv[1]
 def rows(path):
     return [json.loads(line) for line in open(path) if line.startswith("{")] if os.path.exists(path) else []
-for name in ("shipped", "no-graphs", "host-replay"):
+for name in ("shipped", "no-sticky", "host-replay"):
     rs = rows(f"{out}/pong-{name}.jsonl")
     print(f"--- {name}: step, training return, evaluation, losses/q, wall s")
     for r in rs:

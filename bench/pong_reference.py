@@ -72,12 +72,12 @@ class Replay:
             return
         obs, action, ret, next_obs, discount = zip(*items, strict=True)
         k = len(items)
-        idx = (self.pos + torch.arange(k)) % self.size
-        self.obs[idx.to(self.device)] = torch.from_numpy(np.stack(obs)).to(self.device)
-        self.next_obs[idx.to(self.device)] = torch.from_numpy(np.stack(next_obs)).to(self.device)
-        self.action[idx.to(self.device)] = torch.tensor(action, device=self.device)
-        self.ret[idx.to(self.device)] = torch.tensor(ret, dtype=torch.float32, device=self.device)
-        self.discount[idx.to(self.device)] = torch.tensor(discount, dtype=torch.float32, device=self.device)
+        idx = ((self.pos + torch.arange(k)) % self.size).to(self.device)
+        self.obs[idx] = torch.from_numpy(np.stack(obs)).to(self.device)
+        self.next_obs[idx] = torch.from_numpy(np.stack(next_obs)).to(self.device)
+        self.action[idx] = torch.tensor(action, device=self.device)
+        self.ret[idx] = torch.tensor(ret, dtype=torch.float32, device=self.device)
+        self.discount[idx] = torch.tensor(discount, dtype=torch.float32, device=self.device)
         self.full = self.full or self.pos + k >= self.size
         self.pos = (self.pos + k) % self.size
 
