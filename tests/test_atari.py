@@ -11,7 +11,7 @@ import torch
 
 import relayrl
 from relayrl.envs import make_env
-from relayrl.envs.atari import import_ale
+from relayrl.envs.atari import import_ale, raw_screen_note
 from relayrl.errors import UserError
 from relayrl.presets import list_presets, load_config
 
@@ -55,6 +55,23 @@ def test_ale_ids_work_and_unknown_games_say_so():
     assert make_env("ALE/Breakout-v5").observation_spec.shape == (210, 160, 3)
     with pytest.raises(UserError, match="no game 'NoSuchGame'"):
         make_env("relayrl/Atari-NoSuchGame-v0")
+
+
+@needs_ale
+def test_older_gym_atari_ids_resolve_and_raw_screens_name_the_preprocessed_id():
+    # An SB3 or CleanRL user's PongNoFrameskip-v4 is registered by importing ale-py, as ALE/... is.
+    env = make_env("PongNoFrameskip-v4")
+    assert env.observation_spec.shape == (210, 160, 3)
+    env.close()
+    note = raw_screen_note("PongNoFrameskip-v4", {}, [])
+    assert note is not None and "relayrl/Atari-Pong-v0 with env.kwargs.repeat_action_probability=0.0 is the " \
+        "same game under it" in note
+    assert "relayrl/Atari-Breakout-v0 is the same game" in (raw_screen_note("ALE/Breakout-v5", {}, []) or "")
+    # preprocessed already, or not an ALE screen: no note
+    assert raw_screen_note("ALE/Breakout-v5", {}, ["mymod:preprocess"]) is None
+    assert raw_screen_note("ALE/Breakout-v5", {"obs_type": "ram"}, []) is None
+    for other in ("relayrl/Atari-Pong-v0", "CartPole-v0", "MountainCar-v0"):
+        assert raw_screen_note(other, {}, []) is None
 
 
 @needs_ale

@@ -11,6 +11,7 @@ the game's full RGB frames (what `relayrl video` records), not the 84x84 stacks.
 
 from __future__ import annotations
 
+import importlib.util
 import re
 from typing import Any
 
@@ -20,6 +21,9 @@ from relayrl.envs.pixels import SKIP, atari_preprocessing
 from relayrl.errors import UserError
 
 ATARI_ID = re.compile(r"relayrl/Atari-(?P<game>[A-Za-z0-9]+)-v0")
+# Ids ale-py registers for the raw screen: ALE/<Game>-v5 and the older Gym ids (PongNoFrameskip-v4 ...)
+RAW_ALE_ID = re.compile(r"(ALE/(?P<v5>[A-Za-z0-9]+)-v5)"
+                        r"|((?P<old>[A-Z][A-Za-z0-9]*?)(NoFrameskip|Deterministic)?-v[04])")
 INSTALL = "pip install 'relayrl[atari]'"
 # The game's settings an env.kwargs may change from v5's: sticky actions (0.0 gives the
 # deterministic games of the NoFrameskip-v4 ids that CleanRL's and many papers' results use) and
@@ -75,10 +79,30 @@ def make_atari_spec_kwargs(game: str) -> dict[str, Any]:
 
 
 def register_on_demand(env_id: str) -> None:
-    """Register `env_id` if it is one of the ids registered only when used: `ALE/...` (importing
-    ale-py registers them) and `relayrl/Atari-<Game>-v0`."""
+    """Register `env_id` if it is one of the ids registered only when used: `ALE/...` and the
+    older `PongNoFrameskip-v4` kind (importing ale-py registers them; the latter only where it is
+    installed, as `Name-v0` may be any env's id) and `relayrl/Atari-<Game>-v0`."""
     if env_id.startswith("ALE/") and env_id not in gym.registry:
+        import_ale(env_id)
+    elif RAW_ALE_ID.fullmatch(env_id) and env_id not in gym.registry and importlib.util.find_spec("ale_py"):
         import_ale(env_id)
     match = ATARI_ID.fullmatch(env_id)
     if match is not None and env_id not in gym.registry:
         gym.register(env_id, entry_point="relayrl.envs.atari:make_atari", kwargs={"game": match["game"]})
+
+
+def raw_screen_note(env_id: str, kwargs: dict[str, Any], wrappers: list[str] | tuple[str, ...]) -> str | None:
+    """A line where env.id is one of ale-py's raw-screen ids and neither env.wrappers nor another
+    obs_type change it: the relayrl id that is the same game under the standard preprocessing."""
+    match = RAW_ALE_ID.fullmatch(env_id)
+    if match is None or wrappers or "obs_type" in kwargs or env_id not in gym.registry:
+        return None
+    if not str(gym.spec(env_id).entry_point).startswith("ale_py"):  # CartPole-v0 has the same form
+        return None
+    game = match["v5"] or match["old"]
+    sticky = gym.spec(env_id).kwargs.get("repeat_action_probability", 0.25)
+    same = f"relayrl/Atari-{game}-v0" + ("" if sticky == 0.25 else
+                                         f" with env.kwargs.repeat_action_probability={float(sticky)}")
+    return (f"env.id={env_id!r} is ale-py's raw 210x160 RGB screen, without the standard DQN preprocessing: "
+            f"{same} is the same game under it (no-op starts, max-pooled frame skip, 84x84 grayscale stacks of 4; "
+            "the replay keeps 1/14 of the bytes per step)")

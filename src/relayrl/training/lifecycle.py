@@ -20,6 +20,7 @@ from relayrl import interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config, changes, from_dict, load_toml, save_toml, to_dict
 from relayrl.core import Agent
+from relayrl.envs.atari import raw_screen_note
 from relayrl.envs.gym import names_python_factory
 from relayrl.envs.make import (
     check_env,
@@ -341,7 +342,8 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if 0 < c.train.total_steps <= c.train.initial_collect_steps:
             core.say(f"train.initial_collect_steps={c.train.initial_collect_steps:,} >= train.total_steps="
                      f"{c.train.total_steps:,}: the run takes random actions only and learns nothing")
-        for note in (minibatch_note(c), partial_rollout_note(c)):
+        notes = (minibatch_note(c), partial_rollout_note(c), raw_screen_note(c.env.id, c.env.kwargs, c.env.wrappers))
+        for note in notes:
             if note is not None:
                 core.say(note)
         if c.distributed.address and c.distributed.num_actors == 0:

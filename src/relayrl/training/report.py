@@ -207,7 +207,8 @@ class RunReport:
         self.last_eval = row
         if not self.legend_said:
             self.legend_said = True
-            self.say(f"evaluations: mean return and length of {self.config.eval.episodes} episodes of the policy "
+            n = self.config.eval.episodes
+            self.say(f"evaluations: mean return and length of {n} episode{'s' if n != 1 else ''} of the policy "
                      "acting without exploration (its greedy or mean action), then the run's wall-clock time so far")
         self.say(f"step {p.env_steps:>9,} | eval return {result['average_return']:8.2f} "
                  f"| length {result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
