@@ -110,7 +110,8 @@ def main() -> None:
     device = torch.device(args.device)
     envs = AtariVectorEnv("pong", args.copies, num_threads=args.threads, autoreset_mode="SameStep",
                           repeat_action_probability=args.sticky, img_height=args.screen, img_width=args.screen,
-                          stack_num=4, frameskip=4, maxpool=True, noop_max=30, grayscale=True)
+                          stack_num=4, frameskip=4, maxpool=True, noop_max=30, grayscale=True,
+                          episodic_life=False, reward_clipping=False, use_fire_reset=False)  # as relayrl's
     actions = int(envs.single_action_space.n)
     online = nature_cnn(actions, args.screen).to(device)
     target = nature_cnn(actions, args.screen).to(device)

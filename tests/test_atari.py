@@ -64,9 +64,13 @@ def test_older_gym_atari_ids_resolve_and_raw_screens_name_the_preprocessed_id():
     assert env.observation_spec.shape == (210, 160, 3)
     env.close()
     note = raw_screen_note("PongNoFrameskip-v4", {}, [])
-    assert note is not None and "relayrl/Atari-Pong-v0 with env.kwargs.repeat_action_probability=0.0 is the " \
+    assert note is not None and "relayrl/Atari-Pong-v0 with env.kwargs repeat_action_probability=0.0 is the " \
         "same game under it" in note
     assert "relayrl/Atari-Breakout-v0 is the same game" in (raw_screen_note("ALE/Breakout-v5", {}, []) or "")
+    # the user's env.kwargs count, and a random frame skip is not "the same game"
+    assert "Atari-Pong-v0 with env.kwargs repeat_action_probability=0.0, full_action_space=True is the same" in (
+        raw_screen_note("ALE/Pong-v5", {"repeat_action_probability": 0.0, "full_action_space": True}, []) or "")
+    assert "is its game with a fixed frame skip" in (raw_screen_note("Pong-v4", {}, []) or "")
     # preprocessed already, or not an ALE screen: no note
     assert raw_screen_note("ALE/Breakout-v5", {}, ["mymod:preprocess"]) is None
     assert raw_screen_note("ALE/Breakout-v5", {"obs_type": "ram"}, []) is None

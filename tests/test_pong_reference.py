@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -41,11 +42,12 @@ def test_nstep_windows_close_as_hand_computed(terminated):
 
 
 @pytest.mark.skipif(importlib.util.find_spec("ale_py") is None, reason="needs ale-py (relayrl[atari])")
-def test_a_short_run_on_the_cpu_learns_and_logs(tmp_path):
+def test_a_short_run_on_the_cpu_takes_its_gradient_steps_and_logs(tmp_path):
+    # one torch thread, as the tests' own process has (conftest.py): a loaded machine thrashes with more
     r = subprocess.run([sys.executable, str(BENCH / "pong_reference.py"), "--device", "cpu", "--steps", "1200",
                         "--learning-starts", "800", "--batch-size", "4", "--copies", "2", "--replay-size", "2000",
                         "--log-every", "1000", "--threads", "1"], cwd=tmp_path, capture_output=True, text=True,
-                       timeout=120)
+                       timeout=120, env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert r.returncode == 0, r.stderr
     rows = [json.loads(line) for line in r.stdout.splitlines() if line.startswith("{")]
     assert rows[0]["step"] == 1000 and rows[0]["updates"] == 2 * (1000 - 800) // 2 + 2

@@ -5,6 +5,7 @@ help everywhere, "did you mean", TensorBoard as CleanRL names it, progress lines
 from __future__ import annotations
 
 import dataclasses
+import re
 import subprocess
 import sys
 import tomllib
@@ -231,3 +232,5 @@ def test_progress_lines_without_a_terminal(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.startswith("step ") and "/1,500 (" in line]
     assert lines and "env steps/s" in lines[0], err
+    # the latest training episodes' mean return, once there are some (CartPole's end within 1,500 steps)
+    assert re.search(r"\| train return \d+\.\d\d \|", lines[-1]), lines[-1]

@@ -93,16 +93,21 @@ def register_on_demand(env_id: str) -> None:
 
 def raw_screen_note(env_id: str, kwargs: dict[str, Any], wrappers: list[str] | tuple[str, ...]) -> str | None:
     """A line where env.id is one of ale-py's raw-screen ids and neither env.wrappers nor another
-    obs_type change it: the relayrl id that is the same game under the standard preprocessing."""
+    obs_type change it: the relayrl id and env.kwargs that give its game under the standard
+    preprocessing."""
     match = RAW_ALE_ID.fullmatch(env_id)
     if match is None or wrappers or "obs_type" in kwargs or env_id not in gym.registry:
         return None
-    if not str(gym.spec(env_id).entry_point).startswith("ale_py"):  # CartPole-v0 has the same form
+    spec = gym.spec(env_id)
+    if not str(spec.entry_point).startswith("ale_py"):  # CartPole-v0 has the same form
         return None
-    game = match["v5"] or match["old"]
-    sticky = gym.spec(env_id).kwargs.get("repeat_action_probability", 0.25)
-    same = f"relayrl/Atari-{game}-v0" + ("" if sticky == 0.25 else
-                                         f" with env.kwargs.repeat_action_probability={float(sticky)}")
+    game = {**spec.kwargs, **kwargs}  # the user's env.kwargs over the id's own
+    settings = [f"{k}={game[k]}" for k, v5 in (("repeat_action_probability", 0.25), ("full_action_space", False))
+                if k in game and game[k] != v5]
+    same = f"relayrl/Atari-{match['v5'] or match['old']}-v0" + (
+        f" with env.kwargs {', '.join(settings)}" if settings else "")
+    # Pong-v0 / Pong-v4 skip 2-4 frames at random; the preprocessed ids skip a fixed 4, max-pooled.
+    what = "the same game" if not isinstance(game.get("frameskip", 4), tuple) else "its game with a fixed frame skip"
     return (f"env.id={env_id!r} is ale-py's raw 210x160 RGB screen, without the standard DQN preprocessing: "
-            f"{same} is the same game under it (no-op starts, max-pooled frame skip, 84x84 grayscale stacks of 4; "
+            f"{same} is {what} under it (no-op starts, max-pooled frame skip, 84x84 grayscale stacks of 4; "
             "the replay keeps 1/14 of the bytes per step)")

@@ -185,8 +185,11 @@ class RunReport:
         p, total = self.progress(), self.config.train.total_steps
         sps, _ = self.run_sps(p)
         last = self.last_eval.get("average_return")
+        returns = self.stats.returns  # the latest training episodes' (train/average_return's)
+        train = f"{sum(returns) / len(returns):.2f}" if returns else "-"
         return (f"step {p.env_steps:,}/{total:,} ({100 * p.env_steps / total:.0f}%) | {sps:,.0f} env steps/s "
-                f"| last eval return {'-' if last is None else f'{last:.2f}'} | {self.wall_time():.0f}s")
+                f"| train return {train} | last eval return {'-' if last is None else f'{last:.2f}'} "
+                f"| {self.wall_time():.0f}s")
 
     def record_eval(self, p: Progress, result: dict[str, Any], eval_s: float, wall_time_s: float | None = None,
                     extra: dict[str, Any] | None = None, at_step: dict[str, Any] | None = None) -> None:
