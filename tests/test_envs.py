@@ -181,6 +181,17 @@ def test_async_worker_errors_reach_the_main_process():
         env.step(torch.zeros(3, dtype=torch.int64))
 
 
+def test_a_worker_that_never_answers_its_start_is_one_error_not_a_wait_without_end(monkeypatch):
+    from relayrl.envs import vector
+
+    monkeypatch.setattr(vector, "WORKER_START_S", 1.0)
+    before = set(multiprocessing.active_children())
+    with pytest.raises(RuntimeError, match=r"env worker 0 \(copy 1\) did not answer within 1 s of its start.*"
+                                           r"env.vectorization='sync'"):
+        make_env("toy_envs:SlowStart", 2, vectorization="async", num_workers=1, kwargs={"delay": 30.0})
+    assert set(multiprocessing.active_children()) <= before  # the worker is stopped, not left behind
+
+
 def test_a_workers_copy_is_named_by_its_index_in_the_whole_batch():
     """4 copies over two workers: the main process steps copy 0, the workers 1 and 2..3; the
     first worker's copy is copy 1 of the batch, not its own copy 0."""

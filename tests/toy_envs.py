@@ -597,3 +597,24 @@ class CloseRaises(Countdown):
     def close(self):
         CloseRaises.closed += 1
         raise RuntimeError("the simulator's socket was already gone")
+
+
+class SlowStart(gym.Env):
+    """Takes `delay` seconds to make in a worker process (at once in the main one)."""
+
+    observation_space = gym.spaces.Box(-1, 1, (1,), np.float32)
+    action_space = gym.spaces.Discrete(2)
+
+    def __init__(self, delay: float = 30.0, render_mode: str | None = None) -> None:
+        import multiprocessing
+        import time
+
+        if multiprocessing.parent_process() is not None:
+            time.sleep(delay)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        return np.zeros(1, np.float32), {}
+
+    def step(self, action):
+        return np.zeros(1, np.float32), 0.0, False, False, {}

@@ -34,6 +34,7 @@ import random
 import signal
 import struct
 import sys
+import time
 import traceback
 import weakref
 import zlib
@@ -105,6 +106,10 @@ _ONE_WRITE = 16_000
 # Every reply starts with these bytes, after the Connection's length header: a reader whose
 # stream lost bytes to an interrupt (see AsyncGymBatchEnv._fill) finds out at the next reply.
 _MAGIC = b"RLRW"
+# How long a worker may take to make its env copies and answer (see `_await_start`): generous, as
+# some simulators take many seconds to start; without a limit a worker that never answers would
+# make the run wait without end.
+WORKER_START_S = 300.0
 _LENGTH = struct.Struct("!i")  # multiprocessing's Connection length header
 
 
@@ -253,6 +258,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
                 self._conns.append(parent)
                 self._procs.append(proc)
                 self._inbox.append(bytearray())
+            self._await_start()
             self._gather(0)
         except BaseException:
             self.close()
@@ -268,6 +274,20 @@ class AsyncGymBatchEnv(BatchEnvBase):
         self._local.info_keys = self._info_keys
         if self._conns:
             self._command("info_keys", self._info_keys)
+
+    def _await_start(self) -> None:
+        """Wait for every worker's first reply (its "ok" or its failure) for at most WORKER_START_S,
+        so a worker that never answers is an error, not a wait without end."""
+        deadline = time.monotonic() + WORKER_START_S
+        for w, conn in enumerate(self._conns):
+            if not conn.poll(max(0.0, deadline - time.monotonic())):
+                lo, hi = self.slices[w + 1]
+                copies = f"copy {lo}" if hi - lo == 1 else f"copies {lo}..{hi - 1}"
+                raise RuntimeError(
+                    f"env worker {w} ({copies}) did not answer within {WORKER_START_S:.0f} s of "
+                    "its start: making its env copies hangs or takes longer than that; a worker forked from a "
+                    "process with other threads (a notebook's, Ray's) can also deadlock before it starts. "
+                    "env.vectorization='sync' steps the copies without worker processes")
 
     def _read(self, w: int, seq: int) -> tuple[str, Any]:
         """Worker w's reply to command `seq`; replies to earlier, interrupted calls are dropped."""
