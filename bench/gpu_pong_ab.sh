@@ -6,7 +6,9 @@
 #     sh bench/gpu_pong_ab.sh [SECONDS]
 #
 #   shipped      relayrl train dqn-pong-fast as shipped (CUDA graphs, frames in GPU replay)
-#   no-sticky    the same without sticky actions (env.kwargs.repeat_action_probability=0.0)
+#   lapan        Lapan's Pong ratio: one gradient step of batch 32 per env step (4x the shipped
+#                recipe's gradient steps, lr 1e-4, a target copy every 1,000 of them) and no
+#                sticky actions (env.kwargs.repeat_action_probability=0.0, as NoFrameskip-v4)
 #   host-replay  RELAYRL_CUDA_GRAPHS=0 (every kernel launched, as on a CPU) and replay.device=numpy
 #                (the CPU's replay; batches copied over): none of the CUDA-only paths
 #   reference    bench/pong_reference.py: the same recipe written without relayrl
@@ -16,9 +18,9 @@
 #
 # Reading it: a variant whose training returns climb from random play's -20.5 (to -19 and
 # beyond) where `shipped` stays flat names the broken path; if `reference` climbs and no relayrl
-# variant does, the defect is in code every path shares; if only `no-sticky` climbs, v5's sticky
-# actions make the recipe too slow; if nothing climbs, the recipe is too slow for this many
-# steps. Four runs share 16 cores and one GPU (time-sliced between the processes), so each is
+# variant does, the defect is in code every path shares; if only `lapan` climbs, the shipped
+# recipe's larger batches (a quarter of the gradient steps) or sticky actions are too slow; if
+# nothing climbs, the runs were too short. Four runs share 16 cores and one GPU (time-sliced between the processes), so each is
 # slower than alone: learning is compared at equal env steps, not speed. Once a path is named,
 # bench/gpu_diagnose.sh narrows it (graphs or the GPU replay) on PixelCatch.
 # Output in $OUT: pong-VARIANT.log and .jsonl (metrics, copied every 30 s), tests-graphed.txt,
@@ -47,13 +49,14 @@ relayrl_run() {  # NAME [VAR=VALUE ...] -- [--set ...]
     pids="$pids $!"
 }
 relayrl_run shipped --
-relayrl_run no-sticky -- --set env.kwargs.repeat_action_probability=0.0
+relayrl_run lapan -- --set env.kwargs.repeat_action_probability=0.0 --set train.gradient_steps=8 \
+    --set agent.batch_size=32 --set agent.lr=1e-4 --set agent.target_update_period=1000
 relayrl_run host-replay RELAYRL_CUDA_GRAPHS=0 -- --set replay.device=numpy
 timeout -k 20 "$secs" python3 bench/pong_reference.py --seconds "$((secs - 15))" --threads 2 \
     >"$out/pong-reference.log" 2>&1 &
 pids="$pids $!"
 copy_metrics() {  # metrics.jsonl is the training curve: in $OUT as it grows, so a cut call keeps it
-    for name in shipped no-sticky host-replay; do
+    for name in shipped lapan host-replay; do
         cp "/tmp/pong-ab/$name/metrics.jsonl" "$out/pong-$name.jsonl" 2>/dev/null
     done
 }
@@ -70,7 +73,7 @@ import json, os, sys
 out = sys.argv[1]
 def rows(path):
     return [json.loads(line) for line in open(path) if line.startswith("{")] if os.path.exists(path) else []
-for name in ("shipped", "no-sticky", "host-replay"):
+for name in ("shipped", "lapan", "host-replay"):
     rs = rows(f"{out}/pong-{name}.jsonl")
     print(f"--- {name}: evaluations (step, training return, evaluation, losses/q, wall s)")
     for r in rs:
