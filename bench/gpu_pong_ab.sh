@@ -16,13 +16,15 @@
 # (a 30,000-step run's collect and evaluation policies against its networks run eagerly: every
 # count should be 0).
 #
-# Reading it: a variant whose training returns climb from random play's -20.5 (to -19 and
-# beyond) where `shipped` stays flat names the broken path; if `reference` climbs and no relayrl
-# variant does, the defect is in code every path shares; if only `lapan` climbs, the shipped
-# recipe's larger batches (a quarter of the gradient steps) or sticky actions are too slow; if
-# nothing climbs, the runs were too short. Four runs share 16 cores and one GPU (time-sliced between the processes), so each is
-# slower than alone: learning is compared at equal env steps, not speed. Once a path is named,
-# bench/gpu_diagnose.sh narrows it (graphs or the GPU replay) on PixelCatch.
+# Reading it: a variant whose returns climb from random play's -20.5 (greedy evaluations and
+# episode lengths move first: on a CPU, -18.2 in 1,345-step episodes while training episodes were
+# still at -20.5) where `shipped` stays flat names the broken path; if `reference` climbs and no
+# relayrl variant does, the defect is in code every path shares; if only `lapan` climbs, the
+# shipped recipe's larger batches (a quarter of the gradient steps) or sticky actions are too
+# slow; if nothing climbs, the runs were too short. Four runs share 16 cores and one GPU
+# (time-sliced between the processes), so each is slower than alone: learning is compared at
+# equal env steps, not speed. Once a path is named, bench/gpu_diagnose.sh narrows it (graphs or
+# the GPU replay) on PixelCatch.
 # Output in $OUT: pong-VARIANT.log and .jsonl (metrics, copied every 30 s), tests-graphed.txt,
 # policies.txt, policies-stderr.txt and summary.txt.
 set -u
