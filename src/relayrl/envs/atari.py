@@ -101,10 +101,11 @@ def raw_screen_note(env_id: str, kwargs: dict[str, Any], wrappers: list[str] | t
     spec = gym.spec(env_id)
     if not str(spec.entry_point).startswith("ale_py"):  # CartPole-v0 has the same form
         return None
+    name = match["v5"] or match["old"]
     game = {**spec.kwargs, **kwargs}  # the user's env.kwargs over the id's own
-    settings = [f"{k}={game[k]}" for k, v5 in (("repeat_action_probability", 0.25), ("full_action_space", False))
-                if k in game and game[k] != v5]
-    same = f"relayrl/Atari-{match['v5'] or match['old']}-v0" + (
+    v5 = make_atari_spec_kwargs(name)  # what relayrl/Atari-<Game>-v0 plays
+    settings = [f"{k}={game[k]}" for k in GAME_KWARGS if k in game and game[k] != v5.get(k)]
+    same = f"relayrl/Atari-{name}-v0" + (
         f" with env.kwargs {', '.join(settings)}" if settings else "")
     # Pong-v0 / Pong-v4 skip 2-4 frames at random; the preprocessed ids skip a fixed 4, max-pooled.
     what = "the same game" if not isinstance(game.get("frameskip", 4), tuple) else "its game with a fixed frame skip"

@@ -281,10 +281,8 @@ class AsyncGymBatchEnv(BatchEnvBase):
         deadline = time.monotonic() + WORKER_START_S
         for w, conn in enumerate(self._conns):
             if not conn.poll(max(0.0, deadline - time.monotonic())):
-                lo, hi = self.slices[w + 1]
-                copies = f"copy {lo}" if hi - lo == 1 else f"copies {lo}..{hi - 1}"
                 raise RuntimeError(
-                    f"env worker {w} ({copies}) did not answer within {WORKER_START_S:.0f} s of "
+                    f"env worker {w} ({self._copies(w)}) did not answer within {WORKER_START_S:.0f} s of "
                     "its start: making its env copies hangs or takes longer than that; a worker forked from a "
                     "process with other threads (a notebook's, Ray's) can also deadlock before it starts. "
                     "env.vectorization='sync' steps the copies without worker processes")
@@ -362,10 +360,13 @@ class AsyncGymBatchEnv(BatchEnvBase):
     def _died(self, w: int) -> str:
         """Marks the pipes unusable because worker w died; the message."""
         self._procs[w].join(timeout=2)  # reaped, so its exit code is known
-        lo, hi = self.slices[w + 1]
-        copies = f"copy {lo}" if hi - lo == 1 else f"copies {lo}..{hi - 1}"
-        self._broken = f"env worker {w} ({copies}) died (exit code {self._procs[w].exitcode})"
+        self._broken = f"env worker {w} ({self._copies(w)}) died (exit code {self._procs[w].exitcode})"
         return self._broken
+
+    def _copies(self, w: int) -> str:
+        """Worker w's env copies, by their index in the whole batch."""
+        lo, hi = self.slices[w + 1]
+        return f"copy {lo}" if hi - lo == 1 else f"copies {lo}..{hi - 1}"
 
     def _gather(self, seq: int, drop_errors: bool = False) -> list[Any]:
         """Every worker's reply to command `seq`, in order; a worker's failure is raised here

@@ -5,6 +5,7 @@ It never steers the run, except that a callback returning False sets `stop_reque
 from __future__ import annotations
 
 import itertools
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -170,9 +171,13 @@ class RunReport:
     def schedule_values(self, p: Progress) -> dict[str, float]:
         return {f"charts/{k}": v for k, v in self.schedules(p.env_steps).items()}
 
-    def training_summary(self) -> dict[str, Any]:
+    def train_return(self) -> float:
+        """The latest training episodes' mean return (NaN before the first one ends)."""
         returns = self.stats.returns
-        return {"train/average_return": sum(returns) / len(returns) if returns else float("nan"),
+        return sum(returns) / len(returns) if returns else float("nan")
+
+    def training_summary(self) -> dict[str, Any]:
+        return {"train/average_return": self.train_return(),
                 "train/episodes": self.stats.episodes,
                 **{f"train/{k}": v for k, v in self.stats.info_means().items()}}
 
@@ -184,12 +189,11 @@ class RunReport:
         """The line printed every 30 s where there is no progress bar (no terminal)."""
         p, total = self.progress(), self.config.train.total_steps
         sps, _ = self.run_sps(p)
-        last = self.last_eval.get("average_return")
-        returns = self.stats.returns  # the latest training episodes' (train/average_return's)
-        train = f"{sum(returns) / len(returns):.2f}" if returns else "-"
+        train, last = self.train_return(), self.last_eval.get("average_return")
+        train_shown = "-" if math.isnan(train) else f"{train:.2f}"
+        last_shown = "-" if last is None else f"{last:.2f}"
         return (f"step {p.env_steps:,}/{total:,} ({100 * p.env_steps / total:.0f}%) | {sps:,.0f} env steps/s "
-                f"| train return {train} | last eval return {'-' if last is None else f'{last:.2f}'} "
-                f"| {self.wall_time():.0f}s")
+                f"| train return {train_shown} | last eval return {last_shown} | {self.wall_time():.0f}s")
 
     def record_eval(self, p: Progress, result: dict[str, Any], eval_s: float, wall_time_s: float | None = None,
                     extra: dict[str, Any] | None = None, at_step: dict[str, Any] | None = None) -> None:
