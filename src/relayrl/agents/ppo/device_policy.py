@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from relayrl.agents.ppo.distributions import to_bounds
+from relayrl.agents.ppo.distributions import EnvBounds
 from relayrl.core import Policy
 from relayrl.nn.graphed import GraphedStep, cuda_graphs_enabled
 
@@ -23,13 +23,10 @@ class PPODevicePolicy(Policy):
         self.net = net  # obs -> logits or mean [B, A]
         self.log_std = log_std  # [A]; None for discrete actions (pulls update it in place)
         self.device = device
-        self.squash = squash
+        self.to_env = EnvBounds(bounds, squash, device)
         self.gen = torch.Generator(device=device)
         self.gen.manual_seed(seed)
         self._graphed = GraphedStep(self._act, generators=[self.gen]) if cuda_graphs_enabled(device) else None
-        self.low = self.high = None
-        if bounds is not None:
-            self.low, self.high = (torch.as_tensor(b, dtype=torch.float32, device=device) for b in bounds)
 
     @torch.no_grad()
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
@@ -50,9 +47,7 @@ class PPODevicePolicy(Policy):
 
     def env_action(self, action: torch.Tensor) -> torch.Tensor:
         """What the env receives for `action`: clipped or squashed into the bounds."""
-        if self.low is None or self.high is None:  # set together, from `bounds`
-            return action
-        return to_bounds(action, self.low, self.high, self.squash == "tanh")
+        return self.to_env(action)
 
     def state_dict(self) -> dict[str, Any]:
         return {"gen": self.gen.get_state()}

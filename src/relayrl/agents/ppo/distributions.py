@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -64,6 +65,23 @@ def to_bounds(u: torch.Tensor, low: torch.Tensor, high: torch.Tensor, tanh: bool
     if tanh:
         u = (high + low) / 2 + (high - low) / 2 * torch.tanh(u)
     return torch.minimum(torch.maximum(u, low), high)
+
+
+class EnvBounds:
+    """The env action for a sample u (`to_bounds` into the bounds, or u itself where a policy has
+    none: discrete or unbounded actions), with the bounds as tensors on `device`."""
+
+    def __init__(self, bounds: tuple[np.ndarray, np.ndarray] | None, squash: str,
+                 device: torch.device | None = None) -> None:
+        self.limits = None if bounds is None else tuple(
+            torch.as_tensor(b, dtype=torch.float32, device=device) for b in bounds)
+        self.tanh = squash == "tanh"
+
+    def __call__(self, u: torch.Tensor) -> torch.Tensor:
+        if self.limits is None:
+            return u
+        low, high = self.limits
+        return to_bounds(u, low, high, self.tanh)
 
 
 def greedy_logits_action(out: torch.Tensor, nvec: tuple[int, ...], binary: bool) -> torch.Tensor:

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from relayrl.agents.ppo.distributions import greedy_logits_action, to_bounds
+from relayrl.agents.ppo.distributions import EnvBounds, greedy_logits_action, to_bounds
 from relayrl.agents.ppo.networks import ActionHead, PolicyNet, action_head
 from relayrl.agents.ppo.normalize import ObsNorm
 from relayrl.core import Policy
@@ -34,8 +34,7 @@ class PPOPolicy(Policy):
         self.device = device
         self.deterministic = deterministic
         self.rng = rng if rng is not None else np.random.default_rng()
-        self.squash = squash
-        self.low = self.high = None
+        self.to_env = EnvBounds(bounds, squash)
         # A float32 MLP on the CPU (the run's PolicyNet holds one as `mlp`, a saved policy is
         # one) runs through MLPInference: NumPy views of its weights for small batches; not
         # behind an observation normaliser or an encoder, which only the torch forward applies.
@@ -44,8 +43,6 @@ class PPOPolicy(Policy):
         if isinstance(net, PolicyNet):
             mlp, self.outputs, plain = net.mlp, net.out, net.obs_norm is None and net.encoder is None
         self._cpu = cpu_mlp(mlp, device) if plain else None
-        if bounds is not None:
-            self.low, self.high = (torch.as_tensor(b, dtype=torch.float32) for b in bounds)
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
         return self.bound(self.sample(obs))
@@ -94,9 +91,7 @@ class PPOPolicy(Policy):
 
     def bound(self, u: torch.Tensor) -> torch.Tensor:
         """The action the env receives for `sample`'s u: clipped or squashed into the bounds."""
-        if self.low is None or self.high is None:  # set together, from `bounds`
-            return u
-        return to_bounds(u, self.low, self.high, self.squash == "tanh")
+        return self.to_env(u)
 
 
 class PPOCollectPolicy(PPOPolicy):
