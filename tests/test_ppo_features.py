@@ -35,7 +35,7 @@ BOUNDS = (np.array([-0.1, -1.0], np.float32), np.array([0.1, 3.0], np.float32))
 
 def agent(**kw) -> PPOAgent:
     spec = ArraySpec((2,), torch.float32, *BOUNDS)
-    cfg = PPOConfig(hidden=[8], batch_size=4, n_epochs=2, **kw)
+    cfg = PPOConfig(**{"hidden": [8], "batch_size": 4, "n_epochs": 2, **kw})
     return PPOAgent(ArraySpec((3,), torch.float32), spec, cfg, torch.device("cpu"), np.random.default_rng(0), 100)
 
 
@@ -255,3 +255,44 @@ def test_lunarlander_presets_without_box2d_say_which_extra_in_one_line(preset, c
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(lines) == 1, r.stderr
     assert "Box2D is not installed" in lines[0] and "relayrl[box2d]" in lines[0]
+
+
+def test_ppo_builds_linear_heads_for_an_empty_hidden_list_and_refuses_a_zero_size():
+    net = agent(hidden=[]).net
+    assert [layer.weight.shape for layer in net.policy.mlp.layers] == [(2, 3)]
+    assert [layer.weight.shape for layer in net.critic.layers] == [(1, 3)]
+    with pytest.raises(ConfigError, match=r"agent.hidden=\[0\] is not valid; give positive sizes, or \[\] for"):
+        PPOConfig(hidden=[0]).validate()
+
+
+def test_a_linear_ppo_policy_acts_alike_through_the_numpy_forward_and_torch(tmp_path):
+    config = relayrl.load_config("ppo", ["env.id=CartPole-v1", "agent.hidden=[]", "train.total_steps=4096",
+                                         "eval.interval=4096", "eval.episodes=1"])
+    relayrl.train(config, tmp_path / "run", progress=False)
+    policy = relayrl.load_policy(tmp_path / "run")
+    obs = torch.randn(64, 4)
+    module = deterministic_module(load_policy_state(tmp_path / "run"))
+    assert torch.equal(policy(obs), module(obs))
+
+
+def test_ppo_initialises_its_own_conv_encoder_orthogonally_and_a_users_not_at_all():
+    from relayrl.agents.ppo.networks import PPONetworks
+    from relayrl.specs import DiscreteSpec
+    frames = ArraySpec((4, 84, 84), torch.uint8, np.zeros((4, 84, 84)), np.full((4, 84, 84), 255))
+    net = PPONetworks(frames, DiscreteSpec(6), [], "relu", True, 0.0, encoder="nature_cnn")
+    layers = [m for m in net.policy.encoder.modules() if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear))]
+    assert len(layers) == 4
+    for layer in layers:  # rows orthogonal with norm sqrt(2): W W^T = 2 I
+        w = layer.weight.detach().reshape(layer.weight.shape[0], -1).double()
+        assert torch.allclose(w @ w.T, 2 * torch.eye(w.shape[0], dtype=torch.float64), atol=1e-4)
+        assert not layer.bias.any()
+    users = PPONetworks(ArraySpec((3,), torch.float32), DiscreteSpec(2), [], "relu", True, 0.0,
+                        encoder="test_ppo_features:constant_encoder")
+    assert (users.policy.encoder.module.weight == 0.5).all()
+
+
+def constant_encoder(space) -> torch.nn.Module:
+    """A user's encoder with its own initialisation."""
+    layer = torch.nn.Linear(3, 5)
+    torch.nn.init.constant_(layer.weight, 0.5)
+    return layer

@@ -74,11 +74,14 @@ class Section:
             raise ConfigError(f"{self.SECTION}.encoder={value!r} is not valid; valid: {', '.join(ENCODERS)}, or "
                               "package.module:callable (your own encoder, called with the observation space)")
 
-    def require_sizes(self, *keys: str) -> None:
-        """ConfigError for the first of `keys` (lists of layer sizes) that is empty or holds a size < 1."""
+    def require_sizes(self, *keys: str, linear_ok: bool = False) -> None:
+        """ConfigError for the first of `keys` (lists of layer sizes) that holds a size < 1, or is
+        empty where the agent needs a hidden layer (`linear_ok`: [] is a linear map)."""
         for key in keys:
-            if not (sizes := getattr(self, key)) or any(h < 1 for h in sizes):
-                raise ConfigError(f"{self.SECTION}.{key}={sizes} is not valid; give one or more positive sizes")
+            sizes = getattr(self, key)
+            if (not sizes and not linear_ok) or any(h < 1 for h in sizes):
+                valid = "positive sizes, or [] for a linear map" if linear_ok else "one or more positive sizes"
+                raise ConfigError(f"{self.SECTION}.{key}={sizes} is not valid; give {valid}")
 
     def over_total_steps(self) -> list[str]:
         """An agent section's settings whose schedules run over train.total_steps (a resumed run

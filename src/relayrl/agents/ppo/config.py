@@ -19,7 +19,7 @@ class PPOConfig(Section):
     SECTION = "agent"
     NETWORK = ("hidden", "activation", "encoder", "shared", "squash", "normalize_obs")
 
-    hidden: list[int] = field(default_factory=lambda: [64, 64])  # hidden sizes of the actor and of the critic
+    hidden: list[int] = field(default_factory=lambda: [64, 64])  # hidden sizes of actor and critic; []: linear heads
     activation: str = "tanh"  # relu | tanh | elu
     # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images 0..255,
     # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn |
@@ -52,7 +52,7 @@ class PPOConfig(Section):
     def validate(self) -> None:
         self.require_encoder(self.encoder)
         self.require_choice(squash=("clip", "tanh"), activation=("relu", "tanh", "elu"))
-        self.require_sizes("hidden")
+        self.require_sizes("hidden", linear_ok=True)
         self.require("> 0", "lr", "clip_range")
         self.require(">= 0", "clip_range_vf", note=" (0: unclipped)")
         self.require(">= 1", "n_epochs", "batch_size")

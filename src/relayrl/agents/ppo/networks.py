@@ -1,6 +1,8 @@
 """PPO's networks: the actor (logits, or a Gaussian mean with a state-independent log std)
 and the critic, as two MLPs or as one whose last layer holds both heads, orthogonally
-initialised (SB3 / CleanRL: gain sqrt(2) hidden, 0.01 policy head, 1 value head, zero bias).
+initialised (SB3 / CleanRL: gain sqrt(2) hidden, 0.01 policy head, 1 value head, zero bias),
+relayrl's own encoders' layers too (gain sqrt(2), as SB3's features extractor; a user's encoder
+keeps its own initialisation).
 With observation normalisation, both see the observations through the actor's `ObsNorm`."""
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from torch import nn
 from relayrl.agents.ppo.normalize import ObsNorm
 from relayrl.errors import UserError
 from relayrl.nn import MLP
-from relayrl.nn.encoders import encoder_dim, make_encoder
+from relayrl.nn.encoders import UserEncoder, encoder_dim, make_encoder
 from relayrl.nn.mlp import linear_layers
 from relayrl.specs import ArraySpec, DiscreteSpec, MultiBinarySpec, MultiDiscreteSpec, Spec, describe, flat_dim
 
@@ -61,6 +63,16 @@ def orthogonal_init_(net: MLP, head_gains: list[tuple[int, int, float]]) -> None
         head.bias.zero_()
 
 
+def orthogonal_encoder_init_(encoder: nn.Module) -> None:
+    """relayrl's encoders (conv nets, their Dict / Tuple combinations): every conv and linear
+    layer orthogonal with gain sqrt(2), zero bias."""
+    for m in encoder.modules():
+        if isinstance(m, (nn.Conv2d, nn.Linear)):
+            nn.init.orthogonal_(m.weight, math.sqrt(2.0))
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+
+
 class PolicyNet(nn.Module):
     """obs -> the policy's outputs [N, A] (logits or Gaussian mean); `log_std` [A] for
     continuous actions. With `shared`, `mlp` has one more output, the value, which `forward`
@@ -77,6 +89,8 @@ class PolicyNet(nn.Module):
             raise UserError(f"agent.normalize_obs=true normalises observations the MLP takes as they are; this env's "
                             f"{describe(obs_spec)} goes through an encoder ({type(self.encoder).__name__}) "
                             "first: set agent.normalize_obs=false")
+        if self.encoder is not None and not isinstance(self.encoder, UserEncoder):
+            orthogonal_encoder_init_(self.encoder)
         self.features_dim = flat_dim(obs_spec) if self.encoder is None else encoder_dim(self.encoder)
         self.obs_norm = ObsNorm(self.features_dim) if normalize_obs else None
         self.mlp = MLP(self.features_dim, list(hidden), out + int(shared), activation)
