@@ -447,19 +447,21 @@ def smoke_configs(steps: int) -> list[tuple[str, str, list[str]]]:
                                    "agent.batch_size=4", "agent.rollout_steps=20"]),
         ("pixel-ddqn", "dqn-pong-fast", [*small, f"train.initial_collect_steps={n // 3}", "agent.batch_size=8",
                                          "env.num_envs=2", "replay.size=2000", "env.max_episode_steps=50"]),
+        ("pixel-ppo", "ppo-pong", [*small, "env.num_envs=2", "train.collect_steps=64", "agent.batch_size=32",
+                                   "env.max_episode_steps=50"]),
     ]
 
 
 def smoke(device: torch.device, steps: int) -> bool:
     """Train each algorithm for `steps` env steps on `device`, then evaluate, export and load its
-    policy; one PASS/FAIL line each (SKIP for pixel DDQN without ale-py). True when none failed."""
+    policy; one PASS/FAIL line each (SKIP for the pixel runs without ale-py). True when none failed."""
     import relayrl
     from relayrl.presets import load_config
 
     ok = True
     for label, preset, overrides in smoke_configs(steps):
         t0 = time.perf_counter()
-        if label == "pixel-ddqn" and importlib.util.find_spec("ale_py") is None:
+        if label.startswith("pixel-") and importlib.util.find_spec("ale_py") is None:
             print(f"SKIP {label}: ale-py is not installed (pip install 'relayrl[atari]')", flush=True)
             continue
         try:

@@ -1,20 +1,21 @@
 #!/bin/sh
-# dqn-pong-fast's target (greedy evaluation >= +18 within 15 minutes of wall-clock, from a fresh
+# A Pong preset's target (greedy evaluation >= +18 within 15 minutes of wall-clock, from a fresh
 # start) on a lent GPU, whose calls last at most 10 minutes each: the run starts detached and a
 # second call, right after the first, waits for it. The target is met at the first evaluation
 # >= 18 with wall_time_s <= 900, so the wait ends there.
 #
-#     sh bench/gpu_pong.sh start             # call 1 (carry [".whl"]): returns at once
+#     sh bench/gpu_pong.sh start [PRESET]    # call 1 (carry [".whl"]): returns at once; PRESET
+#                                            # ppo-pong (default) or dqn-pong-fast
 #     sh bench/gpu_pong.sh wait SECONDS      # call 2, on the same warm machine
 set -u
 run=/tmp/pong-run
 case "${1:-}" in
 start)
     . bench/gpu_site.sh
-    setsid python3 -m relayrl train dqn-pong-fast --run-dir "$run" --no-progress \
+    setsid python3 -m relayrl train "${2:-ppo-pong}" --run-dir "$run" --no-progress \
         >/tmp/pong.log 2>&1 </dev/null &
     echo $! >/tmp/pong.pid
-    echo "started: $run" ;;
+    echo "started ${2:-ppo-pong}: $run" ;;
 wait)
     end=$(( $(date +%s) + ${2:-540} ))
     while [ "$(date +%s)" -lt "$end" ]; do
@@ -34,5 +35,5 @@ PY
     cp "$run/metrics.jsonl" "${OUT:-.}/pong-metrics.jsonl" 2>/dev/null
     cp /tmp/pong.log "${OUT:-.}/pong.log" 2>/dev/null; tail -3 /tmp/pong.log ;;
 *)
-    echo "usage: sh bench/gpu_pong.sh start | wait SECONDS"; exit 2 ;;
+    echo "usage: sh bench/gpu_pong.sh start [PRESET] | wait SECONDS"; exit 2 ;;
 esac

@@ -97,3 +97,30 @@ def test_pong_presets_run_a_few_hundred_steps(tmp_path, preset, extra):
     assert relayrl.plot_run(tmp_path / "run").stat().st_size > 10_000
     video = relayrl.record_video(tmp_path / "run", max_steps=20)
     assert video.stat().st_size > 0
+
+
+def test_ppo_pong_preset_is_cleanrls_five_minute_settings():
+    config = load_config("ppo-pong")
+    assert (config.algo, config.env.num_envs, config.env.vectorization) == ("ppo", 16, "ale")
+    assert config.env.kwargs == {"repeat_action_probability": 0.0}
+    agent = config.agent
+    assert (agent.encoder, agent.hidden, agent.shared) == ("nature_cnn", [], True)
+    assert (agent.lr, agent.lr_end, agent.clip_range, agent.clip_range_vf) == (2.5e-4, 0.0, 0.2, 0.2)
+    assert (agent.n_epochs, agent.batch_size, agent.ent_coef, agent.max_grad_norm) == (3, 256, 0.01, 0.5)
+    assert agent.vf_coef == 0.25  # CleanRL's vf_coef 0.5 weighs half the squared error
+    assert config.train.collect_steps // config.env.num_envs == 128  # CleanRL's num_steps
+    assert config.train.collect_steps // agent.batch_size == 8  # CleanRL's num_minibatches
+
+
+@needs_ale
+def test_ppo_pong_preset_trains_a_few_rollouts_and_its_policy_loads(tmp_path):
+    config = load_config("ppo-pong", [
+        "env.num_envs=2", "train.collect_steps=64", "agent.batch_size=32", "train.total_steps=192",
+        "eval.interval=192", "eval.episodes=1", "env.max_episode_steps=60", "train.policy_save_interval=192",
+        "device=cpu"])
+    result = relayrl.train(config, tmp_path / "run", progress=False)
+    rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [0, 192]
+    assert result.final["average_episode_length"] == 60
+    policy = relayrl.load_policy(tmp_path / "run")
+    assert policy(torch.zeros(3, 4, 84, 84, dtype=torch.uint8)).shape == (3,)

@@ -20,7 +20,7 @@ def test_smoke_on_the_cpu_passes_for_every_algorithm(tmp_path):
     lines = [line for line in r.stdout.splitlines() if line.split(" ", 1)[0] in ("PASS", "FAIL", "SKIP")]
     assert r.returncode == 0, r.stdout + r.stderr
     labels = [line.split()[1].rstrip(":") for line in lines]
-    assert labels == ["dqn", "sac", "ppo", "bptt", "pixel-ddqn"], lines
+    assert labels == ["dqn", "sac", "ppo", "bptt", "pixel-ddqn", "pixel-ppo"], lines
     assert not any(line.startswith("FAIL") for line in lines), lines
     assert "exported and loaded" in lines[0]
 
