@@ -18,6 +18,7 @@ import argparse
 import collections
 import json
 import time
+from typing import Any
 
 import numpy as np
 import torch
@@ -87,31 +88,44 @@ class Replay:
         return self.obs[i], self.action[i], self.ret[i], self.next_obs[i], self.discount[i]
 
 
-def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def reference_args(doc: str, steps: int, sticky: float, copies: int, log_every: int) -> argparse.ArgumentParser:
+    """The arguments both reference scripts take, with their recipe's defaults."""
+    p = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     p.add_argument("--seconds", type=float, default=480.0, help="stop after this much wall-clock")
-    p.add_argument("--steps", type=int, default=1_000_000, help="stop after this many env steps")
+    p.add_argument("--steps", type=int, default=steps, help="stop after this many env steps")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    p.add_argument("--sticky", type=float, default=0.25, help="repeat_action_probability (v5: 0.25)")
-    p.add_argument("--copies", type=int, default=8)
+    p.add_argument("--sticky", type=float, default=sticky, help="repeat_action_probability (ALE's v5: 0.25)")
+    p.add_argument("--copies", type=int, default=copies)
     p.add_argument("--screen", type=int, default=84, help="frame side (42: ~9x less compute, for a CPU)")
+    p.add_argument("--log-every", type=int, default=log_every)
+    p.add_argument("--threads", type=int, default=0, help="ale-py's threads (0: one per core)")
+    p.add_argument("--seed", type=int, default=0)
+    return p
+
+
+def pong_envs(args: argparse.Namespace) -> Any:
+    """ale-py's vector env of Pong with relayrl's preprocessing (stacks of 4, max-pooled frame skip 4,
+    no-op starts, grayscale, raw scores); the stack is padded with zeros at an episode's start."""
+    from ale_py.vector_env import AtariVectorEnv
+
+    return AtariVectorEnv("pong", args.copies, num_threads=args.threads, autoreset_mode="SameStep",
+                          repeat_action_probability=args.sticky, img_height=args.screen, img_width=args.screen,
+                          stack_num=4, frameskip=4, maxpool=True, noop_max=30, grayscale=True,
+                          episodic_life=False, reward_clipping=False, use_fire_reset=False)
+
+
+def main() -> None:
+    p = reference_args(__doc__, steps=1_000_000, sticky=0.25, copies=8, log_every=10_000)
     p.add_argument("--batch-size", type=int, default=128)
     p.add_argument("--replay-size", type=int, default=100_000)
     p.add_argument("--learning-starts", type=int, default=10_000)
-    p.add_argument("--log-every", type=int, default=10_000)
-    p.add_argument("--threads", type=int, default=0, help="ale-py's threads (0: one per core)")
-    p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
-    from ale_py.vector_env import AtariVectorEnv
 
     gamma, n, lr, grad_steps, target_period, eps_steps = 0.99, 3, 2.5e-4, 2, 250, 100_000
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     device = torch.device(args.device)
-    envs = AtariVectorEnv("pong", args.copies, num_threads=args.threads, autoreset_mode="SameStep",
-                          repeat_action_probability=args.sticky, img_height=args.screen, img_width=args.screen,
-                          stack_num=4, frameskip=4, maxpool=True, noop_max=30, grayscale=True,
-                          episodic_life=False, reward_clipping=False, use_fire_reset=False)  # as relayrl's
+    envs = pong_envs(args)
     actions = int(envs.single_action_space.n)
     online = nature_cnn(actions, args.screen).to(device)
     target = nature_cnn(actions, args.screen).to(device)

@@ -14,7 +14,6 @@ clip fraction. Random play scores about -20.5.
 
 from __future__ import annotations
 
-import argparse
 import collections
 import json
 import math
@@ -22,7 +21,7 @@ import time
 
 import numpy as np
 import torch
-from pong_reference import nature_cnn
+from pong_reference import nature_cnn, pong_envs, reference_args
 from torch import nn
 
 
@@ -57,28 +56,14 @@ def gae(rewards: torch.Tensor, values: torch.Tensor, dones: torch.Tensor, last_v
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--seconds", type=float, default=480.0, help="stop after this much wall-clock")
-    p.add_argument("--steps", type=int, default=10_000_000, help="stop after this many env steps")
+    p = reference_args(__doc__, steps=10_000_000, sticky=0.0, copies=16, log_every=20_480)
     p.add_argument("--anneal-steps", type=int, default=10_000_000, help="the learning rate reaches 0 here")
-    p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    p.add_argument("--sticky", type=float, default=0.0, help="repeat_action_probability (ppo-pong: 0)")
-    p.add_argument("--copies", type=int, default=16)
-    p.add_argument("--screen", type=int, default=84, help="frame side (42: ~9x less compute, for a CPU)")
-    p.add_argument("--log-every", type=int, default=20_480)
-    p.add_argument("--threads", type=int, default=0, help="ale-py's threads (0: one per core)")
-    p.add_argument("--seed", type=int, default=0)
     args = p.parse_args()
-    from ale_py.vector_env import AtariVectorEnv
-
     horizon, epochs, minibatches, clip, ent_coef, vf_coef, max_norm, lr = 128, 3, 8, 0.2, 0.01, 0.5, 0.5, 2.5e-4
     gamma, lam, b = 0.99, 0.95, args.copies
     torch.manual_seed(args.seed)
     device = torch.device(args.device)
-    envs = AtariVectorEnv("pong", b, num_threads=args.threads, autoreset_mode="SameStep",
-                          repeat_action_probability=args.sticky, img_height=args.screen, img_width=args.screen,
-                          stack_num=4, frameskip=4, maxpool=True, noop_max=30, grayscale=True,
-                          episodic_life=False, reward_clipping=False, use_fire_reset=False)  # as relayrl's
+    envs = pong_envs(args)
     actions = int(envs.single_action_space.n)
     net = ppo_net(actions, args.screen).to(device)
     optimizer = torch.optim.Adam(net.parameters(), lr=lr, eps=1e-5)
