@@ -17,7 +17,7 @@ BOX = ArraySpec((2,), torch.float32, np.array([-2.0, 0.0]), np.array([2.0, 1.0])
 
 def pair(action_spec, **kw):
     """Two agents in the same state: one on hand-written gradients, one on autograd."""
-    cfg = PPOConfig(hidden=[16, 16], batch_size=8, n_epochs=3, **kw)
+    cfg = PPOConfig(**{"hidden": [16, 16], "batch_size": 8, "n_epochs": 3, **kw})
     agents = []
     for hand_written in (True, False):
         torch.manual_seed(0)
@@ -44,6 +44,7 @@ def rollout(discrete: bool, seed: int, t: int = 5, b: int = 4):
     {"activation": "elu", "normalize_advantage": False, "ent_coef": 0.1},
     {"max_grad_norm": 0.0, "lr": 1e-2},
     {"max_grad_norm": 0.05, "clip_range": 0.02, "lr": 3e-2},  # clipped norms and many clipped ratios
+    {"hidden": [], "ent_coef": 0.01},  # linear heads: no hidden layer to backpropagate through
 ])
 def test_updates_equal_autograds(discrete, options):
     fast, slow = pair(DiscreteSpec(3) if discrete else BOX, **options)
