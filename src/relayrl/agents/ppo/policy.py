@@ -34,7 +34,7 @@ class PPOPolicy(Policy):
         self.device = device
         self.deterministic = deterministic
         self.rng = rng if rng is not None else np.random.default_rng()
-        self.to_env = EnvBounds(bounds, squash)
+        self.to_env = EnvBounds(bounds, squash)  # `sample`'s u -> the action the env receives
         # A float32 MLP on the CPU (the run's PolicyNet holds one as `mlp`, a saved policy is
         # one) runs through MLPInference: NumPy views of its weights for small batches; not
         # behind an observation normaliser or an encoder, which only the torch forward applies.
@@ -45,7 +45,7 @@ class PPOPolicy(Policy):
         self._cpu = cpu_mlp(mlp, device) if plain else None
 
     def __call__(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.bound(self.sample(obs))
+        return self.to_env(self.sample(obs))
 
     def _outputs(self, obs: torch.Tensor) -> np.ndarray:
         """The network's outputs [B, A] (logits or Gaussian mean) as a float32 NumPy array."""
@@ -89,10 +89,6 @@ class PPOPolicy(Policy):
         blocks = np.split(out, np.cumsum(h.nvec)[:-1], axis=1)
         return torch.from_numpy(np.stack([self._categorical(b) for b in blocks], axis=1))
 
-    def bound(self, u: torch.Tensor) -> torch.Tensor:
-        """The action the env receives for `sample`'s u: clipped or squashed into the bounds."""
-        return self.to_env(u)
-
 
 class PPOCollectPolicy(PPOPolicy):
     """The exploring policy of a run: its actions are the samples u (see `PPOPolicy.sample`),
@@ -102,7 +98,7 @@ class PPOCollectPolicy(PPOPolicy):
         return self.sample(obs)
 
     def env_action(self, action: torch.Tensor) -> torch.Tensor:
-        return self.bound(action)
+        return self.to_env(action)
 
 
 def saved_policy_network(state: dict[str, Any]) -> nn.Module:
