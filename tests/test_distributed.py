@@ -172,6 +172,32 @@ def test_replay_server_drops_chunks_of_a_dead_incarnation(tmp_path):
     assert server.ingest(0, "second", s.chunk(4)) == 8 * B
 
 
+def test_replay_server_takes_nothing_after_its_intake_closed(tmp_path):
+    """A halted run counts what the server took once; a chunk a killed actor sent before it
+    died, arriving later or let through the rate limiter later, must not change that count."""
+    from relayrl.distributed.server import ReplayServer
+
+    server = ReplayServer(server_config(), OBS, ACT, str(tmp_path), 2)
+    s = Stream(0.0)
+    for i in range(2):
+        server.register(i, f"t{i}")
+        server.ingest(i, f"t{i}", s.chunk(4))
+    size = server.table.size
+    write = server.group.write_chunk
+
+    def closed_while_writing(index, chunk):  # the rate limiter held it until a sample asked before the halt
+        server.close_intake()
+        write(index, chunk)
+
+    server.group.write_chunk = closed_while_writing
+    assert server.ingest(1, "t1", s.chunk(4)) == 4 * B
+    server.group.write_chunk = write
+    grown = server.table.size
+    assert grown > size, "the held chunk reached the table"
+    assert server.ingest(0, "t0", s.chunk(4)) == 4 * B
+    assert server.info()["shipped"] == [4 * B, 4 * B] and server.table.size == grown
+
+
 def test_rate_limiter_holds_across_clients(tmp_path):
     """Two actors insert and a learner samples, each in its own thread, as in the threaded
     Ray actor: inserts * spi - samples stays in Reverb's window, and both sides block."""

@@ -133,9 +133,12 @@ class ActorPool:
 
     def halt_rollouts(self) -> None:
         """End the rollout actors and forget their calls, so that a run that stops early saves at
-        one env step; the eval actors and the replay server stay for its final evaluation and save."""
+        one env step; the eval actors and the replay server stay for its final evaluation and
+        save, the server's intake closed."""
         self._kill(self.workers)
         self.inflight.clear()
+        if self.server is not None:
+            self.ray.get(self.server.close_intake.remote())
 
     def close(self) -> None:
         """Stop every actor (and the local Ray instance this run started): no orphan processes."""

@@ -7,6 +7,7 @@ insert waits in its own thread while the learner's sample goes on in another.
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -29,19 +30,32 @@ class ReplayServer:
         # actor's last insert, still queued) are dropped, or they would join its episodes
         # to the new incarnation's.
         self.tokens: list[str | None] = [None] * num_writers
+        self._counting = threading.Lock()  # a token's check with the count it allows
 
     def register(self, index: int, token: str) -> None:
         """A (re)started actor: its writer forgets the open episodes of the one before."""
-        self.tokens[index] = token
+        with self._counting:
+            self.tokens[index] = token
         self.group.restart_episodes(index)
+
+    def close_intake(self) -> None:
+        """Count no more chunks: the rollout actors were halted, but Ray kills them asynchronously,
+        and a chunk one sent before it died may still arrive, or one the rate limiter held may be
+        let through by a sample already asked for. After this `shipped` holds still, so a stopped
+        run's checkpoint is named by the steps its driver counted (such a late chunk may still
+        reach the table: a resume finds a few more transitions in it than it counts)."""
+        with self._counting:
+            self.tokens = [None] * len(self.tokens)
 
     def ingest(self, index: int, token: str, chunk: StepChunk) -> int:
         """Append an actor's chunk (blocking while the rate limiter says the learner lags);
         returns the env steps accepted from that actor so far."""
         if self.tokens[index] != token:
             return self.shipped[index]
-        self.group.write_chunk(index, chunk)
-        self.shipped[index] += chunk.env_steps
+        self.group.write_chunk(index, chunk)  # may block on the rate limiter
+        with self._counting:
+            if self.tokens[index] == token:  # the intake was not closed (nor the actor restarted) meanwhile
+                self.shipped[index] += chunk.env_steps
         return self.shipped[index]
 
     def sample(self, batch_size: int, max_batches: int, timeout: float) -> list[tuple[Any, SampleInfo]]:
