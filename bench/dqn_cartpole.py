@@ -1,7 +1,7 @@
 """DQN on CartPole: relayrl against Stable-Baselines3 in the same run, as wall-clock ratios.
 
     python bench/dqn_cartpole.py --peer-python bench/.venv-peers/bin/python [--settings tutorial zoo]
-        [--seeds 0 1 2]
+        [--seeds 0 1 2] [--threads N]
 
 Each (setting, seed) runs relayrl and SB3 one after the other in fresh processes, so both
 see the same machine load; the table reports learn() wall-clock (evaluations included,
@@ -9,7 +9,8 @@ process start-up excluded), evaluation time, final greedy return and relayrl/SB3
 Peers live only in the bench venv: `bash bench/setup_peers.sh`. With `--tfagents-python`
 (a venv from `bash bench/setup_tfagents.sh`), the tutorial setting also runs TF-Agents' own
 tutorial code (bench/tfagents_dqn_tutorial.py) for each seed, after SB3: its wall-clock is its
-training loop plus evaluations, as for the other two.
+training loop plus evaluations, as for the other two. SB3 runs on torch's default threads
+(every core); relayrl on its preset's one, or `--threads N` (0: torch's default, as SB3).
 
 Settings:
   tutorial  TF-Agents' DQN tutorial: CartPole-v0, (100, 50), Adam 1e-3, batch 64, squared
@@ -48,14 +49,15 @@ RELAYRL = {
 }
 
 
-def run_relayrl(setting: str, seed: int) -> dict:
+def run_relayrl(setting: str, seed: int, threads: int) -> dict:
     import tempfile
 
     import relayrl
     import relayrl.dispatch  # the run's modules (and torch) load before the timer, as process start-up
     import relayrl.training.local  # noqa: F401
 
-    config = relayrl.load_config("dqn-cartpole", RELAYRL[setting], seed=seed)
+    threads_set = [f"train.torch_threads={threads}"] if threads >= 0 else []
+    config = relayrl.load_config("dqn-cartpole", RELAYRL[setting] + threads_set, seed=seed)
     with tempfile.TemporaryDirectory() as d:
         t0 = time.perf_counter()
         result = relayrl.train(config, os.path.join(d, "run"), progress=False)
@@ -99,13 +101,13 @@ def run_sb3(setting: str, seed: int) -> dict:
 
 
 def worker(argv: list[str]) -> None:
-    which, setting, seed = argv[0], argv[1], int(argv[2])
-    out = run_relayrl(setting, seed) if which == "relayrl" else run_sb3(setting, seed)
+    which, setting, seed, threads = argv[0], argv[1], int(argv[2]), int(argv[3])
+    out = run_relayrl(setting, seed, threads) if which == "relayrl" else run_sb3(setting, seed)
     report(out)
 
 
-def spawn(python: str, which: str, setting: str, seed: int) -> dict:
-    result, proc = run_worker(python, __file__, [which, setting, str(seed)])
+def spawn(python: str, which: str, setting: str, seed: int, threads: int = -1) -> dict:
+    result, proc = run_worker(python, __file__, [which, setting, str(seed), str(threads)])
     if result is not None:
         return result
     raise RuntimeError(f"{which} worker failed:\n{proc.stderr[-3000:]}")
@@ -137,6 +139,8 @@ def main() -> None:
     p.add_argument("--settings", nargs="+", default=["tutorial", "zoo"], choices=sorted(RELAYRL))
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     p.add_argument("--tfagents-python", help="a TF-Agents venv's python: adds TF-Agents to the tutorial setting")
+    p.add_argument("--threads", type=int, default=-1,
+                   help="relayrl's train.torch_threads (0: torch's default, as SB3; default: the preset's)")
     p.add_argument("--json", help="also write every result here")
     args = p.parse_args()
     rows, results = [], {}
@@ -145,7 +149,7 @@ def main() -> None:
     for setting in args.settings:
         ratios = []
         for seed in args.seeds:
-            ours = spawn(sys.executable, "relayrl", setting, seed)
+            ours = spawn(sys.executable, "relayrl", setting, seed, args.threads)
             peer = spawn(args.peer_python, "sb3", setting, seed)
             ratio = ours["wall_s"] / peer["wall_s"]
             ratios.append(ratio)

@@ -52,3 +52,21 @@ def test_on_cuda_each_run_is_also_timed_with_the_replay_where_auto_does_not_put_
     assert settings["sac-pendulum@no-graphs"]["RELAYRL_CUDA_GRAPHS"] == "0"
     base = {"RELAYRL_CUDA_GRAPHS": "1", "RELAYRL_COMPILE": "0"}
     assert gpu.variants("sac-pendulum", torch.device("cpu")) == [("sac-pendulum", torch.device("cpu"), base, [])]
+
+
+def test_ddqn_pongs_ratio_on_four_ale_envs_keeps_one_gradient_step_per_four_env_steps():
+    """The 4-env figure stands for ddqn-pong "at its own update-to-data ratio" only if its config
+    keeps that ratio: 4 env steps (one batched step of 4 copies) per gradient step of 32."""
+    import importlib.util
+
+    import relayrl
+
+    spec = importlib.util.spec_from_file_location("bench_gpu", SCRIPT)
+    gpu = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(gpu)
+    runs = {name: (preset, overrides) for name, preset, overrides, _ in gpu.RUNS}
+    one, four = (relayrl.load_config(*runs[name]) for name in ("ddqn-pong", "ddqn-pong-4ale"))
+    assert (four.env.num_envs, four.env.vectorization) == (4, "ale")
+    ratio = [c.train.gradient_steps * c.agent.batch_size / c.steps_per_iteration() for c in (one, four)]
+    assert ratio == [8.0, 8.0]
+    assert four.agent == one.agent and four.replay == one.replay
