@@ -13,8 +13,8 @@ import torch
 from gymnasium import spaces
 from torch import nn
 
-OBS_KINDS = ("box", "box2d", "box_i32", "discrete", "multi_discrete", "multi_binary", "image", "image_hwc", "board",
-             "dict", "tuple")
+OBS_KINDS = ("box", "box2d", "box_i32", "box_bool", "discrete", "multi_discrete", "multi_binary", "image", "image_hwc",
+             "board", "dict", "tuple")
 ACTION_KINDS = ("discrete", "box", "box_scalar", "box2d", "box_fixed", "box_f16", "box_unbounded", "multi_discrete",
                 "multi_discrete_i32", "multi_binary")
 
@@ -24,6 +24,7 @@ def observation_space(kind: str) -> gym.Space:
         "box": spaces.Box(-1.0, 1.0, (3,), np.float32),
         "box2d": spaces.Box(-1.0, 1.0, (2, 3), np.float32),
         "box_i32": spaces.Box(0, 10, (3,), np.int32),  # stored as int64: exports take int32
+        "box_bool": spaces.Box(0, 1, (3,), bool),
         "discrete": spaces.Discrete(4),
         "multi_discrete": spaces.MultiDiscrete([2, 3]),
         "multi_binary": spaces.MultiBinary(3),
@@ -72,6 +73,8 @@ class Spaces(gym.Env):
             return np.array([[g, 0, 0], [0, 0, -g]], np.float32)
         if k == "box_i32":
             return np.array([g, 5, 10], np.int32)
+        if k == "box_bool":
+            return np.array([g, 1 - g, self.t % 2], bool)
         if k == "discrete":
             return 2 * g + self.t % 2
         if k == "multi_discrete":

@@ -98,6 +98,8 @@ def test_trained_policy_takes_the_envs_own_observations(algo, obs, act, tmp_path
     assert policy.observation_space.contains(policy.observation_space.sample())
     a = policy(o)
     assert_valid(env.action_space, a)
+    if isinstance(env.action_space, gym.spaces.Box):  # an array of the space's shape, a scalar Box's too
+        assert isinstance(a, np.ndarray) and a.shape == env.action_space.shape, (type(a), np.shape(a))
     env.step(a)
     # a batch, NumPy and torch: the same actions as one at a time
     obs_list = [env.reset(seed=s)[0] for s in range(3)]
@@ -166,6 +168,8 @@ def test_a_users_encoder_is_built_from_the_observation_space_and_checked():
          "pos": gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)})  # a float Box's bounds are not kept
     pair = make_encoder(spec_from_space(Spaces("tuple").observation_space), "space_envs:FlatEncoder")
     assert pair.module.space[1].dtype == np.float32  # the env's float64 entry, in the dtype its batches come in
+    flags = make_encoder(spec_from_space(Spaces("box_bool").observation_space), "space_envs:FlatEncoder")
+    assert flags.module.space == gym.spaces.Box(0, 1, (3,), bool) and flags.out_dim == 8
     for name, words in (("nosuch_pkg.mod:make", "agent.encoder: 'nosuch_pkg.mod:make': no module 'nosuch_pkg'"),
                         ("space_envs:not_a_module", "agent.encoder='space_envs:not_a_module' returned int, not a "
                                                     "torch.nn.Module"),

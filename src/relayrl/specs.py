@@ -348,6 +348,8 @@ def to_space(spec: Spec, stored: bool = False) -> gym.Space:
     dtype = dtype_of(spec)
     if spec.low is not None and spec.high is not None:
         return gym.spaces.Box(spec.low, spec.high, spec.shape, dtype)
+    if dtype == np.bool_:
+        return gym.spaces.Box(0, 1, spec.shape, dtype)
     if np.issubdtype(dtype, np.integer):
         info = np.iinfo(dtype)
         return gym.spaces.Box(int(info.min), int(info.max), spec.shape, dtype)

@@ -37,19 +37,23 @@ class Actor:
         b = self.env.num_envs
         taken = 0
         policy = self.policy
-        while taken < num_steps:
-            obs = self._obs
-            action = policy(obs)
-            try:
-                out = self.env.step(policy.env_action(action))
-            except Exception as e:  # the env's own: which env steps it broke, beside the step the run is kept at
-                note_where(e, f"at {_steps(self.env_steps + taken, b, self.whose)}")
-                raise
-            t = Transition(obs, action, out.reward, out.next_obs, out.terminated, out.truncated, out.episode_info)
-            for observer in self.observers:
-                observer(t)
-            self._obs = out.obs
-            taken += b
+        try:
+            while taken < num_steps:
+                obs = self._obs
+                action = policy(obs)
+                try:
+                    out = self.env.step(policy.env_action(action))
+                except Exception as e:  # the env's own: which env steps it broke, beside the step the run is kept at
+                    note_where(e, f"at {_steps(self.env_steps + taken, b, self.whose)}")
+                    raise
+                t = Transition(obs, action, out.reward, out.next_obs, out.terminated, out.truncated, out.episode_info)
+                for observer in self.observers:
+                    observer(t)
+                self._obs = out.obs
+                taken += b
+        except Exception:  # the run ends on it: its message counts the steps taken before it
+            self.env_steps += taken
+            raise
         self.env_steps += taken
         for observer in self.observers:
             observer.flush()  # staged steps reach the replay before anyone samples
