@@ -153,7 +153,7 @@ def main() -> None:
             peer = spawn(args.peer_python, "sb3", setting, seed)
             ratio = ours["wall_s"] / peer["wall_s"]
             ratios.append(ratio)
-            results[f"{setting}/{seed}"] = {"relayrl": ours, "sb3": peer}
+            results[f"{setting}/{seed}"] = {"relayrl": ours, "sb3": peer, "relayrl_threads": args.threads}
             print(f"| {setting} | {seed} | {ours['wall_s']:.1f} ({ours['eval_s']:.1f}) | "
                   f"{peer['wall_s']:.1f} ({peer['eval_s']:.1f}) | {ratio:.2f} | {ours['final']:.1f} | "
                   f"{peer['final']:.1f} |", flush=True)

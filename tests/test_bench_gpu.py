@@ -3,11 +3,21 @@ its one-line refusals. Its figures need a GPU and are not checked here."""
 
 from __future__ import annotations
 
+import importlib.util
 import subprocess
 import sys
 from pathlib import Path
+from types import ModuleType
 
 SCRIPT = Path(__file__).resolve().parents[1] / "bench" / "gpu.py"
+
+
+def gpu_module() -> ModuleType:
+    """bench/gpu.py as a module (bench/ is no package)."""
+    spec = importlib.util.spec_from_file_location("bench_gpu", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def run(args: list[str], cwd: Path) -> subprocess.CompletedProcess[str]:
@@ -35,13 +45,9 @@ def test_bad_input_is_one_line_and_exit_code_2(tmp_path):
 def test_on_cuda_each_run_is_also_timed_with_the_replay_where_auto_does_not_put_it():
     # Image runs' frames go to the GPU under replay.device=auto and vector observations stay in
     # NumPy arrays: the A/B variant is the other placement, so the table shows what auto buys.
-    import importlib.util
-
     import torch
 
-    spec = importlib.util.spec_from_file_location("bench_gpu", SCRIPT)
-    gpu = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(gpu)
+    gpu = gpu_module()
     cuda = torch.device("cuda")
     keys = {name: [v[0] for v in gpu.variants(name, cuda)] for name in ("ddqn-pong", "dqn-pong-fast", "sac-pendulum")}
     assert keys["dqn-pong-fast"] == ["dqn-pong-fast", "dqn-pong-fast@replay.device=numpy"]
@@ -57,13 +63,9 @@ def test_on_cuda_each_run_is_also_timed_with_the_replay_where_auto_does_not_put_
 def test_ddqn_pongs_ratio_on_four_ale_envs_keeps_one_gradient_step_per_four_env_steps():
     """The 4-env figure stands for ddqn-pong "at its own update-to-data ratio" only if its config
     keeps that ratio: 4 env steps (one batched step of 4 copies) per gradient step of 32."""
-    import importlib.util
-
     import relayrl
 
-    spec = importlib.util.spec_from_file_location("bench_gpu", SCRIPT)
-    gpu = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(gpu)
+    gpu = gpu_module()
     runs = {name: (preset, overrides) for name, preset, overrides, _ in gpu.RUNS}
     one, four = (relayrl.load_config(*runs[name]) for name in ("ddqn-pong", "ddqn-pong-4ale"))
     assert (four.env.num_envs, four.env.vectorization) == (4, "ale")

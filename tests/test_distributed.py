@@ -195,7 +195,40 @@ def test_replay_server_takes_nothing_after_its_intake_closed(tmp_path):
     grown = server.table.size
     assert grown > size, "the held chunk reached the table"
     assert server.ingest(0, "t0", s.chunk(4)) == 4 * B
+    server.register(0, "restarted")  # an incarnation Ray restarted as the run halted
+    assert server.ingest(0, "restarted", s.chunk(4)) == 4 * B
     assert server.info()["shipped"] == [4 * B, 4 * B] and server.table.size == grown
+
+
+def test_halting_the_rollout_actors_closes_the_servers_intake_before_anyone_counts():
+    """ActorPool.halt_rollouts, with a stand-in for Ray: the actors are killed, their calls
+    forgotten, and the server's intake closed (waited for) before it returns."""
+    from relayrl.distributed.actors import ActorPool
+
+    calls: list[str] = []
+
+    class Remote:
+        def __init__(self, name: str) -> None:
+            self.name = name
+
+        def remote(self) -> str:
+            calls.append(f"{self.name}.remote")
+            return self.name
+
+    class Server:
+        close_intake = Remote("close_intake")
+
+    class FakeRay:
+        def kill(self, handle, no_restart: bool) -> None:
+            calls.append(f"kill {handle}")
+
+        def get(self, ref):
+            calls.append(f"get {ref}")
+
+    pool = ActorPool(FakeRay(), relayrl.load_config("dqn-cartpole-fast", ["distributed.num_actors=2"]), print)
+    pool.workers, pool.server, pool.inflight = ["w0", "w1"], Server(), {"call": (0, 64)}
+    pool.halt_rollouts()
+    assert calls == ["kill w0", "kill w1", "close_intake.remote", "get close_intake"] and not pool.inflight
 
 
 def test_rate_limiter_holds_across_clients(tmp_path):

@@ -78,8 +78,8 @@ def test_bad_info_keys_fail_with_one_clear_line(key, message):
 
 
 def test_a_bad_info_value_mid_collection_says_the_env_steps_taken_before_it(tmp_path):
-    """The first episode ends at env step 3, inside the random warm-up's one collect call: the
-    run's line counts the 2 steps before it, not the 0 the call started from."""
+    """The first episode ends at env step 3, inside the random warm-up's one collect call (which
+    started at 0): the run's line counts the 2 steps taken before it."""
     config = relayrl.load_config("dqn", ["env.id=toy_envs:Travel", "env.info_keys=['name']", "env.check=false",
                                          "train.initial_collect_steps=50", "train.total_steps=100", "eval.interval=0"])
     with pytest.raises(UserError) as e:

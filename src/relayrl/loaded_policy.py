@@ -143,7 +143,8 @@ class LoadedPolicy(Policy):
         if not numpy_in:
             return actions
         out = actions.cpu().numpy()
-        # one discrete action: a NumPy integer; a Box of shape () stays an array, as Box.sample() gives
+        # one discrete action: a NumPy integer; a Box of shape () (its action_shape is ()) stays an
+        # array, as Box.sample() gives
         return out[()] if out.ndim == 0 and self.action_shape is None else out
 
     def _array(self, obs: Any) -> tuple[torch.Tensor, bool, bool]:

@@ -334,7 +334,7 @@ def check_trained_layout(state: dict[str, Any], any_bounds: bool = False, record
 
 def to_space(spec: Spec, stored: bool = False) -> gym.Space:
     """The Gymnasium space a spec describes, as far as the spec keeps it (a Box without bounds is
-    unbounded; integers within their dtype's range), in the env's dtypes, or with `stored` in
+    unbounded; integers within their dtype's range, bools 0 and 1), in the env's dtypes, or with `stored` in
     the dtypes relayrl keeps (float32, int64): what a user's encoder is given and fed."""
     dtype_of = numpy_dtype if stored else env_numpy_dtype
     if isinstance(spec, DiscreteSpec):

@@ -30,12 +30,12 @@ class ReplayServer:
         # actor's last insert, still queued) are dropped, or they would join its episodes
         # to the new incarnation's.
         self.tokens: list[str | None] = [None] * num_writers
-        self._counting = threading.Lock()  # a token's check with the count it allows
+        self.intake_open = True  # False once the run halted its rollout actors: nothing more is counted
+        self._counting = threading.Lock()  # `intake_open`'s check with the count it allows
 
     def register(self, index: int, token: str) -> None:
         """A (re)started actor: its writer forgets the open episodes of the one before."""
-        with self._counting:
-            self.tokens[index] = token
+        self.tokens[index] = token
         self.group.restart_episodes(index)
 
     def close_intake(self) -> None:
@@ -45,16 +45,16 @@ class ReplayServer:
         run's checkpoint is named by the steps its driver counted (such a late chunk may still
         reach the table: a resume finds a few more transitions in it than it counts)."""
         with self._counting:
-            self.tokens = [None] * len(self.tokens)
+            self.intake_open = False
 
     def ingest(self, index: int, token: str, chunk: StepChunk) -> int:
         """Append an actor's chunk (blocking while the rate limiter says the learner lags);
         returns the env steps accepted from that actor so far."""
-        if self.tokens[index] != token:
+        if self.tokens[index] != token or not self.intake_open:
             return self.shipped[index]
         self.group.write_chunk(index, chunk)  # may block on the rate limiter
         with self._counting:
-            if self.tokens[index] == token:  # the intake was not closed (nor the actor restarted) meanwhile
+            if self.intake_open:  # not closed while the write waited
                 self.shipped[index] += chunk.env_steps
         return self.shipped[index]
 

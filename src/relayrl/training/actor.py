@@ -51,7 +51,7 @@ class Actor:
                     observer(t)
                 self._obs = out.obs
                 taken += b
-        except Exception:  # the run ends on it: its message counts the steps taken before it
+        except BaseException:  # the run ends on it (a Ctrl-C too): its message counts the steps taken before it
             self.env_steps += taken
             raise
         self.env_steps += taken
