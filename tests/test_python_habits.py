@@ -97,6 +97,12 @@ def test_an_env_whose_actions_or_discrete_sizes_are_not_the_policys_is_one_line(
 def test_evaluate_bad_input_is_one_line():
     with pytest.raises(UserError, match="episodes=0"):
         relayrl.evaluate(lambda o: 0, Countdown(), episodes=0)
+    with pytest.raises(UserError, match=r"^episodes=True is not valid; it must be an integer >= 1$"):
+        relayrl.evaluate(lambda o: 0, Countdown(), episodes=True)
+    for cap in (-5, 2.5, "7"):  # as `relayrl eval --max-episode-steps` refuses them, not Gymnasium's TypeError
+        with pytest.raises(UserError, match=rf"^max_episode_steps={cap!r} is not valid; it must be an integer >= 1, "
+                                            r"or 0 for the env's own time limit$"):
+            relayrl.evaluate(lambda o: 0, Countdown(), episodes=1, max_episode_steps=cap)
     with pytest.raises(UserError, match="not a policy"):
         relayrl.evaluate(3, Countdown())
     with pytest.raises(UserError, match="env=None"):
@@ -266,6 +272,20 @@ def test_a_callback_that_raises_propagates_and_keeps_the_checkpoint(tmp_path):
     with pytest.raises(RuntimeError, match="mine"):
         relayrl.train(TINY, tmp_path / "r", progress=False, callbacks=[cb])
     assert list((tmp_path / "r" / "checkpoints").glob("ckpt-*"))
+
+
+def test_a_callback_that_raises_before_the_first_checkpoint_says_how_to_start_again(tmp_path):
+    """Nothing to resume from: a plain retrain of the directory is refused (it holds a run past
+    step 0), so the note says --overwrite."""
+    def cb(row):
+        if row["step"] > 0:
+            raise RuntimeError("mine")
+
+    config = {**TINY, "train": {**TINY["train"], "checkpoint_interval": 100_000}}
+    with pytest.raises(RuntimeError, match="mine") as caught:
+        relayrl.train(config, tmp_path / "r", progress=False, callbacks=[cb])
+    note = " ".join(caught.value.__notes__)
+    assert "no checkpoint to resume from: a new run there starts over (with --overwrite" in note, note
 
 
 def test_callbacks_refused_where_not_supported(tmp_path):

@@ -418,7 +418,8 @@ def _own_notes(e: BaseException) -> None:
 def crash_kept(core: RunCore) -> str:
     """What a run that an exception stopped leaves, and how it goes on once the cause is fixed."""
     if not list_checkpoints(core.rd.checkpoints):
-        return core.kept()
+        return (f"{core.kept()}; no checkpoint to resume from: a new run there starts over (with --overwrite, "
+                "overwrite=True in Python, where this one trained past env step 0)")
     resume = _python_resume(core)
     if not names_python_factory(core.config.env.id):  # only Python can pass the factory again
         resume = f"`relayrl train --run-dir {core.rd.root} --resume` (in Python: {resume})"
