@@ -699,3 +699,25 @@ def test_a_resume_with_kwargs_given_as_tuples_in_python_changes_nothing(tmp_path
     result = relayrl.train(resumed, tmp_path / "run", resume=True, progress=False)
     assert "changed: the envs start new episodes" not in capsys.readouterr().err
     assert result.final["train/episodes"] == 0  # the 1,000-step episodes went on
+
+
+@pytest.mark.parametrize(("steps", "last_eval", "evaluated"), [(130, 0, True), (90, 0, False), (130, 130, False)])
+def test_an_interrupted_runs_end_evaluates_only_a_boundary_no_evaluation_covered(steps, last_eval, evaluated):
+    """`finish` after an interrupt (evaluate=False): a Ray run's count can cross an interval
+    boundary after its loop ended, and its resume would start past it, so that evaluation runs
+    there; with no boundary crossed, or one evaluated at this step, none does."""
+    from types import SimpleNamespace
+
+    from relayrl.training.lifecycle import finish
+    from relayrl.training.triggers import IntervalTrigger, Progress
+
+    calls: list[object] = []
+    evaluation = IntervalTrigger(100, lambda p: None)  # its last boundary fired: 0
+    report = SimpleNamespace(last_eval={"step": last_eval}, write_scalars=lambda *a: None, run_sps=lambda p: (0.0, 0.0))
+    core = SimpleNamespace(check_finite=lambda p, weights: None, evaluation=evaluation, report=report,
+                           policy_saver=SimpleNamespace(save=lambda p: calls.append("policy")),
+                           config=SimpleNamespace(train=SimpleNamespace(checkpoint_interval=0)))
+    driver = SimpleNamespace(core=core, evaluate_now=lambda p: calls.append(("evaluate", p.env_steps)),
+                             settle_evals=lambda: calls.append("settle"))
+    finish(driver, Progress(steps, 7), evaluate=False)
+    assert calls == ([("evaluate", steps)] if evaluated else []) + ["settle", "policy"]

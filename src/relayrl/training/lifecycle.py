@@ -192,6 +192,7 @@ class RunCore:
         self.checkpointer = Checkpointer(c.train.checkpoint_interval, checkpoint_state, rd.checkpoints,
                                          keep=c.train.checkpoint_keep)
         self.sps_log = StepsPerSecondLog(c.train.log_interval, report=self.report.log_progress)
+        self.evaluation = evaluation
         self.triggers: list[IntervalTrigger] = [evaluation, self.policy_saver, self.checkpointer, self.sps_log]
 
     def say(self, text: str) -> None:
@@ -478,10 +479,12 @@ def record_resumed_config(core: RunCore, saved: Config | None) -> None:
 
 def finish(driver: Driver, p: Progress, evaluate: bool = True) -> None:
     """The final evaluation (unless one ran at this step, or not `evaluate`), policy save,
-    checkpoint and log."""
+    checkpoint and log. Without `evaluate` (an interrupt), the evaluation of an interval
+    boundary passed since the last one still runs: a Ray run's count can cross one after its
+    loop ended (steps its halted actors had shipped), and a resume starts past it."""
     core = driver.core
     core.check_finite(p, weights=True)
-    evaluated = evaluate and core.report.last_eval.get("step") != p.env_steps
+    evaluated = (evaluate or core.evaluation.due(p)) and core.report.last_eval.get("step") != p.env_steps
     try:
         if evaluated:
             driver.evaluate_now(p)
