@@ -101,7 +101,8 @@ def run_sb3(setting: str, seed: int) -> dict:
 
 
 def worker(argv: list[str]) -> None:
-    which, setting, seed, threads = argv[0], argv[1], int(argv[2]), int(argv[3])
+    which, setting, seed = argv[0], argv[1], int(argv[2])
+    threads = int(argv[3]) if len(argv) > 3 else -1  # bench/ab.py passes none: the preset's
     out = run_relayrl(setting, seed, threads) if which == "relayrl" else run_sb3(setting, seed)
     report(out)
 
