@@ -431,6 +431,15 @@ def test_several_runs_plot_in_one_panel(run_dir, tmp_path, capsys):
     (sweep / "empty").mkdir()
     assert main(["plot", str(sweep / "seed1"), str(sweep / "empty")]) == 2
     assert "is not a relayrl run directory (no config.toml)" in capsys.readouterr().err
+    # a run with no evaluation yet (one stopped before its first) is left out, with a line saying so
+    stopped = sweep / "stopped"
+    stopped.mkdir()
+    (stopped / "config.toml").write_text((sweep / "seed2" / "config.toml").read_text())
+    capsys.readouterr()
+    assert main(["plot", str(sweep / "seed1"), str(stopped)]) == 0
+    assert "metrics.jsonl' has no evaluations yet: left out of the plot" in capsys.readouterr().err
+    with pytest.raises(UserError, match="has no evaluations yet; train first"):  # none has any: nothing to plot
+        relayrl.plot_run([stopped, stopped])
 
 
 def test_the_progress_bar_ends_at_the_last_step_with_the_last_evaluation(tmp_path, monkeypatch):

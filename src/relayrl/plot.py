@@ -7,6 +7,7 @@ in their seed are one curve, their mean, with a band from their lowest to their 
 from __future__ import annotations
 
 import json
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -62,7 +63,16 @@ def _compare(runs: list[RunDir], out: str | Path | None) -> Path:
     """One panel: each run's evaluation returns against env steps."""
     if not runs:
         raise UserError("no run directory given: give one or more")
-    rows = [_evaluations(rd) for rd in runs]
+    for rd in runs:
+        rd.require()
+    found = [_evaluation_rows(rd) for rd in runs]
+    if not any(found):
+        _evaluations(runs[0])  # says why it has none
+    # a run with none yet (one under way, or stopped before its first) is left out, not the plot
+    for rd, run_rows in zip(runs, found, strict=True):
+        if not run_rows:
+            print(f"{str(rd.metrics)!r} has no evaluations yet: left out of the plot", file=sys.stderr)
+    runs, rows = [rd for rd, r in zip(runs, found, strict=True) if r], [r for r in found if r]
     parents = {rd.root.resolve().parent for rd in runs}
     if out is None and len(parents) > 1:
         raise UserError("the run directories are in different folders: give --out PATH for the plot")
@@ -111,9 +121,13 @@ def _group_curve(ax: Any, names: list[str], rows: list[Rows]) -> None:
     ax.fill_between(steps, [min(v) for v in values], [max(v) for v in values], color=line.get_color(), alpha=0.2)
 
 
+def _evaluation_rows(rd: RunDir) -> Rows:
+    return [r for r in rd.read_metrics() if r.get("average_return") is not None]
+
+
 def _evaluations(rd: RunDir) -> Rows:
     rd.require()
-    rows = [r for r in rd.read_metrics() if r.get("average_return") is not None]
+    rows = _evaluation_rows(rd)
     if not rows:
         raise UserError(f"{str(rd.metrics)!r} has no evaluations yet; {_why_none(rd)}")
     return rows
