@@ -15,6 +15,14 @@ class CheckpointError(UserError):
     """A checkpoint that cannot be read."""
 
 
+def check_count(name: str, value: object, zero: str | None = None) -> None:
+    """One line where a count a caller passes (episodes, steps) is not an integer >= 1 (True is
+    no count); `zero`: what 0 means, where it is allowed."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < (0 if zero else 1):
+        also = f", or 0 {zero}" if zero else ""
+        raise UserError(f"{name}={value!r} is not valid; it must be an integer >= 1{also}")
+
+
 def note_where(error: BaseException, where: str) -> None:
     """A note on an env's own exception saying where relayrl met it ("relayrl: raised " + `where`):
     its traceback says where in the env's code, not which copy, env step or evaluation. A

@@ -13,7 +13,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from relayrl.errors import UserError
+from relayrl.errors import UserError, check_count
 from relayrl.seeding import check_seed
 from relayrl.specs import DiscreteSpec, PackedSpec, Spec, describe
 
@@ -63,11 +63,8 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
     from relayrl.training.evaluate import cap_untimed
     from relayrl.training.evaluate import evaluate as run_episodes
 
-    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
-        raise UserError(f"episodes={episodes!r} is not valid; it must be an integer >= 1")
-    if isinstance(max_episode_steps, bool) or not isinstance(max_episode_steps, int) or max_episode_steps < 0:
-        raise UserError(f"max_episode_steps={max_episode_steps!r} is not valid; it must be an integer >= 1, or 0 "
-                        "for the env's own time limit")
+    check_count("episodes", episodes)
+    check_count("max_episode_steps", max_episode_steps, zero="for the env's own time limit")
     check_seed(seed)
     if lone_policy_file(policy):  # read once: for its env record and to act
         from relayrl.export import load_policy

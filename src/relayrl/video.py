@@ -15,7 +15,7 @@ import torch
 from relayrl import atomic
 from relayrl.envs.gym import GymBatchEnv, resolve_env_fn
 from relayrl.envs.make import gl_hint, making
-from relayrl.errors import UserError
+from relayrl.errors import UserError, check_count
 from relayrl.export import load_policy
 from relayrl.paths import output_path, writing
 from relayrl.presets import load_config
@@ -36,8 +36,7 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     from relayrl.training.run_dir import RunDir
 
     for name, value in (("episodes", episodes), ("max_steps", max_steps)):  # not one episode in their place
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise UserError(f"{name}={value!r} is not valid; it must be an integer >= 1")
+        check_count(name, value)
     rd = RunDir.of(run_dir)  # RUN_DIR/policy/policy.pt and RUN_DIR/config.toml name the run, as for `relayrl eval`
     if not rd.config.is_file():
         rd = RunDir(run_dir)  # a lone policy file or another folder: `require` says which
