@@ -51,10 +51,8 @@ class Actor:
                     observer(t)
                 self._obs = out.obs
                 taken += b
-        except BaseException:  # the run ends on it (a Ctrl-C too): its message counts the steps taken before it
+        finally:  # after a failure (a Ctrl-C too) the run's message counts the steps taken before it
             self.env_steps += taken
-            raise
-        self.env_steps += taken
         for observer in self.observers:
             observer.flush()  # staged steps reach the replay before anyone samples
 
