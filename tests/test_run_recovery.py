@@ -138,6 +138,20 @@ def test_resume_with_another_algorithm_or_env_is_one_line(tmp_path, cli, args, f
     assert RunDir(run).read_metrics()[-1]["step"] == 90
 
 
+def test_resume_naming_the_runs_preset_checks_the_set_against_the_runs_own_config(tmp_path, cli):
+    # The run's rollout is 128 env steps where ppo's default is 2,048: a new total of 384 is valid
+    # for the run, and only the run's config.toml decides that.
+    run = tmp_path / "run"
+    tiny_ppo = ["env.id=toy_envs:Countdown", "train.collect_steps=128", "train.total_steps=256", "eval.episodes=1"]
+    assert cli(["train", "ppo", "--run-dir", str(run), "--no-progress", *sets(tiny_ppo)]).returncode == 0
+    r = cli(["train", "ppo", "--run-dir", str(run), "--resume", "--no-progress", "--set", "env.id=toy_envs:Countdown",
+             "--set", "train.total_steps=384"])
+    assert r.returncode == 0, r.stderr
+    assert RunDir(run).read_metrics()[-1]["step"] == 384
+    r = cli(["train", "ppo", "--run-dir", str(run), "--resume", "--set", "env={id='CartPole-v1'}"])
+    assert r.returncode == 2 and "env.id='CartPole-v1' but the run in" in r.stderr
+
+
 def test_total_steps_below_initial_collect_steps_is_honoured(tmp_path):
     result = train(load_config("dqn-cartpole", TINY + ["train.total_steps=25", "train.initial_collect_steps=50"]),
                    tmp_path / "run", progress=False)

@@ -138,7 +138,8 @@ def backslash_note(run_dir: str) -> str | None:
 
 
 def _train(args: argparse.Namespace) -> None:
-    from relayrl.dispatch import RESUME_OR_OVERWRITE, check_resume_matches, default_run_dir, train
+    from relayrl.dispatch import (RESUME_OR_OVERWRITE, check_resume_matches, default_run_dir, identity_overrides,
+                                  train)
     from relayrl.presets import load_config
     from relayrl.training.run_dir import RunDir
 
@@ -150,7 +151,7 @@ def _train(args: argparse.Namespace) -> None:
         rd = RunDir(args.run_dir)
         rd.require()
         if args.config:  # it must name the run's own algorithm and env; the run's config.toml is used
-            check_resume_matches(load_config(args.config, args.overrides, args.seed), rd)
+            check_resume_matches(load_config(args.config, identity_overrides(args.overrides), args.seed), rd)
         config = load_config(str(rd.config), args.overrides, args.seed)
     elif not args.config:
         raise UserError("train needs PRESET|CONFIG.toml (see `relayrl presets`), or --run-dir DIR --resume")

@@ -20,7 +20,8 @@ from typing import TYPE_CHECKING, Any
 import gymnasium as gym
 
 from relayrl.agents.registry import Algorithm, algorithm, ray_algorithms
-from relayrl.config import Config, algo_defaults, dotted, from_dict, load_toml, save_toml, to_dict
+from relayrl.config import (Config, algo_defaults, dotted, from_dict, load_toml, parse_override, save_toml,
+                            to_dict)
 from relayrl.envs.gym import names_python_factory
 from relayrl.errors import UserError
 from relayrl.presets import load_config
@@ -66,6 +67,15 @@ IDENTITY = {"algo": _OWN.format("algo"), "env.id": _OWN.format("env.id"),
 KEPT = {**IDENTITY, "env.num_envs": "its replay and envs are laid out per copy: " + _OWN.format("env.num_envs"),
         "distributed.num_actors": "its checkpoint holds each actor's part (off-policy: of the replay too): "
         + _OWN.format("distributed.num_actors")}
+
+
+def identity_overrides(overrides: Sequence[str]) -> list[str]:
+    """The `--set` overrides that touch a key of `IDENTITY` (or a section holding one): what a
+    preset named on a resume is checked with. The others change the run's own config.toml, and
+    checked against the preset's settings instead they could refuse what the run allows."""
+    def touches(keys: list[str]) -> bool:
+        return any(name.split(".")[:len(keys)] == keys for name in IDENTITY)
+    return [text for text in overrides if touches(parse_override(text)[0])]
 
 
 def check_resume_matches(config: Config, rd: RunDir, kept: dict[str, str] = IDENTITY) -> None:
