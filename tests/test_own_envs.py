@@ -270,6 +270,19 @@ def test_a_users_env_is_checked_once_unless_turned_off(tmp_path, capfd):
     assert "env check" not in capfd.readouterr().err
 
 
+@pytest.mark.parametrize("env_id, kwargs, message", [
+    ("toy_envs:ResetBreaksAt", "{at = 1}", "simulator refused to reset"),  # the check's own first reset
+    ("toy_envs:BrokenAt", "{at = 1}", "simulator lost connection"),  # its one step
+])
+def test_an_env_raising_in_the_check_keeps_its_error_with_a_note_of_where(env_id, kwargs, message, tmp_path):
+    config = load_config("dqn-cartpole", TINY + [f"env.id={env_id}", f"env.kwargs={kwargs}"])
+    with pytest.raises(RuntimeError, match=message) as caught:
+        train(config, tmp_path / "run", progress=False)
+    assert caught.value.__notes__ == [
+        "relayrl: raised by the env in relayrl's check before training (reset() of one fresh copy, then a step of "
+        "a random action)"]
+
+
 def test_float64_observations_are_one_line_and_the_checks_after_it_still_run():
     """Gymnasium's checker asserts that float64 observations are "not within the observation
     space" (of values inside its bounds) and stops there: the seed it ignores went unsaid."""

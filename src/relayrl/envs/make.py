@@ -20,7 +20,7 @@ from relayrl.envs.gym import BatchEnvBase, EnvFn, GymBatchEnv, apply_wrappers, n
 from relayrl.envs.probe import first_problem
 from relayrl.envs.stateless.adapter import STATELESS_ENVS, StatelessBatchEnv, make_batch_env
 from relayrl.envs.vector import AsyncGymBatchEnv
-from relayrl.errors import UserError
+from relayrl.errors import UserError, note_where
 from relayrl.user_code import load_callable
 
 
@@ -171,13 +171,18 @@ def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple
     with global_rngs_kept():
         env = resolve_env_fn(env_id, max_episode_steps, None, kwargs, wrappers, factory)()
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")  # the checker below reports what it finds once
-                problem = first_problem(env)
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # the checker below reports what it finds once
+                    problem = first_problem(env)
+                obs, info = env.reset(seed=0) if problem is None else (None, {})  # (a Gymnasium reset, found)
+            except Exception as e:  # the env's own: its traceback, and where relayrl called it
+                note_where(e, "by the env in relayrl's check before training (reset() of one fresh copy, then a step "
+                              "of a random action)")
+                raise
             if problem is not None:
                 who = "the env from the factory given to relayrl.train" if factory is not None else f"env.id={env_id!r}"
                 raise UserError(f"{who}: {problem}")
-            obs, info = env.reset(seed=0)  # (first_problem found a Gymnasium reset)
             checked, cast = _cast_observations(env, obs)
             lines += [line for line in (cast, _action_masks_line(env, info)) if line is not None]
             with warnings.catch_warnings(record=True) as caught:
