@@ -320,6 +320,26 @@ def test_an_observation_that_stops_fitting_mid_run_is_one_line(tmp_path, cli, ve
     assert "the observation from step() of env copy 0 has shape (3,) but observation_space is Box(" in r.stderr
 
 
+@pytest.mark.parametrize("vectorization", ["sync", "async"])
+@pytest.mark.parametrize("late, fragment", [
+    ("fraction", "holds float32 values that are not whole numbers (such as "),
+    ("negative", "holds -"),
+])
+def test_an_observation_a_uint8_space_would_change_mid_run_is_one_line(tmp_path, cli, vectorization, late, fragment):
+    # int64 observations whose values uint8 keeps train as they are; from step 45 on they do not.
+    run = tmp_path / "run"
+    over = TINY + ["env.id=toy_envs:CastsAt", f"env.kwargs={{at = 45, late = '{late}'}}",
+                   f"env.vectorization={vectorization}"]
+    r = cli(["train", "dqn-cartpole", "--run-dir", str(run), "--no-progress", *sets(over)])
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert f"the observation from step() of env copy 0 {fragment}" in r.stderr
+    assert "observation_space is Box(0, 255, (2,), uint8)" in r.stderr
+    assert RunDir(run).read_metrics()  # the run's rows before it stay
+    r = cli(["train", "dqn-cartpole", "--run-dir", str(tmp_path / "kept"), "--no-progress",
+             *sets(TINY + ["env.id=toy_envs:CastsAt"])])
+    assert r.returncode == 0, r.stderr
+
+
 @pytest.mark.parametrize("blocker, kind", [("checkpoints", "file"), ("config.toml", "directory")])
 def test_a_run_directory_whose_entries_are_blocked_is_one_line(tmp_path, cli, blocker, kind):
     run = tmp_path / "run"

@@ -208,6 +208,29 @@ class ShapeShifts(BrokenAt):
         return (np.zeros(3, np.float32) if self.steps >= self.at else obs), reward, terminated, truncated, info
 
 
+class CastsAt(BrokenAt):
+    """Countdown in a uint8 Box whose observations come as int64 (values it keeps) and, from its
+    `at`-th step on, as `late`: "fraction" (float32 halves) or "negative" (int64 below 0)."""
+
+    def __init__(self, at: int = 0, late: str = "fraction", **kwargs) -> None:
+        super().__init__(at=at, **kwargs)
+        self.observation_space = gym.spaces.Box(0, 255, (2,), np.uint8)
+        self.late = late
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = super().reset(seed=seed, options=options)
+        return obs.astype(np.int64), info
+
+    def step(self, action):
+        self.steps += 1
+        obs, reward, terminated, truncated, info = Countdown.step(self, action)
+        if self.at and self.steps >= self.at:
+            obs = obs + 0.5 if self.late == "fraction" else obs.astype(np.int64) - 300
+        else:
+            obs = obs.astype(np.int64)
+        return obs, reward, terminated, truncated, info
+
+
 class Tupled(Countdown):
     """Countdown taking a tuple kwarg, which config.toml keeps as a list."""
 

@@ -116,6 +116,9 @@ class BatchEnvBase(BatchedEnv):
         self._action_bounds = box_bounds(action_space) if other else None
         # Dict / Tuple observations travel as packed byte rows (specs.PackedSpec); None: as they are
         self._pack = self.observation_spec.pack if isinstance(self.observation_spec, PackedSpec) else None
+        # An integer space's dtype, whose rows are checked where an observation comes in another
+        # dtype: the write would cast fractions to 0 and wrap numbers outside it, silently.
+        self._int_obs = self._obs_dtype if self._pack is None and self._obs_dtype.kind in "iu" else None
         self._discrete = isinstance(action_space, gym.spaces.Discrete)
         # Discrete, MultiDiscrete and MultiBinary observations (and Dict / Tuple entries) index
         # one-hots: (entry or None for the whole row, the values' exclusive limit) of each.
@@ -496,7 +499,7 @@ class GymBatchEnv(BatchEnvBase):
         actions = action.tolist() if self._discrete else action
         ended = []
         infos: dict[int, dict] = {}
-        pack = self._pack
+        pack, int_obs = self._pack, self._int_obs
         for i, env in enumerate(self.envs):
             try:
                 out = env.step(actions[i])
@@ -511,6 +514,8 @@ class GymBatchEnv(BatchEnvBase):
                 next_obs[i] = o if pack is None else pack(o)
             except (ValueError, TypeError, KeyError) as e:  # an env whose observations change mid-run
                 raise self._unfit(o, i, "step()", e) from None
+            if int_obs is not None and getattr(o, "dtype", int_obs) != int_obs:
+                self._check_cast(o, i, "step()")
             try:
                 reward[i] = r
             except (TypeError, ValueError):
@@ -553,7 +558,16 @@ class GymBatchEnv(BatchEnvBase):
         problem = reset_problem(out, self._method("reset()", i))
         if problem is not None:
             raise UserError(problem)
+        if self._int_obs is not None and getattr(out[0], "dtype", self._int_obs) != self._int_obs:
+            self._check_cast(out[0], i, "reset()")
         return out[0]
+
+    def _check_cast(self, obs: Any, i: int, method: str) -> None:
+        """One line where copy i's observation, in a dtype other than its integer space's, holds
+        values that dtype would change (the start's check saw ones it keeps)."""
+        problem = observation_problem(obs, self.envs[i].observation_space, self._method(method, i))
+        if problem is not None:
+            raise UserError(problem)
 
     def _unfit(self, obs: Any, i: int, method: str, error: Exception) -> UserError:
         """One line for an observation that does not fit the env's space, met mid-run (the
