@@ -86,14 +86,17 @@ def test_random_policy_respects_specs():
     assert (c[:, 0] >= -1).all() and (c[:, 1] <= 5).all() and c[:, 1].max() > 4
 
 
-@pytest.mark.parametrize("kwargs,steps,wrappers,line", [
-    ({}, 50, [], "CartPole-v1 is the env the policy was trained on: env.max_episode_steps=50 applies"),
+@pytest.mark.parametrize("kwargs,steps,wrappers,line,given", [
+    ({}, 50, [], "CartPole-v1 is the env the policy was trained on: env.max_episode_steps=50 applies", 0),
+    ({"sutton_barto_reward": True}, 50, [], "CartPole-v1 is the env the policy was trained on: env.kwargs "
+                                            "{'sutton_barto_reward': True} applies", 30),  # the caller's limit
+    ({}, 50, [], None, 30),  # nothing of the run applies: nothing to say
     ({"sutton_barto_reward": True}, 50, [], "env.kwargs {'sutton_barto_reward': True} and env.max_episode_steps=50 "
-                                            "apply"),
+                                            "apply", 0),
     ({}, 0, ["m:W"], "CartPole-v1 is the env the policy was trained on: its env.wrappers ['m:W'] do not apply "
-                     "(a policy file runs no code)"),
+                     "(a policy file runs no code)", 0),
 ])
-def test_evaluating_on_the_env_a_policy_records_says_what_of_its_run_applies(kwargs, steps, wrappers, line):
+def test_evaluating_on_the_env_a_policy_records_says_what_of_its_run_applies(kwargs, steps, wrappers, line, given):
     from relayrl.evaluation import named_env
     from relayrl.loaded_policy import LoadedPolicy
 
@@ -101,5 +104,6 @@ def test_evaluating_on_the_env_a_policy_records_says_what_of_its_run_applies(kwa
     policy.env_id, policy.env_kwargs, policy.max_episode_steps, policy.env_wrappers = (
         "CartPole-v1", kwargs, steps, wrappers)
     said: list[str] = []
-    named_env("CartPole-v1", policy, 2, say=said.append).close()
-    assert len(said) == 1 and line in said[0], said
+    env = named_env("CartPole-v1", policy, 2, given, say=said.append)
+    env.close()
+    assert (len(said) == 1 and line in said[0]) if line else not said, said

@@ -183,12 +183,15 @@ def named_env(env_id: str, policy: Any, episodes: int, max_episode_steps: int = 
             policy.env_kwargs or policy.max_episode_steps or policy.env_wrappers):
         return make_eval_env(env_id, episodes, max_episode_steps)
     if say is not None:
+        # the caller's max_episode_steps, where given, is the time limit instead of the recorded one
         kept = [f"env.kwargs {policy.env_kwargs}"] * bool(policy.env_kwargs) + [
-            f"env.max_episode_steps={policy.max_episode_steps}"] * bool(policy.max_episode_steps)
+            f"env.max_episode_steps={policy.max_episode_steps}"] * bool(policy.max_episode_steps and
+                                                                       not max_episode_steps)
         dropped = f"its env.wrappers {policy.env_wrappers} do not apply (a policy file runs no code)" \
             if policy.env_wrappers else ""
         applied = f"{' and '.join(kept)} appl{'y' if len(kept) > 1 else 'ies'}" if kept else ""
-        say(f"{env_id} is the env the policy was trained on: {'; '.join(p for p in (applied, dropped) if p)}")
+        if applied or dropped:
+            say(f"{env_id} is the env the policy was trained on: {'; '.join(p for p in (applied, dropped) if p)}")
     return make_eval_env(env_id, episodes, max_episode_steps or policy.max_episode_steps, kwargs=policy.env_kwargs)
 
 
