@@ -262,14 +262,20 @@ def test_policy_files_and_checkpoints_of_the_former_conv_q_network_load(tmp_path
     assert all(torch.equal(v, weights[k]) for k, v in again.online.state_dict().items())
 
 
-def test_conv_network_needs_image_observations():
-    with pytest.raises(UserError, match="needs uint8 frames"):
-        DQNAgent(ArraySpec((4,), torch.float32), DiscreteSpec(2), DQNConfig(network="nature_cnn"),
-                 torch.device("cpu"), np.random.default_rng(0))
-    said = r"agent.network=.* needs frames of at least 36x36, got .*: use agent.network=.mlp. with agent.encoder=.auto"
+@pytest.mark.parametrize("obs, said", [
+    (ArraySpec((4,), torch.float32), "needs uint8 frames .*: use agent.network='mlp' \\(the default\\) for "
+                                     "observations that are not frames$"),
+    (ArraySpec((4, 12, 12), torch.uint8), "needs frames of at least 36x36, got .*: use agent.network='mlp' with "
+                                          "agent.encoder='auto' or 'small_cnn'"),
+    # frames the network does not take, the encoder suggested fits their size
+    (ArraySpec((20, 20), torch.uint8), "needs uint8 frames .*: use agent.network='mlp' with agent.encoder='auto' or "
+                                       "'small_cnn'"),
+    (ArraySpec((40, 40, 3), torch.uint8), "needs uint8 frames .*: use agent.network='mlp' with agent.encoder='auto' "
+                                          "or 'nature_cnn'"),
+])
+def test_conv_network_needs_image_observations(obs, said):
     with pytest.raises(UserError, match=said):
-        DQNAgent(ArraySpec((4, 12, 12), torch.uint8), DiscreteSpec(2), DQNConfig(network="nature_cnn"),
-                 torch.device("cpu"), np.random.default_rng(0))
+        DQNAgent(obs, DiscreteSpec(2), DQNConfig(network="nature_cnn"), torch.device("cpu"), np.random.default_rng(0))
 
 
 def test_exponential_epsilon_schedule():

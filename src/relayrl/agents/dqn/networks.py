@@ -19,16 +19,18 @@ def q_network(obs_spec: Spec, action_spec: Spec, cfg: DQNConfig) -> nn.Module:
         raise UserError(f"DQN takes a Discrete action space; this env's action space is {describe(action_spec)} "
                         "(use SAC or PPO for Box actions, PPO for MultiDiscrete and MultiBinary)")
     if cfg.network != "mlp":  # the Atari presets' net (q_layout)
-        instead = "use agent.network='mlp' with agent.encoder='auto' or 'nature_cnn', which take any image layout"
-        if not (isinstance(obs_spec, ArraySpec) and is_image(obs_spec) and len(obs_spec.shape) == 3
-                and not image_layout(obs_spec)[1]):
+        frames = isinstance(obs_spec, ArraySpec) and is_image(obs_spec)
+        # the encoder that does take these frames: the Nature CNN's strides need sides >= NATURE_MIN_SIDE
+        cnn = "small_cnn" if frames and min(image_size(obs_spec)) < NATURE_MIN_SIDE else "nature_cnn"
+        instead = (f"use agent.network='mlp' with agent.encoder='auto' or '{cnn}', which take any image layout"
+                   if frames else "use agent.network='mlp' (the default) for observations that are not frames")
+        if not (frames and len(obs_spec.shape) == 3 and not image_layout(obs_spec)[1]):
             raise UserError(f"agent.network={cfg.network!r} needs uint8 frames [C, H, W], channels first (as "
                             f"relayrl/Atari-Pong-v0's [4, 84, 84]); this env's observations are {describe(obs_spec)}: "
                             + instead)
-        if min(image_size(obs_spec)) < NATURE_MIN_SIDE:
-            small = instead.replace("nature_cnn", "small_cnn")
+        if cnn == "small_cnn":
             raise UserError(f"agent.network={cfg.network!r} needs frames of at least {NATURE_MIN_SIDE}x"
-                            f"{NATURE_MIN_SIDE}, got {describe(obs_spec)}: {small}")
+                            f"{NATURE_MIN_SIDE}, got {describe(obs_spec)}: {instead}")
     encoder, hidden, activation = q_layout(cfg)
     net = encoded_mlp(obs_spec, encoder, hidden, action_spec.n, activation)
     if cfg.init == "tf-agents" and cfg.network == "mlp":  # agent.init is the MLP's; the conv net keeps torch's
