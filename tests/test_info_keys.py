@@ -97,6 +97,19 @@ def test_an_info_value_in_a_one_element_array_says_its_shape():
                             "one number, such as x.item())")
 
 
+def test_an_info_value_whose_repr_spans_lines_is_still_one_line():
+    from relayrl.envs.gym import episode_info
+
+    with pytest.raises(UserError) as e:
+        episode_info(("m",), 1, [0], lambda i: {"m": np.ones((2, 2))})
+    assert str(e.value) == ("env.info_keys: info['m'] = array([[1., 1.], [1., 1.]]) is not a number (an array of "
+                            "shape (2, 2): give one number, such as x.item())")
+    with pytest.raises(UserError) as e:
+        episode_info(("m",), 1, [0], lambda i: {"m": np.zeros((50, 50))})
+    assert "\n" not in str(e.value) and "info['m'] = array([[0., 0., 0., " in str(e.value)
+    assert "... is not a number (an array of shape (50, 50)" in str(e.value)
+
+
 def test_info_keys_with_an_env_whose_info_is_not_a_dict_is_one_line():
     from relayrl.envs.gym import episode_info
 

@@ -69,7 +69,9 @@ def episode_info(keys: tuple[str, ...], num_envs: int, ended: list[int],
                 # an array of one value (np.array([x]), a simulator's habit) reads as a number: say why not
                 shape = getattr(info[k], "shape", ())
                 hint = f" (an array of shape {tuple(shape)}: give one number, such as x.item())" if shape else ""
-                raise UserError(f"env.info_keys: info[{k!r}] = {info[k]!r} is not a number{hint}") from None
+                shown = " ".join(repr(info[k]).split())  # one line: an array's repr spans several
+                shown = shown if len(shown) <= 80 else shown[:77] + "..."
+                raise UserError(f"env.info_keys: info[{k!r}] = {shown} is not a number{hint}") from None
     return out
 
 
