@@ -81,6 +81,12 @@ def test_a_missing_package_is_one_line_saying_what_was_tried(project):
     assert "no module 'nopkg' in the current directory" in line and str(proj) in line
     assert "PYTHONPATH" in line and "pip install -e" in line
     assert not (proj / "runs").exists()
+    # the package is found, its module is not: the line names the package's folder, not the import path
+    r = subprocess.run([sys.executable, str(script), "train", "dqn-cartpole", "--set", "env.id=mygame.nope:Corridor"],
+                       cwd=proj, env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    (line,) = r.stderr.strip().splitlines()
+    assert f"package 'mygame' ({proj / 'mygame'}) has no module 'nope'" in line and "PYTHONPATH" not in line
 
 
 def test_an_error_inside_the_users_module_is_one_line(project):

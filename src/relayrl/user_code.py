@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import sys
 import traceback
 from collections.abc import Callable
 from typing import Any
@@ -20,6 +21,10 @@ def import_user_module(module_name: str, what: str) -> Any:
         if e.name is None or not module_name.startswith(e.name):
             raise UserError(f"{what}: importing {module_name!r} failed: it imports {e.name!r}, which is "
                             "not installed") from None
+        parent, _, leaf = e.name.rpartition(".")
+        if parent and (found := sys.modules.get(parent)) is not None:  # the package is there, the module not
+            where = list(getattr(found, "__path__", [])) or [getattr(found, "__file__", "?")]
+            raise UserError(f"{what}: package {parent!r} ({where[0]}) has no module {leaf!r}") from None
         top = e.name.split(".")[0]
         raise UserError(
             f"{what}: no module {e.name!r} in the current directory ({os.getcwd()}) or the installed "
