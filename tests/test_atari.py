@@ -124,3 +124,19 @@ def test_ppo_pong_preset_trains_a_few_rollouts_and_its_policy_loads(tmp_path):
     assert result.final["average_episode_length"] == 60
     policy = relayrl.load_policy(tmp_path / "run")
     assert policy(torch.zeros(3, 4, 84, 84, dtype=torch.uint8)).shape == (3,)
+
+
+@needs_ale
+def test_importing_relayrl_envs_registers_every_shipped_game_without_importing_ale_py():
+    """gymnasium.make gives the env a loaded policy acts on; ale-py's own import (seconds) waits for a game."""
+    import subprocess
+
+    code = ("import sys, gymnasium, relayrl.envs\n"
+            "ids = [i for i in gymnasium.registry if i.startswith('relayrl/Atari-')]\n"
+            "assert 'ale_py' not in sys.modules and len(ids) > 100, (len(ids), 'ale_py' in sys.modules)\n"
+            "env = gymnasium.make('relayrl/Atari-Breakout-v0')\n"
+            "obs, _ = env.reset(seed=0)\n"
+            "print(len(ids), obs.shape, obs.dtype, 'relayrl/Atari-MontezumaRevenge-v0' in ids)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split()[1:] == ["(4,", "84,", "84)", "uint8", "True"]

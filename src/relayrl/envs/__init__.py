@@ -2,6 +2,7 @@
 
 import gymnasium
 
+from relayrl.envs.atari import register_shipped_games
 from relayrl.envs.gym import GymBatchEnv, resolve_env_fn
 from relayrl.envs.make import make_env
 
@@ -21,5 +22,6 @@ for _id, _entry_point, _max_steps in (
 ):
     if _id not in gymnasium.registry:
         gymnasium.register(_id, entry_point=_entry_point, max_episode_steps=_max_steps)
+register_shipped_games()  # relayrl/Atari-<Game>-v0, where ale-py is installed
 
 __all__ = ["GymBatchEnv", "make_env", "resolve_env_fn"]

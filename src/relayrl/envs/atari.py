@@ -4,15 +4,17 @@
 most 108,000 frames an episode; env.kwargs `repeat_action_probability` and `full_action_space`
 change the first two) made with `frameskip=1` under the standard DQN preprocessing
 (`pixels.atari_preprocessing`): uint8 observations [4, 84, 84], one step = 4 frames. Any ALE
-game works; an id is registered with Gymnasium the first time `resolve_env_fn` sees it, so
-the registry is not filled with a hundred games that may never be played. `render()` gives
-the game's full RGB frames (what `relayrl video` records), not the 84x84 stacks.
+game works: `import relayrl.envs` registers an id for each ROM ale-py ships (`gymnasium.make`
+then gives the env a loaded policy acts on), and `resolve_env_fn` any other id of the pattern
+the first time it sees it. `render()` gives the game's full RGB frames (what `relayrl video`
+records), not the 84x84 stacks.
 """
 
 from __future__ import annotations
 
 import importlib.util
 import re
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -76,6 +78,17 @@ def make_atari_spec_kwargs(game: str) -> dict[str, Any]:
         raise UserError(f"ale-py has no game {game!r} (no {ale_id}); e.g. relayrl/Atari-Pong-v0, "
                         "relayrl/Atari-Breakout-v0")
     return dict(gym.spec(ale_id).kwargs)
+
+
+def register_shipped_games() -> None:
+    """`relayrl/Atari-<Game>-v0` for each ROM in ale-py's folder, found without importing ale-py
+    (seconds of start-up that a run without Atari would pay): its file names are the ROM ids
+    that ale-py's own `ALE/<Game>-v5` ids spell in PascalCase."""
+    spec = importlib.util.find_spec("ale_py")
+    for folder in (spec.submodule_search_locations or []) if spec is not None else []:
+        roms = Path(folder) / "roms"
+        for rom in sorted(roms.glob("*.bin")) if roms.is_dir() else []:
+            register_on_demand(f"relayrl/Atari-{rom.stem.title().replace('_', '')}-v0")
 
 
 def register_on_demand(env_id: str) -> None:
