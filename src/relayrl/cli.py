@@ -138,8 +138,7 @@ def backslash_note(run_dir: str) -> str | None:
 
 
 def _train(args: argparse.Namespace) -> None:
-    from relayrl.dispatch import (RESUME_OR_OVERWRITE, check_resume_matches, default_run_dir, identity_overrides,
-                                  train)
+    from relayrl.dispatch import RESUME_OR_OVERWRITE, check_resume_matches, default_run_dir, identity_overrides, train
     from relayrl.presets import load_config
     from relayrl.training.run_dir import RunDir
 

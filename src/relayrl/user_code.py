@@ -23,8 +23,8 @@ def import_user_module(module_name: str, what: str) -> Any:
                             "not installed") from None
         parent, _, leaf = e.name.rpartition(".")
         if parent and (found := sys.modules.get(parent)) is not None:  # the package is there, the module not
-            where = list(getattr(found, "__path__", [])) or [getattr(found, "__file__", "?")]
-            raise UserError(f"{what}: package {parent!r} ({where[0]}) has no module {leaf!r}") from None
+            folder = next(iter(getattr(found, "__path__", [])), getattr(found, "__file__", "?"))
+            raise UserError(f"{what}: package {parent!r} ({folder}) has no module {leaf!r}") from None
         top = e.name.split(".")[0]
         raise UserError(
             f"{what}: no module {e.name!r} in the current directory ({os.getcwd()}) or the installed "

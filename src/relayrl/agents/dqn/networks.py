@@ -19,12 +19,13 @@ def q_network(obs_spec: Spec, action_spec: Spec, cfg: DQNConfig) -> nn.Module:
         raise UserError(f"DQN takes a Discrete action space; this env's action space is {describe(action_spec)} "
                         "(use SAC or PPO for Box actions, PPO for MultiDiscrete and MultiBinary)")
     if cfg.network != "mlp":  # the Atari presets' net (q_layout)
-        frames = isinstance(obs_spec, ArraySpec) and is_image(obs_spec)
+        frames = obs_spec if isinstance(obs_spec, ArraySpec) and is_image(obs_spec) else None
         # the encoder that does take these frames: the Nature CNN's strides need sides >= NATURE_MIN_SIDE
-        cnn = "small_cnn" if frames and min(image_size(obs_spec)) < NATURE_MIN_SIDE else "nature_cnn"
+        cnn = "small_cnn" if frames is not None and min(image_size(frames)) < NATURE_MIN_SIDE else "nature_cnn"
         instead = (f"use agent.network='mlp' with agent.encoder='auto' or '{cnn}', which take any image layout"
-                   if frames else "use agent.network='mlp' (the default) for observations that are not frames")
-        if not (frames and len(obs_spec.shape) == 3 and not image_layout(obs_spec)[1]):
+                   if frames is not None else
+                   "use agent.network='mlp' (the default) for observations that are not frames")
+        if frames is None or len(frames.shape) != 3 or image_layout(frames)[1]:
             raise UserError(f"agent.network={cfg.network!r} needs uint8 frames [C, H, W], channels first (as "
                             f"relayrl/Atari-Pong-v0's [4, 84, 84]); this env's observations are {describe(obs_spec)}: "
                             + instead)
