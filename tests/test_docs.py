@@ -134,3 +134,16 @@ def test_readme_says_predict_defaults_otherwise_than_sb3s():
     text = " ".join((ROOT / "README.md").read_text().split())
     assert "Stable-Baselines3's `predict` defaults to `deterministic=False`" in text
     assert "deterministic: bool | None = None" in Path(lp.__file__).read_text()  # still the loaded mode's default
+
+
+def test_the_config_reference_is_written_where_the_checkout_keeps_it_from_any_folder(tmp_path, monkeypatch):
+    from relayrl import docs_config
+
+    out = tmp_path / "docs" / "config.md"
+    out.parent.mkdir()
+    monkeypatch.setattr(docs_config, "DEFAULT_OUT", out)
+    monkeypatch.chdir(tmp_path.parent)
+    assert docs_config.main([]) == 0 and out.read_text() == render()
+    out.write_text("kept")
+    assert docs_config.main(["--help"]) == 2 and out.read_text() == "kept"  # arguments write nothing
+    assert docs_config.DEFAULT_OUT == out and (ROOT / "docs" / "config.md").is_file()

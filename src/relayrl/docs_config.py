@@ -1,13 +1,14 @@
 """docs/config.md, the config reference, generated from the config dataclasses: every key with its
 type, default and meaning (the comment beside the field, as `relayrl config PRESET` prints it).
 
-    python -m relayrl.docs_config    # rewrite docs/config.md (run from the repository root)
+    python -m relayrl.docs_config    # rewrite docs/config.md of the checkout this module is in
 
 tests/test_docs.py fails when the checked-in file is out of date.
 """
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +16,8 @@ from relayrl.agents.registry import ALGORITHMS
 from relayrl.config import class_defaults, dotted
 from relayrl.config_fields import CLEANRL_NAMES, SB3_NAMES, field_docs, toml_literal
 
-DEFAULT_OUT = Path("docs") / "config.md"
+# the checkout's own docs (src/relayrl/docs_config.py -> docs/config.md), from any working directory
+DEFAULT_OUT = Path(__file__).resolve().parents[2] / "docs" / "config.md"
 
 HEADER = """# Config reference
 
@@ -108,5 +110,19 @@ def _names_table(title: str, column: str, names: dict[str, str], intro: str) -> 
     return out + [f"| `{name}` | {_cell(what)} |" for name, what in names.items()]
 
 
-if __name__ == "__main__":
+def main(argv: list[str]) -> int:
+    if argv:
+        print("usage: python -m relayrl.docs_config (no arguments): rewrites docs/config.md of the checkout "
+              "relayrl is imported from", file=sys.stderr)
+        return 2
+    if not DEFAULT_OUT.parent.is_dir():
+        print(f"relayrl: error: no docs folder at {DEFAULT_OUT.parent}: relayrl is not imported from a checkout "
+              "(pip install -e . from one)", file=sys.stderr)
+        return 2
     DEFAULT_OUT.write_text(render())
+    print(f"wrote {DEFAULT_OUT}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
