@@ -139,6 +139,7 @@ def test_readme_says_predict_defaults_otherwise_than_sb3s():
 def test_the_config_reference_is_written_where_the_checkout_keeps_it_from_any_folder(tmp_path, monkeypatch):
     from relayrl import docs_config
 
+    assert docs_config.DEFAULT_OUT == ROOT / "docs" / "config.md"  # the checkout's, not the folder's
     out = tmp_path / "docs" / "config.md"
     out.parent.mkdir()
     monkeypatch.setattr(docs_config, "DEFAULT_OUT", out)
@@ -146,4 +147,3 @@ def test_the_config_reference_is_written_where_the_checkout_keeps_it_from_any_fo
     assert docs_config.main([]) == 0 and out.read_text() == render()
     out.write_text("kept")
     assert docs_config.main(["--help"]) == 2 and out.read_text() == "kept"  # arguments write nothing
-    assert docs_config.DEFAULT_OUT == out and (ROOT / "docs" / "config.md").is_file()
