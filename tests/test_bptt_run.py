@@ -2,7 +2,9 @@
 import os
 import re
 import signal
+import warnings
 
+import numpy as np
 import pytest
 import torch
 
@@ -23,6 +25,12 @@ def test_bptt_run_writes_rows_a_loadable_policy_and_improves(tmp_path):
     actions = relayrl.load_policy(tmp_path / "b")(torch.randn(7, 3) * 5)  # export: tests/test_conformance.py
     assert actions.shape == (7, 1) and actions.abs().max() <= 2.0
     assert relayrl.plot_run(tmp_path / "b").stat().st_size > 10_000  # two panels, like the tutorial's
+    assert not (tmp_path / "b" / "checkpoints").exists()  # it writes none: no empty folder looks like one lost
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the saved float64 bounds of its action space: no precision warning
+        policy = relayrl.load_policy(tmp_path / "b")
+        assert policy.action_space.low.dtype == np.float32
+        assert relayrl.evaluate(policy, episodes=1).mean < 0  # its check that the env fits the policy
 
 
 def test_bptt_refuses_other_envs(tmp_path):  # resume and CLI errors: tests/test_conformance.py

@@ -346,8 +346,8 @@ def to_space(spec: Spec, stored: bool = False) -> gym.Space:
     if isinstance(spec, PackedSpec):
         return spec.nested([to_space(f.spec, stored) for f in spec.fields], gym.spaces.Tuple, gym.spaces.Dict)
     dtype = dtype_of(spec)
-    if spec.low is not None and spec.high is not None:
-        return gym.spaces.Box(spec.low, spec.high, spec.shape, dtype)
+    if spec.low is not None and spec.high is not None:  # bounds in the dtype: Gymnasium warns of a lowered precision
+        return gym.spaces.Box(np.asarray(spec.low).astype(dtype), np.asarray(spec.high).astype(dtype), spec.shape, dtype)
     if dtype == np.bool_:
         return gym.spaces.Box(0, 1, spec.shape, dtype)
     if np.issubdtype(dtype, np.integer):

@@ -108,7 +108,9 @@ class RunDir:
 
     def create(self) -> None:
         try:
-            for d in (self.root, self.tb, self.checkpoints, self.policy):
+            # checkpoints/ is made by the first checkpoint: a run that writes none (train.checkpoint_interval = 0,
+            # bptt-pendulum) has no empty folder that looks like one lost
+            for d in (self.root, self.tb, self.policy):
                 d.mkdir(parents=True, exist_ok=True)
         except OSError as e:
             where = f" ({e.filename})" if e.filename else ""
