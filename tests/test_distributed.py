@@ -576,7 +576,7 @@ def test_a_running_cluster_and_an_empty_address_is_one_line(monkeypatch):
     monkeypatch.setenv("RAY_ADDRESS", "10.0.0.1:6379")
     fake_ray = SimpleNamespace(is_initialized=lambda: False, init=init)
     config = relayrl.load_config("sac-pendulum", ["distributed.num_actors=1"])
-    with pytest.raises(UserError, match=r"^a Ray cluster is running at RAY_ADDRESS='10.0.0.1:6379', and "
+    with pytest.raises(UserError, match=r"^RAY_ADDRESS='10.0.0.1:6379' names a Ray cluster to join, and "
                                         r"distributed.address is empty .* set distributed.address=auto"):
         init_ray(fake_ray, config)
 

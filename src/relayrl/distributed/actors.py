@@ -60,8 +60,11 @@ def init_ray(ray: Any, config: Config) -> bool:
         except ValueError as e:  # Ray joined a cluster RAY_ADDRESS names, which takes no num_cpus
             if "existing cluster" not in str(e):
                 raise
-            where = f"RAY_ADDRESS={os.environ['RAY_ADDRESS']!r}" if os.environ.get("RAY_ADDRESS") else "this machine"
-            raise UserError(f"a Ray cluster is running at {where}, and distributed.address is empty (a local Ray "
+            # Ray refuses num_cpus for RAY_ADDRESS before it tries to reach it: a cluster is named, not found
+            named = os.environ.get("RAY_ADDRESS")
+            where = f"RAY_ADDRESS={named!r} names a Ray cluster to join" if named else \
+                "a Ray cluster is running on this machine"
+            raise UserError(f"{where}, and distributed.address is empty (a local Ray "
                             "instance of the run's own): set distributed.address=auto to join that cluster, or "
                             "unset RAY_ADDRESS") from None
     if callable(on_sigterm):
