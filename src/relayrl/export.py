@@ -239,13 +239,13 @@ def signature(state: dict[str, Any], format: str, action: torch.Tensor) -> dict[
     """What an exported policy takes and returns, for `<file>.json` and the CLI's line."""
     inputs = [{"name": name, "dtype": str(env_torch_dtype(spec)).removeprefix("torch."),
                "shape": ["batch", *spec.shape]} for name, spec in input_specs(state)]
-    sig = {"format": format, "kind": state["kind"], "env_id": state.get("env_id"),
-           "env_steps": state.get("env_steps"), "input": inputs[0],
-           "output": {"name": "action", "dtype": str(action.dtype).removeprefix("torch."),
-                      "shape": ["batch", *action.shape[1:]]}}
-    if len(inputs) > 1 or inputs[0]["name"] != "obs":
-        sig["inputs"] = inputs
-    return sig
+    # "input" for the one tensor `obs`; "inputs" alone for a Dict / Tuple policy's entries, whose
+    # first one under "input" would read as the whole input
+    one = len(inputs) == 1 and inputs[0]["name"] == "obs"
+    return {"format": format, "kind": state["kind"], "env_id": state.get("env_id"),
+            "env_steps": state.get("env_steps"), **({"input": inputs[0]} if one else {"inputs": inputs}),
+            "output": {"name": "action", "dtype": str(action.dtype).removeprefix("torch."),
+                       "shape": ["batch", *action.shape[1:]]}}
 
 
 def describe(sig: dict[str, Any]) -> str:
