@@ -581,3 +581,18 @@ def test_closing_an_async_env_frees_its_file_descriptors_at_once():
         assert len(os.listdir("/proc/self/fd")) == before
     finally:
         gc.enable()
+
+
+@pytest.mark.parametrize("said, extra", [
+    ('Box2D is not installed, you can install it by run `pip install swig` followed by `pip install '
+     '"gymnasium[box2d]"`', "box2d"),
+    ('MuJoCo is not installed, run `pip install "gymnasium[mujoco]"`', "mujoco"),
+    ("something else is not installed", None),
+])
+def test_a_missing_gymnasium_dependency_names_relayrls_extra(said, extra):
+    import gymnasium as gym
+
+    from relayrl.envs.make import extra_hint
+
+    hint = extra_hint(gym.error.DependencyNotInstalled(said))
+    assert hint == (f" (with relayrl: pip install 'relayrl[{extra}]')" if extra else "")

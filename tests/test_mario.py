@@ -41,7 +41,8 @@ def test_registered_by_entry_point_string():
 def test_missing_extra_is_a_user_error(monkeypatch):
     monkeypatch.setattr(mario, "_modules", None)  # forget a load done by an earlier test
     monkeypatch.setitem(sys.modules, "nes_py", None)  # find_spec then reports it missing
-    message = re.escape(f"{ENV_ID} needs nes-py: pip install 'relayrl[mario]'")
+    message = re.escape(f"({ENV_ID} and the ddqn-mario preset's {ENV_ID.replace('-v0', '-pixels-v0')}) need "
+                        "nes-py: pip install 'relayrl[mario]'")
     with pytest.raises(UserError, match=message):
         mario.MarioEnv()
 

@@ -83,8 +83,10 @@ def making(env_id: str, users_code: bool = False) -> Iterator[None]:
 def extra_hint(error: Exception) -> str:
     """For a Gymnasium env whose dependency is missing: the relayrl extra that brings it; for
     one whose OpenGL library is missing (MuJoCo rendering): the setting that picks another."""
-    if isinstance(error, gym.error.DependencyNotInstalled) and "box2d" in str(error).lower():
-        return " (with relayrl: pip install 'relayrl[box2d]')"
+    if isinstance(error, gym.error.DependencyNotInstalled):
+        for extra in ("box2d", "mujoco"):  # Gymnasium's message names its own extra: pip install "gymnasium[...]"
+            if extra in str(error).lower():
+                return f" (with relayrl: pip install 'relayrl[{extra}]')"
     return gl_hint(error)
 
 

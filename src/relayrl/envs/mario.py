@@ -33,6 +33,7 @@ from relayrl.envs.pixels import mario_preprocessing
 from relayrl.errors import UserError
 
 ENV_ID = "relayrl/SuperMarioBros-1-1-v0"
+PIXELS_ID = "relayrl/SuperMarioBros-1-1-pixels-v0"  # the preprocessed stack (registered in relayrl/envs/__init__.py)
 INSTALL = "pip install 'relayrl[mario]'"
 TUTORIAL_ACTIONS: tuple[tuple[str, ...], ...] = (("right",), ("right", "A"))
 # The level clock kills a dawdling Mario (a termination: the clock is on screen) within ~8,000
@@ -65,7 +66,8 @@ def _package(name: str, real: str) -> types.ModuleType:
     """An empty package `name` whose submodules are `real`'s files (`real`'s __init__ never runs)."""
     spec = importlib.util.find_spec(real)  # locates the package without importing it
     if spec is None or not spec.submodule_search_locations:
-        raise UserError(f"{ENV_ID} needs {real.replace('_', '-')}: {INSTALL}")
+        raise UserError(f"relayrl's Super Mario Bros envs ({ENV_ID} and the ddqn-mario preset's "
+                        f"{PIXELS_ID}) need {real.replace('_', '-')}: {INSTALL}")
     package = types.ModuleType(name)
     package.__path__ = list(spec.submodule_search_locations)  # relative imports resolve in here
     return package
