@@ -11,7 +11,7 @@ from relayrl.agents.dqn.config import DQNConfig
 from relayrl.errors import UserError
 from relayrl.nn import tf_agents_init_
 from relayrl.nn.encoders import NATURE_MIN_SIDE, Encoded, encoded_mlp
-from relayrl.specs import ArraySpec, DiscreteSpec, Spec, describe, image_layout, image_size, is_image
+from relayrl.specs import ArraySpec, DiscreteSpec, PackedSpec, Spec, describe, image_layout, image_size, is_image
 
 
 def q_network(obs_spec: Spec, action_spec: Spec, cfg: DQNConfig) -> nn.Module:
@@ -19,12 +19,13 @@ def q_network(obs_spec: Spec, action_spec: Spec, cfg: DQNConfig) -> nn.Module:
         raise UserError(f"DQN takes a Discrete action space; this env's action space is {describe(action_spec)} "
                         "(use SAC or PPO for Box actions, PPO for MultiDiscrete and MultiBinary)")
     if cfg.network != "mlp":  # the Atari presets' net (q_layout)
-        frames = obs_spec if isinstance(obs_spec, ArraySpec) and is_image(obs_spec) else None
+        leaves = [f.spec for f in obs_spec.fields] if isinstance(obs_spec, PackedSpec) else [obs_spec]
+        images = [s for s in leaves if isinstance(s, ArraySpec) and is_image(s)]  # a Dict's frames too
         # the encoder that does take these frames: the Nature CNN's strides need sides >= NATURE_MIN_SIDE
-        cnn = "small_cnn" if frames is not None and min(image_size(frames)) < NATURE_MIN_SIDE else "nature_cnn"
+        cnn = "small_cnn" if any(min(image_size(s)) < NATURE_MIN_SIDE for s in images) else "nature_cnn"
         instead = (f"use agent.network='mlp' with agent.encoder='auto' or '{cnn}', which take any image layout"
-                   if frames is not None else
-                   "use agent.network='mlp' (the default) for observations that are not frames")
+                   if images else "use agent.network='mlp' (the default) for observations that are not frames")
+        frames = obs_spec if isinstance(obs_spec, ArraySpec) and images else None
         if frames is None or len(frames.shape) != 3 or image_layout(frames)[1]:
             raise UserError(f"agent.network={cfg.network!r} needs uint8 frames [C, H, W], channels first (as "
                             f"relayrl/Atari-Pong-v0's [4, 84, 84]); this env's observations are {describe(obs_spec)}: "
