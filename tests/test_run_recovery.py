@@ -321,22 +321,28 @@ def test_an_observation_that_stops_fitting_mid_run_is_one_line(tmp_path, cli, ve
 
 
 @pytest.mark.parametrize("vectorization", ["sync", "async"])
-@pytest.mark.parametrize("late, fragment", [
-    ("fraction", "holds float32 values that are not whole numbers (such as "),
-    ("negative", "holds -"),
-])
-def test_an_observation_a_uint8_space_would_change_mid_run_is_one_line(tmp_path, cli, vectorization, late, fragment):
-    # int64 observations whose values uint8 keeps train as they are; from step 45 on they do not.
+@pytest.mark.parametrize("late, entry, fragment", [
+    ("fraction", "", "step() of env copy 0 holds float32 values that are not whole numbers (such as "),
+    ("negative", "", "step() of env copy 0 holds -"),
+    ("list", "", "step() of env copy 0 holds 300, outside uint8's range"),
+    ("fraction", "frame", "step() of env copy 0['frame'] holds float32 values that are not whole numbers"),
+    ("negative", "frame", "step() of env copy 0['frame'] holds -"),
+], ids=["fraction", "negative", "list", "dict-fraction", "dict-negative"])
+def test_an_observation_a_uint8_space_would_change_mid_run_is_one_line(tmp_path, cli, vectorization, late, entry,
+                                                                        fragment):
     run = tmp_path / "run"
-    over = TINY + ["env.id=toy_envs:CastsAt", f"env.kwargs={{at = 45, late = '{late}'}}",
+    over = TINY + ["env.id=toy_envs:CastsAt", f"env.kwargs={{at = 45, late = '{late}', entry = '{entry}'}}",
                    f"env.vectorization={vectorization}"]
     r = cli(["train", "dqn-cartpole", "--run-dir", str(run), "--no-progress", *sets(over)])
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
-    assert f"the observation from step() of env copy 0 {fragment}" in r.stderr
-    assert "observation_space is Box(0, 255, (2,), uint8)" in r.stderr
+    assert f"the observation from {fragment}" in r.stderr and "Box(0, 255, (2,), uint8)" in r.stderr
     assert RunDir(run).read_metrics()  # the run's rows before it stay
-    r = cli(["train", "dqn-cartpole", "--run-dir", str(tmp_path / "kept"), "--no-progress",
-             *sets(TINY + ["env.id=toy_envs:CastsAt"])])
+
+
+@pytest.mark.parametrize("entry", ["", "frame"])
+def test_int64_observations_a_uint8_space_keeps_train_as_they_are(tmp_path, cli, entry):
+    r = cli(["train", "dqn-cartpole", "--run-dir", str(tmp_path / "run"), "--no-progress",
+             *sets(TINY + ["env.id=toy_envs:CastsAt", f"env.kwargs={{entry = '{entry}'}}"])])
     assert r.returncode == 0, r.stderr
 
 

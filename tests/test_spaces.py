@@ -114,7 +114,7 @@ def test_trained_policy_takes_the_envs_own_observations(algo, obs, act, tmp_path
     for fmt in formats:
         path = relayrl.export_policy(tmp_path, format=fmt)
         sig = json.loads(path.with_name(path.name + ".json").read_text())
-        inputs = sig.get("inputs", [sig["input"]])
+        inputs = sig["inputs"] if "inputs" in sig else [sig["input"]]
         assert ("input" in sig) != ("inputs" in sig)  # one tensor's, or every entry's: never the first alone
         entries = ([o[i["name"]] for i in inputs] if isinstance(o, dict)
                    else [o[int(i["name"])] for i in inputs] if isinstance(o, tuple) else [o])

@@ -209,26 +209,30 @@ class ShapeShifts(BrokenAt):
 
 
 class CastsAt(BrokenAt):
-    """Countdown in a uint8 Box whose observations come as int64 (values it keeps) and, from its
-    `at`-th step on, as `late`: "fraction" (float32 halves) or "negative" (int64 below 0)."""
+    """Countdown in a uint8 Box (with `entry`, the entry of that name of a Dict) whose observations
+    come as int64 (values it keeps) and, from its `at`-th step on, as `late`: "fraction" (float32
+    halves), "negative" (int64 below 0) or "list" (a list holding 300)."""
 
-    def __init__(self, at: int = 0, late: str = "fraction", **kwargs) -> None:
+    def __init__(self, at: int = 0, late: str = "fraction", entry: str = "", **kwargs) -> None:
         super().__init__(at=at, **kwargs)
-        self.observation_space = gym.spaces.Box(0, 255, (2,), np.uint8)
-        self.late = late
+        box = gym.spaces.Box(0, 255, (2,), np.uint8)
+        self.observation_space = gym.spaces.Dict({entry: box}) if entry else box
+        self.late, self.entry = late, entry
+
+    def _wrap(self, obs):
+        return {self.entry: obs} if self.entry else obs
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         obs, info = super().reset(seed=seed, options=options)
-        return obs.astype(np.int64), info
+        return self._wrap(obs.astype(np.int64)), info
 
     def step(self, action):
         self.steps += 1
         obs, reward, terminated, truncated, info = Countdown.step(self, action)
-        if self.at and self.steps >= self.at:
-            obs = obs + 0.5 if self.late == "fraction" else obs.astype(np.int64) - 300
-        else:
-            obs = obs.astype(np.int64)
-        return obs, reward, terminated, truncated, info
+        late = {"fraction": lambda: obs + 0.5, "negative": lambda: obs.astype(np.int64) - 300,
+                "list": lambda: [300, int(obs[1])]}[self.late]
+        obs = late() if self.at and self.steps >= self.at else obs.astype(np.int64)
+        return self._wrap(obs), reward, terminated, truncated, info
 
 
 class Tupled(Countdown):

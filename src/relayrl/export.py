@@ -253,5 +253,5 @@ def describe(sig: dict[str, Any]) -> str:
     def one(part: dict[str, Any]) -> str:
         return f"{part['name']} {part['dtype']} [{', '.join(map(str, part['shape']))}]"
 
-    inputs = sig.get("inputs", [sig["input"]])
+    inputs = sig["inputs"] if "inputs" in sig else [sig["input"]]
     return f"input{'s' if len(inputs) > 1 else ''} {', '.join(map(one, inputs))} -> output {one(sig['output'])}"

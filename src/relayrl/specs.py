@@ -417,8 +417,13 @@ class PackedSpec(ArraySpec):
                            f" or a batch [B, ...] for all keys, as observation[{first!r}]'s B = {batch}")
                 raise UserError(f"observation[{f.key!r}] has shape {leaf.shape}; this policy takes "
                                 f"{list(f.spec.shape)}{batched}")
-            leaf = leaf.astype(numpy_dtype(f.spec), copy=False).reshape(n, -1)
-            row[:, f.offset:f.offset + f.nbytes] = leaf.view(np.uint8)
+            dtype = numpy_dtype(f.spec)
+            stored = leaf.astype(dtype, copy=False)
+            # an integer entry whose cast may change values (float frames, numbers outside the dtype):
+            # the caller says what was wrong (the env's step, `_unfit`; a policy checks values first)
+            if dtype.kind in "iu" and not np.can_cast(leaf.dtype, dtype, "safe") and not np.array_equal(stored, leaf):
+                raise ValueError(f"observation[{f.key!r}] holds {leaf.dtype} values that {dtype} would change")
+            row[:, f.offset:f.offset + f.nbytes] = stored.reshape(n, -1).view(np.uint8)
         return row
 
     def observation(self, row: np.ndarray) -> Any:

@@ -118,9 +118,11 @@ class BatchEnvBase(BatchedEnv):
         self._action_bounds = box_bounds(action_space) if other else None
         # Dict / Tuple observations travel as packed byte rows (specs.PackedSpec); None: as they are
         self._pack = self.observation_spec.pack if isinstance(self.observation_spec, PackedSpec) else None
-        # An integer space's dtype, whose rows are checked where an observation comes in another
-        # dtype: the write would cast fractions to 0 and wrap numbers outside it, silently.
+        # An integer space's stored dtype: an observation whose write into it may change values
+        # (fractions cast to 0, numbers outside it wrapped) is checked first (`_kept`); a Dict /
+        # Tuple's integer entries are checked by `pack`.
         self._int_obs = self._obs_dtype if self._pack is None and self._obs_dtype.kind in "iu" else None
+        self._safe_casts: dict[np.dtype, bool] = {}  # per observation dtype: whether the write keeps every value
         self._discrete = isinstance(action_space, gym.spaces.Discrete)
         # Discrete, MultiDiscrete and MultiBinary observations (and Dict / Tuple entries) index
         # one-hots: (entry or None for the whole row, the values' exclusive limit) of each.
@@ -473,7 +475,10 @@ class GymBatchEnv(BatchEnvBase):
             o = self._reset_obs(i, functools.partial(reset_seeded, env, None if seed is None else seed + i))
             if seed is not None:
                 env.action_space.seed(seed + i)
-            obs.append(o if self._pack is None else self._pack(o))
+            try:
+                obs.append(o if self._pack is None else self._pack(o))
+            except (ValueError, TypeError, KeyError, OverflowError) as e:
+                raise self._unfit(o, i, "reset()", e) from None
         rows = np.stack(obs).astype(self._obs_dtype, copy=False)
         self._check_observations(rows, "reset")
         return torch.from_numpy(rows)
@@ -514,10 +519,10 @@ class GymBatchEnv(BatchEnvBase):
                 raise UserError(step_problem(out, self._method("step()", i))) from None
             try:
                 next_obs[i] = o if pack is None else pack(o)
-            except (ValueError, TypeError, KeyError) as e:  # an env whose observations change mid-run
+                if int_obs is not None and not self._kept(o):
+                    self._check_cast(o, i, "step()")
+            except (ValueError, TypeError, KeyError, OverflowError) as e:  # observations that change mid-run
                 raise self._unfit(o, i, "step()", e) from None
-            if int_obs is not None and getattr(o, "dtype", int_obs) != int_obs:
-                self._check_cast(o, i, "step()")
             try:
                 reward[i] = r
             except (TypeError, ValueError):
@@ -540,7 +545,7 @@ class GymBatchEnv(BatchEnvBase):
             o = self._reset_obs(i, self.envs[i].reset)
             try:
                 obs[i] = o if pack is None else pack(o)
-            except (ValueError, TypeError, KeyError) as e:
+            except (ValueError, TypeError, KeyError, OverflowError) as e:
                 raise self._unfit(o, i, "reset()", e) from None
         return obs, episode_info(self.info_keys, len(self.envs), ended, infos.__getitem__)
 
@@ -560,13 +565,27 @@ class GymBatchEnv(BatchEnvBase):
         problem = reset_problem(out, self._method("reset()", i))
         if problem is not None:
             raise UserError(problem)
-        if self._int_obs is not None and getattr(out[0], "dtype", self._int_obs) != self._int_obs:
+        if self._int_obs is not None and not self._kept(out[0]):
             self._check_cast(out[0], i, "reset()")
         return out[0]
 
+    def _kept(self, obs: Any) -> bool:
+        """Whether writing `obs` into the integer rows keeps every value, known without reading
+        them: a Python int (a Discrete index; `_check_observations` checks its range) or an array
+        whose dtype casts safely (int32 into the int64 kept, uint8 into uint8)."""
+        if isinstance(obs, int):
+            return True
+        dtype = getattr(obs, "dtype", None)
+        if not isinstance(dtype, np.dtype):
+            return False  # a list, a tensor: its values are read
+        safe = self._safe_casts.get(dtype)
+        if safe is None:
+            safe = self._safe_casts[dtype] = bool(np.can_cast(dtype, self._obs_dtype, "safe"))
+        return safe
+
     def _check_cast(self, obs: Any, i: int, method: str) -> None:
-        """One line where copy i's observation, in a dtype other than its integer space's, holds
-        values that dtype would change (the start's check saw ones it keeps)."""
+        """One line where copy i's observation holds values its integer space's dtype would
+        change (the start's check saw ones it keeps)."""
         problem = observation_problem(obs, self.envs[i].observation_space, self._method(method, i))
         if problem is not None:
             raise UserError(problem)
