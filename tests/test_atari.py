@@ -134,6 +134,10 @@ def test_importing_relayrl_envs_registers_every_shipped_game_without_importing_a
     code = ("import sys, gymnasium, relayrl.envs\n"
             "ids = [i for i in gymnasium.registry if i.startswith('relayrl/Atari-')]\n"
             "assert 'ale_py' not in sys.modules and len(ids) > 100, (len(ids), 'ale_py' in sys.modules)\n"
+            "import ale_py\n"
+            "gymnasium.register_envs(ale_py)\n"
+            "v5 = {i[4:-3] for i in gymnasium.registry if i.startswith('ALE/') and i.endswith('-v5')}\n"
+            "assert {i[len('relayrl/Atari-'):-3] for i in ids} == v5\n"  # every game, none it lacks
             "env = gymnasium.make('relayrl/Atari-Breakout-v0')\n"
             "obs, _ = env.reset(seed=0)\n"
             "print(len(ids), obs.shape, obs.dtype, 'relayrl/Atari-MontezumaRevenge-v0' in ids)\n")

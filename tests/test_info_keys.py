@@ -152,3 +152,22 @@ def test_a_run_logs_and_plots_info_keys(tmp_path):
     from relayrl.plot import plot_run
 
     assert plot_run(tmp_path / "run").stat().st_size > 0
+
+
+def test_an_info_that_is_not_a_dict_is_shown_on_one_line():
+    from relayrl.envs.gym import episode_info
+
+    with pytest.raises(UserError) as e:
+        episode_info(("x",), 1, [0], lambda i: np.zeros((3, 3)))
+    assert "\n" not in str(e.value) and "is ndarray [[0. 0. 0.] [0. 0. 0.] [0. 0. 0.]], not a dict" in str(e.value)
+
+
+@pytest.mark.parametrize("text, width, shown", [
+    ("short", 60, "short"),
+    ("array([[1., 1.],\n       [1., 1.]])", 60, "array([[1., 1.], [1., 1.]])"),
+    ("x" * 100, 10, "xxxxxxx..."),
+])
+def test_one_line_joins_lines_and_cuts_to_its_width(text, width, shown):
+    from relayrl.errors import one_line
+
+    assert one_line(text, width) == shown and len(one_line(text, width)) <= width

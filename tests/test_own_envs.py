@@ -87,6 +87,11 @@ def test_a_missing_package_is_one_line_saying_what_was_tried(project):
     assert r.returncode == 2 and "Traceback" not in r.stderr
     (line,) = r.stderr.strip().splitlines()
     assert f"package 'mygame' ({proj / 'mygame'}) has no module 'nope'" in line and "PYTHONPATH" not in line
+    (proj / "solo.py").write_text("X = 1\n")  # a module, not a package
+    r = subprocess.run([sys.executable, str(script), "train", "dqn-cartpole", "--set", "env.id=solo.nope:Corridor"],
+                       cwd=proj, env=env, capture_output=True, text=True, timeout=120)
+    (line,) = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and f"'solo' ({proj / 'solo.py'}) is a module, not a package" in line
 
 
 def test_an_error_inside_the_users_module_is_one_line(project):

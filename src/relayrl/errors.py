@@ -23,6 +23,13 @@ def check_count(name: str, value: object, zero: str | None = None) -> None:
         raise UserError(f"{name}={value!r} is not valid; it must be an integer >= 1{also}")
 
 
+def one_line(text: str, width: int = 60) -> str:
+    """`text` (a value's str or repr) for a one-line message: its whitespace runs, line breaks
+    included (an array's repr spans lines), as single spaces, cut to `width` with "..." where longer."""
+    text = " ".join(text.split())
+    return text if len(text) <= width else text[:width - 3] + "..."
+
+
 def note_where(error: BaseException, where: str) -> None:
     """A note on an env's own exception saying where relayrl met it ("relayrl: raised " + `where`):
     its traceback says where in the env's code, not which copy, env step or evaluation. A

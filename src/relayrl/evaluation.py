@@ -13,7 +13,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from relayrl.errors import UserError, check_count
+from relayrl.errors import UserError, check_count, one_line
 from relayrl.seeding import check_seed
 from relayrl.specs import DiscreteSpec, PackedSpec, Spec, describe
 
@@ -123,13 +123,13 @@ def _one_at_a_time(fn: Callable[[Any], Any], obs_spec: Spec, act_spec: Spec) -> 
         try:
             a = np.asarray(answer)
         except (ValueError, TypeError):  # ragged pieces
-            raise UserError(f"the policy answered {str(answer)[:60]}, not an array; {takes}") from None
+            raise UserError(f"the policy answered {one_line(str(answer))}, not an array; {takes}") from None
         fits = a.dtype.kind in "biuf" and a.size == math.prod(act_spec.shape)  # [1] for () and the like: reshaped
         if fits and isinstance(act_spec, DiscreteSpec):  # an index, 1.0 included
             index = float(a.reshape(()))
             fits = index.is_integer() and 0 <= index < act_spec.n
         if not fits:
-            raise UserError(f"the policy answered {str(a.tolist())[:60]} ({a.dtype}, shape {a.shape}) to one "
+            raise UserError(f"the policy answered {one_line(str(a.tolist()))} ({a.dtype}, shape {a.shape}) to one "
                             f"observation; {takes}")
         return (a.astype(np.int64) if isinstance(act_spec, DiscreteSpec) else a).reshape(act_spec.shape)
 

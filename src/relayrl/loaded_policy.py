@@ -17,7 +17,7 @@ import torch
 
 from relayrl.arrays import as_tensor
 from relayrl.core import Policy
-from relayrl.errors import UserError
+from relayrl.errors import UserError, one_line
 from relayrl.policies import box_action_space, saved_obs_spec
 from relayrl.policy_file import env_action_dtype
 from relayrl.specs import (
@@ -154,7 +154,7 @@ class LoadedPolicy(Policy):
             a = np.asarray(obs)
             if a.dtype.kind not in "biuf":  # a dict, text, or pieces that make no array of numbers
                 raise UserError(f"this policy takes {describe(self.obs_space)} observations: an array of numbers "
-                                f"(or a batch of them), not a {type(obs).__name__} like {str(obs)[:60]}")
+                                f"(or a batch of them), not a {type(obs).__name__} like {one_line(str(obs))}")
             t = as_tensor(a)
         else:
             t = obs

@@ -347,7 +347,8 @@ def to_space(spec: Spec, stored: bool = False) -> gym.Space:
         return spec.nested([to_space(f.spec, stored) for f in spec.fields], gym.spaces.Tuple, gym.spaces.Dict)
     dtype = dtype_of(spec)
     if spec.low is not None and spec.high is not None:  # bounds in the dtype: Gymnasium warns of a lowered precision
-        return gym.spaces.Box(np.asarray(spec.low).astype(dtype), np.asarray(spec.high).astype(dtype), spec.shape, dtype)
+        low, high = np.asarray(spec.low).astype(dtype), np.asarray(spec.high).astype(dtype)
+        return gym.spaces.Box(low, high, spec.shape, dtype)
     if dtype == np.bool_:
         return gym.spaces.Box(0, 1, spec.shape, dtype)
     if np.issubdtype(dtype, np.integer):

@@ -23,8 +23,11 @@ def import_user_module(module_name: str, what: str) -> Any:
                             "not installed") from None
         parent, _, leaf = e.name.rpartition(".")
         if parent and (found := sys.modules.get(parent)) is not None:  # the package is there, the module not
-            folder = next(iter(getattr(found, "__path__", [])), getattr(found, "__file__", "?"))
-            raise UserError(f"{what}: package {parent!r} ({folder}) has no module {leaf!r}") from None
+            folders = list(getattr(found, "__path__", []))
+            if not folders:  # mygame.py, not a folder mygame/: nothing can be inside it
+                raise UserError(f"{what}: {parent!r} ({getattr(found, '__file__', '?')}) is a module, not a package "
+                                f"with modules in it: name what it defines as {parent}:Name") from None
+            raise UserError(f"{what}: package {parent!r} ({folders[0]}) has no module {leaf!r}") from None
         top = e.name.split(".")[0]
         raise UserError(
             f"{what}: no module {e.name!r} in the current directory ({os.getcwd()}) or the installed "

@@ -4,7 +4,7 @@
 most 108,000 frames an episode; env.kwargs `repeat_action_probability` and `full_action_space`
 change the first two) made with `frameskip=1` under the standard DQN preprocessing
 (`pixels.atari_preprocessing`): uint8 observations [4, 84, 84], one step = 4 frames. Any ALE
-game works: `import relayrl.envs` registers an id for each ROM ale-py ships (`gymnasium.make`
+game works: `import relayrl.envs` registers an id for each game ale-py ships (`gymnasium.make`
 then gives the env a loaded policy acts on), and `resolve_env_fn` any other id of the pattern
 the first time it sees it. `render()` gives the game's full RGB frames (what `relayrl video`
 records), not the 84x84 stacks.
@@ -80,15 +80,21 @@ def make_atari_spec_kwargs(game: str) -> dict[str, Any]:
     return dict(gym.spec(ale_id).kwargs)
 
 
+# ROMs ale-py ships without a single-player mode, for which it registers no ALE/<Game>-v5 (as its
+# registration.py lists them)
+MULTIPLAYER_ONLY = frozenset({"combat", "joust", "maze_craze", "warlords"})
+
+
 def register_shipped_games() -> None:
-    """`relayrl/Atari-<Game>-v0` for each ROM in ale-py's folder, found without importing ale-py
-    (seconds of start-up that a run without Atari would pay): its file names are the ROM ids
-    that ale-py's own `ALE/<Game>-v5` ids spell in PascalCase."""
+    """`relayrl/Atari-<Game>-v0` for each single-player ROM in ale-py's folder, found without
+    importing ale-py (seconds of start-up that a run without Atari would pay): its file names are
+    the ROM ids that ale-py's own `ALE/<Game>-v5` ids spell in PascalCase."""
     spec = importlib.util.find_spec("ale_py")
     for folder in (spec.submodule_search_locations or []) if spec is not None else []:
         roms = Path(folder) / "roms"
         for rom in sorted(roms.glob("*.bin")) if roms.is_dir() else []:
-            register_on_demand(f"relayrl/Atari-{rom.stem.title().replace('_', '')}-v0")
+            if rom.stem not in MULTIPLAYER_ONLY:
+                register_on_demand(f"relayrl/Atari-{rom.stem.title().replace('_', '')}-v0")
 
 
 def register_on_demand(env_id: str) -> None:

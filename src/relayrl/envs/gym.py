@@ -26,7 +26,7 @@ from relayrl.core import BatchedEnv
 from relayrl.envs.atari import register_on_demand
 from relayrl.envs.observations import kind, observation_problem
 from relayrl.envs.pixels import frame_stack_of
-from relayrl.errors import UserError, note_where
+from relayrl.errors import UserError, note_where, one_line
 from relayrl.specs import (
     ArraySpec,
     PackedSpec,
@@ -58,7 +58,8 @@ def episode_info(keys: tuple[str, ...], num_envs: int, ended: list[int],
         info = info_of(i)
         if not isinstance(info, dict):
             raise UserError(f"env.info_keys: the env's info at an episode's end is {type(info).__name__} "
-                            f"{str(info)[:60]}, not a dict: return a dict from step(), or leave env.info_keys empty")
+                            f"{one_line(str(info))}, not a dict: return a dict from step(), or leave env.info_keys "
+                            "empty")
         for k in keys:
             if k not in info:
                 raise UserError(f"env.info_keys: {k!r} is not in the env's info at an episode's end; "
@@ -69,9 +70,8 @@ def episode_info(keys: tuple[str, ...], num_envs: int, ended: list[int],
                 # an array of one value (np.array([x]), a simulator's habit) reads as a number: say why not
                 shape = getattr(info[k], "shape", ())
                 hint = f" (an array of shape {tuple(shape)}: give one number, such as x.item())" if shape else ""
-                shown = " ".join(repr(info[k]).split())  # one line: an array's repr spans several
-                shown = shown if len(shown) <= 80 else shown[:77] + "..."
-                raise UserError(f"env.info_keys: info[{k!r}] = {shown} is not a number{hint}") from None
+                raise UserError(f"env.info_keys: info[{k!r}] = {one_line(repr(info[k]), 80)} is not a number{hint}") \
+                    from None
     return out
 
 
