@@ -146,4 +146,5 @@ def test_the_config_reference_is_written_where_the_checkout_keeps_it_from_any_fo
     monkeypatch.chdir(tmp_path.parent)
     assert docs_config.main([]) == 0 and out.read_text() == render()
     out.write_text("kept")
-    assert docs_config.main(["--help"]) == 2 and out.read_text() == "kept"  # arguments write nothing
+    assert docs_config.main(["--help"]) == 0 and out.read_text() == "kept"  # arguments write nothing
+    assert docs_config.main(["docs"]) == 2 and out.read_text() == "kept"

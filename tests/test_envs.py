@@ -588,6 +588,7 @@ def test_closing_an_async_env_frees_its_file_descriptors_at_once():
      '"gymnasium[box2d]"`', "box2d"),
     ('MuJoCo is not installed, run `pip install "gymnasium[mujoco]"`', "mujoco"),
     ("something else is not installed", None),
+    ("mujoco-robots is not installed: pip install mujoco-robots", None),  # another package's, not Gymnasium's
 ])
 def test_a_missing_gymnasium_dependency_names_relayrls_extra(said, extra):
     import gymnasium as gym

@@ -112,9 +112,10 @@ def _names_table(title: str, column: str, names: dict[str, str], intro: str) -> 
 
 def main(argv: list[str]) -> int:
     if argv:
+        asked = argv in (["-h"], ["--help"])
         print("usage: python -m relayrl.docs_config (no arguments): rewrites docs/config.md of the checkout "
-              "relayrl is imported from", file=sys.stderr)
-        return 2
+              "relayrl is imported from", file=sys.stdout if asked else sys.stderr)
+        return 0 if asked else 2
     if not DEFAULT_OUT.parent.is_dir():
         print(f"relayrl: error: no docs folder at {DEFAULT_OUT.parent}: relayrl is not imported from a checkout "
               "(pip install -e . from one)", file=sys.stderr)

@@ -62,11 +62,10 @@ def init_ray(ray: Any, config: Config) -> bool:
                 raise
             # Ray refuses num_cpus for RAY_ADDRESS before it tries to reach it: a cluster is named, not found
             named = os.environ.get("RAY_ADDRESS")
-            where = f"RAY_ADDRESS={named!r} names a Ray cluster to join" if named else \
-                "a Ray cluster is running on this machine"
-            raise UserError(f"{where}, and distributed.address is empty (a local Ray "
-                            "instance of the run's own): set distributed.address=auto to join that cluster, or "
-                            "unset RAY_ADDRESS") from None
+            where, other = (f"RAY_ADDRESS={named!r} names a Ray cluster to join", "unset RAY_ADDRESS") if named else \
+                ("a Ray cluster is running on this machine", "stop it (ray stop)")
+            raise UserError(f"{where}, and distributed.address is empty (a local Ray instance of the run's own): "
+                            f"set distributed.address=auto to join that cluster, or {other}") from None
     if callable(on_sigterm):
         # Ray's core replaces SIGTERM's handler in the driver with one that dumps a stack and
         # exits; the CLI's (stop like Ctrl-C: actors shut down) goes back.

@@ -5,6 +5,8 @@ import gymnasium
 from relayrl.envs.atari import register_shipped_games
 from relayrl.envs.gym import GymBatchEnv, resolve_env_fn
 from relayrl.envs.make import make_env
+from relayrl.envs.mario import ENV_ID as MARIO_ID
+from relayrl.envs.mario import PIXELS_ID as MARIO_PIXELS_ID
 
 # By entry-point string, so importing relayrl.envs never imports an extra (pybullet, nes-py).
 # StatelessPendulum: a stateless torch env as one Gymnasium env (videos, gym.make) that truncates
@@ -17,8 +19,8 @@ for _id, _entry_point, _max_steps in (
     ("relayrl/MinitaurBullet-v0", "relayrl.envs.minitaur:MinitaurEnv", 1000),
     ("relayrl/PixelCatch-v0", "relayrl.envs.catch:make_pixel_catch", None),
     ("relayrl/StatelessPendulum-v0", "relayrl.envs.stateless.adapter:StatelessGymEnv", None),
-    ("relayrl/SuperMarioBros-1-1-v0", "relayrl.envs.mario:MarioEnv", 10_000),
-    ("relayrl/SuperMarioBros-1-1-pixels-v0", "relayrl.envs.mario:make_preprocessed", None),
+    (MARIO_ID, "relayrl.envs.mario:MarioEnv", 10_000),
+    (MARIO_PIXELS_ID, "relayrl.envs.mario:make_preprocessed", None),
 ):
     if _id not in gymnasium.registry:
         gymnasium.register(_id, entry_point=_entry_point, max_episode_steps=_max_steps)

@@ -84,8 +84,8 @@ def extra_hint(error: Exception) -> str:
     """For a Gymnasium env whose dependency is missing: the relayrl extra that brings it; for
     one whose OpenGL library is missing (MuJoCo rendering): the setting that picks another."""
     if isinstance(error, gym.error.DependencyNotInstalled):
-        for extra in ("box2d", "mujoco"):  # Gymnasium's message names its own extra: pip install "gymnasium[...]"
-            if extra in str(error).lower():
+        for extra in ("box2d", "mujoco"):  # Gymnasium's own message names its extra: pip install "gymnasium[...]"
+            if f"gymnasium[{extra}]" in str(error):
                 return f" (with relayrl: pip install 'relayrl[{extra}]')"
     return gl_hint(error)
 

@@ -33,7 +33,7 @@ from relayrl.envs.pixels import mario_preprocessing
 from relayrl.errors import UserError
 
 ENV_ID = "relayrl/SuperMarioBros-1-1-v0"
-PIXELS_ID = "relayrl/SuperMarioBros-1-1-pixels-v0"  # the preprocessed stack (registered in relayrl/envs/__init__.py)
+PIXELS_ID = "relayrl/SuperMarioBros-1-1-pixels-v0"  # the preprocessed stack
 INSTALL = "pip install 'relayrl[mario]'"
 TUTORIAL_ACTIONS: tuple[tuple[str, ...], ...] = (("right",), ("right", "A"))
 # The level clock kills a dawdling Mario (a termination: the clock is on screen) within ~8,000
