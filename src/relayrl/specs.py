@@ -422,7 +422,8 @@ class PackedSpec(ArraySpec):
             stored = leaf.astype(dtype, copy=False)
             # an integer entry whose cast may change values (float frames, numbers outside the dtype):
             # the caller says what was wrong (the env's step, `_unfit`; a policy checks values first)
-            if dtype.kind in "iu" and not np.can_cast(leaf.dtype, dtype, "safe") and not np.array_equal(stored, leaf):
+            if (stored is not leaf and dtype.kind in "iu" and not np.can_cast(leaf.dtype, dtype, "safe")
+                    and not np.array_equal(stored, leaf)):
                 raise ValueError(f"observation[{f.key!r}] holds {leaf.dtype} values that {dtype} would change")
             row[:, f.offset:f.offset + f.nbytes] = stored.reshape(n, -1).view(np.uint8)
         return row

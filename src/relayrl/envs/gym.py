@@ -519,7 +519,7 @@ class GymBatchEnv(BatchEnvBase):
                 raise UserError(step_problem(out, self._method("step()", i))) from None
             try:
                 next_obs[i] = o if pack is None else pack(o)
-                if int_obs is not None and not self._kept(o):
+                if int_obs is not None and getattr(o, "dtype", None) != int_obs and not self._kept(o):
                     self._check_cast(o, i, "step()")
             except (ValueError, TypeError, KeyError, OverflowError) as e:  # observations that change mid-run
                 raise self._unfit(o, i, "step()", e) from None
