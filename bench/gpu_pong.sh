@@ -4,18 +4,21 @@
 # second call, right after the first, waits for it. The target is met at the first evaluation
 # >= 18 with wall_time_s <= 900, so the wait ends there.
 #
-#     sh bench/gpu_pong.sh start [PRESET]    # call 1 (carry [".whl"]): returns at once; PRESET
-#                                            # ppo-pong (default) or dqn-pong-fast
-#     sh bench/gpu_pong.sh wait SECONDS      # call 2, on the same warm machine
+#     sh bench/gpu_pong.sh start [PRESET [ARGS...]]  # call 1 (carry [".whl"]): returns at once; PRESET
+#                                                    # ppo-pong (default) or dqn-pong-fast, ARGS more
+#                                                    # of relayrl train's (--seed 1)
+#     sh bench/gpu_pong.sh wait SECONDS              # call 2, on the same warm machine
 set -u
 run=/tmp/pong-run
 case "${1:-}" in
 start)
     . bench/gpu_site.sh
-    setsid python3 -m relayrl train "${2:-ppo-pong}" --run-dir "$run" --no-progress \
+    preset="${2:-ppo-pong}"
+    shift; [ $# -gt 0 ] && shift
+    setsid python3 -m relayrl train "$preset" --run-dir "$run" --no-progress "$@" \
         >/tmp/pong.log 2>&1 </dev/null &
     echo $! >/tmp/pong.pid
-    echo "started ${2:-ppo-pong}: $run" ;;
+    echo "started $preset $*: $run" ;;
 wait)
     end=$(( $(date +%s) + ${2:-540} ))
     while [ "$(date +%s)" -lt "$end" ]; do
@@ -35,5 +38,5 @@ PY
     cp "$run/metrics.jsonl" "${OUT:-.}/pong-metrics.jsonl" 2>/dev/null
     cp /tmp/pong.log "${OUT:-.}/pong.log" 2>/dev/null; tail -3 /tmp/pong.log ;;
 *)
-    echo "usage: sh bench/gpu_pong.sh start [PRESET] | wait SECONDS"; exit 2 ;;
+    echo "usage: sh bench/gpu_pong.sh start [PRESET [ARGS...]] | wait SECONDS"; exit 2 ;;
 esac
