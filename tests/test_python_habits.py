@@ -88,7 +88,7 @@ def test_an_env_whose_actions_or_discrete_sizes_are_not_the_policys_is_one_line(
                                         r"takes Discrete\(16\) observations$"):
         relayrl.evaluate(tmp_path / "lake", "FrozenLake8x8-v1", episodes=1)
     relayrl.train({**TINY, "algo": "sac", "env": {"id": "Pendulum-v1"}}, tmp_path / "sac", progress=False)
-    rescaled = lambda: gym.wrappers.RescaleAction(gym.make("Pendulum-v1"), -1.0, 1.0)  # noqa: E731
+    rescaled = lambda: gym.wrappers.RescaleAction(gym.make("Pendulum-v1"), np.float32(-1), np.float32(1))  # noqa: E731
     with pytest.raises(UserError, match=r"this env's actions \(Box\(-1, 1, .*not the policy's: it gives Box\(-2, 2"):
         relayrl.evaluate(tmp_path / "sac", rescaled, episodes=1)
     assert relayrl.evaluate(tmp_path / "sac", "Pendulum-v1", episodes=1).mean < 0  # its own env still runs
