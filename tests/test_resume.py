@@ -232,16 +232,28 @@ def test_ctrl_c_in_the_final_evaluation_keeps_the_policy_and_a_checkpoint_and_a_
     assert result.final["step"] == 600 and [r["step"] for r in RunDir(tmp_path / "r").read_metrics()] == [600]
 
 
-def test_ctrl_c_in_the_last_iteration_ends_the_run_as_finished(tmp_path):
+@pytest.mark.parametrize("eval_interval, evaluated", [(400, False), (300, True)])
+def test_ctrl_c_in_the_last_iteration_saves_the_end_and_still_stops_the_caller(tmp_path, eval_interval, evaluated):
+    # A notebook's loop over seeds goes on only if train() returns: the interrupt is raised after
+    # the end is saved. With the last step on the evaluation grid, the loop has evaluated it.
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:]
-                              + ["train.log_interval=100", "eval.interval=400"])
+                              + ["train.log_interval=100", f"eval.interval={eval_interval}",
+                                 "train.checkpoint_interval=250"])
 
     def ctrl_c_at_the_end(row):
         if row["event"] == "log" and row["step"] == 600:
             os.kill(os.getpid(), signal.SIGINT)
 
-    result = relayrl.train(cfg, tmp_path / "r", progress=False, callbacks=[ctrl_c_at_the_end])
-    assert not result.stopped_early and result.final["step"] == 600  # its final evaluation, as a finished run
+    said = ("and evaluated it: it is complete" if evaluated else
+            "with a checkpoint in .*: relayrl.train.* does what was left \\(its final evaluation\\)")
+    with pytest.raises(KeyboardInterrupt, match=rf"^the run reached its last env step \(600\) {said}"):
+        relayrl.train(cfg, tmp_path / "r", progress=False, callbacks=[ctrl_c_at_the_end])
+    assert load_latest_checkpoint(tmp_path / "r" / "checkpoints")["env_steps"] == 600
+    assert relayrl.load_policy(tmp_path / "r").env_steps == 600
+    steps = [r["step"] for r in RunDir(tmp_path / "r").read_metrics()]
+    assert steps[-1] == (600 if evaluated else 400)
+    result = relayrl.train(None, tmp_path / "r", resume=True, progress=False)  # what was left, if anything
+    assert result.final["step"] == 600 and [r["step"] for r in RunDir(tmp_path / "r").read_metrics()][-1] == 600
 
 
 # evaluations at 0, 500, 1000, 1500 in the loop; at 0, 400, 800, 1200 and a final one off the
@@ -721,3 +733,18 @@ def test_an_interrupted_runs_end_evaluates_only_a_boundary_no_evaluation_covered
                              settle_evals=lambda: calls.append("settle"))
     finish(driver, Progress(steps, 7), evaluate=False)
     assert calls == ([("evaluate", steps)] if evaluated else []) + ["settle", "policy"]
+
+
+def test_an_interrupt_at_the_last_step_before_its_checkpoint_says_which_checkpoint_resumes(tmp_path):
+    # A callback's KeyboardInterrupt on the last evaluation row comes before the end's checkpoint:
+    # the resume trains again from the one before, which the line names.
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:]
+                              + ["eval.interval=300", "train.checkpoint_interval=250"])
+
+    def interrupt_at_the_last_row(row):
+        if row["event"] == "eval" and row["step"] == 600:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt, match=r"^the run stopped at env step 600 with a checkpoint \(env step 500; "
+                                                r"the steps after it are trained again\)"):
+        relayrl.train(cfg, tmp_path / "r", progress=False, callbacks=[interrupt_at_the_last_row])

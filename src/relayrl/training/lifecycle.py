@@ -373,8 +373,9 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if not report.stop_requested:
             driver.iterate()
         stopped = report.stop_requested and core.env_steps() < c.train.total_steps
-        # an interrupt in the last iteration: the run is done, and ends as a finished run does
-        interrupted = report.interrupted if stopped else None
+        # An interrupt in the last iteration still stops the caller (a notebook's loop over seeds,
+        # a shell script): the run is saved as at its end, and a resume runs its final evaluation.
+        interrupted = report.interrupted
         if stopped and interrupted is None:
             core.say(f"a callback returned False: the run stops at env step {core.env_steps():,}")
         finish(driver, core.progress(), evaluate=interrupted is None)  # an interrupt wants no wait
@@ -436,11 +437,13 @@ def _stopped_at(core: RunCore) -> str:
     """Where an interrupted run stopped and how it goes on, in Python's terms (the CLI says its own)."""
     root, step = str(core.rd.root), core.env_steps()
     if ckpts := list_checkpoints(core.rd.checkpoints):
-        if step >= core.config.train.total_steps:  # Ctrl-C in the final evaluation or save
+        at = checkpoint_step(ckpts[-1])
+        if step >= core.config.train.total_steps and at >= step:  # Ctrl-C in the last iteration or final save
+            if core.report.last_eval.get("step") == step:
+                return f"the run reached its last env step ({step:,}) and evaluated it: it is complete in {root!r}"
             return (f"the run reached its last env step ({step:,}) with a checkpoint in {root!r}: "
                     f"{_python_resume(core)} does what was left (its final evaluation)")
         # a second Ctrl-C (or a callback's KeyboardInterrupt) stops between checkpoints: say which one resumes
-        at = checkpoint_step(ckpts[-1])
         since = "" if at == step else f" (env step {at:,}; the steps after it are trained again)"
         return (f"the run stopped at env step {step:,} with a checkpoint{since} in {root!r}: "
                 f"{_python_resume(core)} continues it")
