@@ -651,3 +651,21 @@ def test_video_refuses_a_file_that_is_no_video_before_playing_and_leaves_sdl_as_
     monkeypatch.delenv("SDL_VIDEODRIVER", raising=False)
     relayrl.record_video(run_dir, tmp_path / "v.gif", env=factory)
     assert "SDL_VIDEODRIVER" not in os.environ and (tmp_path / "v.gif").stat().st_size > 100
+
+
+@pytest.mark.parametrize("algo, env_id", [("dqn", "toy_envs:Countdown"), ("sac", "Pendulum-v1")])
+def test_a_notebooks_float64_default_dtype_trains_loads_and_exports_and_stays(tmp_path, algo, env_id):
+    # torch.set_default_dtype(torch.float64) in a notebook: relayrl's networks are float32 all the same
+    before = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:
+        relayrl.train({**TINY, "algo": algo, "env": {"id": env_id, "check": False}}, tmp_path / "run", progress=False)
+        assert torch.get_default_dtype() == torch.float64
+        policy = relayrl.load_policy(tmp_path / "run")
+        assert torch.get_default_dtype() == torch.float64
+        obs = np.zeros((2, *policy.observation_space.shape))  # float64, as the notebook makes them
+        assert policy(obs).shape[0] == 2 and policy(torch.as_tensor(obs)).shape[0] == 2
+        relayrl.export_policy(tmp_path / "run")
+        assert torch.get_default_dtype() == torch.float64
+    finally:
+        torch.set_default_dtype(before)

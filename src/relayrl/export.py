@@ -97,7 +97,7 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", determinis
     at any moment. `device`: cpu, cuda, cuda:N or auto (the GPU where there is one), as a
     config's.
     """
-    from relayrl.training.lifecycle import resolve_device
+    from relayrl.training.lifecycle import float32_default, resolve_device
 
     check_seed(seed)  # else a bad seed read as a broken policy file
     on = resolve_device(str(device))  # "auto" as a run's is; a device not here is one line, not torch's assertion
@@ -106,9 +106,10 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", determinis
     module = for_policy_kind(state.get("kind")).policy_module()
     # Built once (a user's encoder may be costly to make); on another device the file is
     # checked on the CPU first, so a device's own error is not taken for a broken file.
-    cpu = _built(f, state, lambda: module.load(state, torch.device("cpu"), deterministic, seed))
-    batched = cpu if on.type == "cpu" else built_quietly(module, state, on, deterministic, seed)
-    return LoadedPolicy(batched, state, str(on), deterministic, seed)
+    with float32_default():  # the networks relayrl saved, whatever the caller's default dtype
+        cpu = _built(f, state, lambda: module.load(state, torch.device("cpu"), deterministic, seed))
+        batched = cpu if on.type == "cpu" else built_quietly(module, state, on, deterministic, seed)
+        return LoadedPolicy(batched, state, str(on), deterministic, seed)
 
 
 FORMATS = ("pt2", "onnx")
@@ -136,6 +137,14 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
         except ImportError:
             raise UserError("--format onnx needs the onnx and onnxscript packages: "
                             "pip install 'relayrl[onnx]'") from None
+    from relayrl.training.lifecycle import float32_default
+
+    with float32_default():  # the networks relayrl saved, whatever the caller's default dtype
+        return _export(path, out, format)
+
+
+def _export(path: str | Path, out: str | Path | None, format: str) -> Path:
+    """`export_policy`'s program and signature, its arguments checked."""
     state = load_policy_state(path)
     with rng_kept(torch.device("cpu")):
         module = for_policy_kind(state["kind"]).policy_module().deterministic_module(state)

@@ -86,20 +86,34 @@ def start_process(config: Config) -> tuple[RunSeeds, torch.device]:
 
 @contextlib.contextmanager
 def caller_state_kept() -> Iterator[None]:
-    """The caller's torch thread count, denormal flushing and torch, NumPy and Python global
-    generators as they were before the run (`start_process` sets them for it, a resume loads
-    the checkpoint's), so that a notebook's own code after `relayrl.train` runs as it did before."""
+    """The caller's torch thread count, denormal flushing, default dtype and torch, NumPy and
+    Python global generators as they were before the run (`start_process` sets them for it, a
+    resume loads the checkpoint's), so that a notebook's own code after `relayrl.train` runs as
+    it did before."""
     threads = torch.get_num_threads()
     cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None  # manual_seed seeds these too
     flushing = torch.tensor([1e-39]).item() == 0.0  # torch has no getter: a float32 denormal reads 0 when flushed
     try:
-        with global_rngs_kept():
+        with global_rngs_kept(), float32_default():
             yield
     finally:
         torch.set_num_threads(threads)
         torch.set_flush_denormal(flushing)
         if cuda is not None:
             torch.cuda.set_rng_state_all(cuda)
+
+
+@contextlib.contextmanager
+def float32_default() -> Iterator[None]:
+    """torch's default dtype float32 inside, the caller's after: relayrl's networks and the
+    tensors it makes are float32 also where a notebook set torch.set_default_dtype(torch.float64)
+    (its float64 weights met float32 observations in torch's own dtype error)."""
+    before = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float32)
+    try:
+        yield
+    finally:
+        torch.set_default_dtype(before)
 
 
 def check_user_env(config: Config, env_factory: Callable[[], Any] | None, say: Callable[[str], None]) -> None:
