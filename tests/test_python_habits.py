@@ -669,3 +669,20 @@ def test_a_notebooks_float64_default_dtype_trains_loads_and_exports_and_stays(tm
         assert torch.get_default_dtype() == torch.float64
     finally:
         torch.set_default_dtype(before)
+
+
+@pytest.mark.parametrize("algo, env_id", [("dqn", "toy_envs:Countdown"), ("sac", "Pendulum-v1"),
+                                          ("ppo", "toy_envs:Countdown")])
+def test_a_loaded_policy_pickles_and_copies_for_joblib_and_multiprocessing(tmp_path, algo, env_id):
+    import copy
+    import pickle
+
+    config = {**TINY, "algo": algo, "env": {"id": env_id, "check": False}}
+    if algo == "ppo":
+        config = {**config, "train": {**TINY["train"], "collect_steps": 64, "initial_collect_steps": 0}}
+    relayrl.train(config, tmp_path / "run", progress=False)
+    policy = relayrl.load_policy(tmp_path / "run")
+    obs = np.zeros((3, *policy.observation_space.shape), np.float32)
+    for other in (pickle.loads(pickle.dumps(policy)), copy.deepcopy(policy)):
+        np.testing.assert_array_equal(other(obs), policy(obs))
+        assert other.action_space == policy.action_space

@@ -45,8 +45,6 @@ class LoadedPolicy(Policy):
 
     def __init__(self, batched: Any, state: dict[str, Any], device: str, deterministic: bool,
                  seed: int | None) -> None:
-        from relayrl.agents.registry import for_policy_kind
-
         self.batched = batched
         self.kind: str = state["kind"]
         self.obs_space = saved_obs_spec(state)
@@ -65,13 +63,20 @@ class LoadedPolicy(Policy):
         self._action_bounds = env_box_bounds(state, self.action_dtype)
         self.deterministic = deterministic
         self._state, self._device, self._seed = state, device, seed
-        self._module = for_policy_kind(self.kind).policy_module()
         self._other_mode: Any = None  # the policy with the other `deterministic`, made when predict asks
 
     def __repr__(self) -> str:
         action = f", action_shape={self.action_shape}" if self.action_shape is not None else ""
         return (f"LoadedPolicy(kind={self.kind!r}, observations={describe(self.obs_space)}{action}, "
                 f"deterministic={self.deterministic}, env_steps={self.env_steps})")
+
+    @property
+    def _kind_module(self) -> Any:
+        """The agent's policy module for this policy's kind, looked up, not kept: a module object
+        would stop the policy from pickling (joblib, multiprocessing, copy.deepcopy)."""
+        from relayrl.agents.registry import for_policy_kind
+
+        return for_policy_kind(self.kind).policy_module()
 
     @property
     def observation_space(self) -> gym.Space:
@@ -83,11 +88,11 @@ class LoadedPolicy(Policy):
     def action_space(self) -> gym.Space:
         """What it gives, as a Gymnasium space (SB3's `model.action_space`): a Box with its bounds, in
         the env's shape and dtype."""
-        return self._module.action_space(self._state)
+        return self._kind_module.action_space(self._state)
 
     def reseeded(self, seed: int | None) -> LoadedPolicy:
         """This policy again, its sampling (`deterministic=False`) drawn from `seed`."""
-        batched = built_quietly(self._module, self._state, torch.device(self._device), self.deterministic, seed)
+        batched = built_quietly(self._kind_module, self._state, torch.device(self._device), self.deterministic, seed)
         return LoadedPolicy(batched, self._state, self._device, self.deterministic, seed)
 
     def check_fits(self, obs_spec: Spec, action_spec: Spec | None = None) -> None:
@@ -119,7 +124,7 @@ class LoadedPolicy(Policy):
         if deterministic is None or bool(deterministic) == self.deterministic:
             return self(observation), None
         if self._other_mode is None:
-            self._other_mode = built_quietly(self._module, self._state, torch.device(self._device),
+            self._other_mode = built_quietly(self._kind_module, self._state, torch.device(self._device),
                                              bool(deterministic), self._seed)
         return self._act(self._other_mode, observation), None
 

@@ -32,12 +32,33 @@ class Activation:
     needs_input: bool = False  # backward reads z: a forward that saves for it must not overwrite z
 
 
+# Named functions, not lambdas: the modules that hold them (a loaded policy's) pickle by name.
+def _relu_numpy(x: np.ndarray) -> np.ndarray:
+    return np.maximum(x, 0.0, out=x)
+
+
+def _relu_backward(g: Tensor, z: Tensor | None, h: Tensor) -> Tensor:
+    return _aten.threshold_backward.grad_input(g, h, 0, grad_input=g)
+
+
+def _tanh_numpy(x: np.ndarray) -> np.ndarray:
+    return np.tanh(x, out=x)
+
+
+def _tanh_backward(g: Tensor, z: Tensor | None, h: Tensor) -> Tensor:
+    return _aten.tanh_backward.grad_input(g, h, grad_input=g)
+
+
+def _elu_numpy(x: np.ndarray) -> np.ndarray:
+    return np.where(x > 0, x, np.expm1(np.minimum(x, 0.0)))
+
+
+def _elu_backward(g: Tensor, z: Tensor | None, h: Tensor) -> Tensor:
+    return _aten.elu_backward.grad_input(g, 1.0, 1, 1, False, z, grad_input=g)
+
+
 ACTIVATIONS: dict[str, Activation] = {a.name: a for a in (
-    Activation("relu", torch.relu, torch.relu_, lambda x: np.maximum(x, 0.0, out=x),
-               lambda g, z, h: _aten.threshold_backward.grad_input(g, h, 0, grad_input=g)),
-    Activation("tanh", torch.tanh, torch.tanh_, lambda x: np.tanh(x, out=x),
-               lambda g, z, h: _aten.tanh_backward.grad_input(g, h, grad_input=g)),
-    Activation("elu", F.elu, F.elu_, lambda x: np.where(x > 0, x, np.expm1(np.minimum(x, 0.0))),
-               lambda g, z, h: _aten.elu_backward.grad_input(g, 1.0, 1, 1, False, z, grad_input=g),
-               needs_input=True),
+    Activation("relu", torch.relu, torch.relu_, _relu_numpy, _relu_backward),
+    Activation("tanh", torch.tanh, torch.tanh_, _tanh_numpy, _tanh_backward),
+    Activation("elu", F.elu, F.elu_, _elu_numpy, _elu_backward, needs_input=True),
 )}
