@@ -686,3 +686,33 @@ def test_a_loaded_policy_pickles_and_copies_for_joblib_and_multiprocessing(tmp_p
     for other in (pickle.loads(pickle.dumps(policy)), copy.deepcopy(policy)):
         np.testing.assert_array_equal(other(obs), policy(obs))
         assert other.action_space == policy.action_space
+
+
+def test_a_notebooks_numpy_integers_count_and_seed_as_pythons(run_dir, tmp_path):
+    result = relayrl.evaluate(run_dir, episodes=np.int64(2), seed=np.int64(3), max_episode_steps=np.int32(50))
+    assert result == relayrl.evaluate(run_dir, episodes=2, seed=3, max_episode_steps=50)
+    with pytest.raises(UserError, match=r"^episodes=np.True_ is not valid; it must be an integer >= 1$"):
+        relayrl.evaluate(run_dir, episodes=np.bool_(True))
+    path = relayrl.record_video(run_dir, tmp_path / "v.gif", episodes=np.int64(1), seed=np.int64(2))
+    assert path.stat().st_size > 0
+    with pytest.raises(UserError, match=r"^seed=-1 is not valid; it must be an integer in \[0, "):
+        relayrl.record_video(run_dir, tmp_path / "w.gif", seed=-1)
+    config = relayrl.load_config("dqn")
+    config.env.kwargs = {"sutton_barto_reward": np.bool_(True)}
+    with pytest.raises(UserError, match=r"^env.kwargs.sutton_barto_reward=np.True_ is a NumPy bool; .*give "
+                                        r"np.True_.item\(\)"):
+        relayrl.train(config, tmp_path / "run", progress=False)
+
+
+@pytest.mark.parametrize("device", ["meta", "mps"])
+def test_a_device_relayrl_does_not_run_on_is_one_line(run_dir, device):
+    with pytest.raises(UserError, match=rf"^device='{device}': relayrl runs on the CPU or a CUDA GPU; valid: cpu, "):
+        relayrl.load_policy(run_dir, device=device)
+
+
+def test_a_run_directory_under_home_is_expanded_as_a_shell_would(tmp_path, monkeypatch):
+    monkeypatch.setenv("HOME", str(tmp_path))
+    result = relayrl.train(TINY, "~/runs/one", progress=False)
+    assert result.run_dir == tmp_path / "runs" / "one" and (tmp_path / "runs" / "one" / "config.toml").is_file()
+    assert relayrl.load_policy("~/runs/one").env_steps == 200
+    assert relayrl.plot_run("~/runs/one", out="~/plots/") == tmp_path / "plots" / "returns.png"

@@ -358,6 +358,9 @@ def _check_plain_kwargs(value: Any, path: str = "env.kwargs") -> None:
     elif isinstance(value, list | tuple):
         for i, v in enumerate(value):
             _check_plain_kwargs(v, f"{path}[{i}]")
+    elif type(value).__module__ == "numpy":  # np.True_ is a "bool" by its name: say whose (numpy not imported here)
+        raise ConfigError(f"{path}={value!r} is a NumPy {type(value).__name__}; env.kwargs take Python's numbers, "
+                          f"strings, booleans, lists and tables (give {value!r}.item())")
     elif value is not None and not isinstance(value, str | int | float | bool):
         raise ConfigError(f"{path}={value!r} is a {type(value).__name__}; env.kwargs take numbers, strings, "
                           "booleans, lists and tables (pass a date or time as a string and parse it in the env)")

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import numbers
+
 
 class UserError(Exception):
     """Bad input: the message says what was wrong and what is valid."""
@@ -18,7 +20,8 @@ class CheckpointError(UserError):
 def check_count(name: str, value: object, zero: str | None = None) -> None:
     """One line where a count a caller passes (episodes, steps) is not an integer >= 1 (True is
     no count); `zero`: what 0 means, where it is allowed."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < (0 if zero else 1):
+    # numbers.Integral: NumPy's integers too (a notebook's np.int64), not bools
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < (0 if zero else 1):
         also = f", or 0 {zero}" if zero else ""
         raise UserError(f"{name}={value!r} is not valid; it must be an integer >= 1{also}")
 

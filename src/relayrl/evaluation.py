@@ -66,6 +66,8 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
     check_count("episodes", episodes)
     check_count("max_episode_steps", max_episode_steps, zero="for the env's own time limit")
     check_seed(seed)
+    # Python ints from here on: Gymnasium's reset refuses a NumPy seed
+    episodes, max_episode_steps, seed = int(episodes), int(max_episode_steps), None if seed is None else int(seed)
     if lone_policy_file(policy):  # read once: for its env record and to act
         from relayrl.export import load_policy
 
@@ -197,9 +199,10 @@ def named_env(env_id: str, policy: Any, episodes: int, max_episode_steps: int = 
 
 def lone_policy_file(source: Any) -> bool:
     """A path to a policy file with no run directory's config.toml around it."""
+    from relayrl.paths import user_path
     from relayrl.training.run_dir import RunDir
 
-    return isinstance(source, (str, Path)) and Path(source).is_file() and not RunDir.of(source).config.is_file()
+    return isinstance(source, (str, Path)) and user_path(source).is_file() and not RunDir.of(source).config.is_file()
 
 
 def recorded_env(source: Any, episodes: int, max_episode_steps: int = 0, info_keys: bool = False,

@@ -34,7 +34,7 @@ from relayrl.agents.registry import for_policy_kind
 from relayrl.config_fields import is_user_encoder
 from relayrl.errors import UserError
 from relayrl.loaded_policy import LoadedPolicy, built_quietly, env_box_bounds, env_shaped, rng_kept
-from relayrl.paths import is_folder, output_path, writing
+from relayrl.paths import is_folder, output_path, user_path, writing
 from relayrl.policies import saved_obs_spec
 from relayrl.policy_file import REFUSED, env_action_dtype, load_policy_file
 from relayrl.seeding import check_seed
@@ -47,7 +47,7 @@ def _policy_file(path: str | Path) -> Path:
     if not isinstance(path, (str, os.PathLike)):  # several runs of a sweep: pathlib's TypeError said only "not list"
         raise UserError(f"{path!r} is not a run directory or a policy file; one policy per call: "
                         "[relayrl.load_policy(d) for d in run_dirs]")
-    p = Path(path)
+    p = user_path(path)
     if p.name == "config.toml" and p.is_file():  # a run's config names its run, as for `relayrl eval`
         p = p.parent
     for candidate in (p / "policy" / "policy.pt", p / "policy.pt", p):

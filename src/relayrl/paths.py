@@ -20,11 +20,17 @@ def is_folder(out: str | Path) -> bool:
     return Path(out).is_dir() or str(out).endswith(("/", os.sep))
 
 
+def user_path(path: str | os.PathLike[str]) -> Path:
+    """A path a caller gives (a run directory, a policy file, --out), "~" expanded as a shell
+    would have done on the command line."""
+    return Path(path).expanduser()
+
+
 def output_path(out: str | Path | None, default: Path) -> Path:
     """`out` (or `default`) with its parent folder created; one-line UserError where it cannot be
     (a file in the way, a folder that is not writable, no file extension), before any work is
     done. A folder (one that exists, or a name ending in a slash) gets `default`'s file name in it."""
-    path = Path(out) if out else default
+    path = user_path(out) if out else default
     if out and is_folder(out):
         path = path / default.name
     if not path.suffix:

@@ -19,6 +19,7 @@ from relayrl.errors import UserError, check_count
 from relayrl.export import load_policy
 from relayrl.paths import output_path, writing
 from relayrl.presets import load_config
+from relayrl.seeding import seed_problem
 
 if TYPE_CHECKING:
     from relayrl.training.run_dir import RunDir
@@ -37,6 +38,9 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
 
     for name, value in (("episodes", episodes), ("max_steps", max_steps)):  # not one episode in their place
         check_count(name, value)
+    if (problem := seed_problem(seed)) is not None:  # before Gymnasium's reset says it in its words
+        raise UserError(problem)
+    episodes, max_steps, seed = int(episodes), int(max_steps), int(seed)  # Gymnasium's reset refuses a NumPy seed
     rd = RunDir.of(run_dir)  # RUN_DIR/policy/policy.pt and RUN_DIR/config.toml name the run, as for `relayrl eval`
     if not rd.config.is_file():
         rd = RunDir(run_dir)  # a lone policy file or another folder: `require` says which

@@ -64,9 +64,12 @@ def resolve_device(name: str) -> torch.device:
     if name.startswith("cuda") and not torch.cuda.is_available():
         raise UserError(f"device={name!r} but CUDA is not available here; valid: cpu, auto")
     try:
-        return torch.device(name)
+        device = torch.device(name)
     except RuntimeError:  # load_policy's device is not checked as a config's is
         raise UserError(f"device={name!r} is not a device; valid: cpu, cuda, cuda:N, auto") from None
+    if device.type not in ("cpu", "cuda"):  # meta, mps, xpu: torch's own error at the first call
+        raise UserError(f"device={name!r}: relayrl runs on the CPU or a CUDA GPU; valid: cpu, cuda, cuda:N, auto")
+    return device
 
 
 def start_process(config: Config) -> tuple[RunSeeds, torch.device]:

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from relayrl.errors import UserError
-from relayrl.paths import CHECKPOINT_NAME
+from relayrl.paths import CHECKPOINT_NAME, user_path
 
 try:
     import fcntl
@@ -36,7 +36,7 @@ def checkpoint_step(path: Path) -> int:
 
 class RunDir:
     def __init__(self, root: str | Path) -> None:
-        self.root = Path(root)
+        self.root = user_path(root)
         self.config = self.root / "config.toml"
         self.metrics = self.root / "metrics.jsonl"
         self.tb = self.root / "tb"
@@ -120,7 +120,7 @@ class RunDir:
     def of(cls, path: str | Path) -> RunDir:
         """The run directory `path` names: the directory, its policy/ folder, or a file in either
         (RUN_DIR/policy/policy.pt, RUN_DIR/config.toml)."""
-        p = Path(path)
+        p = user_path(path)
         if p.is_file():
             p = p.parent
         if p.name == "policy" and (p.parent / "config.toml").is_file():
