@@ -353,7 +353,9 @@ def test_numpy_numbers_are_taken_where_python_numbers_are():
 
 def test_an_agent_section_that_is_not_the_algorithms_is_one_line():
     c = load_config("ppo")
-    c.agent = {"lr": 1e-3}
+    with pytest.raises(ConfigError, match="expected the PPOConfig of algo='ppo': set its keys one by one"):
+        c.agent = {"lr": 1e-3}  # refused where it is assigned
+    object.__setattr__(c, "agent", {"lr": 1e-3})  # past the assignment's check: validate() still says it
     with pytest.raises(ConfigError, match="expected the PPOConfig of algo='ppo': set its keys one by one"):
         c.validate()
 

@@ -200,6 +200,10 @@ def test_config_assignment_coerces_and_keeps_valid_values():
     assert config.agent.lr == 1.0 and isinstance(config.agent.lr, float) and config.train.total_steps == 5_000
     with pytest.raises(ConfigError, match="agent.hidden"):
         config.agent.hidden = "big"
+    # a whole section of the wrong kind is refused where it is assigned, not at train()
+    with pytest.raises(ConfigError, match=r"^agent=\{'hiden': \[3\]\} has the wrong type; expected the DQNConfig"):
+        config.agent = {"hiden": [3]}
+    assert type(config.agent).__name__ == "DQNConfig" and config.agent.lr == 1.0
 
 
 # ---- TensorBoard and progress lines -----------------------------------------------------------

@@ -135,6 +135,8 @@ class Config(Section):
 
     def __setattr__(self, name: str, value: Any) -> None:
         previous = self.__dict__.get("algo")
+        if name == "agent" and "agent" in self.__dict__ and type(value) is not algorithm(self.algo).config:
+            raise ConfigError(_wrong_agent(value, self.algo))  # config.agent = {...}: said here, as config.env's
         super().__setattr__(name, value)
         if name == "algo" and "agent" in self.__dict__ and previous != value:
             # config.algo = "sac" after construction: every key still at the old algorithm's
@@ -148,11 +150,8 @@ class Config(Section):
 
     def validate(self) -> None:
         """Cross-field checks that types alone cannot express."""
-        section: Any = algorithm(self.algo).config
-        if type(self.agent) is not section:  # `agent` is typed Any: its class depends on `algo`
-            raise ConfigError(f"agent={self.agent!r} has the wrong type; expected the {section.__name__} of "
-                              f"algo={self.algo!r}: set its keys one by one (config.agent.<key> = value), or "
-                              "load the config with overrides (relayrl.load_config(name, ['agent.<key>=value']))")
+        if type(self.agent) is not algorithm(self.algo).config:  # `agent` is typed Any: its class depends on `algo`
+            raise ConfigError(_wrong_agent(self.agent, self.algo))
         if (problem := seed_problem(self.seed)) is not None:
             raise ConfigError(problem)
         if self.device not in ("cpu", "cuda", "auto") and not self.device.startswith("cuda:"):
@@ -347,6 +346,13 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
             _merge(current, value, path + ".")
         else:
             setattr(obj, key, value)  # Section.__setattr__ checks the type
+
+
+def _wrong_agent(value: Any, algo: str) -> str:
+    """The line for an [agent] section that is not `algo`'s config class."""
+    return (f"agent={value!r} has the wrong type; expected the {algorithm(algo).config.__name__} of algo={algo!r}: "
+            "set its keys one by one (config.agent.<key> = value), or load the config with overrides "
+            "(relayrl.load_config(name, ['agent.<key>=value']))")
 
 
 def _check_plain_kwargs(value: Any, path: str = "env.kwargs") -> None:
