@@ -150,7 +150,8 @@ class Config(Section):
 
     def validate(self) -> None:
         """Cross-field checks that types alone cannot express."""
-        if type(self.agent) is not algorithm(self.algo).config:  # `agent` is typed Any: its class depends on `algo`
+        section: Any = algorithm(self.algo).config  # Any: `agent`'s class depends on `algo`
+        if type(self.agent) is not section:
             raise ConfigError(_wrong_agent(self.agent, self.algo))
         if (problem := seed_problem(self.seed)) is not None:
             raise ConfigError(problem)
