@@ -10,6 +10,7 @@ import os
 import subprocess
 import sys
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
@@ -296,3 +297,15 @@ def constant_encoder(space) -> torch.nn.Module:
     layer = torch.nn.Linear(3, 5)
     torch.nn.init.constant_(layer.weight, 0.5)
     return layer
+
+
+@pytest.mark.parametrize("space", [gym.spaces.Box(0, 1, (3,), bool), gym.spaces.Box(0, 100, (3,), np.int32)])
+def test_normalize_obs_takes_bool_and_integer_boxes_as_floats(space):
+    from relayrl.agents.ppo.normalize import ObsNorm
+
+    norm = ObsNorm(3)
+    obs = torch.as_tensor(np.stack([space.sample() for _ in range(8)]))
+    norm.update(obs)
+    z = norm(obs)
+    expected = (obs.double() - norm.mean) / torch.sqrt(norm.var + 1e-8)
+    assert z.dtype == torch.float32 and torch.allclose(z, expected.clamp(-10, 10).float(), atol=1e-5)

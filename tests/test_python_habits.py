@@ -716,3 +716,33 @@ def test_a_run_directory_under_home_is_expanded_as_a_shell_would(tmp_path, monke
     assert result.run_dir == tmp_path / "runs" / "one" and (tmp_path / "runs" / "one" / "config.toml").is_file()
     assert relayrl.load_policy("~/runs/one").env_steps == 200
     assert relayrl.plot_run("~/runs/one", out="~/plots/") == tmp_path / "plots" / "returns.png"
+
+
+def test_a_batch_of_no_observations_is_one_line(run_dir):
+    policy = relayrl.load_policy(run_dir)
+    for empty in (np.zeros((0, 2), np.float32), torch.zeros(0, 2)):
+        with pytest.raises(UserError, match=r"^a batch of 0 observations: give one observation, or a batch"):
+            policy(empty)
+
+
+@pytest.mark.parametrize("nvec, shape", [([3], (1,)), ([[3]], (1, 1)), ([3, 2], (2,))])
+def test_a_ppo_policy_of_a_one_entry_multidiscrete_gives_actions_of_its_shape(tmp_path, nvec, shape):
+    space = gym.spaces.MultiDiscrete(nvec)
+
+    class Env(Countdown):
+        def __init__(self) -> None:
+            super().__init__()
+            self.action_space = space
+
+        def step(self, action):
+            assert space.contains(action), action  # what training sends
+            return super().step(0)
+
+    config = {**TINY, "algo": "ppo", "env": {"id": "toy_envs:Countdown", "check": False},
+              "train": {**TINY["train"], "collect_steps": 64, "initial_collect_steps": 0}}
+    relayrl.train(config, tmp_path / "run", progress=False, env=Env)
+    for deterministic in (True, False):
+        policy = relayrl.load_policy(tmp_path / "run", deterministic=deterministic)
+        one = policy(np.zeros(2, np.float32))
+        assert one.shape == shape and space.contains(one)
+        assert policy(np.zeros((4, 2), np.float32)).shape == (4, *shape)

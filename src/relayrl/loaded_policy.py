@@ -110,6 +110,8 @@ class LoadedPolicy(Policy):
     def __call__(self, obs: Any) -> Any:
         if isinstance(obs, torch.Tensor) and obs.dtype == self.obs_dtype and obs.dim() == len(self.obs_shape) + 1:
             obs = obs.detach()  # a tensor needing grad (a differentiable rollout's): the CPU MLP reads it via NumPy
+            if obs.shape[0] == 0:
+                raise UserError(_EMPTY)
             # a Discrete / MultiDiscrete value out of range would index past its one-hot (torch's
             # traceback): checked here too; for floats and frames this is the finiteness check alone
             _check_values(obs, self.obs_space)
@@ -169,6 +171,8 @@ class LoadedPolicy(Policy):
                             f"{describe(self.obs_space)} observations, one {list(self.obs_shape)} or a batch "
                             f"[{', '.join(['B', *map(str, self.obs_shape)])}]")
         single = t.dim() == n
+        if not single and t.shape[0] == 0:
+            raise UserError(_EMPTY)
         _check_values(t, self.obs_space)
         t = t.to(self.obs_dtype)
         return (t.unsqueeze(0) if single else t), single, numpy_in
@@ -181,10 +185,15 @@ class LoadedPolicy(Policy):
             raise UserError(f"this policy takes {describe(spec)} observations: a "
                             f"{'tuple' if spec.tuple_space else 'dict'} of arrays, not one array")
         batch = spec.batch_size(obs)
+        if batch == 0:
+            raise UserError(_EMPTY)
         numpy_in = not isinstance(entry(obs, spec.fields[0]), torch.Tensor)
         for f in spec.fields:
             _check_values(as_tensor(leaf_array(obs, f)), f.spec, f"[{f.key!r}]")
         return torch.from_numpy(spec.pack_batch(obs, batch)), batch is None, numpy_in
+
+
+_EMPTY = "a batch of 0 observations: give one observation, or a batch [B, ...] with B >= 1"
 
 
 def _check_values(t: torch.Tensor, s: Spec, where: str = "") -> None:

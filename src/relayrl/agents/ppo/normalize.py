@@ -68,7 +68,8 @@ class RunningMeanStd(nn.Module):
 
 
 class ObsNorm(RunningMeanStd):
-    """obs [B, *shape] -> the normalised observation, flat [B, D], in obs's dtype."""
+    """obs [B, *shape] -> the normalised observation, flat [B, D], in obs's float dtype (float32
+    for integer and bool observations, whose dtype would cut the normalised values)."""
 
     def __init__(self, dim: int) -> None:
         super().__init__((dim,))
@@ -79,8 +80,9 @@ class ObsNorm(RunningMeanStd):
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
         obs = obs.reshape(obs.shape[0], -1)  # a Box of any rank, as the MLP takes it
-        z = (obs - self.mean) / torch.sqrt(self.var + EPS)  # float64, as SB3's NumPy arithmetic
-        return z.clamp(-CLIP, CLIP).to(obs.dtype)
+        out = obs.dtype if obs.is_floating_point() else torch.float32
+        z = (obs.to(self.mean.dtype) - self.mean) / torch.sqrt(self.var + EPS)  # float64, as SB3's NumPy arithmetic
+        return z.clamp(-CLIP, CLIP).to(out)
 
     def saved(self) -> dict[str, list[float]]:
         """What a saved policy holds of it (plain lists: see policy_file.py)."""

@@ -59,7 +59,7 @@ class PPOPolicy(Policy):
         deterministic), before clipping or squashing."""
         out_np = self._outputs(obs)  # [B, A]
         h = self.head
-        if h.binary or len(h.nvec) > 1:
+        if h.binary or h.nvec:  # a MultiDiscrete of one entry too: its actions have the space's shape [B, 1]
             return self._sample_multi(out_np).reshape(out_np.shape[0], *h.shape)
         if self.log_std is None:
             if self.deterministic:
