@@ -746,3 +746,15 @@ def test_a_ppo_policy_of_a_one_entry_multidiscrete_gives_actions_of_its_shape(tm
         one = policy(np.zeros(2, np.float32))
         assert one.shape == shape and space.contains(one)
         assert policy(np.zeros((4, 2), np.float32)).shape == (4, *shape)
+
+
+def test_a_float64_default_also_holds_for_a_sampling_policy_and_tilde_folders(run_dir, tmp_path, monkeypatch):
+    before = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    try:  # the other mode's networks are built later, at predict() or evaluate(deterministic=False)
+        assert relayrl.evaluate(run_dir, episodes=1, deterministic=False).mean > 0
+    finally:
+        torch.set_default_dtype(before)
+    monkeypatch.setenv("HOME", str(tmp_path))
+    (tmp_path / "vids").mkdir()
+    assert relayrl.record_video(run_dir, "~/vids", episodes=1, seed=None) == tmp_path / "vids" / "video.mp4"

@@ -748,3 +748,17 @@ def test_an_interrupt_at_the_last_step_before_its_checkpoint_says_which_checkpoi
     with pytest.raises(KeyboardInterrupt, match=r"^the run stopped at env step 600 with a checkpoint \(env step 500; "
                                                 r"the steps after it are trained again\)"):
         relayrl.train(cfg, tmp_path / "r", progress=False, callbacks=[interrupt_at_the_last_row])
+
+
+def test_ctrl_c_in_the_last_iteration_of_a_run_without_checkpoints_still_evaluates_its_end(tmp_path):
+    # no checkpoint a resume could evaluate from: the final evaluation runs, then the interrupt goes on
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:]
+                              + ["train.log_interval=100", "eval.interval=400", "train.checkpoint_interval=0"])
+
+    def ctrl_c_at_the_end(row):
+        if row["event"] == "log" and row["step"] == 600:
+            os.kill(os.getpid(), signal.SIGINT)
+
+    with pytest.raises(KeyboardInterrupt, match=r"^the run stopped at env step 600; its policy and metrics are in"):
+        relayrl.train(cfg, tmp_path / "r", progress=False, callbacks=[ctrl_c_at_the_end])
+    assert [r["step"] for r in RunDir(tmp_path / "r").read_metrics()][-1] == 600

@@ -19,14 +19,14 @@ from relayrl.errors import UserError, check_count
 from relayrl.export import load_policy
 from relayrl.paths import output_path, writing
 from relayrl.presets import load_config
-from relayrl.seeding import seed_problem
+from relayrl.seeding import check_seed
 
 if TYPE_CHECKING:
     from relayrl.training.run_dir import RunDir
 
 
 def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: int = 1,
-                 seed: int = 0, max_steps: int = 10_000, env: Any = None) -> Path:
+                 seed: int | None = 0, max_steps: int = 10_000, env: Any = None) -> Path:
     """A video of the run's saved greedy policy playing `episodes` whole episodes (copy reset
     with `seed`; at most `max_steps` steps in all), written as RUN_DIR/video.mp4 or `out` (.mp4,
     .gif, .mkv, .mov, .avi); returns its path.
@@ -38,9 +38,9 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
 
     for name, value in (("episodes", episodes), ("max_steps", max_steps)):  # not one episode in their place
         check_count(name, value)
-    if (problem := seed_problem(seed)) is not None:  # before Gymnasium's reset says it in its words
-        raise UserError(problem)
-    episodes, max_steps, seed = int(episodes), int(max_steps), int(seed)  # Gymnasium's reset refuses a NumPy seed
+    check_seed(seed)  # None: unseeded; else before Gymnasium's reset says it in its words
+    # Python ints from here on: Gymnasium's reset refuses a NumPy seed
+    episodes, max_steps, seed = int(episodes), int(max_steps), None if seed is None else int(seed)
     rd = RunDir.of(run_dir)  # RUN_DIR/policy/policy.pt and RUN_DIR/config.toml name the run, as for `relayrl eval`
     if not rd.config.is_file():
         rd = RunDir(run_dir)  # a lone policy file or another folder: `require` says which
@@ -96,7 +96,8 @@ def _headless_sdl() -> Iterator[None]:
             os.environ.pop(k, None)
 
 
-def _frames(rd: RunDir, policy: Any, env: Any, episodes: int, seed: int, max_steps: int) -> tuple[list[Any], int]:
+def _frames(rd: RunDir, policy: Any, env: Any, episodes: int, seed: int | None, max_steps: int
+            ) -> tuple[list[Any], int]:
     """The RGB frames of `episodes` episodes of `policy` on the run's env (or `env`), and its fps."""
     config = load_config(str(rd.config))
     given = env

@@ -31,7 +31,6 @@ class DirectDriver:
         rows: list[dict[str, Any]] = []
         log, tb = MetricsLog(self.rd.metrics), SummaryWriter(str(self.rd.tb))
         signals: list[int] = []  # the first Ctrl-C / SIGTERM: stop after this iteration, keep the policy
-        stopped: list[int] = []  # the signal the trainer stopped early for (none: it came in the last iteration)
 
         def write_row(row: dict[str, Any]) -> None:
             log.write(row)
@@ -43,7 +42,6 @@ class DirectDriver:
                 f"algo={self.config.algo!r}; {interrupts.again(signum)})")
 
         def stop() -> bool:
-            stopped.extend(signals[:1])
             return bool(signals)
 
         try:
@@ -55,8 +53,8 @@ class DirectDriver:
             log.close()
             tb.close()
         save_policy_file(state, self.rd.policy / "policy.pt")
-        if stopped:  # (a signal in the last iteration let the run finish: nothing to redeliver)
-            interrupts.redeliver(stopped[0], f"the run stopped at env step {state['env_steps']:,}; its policy and "
+        if signals:  # one in the last iteration too: the run is whole, and the caller's loop still stops
+            interrupts.redeliver(signals[0], f"the run stopped at env step {state['env_steps']:,}; its policy and "
                                  f"metrics are in {str(self.rd.root)!r} (algo={self.config.algo!r} runs have no "
                                  "checkpoints: a new run starts over)")
         return RunResult(self.rd.root, rows[-1] if rows else {})

@@ -395,7 +395,9 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         interrupted = report.interrupted
         if stopped and interrupted is None:
             core.say(f"a callback returned False: the run stops at env step {core.env_steps():,}")
-        finish(driver, core.progress(), evaluate=interrupted is None)  # an interrupt wants no wait
+        # an interrupt wants no wait, unless the run reached its end with no checkpoint a resume could evaluate from
+        at_end_unresumable = not stopped and not c.train.checkpoint_interval
+        finish(driver, core.progress(), evaluate=interrupted is None or at_end_unresumable)
         if interrupted is not None:  # KeyboardInterrupt, or the SIGTERM handler's stop
             interrupts.redeliver(interrupted, _stopped_at(core))
         return RunResult(core.rd.root, report.last_eval, stopped_early=stopped)
