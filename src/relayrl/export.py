@@ -60,9 +60,13 @@ def _policy_file(path: str | Path) -> Path:
 
 
 def _built(f: Path, state: dict[str, Any], build: Callable[[], T]) -> T:
-    """`build()` of a saved policy's parts on the CPU; a file that lacks what they read is one line."""
+    """`build()` of a saved policy's parts on the CPU, under a float32 default dtype (the networks
+    relayrl saved, whatever the caller's default), as `built_quietly`; a file that lacks what they
+    read is one line."""
+    from relayrl.training.lifecycle import float32_default
+
     try:
-        with rng_kept(torch.device("cpu")):
+        with rng_kept(torch.device("cpu")), float32_default():
             return build()
     except (KeyError, TypeError, ValueError, RuntimeError) as e:
         encoder = str(state.get("encoder", ""))
@@ -97,7 +101,7 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", determinis
     at any moment. `device`: cpu, cuda, cuda:N or auto (the GPU where there is one), as a
     config's.
     """
-    from relayrl.training.lifecycle import float32_default, resolve_device
+    from relayrl.training.lifecycle import resolve_device
 
     check_seed(seed)  # else a bad seed read as a broken policy file
     on = resolve_device(str(device))  # "auto" as a run's is; a device not here is one line, not torch's assertion
@@ -106,10 +110,9 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", determinis
     module = for_policy_kind(state.get("kind")).policy_module()
     # Built once (a user's encoder may be costly to make); on another device the file is
     # checked on the CPU first, so a device's own error is not taken for a broken file.
-    with float32_default():  # the networks relayrl saved, whatever the caller's default dtype
-        cpu = _built(f, state, lambda: module.load(state, torch.device("cpu"), deterministic, seed))
-        batched = cpu if on.type == "cpu" else built_quietly(module, state, on, deterministic, seed)
-        return LoadedPolicy(batched, state, str(on), deterministic, seed)
+    cpu = _built(f, state, lambda: module.load(state, torch.device("cpu"), deterministic, seed))
+    batched = cpu if on.type == "cpu" else built_quietly(module, state, on, deterministic, seed)
+    return LoadedPolicy(batched, state, str(on), deterministic, seed)
 
 
 FORMATS = ("pt2", "onnx")
