@@ -17,7 +17,7 @@ CHECKPOINT_NAME = re.compile(r"^ckpt-(\d{12})\.pt$")
 
 def is_folder(out: str | Path) -> bool:
     """Whether an --out names a folder: one that exists, or a name ending in a slash."""
-    return Path(out).expanduser().is_dir() or str(out).endswith(("/", os.sep))
+    return user_path(out).is_dir() or str(out).endswith(("/", os.sep))
 
 
 def user_path(path: str | os.PathLike[str]) -> Path:

@@ -118,11 +118,6 @@ class BatchEnvBase(BatchedEnv):
         self._action_bounds = box_bounds(action_space) if other else None
         # Dict / Tuple observations travel as packed byte rows (specs.PackedSpec); None: as they are
         self._pack = self.observation_spec.pack if isinstance(self.observation_spec, PackedSpec) else None
-        # An integer space's stored dtype: an observation whose write into it may change values
-        # (fractions cast to 0, numbers outside it wrapped) is checked first (`_kept`); a Dict /
-        # Tuple's integer entries are checked by `pack`.
-        self._int_obs = self._obs_dtype if self._pack is None and self._obs_dtype.kind in "iu" else None
-        self._safe_casts: dict[np.dtype, bool] = {}  # per observation dtype: whether the write keeps every value
         self._discrete = isinstance(action_space, gym.spaces.Discrete)
         # Discrete, MultiDiscrete and MultiBinary observations (and Dict / Tuple entries) index
         # one-hots: (entry or None for the whole row, the values' exclusive limit) of each.
@@ -436,6 +431,11 @@ class GymBatchEnv(BatchEnvBase):
         first = self.envs[0]
         self._init_specs(len(self.envs), first.observation_space, first.action_space, time_limit_terminates,
                          frame_stack_of(first))
+        # An integer space's stored dtype: an observation whose write into it may change values
+        # (fractions cast to 0, numbers outside it wrapped) is checked first (`_kept`); a Dict /
+        # Tuple's integer entries are checked by `pack`.
+        self._int_obs = self._obs_dtype if self._pack is None and self._obs_dtype.kind in "iu" else None
+        self._safe_casts: dict[np.dtype, bool] = {}  # per observation dtype: whether the write keeps every value
 
     @property
     def time_limited(self) -> bool:
