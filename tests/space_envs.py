@@ -106,6 +106,8 @@ class Spaces(gym.Env):
     def step(self, action):
         if self.act_kind.startswith("box"):  # an action of another shape is a bug (Gymnasium does not check)
             assert np.shape(action) == self.action_space.shape, (np.shape(action), self.action_space)
+            # an array, as Box.contains takes it (a NumPy scalar draws Gymnasium's casting warning)
+            assert isinstance(action, np.ndarray), (type(action), self.action_space)
         if self.act_kind != "discrete":  # nor of another dtype: an env may check action_space.contains
             assert np.asarray(action).dtype == self.action_space.dtype, (np.asarray(action).dtype, self.action_space)
         a = np.asarray(action).reshape(-1)

@@ -503,7 +503,12 @@ class GymBatchEnv(BatchEnvBase):
         into a copy of `next_obs`. Returns that obs array (`next_obs` itself if none ended)
         and the ended episodes' `info_keys` values."""
         # tolist() gives Python ints for discrete actions: what Gymnasium envs compare against.
-        actions = action.tolist() if self._discrete else action
+        # A scalar Box's row is a 0-d array (`[i, ...]`), not a NumPy scalar: Box.contains and
+        # users' envs take arrays.
+        if self._discrete:
+            actions: Any = action.tolist()
+        else:
+            actions = action if action.ndim > 1 else [action[i, ...] for i in range(action.shape[0])]
         ended = []
         infos: dict[int, dict] = {}
         pack, int_obs = self._pack, self._int_obs
