@@ -86,11 +86,45 @@ def test_overrides_are_typed():
     ("agent.double=True", "expected bool (true or false, in lower case: true)"),  # written as in Python
     ("train.total_steps=1e4", "expected int (write 10000: TOML reads 1e4 and 10000.0 as floats)"),
     ("agent.hidden=(64,64)", "expected a list of int (in brackets: [64, 64])"),
+    ("env.kwargs={a=1", "the value is not a valid TOML table or list"),  # an unclosed table is no bare word
+    # values that were accepted, then failed mid-run (or were taken as something else)
+    ("agent.huber_delta=0", "agent.huber_delta=0.0 is not valid; it must be > 0"),
+    ("agent.adam_eps=-1", "agent.adam_eps=-1.0 is not valid; it must be > 0"),
+    ("agent.grad_clip=-1", "agent.grad_clip=-1.0 is not valid; it must be >= 0 (0: no clipping)"),
+    ("agent.lr=1e300", "agent.lr=1e+300 is not valid; it must be within float32's range"),
+    ("agent.lr=" + "9" * 50, "is not valid; it must be within float32's range"),
+    ("seed=" + "9" * 30, "its size must be at most 9,223,372,036,854,775,807"),
+    ("train.torch_threads=100000", "train.torch_threads=100000 is not valid; it must be at most 1024"),
+    ("replay.n_step=1000000", "replay.n_step=1,000,000 is more than replay.size=100,000 holds"),
+    ("replay.samples_per_insert=8", "but train.gradient_steps=0 asks for none"),  # with gradient_steps=0 below
+    ("env={num_envs=4}", "env is a section; set its keys one by one, e.g. --set env.num_envs=..."),
+    # a key of another section, or spelt with its section's name
+    ("train.eval_interval=5", "unknown config key 'train.eval_interval'; did you mean 'eval.interval'?"),
+    ("agent.n_step=3", "did you mean 'replay.n_step'? (keys sit in their sections)"),
+    ("train.batch_size=3", "did you mean 'agent.batch_size'?"),
+    ("agent.total_steps=3", "did you mean 'train.total_steps'?"),
+    ("train.seed=3", "did you mean 'seed'?"),
+    ("replay.prioritized=true", "did you mean 'replay.sampler = \"prioritized\"'?"),
 ])
 def test_bad_overrides_fail_with_a_clear_message(override, fragment):
     with pytest.raises(ConfigError, match=None) as e:
-        load_config("dqn-cartpole", [override])
+        load_config("dqn-cartpole", [override] + ["train.gradient_steps=0"] * override.startswith("replay.samples"))
     assert fragment in str(e.value)
+
+
+@pytest.mark.parametrize("change", ["c.agent.hidden.append('x')", "c.agent.hidden.append(3.5)",
+                                    "c.env.wrappers.append(5)", "c.env.info_keys.append(None)",
+                                    "c.env.kwargs.update(render_mode=None)", "c.env.kwargs.update({1: 2})"])
+def test_a_config_changed_in_place_is_checked_again_before_a_run(change, tmp_path):
+    """A list or table changed in place never passed the assignment's check: the run checks it,
+    before it writes anything."""
+    import relayrl
+
+    c = load_config("dqn")
+    exec(change, {"c": c})
+    with pytest.raises(ConfigError):
+        relayrl.train(c, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run").exists()
 
 
 def test_an_unset_default_key_given_a_wrong_type_says_to_leave_it_out():

@@ -282,3 +282,24 @@ def test_an_evaluation_ignores_what_a_copy_past_its_quota_returns():
     env = GymBatchEnv([lambda: NaNAfterOneEpisode(2), lambda: NaNAfterOneEpisode(10)])
     result = evaluate(env, lambda obs: torch.zeros(len(obs), dtype=torch.int64), episodes=2, seed=0)
     assert result["average_return"] == 6.0 and result["episodes"] == 2
+
+
+def test_a_non_finite_action_is_the_agents_finding_not_the_envs():
+    """A diverged agent's NaN action makes the env return NaN observations at the same step: the
+    action is named; a NaN observation the action was chosen on is the env's, as before."""
+    from relayrl.training.finite import FiniteWatch
+    from relayrl.types import Transition
+
+    def step(obs, action, next_obs):
+        t = torch.tensor
+        return Transition(t([obs]), t([[action]]), t([0.0]), t([next_obs]), t([False]), t([False]))
+
+    watch = FiniteWatch(1)
+    watch(step(0.0, 0.5, 0.0))
+    watch(step(0.0, math.nan, math.nan))
+    assert watch.check() == ("the agent's action was NaN at env step 2 (env copy 0): the agent diverged: check the "
+                             "learning rate (too high diverges), the reward scale and the env's observations")
+    assert watch.found_action
+    watch(step(math.nan, math.nan, math.nan))
+    assert watch.check().startswith("observation was NaN at env step 3 (env copy 0): check the env's observations")
+    assert not watch.found_action

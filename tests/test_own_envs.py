@@ -138,8 +138,9 @@ def test_kwargs_reach_gymnasium_make():
 
 def test_a_registered_envs_rejected_kwarg_value_is_one_line():
     """FrozenLake's map_name="8X8" raises KeyError in its constructor: a typo in env.kwargs."""
-    with pytest.raises(UserError, match=r"does not take the env.kwargs values given \(KeyError: '8X8'\); "
-                                        r"env.kwargs passed: \{'map_name': '8X8'\}"):
+    with pytest.raises(UserError, match=r"does not take the values given \(KeyError: '8X8'\); arguments passed "
+                                        r"\(env.kwargs, and eval.env_kwargs to evaluation envs\): "
+                                        r"\{'map_name': '8X8'\}"):
         make_env("FrozenLake-v1", 1, kwargs={"map_name": "8X8"})
     make_env("FrozenLake-v1", 1, kwargs={"map_name": "8x8"}, max_episode_steps=50).close()  # a valid value
 

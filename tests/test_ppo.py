@@ -239,6 +239,9 @@ def test_a_total_that_ends_in_a_partial_rollout_is_said_at_the_start(tmp_path, c
 
     assert partial_rollout_note(relayrl.load_config("ppo")) is None  # 1,696 of 100,000 steps: unsaid
     assert partial_rollout_note(relayrl.load_config("ppo-cartpole", ["train.total_steps=1200"])) is not None  # 176
+    # 256 env steps on 3 copies end at 258, one whole rollout of 258: nothing is left unlearned
+    one = ["train.total_steps=256", "train.collect_steps=256", "env.num_envs=3"]
+    assert partial_rollout_note(relayrl.load_config("ppo", one)) is None
 
 
 def test_an_undefined_explained_variance_is_not_taken_for_divergence():

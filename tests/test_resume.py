@@ -435,6 +435,17 @@ def test_resume_refuses_another_number_of_envs(tmp_path):
     assert not [p for p in multiprocessing.active_children() if p.name.startswith("relayrl-env")]
 
 
+def test_resume_refuses_another_replay_size_in_one_line(tmp_path):
+    """The checkpoint holds the table at its size: another size was a ValueError from the restore."""
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    size = cfg.replay.size
+    more = relayrl.load_config("dqn-cartpole-fast", DQN + [f"replay.size={size + 1}"])
+    with pytest.raises(relayrl.errors.UserError, match=f"replay.size={size + 1} but the run in .* has {size}; its "
+                                                       "checkpoint holds a replay table of that size"):
+        relayrl.train(more, tmp_path / "r", resume=True, progress=False)
+
+
 def test_a_run_that_fails_while_it_is_built_leaves_no_env_worker(tmp_path):
     bad = relayrl.load_config("dqn-cartpole-fast", DQN + ["env.num_envs=2", "env.vectorization=async",
                                                           "replay.storage=memmap"])
@@ -445,10 +456,11 @@ def test_a_run_that_fails_while_it_is_built_leaves_no_env_worker(tmp_path):
     assert not [p for p in multiprocessing.active_children() if p.name.startswith("relayrl-env")]
 
 
-def test_a_run_too_large_for_memory_is_one_line_and_writes_nothing(tmp_path):
-    huge = relayrl.load_config("dqn-cartpole-fast", DQN + ["replay.size=1000000000000000"])  # 8 PB of keys alone
+@pytest.mark.parametrize("size", [10**15, 2**63 - 1])  # 8 PB of keys alone; more bytes than NumPy can address
+def test_a_run_too_large_for_memory_is_one_line_and_writes_nothing(size, tmp_path):
+    huge = relayrl.load_config("dqn-cartpole-fast", DQN + [f"replay.size={size}"])
     with pytest.raises(relayrl.errors.UserError, match=r"not enough memory to build the run \(.*\): lower "
-                                                       r"replay.size=1,000,000,000,000,000 or the networks' sizes"):
+                                                       rf"replay.size={size:,}, env.num_envs=1 or the networks' sizes"):
         relayrl.train(huge, tmp_path / "r", progress=False)
     assert not (tmp_path / "r").exists()
 

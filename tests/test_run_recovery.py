@@ -148,8 +148,10 @@ def test_resume_naming_the_runs_preset_checks_the_set_against_the_runs_own_confi
              "--set", "train.total_steps=384"])
     assert r.returncode == 0, r.stderr
     assert RunDir(run).read_metrics()[-1]["step"] == 384
-    r = cli(["train", "ppo", "--run-dir", str(run), "--resume", "--set", "env={id='CartPole-v1'}"])
+    r = cli(["train", "ppo", "--run-dir", str(run), "--resume", "--set", "env.id=CartPole-v1"])
     assert r.returncode == 2 and "env.id='CartPole-v1' but the run in" in r.stderr
+    r = cli(["train", "ppo", "--run-dir", str(run), "--resume", "--set", "env={id='CartPole-v1'}"])  # all of [env]
+    assert r.returncode == 2 and "env is a section; set its keys one by one, e.g. --set env.id=..." in r.stderr
 
 
 def test_total_steps_below_initial_collect_steps_is_honoured(tmp_path):

@@ -17,7 +17,7 @@ from typing import Any
 
 from relayrl import atomic
 from relayrl.agents.registry import ALGORITHMS, DEFAULT_ALGO, algorithm
-from relayrl.config_fields import SB3_NAMES, Section, commented_toml, unknown_key
+from relayrl.config_fields import CLEANRL_NAMES, SB3_NAMES, Section, commented_toml, unknown_key
 from relayrl.errors import ConfigError
 from relayrl.seeding import seed_problem
 
@@ -153,6 +153,7 @@ class Config(Section):
         section: Any = algorithm(self.algo).config  # Any: `agent`'s class depends on `algo`
         if type(self.agent) is not section:
             raise ConfigError(_wrong_agent(self.agent, self.algo))
+        self.recheck()
         if (problem := seed_problem(self.seed)) is not None:
             raise ConfigError(problem)
         if self.device not in ("cpu", "cuda", "auto") and not self.device.startswith("cuda:"):
@@ -171,6 +172,9 @@ class Config(Section):
             self._check_on_policy()
         self.train.require(">= 0", "initial_collect_steps", "checkpoint_interval",
                            "checkpoint_keep", "policy_save_interval", "log_interval", "pull_interval", "torch_threads")
+        if self.train.torch_threads > MAX_THREADS:  # thousands of threads fail to start, or crash the process
+            raise ConfigError(f"train.torch_threads={self.train.torch_threads} is not valid; it must be at most "
+                              f"{MAX_THREADS} (0: torch's default, one per core)")
         # SB3's gradient_steps = -1 (one gradient step per env step collected) is brought from RL Zoo's files
         self.train.require(">= 0", "gradient_steps", note=" (Stable-Baselines3's -1, a gradient step per env step "
                            "collected, is train.gradient_steps = train.collect_steps)")
@@ -185,6 +189,13 @@ class Config(Section):
                               "disk; use replay.device=numpy (or auto)")
         r.require(">= 0", "priority_exponent", "importance_exponent", "priority_eps", "samples_per_insert",
                   "error_buffer", "min_size_to_sample")
+        if r.samples_per_insert > 0 and self.train.gradient_steps == 0:  # the ratio sets the gradient steps
+            raise ConfigError(f"replay.samples_per_insert={r.samples_per_insert:g} sets how many gradient steps follow "
+                              "each collect iteration, but train.gradient_steps=0 asks for none (collect only): set "
+                              "one of them (replay.samples_per_insert = 0 takes train.gradient_steps)")
+        if r.n_step > r.size:
+            raise ConfigError(f"replay.n_step={r.n_step:,} is more than replay.size={r.size:,} holds; it must be at "
+                              "most replay.size")
         d = self.distributed
         if d.num_actors > 0 and r.device not in ("auto", "numpy"):
             raise ConfigError(f"replay.device={r.device!r} applies to the one-process loop; the replay server of "
@@ -233,6 +244,8 @@ class Config(Section):
                               "(agent.n_epochs, agent.batch_size); leave it at 1 (0: collect only)")
         self.agent.check_rollout(self.steps_per_iteration())
 
+
+MAX_THREADS = 1024
 
 # distributed.address as HOST:PORT (a Ray head or, with ray://, a Ray Client server; IPv6 in brackets)
 RAY_ADDRESS = r"(ray://)?(\[[0-9a-fA-F:.]+\]|[^:\s/\[\]]+):(\d{1,5})"
@@ -333,6 +346,11 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
                                   "sit in their sections)")
             owners = sorted(a for a, entry in ALGORITHMS.items() if prefix == "agent."
                             and key in {f.name for f in dataclasses.fields(entry.config)})
+            ported = key in SB3_NAMES or key in CLEANRL_NAMES  # their own lines say more
+            if prefix and not owners and not ported and (elsewhere := _homes_elsewhere(key, prefix[:-1])):
+                tail = "" if key in _VALUE_KEYS else " (keys sit in their sections)"
+                homes = " or ".join(map(repr, elsewhere))
+                raise ConfigError(f"unknown config key {path!r}; did you mean {homes}?{tail}")
             said = unknown_key(path, [prefix + n for n in names])
             if owners:  # agent.normalize_obs on a SAC run
                 who = owners[0] if len(owners) == 1 else f"{', '.join(owners[:-1])} and {owners[-1]}"
@@ -349,6 +367,35 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
             setattr(obj, key, value)  # Section.__setattr__ checks the type
 
 
+# Values of a choice key that users write as keys of their own (SB3's prioritized_replay).
+_VALUE_KEYS = {"prioritized": 'replay.sampler = "prioritized"', "prioritized_replay": 'replay.sampler = "prioritized"',
+               "memmap": 'replay.storage = "memmap"'}
+
+
+def _homes_elsewhere(key: str, section: str) -> list[str]:
+    """Where a key unknown in `section` is a key: a top-level key or another section's of the same
+    name (agent.n_step: replay.n_step; any algorithm's agent section), a section's key spelt
+    with its section's name (train.eval_interval: eval.interval), or a choice key's value."""
+    if key in _VALUE_KEYS:
+        return [_VALUE_KEYS[key]]
+    defaults, homes = class_defaults(), []
+    for f in dataclasses.fields(Config):
+        if f.name == section:
+            continue
+        value = getattr(defaults, f.name)
+        if f.name == "agent":
+            keys = {g.name for entry in ALGORITHMS.values() for g in dataclasses.fields(entry.config)}
+        elif dataclasses.is_dataclass(value):
+            keys = {g.name for g in dataclasses.fields(value)}
+        else:
+            homes += [f.name] * (key == f.name)
+            continue
+        homes += [f"{f.name}.{key}"] * (key in keys)
+        first, _, rest = key.partition("_")
+        homes += [f"{f.name}.{rest}"] * (first == f.name and rest in keys)
+    return homes
+
+
 def _wrong_agent(value: Any, algo: str) -> str:
     """The line for an [agent] section that is not `algo`'s config class."""
     return (f"agent={value!r} has the wrong type; expected the {algorithm(algo).config.__name__} of algo={algo!r}: "
@@ -361,6 +408,9 @@ def _check_plain_kwargs(value: Any, path: str = "env.kwargs") -> None:
     a TOML date would train, then leave a policy file that loads nowhere."""
     if isinstance(value, dict):
         for k, v in value.items():
+            if not isinstance(k, str):
+                raise ConfigError(f"{path} has the key {k!r} ({type(k).__name__}); its keys are names (strings), "
+                                  "the env's keyword arguments")
             _check_plain_kwargs(v, f"{path}.{k}")
     elif isinstance(value, list | tuple):
         for i, v in enumerate(value):
@@ -368,7 +418,10 @@ def _check_plain_kwargs(value: Any, path: str = "env.kwargs") -> None:
     elif type(value).__module__ == "numpy":  # np.True_ is a "bool" by its name: say whose (numpy not imported here)
         raise ConfigError(f"{path}={value!r} is a NumPy {type(value).__name__}; env.kwargs take Python's numbers, "
                           f"strings, booleans, lists and tables (give {value!r}.item())")
-    elif value is not None and not isinstance(value, str | int | float | bool):
+    elif value is None:  # a run's config.toml holds its env.kwargs, and TOML has no None
+        raise ConfigError(f"{path}=None cannot be saved in the run's config.toml (TOML has no None): leave the key "
+                          "out for the env's default")
+    elif not isinstance(value, str | int | float | bool):
         raise ConfigError(f"{path}={value!r} is a {type(value).__name__}; env.kwargs take numbers, strings, "
                           "booleans, lists and tables (pass a date or time as a string and parse it in the env)")
 
@@ -382,7 +435,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
         value = tomllib.loads(f"v = {raw}")["v"]
     except tomllib.TOMLDecodeError:
         bare = raw.strip()
-        if bare[:1] + bare[-1:] in ("{}", "[]"):  # meant as a table or a list, not a bare word ([::1]:6379 is one)
+        if bare[:1] == "{" or bare[:1] + bare[-1:] == "[]":  # a table or a list, not a bare word ([::1]:6379 is one)
             raise ConfigError(f"--set {text!r}: the value is not a valid TOML table or list; quote the strings "
                               "in it, e.g. env.kwargs={mode = 'fast'}") from None
         value = raw  # bare words such as CartPole-v1 are strings
@@ -391,8 +444,14 @@ def parse_override(text: str) -> tuple[list[str], Any]:
 
 def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
     """Apply --set overrides to a nested dict before it is checked by `from_dict`."""
+    defaults = class_defaults()
+    sections = {f.name for f in dataclasses.fields(Config) if dataclasses.is_dataclass(getattr(defaults, f.name))}
     for text in overrides:
         keys, value = parse_override(text)
+        if len(keys) == 1 and keys[0] in sections and isinstance(value, dict):  # it would replace the whole section
+            example = next(iter(value), "key")
+            raise ConfigError(f"--set {text!r}: {keys[0]} is a section; set its keys one by one, e.g. "
+                              f"--set {keys[0]}.{example}=...")
         node = data
         for k in keys[:-1]:
             node = node.setdefault(k, {})

@@ -27,6 +27,10 @@ from relayrl.errors import ConfigError
 ENCODERS = ("auto", "flatten", "nature_cnn", "small_cnn")
 
 
+# A float setting reaches float32 tensors; an int one NumPy's and torch's int64 (sizes, counts, seeds).
+FLOAT32_MAX = 3.4028234663852886e38
+INT_MAX = 2**63 - 1
+
 # The bounds `Section.require` checks, as its messages name them.
 Rule = Literal[">= 0", ">= 1", "> 0", "in [0, 1]", "in (0, 1]"]
 RULES: dict[Rule, Callable[[Any], bool]] = {
@@ -50,6 +54,16 @@ class Section:
         if not dataclasses.is_dataclass(value):
             value = coerce(value, hints[name], path)
         object.__setattr__(self, name, value)
+
+    def recheck(self) -> None:
+        """Every key's type again, and this section's sections': a list changed in place
+        (config.agent.hidden.append("x")) never passed through __setattr__."""
+        for name, hint in _hints(type(self)).items():  # type: ignore[arg-type]  # as in __setattr__
+            value = getattr(self, name)
+            if isinstance(value, Section):
+                value.recheck()
+            elif not dataclasses.is_dataclass(value):
+                object.__setattr__(self, name, coerce(value, hint, f"{self.SECTION}.{name}" if self.SECTION else name))
 
     def require(self, rule: Rule, *keys: str, note: str = "") -> None:
         """ConfigError for the first of `keys` whose value breaks `rule` (one of `RULES`)."""
@@ -289,11 +303,16 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
         return [coerce(v, item, f"{path}[{i}]") for i, v in enumerate(value)]
     if hint is bool and getattr(getattr(value, "dtype", None), "kind", "") == "b":
         return bool(value)  # NumPy's bool
-    if isinstance(value, numbers.Integral) and not isinstance(value, bool) and hint in (int, float):
-        return hint(value)  # NumPy's integers too
+    if isinstance(value, numbers.Integral) and not isinstance(value, bool) and hint is int:
+        if abs(int(value)) > INT_MAX:
+            raise ConfigError(f"{path}={value} is not valid; its size must be at most {INT_MAX:,}")
+        return int(value)  # NumPy's integers too
     if hint is float and isinstance(value, numbers.Real) and not isinstance(value, bool):
-        if not math.isfinite(value):  # nan passes every `<` check
+        size = abs(int(value)) if isinstance(value, numbers.Integral) else abs(float(value))  # float(10**400) overflows
+        if isinstance(size, float) and not math.isfinite(size):  # nan passes every `<` check
             raise ConfigError(f"{path}={value!r} is not valid; it must be a finite number")
+        if size > FLOAT32_MAX:  # networks, losses and schedules compute in float32
+            raise ConfigError(f"{path}={value!r} is not valid; it must be within float32's range (+-3.4e38)")
         return float(value)
     if hint is Any or (isinstance(value, hint) and not (hint is int and isinstance(value, bool))):
         return value

@@ -68,6 +68,10 @@ KEPT = {**IDENTITY, "env.num_envs": "its replay and envs are laid out per copy: 
         + _OWN.format("distributed.num_actors")}
 
 
+# an off-policy run's (an on-policy run's config.toml may hold a [replay] it never used)
+REPLAY_KEPT = {"replay.size": "its checkpoint holds a replay table of that size: " + _OWN.format("replay.size")}
+
+
 def identity_overrides(overrides: Sequence[str]) -> list[str]:
     """The `--set` overrides that touch a key of `IDENTITY` (or a section holding one): what a
     preset named on a resume is checked with. The others change the run's own config.toml, and
@@ -251,7 +255,8 @@ def _train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | P
         rd.require()
         networks = {f"agent.{k}": f"a resumed run keeps its networks (leave out --set agent.{k}; in Python, load "
                     "the run's config.toml)" for k in config.agent.NETWORK}
-        check_resume_matches(config, rd, {**KEPT, **networks})
+        replay = REPLAY_KEPT if entry.replay == "transitions" else {}
+        check_resume_matches(config, rd, {**KEPT, **replay, **networks})
     takeover = None if resume else _takeover_notice(rd, overwrite)
     # files that are not a run's (looked at before the run's parts make a memmap replay's folder)
     beside = not resume and not takeover and rd.root.is_dir() and any(rd.root.iterdir())
@@ -291,14 +296,14 @@ def _build_and_train(entry: Algorithm, config: Config, rd: RunDir, resume: bool,
     """The run's parts (bad input fails before anything is written), then the run into `rd`."""
     try:
         driver = _make_driver(entry, config, rd, progress, env, callbacks)
-    except (MemoryError, RuntimeError) as e:
+    except (MemoryError, RuntimeError, ValueError) as e:
         detail = out_of_memory(e)
         if detail is None:
             raise
         data = (f"replay.size={config.replay.size:,}" if entry.replay == "transitions"
                 else f"train.collect_steps={config.train.collect_steps:,}")
-        raise UserError(f"not enough memory to build the run ({detail}): lower {data} or the networks' sizes "
-                        "(the agent's hidden sizes)") from None
+        raise UserError(f"not enough memory to build the run ({detail}): lower {data}, env.num_envs="
+                        f"{config.env.num_envs:,} or the networks' sizes (the agent's hidden sizes)") from None
     result: RunResult | None = None
     try:
         if takeover:
@@ -337,8 +342,9 @@ def out_of_memory(e: BaseException) -> str | None:
     """The allocator's last line where `e` is running out of memory (NumPy's and Python's
     MemoryError, torch's CPU / CUDA allocator refusing); None for any other error."""
     text = str(e).strip()
+    # NumPy's "array is too big": more bytes than an address space holds
     if not isinstance(e, MemoryError) and not any(s in text for s in ("can't allocate memory", "not enough memory",
-                                                                      "out of memory")):
+                                                                      "out of memory", "array is too big")):
         return None
     return text.splitlines()[-1][:200] if text else type(e).__name__
 

@@ -289,16 +289,16 @@ def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, 
         except TypeError as e:
             if "argument" not in str(e):
                 raise
-            raise UserError(f"env.id={env_id!r} does not take the arguments given ({e}); "
-                            f"env.kwargs passed: {sorted(kwargs)}") from None
+            raise UserError(f"env.id={env_id!r} does not take the arguments given ({e}); arguments passed "
+                            f"(env.kwargs, and eval.env_kwargs to evaluation envs): {sorted(kwargs)}") from None
         except (KeyError, ValueError) as e:
             # a registered env that rejects a value it was given (FrozenLake's map_name="8X8": a
             # KeyError of its map table) is a typo in env.kwargs, not a bug of the env; without
             # env.kwargs, or from a user's module, it is their code's traceback that helps
             if not given or module:
                 raise
-            raise UserError(f"env.id={env_id!r} does not take the env.kwargs values given "
-                            f"({type(e).__name__}: {e}); env.kwargs passed: {given}") from None
+            raise UserError(f"env.id={env_id!r} does not take the values given ({type(e).__name__}: {e}); arguments "
+                            f"passed (env.kwargs, and eval.env_kwargs to evaluation envs): {given}") from None
 
     return make_registered
 

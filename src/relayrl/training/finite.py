@@ -2,7 +2,7 @@
 before anything non-finite is evaluated or saved, so the last good policy and checkpoint stay.
 
 Checks cost no host sync per step: `FiniteWatch` holds references to each collected step's
-observations and rewards (the Actor's tensors, which envs never write into again) and checks
+observations, actions and rewards (the Actor's tensors, which envs never write into again) and checks
 them in one stacked call every `CHECK_STEPS` batched steps or before a trigger fires; losses
 are checked where the loop reads them anyway (before triggers), and the weights before every
 policy save and checkpoint.
@@ -50,32 +50,40 @@ class FiniteWatch(Observer):
         self.obs_spec = obs_spec  # a PackedSpec's rows are bytes: its float entries are checked unpacked
         self.checked = checked
         self.where = where
-        self._steps: list[tuple[Any, Any, Any]] = []
+        self._steps: list[tuple[Any, Any, Any, Any]] = []
+        self.found_action = False  # the last finding names the agent's action, not the env's output
 
     def __call__(self, t: Transition) -> None:
-        self._steps.append((t.obs, t.reward, t.next_obs))
+        self._steps.append((t.obs, t.reward, t.next_obs, t.action))
 
     def due(self) -> bool:
         return len(self._steps) >= CHECK_STEPS
 
     def check(self) -> str | None:
-        """The first non-finite observation or reward held, as a finding for `NonFiniteError`
-        (without what was kept), or None; the held steps are released either way."""
+        """The first non-finite observation, action or reward held, as a finding for
+        `NonFiniteError` (without what was kept), or None; the held steps are released either way."""
         steps, self._steps = self._steps, []
+        self.found_action = False
         if not steps:
             return None
-        found: list[tuple[int, int, str, float]] = []  # env step, copy, what, value
-        for field, what in ((2, "observation"), (1, "reward"), (0, "observation")):
+        found: list[tuple[int, int, int, str, float]] = []  # env step, rank at that step, copy, what, value
+        # At one env step: an observation the action was chosen on explains a non-finite action,
+        # and an action the env was given explains what the env returned (a diverged agent's).
+        for rank, (field, what) in enumerate(((0, "observation"), (3, "action"), (2, "observation"), (1, "reward"))):
             stacked = torch.stack([s[field] for s in steps])  # [T, B, ...]
             for values in self._parts(stacked) if what == "observation" else (stacked,):
                 hit = _first_bad(values)
                 if hit is not None:
                     i, copy, value = hit
-                    found.append((self.checked + i * self.num_envs + copy + 1, copy, what, value))
+                    found.append((self.checked + i * self.num_envs + copy + 1, rank, copy, what, value))
         self.checked += len(steps) * self.num_envs
         if not found:
             return None
-        step, copy, what, value = min(found, key=lambda f: f[0])
+        step, _, copy, what, value = min(found, key=lambda f: f[:2])
+        if what == "action":
+            self.found_action = True
+            return (f"the agent's action was {describe(value)} at {self.where}env step {step:,} (env copy {copy}): "
+                    f"the agent diverged: {DIVERGED}")
         check = "the env's reward" if what == "reward" else "the env's observations (reset and step)"
         return f"{what} was {describe(value)} at {self.where}env step {step:,} (env copy {copy}): check {check}"
 

@@ -165,13 +165,14 @@ def partial_rollout_note(config: Config) -> str | None:
     theirs would tell nothing worth acting on.)"""
     if algorithm(config.algo).replay != "rollouts" or config.train.gradient_steps == 0:
         return None
-    steps, total = config.steps_per_iteration(), config.train.total_steps
+    steps, b = config.steps_per_iteration(), config.env.num_envs
+    total = -(-config.train.total_steps // b) * b  # where the run ends: whole batched steps
     if (left := total % steps) == 0 or left <= total // 20:
         return None
-    whole = total - left
-    return (f"train.total_steps={total:,} is not a whole number of rollouts of {steps:,} env steps: the last "
-            f"{left:,} env steps are collected but not learned from (SB3's learn() would run one more whole rollout, "
-            f"to {whole + steps:,}); train.total_steps={whole:,} or {whole + steps:,} avoids it")
+    whole = total - left  # >= one rollout: Config.validate refuses less
+    return (f"train.total_steps={config.train.total_steps:,} is not a whole number of rollouts of {steps:,} env "
+            f"steps: the last {left:,} env steps are collected but not learned from (SB3's learn() would run one "
+            f"more whole rollout, to {whole + steps:,}); train.total_steps={whole:,} or {whole + steps:,} avoids it")
 
 
 def make_learner(config: Config, agent: Agent, table: Any, device: torch.device, variables: Any,
@@ -253,7 +254,7 @@ class RunCore:
         or, before a save, the weights: nothing non-finite is ever evaluated or saved."""
         finding = self.finite.check()
         where = f"by env step {p.env_steps:,} (train step {p.train_step:,})"
-        if finding is None:
+        if finding is None or self.finite.found_action:  # a diverged update's loss says more than its actions
             loss = non_finite_metrics(self.learner.last_metrics, self.agent.undefined_metrics)
             if loss is not None:
                 finding = (f"{loss} {where}: check the learning rate (agent.lr and the like: too high diverges), "

@@ -66,7 +66,8 @@ class DQNConfig(Section):
             raise ConfigError(f"agent.epsilon_decay_steps={self.epsilon_decay_steps} is not valid; it must be >= 0 "
                               "(0: constant epsilon_end), or -1 (a tenth of train.total_steps)")
         self.require("in (0, 1]", "epsilon_decay")
-        self.require("> 0", "lr")
+        self.require("> 0", "lr", "adam_eps", "huber_delta")  # Adam's eps 0 divides 0 by 0 where a gradient stays 0
+        self.require(">= 0", "grad_clip", note=" (0: no clipping)")
         self.require("in [0, 1]", "gamma")
 
 # `relayrl train dqn` / `algo = "dqn"`: what a config that names only algo and env.id gets beyond
