@@ -446,6 +446,36 @@ def test_resume_refuses_another_replay_size_in_one_line(tmp_path):
         relayrl.train(more, tmp_path / "r", resume=True, progress=False)
 
 
+@pytest.mark.parametrize("key, edit", [("seed", ("seed = 0 ", "seed = 5 ")),
+                                       ("env.num_envs", ("num_envs = 1 ", "num_envs = 2 "))])
+def test_a_config_toml_edited_by_hand_is_checked_against_the_checkpoint(key, edit, tmp_path):
+    """The config.toml a resume reads was changed after the checkpoint: the checkpoint's own
+    config says what the run is, in one line."""
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    toml = tmp_path / "r" / "config.toml"
+    assert edit[0] in toml.read_text()
+    toml.write_text(toml.read_text().replace(edit[0], edit[1]))
+    rows = (tmp_path / "r" / "metrics.jsonl").read_text()
+    longer = relayrl.load_config(str(toml), ["train.total_steps=900"])
+    with pytest.raises(relayrl.errors.UserError, match=f"the run's checkpoint was written with {key}="):
+        relayrl.train(longer, tmp_path / "r", resume=True, progress=False)
+    assert (tmp_path / "r" / "metrics.jsonl").read_text() == rows  # nothing written
+
+
+def test_a_memmap_replay_written_past_its_checkpoint_says_the_resume_is_not_bit_exact(tmp_path, capsys):
+    """A killed run's memmap files went on past its last checkpoint: the items whose rows were
+    overwritten are dropped on resume, and the log says so."""
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN + ["replay.storage=memmap", "replay.size=300",
+                                                          "train.checkpoint_keep=0"])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    for late in sorted((tmp_path / "r" / "checkpoints").iterdir())[1:]:  # as if killed after the first
+        late.unlink()
+    capsys.readouterr()
+    relayrl.train(None, tmp_path / "r", resume=True, progress=False)
+    assert "replay items it held are gone, so this resume is not bit for bit" in capsys.readouterr().err
+
+
 def test_a_run_that_fails_while_it_is_built_leaves_no_env_worker(tmp_path):
     bad = relayrl.load_config("dqn-cartpole-fast", DQN + ["env.num_envs=2", "env.vectorization=async",
                                                           "replay.storage=memmap"])

@@ -63,7 +63,7 @@ class TrainConfig(Section):
     checkpoint_replay: bool = True  # false: checkpoints leave the replay out (huge tables)
     checkpoint_keep: int = 2  # the newest checkpoints kept; 0 keeps every one (each holds the replay)
     policy_save_interval: int = 5_000  # env steps; 0 disables
-    log_interval: int = 1_000  # env steps between progress / TensorBoard scalars
+    log_interval: int = 1_000  # env steps between progress / TensorBoard scalars; 0: only the final step's
     pull_interval: int = 0  # env steps between the actor's weight pulls; 0: every collect iteration
     torch_threads: int = 1  # 0 keeps torch's default; small nets run fastest on one
 
@@ -156,7 +156,7 @@ class Config(Section):
         self.recheck()
         if (problem := seed_problem(self.seed)) is not None:
             raise ConfigError(problem)
-        if self.device not in ("cpu", "cuda", "auto") and not self.device.startswith("cuda:"):
+        if self.device not in ("cpu", "cuda", "auto") and not re.fullmatch(r"cuda:\d+", self.device):
             raise ConfigError(f"device={self.device!r} is not valid; valid: cpu, cuda, cuda:N, auto")
         self.env.require(">= 1", "num_envs")
         _check_plain_kwargs(self.env.kwargs)
@@ -182,7 +182,7 @@ class Config(Section):
         self.env.require_choice(vectorization=("sync", "async", "ale"))
         r = self.replay
         r.require_choice(sampler=("uniform", "prioritized"), storage=("ram", "memmap"))
-        if r.device not in ("auto", "numpy", "cpu", "cuda") and not r.device.startswith("cuda:"):
+        if r.device not in ("auto", "numpy", "cpu", "cuda") and not re.fullmatch(r"cuda:\d+", r.device):
             raise ConfigError(f"replay.device={r.device!r} is not valid; valid: auto, numpy, cpu, cuda, cuda:N")
         if r.storage == "memmap" and r.device not in ("auto", "numpy"):
             raise ConfigError(f"replay.device={r.device!r} with replay.storage='memmap': memmap tables live on "

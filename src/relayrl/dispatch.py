@@ -25,7 +25,7 @@ from relayrl.envs.gym import names_python_factory
 from relayrl.errors import UserError
 from relayrl.presets import load_config
 from relayrl.training.direct import DirectDriver
-from relayrl.training.lifecycle import RunResult, caller_state_kept
+from relayrl.training.lifecycle import IDENTITY_KEYS, RunResult, caller_state_kept, kept_on_resume
 from relayrl.training.local import LocalDriver
 from relayrl.training.report import Callback
 from relayrl.training.run_dir import RunDir
@@ -57,19 +57,17 @@ def factory_env_id(factory: Callable[[], Any]) -> str:
 
 RESUME_OR_OVERWRITE = "--overwrite replaces a run, --resume continues it: pass one of them"
 
-# What a resumed run keeps of the run it continues (config.toml's value; a key left out is the
-# algorithm's default), and the advice its refusal gives; `agent.*` keys that shape the networks too.
+# The advice a resumed run's refusal gives for each key it keeps (`lifecycle.kept_on_resume`:
+# config.toml's value; a key left out is the algorithm's default).
 _OWN = ("resume with the run's own config.toml: leave out PRESET|CONFIG.toml and --set {} (in Python: "
         "relayrl.load_config(RUN_DIR/config.toml), and env= again where the run was given one)")
-IDENTITY = {"algo": _OWN.format("algo"), "env.id": _OWN.format("env.id"),
-            "seed": "a resumed run keeps its seed (leave out --seed; in Python, load the run's config.toml)"}
-KEPT = {**IDENTITY, "env.num_envs": "its replay and envs are laid out per copy: " + _OWN.format("env.num_envs"),
-        "distributed.num_actors": "its checkpoint holds each actor's part (off-policy: of the replay too): "
-        + _OWN.format("distributed.num_actors")}
-
-
-# an off-policy run's (an on-policy run's config.toml may hold a [replay] it never used)
-REPLAY_KEPT = {"replay.size": "its checkpoint holds a replay table of that size: " + _OWN.format("replay.size")}
+ADVICE = {"algo": _OWN.format("algo"), "env.id": _OWN.format("env.id"),
+          "seed": "a resumed run keeps its seed (leave out --seed; in Python, load the run's config.toml)",
+          "env.num_envs": "its replay and envs are laid out per copy: " + _OWN.format("env.num_envs"),
+          "distributed.num_actors": "its checkpoint holds each actor's part (off-policy: of the replay too): "
+          + _OWN.format("distributed.num_actors"),
+          "replay.size": "its checkpoint holds a replay table of that size: " + _OWN.format("replay.size")}
+IDENTITY = {k: ADVICE[k] for k in IDENTITY_KEYS}
 
 
 def identity_overrides(overrides: Sequence[str]) -> list[str]:
@@ -253,10 +251,9 @@ def _train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | P
         if overwrite:
             raise UserError(RESUME_OR_OVERWRITE + " (in Python: overwrite=True or resume=True)")
         rd.require()
-        networks = {f"agent.{k}": f"a resumed run keeps its networks (leave out --set agent.{k}; in Python, load "
-                    "the run's config.toml)" for k in config.agent.NETWORK}
-        replay = REPLAY_KEPT if entry.replay == "transitions" else {}
-        check_resume_matches(config, rd, {**KEPT, **replay, **networks})
+        networks = ("a resumed run keeps its networks (leave out --set {}; in Python, load the run's "
+                    "config.toml)")
+        check_resume_matches(config, rd, {k: ADVICE.get(k) or networks.format(k) for k in kept_on_resume(config)})
     takeover = None if resume else _takeover_notice(rd, overwrite)
     # files that are not a run's (looked at before the run's parts make a memmap replay's folder)
     beside = not resume and not takeover and rd.root.is_dir() and any(rd.root.iterdir())

@@ -432,7 +432,9 @@ class Table:
                 "storage": self.storage.state_dict(),
             }
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
+    def load_state_dict(self, state: dict[str, Any]) -> int:
+        """Load `state_dict`'s state; returns how many of its items were dropped (0 but where a
+        memmap storage's rows were written after the state was taken)."""
         if int(state["max_size"]) != self.max_size:
             raise ValueError(f"checkpointed table {state['name']!r} has max_size {state['max_size']}, "
                              f"this table {self.max_size}")
@@ -459,6 +461,8 @@ class Table:
                 gone = live[self.storage.stale(live)]
                 if gone.size:
                     self._delete_slots(gone)
+                return int(gone.size)
+            return 0
 
 
 def _valid_priorities(p: np.ndarray) -> bool:

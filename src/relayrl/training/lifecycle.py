@@ -18,7 +18,7 @@ import torch
 
 from relayrl import interrupts
 from relayrl.agents.registry import algorithm
-from relayrl.config import Config, changes, from_dict, load_toml, save_toml, to_dict
+from relayrl.config import Config, changes, dotted, from_dict, load_toml, save_toml, to_dict
 from relayrl.core import Agent
 from relayrl.envs.atari import raw_screen_note
 from relayrl.envs.gym import names_python_factory
@@ -56,6 +56,19 @@ class RunResult:
     run_dir: Path
     final: dict[str, Any]  # the last evaluation row of metrics.jsonl
     stopped_early: bool = False  # a callback returned False before train.total_steps
+
+
+# What a resumed run keeps of the run it continues, beside the keys that shape its networks
+IDENTITY_KEYS = ("algo", "env.id", "seed")
+
+
+def kept_on_resume(config: Config) -> list[str]:
+    """The keys a resumed run keeps: its identity, its env copies and actors (its replay and
+    envs are laid out per copy), an off-policy run's replay size (the checkpoint holds the table)
+    and the agent's network keys."""
+    replay = ["replay.size"] if algorithm(config.algo).replay == "transitions" else []
+    return [*IDENTITY_KEYS, "env.num_envs", "distributed.num_actors", *replay,
+            *(f"agent.{k}" for k in config.agent.NETWORK)]
 
 
 def resolve_device(name: str) -> torch.device:
@@ -295,6 +308,13 @@ class RunCore:
     def restore_common(self, state: dict[str, Any]) -> int:
         """Load `checkpoint_common`'s parts but the process's state (the driver's to load, once its
         envs are back); returns the evaluations so far."""
+        # dispatch checked these against config.toml; a config.toml edited by hand is checked here
+        was, now = dotted(state.get("config", {})), dotted(to_dict(self.config))
+        for key in kept_on_resume(self.config):
+            if key in was and was[key] != now[key]:
+                raise UserError(f"--resume: the run's checkpoint was written with {key}={was[key]!r}, but the config "
+                                f"resumed with has {now[key]!r} (was {str(self.rd.config)!r} edited?): resume with "
+                                f"{key} = {was[key]!r}")
         saved = state.get("spaces")  # checkpoints before spaces were recorded: only their frames' layout
         encoder = self.config.agent.encoder
         if saved is None and encoder in CONV_READY:

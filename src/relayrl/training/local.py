@@ -189,7 +189,10 @@ class LocalDriver:
         self.evaluator.count = core.restore_common(state)
         files_moved_on = False
         if state["replay"] is not None:
-            self.replay.load_state_dict(state["replay"])  # drops items whose memmap rows were overwritten
+            lost = self.replay.load_state_dict(state["replay"])  # drops items whose memmap rows were overwritten
+            if lost:  # a Ctrl-C or SIGTERM checkpoints as it stops; a killed run's files went on past its last
+                core.say(f"the replay files were written after this checkpoint: {lost:,} replay items it held are "
+                         "gone, so this resume is not bit for bit the uninterrupted run")
             # A memmap replay reopens its files as they are now: if the run went on for more
             # than a ring's worth of steps after this checkpoint, even the open episodes' rows
             # hold newer steps, and the envs must start new episodes.
