@@ -54,7 +54,8 @@ class FiniteWatch(Observer):
         self.found_action = False  # the last finding names the agent's action, not the env's output
 
     def __call__(self, t: Transition) -> None:
-        self._steps.append((t.obs, t.reward, t.next_obs, t.action))
+        action = t.action if t.action.is_floating_point() else None  # indices cannot be non-finite
+        self._steps.append((t.obs, t.reward, t.next_obs, action))
 
     def due(self) -> bool:
         return len(self._steps) >= CHECK_STEPS
@@ -70,6 +71,8 @@ class FiniteWatch(Observer):
         # At one env step: an observation the action was chosen on explains a non-finite action,
         # and an action the env was given explains what the env returned (a diverged agent's).
         for rank, (field, what) in enumerate(((0, "observation"), (3, "action"), (2, "observation"), (1, "reward"))):
+            if steps[0][field] is None:  # discrete actions
+                continue
             stacked = torch.stack([s[field] for s in steps])  # [T, B, ...]
             for values in self._parts(stacked) if what == "observation" else (stacked,):
                 hit = _first_bad(values)
