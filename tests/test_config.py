@@ -430,3 +430,16 @@ def test_env_kwargs_take_only_what_a_policy_file_holds():
     config.env.kwargs = {"when": datetime.date(2024, 1, 2)}
     with pytest.raises(ConfigError, match="pass a date or time as a string"):
         config.validate()
+
+
+def test_keys_the_other_settings_leave_without_effect_are_named():
+    """Set away from their defaults, they would suggest they change the run: a run says so."""
+    c = load_config("dqn", ["agent.loss='mse'", "agent.huber_delta=2", "replay.priority_exponent=0.8",
+                            "distributed.pull_interval=5", "agent.epsilon_decay=0.9"])
+    assert c.unused_keys() == ["replay.priority_exponent", "distributed.pull_interval", "agent.huber_delta",
+                               "agent.epsilon_decay"]
+    used = load_config("dqn", ["agent.huber_delta=2", "replay.sampler='prioritized'", "replay.priority_exponent=0.8",
+                               "agent.epsilon_schedule='exponential'", "agent.epsilon_decay=0.9"])
+    assert used.unused_keys() == []
+    for name in ("dqn", "ppo", "sac", "dqn-cartpole", "sac-ray", "ddqn-pong", "ppo-stateless-pendulum"):
+        assert load_config(name).unused_keys() == [], name  # defaults and presets set none

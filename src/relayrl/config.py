@@ -210,6 +210,20 @@ class Config(Section):
         d.require(">= 0", "actor_cpus")
         self.agent.validate()
 
+    def unused_keys(self) -> list[str]:
+        """Keys set away from the algorithm's defaults that the other settings leave without
+        effect: the prioritized sampler's with the uniform one, the distributed section's with no
+        actors, and the agent section's own (`Section.unused`)."""
+        defaults = algo_defaults(self.algo)
+        r, d = self.replay, self.distributed
+        keys = [f"replay.{k}" for k in ("priority_exponent", "importance_exponent", "priority_eps")
+                if r.sampler == "uniform"]
+        keys += [f"distributed.{f.name}" for f in dataclasses.fields(d) if d.num_actors == 0
+                 and f.name not in ("num_actors", "address")]  # address has a note of its own
+        keys += [f"agent.{k}" for k in self.agent.unused()]
+        now, was = dotted(to_dict(self)), dotted(to_dict(defaults))
+        return [k for k in keys if now[k] != was[k]]
+
     def steps_per_iteration(self) -> int:
         """Env steps one collect iteration (an on-policy rollout) takes: train.collect_steps
         rounded up to whole batched steps, as the actor steps every env copy together."""

@@ -102,6 +102,11 @@ class Section:
         given another total stretches them); other sections have none."""
         return []
 
+    def unused(self) -> list[str]:
+        """This section's keys that the section's other settings leave without effect (DQN's
+        huber_delta with loss = mse); a run names those set away from their defaults."""
+        return []
+
     def check_rollout(self, steps: int) -> None:
         """An on-policy agent section's check of its settings against one rollout of `steps`
         env steps (`Config.steps_per_iteration`); other sections take any."""

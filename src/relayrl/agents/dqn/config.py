@@ -44,6 +44,9 @@ class DQNConfig(Section):
     epsilon_schedule: str = "linear"
     epsilon_decay: float = 0.99999975  # exponential: the factor per env step
 
+    def unused(self) -> list[str]:
+        return ["huber_delta"] * (self.loss != "huber") + ["epsilon_decay"] * (self.epsilon_schedule != "exponential")
+
     def over_total_steps(self) -> list[str]:
         tenth = self.epsilon_schedule == "linear" and self.epsilon_decay_steps == -1
         return [f"agent.lr_end={self.lr_end}"] * (self.lr_end >= 0) + ["agent.epsilon_decay_steps=-1"] * tenth
