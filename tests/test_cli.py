@@ -242,6 +242,30 @@ def test_ctrl_c_outside_a_run_says_interrupted_and_inside_one_that_nothing_is_lo
     assert capsys.readouterr().err.startswith("relayrl: interrupted before the first checkpoint: nothing to resume")
 
 
+def test_ctrl_c_after_a_run_reached_its_end_does_not_offer_resume(monkeypatch, tmp_path, capsys):
+    """A Ctrl-C in the last moments, after the end's checkpoint and evaluation were written: a
+    --resume would find nothing left to do."""
+    from relayrl import cli
+
+    run = tmp_path / "r"
+    tiny = ["--set", "train.total_steps=300", "--set", "train.initial_collect_steps=100", "--set", "eval.interval=150",
+            "--set", "eval.episodes=1", "--set", "env.id=CartPole-v1"]
+    assert cli.main(["train", "dqn", "--run-dir", str(run), "--no-progress", *tiny]) == 0
+    capsys.readouterr()
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "_train", interrupted)
+    assert cli.main(["train", "dqn", "--run-dir", str(run), "--resume"]) == 130
+    assert capsys.readouterr().err == (f"relayrl: interrupted after the run reached its end and evaluated it: it is "
+                                       f"complete in {run}\n")
+    rows = (run / "metrics.jsonl").read_text().splitlines()
+    (run / "metrics.jsonl").write_text("\n".join(rows[:-1]) + "\n")  # its final evaluation not written yet
+    assert cli.main(["train", "dqn", "--run-dir", str(run), "--resume"]) == 130
+    assert "resume with --resume from the last checkpoint" in capsys.readouterr().err
+
+
 def torch_half_imported():
     raise AttributeError("partially initialized module 'torch' has no attribute 'distributed'")
 

@@ -218,6 +218,21 @@ def _on_sigterm(signum: int, frame: object) -> NoReturn:
     raise Terminated
 
 
+def _completed(rd: Any) -> bool:
+    """Whether the run in `rd` (a RunDir with a checkpoint) has its last checkpoint at or past
+    train.total_steps and an evaluation row at that step: a --resume would find nothing to do."""
+    from relayrl.config import from_dict, load_toml  # torch-free
+    from relayrl.training.run_dir import checkpoint_step, list_checkpoints
+
+    try:
+        total = from_dict(load_toml(rd.config)).train.total_steps
+    except (OSError, ValueError, UserError):  # ConfigError is a UserError; TOML errors are ValueErrors
+        return False
+    at = checkpoint_step(list_checkpoints(rd.checkpoints)[-1])
+    rows = rd.read_metrics()
+    return at >= total and bool(rows) and rows[-1]["step"] == at and "average_return" in rows[-1]
+
+
 def _interrupted_line(what: str, args: argparse.Namespace) -> str:
     """For `train`, offer --resume only where there is a checkpoint to resume from."""
     if args.command != "train":
@@ -234,6 +249,8 @@ def _interrupted_line(what: str, args: argparse.Namespace) -> str:
         trained = rd is not None and not resumable and rd.trained_to(read_policy=whole) > 0  # only if needed
     except (ImportError, AttributeError, OSError):  # torch still importing (no run has started), or unreadable
         resumable = trained = False
+    if resumable and _completed(rd):  # stopped in the run's last moments, after its end was saved
+        return f"relayrl: {what} after the run reached its end and evaluated it: it is complete in {run_dir}"
     if resumable:
         return (f"relayrl: {what}; resume with --resume from the last checkpoint: "
                 f"relayrl train --run-dir {run_dir} --resume")
