@@ -87,13 +87,14 @@ def test_overrides_are_typed():
     ("train.total_steps=1e4", "expected int (write 10000: TOML reads 1e4 and 10000.0 as floats)"),
     ("agent.hidden=(64,64)", "expected a list of int (in brackets: [64, 64])"),
     ("env.kwargs={a=1", "the value is not a valid TOML table or list"),  # an unclosed table is no bare word
-    # values that were accepted, then failed mid-run (or were taken as something else)
+    # values that would fail mid-run, or be taken as something else, are refused up front
     ("agent.huber_delta=0", "agent.huber_delta=0.0 is not valid; it must be > 0"),
     ("agent.adam_eps=-1", "agent.adam_eps=-1.0 is not valid; it must be > 0"),
     ("agent.grad_clip=-1", "agent.grad_clip=-1.0 is not valid; it must be >= 0 (0: no clipping)"),
     ("agent.lr=1e300", "agent.lr=1e+300 is not valid; it must be within float32's range"),
     ("agent.lr=" + "9" * 50, "is not valid; it must be within float32's range"),
-    ("seed=" + "9" * 30, "its size must be at most 9,223,372,036,854,775,807"),
+    ("seed=" + "9" * 30, "it must be in [-9,223,372,036,854,775,808, 9,223,372,036,854,775,807] (int64)"),
+    ("agent.lr=" + "9" * 400, "it must be within float32's range"),  # float() of it would overflow
     ("train.torch_threads=100000", "train.torch_threads=100000 is not valid; it must be at most 1024"),
     ("replay.n_step=1000000", "replay.n_step=1,000,000 is more than replay.size=100,000 holds"),
     ("replay.samples_per_insert=8", "but train.gradient_steps=0 asks for none"),  # with gradient_steps=0 below
@@ -105,6 +106,7 @@ def test_overrides_are_typed():
     ("agent.total_steps=3", "did you mean 'train.total_steps'?"),
     ("train.seed=3", "did you mean 'seed'?"),
     ("replay.prioritized=true", "did you mean 'replay.sampler = \"prioritized\"'?"),
+    ("eval.kwargs={}", "did you mean 'eval.env_kwargs'?"),  # the section's own near miss before env.kwargs
 ])
 def test_bad_overrides_fail_with_a_clear_message(override, fragment):
     with pytest.raises(ConfigError, match=None) as e:

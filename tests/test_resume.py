@@ -463,6 +463,29 @@ def test_a_config_toml_edited_by_hand_is_checked_against_the_checkpoint(key, edi
     assert (tmp_path / "r" / "metrics.jsonl").read_text() == rows  # nothing written
 
 
+def test_a_run_whose_checkpoints_leave_the_replay_out_resumes_with_another_replay_size(tmp_path):
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600", "train.checkpoint_replay=false"]
+                              + DQN[2:])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    more = relayrl.load_config(str(tmp_path / "r" / "config.toml"), [f"replay.size={cfg.replay.size + 1}"])
+    relayrl.train(more, tmp_path / "r", resume=True, progress=False)
+
+
+def test_a_memmap_run_whose_config_toml_was_edited_keeps_its_replay_files(tmp_path):
+    """The checkpoint's config is checked before the run is built: building would lay the
+    memmap files out again for the edited size."""
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN + ["replay.storage=memmap", "replay.size=300"])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    files = {f.name: f.read_bytes() for f in (tmp_path / "r" / "replay").iterdir()}
+    toml = tmp_path / "r" / "config.toml"
+    toml.write_text(toml.read_text().replace("size = 300 ", "size = 400 "))
+    with pytest.raises(relayrl.errors.UserError, match="checkpoint was written with replay.size=300, but the config "
+                                                       "resumed with has 400: set replay.size = 300 in"):
+        relayrl.train(relayrl.load_config(str(toml), ["train.total_steps=1800"]), tmp_path / "r", resume=True,
+                      progress=False)
+    assert {f.name: f.read_bytes() for f in (tmp_path / "r" / "replay").iterdir()} == files
+
+
 def test_a_memmap_replay_written_past_its_checkpoint_says_the_resume_is_not_bit_exact(tmp_path, capsys):
     """A killed run's memmap files went on past its last checkpoint: the items whose rows were
     overwritten are dropped on resume, and the log says so."""
@@ -473,7 +496,8 @@ def test_a_memmap_replay_written_past_its_checkpoint_says_the_resume_is_not_bit_
         late.unlink()
     capsys.readouterr()
     relayrl.train(None, tmp_path / "r", resume=True, progress=False)
-    assert "replay items it held are gone, so this resume is not bit for bit" in capsys.readouterr().err
+    assert ("the replay files were written after this checkpoint: 300 replay items it held are gone and the envs start "
+            "new episodes, so this resume is not bit for bit") in capsys.readouterr().err
 
 
 def test_a_run_that_fails_while_it_is_built_leaves_no_env_worker(tmp_path):
@@ -490,7 +514,7 @@ def test_a_run_that_fails_while_it_is_built_leaves_no_env_worker(tmp_path):
 def test_a_run_too_large_for_memory_is_one_line_and_writes_nothing(size, tmp_path):
     huge = relayrl.load_config("dqn-cartpole-fast", DQN + [f"replay.size={size}"])
     with pytest.raises(relayrl.errors.UserError, match=r"not enough memory to build the run \(.*\): lower "
-                                                       rf"replay.size={size:,}, env.num_envs=1 or the networks' sizes"):
+                                                       rf"replay.size={size:,} or the networks' sizes"):
         relayrl.train(huge, tmp_path / "r", progress=False)
     assert not (tmp_path / "r").exists()
 
@@ -663,8 +687,9 @@ def test_memmap_replay_resumed_from_an_older_checkpoint(tmp_path, capsys, size, 
     run.restore()
     live = np.flatnonzero(run.replay.slot_key >= 0)
     assert not run.replay.storage.stale(live).any() and (live.size == 0) == wraps
-    said = "the replay files were overwritten after this checkpoint" in capsys.readouterr().err
-    assert said == wraps
+    said = capsys.readouterr().err
+    assert "the replay files were written after this checkpoint: " in said  # the rows of 500 steps, both sizes
+    assert ("the envs start new episodes" in said) == wraps
     run.actor.collect(5)  # continued (or new) episodes insert only items whose rows hold their steps
     live = np.flatnonzero(run.replay.slot_key >= 0)
     assert live.size > 0 and not run.replay.storage.stale(live).any()

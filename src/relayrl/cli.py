@@ -150,7 +150,8 @@ def _train(args: argparse.Namespace) -> None:
         rd = RunDir(args.run_dir)
         rd.require()
         if args.config:  # it must name the run's own algorithm and env; the run's config.toml is used
-            check_resume_matches(load_config(args.config, identity_overrides(args.overrides), args.seed), rd)
+            check_resume_matches(load_config(args.config, identity_overrides(args.overrides), args.seed), rd,
+                                 identity_only=True)
         config = load_config(str(rd.config), args.overrides, args.seed)
     elif not args.config:
         raise UserError("train needs PRESET|CONFIG.toml (see `relayrl presets`), or --run-dir DIR --resume")

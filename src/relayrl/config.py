@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
+import difflib
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -290,7 +291,7 @@ def from_dict(data: dict[str, Any]) -> Config:
     try:
         _merge(config, data, prefix="")
     except ConfigError as e:
-        if "algo" in data or not str(e).startswith("unknown config key 'agent."):
+        if "algo" in data or not str(e).startswith("unknown config key 'agent.") or HOME_ELSEWHERE in str(e):
             raise
         raise ConfigError(f"{e} (the config names no algo, so its [agent] section is {DEFAULT_ALGO}'s: "
                           "set algo = \"ppo\", \"sac\", ... at its top)") from None
@@ -356,13 +357,14 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
             # SB3's env_kwargs is env.kwargs, not the eval.env_kwargs its name sits in: SB3's own line
             sb3_elsewhere = key in SB3_NAMES and not any(h in SB3_NAMES[key] for h in home)
             if home and not sb3_elsewhere:  # {"total_steps": ...} at the top: the key sits in a section
-                raise ConfigError(f"unknown config key {path!r}; did you mean {' or '.join(map(repr, home))}? (keys "
-                                  "sit in their sections)")
+                raise ConfigError(f"unknown config key {path!r}; did you mean {' or '.join(map(repr, home))}? "
+                                  f"({HOME_ELSEWHERE})")
             owners = sorted(a for a, entry in ALGORITHMS.items() if prefix == "agent."
                             and key in {f.name for f in dataclasses.fields(entry.config)})
             ported = key in SB3_NAMES or key in CLEANRL_NAMES  # their own lines say more
-            if prefix and not owners and not ported and (elsewhere := _homes_elsewhere(key, prefix[:-1])):
-                tail = "" if key in _VALUE_KEYS else " (keys sit in their sections)"
+            near = difflib.get_close_matches(key, list(names), n=1, cutoff=0.75)  # eval.kwargs: eval.env_kwargs
+            if prefix and not owners and not ported and (elsewhere := _homes_elsewhere(key, prefix[:-1], near)):
+                tail = "" if key in _VALUE_KEYS else f" ({HOME_ELSEWHERE})"
                 homes = " or ".join(map(repr, elsewhere))
                 raise ConfigError(f"unknown config key {path!r}; did you mean {homes}?{tail}")
             said = unknown_key(path, [prefix + n for n in names])
@@ -381,33 +383,36 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
             setattr(obj, key, value)  # Section.__setattr__ checks the type
 
 
+HOME_ELSEWHERE = "keys sit in their sections"
 # Values of a choice key that users write as keys of their own (SB3's prioritized_replay).
 _VALUE_KEYS = {"prioritized": 'replay.sampler = "prioritized"', "prioritized_replay": 'replay.sampler = "prioritized"',
                "memmap": 'replay.storage = "memmap"'}
 
 
-def _homes_elsewhere(key: str, section: str) -> list[str]:
-    """Where a key unknown in `section` is a key: a top-level key or another section's of the same
-    name (agent.n_step: replay.n_step; any algorithm's agent section), a section's key spelt
-    with its section's name (train.eval_interval: eval.interval), or a choice key's value."""
+def _sections() -> dict[str, set[str]]:
+    """Each section's name and keys; the agent section's are every algorithm's."""
+    defaults = class_defaults()
+    out = {f.name: {g.name for g in dataclasses.fields(getattr(defaults, f.name))} for f in dataclasses.fields(Config)
+           if dataclasses.is_dataclass(getattr(defaults, f.name))}
+    return out | {"agent": {g.name for entry in ALGORITHMS.values() for g in dataclasses.fields(entry.config)}}
+
+
+def _homes_elsewhere(key: str, section: str, near: list[str]) -> list[str]:
+    """Where a key unknown in `section` is a key: a section's key spelt with its section's name
+    (train.eval_interval: eval.interval); else, where `section` has no `near` miss of it, a
+    top-level key or another section's of the same name (agent.n_step: replay.n_step), or a
+    choice key's value."""
     if key in _VALUE_KEYS:
         return [_VALUE_KEYS[key]]
-    defaults, homes = class_defaults(), []
-    for f in dataclasses.fields(Config):
-        if f.name == section:
-            continue
-        value = getattr(defaults, f.name)
-        if f.name == "agent":
-            keys = {g.name for entry in ALGORITHMS.values() for g in dataclasses.fields(entry.config)}
-        elif dataclasses.is_dataclass(value):
-            keys = {g.name for g in dataclasses.fields(value)}
-        else:
-            homes += [f.name] * (key == f.name)
-            continue
-        homes += [f"{f.name}.{key}"] * (key in keys)
-        first, _, rest = key.partition("_")
-        homes += [f"{f.name}.{rest}"] * (first == f.name and rest in keys)
-    return homes
+    sections = _sections()
+    first, _, rest = key.partition("_")
+    if first != section and rest in sections.get(first, ()):
+        return [f"{first}.{rest}"]
+    if near:
+        return []
+    tops = [f.name for f in dataclasses.fields(Config) if f.name not in sections]
+    others = [f"{name}.{key}" for name, keys in sections.items() if name != section and key in keys]
+    return [key] * (key in tops) + others
 
 
 def _wrong_agent(value: Any, algo: str) -> str:
@@ -458,8 +463,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
 
 def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
     """Apply --set overrides to a nested dict before it is checked by `from_dict`."""
-    defaults = class_defaults()
-    sections = {f.name for f in dataclasses.fields(Config) if dataclasses.is_dataclass(getattr(defaults, f.name))}
+    sections = _sections()
     for text in overrides:
         keys, value = parse_override(text)
         if len(keys) == 1 and keys[0] in sections and isinstance(value, dict):  # it would replace the whole section

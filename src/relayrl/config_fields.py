@@ -6,7 +6,6 @@ each field's one-line meaning, read from the comment beside it in the source (on
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import difflib
 import functools
@@ -289,8 +288,11 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
     if origin in (types.UnionType, typing.Union):
         args = typing.get_args(hint)
         for arg in args:  # NoneType takes None
-            with contextlib.suppress(ConfigError):
+            try:
                 return coerce(value, arg, path)
+            except ConfigError:
+                if arg is float and isinstance(value, numbers.Real) and not isinstance(value, bool):
+                    raise  # a number out of float's range, not a value of another type
         if type(None) in args:  # TOML has no None to write (SB3's target_entropy = "auto" is relayrl's unset)
             kinds = " | ".join(type_name(a) for a in args if a is not type(None))
             raise ConfigError(f"{path}={value!r} has the wrong type; expected {kinds}, or leave the key out: "
@@ -309,8 +311,8 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
     if hint is bool and getattr(getattr(value, "dtype", None), "kind", "") == "b":
         return bool(value)  # NumPy's bool
     if isinstance(value, numbers.Integral) and not isinstance(value, bool) and hint is int:
-        if abs(int(value)) > INT_MAX:
-            raise ConfigError(f"{path}={value} is not valid; its size must be at most {INT_MAX:,}")
+        if not -INT_MAX - 1 <= int(value) <= INT_MAX:
+            raise ConfigError(f"{path}={value} is not valid; it must be in [{-INT_MAX - 1:,}, {INT_MAX:,}] (int64)")
         return int(value)  # NumPy's integers too
     if hint is float and isinstance(value, numbers.Real) and not isinstance(value, bool):
         size = abs(int(value)) if isinstance(value, numbers.Integral) else abs(float(value))  # float(10**400) overflows

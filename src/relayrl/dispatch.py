@@ -22,10 +22,16 @@ import gymnasium as gym
 from relayrl.agents.registry import Algorithm, algorithm, ray_algorithms
 from relayrl.config import Config, algo_defaults, dotted, from_dict, load_toml, parse_override, save_toml, to_dict
 from relayrl.envs.gym import names_python_factory
-from relayrl.errors import UserError
+from relayrl.errors import CheckpointError, UserError
 from relayrl.presets import load_config
 from relayrl.training.direct import DirectDriver
-from relayrl.training.lifecycle import IDENTITY_KEYS, RunResult, caller_state_kept, kept_on_resume
+from relayrl.training.lifecycle import (
+    IDENTITY,
+    RunResult,
+    caller_state_kept,
+    check_checkpoint_config,
+    kept_on_resume,
+)
 from relayrl.training.local import LocalDriver
 from relayrl.training.report import Callback
 from relayrl.training.run_dir import RunDir
@@ -57,19 +63,6 @@ def factory_env_id(factory: Callable[[], Any]) -> str:
 
 RESUME_OR_OVERWRITE = "--overwrite replaces a run, --resume continues it: pass one of them"
 
-# The advice a resumed run's refusal gives for each key it keeps (`lifecycle.kept_on_resume`:
-# config.toml's value; a key left out is the algorithm's default).
-_OWN = ("resume with the run's own config.toml: leave out PRESET|CONFIG.toml and --set {} (in Python: "
-        "relayrl.load_config(RUN_DIR/config.toml), and env= again where the run was given one)")
-ADVICE = {"algo": _OWN.format("algo"), "env.id": _OWN.format("env.id"),
-          "seed": "a resumed run keeps its seed (leave out --seed; in Python, load the run's config.toml)",
-          "env.num_envs": "its replay and envs are laid out per copy: " + _OWN.format("env.num_envs"),
-          "distributed.num_actors": "its checkpoint holds each actor's part (off-policy: of the replay too): "
-          + _OWN.format("distributed.num_actors"),
-          "replay.size": "its checkpoint holds a replay table of that size: " + _OWN.format("replay.size")}
-IDENTITY = {k: ADVICE[k] for k in IDENTITY_KEYS}
-
-
 def identity_overrides(overrides: Sequence[str]) -> list[str]:
     """The `--set` overrides that touch a key of `IDENTITY` (or a section holding one): what a
     preset named on a resume is checked with. The others change the run's own config.toml, and
@@ -79,13 +72,27 @@ def identity_overrides(overrides: Sequence[str]) -> list[str]:
     return [text for text in overrides if touches(parse_override(text)[0])]
 
 
-def check_resume_matches(config: Config, rd: RunDir, kept: dict[str, str] = IDENTITY) -> None:
-    """A resumed run is the run in `rd`: a config that changes one of `kept`'s keys is one line."""
+def check_resume_matches(config: Config, rd: RunDir, identity_only: bool = False) -> None:
+    """A resumed run is the run in `rd`: a config that changes one of the keys it keeps
+    (`lifecycle.kept_on_resume`; `identity_only`: algo, env.id and seed) is one line."""
     saved = dotted(load_toml(rd.config))
     defaults, now = dotted(to_dict(algo_defaults(saved.get("algo", config.algo)))), dotted(to_dict(config))
-    for key, advice in kept.items():
+    replay = saved.get("train.checkpoint_replay", defaults["train.checkpoint_replay"])
+    for key, advice in (IDENTITY if identity_only else kept_on_resume(config, replay)).items():
         if now[key] != (was := saved.get(key, defaults[key])):
             raise UserError(f"--resume: {key}={now[key]!r} but the run in {str(rd.root)!r} has {was!r}; {advice}")
+
+
+def _check_memmap_checkpoint(config: Config, rd: RunDir) -> None:
+    """A memmap replay's files are laid out again when the run is built with another layout:
+    the checkpoint's own config is checked first (a RAM replay's run checks it on restore,
+    without reading a large checkpoint twice)."""
+    if config.replay.storage != "memmap" or not rd.has_checkpoint():
+        return
+    from relayrl.training.checkpoint import load_latest_checkpoint
+
+    with contextlib.suppress(CheckpointError):  # none readable: the restore says so
+        check_checkpoint_config(config, load_latest_checkpoint(rd.checkpoints), rd.config)
 
 
 def _use_factory(config: Config, env: Any, one_process: bool) -> None:
@@ -251,9 +258,8 @@ def _train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | P
         if overwrite:
             raise UserError(RESUME_OR_OVERWRITE + " (in Python: overwrite=True or resume=True)")
         rd.require()
-        networks = ("a resumed run keeps its networks (leave out --set {}; in Python, load the run's "
-                    "config.toml)")
-        check_resume_matches(config, rd, {k: ADVICE.get(k) or networks.format(k) for k in kept_on_resume(config)})
+        check_resume_matches(config, rd)
+        _check_memmap_checkpoint(config, rd)
     takeover = None if resume else _takeover_notice(rd, overwrite)
     # files that are not a run's (looked at before the run's parts make a memmap replay's folder)
     beside = not resume and not takeover and rd.root.is_dir() and any(rd.root.iterdir())
@@ -299,8 +305,9 @@ def _build_and_train(entry: Algorithm, config: Config, rd: RunDir, resume: bool,
             raise
         data = (f"replay.size={config.replay.size:,}" if entry.replay == "transitions"
                 else f"train.collect_steps={config.train.collect_steps:,}")
-        raise UserError(f"not enough memory to build the run ({detail}): lower {data}, env.num_envs="
-                        f"{config.env.num_envs:,} or the networks' sizes (the agent's hidden sizes)") from None
+        envs = f", env.num_envs={config.env.num_envs:,}" if config.env.num_envs > 1 else ""
+        raise UserError(f"not enough memory to build the run ({detail}): lower {data}{envs} or the networks' sizes "
+                        "(the agent's hidden sizes)") from None
     result: RunResult | None = None
     try:
         if takeover:

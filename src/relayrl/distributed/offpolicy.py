@@ -23,7 +23,7 @@ from relayrl.distributed.workers import RolloutWorker
 from relayrl.errors import NonFiniteError
 from relayrl.metrics import EpisodeStats
 from relayrl.specs import Spec
-from relayrl.training.checkpoint import NO_REPLAY
+from relayrl.training.checkpoint import NO_REPLAY, replay_lost
 from relayrl.training.lifecycle import RunCore
 from relayrl.training.report import plural
 
@@ -166,8 +166,10 @@ class ReplayCollection:
         return {"replay": server["table"], "shipped": shipped, "env_steps": int(sum(shipped))}
 
     def load_state_dict(self, state: dict[str, Any], say: Callable[[str], None]) -> None:
-        self.pool.ray.get(self.pool.server.load_state_dict.remote({"table": state["replay"],
-                                                                   "shipped": state["shipped"]}))
+        lost = self.pool.ray.get(self.pool.server.load_state_dict.remote({"table": state["replay"],
+                                                                          "shipped": state["shipped"]}))
         if state["replay"] is None:
             say(NO_REPLAY)
+        elif lost:
+            say(replay_lost(lost))
         self.accepted = [int(x) for x in state["shipped"]]

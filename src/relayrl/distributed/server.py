@@ -85,7 +85,8 @@ class ReplayServer:
         # items and sampler consistent; a chunk caught half-inserted only loses its other half.
         return {"table": self.table.state_dict() if include_replay else None, "shipped": list(self.shipped)}
 
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        if state["table"] is not None:
-            self.table.load_state_dict(state["table"])
+    def load_state_dict(self, state: dict[str, Any]) -> int:
+        """Returns the replay items the load dropped (`Table.load_state_dict`)."""
+        lost = self.table.load_state_dict(state["table"]) if state["table"] is not None else 0
         self.shipped = [int(x) for x in state["shipped"]]
+        return lost

@@ -17,6 +17,16 @@ NO_REPLAY = ("the checkpoint has no replay contents (train.checkpoint_replay = f
              "resumed policy before learning continues")
 
 
+def replay_lost(items: int, new_episodes: bool = False) -> str:
+    """The line for a memmap replay whose files went on past the checkpoint resumed from (a run
+    killed after more steps were written; a Ctrl-C or SIGTERM checkpoints as it stops): the
+    items whose rows were overwritten are gone and, where the open episodes' rows were too, the
+    envs start new episodes."""
+    gone = [f"{items:,} replay items it held are gone"] * (items > 0) + ["the envs start new episodes"] * new_episodes
+    return (f"the replay files were written after this checkpoint: {' and '.join(gone)}, so this resume is not bit "
+            "for bit the uninterrupted run")
+
+
 def save_checkpoint(folder: Path, env_steps: int, state: dict[str, Any], keep: int = 2) -> Path:
     """Write `state` as `folder/ckpt-<env steps>.pt` atomically, keeping the newest `keep` (0: all)."""
     folder.mkdir(parents=True, exist_ok=True)

@@ -42,7 +42,7 @@ def describe(value: float) -> str:
 
 
 class FiniteWatch(Observer):
-    """Actor observer: checks the observations and rewards it was shown, on `check()`. `checked`
+    """Actor observer: checks the observations, float actions and rewards it was shown, on `check()`. `checked`
     counts env steps already checked (a resumed run sets it), so a finding names its env step."""
 
     def __init__(self, num_envs: int, obs_spec: Spec | None = None, checked: int = 0, where: str = "") -> None:

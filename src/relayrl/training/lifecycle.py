@@ -58,17 +58,40 @@ class RunResult:
     stopped_early: bool = False  # a callback returned False before train.total_steps
 
 
-# What a resumed run keeps of the run it continues, beside the keys that shape its networks
+# What a resumed run keeps of the run it continues (`kept_on_resume`), and the advice a refusal gives
 IDENTITY_KEYS = ("algo", "env.id", "seed")
+_OWN = ("resume with the run's own config.toml: leave out PRESET|CONFIG.toml and --set {} (in Python: "
+        "relayrl.load_config(RUN_DIR/config.toml), and env= again where the run was given one)")
+_ADVICE = {"algo": _OWN.format("algo"), "env.id": _OWN.format("env.id"),
+           "seed": "a resumed run keeps its seed (leave out --seed; in Python, load the run's config.toml)",
+           "env.num_envs": "its replay and envs are laid out per copy: " + _OWN.format("env.num_envs"),
+           "distributed.num_actors": "its checkpoint holds each actor's part (off-policy: of the replay too): "
+           + _OWN.format("distributed.num_actors"),
+           "replay.size": "its checkpoint holds a replay table of that size: " + _OWN.format("replay.size")}
+IDENTITY = {k: _ADVICE[k] for k in IDENTITY_KEYS}
 
 
-def kept_on_resume(config: Config) -> list[str]:
-    """The keys a resumed run keeps: its identity, its env copies and actors (its replay and
-    envs are laid out per copy), an off-policy run's replay size (the checkpoint holds the table)
-    and the agent's network keys."""
-    replay = ["replay.size"] if algorithm(config.algo).replay == "transitions" else []
-    return [*IDENTITY_KEYS, "env.num_envs", "distributed.num_actors", *replay,
-            *(f"agent.{k}" for k in config.agent.NETWORK)]
+def kept_on_resume(config: Config, replay_in_checkpoint: bool) -> dict[str, str]:
+    """The keys a resumed run keeps, each with the advice its refusal gives: its identity, its
+    env copies and actors (its replay and envs are laid out per copy), an off-policy run's replay
+    size where its checkpoint holds the table (train.checkpoint_replay), and the agent's network
+    keys."""
+    replay = replay_in_checkpoint and algorithm(config.algo).replay == "transitions"
+    keys = (*IDENTITY_KEYS, "env.num_envs", "distributed.num_actors", *["replay.size"] * replay)
+    kept = {k: _ADVICE[k] for k in keys}
+    networks = "a resumed run keeps its networks (leave out --set {}; in Python, load the run's config.toml)"
+    return kept | {f"agent.{k}": networks.format(f"agent.{k}") for k in config.agent.NETWORK}
+
+
+def check_checkpoint_config(config: Config, state: dict[str, Any], config_file: Path) -> None:
+    """The kept keys against the checkpoint's own config (`dispatch` checks them against
+    config.toml): a config.toml edited by hand is one line, not a different run."""
+    was, now = dotted(state.get("config", {})), dotted(to_dict(config))
+    for key in kept_on_resume(config, state.get("replay") is not None):
+        if key in was and was[key] != now[key]:
+            raise UserError(f"--resume: the run's checkpoint was written with {key}={was[key]!r}, but the config "
+                            f"resumed with has {now[key]!r}: set {key} = {was[key]!r} in {str(config_file)!r} again "
+                            "(was it edited?)")
 
 
 def resolve_device(name: str) -> torch.device:
@@ -308,13 +331,7 @@ class RunCore:
     def restore_common(self, state: dict[str, Any]) -> int:
         """Load `checkpoint_common`'s parts but the process's state (the driver's to load, once its
         envs are back); returns the evaluations so far."""
-        # dispatch checked these against config.toml; a config.toml edited by hand is checked here
-        was, now = dotted(state.get("config", {})), dotted(to_dict(self.config))
-        for key in kept_on_resume(self.config):
-            if key in was and was[key] != now[key]:
-                raise UserError(f"--resume: the run's checkpoint was written with {key}={was[key]!r}, but the config "
-                                f"resumed with has {now[key]!r} (was {str(self.rd.config)!r} edited?): resume with "
-                                f"{key} = {was[key]!r}")
+        check_checkpoint_config(self.config, state, self.rd.config)  # dispatch's did where the build could harm
         saved = state.get("spaces")  # checkpoints before spaces were recorded: only their frames' layout
         encoder = self.config.agent.encoder
         if saved is None and encoder in CONV_READY:

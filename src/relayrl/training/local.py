@@ -18,7 +18,7 @@ from relayrl.envs.stateless.adapter import StatelessBatchEnv
 from relayrl.metrics import EnvironmentSteps, EpisodeStats
 from relayrl.policies import RandomPolicy
 from relayrl.training.actor import Actor
-from relayrl.training.checkpoint import NO_REPLAY, load_latest_checkpoint
+from relayrl.training.checkpoint import NO_REPLAY, load_latest_checkpoint, replay_lost
 from relayrl.training.evaluate import check_same_spaces, eval_cap_note, make_eval_env
 from relayrl.training.finite import FiniteWatch
 from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
@@ -190,15 +190,12 @@ class LocalDriver:
         files_moved_on = False
         if state["replay"] is not None:
             lost = self.replay.load_state_dict(state["replay"])  # drops items whose memmap rows were overwritten
-            if lost:  # a Ctrl-C or SIGTERM checkpoints as it stops; a killed run's files went on past its last
-                core.say(f"the replay files were written after this checkpoint: {lost:,} replay items it held are "
-                         "gone, so this resume is not bit for bit the uninterrupted run")
             # A memmap replay reopens its files as they are now: if the run went on for more
             # than a ring's worth of steps after this checkpoint, even the open episodes' rows
             # hold newer steps, and the envs must start new episodes.
             files_moved_on = "actor" in state and not self.writer.saved_episodes_intact()
-            if files_moved_on:
-                core.say("the replay files were overwritten after this checkpoint: the envs start new episodes")
+            if lost or files_moved_on:
+                core.say(replay_lost(lost, files_moved_on))
         else:
             core.say(NO_REPLAY)
         self.random_rng.bit_generator.state = state["random_rng"]
