@@ -581,6 +581,76 @@ def test_a_running_cluster_and_an_empty_address_is_one_line(monkeypatch):
         init_ray(fake_ray, config)
 
 
+def test_auto_with_a_ray_address_where_nothing_listens_is_one_line_at_once(monkeypatch):
+    """Ray would wait for the head RAY_ADDRESS names (minutes, in warnings): the address is tried first."""
+    from types import SimpleNamespace
+
+    from relayrl.distributed.actors import init_ray
+
+    def init(**kw):
+        raise AssertionError("ray.init is not reached")
+
+    monkeypatch.setenv("RAY_ADDRESS", "127.0.0.1:1")
+    fake_ray = SimpleNamespace(is_initialized=lambda: False, init=init)
+    config = relayrl.load_config("sac-pendulum", ["distributed.num_actors=1", "distributed.address=auto"])
+    with pytest.raises(UserError, match=r"^no Ray cluster answers at distributed.address='auto'.* \(RAY_ADDRESS="
+                                        r"'127.0.0.1:1'\)"):
+        init_ray(fake_ray, config)
+
+
+def test_a_sigterm_inside_ray_init_reaches_the_clis_handler(monkeypatch):
+    """Ray's handler, in place during ray.init, exits with 15 and no line: the CLI's handler
+    (here one raising TimeoutError) takes the signal, and stays in place."""
+    import signal
+    from types import SimpleNamespace
+
+    from relayrl.distributed.actors import init_ray
+
+    def ours(signum, frame):
+        raise TimeoutError("the CLI's stop")
+
+    def init(**kw):
+        signal.signal(signal.SIGTERM, lambda signum, frame: sys.exit(signum))  # as Ray's
+        signal.raise_signal(signal.SIGTERM)
+
+    before = signal.signal(signal.SIGTERM, ours)
+    try:
+        with pytest.raises(TimeoutError, match="the CLI's stop"):
+            init_ray(SimpleNamespace(is_initialized=lambda: False, init=init),
+                     relayrl.load_config("sac-pendulum", ["distributed.num_actors=1"]))
+        assert signal.getsignal(signal.SIGTERM) is ours
+    finally:
+        signal.signal(signal.SIGTERM, before)
+
+
+def test_an_actor_whose_env_fails_to_build_is_the_workers_one_line_and_ray_is_shut_down():
+    from types import SimpleNamespace
+
+    from relayrl.distributed import actors
+
+    class ActorDied(RuntimeError):
+        pass
+
+    failure = ("The actor died because of an error raised in its creation task, ray::RolloutWorker.__init__()\n"
+               "Traceback (most recent call last):\n  File \"mymod.py\", line 5, in __init__\n"
+               "OSError: WorkerFails: no device /dev/fake on this node")
+
+    def get(calls):
+        raise ActorDied(failure)
+
+    shut = []
+    fake_ray = SimpleNamespace(wait=lambda pending, num_returns, timeout: (pending, []), get=get,
+                               exceptions=SimpleNamespace(RayActorError=ActorDied), is_initialized=lambda: False,
+                               shutdown=lambda: shut.append(1))
+    pool = actors.ActorPool(fake_ray, relayrl.load_config("ppo-cartpole", ["distributed.num_actors=1"]), print)
+    with pytest.raises(UserError, match=r"^an actor could not start on a Ray worker: OSError: WorkerFails: no device "
+                                        r"/dev/fake on this node$"):
+        pool.wait_started(["a"])
+    pool.owns_ray = True  # as `start` sets it before ray.init, which an interrupt may cut short
+    pool.close()
+    assert shut == [1]
+
+
 def test_an_address_without_actors_says_the_run_is_one_process(tmp_path, capsys):
     config = relayrl.load_config("dqn-cartpole-fast", ["distributed.address=auto", "train.total_steps=300",
                                                        "train.initial_collect_steps=100", "eval.episodes=1"])

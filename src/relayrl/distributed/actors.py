@@ -16,7 +16,7 @@ import uuid
 from collections.abc import Callable
 from typing import Any
 
-from relayrl.config import Config, to_dict
+from relayrl.config import RAY_ADDRESS, Config, to_dict
 from relayrl.distributed.workers import EvalWorker, actor_name
 from relayrl.errors import UserError
 from relayrl.training.report import plural
@@ -29,23 +29,43 @@ UNAVAILABLE_LIMIT = 150
 WAIT_SAY_S = 30.0  # while actors are not yet placed, a line this often
 
 
-def init_ray(ray: Any, config: Config) -> bool:
-    """Join distributed.address, or start a local Ray instance with room for every actor; True
-    when this process started it (and so shuts it down)."""
-    d = config.distributed
+def init_ray(ray: Any, config: Config) -> None:
+    """Join distributed.address, or start a local Ray instance with room for every actor."""
     if ray.is_initialized():
-        return False
-    kw: dict[str, Any] = {"include_dashboard": False, "logging_level": "ERROR"}
+        return
     on_sigterm = signal.getsignal(signal.SIGTERM)
+    try:
+        _init(ray, config)
+    except SystemExit as e:
+        # Ray's own SIGTERM handler, in place during ray.init, exits with the signal's number:
+        # the CLI's (stop like Ctrl-C, exit 143 with its line) takes the signal instead.
+        if e.code != signal.SIGTERM or not callable(on_sigterm):
+            raise
+        signal.signal(signal.SIGTERM, on_sigterm)
+        signal.raise_signal(signal.SIGTERM)
+        raise
+    finally:
+        if callable(on_sigterm):
+            # Ray's core replaces SIGTERM's handler in the driver with one that dumps a stack and
+            # exits; the CLI's goes back.
+            signal.signal(signal.SIGTERM, on_sigterm)
+
+
+def _init(ray: Any, config: Config) -> None:
+    d = config.distributed
+    kw: dict[str, Any] = {"include_dashboard": False, "logging_level": "ERROR"}
     if d.address:
         no_head = (f"no Ray cluster answers at distributed.address={d.address!r}: start one (`ray start --head` on "
                    "its head node), or leave distributed.address empty to start a local Ray instance")
-        if d.address != "auto":  # host:port: a head that is not there would be waited for at length
-            host, port = d.address.removeprefix("ray://").rsplit(":", 1)
+        # host:port (auto: RAY_ADDRESS's where it names one): a head that is not there is waited for at length
+        target = os.environ.get("RAY_ADDRESS", "") if d.address == "auto" else d.address
+        if re.fullmatch(RAY_ADDRESS, target):
+            host, port = target.removeprefix("ray://").rsplit(":", 1)
             try:
                 socket.create_connection((host.strip("[]"), int(port)), timeout=5).close()  # [::1]: IPv6
             except OSError as e:
-                raise UserError(f"{no_head} ({e.strerror or e})") from None
+                via = f" (RAY_ADDRESS={target!r})" if target != d.address else ""
+                raise UserError(f"{no_head}{via} ({e.strerror or e})") from None
         try:
             ray.init(address=d.address, **kw)
         except ConnectionError as e:
@@ -66,11 +86,6 @@ def init_ray(ray: Any, config: Config) -> bool:
                 ("a Ray cluster is running on this machine", "stop it (ray stop)")
             raise UserError(f"{where}, and distributed.address is empty (a local Ray instance of the run's own): "
                             f"set distributed.address=auto to join that cluster, or {other}") from None
-    if callable(on_sigterm):
-        # Ray's core replaces SIGTERM's handler in the driver with one that dumps a stack and
-        # exits; the CLI's (stop like Ctrl-C: actors shut down) goes back.
-        signal.signal(signal.SIGTERM, on_sigterm)
-    return True
 
 
 class ActorPool:
@@ -98,7 +113,10 @@ class ActorPool:
         """Ray, the replay server (`server(ray, name)`, where the collection has one) and every
         actor; env errors surface here."""
         ray, c, d = self.ray, self.config, self.config.distributed
-        self.owns_ray = init_ray(ray, c)
+        # Owned from before ray.init: a Ctrl-C inside it leaves the processes it started, which
+        # `close` shuts down.
+        self.owns_ray = not ray.is_initialized()
+        init_ray(ray, c)
         cfg, path = to_dict(c), list(sys.path)
         # Restartable actors find the server and the container by name: Ray cannot promise to
         # keep actor handles passed as constructor arguments alive for a restart.
@@ -128,7 +146,10 @@ class ActorPool:
         try:
             ray.get(calls)
         except ray.exceptions.RayActorError as e:
-            found = re.findall(r"^relayrl\.errors\.\w+: (.+)$", str(e), flags=re.MULTILINE)
+            # the worker's own last line: relayrl's refusal, else the exception that stopped the
+            # actor's creation (an env that fails to build there)
+            found = (re.findall(r"^relayrl\.errors\.\w+: (.+)$", str(e), flags=re.MULTILINE)
+                     or re.findall(r"^((?:\w+\.)*\w*(?:Error|Exception)\w*: .+)$", str(e), flags=re.MULTILINE))
             if not found:
                 raise
             raise UserError(f"an actor could not start on a Ray worker: {found[-1]}") from None
@@ -143,11 +164,12 @@ class ActorPool:
             self.ray.get(self.server.close_intake.remote())
 
     def close(self) -> None:
-        """Stop every actor (and the local Ray instance this run started): no orphan processes."""
-        if not self.ray.is_initialized():
-            return
-        self._kill([*self.workers, *self.eval_workers, self.server, self.variables])
+        """Stop every actor (and the local Ray instance this run started, also one whose start
+        was interrupted): no orphan processes."""
+        if self.ray.is_initialized():
+            self._kill([*self.workers, *self.eval_workers, self.server, self.variables])
         if self.owns_ray:
+            self.owns_ray = False
             self.ray.shutdown()
 
     def _kill(self, handles: list[Any]) -> None:
