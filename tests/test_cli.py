@@ -260,6 +260,11 @@ def test_ctrl_c_after_a_run_reached_its_end_does_not_offer_resume(monkeypatch, t
     assert cli.main(["train", "dqn", "--run-dir", str(run), "--resume"]) == 130
     assert capsys.readouterr().err == (f"relayrl: interrupted after the run reached its end and evaluated it: it is "
                                        f"complete in {run}\n")
+    # a resume that extends the run, or a run that replaces it, did not reach the end it asks for
+    assert cli.main(["train", "dqn", "--run-dir", str(run), "--resume", "--set", "train.total_steps=5000"]) == 130
+    assert "resume with --resume from the last checkpoint" in capsys.readouterr().err
+    assert cli.main(["train", "dqn", "--run-dir", str(run), "--overwrite", *tiny]) == 130
+    assert "resume with --resume from the last checkpoint" in capsys.readouterr().err
     rows = (run / "metrics.jsonl").read_text().splitlines()
     (run / "metrics.jsonl").write_text("\n".join(rows[:-1]) + "\n")  # its final evaluation not written yet
     assert cli.main(["train", "dqn", "--run-dir", str(run), "--resume"]) == 130

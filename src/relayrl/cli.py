@@ -219,15 +219,18 @@ def _on_sigterm(signum: int, frame: object) -> NoReturn:
     raise Terminated
 
 
-def _completed(rd: Any) -> bool:
-    """Whether the run in `rd` (a RunDir with a checkpoint) has its last checkpoint at or past
-    train.total_steps and an evaluation row at that step: a --resume would find nothing to do."""
-    from relayrl.config import from_dict, load_toml  # torch-free
+def _completed(rd: Any, args: argparse.Namespace) -> bool:
+    """Whether this command's run in `rd` (a RunDir with a checkpoint) has its last checkpoint at
+    or past the command's train.total_steps and an evaluation row at that step: a --resume would
+    find nothing to do. Not where the command replaces the run (--overwrite)."""
+    from relayrl.presets import load_config  # torch-free
     from relayrl.training.run_dir import checkpoint_step, list_checkpoints
 
-    try:
-        total = from_dict(load_toml(rd.config)).train.total_steps
-    except (OSError, ValueError, UserError):  # ConfigError is a UserError; TOML errors are ValueErrors
+    if args.overwrite:
+        return False
+    try:  # the command's own config: a --resume's --set train.total_steps extends the run
+        total = load_config(str(rd.config) if args.resume else args.config, args.overrides, args.seed).train.total_steps
+    except (OSError, ValueError, TypeError, UserError):  # a ConfigError is a UserError; TOML's errors ValueErrors
         return False
     at = checkpoint_step(list_checkpoints(rd.checkpoints)[-1])
     rows = rd.read_metrics()
@@ -250,7 +253,7 @@ def _interrupted_line(what: str, args: argparse.Namespace) -> str:
         trained = rd is not None and not resumable and rd.trained_to(read_policy=whole) > 0  # only if needed
     except (ImportError, AttributeError, OSError):  # torch still importing (no run has started), or unreadable
         resumable = trained = False
-    if resumable and _completed(rd):  # stopped in the run's last moments, after its end was saved
+    if resumable and _completed(rd, args):  # stopped in the run's last moments, after its end was saved
         return f"relayrl: {what} after the run reached its end and evaluated it: it is complete in {run_dir}"
     if resumable:
         return (f"relayrl: {what}; resume with --resume from the last checkpoint: "

@@ -312,7 +312,7 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
         return bool(value)  # NumPy's bool
     if isinstance(value, numbers.Integral) and not isinstance(value, bool) and hint is int:
         if not -INT_MAX - 1 <= int(value) <= INT_MAX:
-            raise ConfigError(f"{path}={value} is not valid; it must be in [{-INT_MAX - 1:,}, {INT_MAX:,}] (int64)")
+            raise ConfigError(f"{path}={value} is not valid; it is beyond int64's range (its size at most {INT_MAX:,})")
         return int(value)  # NumPy's integers too
     if hint is float and isinstance(value, numbers.Real) and not isinstance(value, bool):
         size = abs(int(value)) if isinstance(value, numbers.Integral) else abs(float(value))  # float(10**400) overflows

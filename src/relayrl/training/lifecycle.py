@@ -405,10 +405,6 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if c.distributed.address and c.distributed.num_actors == 0:
             core.say(f"distributed.address={c.distributed.address!r} with distributed.num_actors=0: the run trains "
                      "in this process (set distributed.num_actors=K for K rollout actors on Ray)")
-        if unused := c.unused_keys():
-            said = ", ".join(f"{k}={v!r}" for k, v in dotted(to_dict(c)).items() if k in unused)
-            core.say(f"{said}: no effect with this run's other settings (see `relayrl config` for what each "
-                     f"key applies to)")
         if c.env.num_workers > 0 and c.env.vectorization == "sync":  # an SB3 user's n_envs + SubprocVecEnv
             core.say(f"env.num_workers={c.env.num_workers} with env.vectorization='sync': the {c.env.num_envs:,} env "
                      "copies step in this process, none in worker processes (env.vectorization='async' uses them)")
@@ -421,6 +417,10 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
                          f"{c.train.total_steps:,}: nothing is left to train (raise train.total_steps to go on)")
             else:
                 record_resumed_config(core, saved)
+        if unused := c.unused_keys():  # after a restore, which may refuse the config
+            said = ", ".join(f"{k}={v!r}" for k, v in dotted(to_dict(c)).items() if k in unused)
+            core.say(f"{said}: no effect with this run's other settings (see `relayrl config` for what each "
+                     f"key applies to)")
         report.open(core.env_steps())
         driver.announce()
         if core.env_steps() == 0 and not resume:  # a run a callback stopped at step 0 has evaluated it

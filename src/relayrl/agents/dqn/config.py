@@ -34,7 +34,7 @@ class DQNConfig(Section):
     double: bool = False  # Double DQN: the online net picks the next action, the target net values it
     target_update_period: int = 1  # gradient steps between target updates
     tau: float = 1.0  # 1.0: hard copy; < 1: Polyak averaging
-    grad_clip: float = 0.0  # max global grad norm; 0 disables
+    grad_clip: float = 0.0  # max global grad norm; 0 (or less) disables
     epsilon_start: float = 1.0  # exploration: random-action probability at the start
     epsilon_end: float = 0.05  # exploration: random-action probability at the end of the decay
     # env steps for the linear decay; 0: constant epsilon_end; -1: a tenth of train.total_steps
@@ -70,7 +70,6 @@ class DQNConfig(Section):
                               "(0: constant epsilon_end), or -1 (a tenth of train.total_steps)")
         self.require("in (0, 1]", "epsilon_decay")
         self.require("> 0", "lr", "adam_eps", "huber_delta")  # Adam's eps 0 divides 0 by 0 where a gradient stays 0
-        self.require(">= 0", "grad_clip", note=" (0: no clipping)")
         self.require("in [0, 1]", "gamma")
 
 # `relayrl train dqn` / `algo = "dqn"`: what a config that names only algo and env.id gets beyond
