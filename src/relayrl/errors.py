@@ -17,13 +17,15 @@ class CheckpointError(UserError):
     """A checkpoint that cannot be read."""
 
 
-def check_count(name: str, value: object, zero: str | None = None) -> None:
+def check_count(name: str, value: object, zero: str | None = None) -> int:
     """One line where a count a caller passes (episodes, steps) is not an integer >= 1 (True is
-    no count); `zero`: what 0 means, where it is allowed."""
+    no count); `zero`: what 0 means, where it is allowed. Returns it as a Python int (a NumPy
+    integer's too: Gymnasium refuses those)."""
     # numbers.Integral: NumPy's integers too (a notebook's np.int64), not bools
     if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < (0 if zero else 1):
         also = f", or 0 {zero}" if zero else ""
         raise UserError(f"{name}={value!r} is not valid; it must be an integer >= 1{also}")
+    return int(value)
 
 
 def one_line(text: str, width: int = 60) -> str:

@@ -63,11 +63,9 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
     from relayrl.training.evaluate import cap_untimed
     from relayrl.training.evaluate import evaluate as run_episodes
 
-    check_count("episodes", episodes)
-    check_count("max_episode_steps", max_episode_steps, zero="for the env's own time limit")
-    check_seed(seed)
-    # Python ints from here on: Gymnasium's reset refuses a NumPy seed
-    episodes, max_episode_steps, seed = int(episodes), int(max_episode_steps), None if seed is None else int(seed)
+    episodes = check_count("episodes", episodes)
+    max_episode_steps = check_count("max_episode_steps", max_episode_steps, zero="for the env's own time limit")
+    seed = check_seed(seed)
     if lone_policy_file(policy):  # read once: for its env record and to act
         from relayrl.export import load_policy
 

@@ -21,6 +21,8 @@ spawned streams, and two drawn bases are 2**62 apart on average.
 
 from __future__ import annotations
 
+from typing import SupportsInt, cast
+
 import numpy as np
 
 from relayrl.errors import UserError
@@ -39,12 +41,15 @@ def seed_problem(seed: object, name: str | None = "seed") -> str | None:
     return None
 
 
-def check_seed(seed: object, name: str = "seed") -> None:
+def check_seed(seed: object, name: str = "seed") -> int | None:
     """A seed a caller passes (None: unseeded): refused in one line where it is not an integer in
     [0, MAX_SEED], before NumPy or Gymnasium say it in their own words (or the error is taken for
-    a broken file)."""
-    if seed is not None and (problem := seed_problem(seed, name)) is not None:
+    a broken file). Returns it as a Python int (Gymnasium's reset refuses a NumPy seed), or None."""
+    if seed is None:
+        return None
+    if (problem := seed_problem(seed, name)) is not None:
         raise UserError(f"{problem}, or None (unseeded)")
+    return int(cast(SupportsInt, seed))
 
 
 class RunSeeds:

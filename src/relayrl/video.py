@@ -36,11 +36,9 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     (used as it is and left open)."""
     from relayrl.training.run_dir import RunDir
 
-    for name, value in (("episodes", episodes), ("max_steps", max_steps)):  # not one episode in their place
-        check_count(name, value)
-    check_seed(seed)  # None: unseeded; else before Gymnasium's reset says it in its words
-    # Python ints from here on: Gymnasium's reset refuses a NumPy seed
-    episodes, max_steps, seed = int(episodes), int(max_steps), None if seed is None else int(seed)
+    # refused, not one episode in their place
+    episodes, max_steps = check_count("episodes", episodes), check_count("max_steps", max_steps)
+    seed = check_seed(seed)  # None: unseeded; else before Gymnasium's reset says it in its words
     rd = RunDir.of(run_dir)  # RUN_DIR/policy/policy.pt and RUN_DIR/config.toml name the run, as for `relayrl eval`
     if not rd.config.is_file():
         rd = RunDir(run_dir)  # a lone policy file or another folder: `require` says which
