@@ -106,10 +106,19 @@ def test_overrides_are_typed():
     ("train.seed=3", "did you mean 'seed'?"),
     ("replay.prioritized=true", "did you mean 'replay.sampler = \"prioritized\"'?"),
     ("eval.kwargs={}", "did you mean 'eval.env_kwargs'?"),  # the section's own near miss before env.kwargs
+    # other libraries' names, where the spelling points elsewhere
+    ("train.checkpoint_freq=5", "did you mean 'train.checkpoint_interval'?"),  # not checkpoint_replay
+    ("train.log_freq=5", "did you mean 'train.log_interval'?"),
+    ("env.time_limit=5", "did you mean 'env.max_episode_steps'?"),  # not time_limit_terminates
+    ("replay.alpha=0.6", "did you mean 'replay.priority_exponent'?"),  # not CleanRL's SAC alpha
+    ("replay.beta=0.4", "did you mean 'replay.importance_exponent'?"),
+    ("sac:agent.hidden=[64]", "did you mean 'agent.actor_hidden' and 'agent.critic_hidden'?"),
+    ("sac:agent.lr=0.001", "did you mean 'agent.actor_lr', 'agent.critic_lr' and 'agent.alpha_lr'?"),
 ])
 def test_bad_overrides_fail_with_a_clear_message(override, fragment):
+    preset, _, override = override.rpartition(":") if override.startswith("sac:") else ("dqn-cartpole", "", override)
     with pytest.raises(ConfigError, match=None) as e:
-        load_config("dqn-cartpole", [override] + ["train.gradient_steps=0"] * override.startswith("replay.samples"))
+        load_config(preset, [override] + ["train.gradient_steps=0"] * override.startswith("replay.samples"))
     assert fragment in str(e.value)
 
 

@@ -581,6 +581,29 @@ def test_a_running_cluster_and_an_empty_address_is_one_line(monkeypatch):
         init_ray(fake_ray, config)
 
 
+def test_more_local_actors_than_a_machine_can_hold_is_one_line_before_ray_starts(monkeypatch):
+    """Each actor is a process holding torch: 100,000 of them on a local instance exhaust the
+    machine's memory; a cluster takes any number."""
+    from types import SimpleNamespace
+
+    from relayrl.distributed import actors
+
+    def init(**kw):
+        raise AssertionError("ray.init is not reached")
+
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    monkeypatch.setattr(actors.os, "cpu_count", lambda: 4)
+    fake_ray = SimpleNamespace(is_initialized=lambda: False, init=init)
+    config = relayrl.load_config("ppo-cartpole", ["distributed.num_actors=33"])
+    with pytest.raises(UserError, match=r"^distributed.num_actors=33 starts as many worker processes on this machine "
+                                        r"\(4 CPU cores, a local Ray instance\); at most 32 here"):
+        actors.init_ray(fake_ray, config)
+    started = []
+    config.distributed.num_actors = 32
+    actors.init_ray(SimpleNamespace(is_initialized=lambda: False, init=lambda **kw: started.append(kw)), config)
+    assert started[0]["num_cpus"] == 33
+
+
 def test_auto_with_a_ray_address_where_nothing_listens_is_one_line_at_once(monkeypatch):
     """Ray would wait for the head RAY_ADDRESS names (minutes, in warnings): the address is tried first."""
     from types import SimpleNamespace

@@ -238,6 +238,9 @@ def unknown_key(path: str, valid: list[str]) -> str:
     """"unknown config key 'train.total_step'; did you mean 'train.total_steps'?" (or the valid keys)."""
     prefix, _, key = path.rpartition(".")
     names = {v.rpartition(".")[2]: v for v in valid}  # compared without the shared section prefix
+    if meant := _meant(prefix, key, names):
+        named = ", ".join(map(repr, meant[:-1])) + " and " * (len(meant) > 1) + repr(meant[-1])
+        return f"unknown config key {path!r}; did you mean {named}?"
     known = key in SB3_NAMES or key in CLEANRL_NAMES
     close = difflib.get_close_matches(key, list(names), n=1, cutoff=0.8 if known else 0.6)
     if close:  # a near miss of the section's own key first (replay.n_steps: replay.n_step)
@@ -247,6 +250,27 @@ def unknown_key(path: str, valid: list[str]) -> str:
     if key in CLEANRL_NAMES:
         return f"unknown config key {path!r}; here, CleanRL's {key} is {CLEANRL_NAMES[key]}"
     return f"unknown config key {path!r}; valid: {', '.join(valid)}"
+
+
+# Names other libraries give a section's keys, where the spelling is no guide (difflib takes
+# replay.alpha for CleanRL's SAC alpha, train.checkpoint_freq for train.checkpoint_replay).
+_SECTION_MEANT = {"replay.alpha": "priority_exponent", "replay.beta": "importance_exponent",
+                  "replay.capacity": "size", "env.time_limit": "max_episode_steps", "env.name": "id"}
+_WORDS = {"freq": "interval", "frequency": "interval"}  # SB3's save_freq: train.checkpoint_interval
+
+
+def _meant(section: str, key: str, names: dict[str, str]) -> list[str]:
+    """The keys a foreign name means in `section`: another library's name for one, the key
+    with SB3's `freq` for `interval`, or an agent's per-network keys (SAC's hidden: actor_hidden
+    and critic_hidden)."""
+    if (name := _SECTION_MEANT.get(f"{section}.{key}")) in names:
+        return [names[name]]
+    worded = "_".join(_WORDS.get(word, word) for word in key.split("_"))
+    if worded != key and worded in names:
+        return [names[worded]]
+    if section == "agent" and key not in SB3_NAMES and key not in CLEANRL_NAMES:
+        return [valid for name, valid in names.items() if name.endswith(f"_{key}") and name.count("_") == 1]
+    return []
 
 
 # Algorithms of Stable-Baselines3 and sb3-contrib that relayrl has not, by their name folded

@@ -27,6 +27,9 @@ from relayrl.training.variables import VariableContainer
 RETRY_S = 0.2
 UNAVAILABLE_LIMIT = 150
 WAIT_SAY_S = 30.0  # while actors are not yet placed, a line this often
+# A local Ray instance runs at most max(LOCAL_ACTORS_MIN, LOCAL_ACTORS_PER_CORE x cores) rollout actors.
+LOCAL_ACTORS_MIN = 16
+LOCAL_ACTORS_PER_CORE = 8
 
 
 def init_ray(ray: Any, config: Config) -> None:
@@ -75,8 +78,14 @@ def _init(ray: Any, config: Config) -> None:
             raise UserError(f"something answers at distributed.address={d.address!r}, but Ray could not join it "
                             f"({reason}): check that it is a Ray head of a matching Ray version") from None
     else:
+        cores = os.cpu_count() or 1
+        # each actor is a process holding torch (~0.3 GB): thousands on one machine exhaust its memory
+        if d.num_actors > (most := max(LOCAL_ACTORS_MIN, LOCAL_ACTORS_PER_CORE * cores)):
+            raise UserError(f"distributed.num_actors={d.num_actors:,} starts as many worker processes on this "
+                            f"machine ({cores} CPU cores, a local Ray instance); at most {most:,} here: join a Ray "
+                            "cluster (distributed.address) for more")
         try:
-            ray.init(num_cpus=max(os.cpu_count() or 1, math.ceil(d.num_actors * d.actor_cpus) + 1), **kw)
+            ray.init(num_cpus=max(cores, math.ceil(d.num_actors * d.actor_cpus) + 1), **kw)
         except ValueError as e:  # Ray joined a cluster RAY_ADDRESS names, which takes no num_cpus
             if "existing cluster" not in str(e):
                 raise
