@@ -248,6 +248,7 @@ class RunCore:
         self.sps_log = StepsPerSecondLog(c.train.log_interval, report=self.report.log_progress)
         self.evaluation = evaluation
         self.triggers: list[IntervalTrigger] = [evaluation, self.policy_saver, self.checkpointer, self.sps_log]
+        self.restored_config: dict[str, Any] = {}  # the config the restored checkpoint was written with
 
     def say(self, text: str) -> None:
         self.report.say(text)
@@ -332,6 +333,7 @@ class RunCore:
         """Load `checkpoint_common`'s parts but the process's state (the driver's to load, once its
         envs are back); returns the evaluations so far."""
         check_checkpoint_config(self.config, state, self.rd.config)  # dispatch's did where the build could harm
+        self.restored_config = state.get("config", {})
         saved = state.get("spaces")  # checkpoints before spaces were recorded: only their frames' layout
         encoder = self.config.agent.encoder
         if saved is None and encoder in CONV_READY:
@@ -523,11 +525,21 @@ def saved_config(rd: RunDir) -> Config | None:
         return None
 
 
+def _edited_since(checkpointed: dict[str, Any], saved: Config) -> list[str]:
+    """`key: checkpoint's -> config.toml's` for the keys both name (a checkpoint of an older
+    version may lack newer keys) whose values differ."""
+    was, now = dotted(checkpointed), dotted(to_dict(saved))
+    return [f"{k}: {was[k]!r} -> {now[k]!r}" for k in sorted(was.keys() & now.keys()) if was[k] != now[k]]
+
+
 def record_resumed_config(core: RunCore, saved: Config | None) -> None:
     """config.toml becomes the config the resumed run goes on with (`--set` overrides
     included), so that `relayrl eval` and a later resume use it; written once the checkpoint
     has been restored, so a config it refused is not kept. What changed is said."""
     changed = changes(saved, core.config) if saved is not None else ["config.toml rewritten in this version's form"]
+    if saved is not None and (edited := _edited_since(core.restored_config, saved)):
+        core.say(f"config.toml differs from the settings its checkpoint was written with (edited by hand, or a "
+                 f"resume stopped before its first checkpoint): {'; '.join(edited)}")
     if changed:
         save_toml(core.config, core.rd.config)
         core.say(f"resumed with changed settings, now in config.toml: {'; '.join(changed)}")
