@@ -6,6 +6,7 @@ import importlib.util
 import json
 import sys
 
+import gymnasium
 import pytest
 import torch
 
@@ -22,8 +23,24 @@ needs_ale = pytest.mark.skipif(
 
 def test_a_missing_ale_py_is_one_line_naming_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "ale_py", None)  # `import ale_py` now raises ImportError
-    with pytest.raises(UserError, match=r"needs ale-py: pip install 'relayrl\[atari\]'"):
+    with pytest.raises(UserError, match=r"needs ale-py: pip install -e \"\.\[atari\]\" in relayrl's folder"):
         import_ale("relayrl/Atari-Pong-v0")
+
+
+@pytest.mark.parametrize("env_id, hint", [("relayrl/Atari-Pong-v0", True), ("PongNoFrameskip-v4", True),
+                                          ("Cartpole-v0", False)])
+def test_without_ale_py_atari_ids_say_which_extra_with_each_vectorization(env_id, hint, monkeypatch):
+    """The ale-py vector env (ppo-pong, dqn-pong-fast) and the old Gym ids that ale-py registers
+    name the extra; a near miss of another env's id keeps its own hint."""
+    from relayrl.envs.make import make_env
+
+    monkeypatch.setitem(sys.modules, "ale_py", None)
+    monkeypatch.delitem(gymnasium.registry, env_id, raising=False)  # an earlier test's ale-py registered it
+    vectorizations = ["sync", "ale"] if env_id.startswith("relayrl/") else ["sync"]
+    for vectorization in vectorizations:
+        with pytest.raises(UserError) as e:
+            make_env(env_id, 2, vectorization=vectorization)
+        assert ("pip install -e \".[atari]\"" in str(e.value)) == hint, str(e.value)
 
 
 def test_ddqn_pong_preset_is_listed_with_standard_settings():

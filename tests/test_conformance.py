@@ -159,8 +159,9 @@ def test_loaded_policy_takes_numpy_torch_single_and_batched(runs, name):
     assert isinstance(single, torch.Tensor) and torch.allclose(single.double(), expected[0].double(), atol=1e-6)
     action, recurrent_state = policy.predict(obs.numpy()[0], deterministic=True)  # SB3's spelling
     assert recurrent_state is None and np.allclose(action, expected[0].numpy(), atol=1e-6)
-    with pytest.raises(UserError, match="does not fit this policy"):
-        policy(np.zeros((3, 99)))
+    for wrong in (np.zeros((3, 99)), torch.zeros((3, 99), dtype=obs.dtype)):  # a tensor in its dtype too
+        with pytest.raises(UserError, match="does not fit this policy"):
+            policy(wrong)
     if name == "sac":
         sampled, _ = policy.predict(obs.numpy(), deterministic=False)
         assert sampled.shape == expected.shape and not np.array_equal(sampled, expected.numpy())

@@ -593,7 +593,10 @@ def test_closing_an_async_env_frees_its_file_descriptors_at_once():
 def test_a_missing_gymnasium_dependency_names_relayrls_extra(said, extra):
     import gymnasium as gym
 
-    from relayrl.envs.make import extra_hint
+    from relayrl.envs.make import making, missing_extra
 
-    hint = extra_hint(gym.error.DependencyNotInstalled(said))
-    assert hint == (f" (with relayrl: pip install 'relayrl[{extra}]')" if extra else "")
+    assert missing_extra(gym.error.DependencyNotInstalled(said)) == extra
+    with pytest.raises(UserError) as e, making("SomeEnv-v0"):
+        raise gym.error.DependencyNotInstalled(said)
+    needs = f"needs Gymnasium's {extra} dependencies: pip install -e \".[{extra}]\" in relayrl's folder"
+    assert str(e.value) == f"env.id='SomeEnv-v0' {needs if extra else 'could not be made: ' + said}"

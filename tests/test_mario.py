@@ -42,7 +42,7 @@ def test_missing_extra_is_a_user_error(monkeypatch):
     monkeypatch.setattr(mario, "_modules", None)  # forget a load done by an earlier test
     monkeypatch.setitem(sys.modules, "nes_py", None)  # find_spec then reports it missing
     message = re.escape(f"({ENV_ID} and the ddqn-mario preset's {ENV_ID.replace('-v0', '-pixels-v0')}) need "
-                        "nes-py: pip install 'relayrl[mario]'")
+                        "nes-py: pip install -e \".[mario]\" in relayrl's folder")
     with pytest.raises(UserError, match=message):
         mario.MarioEnv()
 

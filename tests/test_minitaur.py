@@ -32,7 +32,7 @@ def test_registered_without_importing_pybullet():
 
 def test_missing_pybullet_is_a_user_error(monkeypatch):
     monkeypatch.setitem(sys.modules, "pybullet", None)  # makes `import pybullet` raise ImportError
-    message = re.escape("relayrl/MinitaurBullet-v0 needs pybullet: pip install 'relayrl[bullet]'")
+    message = re.escape("relayrl/MinitaurBullet-v0 needs pybullet: pip install -e \".[bullet]\" in relayrl's folder")
     with pytest.raises(UserError, match=message):
         gym.make(ENV_ID)
     with pytest.raises(UserError, match=message):

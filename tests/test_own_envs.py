@@ -295,6 +295,28 @@ def test_an_env_raising_in_the_check_keeps_its_error_with_a_note_of_where(env_id
         "a random action)"]
 
 
+class _DictActionsItCannotTake(gym.Env):
+    """A Dict action space its own step() cannot take: relayrl's refusal of the space comes
+    before its check's step of a random action reaches it."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+    action_space = gym.spaces.Dict({"a": gym.spaces.Discrete(2)})
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return np.zeros(2, np.float32), {}
+
+    def step(self, action):
+        raise AssertionError("stepped")
+
+
+def test_an_action_space_relayrl_cannot_take_is_refused_before_the_env_is_stepped(tmp_path):
+    config = load_config("ppo", ["train.total_steps=2048"])
+    with pytest.raises(UserError, match=r"action space Dict\('a': Discrete\(2\)\) is not supported; valid action "
+                                        r"spaces: DQN: Discrete; SAC: Box; PPO: Discrete, Box"):
+        train(config, tmp_path / "run", progress=False, env=_DictActionsItCannotTake)
+
+
 def test_float64_observations_are_one_line_and_the_checks_after_it_still_run():
     """Gymnasium's checker asserts that float64 observations are "not within the observation
     space" (of values inside its bounds) and stops there: the seed it ignores went unsaid."""

@@ -387,6 +387,11 @@ def test_unsupported_spaces_name_the_space_and_what_is_valid():
     with pytest.raises(UserError, match=r"observation space Text\(.*valid observation spaces: Box, Discrete, "
                                         r"MultiDiscrete, MultiBinary, Dict, Tuple"):
         spec_from_space(gym.spaces.Text(5), "observation")
+    nested = gym.spaces.Dict({"pos": gym.spaces.Box(-1, 1, (2,)), "inner": gym.spaces.Tuple(
+        (gym.spaces.Discrete(2), gym.spaces.Discrete(3, start=1)))})  # the entry a wrapper must shift is named
+    with pytest.raises(UserError, match=r"^the observation's entry 'inner.1': observation space Discrete\(3, "
+                                        r"start=1\) starts at 1"):
+        spec_from_space(nested, "observation")
     with pytest.raises(UserError, match=r"action space Dict\(.*valid action spaces: .*PPO: Discrete, Box, "
                                         r"MultiDiscrete, MultiBinary"):
         spec_from_space(gym.spaces.Dict({"a": gym.spaces.Discrete(2)}), "action")

@@ -150,3 +150,19 @@ def test_docs_list_each_algorithms_defaults():
         assert f"`{algo}`" in table
         for key in dotted(ALGORITHMS[algo].defaults):
             assert f"| `{key}` |" in table
+
+
+def test_a_run_on_a_new_env_with_an_algorithms_defaults_says_how_long_it_trains(tmp_path, capsys):
+    """No preset and no length chosen: the run says the defaults it took for its length and
+    evaluations and where every setting is; a chosen length, or a preset's, is not said."""
+    stop_at_once = [lambda row: False]  # the step-0 evaluation's row stops the run
+    relayrl.train(load_config("dqn", ["env.id=Acrobot-v1"]), tmp_path / "r", progress=False, callbacks=stop_at_once)
+    assert (f"dqn's defaults on Acrobot-v1: 100,000 env steps (train.total_steps), evaluated every 10,000 env steps "
+            f"and at the end, 10 episodes each (eval.interval, eval.episodes); every setting is in "
+            f"{str(tmp_path / 'r' / 'config.toml')!r} (`relayrl config dqn` says what each key does)\n"
+            ) in capsys.readouterr().err
+    for name, overrides in (("dqn", ["env.id=Acrobot-v1", "train.total_steps=96"]),
+                            ("dqn-cartpole-fast", ["env.id=Acrobot-v1"]), ("dqn", [])):
+        relayrl.train(load_config(name, overrides), tmp_path / "r", progress=False, callbacks=stop_at_once,
+                      overwrite=True)
+        assert "defaults" not in capsys.readouterr().err

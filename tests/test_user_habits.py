@@ -132,7 +132,7 @@ def test_export_refuses_an_out_that_names_another_format(run_dir, tmp_path, caps
 def test_onnx_without_the_package_is_one_line(run_dir, tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "onnx", None)  # import onnx raises ImportError
     assert main(["export", str(run_dir), "--format", "onnx", "--out", str(tmp_path / "p.onnx")]) == 2
-    assert "pip install 'relayrl[onnx]'" in capsys.readouterr().err
+    assert "pip install -e \".[onnx]\" in relayrl's folder" in capsys.readouterr().err
 
 
 # ---- relayrl config, --version, help -------------------------------------------------------------

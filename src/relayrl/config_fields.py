@@ -51,7 +51,15 @@ class Section:
         if name not in hints:
             raise ConfigError(unknown_key(path, [f"{self.SECTION}.{n}" if self.SECTION else n for n in hints]))
         if not dataclasses.is_dataclass(value):
-            value = coerce(value, hints[name], path)
+            try:
+                value = coerce(value, hints[name], path)
+            except ConfigError as e:
+                said, current = str(e), getattr(self, name, None)
+                # a type named without a tip: the key's value now shows how such a value is written
+                plain = "has the wrong type; expected" in said and not said.endswith((")", "}"))
+                if plain and current not in (None, [], {}) and not isinstance(current, dict):
+                    raise ConfigError(f"{said}, e.g. {path}={toml_literal(current).replace(', ', ',')}") from None
+                raise
         object.__setattr__(self, name, value)
 
     def recheck(self) -> None:

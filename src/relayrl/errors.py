@@ -17,6 +17,12 @@ class CheckpointError(UserError):
     """A checkpoint that cannot be read."""
 
 
+def install(extra: str) -> str:
+    """The command that adds one of relayrl's extras, in the README's form (an editable install
+    from relayrl's folder)."""
+    return f"pip install -e \".[{extra}]\" in relayrl's folder"
+
+
 def check_count(name: str, value: object, zero: str | None = None) -> int:
     """One line where a count a caller passes (episodes, steps) is not an integer >= 1 (True is
     no count); `zero`: what 0 means, where it is allowed. Returns it as a Python int (a NumPy

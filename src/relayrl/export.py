@@ -32,7 +32,7 @@ import torch
 from relayrl import atomic
 from relayrl.agents.registry import for_policy_kind
 from relayrl.config_fields import is_user_encoder
-from relayrl.errors import UserError
+from relayrl.errors import UserError, install
 from relayrl.loaded_policy import LoadedPolicy, built_quietly, env_box_bounds, env_shaped, rng_kept
 from relayrl.paths import is_folder, output_path, user_path, writing
 from relayrl.policies import saved_obs_spec
@@ -139,7 +139,7 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
             import onnxscript  # noqa: F401
         except ImportError:
             raise UserError("--format onnx needs the onnx and onnxscript packages: "
-                            "pip install 'relayrl[onnx]'") from None
+                            f"{install('onnx')}") from None
     from relayrl.training.lifecycle import float32_default
 
     with float32_default():  # the networks relayrl saved, whatever the caller's default dtype

@@ -108,7 +108,8 @@ class LoadedPolicy(Policy):
                             f"{describe(spec_from_space(self.action_space, 'action'))} actions")
 
     def __call__(self, obs: Any) -> Any:
-        if isinstance(obs, torch.Tensor) and obs.dtype == self.obs_dtype and obs.dim() == len(self.obs_shape) + 1:
+        if isinstance(obs, torch.Tensor) and obs.dtype == self.obs_dtype and obs.dim() == len(self.obs_shape) + 1 \
+                and tuple(obs.shape[1:]) == self.obs_shape:
             obs = obs.detach()  # a tensor needing grad (a differentiable rollout's): the CPU MLP reads it via NumPy
             if obs.shape[0] == 0:
                 raise UserError(_EMPTY)

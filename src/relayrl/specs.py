@@ -502,7 +502,11 @@ def packed_spec(space: gym.spaces.Dict | gym.spaces.Tuple) -> PackedSpec:
             for i, sub in enumerate(s.spaces):
                 walk(sub, (*path, i))
         else:
-            leaves.append((".".join(map(str, path)), path, spec_from_space(s, "observation")))
+            key = ".".join(map(str, path))
+            try:
+                leaves.append((key, path, spec_from_space(s, "observation")))
+            except UserError as e:  # which entry of a large Dict the user's wrapper must change
+                raise UserError(f"the observation's entry {key!r}: {e}") from None
 
     walk(space, ())
     if not leaves:

@@ -23,7 +23,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from relayrl.envs.atari import ATARI_ID, GAME_KWARGS, game_settings, make_atari_spec_kwargs
+from relayrl.envs.atari import ATARI_ID, GAME_KWARGS, game_settings, import_ale, make_atari_spec_kwargs
 from relayrl.envs.gym import BatchEnvBase, episode_info
 from relayrl.envs.pixels import SCREEN, SKIP, STACK
 from relayrl.errors import UserError
@@ -145,6 +145,7 @@ def make_ale_env(env_id: str, num_envs: int, max_episode_steps: int = 0, time_li
     if match is None:
         raise UserError(f"env.vectorization='ale' needs an Atari id relayrl/Atari-<Game>-v0 (e.g. "
                         f"relayrl/Atari-Pong-v0), not env.id={env_id!r}; other envs: sync or async")
+    import_ale(env_id)  # one line where ale-py is missing
     kwargs = dict(kwargs or {})
     unknown = unsupported_kwargs(kwargs)
     if unknown:

@@ -20,13 +20,13 @@ from typing import Any
 import gymnasium as gym
 
 from relayrl.envs.pixels import SKIP, atari_preprocessing
-from relayrl.errors import UserError
+from relayrl.errors import UserError, install
 
 ATARI_ID = re.compile(r"relayrl/Atari-(?P<game>[A-Za-z0-9]+)-v0")
 # Ids ale-py registers for the raw screen: ALE/<Game>-v5 and the older Gym ids (PongNoFrameskip-v4 ...)
 RAW_ALE_ID = re.compile(r"(ALE/(?P<v5>[A-Za-z0-9]+)-v5)"
                         r"|((?P<old>[A-Z][A-Za-z0-9]*?)(NoFrameskip|Deterministic)?-v[04])")
-INSTALL = "pip install 'relayrl[atari]'"
+INSTALL = install("atari")
 # The game's settings an env.kwargs may change from v5's: sticky actions (0.0 gives the
 # deterministic games of the NoFrameskip-v4 ids that CleanRL's and many papers' results use) and
 # all 18 actions instead of the game's minimal set.
@@ -95,6 +95,17 @@ def register_shipped_games() -> None:
         for rom in sorted(roms.glob("*.bin")) if roms.is_dir() else []:
             if rom.stem not in MULTIPLAYER_ONLY:
                 register_on_demand(f"relayrl/Atari-{rom.stem.title().replace('_', '')}-v0")
+
+
+def missing_ale_hint(env_id: str, near_miss: bool) -> str:
+    """For an unregistered id of the form ale-py registers (PongNoFrameskip-v4, ALE/Pong-v5) where
+    ale-py is missing: the extra that brings it (an id with no near miss, or plainly Atari's)."""
+    match = RAW_ALE_ID.fullmatch(env_id)
+    if match is None or importlib.util.find_spec("ale_py") is not None:
+        return ""
+    if near_miss and not re.search(r"NoFrameskip|Deterministic", env_id):
+        return ""
+    return f"; if it is an Atari game's, ale-py registers it: {INSTALL}"
 
 
 def register_on_demand(env_id: str) -> None:

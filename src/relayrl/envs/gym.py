@@ -23,7 +23,7 @@ import torch
 from gymnasium.utils import EzPickle
 
 from relayrl.core import BatchedEnv
-from relayrl.envs.atari import register_on_demand
+from relayrl.envs.atari import missing_ale_hint, register_on_demand
 from relayrl.envs.observations import kind, observation_problem
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.errors import UserError, note_where, one_line
@@ -237,7 +237,7 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
             module_name, _, name = env_id.rpartition(".")
             if not close and module_name and name.isidentifier():  # `mymod.MyEnv`: Python's dot for the colon
                 close = [f"{module_name}:{name}"]
-            hint = f"; did you mean {', '.join(close)}?" if close else ""
+            hint = (f"; did you mean {', '.join(close)}?" if close else "") + missing_ale_hint(env_id, bool(close))
             raise UserError(
                 f"env.id={env_id!r} is not a registered Gymnasium id{hint} "
                 "(valid: a Gymnasium id such as CartPole-v1, relayrl/..., package.module:Class, or "

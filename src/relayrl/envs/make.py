@@ -20,7 +20,7 @@ from relayrl.envs.gym import BatchEnvBase, EnvFn, GymBatchEnv, apply_wrappers, n
 from relayrl.envs.probe import first_problem
 from relayrl.envs.stateless.adapter import STATELESS_ENVS, StatelessBatchEnv, make_batch_env
 from relayrl.envs.vector import AsyncGymBatchEnv
-from relayrl.errors import UserError, note_where
+from relayrl.errors import UserError, install, note_where
 from relayrl.user_code import load_callable
 
 
@@ -72,22 +72,23 @@ def making(env_id: str, users_code: bool = False) -> Iterator[None]:
     try:
         yield
     except gym.error.Error as e:
-        raise UserError(f"env.id={env_id!r} could not be made: {e}{extra_hint(e)}") from None
+        if extra := missing_extra(e):  # Gymnasium's line names its own install (swig, "gymnasium[box2d]")
+            raise UserError(f"env.id={env_id!r} needs Gymnasium's {extra} dependencies: {install(extra)}") from None
+        raise UserError(f"env.id={env_id!r} could not be made: {e}{gl_hint(e)}") from None
     except (ImportError, OSError, AttributeError) as e:  # a registered env's moved ids, a missing GL library
         if users_code or names_module(env_id):
             raise
         said = " ".join(str(e).split())
-        raise UserError(f"env.id={env_id!r} could not be made: {type(e).__name__}: {said}{extra_hint(e)}") from None
+        raise UserError(f"env.id={env_id!r} could not be made: {type(e).__name__}: {said}{gl_hint(e)}") from None
 
 
-def extra_hint(error: Exception) -> str:
-    """For a Gymnasium env whose dependency is missing: the relayrl extra that brings it; for
-    one whose OpenGL library is missing (MuJoCo rendering): the setting that picks another."""
+def missing_extra(error: Exception) -> str | None:
+    """The relayrl extra (box2d, mujoco) that brings a Gymnasium env's missing dependency."""
     if isinstance(error, gym.error.DependencyNotInstalled):
         for extra in ("box2d", "mujoco"):  # Gymnasium's own message names its extra: pip install "gymnasium[...]"
             if f"gymnasium[{extra}]" in str(error):
-                return f" (with relayrl: pip install 'relayrl[{extra}]')"
-    return gl_hint(error)
+                return extra
+    return None
 
 
 _GL = re.compile(r"OpenGL|\bgl[A-Z]|EGL|OSMesa|GLFW|MUJOCO_GL")

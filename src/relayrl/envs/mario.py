@@ -30,11 +30,11 @@ import numpy as np
 
 from relayrl.envs.legacy_gym import importing_without_gym
 from relayrl.envs.pixels import mario_preprocessing
-from relayrl.errors import UserError
+from relayrl.errors import UserError, install
 
 ENV_ID = "relayrl/SuperMarioBros-1-1-v0"
 PIXELS_ID = "relayrl/SuperMarioBros-1-1-pixels-v0"  # the preprocessed stack
-INSTALL = "pip install 'relayrl[mario]'"
+INSTALL = install("mario")
 TUTORIAL_ACTIONS: tuple[tuple[str, ...], ...] = (("right",), ("right", "A"))
 # The level clock kills a dawdling Mario (a termination: the clock is on screen) within ~8,000
 # frames (8,019 standing still); this only bounds episodes the clock would not end. Raw frames.

@@ -29,7 +29,7 @@ import gymnasium as gym
 import numpy as np
 
 from relayrl.envs.legacy_gym import importing_without_gym
-from relayrl.errors import UserError
+from relayrl.errors import UserError, install
 
 ENV_ID = "relayrl/MinitaurBullet-v0"
 _PACKAGE = "_relayrl_pybullet_bullet"  # private name for pybullet_envs/bullet, loaded without its __init__
@@ -44,7 +44,7 @@ def _parse_version(version: str) -> tuple[int, ...]:
 def _minitaur_gym_env() -> types.ModuleType:
     """pybullet's `minitaur_gym_env` module, imported once; UserError when pybullet is missing."""
     global _module
-    missing = UserError(f"{ENV_ID} needs pybullet: pip install 'relayrl[bullet]'")
+    missing = UserError(f"{ENV_ID} needs pybullet: {install('bullet')}")
     try:
         import pybullet  # noqa: F401
     except ImportError:

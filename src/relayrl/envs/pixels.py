@@ -20,7 +20,7 @@ from gymnasium.wrappers import (
     ResizeObservation,
 )
 
-from relayrl.errors import UserError
+from relayrl.errors import UserError, install
 
 SCREEN = 84  # Mnih et al. 2015 (Nature DQN) and the Mario tutorial
 STACK = 4
@@ -32,7 +32,7 @@ def require_cv2(what: str) -> None:
     try:
         import cv2  # noqa: F401
     except ImportError:
-        raise UserError(f"{what} needs OpenCV to resize frames: pip install 'relayrl[atari]' "
+        raise UserError(f"{what} needs OpenCV to resize frames: {install('atari')} "
                         "(or opencv-python-headless)") from None
 
 

@@ -17,10 +17,13 @@ import gymnasium as gym
 from relayrl.envs.gym import missing_spaces, reset_problem, reset_seeded, reward_problem, step_problem
 from relayrl.envs.observations import observation_problem
 from relayrl.errors import UserError
+from relayrl.specs import spec_from_space
 
 
 def first_problem(env: gym.Env) -> str | None:
     """The first thing about `env` that will break a run, as a sentence, or None."""
+    if (problem := missing_spaces(env) or _unsupported_space(env)) is not None:  # before the env is stepped
+        return problem
     raw = env.unwrapped  # the API first, below the wrappers (a TimeLimit would fail to unpack it)
     if raw is not env:
         problem = _api_problem(raw)[0]
@@ -31,6 +34,17 @@ def first_problem(env: gym.Env) -> str | None:
         return problem
     return (observation_problem(reset_out[0], env.observation_space, "reset()")
             or observation_problem(step_out[0], env.observation_space, "step()") or reward_problem(step_out[1]))
+
+
+def _unsupported_space(env: gym.Env) -> str | None:
+    """A space relayrl cannot take (a Dict action space, a Text observation), said before a step
+    with a sample of it reaches an env that never handles one."""
+    try:
+        spec_from_space(env.observation_space, "observation")
+        spec_from_space(env.action_space, "action")
+    except UserError as e:
+        return str(e)
+    return None
 
 
 def _api_problem(env: gym.Env) -> tuple[str | None, Any, Any]:

@@ -18,7 +18,7 @@ import torch
 
 from relayrl import interrupts
 from relayrl.agents.registry import algorithm
-from relayrl.config import Config, changes, dotted, from_dict, load_toml, save_toml, to_dict
+from relayrl.config import Config, algo_defaults, changes, dotted, from_dict, load_toml, save_toml, to_dict
 from relayrl.core import Agent
 from relayrl.envs.atari import raw_screen_note
 from relayrl.envs.gym import names_python_factory
@@ -211,6 +211,20 @@ def partial_rollout_note(config: Config) -> str | None:
             f"more whole rollout, to {whole + steps:,}); train.total_steps={whole:,} or {whole + steps:,} avoids it")
 
 
+def defaults_note(config: Config, config_file: Path) -> str | None:
+    """A line where a run on another env than its algorithm's default one keeps the algorithm's
+    defaults for its length and evaluations (`relayrl train ppo --set env.id=...`, no preset):
+    the keys a new env most often needs set, and where every setting is."""
+    c, d = config, algo_defaults(config.algo)
+    lengths = (c.train.total_steps, c.eval.interval, c.eval.episodes)
+    if c.env.id == d.env.id or lengths != (d.train.total_steps, d.eval.interval, d.eval.episodes):
+        return None
+    every = f"every {c.eval.interval:,} env steps and " if c.eval.interval > 0 else ""
+    return (f"{c.algo}'s defaults on {c.env.id}: {c.train.total_steps:,} env steps (train.total_steps), evaluated "
+            f"{every}at the end, {c.eval.episodes} episodes each (eval.interval, eval.episodes); every setting is "
+            f"in {str(config_file)!r} (`relayrl config {c.algo}` says what each key does)")
+
+
 def make_learner(config: Config, agent: Agent, table: Any, device: torch.device, variables: Any,
                  whole_rollouts: bool) -> Learner:
     """A rollout queue's learner (`whole_rollouts`) takes one rollout per step, which the agent
@@ -400,7 +414,8 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if 0 < c.train.total_steps <= c.train.initial_collect_steps:
             core.say(f"train.initial_collect_steps={c.train.initial_collect_steps:,} >= train.total_steps="
                      f"{c.train.total_steps:,}: the run takes random actions only and learns nothing")
-        notes = (minibatch_note(c), partial_rollout_note(c), raw_screen_note(c.env.id, c.env.kwargs, c.env.wrappers))
+        notes = (minibatch_note(c), partial_rollout_note(c), raw_screen_note(c.env.id, c.env.kwargs, c.env.wrappers),
+                 None if resume else defaults_note(c, core.rd.config))
         for note in notes:
             if note is not None:
                 core.say(note)
