@@ -37,6 +37,9 @@ def run(args, env, cwd=None):
     (["train", "dqn-cartpole", "--dir", "x"], "unrecognized arguments: --dir x; did you mean --run-dir?"),
     (["train", "dqn-cartpole", "--foo"], "unrecognized arguments: --foo (see 'relayrl train --help')"),
     (["plot", "x", "--episodes", "3"], "unrecognized arguments: --episodes 3 (see 'relayrl plot --help')"),  # eval's
+    (["train", "dqn", "--set", "train.total_steps", "100"], "--set train.total_steps 100: --set takes KEY=VALUE as "
+                                                            "one word (--set train.total_steps=100)"),
+    (["config", "dqn", "--set", "agent.lr", "0.1"], "(--set agent.lr=0.1)"),
 ])
 def test_bad_input_is_one_line_and_exit_2(args, fragment, cli_env, tmp_path):
     r = run(args, cli_env, cwd=tmp_path)

@@ -111,6 +111,10 @@ def test_a_file_that_is_not_a_torch_file_is_one_line_error(tmp_path):
     (tmp_path / "policy.pt").write_bytes(b"not a policy")
     with pytest.raises(UserError, match=REFUSED):
         relayrl.load_policy(tmp_path / "policy.pt")
+    (tmp_path / "notes.txt").write_text("hi\n")  # torch's KeyError: 105 ('i')
+    with pytest.raises(UserError, match=r"'.*notes.txt' is not a relayrl policy file \(not a file torch.save wrote\): "
+                                        r"give a run directory or its policy/policy.pt$"):
+        relayrl.load_policy(tmp_path / "notes.txt")
     torch.save({"kind": "q_greedy", "x": torch.zeros(1000)}, tmp_path / "whole.pt")
     (tmp_path / "policy.pt").write_bytes((tmp_path / "whole.pt").read_bytes()[:2000])  # a write cut short
     with pytest.raises(UserError, match=r"is unreadable \(RuntimeError: PytorchStreamReader failed reading zip "

@@ -95,7 +95,7 @@ def test_env_that_cannot_be_pickled_resumes_with_new_episodes(tmp_path, capsys, 
     cfg = relayrl.load_config("dqn-cartpole-fast", over, seed=3)
     relayrl.train(cfg, tmp_path / "full", progress=False)
     said = capsys.readouterr().err  # while it trains, once: not only when it is resumed
-    assert said.count("the env cannot be pickled mid-episode (a simulator handle, a wrapper") == 1
+    assert said.count("checkpoints hold no env state (the env cannot be pickled mid-episode") == 1
     cut_back(tmp_path / "full", tmp_path / "resumed")
     assert load_latest_checkpoint(tmp_path / "resumed" / "checkpoints")["actor"]["env"] is None
     shutil.copytree(tmp_path / "resumed", tmp_path / "again")

@@ -273,6 +273,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     if extra:
+        spaced = [o for o in getattr(args, "overrides", []) if "=" not in o]
+        if spaced and not extra[0].startswith("-"):  # `--set KEY VALUE`: the shell split what is one word
+            print(f"relayrl: error: --set {spaced[0]} {extra[0]}: --set takes KEY=VALUE as one word "
+                  f"(--set {spaced[0]}={extra[0]})", file=sys.stderr)
+            return EXIT_USAGE
         (args.parsers.get(args.command) or parser).unrecognized(extra)
     if args.command is None:
         parser.print_help()

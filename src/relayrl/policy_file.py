@@ -98,6 +98,9 @@ def load_policy_file(path: Path) -> dict[str, Any]:
             raise UserError(f"{str(path)!r} is a Stable-Baselines3 model file, which relayrl does not read: in "
                             "Python, load it with SB3 (e.g. PPO.load(path)) and give the model to "
                             "relayrl.evaluate(model, env)") from None
+        if not _torch_saved(path):  # a text file, an image: torch's own error (KeyError: 105) says nothing
+            raise UserError(f"{str(path)!r} is not a relayrl policy file (not a file torch.save wrote): give a run "
+                            "directory or its policy/policy.pt") from None
         raise UserError(f"policy file {str(path)!r} is unreadable ({type(e).__name__}: {_first_line(e)}): "
                         "damaged, or not a relayrl policy file") from None
     if not isinstance(state, dict):
@@ -134,6 +137,16 @@ def _load_old_layout(path: Path) -> Any:
 def _first_line(e: Exception) -> str:
     text = str(e).strip()
     return text.splitlines()[0].split(". ")[0] if text else "no details"  # torch's run on for sentences
+
+
+def _torch_saved(path: Path) -> bool:
+    """Whether the file begins as torch.save's files do: a zip archive, or a pickle (the legacy format)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+    except OSError:
+        return True  # not told apart: the caller's line names the error
+    return head.startswith(b"PK\x03\x04") or head[:1] == b"\x80"
 
 
 def _is_sb3_model(path: Path) -> bool:

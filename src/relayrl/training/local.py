@@ -164,10 +164,9 @@ class LocalDriver:
         actor = self.actor.state_dict()
         if actor["env"] is None and not self.env_state_said:  # said when it happens, not only at a resume
             self.env_state_said = True
-            self.core.say("the env cannot be pickled mid-episode (a simulator handle, a wrapper holding a local "
-                          "function such as Gymnasium's RescaleAction, or a pickle of only its constructor's "
-                          "arguments, as Gymnasium's MuJoCo and Box2D envs and ale-py's Atari envs have): "
-                          "checkpoints hold no env state, so a resumed run starts new episodes")
+            # said once, when the first checkpoint is written (the end of a short run)
+            self.core.say("checkpoints hold no env state (the env cannot be pickled mid-episode, as MuJoCo, Box2D "
+                          "and Atari envs): a resumed run starts new episodes (README: Run directory)")
         return {
             **self.core.checkpoint_common(self.evaluator.count),
             # Very large tables may be left out (train.checkpoint_replay = false): a resumed
