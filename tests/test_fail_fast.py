@@ -3,8 +3,10 @@ line (exit code 3) before anything non-finite is saved; the last good checkpoint
 
 import math
 import os
+import warnings
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -59,6 +61,20 @@ def test_a_non_finite_reward_or_observation_stops_the_run_and_keeps_what_was_goo
     assert "the last good checkpoint (env step 120)" in message and "kept in" in message
     assert "\n" not in message
     assert_kept_and_finite(tmp_path / "run", 130)
+
+
+def test_an_observation_beyond_float32_is_the_one_line_without_numpys_warning(tmp_path, capfd):
+    """A float64 observation of 1e39 becomes inf in relayrl's float32 write: the run's line says
+    so; NumPy's "overflow encountered in cast" warning, with its source line, would only precede it."""
+    c = config("dqn", "env.kwargs.at=130", "env.kwargs.what='obs64'", "env.kwargs.value=1e39", "env.check=false")
+    capfd.readouterr()
+    with pytest.raises(NonFiniteError, match="^observation was inf at env step 130"):
+        train(c, tmp_path / "run", progress=False)
+    assert "overflow" not in capfd.readouterr().err
+    with warnings.catch_warnings(record=True) as caught:  # the caller's own code still warns
+        warnings.simplefilter("always")
+        np.array([1e39]).astype(np.float32)
+    assert [str(w.message) for w in caught] == ["overflow encountered in cast"]
 
 
 def test_the_cli_prints_one_line_and_exits_3(tmp_path, capfd):

@@ -455,6 +455,8 @@ class NonFiniteAt(Countdown):
         if self.steps >= self.at:
             if self.what == "reward":
                 reward = self.value
+            elif self.what == "obs64":  # a float64 observation, cast to the space's float32 by relayrl
+                obs = np.full(obs.shape, self.value)
             else:
                 obs = np.full_like(obs, self.value)
         return obs, reward, terminated, truncated, info

@@ -8,6 +8,7 @@ import contextlib
 import random
 import sys
 import time
+import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -133,7 +134,11 @@ def caller_state_kept() -> Iterator[None]:
     cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None  # manual_seed seeds these too
     flushing = torch.tensor([1e-39]).item() == 0.0  # torch has no getter: a float32 denormal reads 0 when flushed
     try:
-        with global_rngs_kept(), float32_default():
+        with global_rngs_kept(), float32_default(), warnings.catch_warnings():
+            # an observation beyond float32 becomes inf in relayrl's write (and NaN in the
+            # policy's matmul), which the finite watch names in one line; NumPy's warnings of
+            # them, each with its source line, would only precede it
+            warnings.filterwarnings("ignore", "(overflow|invalid value) encountered", RuntimeWarning, r"relayrl\.")
             yield
     finally:
         torch.set_num_threads(threads)
