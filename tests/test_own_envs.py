@@ -224,13 +224,18 @@ def test_a_factory_no_import_finds_asks_for_itself_again(tmp_path, factory, caps
     train(load_config("dqn-cartpole", TINY), tmp_path / "run", progress=False, env=factory)
     saved = load_toml(tmp_path / "run" / "config.toml")["env"]["id"]
     assert saved == f"{type(factory).__module__}:<{type(factory).__qualname__}>"
+    # said when the run starts, not first when the run is evaluated
+    assert (f"the env factory is recorded as env.id={saved!r}, which no import finds: `relayrl eval` and `relayrl "
+            f"video` need --env ENV_ID") in capsys.readouterr().err
     assert main(["eval", str(tmp_path / "run")]) == 2
     assert "pass the same env= again in Python" in capsys.readouterr().err
+    assert main(["eval", str(tmp_path / "run"), "--env", "toy_envs:Countdown"]) == 0
 
 
-def test_an_importable_factory_is_recorded_so_the_cli_can_evaluate_it(tmp_path):
+def test_an_importable_factory_is_recorded_so_the_cli_can_evaluate_it(tmp_path, capsys):
     train(load_config("dqn-cartpole", TINY), tmp_path / "run", progress=False, env=toy_envs.make_countdown)
     assert load_toml(tmp_path / "run" / "config.toml")["env"]["id"] == "toy_envs:make_countdown"
+    assert "no import finds" not in capsys.readouterr().err
 
 
 def test_an_env_without_a_time_limit_is_capped_and_the_log_says_so(tmp_path, capfd):
@@ -327,6 +332,33 @@ def test_float64_observations_are_one_line_and_the_checks_after_it_still_run():
                         "relayrl casts them to float32 (return float32 arrays, or declare the space's dtype, to "
                         "silence this line)")
     assert any("does not call `super().reset(seed=seed)`" in line for line in lines)
+    assert lines[-1].startswith("runs of this env with the same seed will not repeat: call super().reset(seed=seed)")
+    assert not any("not within the observation space" in line for line in lines)
+    assert not any("will not repeat" in line for line in check_env("CartPole-v1"))
+
+
+class _GridOfFloats(gym.Env):
+    """A Dict observation whose int64 entry comes as float64 (and another as a list)."""
+
+    observation_space = gym.spaces.Dict({"pos": gym.spaces.Box(0, 4, (2,), np.int64),
+                                         "goal": gym.spaces.Box(0, 4, (2,), np.int64)})
+    action_space = gym.spaces.Discrete(4)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return {"pos": np.zeros(2), "goal": [4, 4]}, {}
+
+    def step(self, action):
+        return {"pos": np.ones(2), "goal": [4, 4]}, 0.0, False, False, {}
+
+
+def test_dict_entries_in_other_dtypes_are_named_and_the_checks_after_them_still_run():
+    from relayrl.envs.make import check_env
+
+    lines = check_env("x", factory=_GridOfFloats)
+    assert lines[0] == ("observation entries come in other dtypes than their spaces': ['pos'] as float64 where its "
+                        "space is Box(0, 4, (2,), int64); relayrl casts them (return arrays of the spaces' dtypes, or "
+                        "declare those dtypes, to silence this line)")
     assert not any("not within the observation space" in line for line in lines)
 
 

@@ -213,9 +213,10 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
         module_name, name = env_id.split(":", 1)
         if names_python_factory(env_id):
             raise UserError(f"env.id={env_id!r} records an env factory given to relayrl.train in Python that "
-                            "cannot be imported here (a lambda, a local function or __main__); pass the same "
-                            "env= again in Python (relayrl eval: --env ENV_ID where a registered id makes the same "
-                            "env), or make it a function in a module and name it in env.id")
+                            "cannot be imported here (a lambda, a functools.partial, a local function or __main__); "
+                            "pass the same env= again in Python (relayrl eval: --env ENV_ID, a registered id or "
+                            "package.module:Class that makes the same env), or make it a function in a module "
+                            "and name it in env.id")
         module = import_user_module(module_name, f"env.id={env_id!r}")
         if hasattr(module, name):
             target = getattr(module, name)

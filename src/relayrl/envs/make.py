@@ -200,8 +200,11 @@ def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple
                     lines.append(text)
         finally:
             env.close()
-    clean = (" ".join(_ANSI.sub("", line).removeprefix("WARN: ").split()) for line in lines)
-    return list(dict.fromkeys(clean))
+    clean = list(dict.fromkeys(" ".join(_ANSI.sub("", line).removeprefix("WARN: ").split()) for line in lines))
+    if any(sign in line for line in clean for sign in _UNSEEDED):  # what Gymnasium's findings mean for a run
+        clean.append("runs of this env with the same seed will not repeat: call super().reset(seed=seed) in its "
+                     "reset and draw every random number from self.np_random (README: Seeding and reproducibility)")
+    return clean
 
 
 def _action_masks_line(env: gym.Env, info: dict[str, Any]) -> str | None:
@@ -217,21 +220,53 @@ def _action_masks_line(env: gym.Env, info: dict[str, Any]) -> str | None:
 
 
 def _cast_observations(env: gym.Env, obs: Any) -> tuple[gym.Env, str | None]:
-    """`env` with its observations cast to its float Box's dtype, and a line saying so, where it
-    returns arrays of another number dtype (float64, int64; `obs` is a reset's): relayrl casts
-    them, and Gymnasium's checker would stop at its first assertion ("not within the observation
-    space", of values inside the bounds), before its seed and determinism checks ever ran."""
+    """`env` with its observations cast to its Boxes' dtypes, and a line saying so, where it
+    returns arrays of another number dtype (float64, int64; `obs` is a reset's), as the whole
+    observation or as Dict / Tuple entries: relayrl casts them, and Gymnasium's checker would
+    stop at its first assertion ("not within the observation space", of values inside the
+    bounds), before its seed and determinism checks ever ran."""
     space = env.observation_space
-    if not isinstance(space, gym.spaces.Box) or not np.issubdtype(space.dtype, np.floating):
+    found = _other_dtypes(space, obs, "")
+    if not found:
         return env, None
-    # a list is no finding: Box.contains reads it in the space's dtype
-    if not isinstance(obs, (np.ndarray, np.generic)) or obs.dtype == space.dtype or obs.dtype.kind not in "biuf":
-        return env, None
-    line = (f"observations come as {obs.dtype} where observation_space is {space}: relayrl casts them to "
-            f"{space.dtype} (return {space.dtype} arrays, or declare the space's dtype, to silence this line)")
-    return gym.wrappers.TransformObservation(env, lambda o: np.asarray(o, space.dtype), space), line
+    if isinstance(space, gym.spaces.Box):
+        line = (f"observations come as {found[0][1]} where observation_space is {space}: relayrl casts them to "
+                f"{space.dtype} (return {space.dtype} arrays, or declare the space's dtype, to silence this line)")
+    else:
+        entries = ", ".join(f"{where} as {dtype} where its space is {box}" for where, dtype, box in found)
+        line = (f"observation entries come in other dtypes than their spaces': {entries}; relayrl casts them (return "
+                "arrays of the spaces' dtypes, or declare those dtypes, to silence this line)")
+    return gym.wrappers.TransformObservation(env, lambda o: _cast(space, o), space), line
 
 
+def _other_dtypes(space: gym.Space, obs: Any, where: str) -> list[tuple[str, np.dtype, gym.spaces.Box]]:
+    """(entry, dtype, Box) for each Box in `space` whose value in `obs` is an array of another
+    number dtype; a list is no finding (Box.contains reads it in the space's dtype)."""
+    if isinstance(space, gym.spaces.Dict) and isinstance(obs, dict):
+        return [f for k, s in space.spaces.items() if k in obs for f in _other_dtypes(s, obs[k], f"{where}[{k!r}]")]
+    if isinstance(space, gym.spaces.Tuple) and isinstance(obs, tuple | list) and len(obs) == len(space.spaces):
+        pairs = enumerate(zip(space.spaces, obs, strict=True))
+        return [f for i, (s, o) in pairs for f in _other_dtypes(s, o, f"{where}[{i}]")]
+    if isinstance(space, gym.spaces.Box) and isinstance(obs, np.ndarray | np.generic) and obs.dtype != space.dtype \
+            and obs.dtype.kind in "biuf":
+        return [(where, obs.dtype, space)]
+    return []
+
+
+def _cast(space: gym.Space, obs: Any) -> Any:
+    """`obs` with the arrays of `_other_dtypes` in their Boxes' dtypes."""
+    if isinstance(space, gym.spaces.Dict) and isinstance(obs, dict):
+        return {k: _cast(space.spaces[k], v) if k in space.spaces else v for k, v in obs.items()}
+    if isinstance(space, gym.spaces.Tuple) and isinstance(obs, tuple | list) and len(obs) == len(space.spaces):
+        return tuple(_cast(s, o) for s, o in zip(space.spaces, obs, strict=True))
+    if isinstance(space, gym.spaces.Box) and isinstance(obs, np.ndarray | np.generic) and obs.dtype.kind in "biuf":
+        return np.asarray(obs, space.dtype)
+    return obs
+
+
+# Gymnasium's checker's findings of an env that does not seed itself from reset(seed=...)
+_UNSEEDED = ("does not call `super().reset(seed=seed)`", "random number generator to have been generated given a seed",
+             "is non-deterministic")
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")  # gymnasium's logger colours its warnings
 # What Gymnasium's checker says that is no finding here: wrappers (a TimeLimit, env.wrappers) are
 # ours to add, and a Box without bounds (CartPole's, most MuJoCo envs') is one relayrl takes.

@@ -230,6 +230,17 @@ def defaults_note(config: Config, config_file: Path) -> str | None:
             f"in {str(config_file)!r} (`relayrl config {c.algo}` says what each key does)")
 
 
+def factory_note(config: Config) -> str | None:
+    """A line where the env factory given in Python (a lambda, a functools.partial, a function
+    in __main__) is recorded as an env.id no import finds: the commands that make the env again
+    from config.toml alone cannot."""
+    if not names_python_factory(config.env.id):
+        return None
+    return (f"the env factory is recorded as env.id={config.env.id!r}, which no import finds: `relayrl eval` and "
+            "`relayrl video` need --env ENV_ID, and a resume the same env= in Python (a class or function in a "
+            "module, given as env= or named in env.id, keeps the run whole)")
+
+
 def make_learner(config: Config, agent: Agent, table: Any, device: torch.device, variables: Any,
                  whole_rollouts: bool) -> Learner:
     """A rollout queue's learner (`whole_rollouts`) takes one rollout per step, which the agent
@@ -420,7 +431,7 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
             core.say(f"train.initial_collect_steps={c.train.initial_collect_steps:,} >= train.total_steps="
                      f"{c.train.total_steps:,}: the run takes random actions only and learns nothing")
         notes = (minibatch_note(c), partial_rollout_note(c), raw_screen_note(c.env.id, c.env.kwargs, c.env.wrappers),
-                 None if resume else defaults_note(c, core.rd.config))
+                 None if resume else defaults_note(c, core.rd.config), None if resume else factory_note(c))
         for note in notes:
             if note is not None:
                 core.say(note)
