@@ -28,10 +28,10 @@ def test_a_missing_ale_py_is_one_line_naming_the_extra(monkeypatch):
 
 
 @pytest.mark.parametrize("env_id, hint", [("relayrl/Atari-Pong-v0", True), ("PongNoFrameskip-v4", True),
-                                          ("Cartpole-v0", False)])
+                                          ("Pong-v4", True), ("Cartpole-v1", False)])
 def test_without_ale_py_atari_ids_say_which_extra_with_each_vectorization(env_id, hint, monkeypatch):
     """The ale-py vector env (ppo-pong, dqn-pong-fast) and the old Gym ids that ale-py registers
-    name the extra; a near miss of another env's id keeps its own hint."""
+    name the extra, beside a near miss of another env's id (Pong-v4: Ant-v4)."""
     from relayrl.envs.make import make_env
 
     monkeypatch.setitem(sys.modules, "ale_py", None)

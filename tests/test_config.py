@@ -453,3 +453,14 @@ def test_keys_the_other_settings_leave_without_effect_are_named():
     assert used.unused_keys() == []
     for name in ("dqn", "ppo", "sac", "dqn-cartpole", "sac-ray", "ddqn-pong", "ppo-stateless-pendulum"):
         assert load_config(name).unused_keys() == [], name  # defaults and presets set none
+
+
+def test_changes_between_configs_take_a_tuple_and_its_list_as_one_and_skip_newer_fields():
+    """A resume compares its checkpoint's config (a tuple given in Python) with config.toml's (the
+    list TOML reads back), where an older checkpoint lacks the fields added since."""
+    from relayrl.config import changes_between
+
+    checkpoint = {"seed": 0, "env": {"kwargs": {"size": (3, 3)}}, "eval": {"env_kwargs": {}}}
+    toml = {"seed": 0, "env": {"kwargs": {"size": [3, 3]}, "newer": 1}, "eval": {"env_kwargs": {"x": 1}}}
+    assert changes_between(checkpoint, toml, fields_in_both=True) == ["eval.env_kwargs.x: None -> 1"]
+    assert changes_between(checkpoint, toml) == ["env.newer: None -> 1", "eval.env_kwargs.x: None -> 1"]

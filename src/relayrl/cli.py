@@ -273,10 +273,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     if extra:
-        spaced = [o for o in getattr(args, "overrides", []) if "=" not in o]
-        if spaced and not extra[0].startswith("-"):  # `--set KEY VALUE`: the shell split what is one word
-            print(f"relayrl: error: --set {spaced[0]} {extra[0]}: --set takes KEY=VALUE as one word "
-                  f"(--set {spaced[0]}={extra[0]})", file=sys.stderr)
+        tokens = sys.argv[1:] if argv is None else argv
+        spaced = [(tokens[i + 1], tokens[i + 2]) for i in range(len(tokens) - 2)
+                  if tokens[i] == "--set" and "=" not in tokens[i + 1] and not tokens[i + 2].startswith("-")]
+        if spaced:  # `--set KEY VALUE`: the shell split what is one word (VALUE may be what argparse left over)
+            key, value = spaced[0]
+            print(f"relayrl: error: --set {key} {value}: --set takes KEY=VALUE as one word (--set {key}={value})",
+                  file=sys.stderr)
             return EXIT_USAGE
         (args.parsers.get(args.command) or parser).unrecognized(extra)
     if args.command is None:

@@ -10,6 +10,7 @@ import contextlib
 import copy
 import dataclasses
 import difflib
+import json
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -280,8 +281,30 @@ def dotted(data: dict[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def changes(old: Config, new: Config) -> list[str]:
     """`key: old -> new` for every dotted key whose value differs between the two configs."""
-    a, b = dotted(to_dict(old)), dotted(to_dict(new))
-    return [f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in sorted(a.keys() | b.keys()) if a.get(k) != b.get(k)]
+    return changes_between(to_dict(old), to_dict(new))
+
+
+def changes_between(old: dict[str, Any], new: dict[str, Any], fields_in_both: bool = False) -> list[str]:
+    """`changes` of two configs as dicts (`to_dict`'s, a checkpoint's); a tuple given in Python
+    and the list config.toml reads back are one value. `fields_in_both`: only the keys of fields
+    both name (a config of an older version lacks the newer fields; an env.kwargs entry added or
+    removed still counts)."""
+    a, b = dotted(old), dotted(new)
+    keys = sorted(a.keys() | b.keys())
+    if fields_in_both:
+        both = _fields(old) & _fields(new)
+        keys = [k for k in keys if ".".join(k.split(".")[:2]) in both]  # seed, env.kwargs.size: their fields
+    return [f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in keys if _plain(a.get(k)) != _plain(b.get(k))]
+
+
+def _fields(data: dict[str, Any]) -> set[str]:
+    """The fields a config dict names: `section.key` for a section's, `key` for a top-level one."""
+    return {f"{k}.{f}" if isinstance(v, dict) else k for k, v in data.items()
+            for f in (v if isinstance(v, dict) else [None])}
+
+
+def _plain(value: Any) -> str:
+    return json.dumps(value, sort_keys=True, default=repr)
 
 
 def from_dict(data: dict[str, Any]) -> Config:

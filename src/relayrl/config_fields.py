@@ -55,9 +55,10 @@ class Section:
                 value = coerce(value, hints[name], path)
             except ConfigError as e:
                 said, current = str(e), getattr(self, name, None)
-                # a type named without a tip: the key's value now shows how such a value is written
-                plain = "has the wrong type; expected" in said and not said.endswith((")", "}"))
-                if plain and current not in (None, [], {}) and not isinstance(current, dict):
+                # a type named without a tip (nor "leave the key out", an optional key's): the key's
+                # value now shows how such a value is written, where it shows one
+                plain = "has the wrong type; expected" in said and not said.endswith((")", "}", "default"))
+                if plain and current not in (None, [], {}, "") and not isinstance(current, dict):
                     raise ConfigError(f"{said}, e.g. {path}={toml_literal(current).replace(', ', ',')}") from None
                 raise
         object.__setattr__(self, name, value)
@@ -265,6 +266,7 @@ def unknown_key(path: str, valid: list[str]) -> str:
 _SECTION_MEANT = {"replay.alpha": "priority_exponent", "replay.beta": "importance_exponent",
                   "replay.capacity": "size", "env.time_limit": "max_episode_steps", "env.name": "id"}
 _WORDS = {"freq": "interval", "frequency": "interval"}  # SB3's save_freq: train.checkpoint_interval
+_NETWORKS = ("actor", "critic", "alpha")  # SAC's per-network keys: actor_lr, critic_lr, alpha_lr
 
 
 def _meant(section: str, key: str, names: dict[str, str]) -> list[str]:
@@ -276,8 +278,8 @@ def _meant(section: str, key: str, names: dict[str, str]) -> list[str]:
     worded = "_".join(_WORDS.get(word, word) for word in key.split("_"))
     if worded != key and worded in names:
         return [names[worded]]
-    if section == "agent" and key not in SB3_NAMES and key not in CLEANRL_NAMES:
-        return [valid for name, valid in names.items() if name.endswith(f"_{key}") and name.count("_") == 1]
+    if section == "agent" and key not in SB3_NAMES and key not in CLEANRL_NAMES:  # each network's own: all of them
+        return [names[f"{net}_{key}"] for net in _NETWORKS if f"{net}_{key}" in names]
     return []
 
 

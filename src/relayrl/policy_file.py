@@ -140,13 +140,14 @@ def _first_line(e: Exception) -> str:
 
 
 def _torch_saved(path: Path) -> bool:
-    """Whether the file begins as torch.save's files do: a zip archive, or a pickle (the legacy format)."""
+    """Whether the file begins as torch.save's files do (a zip archive, or a pickle: the legacy
+    format), or is empty (a write cut short: damaged)."""
     try:
         with open(path, "rb") as f:
             head = f.read(4)
     except OSError:
         return True  # not told apart: the caller's line names the error
-    return head.startswith(b"PK\x03\x04") or head[:1] == b"\x80"
+    return not head or head.startswith(b"PK\x03\x04") or head[:1] == b"\x80"
 
 
 def _is_sb3_model(path: Path) -> bool:

@@ -27,7 +27,7 @@ from relayrl.training.variables import VariableContainer
 RETRY_S = 0.2
 UNAVAILABLE_LIMIT = 150
 WAIT_SAY_S = 30.0  # while actors are not yet placed, a line this often
-# A local Ray instance runs at most max(LOCAL_ACTORS_MIN, LOCAL_ACTORS_PER_CORE x cores) rollout actors.
+# A local Ray instance runs at most max(LOCAL_ACTORS_MIN, LOCAL_ACTORS_PER_CORE x usable cores) rollout actors.
 LOCAL_ACTORS_MIN = 16
 LOCAL_ACTORS_PER_CORE = 8
 
@@ -80,9 +80,12 @@ def _init(ray: Any, config: Config) -> None:
     else:
         cores = os.cpu_count() or 1
         # each actor is a process holding torch (~0.3 GB): thousands on one machine exhaust its memory
-        if d.num_actors > (most := max(LOCAL_ACTORS_MIN, LOCAL_ACTORS_PER_CORE * cores)):
+        # (with RAY_ADDRESS set, Ray joins that cluster instead, and says so below)
+        usable = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else cores  # (macOS has none)
+        most = max(LOCAL_ACTORS_MIN, LOCAL_ACTORS_PER_CORE * usable)
+        if d.num_actors > most and not os.environ.get("RAY_ADDRESS"):
             raise UserError(f"distributed.num_actors={d.num_actors:,} starts as many worker processes on this "
-                            f"machine ({cores} CPU cores, a local Ray instance); at most {most:,} here: join a Ray "
+                            f"machine (a local Ray instance); at most {most:,} here: join a Ray "
                             "cluster (distributed.address) for more")
         try:
             ray.init(num_cpus=max(cores, math.ceil(d.num_actors * d.actor_cpus) + 1), **kw)

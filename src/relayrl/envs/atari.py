@@ -97,13 +97,10 @@ def register_shipped_games() -> None:
                 register_on_demand(f"relayrl/Atari-{rom.stem.title().replace('_', '')}-v0")
 
 
-def missing_ale_hint(env_id: str, near_miss: bool) -> str:
-    """For an unregistered id of the form ale-py registers (PongNoFrameskip-v4, ALE/Pong-v5) where
-    ale-py is missing: the extra that brings it (an id with no near miss, or plainly Atari's)."""
-    match = RAW_ALE_ID.fullmatch(env_id)
-    if match is None or importlib.util.find_spec("ale_py") is not None:
-        return ""
-    if near_miss and not re.search(r"NoFrameskip|Deterministic", env_id):
+def missing_ale_hint(env_id: str) -> str:
+    """For an unregistered id of the form ale-py registers (PongNoFrameskip-v4, Pong-v4) where
+    ale-py is missing: the extra that brings it, beside any near miss (Pong-v4's is Ant-v4)."""
+    if RAW_ALE_ID.fullmatch(env_id) is None or importlib.util.find_spec("ale_py") is not None:
         return ""
     return f"; if it is an Atari game's, ale-py registers it: {INSTALL}"
 

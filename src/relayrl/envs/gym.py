@@ -238,7 +238,7 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
             module_name, _, name = env_id.rpartition(".")
             if not close and module_name and name.isidentifier():  # `mymod.MyEnv`: Python's dot for the colon
                 close = [f"{module_name}:{name}"]
-            hint = (f"; did you mean {', '.join(close)}?" if close else "") + missing_ale_hint(env_id, bool(close))
+            hint = (f"; did you mean {', '.join(close)}?" if close else "") + missing_ale_hint(env_id)
             raise UserError(
                 f"env.id={env_id!r} is not a registered Gymnasium id{hint} "
                 "(valid: a Gymnasium id such as CartPole-v1, relayrl/..., package.module:Class, or "

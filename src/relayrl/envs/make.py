@@ -240,15 +240,16 @@ def _cast_observations(env: gym.Env, obs: Any) -> tuple[gym.Env, str | None]:
 
 
 def _other_dtypes(space: gym.Space, obs: Any, where: str) -> list[tuple[str, np.dtype, gym.spaces.Box]]:
-    """(entry, dtype, Box) for each Box in `space` whose value in `obs` is an array of another
-    number dtype; a list is no finding (Box.contains reads it in the space's dtype)."""
+    """(entry, dtype, Box) for each Box in `space` whose value in `obs` is an array of a number
+    dtype Box.contains refuses (float64 for float32, float for int); a list, or a dtype that
+    casts safely (int32 for int64), is no finding: Box.contains takes them."""
     if isinstance(space, gym.spaces.Dict) and isinstance(obs, dict):
         return [f for k, s in space.spaces.items() if k in obs for f in _other_dtypes(s, obs[k], f"{where}[{k!r}]")]
     if isinstance(space, gym.spaces.Tuple) and isinstance(obs, tuple | list) and len(obs) == len(space.spaces):
         pairs = enumerate(zip(space.spaces, obs, strict=True))
         return [f for i, (s, o) in pairs for f in _other_dtypes(s, o, f"{where}[{i}]")]
-    if isinstance(space, gym.spaces.Box) and isinstance(obs, np.ndarray | np.generic) and obs.dtype != space.dtype \
-            and obs.dtype.kind in "biuf":
+    if isinstance(space, gym.spaces.Box) and isinstance(obs, np.ndarray | np.generic) and obs.dtype.kind in "biuf" \
+            and not np.can_cast(obs.dtype, space.dtype):
         return [(where, obs.dtype, space)]
     return []
 
@@ -266,7 +267,7 @@ def _cast(space: gym.Space, obs: Any) -> Any:
 
 # Gymnasium's checker's findings of an env that does not seed itself from reset(seed=...)
 _UNSEEDED = ("does not call `super().reset(seed=seed)`", "random number generator to have been generated given a seed",
-             "is non-deterministic")
+             "is non-deterministic", "Deterministic step observations are not equivalent")
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")  # gymnasium's logger colours its warnings
 # What Gymnasium's checker says that is no finding here: wrappers (a TimeLimit, env.wrappers) are
 # ours to add, and a Box without bounds (CartPole's, most MuJoCo envs') is one relayrl takes.

@@ -12,14 +12,24 @@ import warnings
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, cast
 
 import numpy as np
 import torch
 
 from relayrl import interrupts
 from relayrl.agents.registry import algorithm
-from relayrl.config import Config, algo_defaults, changes, dotted, from_dict, load_toml, save_toml, to_dict
+from relayrl.config import (
+    Config,
+    algo_defaults,
+    changes,
+    changes_between,
+    dotted,
+    from_dict,
+    load_toml,
+    save_toml,
+    to_dict,
+)
 from relayrl.core import Agent
 from relayrl.envs.atari import raw_screen_note
 from relayrl.envs.gym import names_python_factory
@@ -134,17 +144,29 @@ def caller_state_kept() -> Iterator[None]:
     cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None  # manual_seed seeds these too
     flushing = torch.tensor([1e-39]).item() == 0.0  # torch has no getter: a float32 denormal reads 0 when flushed
     try:
-        with global_rngs_kept(), float32_default(), warnings.catch_warnings():
-            # an observation beyond float32 becomes inf in relayrl's write (and NaN in the
-            # policy's matmul), which the finite watch names in one line; NumPy's warnings of
-            # them, each with its source line, would only precede it
-            warnings.filterwarnings("ignore", "(overflow|invalid value) encountered", RuntimeWarning, r"relayrl\.")
+        with global_rngs_kept(), float32_default(), numpy_warnings_left_out():
             yield
     finally:
         torch.set_num_threads(threads)
         torch.set_flush_denormal(flushing)
         if cuda is not None:
             torch.cuda.set_rng_state_all(cuda)
+
+
+@contextlib.contextmanager
+def numpy_warnings_left_out() -> Iterator[None]:
+    """NumPy's overflow and invalid-value warnings from relayrl's own code left out: an
+    observation beyond float32 becomes inf in relayrl's write (and NaN in the policy's matmul),
+    which the finite watch names in one line; the warnings, each with its source line, would only
+    precede it. One filter entry, taken out again after (not the whole list restored, which would
+    drop a filter a library imported during the run installs)."""
+    warnings.filterwarnings("ignore", "(overflow|invalid value) encountered", RuntimeWarning, r"relayrl\.")
+    ours = warnings.filters[0]
+    try:
+        yield
+    finally:
+        with contextlib.suppress(ValueError):  # gone already: warnings.resetwarnings() during the run
+            cast(list, warnings.filters).remove(ours)  # typeshed declares a Sequence; it is the list warn() reads
 
 
 @contextlib.contextmanager
@@ -556,19 +578,12 @@ def saved_config(rd: RunDir) -> Config | None:
         return None
 
 
-def _edited_since(checkpointed: dict[str, Any], saved: Config) -> list[str]:
-    """`key: checkpoint's -> config.toml's` for the keys both name (a checkpoint of an older
-    version may lack newer keys) whose values differ."""
-    was, now = dotted(checkpointed), dotted(to_dict(saved))
-    return [f"{k}: {was[k]!r} -> {now[k]!r}" for k in sorted(was.keys() & now.keys()) if was[k] != now[k]]
-
-
 def record_resumed_config(core: RunCore, saved: Config | None) -> None:
     """config.toml becomes the config the resumed run goes on with (`--set` overrides
     included), so that `relayrl eval` and a later resume use it; written once the checkpoint
     has been restored, so a config it refused is not kept. What changed is said."""
     changed = changes(saved, core.config) if saved is not None else ["config.toml rewritten in this version's form"]
-    if saved is not None and (edited := _edited_since(core.restored_config, saved)):
+    if saved is not None and (edited := changes_between(core.restored_config, to_dict(saved), fields_in_both=True)):
         core.say(f"config.toml differs from the settings its checkpoint was written with (edited by hand, or a "
                  f"resume stopped before its first checkpoint): {'; '.join(edited)}")
     if changed:
