@@ -148,6 +148,33 @@ def test_a_users_own_encoder_trains_and_its_policy_loads_and_exports(algo, tmp_p
     np.testing.assert_allclose(torch.export.load(path).module()(*feeds).numpy()[0], np.asarray(policy(o)), atol=1e-5)
 
 
+def test_a_policy_file_on_its_own_runs_no_encoder_code_unless_trusted(tmp_path, monkeypatch, capsys):
+    """A shared policy.pt runs no code (README: What is safe to load): one whose network a user's
+    module builds is refused before the module is imported, unless the caller trusts that code;
+    in its run directory it is the run's own."""
+    import shutil
+    import sys
+
+    from relayrl.cli import main
+
+    config = short_config("ppo", "dict", "discrete")
+    config.agent.encoder = "space_envs:FlatEncoder"
+    relayrl.train(config, tmp_path / "run", progress=False)
+    shutil.copy(tmp_path / "run" / "policy" / "policy.pt", tmp_path / "shared.pt")
+    monkeypatch.delitem(sys.modules, "space_envs")  # imported again only where trusted
+    shared = tmp_path / "shared.pt"
+    for load in (lambda: relayrl.load_policy(shared), lambda: relayrl.export_policy(shared)):
+        with pytest.raises(UserError, match=r"has its network built by 'space_envs:FlatEncoder', code it would import "
+                                            r"and run, which a policy file on its own is not trusted to"):
+            load()
+        assert "space_envs" not in sys.modules
+    assert main(["eval", str(tmp_path / "shared.pt"), "--env", "space_envs:Spaces"]) == 2
+    assert "--trust-code" in capsys.readouterr().err
+    relayrl.load_policy(tmp_path / "run" / "policy" / "policy.pt")  # the run's own
+    relayrl.load_policy(tmp_path / "shared.pt", trust_code=True)
+    assert main(["export", str(tmp_path / "shared.pt"), "--trust-code", "--out", str(tmp_path / "p.pt2")]) == 0
+
+
 def test_a_policy_whose_encoder_code_changed_since_the_run_says_so(tmp_path, monkeypatch):
     config = short_config("ppo", "dict", "discrete")
     config.agent.encoder = "space_envs:FlatEncoder"

@@ -15,6 +15,9 @@ from typing import Any, NoReturn
 
 from relayrl.errors import NonFiniteError, UserError
 
+# export.load_policy's trust_code, for the commands that read a policy file on its own
+TRUST_CODE = ("a policy file outside a run directory whose network a user's encoder builds (package.module:make): "
+              "import and run that code (a policy file on its own runs none otherwise)")
 EXIT_USAGE = 2
 EXIT_NON_FINITE = 3  # a run stopped at a NaN or inf; its last good checkpoint and policy are kept
 
@@ -91,6 +94,7 @@ def build_parser() -> _Parser:
     e.add_argument("--max-episode-steps", type=int, default=None, metavar="N",
                    help="cut evaluation episodes at N steps (default: the run's env.max_episode_steps, else the "
                         "env's own time limit, else 1,000)")
+    e.add_argument("--trust-code", action="store_true", help=TRUST_CODE)
     e.add_argument("--stochastic", action="store_true",
                    help="sample the SAC or PPO policy's actions (drawn from --seed) instead of taking its mean or "
                         "most likely action; DQN's greedy policy acts the same")
@@ -115,8 +119,9 @@ def build_parser() -> _Parser:
     x.add_argument("--out", metavar="FILE", help="where to write it (default: RUN_DIR/policy/policy.FORMAT; "
                                                  "folders are created)")
     x.add_argument("--format", choices=("pt2", "onnx"),
-                   help="pt2: a torch.export program | onnx: an ONNX model (pip install 'relayrl[onnx]'); "
+                   help="pt2: a torch.export program | onnx: an ONNX model (the onnx extra); "
                         "default: --out's extension, else pt2")
+    x.add_argument("--trust-code", action="store_true", help=TRUST_CODE)
     c = sub.add_parser("config", help="print a preset's (or config TOML's) full config, each key with its meaning")
     c.add_argument("config", metavar="PRESET|CONFIG.toml", help="a preset name (see `relayrl presets`) or a TOML file")
     c.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -183,7 +188,7 @@ def _eval(args: argparse.Namespace) -> None:
     if not lone_policy_file(given):  # a policy file on its own names the env it records
         RunDir.of(given).require()
     # a run directory, its config.toml or policy file, or a lone policy file
-    policy = load_policy(given, deterministic=not args.stochastic, seed=args.seed)
+    policy = load_policy(given, deterministic=not args.stochastic, seed=args.seed, trust_code=args.trust_code)
     if args.env:  # as it is registered, or with the kwargs the policy records for that same id
         env_id, env = args.env, named_env(args.env, policy, args.episodes, args.max_episode_steps or 0,
                                           say=lambda line: print(f"relayrl: {line}", file=sys.stderr))
@@ -313,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "export":
             from relayrl.export import describe, export_policy
 
-            path = export_policy(args.run_dir, args.out, args.format)
+            path = export_policy(args.run_dir, args.out, args.format, trust_code=args.trust_code)
             sig = json.loads(path.with_name(path.name + ".json").read_text())
             print(f"{path} ({describe(sig)}; signature in {path.name}.json)")
         elif args.command == "config":

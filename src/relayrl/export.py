@@ -78,17 +78,32 @@ def _built(f: Path, state: dict[str, Any], build: Callable[[], T]) -> T:
                         f"({type(e).__name__}: {e}); {REFUSED}") from None
 
 
-def load_policy_state(path: str | Path) -> dict[str, Any]:
-    """A policy file's state, checked: every key `load_policy` and `export_policy` read is there."""
+def _read(path: str | Path, trust_code: bool) -> tuple[Path, dict[str, Any]]:
+    """A policy file and its state. A file on its own (shared) runs no code: one whose encoder a
+    module of the user's builds is refused unless `trust_code`; in its run directory, whose
+    config.toml names the same encoder, it is the run's own."""
+    from relayrl.training.run_dir import RunDir
+
     f = _policy_file(path)
     state = load_policy_file(f)
+    encoder = str(state.get("encoder", ""))
+    if is_user_encoder(encoder) and not trust_code and not RunDir.of(f).config.is_file():
+        raise UserError(f"the policy file {str(f)!r} has its network built by {encoder!r}, code it would import and "
+                        "run, which a policy file on its own is not trusted to: load it from its run directory, or, "
+                        "trusting that code, with --trust-code (in Python, trust_code=True)")
+    return f, state
+
+
+def load_policy_state(path: str | Path, trust_code: bool = False) -> dict[str, Any]:
+    """A policy file's state, checked: every key `load_policy` and `export_policy` read is there."""
+    f, state = _read(path, trust_code)
     module = for_policy_kind(state.get("kind")).policy_module()  # UserError for a kind this version does not know
     _built(f, state, lambda: (module.load(state, torch.device("cpu"), True, None), module.deterministic_module(state)))
     return state
 
 
 def load_policy(path: str | Path, device: str | torch.device = "cpu", deterministic: bool = True,
-                seed: int | None = None) -> LoadedPolicy:
+                seed: int | None = None, trust_code: bool = False) -> LoadedPolicy:
     """A run directory, its `policy/` folder or the file itself -> the policy, for plain Python.
 
     It takes NumPy or torch observations, one [*obs_shape] or a batch [B, *obs_shape], and
@@ -99,14 +114,14 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", determinis
     `(action, None)` as Stable-Baselines3's does. Its `env_steps` is the run's env step when the
     policy was saved. During a run the file is replaced atomically, so a policy can be loaded
     at any moment. `device`: cpu, cuda, cuda:N or auto (the GPU where there is one), as a
-    config's.
+    config's. `trust_code`: load a policy file outside its run directory whose network a user's
+    encoder builds, importing and running that code (a shared file runs none otherwise).
     """
     from relayrl.training.lifecycle import resolve_device
 
     check_seed(seed)  # else a bad seed read as a broken policy file
     on = resolve_device(str(device))  # "auto" as a run's is; a device not here is one line, not torch's assertion
-    f = _policy_file(path)
-    state = load_policy_file(f)
+    f, state = _read(path, trust_code)
     module = for_policy_kind(state.get("kind")).policy_module()
     # Built once (a user's encoder may be costly to make); on another device the file is
     # checked on the CPU first, so a device's own error is not taken for a broken file.
@@ -118,11 +133,12 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", determinis
 FORMATS = ("pt2", "onnx")
 
 
-def export_policy(path: str | Path, out: str | Path | None = None, format: str | None = None) -> Path:
+def export_policy(path: str | Path, out: str | Path | None = None, format: str | None = None,
+                  trust_code: bool = False) -> Path:
     """Write the deterministic policy as a `torch.export` program (`policy.pt2`) or, with
     `format="onnx"`, an ONNX model (`policy.onnx`; needs the `onnx` extra). Beside it,
     `<file>.json` says what it takes and returns (`signature`). Without `format`, an `out`
-    ending in .onnx or .pt2 names it; else pt2."""
+    ending in .onnx or .pt2 names it; else pt2. `trust_code`: as `load_policy`'s."""
     named = Path(out).suffix.lstrip(".") if out and not is_folder(out) else ""
     if named and named not in FORMATS:  # torch.export's reader and onnxruntime go by the extension
         raise UserError(f"--out {str(out)!r}: give a file name ending in .pt2 or .onnx (or a folder)")
@@ -143,12 +159,12 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
     from relayrl.training.lifecycle import float32_default
 
     with float32_default():  # the networks relayrl saved, whatever the caller's default dtype
-        return _export(path, out, format)
+        return _export(path, out, format, trust_code)
 
 
-def _export(path: str | Path, out: str | Path | None, format: str) -> Path:
+def _export(path: str | Path, out: str | Path | None, format: str, trust_code: bool) -> Path:
     """`export_policy`'s program and signature, its arguments checked."""
-    state = load_policy_state(path)
+    state = load_policy_state(path, trust_code)
     with rng_kept(torch.device("cpu")):
         module = for_policy_kind(state["kind"]).policy_module().deterministic_module(state)
     module = module.requires_grad_(False).eval()
