@@ -139,6 +139,14 @@ class FlatEncoder(nn.Module):
         return torch.relu(self.linear(torch.cat([p.reshape(p.shape[0], -1).float() for p in parts], dim=1)))
 
 
+class WithSpareLayer(FlatEncoder):
+    """FlatEncoder with a layer its forward pass leaves out (an SB3 extractor's habit): no grad."""
+
+    def __init__(self, space: gym.Space) -> None:
+        super().__init__(space)
+        self.spare = nn.Linear(4, 4)
+
+
 def not_a_module(space: gym.Space) -> int:
     return 3
 

@@ -41,3 +41,25 @@ def test_state_dict_round_trip():
 def test_parameters_on_no_device_or_several_are_refused_when_built():
     with pytest.raises(ValueError, match=r"on one device; got them on \[\]"):
         FastAdam([torch.zeros(2)], lr=1e-3)  # a tensor that needs no grad is no trainable parameter
+
+
+def test_a_parameter_without_a_gradient_is_left_as_torch_adam_leaves_it():
+    """A layer a user's encoder leaves out of its forward pass gets no grad: torch.optim.Adam
+    skips it, moments and step count included; the others step as usual."""
+    def run(make):
+        torch.manual_seed(0)
+        used, spare = torch.nn.Linear(3, 2), torch.nn.Linear(3, 2)
+        opt = make([*used.parameters(), *spare.parameters()])
+        x = torch.randn(16, 3)
+        for _ in range(5):
+            opt.zero_grad()
+            used(x).square().mean().backward()
+            opt.step()
+        return used, spare, opt
+
+    ours_used, ours_spare, ours = run(lambda p: FastAdam(p, lr=1e-2))
+    ref_used, ref_spare, _ = run(lambda p: torch.optim.Adam(p, lr=1e-2))
+    for a, b in zip([*ours_used.parameters(), *ours_spare.parameters()],
+                    [*ref_used.parameters(), *ref_spare.parameters()], strict=True):
+        assert torch.allclose(a, b, atol=1e-6)
+    assert [float(s) for s in ours.steps] == [5.0, 5.0, 0.0, 0.0]

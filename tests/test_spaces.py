@@ -148,6 +148,14 @@ def test_a_users_own_encoder_trains_and_its_policy_loads_and_exports(algo, tmp_p
     np.testing.assert_allclose(torch.export.load(path).module()(*feeds).numpy()[0], np.asarray(policy(o)), atol=1e-5)
 
 
+@pytest.mark.parametrize("algo", sorted(ACTIONS))
+def test_a_users_encoder_with_a_layer_it_leaves_unused_trains(algo, tmp_path):
+    """Its layer gets no gradient; the optimizers leave it as torch.optim.Adam does."""
+    config = short_config(algo, "dict", ACTIONS[algo][0])
+    config.agent.encoder = "space_envs:WithSpareLayer"
+    relayrl.train(config, tmp_path, progress=False)
+
+
 def test_a_policy_file_on_its_own_runs_no_encoder_code_unless_trusted(tmp_path, monkeypatch, capsys):
     """A shared policy.pt runs no code (README: What is safe to load): one whose network a user's
     module builds is refused before the module is imported, unless the caller trusts that code;

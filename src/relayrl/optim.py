@@ -55,18 +55,27 @@ class FastAdam:
     @torch.no_grad()
     def step(self, grads: list[torch.Tensor] | None = None) -> None:
         """One Adam step from the params' `.grad`, or from `grads` (same order as the params)
-        when the caller computed gradients without autograd."""
+        when the caller computed gradients without autograd. A parameter without a gradient (a
+        user's encoder's layer its forward pass leaves out) is left as it is, as torch.optim.Adam
+        leaves it: its moments and step count too."""
         if grads is None:
-            grads = cast("list[torch.Tensor]", [p.grad for p in self.params])  # a None is refused below
+            grads = cast("list[torch.Tensor]", [p.grad for p in self.params])
         elif len(grads) != len(self.params):
             raise ValueError(f"FastAdam.step() got {len(grads)} gradients for {len(self.params)} parameters")
+        data, exp_avg, exp_avg_sq, steps = self._data, self.exp_avg, self.exp_avg_sq, self.steps
         if any(g is None for g in grads):
-            raise RuntimeError("FastAdam.step() called before backward(): a parameter has no grad")
-        self._steps_flat.add_(1.0)
+            keep = [i for i, g in enumerate(grads) if g is not None]
+            if not keep:
+                return
+            data, grads, exp_avg, exp_avg_sq, steps = ([t[i] for i in keep]
+                                                       for t in (data, grads, exp_avg, exp_avg_sq, steps))
+            for step in steps:
+                step.add_(1.0)
+        else:
+            self._steps_flat.add_(1.0)
         lr = self._lr if self._lr_tensor is None else self._lr_tensor
-        torch._fused_adam_(self._data, grads, self.exp_avg, self.exp_avg_sq, [], self.steps,
-                           amsgrad=False, lr=lr, beta1=self.betas[0], beta2=self.betas[1],
-                           weight_decay=0.0, eps=self.eps, maximize=False)
+        torch._fused_adam_(data, grads, exp_avg, exp_avg_sq, [], steps, amsgrad=False, lr=lr, beta1=self.betas[0],
+                           beta2=self.betas[1], weight_decay=0.0, eps=self.eps, maximize=False)
 
     def state_dict(self) -> dict[str, Any]:
         return {"lr": self.lr, "exp_avg": [t.clone() for t in self.exp_avg],
