@@ -86,6 +86,8 @@ def test_overrides_are_typed():
     ("agent.double=True", "expected bool (true or false, in lower case: true)"),  # written as in Python
     ("train.total_steps=1e4", "expected int (write 10000: TOML reads 1e4 and 10000.0 as floats)"),
     ("agent.hidden=(64,64)", "expected a list of int (in brackets: [64, 64])"),
+    ("agent.hidden={pi=[64], vf=[64]}", "expected a list of int (SB3's net_arch dict: here one list of sizes"),
+    ("train.total_steps=abc", "expected int, e.g. train.total_steps=100000"),  # the key's value shows the form
     ("env.kwargs={a=1", "the value is not a valid TOML table or list"),  # an unclosed table is no bare word
     # values that would fail mid-run, or be taken as something else, are refused up front
     ("agent.huber_delta=0", "agent.huber_delta=0.0 is not valid; it must be > 0"),
@@ -464,3 +466,13 @@ def test_changes_between_configs_take_a_tuple_and_its_list_as_one_and_skip_newer
     toml = {"seed": 0, "env": {"kwargs": {"size": [3, 3]}, "newer": 1}, "eval": {"env_kwargs": {"x": 1}}}
     assert changes_between(checkpoint, toml, fields_in_both=True) == ["eval.env_kwargs.x: None -> 1"]
     assert changes_between(checkpoint, toml) == ["env.newer: None -> 1", "eval.env_kwargs.x: None -> 1"]
+
+
+def test_an_encoder_given_as_a_lambda_or_a_built_module_is_told_to_name_a_maker():
+    import torch
+
+    c = load_config("ppo")
+    for value in (lambda space: None, torch.nn.Identity()):
+        with pytest.raises(ConfigError, match=r"expected str \(name a function or class in a module that builds it "
+                                              r"from the observation space, as a string: 'package.module:make'\)"):
+            c.agent.encoder = value

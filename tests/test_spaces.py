@@ -196,6 +196,18 @@ def test_a_policy_whose_encoder_code_changed_since_the_run_says_so(tmp_path, mon
         relayrl.load_policy(tmp_path)
 
 
+@pytest.mark.parametrize("name, error, note", [
+    ("takes_no_space", TypeError, "called as make(observation_space) with Dict("),
+    ("FloatConv", RuntimeError, "on a batch of 1 zero observation: a dict of tensors by entry key ('cell': int64 [1], "
+                                "'frame': uint8 [1, 1, 8, 8], 'pos': float32 [1, 2]) (uint8 frames as 0..255"),
+])
+def test_a_users_encoder_raising_keeps_its_error_with_what_relayrl_gave_it(name, error, note):
+    with pytest.raises(error) as caught:
+        make_encoder(spec_from_space(Spaces("dict").observation_space), f"space_envs:{name}")
+    assert len(caught.value.__notes__) == 1 and note in caught.value.__notes__[0]
+    assert caught.value.__notes__[0].startswith("relayrl: raised by ")
+
+
 def test_a_users_encoder_is_built_from_the_observation_space_and_checked():
     spec = spec_from_space(Spaces("dict").observation_space)
     encoder = make_encoder(spec, "space_envs:FlatEncoder")

@@ -340,6 +340,9 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
         (item,) = typing.get_args(hint)[:1]
         if not isinstance(value, (list, tuple)):
             tip = " (in brackets: [64, 64])" if isinstance(value, str) and value.startswith("(") else ""
+            if isinstance(value, dict) and set(value) & {"pi", "vf", "qf"}:  # SB3's net_arch=dict(pi=..., vf=...)
+                tip = (" (SB3's net_arch dict: here one list of sizes, PPO's actor and critic each with its own "
+                       "layers of those sizes; SAC: agent.actor_hidden and agent.critic_hidden)")
             raise ConfigError(f"{path}={value!r} has the wrong type; expected a list of {type_name(item)}{tip}")
         return [coerce(v, item, f"{path}[{i}]") for i, v in enumerate(value)]
     if hint is bool and getattr(getattr(value, "dtype", None), "kind", "") == "b":
@@ -371,6 +374,9 @@ def _tip(value: Any, hint: Any) -> str:
         return f" (write {int(value)}: TOML reads 1e4 and 10000.0 as floats)"
     if hint is str and callable(value):  # agent.encoder = make: configs name code, as env.id does
         module, name = getattr(value, "__module__", "package.module"), getattr(value, "__qualname__", "name")
+        if not isinstance(value, type | types.FunctionType) or not name.isidentifier():  # a lambda, a module built
+            return (" (name a function or class in a module that builds it from the observation space, as a string: "
+                    "'package.module:make')")
         if module == "__main__":
             return f" (name it as a string, 'mymodule:{name}', with {name} in a module beside the script)"
         return f" (name it as a string: '{module}:{name}')"

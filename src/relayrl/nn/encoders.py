@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from relayrl.config_fields import ENCODERS, is_user_encoder
-from relayrl.errors import UserError
+from relayrl.errors import UserError, note_where
 from relayrl.nn.mlp import MLP
 from relayrl.specs import (
     ArraySpec,
@@ -164,16 +164,25 @@ class UserEncoder(nn.Module):
         super().__init__()
         make = load_callable(name, "agent.encoder")
         space = to_space(spec_from_state(spec_state(spec)), stored=True)  # as a policy file rebuilds it
-        module = make(space)
+        try:  # its own errors are its own: their traceback, and what relayrl called it with
+            module = make(space)
+        except Exception as e:
+            note_where(e, f"by agent.encoder={name!r}, called as make(observation_space) with {space}")
+            raise
         if not isinstance(module, nn.Module):
             raise UserError(f"agent.encoder={name!r} returned {type(module).__name__}, not a torch.nn.Module")
         self.module = module
         self.packed = spec if isinstance(spec, PackedSpec) else None
         features: set[int] = set()
         for b in (1, 2):  # a batch of one too: a squeeze() would pass a batch of two alone
-            with torch.no_grad():  # its own errors are its own
+            with torch.no_grad():
                 zeros = spec.zeros(b)
-                out = module(unpack(zeros, spec) if isinstance(spec, PackedSpec) else zeros)
+                try:
+                    out = module(unpack(zeros, spec) if isinstance(spec, PackedSpec) else zeros)
+                except Exception as e:
+                    note_where(e, f"by the module of agent.encoder={name!r} on a batch of {b} zero observation"
+                                  f"{'s' * (b > 1)}: {_as_given(spec, b)}")
+                    raise
             if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != b:
                 shape = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
                 raise UserError(f"agent.encoder={name!r}: its module gave {shape} for a batch of {b} observation"
@@ -189,6 +198,18 @@ class UserEncoder(nn.Module):
         if self.packed is not None and not isinstance(x, dict):
             x = unpack(x, self.packed)
         return self.module(x).float()
+
+
+def _as_given(spec: Spec, b: int) -> str:
+    """What a user's encoder module is given, for the note on its own error."""
+    if isinstance(spec, PackedSpec):
+        entries = ", ".join(f"{f.key!r}: {str(f.spec.dtype).removeprefix('torch.')} {[b, *f.spec.shape]}"
+                            for f in spec.fields)
+        given = f"a dict of tensors by entry key ({entries})"
+    else:
+        given = f"a {str(spec.dtype).removeprefix('torch.')} tensor {[b, *spec.shape]}"
+    raw = " (uint8 frames as 0..255, not scaled to [0, 1])" if "uint8" in given else ""
+    return given + raw
 
 
 def make_encoder(spec: Spec, kind: str = "auto") -> nn.Module | None:
