@@ -101,7 +101,10 @@ def _cleanrl_names() -> list[str]:
                         "does not cover it (an unknown key of these names gets the same line). Names CleanRL shares "
                         "(`gamma`, `gae_lambda`, `ent_coef`, `max_grad_norm`, `batch_size`, `tau`, ...) are the "
                         "`agent.` keys above; `vf_coef` weighs E[(V - R)^2] here, as in SB3, where CleanRL's value "
-                        "loss carries a factor 0.5: CleanRL's `vf_coef = 0.5` is `agent.vf_coef = 0.25`.")
+                        "loss carries a factor 0.5: CleanRL's `vf_coef = 0.5` is `agent.vf_coef = 0.25`. "
+                        "CleanRL's `dqn.py` takes the mean squared TD error without a gradient clip, where "
+                        "relayrl's DQN (as SB3's) takes the Huber loss with the norm clipped at 10: "
+                        "`agent.loss = \"mse\"` and `agent.grad_clip = 0` port it.")
 
 
 def _names_table(title: str, column: str, names: dict[str, str], intro: str) -> list[str]:
