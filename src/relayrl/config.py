@@ -292,12 +292,12 @@ def changes_between(old: dict[str, Any], new: dict[str, Any], fields_in_both: bo
     a, b = dotted(old), dotted(new)
     keys = sorted(a.keys() | b.keys())
     if fields_in_both:
-        both = _fields(old) & _fields(new)
+        both = _field_paths(old) & _field_paths(new)
         keys = [k for k in keys if ".".join(k.split(".")[:2]) in both]  # seed, env.kwargs.size: their fields
     return [f"{k}: {a.get(k)!r} -> {b.get(k)!r}" for k in keys if _plain(a.get(k)) != _plain(b.get(k))]
 
 
-def _fields(data: dict[str, Any]) -> set[str]:
+def _field_paths(data: dict[str, Any]) -> set[str]:
     """The fields a config dict names: `section.key` for a section's, `key` for a top-level one."""
     return {f"{k}.{f}" if isinstance(v, dict) else k for k, v in data.items()
             for f in (v if isinstance(v, dict) else [None])}
