@@ -41,6 +41,7 @@ def run(args, env, cwd=None):
                                                             "one word (--set train.total_steps=100)"),
     (["config", "dqn", "--set", "agent.lr", "0.1"], "(--set agent.lr=0.1)"),
     (["train", "--set", "agent.lr", "0.1", "dqn"], "--set agent.lr 0.1: --set takes KEY=VALUE"),  # 0.1: the preset
+    (["train", "--set", "train.total_steps", "10"], "--set train.total_steps 10: --set takes KEY=VALUE"),  # no preset
 ])
 def test_bad_input_is_one_line_and_exit_2(args, fragment, cli_env, tmp_path):
     r = run(args, cli_env, cwd=tmp_path)

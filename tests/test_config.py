@@ -33,7 +33,7 @@ def test_overrides_are_typed():
     ("train.total_step=5", "unknown config key 'train.total_step'; did you mean 'train.total_steps'?"),
     ("agent.zzz=1", "unknown config key 'agent.zzz'; valid: agent.hidden"),
     ("nope=1", "unknown config key 'nope'"),
-    ("agent.n_steps=512", "here, Stable-Baselines3's n_steps is train.collect_steps (env steps per rollout"),
+    ("agent.n_steps=512", "here, Stable-Baselines3's n_steps is PPO's train.collect_steps (env steps per rollout"),
     ("agent.learning_starts=100", "here, Stable-Baselines3's learning_starts is train.initial_collect_steps"),
     ("agent.net_arch=[64]", "here, Stable-Baselines3's net_arch is agent.hidden (SAC: agent.actor_hidden"),
     ("agent.ent_coef=0.1", "here, Stable-Baselines3's ent_coef is PPO's agent.ent_coef; SAC's entropy weight is"),
@@ -464,8 +464,8 @@ def test_changes_between_configs_take_a_tuple_and_its_list_as_one_and_skip_newer
 
     checkpoint = {"seed": 0, "env": {"kwargs": {"size": (3, 3)}}, "eval": {"env_kwargs": {}}}
     toml = {"seed": 0, "env": {"kwargs": {"size": [3, 3]}, "newer": 1}, "eval": {"env_kwargs": {"x": 1}}}
-    assert changes_between(checkpoint, toml, fields_in_both=True) == ["eval.env_kwargs.x: None -> 1"]
-    assert changes_between(checkpoint, toml) == ["env.newer: None -> 1", "eval.env_kwargs.x: None -> 1"]
+    assert changes_between(checkpoint, toml, fields_in_both=True) == ["eval.env_kwargs.x: (unset) -> 1"]
+    assert changes_between(checkpoint, toml) == ["env.newer: (unset) -> 1", "eval.env_kwargs.x: (unset) -> 1"]
 
 
 def test_an_encoder_given_as_a_lambda_or_a_built_module_is_told_to_name_a_maker():

@@ -469,17 +469,21 @@ def test_a_setting_edited_by_hand_in_config_toml_is_named_on_resume(tmp_path, ca
     cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
     relayrl.train(cfg, tmp_path / "r", progress=False)
     toml = tmp_path / "r" / "config.toml"
-    toml.write_text(toml.read_text().replace(f"lr = {cfg.agent.lr} ", "lr = 0.01 "))
+    toml.write_text(toml.read_text().replace(f"lr = {cfg.agent.lr} ", "lr = 0.01 ").replace("total_steps = 600 ",
+                                                                                             "total_steps = 900 "))
     capsys.readouterr()
-    longer = relayrl.load_config(str(toml), ["train.total_steps=900"])
-    relayrl.train(longer, tmp_path / "r", resume=True, progress=False)
+    relayrl.train(relayrl.load_config(str(toml)), tmp_path / "r", resume=True, progress=False)
     err = capsys.readouterr().err
     assert (f"config.toml differs from the settings its checkpoint was written with (edited by hand, or a resume "
-            f"stopped before its first checkpoint): agent.lr: {cfg.agent.lr!r} -> 0.01\n") in err
-    assert "resumed with changed settings, now in config.toml: train.total_steps: 600 -> 900\n" in err
+            f"stopped before its first checkpoint): agent.lr: {cfg.agent.lr!r} -> 0.01; train.total_steps: 600 -> "
+            f"900\n") in err
+    assert "resumed with changed settings" not in err  # nothing given with --set
+    assert "the schedules over train.total_steps (" in err  # the checkpoint's total was 600
     relayrl.train(relayrl.load_config(str(toml), ["train.total_steps=1200"]), tmp_path / "r", resume=True,
                   progress=False)
-    assert "config.toml differs" not in capsys.readouterr().err  # the checkpoints since hold the edit
+    err = capsys.readouterr().err
+    assert "config.toml differs" not in err  # the checkpoints since hold the edit
+    assert "resumed with changed settings, now in config.toml: train.total_steps: 900 -> 1200\n" in err
 
 
 def test_a_run_whose_checkpoints_leave_the_replay_out_resumes_with_another_replay_size(tmp_path):

@@ -277,15 +277,15 @@ def main(argv: list[str] | None = None) -> int:
         sys.path.insert(0, os.getcwd())
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
+    tokens = sys.argv[1:] if argv is None else argv
+    spaced = [(tokens[i + 1], tokens[i + 2]) for i in range(len(tokens) - 2)
+              if tokens[i] == "--set" and "=" not in tokens[i + 1] and not tokens[i + 2].startswith("-")]
+    if spaced:  # `--set KEY VALUE`: the shell split one word (argparse took VALUE as the preset, or left it over)
+        key, value = spaced[0]
+        print(f"relayrl: error: --set {key} {value}: --set takes KEY=VALUE as one word (--set {key}={value})",
+              file=sys.stderr)
+        return EXIT_USAGE
     if extra:
-        tokens = sys.argv[1:] if argv is None else argv
-        spaced = [(tokens[i + 1], tokens[i + 2]) for i in range(len(tokens) - 2)
-                  if tokens[i] == "--set" and "=" not in tokens[i + 1] and not tokens[i + 2].startswith("-")]
-        if spaced:  # `--set KEY VALUE`: the shell split what is one word (VALUE may be what argparse left over)
-            key, value = spaced[0]
-            print(f"relayrl: error: --set {key} {value}: --set takes KEY=VALUE as one word (--set {key}={value})",
-                  file=sys.stderr)
-            return EXIT_USAGE
         (args.parsers.get(args.command) or parser).unrecognized(extra)
     if args.command is None:
         parser.print_help()

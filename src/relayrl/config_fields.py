@@ -134,8 +134,8 @@ _NO_HER = ("none: relayrl has no HerReplayBuffer (no goal relabelling); SAC and 
 # Stable-Baselines3's names for settings relayrl names otherwise: users bring them from SB3 and
 # RL Zoo's hyperparameter files.
 SB3_NAMES = {
-    "n_steps": "train.collect_steps (env steps per rollout over all env.num_envs copies: SB3's n_steps "
-               "x env.num_envs)",
+    "n_steps": "PPO's train.collect_steps (env steps per rollout over all env.num_envs copies: SB3's n_steps "
+               "x env.num_envs); DQN's and SAC's n-step returns (SB3 2.7's n_steps): replay.n_step",
     "train_freq": "train.collect_steps (env steps between gradient phases over all env.num_envs copies: SB3's "
                   "train_freq x env.num_envs; a train_freq in episodes has no counterpart)",
     "learning_starts": "train.initial_collect_steps",

@@ -90,7 +90,8 @@ def _read(path: str | Path, trust_code: bool) -> tuple[Path, dict[str, Any]]:
     if is_user_encoder(encoder) and not trust_code and not RunDir.of(f).config.is_file():
         raise UserError(f"the policy file {str(f)!r} has its network built by {encoder!r}, code it would import and "
                         "run, which a policy file on its own is not trusted to: load it from its run directory, or, "
-                        "trusting that code, with --trust-code (in Python, trust_code=True)")
+                        "trusting that code, with --trust-code (in Python, relayrl.load_policy(path, trust_code=True), "
+                        "which relayrl.evaluate also takes)")
     return f, state
 
 

@@ -89,6 +89,9 @@ def load_policy_file(path: Path) -> dict[str, Any]:
     if other:  # told by its name, before it is read: "damaged" or "would run code" would mislead
         raise UserError(f"{str(path)!r} is {other}; relayrl.load_policy, relayrl eval and relayrl video take the "
                         "run directory or its policy/policy.pt")
+    if not _torch_saved(path):  # a text or JSON file: torch's own errors (KeyError: 105) say nothing
+        raise UserError(f"{str(path)!r} is not a relayrl policy file (not a file torch.save wrote): give a run "
+                        "directory or its policy/policy.pt")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:
@@ -98,9 +101,6 @@ def load_policy_file(path: Path) -> dict[str, Any]:
             raise UserError(f"{str(path)!r} is a Stable-Baselines3 model file, which relayrl does not read: in "
                             "Python, load it with SB3 (e.g. PPO.load(path)) and give the model to "
                             "relayrl.evaluate(model, env)") from None
-        if not _torch_saved(path):  # a text file, an image: torch's own error (KeyError: 105) says nothing
-            raise UserError(f"{str(path)!r} is not a relayrl policy file (not a file torch.save wrote): give a run "
-                            "directory or its policy/policy.pt") from None
         raise UserError(f"policy file {str(path)!r} is unreadable ({type(e).__name__}: {_first_line(e)}): "
                         "damaged, or not a relayrl policy file") from None
     if not isinstance(state, dict):

@@ -593,7 +593,9 @@ def record_resumed_config(core: RunCore, saved: Config | None) -> None:
     stretched = core.config.agent.over_total_steps()
     if core.config.replay.sampler == "prioritized":  # its importance exponent anneals to 1 at the total
         stretched.append("replay.importance_exponent's annealing")
-    if saved is not None and saved.train.total_steps != total and stretched:
+    # the total the checkpoint's schedules ran to (config.toml's may have been edited by hand)
+    before = core.restored_config.get("train", {}).get("total_steps", saved.train.total_steps if saved else total)
+    if before != total and stretched:
         core.say(f"the schedules over train.total_steps ({', '.join(stretched)}) now run to env step {total:,}: "
                  f"from env step {core.env_steps():,} on they follow the new length (a learning rate or epsilon "
                  "that had decayed rises again where the run is extended)")
