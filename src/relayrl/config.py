@@ -294,11 +294,12 @@ def changes_between(old: dict[str, Any], new: dict[str, Any], fields_in_both: bo
     if fields_in_both:
         both = _field_paths(old) & _field_paths(new)
         keys = [k for k in keys if ".".join(k.split(".")[:2]) in both]  # seed, env.kwargs.size: their fields
-    def shown(d: dict[str, Any], k: str) -> str:
-        return repr(d[k]) if k in d else "(unset)"  # an env.kwargs entry added or taken out
-
     differ = [k for k in keys if k not in a or k not in b or _plain(a[k]) != _plain(b[k])]
-    return [f"{k}: {shown(a, k)} -> {shown(b, k)}" for k in differ]
+    return [f"{k}: {_shown(a, k)} -> {_shown(b, k)}" for k in differ]
+
+
+def _shown(values: dict[str, Any], key: str) -> str:
+    return repr(values[key]) if key in values else "(unset)"  # an env.kwargs entry added or taken out
 
 
 def _field_paths(data: dict[str, Any]) -> set[str]:

@@ -82,12 +82,12 @@ def _read(path: str | Path, trust_code: bool) -> tuple[Path, dict[str, Any]]:
     """A policy file and its state. A file on its own (shared) runs no code: one whose encoder a
     module of the user's builds is refused unless `trust_code`; in its run directory, whose
     config.toml names the same encoder, it is the run's own."""
-    from relayrl.training.run_dir import RunDir
+    from relayrl.evaluation import lone_policy_file
 
     f = _policy_file(path)
     state = load_policy_file(f)
     encoder = str(state.get("encoder", ""))
-    if is_user_encoder(encoder) and not trust_code and not RunDir.of(f).config.is_file():
+    if is_user_encoder(encoder) and not trust_code and lone_policy_file(f):
         raise UserError(f"the policy file {str(f)!r} has its network built by {encoder!r}, code it would import and "
                         "run, which a policy file on its own is not trusted to: load it from its run directory, or, "
                         "trusting that code, with --trust-code (in Python, relayrl.load_policy(path, trust_code=True), "

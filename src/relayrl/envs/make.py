@@ -226,7 +226,8 @@ def _cast_observations(env: gym.Env, obs: Any) -> tuple[gym.Env, str | None]:
     stop at its first assertion ("not within the observation space", of values inside the
     bounds), before its seed and determinism checks ever ran."""
     space = env.observation_space
-    found = _other_dtypes(space, obs, "")
+    found: list[tuple[str, np.dtype, gym.spaces.Box]] = []
+    _cast(space, obs, found)
     if not found:
         return env, None
     if isinstance(space, gym.spaces.Box):
@@ -239,28 +240,21 @@ def _cast_observations(env: gym.Env, obs: Any) -> tuple[gym.Env, str | None]:
     return gym.wrappers.TransformObservation(env, lambda o: _cast(space, o), space), line
 
 
-def _other_dtypes(space: gym.Space, obs: Any, where: str) -> list[tuple[str, np.dtype, gym.spaces.Box]]:
-    """(entry, dtype, Box) for each Box in `space` whose value in `obs` is an array of a number
-    dtype Box.contains refuses (float64 for float32, float for int); a list, or a dtype that
-    casts safely (int32 for int64), is no finding: Box.contains takes them."""
+def _cast(space: gym.Space, obs: Any, found: list[tuple[str, np.dtype, gym.spaces.Box]] | None = None,
+          where: str = "") -> Any:
+    """`obs` with each Box's array of numbers in the Box's dtype (Dict and Tuple entries too).
+    Each entry whose dtype Box.contains refuses (float64 for float32, float for int) goes into
+    `found` as (entry, dtype, Box); a list, or a dtype that casts safely (int32 for int64), is
+    no finding: Box.contains takes them."""
     if isinstance(space, gym.spaces.Dict) and isinstance(obs, dict):
-        return [f for k, s in space.spaces.items() if k in obs for f in _other_dtypes(s, obs[k], f"{where}[{k!r}]")]
+        return {k: _cast(space.spaces[k], v, found, f"{where}[{k!r}]") if k in space.spaces else v
+                for k, v in obs.items()}
     if isinstance(space, gym.spaces.Tuple) and isinstance(obs, tuple | list) and len(obs) == len(space.spaces):
         pairs = enumerate(zip(space.spaces, obs, strict=True))
-        return [f for i, (s, o) in pairs for f in _other_dtypes(s, o, f"{where}[{i}]")]
-    if isinstance(space, gym.spaces.Box) and isinstance(obs, np.ndarray | np.generic) and obs.dtype.kind in "biuf" \
-            and not np.can_cast(obs.dtype, space.dtype):
-        return [(where, obs.dtype, space)]
-    return []
-
-
-def _cast(space: gym.Space, obs: Any) -> Any:
-    """`obs` with the arrays of `_other_dtypes` in their Boxes' dtypes."""
-    if isinstance(space, gym.spaces.Dict) and isinstance(obs, dict):
-        return {k: _cast(space.spaces[k], v) if k in space.spaces else v for k, v in obs.items()}
-    if isinstance(space, gym.spaces.Tuple) and isinstance(obs, tuple | list) and len(obs) == len(space.spaces):
-        return tuple(_cast(s, o) for s, o in zip(space.spaces, obs, strict=True))
+        return tuple(_cast(s, o, found, f"{where}[{i}]") for i, (s, o) in pairs)
     if isinstance(space, gym.spaces.Box) and isinstance(obs, np.ndarray | np.generic) and obs.dtype.kind in "biuf":
+        if found is not None and not np.can_cast(obs.dtype, space.dtype):
+            found.append((where, obs.dtype, space))
         return np.asarray(obs, space.dtype)
     return obs
 
