@@ -175,10 +175,10 @@ def _train(args: argparse.Namespace) -> None:
 
 
 def _eval(args: argparse.Namespace) -> None:
-    from relayrl.evaluation import lone_policy_file, named_env, recorded_env
+    from relayrl.evaluation import named_env, recorded_env
     from relayrl.export import load_policy
     from relayrl.training.evaluate import eval_cap_note, evaluate
-    from relayrl.training.run_dir import RunDir
+    from relayrl.training.run_dir import RunDir, lone_policy_file
 
     if args.episodes < 1:
         raise UserError(f"--episodes {args.episodes} is not valid; it must be >= 1")

@@ -16,6 +16,7 @@ import torch
 from relayrl.errors import UserError, check_count, one_line
 from relayrl.seeding import check_seed
 from relayrl.specs import DiscreteSpec, PackedSpec, Spec, describe
+from relayrl.training.run_dir import lone_policy_file
 
 
 class EvalResult(NamedTuple):
@@ -193,14 +194,6 @@ def named_env(env_id: str, policy: Any, episodes: int, max_episode_steps: int = 
         if applied or dropped:
             say(f"{env_id} is the env the policy was trained on: {'; '.join(p for p in (applied, dropped) if p)}")
     return make_eval_env(env_id, episodes, max_episode_steps or policy.max_episode_steps, kwargs=policy.env_kwargs)
-
-
-def lone_policy_file(source: Any) -> bool:
-    """A path to a policy file with no run directory's config.toml around it."""
-    from relayrl.paths import user_path
-    from relayrl.training.run_dir import RunDir
-
-    return isinstance(source, (str, Path)) and user_path(source).is_file() and not RunDir.of(source).config.is_file()
 
 
 def recorded_env(source: Any, episodes: int, max_episode_steps: int = 0, info_keys: bool = False,

@@ -82,7 +82,7 @@ def _read(path: str | Path, trust_code: bool) -> tuple[Path, dict[str, Any]]:
     """A policy file and its state. A file on its own (shared) runs no code: one whose encoder a
     module of the user's builds is refused unless `trust_code`; in its run directory, whose
     config.toml names the same encoder, it is the run's own."""
-    from relayrl.evaluation import lone_policy_file
+    from relayrl.training.run_dir import lone_policy_file
 
     f = _policy_file(path)
     state = load_policy_file(f)

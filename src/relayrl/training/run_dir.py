@@ -186,3 +186,8 @@ class MetricsLog:
 
     def close(self) -> None:
         self.file.close()
+
+
+def lone_policy_file(source: Any) -> bool:
+    """A path to a policy file with no run directory's config.toml around it."""
+    return isinstance(source, (str, Path)) and user_path(source).is_file() and not RunDir.of(source).config.is_file()
