@@ -80,15 +80,25 @@ def test_overrides_are_typed():
                                 "is train.gradient_steps = train.collect_steps)"),
     ("train=3", "train is a section"),
     ("novalue", "is not KEY=VALUE"),
-    ("env.kwargs={kind=md0}", "the value is not a valid TOML table or list; quote the strings in it"),
+    ("env.kwargs={kind=md0}", "the value is not a valid TOML table; quote the strings in it, e.g. env.kwargs={mode"),
     ("agent.hidden=[64,", "agent.hidden='[64,' has the wrong type; expected a list of int"),
-    ("agent.hidden=[64, x]", "the value is not a valid TOML table or list"),
+    ("agent.hidden=[64, x]", "the value is not a valid TOML list; numbers as numbers and strings quoted, "
+                             "e.g. agent.hidden=[64,64]"),
+    ("env.ID=CartPole-v1", "unknown config key 'env.ID'; did you mean 'env.id'?"),  # keys are lower case, with _
+    ("agent.learning-rate=1e-3", "Stable-Baselines3's learning_rate is agent.lr"),
+    ("ppo:agent.policy_lr=1e-3", "CleanRL's policy_lr is agent.actor_lr: a setting of sac's, not of ppo's; ppo's "
+                                 "keys here: agent.hidden,"),
+    ("agent.buffer_size=10", "Stable-Baselines3's buffer_size is replay.size"),  # dqn's own: no note
+    ("ppo:agent.buffer_size=10", "buffer_size is replay.size: a setting of dqn's and sac's, not of ppo's"),
+    ("agent.ent_coef=0.1", "DQN has none"),  # the line names each algorithm's: no note
+    ("agent.lr=true", "agent.lr=true has the wrong type; expected float"),  # TOML's true, as it was written
+    ("env.kwargs=abc", "env.kwargs='abc' has the wrong type; expected a table, e.g. env.kwargs={mode = 'fast'}"),
     ("agent.double=True", "expected bool (true or false, in lower case: true)"),  # written as in Python
     ("train.total_steps=1e4", "expected int (write 10000: TOML reads 1e4 and 10000.0 as floats)"),
     ("agent.hidden=(64,64)", "expected a list of int (in brackets: [64, 64])"),
     ("agent.hidden={pi=[64], vf=[64]}", "expected a list of int (SB3's net_arch dict: here one list of sizes"),
     ("train.total_steps=abc", "expected int, e.g. train.total_steps=100000"),  # the key's value shows the form
-    ("env.kwargs={a=1", "the value is not a valid TOML table or list"),  # an unclosed table is no bare word
+    ("env.kwargs={a=1", "the value is not a valid TOML table"),  # an unclosed table is no bare word
     # values that would fail mid-run, or be taken as something else, are refused up front
     ("agent.huber_delta=0", "agent.huber_delta=0.0 is not valid; it must be > 0"),
     ("agent.adam_eps=-1", "agent.adam_eps=-1.0 is not valid; it must be > 0"),
@@ -118,7 +128,8 @@ def test_overrides_are_typed():
     ("sac:agent.lr=0.001", "did you mean 'agent.actor_lr', 'agent.critic_lr' and 'agent.alpha_lr'?"),
 ])
 def test_bad_overrides_fail_with_a_clear_message(override, fragment):
-    preset, _, override = override.rpartition(":") if override.startswith("sac:") else ("dqn-cartpole", "", override)
+    preset, _, override = (override.partition(":") if override.startswith(("sac:", "ppo:"))
+                           else ("dqn-cartpole", "", override))
     with pytest.raises(ConfigError, match=None) as e:
         load_config(preset, [override] + ["train.gradient_steps=0"] * override.startswith("replay.samples"))
     assert fragment in str(e.value)

@@ -111,6 +111,23 @@ def test_a_non_finite_loss_stops_before_the_weights_are_saved(algo, tmp_path, mo
     assert_kept_and_finite(tmp_path / "run", 10**9)
 
 
+def test_a_diverged_run_with_a_users_encoder_names_it_among_what_to_check(tmp_path, monkeypatch):
+    c = config("dqn", "env.kwargs.at=100000", "agent.encoder=tests.space_envs:FlatEncoder")
+    from relayrl.training.learner import Learner
+
+    real_learn = Learner.learn
+
+    def poisoned(self, iterations):
+        real_learn(self, iterations)
+        if self.agent.train_step >= 30:
+            self.last_metrics = {**self.last_metrics, "loss": torch.tensor(math.nan)}
+
+    monkeypatch.setattr(Learner, "learn", poisoned)
+    with pytest.raises(NonFiniteError, match=r"the reward scale and the env's observations, and "
+                                             r"agent.encoder='tests.space_envs:FlatEncoder' \(its outputs on these"):
+        train(c, tmp_path / "run", progress=False)
+
+
 def test_weights_that_went_non_finite_without_a_loss_saying_so_are_never_saved(tmp_path, monkeypatch):
     c = config("dqn", "env.kwargs.at=100000")
     from relayrl.training.learner import Learner

@@ -179,3 +179,11 @@ def test_tensorboard_gets_one_point_per_step_with_the_mean_of_the_episodes_that_
     finished = [(10, 1.0, 10), (20, 2.0, 20), (20, 4.0, 10), (20, 6.0, 30), (35, -1.5, 5)]
     assert step_means(finished) == [(10, 1.0, 10.0), (20, 4.0, 20.0), (35, -1.5, 5.0)]
     assert step_means([]) == []
+
+
+@pytest.mark.parametrize("value, shown", [(-0.001, "0.00"), (-0.004999, "0.00"), (-0.005001, "-0.01"), (0.0, "0.00"),
+                                          (-12.345, "-12.35"), (3.0, "3.00")])
+def test_printed_returns_never_show_minus_zero(value, shown):
+    from relayrl.training.report import two_places
+
+    assert f"{two_places(value):.2f}" == shown

@@ -375,7 +375,8 @@ def _rebase(obj: Any, old: Any, new: Any) -> None:
             object.__setattr__(obj, f.name, copy.deepcopy(becomes))
 
 
-def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
+def _merge(obj: Any, data: dict[str, Any], prefix: str, algo: str = "") -> None:
+    algo = algo or obj.algo  # the top-level call's obj is the Config
     names = {f.name: f for f in dataclasses.fields(obj)}
     for key, value in data.items():
         path = prefix + key
@@ -396,6 +397,10 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
                 homes = " or ".join(map(repr, elsewhere))
                 raise ConfigError(f"unknown config key {path!r}; did you mean {homes}?{tail}")
             said = unknown_key(path, [prefix + n for n in names])
+            if ported and not owners and "; here, " in said and (
+                    others := _owners_instead(SB3_NAMES.get(key) or CLEANRL_NAMES[key], algo)):
+                said = (f"{said}: a setting of {' and '.join(o + chr(39) + 's' for o in others)}, not of {algo}'s; "
+                        f"{algo}'s keys here: {', '.join(prefix + n for n in names)}")
             if owners:  # agent.normalize_obs on a SAC run
                 who = owners[0] if len(owners) == 1 else f"{', '.join(owners[:-1])} and {owners[-1]}"
                 said = (f"unknown config key {path!r}: a setting of {who}'s agent, not of this "
@@ -406,9 +411,20 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str) -> None:
             if not isinstance(value, dict):
                 example = dataclasses.fields(current)[0].name
                 raise ConfigError(f"{path} is a section; set its keys, e.g. {path}.{example}")
-            _merge(current, value, path + ".")
+            _merge(current, value, path + ".", algo)
         else:
             setattr(obj, key, value)  # Section.__setattr__ checks the type
+
+
+def _owners_instead(said: str, algo: str) -> list[str]:
+    """The algorithms whose keys another library's name is said to be (`said`: its SB3_NAMES or
+    CLEANRL_NAMES line), where none is `algo`'s: CleanRL's policy_lr on PPO is SAC's agent.actor_lr."""
+    named = re.findall(r"\b(agent|replay)\.(\w+)", said)
+    owners = {name for section, key in named for name, entry in ALGORITHMS.items()
+              if (entry.replay == "transitions" if section == "replay"
+                  else key in {f.name for f in dataclasses.fields(entry.config)})}
+    speaks_of = re.search(rf"\b{algo}\b", said, re.IGNORECASE)  # "DQN has none": the line says it for each
+    return [] if not named or algo in owners or speaks_of else sorted(owners)
 
 
 HOME_ELSEWHERE = "keys sit in their sections"
@@ -482,9 +498,12 @@ def parse_override(text: str) -> tuple[list[str], Any]:
         value = tomllib.loads(f"v = {raw}")["v"]
     except tomllib.TOMLDecodeError:
         bare = raw.strip()
-        if bare[:1] == "{" or bare[:1] + bare[-1:] == "[]":  # a table or a list, not a bare word ([::1]:6379 is one)
-            raise ConfigError(f"--set {text!r}: the value is not a valid TOML table or list; quote the strings "
-                              "in it, e.g. env.kwargs={mode = 'fast'}") from None
+        if bare[:1] == "{":
+            raise ConfigError(f"--set {text!r}: the value is not a valid TOML table; quote the strings in it, "
+                              "e.g. env.kwargs={mode = 'fast'}") from None
+        if bare[:1] + bare[-1:] == "[]":  # a list, not a bare word ([::1]:6379 is one)
+            raise ConfigError(f"--set {text!r}: the value is not a valid TOML list; numbers as numbers and strings "
+                              "quoted, e.g. agent.hidden=[64,64] or env.info_keys=['x_pos']") from None
         value = raw  # bare words such as CartPole-v1 are strings
     return key.strip().split("."), value
 

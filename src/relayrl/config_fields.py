@@ -246,7 +246,10 @@ def is_user_encoder(kind: str) -> bool:
 def unknown_key(path: str, valid: list[str]) -> str:
     """"unknown config key 'train.total_step'; did you mean 'train.total_steps'?" (or the valid keys)."""
     prefix, _, key = path.rpartition(".")
+    key = key.lower().replace("-", "_")  # env.ID, agent.learning-rate: TOML keys are lower case with _
     names = {v.rpartition(".")[2]: v for v in valid}  # compared without the shared section prefix
+    if key in names:
+        return f"unknown config key {path!r}; did you mean {names[key]!r}?"
     if meant := _meant(prefix, key, names):
         named = ", ".join(map(repr, meant[:-1])) + " and " * (len(meant) > 1) + repr(meant[-1])
         return f"unknown config key {path!r}; did you mean {named}?"
@@ -329,12 +332,13 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
                     raise  # a number out of float's range, not a value of another type
         if type(None) in args:  # TOML has no None to write (SB3's target_entropy = "auto" is relayrl's unset)
             kinds = " | ".join(type_name(a) for a in args if a is not type(None))
-            raise ConfigError(f"{path}={value!r} has the wrong type; expected {kinds}, or leave the key out: "
+            raise ConfigError(f"{path}={shown(value)} has the wrong type; expected {kinds}, or leave the key out: "
                               "unset is its default")
-        raise ConfigError(f"{path}={value!r} has the wrong type; expected {type_name(hint)}")
+        raise ConfigError(f"{path}={shown(value)} has the wrong type; expected {type_name(hint)}")
     if origin is dict:
         if not isinstance(value, dict):
-            raise ConfigError(f"{path}={value!r} has the wrong type; expected a table, e.g. {{key = value}}")
+            raise ConfigError(f"{path}={shown(value)} has the wrong type; expected a table, "
+                              f"e.g. {path}={{mode = 'fast'}}")
         return dict(value)
     if origin in (list, tuple):
         (item,) = typing.get_args(hint)[:1]
@@ -343,7 +347,7 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
             if isinstance(value, dict) and set(value) & {"pi", "vf", "qf"}:  # SB3's net_arch=dict(pi=..., vf=...)
                 tip = (" (SB3's net_arch dict: here one list of sizes, PPO's actor and critic each with its own "
                        "layers of those sizes; SAC: agent.actor_hidden and agent.critic_hidden)")
-            raise ConfigError(f"{path}={value!r} has the wrong type; expected a list of {type_name(item)}{tip}")
+            raise ConfigError(f"{path}={shown(value)} has the wrong type; expected a list of {type_name(item)}{tip}")
         return [coerce(v, item, f"{path}[{i}]") for i, v in enumerate(value)]
     if hint is bool and getattr(getattr(value, "dtype", None), "kind", "") == "b":
         return bool(value)  # NumPy's bool
@@ -360,7 +364,13 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
         return float(value)
     if hint is Any or (isinstance(value, hint) and not (hint is int and isinstance(value, bool))):
         return value
-    raise ConfigError(f"{path}={value!r} has the wrong type; expected {type_name(hint)}{_tip(value, hint)}")
+    raise ConfigError(f"{path}={shown(value)} has the wrong type; expected {type_name(hint)}{_tip(value, hint)}")
+
+
+def shown(value: Any) -> str:
+    """A value as a config line shows it: booleans TOML's way (true, as --set and config files write
+    them), anything else as Python's repr."""
+    return str(value).lower() if isinstance(value, bool) else repr(value)
 
 
 def _tip(value: Any, hint: Any) -> str:

@@ -30,6 +30,7 @@ from relayrl.config import (
     save_toml,
     to_dict,
 )
+from relayrl.config_fields import is_user_encoder
 from relayrl.core import Agent
 from relayrl.envs.atari import raw_screen_note
 from relayrl.envs.gym import names_python_factory
@@ -353,7 +354,15 @@ class RunCore:
             if name is not None:
                 finding = f"the agent's {name} held a NaN or inf {where}: {DIVERGED}"
         if finding is not None:
-            raise stop(finding, self.kept())
+            raise stop(self.with_encoder(finding), self.kept())
+
+    def with_encoder(self, finding: str) -> str:
+        """A diverged run's finding, naming the user's encoder among what to check where its
+        network is one (its outputs feed every layer after it)."""
+        encoder = getattr(self.config.agent, "encoder", "auto")
+        if not is_user_encoder(encoder) or "check the learning rate" not in finding:
+            return finding
+        return f"{finding}, and agent.encoder={encoder!r} (its outputs on these observations)"
 
     def kept(self) -> str:
         """What a stopped run leaves (a non-finite number, a failure): its last checkpoint and policy."""
@@ -506,7 +515,7 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if e.kept:
             raise
         # the cause, where it was collected: a NaN reward is named, not the TD error it made
-        raise stop(core.finite.check() or str(e), core.kept()) from None
+        raise stop(core.with_encoder(core.finite.check() or str(e)), core.kept()) from None
     except Exception as e:  # the env's own exception, or a failure: what is kept is said with it
         _own_notes(e)
         if not training:

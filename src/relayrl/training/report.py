@@ -190,8 +190,8 @@ class RunReport:
         p, total = self.progress(), self.config.train.total_steps
         sps, _ = self.run_sps(p)
         train, last = self.train_return(), self.last_eval.get("average_return")
-        train_shown = "-" if math.isnan(train) else f"{train:.2f}"
-        last_shown = "-" if last is None else f"{last:.2f}"
+        train_shown = "-" if math.isnan(train) else f"{two_places(train):.2f}"
+        last_shown = "-" if last is None else f"{two_places(last):.2f}"
         return (f"step {p.env_steps:,}/{total:,} ({100 * p.env_steps / total:.0f}%) | {sps:,.0f} env steps/s "
                 f"| train return {train_shown} | last eval return {last_shown} | {self.wall_time():.0f}s")
 
@@ -217,7 +217,7 @@ class RunReport:
             n = self.config.eval.episodes
             self.say(f"evaluations: mean return and length of {n} episode{'s' if n != 1 else ''} of the policy "
                      "acting without exploration (its greedy or mean action), then the run's wall-clock time so far")
-        self.say(f"step {p.env_steps:>9,} | eval return {result['average_return']:8.2f} "
+        self.say(f"step {p.env_steps:>9,} | eval return {two_places(result['average_return']):8.2f} "
                  f"| length {result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
         self.call_back("eval", row)
 
@@ -233,3 +233,8 @@ class RunReport:
             if answer is not None and not answer:
                 self.stop_requested = True
                 self.stopped_by.add(i)
+
+
+def two_places(x: float) -> float:
+    """x rounded to two decimals, with -0.0 as 0.0: a return of -0.001 prints as 0.00, not -0.00."""
+    return round(x, 2) + 0.0
