@@ -97,7 +97,7 @@ def test_overrides_are_typed():
     ("train.total_steps=1e4", "expected int (write 10000: TOML reads 1e4 and 10000.0 as floats)"),
     ("agent.hidden=(64,64)", "expected a list of int (in brackets: [64, 64])"),
     ("agent.hidden={pi=[64], vf=[64]}", "expected a list of int (SB3's net_arch dict: here one list of sizes"),
-    ("train.total_steps=abc", "expected int, e.g. train.total_steps=100000"),  # the key's value shows the form
+    ("train.total_steps=abc", "expected int, e.g. train.total_steps=50000"),  # the key's default shows the form
     ("env.kwargs={a=1", "the value is not a valid TOML table"),  # an unclosed table is no bare word
     # values that would fail mid-run, or be taken as something else, are refused up front
     ("agent.huber_delta=0", "agent.huber_delta=0.0 is not valid; it must be > 0"),
@@ -148,6 +148,22 @@ def test_a_config_changed_in_place_is_checked_again_before_a_run(change, tmp_pat
     with pytest.raises(ConfigError):
         relayrl.train(c, tmp_path / "run", progress=False)
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("value", [{"id": "CartPole-v1"}, None])
+def test_a_section_assigned_a_dict_or_none_in_python_is_one_clear_line(value):
+    c = load_config("dqn")
+    with pytest.raises(ConfigError, match=r"^env=.* has the wrong type; expected the section's EnvConfig: set its "
+                                          r"keys one by one \(config.env.<key> = value\)$"):
+        c.env = value
+
+
+def test_a_wrong_type_line_shows_the_keys_default_not_a_wrong_value_set_before():
+    c = load_config("dqn")
+    c.train.total_steps = -5  # checked by the run (Config.validate), not at assignment
+    with pytest.raises(ConfigError, match=r"^train.total_steps=true has the wrong type; expected int, "
+                                          r"e.g. train.total_steps=50000$"):
+        c.train.total_steps = True
 
 
 def test_an_unset_default_key_given_a_wrong_type_says_to_leave_it_out():

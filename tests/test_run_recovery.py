@@ -373,3 +373,13 @@ def test_an_env_whose_close_raises_after_the_run_finished_leaves_a_finished_run(
             "simulator's socket was already gone") in r.stderr
     assert toy_envs.CloseRaises.closed >= 4  # both training copies, then the evaluation env's
     assert load_policy(tmp_path / "run") is not None
+
+
+def test_a_crash_leaves_no_policy_older_than_the_last_checkpoint(tmp_path):
+    """policy_save_interval 0 (no periodic saves): the checkpoint at step 30 saved the policy with it."""
+    run = tmp_path / "run"
+    c = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:BrokenAt", "env.kwargs.at=45", "eval.interval=0"])
+    with pytest.raises(RuntimeError, match="simulator lost connection"):
+        train(c, run, progress=False)
+    assert [int(p.stem.split("-")[1]) for p in list_checkpoints(run / "checkpoints")] == [30]
+    assert load_policy(run).env_steps == 30

@@ -64,7 +64,7 @@ class TrainConfig(Section):
     checkpoint_interval: int = 10_000  # env steps; 0 disables
     checkpoint_replay: bool = True  # false: checkpoints leave the replay out (huge tables)
     checkpoint_keep: int = 2  # the newest checkpoints kept; 0 keeps every one (each holds the replay)
-    policy_save_interval: int = 5_000  # env steps; 0 disables
+    policy_save_interval: int = 5_000  # env steps; 0 disables (a checkpoint saves the policy too)
     log_interval: int = 1_000  # env steps between progress / TensorBoard scalars; 0: only the final step's
     pull_interval: int = 0  # env steps between the actor's weight pulls; 0: every collect iteration
     torch_threads: int = 1  # 0 keeps torch's default; small nets run fastest on one
@@ -119,6 +119,14 @@ class DistributedConfig(Section):
 
 @dataclass
 class Config(Section):
+    """A run's settings: one section per TOML table (env, train, replay, eval, distributed, and
+    agent, the algorithm's own class), each key checked as it is set. `Config(algo="ppo")` and
+    `relayrl.load_config("ppo")` are PPO's defaults (the section classes' own, shown in their
+    signatures, are only a starting point); `relayrl config ALGO` lists every key with its
+    meaning. Setting `config.algo` later re-bases the config: keys still at the old algorithm's
+    defaults take the new one's, and keys changed from them (by a preset or by hand) are kept
+    where the new algorithm has them; `load_config(ALGO)` starts clean instead."""
+
     seed: int = 0  # every random stream of the run derives from it
     device: str = "cpu"  # cpu | cuda | auto
     algo: str = DEFAULT_ALGO  # which algorithm trains; each has an [agent] section of its own

@@ -55,11 +55,16 @@ class Section:
                 value = coerce(value, hints[name], path)
             except ConfigError as e:
                 said, current = str(e), getattr(self, name, None)
+                if dataclasses.is_dataclass(current):  # config.env = {...}: a section takes its keys one by one
+                    raise ConfigError(f"{path}={shown(value)} has the wrong type; expected the section's "
+                                      f"{type(current).__name__}: set its keys one by one "
+                                      f"(config.{path}.<key> = value)") from None
                 # a type named without a tip (nor "leave the key out", an optional key's): the key's
-                # value now shows how such a value is written, where it shows one
+                # default shows how such a value is written (the value now may be a wrong one), where it shows one
+                example = _default(type(self), name, current)
                 plain = "has the wrong type; expected" in said and not said.endswith((")", "}", "default"))
-                if plain and current not in (None, [], {}, "") and not isinstance(current, dict):
-                    raise ConfigError(f"{said}, e.g. {path}={toml_literal(current).replace(', ', ',')}") from None
+                if plain and example not in (None, [], {}, "") and not isinstance(example, dict):
+                    raise ConfigError(f"{said}, e.g. {path}={toml_literal(example).replace(', ', ',')}") from None
                 raise
         object.__setattr__(self, name, value)
 
@@ -118,6 +123,14 @@ class Section:
     def check_rollout(self, steps: int) -> None:
         """An on-policy agent section's check of its settings against one rollout of `steps`
         env steps (`Config.steps_per_iteration`); other sections take any."""
+
+
+def _default(cls: type, name: str, current: Any) -> Any:
+    """The field's class default, or `current` where the class has none."""
+    f = next(f for f in dataclasses.fields(cls) if f.name == name)
+    if f.default is not dataclasses.MISSING:
+        return f.default
+    return f.default_factory() if f.default_factory is not dataclasses.MISSING else current  # type: ignore[misc]
 
 
 @functools.cache

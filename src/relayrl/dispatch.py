@@ -215,6 +215,9 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
     propagates; the run's checkpoints so far stay. Actor + Learner runs (dqn, sac, ppo), in one
     process or on Ray.
 
+    `run_dir=None` makes a new one under ./runs named for the algorithm, env, seed and start
+    time (`runs/dqn-CartPole-v1-s0-20261129-101500`; `result.run_dir` says which).
+
     `progress=False` turns the progress bar off; the run's lines (evaluations, notes) still go
     to stderr, which `contextlib.redirect_stderr(io.StringIO())` silences (a sweep's trials).
     """

@@ -115,8 +115,10 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", determinis
     `(action, None)` as Stable-Baselines3's does. Its `env_steps` is the run's env step when the
     policy was saved. During a run the file is replaced atomically, so a policy can be loaded
     at any moment. `device`: cpu, cuda, cuda:N or auto (the GPU where there is one), as a
-    config's. `trust_code`: load a policy file outside its run directory whose network a user's
-    encoder builds, importing and running that code (a shared file runs none otherwise).
+    config's. `seed`: the seed of the actions sampled with `deterministic=False` (the same
+    seed, the same actions). `trust_code`: load a policy file outside its run directory whose
+    network a user's encoder builds, importing and running that code (a shared file runs none
+    otherwise).
     """
     from relayrl.training.lifecycle import resolve_device
 
@@ -138,11 +140,14 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
                   trust_code: bool = False) -> Path:
     """Write the deterministic policy as a `torch.export` program (`policy.pt2`) or, with
     `format="onnx"`, an ONNX model (`policy.onnx`; needs the `onnx` extra). Beside it,
-    `<file>.json` says what it takes and returns (`signature`). Without `format`, an `out`
-    ending in .onnx or .pt2 names it; else pt2. `trust_code`: as `load_policy`'s."""
+    `<file>.json` says what it takes and returns (`signature`). Without `out`, the file goes
+    into the run's `policy/` folder (beside the policy file given); an `out` that is a folder
+    takes the default name. Without `format`, an `out` ending in .onnx or .pt2 names it; else
+    pt2. `trust_code`: as `load_policy`'s. Returns the file's path."""
     named = Path(out).suffix.lstrip(".") if out and not is_folder(out) else ""
     if named and named not in FORMATS:  # torch.export's reader and onnxruntime go by the extension
-        raise UserError(f"--out {str(out)!r}: give a file name ending in .pt2 or .onnx (or a folder)")
+        raise UserError(f"--out {str(out)!r}: give a file name ending in .pt2 or .onnx (or a folder) "
+                        "(in Python: out=)")
     if format is None:
         format = named or "pt2"  # `named` is one of FORMATS here, or ""
     if format not in FORMATS:
@@ -155,7 +160,7 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
             import onnx  # noqa: F401  (torch.onnx writes the model through these)
             import onnxscript  # noqa: F401
         except ImportError:
-            raise UserError("--format onnx needs the onnx and onnxscript packages: "
+            raise UserError("--format onnx (in Python: format='onnx') needs the onnx and onnxscript packages: "
                             f"{install('onnx')}") from None
     from relayrl.training.lifecycle import float32_default
 

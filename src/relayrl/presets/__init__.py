@@ -91,7 +91,10 @@ def _override_list(overrides: Any) -> list[str]:
 def load_config(name_or_path: str | os.PathLike[str] | dict[str, Any], overrides: list[str] | None = None,
                 seed: int | None = None) -> Config:
     """A preset name, a path to a config TOML or a dict of settings (`{"algo": "sac", "env":
-    {"id": ...}}`, the rest the algorithm's defaults), with `--set` overrides applied and checked."""
+    {"id": ...}}`, the rest the algorithm's defaults), with `--set` overrides applied and checked.
+
+    `overrides`: `KEY=VALUE` strings as `--set` takes them (`["agent.lr=1e-3"]`; one string is
+    one override); `seed`: the run's seed, as `--seed` (the same as the override `seed=N`)."""
     file_data: dict[str, Any] | None = None  # a config file's own settings: an error in them names the file
     if isinstance(name_or_path, dict):
         data = copy.deepcopy(name_or_path)

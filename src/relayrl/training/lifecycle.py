@@ -324,6 +324,8 @@ class RunCore:
             self.check_finite(p, weights=self.policy_saver in due or self.checkpointer in due)
         for trigger in due:  # the others would find nothing due
             trigger(p)
+        if self.checkpointer in due:  # a crash or a second Ctrl-C leaves no policy older than its checkpoint
+            self.policy_saver.save(p)
 
     def checkpoint_if_due(self) -> None:
         """After a failure that ended collection: the checkpoint due by the env steps the run
