@@ -18,10 +18,15 @@ SHORT = ["train.total_steps=96000", "eval.interval=32000"]  # 30 iterations, a r
 def test_bptt_run_writes_rows_a_loadable_policy_and_improves(tmp_path):
     result = relayrl.train(relayrl.load_config("bptt-pendulum", SHORT), tmp_path / "b", progress=False)
     rows = RunDir(tmp_path / "b").read_metrics()
-    assert [r["step"] for r in rows] == [32000, 64000, 96000] and rows[-1]["train_step"] == 30
-    assert rows[-1]["bptt/mean_reward"] > rows[0]["bptt/mean_reward"]  # the loss goes down
+    # every run's evaluations: at step 0, every eval.interval env steps and at the end, each of
+    # eval.episodes whole episodes of the env (Pendulum's 200 steps), as relayrl eval runs them
+    assert [r["step"] for r in rows] == [0, 32000, 64000, 96000] and rows[-1]["train_step"] == 30
+    assert all(r["average_episode_length"] == 200.0 and r["episodes"] == 10 for r in rows)
+    assert rows[-1]["bptt/mean_reward"] > rows[1]["bptt/mean_reward"]  # the loss goes down
+    assert "bptt/mean_reward" not in rows[0]  # no iteration before step 0
     assert result.final["bptt/final50_mean_reward"] == pytest.approx(
-        sum(r["bptt/mean_reward"] for r in rows) / 3, rel=1e-6)  # 30 iterations < 50: all of them
+        sum(r["bptt/mean_reward"] for r in rows[1:]) / 3, rel=1e-6)  # 30 iterations < 50: all of them
+    assert all(-1700 < r["average_return"] < 0 for r in rows)  # 200 steps of rewards in [-16.3, 0]
     actions = relayrl.load_policy(tmp_path / "b")(torch.randn(7, 3) * 5)  # export: tests/test_conformance.py
     assert actions.shape == (7, 1) and actions.abs().max() <= 2.0
     assert relayrl.plot_run(tmp_path / "b").stat().st_size > 10_000  # two panels, like the tutorial's
@@ -42,7 +47,6 @@ def test_bptt_refuses_other_envs(tmp_path):  # resume and CLI errors: tests/test
 
 
 @pytest.mark.parametrize("setting, why", [("env.num_envs=4", "set agent.batch_size"),
-                                          ("eval.episodes=3", "it runs no evaluation episodes"),
                                           ("env.kwargs={'g': 5.0}", "without the env copies"),
                                           ("train.checkpoint_interval=100", "without the env copies")])
 def test_bptt_refuses_settings_it_would_ignore(tmp_path, setting, why):
@@ -69,10 +73,18 @@ def test_sac_trains_on_a_batch_of_stateless_pendulums(tmp_path):
     assert result.final["average_episode_length"] == 200.0  # the stateless pendulum's time limit
 
 
-def test_bptt_with_eval_interval_zero_writes_one_row_over_its_last_50_iterations(tmp_path):
-    cfg = relayrl.load_config("bptt-pendulum", ["train.total_steps=192000", "eval.interval=0"])  # 60 iterations
-    (row,) = RunDir(relayrl.train(cfg, tmp_path / "b", progress=False).run_dir).read_metrics()
-    assert row["step"] == 192000 and row["bptt/mean_reward"] == row["bptt/final50_mean_reward"]
+def test_bptt_with_eval_interval_zero_writes_one_row_at_the_end(tmp_path):
+    cfg = relayrl.load_config("bptt-pendulum", ["train.total_steps=192000", "eval.interval=0", "eval.episodes=3"])
+    (row,) = RunDir(relayrl.train(cfg, tmp_path / "b", progress=False).run_dir).read_metrics()  # 60 iterations
+    assert row["step"] == 192000 and row["episodes"] == 3
+    assert row["bptt/final50_mean_reward"] != row["bptt/mean_reward"]  # the last 50 iterations against all 60
+
+
+def test_relayrl_config_refuses_what_a_bptt_run_would(capsys):
+    from relayrl.cli import main
+
+    assert main(["config", "bptt-pendulum", "--set", "env.num_envs=2"]) == 2
+    assert "env.num_envs=2 does not apply to algo='bptt'" in capsys.readouterr().err
 
 
 def test_bptt_ctrl_c_keeps_the_policy_trained_so_far(tmp_path, monkeypatch, capsys):
@@ -96,5 +108,5 @@ def test_bptt_ctrl_c_keeps_the_policy_trained_so_far(tmp_path, monkeypatch, caps
         relayrl.train(relayrl.load_config("bptt-pendulum", SHORT), root, progress=False)
     assert "stopping at the end of this iteration to save the policy" in capsys.readouterr().err
     assert relayrl.load_policy(root).env_steps == 12 * 32 * 100
-    assert [r["step"] for r in RunDir(root).read_metrics()] == [32000]
+    assert [r["step"] for r in RunDir(root).read_metrics()] == [0, 32000]  # no final evaluation, as any run's
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is put back

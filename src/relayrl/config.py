@@ -180,6 +180,8 @@ class Config(Section):
             self._check_no_replay()
         if algorithm(self.algo).replay == "rollouts":
             self._check_on_policy()
+        if algorithm(self.algo).replay == "none":
+            self._check_trainer()
         self.train.require(">= 0", "initial_collect_steps", "checkpoint_interval",
                            "checkpoint_keep", "policy_save_interval", "log_interval", "pull_interval", "torch_threads")
         if self.train.torch_threads > MAX_THREADS:  # thousands of threads fail to start, or crash the process
@@ -239,6 +241,26 @@ class Config(Section):
         rounded up to whole batched steps, as the actor steps every env copy together."""
         b = self.env.num_envs
         return -(-self.train.collect_steps // b) * b
+
+    def _check_trainer(self) -> None:
+        """An algorithm that trains by itself (BPTT) through its own envs, reading only its agent
+        section's RUN_KEYS of [env], [train] and [eval]: any other set away from its default is
+        refused here, so that `relayrl config` lists no setting its run would refuse or ignore."""
+        a = self.agent
+        if self.env.id not in a.ENV_IDS:
+            raise ConfigError(f"algo={self.algo!r} trains through {' or '.join(a.ENV_IDS)} only; "
+                              f"env.id={self.env.id!r} is not valid")
+        defaults = algo_defaults(self.algo)
+        for name in ("env", "train", "eval"):
+            section, default_section = getattr(self, name), getattr(defaults, name)
+            for f in dataclasses.fields(section):
+                key, value, default = f"{name}.{f.name}", getattr(section, f.name), getattr(default_section, f.name)
+                if key not in a.RUN_KEYS and value != default:
+                    raise ConfigError(f"{key}={value!r} does not apply to algo={self.algo!r}: "
+                                      f"{a.WHY_UNUSED.get(key, a.UNUSED)}; leave it at {default!r}")
+        if self.train.total_steps < a.iteration_steps():
+            raise ConfigError(f"train.total_steps={self.train.total_steps} is less than one iteration "
+                              f"(agent.batch_size * agent.rollout_steps = {a.iteration_steps()} env steps)")
 
     def _check_no_replay(self) -> None:
         """An algorithm without a replay table takes no [replay] setting, so that a config

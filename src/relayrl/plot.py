@@ -35,9 +35,9 @@ def plot_run(run_dir: str | Path | Sequence[str | Path], out: str | Path | None 
                         f"them as one list, plot_run([{str(run_dir)!r}, {str(out)!r}])")
     rows = _evaluations(rd)
 
-    # BPTT runs (algo = "bptt") log training rollouts, not evaluations; like TorchRL's
-    # tutorial, they get a second panel with the reward at the rollout's last step.
-    bptt = rows[0].get("bptt/last_reward") is not None
+    # BPTT runs (algo = "bptt"): like TorchRL's tutorial, a second panel with the training
+    # rollouts' reward at their last step (a row's mean over its iterations; none at step 0).
+    bptt = any(r.get("bptt/last_reward") is not None for r in rows)
     curves = panels_for(rows, bptt)
     # env.info_keys (Mario's x_pos): eval/<key> per evaluation, train/<key> over the episode window
     info_keys = sorted({k[5:] for r in rows for k in r if k.startswith("eval/")})
@@ -46,7 +46,7 @@ def plot_run(run_dir: str | Path | Sequence[str | Path], out: str | Path | None 
     fig = _figure(figsize=(7 * shape[1] ** 0.8, 4 * shape[0]))
     axes = fig.subplots(*shape, squeeze=False)
     panels = axes.ravel()
-    _returns(panels[0], rows, bptt)
+    _returns(panels[0], rows)
     panels[0].set_title(rd.root.name)
     for i, (key, label) in enumerate(curves, start=1):
         _curve(panels[i], rows, key, label, color=f"C{i + 1}")
@@ -185,9 +185,8 @@ def _steps_axis(ax: Any, steps: list[int]) -> None:
         ax.set_xlim(0, max(steps) or 1)
 
 
-def _returns(ax: Any, rows: Rows, bptt: bool) -> None:
-    ax.plot([r["step"] for r in rows], [r["average_return"] for r in rows], marker="o", ms=3,
-            label="rollout return (batch mean)" if bptt else "eval (greedy)")
+def _returns(ax: Any, rows: Rows) -> None:
+    ax.plot([r["step"] for r in rows], [r["average_return"] for r in rows], marker="o", ms=3, label="eval (greedy)")
     train_rows = [r for r in rows if r.get("train/average_return") is not None]
     if train_rows:
         ax.plot([r["step"] for r in train_rows], [r["train/average_return"] for r in train_rows],

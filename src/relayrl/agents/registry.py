@@ -46,8 +46,9 @@ class Algorithm:
     agent: Callable[[], Callable[..., Agent]] | None = None
     replay: str = "transitions"  # one of REPLAYS
     ray: bool = False  # runs with distributed.num_actors > 0
-    # replay "none": the module that trains by itself (`check_config(config)`, `train(...)`),
-    # which training/direct.py drives instead of an Actor + Learner.
+    # replay "none": the module that trains by itself (`train(...)`, `final_scalars(...)`), which
+    # training/direct.py drives instead of an Actor + Learner; its agent section names the env
+    # and the keys it reads (ENV_IDS, RUN_KEYS: `Config.validate` refuses the others).
     trainer: Callable[[], ModuleType] | None = None
     resumable: bool = True  # its runs write checkpoints that `--resume` continues
     # What a config of this algo holds for every key it does not name, over the config classes'

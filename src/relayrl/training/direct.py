@@ -1,61 +1,99 @@
 """The direct driver: an algorithm that trains by itself (registry `replay = "none"`: BPTT
-through a differentiable env) writes its run directory through this: metrics rows,
+through a differentiable env) writes its run directory through this: metrics rows with the
+evaluations every run's have (at step 0, every eval.interval env steps and at the end),
 TensorBoard, the config, and the policy file at the end (at the iteration a Ctrl-C or SIGTERM
 stopped it, too: its runs have no checkpoints). No actor, replay or learner."""
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from typing import Any
+
+import numpy as np
 
 from relayrl import interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config
 from relayrl.policy_file import save_policy_file
+from relayrl.seeding import EVAL_STRIDE, RunSeeds
+from relayrl.training.evaluate import evaluate, make_eval_env
 from relayrl.training.lifecycle import RunResult, resolve_device
-from relayrl.training.report import log_config, say
+from relayrl.training.report import log_config, say, two_places
 from relayrl.training.run_dir import MetricsLog, RunDir
 
 
 class DirectDriver:
-    """The trainer's config is checked when the driver is made, before anything is written;
-    its runs are not resumable (Algorithm.resumable)."""
+    """The trainer's config is checked when the config is (`Config.validate`); its runs are
+    not resumable (Algorithm.resumable)."""
 
     def __init__(self, config: Config, rd: RunDir, progress: bool = True) -> None:
-        self.trainer = algorithm(config.algo).direct_trainer()
-        self.trainer.check_config(config)
+        self.entry = algorithm(config.algo)
+        self.trainer = self.entry.direct_trainer()
         self.config, self.rd, self.progress = config, rd, progress
 
     def train(self, resume: bool = False) -> RunResult:
         from torch.utils.tensorboard import SummaryWriter
 
+        c = self.config
+        device = resolve_device(c.device)
         rows: list[dict[str, Any]] = []
         log, tb = MetricsLog(self.rd.metrics), SummaryWriter(str(self.rd.tb))
+        eval_env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, device)
         signals: list[int] = []  # the first Ctrl-C / SIGTERM: stop after this iteration, keep the policy
+        per_iteration = c.agent.iteration_steps()
+        iterations = c.train.total_steps // per_iteration
+        total = iterations * per_iteration
+        # a row every eval.interval env steps (rounded to whole iterations) and at the end
+        every = max(1, c.eval.interval // per_iteration) * per_iteration if c.eval.interval > 0 else total
+        eval_seed = RunSeeds(c.seed).base("evaluation")
+        window: list[dict[str, float]] = []  # the iterations' scalars since the last row
+        history: list[dict[str, float]] = []
+        t0 = time.perf_counter()
 
-        def write_row(row: dict[str, Any]) -> None:
+        def on_iteration(steps: int, scalars: dict[str, float], state: Callable[[], dict[str, Any]]) -> None:
+            for name, value in scalars.items():
+                tb.add_scalar(name, value, steps)
+            if scalars:
+                window.append(scalars)
+                history.append(scalars)
+            last = steps == total
+            if (steps % every and not last) or (steps == 0 and c.eval.interval == 0):  # 0: the final one only
+                return
+            policy = self.entry.policy_module().load(state(), device, True, None)
+            t = time.perf_counter()
+            result = evaluate(eval_env, policy, c.eval.episodes, seed=eval_seed + EVAL_STRIDE * len(rows))
+            means = {k: float(np.mean([w[k] for w in window])) for k in window[0]} if window else {}
+            row = {"step": steps, "train_step": steps // per_iteration, **result,
+                   "wall_time_s": round(time.perf_counter() - t0, 3), "eval_s": round(time.perf_counter() - t, 3),
+                   **means, **(self.trainer.final_scalars(history) if last and history else {})}
             log.write(row)
             rows.append(row)
+            tb.add_scalar("eval/average_return", result["average_return"], steps)
+            tb.add_scalar("eval/average_episode_length", result["average_episode_length"], steps)
+            window.clear()
+            if self.progress:
+                say(f"step {steps:>9,} | eval return {two_places(result['average_return']):8.2f} | length "
+                    f"{result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
 
         def on_signal(signum: int) -> None:
             signals.append(signum)
             say("relayrl: stopping at the end of this iteration to save the policy (no checkpoints for "
-                f"algo={self.config.algo!r}; {interrupts.again(signum)})")
-
-        def stop() -> bool:
-            return bool(signals)
+                f"algo={c.algo!r}; {interrupts.again(signum)})")
 
         try:
-            log_config(tb, self.config)
+            log_config(tb, c)
             with interrupts.stop_request(on_signal):
-                state = self.trainer.train(self.config, resolve_device(self.config.device), write_row,
-                                           tb.add_scalar, say if self.progress else None, stop)
+                state = self.trainer.train(c.agent, iterations, c.seed, device, c.train.torch_threads, on_iteration,
+                                           lambda: bool(signals))
         finally:
             log.close()
             tb.close()
+            eval_env.close()
         save_policy_file(state, self.rd.policy / "policy.pt")
         if signals:  # one in the last iteration too: the run is whole, and the caller's loop still stops
             interrupts.redeliver(signals[0], f"the run stopped at env step {state['env_steps']:,}; its policy and "
-                                 f"metrics are in {str(self.rd.root)!r} (algo={self.config.algo!r} runs have no "
+                                 f"metrics are in {str(self.rd.root)!r} (algo={c.algo!r} runs have no "
                                  "checkpoints: a new run starts over)")
         return RunResult(self.rd.root, rows[-1] if rows else {})
 

@@ -229,9 +229,10 @@ def pendulum_mlp_rewards(policy: MLP, th0: torch.Tensor, thdot0: torch.Tensor, s
 
 def train_bptt(config: BpttConfig | None = None, callback: Callable[[BpttLog], None] | None = None, *,
                iterations: int = 625, seed: int = 0, device: str = "cpu", torch_threads: int = 1,
-               stop: Callable[[], bool] | None = None) -> BpttResult:
+               stop: Callable[[], bool] | None = None, on_start: Callable[[MLP], None] | None = None) -> BpttResult:
     """Train a Pendulum policy by backpropagation through rollouts (see module doc).
-    `callback` gets a BpttLog after every iteration (forcing a device sync when given).
+    `callback` gets a BpttLog after every iteration (forcing a device sync when given); `on_start`
+    the policy network once it is made, before the first iteration (it trains in place after).
     `iterations`: the tutorial's 625 (`20_000 // batch_size`); `torch_threads`: 0 leaves
     torch's setting, 1 is fastest for tensors this small. `stop`, asked after every iteration
     but the last: True ends training there (a Ctrl-C), with the policy trained so far."""
@@ -240,13 +241,14 @@ def train_bptt(config: BpttConfig | None = None, callback: Callable[[BpttLog], N
     if torch_threads > 0:
         torch.set_num_threads(torch_threads)
     try:
-        return _train(c, callback, iterations, seed, torch.device(device), stop)
+        return _train(c, callback, iterations, seed, torch.device(device), stop, on_start)
     finally:
         torch.set_num_threads(threads)
 
 
 def _train(c: BpttConfig, callback: Callable[[BpttLog], None] | None, iterations: int, seed: int,
-           device: torch.device, stop: Callable[[], bool] | None = None) -> BpttResult:
+           device: torch.device, stop: Callable[[], bool] | None = None,
+           on_start: Callable[[MLP], None] | None = None) -> BpttResult:
     env = make_pendulum(device=device)
     params = cast(Pendulum, env.base_env).params  # make_pendulum's base env
     seeds = RunSeeds(seed)
@@ -254,6 +256,8 @@ def _train(c: BpttConfig, callback: Callable[[BpttLog], None] | None, iterations
         torch.manual_seed(seeds.base("torch"))
         policy = make_policy(3, 1, c.hidden).to(device)
     gen = make_generator(seeds.base("envs"), "cpu")  # CPU generator: the same initial states on every device
+    if on_start is not None:
+        on_start(policy)
     optim = torch.optim.Adam(policy.parameters(), lr=c.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(optim, c.lr_t_max)
     stats = torch.empty(iterations, 3, device=device)  # mean, last, grad norm: one sync at the end
