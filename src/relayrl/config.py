@@ -96,7 +96,9 @@ class ReplayConfig(Section):
 class EvalConfig(Section):
     SECTION = "eval"
 
-    interval: int = 5_000  # env steps between evaluations; 0: only the final one (no step-0 evaluation)
+    # env steps between evaluations, each at the first collect boundary at or past its multiple
+    # (dqn-cartpole-fast: 5,096, 10,216, ...); 0: only the final one (no step-0 evaluation)
+    interval: int = 5_000
     episodes: int = 10  # episodes per evaluation
     # keyword arguments evaluation envs take in place of env.kwargs' (the other keys stay), e.g.
     # {terminal_on_life_loss = false} for whole Atari games where training ends episodes at a life lost
