@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import relayrl
-from relayrl.errors import ConfigError, UserError
+from relayrl.errors import ConfigError
 from relayrl.training.run_dir import RunDir
 
 SHORT = ["train.total_steps=96000", "eval.interval=32000"]  # 30 iterations, a row every 10
@@ -47,8 +47,10 @@ def test_bptt_refuses_other_envs(tmp_path):  # resume and CLI errors: tests/test
 
 
 @pytest.mark.parametrize("setting, why", [("env.num_envs=4", "set agent.batch_size"),
-                                          ("env.kwargs={'g': 5.0}", "without the env copies"),
-                                          ("train.checkpoint_interval=100", "without the env copies")])
+                                          ("env.kwargs={'g': 5.0}", "trains and evaluates through"),
+                                          ("env.max_episode_steps=50", "trains and evaluates through"),
+                                          ("distributed.address='auto'", "Ray actors"),
+                                          ("train.checkpoint_interval=100", "checkpoints")])
 def test_bptt_refuses_settings_it_would_ignore(tmp_path, setting, why):
     toml = setting.replace("{'g': 5.0}", "{g = 5.0}")
     with pytest.raises(ConfigError, match=f"{re.escape(setting)} does not apply to algo='bptt'.*{why}"):
@@ -57,7 +59,8 @@ def test_bptt_refuses_settings_it_would_ignore(tmp_path, setting, why):
 
 
 def test_bptt_runs_in_one_process_only(tmp_path):
-    with pytest.raises(UserError, match="algo='bptt' runs in one process only"):
+    with pytest.raises(ConfigError, match="distributed.num_actors=2 does not apply to algo='bptt': it runs in one "
+                                          "process only"):
         relayrl.train(relayrl.load_config("bptt-pendulum", SHORT + ["distributed.num_actors=2"]), tmp_path / "x",
                       progress=False)
     assert not (tmp_path / "x").exists()
@@ -71,6 +74,20 @@ def test_sac_trains_on_a_batch_of_stateless_pendulums(tmp_path):
     result = relayrl.train(relayrl.load_config("sac-pendulum", over), tmp_path / "s", progress=False)
     assert result.final["step"] == 800 and result.final["losses/critic_loss"] > 0
     assert result.final["average_episode_length"] == 200.0  # the stateless pendulum's time limit
+
+
+@pytest.mark.parametrize("interval, steps", [(100, [0, 120, 200, 320, 400]), (1000, [0, 400]), (0, [400])])
+def test_bptt_evaluates_where_every_run_does(tmp_path, interval, steps):
+    """At step 0, at the first iteration at or past each multiple of eval.interval (iterations of
+    40 env steps here), and at the end; the same rows from the same seed."""
+    over = ["train.total_steps=400", "agent.batch_size=4", "agent.rollout_steps=10", "eval.episodes=2",
+            f"eval.interval={interval}"]
+    runs = [RunDir(relayrl.train(relayrl.load_config("bptt-pendulum", over), tmp_path / f"b{i}",
+                                 progress=False).run_dir).read_metrics() for i in range(2)]
+    assert [r["step"] for r in runs[0]] == steps
+    drop = ("wall_time_s", "eval_s")
+    assert [{k: v for k, v in r.items() if k not in drop} for r in runs[0]] == \
+           [{k: v for k, v in r.items() if k not in drop} for r in runs[1]]
 
 
 def test_bptt_with_eval_interval_zero_writes_one_row_at_the_end(tmp_path):

@@ -334,3 +334,67 @@ def test_a_non_finite_action_is_the_agents_finding_not_the_envs():
     watch(step(math.nan, math.nan, math.nan))
     assert watch.check().startswith("observation was NaN at env step 3 (env copy 0): check the env's observations")
     assert not watch.found_action
+
+
+@pytest.mark.parametrize("where", ["metrics", "tensorboard"])
+def test_a_full_disk_under_metrics_or_tensorboard_is_one_line_and_keeps_the_checkpoints(where, tmp_path, capfd,
+                                                                                      monkeypatch):
+    """The atomic files (checkpoints, policy, config) say a full disk themselves; metrics.jsonl's
+    appends and TensorBoard's writer (whose thread raises first, then the run's next scalar) too."""
+    import errno
+
+    from relayrl.training.run_dir import MetricsLog
+
+    run = tmp_path / "run"
+    full = OSError(errno.ENOSPC, "No space left on device", str(run / "metrics.jsonl"))
+    if where == "metrics":
+        real_write = MetricsLog.write
+
+        def write(self, row):
+            if row["step"] >= 80:
+                raise full
+            real_write(self, row)
+
+        monkeypatch.setattr(MetricsLog, "write", write)
+    else:
+        from torch.utils.tensorboard import SummaryWriter
+
+        real_scalar = SummaryWriter.add_scalar
+
+        def add_scalar(self, tag, value, step=None, *args, **kwargs):
+            if step is not None and step >= 80:
+                raise full
+            real_scalar(self, tag, value, step, *args, **kwargs)
+
+        monkeypatch.setattr(SummaryWriter, "add_scalar", add_scalar)
+    args = ["train", "dqn-cartpole", "--run-dir", str(run), "--no-progress"]
+    capfd.readouterr()
+    assert main(args + [a for o in TINY + ALGOS["dqn"][1] + ["env.kwargs.at=100000"] for a in ("--set", o)]) == 2
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and "Exception in thread" not in err, err
+    assert (f"relayrl: error: cannot write {str(run / 'metrics.jsonl')!r}: No space left on device: free some "
+            "space; the run stopped at env step 80: the last good checkpoint (env step 40)") in err
+    assert [int(p.stem.split("-")[1]) for p in list_checkpoints(run / "checkpoints")] == [40]
+
+
+def test_tensorboards_writer_thread_stopped_by_a_full_disk_prints_nothing_of_its_own(capsys):
+    import errno
+    import threading
+
+    from relayrl.training.lifecycle import writer_thread_quiet
+
+    class _AsyncWriterThread(threading.Thread):  # tensorboard's name for its writer thread
+        def run(self):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    seen = []
+    before = threading.excepthook
+    threading.excepthook = seen.append
+    try:
+        with writer_thread_quiet():
+            for thread in (_AsyncWriterThread(), threading.Thread(target=lambda: 1 / 0)):
+                thread.start()
+                thread.join()
+        assert [type(args.exc_value) for args in seen] == [ZeroDivisionError]  # others' errors still go through
+    finally:
+        threading.excepthook = before

@@ -117,7 +117,7 @@ def test_export_takes_the_format_from_out(run_dir, tmp_path):
 def test_export_refuses_an_out_of_another_extension(run_dir, tmp_path, capsys):
     for name in ("x.txt", "y.PT2"):  # torch.export's reader goes by the extension, case and all
         assert main(["export", str(run_dir), "--out", str(tmp_path / name)]) == 2
-        assert "give a file name ending in .pt2 or .onnx (or a folder)" in capsys.readouterr().err
+        assert "give a file name ending in .pt2 or .onnx, or a folder" in capsys.readouterr().err
     assert main(["export", str(run_dir), "--out", str(tmp_path / "v2.0") + "/"]) == 0  # a folder, dotted name
     assert (tmp_path / "v2.0" / "policy.pt2").is_file()
 

@@ -42,6 +42,18 @@ _FULL = (errno.ENOSPC, errno.EDQUOT)
 _DENIED = (errno.EROFS, errno.EACCES, errno.EPERM)
 
 
+def disk_full(error: BaseException | None) -> OSError | None:
+    """The "no space left" (or quota) OSError in the chain of `error`, where there is one."""
+    return _os_error(error, _FULL)
+
+
+def full_line(error: OSError, folder: Path) -> str:
+    """The one line for a write into `folder` a full disk stopped: the file, where the error
+    names one (TensorBoard's writer names none)."""
+    where = f" {str(error.filename)!r}" if error.filename else f" in {str(folder)!r}"
+    return f"cannot write{where}: {error.strerror or error}: free some space"
+
+
 def _os_error(error: BaseException | None, errnos: tuple[int, ...]) -> OSError | None:
     """The OSError with one of `errnos` in the chain of `error` and what it was raised from."""
     for _ in range(10):

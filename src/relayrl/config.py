@@ -19,7 +19,7 @@ from typing import Any
 
 from relayrl import atomic
 from relayrl.agents.registry import ALGORITHMS, DEFAULT_ALGO, algorithm
-from relayrl.config_fields import CLEANRL_NAMES, SB3_NAMES, Section, commented_toml, unknown_key
+from relayrl.config_fields import CLEANRL_NAMES, SB3_NAMES, Section, commented_toml, fold_key, unknown_key
 from relayrl.errors import ConfigError
 from relayrl.seeding import seed_problem
 
@@ -246,14 +246,14 @@ class Config(Section):
 
     def _check_trainer(self) -> None:
         """An algorithm that trains by itself (BPTT) through its own envs, reading only its agent
-        section's RUN_KEYS of [env], [train] and [eval]: any other set away from its default is
+        section's RUN_KEYS of [env], [train], [eval] and [distributed]: any other set away from its default is
         refused here, so that `relayrl config` lists no setting its run would refuse or ignore."""
         a = self.agent
         if self.env.id not in a.ENV_IDS:
             raise ConfigError(f"algo={self.algo!r} trains through {' or '.join(a.ENV_IDS)} only; "
                               f"env.id={self.env.id!r} is not valid")
         defaults = algo_defaults(self.algo)
-        for name in ("env", "train", "eval"):
+        for name in ("env", "train", "eval", "distributed"):
             section, default_section = getattr(self, name), getattr(defaults, name)
             for f in dataclasses.fields(section):
                 key, value, default = f"{name}.{f.name}", getattr(section, f.name), getattr(default_section, f.name)
@@ -349,7 +349,7 @@ def from_dict(data: dict[str, Any]) -> Config:
     dict does not name is the algorithm's default (`algo_defaults`)."""
     config = Config(algo=algorithm(data.get("algo", DEFAULT_ALGO)).name)  # a name this version knows, first
     try:
-        _merge(config, data, prefix="")
+        _merge(config, data, "", config.algo)
     except ConfigError as e:
         if "algo" in data or not str(e).startswith("unknown config key 'agent.") or HOME_ELSEWHERE in str(e):
             raise
@@ -366,7 +366,7 @@ def algo_defaults(algo: str) -> Config:
     config = class_defaults()
     object.__setattr__(config, "algo", algo)  # no rebase: this is what rebasing starts from
     object.__setattr__(config, "agent", entry.config())
-    _merge(config, copy.deepcopy(entry.defaults), prefix="")
+    _merge(config, copy.deepcopy(entry.defaults), "", algo)
     return config
 
 
@@ -407,12 +407,14 @@ def _rebase(obj: Any, old: Any, new: Any) -> None:
             object.__setattr__(obj, f.name, copy.deepcopy(becomes))
 
 
-def _merge(obj: Any, data: dict[str, Any], prefix: str, algo: str = "") -> None:
-    algo = algo or obj.algo  # the top-level call's obj is the Config
+def _merge(obj: Any, data: dict[str, Any], prefix: str, algo: str) -> None:
     names = {f.name: f for f in dataclasses.fields(obj)}
-    for key, value in data.items():
-        path = prefix + key
-        if key not in names:
+    for given, value in data.items():
+        path = prefix + given
+        key = fold_key(given)  # env.ID, agent.learning-rate: looked up as TOML's keys are written
+        if given not in names and key in names:
+            raise ConfigError(f"unknown config key {path!r}; did you mean {prefix + key!r}?")
+        if given not in names:
             home = [f"{n}.{key}" for n in names if dataclasses.is_dataclass(section := getattr(obj, n))
                     and key in {f.name for f in dataclasses.fields(section)}]
             # SB3's env_kwargs is env.kwargs, not the eval.env_kwargs its name sits in: SB3's own line
@@ -429,23 +431,23 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str, algo: str = "") -> None:
                 homes = " or ".join(map(repr, elsewhere))
                 raise ConfigError(f"unknown config key {path!r}; did you mean {homes}?{tail}")
             said = unknown_key(path, [prefix + n for n in names])
-            if ported and not owners and "; here, " in said and (
+            if ported and prefix == "agent." and not owners and "; here, " in said and (
                     others := _owners_instead(SB3_NAMES.get(key) or CLEANRL_NAMES[key], algo)):
                 said = (f"{said}: a setting of {' and '.join(o + chr(39) + 's' for o in others)}, not of {algo}'s; "
                         f"{algo}'s keys here: {', '.join(prefix + n for n in names)}")
             if owners:  # agent.normalize_obs on a SAC run
-                who = owners[0] if len(owners) == 1 else f"{', '.join(owners[:-1])} and {owners[-1]}"
-                said = (f"unknown config key {path!r}: a setting of {who}'s agent, not of this "
+                who = owners[0] + "'s" if len(owners) == 1 else f"{', '.join(owners[:-1])}'s and {owners[-1]}'s"
+                said = (f"unknown config key {path!r}: a setting of {who} agent, not of this "
                         f"algorithm's; {said.split('; ', 1)[1]}")
             raise ConfigError(said)
-        current = getattr(obj, key)
+        current = getattr(obj, given)
         if dataclasses.is_dataclass(current):
             if not isinstance(value, dict):
                 example = dataclasses.fields(current)[0].name
                 raise ConfigError(f"{path} is a section; set its keys, e.g. {path}.{example}")
             _merge(current, value, path + ".", algo)
         else:
-            setattr(obj, key, value)  # Section.__setattr__ checks the type
+            setattr(obj, given, value)  # Section.__setattr__ checks the type
 
 
 def _owners_instead(said: str, algo: str) -> list[str]:

@@ -259,7 +259,7 @@ def is_user_encoder(kind: str) -> bool:
 def unknown_key(path: str, valid: list[str]) -> str:
     """"unknown config key 'train.total_step'; did you mean 'train.total_steps'?" (or the valid keys)."""
     prefix, _, key = path.rpartition(".")
-    key = key.lower().replace("-", "_")  # env.ID, agent.learning-rate: TOML keys are lower case with _
+    key = fold_key(key)
     names = {v.rpartition(".")[2]: v for v in valid}  # compared without the shared section prefix
     if key in names:
         return f"unknown config key {path!r}; did you mean {names[key]!r}?"
@@ -275,6 +275,11 @@ def unknown_key(path: str, valid: list[str]) -> str:
     if key in CLEANRL_NAMES:
         return f"unknown config key {path!r}; here, CleanRL's {key} is {CLEANRL_NAMES[key]}"
     return f"unknown config key {path!r}; valid: {', '.join(valid)}"
+
+
+def fold_key(key: str) -> str:
+    """A key as relayrl writes its keys, lower case with _ (env.ID, agent.learning-rate), to look it up."""
+    return key.lower().replace("-", "_")
 
 
 # Names other libraries give a section's keys, where the spelling is no guide (difflib takes

@@ -146,8 +146,8 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
     pt2. `trust_code`: as `load_policy`'s. Returns the file's path."""
     named = Path(out).suffix.lstrip(".") if out and not is_folder(out) else ""
     if named and named not in FORMATS:  # torch.export's reader and onnxruntime go by the extension
-        raise UserError(f"--out {str(out)!r}: give a file name ending in .pt2 or .onnx (or a folder) "
-                        "(in Python: out=)")
+        raise UserError(f"--out {str(out)!r}: give a file name ending in .pt2 or .onnx, or a folder (in Python: "
+                        "out=)")
     if format is None:
         format = named or "pt2"  # `named` is one of FORMATS here, or ""
     if format not in FORMATS:

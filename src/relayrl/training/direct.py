@@ -16,11 +16,12 @@ from relayrl import interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config
 from relayrl.policy_file import save_policy_file
-from relayrl.seeding import EVAL_STRIDE, RunSeeds
-from relayrl.training.evaluate import evaluate, make_eval_env
+from relayrl.seeding import RunSeeds
+from relayrl.training.evaluate import make_eval_env
 from relayrl.training.lifecycle import RunResult, resolve_device
 from relayrl.training.report import log_config, say, two_places
 from relayrl.training.run_dir import MetricsLog, RunDir
+from relayrl.training.triggers import Evaluate, Progress
 
 
 class DirectDriver:
@@ -38,43 +39,60 @@ class DirectDriver:
         c = self.config
         device = resolve_device(c.device)
         rows: list[dict[str, Any]] = []
-        log, tb = MetricsLog(self.rd.metrics), SummaryWriter(str(self.rd.tb))
-        eval_env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, device)
         signals: list[int] = []  # the first Ctrl-C / SIGTERM: stop after this iteration, keep the policy
         per_iteration = c.agent.iteration_steps()
         iterations = c.train.total_steps // per_iteration
         total = iterations * per_iteration
-        # a row every eval.interval env steps (rounded to whole iterations) and at the end
-        every = max(1, c.eval.interval // per_iteration) * per_iteration if c.eval.interval > 0 else total
-        eval_seed = RunSeeds(c.seed).base("evaluation")
         window: list[dict[str, float]] = []  # the iterations' scalars since the last row
         history: list[dict[str, float]] = []
+        latest: list[Callable[[], dict[str, Any]]] = []  # the policy's state at the step reached
         t0 = time.perf_counter()
+        log, tb = MetricsLog(self.rd.metrics), SummaryWriter(str(self.rd.tb))
+        try:
+            eval_env = make_eval_env(c.env.id, c.eval.episodes, device=device)
+        except BaseException:
+            log.close()
+            tb.close()
+            raise
+
+        def policy() -> Any:
+            return self.entry.policy_module().load(latest[-1](), device, True, None)
+
+        def record(p: Progress, result: dict[str, float]) -> None:
+            # the window's means, but a schedule's value (charts/) where the row is, as every run's rows
+            means = {k: (window[-1][k] if k.startswith("charts/") else float(np.mean([w[k] for w in window])))
+                     for k in window[0]} if window else {}
+            row = {"step": p.env_steps, "train_step": p.train_step, **result,
+                   "wall_time_s": round(time.perf_counter() - t0, 3), "eval_s": round(evaluator.seconds, 3),
+                   **means, **(self.trainer.final_scalars(history) if p.env_steps == total and history else {})}
+            log.write(row)
+            rows.append(row)
+            tb.add_scalar("eval/average_return", result["average_return"], p.env_steps)
+            tb.add_scalar("eval/average_episode_length", result["average_episode_length"], p.env_steps)
+            window.clear()
+            if self.progress:
+                say(f"step {p.env_steps:>9,} | eval return {two_places(result['average_return']):8.2f} | length "
+                    f"{result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
+
+        # where and with which seeds every run evaluates: at step 0, at the first iteration at or
+        # past each multiple of eval.interval, and at the end (eval.interval 0: the end only)
+        evaluator = Evaluate(c.eval.interval, eval_env, policy, c.eval.episodes,
+                             seed=RunSeeds(c.seed).base("evaluation"), on_result=record)
 
         def on_iteration(steps: int, scalars: dict[str, float], state: Callable[[], dict[str, Any]]) -> None:
+            latest.append(state)
+            del latest[:-1]
             for name, value in scalars.items():
                 tb.add_scalar(name, value, steps)
             if scalars:
                 window.append(scalars)
                 history.append(scalars)
-            last = steps == total
-            if (steps % every and not last) or (steps == 0 and c.eval.interval == 0):  # 0: the final one only
-                return
-            policy = self.entry.policy_module().load(state(), device, True, None)
-            t = time.perf_counter()
-            result = evaluate(eval_env, policy, c.eval.episodes, seed=eval_seed + EVAL_STRIDE * len(rows))
-            means = {k: float(np.mean([w[k] for w in window])) for k in window[0]} if window else {}
-            row = {"step": steps, "train_step": steps // per_iteration, **result,
-                   "wall_time_s": round(time.perf_counter() - t0, 3), "eval_s": round(time.perf_counter() - t, 3),
-                   **means, **(self.trainer.final_scalars(history) if last and history else {})}
-            log.write(row)
-            rows.append(row)
-            tb.add_scalar("eval/average_return", result["average_return"], steps)
-            tb.add_scalar("eval/average_episode_length", result["average_episode_length"], steps)
-            window.clear()
-            if self.progress:
-                say(f"step {steps:>9,} | eval return {two_places(result['average_return']):8.2f} | length "
-                    f"{result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
+            p = Progress(steps, steps // per_iteration)
+            if steps == total or (steps == 0 and c.eval.interval > 0):
+                evaluator.start_at(steps)
+                evaluator.evaluate(p)
+            else:
+                evaluator(p)
 
         def on_signal(signum: int) -> None:
             signals.append(signum)

@@ -22,7 +22,8 @@ from relayrl.specs import PackedSpec, Spec, unpack
 from relayrl.types import Transition
 
 CHECK_STEPS = 256  # batched steps held before a check: the check's cost spread over them
-DIVERGED = "check the learning rate (too high diverges), the reward scale and the env's observations"
+CHECK_LR = "check the learning rate"  # the start of every diverged run's advice (RunCore.with_encoder adds to it)
+DIVERGED = f"{CHECK_LR} (too high diverges), the reward scale and the env's observations"
 
 
 def _first_bad(stacked: torch.Tensor) -> tuple[int, int, float] | None:

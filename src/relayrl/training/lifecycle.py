@@ -17,7 +17,7 @@ from typing import Any, Protocol, cast
 import numpy as np
 import torch
 
-from relayrl import interrupts
+from relayrl import atomic, interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import (
     Config,
@@ -50,7 +50,7 @@ from relayrl.schedules import linear_schedule
 from relayrl.seeding import RunSeeds
 from relayrl.specs import check_trained_layout, describe, spec_from_state, spec_state
 from relayrl.training.checkpoint import list_checkpoints
-from relayrl.training.finite import DIVERGED, FiniteWatch, non_finite_metrics, non_finite_tensor, stop
+from relayrl.training.finite import CHECK_LR, DIVERGED, FiniteWatch, non_finite_metrics, non_finite_tensor, stop
 from relayrl.training.learner import Learner
 from relayrl.training.replay_setup import collect_only
 from relayrl.training.report import Callback, RunReport, log_config
@@ -145,7 +145,7 @@ def caller_state_kept() -> Iterator[None]:
     cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None  # manual_seed seeds these too
     flushing = torch.tensor([1e-39]).item() == 0.0  # torch has no getter: a float32 denormal reads 0 when flushed
     try:
-        with global_rngs_kept(), float32_default(), numpy_warnings_left_out():
+        with global_rngs_kept(), float32_default(), numpy_warnings_left_out(), writer_thread_quiet():
             yield
     finally:
         torch.set_num_threads(threads)
@@ -168,6 +168,28 @@ def numpy_warnings_left_out() -> Iterator[None]:
     finally:
         with contextlib.suppress(ValueError):  # gone already: warnings.resetwarnings() during the run
             cast(list, warnings.filters).remove(ours)  # typeshed declares a Sequence; it is the list warn() reads
+
+
+@contextlib.contextmanager
+def writer_thread_quiet() -> Iterator[None]:
+    """TensorBoard's writer thread stopped by a full disk prints no traceback of its own: its
+    error reaches the run at the next scalar, which says it in one line (`run_to_end`). Other
+    threads' errors go to the hook there was, which is put back after."""
+    import threading
+
+    before = threading.excepthook
+
+    def hook(args: Any) -> None:
+        if type(args.thread).__name__ == "_AsyncWriterThread" and atomic.disk_full(args.exc_value) is not None:
+            return
+        before(args)
+
+    threading.excepthook = hook
+    try:
+        yield
+    finally:
+        if threading.excepthook is hook:  # else replaced during the run: that one stays
+            threading.excepthook = before
 
 
 @contextlib.contextmanager
@@ -338,6 +360,7 @@ class RunCore:
         try:
             self.check_finite(p, weights=True)
             self.checkpointer(p)
+            self.policy_saver.save(p)  # as every checkpoint's (fire_triggers)
         except Exception as e:
             self.say(f"the checkpoint due at env step {p.env_steps:,} was not written: {e}")
 
@@ -349,7 +372,7 @@ class RunCore:
         if finding is None or self.finite.found_action:  # a diverged update's loss says more than its actions
             loss = non_finite_metrics(self.learner.last_metrics, self.agent.undefined_metrics)
             if loss is not None:
-                finding = (f"{loss} {where}: check the learning rate (agent.lr and the like: too high diverges), "
+                finding = (f"{loss} {where}: {CHECK_LR} (agent.lr and the like: too high diverges), "
                            "the reward scale and the env's observations")
         if finding is None and weights:
             name = non_finite_tensor(self.agent.state_dict())
@@ -362,7 +385,7 @@ class RunCore:
         """A diverged run's finding, naming the user's encoder among what to check where its
         network is one (its outputs feed every layer after it)."""
         encoder = getattr(self.config.agent, "encoder", "auto")
-        if not is_user_encoder(encoder) or "check the learning rate" not in finding:
+        if not is_user_encoder(encoder) or CHECK_LR not in finding:
             return finding
         return f"{finding}, and agent.encoder={encoder!r} (its outputs on these observations)"
 
@@ -520,9 +543,14 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         raise stop(core.with_encoder(core.finite.check() or str(e)), core.kept()) from None
     except Exception as e:  # the env's own exception, or a failure: what is kept is said with it
         _own_notes(e)
+        full = atomic.disk_full(e)  # metrics.jsonl's or TensorBoard's write (the atomic files' say it themselves)
         if not training:
+            if full is not None:
+                raise UserError(atomic.full_line(full, core.rd.root)) from None
             raise
         stopped_at = f"the run stopped at env step {core.env_steps():,}"
+        if full is not None:
+            raise UserError(f"{atomic.full_line(full, core.rd.root)}; {stopped_at}: {crash_kept(core)}") from None
         # A UserError is one line, said by whoever catches it: the same line says what is kept
         # (where its message is its args; a class of its own making gets a note instead).
         if isinstance(e, UserError) and type(e).__str__ is BaseException.__str__:
@@ -531,7 +559,7 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
             e.add_note(f"relayrl: {stopped_at} on the error above; {crash_kept(core)}")
         raise
     finally:
-        report.close()
+        report.close(failing=sys.exc_info()[0] is not None)
 
 
 def _own_notes(e: BaseException) -> None:

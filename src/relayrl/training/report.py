@@ -11,9 +11,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from relayrl import interrupts
+from relayrl import atomic, interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config, config_toml, dotted, to_dict
+from relayrl.errors import UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.training.heartbeat import ProgressLines
 from relayrl.training.run_dir import MetricsLog, RunDir
@@ -94,7 +95,9 @@ class RunReport:
         if self.show_progress and self.bar.disable:  # no terminal: a line every 30 s instead
             self.lines = ProgressLines(self.progress_line, self.say).start()
 
-    def close(self) -> None:
+    def close(self, failing: bool = False) -> None:
+        """`failing`: the run is stopping on an error already, which a log that cannot be closed
+        (its last lines not written: a full disk) must not hide."""
         if self.lines is not None:
             self.lines.stop()
         if self.bar is not None:
@@ -104,7 +107,14 @@ class RunReport:
             self.bar.close()
         for log in (self.tb, self.metrics_log):
             if log is not None:
-                log.close()
+                try:
+                    log.close()
+                except OSError as e:
+                    if failing:
+                        continue
+                    if (full := atomic.disk_full(e)) is not None:
+                        raise UserError(atomic.full_line(full, self.rd.root)) from None
+                    raise
 
     def tick(self, env_steps: int) -> None:
         """The bar between log rows, at most once a second: a slow env's rows are minutes apart."""

@@ -14,17 +14,18 @@ ENV_ID = "relayrl/StatelessPendulum-v0"
 @dataclass
 class BpttConfig(Section):
     SECTION = "agent"
-    # A run trains through this env only, and reads these keys of [env], [train] and [eval]; the
-    # others set the actor-learner loop it does not run, so `Config.validate` refuses a value
-    # other than the default rather than ignore it silently (the reason: WHY_UNUSED, or its own).
+    # A run trains through this env only, and reads these keys of [env], [train], [eval] and
+    # [distributed]; the others set the actor-learner loop it does not run, so `Config.validate`
+    # refuses a value other than the default rather than ignore it (the reason: WHY_UNUSED, or UNUSED).
     ENV_IDS: ClassVar[tuple[str, ...]] = (ENV_ID,)
     RUN_KEYS: ClassVar[tuple[str, ...]] = ("env.id", "train.total_steps", "train.torch_threads", "eval.interval",
                                            "eval.episodes")
     WHY_UNUSED: ClassVar[dict[str, str]] = {
         "env.num_envs": "each iteration rolls out agent.batch_size pendulums as one batch (set agent.batch_size)",
+        "distributed.num_actors": "it runs in one process only",
     }
-    UNUSED: ClassVar[str] = (f"it trains through {ENV_ID} by itself, without the env copies, collection and "
-                             "checkpoints this key sets")
+    UNUSED: ClassVar[str] = (f"it trains and evaluates through {ENV_ID} as it is, without the env copies, "
+                             "collection, checkpoints and Ray actors this key sets")
 
     hidden: list[int] = field(default_factory=lambda: [64, 64, 64])  # Tanh MLP, linear output
     lr: float = 2e-3  # Adam learning rate
