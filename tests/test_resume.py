@@ -212,6 +212,38 @@ def test_an_interrupt_between_checkpoints_names_the_checkpoint_a_resume_starts_f
     assert load_latest_checkpoint(tmp_path / "cut" / "checkpoints")["env_steps"] == 500
 
 
+def tensorboard_points(run_dir, tag):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(run_dir / "tb"))  # every event file, with a resumed process's purge applied
+    events.Reload()
+    return [(e.step, e.value) for e in events.Scalars(tag)]
+
+
+@pytest.mark.parametrize("stop", ["callback", "interrupt"])
+def test_tensorboard_after_a_resume_holds_the_uninterrupted_runs_points_once(tmp_path, stop):
+    """A clean stop (a callback's False, as Ctrl-C) checkpoints where it stopped; an interrupt
+    that stops at once (as a crash) leaves the checkpoint at 500 and points written up to 700,
+    which the resumed run's TensorBoard hides (purge_step), as metrics.jsonl is cut back. Episodes
+    that ended before a checkpoint are logged before it is written, so none is logged twice."""
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN + ["train.log_interval=100"])
+    relayrl.train(cfg, tmp_path / "full", progress=False)
+
+    def interrupt_at_700(row):
+        if row["step"] == 700:
+            raise KeyboardInterrupt
+
+    if stop == "callback":
+        relayrl.train(cfg, tmp_path / "cut", progress=False, callbacks=[lambda row: row["step"] < 700])
+    else:
+        with pytest.raises(KeyboardInterrupt):
+            relayrl.train(cfg, tmp_path / "cut", progress=False, callbacks=[interrupt_at_700])
+    relayrl.train(cfg, tmp_path / "cut", resume=True, progress=False)
+    for tag in ("charts/episodic_return", "charts/episodic_length", "charts/epsilon"):
+        full = tensorboard_points(tmp_path / "full", tag)
+        assert len(full) > 10 and tensorboard_points(tmp_path / "cut", tag) == full, tag
+
+
 def test_ctrl_c_in_the_final_evaluation_keeps_the_policy_and_a_checkpoint_and_a_resume_evaluates(tmp_path):
     import toy_envs
 
@@ -815,7 +847,8 @@ def test_an_interrupted_runs_end_evaluates_only_a_boundary_no_evaluation_covered
 
     calls: list[object] = []
     evaluation = IntervalTrigger(100, lambda p: None)  # its last boundary fired: 0
-    report = SimpleNamespace(last_eval={"step": last_eval}, write_scalars=lambda *a: None, run_sps=lambda p: (0.0, 0.0))
+    report = SimpleNamespace(last_eval={"step": last_eval}, write_scalars=lambda *a: None, run_sps=lambda p: (0.0, 0.0),
+                             scalars_step=-1)
     core = SimpleNamespace(check_finite=lambda p, weights: None, evaluation=evaluation, report=report,
                            policy_saver=SimpleNamespace(save=lambda p: calls.append("policy")),
                            config=SimpleNamespace(train=SimpleNamespace(checkpoint_interval=0)))

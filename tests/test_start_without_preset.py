@@ -91,7 +91,7 @@ def test_presets_load_exactly_as_on_the_config_classes_defaults(preset):
     before = class_defaults()
     object.__setattr__(before, "agent", ALGORITHMS[data.get("algo", "dqn")].config())
     object.__setattr__(before, "algo", data.get("algo", "dqn"))
-    _merge(before, copy.deepcopy(data), prefix="")
+    _merge(before, copy.deepcopy(data), "", before.algo)
     assert to_dict(load_config(preset)) == to_dict(before)
 
 

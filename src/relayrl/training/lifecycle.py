@@ -404,6 +404,7 @@ class RunCore:
 
     def checkpoint_common(self, eval_count: int) -> dict[str, Any]:
         """What every driver's checkpoint holds."""
+        self.report.log_episodes()
         return {"version": 2, "config": to_dict(self.config), "spaces": self.spaces(),
                 "agent": self.agent.state_dict(), "episode_stats": self.stats.state_dict(),
                 "eval_count": eval_count, "wall_time_s": self.wall_time(),
@@ -656,7 +657,8 @@ def finish(driver: Driver, p: Progress, evaluate: bool = True) -> None:
         _save(core, p, changed=True)  # the run is kept without it; a resume evaluates it
         raise
     _save(core, p, changed=evaluated)
-    core.report.write_scalars(p, *core.report.run_sps(p))
+    if core.report.scalars_step != p.env_steps:  # a stop on a log row's step: its scalars are there once
+        core.report.write_scalars(p, *core.report.run_sps(p))
 
 
 def _save(core: RunCore, p: Progress, changed: bool) -> None:

@@ -76,6 +76,7 @@ class RunReport:
         self.legend_said = False  # what an evaluation's console line holds, said above the first
         self.started = (time.perf_counter(), Progress(0, 0))  # when and where reporting began: the run's sps
         self.tb: Any = None
+        self.scalars_step = -1  # the env step of the scalars TensorBoard got last (write_scalars)
         self.metrics_log: MetricsLog | None = None
         self.bar: Any = None
         self.bar_fields: dict[str, Any] = {}
@@ -87,7 +88,9 @@ class RunReport:
         from torch.utils.tensorboard import SummaryWriter
         from tqdm import tqdm
 
-        self.tb = SummaryWriter(str(self.rd.tb))
+        # A resumed run's TensorBoard hides what an earlier process wrote past the checkpoint it
+        # goes on from (killed after it), as metrics.jsonl is cut back there.
+        self.tb = SummaryWriter(str(self.rd.tb), purge_step=initial_steps + 1 if initial_steps else None)
         self.metrics_log = MetricsLog(self.rd.metrics)
         self.bar = tqdm(total=self.config.train.total_steps, unit="step",
                         disable=None if self.show_progress else True, dynamic_ncols=True, initial=initial_steps)
@@ -164,14 +167,23 @@ class RunReport:
 
     def write_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
         """TensorBoard as CleanRL names it: the training episodes' return and length at the env
-        step they finished (`step_means`), then `log_scalars`, returned."""
-        for step, ret, length in step_means(self.stats.take_finished()):
-            self.tb.add_scalar("charts/episodic_return", ret, step)
-            self.tb.add_scalar("charts/episodic_length", length, step)
+        step they finished (`log_episodes`), then `log_scalars`, returned."""
+        self.log_episodes()
+        self.scalars_step = p.env_steps
         scalars = self.log_scalars(p, env_sps, grad_sps)
         for k, v in {**scalars, **self.extra_scalars()}.items():
             self.tb.add_scalar(k, v, p.env_steps)
         return scalars
+
+    def log_episodes(self) -> None:
+        """The training episodes finished since the last call to TensorBoard, each step's mean at
+        the env step they finished (`step_means`). Before a checkpoint too, which then holds none
+        to log again after a resume."""
+        if self.tb is None:
+            return
+        for step, ret, length in step_means(self.stats.take_finished()):
+            self.tb.add_scalar("charts/episodic_return", ret, step)
+            self.tb.add_scalar("charts/episodic_length", length, step)
 
     def log_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
         """What TensorBoard and the callbacks' "log" rows get."""
