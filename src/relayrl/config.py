@@ -15,13 +15,26 @@ import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar, Protocol, cast
 
 from relayrl import atomic
 from relayrl.agents.registry import ALGORITHMS, DEFAULT_ALGO, algorithm
 from relayrl.config_fields import CLEANRL_NAMES, SB3_NAMES, Section, commented_toml, fold_key, unknown_key
 from relayrl.errors import ConfigError
 from relayrl.seeding import seed_problem
+
+
+class TrainerSection(Protocol):
+    """The agent section of an algorithm that trains by itself (registry `replay = "none"`):
+    the envs it trains through, the [env] / [train] / [eval] / [distributed] keys it reads, why
+    it refuses the others, and the env steps of one iteration."""
+
+    ENV_IDS: ClassVar[tuple[str, ...]]
+    RUN_KEYS: ClassVar[tuple[str, ...]]
+    WHY_UNUSED: ClassVar[dict[str, str]]
+    UNUSED: ClassVar[str]
+
+    def iteration_steps(self) -> int: ...
 
 
 @dataclass
@@ -248,7 +261,7 @@ class Config(Section):
         """An algorithm that trains by itself (BPTT) through its own envs, reading only its agent
         section's RUN_KEYS of [env], [train], [eval] and [distributed]: any other set away from its default is
         refused here, so that `relayrl config` lists no setting its run would refuse or ignore."""
-        a = self.agent
+        a = cast(TrainerSection, self.agent)
         if self.env.id not in a.ENV_IDS:
             raise ConfigError(f"algo={self.algo!r} trains through {' or '.join(a.ENV_IDS)} only; "
                               f"env.id={self.env.id!r} is not valid")

@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from relayrl import interrupts
 from relayrl.agents.registry import algorithm
-from relayrl.config import Config
+from relayrl.config import Config, TrainerSection
 from relayrl.policy_file import save_policy_file
 from relayrl.seeding import RunSeeds
 from relayrl.training.evaluate import make_eval_env
@@ -40,7 +40,7 @@ class DirectDriver:
         device = resolve_device(c.device)
         rows: list[dict[str, Any]] = []
         signals: list[int] = []  # the first Ctrl-C / SIGTERM: stop after this iteration, keep the policy
-        per_iteration = c.agent.iteration_steps()
+        per_iteration = cast(TrainerSection, c.agent).iteration_steps()
         iterations = c.train.total_steps // per_iteration
         total = iterations * per_iteration
         window: list[dict[str, float]] = []  # the iterations' scalars since the last row
