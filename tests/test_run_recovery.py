@@ -68,7 +68,20 @@ def test_metrics_lines_that_are_no_row_of_a_run_are_passed_over(tmp_path):
                                              b'[1, 2]\n{"step": "late"}\n"a note"\n'  # lines added by hand
                                              b'{"step": 30, "average_return": 12.0}\n{"step": 6')
     assert [row["step"] for row in RunDir(tmp_path).read_metrics()] == [0, 30]
-    assert RunDir(tmp_path).truncate_metrics(10) == [{"step": 0, "average_return": 9.0}]
+    assert RunDir(tmp_path).truncate_metrics(10) == ([{"step": 0, "average_return": 9.0}], 2)  # 2 lines not JSON
+
+
+def test_a_resume_says_when_metrics_jsonl_held_a_line_cut_short(tmp_path, capsys):
+    run = tmp_path / "run"
+    c = load_config("dqn-cartpole", TINY)
+    train(c, run, progress=False)
+    text = (run / "metrics.jsonl").read_text()
+    (run / "metrics.jsonl").write_text(text[:-40])  # the last row cut short, as a full disk leaves it
+    capsys.readouterr()
+    train(load_config(str(run / "config.toml"), ["train.total_steps=90"]), run, resume=True, progress=False)
+    assert "metrics.jsonl held 1 line cut short (a crash or a full disk while it was written), now left out: the " \
+           "evaluation rows written there are lost" in capsys.readouterr().err
+    assert [row["step"] for row in RunDir(run).read_metrics()] == [0, 30, 90]
 
 
 def test_a_run_with_a_checkpoint_is_kept_unless_overwrite(tmp_path, cli):

@@ -53,7 +53,7 @@ from relayrl.training.checkpoint import list_checkpoints
 from relayrl.training.finite import CHECK_LR, DIVERGED, FiniteWatch, non_finite_metrics, non_finite_tensor, stop
 from relayrl.training.learner import Learner
 from relayrl.training.replay_setup import collect_only
-from relayrl.training.report import Callback, RunReport, log_config
+from relayrl.training.report import Callback, RunReport, log_config, plural
 from relayrl.training.run_dir import RunDir, checkpoint_step
 from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver, Progress, StepsPerSecondLog
 
@@ -451,7 +451,10 @@ class RunCore:
         self.learner.last_metrics = dict(state["last_metrics"])
 
     def resume_at(self, steps: int) -> None:
-        kept = self.rd.truncate_metrics(after_step=steps)
+        kept, torn = self.rd.truncate_metrics(after_step=steps)
+        if torn:
+            self.say(f"metrics.jsonl held {plural(torn, 'line')} cut short (a crash or a full disk while it was "
+                     "written), now left out: the evaluation rows written there are lost")
         if kept and kept[-1].get("step") == steps:
             self.report.last_eval = kept[-1]  # a finished run resumed again needs no second final eval
         for trigger in self.triggers:

@@ -136,18 +136,23 @@ class RunDir:
             raise UserError(f"{str(self.root)!r} is not a relayrl run directory (no config.toml)")
 
     def read_metrics(self) -> list[dict[str, Any]]:
+        return self._metrics_lines()[0]
+
+    def _metrics_lines(self) -> tuple[list[dict[str, Any]], int]:
+        """The rows, and how many lines were not JSON (cut short by a crash or a full disk)."""
         if not self.metrics.is_file():
-            return []
-        rows = []
+            return [], 0
+        rows, torn = [], 0
         # bytes that are not UTF-8 spoil only their own line: it is then not JSON and is passed over
         for line in self.metrics.read_text(errors="replace").splitlines():
             try:
                 row = json.loads(line)
             except json.JSONDecodeError:
-                continue  # a line cut short by a crash; the rest is intact
+                torn += bool(line.strip())  # a line cut short; the rest is intact
+                continue
             if isinstance(row, dict) and type(row.get("step")) is int:  # a run's rows; not a line added by hand
                 rows.append(row)
-        return rows
+        return rows, torn
 
     def trained_to(self, read_policy: bool = True) -> int:
         """How far the run got, as far as its files say: the later of metrics.jsonl's last
@@ -165,13 +170,15 @@ class RunDir:
                 pass
         return max(int(rows[-1].get("step", 0)) if rows else 0, saved)
 
-    def truncate_metrics(self, after_step: int) -> list[dict[str, Any]]:
-        """Drop rows logged after `after_step` (a resumed run logs them again); the rows kept."""
-        rows = [r for r in self.read_metrics() if r.get("step", 0) <= after_step]
+    def truncate_metrics(self, after_step: int) -> tuple[list[dict[str, Any]], int]:
+        """Drop rows logged after `after_step` (a resumed run logs them again) and lines that are
+        not JSON; the rows kept, and how many such lines went."""
+        rows, torn = self._metrics_lines()
+        rows = [r for r in rows if r.get("step", 0) <= after_step]
         tmp = self.metrics.with_suffix(".jsonl.tmp")
         tmp.write_text("".join(json.dumps(r) + "\n" for r in rows))
         tmp.replace(self.metrics)
-        return rows
+        return rows, torn
 
 
 class MetricsLog:
