@@ -81,6 +81,9 @@ def test_checkpoints_are_atomic_and_fall_back_past_a_corrupt_one(tmp_path, capsy
     (folder / "ckpt-000000000200.pt").write_bytes(b"")
     with pytest.raises(CheckpointError, match="every checkpoint .* unreadable: start the run again with --overwrite"):
         load_latest_checkpoint(folder)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0].endswith("; trying an older one") and lines[1].endswith("; no older one is left")
+    assert all(len(line) < 300 for line in lines)  # torch's long explanation cut at a word
 
 
 @pytest.mark.parametrize("other", [[1, 2], {"weights": 1}])

@@ -47,15 +47,18 @@ def load_latest_checkpoint(folder: Path) -> dict[str, Any]:
         raise CheckpointError(f"no checkpoint in {folder} (nothing to resume from): start the run again without "
                               "--resume (in Python: resume=False); a run that trained past step 0 needs --overwrite "
                               "(overwrite=True)")
-    for path in reversed(candidates):
+    for n, path in enumerate(reversed(candidates)):
         try:
             state = torch.load(path, map_location="cpu", weights_only=False)
             if not isinstance(state, dict) or "env_steps" not in state:  # another program's file under its name
                 raise ValueError(f"it holds a {type(state).__name__} that is not a relayrl checkpoint")
             return state
         except Exception as e:  # a truncated or corrupt file: fall back to an older one
-            detail = (str(e).strip().splitlines() or [""])[0][:120]
-            print(f"relayrl: checkpoint {path} is unreadable ({type(e).__name__}: {detail}); trying an older one",
+            detail = (str(e).strip().splitlines() or [""])[0]
+            if len(detail) > 120:  # torch's explanations run long: cut at a word
+                detail = detail[:120].rsplit(" ", 1)[0] + " ..."
+            then = "trying an older one" if n + 1 < len(candidates) else "no older one is left"
+            print(f"relayrl: checkpoint {path} is unreadable ({type(e).__name__}: {detail}); {then}",
                   file=sys.stderr, flush=True)
     raise CheckpointError(f"every checkpoint in {folder} is unreadable: start the run again with --overwrite "
                           "(in Python: overwrite=True)")
