@@ -9,7 +9,7 @@ import pytest
 import torch
 
 import relayrl
-from relayrl.errors import ConfigError
+from relayrl.errors import ConfigError, UserError
 from relayrl.training.run_dir import RunDir
 
 SHORT = ["train.total_steps=96000", "eval.interval=32000"]  # 30 iterations, a row every 10
@@ -127,3 +127,30 @@ def test_bptt_ctrl_c_keeps_the_policy_trained_so_far(tmp_path, monkeypatch, caps
     assert relayrl.load_policy(root).env_steps == 12 * 32 * 100
     assert [r["step"] for r in RunDir(root).read_metrics()] == [0, 32000]  # no final evaluation, as any run's
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is put back
+
+
+def test_bptt_says_its_evaluations_without_a_progress_bar_too(tmp_path, capsys):
+    relayrl.train(relayrl.load_config("bptt-pendulum", SHORT + ["eval.episodes=2"]), tmp_path / "b", progress=False)
+    err = capsys.readouterr().err
+    assert "evaluations: mean return and length of 2 episodes" in err
+    assert [line.split("|")[0].split()[1] for line in err.splitlines() if line.startswith("step")] == \
+           ["0", "32,000", "64,000", "96,000"]
+
+
+def test_a_full_disk_under_a_bptt_run_is_one_error_line(tmp_path, monkeypatch):
+    import errno
+
+    from relayrl.training.run_dir import MetricsLog
+
+    def write(self, row):
+        raise OSError(errno.ENOSPC, "No space left on device", "metrics.jsonl")
+
+    monkeypatch.setattr(MetricsLog, "write", write)
+    with pytest.raises(UserError, match=r"^cannot write 'metrics.jsonl': No space left on device: free some space; "
+                                        r"algo='bptt' runs have no checkpoints: a new run starts over$"):
+        relayrl.train(relayrl.load_config("bptt-pendulum", SHORT), tmp_path / "b", progress=False)
+
+
+def test_bptt_refusals_show_values_as_toml_writes_them():
+    with pytest.raises(ConfigError, match=r"^env.check=false does not apply to algo='bptt': .*; leave it at true$"):
+        relayrl.load_config("bptt-pendulum", ["env.check=false"])

@@ -162,6 +162,13 @@ def test_a_section_assigned_a_dict_or_none_in_python_is_one_clear_line(value):
         c.env = value
 
 
+def test_a_section_assigned_another_sections_object_is_one_clear_line():
+    c = load_config("ppo")
+    with pytest.raises(ConfigError, match=r"^env=TrainConfig\(...\) has the wrong type; expected the section's "
+                                          r"EnvConfig$"):
+        c.env = c.train
+
+
 def test_a_wrong_type_line_shows_the_keys_default_not_a_wrong_value_set_before():
     c = load_config("dqn")
     c.train.total_steps = -5  # checked by the run (Config.validate), not at assignment

@@ -244,6 +244,14 @@ def test_tensorboard_after_a_resume_holds_the_uninterrupted_runs_points_once(tmp
         assert len(full) > 10 and tensorboard_points(tmp_path / "cut", tag) == full, tag
 
 
+def test_resuming_a_finished_run_writes_no_tensorboard_point_again(tmp_path):
+    cfg = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=600"] + DQN[2:])
+    relayrl.train(cfg, tmp_path / "r", progress=False)
+    before = {tag: tensorboard_points(tmp_path / "r", tag) for tag in ("perf/sps", "charts/epsilon")}
+    relayrl.train(None, tmp_path / "r", resume=True, progress=False)  # nothing is left to train
+    assert {tag: tensorboard_points(tmp_path / "r", tag) for tag in before} == before
+
+
 def test_ctrl_c_in_the_final_evaluation_keeps_the_policy_and_a_checkpoint_and_a_resume_evaluates(tmp_path):
     import toy_envs
 

@@ -170,7 +170,7 @@ def _train(args: argparse.Namespace) -> None:
     final = result.final
     print(f"run directory: {result.run_dir}")
     ret = final.get("average_return")
-    print(f"final evaluation: average_return={ret if ret is None else round(ret, 4)} "
+    print(f"final evaluation: average_return={ret if ret is None else round(ret, 4) + 0.0} "  # never -0.0
           f"at step {final.get('step')} ({final.get('wall_time_s')} s)")
 
 

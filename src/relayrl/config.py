@@ -19,7 +19,7 @@ from typing import Any, ClassVar, Protocol, cast
 
 from relayrl import atomic
 from relayrl.agents.registry import ALGORITHMS, DEFAULT_ALGO, algorithm
-from relayrl.config_fields import CLEANRL_NAMES, SB3_NAMES, Section, commented_toml, fold_key, unknown_key
+from relayrl.config_fields import CLEANRL_NAMES, SB3_NAMES, Section, commented_toml, fold_key, shown, unknown_key
 from relayrl.errors import ConfigError
 from relayrl.seeding import seed_problem
 
@@ -271,8 +271,8 @@ class Config(Section):
             for f in dataclasses.fields(section):
                 key, value, default = f"{name}.{f.name}", getattr(section, f.name), getattr(default_section, f.name)
                 if key not in a.RUN_KEYS and value != default:
-                    raise ConfigError(f"{key}={value!r} does not apply to algo={self.algo!r}: "
-                                      f"{a.WHY_UNUSED.get(key, a.UNUSED)}; leave it at {default!r}")
+                    raise ConfigError(f"{key}={shown(value)} does not apply to algo={self.algo!r}: "
+                                      f"{a.WHY_UNUSED.get(key, a.UNUSED)}; leave it at {shown(default)}")
         if self.train.total_steps < a.iteration_steps():
             raise ConfigError(f"train.total_steps={self.train.total_steps} is less than one iteration "
                               f"(agent.batch_size * agent.rollout_steps = {a.iteration_steps()} env steps)")

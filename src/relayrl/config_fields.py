@@ -50,6 +50,11 @@ class Section:
         path = f"{self.SECTION}.{name}" if self.SECTION else name
         if name not in hints:
             raise ConfigError(unknown_key(path, [f"{self.SECTION}.{n}" if self.SECTION else n for n in hints]))
+        current = getattr(self, name, None)
+        if (dataclasses.is_dataclass(value) and dataclasses.is_dataclass(current) and name != "agent"
+                and type(value) is not type(current)):  # config.env = config.train (the agent's: Config's own check)
+            raise ConfigError(f"{path}={type(value).__name__}(...) has the wrong type; expected the section's "
+                              f"{type(current).__name__}")
         if not dataclasses.is_dataclass(value):
             try:
                 value = coerce(value, hints[name], path)

@@ -359,7 +359,7 @@ def out_of_memory(e: BaseException) -> str | None:
 def _make_driver(entry: Algorithm, config: Config, rd: RunDir, progress: bool, env: Callable[[], Any] | None,
                  callbacks: list[Callback]) -> LocalDriver | DirectDriver | RayDriver:
     if entry.replay == "none":
-        return DirectDriver(config, rd, progress)
+        return DirectDriver(config, rd)  # no progress bar: its lines are its evaluations
     if config.distributed.num_actors > 0:
         from relayrl.distributed.driver import RayDriver
 

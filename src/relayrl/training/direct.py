@@ -6,20 +6,22 @@ stopped it, too: its runs have no checkpoints). No actor, replay or learner."""
 
 from __future__ import annotations
 
+import sys
 import time
 from collections.abc import Callable
 from typing import Any, cast
 
 import numpy as np
 
-from relayrl import interrupts
+from relayrl import atomic, interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config, TrainerSection
+from relayrl.errors import UserError
 from relayrl.policy_file import save_policy_file
 from relayrl.seeding import RunSeeds
 from relayrl.training.evaluate import make_eval_env
 from relayrl.training.lifecycle import RunResult, resolve_device
-from relayrl.training.report import log_config, say, two_places
+from relayrl.training.report import close_logs, eval_legend, eval_line, log_config, say
 from relayrl.training.run_dir import MetricsLog, RunDir
 from relayrl.training.triggers import Evaluate, Progress
 
@@ -28,10 +30,10 @@ class DirectDriver:
     """The trainer's config is checked when the config is (`Config.validate`); its runs are
     not resumable (Algorithm.resumable)."""
 
-    def __init__(self, config: Config, rd: RunDir, progress: bool = True) -> None:
+    def __init__(self, config: Config, rd: RunDir) -> None:
         self.entry = algorithm(config.algo)
         self.trainer = self.entry.direct_trainer()
-        self.config, self.rd, self.progress = config, rd, progress
+        self.config, self.rd = config, rd
 
     def train(self, resume: bool = False) -> RunResult:
         from torch.utils.tensorboard import SummaryWriter
@@ -51,8 +53,7 @@ class DirectDriver:
         try:
             eval_env = make_eval_env(c.env.id, c.eval.episodes, device=device)
         except BaseException:
-            log.close()
-            tb.close()
+            close_logs([log, tb], self.rd.root, failing=True)
             raise
 
         def policy() -> Any:
@@ -70,9 +71,9 @@ class DirectDriver:
             tb.add_scalar("eval/average_return", result["average_return"], p.env_steps)
             tb.add_scalar("eval/average_episode_length", result["average_episode_length"], p.env_steps)
             window.clear()
-            if self.progress:
-                say(f"step {p.env_steps:>9,} | eval return {two_places(result['average_return']):8.2f} | length "
-                    f"{result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
+            if len(rows) == 1:
+                say(eval_legend(c.eval.episodes))
+            say(eval_line(row))  # with progress=False too, as every run's
 
         # where and with which seeds every run evaluates: at step 0, at the first iteration at or
         # past each multiple of eval.interval, and at the end (eval.interval 0: the end only)
@@ -104,10 +105,14 @@ class DirectDriver:
             with interrupts.stop_request(on_signal):
                 state = self.trainer.train(c.agent, iterations, c.seed, device, c.train.torch_threads, on_iteration,
                                            lambda: bool(signals))
+        except Exception as e:
+            if (full := atomic.disk_full(e)) is not None:  # metrics.jsonl's or TensorBoard's write
+                raise UserError(f"{atomic.full_line(full, self.rd.root)}; algo={c.algo!r} runs have no "
+                                "checkpoints: a new run starts over") from None
+            raise
         finally:
-            log.close()
-            tb.close()
             eval_env.close()
+            close_logs([log, tb], self.rd.root, failing=sys.exc_info()[0] is not None)
         save_policy_file(state, self.rd.policy / "policy.pt")
         if signals:  # one in the last iteration too: the run is whole, and the caller's loop still stops
             interrupts.redeliver(signals[0], f"the run stopped at env step {state['env_steps']:,}; its policy and "

@@ -9,6 +9,7 @@ import math
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from relayrl import atomic, interrupts
@@ -91,6 +92,8 @@ class RunReport:
         # A resumed run's TensorBoard hides what an earlier process wrote past the checkpoint it
         # goes on from (killed after it), as metrics.jsonl is cut back there.
         self.tb = SummaryWriter(str(self.rd.tb), purge_step=initial_steps + 1 if initial_steps else None)
+        if initial_steps:  # the process before wrote the scalars of the step a resume goes on from
+            self.scalars_step = initial_steps
         self.metrics_log = MetricsLog(self.rd.metrics)
         self.bar = tqdm(total=self.config.train.total_steps, unit="step",
                         disable=None if self.show_progress else True, dynamic_ncols=True, initial=initial_steps)
@@ -99,8 +102,7 @@ class RunReport:
             self.lines = ProgressLines(self.progress_line, self.say).start()
 
     def close(self, failing: bool = False) -> None:
-        """`failing`: the run is stopping on an error already, which a log that cannot be closed
-        (its last lines not written: a full disk) must not hide."""
+        """`failing`: as `close_logs`'."""
         if self.lines is not None:
             self.lines.stop()
         if self.bar is not None:
@@ -108,16 +110,7 @@ class RunReport:
             self.bar.update(self.progress().env_steps - self.bar.n)
             self._bar_fields()
             self.bar.close()
-        for log in (self.tb, self.metrics_log):
-            if log is not None:
-                try:
-                    log.close()
-                except OSError as e:
-                    if failing:
-                        continue
-                    if (full := atomic.disk_full(e)) is not None:
-                        raise UserError(atomic.full_line(full, self.rd.root)) from None
-                    raise
+        close_logs([log for log in (self.tb, self.metrics_log) if log is not None], self.rd.root, failing)
 
     def tick(self, env_steps: int) -> None:
         """The bar between log rows, at most once a second: a slow env's rows are minutes apart."""
@@ -236,11 +229,8 @@ class RunReport:
         self.last_eval = row
         if not self.legend_said:
             self.legend_said = True
-            n = self.config.eval.episodes
-            self.say(f"evaluations: mean return and length of {n} episode{'s' if n != 1 else ''} of the policy "
-                     "acting without exploration (its greedy or mean action), then the run's wall-clock time so far")
-        self.say(f"step {p.env_steps:>9,} | eval return {two_places(result['average_return']):8.2f} "
-                 f"| length {result['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
+            self.say(eval_legend(self.config.eval.episodes))
+        self.say(eval_line(row))
         self.call_back("eval", row)
 
     def call_back(self, event: str, row: dict[str, Any]) -> None:
@@ -260,3 +250,30 @@ class RunReport:
 def two_places(x: float) -> float:
     """x rounded to two decimals, with -0.0 as 0.0: a return of -0.001 prints as 0.00, not -0.00."""
     return round(x, 2) + 0.0
+
+
+def eval_legend(episodes: int) -> str:
+    """What the evaluation lines show, said before the first."""
+    return (f"evaluations: mean return and length of {plural(episodes, 'episode')} of the policy acting without "
+            "exploration (its greedy or mean action), then the run's wall-clock time so far")
+
+
+def eval_line(row: dict[str, Any]) -> str:
+    """An evaluation row's console line."""
+    return (f"step {row['step']:>9,} | eval return {two_places(row['average_return']):8.2f} "
+            f"| length {row['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
+
+
+def close_logs(logs: list[Any], folder: Path, failing: bool) -> None:
+    """Close each of a run's logs (TensorBoard, metrics.jsonl). `failing`: the run is stopping on
+    an error already, which a log that cannot be closed (its last lines not written: a full disk)
+    must not hide; else a full disk is one line."""
+    for log in logs:
+        try:
+            log.close()
+        except OSError as e:
+            if failing:
+                continue
+            if (full := atomic.disk_full(e)) is not None:
+                raise UserError(atomic.full_line(full, folder)) from None
+            raise
