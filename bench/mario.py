@@ -1,6 +1,6 @@
 """Issue 8 targets for `ddqn-mario`: replay memory and loop speed, against the PyTorch Mario tutorial.
 
-    .venv/bin/python bench/mario.py [--peer-python /work/benchvenv-mario/bin/python]
+    .venv/bin/python bench/mario.py [--peer-python bench/.venv-mario/bin/python]
         [--replay-items 100000] [--tutorial-items 2000] [--burn-in 1000] [--steps 3000]
         [--warmup 300] [--threads 1] [--quick] [--json FILE]
 
@@ -8,8 +8,8 @@ The tutorial ("Train a Mario-playing RL agent", pytorch.org) runs in a peer venv
 relayrl dependency: gym 0.26.2, gym-super-mario-bros 7.4.0, nes-py 8.2.1, NumPy < 2, torch,
 torchrl + tensordict (its TensorDictReplayBuffer + LazyMemmapStorage). Make it with
 
-    python3 -m venv /work/benchvenv-mario
-    /work/benchvenv-mario/bin/pip install "numpy<2" torch==2.13.0 torchrl==0.14.1 gym==0.26.2 \\
+    python3 -m venv bench/.venv-mario
+    bench/.venv-mario/bin/pip install "numpy<2" torch==2.13.0 torchrl==0.14.1 gym==0.26.2 \\
         gym-super-mario-bros==7.4.0 nes-py==8.2.1
 
 The tutorial's GrayScale / Resize wrappers call torchvision transforms on float tensors; the
@@ -732,7 +732,8 @@ def main() -> None:
                 "tutorial-loop": tutorial_loop}[which](**kw))
         return
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--peer-python", default="/work/benchvenv-mario/bin/python")
+    here = os.path.dirname(os.path.abspath(__file__))
+    p.add_argument("--peer-python", default=os.path.join(here, ".venv-mario", "bin", "python"))
     p.add_argument("--replay-items", type=int, default=FULL, help="relayrl replay size filled (ddqn-mario: 100000)")
     p.add_argument("--record", type=int, default=3000, help="real env steps recorded, then cycled, for the fill")
     p.add_argument("--tutorial-items", type=int, default=2000, help="items put in the tutorial's memmap replay")

@@ -1,7 +1,7 @@
 """Stateless Pendulum: raw stepping throughput against Gymnasium, and BPTT training speed.
 
     .venv/bin/python bench/stateless_step.py [--device cpu] [--batches 1,32,4096,65536]
-        [--seconds 1.0] [--torchrl-python /work/benchvenv/bin/python] [--learn]
+        [--seconds 1.0] [--torchrl-python bench/.venv-peers/bin/python] [--learn]
         [--torchrl-learn SEED [SEED ...]] [--json bench/results/stateless.json]
 
 Stepping (issue 6). Env steps/s = batch size x batched steps/s, random actions, no autograd
@@ -47,7 +47,8 @@ from collections.abc import Callable
 
 from _workers import report, run_worker  # bench/ is on sys.path when a script runs
 
-DEFAULT_TORCHRL = "/work/benchvenv/bin/python"
+# the peers' venv (bash bench/setup_peers.sh installs torchrl there)
+DEFAULT_TORCHRL = os.path.join(os.path.dirname(os.path.abspath(__file__)), ".venv-peers", "bin", "python")
 
 
 def timed(step: Callable[[], int], seconds: float, sync: Callable[[], None]) -> float:
@@ -310,7 +311,7 @@ def main() -> None:
     p.add_argument("--seconds", type=float, default=1.0)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--bptt-iterations", type=int, default=100)
-    p.add_argument("--torchrl-python", default=DEFAULT_TORCHRL if os.path.exists(DEFAULT_TORCHRL) else "")
+    p.add_argument("--torchrl-python", default=DEFAULT_TORCHRL)
     p.add_argument("--torchrl-iterations", type=int, default=20)
     p.add_argument("--learn", action="store_true")
     p.add_argument("--torchrl-learn", type=int, nargs="+", default=[], metavar="SEED")
@@ -352,7 +353,9 @@ def main() -> None:
         print(f"{b:>8} {ours:>18,.0f} {adapted:>16,.0f} {gym_txt:>18} {ratio_txt:>8}", flush=True)
     bptt = {"fast": bench_bptt(a.bptt_iterations, True, a.device, a.threads),
             "generic": bench_bptt(max(10, a.bptt_iterations // 5), False, a.device, a.threads)}
-    if a.torchrl_python:
+    if a.torchrl_python and not os.path.exists(a.torchrl_python):
+        print(f"no TorchRL row: {a.torchrl_python} does not exist (bash bench/setup_peers.sh makes the peers' venv)")
+    elif a.torchrl_python:
         res, proc = run_worker(a.torchrl_python, os.path.abspath(__file__),
                                ["--torchrl-iterations", str(a.torchrl_iterations)])
         if res is None:
