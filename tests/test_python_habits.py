@@ -402,6 +402,13 @@ def test_plot_panels_follow_what_the_run_logged(run_dir, tmp_path):
     relayrl.train({**TINY, "train": {**TINY["train"], "total_steps": 40, "initial_collect_steps": 40}}, one,
                   progress=False)
     assert relayrl.plot_run(one).stat().st_size > 0
+    from matplotlib.figure import Figure
+
+    from relayrl.plot import _steps_axis
+
+    ax = Figure().subplots()
+    _steps_axis(ax, [500])
+    assert ax.get_xlim()[0] == 0 and ax.get_xlim()[1] > 500  # the one point inside the axis, not on its edge
 
 
 def test_several_runs_plot_in_one_panel(run_dir, tmp_path, capsys):

@@ -181,8 +181,8 @@ def panels_for(rows: Rows, bptt: bool) -> list[tuple[str, str]]:
 
 def _steps_axis(ax: Any, steps: list[int]) -> None:
     ax.set_xlabel("environment steps")
-    if steps and min(steps) == max(steps):  # one evaluation: an axis from 0, not around one point
-        ax.set_xlim(0, max(steps) or 1)
+    if steps and min(steps) == max(steps):  # one evaluation: an axis from 0, not around one point,
+        ax.set_xlim(0, 1.05 * max(steps) or 1)  # with the point inside it, not on its edge
 
 
 def _returns(ax: Any, rows: Rows) -> None:
