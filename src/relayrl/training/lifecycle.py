@@ -319,7 +319,7 @@ class RunCore:
         self.policy_saver = PolicySaver(c.train.policy_save_interval, agent, rd.policy,
                                         extra={**env_entries(c), **env_action_entries(agent.action_spec)})
         self.checkpointer = Checkpointer(c.train.checkpoint_interval, checkpoint_state, rd.checkpoints,
-                                         keep=c.train.checkpoint_keep)
+                                         keep=c.train.checkpoint_keep, after=self.policy_saver.save)
         self.sps_log = StepsPerSecondLog(c.train.log_interval, report=self.report.log_progress)
         self.evaluation = evaluation
         self.triggers: list[IntervalTrigger] = [evaluation, self.policy_saver, self.checkpointer, self.sps_log]
@@ -346,8 +346,6 @@ class RunCore:
             self.check_finite(p, weights=self.policy_saver in due or self.checkpointer in due)
         for trigger in due:  # the others would find nothing due
             trigger(p)
-        if self.checkpointer in due:  # a crash or a second Ctrl-C leaves no policy older than its checkpoint
-            self.policy_saver.save(p)
 
     def checkpoint_if_due(self) -> None:
         """After a failure that ended collection: the checkpoint due by the env steps the run
@@ -360,7 +358,6 @@ class RunCore:
         try:
             self.check_finite(p, weights=True)
             self.checkpointer(p)
-            self.policy_saver.save(p)  # as every checkpoint's (fire_triggers)
         except Exception as e:
             self.say(f"the checkpoint due at env step {p.env_steps:,} was not written: {e}")
 

@@ -77,12 +77,14 @@ class PolicySaver(IntervalTrigger):
 
 
 class Checkpointer(IntervalTrigger):
-    """Writes `state_fn()` as `folder/ckpt-<env steps>.pt` atomically, keeping the last `keep`."""
+    """Writes `state_fn()` as `folder/ckpt-<env steps>.pt` atomically, keeping the last `keep`;
+    then calls `after(progress)` (a run's policy save: a crash leaves no policy older than the
+    checkpoint)."""
 
     def __init__(self, interval: int, state_fn: Callable[[], dict[str, Any]], folder: str | Path,
-                 unit: str = "env_steps", keep: int = 2) -> None:
+                 unit: str = "env_steps", keep: int = 2, after: Callable[[Progress], None] | None = None) -> None:
         super().__init__(interval, self.save, unit)
-        self.state_fn, self.folder, self.keep = state_fn, Path(folder), keep
+        self.state_fn, self.folder, self.keep, self.after = state_fn, Path(folder), keep, after
         self.saved_progress: Progress | None = None  # where the checkpoint this process last wrote was
 
     def save(self, progress: Progress) -> None:
@@ -93,6 +95,8 @@ class Checkpointer(IntervalTrigger):
         state = {"env_steps": progress.env_steps, **self.state_fn()}
         save_checkpoint(self.folder, state["env_steps"], state, keep=self.keep)
         self.saved_progress = Progress(progress.env_steps, progress.train_step)
+        if self.after is not None:
+            self.after(progress)
 
 
 def covers_boundary(steps: int, interval: int, evaluations: int) -> bool:
