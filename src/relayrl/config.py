@@ -340,10 +340,10 @@ def changes_between(old: dict[str, Any], new: dict[str, Any], fields_in_both: bo
         both = _field_paths(old) & _field_paths(new)
         keys = [k for k in keys if ".".join(k.split(".")[:2]) in both]  # seed, env.kwargs.size: their fields
     differ = [k for k in keys if k not in a or k not in b or _plain(a[k]) != _plain(b[k])]
-    return [f"{k}: {_shown(a, k)} -> {_shown(b, k)}" for k in differ]
+    return [f"{k}: {_value_or_unset(a, k)} -> {_value_or_unset(b, k)}" for k in differ]
 
 
-def _shown(values: dict[str, Any], key: str) -> str:
+def _value_or_unset(values: dict[str, Any], key: str) -> str:
     return repr(values[key]) if key in values else "(unset)"  # an env.kwargs entry added or taken out
 
 
@@ -425,8 +425,8 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str, algo: str) -> None:
     for given, value in data.items():
         path = prefix + given
         key = fold_key(given)  # env.ID, agent.learning-rate: looked up as TOML's keys are written
-        if given not in names and key in names:
-            raise ConfigError(f"unknown config key {path!r}; did you mean {prefix + key!r}?")
+        if given not in names and key in names:  # before the notes below, which would read it as another's
+            raise ConfigError(unknown_key(path, [prefix + n for n in names]))
         if given not in names:
             home = [f"{n}.{key}" for n in names if dataclasses.is_dataclass(section := getattr(obj, n))
                     and key in {f.name for f in dataclasses.fields(section)}]

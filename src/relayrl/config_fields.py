@@ -59,7 +59,7 @@ class Section:
             try:
                 value = coerce(value, hints[name], path)
             except ConfigError as e:
-                said, current = str(e), getattr(self, name, None)
+                said = str(e)
                 if dataclasses.is_dataclass(current):  # config.env = {...}: a section takes its keys one by one
                     raise ConfigError(f"{path}={shown(value)} has the wrong type; expected the section's "
                                       f"{type(current).__name__}: set its keys one by one "
