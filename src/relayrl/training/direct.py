@@ -47,7 +47,7 @@ class DirectDriver:
         total = iterations * per_iteration
         window: list[dict[str, float]] = []  # the iterations' scalars since the last row
         history: list[dict[str, float]] = []
-        latest: list[Callable[[], dict[str, Any]]] = []  # the policy's state at the step reached
+        state_now: Callable[[], dict[str, Any]] | None = None  # the policy's state at the step reached
         t0 = time.perf_counter()
         log, tb = MetricsLog(self.rd.metrics), SummaryWriter(str(self.rd.tb))
         try:
@@ -57,7 +57,8 @@ class DirectDriver:
             raise
 
         def policy() -> Any:
-            return self.entry.policy_module().load(latest[-1](), device, True, None)
+            assert state_now is not None  # evaluations run from on_iteration, which sets it
+            return self.entry.policy_module().load(state_now(), device, True, None)
 
         def record(p: Progress, result: dict[str, float]) -> None:
             # the window's means, but a schedule's value (charts/) where the row is, as every run's rows
@@ -81,8 +82,8 @@ class DirectDriver:
                              seed=RunSeeds(c.seed).base("evaluation"), on_result=record)
 
         def on_iteration(steps: int, scalars: dict[str, float], state: Callable[[], dict[str, Any]]) -> None:
-            latest.append(state)
-            del latest[:-1]
+            nonlocal state_now
+            state_now = state
             for name, value in scalars.items():
                 tb.add_scalar(name, value, steps)
             if scalars:

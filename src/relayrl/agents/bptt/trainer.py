@@ -53,15 +53,18 @@ def train(cfg: BpttConfig, iterations: int, seed: int, device: torch.device, tor
     env step 0 with no scalars, where `state()` is the policy's state at that step. `stop()` True
     ends training after the current iteration. Returns the trained policy's state."""
     per_iteration = cfg.iteration_steps()
-    nets: list[MLP] = []
+    training: MLP | None = None  # the network train_bptt made, trained in place
 
     def at_start(net: MLP) -> None:
-        nets.append(net)
+        nonlocal training
+        training = net
         on_iteration(0, {}, lambda: policy_state(net, cfg.hidden, 0))
 
     def each(entry: BpttLog) -> None:
         steps = (entry.iteration + 1) * per_iteration
-        on_iteration(steps, scalars(entry), lambda: policy_state(nets[0], cfg.hidden, steps))
+        assert training is not None  # on_start ran before the first iteration
+        net = training
+        on_iteration(steps, scalars(entry), lambda: policy_state(net, cfg.hidden, steps))
 
     result = train_bptt(cfg, each, iterations=iterations, seed=seed, device=str(device), torch_threads=torch_threads,
                         stop=stop, on_start=at_start)
