@@ -31,7 +31,7 @@ def test_a_missing_ale_py_is_one_line_naming_the_extra(monkeypatch):
                                           ("Pong-v4", True), ("Cartpole-v1", False)])
 def test_without_ale_py_atari_ids_say_which_extra_with_each_vectorization(env_id, hint, monkeypatch):
     """The ale-py vector env (ppo-pong, dqn-pong-fast) and the old Gym ids that ale-py registers
-    name the extra, beside a near miss of another env's id (Pong-v4: Ant-v4)."""
+    name the extra first, then any near miss of another env's id (Pong-v4: Ant-v4)."""
     from relayrl.envs.make import make_env
 
     monkeypatch.setitem(sys.modules, "ale_py", None)
@@ -41,6 +41,8 @@ def test_without_ale_py_atari_ids_say_which_extra_with_each_vectorization(env_id
         with pytest.raises(UserError) as e:
             make_env(env_id, 2, vectorization=vectorization)
         assert ("pip install -e \".[atari]\"" in str(e.value)) == hint, str(e.value)
+        if hint and "did you mean" in str(e.value):  # the extra first, a near miss of another env's id after it
+            assert str(e.value).index("[atari]") < str(e.value).index("otherwise did you mean"), str(e.value)
 
 
 def test_ddqn_pong_preset_is_listed_with_standard_settings():

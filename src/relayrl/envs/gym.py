@@ -238,7 +238,8 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
             module_name, _, name = env_id.rpartition(".")
             if not close and module_name and name.isidentifier():  # `mymod.MyEnv`: Python's dot for the colon
                 close = [f"{module_name}:{name}"]
-            hint = (f"; did you mean {', '.join(close)}?" if close else "") + missing_ale_hint(env_id)
+            ale = missing_ale_hint(env_id)  # first: Pong-v4's near miss is Ant-v4
+            hint = ale + (f"; {'otherwise ' if ale else ''}did you mean {', '.join(close)}?" if close else "")
             raise UserError(
                 f"env.id={env_id!r} is not a registered Gymnasium id{hint} "
                 "(valid: a Gymnasium id such as CartPole-v1, relayrl/..., package.module:Class, or "
