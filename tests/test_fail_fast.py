@@ -381,7 +381,7 @@ def test_tensorboards_writer_thread_stopped_by_a_full_disk_prints_nothing_of_its
     import errno
     import threading
 
-    from relayrl.training.lifecycle import writer_thread_quiet
+    from relayrl.training.process import writer_thread_quiet
 
     class _AsyncWriterThread(threading.Thread):  # tensorboard's name for its writer thread
         def run(self):

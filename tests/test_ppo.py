@@ -235,7 +235,7 @@ def test_a_total_that_ends_in_a_partial_rollout_is_said_at_the_start(tmp_path, c
     relayrl.train(relayrl.load_config("ppo", over[:2] + ["train.total_steps=256", "eval.interval=0"]), tmp_path / "s",
                   progress=False)
     assert "whole number of rollouts" not in capsys.readouterr().err
-    from relayrl.training.lifecycle import partial_rollout_note
+    from relayrl.training.notes import partial_rollout_note
 
     assert partial_rollout_note(relayrl.load_config("ppo")) is None  # 1,696 of 100,000 steps: unsaid
     assert partial_rollout_note(relayrl.load_config("ppo-cartpole", ["train.total_steps=1200"])) is not None  # 176

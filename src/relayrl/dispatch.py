@@ -25,15 +25,11 @@ from relayrl.envs.gym import names_python_factory
 from relayrl.errors import CheckpointError, UserError
 from relayrl.presets import load_config
 from relayrl.training.direct import DirectDriver
-from relayrl.training.lifecycle import (
-    IDENTITY,
-    RunResult,
-    caller_state_kept,
-    check_checkpoint_config,
-    kept_on_resume,
-)
+from relayrl.training.lifecycle import RunResult
 from relayrl.training.local import LocalDriver
+from relayrl.training.process import caller_state_kept
 from relayrl.training.report import Callback
+from relayrl.training.resume import IDENTITY, check_checkpoint_config, kept_on_resume
 from relayrl.training.run_dir import RunDir
 
 if TYPE_CHECKING:
@@ -74,7 +70,7 @@ def identity_overrides(overrides: Sequence[str]) -> list[str]:
 
 def check_resume_matches(config: Config, rd: RunDir, identity_only: bool = False) -> None:
     """A resumed run is the run in `rd`: a config that changes one of the keys it keeps
-    (`lifecycle.kept_on_resume`; `identity_only`: algo, env.id and seed) is one line."""
+    (`resume.kept_on_resume`; `identity_only`: algo, env.id and seed) is one line."""
     saved = dotted(load_toml(rd.config))
     defaults, now = dotted(to_dict(algo_defaults(saved.get("algo", config.algo)))), dotted(to_dict(config))
     replay = saved.get("train.checkpoint_replay", defaults["train.checkpoint_replay"])

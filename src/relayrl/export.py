@@ -63,7 +63,7 @@ def _built(f: Path, state: dict[str, Any], build: Callable[[], T]) -> T:
     """`build()` of a saved policy's parts on the CPU, under a float32 default dtype (the networks
     relayrl saved, whatever the caller's default), as `built_quietly`; a file that lacks what they
     read is one line."""
-    from relayrl.training.lifecycle import float32_default
+    from relayrl.training.process import float32_default
 
     try:
         with rng_kept(torch.device("cpu")), float32_default():
@@ -120,7 +120,7 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", determinis
     network a user's encoder builds, importing and running that code (a shared file runs none
     otherwise).
     """
-    from relayrl.training.lifecycle import resolve_device
+    from relayrl.training.process import resolve_device
 
     check_seed(seed)  # else a bad seed read as a broken policy file
     on = resolve_device(str(device))  # "auto" as a run's is; a device not here is one line, not torch's assertion
@@ -162,7 +162,7 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
         except ImportError:
             raise UserError("--format onnx (in Python: format='onnx') needs the onnx and onnxscript packages: "
                             f"{install('onnx')}") from None
-    from relayrl.training.lifecycle import float32_default
+    from relayrl.training.process import float32_default
 
     with float32_default():  # the networks relayrl saved, whatever the caller's default dtype
         return _export(path, out, format, trust_code)

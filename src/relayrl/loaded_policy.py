@@ -311,7 +311,7 @@ def rng_kept(device: torch.device) -> contextlib.AbstractContextManager[Any]:
 def built_quietly(module: Any, state: dict[str, Any], device: torch.device, deterministic: bool,
                   seed: int | None) -> Any:
     """`module.load(...)` of a saved policy, inside `rng_kept` and a float32 default dtype."""
-    from relayrl.training.lifecycle import float32_default
+    from relayrl.training.process import float32_default
 
     with rng_kept(device), float32_default():
         return module.load(state, device, deterministic, seed)

@@ -26,7 +26,9 @@ from relayrl.specs import Spec
 from relayrl.training.checkpoint import load_latest_checkpoint
 from relayrl.training.evaluate import check_same_spaces
 from relayrl.training.finite import FiniteWatch
-from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
+from relayrl.training.lifecycle import RunCore, RunResult, make_learner, run_to_end
+from relayrl.training.notes import check_user_env
+from relayrl.training.process import start_process
 from relayrl.training.replay_setup import replay_path
 from relayrl.training.report import Callback, plural, say
 from relayrl.training.run_dir import RunDir

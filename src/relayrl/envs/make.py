@@ -153,7 +153,7 @@ def statistics_wrappers(layers: list[type]) -> list[str]:
 def global_rngs_kept() -> Iterator[None]:
     """torch's, NumPy's and Python's global generators as they were before: an env made only to
     look at it leaves a run as it would have been without the look, and a run leaves its caller's
-    (`training.lifecycle.caller_state_kept`)."""
+    (`training.process.caller_state_kept`)."""
     rng = (torch.get_rng_state(), np.random.get_state(), random.getstate())
     try:
         yield

@@ -20,7 +20,8 @@ from relayrl.errors import UserError
 from relayrl.policy_file import save_policy_file
 from relayrl.seeding import RunSeeds
 from relayrl.training.evaluate import make_eval_env
-from relayrl.training.lifecycle import RunResult, resolve_device
+from relayrl.training.lifecycle import RunResult
+from relayrl.training.process import resolve_device
 from relayrl.training.report import close_logs, eval_legend, eval_line, log_config, say
 from relayrl.training.run_dir import MetricsLog, RunDir
 from relayrl.training.triggers import Evaluate, Progress

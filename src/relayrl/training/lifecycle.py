@@ -1,59 +1,39 @@
-"""What every driver (training/local.py, distributed/driver.py) does the same way: start the
-process, hold the learner and triggers (`RunCore`), and take a run from its first evaluation
-to its last checkpoint (`run_to_end`, through the `Driver` methods only)."""
+"""What every driver (training/local.py, distributed/driver.py) does the same way: hold the
+learner and triggers (`RunCore`), and take a run from its first evaluation to its last
+checkpoint (`run_to_end`, through the `Driver` methods only). The process's own state is
+training/process.py's, the lines a run starts with training/notes.py's."""
 
 from __future__ import annotations
 
-import contextlib
 import random
 import sys
 import time
-import warnings
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, cast
+from typing import Any, Protocol
 
 import numpy as np
 import torch
 
 from relayrl import atomic, interrupts
-from relayrl.agents.registry import algorithm
-from relayrl.config import (
-    Config,
-    algo_defaults,
-    changes,
-    changes_between,
-    dotted,
-    from_dict,
-    load_toml,
-    save_toml,
-    to_dict,
-)
+from relayrl.config import Config, changes, changes_between, dotted, save_toml, to_dict
 from relayrl.config_fields import is_user_encoder
 from relayrl.core import Agent
-from relayrl.envs.atari import raw_screen_note
 from relayrl.envs.gym import names_python_factory
-from relayrl.envs.make import (
-    check_env,
-    global_rngs_kept,
-    is_user_env,
-    reward_wrappers,
-    statistics_wrappers,
-    wrapper_layers,
-)
 from relayrl.errors import NonFiniteError, UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.nn.encoders import CONV_READY
 from relayrl.policy_file import env_action_entries, env_entries
 from relayrl.schedules import linear_schedule
-from relayrl.seeding import RunSeeds
 from relayrl.specs import check_trained_layout, describe, spec_from_state, spec_state
 from relayrl.training.checkpoint import list_checkpoints
 from relayrl.training.finite import CHECK_LR, DIVERGED, FiniteWatch, non_finite_metrics, non_finite_tensor, stop
 from relayrl.training.learner import Learner
+from relayrl.training.notes import start_notes
 from relayrl.training.replay_setup import collect_only
 from relayrl.training.report import Callback, RunReport, log_config, plural
+from relayrl.training.resume import check_checkpoint_config, saved_config
 from relayrl.training.run_dir import RunDir, checkpoint_step
 from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver, Progress, StepsPerSecondLog
 
@@ -68,222 +48,6 @@ class RunResult:
     run_dir: Path
     final: dict[str, Any]  # the last evaluation row of metrics.jsonl
     stopped_early: bool = False  # a callback returned False before train.total_steps
-
-
-# What a resumed run keeps of the run it continues (`kept_on_resume`), and the advice a refusal gives
-IDENTITY_KEYS = ("algo", "env.id", "seed")
-_OWN = ("resume with the run's own config.toml: leave out PRESET|CONFIG.toml and --set {} (in Python: "
-        "relayrl.load_config(RUN_DIR/config.toml), and env= again where the run was given one)")
-_ADVICE = {"algo": _OWN.format("algo"), "env.id": _OWN.format("env.id"),
-           "seed": "a resumed run keeps its seed (leave out --seed; in Python, load the run's config.toml)",
-           "env.num_envs": "its replay and envs are laid out per copy: " + _OWN.format("env.num_envs"),
-           "distributed.num_actors": "its checkpoint holds each actor's part (off-policy: of the replay too): "
-           + _OWN.format("distributed.num_actors"),
-           "replay.size": "its checkpoint holds a replay table of that size: " + _OWN.format("replay.size")}
-IDENTITY = {k: _ADVICE[k] for k in IDENTITY_KEYS}
-
-
-def kept_on_resume(config: Config, replay_in_checkpoint: bool) -> dict[str, str]:
-    """The keys a resumed run keeps, each with the advice its refusal gives: its identity, its
-    env copies and actors (its replay and envs are laid out per copy), an off-policy run's replay
-    size where its checkpoint holds the table (train.checkpoint_replay), and the agent's network
-    keys."""
-    replay = replay_in_checkpoint and algorithm(config.algo).replay == "transitions"
-    keys = (*IDENTITY_KEYS, "env.num_envs", "distributed.num_actors", *["replay.size"] * replay)
-    kept = {k: _ADVICE[k] for k in keys}
-    networks = "a resumed run keeps its networks (leave out --set {}; in Python, load the run's config.toml)"
-    return kept | {f"agent.{k}": networks.format(f"agent.{k}") for k in config.agent.NETWORK}
-
-
-def check_checkpoint_config(config: Config, state: dict[str, Any], config_file: Path) -> None:
-    """The kept keys against the checkpoint's own config (`dispatch` checks them against
-    config.toml): a config.toml edited by hand is one line, not a different run."""
-    was, now = dotted(state.get("config", {})), dotted(to_dict(config))
-    for key in kept_on_resume(config, state.get("replay") is not None):
-        if key in was and was[key] != now[key]:
-            raise UserError(f"--resume: the run's checkpoint was written with {key}={was[key]!r}, but the config "
-                            f"resumed with has {now[key]!r}: set {key} = {was[key]!r} in {str(config_file)!r} again "
-                            "(was it edited?)")
-
-
-def resolve_device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise UserError(f"device={name!r} but CUDA is not available here; valid: cpu, auto")
-    try:
-        device = torch.device(name)
-    except RuntimeError:  # load_policy's device is not checked as a config's is
-        raise UserError(f"device={name!r} is not a device; valid: cpu, cuda, cuda:N, auto") from None
-    if device.type not in ("cpu", "cuda"):  # meta, mps, xpu: torch's own error at the first call
-        raise UserError(f"device={name!r}: relayrl runs on the CPU or a CUDA GPU; valid: cpu, cuda, cuda:N, auto")
-    return device
-
-
-def start_process(config: Config) -> tuple[RunSeeds, torch.device]:
-    """Denormal flushing, thread count, the run's seeds (torch's global generator seeded for
-    network initialisation) and its device."""
-    # Adam's second moments of parameters whose gradients stay ~0 (dead ReLUs) decay into the
-    # denormal range, where x86 arithmetic is many times slower: flushed to zero, a small
-    # network's update on a CPU takes about half the time. Set before torch starts its thread
-    # pool, whose threads inherit the setting.
-    torch.set_flush_denormal(True)
-    if config.train.torch_threads > 0:
-        torch.set_num_threads(config.train.torch_threads)
-    seeds = RunSeeds(config.seed)
-    torch.manual_seed(seeds.base("torch"))
-    return seeds, resolve_device(config.device)
-
-
-@contextlib.contextmanager
-def caller_state_kept() -> Iterator[None]:
-    """The caller's torch thread count, denormal flushing, default dtype and torch, NumPy and
-    Python global generators as they were before the run (`start_process` sets them for it, a
-    resume loads the checkpoint's), so that a notebook's own code after `relayrl.train` runs as
-    it did before."""
-    threads = torch.get_num_threads()
-    cuda = torch.cuda.get_rng_state_all() if torch.cuda.is_initialized() else None  # manual_seed seeds these too
-    flushing = torch.tensor([1e-39]).item() == 0.0  # torch has no getter: a float32 denormal reads 0 when flushed
-    try:
-        with global_rngs_kept(), float32_default(), numpy_warnings_left_out(), writer_thread_quiet():
-            yield
-    finally:
-        torch.set_num_threads(threads)
-        torch.set_flush_denormal(flushing)
-        if cuda is not None:
-            torch.cuda.set_rng_state_all(cuda)
-
-
-@contextlib.contextmanager
-def numpy_warnings_left_out() -> Iterator[None]:
-    """NumPy's overflow and invalid-value warnings from relayrl's own code left out: an
-    observation beyond float32 becomes inf in relayrl's write (and NaN in the policy's matmul),
-    which the finite watch names in one line; the warnings, each with its source line, would only
-    precede it. One filter entry, taken out again after (not the whole list restored, which would
-    drop a filter a library imported during the run installs)."""
-    warnings.filterwarnings("ignore", "(overflow|invalid value) encountered", RuntimeWarning, r"relayrl\.")
-    ours = warnings.filters[0]
-    try:
-        yield
-    finally:
-        with contextlib.suppress(ValueError):  # gone already: warnings.resetwarnings() during the run
-            cast(list, warnings.filters).remove(ours)  # typeshed declares a Sequence; it is the list warn() reads
-
-
-@contextlib.contextmanager
-def writer_thread_quiet() -> Iterator[None]:
-    """TensorBoard's writer thread stopped by a full disk prints no traceback of its own: its
-    error reaches the run at the next scalar, which says it in one line (`run_to_end`). Other
-    threads' errors go to the hook there was, which is put back after."""
-    import threading
-
-    before = threading.excepthook
-
-    def hook(args: Any) -> None:
-        if type(args.thread).__name__ == "_AsyncWriterThread" and atomic.disk_full(args.exc_value) is not None:
-            return
-        before(args)
-
-    threading.excepthook = hook
-    try:
-        yield
-    finally:
-        if threading.excepthook is hook:  # else replaced during the run: that one stays
-            threading.excepthook = before
-
-
-@contextlib.contextmanager
-def float32_default() -> Iterator[None]:
-    """torch's default dtype float32 inside, the caller's after: relayrl's networks and the
-    tensors it makes are float32 also where a notebook set torch.set_default_dtype(torch.float64)
-    (its float64 weights met float32 observations in torch's own dtype error)."""
-    before = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float32)
-    try:
-        yield
-    finally:
-        torch.set_default_dtype(before)
-
-
-def check_user_env(config: Config, env_factory: Callable[[], Any] | None, say: Callable[[str], None]) -> None:
-    """Gymnasium's env checker, once, on a user's own env (env.check): its findings as lines;
-    and a line where env.wrappers change the rewards (which the evaluations then report), and
-    one where they keep statistics of their own in each env copy."""
-    e = config.env
-    if e.check and is_user_env(e.id, env_factory):
-        for line in check_env(e.id, e.kwargs, e.wrappers, env_factory, e.max_episode_steps):
-            say(f"env check (env.check = false turns it off): {line}")
-    layers = wrapper_layers(e.id, e.kwargs, e.wrappers, env_factory, e.max_episode_steps)
-    changing = reward_wrappers(layers)
-    if changing:
-        # CleanRL reads its returns from a RecordEpisodeStatistics beneath the reward wrappers: raw ones
-        say(f"env.wrappers put {', '.join(changing)} over the env: evaluations report returns of those rewards, "
-            "and so do the training returns (train/average_return, TensorBoard's charts/episodic_return), not "
-            "the env's own (a RecordEpisodeStatistics beneath them is not read; PPO's agent.normalize_reward "
-            "scales rewards for learning only)")
-    own = statistics_wrappers(layers)
-    if own:
-        say(f"env.wrappers put {', '.join(own)} over the env: its running statistics live in each env copy, so "
-            "evaluation envs normalise with their own, gathered from their first steps, and the policy file does "
-            "not hold them (a loaded policy needs observations normalised as in training); PPO's "
-            "agent.normalize_obs keeps the statistics with the policy")
-
-
-def minibatch_note(config: Config) -> str | None:
-    """A line where agent.batch_size does not divide an on-policy rollout: each epoch then ends
-    with a shorter minibatch that takes a whole Adam step of its own (one of a single step keeps
-    its advantage unnormalised), which CleanRL's num_minibatches never gives and SB3 warns of."""
-    if algorithm(config.algo).replay != "rollouts":
-        return None
-    steps, size = config.steps_per_iteration(), config.agent.batch_size
-    if steps % size == 0:
-        return None
-    return (f"agent.batch_size={size} does not divide a rollout of {steps:,} env steps (train.collect_steps in "
-            f"whole batched steps of env.num_envs={config.env.num_envs}): each epoch ends with a minibatch of "
-            f"{steps % size}, which takes a whole gradient step; a batch_size that divides {steps:,} avoids it")
-
-
-def partial_rollout_note(config: Config) -> str | None:
-    """A line where train.total_steps is not a whole number of on-policy rollouts and more than a
-    twentieth of the run is the last, shorter one, which is collected (and counted) but never
-    learned from, where SB3's learn() runs one more whole rollout past total_timesteps and trains
-    on it. (A default's or preset's 1,696 steps in 100,000 go unsaid: a line on every run of
-    theirs would tell nothing worth acting on.)"""
-    if algorithm(config.algo).replay != "rollouts" or config.train.gradient_steps == 0:
-        return None
-    steps, b = config.steps_per_iteration(), config.env.num_envs
-    total = -(-config.train.total_steps // b) * b  # where the run ends: whole batched steps
-    if (left := total % steps) == 0 or left <= total // 20:
-        return None
-    whole = total - left  # >= one rollout: Config.validate refuses less
-    return (f"train.total_steps={config.train.total_steps:,} is not a whole number of rollouts of {steps:,} env "
-            f"steps: the last {left:,} env steps are collected but not learned from (SB3's learn() would run one "
-            f"more whole rollout, to {whole + steps:,}); train.total_steps={whole:,} or {whole + steps:,} avoids it")
-
-
-def defaults_note(config: Config, config_file: Path) -> str | None:
-    """A line where a run on another env than its algorithm's default one keeps the algorithm's
-    defaults for its length and evaluations (`relayrl train ppo --set env.id=...`, no preset):
-    the keys a new env most often needs set, and where every setting is."""
-    c, d = config, algo_defaults(config.algo)
-    lengths = (c.train.total_steps, c.eval.interval, c.eval.episodes)
-    if c.env.id == d.env.id or lengths != (d.train.total_steps, d.eval.interval, d.eval.episodes):
-        return None
-    every = f"every {c.eval.interval:,} env steps and " if c.eval.interval > 0 else ""
-    return (f"{c.algo}'s defaults on {c.env.id}: {c.train.total_steps:,} env steps (train.total_steps), evaluated "
-            f"{every}at the end, {c.eval.episodes} episodes each (eval.interval, eval.episodes); every setting is "
-            f"in {str(config_file)!r} (`relayrl config {c.algo}` says what each key does)")
-
-
-def factory_note(config: Config) -> str | None:
-    """A line where the env factory given in Python (a lambda, a functools.partial, a function
-    in __main__) is recorded as an env.id no import finds: the commands that make the env again
-    from config.toml alone cannot."""
-    if not names_python_factory(config.env.id):
-        return None
-    return (f"the env factory is recorded as env.id={config.env.id!r}, which no import finds: `relayrl eval` and "
-            "`relayrl video` need --env ENV_ID, and a resume the same env= in Python (a class or function in a "
-            "module, given as env= or named in env.id, keeps the run whole)")
 
 
 def make_learner(config: Config, agent: Agent, table: Any, device: torch.device, variables: Any,
@@ -482,22 +246,8 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
     core.t0 = time.perf_counter()
     training = False
     try:
-        if not c.train.checkpoint_replay and c.train.checkpoint_interval > 0:
-            core.say("train.checkpoint_replay = false: checkpoints leave the replay out; a resumed run refills it")
-        if 0 < c.train.total_steps <= c.train.initial_collect_steps:
-            core.say(f"train.initial_collect_steps={c.train.initial_collect_steps:,} >= train.total_steps="
-                     f"{c.train.total_steps:,}: the run takes random actions only and learns nothing")
-        notes = (minibatch_note(c), partial_rollout_note(c), raw_screen_note(c.env.id, c.env.kwargs, c.env.wrappers),
-                 None if resume else defaults_note(c, core.rd.config), None if resume else factory_note(c))
-        for note in notes:
-            if note is not None:
-                core.say(note)
-        if c.distributed.address and c.distributed.num_actors == 0:
-            core.say(f"distributed.address={c.distributed.address!r} with distributed.num_actors=0: the run trains "
-                     "in this process (set distributed.num_actors=K for K rollout actors on Ray)")
-        if c.env.num_workers > 0 and c.env.vectorization == "sync":  # an SB3 user's n_envs + SubprocVecEnv
-            core.say(f"env.num_workers={c.env.num_workers} with env.vectorization='sync': the {c.env.num_envs:,} env "
-                     "copies step in this process, none in worker processes (env.vectorization='async' uses them)")
+        for note in start_notes(c, core.rd.config, resume):
+            core.say(note)
         if resume:
             saved = saved_config(core.rd)  # read first: restoring cuts metrics.jsonl back to the checkpoint
             driver.restore()  # rewrites metrics.jsonl: open the log only afterwards
@@ -608,14 +358,6 @@ def _stopped_at(core: RunCore) -> str:
                 f"in {root!r} starts over (overwrite=True where it trained past step 0)")
     return (f"the run stopped at env step {step:,}; its policy and metrics are in {root!r} "
             "(train.checkpoint_interval = 0: no checkpoint to resume from)")
-
-
-def saved_config(rd: RunDir) -> Config | None:
-    """None where config.toml is missing or this version cannot read it."""
-    try:
-        return from_dict(load_toml(rd.config))
-    except (OSError, ValueError, UserError):  # ConfigError is a UserError; TOML errors are ValueErrors
-        return None
 
 
 def record_resumed_config(core: RunCore, saved: Config | None) -> None:

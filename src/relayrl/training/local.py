@@ -21,7 +21,9 @@ from relayrl.training.actor import Actor
 from relayrl.training.checkpoint import NO_REPLAY, load_latest_checkpoint, replay_lost
 from relayrl.training.evaluate import check_same_spaces, eval_cap_note, make_eval_env
 from relayrl.training.finite import FiniteWatch
-from relayrl.training.lifecycle import RunCore, RunResult, check_user_env, make_learner, run_to_end, start_process
+from relayrl.training.lifecycle import RunCore, RunResult, make_learner, run_to_end
+from relayrl.training.notes import check_user_env
+from relayrl.training.process import start_process
 from relayrl.training.replay_setup import (
     available_host_memory,
     build_replay,
