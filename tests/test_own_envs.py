@@ -495,7 +495,7 @@ def test_the_probe_flags_only_what_cannot_be_read(space, obs, fragment):
 
 
 def test_an_env_id_recorded_for_a_python_factory_is_known_as_one():
-    from relayrl.envs.gym import names_python_factory
+    from relayrl.envs.resolve import names_python_factory
 
     # what only the same env= makes again (the Ctrl-C advice names env= for these, and make_env refuses them)
     assert names_python_factory("__main__:make_env") and names_python_factory("tests.envs:<lambda>")

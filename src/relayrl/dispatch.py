@@ -21,7 +21,7 @@ import gymnasium as gym
 
 from relayrl.agents.registry import Algorithm, algorithm, ray_algorithms
 from relayrl.config import Config, algo_defaults, dotted, from_dict, load_toml, parse_override, save_toml, to_dict
-from relayrl.envs.gym import names_python_factory
+from relayrl.envs.resolve import names_python_factory
 from relayrl.errors import CheckpointError, UserError
 from relayrl.presets import load_config
 from relayrl.training.direct import DirectDriver

@@ -204,7 +204,7 @@ def recorded_env(source: Any, episodes: int, max_episode_steps: int = 0, info_ke
     registered id, its kwargs and time limit (`max_episode_steps` overrides the time limit where
     it is not 0); with `info_keys`, a run's env.info_keys too. A file naming code to import
     (`module:Name`, wrappers) is refused: a policy file runs no code."""
-    from relayrl.envs.gym import names_module
+    from relayrl.envs.resolve import names_module
     from relayrl.export import load_policy
     from relayrl.loaded_policy import LoadedPolicy
     from relayrl.presets import load_config

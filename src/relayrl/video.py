@@ -13,8 +13,9 @@ import numpy as np
 import torch
 
 from relayrl import atomic
-from relayrl.envs.gym import GymBatchEnv, resolve_env_fn
+from relayrl.envs.gym import GymBatchEnv
 from relayrl.envs.make import gl_hint, making
+from relayrl.envs.resolve import resolve_env_fn
 from relayrl.errors import UserError, check_count
 from relayrl.export import load_policy
 from relayrl.paths import output_path, writing

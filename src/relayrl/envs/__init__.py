@@ -3,10 +3,11 @@
 import gymnasium
 
 from relayrl.envs.atari import register_shipped_games
-from relayrl.envs.gym import GymBatchEnv, resolve_env_fn
+from relayrl.envs.gym import GymBatchEnv
 from relayrl.envs.make import make_env
 from relayrl.envs.mario import ENV_ID as MARIO_ID
 from relayrl.envs.mario import PIXELS_ID as MARIO_PIXELS_ID
+from relayrl.envs.resolve import resolve_env_fn
 
 # By entry-point string, so importing relayrl.envs never imports an extra (pybullet, nes-py).
 # StatelessPendulum: a stateless torch env as one Gymnasium env (videos, gym.make) that truncates

@@ -1,4 +1,4 @@
-"""Gymnasium envs as a batched env: by registered id or as a user's `package.module:Class`.
+"""Gymnasium envs as a batched env (made by the factories of envs/resolve.py).
 
 We step the copies ourselves rather than through `gymnasium.vector.SyncVectorEnv` because we
 need the true final observation of an episode as a plain array (`next_obs`) beside the reset
@@ -9,9 +9,7 @@ observation (`obs`); Gymnasium's vector autoreset modes either delay the reset b
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import functools
-import importlib
 import inspect
 import pickle
 from collections.abc import Callable
@@ -23,9 +21,9 @@ import torch
 from gymnasium.utils import EzPickle
 
 from relayrl.core import BatchedEnv
-from relayrl.envs.atari import missing_ale_hint, register_on_demand
 from relayrl.envs.observations import kind, observation_problem
 from relayrl.envs.pixels import frame_stack_of
+from relayrl.envs.resolve import EnvFn
 from relayrl.errors import UserError, note_where, one_line
 from relayrl.specs import (
     ArraySpec,
@@ -39,9 +37,6 @@ from relayrl.specs import (
     value_limit,
 )
 from relayrl.types import EpisodeInfo, StepOutput
-from relayrl.user_code import import_user_module, load_callable
-
-EnvFn = Callable[[], gym.Env]
 
 
 def episode_info(keys: tuple[str, ...], num_envs: int, ended: list[int],
@@ -179,152 +174,6 @@ def _drop_trailing_ones(shape: tuple[int, ...]) -> tuple[int, ...]:
         shape = shape[:-1]
     return shape
 
-
-def names_module(env_id: str) -> bool:
-    """`package.module:Name` (a user's class, callable or `EnvId-v0`), not a Gymnasium id such as
-    `relayrl/Atari-Pong-v0` or `ALE/Pong-v5`."""
-    return ":" in env_id and "/" not in env_id.split(":", 1)[0]
-
-
-def names_python_factory(env_id: str) -> bool:
-    """An env.id recorded for an env factory given to relayrl.train in Python that no import
-    finds (a lambda, a local function, one in `__main__`): only the same `env=` makes it again."""
-    if not names_module(env_id):
-        return False
-    module_name, name = env_id.split(":", 1)
-    return "<" in name or module_name == "__main__"
-
-
-def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | None = None,
-                   kwargs: dict[str, Any] | None = None, wrappers: list[str] | tuple[str, ...] = (),
-                   factory: EnvFn | None = None) -> EnvFn:
-    """A factory for one env: a Gymnasium id (`CartPole-v1`), `package.module:Class` (or any
-    callable there returning an env), Gymnasium's `package.module:EnvId-v0` (importing the module
-    registers the id), or `factory` itself (a callable given in Python; `env_id` then only names it).
-    `kwargs` go to the class or `gymnasium.make`; `wrappers` (`module:Callable`, each taking
-    and returning an env) are applied in order over the made env and its time limit."""
-    kwargs = dict(kwargs or {})
-    if render_mode is not None:
-        kwargs["render_mode"] = render_mode
-    wrap = [load_callable(w, "env.wrappers") for w in wrappers]
-    if factory is not None:
-        base = _custom_fn(env_id, factory, kwargs, max_episode_steps)
-    elif names_module(env_id):
-        module_name, name = env_id.split(":", 1)
-        if names_python_factory(env_id):
-            raise UserError(f"env.id={env_id!r} records an env factory given to relayrl.train in Python that "
-                            "cannot be imported here (a lambda, a functools.partial, a local function or __main__); "
-                            "pass the same env= again in Python (relayrl eval: --env ENV_ID, a registered id or "
-                            "package.module:Class that makes the same env), or make it a function in a module "
-                            "and name it in env.id")
-        module = import_user_module(module_name, f"env.id={env_id!r}")
-        if hasattr(module, name):
-            target = getattr(module, name)
-            if isinstance(target, type) and not issubclass(target, gym.Env) or not callable(target):
-                raise UserError(f"env.id={env_id!r} is not a gymnasium.Env subclass (nor a callable returning one)")
-            base = _custom_fn(env_id, target, kwargs, max_episode_steps)
-        elif name in gym.registry:  # Gymnasium's own `module:EnvId-v0`: the import registered it
-            base = _registered_fn(name, kwargs, max_episode_steps, module_name)
-        else:
-            names = {n.lower(): n for n, v in vars(module).items() if not n.startswith("_") and callable(v)}
-            close = difflib.get_close_matches(name.lower(), list(names), n=1, cutoff=0.6)
-            hint = f"; did you mean {module_name}:{names[close[0]]}?" if close else ""
-            raise UserError(f"env.id={env_id!r}: module {module_name!r} has no {name!r} and registers no "
-                            f"Gymnasium id {name!r}{hint} (valid: package.module:Class or package.module:EnvId-v0)")
-    else:
-        register_on_demand(env_id)
-        if env_id not in gym.registry:
-            close = difflib.get_close_matches(env_id, list(gym.registry), n=3)
-            module_name, _, name = env_id.rpartition(".")
-            if not close and module_name and name.isidentifier():  # `mymod.MyEnv`: Python's dot for the colon
-                close = [f"{module_name}:{name}"]
-            ale = missing_ale_hint(env_id)  # first: Pong-v4's near miss is Ant-v4
-            hint = ale + (f"; {'otherwise ' if ale else ''}did you mean {', '.join(close)}?" if close else "")
-            raise UserError(
-                f"env.id={env_id!r} is not a registered Gymnasium id{hint} "
-                "(valid: a Gymnasium id such as CartPole-v1, relayrl/..., package.module:Class, or "
-                "package.module:EnvId-v0 for an id that module registers with gymnasium.register)"
-            )
-        base = _registered_fn(env_id, kwargs, max_episode_steps)
-    return (lambda: apply_wrappers(base(), wrap)) if wrap else base
-
-
-def _custom_fn(env_id: str, make: Callable[..., Any], kwargs: dict[str, Any], max_episode_steps: int) -> EnvFn:
-    """A user's class or factory; no OrderEnforcing (see `_registered_fn`)."""
-
-    def make_custom() -> gym.Env:
-        try:
-            env = make(**kwargs)
-        except TypeError as e:
-            if kwargs and "argument" in str(e):
-                why = ("; relayrl video makes the env with render_mode='rgb_array': give the class a render_mode "
-                       "argument" if "render_mode" in str(e) else "")
-                raise UserError(f"env.id={env_id!r} does not take the arguments given ({e}); "
-                                f"arguments passed: {sorted(kwargs)}{why}") from None
-            raise
-        if not isinstance(env, gym.Env):
-            raise UserError(f"env.id={env_id!r} returned {type(env).__name__}, not a gymnasium.Env")
-        if max_episode_steps > 0:
-            env = gym.wrappers.TimeLimit(env, max_episode_steps)
-        return env
-
-    return make_custom
-
-
-def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, module: str = "") -> EnvFn:
-    given = dict(kwargs)  # the user's env.kwargs, without the time limit added below
-    if max_episode_steps > 0:
-        kwargs = {**kwargs, "max_episode_steps": max_episode_steps}
-
-    def make_registered() -> gym.Env:
-        # Again in a worker process that starts with a fresh registry.
-        if module:
-            importlib.import_module(module)
-        register_on_demand(env_id)
-        # disable_env_checker: the passive checker costs a measurable share of a tiny env's step
-        # and only warns. No OrderEnforcing either (as for a user's class above): it only raises
-        # on a step or render before the first reset, which the batched envs never do, and it
-        # costs a share of every step (docs/benchmarks.md).
-        spec = dataclasses.replace(gym.spec(env_id), order_enforce=False)
-        try:
-            return gym.make(spec, disable_env_checker=True, **kwargs)
-        except TypeError as e:
-            if "argument" not in str(e):
-                raise
-            raise UserError(f"env.id={env_id!r} does not take the arguments given ({e}); arguments passed "
-                            f"(env.kwargs, and eval.env_kwargs to evaluation envs): {sorted(kwargs)}") from None
-        except (KeyError, ValueError) as e:
-            # a registered env that rejects a value it was given (FrozenLake's map_name="8X8": a
-            # KeyError of its map table) is a typo in env.kwargs, not a bug of the env; without
-            # env.kwargs, or from a user's module, it is their code's traceback that helps
-            if not given or module:
-                raise
-            raise UserError(f"env.id={env_id!r} does not take the values given ({type(e).__name__}: {e}); arguments "
-                            f"passed (env.kwargs, and eval.env_kwargs to evaluation envs): {given}") from None
-
-    return make_registered
-
-
-def apply_wrappers(env: gym.Env, wrappers: list[Callable[[gym.Env], gym.Env]]) -> gym.Env:
-    """`env` in each of `wrappers` (env.wrappers' callables), in order."""
-    for w in wrappers:
-        _check_takes_an_env(w, env)
-        env = w(env)
-        if not isinstance(env, gym.Env):
-            raise UserError(f"env.wrappers: {w!r} returned {type(env).__name__}, not a gymnasium.Env")
-    return env
-
-
-def _check_takes_an_env(wrapper: Callable[..., Any], env: gym.Env) -> None:
-    """One line for a wrapper that needs more than the env (its own errors stay its own)."""
-    try:
-        inspect.signature(wrapper).bind(env)
-    except TypeError as e:
-        name = f"{getattr(wrapper, '__module__', '?')}:{getattr(wrapper, '__qualname__', repr(wrapper))}"
-        raise UserError(f"env.wrappers: {name} cannot be called with the env alone ({e}); give a function of "
-                        "the env that passes the rest, e.g. def wrap(env): return TimeLimit(env, 500)") from None
-    except ValueError:  # no signature to read (a builtin): the call itself says
-        pass
 
 
 def missing_spaces(env: gym.Env) -> str | None:

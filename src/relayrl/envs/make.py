@@ -16,8 +16,9 @@ import numpy as np
 import torch
 
 from relayrl.envs.ale_vector import make_ale_env
-from relayrl.envs.gym import BatchEnvBase, EnvFn, GymBatchEnv, apply_wrappers, names_module, resolve_env_fn
+from relayrl.envs.gym import BatchEnvBase, GymBatchEnv
 from relayrl.envs.probe import first_problem
+from relayrl.envs.resolve import EnvFn, apply_wrappers, names_module, resolve_env_fn
 from relayrl.envs.stateless.adapter import STATELESS_ENVS, StatelessBatchEnv, make_batch_env
 from relayrl.envs.vector import AsyncGymBatchEnv
 from relayrl.errors import UserError, install, note_where

@@ -46,8 +46,9 @@ import cloudpickle
 import numpy as np
 import torch
 
-from relayrl.envs.gym import BatchEnvBase, EnvFn, GymBatchEnv
+from relayrl.envs.gym import BatchEnvBase, GymBatchEnv
 from relayrl.envs.pixels import frame_stack_of
+from relayrl.envs.resolve import EnvFn
 from relayrl.errors import UserError
 from relayrl.specs import numpy_dtype
 from relayrl.types import EpisodeInfo, StepOutput

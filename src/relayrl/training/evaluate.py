@@ -12,7 +12,8 @@ from relayrl.arrays import to_numpy
 from relayrl.core import BatchedEnv
 from relayrl.envs import make_env
 from relayrl.envs.ale_vector import unsupported_kwargs
-from relayrl.envs.gym import EnvFn, GymBatchEnv
+from relayrl.envs.gym import GymBatchEnv
+from relayrl.envs.resolve import EnvFn
 from relayrl.errors import NonFiniteError, UserError, note_where
 from relayrl.specs import describe as describe_spec
 from relayrl.specs import spec_state

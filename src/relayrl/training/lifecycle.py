@@ -20,7 +20,7 @@ from relayrl import atomic, interrupts
 from relayrl.config import Config, changes, changes_between, dotted, save_toml, to_dict
 from relayrl.config_fields import is_user_encoder
 from relayrl.core import Agent
-from relayrl.envs.gym import names_python_factory
+from relayrl.envs.resolve import names_python_factory
 from relayrl.errors import NonFiniteError, UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.nn.encoders import CONV_READY

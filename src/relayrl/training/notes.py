@@ -11,8 +11,8 @@ from typing import Any
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config, algo_defaults
 from relayrl.envs.atari import raw_screen_note
-from relayrl.envs.gym import names_python_factory
 from relayrl.envs.make import check_env, is_user_env, reward_wrappers, statistics_wrappers, wrapper_layers
+from relayrl.envs.resolve import names_python_factory
 
 
 def start_notes(config: Config, config_file: Path, resume: bool) -> list[str]:
