@@ -15,26 +15,13 @@ import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, Protocol, cast
+from typing import Any
 
 from relayrl import atomic
 from relayrl.agents.registry import ALGORITHMS, DEFAULT_ALGO, algorithm
-from relayrl.config_fields import CLEANRL_NAMES, SB3_NAMES, Section, commented_toml, fold_key, shown, unknown_key
+from relayrl.config_checks import check_config
+from relayrl.config_fields import CLEANRL_NAMES, SB3_NAMES, Section, commented_toml, fold_key, unknown_key
 from relayrl.errors import ConfigError
-from relayrl.seeding import seed_problem
-
-
-class TrainerSection(Protocol):
-    """The agent section of an algorithm that trains by itself (registry `replay = "none"`):
-    the envs it trains through, the [env] / [train] / [eval] / [distributed] keys it reads, why
-    it refuses the others, and the env steps of one iteration."""
-
-    ENV_IDS: ClassVar[tuple[str, ...]]
-    RUN_KEYS: ClassVar[tuple[str, ...]]
-    WHY_UNUSED: ClassVar[dict[str, str]]
-    UNUSED: ClassVar[str]
-
-    def iteration_steps(self) -> int: ...
 
 
 @dataclass
@@ -174,68 +161,12 @@ class Config(Section):
         return {**self.env.kwargs, **self.eval.env_kwargs}
 
     def validate(self) -> None:
-        """Cross-field checks that types alone cannot express."""
+        """Cross-field checks that types alone cannot express (config_checks.py)."""
         section: Any = algorithm(self.algo).config  # Any: `agent`'s class depends on `algo`
         if type(self.agent) is not section:
             raise ConfigError(_wrong_agent(self.agent, self.algo))
         self.recheck()
-        if (problem := seed_problem(self.seed)) is not None:
-            raise ConfigError(problem)
-        if self.device not in ("cpu", "cuda", "auto") and not re.fullmatch(r"cuda:\d+", self.device):
-            raise ConfigError(f"device={self.device!r} is not valid; valid: cpu, cuda, cuda:N, auto")
-        self.env.require(">= 1", "num_envs")
-        _check_plain_kwargs(self.env.kwargs)
-        _check_plain_kwargs(self.eval.env_kwargs, "eval.env_kwargs")
-        self.train.require(">= 1", "total_steps", "collect_steps")
-        self.replay.require(">= 1", "size", "n_step")
-        self.eval.require(">= 1", "episodes")
-        self.eval.require(">= 0", "interval", note=" (0: only the final evaluation)")
-        self.env.require(">= 0", "max_episode_steps", note=" (0: the env's own time limit)")
-        if algorithm(self.algo).replay != "transitions":
-            self._check_no_replay()
-        if algorithm(self.algo).replay == "rollouts":
-            self._check_on_policy()
-        if algorithm(self.algo).replay == "none":
-            self._check_trainer()
-        self.train.require(">= 0", "initial_collect_steps", "checkpoint_interval",
-                           "checkpoint_keep", "policy_save_interval", "log_interval", "pull_interval", "torch_threads")
-        if self.train.torch_threads > MAX_THREADS:  # thousands of threads fail to start, or crash the process
-            raise ConfigError(f"train.torch_threads={self.train.torch_threads} is not valid; it must be at most "
-                              f"{MAX_THREADS} (0: torch's default, one per core)")
-        # SB3's gradient_steps = -1 (one gradient step per env step collected) is brought from RL Zoo's files
-        self.train.require(">= 0", "gradient_steps", note=" (Stable-Baselines3's -1, a gradient step per env step "
-                           "collected, is train.gradient_steps = train.collect_steps)")
-        self.env.require(">= 0", "num_workers", note=" (0: one worker process per CPU core beside the main one)")
-        self.env.require_choice(vectorization=("sync", "async", "ale"))
-        r = self.replay
-        r.require_choice(sampler=("uniform", "prioritized"), storage=("ram", "memmap"))
-        if r.device not in ("auto", "numpy", "cpu", "cuda") and not re.fullmatch(r"cuda:\d+", r.device):
-            raise ConfigError(f"replay.device={r.device!r} is not valid; valid: auto, numpy, cpu, cuda, cuda:N")
-        if r.storage == "memmap" and r.device not in ("auto", "numpy"):
-            raise ConfigError(f"replay.device={r.device!r} with replay.storage='memmap': memmap tables live on "
-                              "disk; use replay.device=numpy (or auto)")
-        r.require(">= 0", "priority_exponent", "importance_exponent", "priority_eps", "samples_per_insert",
-                  "error_buffer", "min_size_to_sample")
-        if r.samples_per_insert > 0 and self.train.gradient_steps == 0:  # the ratio sets the gradient steps
-            raise ConfigError(f"replay.samples_per_insert={r.samples_per_insert:g} sets how many gradient steps follow "
-                              "each collect iteration, but train.gradient_steps=0 asks for none (collect only): set "
-                              "one of them (replay.samples_per_insert = 0 takes train.gradient_steps)")
-        if r.n_step > r.size:
-            raise ConfigError(f"replay.n_step={r.n_step:,} is more than replay.size={r.size:,} holds; it must be at "
-                              "most replay.size")
-        d = self.distributed
-        if d.num_actors > 0 and r.device not in ("auto", "numpy"):
-            raise ConfigError(f"replay.device={r.device!r} applies to the one-process loop; the replay server of "
-                              "distributed.num_actors > 0 keeps NumPy arrays (use auto or numpy)")
-        address = re.fullmatch(RAY_ADDRESS, d.address)
-        if d.num_actors > 0 and d.address not in ("", "auto") and not (address and 0 < int(address[3]) < 65536):
-            raise ConfigError(f"distributed.address={d.address!r} is not valid; valid: auto (the Ray cluster this "
-                              "machine is in), HOST:PORT of a Ray head ([IPv6]:PORT; ray://HOST:PORT for Ray "
-                              "Client), or empty (start a local Ray instance)")
-        d.require(">= 0", "num_actors", "max_restarts")
-        d.require(">= 1", "pull_interval", "push_interval", "chunk_steps", "num_eval_actors")
-        d.require(">= 0", "actor_cpus")
-        self.agent.validate()
+        check_config(self, algo_defaults)
 
     def unused_keys(self) -> list[str]:
         """Keys set away from the algorithm's defaults that the other settings leave without
@@ -256,60 +187,6 @@ class Config(Section):
         rounded up to whole batched steps, as the actor steps every env copy together."""
         b = self.env.num_envs
         return -(-self.train.collect_steps // b) * b
-
-    def _check_trainer(self) -> None:
-        """An algorithm that trains by itself (BPTT) through its own envs, reading only its agent
-        section's RUN_KEYS of [env], [train], [eval] and [distributed]: any other set away from its default is
-        refused here, so that `relayrl config` lists no setting its run would refuse or ignore."""
-        a = cast(TrainerSection, self.agent)
-        if self.env.id not in a.ENV_IDS:
-            raise ConfigError(f"algo={self.algo!r} trains through {' or '.join(a.ENV_IDS)} only; "
-                              f"env.id={self.env.id!r} is not valid")
-        defaults = algo_defaults(self.algo)
-        for name in ("env", "train", "eval", "distributed"):
-            section, default_section = getattr(self, name), getattr(defaults, name)
-            for f in dataclasses.fields(section):
-                key, value, default = f"{name}.{f.name}", getattr(section, f.name), getattr(default_section, f.name)
-                if key not in a.RUN_KEYS and value != default:
-                    raise ConfigError(f"{key}={shown(value)} does not apply to algo={self.algo!r}: "
-                                      f"{a.WHY_UNUSED.get(key, a.UNUSED)}; leave it at {shown(default)}")
-        if self.train.total_steps < a.iteration_steps():
-            raise ConfigError(f"train.total_steps={self.train.total_steps} is less than one iteration "
-                              f"(agent.batch_size * agent.rollout_steps = {a.iteration_steps()} env steps)")
-
-    def _check_no_replay(self) -> None:
-        """An algorithm without a replay table takes no [replay] setting, so that a config
-        (and `relayrl config`'s listing) never suggests one changes its run."""
-        how = "from each rollout once" if algorithm(self.algo).replay == "rollouts" else "through its env"
-        for f in dataclasses.fields(ReplayConfig):
-            if (value := getattr(self.replay, f.name)) != f.default:
-                raise ConfigError(f"replay.{f.name}={value!r} is not valid for algo={self.algo!r}: it learns {how}, "
-                                  f"not from a replay; leave it at {f.default!r}")
-
-    def _check_on_policy(self) -> None:
-        """An on-policy algorithm learns from each rollout once, collected by the policy just
-        trained: no warm-up, weight-pull or replay settings apply to it."""
-        if self.train.initial_collect_steps:
-            raise ConfigError(f"train.initial_collect_steps={self.train.initial_collect_steps} is not valid for "
-                              f"algo={self.algo!r}: it learns on-policy, from its own rollouts only; use 0")
-        if self.train.pull_interval:
-            raise ConfigError(f"train.pull_interval={self.train.pull_interval} is not valid for algo={self.algo!r}: "
-                              "each rollout is collected with the policy just trained (0: pull every iteration)")
-        if self.train.total_steps < self.train.collect_steps:
-            raise ConfigError(f"train.total_steps={self.train.total_steps} is less than one rollout "
-                              f"(train.collect_steps={self.train.collect_steps} env steps): algo={self.algo!r} would "
-                              "end before its first update; raise train.total_steps or lower train.collect_steps")
-        if self.train.gradient_steps > 1:
-            raise ConfigError(f"train.gradient_steps={self.train.gradient_steps} does not apply to algo={self.algo!r}: "
-                              "it trains on each rollout for the agent's own epochs of minibatches "
-                              "(agent.n_epochs, agent.batch_size); leave it at 1 (0: collect only)")
-        self.agent.check_rollout(self.steps_per_iteration())
-
-
-MAX_THREADS = 1024
-
-# distributed.address as HOST:PORT (a Ray head or, with ray://, a Ray Client server; IPv6 in brackets)
-RAY_ADDRESS = r"(ray://)?(\[[0-9a-fA-F:.]+\]|[^:\s/\[\]]+):(\d{1,5})"
 
 
 def to_dict(config: Config) -> dict[str, Any]:
@@ -511,29 +388,6 @@ def _wrong_agent(value: Any, algo: str) -> str:
     return (f"agent={value!r} has the wrong type; expected the {algorithm(algo).config.__name__} of algo={algo!r}: "
             "set its keys one by one (config.agent.<key> = value), or load the config with overrides "
             "(relayrl.load_config(name, ['agent.<key>=value']))")
-
-
-def _check_plain_kwargs(value: Any, path: str = "env.kwargs") -> None:
-    """env.kwargs hold what a policy file can hold (numbers, strings, booleans, lists, tables):
-    a TOML date would train, then leave a policy file that loads nowhere."""
-    if isinstance(value, dict):
-        for k, v in value.items():
-            if not isinstance(k, str):
-                raise ConfigError(f"{path} has the key {k!r} ({type(k).__name__}); its keys are names (strings), "
-                                  "the env's keyword arguments")
-            _check_plain_kwargs(v, f"{path}.{k}")
-    elif isinstance(value, list | tuple):
-        for i, v in enumerate(value):
-            _check_plain_kwargs(v, f"{path}[{i}]")
-    elif type(value).__module__ == "numpy":  # np.True_ is a "bool" by its name: say whose (numpy not imported here)
-        raise ConfigError(f"{path}={value!r} is a NumPy {type(value).__name__}; env.kwargs take Python's numbers, "
-                          f"strings, booleans, lists and tables (give {value!r}.item())")
-    elif value is None:  # a run's config.toml holds its env.kwargs, and TOML has no None
-        raise ConfigError(f"{path}=None cannot be saved in the run's config.toml (TOML has no None): leave the key "
-                          "out for the env's default")
-    elif not isinstance(value, str | int | float | bool):
-        raise ConfigError(f"{path}={value!r} is a {type(value).__name__}; env.kwargs take numbers, strings, "
-                          "booleans, lists and tables (pass a date or time as a string and parse it in the env)")
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:

@@ -16,7 +16,8 @@ import uuid
 from collections.abc import Callable
 from typing import Any
 
-from relayrl.config import RAY_ADDRESS, Config, to_dict
+from relayrl.config import Config, to_dict
+from relayrl.config_checks import RAY_ADDRESS
 from relayrl.distributed.workers import EvalWorker, actor_name
 from relayrl.errors import UserError
 from relayrl.training.report import plural

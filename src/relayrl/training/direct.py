@@ -15,7 +15,8 @@ import numpy as np
 
 from relayrl import atomic, interrupts
 from relayrl.agents.registry import algorithm
-from relayrl.config import Config, TrainerSection
+from relayrl.config import Config
+from relayrl.config_checks import TrainerSection
 from relayrl.errors import UserError
 from relayrl.policy_file import save_policy_file
 from relayrl.seeding import RunSeeds
