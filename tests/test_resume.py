@@ -1,5 +1,6 @@
 """Whole-run checkpoints: a run resumed from a checkpoint is the uninterrupted run, bit for bit."""
 
+import contextlib
 import json
 import multiprocessing
 import os
@@ -680,6 +681,63 @@ def test_sigterm_stops_a_run_like_ctrl_c_and_it_resumes(tmp_path, envs):
     done = subprocess.run(cmd + ["--resume"], capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr
     assert RunDir(tmp_path / "run").read_metrics()[-1]["step"] == 3000
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="no SIGHUP")
+@pytest.mark.parametrize("terminal", [False, True], ids=["log-file", "closed-terminal"])
+def test_sighup_stops_a_run_with_a_checkpoint_also_when_its_terminal_is_gone(tmp_path, terminal):
+    """A closed terminal (a lost SSH session) sends SIGHUP: the run stops as on SIGTERM, with a
+    checkpoint at the step it stopped at, and exits 129. Where its output was the terminal, the
+    stop's lines go nowhere instead of failing it with EIO; where it was a file, they are there."""
+    import pty
+
+    over = DQN[:1] + ["train.total_steps=100000", "train.torch_threads=1"] + DQN[2:]
+    cmd = [sys.executable, "-m", "relayrl", "train", "dqn-cartpole-fast", "--run-dir", str(tmp_path / "run"),
+           "--no-progress", *[a for o in over for a in ("--set", o)]]
+    log = tmp_path / "log.txt"
+    if terminal:
+        master, slave = pty.openpty()
+        p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=slave, stderr=slave)
+        os.close(slave)
+    else:
+        with open(log, "w") as out:
+            p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=out)
+    checkpoints = tmp_path / "run" / "checkpoints"
+    while not list_checkpoints(checkpoints) and p.poll() is None:
+        if terminal:  # read what it writes, as a terminal does, so its writes never block
+            with contextlib.suppress(OSError):
+                os.read(master, 65536)
+        time.sleep(0.02)
+    first = int(list_checkpoints(checkpoints)[-1].stem.split("-")[1])
+    time.sleep(0.5)
+    if terminal:
+        os.close(master)  # the terminal is gone: every write to it now fails with EIO
+    p.send_signal(signal.SIGHUP)
+    assert p.wait(timeout=60) == 128 + signal.SIGHUP
+    last = int(list_checkpoints(checkpoints)[-1].stem.split("-")[1])
+    assert last > first, "no checkpoint at the step the run stopped at"
+    assert RunDir(tmp_path / "run").read_metrics()  # its log is whole
+    if not terminal:
+        said = log.read_text()
+        assert "relayrl: hung up (the terminal closed); resume with --resume" in said and "Traceback" not in said
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="no SIGHUP")
+def test_under_nohup_sighup_stays_ignored():
+    """nohup ignores SIGHUP so that a run outlives its terminal: relayrl neither stops on it nor
+    holds it during a write."""
+    from relayrl import cli, interrupts
+
+    before = signal.signal(signal.SIGHUP, signal.SIG_IGN)
+    try:
+        assert signal.SIGHUP not in cli._stop_signals()
+        with interrupts.deferred():
+            assert signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+            os.kill(os.getpid(), signal.SIGHUP)
+        with interrupts.stop_request(lambda signum: pytest.fail("a stop was requested")):
+            os.kill(os.getpid(), signal.SIGHUP)
+    finally:
+        signal.signal(signal.SIGHUP, before)
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")

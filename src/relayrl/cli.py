@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any, NoReturn
 
+from relayrl import interrupts
 from relayrl.errors import NonFiniteError, UserError
 
 # export.load_policy's trust_code, for the commands that read a policy file on its own
@@ -210,18 +211,27 @@ def _eval(args: argparse.Namespace) -> None:
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM (`kill`, a cluster scheduler's preemption) during `train`: the run stops as on
-    Ctrl-C, so Ray actors and env worker processes are shut down instead of orphaned."""
+    """SIGTERM (`kill`, a cluster scheduler's preemption) or SIGHUP (the terminal closed) during
+    `train`: the run stops as on Ctrl-C, with a checkpoint, and Ray actors and env worker
+    processes are shut down instead of orphaned."""
 
 
-# The SIGTERMs `_on_sigterm` acted on: Ray's blocking calls catch a KeyboardInterrupt raised in
+# The signals `_on_sigterm` acted on: Ray's blocking calls catch a KeyboardInterrupt raised in
 # them (a Terminated too) and raise a plain one, so the exception's type alone can lose the signal.
 _TERMINATED: set[int] = set()
 
 
 def _on_sigterm(signum: int, frame: object) -> NoReturn:
+    interrupts.heard(signum)
     _TERMINATED.add(signum)
     raise Terminated
+
+
+def _stop_signals() -> list[int]:
+    """SIGTERM, and SIGHUP where it is not ignored (nohup): `train` stops cleanly on each."""
+    hangup = [] if interrupts.HANGUP is None or signal.getsignal(interrupts.HANGUP) == signal.SIG_IGN \
+        else [interrupts.HANGUP]
+    return [signal.SIGTERM, *hangup]
 
 
 def _completed(rd: Any, args: argparse.Namespace) -> bool:
@@ -298,11 +308,12 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"{name}\t{desc}")
         elif args.command == "train":
             _TERMINATED.clear()
-            previous = signal.signal(signal.SIGTERM, _on_sigterm)
+            previous = {sig: signal.signal(sig, _on_sigterm) for sig in _stop_signals()}
             try:
                 _train(args)
             finally:
-                signal.signal(signal.SIGTERM, previous)
+                for sig, handler in previous.items():
+                    signal.signal(sig, handler)
         elif args.command == "eval":
             _eval(args)
         elif args.command == "plot":
@@ -344,8 +355,13 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     except KeyboardInterrupt as e:
         # 128 + the signal's number, as shells report it
-        terminated = isinstance(e, Terminated) or signal.SIGTERM in _TERMINATED
-        what, code = ("terminated", 143) if terminated else ("interrupted", 130)
+        hangup = interrupts.HANGUP
+        if hangup is not None and hangup in _TERMINATED:
+            what, code = "hung up (the terminal closed)", 128 + hangup
+        elif isinstance(e, Terminated) or _TERMINATED:
+            what, code = "terminated", 143
+        else:
+            what, code = "interrupted", 130
         print(_interrupted_line(what, args), file=sys.stderr)
         return code
     return 0

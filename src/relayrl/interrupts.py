@@ -1,17 +1,38 @@
-"""Ctrl-C and SIGTERM handled where stopping at once would lose work: `deferred` holds them
-until a file is written; `stop_request` turns the first into a request that the training loop
-honours at the end of its iteration, so the run stops with a checkpoint."""
+"""Ctrl-C, SIGTERM and SIGHUP handled where stopping at once would lose work: `deferred` holds
+them until a file is written; `stop_request` turns the first into a request that the training
+loop honours at the end of its iteration, so the run stops with a checkpoint."""
 
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
+import stat
 import sys
 import threading
 from collections.abc import Callable, Iterator
 from typing import Any
 
-WANTED = (signal.SIGINT, signal.SIGTERM)  # delivered in this order: SIGTERM's exception, last, wins
+HANGUP: int | None = getattr(signal, "SIGHUP", None)  # the terminal closed (an SSH session lost); not on Windows
+# delivered in this order: the exception of the last, SIGTERM's or SIGHUP's, wins
+WANTED: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM, *([HANGUP] if HANGUP is not None else []))
+
+
+def heard(signum: int) -> None:
+    """What every handler here does first: after SIGHUP, stdout and stderr that were the closed
+    terminal write to /dev/null, so that the stop's own lines (which no one can read) do not
+    fail it with EIO before the checkpoint is written. Redirected output (a log file) stays."""
+    if signum != HANGUP:
+        return
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for fd in (1, 2):
+            with contextlib.suppress(OSError):
+                st = os.fstat(fd)  # isatty() says False once the terminal is gone: a character device, not /dev/null
+                if stat.S_ISCHR(st.st_mode) and st.st_rdev != os.stat(os.devnull).st_rdev:
+                    os.dup2(null, fd)
+    finally:
+        os.close(null)
 
 
 def _handlers() -> dict[int, Any] | None:
@@ -25,7 +46,7 @@ def _handlers() -> dict[int, Any] | None:
 
 @contextlib.contextmanager
 def deferred() -> Iterator[None]:
-    """SIGINT and SIGTERM received inside wait for its end, then act as they would have. An
+    """SIGINT, SIGTERM and SIGHUP received inside wait for its end, then act as they would have. An
     interrupt raised inside a writer (torch's zip writer) made it fail with an error of its own
     instead, and the clean stop became a traceback. Only the main thread handles signals."""
     previous = _handlers()
@@ -35,6 +56,7 @@ def deferred() -> Iterator[None]:
     pending: list[int] = []
 
     def hold(signum: int, frame: object) -> None:
+        heard(signum)
         if not _Deferring.said:  # a large checkpoint takes a while: say why the stop waits, once
             print("relayrl: stopping once the file being written is complete", file=sys.stderr, flush=True)
             _Deferring.said = True
@@ -42,7 +64,7 @@ def deferred() -> Iterator[None]:
 
     _Deferring.depth += 1  # a write inside a write (a checkpoint's file) holds a signal twice
     try:
-        _install(dict.fromkeys(WANTED, hold))
+        _install({sig: hold for sig in WANTED if previous[sig] != signal.SIG_IGN})  # nohup's SIGHUP stays ignored
         yield
     finally:
         _Deferring.depth -= 1
@@ -88,7 +110,7 @@ def _install(handlers: dict[int, Any]) -> None:
 
 @contextlib.contextmanager
 def stop_request(on_signal: Callable[[int], None], signals: tuple[int, ...] = WANTED) -> Iterator[None]:
-    """Inside, the first of `signals` (SIGINT, SIGTERM) only calls `on_signal(signum)` (a second
+    """Inside, the first of `signals` (SIGINT, SIGTERM, SIGHUP) only calls `on_signal(signum)` (a second
     acts as it would have, at once): the caller stops at a safe point, saves, then calls
     `redeliver`, so the process ends as the signal asked. A signal that is ignored (SIGINT in
     a background job) stays ignored; where handlers cannot be swapped nothing changes."""
@@ -98,6 +120,7 @@ def stop_request(on_signal: Callable[[int], None], signals: tuple[int, ...] = WA
         return
 
     def record(signum: int, frame: object) -> None:
+        heard(signum)
         _install(previous)  # a second signal is not held back
         on_signal(signum)
 
