@@ -184,6 +184,6 @@ def test_tensorboard_gets_one_point_per_step_with_the_mean_of_the_episodes_that_
 @pytest.mark.parametrize("value, shown", [(-0.001, "0.00"), (-0.004999, "0.00"), (-0.005001, "-0.01"), (0.0, "0.00"),
                                           (-12.345, "-12.35"), (3.0, "3.00")])
 def test_printed_returns_never_show_minus_zero(value, shown):
-    from relayrl.training.report import two_places
+    from relayrl.training.report import rounded
 
-    assert f"{two_places(value):.2f}" == shown
+    assert f"{rounded(value):.2f}" == shown

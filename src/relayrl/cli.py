@@ -166,12 +166,14 @@ def _train(args: argparse.Namespace) -> None:
     args.run_dir = args.run_dir or str(default_run_dir(config))  # named here: an interrupt's line names it
     if not args.resume and (note := backslash_note(args.run_dir)):
         print(note, file=sys.stderr, flush=True)
+    from relayrl.training.report import rounded
+
     result = train(config, args.run_dir, resume=args.resume, progress=not args.no_progress,
                    overwrite=args.overwrite)
     final = result.final
     print(f"run directory: {result.run_dir}")
     ret = final.get("average_return")
-    print(f"final evaluation: average_return={ret if ret is None else round(ret, 4) + 0.0} "  # never -0.0
+    print(f"final evaluation: average_return={ret if ret is None else rounded(ret, 4)} "
           f"at step {final.get('step')} ({final.get('wall_time_s')} s)")
 
 
@@ -206,8 +208,8 @@ def _eval(args: argparse.Namespace) -> None:
     finally:
         env.close()  # an env's worker processes or windows never outlive a failed evaluation
     # Rewards are float32 in the batched env: its 7 significant digits drop the noise (0.5999999940395355).
-    rounded = {k: float(f"{v:.7g}") if isinstance(v, float) else v for k, v in result.items()}
-    print(json.dumps({**rounded, "policy_env_steps": policy.env_steps}))
+    seven_digits = {k: float(f"{v:.7g}") if isinstance(v, float) else v for k, v in result.items()}
+    print(json.dumps({**seven_digits, "policy_env_steps": policy.env_steps}))
 
 
 class Terminated(KeyboardInterrupt):

@@ -205,8 +205,8 @@ class RunReport:
         p, total = self.progress(), self.config.train.total_steps
         sps, _ = self.run_sps(p)
         train, last = self.train_return(), self.last_eval.get("average_return")
-        train_shown = "-" if math.isnan(train) else f"{two_places(train):.2f}"
-        last_shown = "-" if last is None else f"{two_places(last):.2f}"
+        train_shown = "-" if math.isnan(train) else f"{rounded(train):.2f}"
+        last_shown = "-" if last is None else f"{rounded(last):.2f}"
         return (f"step {p.env_steps:,}/{total:,} ({100 * p.env_steps / total:.0f}%) | {sps:,.0f} env steps/s "
                 f"| train return {train_shown} | last eval return {last_shown} | {self.wall_time():.0f}s")
 
@@ -247,9 +247,9 @@ class RunReport:
                 self.stopped_by.add(i)
 
 
-def two_places(x: float) -> float:
-    """x rounded to two decimals, with -0.0 as 0.0: a return of -0.001 prints as 0.00, not -0.00."""
-    return round(x, 2) + 0.0
+def rounded(x: float, places: int = 2) -> float:
+    """x rounded to `places` decimals, with -0.0 as 0.0: a return of -0.001 prints as 0.00, not -0.00."""
+    return round(x, places) + 0.0
 
 
 def eval_legend(episodes: int) -> str:
@@ -260,7 +260,7 @@ def eval_legend(episodes: int) -> str:
 
 def eval_line(row: dict[str, Any]) -> str:
     """An evaluation row's console line."""
-    return (f"step {row['step']:>9,} | eval return {two_places(row['average_return']):8.2f} "
+    return (f"step {row['step']:>9,} | eval return {rounded(row['average_return']):8.2f} "
             f"| length {row['average_episode_length']:7.1f} | {row['wall_time_s']:7.1f}s")
 
 
