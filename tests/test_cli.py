@@ -132,6 +132,16 @@ def test_sac_actor_learner_example_runs_a_few_hundred_steps(cli_env, tmp_path):
     assert "train step 100: eval return" in r.stdout
 
 
+def test_ppo_example_runs_a_few_hundred_steps(cli_env):
+    import pathlib
+
+    example = pathlib.Path(__file__).parents[1] / "examples" / "ppo_cartpole.py"
+    r = subprocess.run([sys.executable, str(example), "--iterations", "2", "--eval-interval", "2"],
+                       capture_output=True, text=True, env=cli_env, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "iteration 2 (512 env steps): eval return" in r.stdout
+
+
 def test_ci_runs_the_readme_test_command():
     import pathlib
 
