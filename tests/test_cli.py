@@ -368,3 +368,14 @@ def test_a_sigterm_that_ray_turned_into_a_plain_keyboard_interrupt_still_exits_1
     assert "relayrl: terminated" in capsys.readouterr().err
     monkeypatch.setattr(cli, "_train", lambda args: (_ for _ in ()).throw(KeyboardInterrupt))  # Ctrl-C
     assert cli.main(["train", "dqn-cartpole"]) == 130
+
+
+def test_the_current_directory_goes_last_on_the_import_path(tmp_path, monkeypatch, capsys):
+    """A user's env module in their project folder is found; a folder there that shares a name
+    with a module a library tries to import (torch.export's optional z3) does not shadow it."""
+    from relayrl import cli
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", str(tmp_path))])
+    assert cli.main(["presets"]) == 0
+    assert sys.path[-1] == str(tmp_path)

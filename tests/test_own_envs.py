@@ -145,6 +145,43 @@ def test_a_registered_envs_rejected_kwarg_value_is_one_line():
     make_env("FrozenLake-v1", 1, kwargs={"map_name": "8x8"}, max_episode_steps=50).close()  # a valid value
 
 
+def test_a_registered_envs_unknown_kwarg_names_its_near_miss_and_its_own_arguments():
+    with pytest.raises(UserError) as e:
+        make_env("CartPole-v1", 1, kwargs={"sutton_barto_rewrd": True})
+    assert str(e.value) == ("env.id='CartPole-v1' takes no argument 'sutton_barto_rewrd' (env.kwargs); did you mean "
+                            "'sutton_barto_reward'? (its own arguments: sutton_barto_reward, render_mode)")
+    # none near: the env.kwargs of a preset for another env (ppo-lunarlander-continuous's continuous=true)
+    with pytest.raises(UserError, match=r"takes no argument 'continuous' \(env.kwargs\) \(its own arguments: .*\); "
+                                        r"env.kwargs a preset sets stay when --set env.id changes the env: "
+                                        r"--set 'env.kwargs=\{\}' clears them$"):
+        make_env("CartPole-v1", 1, kwargs={"continuous": True})
+
+
+def test_a_registered_envs_failure_on_a_kwarg_value_is_one_line():
+    """A value the env's constructor fails on (a ZeroDivisionError of MuJoCo's frame_skip=0): env.kwargs'."""
+    import gymnasium
+
+    def make(size: int) -> gymnasium.Env:
+        return gymnasium.make("CartPole-v1") if 1 / size else None
+
+    gymnasium.register("relayrl-test/DividesBySize-v0", entry_point=make)
+    try:
+        with pytest.raises(UserError, match=r"does not take the values given \(ZeroDivisionError: division by zero\)"):
+            make_env("relayrl-test/DividesBySize-v0", 1, kwargs={"size": 0})
+    finally:
+        del gymnasium.registry["relayrl-test/DividesBySize-v0"]
+
+
+def test_render_mode_human_without_a_display_is_one_line(monkeypatch):
+    """GLFW (MuJoCo) aborts the whole process on a window without a display, past any except."""
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    if not sys.platform.startswith("linux"):
+        pytest.skip("displays are looked for on Linux only")
+    with pytest.raises(UserError, match=r"render_mode='human' opens a window, and this machine has no display"):
+        make_env("CartPole-v1", 1, kwargs={"render_mode": "human"})
+
+
 def test_bad_wrappers_are_one_line():
     with pytest.raises(UserError, match="is not package.module:Callable"):
         make_env("CartPole-v1", wrappers=["toy_envs.double_reward"])

@@ -660,6 +660,28 @@ def test_video_refuses_a_file_that_is_no_video_before_playing_and_leaves_sdl_as_
     assert "SDL_VIDEODRIVER" not in os.environ and (tmp_path / "v.gif").stat().st_size > 100
 
 
+def test_video_renders_mujoco_through_egl_without_a_display_and_keeps_a_users_choice(run_dir, tmp_path, monkeypatch):
+    """Without a display MuJoCo's default GLFW prints warnings, then fails: EGL renders without
+    one. Set for the video only; a user's own MUJOCO_GL stays."""
+    import os
+    import sys
+
+    seen = []
+    factory = lambda render_mode=None: seen.append(os.environ.get("MUJOCO_GL")) or Countdown(render_mode=render_mode)  # noqa: E731
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.delenv("MUJOCO_GL", raising=False)
+    relayrl.record_video(run_dir, tmp_path / "v.gif", env=factory)
+    assert seen[-1] == ("egl" if sys.platform.startswith("linux") else None) and "MUJOCO_GL" not in os.environ
+    monkeypatch.setenv("MUJOCO_GL", "osmesa")
+    relayrl.record_video(run_dir, tmp_path / "v.gif", env=factory)
+    assert seen[-1] == "osmesa" == os.environ["MUJOCO_GL"]
+    monkeypatch.delenv("MUJOCO_GL")
+    monkeypatch.setenv("DISPLAY", ":0")
+    relayrl.record_video(run_dir, tmp_path / "v.gif", env=factory)
+    assert seen[-1] is None  # a display: MuJoCo's own choice
+
+
 @pytest.mark.parametrize("algo, env_id", [("dqn", "toy_envs:Countdown"), ("sac", "Pendulum-v1")])
 def test_a_notebooks_float64_default_dtype_trains_loads_and_exports_and_stays(tmp_path, algo, env_id):
     # torch.set_default_dtype(torch.float64) in a notebook: relayrl's networks are float32 all the same

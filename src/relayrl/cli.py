@@ -285,8 +285,9 @@ def _interrupted_line(what: str, args: argparse.Namespace) -> str:
 def main(argv: list[str] | None = None) -> int:
     # The current directory is on the import path, as for `python -m relayrl`: a user's
     # env.id = mypkg.envs:MyEnv (and env.wrappers) resolve from their project folder.
+    # Last, not first: a folder there named as a module a library tries (torch's optional z3) is not imported.
     if "" not in sys.path and os.getcwd() not in sys.path:
-        sys.path.insert(0, os.getcwd())
+        sys.path.append(os.getcwd())
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     tokens = sys.argv[1:] if argv is None else argv

@@ -15,7 +15,7 @@ import torch
 from relayrl import atomic
 from relayrl.envs.gym import GymBatchEnv
 from relayrl.envs.make import gl_hint, making
-from relayrl.envs.resolve import resolve_env_fn
+from relayrl.envs.resolve import no_display, resolve_env_fn
 from relayrl.errors import UserError, check_count
 from relayrl.export import load_policy
 from relayrl.paths import output_path, writing
@@ -48,7 +48,7 @@ def record_video(run_dir: str | Path, out: str | Path | None = None, episodes: i
     if path.suffix.lower() not in VIDEO_SUFFIXES:  # said before the episodes are played, not after
         raise UserError(f"--out {str(path)!r}: {path.suffix} is not a video format relayrl writes; valid: "
                         f"{', '.join(VIDEO_SUFFIXES)}")
-    with _headless_sdl():
+    with _headless():
         frames, fps = _frames(rd, policy=load_policy(rd.root), env=env, episodes=episodes, seed=seed,
                               max_steps=max_steps)
     import imageio.v2 as imageio
@@ -82,12 +82,15 @@ VIDEO_SUFFIXES = (".mp4", ".gif", ".mkv", ".mov", ".avi")  # not .webm: ffmpeg's
 
 
 @contextlib.contextmanager
-def _headless_sdl() -> Iterator[None]:
+def _headless() -> Iterator[None]:
     """Off-screen rendering needs no display or sound: without these, pygame-based envs
-    (Pendulum) print an SDL "XDG_RUNTIME_DIR is invalid" error on headless machines. Put back
-    afterwards, so a notebook's own `render_mode="human"` env later gets its window."""
-    added = [k for k in ("SDL_VIDEODRIVER", "SDL_AUDIODRIVER") if k not in os.environ]  # a user's own stay
-    os.environ.update(dict.fromkeys(added, "dummy"))
+    (Pendulum) print an SDL "XDG_RUNTIME_DIR is invalid" error on headless machines, and MuJoCo
+    tries GLFW, which needs a display, and prints its warnings before failing (EGL renders
+    without one). Put back afterwards, so a notebook's own `render_mode="human"` env later gets
+    its window. A user's own settings stay."""
+    wanted = {"SDL_VIDEODRIVER": "dummy", "SDL_AUDIODRIVER": "dummy", **({"MUJOCO_GL": "egl"} if no_display() else {})}
+    added = {k: v for k, v in wanted.items() if k not in os.environ}
+    os.environ.update(added)
     try:
         yield
     finally:

@@ -8,6 +8,9 @@ import dataclasses
 import difflib
 import importlib
 import inspect
+import os
+import re
+import sys
 from collections.abc import Callable
 from typing import Any
 
@@ -18,6 +21,11 @@ from relayrl.errors import UserError
 from relayrl.user_code import import_user_module, load_callable
 
 EnvFn = Callable[[], gym.Env]
+
+
+def no_display() -> bool:
+    """Linux without an X11 or Wayland display (a server, a container, an SSH session without -X)."""
+    return sys.platform.startswith("linux") and not os.environ.get("DISPLAY") and not os.environ.get("WAYLAND_DISPLAY")
 
 
 def names_module(env_id: str) -> bool:
@@ -44,6 +52,9 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
     `kwargs` go to the class or `gymnasium.make`; `wrappers` (`module:Callable`, each taking
     and returning an env) are applied in order over the made env and its time limit."""
     kwargs = dict(kwargs or {})
+    if kwargs.get("render_mode") == "human" and no_display():  # GLFW and SDL abort the process, past any except
+        raise UserError("env.kwargs render_mode='human' opens a window, and this machine has no display (DISPLAY "
+                        "is unset): leave render_mode out (relayrl video records episodes without a display)")
     if render_mode is not None:
         kwargs["render_mode"] = render_mode
     wrap = [load_callable(w, "env.wrappers") for w in wrappers]
@@ -129,20 +140,54 @@ def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, 
         try:
             return gym.make(spec, disable_env_checker=True, **kwargs)
         except TypeError as e:
-            if "argument" not in str(e):
+            if "argument" not in str(e) and (not given or module):
                 raise
-            raise UserError(f"env.id={env_id!r} does not take the arguments given ({e}); arguments passed "
-                            f"(env.kwargs, and eval.env_kwargs to evaluation envs): {sorted(kwargs)}") from None
-        except (KeyError, ValueError) as e:
-            # a registered env that rejects a value it was given (FrozenLake's map_name="8X8": a
-            # KeyError of its map table) is a typo in env.kwargs, not a bug of the env; without
-            # env.kwargs, or from a user's module, it is their code's traceback that helps
+            if "argument" in str(e):
+                raise UserError(_arguments_line(env_id, spec, e, kwargs, given)) from None
+            failed: Exception = e
+        except (KeyError, ValueError, ArithmeticError, AssertionError, IndexError) as e:
+            # a registered env that fails on a value it was given (FrozenLake's map_name="8X8": a
+            # KeyError of its map table; Hopper's frame_skip=0: a ZeroDivisionError) has a typo in
+            # env.kwargs, not a bug; without env.kwargs, or from a user's module, it is their
+            # code's traceback that helps
             if not given or module:
                 raise
-            raise UserError(f"env.id={env_id!r} does not take the values given ({type(e).__name__}: {e}); arguments "
-                            f"passed (env.kwargs, and eval.env_kwargs to evaluation envs): {given}") from None
+            failed = e
+        raise UserError(f"env.id={env_id!r} does not take the values given ({type(failed).__name__}: {failed}); "
+                        f"arguments passed (env.kwargs, and eval.env_kwargs to evaluation envs): {given}") from None
 
     return make_registered
+
+
+def _arguments_line(env_id: str, spec: Any, error: TypeError, kwargs: dict[str, Any], given: dict[str, Any]) -> str:
+    """A registered env's refusal of an argument: which one, the near miss among the env
+    class's own arguments, or, for an argument none is near, that env.kwargs a preset set stay
+    when --set env.id changes the env (ppo-lunarlander-continuous's continuous=true on Hopper-v5)."""
+    named = re.search(r"unexpected keyword argument '(\w+)'", str(error))
+    if named is None:
+        return (f"env.id={env_id!r} does not take the arguments given ({error}); arguments passed (env.kwargs, and "
+                f"eval.env_kwargs to evaluation envs): {sorted(kwargs)}")
+    own = _own_arguments(spec.entry_point)
+    close = difflib.get_close_matches(named[1], own, n=1, cutoff=0.6)
+    where = "env.kwargs" if named[1] in given else "eval.env_kwargs"
+    line = f"env.id={env_id!r} takes no argument {named[1]!r} ({where})"
+    line += f"; did you mean {close[0]!r}?" if close else ""
+    line += f" (its own arguments: {', '.join(own)})" if own else ""
+    if not close and where == "env.kwargs":
+        line += "; env.kwargs a preset sets stay when --set env.id changes the env: --set 'env.kwargs={}' clears them"
+    return line
+
+
+def _own_arguments(entry_point: Any) -> list[str]:
+    """The keyword arguments an env class (or factory) names itself: those a **kwargs passes on
+    to a base class (MuJoCo's render settings) are not among them."""
+    try:
+        target = gym.envs.registration.load_env_creator(entry_point) if isinstance(entry_point, str) else entry_point
+        params = inspect.signature(target).parameters.values()
+    except (ImportError, AttributeError, ValueError, TypeError):
+        return []
+    kinds = (inspect.Parameter.POSITIONAL_OR_KEYWORD, inspect.Parameter.KEYWORD_ONLY)
+    return [p.name for p in params if p.kind in kinds and p.name != "self"]
 
 
 def apply_wrappers(env: gym.Env, wrappers: list[Callable[[gym.Env], gym.Env]]) -> gym.Env:
