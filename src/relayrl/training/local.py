@@ -232,7 +232,8 @@ class LocalDriver:
             elif changed:
                 self.core.say(f"{', '.join(changed)} changed: the envs start new episodes with the new settings")
             elif not files_moved_on:
-                self.core.say("env state is not checkpointable (the env cannot be pickled): "
+                self.env_state_said = True  # its checkpoints' line would say it again
+                self.core.say("checkpoints hold no env state (the env cannot be pickled mid-episode): "
                               "the resumed run starts new episodes")
 
     def _env_settings_changed(self, state: dict[str, Any]) -> list[str]:
