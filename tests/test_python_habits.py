@@ -76,20 +76,21 @@ def test_an_env_whose_actions_or_discrete_sizes_are_not_the_policys_is_one_line(
     # Only the observations' shapes were compared: a Discrete(2) policy ran on a Discrete(3) env
     # (never taking the third action), a [-2, 2] one on a [-1, 1] env, and a Discrete(16)
     # observation policy on Discrete(64) raised torch's one-hot IndexError.
-    with pytest.raises(UserError, match=r"^this env's actions \(Discrete\(3\)\) are not the policy's: it gives "
-                                        r"Discrete\(2\) actions$"):
+    with pytest.raises(UserError, match=r"^this env's actions \(Discrete\(3\)\) are not the policy's \(trained on "
+                                        r"toy_envs:Countdown\): it gives Discrete\(2\) actions$"):
         relayrl.evaluate(run_dir, MoreActions(), episodes=1)
     with pytest.raises(UserError, match=r"this env's actions \(Discrete\(3\)\) are not the policy's"):
         relayrl.record_video(run_dir, tmp_path / "v.mp4", env=MoreActions)
     assert not (tmp_path / "v.mp4").exists()
     lake = {**TINY, "env": {"id": "FrozenLake-v1", "kwargs": {"is_slippery": False}}}
     relayrl.train(lake, tmp_path / "lake", progress=False)
-    with pytest.raises(UserError, match=r"^this env's observations \(Discrete\(64\)\) do not fit the policy: it "
-                                        r"takes Discrete\(16\) observations$"):
+    with pytest.raises(UserError, match=r"^this env's observations \(Discrete\(64\)\) do not fit the policy \(trained "
+                                        r"on FrozenLake-v1\): it takes Discrete\(16\) observations$"):
         relayrl.evaluate(tmp_path / "lake", "FrozenLake8x8-v1", episodes=1)
     relayrl.train({**TINY, "algo": "sac", "env": {"id": "Pendulum-v1"}}, tmp_path / "sac", progress=False)
     rescaled = lambda: gym.wrappers.RescaleAction(gym.make("Pendulum-v1"), np.float32(-1), np.float32(1))  # noqa: E731
-    with pytest.raises(UserError, match=r"this env's actions \(Box\(-1, 1, .*not the policy's: it gives Box\(-2, 2"):
+    with pytest.raises(UserError, match=r"this env's actions \(Box\(-1, 1, .*not the policy's \(trained on "
+                                        r"Pendulum-v1\): it gives Box\(-2, 2"):
         relayrl.evaluate(tmp_path / "sac", rescaled, episodes=1)
     assert relayrl.evaluate(tmp_path / "sac", "Pendulum-v1", episodes=1).mean < 0  # its own env still runs
 

@@ -199,6 +199,9 @@ def _eval(args: argparse.Namespace) -> None:
         env, env_id = recorded_env(given, args.episodes, args.max_episode_steps or 0, info_keys=True, policy=policy)
     try:
         policy.check_fits(env.observation_spec, env.action_spec)
+        if args.env and policy.env_id and policy.env_id != args.env:  # same spaces: nothing else would say it
+            print(f"relayrl: the policy was trained on {policy.env_id}: evaluated on {args.env} as it is registered",
+                  file=sys.stderr)
         result = evaluate(env, policy, args.episodes, seed=args.seed)
         note = eval_cap_note(env, env_id)
         if note:

@@ -100,11 +100,12 @@ class LoadedPolicy(Policy):
         Dict / Tuple entry's key, shape and range of values (a Discrete's n, a MultiDiscrete's
         nvec), or those of the one array; and, given `action_spec`, unless the env's actions are
         the ones it gives (kind, shape, n, bounds; dtype aside, as actions are cast to the env's)."""
+        trained = f" (trained on {self.env_id})" if self.env_id else ""
         if _layout(self.obs_space) != _layout(obs_spec):
-            raise UserError(f"this env's observations ({describe(obs_spec)}) do not fit the policy: it takes "
+            raise UserError(f"this env's observations ({describe(obs_spec)}) do not fit the policy{trained}: it takes "
                             f"{describe(self.obs_space)} observations")
         if action_spec is not None and not _same_actions(self.action_space, _env_action_space(action_spec)):
-            raise UserError(f"this env's actions ({describe(action_spec)}) are not the policy's: it gives "
+            raise UserError(f"this env's actions ({describe(action_spec)}) are not the policy's{trained}: it gives "
                             f"{describe(spec_from_space(self.action_space, 'action'))} actions")
 
     def __call__(self, obs: Any) -> Any:
