@@ -187,6 +187,8 @@ def test_bad_wrappers_are_one_line():
         make_env("CartPole-v1", wrappers=["toy_envs.double_reward"])
     with pytest.raises(UserError, match="has no callable 'nope'"):
         make_env("CartPole-v1", wrappers=["toy_envs:nope"])
+    with pytest.raises(UserError, match=r"has no callable 'ClipActoin'; did you mean gymnasium.wrappers:ClipAction\?$"):
+        make_env("Pendulum-v1", wrappers=["gymnasium.wrappers:ClipActoin"])
     with pytest.raises(UserError, match="TimeLimit cannot be called with the env alone"):
         make_env("CartPole-v1", wrappers=["gymnasium.wrappers:TimeLimit"])  # needs max_episode_steps
 

@@ -3,6 +3,7 @@ imported with the current directory on the import path, or one line that says wh
 
 from __future__ import annotations
 
+import difflib
 import importlib
 import os
 import sys
@@ -44,7 +45,16 @@ def load_callable(path: str, what: str) -> Callable[..., Any]:
     if path.count(":") != 1:
         raise UserError(f"{what}: {path!r} is not package.module:Callable")
     module_name, name = path.split(":")
-    target = getattr(import_user_module(module_name, f"{what}: {path!r}"), name, None)
+    module = import_user_module(module_name, f"{what}: {path!r}")
+    target = getattr(module, name, None)
     if not callable(target):
-        raise UserError(f"{what}: {path!r}: module {module_name!r} has no callable {name!r}")
+        raise UserError(f"{what}: {path!r}: module {module_name!r} has no callable {name!r}"
+                        f"{near_callable(module, module_name, name)}")
     return target
+
+
+def near_callable(module: Any, module_name: str, name: str) -> str:
+    """"; did you mean module:Name?" for the module's callable nearest `name` (case aside), or ""."""
+    names = {n.lower(): n for n, v in vars(module).items() if not n.startswith("_") and callable(v)}
+    close = difflib.get_close_matches(name.lower(), list(names), n=1, cutoff=0.6)
+    return f"; did you mean {module_name}:{names[close[0]]}?" if close else ""

@@ -18,7 +18,7 @@ import gymnasium as gym
 
 from relayrl.envs.atari import missing_ale_hint, register_on_demand
 from relayrl.errors import UserError
-from relayrl.user_code import import_user_module, load_callable
+from relayrl.user_code import import_user_module, load_callable, near_callable
 
 EnvFn = Callable[[], gym.Env]
 
@@ -77,9 +77,7 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
         elif name in gym.registry:  # Gymnasium's own `module:EnvId-v0`: the import registered it
             base = _registered_fn(name, kwargs, max_episode_steps, module_name)
         else:
-            names = {n.lower(): n for n, v in vars(module).items() if not n.startswith("_") and callable(v)}
-            close = difflib.get_close_matches(name.lower(), list(names), n=1, cutoff=0.6)
-            hint = f"; did you mean {module_name}:{names[close[0]]}?" if close else ""
+            hint = near_callable(module, module_name, name)
             raise UserError(f"env.id={env_id!r}: module {module_name!r} has no {name!r} and registers no "
                             f"Gymnasium id {name!r}{hint} (valid: package.module:Class or package.module:EnvId-v0)")
     else:
