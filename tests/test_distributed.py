@@ -546,6 +546,24 @@ def test_an_env_a_ray_worker_cannot_make_is_one_line_naming_the_worker(tmp_path)
     assert not ray.is_initialized()
 
 
+@needs_ray
+def test_an_id_registered_only_in_the_users_script_trains_on_ray_actors(tmp_path):
+    """gymnasium.register in the user's script (the driver's process) is not in a Ray worker's
+    fresh registry: the run takes it there, so that the id that trains in one process trains on Ray."""
+    import gymnasium
+
+    gymnasium.register("relayrl-test/ScriptRegistered-v0", entry_point="toy_envs:Countdown", kwargs={"length": 7})
+    try:
+        config = relayrl.load_config("dqn-cartpole-fast", [
+            "distributed.num_actors=1", "env.id=relayrl-test/ScriptRegistered-v0", "train.total_steps=400",
+            "train.initial_collect_steps=100", "eval.interval=0", "eval.episodes=1", "distributed.chunk_steps=50",
+            "train.checkpoint_interval=0"])
+        result = relayrl.train(config, tmp_path / "run", progress=False)
+    finally:
+        del gymnasium.registry["relayrl-test/ScriptRegistered-v0"]
+    assert result.final["step"] == 400 and result.final["average_episode_length"] == 7.0
+
+
 def test_actors_not_yet_placed_are_waited_for_with_a_line_every_so_often(monkeypatch):
     # A cluster without the CPUs the actors ask for places them when some come free: the run
     # says what it waits for instead of hanging without a word.
@@ -558,11 +576,21 @@ def test_actors_not_yet_placed_are_waited_for_with_a_line_every_so_often(monkeyp
     fake_ray = SimpleNamespace(
         wait=lambda pending, num_returns, timeout: next(waits), get=lambda calls: [1, 2],
         available_resources=lambda: {"CPU": 0.0}, cluster_resources=lambda: {"CPU": 2.0},
+        nodes=lambda: [{"Alive": True, "Resources": {"CPU": 2.0}}, {"Alive": False, "Resources": {"CPU": 8.0}}],
         exceptions=SimpleNamespace(RayActorError=RuntimeError))
-    pool = actors.ActorPool(fake_ray, relayrl.load_config("ppo-cartpole", ["distributed.num_actors=4"]), said.append)
+    pool = actors.ActorPool(fake_ray, relayrl.load_config("ppo-cartpole", ["distributed.num_actors=2"]), said.append)
     pool.wait_started(["a", "b"])
     assert said == ["waiting for 1 actor to start: rollout actors ask for 1 CPU each (distributed.actor_cpus), "
-                    "the Ray cluster has 0 of 2 CPUs free"] * 2
+                    "the Ray cluster has 0 of 2 CPUs free; this run's 1 started rollout actor holds 1"] * 2
+    # an actor larger than any node's CPUs: said at once, not only that it waits
+    waits = iter([(["a", "b"], [])])
+    said.clear()
+    pool = actors.ActorPool(fake_ray, relayrl.load_config("ppo-cartpole", [
+        "distributed.num_actors=2", "distributed.actor_cpus=3"]), said.append)
+    pool.wait_started(["a", "b"])
+    assert said == ["no node of the Ray cluster has 3 CPUs (the largest has 2): the rollout actors start only once "
+                    "a node that large joins (an autoscaling cluster adds one); a lower distributed.actor_cpus "
+                    "starts them now"]
 
 
 def test_a_running_cluster_and_an_empty_address_is_one_line(monkeypatch):

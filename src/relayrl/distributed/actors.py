@@ -10,7 +10,6 @@ import os
 import re
 import signal
 import socket
-import sys
 import time
 import uuid
 from collections.abc import Callable
@@ -18,7 +17,7 @@ from typing import Any
 
 from relayrl.config import Config, to_dict
 from relayrl.config_checks import RAY_ADDRESS
-from relayrl.distributed.workers import EvalWorker, actor_name
+from relayrl.distributed.workers import DriverHome, EvalWorker, actor_name
 from relayrl.errors import UserError
 from relayrl.training.report import plural
 from relayrl.training.variables import VariableContainer
@@ -65,19 +64,28 @@ def _init(ray: Any, config: Config) -> None:
         target = os.environ.get("RAY_ADDRESS", "") if d.address == "auto" else d.address
         if re.fullmatch(RAY_ADDRESS, target):
             host, port = target.removeprefix("ray://").rsplit(":", 1)
+            via = f" (RAY_ADDRESS={target!r})" if target != d.address else ""
             try:
-                socket.create_connection((host.strip("[]"), int(port)), timeout=5).close()  # [::1]: IPv6
+                grpc = speaks_http2(host.strip("[]"), int(port))  # [::1]: IPv6
             except OSError as e:
-                via = f" (RAY_ADDRESS={target!r})" if target != d.address else ""
                 raise UserError(f"{no_head}{via} ({e.strerror or e})") from None
+            if grpc is False:  # Ray would retry it for minutes
+                raise UserError(f"something answers at distributed.address={d.address!r}{via}, but not as a Ray "
+                                "head does (no gRPC): another service's port (the dashboard's, 8265)? A Ray head "
+                                "listens on 6379 unless `ray start --head --port` said otherwise")
         try:
             ray.init(address=d.address, **kw)
         except ConnectionError as e:
             if d.address == "auto":
                 raise UserError(no_head) from None
             reason = (str(e).strip().splitlines() or [type(e).__name__])[0][:200]
+            token = "" if os.environ.get("RAY_AUTH_MODE") else (
+                ", and, where it uses token authentication (`ray start --head` turns it on from Ray 2.59), that "
+                "RAY_AUTH_MODE=token is set here")
+            client = "" if d.address.startswith("ray://") else "; a Ray Client server (port 10001) takes ray://HOST:PORT"
             raise UserError(f"something answers at distributed.address={d.address!r}, but Ray could not join it "
-                            f"({reason}): check that it is a Ray head of a matching Ray version") from None
+                            f"({reason}): check that it is a Ray head of Ray {ray.__version__}{token}"
+                            f"{client}") from None
     else:
         cores = os.cpu_count() or 1
         # each actor is a process holding torch (~0.3 GB): thousands on one machine exhaust its memory
@@ -99,6 +107,27 @@ def _init(ray: Any, config: Config) -> None:
                 ("a Ray cluster is running on this machine", "stop it (ray stop)")
             raise UserError(f"{where}, and distributed.address is empty (a local Ray instance of the run's own): "
                             f"set distributed.address=auto to join that cluster, or {other}") from None
+
+
+# HTTP/2's client preface and an empty SETTINGS frame (length 0, type 4, no flags, stream 0)
+HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
+
+
+def speaks_http2(host: str, port: int, timeout: float = 5.0) -> bool | None:
+    """Whether what listens at host:port answers HTTP/2's connection preface with a SETTINGS
+    frame, as gRPC servers (a Ray head's GCS, a Ray Client server) do; None where it says
+    nothing within `timeout` (TLS, RAY_USE_TLS: not asked). OSError where nothing listens."""
+    with socket.create_connection((host, port), timeout=timeout) as conn:
+        if os.environ.get("RAY_USE_TLS", "0") not in ("", "0"):
+            return None
+        conn.sendall(HTTP2_PREFACE)
+        try:
+            header = conn.recv(9)
+        except TimeoutError:
+            return None
+        except OSError:  # reset: not HTTP/2
+            return False
+    return len(header) >= 4 and header[3] == 0x04  # frame type SETTINGS
 
 
 class ActorPool:
@@ -129,8 +158,12 @@ class ActorPool:
         # Owned from before ray.init: a Ctrl-C inside it leaves the processes it started, which
         # `close` shuts down.
         self.owns_ray = not ray.is_initialized()
+        if self.owns_ray:  # seconds, tens of them on a busy machine, with nothing else to show meanwhile
+            where = f"joining the Ray cluster at {d.address!r}" if d.address else "starting a local Ray instance"
+            evals = f" and {plural(d.num_eval_actors, 'eval actor')}" if d.num_eval_actors else ""
+            self.say(f"{where}, then {plural(self.num_actors, 'rollout actor')}{evals}")
         init_ray(ray, c)
-        cfg, path = to_dict(c), list(sys.path)
+        cfg, home = to_dict(c), DriverHome.of(c.env.id)
         # Restartable actors find the server and the container by name: Ray cannot promise to
         # keep actor handles passed as constructor arguments alive for a restart.
         names = f"relayrl-{uuid.uuid4().hex[:12]}"
@@ -138,9 +171,9 @@ class ActorPool:
         self.variables = ray.remote(num_cpus=0, max_concurrency=self.num_actors + 8)(VariableContainer).options(
             name=actor_name(names, "variables")).remote(copy=True)
         worker = ray.remote(num_cpus=d.actor_cpus, max_restarts=d.max_restarts, max_task_retries=0)(worker_class)
-        self.workers = [worker.remote(cfg, i, names, path) for i in range(self.num_actors)]
+        self.workers = [worker.remote(cfg, i, names, home) for i in range(self.num_actors)]
         evaluator = ray.remote(num_cpus=0, max_restarts=d.max_restarts, max_task_retries=0)(EvalWorker)
-        self.eval_workers = [evaluator.remote(cfg, names, path) for _ in range(d.num_eval_actors)]
+        self.eval_workers = [evaluator.remote(cfg, names, home) for _ in range(d.num_eval_actors)]
         self.wait_started([w.pid.remote() for w in self.workers + self.eval_workers])
 
     def wait_started(self, calls: list[Any]) -> None:
@@ -148,14 +181,23 @@ class ActorPool:
         (a cluster without free CPUs places them only when some come free); an actor that fails
         to start on a worker (its env, its module) is one line."""
         ray, d = self.ray, self.config.distributed
+        biggest = max((n.get("Resources", {}).get("CPU", 0.0) for n in ray.nodes() if n.get("Alive")), default=0.0)
+        if d.actor_cpus > biggest:  # an actor takes its CPUs on one node
+            self.say(f"no node of the Ray cluster has {d.actor_cpus:g} CPUs (the largest has {biggest:g}): the "
+                     "rollout actors start only once a node that large joins (an autoscaling cluster adds one); a "
+                     "lower distributed.actor_cpus starts them now")
         pending = calls
         while pending:
             _, pending = ray.wait(pending, num_returns=len(pending), timeout=WAIT_SAY_S)
             if pending:
                 free, total = ray.available_resources().get("CPU", 0), ray.cluster_resources().get("CPU", 0)
+                started = len([call for call in calls[:self.num_actors] if call not in pending])  # rollout actors first
+                holds = "holds" if started == 1 else "hold"
+                held = f"; this run's {plural(started, 'started rollout actor')} {holds} {started * d.actor_cpus:g}" \
+                    if started else ""
                 self.say(f"waiting for {plural(len(pending), 'actor')} to start: rollout actors ask for "
                          f"{d.actor_cpus:g} CPU each (distributed.actor_cpus), the Ray cluster has {free:g} of "
-                         f"{total:g} CPUs free")
+                         f"{total:g} CPUs free{held}")
         try:
             ray.get(calls)
         except ray.exceptions.RayActorError as e:

@@ -9,6 +9,7 @@ import os
 import sys
 import uuid
 import warnings
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -31,12 +32,32 @@ from relayrl.training.variables import WeightPuller
 from relayrl.types import Transition
 
 
-def _setup(config: dict[str, Any], sys_path: list[str]) -> Config:
-    # Local Ray workers do not inherit the driver's sys.path; a user's `package.module:Class`
-    # env (or a test's) must import in the worker as it did in the driver.
-    for p in reversed(sys_path):
+@dataclass(frozen=True)
+class DriverHome:
+    """What a worker needs to find the user's code as the driver does: local Ray workers do not
+    inherit the driver's sys.path (a user's `package.module:Class` env must import there as it
+    did in the driver), and a worker's Gymnasium registry is a fresh one, without the ids a
+    `gymnasium.register` in the user's script added to the driver's."""
+
+    sys_path: list[str]
+    env_specs: dict[str, Any]  # the env ids the run makes, as the driver's registry holds them
+
+    @classmethod
+    def of(cls, env_id: str) -> DriverHome:
+        import gymnasium as gym
+
+        return cls(list(sys.path), {env_id: gym.registry[env_id]} if env_id in gym.registry else {})
+
+
+def _setup(config: dict[str, Any], home: DriverHome) -> Config:
+    import gymnasium as gym
+
+    for p in reversed(home.sys_path):
         if p not in sys.path:
             sys.path.insert(0, p)
+    for env_id, spec in home.env_specs.items():
+        if env_id not in gym.registry:  # registered in the driver's process only
+            gym.registry[env_id] = spec
     c = from_dict(config)
     torch.set_num_threads(max(1, c.train.torch_threads))
     return c
@@ -121,9 +142,9 @@ class _RolloutActor:
     """What both rollout actors hold: env copies, an acting copy of the policy network, the
     finished episodes and the non-finite watch, whose findings go back with each answer."""
 
-    def __init__(self, config: dict[str, Any], index: int, names: str, sys_path: list[str],
+    def __init__(self, config: dict[str, Any], index: int, names: str, home: DriverHome,
                  pull_interval: int | None = None) -> None:
-        c = self.config = _setup(config, sys_path)
+        c = self.config = _setup(config, home)
         self.seeds = RunSeeds(c.seed).actor(index)  # apart from the learner's and the other actors'
         if _reconstructed():  # a restarted actor must not replay its episodes: fresh streams
             self.seeds = self.seeds.actor(int.from_bytes(os.urandom(4), "little"))
@@ -156,10 +177,10 @@ class _RolloutActor:
 class RolloutWorker(_RolloutActor):
     """An off-policy algorithm's rollout actor: `collect(n)` ships its steps to the replay server."""
 
-    def __init__(self, config: dict[str, Any], index: int, names: str, sys_path: list[str]) -> None:
+    def __init__(self, config: dict[str, Any], index: int, names: str, home: DriverHome) -> None:
         import ray
 
-        super().__init__(config, index, names, sys_path)
+        super().__init__(config, index, names, home)
         server = named_actor(names, "replay")
         self.num_actors, self.chunk_steps = self.config.distributed.num_actors, self.config.distributed.chunk_steps
         self.global_steps = 0  # the run's env steps, for env-step schedules (DQN's epsilon)
@@ -193,8 +214,8 @@ class RolloutCollector(_RolloutActor):
     """An on-policy algorithm's rollout actor: `collect(T)` pulls the newest weights, steps its
     copies T times and returns the [T, num_envs] rollout tagged with the policy version."""
 
-    def __init__(self, config: dict[str, Any], index: int, names: str, sys_path: list[str]) -> None:
-        super().__init__(config, index, names, sys_path, pull_interval=0)  # every collect call pulls
+    def __init__(self, config: dict[str, Any], index: int, names: str, home: DriverHome) -> None:
+        super().__init__(config, index, names, home, pull_interval=0)  # every collect call pulls
         self.writers: dict[int, RolloutWriter] = {}  # by steps per env copy, each into its own queue
         self.actor = Actor(self.env, self.agent.collect_policy(None, self.net), [self.episodes],
                            seed=self.seeds.base("envs"), puller=self.puller, whose=f"rollout actor {index}")
@@ -212,8 +233,8 @@ class RolloutCollector(_RolloutActor):
 class EvalWorker:
     """Evaluates the newest weights in the VariableContainer on its own envs."""
 
-    def __init__(self, config: dict[str, Any], names: str, sys_path: list[str]) -> None:
-        c = _setup(config, sys_path)
+    def __init__(self, config: dict[str, Any], names: str, home: DriverHome) -> None:
+        c = _setup(config, home)
         self.episodes = c.eval.episodes
         self.env = make_eval_env(c.env.id, c.eval.episodes, c.env.max_episode_steps, info_keys=c.env.info_keys,
                                  kwargs=c.eval_env_kwargs(), wrappers=c.env.wrappers,
