@@ -59,8 +59,9 @@ def test_bptt_refuses_settings_it_would_ignore(tmp_path, setting, why):
 
 
 def test_bptt_runs_in_one_process_only(tmp_path):
-    with pytest.raises(ConfigError, match="distributed.num_actors=2 does not apply to algo='bptt': it runs in one "
-                                          "process only"):
+    with pytest.raises(ConfigError, match=r"distributed.num_actors=2 does not apply to algo='bptt': it runs in one "
+                                          r"process only; leave it at 0 \(distributed.num_actors works with dqn, "
+                                          r"sac, ppo\)$"):
         relayrl.train(relayrl.load_config("bptt-pendulum", SHORT + ["distributed.num_actors=2"]), tmp_path / "x",
                       progress=False)
     assert not (tmp_path / "x").exists()

@@ -115,7 +115,7 @@ class DistributedConfig(Section):
     pull_interval: int = 1_000  # env steps between a rollout actor's weight pulls
     push_interval: int = 50  # gradient steps between the learner's weight pushes
     chunk_steps: int = 256  # env steps per replay insert RPC, per actor
-    num_eval_actors: int = 1  # eval runs in these Ray actors, beside training
+    num_eval_actors: int = 1  # eval runs in these Ray actors (at least one), beside training
     max_restarts: int = 5  # times Ray restarts a rollout or eval actor that died
     actor_cpus: float = 1.0  # CPUs Ray reserves per rollout actor (spreads them over a cluster)
 

@@ -8,7 +8,7 @@ import re
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol, cast
 
-from relayrl.agents.registry import algorithm
+from relayrl.agents.registry import algorithm, ray_algorithms
 from relayrl.config_fields import shown
 from relayrl.errors import ConfigError
 from relayrl.seeding import seed_problem
@@ -110,8 +110,10 @@ def _check_trainer(config: Config, defaults: Config) -> None:
         for f in dataclasses.fields(section):
             key, value, default = f"{name}.{f.name}", getattr(section, f.name), getattr(default_section, f.name)
             if key not in a.RUN_KEYS and value != default:
+                ray = f" (distributed.num_actors works with {', '.join(ray_algorithms())})" \
+                    if key == "distributed.num_actors" else ""
                 raise ConfigError(f"{key}={shown(value)} does not apply to algo={config.algo!r}: "
-                                  f"{a.WHY_UNUSED.get(key, a.UNUSED)}; leave it at {shown(default)}")
+                                  f"{a.WHY_UNUSED.get(key, a.UNUSED)}; leave it at {shown(default)}{ray}")
     if config.train.total_steps < a.iteration_steps():
         raise ConfigError(f"train.total_steps={config.train.total_steps} is less than one iteration "
                           f"(agent.batch_size * agent.rollout_steps = {a.iteration_steps()} env steps)")
