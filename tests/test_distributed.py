@@ -818,4 +818,4 @@ def test_every_rollout_actor_given_up_is_one_line(tmp_path):
     assert str(e.value) == ("every rollout actor died, each past distributed.max_restarts=0 (the lines above say "
                             "why)")
     assert e.value.__suppress_context__
-    assert said == ["rollout actor 0 died and is not restarted again (distributed.max_restarts=0)"]
+    assert said == ["rollout actor 0 died (RuntimeError) and is not restarted again (distributed.max_restarts=0)"]

@@ -332,7 +332,8 @@ class ActorPool:
         if self.failures[i] > d.max_restarts:
             self.dead.add(i)
             self.restarting.discard(i)
-            self.say(f"rollout actor {i} died and is not restarted again (distributed.max_restarts={d.max_restarts})")
+            self.say(f"rollout actor {i} died ({why}) and is not restarted again "
+                     f"(distributed.max_restarts={d.max_restarts})")
             if len(self.dead) == self.num_actors:
                 # One line, not Ray's chained traceback: why each died was said above, and
                 # run_to_end adds what the run keeps and how --resume continues it.
