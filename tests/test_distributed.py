@@ -693,7 +693,8 @@ def test_an_actor_whose_env_fails_to_build_is_the_workers_one_line_and_ray_is_sh
     shut = []
     fake_ray = SimpleNamespace(wait=lambda pending, num_returns, timeout: (pending, []), get=get,
                                exceptions=SimpleNamespace(RayActorError=ActorDied), is_initialized=lambda: False,
-                               shutdown=lambda: shut.append(1))
+                               shutdown=lambda: shut.append(1),
+                               nodes=lambda: [{"Alive": True, "Resources": {"CPU": 2}}])
     pool = actors.ActorPool(fake_ray, relayrl.load_config("ppo-cartpole", ["distributed.num_actors=1"]), print)
     with pytest.raises(UserError, match=r"^an actor could not start on a Ray worker: OSError: WorkerFails: no device "
                                         r"/dev/fake on this node$"):

@@ -177,6 +177,8 @@ def test_ppo_on_ray_resumes_from_its_checkpoint(ray_run, tmp_path, capsys):
     r = rows(tmp_path / "run")
     assert [row["step"] for row in r] == [0, 1000] and r[-1]["train_step"] == 15 * 2 * 2
     assert relayrl.load_policy(tmp_path / "run").env_steps == 1000
+    # the weights' versions go on from the checkpoint's (the resume's first push of its weights is one more)
+    assert rows(run)[-1]["policy_version"] <= r[-1]["policy_version"] <= rows(run)[-1]["policy_version"] + 1
 
 
 @pytest.mark.slow
