@@ -148,6 +148,9 @@ class ReplayCollection:
             if not self.pool.inflight and not self._retry_pending():
                 if collected_at is None:
                     collected_at = self.table.requests
+                    if not core.collect_only:  # the learner may lag the actors by seconds: no silent wait
+                        core.say(f"all {self.env_steps():,} env steps collected: the learner takes the gradient "
+                                 f"steps the replay still allows (at train step {core.agent.train_step:,})")
                 # Collection is over: stop once a sample request sent after it found the rate
                 # limiter allowing nothing more (the one-process loop's last `available_steps`).
                 if core.collect_only or (not n and self.table.last_empty and self.table.answered > collected_at):
