@@ -108,6 +108,11 @@ def test_trained_policy_takes_the_envs_own_observations(algo, obs, act, tmp_path
     np.testing.assert_allclose(policy(to_torch(stack(obs_list))).numpy(), batched, atol=1e-6)
     for a in batched:
         assert_valid(env.action_space, a)
+    # evaluation in the mode the policy was not loaded in (SB3's evaluate_policy(deterministic=False))
+    for deterministic in (True, False):
+        returns, _ = relayrl.evaluate(policy, lambda: Spaces(obs, act), episodes=2, deterministic=deterministic,
+                                      return_episode_rewards=True)
+        assert len(returns) == 2
     # the exported program takes the env's observation: one input, or one per Dict / Tuple entry
     has_onnx = all(importlib.util.find_spec(m) for m in ("onnx", "onnxscript", "onnxruntime"))
     formats = ("pt2", "onnx") if (algo, obs, act) in ONNX and has_onnx else ("pt2",)

@@ -109,6 +109,11 @@ class LoadedPolicy(Policy):
                             f"{describe(spec_from_space(self.action_space, 'action'))} actions")
 
     def __call__(self, obs: Any) -> Any:
+        return self._run(self.batched, obs)
+
+    def _run(self, policy: Any, obs: Any) -> Any:
+        """`policy`'s actions for `obs`: a batch of the env's own observations as the batched envs
+        give them (Dict / Tuple ones packed in rows), or anything `_act` takes."""
         if isinstance(obs, torch.Tensor) and obs.dtype == self.obs_dtype and obs.dim() == len(self.obs_shape) + 1 \
                 and tuple(obs.shape[1:]) == self.obs_shape:
             obs = obs.detach()  # a tensor needing grad (a differentiable rollout's): the CPU MLP reads it via NumPy
@@ -117,8 +122,8 @@ class LoadedPolicy(Policy):
             # a Discrete / MultiDiscrete value out of range would index past its one-hot (torch's
             # traceback): checked here too; for floats and frames this is the finiteness check alone
             _check_values(obs, self.obs_space)
-            return self._to_env(self.batched(obs))
-        return self._act(self.batched, obs)
+            return self._to_env(policy(obs))
+        return self._act(policy, obs)
 
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool | None = None) -> tuple[Any, None]:
@@ -130,7 +135,7 @@ class LoadedPolicy(Policy):
         if self._other_mode is None:
             self._other_mode = built_quietly(self._kind_module, self._state, torch.device(self._device),
                                              bool(deterministic), self._seed)
-        return self._act(self._other_mode, observation), None
+        return self._run(self._other_mode, observation), None
 
     def _to_env(self, actions: torch.Tensor) -> torch.Tensor:
         """The policy's actions in the env's shape and dtype, inside the env's own bounds."""
