@@ -373,6 +373,38 @@ def test_a_sigterm_that_ray_turned_into_a_plain_keyboard_interrupt_still_exits_1
     assert cli.main(["train", "dqn-cartpole"]) == 130
 
 
+def test_eval_on_a_named_env_applies_a_run_directorys_wrappers_and_a_policy_files_when_trusted(tmp_path, capsys):
+    """env.wrappers are the policy's input: `relayrl eval RUN --env ID` applies a run's (its
+    config.toml imports them anyway), over its own id or another; a policy file on its own runs
+    no code unless --trust-code."""
+    import shutil
+
+    import relayrl
+    from relayrl.cli import main
+
+    short = ["train.total_steps=60", "train.initial_collect_steps=20", "eval.interval=60", "eval.episodes=1",
+             "agent.batch_size=8", "env.id=toy_envs:Countdown", "env.wrappers=['toy_envs:double_reward']"]
+    relayrl.train(relayrl.load_config("dqn-cartpole", short), tmp_path / "run", progress=False)
+    capsys.readouterr()
+    assert main(["eval", str(tmp_path / "run"), "--env", "toy_envs:Countdown", "--episodes", "1"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["average_return"] == 6.0  # 3 steps, rewards doubled
+    assert "env.wrappers ['toy_envs:double_reward'] applies" in err
+    assert main(["eval", str(tmp_path / "run"), "--env", "toy_envs:make_countdown", "--episodes", "1"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["average_return"] == 6.0
+    assert ("the policy was trained on toy_envs:Countdown, evaluated here on toy_envs:make_countdown: env.wrappers "
+            "['toy_envs:double_reward'] applies") in err
+    shutil.copy(tmp_path / "run" / "policy" / "policy.pt", tmp_path / "policy.pt")
+    assert main(["eval", str(tmp_path / "policy.pt"), "--env", "toy_envs:Countdown", "--episodes", "1"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["average_return"] == 3.0 and "--trust-code applies them" in err
+    assert main(["eval", str(tmp_path / "policy.pt"), "--env", "toy_envs:Countdown", "--episodes", "1",
+                 "--trust-code"]) == 0
+    assert json.loads(capsys.readouterr().out)["average_return"] == 6.0
+    assert relayrl.evaluate(tmp_path / "run", "toy_envs:Countdown", episodes=1).mean == 6.0  # in Python too
+
+
 def test_the_current_directory_goes_last_on_the_import_path(tmp_path, monkeypatch, capsys):
     """A user's env module in their project folder is found; a folder there that shares a name
     with a module a library tries to import (torch.export's optional z3) does not shadow it."""

@@ -90,8 +90,9 @@ def build_parser() -> _Parser:
     e.add_argument("--env", metavar="ENV_ID",
                    help="evaluate on this env (a Gymnasium id or package.module:Class) instead of the run's own "
                         "(config.toml's, with its env.kwargs, eval.env_kwargs and wrappers); the id the policy was "
-                        "trained on gets the env.kwargs and time limit the policy file records; for a policy file "
-                        "outside a run directory the default is the env id the file records")
+                        "trained on gets the env.kwargs and time limit the policy file records, any id a run "
+                        "directory's env.wrappers (a policy file's with --trust-code); for a policy file outside a "
+                        "run directory the default is the env id the file records")
     e.add_argument("--max-episode-steps", type=int, default=None, metavar="N",
                    help="cut evaluation episodes at N steps (default: the run's env.max_episode_steps, else the "
                         "env's own time limit, else 1,000)")
@@ -194,12 +195,13 @@ def _eval(args: argparse.Namespace) -> None:
     policy = load_policy(given, deterministic=not args.stochastic, seed=args.seed, trust_code=args.trust_code)
     if args.env:  # as it is registered, or with the kwargs the policy records for that same id
         env_id, env = args.env, named_env(args.env, policy, args.episodes, args.max_episode_steps or 0,
-                                          say=lambda line: print(f"relayrl: {line}", file=sys.stderr))
+                                          say=lambda line: print(f"relayrl: {line}", file=sys.stderr),
+                                          run_code=args.trust_code or not lone_policy_file(given))
     else:
         env, env_id = recorded_env(given, args.episodes, args.max_episode_steps or 0, info_keys=True, policy=policy)
     try:
         policy.check_fits(env.observation_spec, env.action_spec)
-        if args.env and policy.env_id and policy.env_id != args.env:  # same spaces: nothing else would say it
+        if args.env and policy.env_id and policy.env_id != args.env and not policy.env_wrappers:  # else said above
             print(f"relayrl: the policy was trained on {policy.env_id}: evaluated on {args.env} as it is registered",
                   file=sys.stderr)
         result = evaluate(env, policy, args.episodes, seed=args.seed)

@@ -159,9 +159,13 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
                             "policy give env (a Gymnasium env, a callable returning one, or an env id)")
         return recorded_env(policy, episodes, max_episode_steps)[0], True
     if isinstance(env, str):
+        from relayrl.export import load_policy
         from relayrl.training.report import say
 
-        return named_env(env, policy, episodes, max_episode_steps, say=say), True
+        # a run directory (a lone policy file was loaded before): its config.toml's wrappers are the policy's input
+        run_dir = isinstance(policy, (str, Path))
+        recorded = load_policy(policy) if run_dir else policy  # what it was trained on
+        return named_env(env, recorded, episodes, max_episode_steps, say=say, run_code=run_dir), True
     if isinstance(env, gym.vector.VectorEnv) or hasattr(env, "step_async"):  # Gymnasium's or SB3's VecEnv
         raise UserError(f"env={type(env).__name__} is a vector env; give one env, an env id, or a callable "
                         "returning one env: relayrl.evaluate runs its own copies of it (up to 16)")
@@ -173,27 +177,33 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
 
 
 def named_env(env_id: str, policy: Any, episodes: int, max_episode_steps: int = 0,
-              say: Callable[[str], None] | None = None) -> Any:
+              say: Callable[[str], None] | None = None, run_code: bool = False) -> Any:
     """The eval env for an env id the user names. Where it is the id a loaded policy records,
-    the env.kwargs and time limit it was trained with apply (not its wrappers: a policy file runs
-    no code); `say` gets a line saying so."""
+    the env.kwargs and time limit it was trained with apply. Its env.wrappers (the policy's
+    input, over any env id) apply with `run_code` only: a run directory's, whose config.toml
+    imports them for `relayrl eval` anyway, or a policy file trusted (--trust-code); a policy
+    file on its own runs no code. `say` gets a line saying what applies."""
     from relayrl.loaded_policy import LoadedPolicy
     from relayrl.training.evaluate import make_eval_env
 
-    if not isinstance(policy, LoadedPolicy) or policy.env_id != env_id or not (
-            policy.env_kwargs or policy.max_episode_steps or policy.env_wrappers):
+    if not isinstance(policy, LoadedPolicy):
         return make_eval_env(env_id, episodes, max_episode_steps)
-    if say is not None:
-        # the caller's max_episode_steps, where given, is the time limit instead of the recorded one
-        kept = [f"env.kwargs {policy.env_kwargs}"] * bool(policy.env_kwargs) + [
-            f"env.max_episode_steps={policy.max_episode_steps}"] * bool(policy.max_episode_steps and
-                                                                       not max_episode_steps)
-        dropped = f"its env.wrappers {policy.env_wrappers} do not apply (a policy file runs no code)" \
-            if policy.env_wrappers else ""
-        applied = f"{' and '.join(kept)} appl{'y' if len(kept) > 1 else 'ies'}" if kept else ""
-        if applied or dropped:
-            say(f"{env_id} is the env the policy was trained on: {'; '.join(p for p in (applied, dropped) if p)}")
-    return make_eval_env(env_id, episodes, max_episode_steps or policy.max_episode_steps, kwargs=policy.env_kwargs)
+    same = policy.env_id == env_id
+    wrappers = list(policy.env_wrappers) if run_code else []
+    # the caller's max_episode_steps, where given, is the time limit instead of the recorded one
+    kept = [f"env.kwargs {policy.env_kwargs}"] * bool(same and policy.env_kwargs) + [
+        f"env.max_episode_steps={policy.max_episode_steps}"] * bool(same and policy.max_episode_steps and
+                                                                   not max_episode_steps) + [
+        f"env.wrappers {wrappers}"] * bool(wrappers)
+    applied = f"{' and '.join(kept)} appl{'y' if len(kept) > 1 else 'ies'}" if kept else ""
+    dropped = f"its env.wrappers {policy.env_wrappers} do not apply (a policy file runs no code; --trust-code " \
+        "applies them)" if policy.env_wrappers and not run_code else ""
+    if say is not None and (applied or dropped):
+        whose = f"{env_id} is the env the policy was trained on" if same else \
+            f"the policy was trained on {policy.env_id}, evaluated here on {env_id}"
+        say(f"{whose}: {'; '.join(p for p in (applied, dropped) if p)}")
+    steps = max_episode_steps or (policy.max_episode_steps if same else 0)
+    return make_eval_env(env_id, episodes, steps, kwargs=policy.env_kwargs if same else None, wrappers=wrappers)
 
 
 def recorded_env(source: Any, episodes: int, max_episode_steps: int = 0, info_keys: bool = False,
