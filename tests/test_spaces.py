@@ -436,9 +436,15 @@ def test_ppo_clips_to_an_unbounded_box_and_refuses_to_squash_into_it(tmp_path):
 
 
 def test_unsupported_spaces_name_the_space_and_what_is_valid():
-    with pytest.raises(UserError, match=r"observation space Text\(.*valid observation spaces: Box, Discrete, "
-                                        r"MultiDiscrete, MultiBinary, Dict, Tuple"):
+    with pytest.raises(UserError, match=r"^observation space Text is not supported; valid observation spaces: Box, "
+                                        r"Discrete, MultiDiscrete, MultiBinary, Dict, Tuple$"):
         spec_from_space(gym.spaces.Text(5), "observation")
+    # MiniGrid's mission: the entry is named, and how to train on the rest
+    mission = gym.spaces.Dict({"image": gym.spaces.Box(0, 255, (7, 7, 3), np.uint8), "mission": gym.spaces.Text(9)})
+    with pytest.raises(UserError, match=r"^the observation's entry 'mission': observation space Text is not "
+                                        r"supported; .*; an env.wrappers entry that leaves 'mission' out "
+                                        r"\(gymnasium.wrappers.FilterObservation keeping the other keys"):
+        spec_from_space(mission, "observation")
     nested = gym.spaces.Dict({"pos": gym.spaces.Box(-1, 1, (2,)), "inner": gym.spaces.Tuple(
         (gym.spaces.Discrete(2), gym.spaces.Discrete(3, start=1)))})  # the entry a wrapper must shift is named
     with pytest.raises(UserError, match=r"^the observation's entry 'inner.1': observation space Discrete\(3, "

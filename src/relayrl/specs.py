@@ -135,7 +135,7 @@ def spec_from_space(space: gym.Space, role: str = "observation") -> Spec:
     if isinstance(space, gym.spaces.MultiDiscrete):
         if np.any(np.asarray(space.start) != 0):
             raise UserError(f"{role} space {space} has a start other than 0; relayrl takes MultiDiscrete spaces "
-                            "that start at 0")
+                            "that start at 0 (wrap the env to shift them)")
         nvec = np.asarray(space.nvec, np.int64)
         return MultiDiscreteSpec(tuple(nvec.shape), torch.int64, np.zeros_like(nvec), nvec - 1,
                                  env_dtype=_other_dtype(space.dtype, torch.int64),
@@ -147,7 +147,9 @@ def spec_from_space(space: gym.Space, role: str = "observation") -> Spec:
     if isinstance(space, gym.spaces.Dict | gym.spaces.Tuple) and role == "observation":
         return packed_spec(space)
     valid = OBSERVATION_SPACES if role == "observation" else ACTION_SPACES
-    raise UserError(f"{role} space {space} is not supported; valid {role} spaces: {valid}")
+    # a Text space's repr names its charset, MiniGrid's MissionSpace's a function at an address
+    shown = type(space).__name__ if isinstance(space, gym.spaces.Text) or " at 0x" in str(space) else str(space)
+    raise UserError(f"{role} space {shown} is not supported; valid {role} spaces: {valid}")
 
 
 def _other_dtype(space_dtype: Any, stored: torch.dtype) -> str | None:
@@ -506,7 +508,10 @@ def packed_spec(space: gym.spaces.Dict | gym.spaces.Tuple) -> PackedSpec:
             try:
                 leaves.append((key, path, spec_from_space(s, "observation")))
             except UserError as e:  # which entry of a large Dict the user's wrapper must change
-                raise UserError(f"the observation's entry {key!r}: {e}") from None
+                drop = (f"; an env.wrappers entry that leaves {key!r} out (gymnasium.wrappers.FilterObservation "
+                        "keeping the other keys, or the env's own wrapper for it) trains on the rest"
+                        if "is not supported" in str(e) else "")
+                raise UserError(f"the observation's entry {key!r}: {e}{drop}") from None
 
     walk(space, ())
     if not leaves:
