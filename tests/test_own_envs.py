@@ -191,6 +191,11 @@ def test_bad_wrappers_are_one_line():
         make_env("Pendulum-v1", wrappers=["gymnasium.wrappers:ClipActoin"])
     with pytest.raises(UserError, match="TimeLimit cannot be called with the env alone"):
         make_env("CartPole-v1", wrappers=["gymnasium.wrappers:TimeLimit"])  # needs max_episode_steps
+    # a wrapper's own failure keeps its traceback, which says it came from env.wrappers
+    with pytest.raises(NotImplementedError) as e:
+        make_env("CartPole-v1", wrappers=["toy_envs:refuses_the_env"])
+    notes = e.value.__notes__
+    assert any(n.startswith("relayrl: raised by env.wrappers' toy_envs:refuses_the_env over") for n in notes)
 
 
 def test_kwargs_and_wrappers_survive_config_toml_and_resume(tmp_path):

@@ -423,6 +423,11 @@ def double_reward(env: gym.Env) -> gym.Env:
     return gym.wrappers.TransformReward(env, lambda r: 2 * r)
 
 
+def refuses_the_env(env: gym.Env) -> gym.Env:
+    """An env.wrappers entry that fails on the env it wraps (FlattenObservation over a Text entry)."""
+    raise NotImplementedError(f"this wrapper cannot wrap {env}")
+
+
 def shift_obs(env: gym.Env) -> gym.Env:
     """An env.wrappers entry: observations + 100 (applied after double_reward, order shows)."""
     return gym.wrappers.TransformObservation(env, lambda o: o + 100, env.observation_space)

@@ -192,10 +192,20 @@ def apply_wrappers(env: gym.Env, wrappers: list[Callable[[gym.Env], gym.Env]]) -
     """`env` in each of `wrappers` (env.wrappers' callables), in order."""
     for w in wrappers:
         _check_takes_an_env(w, env)
-        env = w(env)
+        try:
+            env = w(env)
+        except UserError:
+            raise
+        except Exception as e:  # the wrapper's own traceback, said to be from env.wrappers
+            e.add_note(f"relayrl: raised by env.wrappers' {_wrapper_name(w)} over {env}")
+            raise
         if not isinstance(env, gym.Env):
             raise UserError(f"env.wrappers: {w!r} returned {type(env).__name__}, not a gymnasium.Env")
     return env
+
+
+def _wrapper_name(wrapper: Callable[..., Any]) -> str:
+    return f"{getattr(wrapper, '__module__', '?')}:{getattr(wrapper, '__qualname__', repr(wrapper))}"
 
 
 def _check_takes_an_env(wrapper: Callable[..., Any], env: gym.Env) -> None:
@@ -203,8 +213,8 @@ def _check_takes_an_env(wrapper: Callable[..., Any], env: gym.Env) -> None:
     try:
         inspect.signature(wrapper).bind(env)
     except TypeError as e:
-        name = f"{getattr(wrapper, '__module__', '?')}:{getattr(wrapper, '__qualname__', repr(wrapper))}"
-        raise UserError(f"env.wrappers: {name} cannot be called with the env alone ({e}); give a function of "
-                        "the env that passes the rest, e.g. def wrap(env): return TimeLimit(env, 500)") from None
+        raise UserError(f"env.wrappers: {_wrapper_name(wrapper)} cannot be called with the env alone ({e}); give a "
+                        "function of the env that passes the rest, e.g. def wrap(env): return TimeLimit(env, 500)"
+                        ) from None
     except ValueError:  # no signature to read (a builtin): the call itself says
         pass
