@@ -378,12 +378,15 @@ def test_frames_stacked_by_gymnasiums_wrapper_over_rgb_train_a_conv_net(tmp_path
     # a Box of another rank travels flat: the message names the env's own shape, not (4,)
     ("dqn", "box2d", "this env's action space is Box(-1, 1, shape=(2, 2), dtype=float32)"),
     ("sac", "discrete", "SAC takes a Box action space of floats with finite low and high; this env's action "
-                        "space is Discrete(2)"),
-    ("sac", "multi_binary", "action space is MultiBinary([2])"),
+                        "space is Discrete(2) (DQN and PPO take Discrete actions)"),
+    ("sac", "multi_binary", "action space is MultiBinary([2]) (PPO takes MultiBinary actions)"),
     ("sac", "box_fixed", "SAC needs low < high in every action dimension; this env's action space Box([-1. ,  0.5], "
                          "[1. , 0.5], shape=(2,), dtype=float32) has low == high at flat index 1"),
     ("sac", "box_unbounded", "SAC takes a Box action space of floats with finite low and high; this env's action "
-                             "space is Box([-inf,  -1.], [inf,  1.], shape=(2,), dtype=float32)"),
+                             "space is Box([-inf,  -1.], [inf,  1.], shape=(2,), dtype=float32) (PPO takes a Box "
+                             "with infinite bounds"),
+    ("dqn", "box", "shape=(2,), dtype=float32) (SAC and PPO take Box actions)"),
+    ("dqn", "multi_discrete", "(PPO takes MultiDiscrete actions)"),
 ])
 def test_an_action_space_an_algorithm_does_not_take_is_one_line(algo, act, words, tmp_path):
     with pytest.raises(UserError, match=words.replace("(", r"\(").replace(")", r"\)").replace("[", r"\[")

@@ -375,6 +375,21 @@ def is_bounded_box(spec: Spec) -> bool:
             and bool(np.isfinite(spec.low).all() and np.isfinite(spec.high).all()))
 
 
+def which_algorithms(action_spec: Spec) -> str:
+    """For a refusal of `action_spec`: which of relayrl's algorithms take actions of its kind."""
+    if isinstance(action_spec, DiscreteSpec):
+        return "DQN and PPO take Discrete actions"
+    if isinstance(action_spec, MultiDiscreteSpec | MultiBinarySpec):
+        return f"PPO takes {type(action_spec).__name__.removesuffix('Spec')} actions"
+    if isinstance(action_spec, ArraySpec) and not action_spec.dtype.is_floating_point:
+        return ("no relayrl algorithm takes a Box of integers: a MultiDiscrete action space (a wrapper that maps "
+                "it to the Box) trains with PPO")
+    if is_bounded_box(action_spec):
+        return "SAC and PPO take Box actions"
+    return ("PPO takes a Box with infinite bounds; SAC needs finite ones (ClipAction does not change the space's "
+            "bounds: a wrapper that declares finite ones, such as RescaleAction, does)")
+
+
 ALIGN = 8  # every leaf starts at a multiple of its own item size (<= 8), so a view of it is a valid array
 
 

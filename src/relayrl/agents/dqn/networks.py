@@ -11,13 +11,23 @@ from relayrl.agents.dqn.config import DQNConfig
 from relayrl.errors import UserError
 from relayrl.nn import tf_agents_init_
 from relayrl.nn.encoders import NATURE_MIN_SIDE, Encoded, encoded_mlp
-from relayrl.specs import ArraySpec, DiscreteSpec, PackedSpec, Spec, describe, image_layout, image_size, is_image
+from relayrl.specs import (
+    ArraySpec,
+    DiscreteSpec,
+    PackedSpec,
+    Spec,
+    describe,
+    image_layout,
+    image_size,
+    is_image,
+    which_algorithms,
+)
 
 
 def q_network(obs_spec: Spec, action_spec: Spec, cfg: DQNConfig) -> nn.Module:
     if not isinstance(action_spec, DiscreteSpec):
         raise UserError(f"DQN takes a Discrete action space; this env's action space is {describe(action_spec)} "
-                        "(use SAC or PPO for Box actions, PPO for MultiDiscrete and MultiBinary)")
+                        f"({which_algorithms(action_spec)})")
     if cfg.network != "mlp":  # the Atari presets' net (q_layout)
         leaves = [f.spec for f in obs_spec.fields] if isinstance(obs_spec, PackedSpec) else [obs_spec]
         images = [s for s in leaves if isinstance(s, ArraySpec) and is_image(s)]  # a Dict's frames too

@@ -18,7 +18,16 @@ from relayrl.errors import UserError
 from relayrl.nn import MLP
 from relayrl.nn.encoders import UserEncoder, encoder_dim, make_encoder
 from relayrl.nn.mlp import linear_layers
-from relayrl.specs import ArraySpec, DiscreteSpec, MultiBinarySpec, MultiDiscreteSpec, Spec, describe, flat_dim
+from relayrl.specs import (
+    ArraySpec,
+    DiscreteSpec,
+    MultiBinarySpec,
+    MultiDiscreteSpec,
+    Spec,
+    describe,
+    flat_dim,
+    which_algorithms,
+)
 
 
 class ActionHead(NamedTuple):
@@ -44,7 +53,7 @@ def action_head(action_spec: Spec) -> ActionHead:
     if (type(action_spec) is not ArraySpec or not action_spec.dtype.is_floating_point
             or action_spec.low is None or action_spec.high is None):
         raise UserError("PPO takes Discrete, MultiDiscrete, MultiBinary or Box (floats) action spaces; this "
-                        f"env's action space is {describe(action_spec)}")
+                        f"env's action space is {describe(action_spec)} ({which_algorithms(action_spec)})")
     return ActionHead(flat_dim(action_spec), False)
 
 

@@ -12,14 +12,13 @@ from torch import nn
 from relayrl.errors import UserError
 from relayrl.nn import TwinMLP
 from relayrl.nn.encoders import encoded_mlp, encoder_dim, make_encoder
-from relayrl.specs import ArraySpec, Spec, describe, flat_dim, is_bounded_box
+from relayrl.specs import ArraySpec, Spec, describe, flat_dim, is_bounded_box, which_algorithms
 
 
 def check_action_spec(action_spec: Spec) -> ArraySpec:
     if not is_bounded_box(action_spec):
         raise UserError("SAC takes a Box action space of floats with finite low and high; this env's action space "
-                        f"is {describe(action_spec)} (use DQN or PPO for Discrete actions, PPO for MultiDiscrete, "
-                        "MultiBinary and infinite bounds; a wrapper such as ClipAction leaves the bounds infinite)")
+                        f"is {describe(action_spec)} ({which_algorithms(action_spec)})")
     assert isinstance(action_spec, ArraySpec)
     fixed = np.flatnonzero(np.asarray(action_spec.high) <= np.asarray(action_spec.low))
     if fixed.size:
