@@ -155,3 +155,13 @@ def test_a_full_disk_under_a_bptt_run_is_one_error_line(tmp_path, monkeypatch):
 def test_bptt_refusals_show_values_as_toml_writes_them():
     with pytest.raises(ConfigError, match=r"^env.check=false does not apply to algo='bptt': .*; leave it at true$"):
         relayrl.load_config("bptt-pendulum", ["env.check=false"])
+
+
+def test_bptt_from_python_without_its_preset_or_with_an_env_factory_says_what_it_takes(tmp_path):
+    with pytest.raises(ConfigError, match=r"env.id='CartPole-v1' is not valid \(set env.id = "
+                                          r"'relayrl/StatelessPendulum-v0'\)$"):
+        relayrl.train({"algo": "bptt"}, tmp_path / "x", progress=False)
+    with pytest.raises(UserError, match=r"^env=<factory> works with the Actor \+ Learner runs \(dqn, "
+                                                       r"sac, ppo\); algo='bptt' trains through its own env"):
+        relayrl.train("bptt-pendulum", tmp_path / "y", env=lambda: None, progress=False)
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()

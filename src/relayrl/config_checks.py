@@ -104,7 +104,7 @@ def _check_trainer(config: Config, defaults: Config) -> None:
     a = cast(TrainerSection, config.agent)
     if config.env.id not in a.ENV_IDS:
         raise ConfigError(f"algo={config.algo!r} trains through {' or '.join(a.ENV_IDS)} only; "
-                          f"env.id={config.env.id!r} is not valid")
+                          f"env.id={config.env.id!r} is not valid (set env.id = {a.ENV_IDS[0]!r})")
     for name in ("env", "train", "eval", "distributed"):
         section, default_section = getattr(config, name), getattr(defaults, name)
         for f in dataclasses.fields(section):

@@ -108,9 +108,12 @@ def _use_factory(config: Config, env: Any, one_process: bool) -> None:
                         f"--set env.id={env}); env= takes a callable returning an env")
     if not callable(env):
         raise UserError(f"env={env!r} is not a callable returning a Gymnasium env (e.g. lambda: MyEnv())")
-    if not one_process:
+    if not one_process and config.distributed.num_actors > 0:
         raise UserError("env=<factory> works with the one-process Actor + Learner run; name the env in "
                         "env.id as package.module:make_env instead")
+    if not one_process:  # an algorithm that trains by itself, through its own envs
+        raise UserError(f"env=<factory> works with the Actor + Learner runs (dqn, sac, ppo); algo={config.algo!r} "
+                        "trains through its own env (env.id)")
     config.env.id = factory_env_id(env)
 
 
