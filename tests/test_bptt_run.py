@@ -162,6 +162,6 @@ def test_bptt_from_python_without_its_preset_or_with_an_env_factory_says_what_it
                                           r"'relayrl/StatelessPendulum-v0'\)$"):
         relayrl.train({"algo": "bptt"}, tmp_path / "x", progress=False)
     with pytest.raises(UserError, match=r"^env=<factory> works with the Actor \+ Learner runs \(dqn, "
-                                                       r"sac, ppo\); algo='bptt' trains through its own env"):
+                                        r"sac, ppo\); algo='bptt' trains through its own env"):
         relayrl.train("bptt-pendulum", tmp_path / "y", env=lambda: None, progress=False)
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
