@@ -72,19 +72,30 @@ def episode_info(keys: tuple[str, ...], num_envs: int, ended: list[int],
 
 def env_snapshot(env: gym.Env) -> bytes | None:
     """The env's whole state (dynamics, episode step count, RNGs) pickled, or None for envs
-    that cannot be pickled (simulator handles such as pybullet's; an env may also opt out
-    by raising TypeError from `__getstate__`) and for envs whose pickle keeps only their
-    constructor's arguments (Gymnasium's EzPickle: the MuJoCo and Box2D envs come back as new,
-    un-reset simulators, not mid-episode)."""
+    that cannot be pickled (`snapshot_problem` says why)."""
+    return _snapshot(env)[0]
+
+
+def snapshot_problem(env: gym.Env) -> str | None:
+    """Why `env_snapshot` gives None for `env`, in words for the log; None where it does not."""
+    return _snapshot(env)[1]
+
+
+def _snapshot(env: gym.Env) -> tuple[bytes | None, str | None]:
+    """The pickle, or why there is none: a simulator handle (pybullet's), an env that opts out
+    by raising TypeError from `__getstate__`, a wrapper holding a lambda, or a layer whose pickle
+    keeps only its constructor's arguments (Gymnasium's EzPickle: the MuJoCo and Box2D envs
+    come back as new, un-reset simulators, not mid-episode)."""
     layer: Any = env
     while layer is not None:
         if type(layer).__getstate__ is EzPickle.__getstate__:
-            return None
+            return None, (f"{type(layer).__name__} pickles only its constructor's arguments (Gymnasium's EzPickle, "
+                          "as MuJoCo's and Box2D's envs), not its state mid-episode")
         layer = layer.env if isinstance(layer, gym.Wrapper) else None
     try:
-        return pickle.dumps(env)
-    except Exception:  # pickling runs arbitrary user code: any failure means "not checkpointable"
-        return None
+        return pickle.dumps(env), None
+    except Exception as e:  # pickling runs arbitrary user code: any failure means "not checkpointable"
+        return None, f"the env cannot be pickled mid-episode: {one_line(str(e) or type(e).__name__, 160)}"
 
 
 class BatchEnvBase(BatchedEnv):
@@ -314,6 +325,10 @@ class GymBatchEnv(BatchEnvBase):
         cannot be pickled (a resumed run then starts new episodes)."""
         states = [env_snapshot(env) for env in self.envs]
         return None if any(s is None for s in states) else states  # type: ignore[return-value]
+
+    def state_problem(self) -> str | None:
+        """Why `get_state` gives None (the first copy's reason), or None where it does not."""
+        return next((why for env in self.envs if (why := snapshot_problem(env)) is not None), None)
 
     def set_state(self, states: list[bytes]) -> None:
         for env in self.envs:

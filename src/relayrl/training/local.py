@@ -14,6 +14,7 @@ from relayrl import interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config, to_dict
 from relayrl.envs import make_env
+from relayrl.envs.gym import GymBatchEnv
 from relayrl.envs.stateless.adapter import StatelessBatchEnv
 from relayrl.metrics import EnvironmentSteps, EpisodeStats
 from relayrl.policies import RandomPolicy
@@ -167,8 +168,8 @@ class LocalDriver:
         if actor["env"] is None and not self.env_state_said:  # said when it happens, not only at a resume
             self.env_state_said = True
             # said once, when the first checkpoint is written (the end of a short run)
-            self.core.say("checkpoints hold no env state (the env cannot be pickled mid-episode, as MuJoCo, Box2D "
-                          "and Atari envs): a resumed run starts new episodes (README: Run directory)")
+            self.core.say(f"checkpoints hold no env state ({self._why_no_env_state()}): a resumed run starts new "
+                          "episodes (README: Run directory)")
         return {
             **self.core.checkpoint_common(self.evaluator.count),
             # Very large tables may be left out (train.checkpoint_replay = false): a resumed
@@ -233,8 +234,14 @@ class LocalDriver:
                 self.core.say(f"{', '.join(changed)} changed: the envs start new episodes with the new settings")
             elif not files_moved_on:
                 self.env_state_said = True  # its checkpoints' line would say it again
-                self.core.say("checkpoints hold no env state (the env cannot be pickled mid-episode): "
-                              "the resumed run starts new episodes")
+                self.core.say(f"checkpoints hold no env state ({self._why_no_env_state()}): the resumed run starts "
+                              "new episodes")
+
+    def _why_no_env_state(self) -> str:
+        """The env copies' own reason where they step in this process (a wrapper's lambda, an
+        EzPickle env); worker processes' copies are not asked."""
+        why = self.env.state_problem() if isinstance(self.env, GymBatchEnv) else None
+        return why or "the env cannot be pickled mid-episode, as MuJoCo, Box2D and Atari envs"
 
     def _env_settings_changed(self, state: dict[str, Any]) -> list[str]:
         """The env.* settings that make the envs (kwargs, wrappers, time limit) and differ from
