@@ -110,36 +110,21 @@ def test_quick_start_commands_at_small_size(cli_env, tmp_path):
     assert e.returncode == 0 and json.loads(e.stdout) == result, e.stderr
 
 
-def test_example_runs_a_few_hundred_steps(cli_env):
+@pytest.mark.parametrize("example, args, said", [
+    ("dqn_cartpole.py", ["--iterations", "300", "--eval-interval", "300"], "iteration 300: eval return"),
+    ("sac_actor_learner.py", ["--iterations", "100", "--initial-steps", "100", "--eval-interval", "50", "--hidden",
+                              "32", "--batch-size", "32", "--out", "{tmp}/out"], "train step 100: eval return"),
+    ("ppo_cartpole.py", ["--iterations", "2", "--eval-interval", "2"], "iteration 2 (512 env steps): eval return"),
+])
+def test_each_example_runs_a_few_hundred_steps(cli_env, tmp_path, example, args, said):
+    """DESIGN.md: one readable single-file example per algorithm, run by CI for a few hundred steps."""
     import pathlib
 
-    example = pathlib.Path(__file__).parents[1] / "examples" / "dqn_cartpole.py"
-    r = subprocess.run([sys.executable, str(example), "--iterations", "300", "--eval-interval", "300"],
+    path = pathlib.Path(__file__).parents[1] / "examples" / example
+    r = subprocess.run([sys.executable, str(path), *(a.format(tmp=tmp_path) for a in args)],
                        capture_output=True, text=True, env=cli_env, timeout=300)
     assert r.returncode == 0, r.stderr
-    assert "iteration 300: eval return" in r.stdout
-
-
-def test_sac_actor_learner_example_runs_a_few_hundred_steps(cli_env, tmp_path):
-    import pathlib
-
-    example = pathlib.Path(__file__).parents[1] / "examples" / "sac_actor_learner.py"
-    r = subprocess.run([sys.executable, str(example), "--iterations", "100", "--initial-steps", "100",
-                        "--eval-interval", "50", "--hidden", "32", "--batch-size", "32",
-                        "--out", str(tmp_path / "out")],
-                       capture_output=True, text=True, env=cli_env, timeout=300)
-    assert r.returncode == 0, r.stderr
-    assert "train step 100: eval return" in r.stdout
-
-
-def test_ppo_example_runs_a_few_hundred_steps(cli_env):
-    import pathlib
-
-    example = pathlib.Path(__file__).parents[1] / "examples" / "ppo_cartpole.py"
-    r = subprocess.run([sys.executable, str(example), "--iterations", "2", "--eval-interval", "2"],
-                       capture_output=True, text=True, env=cli_env, timeout=300)
-    assert r.returncode == 0, r.stderr
-    assert "iteration 2 (512 env steps): eval return" in r.stdout
+    assert said in r.stdout
 
 
 def test_ci_runs_the_readme_test_command():
