@@ -45,6 +45,20 @@ def test_without_ale_py_atari_ids_say_which_extra_with_each_vectorization(env_id
             assert str(e.value).index("[atari]") < str(e.value).index("otherwise did you mean"), str(e.value)
 
 
+def test_without_ale_py_a_typo_of_a_registered_id_is_named_before_the_atari_extra(monkeypatch):
+    """Any CamelCase-v0 id looks like one of ale-py's: a near miss that is a typo comes first."""
+    from relayrl.envs.make import make_env
+
+    monkeypatch.setitem(sys.modules, "ale_py", None)
+    gymnasium.register("MyCorridor-v0", entry_point="gymnasium.envs.classic_control:CartPoleEnv")
+    try:
+        with pytest.raises(UserError, match=r"^env.id='MyCoridor-v0' is not a registered Gymnasium id; did you mean "
+                                            r"MyCorridor-v0\?; if it is an Atari game's"):
+            make_env("MyCoridor-v0", 1)
+    finally:
+        del gymnasium.registry["MyCorridor-v0"]
+
+
 def test_ddqn_pong_preset_is_listed_with_standard_settings():
     assert "ddqn-pong" in list_presets()
     c = load_config("ddqn-pong")

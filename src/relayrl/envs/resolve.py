@@ -21,6 +21,7 @@ from relayrl.errors import UserError
 from relayrl.user_code import import_user_module, load_callable, near_callable
 
 EnvFn = Callable[[], gym.Env]
+TYPO = 0.85  # difflib's ratio above which an unregistered id is read as a typo of a registered one
 
 
 def no_display() -> bool:
@@ -87,8 +88,12 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
             module_name, _, name = env_id.rpartition(".")
             if not close and module_name and name.isidentifier():  # `mymod.MyEnv`: Python's dot for the colon
                 close = [f"{module_name}:{name}"]
-            ale = missing_ale_hint(env_id)  # first: Pong-v4's near miss is Ant-v4
-            hint = ale + (f"; {'otherwise ' if ale else ''}did you mean {', '.join(close)}?" if close else "")
+            ale = missing_ale_hint(env_id)
+            near = f"did you mean {', '.join(close)}?" if close else ""
+            if ale and near and difflib.SequenceMatcher(None, env_id, close[0]).ratio() < TYPO:
+                hint = f"{ale}; otherwise {near}"  # Pong-v4's nearest id is Ant-v4: the extra first
+            else:  # a typo of a registered id (MyCoridor-v0) first; ale-py's ids look like any CamelCase-v0
+                hint = (f"; {near}" if near else "") + ale
             raise UserError(
                 f"env.id={env_id!r} is not a registered Gymnasium id{hint} "
                 "(valid: a Gymnasium id such as CartPole-v1, relayrl/..., package.module:Class, or "
