@@ -383,7 +383,7 @@ def test_eval_on_a_named_env_applies_a_run_directorys_wrappers_and_a_policy_file
     shutil.copy(tmp_path / "run" / "policy" / "policy.pt", tmp_path / "policy.pt")
     assert main(["eval", str(tmp_path / "policy.pt"), "--env", "toy_envs:Countdown", "--episodes", "1"]) == 0
     out, err = capsys.readouterr()
-    assert json.loads(out)["average_return"] == 3.0 and "--trust-code applies them" in err
+    assert json.loads(out)["average_return"] == 3.0 and "from its run directory, or with --trust-code, they do" in err
     assert main(["eval", str(tmp_path / "policy.pt"), "--env", "toy_envs:Countdown", "--episodes", "1",
                  "--trust-code"]) == 0
     assert json.loads(capsys.readouterr().out)["average_return"] == 6.0

@@ -820,3 +820,36 @@ def test_every_rollout_actor_given_up_is_one_line(tmp_path):
                             "why)")
     assert e.value.__suppress_context__
     assert said == ["rollout actor 0 died (RuntimeError) and is not restarted again (distributed.max_restarts=0)"]
+
+
+@pytest.mark.parametrize("answer, expected", [
+    ([b"\x00\x00", b"\x18\x04\x00\x00\x00\x00\x00"], True),  # a gRPC server's SETTINGS, in two pieces
+    ([b"HTTP/1.0 400 Bad request\r\n\r\n"], False),  # python -m http.server, a dashboard
+    ([b"\x15\x03\x03\x00\x02\x02\x46"], None),  # a TLS alert: a head that takes TLS, which Ray says itself
+])
+def test_what_listens_at_distributed_address_is_told_apart_by_its_answer_to_http2s_preface(answer, expected):
+    """Ray retries an address where something else listens for minutes: the preface tells a
+    Ray head (gRPC) from another service at once."""
+    import socket
+
+    from relayrl.distributed.actors import HTTP2_PREFACE, speaks_http2
+
+    server = socket.create_server(("127.0.0.1", 0))
+    got: list[bytes] = []
+
+    def serve() -> None:
+        conn, _ = server.accept()
+        with conn:
+            got.append(conn.recv(len(HTTP2_PREFACE)))
+            for piece in answer:
+                conn.sendall(piece)
+                time.sleep(0.05)
+
+    thread = threading.Thread(target=serve)
+    thread.start()
+    try:
+        assert speaks_http2("127.0.0.1", server.getsockname()[1], timeout=5) is expected
+    finally:
+        thread.join(timeout=5)
+        server.close()
+    assert got == [HTTP2_PREFACE]

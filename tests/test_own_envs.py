@@ -148,10 +148,12 @@ def test_a_registered_envs_rejected_kwarg_value_is_one_line():
 def test_a_registered_envs_unknown_kwarg_names_its_near_miss_and_its_own_arguments():
     with pytest.raises(UserError) as e:
         make_env("CartPole-v1", 1, kwargs={"sutton_barto_rewrd": True})
-    assert str(e.value) == ("env.id='CartPole-v1' takes no argument 'sutton_barto_rewrd' (env.kwargs); did you mean "
-                            "'sutton_barto_reward'? (its own arguments: sutton_barto_reward, render_mode)")
+    assert str(e.value) == ("env.id='CartPole-v1' takes no argument 'sutton_barto_rewrd' (env.kwargs, or "
+                            "eval.env_kwargs for evaluation); did you mean 'sutton_barto_reward'? (its own arguments: "
+                            "sutton_barto_reward, render_mode)")
     # none near: the env.kwargs of a preset for another env (ppo-lunarlander-continuous's continuous=true)
-    with pytest.raises(UserError, match=r"takes no argument 'continuous' \(env.kwargs\) \(its own arguments: .*\); "
+    with pytest.raises(UserError, match=r"takes no argument 'continuous' \(env.kwargs, or eval.env_kwargs for "
+                                        r"evaluation\) \(its own arguments: .*\); "
                                         r"env.kwargs a preset sets stay when --set env.id changes the env: "
                                         r"--set 'env.kwargs=\{\}' clears them$"):
         make_env("CartPole-v1", 1, kwargs={"continuous": True})

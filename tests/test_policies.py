@@ -94,7 +94,7 @@ def test_random_policy_respects_specs():
     ({"sutton_barto_reward": True}, 50, [], "env.kwargs {'sutton_barto_reward': True} and env.max_episode_steps=50 "
                                             "apply", 0),
     ({}, 0, ["m:W"], "CartPole-v1 is the env the policy was trained on: its env.wrappers ['m:W'] do not apply "
-                     "(a policy file runs no code; --trust-code applies them)", 0),
+                     "(a policy file runs no code; from its run directory, or with --trust-code, they do)", 0),
 ])
 def test_evaluating_on_the_env_a_policy_records_says_what_of_its_run_applies(kwargs, steps, wrappers, line, given):
     from relayrl.evaluation import named_env

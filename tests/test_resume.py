@@ -689,42 +689,64 @@ def test_sigterm_stops_a_run_like_ctrl_c_and_it_resumes(tmp_path, envs):
 
 
 @pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="no SIGHUP")
-@pytest.mark.parametrize("terminal", [False, True], ids=["log-file", "closed-terminal"])
-def test_sighup_stops_a_run_with_a_checkpoint_also_when_its_terminal_is_gone(tmp_path, terminal):
+@pytest.mark.parametrize("output", ["log-file", "closed-terminal", "pipe-reader-gone"])
+def test_sighup_stops_a_run_with_a_checkpoint_also_when_its_terminal_is_gone(tmp_path, output):
     """A closed terminal (a lost SSH session) sends SIGHUP: the run stops as on SIGTERM, with a
-    checkpoint at the step it stopped at, and exits 129. Where its output was the terminal, the
-    stop's lines go nowhere instead of failing it with EIO; where it was a file, they are there."""
+    checkpoint at the step it stopped at, and exits 129. Where its output was the terminal, or a
+    pipe whose reader (`| tee log`) ended with it, the stop's lines go nowhere instead of failing
+    it with EIO or EPIPE; where it was a file, they are there."""
     import pty
 
     over = DQN[:1] + ["train.total_steps=100000", "train.torch_threads=1"] + DQN[2:]
     cmd = [sys.executable, "-m", "relayrl", "train", "dqn-cartpole-fast", "--run-dir", str(tmp_path / "run"),
            "--no-progress", *[a for o in over for a in ("--set", o)]]
     log = tmp_path / "log.txt"
-    if terminal:
-        master, slave = pty.openpty()
+    if output == "closed-terminal":
+        reader, slave = pty.openpty()
         p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=slave, stderr=slave)
         os.close(slave)
+    elif output == "pipe-reader-gone":
+        p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        reader = p.stdout.fileno()
     else:
         with open(log, "w") as out:
             p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=out)
     checkpoints = tmp_path / "run" / "checkpoints"
     while not list_checkpoints(checkpoints) and p.poll() is None:
-        if terminal:  # read what it writes, as a terminal does, so its writes never block
+        if output != "log-file":  # read what it writes, as a terminal or tee does, so its writes never block
+            os.set_blocking(reader, False)
             with contextlib.suppress(OSError):
-                os.read(master, 65536)
+                os.read(reader, 65536)
         time.sleep(0.02)
-    first = int(list_checkpoints(checkpoints)[-1].stem.split("-")[1])
     time.sleep(0.5)
-    if terminal:
-        os.close(master)  # the terminal is gone: every write to it now fails with EIO
+    if output == "closed-terminal":
+        os.close(reader)  # the terminal is gone: every write to it now fails with EIO
+    elif output == "pipe-reader-gone":
+        p.stdout.close()  # tee ended with the terminal: every write now fails with EPIPE
+    before = {c.name: c.stat().st_mtime_ns for c in list_checkpoints(checkpoints)}
     p.send_signal(signal.SIGHUP)
     assert p.wait(timeout=60) == 128 + signal.SIGHUP
-    last = int(list_checkpoints(checkpoints)[-1].stem.split("-")[1])
-    assert last > first, "no checkpoint at the step the run stopped at"
+    # a checkpoint written after the signal: the one at the step the run stopped at
+    newest = list_checkpoints(checkpoints)[-1]
+    assert before.get(newest.name) != newest.stat().st_mtime_ns, "no checkpoint at the stop"
     assert RunDir(tmp_path / "run").read_metrics()  # its log is whole
-    if not terminal:
+    if output == "log-file":
         said = log.read_text()
         assert "relayrl: hung up (the terminal closed); resume with --resume" in said and "Traceback" not in said
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="no SIGHUP")
+def test_a_signal_whose_handler_python_cannot_put_back_leaves_the_others_handled(monkeypatch):
+    """A handler set outside Python (getsignal gives None) cannot be swapped and put back: that
+    signal is left alone, Ctrl-C and SIGTERM are still held during a write."""
+    from relayrl import interrupts
+
+    real = signal.getsignal
+    monkeypatch.setattr(signal, "getsignal", lambda s: None if s == signal.SIGHUP else real(s))
+    before = real(signal.SIGINT)
+    with interrupts.deferred():
+        assert real(signal.SIGINT) is not before  # held
+    assert real(signal.SIGINT) is before
 
 
 @pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="no SIGHUP")

@@ -446,7 +446,7 @@ def test_unsupported_spaces_name_the_space_and_what_is_valid():
     mission = gym.spaces.Dict({"image": gym.spaces.Box(0, 255, (7, 7, 3), np.uint8), "mission": gym.spaces.Text(9)})
     with pytest.raises(UserError, match=r"^the observation's entry 'mission': observation space Text is not "
                                         r"supported; .*; an env.wrappers entry that leaves 'mission' out "
-                                        r"\(gymnasium.wrappers.FilterObservation keeping the other keys"):
+                                        r"\(a function of the env returning gymnasium.wrappers.FilterObservation"):
         spec_from_space(mission, "observation")
     nested = gym.spaces.Dict({"pos": gym.spaces.Box(-1, 1, (2,)), "inner": gym.spaces.Tuple(
         (gym.spaces.Discrete(2), gym.spaces.Discrete(3, start=1)))})  # the entry a wrapper must shift is named

@@ -288,8 +288,8 @@ def _interrupted_line(what: str, args: argparse.Namespace) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    # The current directory is on the import path, as for `python -m relayrl`: a user's
-    # env.id = mypkg.envs:MyEnv (and env.wrappers) resolve from their project folder.
+    # The current directory is on the import path (`python -m relayrl` puts it first itself): a
+    # user's env.id = mypkg.envs:MyEnv (and env.wrappers) resolve from their project folder.
     # Last, not first: a folder there named as a module a library tries (torch's optional z3) is not imported.
     if "" not in sys.path and os.getcwd() not in sys.path:
         sys.path.append(os.getcwd())

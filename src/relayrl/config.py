@@ -32,9 +32,9 @@ class EnvConfig(Section):
     # returning an env; the current directory is on the import path), or package.module:EnvId-v0
     id: str = "CartPole-v1"
     num_envs: int = 1  # env copies stepped as one batch
-    # episode step limit for training and evaluation, in place of the env's own (longer or
-    # shorter); 0: the env's own time limit (evaluation episodes of an env without one, Atari's
-    # aside, are cut at 1,000 steps)
+    # episode step limit for training and evaluation: a registered id's own is replaced (longer
+    # or shorter); over a user's class its own TimeLimit, if any, still cuts first; 0: the env's
+    # own time limit (evaluation episodes of an env without one, Atari's aside, are cut at 1,000 steps)
     max_episode_steps: int = 0
     # keyword arguments of the env class or gymnasium.make, e.g. {continuous = true}
     kwargs: dict[str, Any] = field(default_factory=dict)

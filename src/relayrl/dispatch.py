@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 
-from relayrl.agents.registry import Algorithm, algorithm, ray_algorithms
+from relayrl.agents.registry import ALGORITHMS, Algorithm, algorithm, ray_algorithms
 from relayrl.config import Config, algo_defaults, dotted, from_dict, load_toml, parse_override, save_toml, to_dict
 from relayrl.envs.resolve import names_python_factory
 from relayrl.errors import CheckpointError, UserError
@@ -112,7 +112,8 @@ def _use_factory(config: Config, env: Any, one_process: bool) -> None:
         raise UserError("env=<factory> works with the one-process Actor + Learner run; name the env in "
                         "env.id as package.module:make_env instead")
     if not one_process:  # an algorithm that trains by itself, through its own envs
-        raise UserError(f"env=<factory> works with the Actor + Learner runs (dqn, sac, ppo); algo={config.algo!r} "
+        learners = ", ".join(name for name, entry in ALGORITHMS.items() if entry.replay != "none")
+        raise UserError(f"env=<factory> works with the Actor + Learner runs ({learners}); algo={config.algo!r} "
                         "trains through its own env (env.id)")
     config.env.id = factory_env_id(env)
 

@@ -67,11 +67,12 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
     episodes = check_count("episodes", episodes)
     max_episode_steps = check_count("max_episode_steps", max_episode_steps, zero="for the env's own time limit")
     seed = check_seed(seed)
-    if lone_policy_file(policy):  # read once: for its env record and to act
+    source = None if lone_policy_file(policy) else policy  # a run directory: its config.toml says its env
+    if isinstance(policy, (str, Path)):  # read once: for its env record and to act
         from relayrl.export import load_policy
 
         policy = load_policy(policy, deterministic=deterministic, seed=seed)
-    batch_env, owned = _batch_env(env, policy, episodes, max_episode_steps)
+    batch_env, owned = _batch_env(env, policy, source, episodes, max_episode_steps)
     try:
         act = _policy_fn(policy, deterministic, seed, batch_env.observation_spec, batch_env.action_spec)
         cap_untimed(batch_env, max_episode_steps)  # so that it ends
@@ -91,10 +92,6 @@ def _policy_fn(policy: Any, deterministic: bool, seed: int | None, obs_spec: Spe
     """A batched policy (a [B, ...] observation tensor -> [B, ...] actions) from what the user gave."""
     from relayrl.loaded_policy import LoadedPolicy
 
-    if isinstance(policy, (str, Path)):
-        from relayrl.export import load_policy
-
-        policy = load_policy(policy, deterministic=deterministic, seed=seed)
     if isinstance(policy, LoadedPolicy):
         policy.check_fits(obs_spec, act_spec)
         if not deterministic:  # its samples drawn from `seed`, as a run directory's are: a repeatable evaluation
@@ -140,8 +137,9 @@ def _one_at_a_time(fn: Callable[[Any], Any], obs_spec: Spec, act_spec: Spec) -> 
     return act
 
 
-def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> tuple[Any, bool]:
-    """The batched env to run on, and whether it is ours to close."""
+def _batch_env(env: Any, policy: Any, run_dir: Any, episodes: int, max_episode_steps: int) -> tuple[Any, bool]:
+    """The batched env to run on, and whether it is ours to close; `run_dir`: where `policy`
+    was loaded from a run directory, that directory (else None)."""
     from relayrl.envs.gym import GymBatchEnv
     from relayrl.training.evaluate import make_eval_env
 
@@ -154,18 +152,15 @@ def _batch_env(env: Any, policy: Any, episodes: int, max_episode_steps: int) -> 
     if env is None:
         from relayrl.loaded_policy import LoadedPolicy
 
-        if not isinstance(policy, (str, Path, LoadedPolicy)):
+        if not isinstance(policy, LoadedPolicy):
             raise UserError("env=None evaluates on the env a run directory or a policy file records; with this "
                             "policy give env (a Gymnasium env, a callable returning one, or an env id)")
-        return recorded_env(policy, episodes, max_episode_steps)[0], True
+        return recorded_env(run_dir if run_dir is not None else policy, episodes, max_episode_steps)[0], True
     if isinstance(env, str):
-        from relayrl.export import load_policy
         from relayrl.training.report import say
 
-        # a run directory (a lone policy file was loaded before): its config.toml's wrappers are the policy's input
-        run_dir = isinstance(policy, (str, Path))
-        recorded = load_policy(policy) if run_dir else policy  # what it was trained on
-        return named_env(env, recorded, episodes, max_episode_steps, say=say, run_code=run_dir), True
+        # a run directory's config.toml imports its wrappers anyway: they are the policy's input
+        return named_env(env, policy, episodes, max_episode_steps, say=say, run_code=run_dir is not None), True
     if isinstance(env, gym.vector.VectorEnv) or hasattr(env, "step_async"):  # Gymnasium's or SB3's VecEnv
         raise UserError(f"env={type(env).__name__} is a vector env; give one env, an env id, or a callable "
                         "returning one env: relayrl.evaluate runs its own copies of it (up to 16)")
@@ -196,8 +191,8 @@ def named_env(env_id: str, policy: Any, episodes: int, max_episode_steps: int = 
                                                                    not max_episode_steps) + [
         f"env.wrappers {wrappers}"] * bool(wrappers)
     applied = f"{' and '.join(kept)} appl{'y' if len(kept) > 1 else 'ies'}" if kept else ""
-    dropped = f"its env.wrappers {policy.env_wrappers} do not apply (a policy file runs no code; --trust-code " \
-        "applies them)" if policy.env_wrappers and not run_code else ""
+    dropped = f"its env.wrappers {policy.env_wrappers} do not apply (a policy file runs no code; from its run " \
+        "directory, or with --trust-code, they do)" if policy.env_wrappers and not run_code else ""
     if say is not None and (applied or dropped):
         whose = f"{env_id} is the env the policy was trained on" if same else \
             f"the policy was trained on {policy.env_id}, evaluated here on {env_id}"

@@ -20,28 +20,34 @@ WANTED: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM, *([HANGUP] if HANGUP i
 
 def heard(signum: int) -> None:
     """What every handler here does first: after SIGHUP, stdout and stderr that were the closed
-    terminal write to /dev/null, so that the stop's own lines (which no one can read) do not
-    fail it with EIO before the checkpoint is written. Redirected output (a log file) stays."""
+    terminal, or a pipe (whose reader, `| tee log`, ends with the terminal), write to /dev/null,
+    so that the stop's own lines (which no one can read) do not fail it with EIO or EPIPE before
+    the checkpoint is written. A file stays, and so does a terminal still open (`kill -HUP`)."""
     if signum != HANGUP:
         return
     null = os.open(os.devnull, os.O_WRONLY)
     try:
         for fd in (1, 2):
             with contextlib.suppress(OSError):
-                st = os.fstat(fd)  # isatty() says False once the terminal is gone: a character device, not /dev/null
-                if stat.S_ISCHR(st.st_mode) and st.st_rdev != os.stat(os.devnull).st_rdev:
+                mode = os.fstat(fd).st_mode
+                # a closed terminal: still a character device, but no longer a tty (/dev/null is neither)
+                if stat.S_ISFIFO(mode) or stat.S_ISCHR(mode) and not os.isatty(fd) and not _is_null(fd):
                     os.dup2(null, fd)
     finally:
         os.close(null)
 
 
+def _is_null(fd: int) -> bool:
+    return os.fstat(fd).st_rdev == os.stat(os.devnull).st_rdev
+
+
 def _handlers() -> dict[int, Any] | None:
-    """The current handlers, or None where they cannot be swapped: not the main thread (only
-    it handles signals), or a handler not set from Python (None), which could not be put back."""
-    previous: dict[int, Any] = {s: signal.getsignal(s) for s in WANTED}
-    if threading.current_thread() is not threading.main_thread() or None in previous.values():
+    """The current handlers of the signals whose handlers can be swapped, or None off the main
+    thread (only it handles signals). A handler not set from Python (None) could not be put
+    back: that signal is left as it is, the others are still handled."""
+    if threading.current_thread() is not threading.main_thread():
         return None
-    return previous
+    return {s: h for s in WANTED if (h := signal.getsignal(s)) is not None}
 
 
 @contextlib.contextmanager
@@ -64,7 +70,7 @@ def deferred() -> Iterator[None]:
 
     _Deferring.depth += 1  # a write inside a write (a checkpoint's file) holds a signal twice
     try:
-        _install({sig: hold for sig in WANTED if previous[sig] != signal.SIG_IGN})  # nohup's SIGHUP stays ignored
+        _install({sig: hold for sig, h in previous.items() if h != signal.SIG_IGN})  # nohup's SIGHUP stays ignored
         yield
     finally:
         _Deferring.depth -= 1
@@ -125,7 +131,7 @@ def stop_request(on_signal: Callable[[int], None], signals: tuple[int, ...] = WA
         on_signal(signum)
 
     try:
-        _install({sig: record for sig in signals if previous[sig] != signal.SIG_IGN})
+        _install({sig: record for sig in signals if sig in previous and previous[sig] != signal.SIG_IGN})
         yield
     finally:
         _install(previous)

@@ -387,7 +387,7 @@ def which_algorithms(action_spec: Spec) -> str:
     if is_bounded_box(action_spec):
         return "SAC and PPO take Box actions"
     return ("PPO takes a Box with infinite bounds; SAC needs finite ones (ClipAction does not change the space's "
-            "bounds: a wrapper that declares finite ones, such as RescaleAction, does)")
+            "bounds: a wrapper whose action_space is a finite Box, mapping it to the env's, does)")
 
 
 ALIGN = 8  # every leaf starts at a multiple of its own item size (<= 8), so a view of it is a valid array
@@ -523,8 +523,9 @@ def packed_spec(space: gym.spaces.Dict | gym.spaces.Tuple) -> PackedSpec:
             try:
                 leaves.append((key, path, spec_from_space(s, "observation")))
             except UserError as e:  # which entry of a large Dict the user's wrapper must change
-                drop = (f"; an env.wrappers entry that leaves {key!r} out (gymnasium.wrappers.FilterObservation "
-                        "keeping the other keys, or the env's own wrapper for it) trains on the rest"
+                drop = (f"; an env.wrappers entry that leaves {key!r} out (a function of the env returning "
+                        "gymnasium.wrappers.FilterObservation(env, the other keys), or the env's own wrapper for it) "
+                        "trains on the rest"
                         if "is not supported" in str(e) else "")
                 raise UserError(f"the observation's entry {key!r}: {e}{drop}") from None
 

@@ -80,8 +80,8 @@ def _init(ray: Any, config: Config) -> None:
                 raise UserError(no_head) from None
             reason = (str(e).strip().splitlines() or [type(e).__name__])[0][:200]
             token = "" if os.environ.get("RAY_AUTH_MODE") else (
-                ", and, where it uses token authentication (`ray start --head` turns it on from Ray 2.59), that "
-                "RAY_AUTH_MODE=token is set here")
+                ", and, where it uses token authentication (as `ray start --head` does once ~/.ray/auth_token "
+                "exists), that RAY_AUTH_MODE=token is set here")
             client = "" if d.address.startswith("ray://") else "; a Ray Client server (port 10001) takes ray://HOST:PORT"
             raise UserError(f"something answers at distributed.address={d.address!r}, but Ray could not join it "
                             f"({reason}): check that it is a Ray head of Ray {ray.__version__}{token}"
@@ -118,16 +118,20 @@ def speaks_http2(host: str, port: int, timeout: float = 5.0) -> bool | None:
     frame, as gRPC servers (a Ray head's GCS, a Ray Client server) do; None where it says
     nothing within `timeout` (TLS, RAY_USE_TLS: not asked). OSError where nothing listens."""
     with socket.create_connection((host, port), timeout=timeout) as conn:
-        if os.environ.get("RAY_USE_TLS", "0") not in ("", "0"):
+        if os.environ.get("RAY_USE_TLS", "0").strip().lower() in ("1", "true"):
             return None
         conn.sendall(HTTP2_PREFACE)
+        header = b""
         try:
-            header = conn.recv(9)
+            while len(header) < 4 and (more := conn.recv(4 - len(header))):
+                header += more
         except TimeoutError:
             return None
         except OSError:  # reset: not HTTP/2
             return False
-    return len(header) >= 4 and header[3] == 0x04  # frame type SETTINGS
+    if header[:1] == b"\x15":  # a TLS alert: a head that takes TLS (RAY_USE_TLS unset here), which Ray says itself
+        return None
+    return len(header) == 4 and header[3] == 0x04  # frame type SETTINGS
 
 
 class ActorPool:

@@ -164,17 +164,16 @@ class RayDriver:
 
     def checkpoint_state(self) -> dict[str, Any]:
         # the weights' version the actors and eval rows (policy_version) count in: a resume goes on counting
-        version = self.ray.get(self.pusher.last_ref) if self.pusher.last_ref is not None else 0
         return {**self.core.checkpoint_common(self.eval_count), "distributed": {"num_actors": self.pool.num_actors},
-                "variables_version": version, **self.collection.state_dict()}
+                "variables_version": self.pusher.version, **self.collection.state_dict()}
 
     def restore(self) -> None:
         core, k = self.core, self.pool.num_actors
         state = load_latest_checkpoint(self.rd.checkpoints)
         self.eval_count = core.restore_common(state)
         # weights None: the actors keep theirs until the first push, which is version + 1
-        self.ray.get(self.pool.variables.load_state_dict.remote({"version": state.get("variables_version", 0),
-                                                                  "weights": None}))
+        self.pusher.version = int(state.get("variables_version", 0))
+        self.ray.get(self.pool.variables.load_state_dict.remote({"version": self.pusher.version, "weights": None}))
         self.collection.load_state_dict(state, core.say)
         self.stats.reset_running()
         core.load_process_state(state)

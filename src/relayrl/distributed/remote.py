@@ -73,6 +73,8 @@ class RemotePusher:
         self.params = network_variables(agent.policy_network())
         self._last = -(10**18)
         self.last_ref: Any = None  # the latest push's ObjectRef; ray.get gives its version
+        # the container's version after this pusher's pushes (each adds one): what a checkpoint keeps
+        self.version = 0
 
     def push(self, weights: list[torch.Tensor] | None = None, force: bool = False) -> None:
         step = self.agent.train_step
@@ -81,3 +83,4 @@ class RemotePusher:
         self._last = step
         # Ray serializes the arguments now, so later in-place updates do not leak in.
         self.last_ref = self.handle.push.remote([w.detach().cpu() for w in (weights or self.params)])
+        self.version += 1

@@ -172,11 +172,10 @@ def _arguments_line(env_id: str, spec: Any, error: TypeError, kwargs: dict[str, 
                 f"eval.env_kwargs to evaluation envs): {sorted(kwargs)}")
     own = _own_arguments(spec.entry_point)
     close = difflib.get_close_matches(named[1], own, n=1, cutoff=0.6)
-    where = "env.kwargs" if named[1] in given else "eval.env_kwargs"
-    line = f"env.id={env_id!r} takes no argument {named[1]!r} ({where})"
+    line = f"env.id={env_id!r} takes no argument {named[1]!r} (env.kwargs, or eval.env_kwargs for evaluation)"
     line += f"; did you mean {close[0]!r}?" if close else ""
     line += f" (its own arguments: {', '.join(own)})" if own else ""
-    if not close and where == "env.kwargs":
+    if not close and named[1] in given:
         line += "; env.kwargs a preset sets stay when --set env.id changes the env: --set 'env.kwargs={}' clears them"
     return line
 

@@ -140,10 +140,10 @@ class LocalDriver:
         core.sps_log.reset(core.progress())
         self.variables.push(network_variables(self.agent.policy_network()))  # fresh or restored weights
         self.actor.policy = self.collect_policy
-        # Ctrl-C or SIGTERM stops the loop between iterations, as a callback's False does, so
-        # the run ends with its policy and a checkpoint at the step it reached (run_to_end).
-        # Env worker processes ignore Ctrl-C but end on SIGTERM (which a scheduler sends to the
-        # whole process group): with them, SIGTERM stops the run at once, as before.
+        # Ctrl-C, SIGTERM or SIGHUP stops the loop between iterations, as a callback's False does,
+        # so the run ends with its policy and a checkpoint at the step it reached (run_to_end).
+        # Env worker processes ignore Ctrl-C but end on SIGTERM and SIGHUP (which reach the whole
+        # process group): with them, those stop the run at once.
         graceful = (signal.SIGINT,) if c.env.vectorization == "async" else interrupts.WANTED
         with interrupts.stop_request(core.report.request_stop, graceful):
             while self.actor.env_steps < total and not core.report.stop_requested:
