@@ -202,8 +202,7 @@ def _eval(args: argparse.Namespace) -> None:
     try:
         policy.check_fits(env.observation_spec, env.action_spec)
         if args.env and policy.env_id and policy.env_id != args.env and not policy.env_wrappers:  # else said above
-            print(f"relayrl: the policy was trained on {policy.env_id}: evaluated on {args.env} as it is registered",
-                  file=sys.stderr)
+            print(f"relayrl: the policy was trained on {policy.env_id}, evaluated here on {args.env}", file=sys.stderr)
         result = evaluate(env, policy, args.episodes, seed=args.seed)
         note = eval_cap_note(env, env_id)
         if note:
