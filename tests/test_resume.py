@@ -701,16 +701,21 @@ def test_sighup_stops_a_run_with_a_checkpoint_also_when_its_terminal_is_gone(tmp
     cmd = [sys.executable, "-m", "relayrl", "train", "dqn-cartpole-fast", "--run-dir", str(tmp_path / "run"),
            "--no-progress", *[a for o in over for a in ("--set", o)]]
     log = tmp_path / "log.txt"
+
+    def as_in_a_terminal() -> None:  # a test run under nohup passes SIGHUP on ignored
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)
+
+    started = {"stdin": subprocess.DEVNULL, "preexec_fn": as_in_a_terminal}
     if output == "closed-terminal":
         reader, slave = pty.openpty()
-        p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=slave, stderr=slave)
+        p = subprocess.Popen(cmd, stdout=slave, stderr=slave, **started)
         os.close(slave)
     elif output == "pipe-reader-gone":
-        p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, **started)
         reader = p.stdout.fileno()
     else:
         with open(log, "w") as out:
-            p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out, stderr=out)
+            p = subprocess.Popen(cmd, stdout=out, stderr=out, **started)
     checkpoints = tmp_path / "run" / "checkpoints"
     while not list_checkpoints(checkpoints) and p.poll() is None:
         if output != "log-file":  # read what it writes, as a terminal or tee does, so its writes never block

@@ -155,8 +155,8 @@ def test_every_config_field_has_a_meaning():
         for f in dataclasses.fields(section):
             if not dataclasses.is_dataclass(getattr(section, f.name)):
                 assert about.get(f.name), f"{type(section).__name__}.{f.name} has no comment saying what it is"
-    assert "max_episode_steps = 0  # episode step cap for training and evaluation; 0: the env's own time limit" \
-        in commented_toml(config)
+    assert "max_episode_steps = 0  # episode step limit for training and evaluation: a registered id's own is " \
+        "replaced (longer or shorter)" in commented_toml(config)
 
 
 def test_version_and_bare_command(capsys):
