@@ -229,6 +229,17 @@ def test_a_failed_write_is_one_line_and_keeps_the_file_there(small_run, tmp_path
     assert out.read_bytes() == before and not list(tmp_path.glob("*.tmp*"))
 
 
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc")
+@pytest.mark.parametrize("command", ["video", "plot", "export"])
+def test_out_in_a_folder_access_calls_writable_but_that_takes_no_file_is_one_line_before_any_work(
+        command, small_run, capfd):
+    """os.access says root may write in /proc; no file can be made there: said before the
+    episodes are rendered, not after."""
+    err = one_line(capfd, [command, str(small_run), "--out", "/proc/relayrl-out.png" if command == "plot"
+                           else "/proc/relayrl-out.mp4" if command == "video" else "/proc/relayrl-out.pt2"])
+    assert "cannot write --out '/proc/relayrl-out." in err
+
+
 @pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
 def test_a_chmod_read_only_run_directory_is_one_line(small_run, capfd):
     os.chmod(small_run, 0o555)

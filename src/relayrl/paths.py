@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import os
 import re
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -44,6 +45,11 @@ def output_path(out: str | Path | None, default: Path) -> Path:
         raise UserError(f"cannot create the folder of {name}: {e.strerror or e}{where}") from None
     if not os.access(path.parent, os.W_OK):
         raise UserError(f"cannot write {name}: its folder is not writable{where}")
+    try:  # what access() cannot tell (root in /proc, a read-only mount): a file made there and taken out
+        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=".relayrl-check-"):
+            pass
+    except OSError as e:
+        raise UserError(f"cannot write {name}: {e.strerror or e}{where}") from None
     return path
 
 
