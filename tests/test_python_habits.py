@@ -661,6 +661,17 @@ def test_video_refuses_a_file_that_is_no_video_before_playing_and_leaves_sdl_as_
     assert "SDL_VIDEODRIVER" not in os.environ and (tmp_path / "v.gif").stat().st_size > 100
 
 
+def test_video_says_how_far_it_is_while_rendering_takes_long(run_dir, tmp_path, monkeypatch, capsys):
+    """MuJoCo's software EGL renders a 1,000-step episode in minutes: a line every so often."""
+    import relayrl.video
+
+    monkeypatch.setattr(relayrl.video, "PROGRESS_S", 0.0)
+    relayrl.record_video(run_dir, tmp_path / "v.gif", episodes=2, env=lambda render_mode=None: Countdown(
+        render_mode=render_mode))
+    said = capsys.readouterr().err
+    assert "video: 2 frames so far, episode 1 of 2" in said and "episode 2 of 2" in said
+
+
 def test_video_renders_mujoco_through_egl_without_a_display_and_keeps_a_users_choice(run_dir, tmp_path, monkeypatch):
     """Without a display MuJoCo's default GLFW prints warnings, then fails: EGL renders without
     one. Set for the video only; a user's own MUJOCO_GL stays."""

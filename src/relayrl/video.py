@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -21,6 +22,7 @@ from relayrl.export import load_policy
 from relayrl.paths import output_path, writing
 from relayrl.presets import load_config
 from relayrl.seeding import check_seed
+from relayrl.training.report import say
 
 if TYPE_CHECKING:
     from relayrl.training.run_dir import RunDir
@@ -78,6 +80,7 @@ def even_sized(frame: Any) -> np.ndarray:
     return np.pad(array, [(0, h % 2), (0, w % 2)] + [(0, 0)] * (array.ndim - 2), mode="edge")  # gray or RGB
 
 
+PROGRESS_S = 10.0  # a line this often while the frames are rendered
 VIDEO_SUFFIXES = (".mp4", ".gif", ".mkv", ".mov", ".avi")  # not .webm: ffmpeg's default H.264 writes a broken one
 
 
@@ -115,6 +118,7 @@ def _frames(rd: RunDir, policy: Any, env: Any, episodes: int, seed: int | None, 
         obs = env.reset(seed=seed)
         frames.append(first_frame(env, config.env.id))
         finished = 0
+        said_at = time.monotonic()
         for _ in range(max_steps):
             with torch.inference_mode():
                 out_step = env.step(policy(obs))
@@ -124,6 +128,9 @@ def _frames(rd: RunDir, policy: Any, env: Any, episodes: int, seed: int | None, 
                     break
             obs = out_step.obs
             frames.append(env.render())
+            if time.monotonic() - said_at >= PROGRESS_S:  # software rendering (MuJoCo's EGL) takes minutes
+                said_at = time.monotonic()
+                say(f"video: {len(frames):,} frames so far, episode {finished + 1} of {episodes}")
     finally:
         if not isinstance(given, gym.Env):  # the caller's own instance stays open
             env.close()
