@@ -314,10 +314,15 @@ def rows(run: Path) -> list[dict]:
 
 @needs_ray
 @pytest.mark.parametrize("envs", [[], ["env.num_envs=2", "env.vectorization=async"]], ids=["1env", "2async"])
-def test_two_rollout_actors_train_sac_and_write_the_run_directory(tmp_path, envs):
+def test_two_rollout_actors_train_sac_and_write_the_run_directory(tmp_path, envs, monkeypatch, capsys):
     # 2async: each Ray actor forks an env worker process beside itself
+    from relayrl.training.heartbeat import ProgressLines
+
+    monkeypatch.setattr(ProgressLines, "interval_s", 0.5)
     config = relayrl.load_config("sac-pendulum", SAC_SMALL + ["distributed.num_actors=2"] + envs)
-    result = relayrl.train(config, tmp_path / "run", progress=False)
+    result = relayrl.train(config, tmp_path / "run", progress=True)  # pytest's stderr is no TTY: lines, no bar
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("step ") and "/800 (" in line]
+    assert lines and all(" | actors 2/2 | " in line for line in lines), lines  # the bar's field, without a bar
     r = rows(tmp_path / "run")
     local_keys = {"step", "train_step", "average_return", "average_episode_length", "episodes", "wall_time_s",
                   "eval_s", "train/average_return", "train/episodes"}

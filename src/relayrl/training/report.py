@@ -207,8 +207,9 @@ class RunReport:
         train, last = self.train_return(), self.last_eval.get("average_return")
         train_shown = "-" if math.isnan(train) else f"{rounded(train):.2f}"
         last_shown = "-" if last is None else f"{rounded(last):.2f}"
+        extra = "".join(f" | {k} {v}" for k, v in self.postfix().items())  # the bar's own fields (Ray's actors alive)
         return (f"step {p.env_steps:,}/{total:,} ({100 * p.env_steps / total:.0f}%) | {sps:,.0f} env steps/s "
-                f"| train return {train_shown} | last eval return {last_shown} | {self.wall_time():.0f}s")
+                f"| train return {train_shown} | last eval return {last_shown}{extra} | {self.wall_time():.0f}s")
 
     def record_eval(self, p: Progress, result: dict[str, Any], eval_s: float, wall_time_s: float | None = None,
                     extra: dict[str, Any] | None = None, at_step: dict[str, Any] | None = None) -> None:
