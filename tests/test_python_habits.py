@@ -427,6 +427,11 @@ def test_several_runs_plot_in_one_panel(run_dir, tmp_path, capsys):
     runs = [RunDir(sweep / n) for n in ("seed1", "other", "seed2")]
     assert seed_groups(runs) == [[0, 2], [1]]
     assert relayrl.plot_run([r.root for r in runs]).stat().st_size > 0
+    assert "different envs" not in capsys.readouterr().err
+    relayrl.train({**TINY, "env": {"id": "toy_envs:make_countdown"}}, sweep / "elsewhere", progress=False)
+    relayrl.plot_run([sweep / "seed1", sweep / "elsewhere"])  # returns of another env: said, drawn all the same
+    assert "the runs are on different envs (seed1: toy_envs:Countdown, elsewhere: toy_envs:make_countdown)" \
+        in capsys.readouterr().err
     with pytest.raises(UserError, match="in different folders: give --out PATH"):
         relayrl.plot_run([sweep / "seed1", run_dir])
     assert relayrl.plot_run([sweep / "seed1", run_dir], tmp_path / "both.svg").stat().st_size > 0

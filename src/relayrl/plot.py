@@ -79,6 +79,10 @@ def _compare(runs: list[RunDir], out: str | Path | None) -> Path:
     names = [rd.root.name for rd in runs]
     if len(set(names)) < len(names):  # the same name in several folders: their paths tell them apart
         names = [str(rd.root) for rd in runs]
+    envs = {name: env for name, rd in zip(names, runs, strict=True) if (env := _env_id(rd)) is not None}
+    if len(set(envs.values())) > 1:  # returns of different envs share no scale
+        print(f"the runs are on different envs ({', '.join(f'{n}: {e}' for n, e in envs.items())}): their "
+              "returns are drawn on one axis all the same", file=sys.stderr)
     fig = _figure(figsize=(8, 5))
     ax = fig.subplots()
     for group in seed_groups(runs):
@@ -88,6 +92,15 @@ def _compare(runs: list[RunDir], out: str | Path | None) -> Path:
     ax.grid(alpha=0.3)
     ax.legend(fontsize="small")
     return _save(fig, output_path(out, parents.pop() / "compare.png"))
+
+
+def _env_id(rd: RunDir) -> str | None:
+    """The env.id config.toml records, or None where it cannot be read."""
+    try:
+        env = load_toml(rd.config).get("env", {})
+    except (ConfigError, OSError):
+        return None
+    return str(env["id"]) if isinstance(env, dict) and "id" in env else None
 
 
 def seed_groups(runs: list[RunDir]) -> list[list[int]]:
