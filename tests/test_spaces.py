@@ -619,6 +619,24 @@ def test_evaluate_hands_a_users_function_the_envs_own_dict_observations():
     assert (mean, std) == (8.0, 0.0)
 
 
+def test_evaluate_hands_a_users_function_a_scalar_box_observation_as_the_env_gives_it():
+    """A Box of shape () observation is a 0-d array from the env: the same to the user's function."""
+    class Scalar(gym.Env):
+        observation_space = gym.spaces.Box(-1.0, 1.0, (), np.float32)
+        action_space = gym.spaces.Discrete(2)
+
+        def reset(self, seed=None, options=None):
+            super().reset(seed=seed)
+            return np.zeros((), np.float32), {}
+
+        def step(self, action):
+            return np.zeros((), np.float32), 1.0, True, False, {}
+
+    seen = []
+    relayrl.evaluate(lambda obs: seen.append(obs) or 0, Scalar, episodes=2)
+    assert all(isinstance(o, np.ndarray) and o.shape == () for o in seen), seen
+
+
 def test_a_nan_inside_a_dict_observation_stops_the_run(tmp_path):
     from relayrl.errors import NonFiniteError
 

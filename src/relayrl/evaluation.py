@@ -131,8 +131,11 @@ def _one_at_a_time(fn: Callable[[Any], Any], obs_spec: Spec, act_spec: Spec) -> 
                             f"observation; {takes}")
         return (a.astype(np.int64) if isinstance(act_spec, DiscreteSpec) else a).reshape(act_spec.shape)
 
+    scalar = isinstance(obs_spec, DiscreteSpec)  # the env gives a number; a Box of shape () a 0-d array
+
     def act(obs: torch.Tensor) -> torch.Tensor:
-        return torch.as_tensor(np.stack([one(o) for o in obs.cpu().numpy()]))
+        batch = obs.cpu().numpy()
+        return torch.as_tensor(np.stack([one(batch[i] if scalar else batch[i, ...]) for i in range(len(batch))]))
 
     return act
 
