@@ -94,12 +94,17 @@ def _compare(runs: list[RunDir], out: str | Path | None) -> Path:
     return _save(fig, output_path(out, parents.pop() / "compare.png"))
 
 
-def _env_id(rd: RunDir) -> str | None:
-    """The env.id config.toml records, or None where it cannot be read."""
+def _saved_toml(rd: RunDir) -> dict[str, Any] | None:
+    """The run's config.toml as read, or None where it cannot be read."""
     try:
-        env = load_toml(rd.config).get("env", {})
+        return load_toml(rd.config)
     except (ConfigError, OSError):
         return None
+
+
+def _env_id(rd: RunDir) -> str | None:
+    """The env.id config.toml records, or None where it cannot be read."""
+    env = (_saved_toml(rd) or {}).get("env", {})
     return str(env["id"]) if isinstance(env, dict) and "id" in env else None
 
 
@@ -109,11 +114,9 @@ def seed_groups(runs: list[RunDir]) -> list[list[int]]:
     own group."""
     groups: dict[str, list[int]] = {}
     for i, rd in enumerate(runs):
-        try:
-            config = {k: v for k, v in load_toml(rd.config).items() if k != "seed"}
-            key = json.dumps(config, sort_keys=True, default=str)
-        except (ConfigError, OSError):
-            key = f"run {i}"
+        saved = _saved_toml(rd)
+        key = f"run {i}" if saved is None else json.dumps({k: v for k, v in saved.items() if k != "seed"},
+                                                           sort_keys=True, default=str)
         groups.setdefault(key, []).append(i)
     return list(groups.values())
 

@@ -507,6 +507,10 @@ def entry(obs: Any, f: Field) -> Any:
     return x
 
 
+# the space kinds an observation entry may be (spec_from_space takes them, Dict and Tuple aside)
+_TAKEN = (gym.spaces.Discrete, gym.spaces.Box, gym.spaces.MultiDiscrete, gym.spaces.MultiBinary)
+
+
 def packed_spec(space: gym.spaces.Dict | gym.spaces.Tuple) -> PackedSpec:
     """The packed spec of a Dict or Tuple space (nested ones flattened into dotted keys)."""
     leaves: list[tuple[str, tuple[str | int, ...], Spec]] = []
@@ -523,10 +527,11 @@ def packed_spec(space: gym.spaces.Dict | gym.spaces.Tuple) -> PackedSpec:
             try:
                 leaves.append((key, path, spec_from_space(s, "observation")))
             except UserError as e:  # which entry of a large Dict the user's wrapper must change
-                drop = (f"; an env.wrappers entry that leaves {key!r} out (a function of the env returning "
-                        "gymnasium.wrappers.FilterObservation(env, the other keys), or the env's own wrapper for it) "
-                        "trains on the rest"
-                        if "is not supported" in str(e) else "")
+                # a kind relayrl takes (a Discrete that starts at 1) is mended by a wrapper; another is left out
+                drop = "" if isinstance(s, _TAKEN) else (
+                    f"; an env.wrappers entry that leaves {key!r} out (a function of the env returning "
+                    "gymnasium.wrappers.FilterObservation(env, the other keys), or the env's own wrapper for it) "
+                    "trains on the rest")
                 raise UserError(f"the observation's entry {key!r}: {e}{drop}") from None
 
     walk(space, ())

@@ -166,10 +166,8 @@ class LocalDriver:
     def checkpoint_state(self) -> dict[str, Any]:
         actor = self.actor.state_dict()
         if actor["env"] is None and not self.env_state_said:  # said when it happens, not only at a resume
-            self.env_state_said = True
             # said once, when the first checkpoint is written (the end of a short run)
-            self.core.say(f"checkpoints hold no env state ({self._why_no_env_state()}): a resumed run starts new "
-                          "episodes (README: Run directory)")
+            self._say_no_env_state("a resumed run starts new episodes (README: Run directory)")
         return {
             **self.core.checkpoint_common(self.evaluator.count),
             # Very large tables may be left out (train.checkpoint_replay = false): a resumed
@@ -233,15 +231,16 @@ class LocalDriver:
             elif changed:
                 self.core.say(f"{', '.join(changed)} changed: the envs start new episodes with the new settings")
             elif not files_moved_on:
-                self.env_state_said = True  # its checkpoints' line would say it again
-                self.core.say(f"checkpoints hold no env state ({self._why_no_env_state()}): the resumed run starts "
-                              "new episodes")
+                self._say_no_env_state("the resumed run starts new episodes")
 
-    def _why_no_env_state(self) -> str:
-        """The env copies' own reason where they step in this process (a wrapper's lambda, an
-        EzPickle env); worker processes' copies are not asked."""
+    def _say_no_env_state(self, consequence: str) -> None:
+        """Once a process: checkpoints hold no env state, with the env copies' own reason where
+        they step in this process (a wrapper's lambda, an EzPickle env; worker processes' copies
+        are not asked)."""
+        self.env_state_said = True
         why = self.env.state_problem() if isinstance(self.env, GymBatchEnv) else None
-        return why or "the env cannot be pickled mid-episode, as MuJoCo, Box2D and Atari envs"
+        why = why or "the env cannot be pickled mid-episode, as MuJoCo, Box2D and Atari envs"
+        self.core.say(f"checkpoints hold no env state ({why}): {consequence}")
 
     def _env_settings_changed(self, state: dict[str, Any]) -> list[str]:
         """The env.* settings that make the envs (kwargs, wrappers, time limit) and differ from
