@@ -142,22 +142,18 @@ def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, 
         spec = dataclasses.replace(gym.spec(env_id), order_enforce=False)
         try:
             return gym.make(spec, disable_env_checker=True, **kwargs)
-        except TypeError as e:
-            if "argument" not in str(e) and (not given or module):
-                raise
-            if "argument" in str(e):
+        except (TypeError, KeyError, ValueError, ArithmeticError, AssertionError, IndexError) as e:
+            if isinstance(e, TypeError) and "argument" in str(e):
                 raise UserError(_arguments_line(env_id, spec, e, kwargs, given)) from None
-            failed: Exception = e
-        except (KeyError, ValueError, ArithmeticError, AssertionError, IndexError) as e:
             # a registered env that fails on a value it was given (FrozenLake's map_name="8X8": a
             # KeyError of its map table; Hopper's frame_skip=0: a ZeroDivisionError) has a typo in
             # env.kwargs, not a bug; without env.kwargs, or from a user's module, it is their
             # code's traceback that helps
             if not given or module:
                 raise
-            failed = e
-        raise UserError(f"env.id={env_id!r} does not take the values given ({type(failed).__name__}: {failed}); "
-                        f"arguments passed (env.kwargs, and eval.env_kwargs to evaluation envs): {given}") from None
+            raise UserError(f"env.id={env_id!r} does not take the values given ({type(e).__name__}: {e}); "
+                            f"arguments passed (env.kwargs, and eval.env_kwargs to evaluation envs): {given}"
+                            ) from None
 
     return make_registered
 
