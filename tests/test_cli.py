@@ -32,6 +32,7 @@ def run(args, env, cwd=None):
     (["train", "dqn-cartpole", "--set", "env.id=mymod.MyEnv"], "did you mean mymod:MyEnv?"),
     (["train", "sac", "--set", "env.id=HalfCheetah-v3"], "env.id='HalfCheetah-v3' could not be made: ImportError: "
                                                          "The mujoco v2 and v3 based environments have been moved"),
+    (["train", "sac", "--set", "env.id=HalfCheetah-v3"], "; HalfCheetah-v5 is this env's newest version"),
     (["train"], "train needs PRESET|CONFIG.toml (see `relayrl presets`), or --run-dir DIR --resume"),
     (["frobnicate"], "invalid choice"),
     (["train", "dqn-cartpole", "--dir", "x"], "unrecognized arguments: --dir x; did you mean --run-dir?"),

@@ -600,3 +600,16 @@ def test_a_missing_gymnasium_dependency_names_relayrls_extra(said, extra):
         raise gym.error.DependencyNotInstalled(said)
     needs = f"needs Gymnasium's {extra} dependencies: pip install -e \".[{extra}]\" in relayrl's folder"
     assert str(e.value) == f"env.id='SomeEnv-v0' {needs if extra else 'could not be made: ' + said}"
+
+
+@pytest.mark.parametrize("env_id, said, hint", [
+    ("Pendulum-v0", "moved", "; Pendulum-v1 is this env's newest version"),
+    ("Pendulum-v0", "Please use Pendulum-v1 instead", ""),  # Gymnasium's line names it already
+    ("Pendulum-v1", "moved", ""),  # the newest fails: nothing newer to name
+    ("NoSuchEnv-v3", "moved", ""),
+    ("not an id!", "moved", ""),
+])
+def test_a_failing_registered_id_names_its_newest_version(env_id, said, hint):
+    from relayrl.envs.make import newer_hint
+
+    assert newer_hint(env_id, ImportError(said)) == hint

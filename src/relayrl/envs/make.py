@@ -75,12 +75,29 @@ def making(env_id: str, users_code: bool = False) -> Iterator[None]:
     except gym.error.Error as e:
         if extra := missing_extra(e):  # Gymnasium's line names its own install (swig, "gymnasium[box2d]")
             raise UserError(f"env.id={env_id!r} needs Gymnasium's {extra} dependencies: {install(extra)}") from None
-        raise UserError(f"env.id={env_id!r} could not be made: {e}{gl_hint(e)}") from None
+        raise UserError(f"env.id={env_id!r} could not be made: {e}{gl_hint(e)}{newer_hint(env_id, e)}") from None
     except (ImportError, OSError, AttributeError) as e:  # a registered env's moved ids, a missing GL library
         if users_code or names_module(env_id):
             raise
-        said = " ".join(str(e).split())
-        raise UserError(f"env.id={env_id!r} could not be made: {type(e).__name__}: {said}{gl_hint(e)}") from None
+        said = " ".join(str(e).split()).rstrip(".")  # the line goes on after it
+        raise UserError(f"env.id={env_id!r} could not be made: {type(e).__name__}: {said}{gl_hint(e)}"
+                        f"{newer_hint(env_id, e)}") from None
+
+
+def newer_hint(env_id: str, error: Exception) -> str:
+    """Where a registered id fails and the registry holds a newer version of the same env
+    (HalfCheetah-v3, whose MuJoCo bindings moved out of Gymnasium): that version's id, unless
+    Gymnasium's own line already names it (a deprecated version's "Please use ... instead")."""
+    try:
+        namespace, name, version = gym.envs.registration.parse_env_id(env_id)
+    except gym.error.Error:
+        return ""
+    versions = [s.version for s in gym.envs.registry.values()
+                if s.namespace == namespace and s.name == name and s.version is not None]
+    if version is None or not versions or max(versions) <= version:
+        return ""
+    newest = gym.envs.registration.get_env_id(namespace, name, max(versions))
+    return "" if newest in str(error) else f"; {newest} is this env's newest version"
 
 
 def missing_extra(error: Exception) -> str | None:
