@@ -127,7 +127,7 @@ def test_async_time_limits_match_in_process(terminates):
 
 
 def test_worker_slices_share_the_copies_out_evenly():
-    from relayrl.envs.vector import usable_cpus, worker_slices
+    from relayrl.envs.worker import usable_cpus, worker_slices
 
     # the main process's slice first, then one per worker
     assert worker_slices(32, 1) == [(0, 16), (16, 32)]

@@ -7,14 +7,14 @@ process's). Every slice is stepped by the in-process `GymBatchEnv`, so autoreset
 code's, and transitions are identical to `sync`'s.
 
 The pipes carry pickled (command, seq, argument) one way and (status, seq, value) the other,
-each reply after the bytes `_MAGIC`. Ctrl-C (a notebook's interrupt) may stop a call anywhere;
+each reply after the bytes `worker.MAGIC`. Ctrl-C (a notebook's interrupt) may stop a call anywhere;
 the next call sends a "sync" first and drops replies whose seq is not its own, so it neither
 waits for a reply that was already read nor takes an interrupted call's reply for its own. An
 interrupt that cuts a big message (a get_state or set_state of large envs) in two makes the env
 say it is broken at its next call, rather than hang (`AsyncGymBatchEnv._fill`).
 
 Envs that draw from the global RNGs (`np.random`, `random`, torch's) instead of their own
-`self.np_random` cannot give sync's numbers: every worker seeds its own (`_global_rng_seed`).
+`self.np_random` cannot give sync's numbers: every worker seeds its own (`worker.global_rng_seed`).
 
 Why this shape: more processes than cores never speeds up CPU-bound envs, and one process per
 copy (Gymnasium's `AsyncVectorEnv`) pays a pipe round trip per copy per step, which for light
@@ -30,17 +30,11 @@ import contextlib
 import multiprocessing as mp
 import os
 import pickle
-import random
-import signal
 import struct
 import sys
 import time
-import traceback
-import weakref
-import zlib
-from collections.abc import Callable
 from multiprocessing.connection import Connection
-from typing import Any, cast
+from typing import Any
 
 import cloudpickle
 import numpy as np
@@ -49,167 +43,26 @@ import torch
 from relayrl.envs.gym import BatchEnvBase, GymBatchEnv
 from relayrl.envs.pixels import frame_stack_of
 from relayrl.envs.resolve import EnvFn
+from relayrl.envs.worker import (
+    LENGTH,
+    MAGIC,
+    MAIN_ENDS,
+    ONE_WRITE,
+    SharedLayout,
+    global_rng_seed,
+    serve,
+    shared_views,
+    worker_failure,
+    worker_slices,
+)
 from relayrl.errors import UserError
 from relayrl.specs import numpy_dtype
 from relayrl.types import EpisodeInfo, StepOutput
 
-
-def usable_cpus() -> int:
-    """The cores this process may run on (its affinity mask: `taskset`, container cpusets),
-    which can be far fewer than the machine's `os.cpu_count()`."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # no sched_getaffinity (macOS, Windows)
-        return os.cpu_count() or 1
-
-
-def worker_slices(num_envs: int, num_workers: int) -> list[tuple[int, int]]:
-    """Contiguous [lo, hi) slices of the copies, the main process's first, then one per worker
-    (`num_workers`, 0: one per core beside the main's, never more than the copies allow);
-    sizes differ by at most 1."""
-    workers = num_workers or max(1, usable_cpus() - 1)
-    n = 1 + max(0, min(workers, num_envs - 1))
-    bounds = np.linspace(0, num_envs, n + 1).round().astype(int)
-    return [(int(lo), int(hi)) for lo, hi in zip(bounds[:-1], bounds[1:], strict=True)]
-
-
-_SharedLayout = dict[str, tuple[tuple[int, ...], np.dtype]]  # a shared array's name -> (shape, dtype)
-
-
-def _views(raw: dict[str, Any], layout: _SharedLayout) -> dict[str, np.ndarray]:
-    """NumPy views on the shared raw arrays (made again in a spawned worker, which gets `raw` pickled)."""
-    return {k: np.frombuffer(raw[k], dtype=dtype, count=int(np.prod(shape))).reshape(shape)
-            for k, (shape, dtype) in layout.items()}
-
-
-# The main process's ends of every async env's pipes, its own env's included. A forked worker
-# inherits them all and closes them: an inherited copy would keep a pipe open after its env's
-# owner is gone (the main process SIGKILLed, or another env dropped without close()), so that
-# env's workers would never read EOF and exit. A spawned worker inherits none.
-_MAIN_ENDS: weakref.WeakSet[Connection] = weakref.WeakSet()
-
-
-def _global_rng_seed(lo: int) -> int:
-    """A seed for the global RNGs of the worker whose slice starts at copy `lo`: derived from
-    this process's `np.random` state without drawing from it, distinct per worker. So it is a
-    function of that state, as everything else a seeded script does: two envs made with no
-    draw from `np.random` between them give their workers the same streams."""
-    # The legacy tuple (numpy's stub types get_state()'s default as the dict of legacy=False)
-    state = cast("tuple[str, np.ndarray, int, int, float]", np.random.get_state())
-    return (zlib.crc32(state[1].tobytes()) + lo) % 2**32
-
-
-# Pickled commands up to this size go out in one write (multiprocessing's Connection writes
-# the length and the bytes together below 16 KiB): an interrupt sends all of one or none of it.
-_ONE_WRITE = 16_000
-
-
-# Every reply starts with these bytes, after the Connection's length header: a reader whose
-# stream lost bytes to an interrupt (see AsyncGymBatchEnv._fill) finds out at the next reply.
-_MAGIC = b"RLRW"
 # How long a worker may take to make its env copies and answer (see `_await_start`): generous, as
 # some simulators take many seconds to start; without a limit a worker that never answers would
 # make the run wait without end.
 WORKER_START_S = 300.0
-_LENGTH = struct.Struct("!i")  # multiprocessing's Connection length header
-
-
-def _worker(conn: Connection, fns_pickled: bytes, lo: int, hi: int, raw: dict[str, Any], layout: _SharedLayout,
-            time_limit_terminates: bool, rng_seed: int) -> None:
-    """Serve commands until "close": step, reset, info_keys, get_state, set_state."""
-    for end in list(_MAIN_ENDS):  # see _MAIN_ENDS
-        end.close()
-    # Ctrl-C reaches the terminal's whole process group: the main process reports it and closes
-    # the workers, which must still answer it meanwhile. SIGTERM (close()'s last resort, and
-    # multiprocessing's at exit) kills, whatever handler the forked main process had installed.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, signal.SIG_DFL)
-    np.random.seed(rng_seed)  # forked, they would repeat the main process's draws
-    random.seed(rng_seed)
-    torch.manual_seed(rng_seed)
-    a = _views(raw, layout)
-    env: GymBatchEnv | None = None
-    try:
-        made = _outcome(0, lambda: GymBatchEnv(cloudpickle.loads(fns_pickled), time_limit_terminates, first_copy=lo))
-        env = made[2] if made[0] == "ok" else None
-        reply = made if env is None else ("ok", 0, None)  # the main process waits for this "ok"
-        while True:
-            conn.send_bytes(_MAGIC + pickle.dumps(reply))
-            if env is None:
-                break
-            cmd, seq, arg = pickle.loads(conn.recv_bytes())
-            if cmd == "close":
-                break
-            reply = _outcome(seq, _serve, env, a, lo, hi, cmd, arg)
-    except (EOFError, OSError):  # the main process's end is closed (it exited, or dropped the env mid-reply)
-        pass
-    finally:
-        if env is not None:
-            env.close()
-        conn.close()
-
-
-def _outcome(seq: int, work: Callable[..., Any], *args: Any) -> tuple[str, int, Any]:
-    """A worker's reply to command `seq`: ("ok", seq, work(*args)), or its failure as the main
-    process raises it: a UserError as its one line (bad input met while making or stepping a
-    copy), any other failure of the env's code with its traceback and, where it pickles, the
-    exception itself (`worker_failure`)."""
-    try:
-        return ("ok", seq, work(*args))
-    except UserError as e:
-        return ("user_error", seq, str(e))
-    except Exception as e:
-        return ("error", seq, (traceback.format_exc(), _pickled(e)))
-
-
-def _pickled(e: Exception) -> bytes | None:
-    """`e` pickled, where it pickles (whether it loads back is the main process's to find)."""
-    try:
-        return cloudpickle.dumps(e)
-    except Exception:
-        return None
-
-
-def worker_failure(w: int, trace: str, pickled: bytes | None) -> Exception:
-    """What the main process raises for worker w's failure: the env's own exception, as a sync
-    env raises it (so `except` clauses, and tools that catch some types, such as Optuna's
-    `catch`, see the same type), with its traceback in the worker as a note; a RuntimeError
-    carrying that traceback where the exception does not load here."""
-    exc = None
-    if pickled is not None:
-        with contextlib.suppress(Exception):
-            exc = pickle.loads(pickled)
-    if isinstance(exc, Exception):
-        trace = trace.rstrip()
-        # the traceback ends with the exception's notes (GymBatchEnv's copy it names), which it
-        # carries here too: said once, as its own notes
-        said = "\n".join(getattr(exc, "__notes__", []))
-        if said and trace.endswith("\n" + said):
-            trace = trace[:-len(said)].rstrip()
-        exc.add_note(f"(raised in env worker {w}; its traceback there:)\n{trace}")
-        return exc
-    return RuntimeError(f"env worker {w} failed:\n{trace}")
-
-
-def _serve(env: GymBatchEnv, a: dict[str, np.ndarray], lo: int, hi: int, cmd: str, arg: Any) -> Any:
-    """One command of a worker's slice [lo, hi): the reply's value."""
-    if cmd == "step":  # straight into shared memory: reset observations into "obs"
-        # A copy of the actions: an env may keep the one it was given (sync hands out a fresh
-        # array each step), and the shared row is written over by the next step.
-        return env.step_into(a["action"][lo:hi].copy(), a["next_obs"][lo:hi], a["reward"][lo:hi],
-                             a["terminated"][lo:hi], a["truncated"][lo:hi], a["obs"][lo:hi])[1]
-    if cmd == "reset":
-        a["obs"][lo:hi] = env.reset(seed=None if arg is None else arg + lo).numpy()
-    elif cmd == "info_keys":
-        env.info_keys = arg
-    elif cmd == "get_state":
-        return env.get_state()
-    elif cmd == "set_state":
-        env.set_state(arg)
-    elif cmd != "sync":  # "sync" only answers: see AsyncGymBatchEnv._resync
-        raise ValueError(f"unknown env worker command {cmd!r}")
-    return None
-
 
 class AsyncGymBatchEnv(BatchEnvBase):
     """`len(env_fns)` copies: the first slice stepped in this process, the others by
@@ -241,18 +94,18 @@ class AsyncGymBatchEnv(BatchEnvBase):
             act_shape = tuple(self.action_spec.shape) if self._env_action_shape is None else self._env_action_shape
             b, obs = self.num_envs, ((self.num_envs, *self.observation_spec.shape), np.dtype(self._obs_dtype))
             # actions in; next_obs, reset obs, reward, terminated, truncated out
-            layout: _SharedLayout = {"action": ((b, *act_shape), act_dtype), "next_obs": obs, "obs": obs,
+            layout: SharedLayout = {"action": ((b, *act_shape), act_dtype), "next_obs": obs, "obs": obs,
                                      "reward": ((b,), np.dtype(np.float32)), "terminated": ((b,), np.dtype(np.bool_)),
                                      "truncated": ((b,), np.dtype(np.bool_))}
             raw = {k: ctx.RawArray("b", max(1, int(np.prod(shape)) * dtype.itemsize))
                    for k, (shape, dtype) in layout.items()}
-            self._arrays = _views(raw, layout)
+            self._arrays = shared_views(raw, layout)
             for lo, hi in self.slices[1:]:
                 parent, child = ctx.Pipe()
-                _MAIN_ENDS.add(parent)  # before the fork: the worker closes its copy of it too
+                MAIN_ENDS.add(parent)  # before the fork: the worker closes its copy of it too
                 fns = cloudpickle.dumps(env_fns[lo:hi])
-                seed = _global_rng_seed(lo)
-                proc = ctx.Process(target=_worker, name=f"relayrl-env-{lo}-{hi}", daemon=True,
+                seed = global_rng_seed(lo)
+                proc = ctx.Process(target=serve, name=f"relayrl-env-{lo}-{hi}", daemon=True,
                                    args=(child, fns, lo, hi, raw, layout, time_limit_terminates, seed))
                 proc.start()
                 child.close()
@@ -304,13 +157,13 @@ class AsyncGymBatchEnv(BatchEnvBase):
         box = self._inbox[w]
         if len(box) < 8:
             return None
-        (size,) = _LENGTH.unpack_from(box)  # -1: a size over 2 GiB follows
+        (size,) = LENGTH.unpack_from(box)  # -1: a size over 2 GiB follows
         start = 4
         if size == -1:
             if len(box) < 16:
                 return None
             (size,), start = struct.unpack_from("!Q", box, 4), 12
-        if not box.startswith(_MAGIC, start):
+        if not box.startswith(MAGIC, start):
             raise RuntimeError(self._break(f"the pipe from env worker {w} lost bytes to an interrupted call"))
         if len(box) < start + size:
             return None
@@ -325,7 +178,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
         read interrupted by a signal returns no bytes). Between the read and the inbox it drops
         what was read. With an empty inbox that is whole replies (each is one write smaller than
         a read), which only the interrupted call waited for and later calls tell apart by seq, or
-        the head of a big one (a get_state), and then the next bytes fail the `_MAGIC` check.
+        the head of a big one (a get_state), and then the next bytes fail the `MAGIC` check.
         With part of a big reply in the inbox the rest may have been dropped, so the env is marked
         broken. Either way it says so at its next call, instead of hanging or unpickling garbage.
         """
@@ -339,7 +192,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
             except BaseException:  # it may stop between a message's length and its bytes
                 self._break(f"a call to the env was interrupted while it read from env worker {w}")
                 raise
-            chunk = _LENGTH.pack(len(data)) + data if data else b""
+            chunk = LENGTH.pack(len(data)) + data if data else b""
         else:
             try:
                 chunk = os.read(conn.fileno(), 1 << 16)  # (a read allocates its size: 1 MiB costs an mmap a step)
@@ -421,7 +274,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
             except BaseException:
                 # A small message goes out in one write, whole or not at all; a large one (a
                 # set_state of big envs) in several, and the worker may be left with part of it.
-                if len(data) > _ONE_WRITE:
+                if len(data) > ONE_WRITE:
                     self._break(f"a call to the env was interrupted while it wrote to env worker {w}")
                 raise
         return self._seq
@@ -519,7 +372,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
             if not proc.is_alive():
                 proc.close()  # its sentinel pipe now, not when the garbage collector finds it
         for conn in self._conns:
-            _MAIN_ENDS.discard(conn)
+            MAIN_ENDS.discard(conn)
         # the shared memory goes back now, not when the garbage collector meets this env: a
         # Ctrl-C during that late free, at a moment no one chose, breaks multiprocessing's heap
         self._arrays = {}
