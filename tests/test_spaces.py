@@ -19,11 +19,10 @@ from torch import nn
 import relayrl
 from relayrl.errors import UserError
 from relayrl.export import EnvShaped
+from relayrl.frames import frame_layout, image_layout
 from relayrl.nn.encoders import ConvEncoder, DictEncoder, OneHot, make_encoder
 from relayrl.specs import (
     PackedSpec,
-    frame_layout,
-    image_layout,
     is_image,
     spec_from_space,
     spec_from_state,

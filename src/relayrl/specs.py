@@ -26,6 +26,7 @@ import torch
 
 from relayrl.arrays import torch_dtype
 from relayrl.errors import UserError
+from relayrl.frames import frame_layout, frame_layout_before
 
 _TORCH_DTYPES = {
     np.dtype(np.float32): torch.float32,
@@ -226,51 +227,6 @@ def _pixel_bounds(spec: ArraySpec) -> bool:
     return spec.low is None or spec.high is None or bool((spec.low == 0).all() and (spec.high == 255).all())
 
 
-def frame_layout(shape: Sequence[int]) -> str | None:
-    """How a shape reads as frames: "HW", "CHW", "HWC", or a stack of them along the first side,
-    "SCHW" / "SHWC" (Gymnasium's FrameStackObservation over RGB frames), the channels being the
-    smaller of the outer sides ([84, 84, 12] is four RGB frames side by side, as Stable-Baselines3
-    reads it; [4, 84, 84] four gray ones), unless only the last two sides are equal: [12, 8, 8] is
-    twelve square 8x8 frames stacked, not a 12x8 image of 8 channels; None where a side is under 8
-    pixels or the rank is another."""
-    if len(shape) not in (2, 3, 4):
-        return None
-    frame = tuple(shape[-3:]) if len(shape) > 2 else tuple(shape)
-    square_last = len(frame) == 3 and frame[1] == frame[2] != frame[0]
-    layout = "HW" if len(frame) == 2 else "HWC" if frame[2] < frame[0] and not square_last else "CHW"
-    sides = frame if len(frame) == 2 else frame[:2] if layout == "HWC" else frame[1:]
-    if min(sides) < 8:
-        return None
-    return "S" + layout if len(shape) == 4 else layout
-
-
-def image_layout(spec: ArraySpec) -> tuple[int, bool]:
-    """(channels, channels last) of an image spec, a stack's frames counting as channels."""
-    layout, shape = frame_layout(spec.shape), spec.shape
-    assert layout is not None, f"{shape} is not laid out as frames"
-    if layout == "HW":
-        return 1, False
-    channels = shape[-1] if layout.endswith("C") else shape[-3]
-    return channels * (shape[0] if layout.startswith("S") else 1), layout.endswith("C")
-
-
-def image_size(spec: ArraySpec) -> tuple[int, int]:
-    """(H, W) of an image-shaped spec."""
-    shape = spec.shape
-    return (shape[-3], shape[-2]) if image_layout(spec)[1] else (shape[-2], shape[-1])
-
-
-def _frame_layout_before(shape: Sequence[int]) -> str | None:
-    """The layout of policy files and checkpoints without a "layout" entry: ranks 2 and 3 only,
-    [H, W, C] where the last side was 1, 3 or 4 and the first was not."""
-    if len(shape) == 2:
-        return "HW" if min(shape) >= 8 else None
-    if len(shape) != 3:
-        return None
-    last = shape[-1] in (1, 3, 4) and shape[0] not in (1, 3, 4)
-    return ("HWC" if last else "CHW") if min(shape[:2] if last else shape[1:]) >= 8 else None
-
-
 def spec_state(spec: Spec) -> dict[str, Any]:
     """A spec as plain data (for policy files, which hold only plain types)."""
     if isinstance(spec, DiscreteSpec):
@@ -326,7 +282,7 @@ def check_trained_layout(state: dict[str, Any], any_bounds: bool = False, record
         return
     spec = spec_from_state(state)
     assert isinstance(spec, ArraySpec)
-    trained = state["layout"] if recorded and "layout" in state else _frame_layout_before(spec.shape)
+    trained = state["layout"] if recorded and "layout" in state else frame_layout_before(spec.shape)
     if (any_bounds or _pixel_bounds(spec)) and trained != frame_layout(spec.shape):
         raise UserError(f"{describe(spec)} observations were read as {trained or 'a flat vector'} when this run "
                         f"was trained; this version reads them as {frame_layout(spec.shape) or 'a flat vector'} "

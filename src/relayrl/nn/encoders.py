@@ -21,6 +21,7 @@ from torch import nn
 
 from relayrl.config_fields import ENCODERS, is_user_encoder
 from relayrl.errors import UserError, note_where
+from relayrl.frames import image_layout, image_size
 from relayrl.nn.mlp import MLP
 from relayrl.specs import (
     ArraySpec,
@@ -31,8 +32,6 @@ from relayrl.specs import (
     Spec,
     describe,
     flat_dim,
-    image_layout,
-    image_size,
     is_flat_vector,
     is_image,
     spec_from_state,

@@ -9,6 +9,7 @@ from torch import nn
 
 from relayrl.agents.dqn.config import DQNConfig
 from relayrl.errors import UserError
+from relayrl.frames import image_layout, image_size
 from relayrl.nn import tf_agents_init_
 from relayrl.nn.encoders import NATURE_MIN_SIDE, Encoded, encoded_mlp
 from relayrl.specs import (
@@ -17,8 +18,6 @@ from relayrl.specs import (
     PackedSpec,
     Spec,
     describe,
-    image_layout,
-    image_size,
     is_image,
     which_algorithms,
 )
