@@ -558,6 +558,26 @@ def test_runs_started_in_the_same_second_get_their_own_default_directories(tmp_p
                                        "dqn-toy_envs_Countdown-s0-20261127-081716-3"]
 
 
+def test_runs_started_at_once_in_several_processes_claim_their_own_default_directories(tmp_path, monkeypatch):
+    """Two runs that both chose a name before either made its folder shared it: the second failed
+    on the first's lock. Each claims its name by making the folder; one left empty goes again."""
+    from relayrl.config import from_dict
+    from relayrl.dispatch import default_run_dir
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("time.strftime", lambda fmt: "20261127-081716")
+    config = from_dict(TINY)
+    with default_run_dir(config) as first, default_run_dir(config) as second:
+        assert first != second and first.is_dir() and second.is_dir()
+        (first / "config.toml").write_text("")  # a run that wrote something keeps its folder
+    assert first.is_dir() and not second.exists()
+    (tmp_path / "other").mkdir()
+    monkeypatch.chdir(tmp_path / "other")
+    with pytest.raises(UserError):
+        relayrl.train({**TINY, "env": {"id": "toy_envs:NoSuchEnv"}}, progress=False)
+    assert not (tmp_path / "other" / "runs").exists()  # bad input: nothing written, no folder left
+
+
 def test_evaluating_a_loaded_policy_that_samples_repeats_with_the_same_seed(tmp_path):
     cfg = {"algo": "ppo", "env": {"id": "Pendulum-v1"}, "train": {"total_steps": 128, "collect_steps": 64},
            "eval": {"interval": 0, "episodes": 1}, "agent": {"batch_size": 32, "n_epochs": 1}}

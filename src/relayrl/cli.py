@@ -6,6 +6,7 @@ for a missing argument."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -164,13 +165,15 @@ def _train(args: argparse.Namespace) -> None:
         raise UserError("train needs PRESET|CONFIG.toml (see `relayrl presets`), or --run-dir DIR --resume")
     else:
         config = load_config(args.config, args.overrides, args.seed)
-    args.run_dir = args.run_dir or str(default_run_dir(config))  # named here: an interrupt's line names it
-    if not args.resume and (note := backslash_note(args.run_dir)):
-        print(note, file=sys.stderr, flush=True)
+    with contextlib.ExitStack() as stack:
+        # named here: an interrupt's line names it
+        args.run_dir = args.run_dir or str(stack.enter_context(default_run_dir(config)))
+        if not args.resume and (note := backslash_note(args.run_dir)):
+            print(note, file=sys.stderr, flush=True)
+        result = train(config, args.run_dir, resume=args.resume, progress=not args.no_progress,
+                       overwrite=args.overwrite)
     from relayrl.training.report import rounded
 
-    result = train(config, args.run_dir, resume=args.resume, progress=not args.no_progress,
-                   overwrite=args.overwrite)
     final = result.final
     print(f"run directory: {result.run_dir}")
     ret = final.get("average_return")

@@ -36,13 +36,29 @@ if TYPE_CHECKING:
     from relayrl.distributed.driver import RayDriver
 
 
-def default_run_dir(config: Config) -> Path:
+@contextlib.contextmanager
+def default_run_dir(config: Config) -> Iterator[Path]:
     """runs/<algo>-<env>-s<seed>-<date>-<time>, with -2, -3, ... where runs started within the same
-    second (a sweep of short runs) would share it."""
+    second (a sweep of short runs) would share it. The name is claimed by making the folder, so
+    runs started at once in several processes each get their own; an empty folder is taken out
+    again when the block ends (bad input found before the run wrote anything)."""
     name = config.env.id.replace("/", "_").replace(":", "_").replace("<", "").replace(">", "")
     base = Path("runs") / f"{config.algo}-{name}-s{config.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
-    candidates = itertools.chain([base], (base.with_name(f"{base.name}-{i}") for i in itertools.count(2)))
-    return next(path for path in candidates if not path.exists())
+    made_runs = not base.parent.exists()
+    for path in itertools.chain([base], (base.with_name(f"{base.name}-{i}") for i in itertools.count(2))):
+        try:
+            path.mkdir(parents=True)
+            break
+        except FileExistsError:
+            continue
+        except OSError:  # not writable here: the run's own check says so in one line
+            break
+    try:
+        yield path
+    finally:
+        for made in (path, base.parent) if made_runs else (path,):
+            with contextlib.suppress(OSError):  # only an empty folder goes
+                made.rmdir()
 
 
 def factory_env_id(factory: Callable[[], Any]) -> str:
@@ -254,25 +270,27 @@ def _train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | P
         raise UserError(f"env.id={config.env.id!r} names an env made in the script itself (a lambda, a local "
                         "function or __main__), which Ray's workers cannot import: put it in a module beside the "
                         "script and name it in env.id as module:name")
-    rd = RunDir(run_dir if run_dir is not None else default_run_dir(config))
-    rd.check_writable()
-    rd.check_not_running()
-    if resume:
-        if overwrite:
-            raise UserError(RESUME_OR_OVERWRITE + " (in Python: overwrite=True or resume=True)")
-        rd.require()
-        check_resume_matches(config, rd)
-        _check_memmap_checkpoint(config, rd)
-    takeover = None if resume else _takeover_notice(rd, overwrite)
-    # files that are not a run's (looked at before the run's parts make a memmap replay's folder)
-    beside = not resume and not takeover and rd.root.is_dir() and any(rd.root.iterdir())
-    if resume and not entry.resumable:
-        raise UserError(f"algo={entry.name!r} runs are not checkpointed (they take minutes): start a new run instead")
-    if config.distributed.num_actors > 0 and not entry.ray:
-        raise UserError(f"algo={entry.name!r} runs in one process only; distributed.num_actors works with "
-                        f"{', '.join(ray_algorithms())}")
-    with caller_state_kept():  # the run's threads, flushing and seeds are the run's alone
-        return _build_and_train(entry, config, rd, resume, progress, env, callbacks, takeover, beside)
+    with contextlib.ExitStack() as stack:  # a folder of default_run_dir's goes again where the run wrote nothing
+        rd = RunDir(run_dir if run_dir is not None else stack.enter_context(default_run_dir(config)))
+        rd.check_writable()
+        rd.check_not_running()
+        if resume:
+            if overwrite:
+                raise UserError(RESUME_OR_OVERWRITE + " (in Python: overwrite=True or resume=True)")
+            rd.require()
+            check_resume_matches(config, rd)
+            _check_memmap_checkpoint(config, rd)
+        takeover = None if resume else _takeover_notice(rd, overwrite)
+        # files that are not a run's (looked at before the run's parts make a memmap replay's folder)
+        beside = not resume and not takeover and rd.root.is_dir() and any(rd.root.iterdir())
+        if resume and not entry.resumable:
+            raise UserError(f"algo={entry.name!r} runs are not checkpointed (they take minutes): start a new run "
+                            "instead")
+        if config.distributed.num_actors > 0 and not entry.ray:
+            raise UserError(f"algo={entry.name!r} runs in one process only; distributed.num_actors works with "
+                            f"{', '.join(ray_algorithms())}")
+        with caller_state_kept():  # the run's threads, flushing and seeds are the run's alone
+            return _build_and_train(entry, config, rd, resume, progress, env, callbacks, takeover, beside)
 
 
 # A run seeds torch's global generator (network initialisation) and sets the process's thread
