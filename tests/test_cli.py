@@ -399,3 +399,19 @@ def test_the_current_directory_goes_last_on_the_import_path(tmp_path, monkeypatc
     monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", str(tmp_path))])
     assert cli.main(["presets"]) == 0
     assert sys.path[-1] == str(tmp_path)
+
+
+def test_a_resume_naming_its_preset_without_a_seed_keeps_the_runs_seed(tmp_path, capsys):
+    """`relayrl train PRESET --run-dir R --resume` compared the preset's seed (0) with the run's
+    and refused a run started with --seed 1; a seed given on the resume is still checked."""
+    from relayrl import cli
+
+    run, small = str(tmp_path / "r"), ["--set", "train.total_steps=300", "--set", "train.initial_collect_steps=100",
+                                       "--no-progress"]
+    assert cli.main(["train", "dqn-cartpole-fast", "--run-dir", run, "--seed", "1", *small]) == 0
+    longer = ["--set", "train.total_steps=400", "--no-progress"]
+    assert cli.main(["train", "dqn-cartpole-fast", "--run-dir", run, "--resume", *longer]) == 0
+    assert "final evaluation" in capsys.readouterr().out
+    for seeded in (["--seed", "2"], ["--set", "seed=2"]):
+        assert cli.main(["train", "dqn-cartpole-fast", "--run-dir", run, "--resume", *seeded, *longer]) == 2
+        assert "--resume: seed=2 but the run in" in capsys.readouterr().err

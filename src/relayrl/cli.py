@@ -146,8 +146,10 @@ def backslash_note(run_dir: str) -> str | None:
 
 
 def _train(args: argparse.Namespace) -> None:
+    from relayrl.config import parse_override
     from relayrl.dispatch import RESUME_OR_OVERWRITE, check_resume_matches, default_run_dir, identity_overrides, train
     from relayrl.presets import load_config
+    from relayrl.training.resume import IDENTITY_KEYS
     from relayrl.training.run_dir import RunDir
 
     if args.resume:
@@ -158,8 +160,11 @@ def _train(args: argparse.Namespace) -> None:
         rd = RunDir(args.run_dir)
         rd.require()
         if args.config:  # it must name the run's own algorithm and env; the run's config.toml is used
-            check_resume_matches(load_config(args.config, identity_overrides(args.overrides), args.seed), rd,
-                                 identity_only=True)
+            named = identity_overrides(args.overrides)
+            # the seed only where one is given: the preset's own (0) is not the run's
+            seeded = args.seed is not None or any(parse_override(o)[0] == ["seed"] for o in named)
+            check_resume_matches(load_config(args.config, named, args.seed), rd,
+                                 identity=IDENTITY_KEYS if seeded else ("algo", "env.id"))
         config = load_config(str(rd.config), args.overrides, args.seed)
     elif not args.config:
         raise UserError("train needs PRESET|CONFIG.toml (see `relayrl presets`), or --run-dir DIR --resume")
