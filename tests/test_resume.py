@@ -492,6 +492,20 @@ def test_resume_refuses_another_replay_size_in_one_line(tmp_path):
         relayrl.train(more, tmp_path / "r", resume=True, progress=False)
 
 
+def test_resume_refuses_another_rollout_length_in_one_line(tmp_path):
+    """PPO's checkpoint holds its rollout table: another train.collect_steps trained on, then
+    failed mid-run (a ValueError from the table), with the new value already in config.toml."""
+    small = ["train.total_steps=128", "train.collect_steps=64", "agent.batch_size=32", "agent.n_epochs=1",
+             "eval.interval=0", "eval.episodes=1"]
+    relayrl.train(relayrl.load_config("ppo-cartpole", small), tmp_path / "r", progress=False)
+    before = (tmp_path / "r" / "config.toml").read_text()
+    more = relayrl.load_config(str(tmp_path / "r" / "config.toml"), ["train.total_steps=256", "train.collect_steps=128"])
+    with pytest.raises(relayrl.errors.UserError, match="train.collect_steps=128 but the run in .* has 64; its "
+                                                       "checkpoint holds a rollout table of that many env steps"):
+        relayrl.train(more, tmp_path / "r", resume=True, progress=False)
+    assert (tmp_path / "r" / "config.toml").read_text() == before
+
+
 @pytest.mark.parametrize("key, edit", [("seed", ("seed = 0 ", "seed = 5 ")),
                                        ("env.num_envs", ("num_envs = 1 ", "num_envs = 2 "))])
 def test_a_config_toml_edited_by_hand_is_checked_against_the_checkpoint(key, edit, tmp_path):

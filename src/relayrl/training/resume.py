@@ -20,17 +20,21 @@ _ADVICE = {"algo": _OWN.format("algo"), "env.id": _OWN.format("env.id"),
            "env.num_envs": "its replay and envs are laid out per copy: " + _OWN.format("env.num_envs"),
            "distributed.num_actors": "its checkpoint holds each actor's part (off-policy: of the replay too): "
            + _OWN.format("distributed.num_actors"),
-           "replay.size": "its checkpoint holds a replay table of that size: " + _OWN.format("replay.size")}
+           "replay.size": "its checkpoint holds a replay table of that size: " + _OWN.format("replay.size"),
+           "train.collect_steps": "its checkpoint holds a rollout table of that many env steps: "
+           + _OWN.format("train.collect_steps")}
 IDENTITY = {k: _ADVICE[k] for k in IDENTITY_KEYS}
 
 
 def kept_on_resume(config: Config, replay_in_checkpoint: bool) -> dict[str, str]:
     """The keys a resumed run keeps, each with the advice its refusal gives: its identity, its
     env copies and actors (its replay and envs are laid out per copy), an off-policy run's replay
-    size where its checkpoint holds the table (train.checkpoint_replay), and the agent's network
-    keys."""
-    replay = replay_in_checkpoint and algorithm(config.algo).replay == "transitions"
-    keys = (*IDENTITY_KEYS, "env.num_envs", "distributed.num_actors", *["replay.size"] * replay)
+    size where its checkpoint holds the table (train.checkpoint_replay), an on-policy run's rollout
+    length (its rollout table's), and the agent's network keys."""
+    kind = algorithm(config.algo).replay
+    replay = replay_in_checkpoint and kind == "transitions"
+    keys = (*IDENTITY_KEYS, "env.num_envs", "distributed.num_actors", *["replay.size"] * replay,
+            *["train.collect_steps"] * (kind == "rollouts"))
     kept = {k: _ADVICE[k] for k in keys}
     networks = "a resumed run keeps its networks (leave out --set {}; in Python, load the run's config.toml)"
     return kept | {f"agent.{k}": networks.format(f"agent.{k}") for k in config.agent.NETWORK}
