@@ -754,6 +754,39 @@ def test_sighup_stops_a_run_with_a_checkpoint_also_when_its_terminal_is_gone(tmp
         assert "relayrl: hung up (the terminal closed); resume with --resume" in said and "Traceback" not in said
 
 
+@pytest.mark.parametrize("stop", ["ctrl-c", "none"])
+def test_a_run_whose_output_pipe_loses_its_reader_goes_on(tmp_path, stop):
+    """`relayrl train ... | head -3`: the reader closes, and the run died at its next line (EPIPE),
+    exit 1, no checkpoint. `... | tee log` and Ctrl-C: tee ends with the same SIGINT, and the stop's
+    own lines failed the stop. The run's lines go nowhere now: it trains to its end, or stops
+    with a checkpoint and exit 130."""
+    steps = "100000" if stop == "ctrl-c" else "1500"
+    over = DQN[:1] + [f"train.total_steps={steps}", "train.torch_threads=1"] + DQN[2:]
+    cmd = [sys.executable, "-m", "relayrl", "train", "dqn-cartpole-fast", "--run-dir", str(tmp_path / "run"),
+           *[a for o in over for a in ("--set", o)]]
+
+    def as_in_a_terminal() -> None:  # a test run in the background of a script passes SIGINT on ignored
+        signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                         preexec_fn=as_in_a_terminal)
+    p.stdout.readline()  # its first line, as head -1 reads it
+    p.stdout.close()
+    checkpoints = tmp_path / "run" / "checkpoints"
+    if stop == "none":
+        assert p.wait(timeout=120) == 0
+        assert RunDir(tmp_path / "run").read_metrics()[-1]["step"] == 1500
+        return
+    while not list_checkpoints(checkpoints) and p.poll() is None:
+        time.sleep(0.02)
+    time.sleep(0.5)
+    before = {c.name: c.stat().st_mtime_ns for c in list_checkpoints(checkpoints)}
+    p.send_signal(signal.SIGINT)
+    assert p.wait(timeout=60) == 130
+    newest = list_checkpoints(checkpoints)[-1]
+    assert before.get(newest.name) != newest.stat().st_mtime_ns, "no checkpoint at the stop"
+
+
 @pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="no SIGHUP")
 def test_a_signal_whose_handler_python_cannot_put_back_leaves_the_others_handled(monkeypatch):
     """A handler set outside Python (getsignal gives None) cannot be swapped and put back: that

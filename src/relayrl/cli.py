@@ -16,6 +16,7 @@ from typing import Any, NoReturn
 
 from relayrl import interrupts
 from relayrl.errors import NonFiniteError, UserError
+from relayrl.streams import pipe_safe
 
 # export.load_policy's trust_code, for the commands that read a policy file on its own
 TRUST_CODE = ("a policy file outside a run directory whose network a user's encoder builds (package.module:make): "
@@ -295,6 +296,11 @@ def _interrupted_line(what: str, args: argparse.Namespace) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    with pipe_safe():  # `relayrl train ... | head`: a reader gone does not end the run
+        return _main(argv)
+
+
+def _main(argv: list[str] | None) -> int:
     # The current directory is on the import path (`python -m relayrl` puts it first itself): a
     # user's env.id = mypkg.envs:MyEnv (and env.wrappers) resolve from their project folder.
     # Last, not first: a folder there named as a module a library tries (torch's optional z3) is not imported.

@@ -1,0 +1,64 @@
+"""Output whose reader has gone does not stop the work: `relayrl train ... | head -3` (the reader
+closes), `... | tee log` stopped by Ctrl-C (the terminal's SIGINT ends tee too), a closed
+terminal. A write then fails with EPIPE or EIO, and a run would die at its next progress line,
+before the checkpoint a stop writes. `pipe_safe` points such a stream's file descriptor at
+/dev/null at the first failure and goes on: no one can read those lines any more."""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import sys
+from collections.abc import Iterator
+from typing import Any, TextIO
+
+_GONE = (errno.EPIPE, errno.EIO)
+
+
+class PipeSafe:
+    """`stream` (sys.stdout or sys.stderr) with writes that outlive its reader."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self.stream = stream
+
+    def write(self, text: str) -> int:
+        try:
+            return self.stream.write(text)
+        except OSError as e:
+            self._drop_reader(e)
+            return self.stream.write(text)
+
+    def flush(self) -> None:
+        try:
+            self.stream.flush()
+        except OSError as e:
+            self._drop_reader(e)
+            self.stream.flush()
+
+    def _drop_reader(self, error: OSError) -> None:
+        if error.errno not in _GONE:
+            raise error
+        null = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(null, self.stream.fileno())  # the buffered lines go there too, at the retry
+        finally:
+            os.close(null)
+
+    def __getattr__(self, name: str) -> Any:  # isatty, fileno, encoding, ...: the stream's own
+        return getattr(self.stream, name)
+
+
+@contextlib.contextmanager
+def pipe_safe() -> Iterator[None]:
+    """sys.stdout and sys.stderr as `PipeSafe` streams inside, put back after."""
+    out, err = sys.stdout, sys.stderr
+    safe = PipeSafe(out), PipeSafe(err)
+    sys.stdout, sys.stderr = safe  # type: ignore[assignment]
+    try:
+        yield
+    finally:
+        for stream in safe:  # what is buffered for a pipe goes now, not at exit where no one catches EPIPE
+            with contextlib.suppress(OSError, ValueError):  # ValueError: a stream the work closed
+                stream.flush()
+        sys.stdout, sys.stderr = out, err
