@@ -177,6 +177,20 @@ def test_a_wrong_type_line_shows_the_keys_default_not_a_wrong_value_set_before()
         c.train.total_steps = True
 
 
+def test_a_class_or_function_given_for_a_choice_is_named_by_the_choice():
+    """SB3's activation_fn=nn.ReLU habit: the tip named 'torch.nn.modules.activation:ReLU', a form
+    only code-taking keys (agent.encoder) read, and the next assignment was refused too."""
+    import torch
+
+    c = load_config("ppo")
+    for given, name in ((torch.nn.ReLU, "relu"), (torch.tanh, "tanh")):
+        with pytest.raises(ConfigError, match=rf"expected str \(name it as a string, as '{name}'\)$"):
+            c.agent.activation = given
+        c.agent.activation = name
+    with pytest.raises(ConfigError, match=r"expected str \(name it as a string: 'torch.nn.modules.activation:ReLU'\)"):
+        c.agent.encoder = torch.nn.ReLU
+
+
 def test_an_unset_default_key_given_a_wrong_type_says_to_leave_it_out():
     # SB3's target_entropy = "auto" is relayrl's unset (-|A|); TOML cannot write None
     with pytest.raises(ConfigError) as e:

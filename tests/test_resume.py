@@ -499,7 +499,8 @@ def test_resume_refuses_another_rollout_length_in_one_line(tmp_path):
              "eval.interval=0", "eval.episodes=1"]
     relayrl.train(relayrl.load_config("ppo-cartpole", small), tmp_path / "r", progress=False)
     before = (tmp_path / "r" / "config.toml").read_text()
-    more = relayrl.load_config(str(tmp_path / "r" / "config.toml"), ["train.total_steps=256", "train.collect_steps=128"])
+    more = relayrl.load_config(str(tmp_path / "r" / "config.toml"),
+                               ["train.total_steps=256", "train.collect_steps=128"])
     with pytest.raises(relayrl.errors.UserError, match="train.collect_steps=128 but the run in .* has 64; its "
                                                        "checkpoint holds a rollout table of that many env steps"):
         relayrl.train(more, tmp_path / "r", resume=True, progress=False)

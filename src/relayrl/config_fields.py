@@ -387,7 +387,7 @@ def coerce(value: Any, hint: Any, path: str) -> Any:
         return float(value)
     if hint is Any or (isinstance(value, hint) and not (hint is int and isinstance(value, bool))):
         return value
-    raise ConfigError(f"{path}={shown(value)} has the wrong type; expected {type_name(hint)}{_tip(value, hint)}")
+    raise ConfigError(f"{path}={shown(value)} has the wrong type; expected {type_name(hint)}{_tip(value, hint, path)}")
 
 
 def shown(value: Any) -> str:
@@ -396,7 +396,11 @@ def shown(value: Any) -> str:
     return str(value).lower() if isinstance(value, bool) else repr(value)
 
 
-def _tip(value: Any, hint: Any) -> str:
+# The string keys whose value names code (`package.module:name`); the others name one of their choices.
+_CODE_KEYS = ("encoder", "id", "wrappers")
+
+
+def _tip(value: Any, hint: Any, path: str) -> str:
     """How to write the value TOML's way, where it looks written Python's way."""
     if hint is bool and isinstance(value, str) and value.lower() in ("true", "false"):
         return f" (true or false, in lower case: {value.lower()})"
@@ -405,6 +409,9 @@ def _tip(value: Any, hint: Any) -> str:
                 "agent.lr_end or agent.clip_range_end)")
     if hint is int and isinstance(value, float) and value.is_integer():
         return f" (write {int(value)}: TOML reads 1e4 and 10000.0 as floats)"
+    if hint is str and callable(value) and path.rsplit(".", 1)[-1] not in _CODE_KEYS:  # SB3's activation_fn=nn.ReLU
+        name = getattr(value, "__name__", "")
+        return f" (name it as a string, as {name.lower()!r})" if name.isidentifier() else ""
     if hint is str and callable(value):  # agent.encoder = make: configs name code, as env.id does
         module, name = getattr(value, "__module__", "package.module"), getattr(value, "__qualname__", "name")
         if not isinstance(value, type | types.FunctionType) or not name.isidentifier():  # a lambda, a module built
