@@ -824,3 +824,18 @@ def test_a_float64_default_also_holds_for_a_sampling_policy_and_tilde_folders(ru
     monkeypatch.setenv("HOME", str(tmp_path))
     (tmp_path / "vids").mkdir()
     assert relayrl.record_video(run_dir, "~/vids", episodes=1, seed=None) == tmp_path / "vids" / "video.mp4"
+
+
+def test_evaluating_a_model_that_samples_from_torch_repeats_with_the_seed_and_leaves_torchs_stream():
+    """An SB3 model's predict(deterministic=False) draws from torch's global generator: two
+    evaluations with seed=0 differed, and each moved the caller's stream on."""
+    class Sampler:  # SB3's spelling: predict(obs, deterministic) -> (action, state)
+        def predict(self, obs, deterministic=True):
+            return int(torch.rand(()) < 0.5), None
+
+    torch.manual_seed(123)
+    before = torch.get_rng_state()
+    first = relayrl.evaluate(Sampler(), "CartPole-v1", episodes=4, deterministic=False, return_episode_rewards=True)
+    assert torch.equal(torch.get_rng_state(), before)
+    assert relayrl.evaluate(Sampler(), "CartPole-v1", episodes=4, deterministic=False,
+                            return_episode_rewards=True) == first

@@ -4,8 +4,9 @@ through `training.evaluate.evaluate`, the function every run's evaluations use."
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, Literal, NamedTuple, overload
 
@@ -56,7 +57,8 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
     directory's own env (its config.toml, as `relayrl eval`), or the env a policy file records
     (its id, kwargs, wrappers and time limit). The env copies (up to 16, one for an
     instance) are reset with seed, seed + 1, ... (None: unseeded), as a run's evaluations are, and a
-    loaded policy's samples (`deterministic=False`) are drawn from `seed` too. Episodes are cut
+    loaded policy's samples (`deterministic=False`) are drawn from `seed` too, as are an SB3 model's
+    or a function's draws from torch's global generator, which is put back after. Episodes are cut
     at `max_episode_steps` where it is > 0 (an instance's own time limit may end them sooner); 0:
     the env's time limit, and an env without one is cut at 1,000 steps (Atari games end their own
     episodes).
@@ -78,13 +80,25 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
         cap_untimed(batch_env, max_episode_steps)  # so that it ends
         returns: list[float] = []
         lengths: list[int] = []
-        run_episodes(batch_env, act, episodes, seed=seed, episode_returns=returns, episode_lengths=lengths)
+        with _torch_draws_from(seed):
+            run_episodes(batch_env, act, episodes, seed=seed, episode_returns=returns, episode_lengths=lengths)
     finally:
         if owned:
             batch_env.close()
     if return_episode_rewards:
         return returns, lengths
     return EvalResult(float(np.mean(returns)), float(np.std(returns)))
+
+
+@contextlib.contextmanager
+def _torch_draws_from(seed: int | None) -> Iterator[None]:
+    """torch's global generator seeded with `seed` inside and put back after: what an SB3 model's
+    `predict(deterministic=False)` (or a function's torch.rand) draws repeats with the seed and
+    leaves the caller's stream alone, as a loaded policy's own generator does."""
+    with torch.random.fork_rng(devices=[]):
+        if seed is not None:
+            torch.manual_seed(seed)
+        yield
 
 
 def _policy_fn(policy: Any, deterministic: bool, seed: int | None, obs_spec: Spec,
