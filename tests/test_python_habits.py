@@ -4,6 +4,7 @@ learning-rate schedule, dir(relayrl)."""
 from __future__ import annotations
 
 import math
+import os
 
 import gymnasium as gym
 import numpy as np
@@ -839,3 +840,21 @@ def test_evaluating_a_model_that_samples_from_torch_repeats_with_the_seed_and_le
     assert torch.equal(torch.get_rng_state(), before)
     assert relayrl.evaluate(Sampler(), "CartPole-v1", episodes=4, deterministic=False,
                             return_episode_rewards=True) == first
+
+
+@pytest.mark.parametrize("progress", [False, True])  # True: no terminal under pytest, so no bar either
+def test_a_run_without_a_progress_bar_leaves_the_start_method_free_and_no_thread(tmp_path, progress):
+    """A disabled tqdm bar still made a multiprocessing lock, which fixed the start method (a
+    notebook's later set_start_method('spawn') raised), and left tqdm's monitor thread running."""
+    import subprocess
+    import sys
+
+    code = ("import multiprocessing as mp, threading, relayrl, tests_tiny as t\n"
+            f"relayrl.train(t.TINY, {str(tmp_path / 'r')!r}, progress={progress})\n"
+            "print(mp.get_start_method(allow_none=True), sorted(th.name for th in threading.enumerate()))\n"
+            "mp.set_start_method('spawn')\n")
+    (tmp_path / "tests_tiny.py").write_text(f"TINY = {TINY!r}\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       cwd=tmp_path, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split("\n")[-2] == "None ['MainThread']"

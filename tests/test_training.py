@@ -193,7 +193,12 @@ def test_the_progress_bar_moves_between_log_rows(tmp_path, monkeypatch):
             moves.append(self.n + n)
             return super().update(n)
 
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
     monkeypatch.setattr(tqdm, "tqdm", TerminalBar)
+    monkeypatch.setattr("sys.stderr", Terminal())
     over = ["env.id=toy_envs:Sleepy", "env.check=false", "train.total_steps=1400", "train.log_interval=100000",
             "eval.interval=0", "eval.episodes=1", "train.initial_collect_steps=100", "train.checkpoint_interval=0"]
     relayrl.train(relayrl.load_config("dqn-cartpole", over), tmp_path / "run")  # 2 ms a step: ~3 s

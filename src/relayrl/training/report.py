@@ -95,10 +95,13 @@ class RunReport:
         if initial_steps:  # the process before wrote the scalars of the step a resume goes on from
             self.scalars_step = initial_steps
         self.metrics_log = MetricsLog(self.rd.metrics)
-        self.bar = tqdm(total=self.config.train.total_steps, unit="step",
-                        disable=None if self.show_progress else True, dynamic_ncols=True, initial=initial_steps)
+        # A bar only on a terminal (tqdm's own rule): a disabled one still makes a multiprocessing
+        # lock, which fixes the process's start method (a notebook's later set_start_method fails).
+        if self.show_progress and sys.stderr.isatty():
+            self.bar = tqdm(total=self.config.train.total_steps, unit="step", dynamic_ncols=True,
+                            initial=initial_steps)
         self.started = (time.perf_counter(), self.progress())
-        if self.show_progress and self.bar.disable:  # no terminal: a line every 30 s instead
+        if self.show_progress and self.bar is None:  # no terminal: a line every 30 s instead
             self.lines = ProgressLines(self.progress_line, self.say).start()
 
     def close(self, failing: bool = False) -> None:
@@ -114,7 +117,7 @@ class RunReport:
 
     def tick(self, env_steps: int) -> None:
         """The bar between log rows, at most once a second: a slow env's rows are minutes apart."""
-        if self.bar is not None and not self.bar.disable and (now := time.monotonic()) >= self.next_tick:
+        if self.bar is not None and (now := time.monotonic()) >= self.next_tick:
             self.next_tick = now + 1.0
             self.bar.update(env_steps - self.bar.n)
 
@@ -127,7 +130,7 @@ class RunReport:
         self.say(f"relayrl: stopping at the end of this iteration to save {saved} ({interrupts.again(signum)})")
 
     def say(self, text: str) -> None:
-        if self.bar is not None and not self.bar.disable:
+        if self.bar is not None:
             self.bar.write(text)
         else:
             say(text)
@@ -150,13 +153,15 @@ class RunReport:
                                    **(scalars or self.log_scalars(p, env_sps, grad_sps))})
         if self.bar is not None:
             self.bar.update(p.env_steps - self.bar.n)
-            self._bar_fields(sps=f"{env_sps:.0f}")
+        self._bar_fields(sps=f"{env_sps:.0f}")
 
     def _bar_fields(self, **fields: str) -> None:
+        """The bar's fields, which the 30 s progress line carries where there is no bar."""
         last = self.last_eval.get("average_return")
         self.bar_fields = {**self.bar_fields, **fields, "eval": f"{last:.1f}" if last is not None else "-",
                            **self.postfix()}
-        self.bar.set_postfix(self.bar_fields)
+        if self.bar is not None:
+            self.bar.set_postfix(self.bar_fields)
 
     def write_scalars(self, p: Progress, env_sps: float, grad_sps: float) -> dict[str, float]:
         """TensorBoard as CleanRL names it: the training episodes' return and length at the env
