@@ -345,10 +345,17 @@ def test_resuming_a_run_already_past_total_steps_says_so(tmp_path, capsys):
     relayrl.train(cfg, tmp_path / "r", progress=False)
     fewer = relayrl.load_config("dqn-cartpole-fast", DQN[:1] + ["train.total_steps=300"] + DQN[2:])
     fewer.agent.lr = 5e-4
-    before = (tmp_path / "r" / "config.toml").read_text()
     relayrl.train(fewer, tmp_path / "r", resume=True, progress=False)
-    assert "the run is at env step 600, past train.total_steps=300: nothing is left to train" in capsys.readouterr().err
-    assert (tmp_path / "r" / "config.toml").read_text() == before  # settings the run never used are not recorded
+    said = capsys.readouterr().err
+    assert "the run is at env step 600, past train.total_steps=300: nothing is left to train" in said
+    # recorded as any resume's --set: the checkpoint written at the end holds them, and a resume
+    # that extends the run goes on with them (config.toml kept the old ones, and the next resume
+    # said it differed from its checkpoint, "edited by hand")
+    assert "now in config.toml: agent.lr: 0.0023 -> 0.0005; train.total_steps: 600 -> 300" in said
+    assert "schedules" not in said
+    relayrl.train(None, tmp_path / "r", resume=True, progress=False)
+    assert "differs" not in capsys.readouterr().err
+    assert relayrl.load_config(str(tmp_path / "r" / "config.toml")).agent.lr == 5e-4
 
 
 def test_resume_with_another_network_is_one_line_and_keeps_the_run(tmp_path):

@@ -251,12 +251,14 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         if resume:
             saved = saved_config(core.rd)  # read first: restoring cuts metrics.jsonl back to the checkpoint
             driver.restore()  # rewrites metrics.jsonl: open the log only afterwards
-            if core.env_steps() >= c.train.total_steps:  # config.toml keeps the settings the run had
+            left = core.env_steps() < c.train.total_steps
+            # also with nothing left: the checkpoint written at the end holds these settings, and a
+            # later resume that extends the run goes on with them
+            record_resumed_config(core, saved, schedules=left)
+            if not left:
                 where = "past" if core.env_steps() > c.train.total_steps else "the end of"
                 core.say(f"the run is at env step {core.env_steps():,}, {where} train.total_steps="
                          f"{c.train.total_steps:,}: nothing is left to train (raise train.total_steps to go on)")
-            else:
-                record_resumed_config(core, saved)
         if unused := c.unused_keys():  # after a restore, which may refuse the config
             said = ", ".join(f"{k}={v!r}" for k, v in dotted(to_dict(c)).items() if k in unused)
             core.say(f"{said}: no effect with this run's other settings (see `relayrl config` for what each "
@@ -360,10 +362,11 @@ def _stopped_at(core: RunCore) -> str:
             "(train.checkpoint_interval = 0: no checkpoint to resume from)")
 
 
-def record_resumed_config(core: RunCore, saved: Config | None) -> None:
+def record_resumed_config(core: RunCore, saved: Config | None, schedules: bool = True) -> None:
     """config.toml becomes the config the resumed run goes on with (`--set` overrides
     included), so that `relayrl eval` and a later resume use it; written once the checkpoint
-    has been restored, so a config it refused is not kept. What changed is said."""
+    has been restored, so a config it refused is not kept. What changed is said, and
+    (`schedules`: steps are left to train) which schedules follow a changed total."""
     changed = changes(saved, core.config) if saved is not None else ["config.toml rewritten in this version's form"]
     if saved is not None and (edited := changes_between(core.restored_config, to_dict(saved), fields_in_both=True)):
         core.say(f"config.toml differs from the settings its checkpoint was written with (edited by hand, or a "
@@ -377,7 +380,7 @@ def record_resumed_config(core: RunCore, saved: Config | None) -> None:
         stretched.append("replay.importance_exponent's annealing")
     # the total the checkpoint's schedules ran to (config.toml's may have been edited by hand)
     before = core.restored_config.get("train", {}).get("total_steps", saved.train.total_steps if saved else total)
-    if before != total and stretched:
+    if schedules and before != total and stretched:
         core.say(f"the schedules over train.total_steps ({', '.join(stretched)}) now run to env step {total:,}: "
                  f"from env step {core.env_steps():,} on they follow the new length (a learning rate or epsilon "
                  "that had decayed rises again where the run is extended)")
