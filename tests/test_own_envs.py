@@ -581,3 +581,20 @@ def test_reward_wrapper_note_is_in_the_log(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "env.wrappers put NormalizeObservation over the env: its running statistics live in each env copy" in err
     assert "PPO's agent.normalize_obs keeps the statistics with the policy" in err
+
+
+def test_an_env_id_naming_a_class_of_the_script_itself_says_to_give_it_as_env(monkeypatch):
+    """A notebook's `config.env.id = "__main__:Corridor"` was told about an env= never given."""
+    import sys
+    import types
+
+    from relayrl.envs.resolve import resolve_env_fn
+
+    main = types.ModuleType("__main__")
+    main.Corridor = toy_envs.Countdown
+    monkeypatch.setitem(sys.modules, "__main__", main)
+    with pytest.raises(UserError, match=r"^env.id='__main__:Corridor' names Corridor of the script or notebook "
+                                        r"itself, which no other process imports: give it as env=Corridor"):
+        resolve_env_fn("__main__:Corridor")
+    with pytest.raises(UserError, match="records an env factory given to relayrl.train"):
+        resolve_env_fn("__main__:Other")  # not there: a factory recorded by another process

@@ -63,6 +63,10 @@ def resolve_env_fn(env_id: str, max_episode_steps: int = 0, render_mode: str | N
         base = _custom_fn(env_id, factory, kwargs, max_episode_steps)
     elif names_module(env_id):
         module_name, name = env_id.split(":", 1)
+        if module_name == "__main__" and hasattr(sys.modules.get("__main__"), name):  # set by hand in a notebook
+            raise UserError(f"env.id={env_id!r} names {name} of the script or notebook itself, which no other "
+                            f"process imports: give it as env={name} (relayrl.train, relayrl.evaluate), or put it "
+                            f"in a module beside the script and name it 'mymodule:{name}'")
         if names_python_factory(env_id):
             raise UserError(f"env.id={env_id!r} records an env factory given to relayrl.train in Python that "
                             "cannot be imported here (a lambda, a functools.partial, a local function or __main__); "
