@@ -858,3 +858,17 @@ def test_a_run_without_a_progress_bar_leaves_the_start_method_free_and_no_thread
                        cwd=tmp_path, env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
     assert r.returncode == 0, r.stderr
     assert r.stdout.split("\n")[-2] == "None ['MainThread']"
+
+
+def test_a_callbacks_row_holds_none_where_metrics_jsonl_holds_null(tmp_path):
+    """Before the first training episode ends, train/average_return is NaN: a callback got the
+    float, and json.dumps(row) in it wrote NaN, which is not JSON."""
+    import json
+
+    rows: list[dict] = []
+    cfg = {**TINY, "env": {**TINY["env"], "kwargs": {"length": 1000}}}  # no episode ends in the run
+    relayrl.train(cfg, tmp_path / "r", progress=False, callbacks=[rows.append])
+    logs = [r for r in rows if r["event"] == "log"]
+    assert logs and all(r["train/average_return"] is None for r in logs)
+    for r in rows:
+        json.dumps(r, allow_nan=False)

@@ -18,7 +18,7 @@ from relayrl.config import Config, config_toml, dotted, to_dict
 from relayrl.errors import UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.training.heartbeat import ProgressLines
-from relayrl.training.run_dir import MetricsLog, RunDir
+from relayrl.training.run_dir import MetricsLog, RunDir, json_row
 from relayrl.training.triggers import Progress
 
 Callback = Callable[[dict[str, Any]], Any]
@@ -240,14 +240,16 @@ class RunReport:
         self.call_back("eval", row)
 
     def call_back(self, event: str, row: dict[str, Any]) -> None:
-        """Each callback gets its own copy of the row with `event`; a false value from any (False,
-        NumPy's or torch's, 0; not None, which a callback without `return` gives) stops the run.
+        """Each callback gets its own copy of the row with `event` (None for a value that is not a
+        finite number, as metrics.jsonl's null: json.dumps(row) stays valid JSON); a false value
+        from any (False, NumPy's or torch's, 0; not None, which a callback without `return` gives)
+        stops the run.
         What a callback raises propagates (it is the user's code): the run ends there, its
         checkpoints and metrics as they were."""
         for i, callback in enumerate(self.callbacks):
             if i in self.stopped_by:  # a callback that returned False is not called again
                 continue
-            answer = callback({**row, "event": event})
+            answer = callback({**json_row(row), "event": event})  # None where metrics.jsonl has null
             if answer is not None and not answer:
                 self.stop_requested = True
                 self.stopped_by.add(i)

@@ -181,6 +181,12 @@ class RunDir:
         return rows, torn
 
 
+def json_row(row: dict[str, Any]) -> dict[str, Any]:
+    """A metrics row as metrics.jsonl holds it: a value that is not a finite number (a training
+    return before the first episode ends: NaN) is None, JSON's null."""
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
+
+
 class MetricsLog:
     """Appends one JSON object per evaluation to metrics.jsonl, flushed line by line."""
 
@@ -188,8 +194,7 @@ class MetricsLog:
         self.file = open(path, "a", buffering=1)
 
     def write(self, row: dict[str, Any]) -> None:
-        clean = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in row.items()}
-        self.file.write(json.dumps(clean) + "\n")
+        self.file.write(json.dumps(json_row(row)) + "\n")
 
     def close(self) -> None:
         self.file.close()
