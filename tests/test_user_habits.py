@@ -223,8 +223,43 @@ def test_tensorboard_names_as_cleanrl(run_dir):
     assert tb.Scalars("perf/sps")[-1].value > 0  # the run's steps/s, not the last instant's 0
     assert tb.Scalars("charts/epsilon")[-1].value < 1.0
     assert "config/text_summary" in tb.Tags()["tensors"]
-    files = [p.name for p in (run_dir / "tb").iterdir()]
-    assert len(files) == 2 and all(f.startswith("events.") for f in files)  # the scalars, the hparams
+    # one event file: a second, hparams' own, made W&B's sync_tensorboard read every point twice
+    assert [p.name.startswith("events.") for p in (run_dir / "tb").iterdir()] == [True]
+    assert _hparams(run_dir) == (["eval/average_return"], True)  # a finished run's session has ended
+
+
+def _hparams(run_dir):
+    """The metrics TensorBoard's HParams dashboard shows for the run, and whether its session ended."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    from tensorboard.plugins.hparams.plugin_data_pb2 import HParamsPluginData
+
+    tb = EventAccumulator(str(run_dir / "tb"))
+    tb.Reload()
+    content = tb.PluginTagToContent("hparams")
+    experiment = HParamsPluginData.FromString(content["_hparams_/experiment"]).experiment
+    return [m.name.tag for m in experiment.metric_infos], "_hparams_/session_end_info" in content
+
+
+def test_tensorboard_marks_a_failed_run_unfinished_and_shows_a_resumes_settings(tmp_path):
+    """The HParams dashboard called every run a success from its first step (a crashed one too),
+    and a resume's changed settings never reached TensorBoard's config text."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    def fail(row):
+        if row["step"] >= 400:  # past the checkpoint at 300
+            raise ValueError("the user's callback")
+
+    config = relayrl.load_config("dqn-cartpole-fast", [*TINY, "train.total_steps=600", "train.checkpoint_interval=300"])
+    with pytest.raises(ValueError):
+        relayrl.train(config, tmp_path / "r", progress=False, callbacks=[fail])
+    assert _hparams(tmp_path / "r") == (["eval/average_return"], False)
+    longer = relayrl.load_config(str(tmp_path / "r" / "config.toml"), ["train.total_steps=900"])
+    relayrl.train(longer, tmp_path / "r", resume=True, progress=False)
+    assert _hparams(tmp_path / "r")[1]
+    tb = EventAccumulator(str(tmp_path / "r" / "tb"), size_guidance={"tensors": 0})
+    tb.Reload()
+    texts = {e.step: e.tensor_proto.string_val[0].decode() for e in tb.Tensors("config/text_summary")}
+    assert "total_steps = 600 " in texts[0] and "total_steps = 900 " in texts[max(texts)] and max(texts) > 0
 
 
 def test_progress_lines_without_a_terminal(tmp_path, monkeypatch, capsys):

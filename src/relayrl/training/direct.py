@@ -23,7 +23,7 @@ from relayrl.seeding import RunSeeds
 from relayrl.training.evaluate import make_eval_env
 from relayrl.training.lifecycle import RunResult
 from relayrl.training.process import resolve_device
-from relayrl.training.report import close_logs, eval_legend, eval_line, log_config, say
+from relayrl.training.report import close_logs, eval_legend, eval_line, log_config, log_finished, say
 from relayrl.training.run_dir import MetricsLog, RunDir
 from relayrl.training.triggers import Evaluate, Progress
 
@@ -115,7 +115,10 @@ class DirectDriver:
             raise
         finally:
             eval_env.close()
-            close_logs([log, tb], self.rd.root, failing=sys.exc_info()[0] is not None)
+            failing = sys.exc_info()[0] is not None
+            if not failing and not signals:
+                log_finished(tb, state["env_steps"])
+            close_logs([log, tb], self.rd.root, failing=failing)
         save_policy_file(state, self.rd.policy / "policy.pt")
         if signals:  # one in the last iteration too: the run is whole, and the caller's loop still stops
             interrupts.redeliver(signals[0], f"the run stopped at env step {state['env_steps']:,}; its policy and "

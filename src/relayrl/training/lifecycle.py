@@ -32,7 +32,7 @@ from relayrl.training.finite import CHECK_LR, DIVERGED, FiniteWatch, non_finite_
 from relayrl.training.learner import Learner
 from relayrl.training.notes import start_notes
 from relayrl.training.replay_setup import collect_only
-from relayrl.training.report import Callback, RunReport, log_config, plural
+from relayrl.training.report import Callback, RunReport, log_config, log_finished, plural
 from relayrl.training.resume import check_checkpoint_config, saved_config
 from relayrl.training.run_dir import RunDir, checkpoint_step
 from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver, Progress, StepsPerSecondLog
@@ -265,6 +265,8 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
                      f"key applies to)")
         report.open(core.env_steps())
         driver.announce()
+        if resume:  # TensorBoard's config is the resumed run's from its step on
+            log_config(report.tb, c, core.env_steps())
         if core.env_steps() == 0 and not resume:  # a run a callback stopped at step 0 has evaluated it
             log_config(report.tb, c)
             core.policy_saver.save(Progress(0, 0))  # `relayrl eval` (and a callback at step 0) works from the start
@@ -282,6 +284,8 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         # an interrupt wants no wait, unless the run reached its end with no checkpoint a resume could evaluate from
         at_end_unresumable = not stopped and not c.train.checkpoint_interval
         finish(driver, core.progress(), evaluate=interrupted is None or at_end_unresumable)
+        if interrupted is None:  # at its end, or where a callback stopped it
+            log_finished(report.tb, core.env_steps())
         if interrupted is not None:  # KeyboardInterrupt, or the SIGTERM handler's stop
             interrupts.redeliver(interrupted, _stopped_at(core))
         return RunResult(core.rd.root, report.last_eval, stopped_early=stopped)

@@ -45,16 +45,35 @@ def plural(n: int, noun: str) -> str:
     return f"{n} {noun}{'s' * (n != 1)}"
 
 
-def log_config(tb: Any, config: Config) -> None:
-    """The run's config in TensorBoard: as TOML text (with each key's meaning) and as hparams."""
+# The metric TensorBoard's HParams dashboard shows beside each run's settings (its last value).
+HPARAMS_METRIC = "eval/average_return"
+
+
+def log_config(tb: Any, config: Config, step: int = 0) -> None:
+    """The run's config in TensorBoard at env step `step` (a resume's settings from there on): as
+    TOML text (with each key's meaning) and as hparams, written into the run's own event file
+    (SummaryWriter.add_hparams writes a second one, and W&B's sync_tensorboard read the run's
+    scalars twice). The hparams session is marked finished by `log_finished` at the run's end
+    only: one that failed or stopped shows as not finished."""
+    from torch.utils.tensorboard.summary import hparams
+
     text = config_toml(config)
-    tb.add_text("config", "\n".join("    " + line for line in text.splitlines()))  # a markdown code block
+    tb.add_text("config", "\n".join("    " + line for line in text.splitlines()), step)  # a markdown code block
     data = to_dict(config)
     if algorithm(config.algo).replay != "transitions":  # as its listing (config_toml): no replay keys
         data.pop("replay")
     flat = {k: v if isinstance(v, (bool, int, float, str)) else str(v)
             for k, v in dotted(data).items() if v is not None}
-    tb.add_hparams(flat, {}, run_name=".")  # ".": into the run's own folder, not a new one
+    experiment, session_start, _ = hparams(flat, {HPARAMS_METRIC: None})
+    for summary in (experiment, session_start):
+        tb.file_writer.add_summary(summary, step)
+
+
+def log_finished(tb: Any, step: int) -> None:
+    """The hparams session of `log_config` marked finished (the run reached its last step)."""
+    from torch.utils.tensorboard.summary import hparams
+
+    tb.file_writer.add_summary(hparams({}, {})[2], step)
 
 
 class RunReport:
