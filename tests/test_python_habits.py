@@ -423,6 +423,11 @@ def test_several_runs_plot_in_one_panel(run_dir, tmp_path, capsys):
     capsys.readouterr()
     assert main(["plot", str(sweep / "seed1"), str(sweep / "seed2")]) == 0
     assert capsys.readouterr().out.strip() == str(sweep / "compare.png") and (sweep / "compare.png").stat().st_size
+    # the sweep's folder stands for its runs; `plot sweep/*` also matches the compare.png plotted before
+    assert main(["plot", str(sweep)]) == 0 and capsys.readouterr().out.strip() == str(sweep / "compare.png")
+    assert main(["plot", *sorted(str(p) for p in sweep.iterdir())]) == 0
+    assert main(["plot", str(sweep / "seed1"), str(sweep / "seed1"), str(sweep / "seed2")]) == 0
+    assert "'" + str(sweep / "seed1") + "' is given twice: drawn once" in capsys.readouterr().err
     # one setting's seeds are one curve (mean, min-max band); another setting is a curve of its own
     relayrl.train({**TINY, "seed": 1, "agent": {"lr": 3e-4}}, sweep / "other", progress=False)
     runs = [RunDir(sweep / n) for n in ("seed1", "other", "seed2")]
@@ -454,6 +459,27 @@ def test_several_runs_plot_in_one_panel(run_dir, tmp_path, capsys):
     assert "metrics.jsonl' has no evaluations yet: left out of the plot" in capsys.readouterr().err
     with pytest.raises(UserError, match="has no evaluations yet; train first"):  # none has any: nothing to plot
         relayrl.plot_run([stopped, stopped])
+
+
+def test_a_seed_groups_curve_says_where_it_ends_early_and_when_runs_share_a_seed(tmp_path, capsys):
+    """A seed still running cut the group's mean back to its last step without a word, and copies
+    of one run (one seed) were labelled as several seeds."""
+    import shutil
+
+    for seed in (1, 2):
+        relayrl.train({**TINY, "seed": seed}, tmp_path / f"s{seed}", progress=False)
+    running = tmp_path / "s3"
+    running.mkdir()
+    (running / "config.toml").write_text((tmp_path / "s2" / "config.toml").read_text().replace("seed = 2", "seed = 3"))
+    (running / "metrics.jsonl").write_text("".join((tmp_path / "s2" / "metrics.jsonl").read_text()
+                                                   .splitlines(keepends=True)[:2]))
+    capsys.readouterr()
+    relayrl.plot_run([tmp_path / n for n in ("s1", "s2", "s3")])
+    assert "s1, s2, s3: their mean is drawn to env step 54, the last all 3 evaluated at (the longest goes to 200)" \
+        in capsys.readouterr().err
+    shutil.copytree(tmp_path / "s1", tmp_path / "copy")
+    relayrl.plot_run([tmp_path / "s1", tmp_path / "copy"])
+    assert "s1, copy share a seed (1, 1): their band is not a spread over seeds" in capsys.readouterr().err
 
 
 def test_the_progress_bar_ends_at_the_last_step_with_the_last_evaluation(tmp_path, monkeypatch):

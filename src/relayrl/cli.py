@@ -104,8 +104,9 @@ def build_parser() -> _Parser:
                         "most likely action; DQN's greedy policy acts the same")
     pl = sub.add_parser("plot", help="PNG of average return against env steps (several runs: compared)")
     pl.add_argument("run_dir", metavar="RUN_DIR", nargs="+",
-                    help="a run directory; several: their evaluation returns in one panel (runs that "
-                         "differ only in their seed: one mean curve with a min-to-max band)")
+                    help="a run directory; several, or a folder holding them (a sweep's): their evaluation "
+                         "returns in one panel (runs that differ only in their seed: one mean curve with a "
+                         "min-to-max band)")
     pl.add_argument("--out", metavar="PNG",
                     help="where to write it (default: RUN_DIR/returns.png, or compare.png beside several runs; "
                          "folders are created)")

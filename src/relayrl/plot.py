@@ -23,12 +23,15 @@ Rows = list[dict[str, Any]]
 
 def plot_run(run_dir: str | Path | Sequence[str | Path], out: str | Path | None = None) -> Path:
     """A PNG (or any format matplotlib writes, by `out`'s extension) of the run's curves, written
-    as RUN_DIR/returns.png by default; several run directories: their evaluation returns in one
-    panel, each labelled with its folder's name (runs that differ only in their seed as one mean
-    curve in a min-to-max band, `seed_groups`), as compare.png in their common parent folder."""
+    as RUN_DIR/returns.png by default; several run directories (or a folder holding them): their
+    evaluation returns in one panel, each labelled with its folder's name (runs that differ only
+    in their seed as one mean curve in a min-to-max band, `seed_groups`), as compare.png in their
+    common parent folder."""
     if not isinstance(run_dir, (str, Path)):
-        return _compare([RunDir(d) for d in run_dir], out)
+        return _compare(_given_runs(run_dir), out)
     rd = RunDir(run_dir)
+    if rd.root.is_dir() and not rd.config.exists() and (inside := _runs_inside(rd.root)):  # a sweep's folder
+        return _compare(inside, out)
     if out is not None and Path(out).resolve() != rd.root.resolve() and RunDir(out).metrics.is_file():
         # plot_run(a, b), as `relayrl plot A B` is written: b's returns.png was replaced by a's plot
         raise UserError(f"out={str(out)!r} is another run's directory: to plot several runs in one panel give "
@@ -59,6 +62,28 @@ def plot_run(run_dir: str | Path | Sequence[str | Path], out: str | Path | None 
     return _save(fig, output_path(out, rd.root / "returns.png"))
 
 
+def _runs_inside(folder: Path) -> list[RunDir]:
+    """The run directories directly inside `folder`, by name."""
+    return [RunDir(d) for d in sorted(folder.iterdir()) if d.is_dir() and (d / "config.toml").is_file()]
+
+
+# Files a plot is written as: `relayrl plot sweep/*` also matches the compare.png plotted before.
+_PLOT_FILES = (".png", ".svg", ".pdf", ".jpg", ".jpeg", ".eps", ".ps", ".tif", ".tiff", ".webp")
+
+
+def _given_runs(given: Sequence[str | Path]) -> list[RunDir]:
+    """The run directories given, each once; a plot file among them (a glob's) left out."""
+    runs: dict[Path, RunDir] = {}
+    for d in given:
+        rd = RunDir(d)
+        if rd.root.is_file() and rd.root.suffix.lower() in _PLOT_FILES:
+            continue
+        if rd.root.resolve() in runs:
+            print(f"{str(rd.root)!r} is given twice: drawn once", file=sys.stderr)
+        runs.setdefault(rd.root.resolve(), rd)
+    return list(runs.values())
+
+
 def _compare(runs: list[RunDir], out: str | Path | None) -> Path:
     """One panel: each run's evaluation returns against env steps."""
     if not runs:
@@ -86,7 +111,8 @@ def _compare(runs: list[RunDir], out: str | Path | None) -> Path:
     fig = _figure(figsize=(8, 5))
     ax = fig.subplots()
     for group in seed_groups(runs):
-        _group_curve(ax, [names[i] for i in group], [rows[i] for i in group])
+        seeds = [(_saved_toml(runs[i]) or {}).get("seed") for i in group]
+        _group_curve(ax, [names[i] for i in group], [rows[i] for i in group], seeds)
     _steps_axis(ax, [r["step"] for run_rows in rows for r in run_rows])
     ax.set_ylabel("average return (eval)")
     ax.grid(alpha=0.3)
@@ -121,9 +147,11 @@ def seed_groups(runs: list[RunDir]) -> list[list[int]]:
     return list(groups.values())
 
 
-def _group_curve(ax: Any, names: list[str], rows: list[Rows]) -> None:
+def _group_curve(ax: Any, names: list[str], rows: list[Rows], seeds: list[Any]) -> None:
     """One run's evaluation returns; several seeds' mean at the env steps all of them evaluated at,
-    in a band from the lowest to the highest (each run on its own where they share no step)."""
+    in a band from the lowest to the highest (each run on its own where they share no step). Where
+    that ends before a run's last evaluation (a seed still running) or runs share a seed (copies
+    of one run), a line says so."""
     returns = [{r["step"]: r["average_return"] for r in run_rows} for run_rows in rows]
     steps = sorted(set.intersection(*(set(by_step) for by_step in returns)))
     if len(rows) == 1 or not steps:
@@ -132,8 +160,16 @@ def _group_curve(ax: Any, names: list[str], rows: list[Rows]) -> None:
         return
     values = [[by_step[s] for by_step in returns] for s in steps]
     shown = ", ".join(names if len(names) <= 3 else [*names[:2], "..."])
+    distinct = len(set(map(str, seeds))) == len(seeds)
+    what = f"{len(names)} seeds" if distinct else f"{len(names)} runs, seeds {', '.join(map(str, seeds))}"
+    if not distinct:
+        print(f"{', '.join(names)} share a seed ({', '.join(map(str, seeds))}): their band is not a spread over "
+              "seeds", file=sys.stderr)
+    if (longest := max(max(by_step) for by_step in returns)) > steps[-1]:
+        print(f"{', '.join(names)}: their mean is drawn to env step {steps[-1]:,}, the last all {len(names)} "
+              f"evaluated at (the longest goes to {longest:,})", file=sys.stderr)
     line, = ax.plot(steps, [sum(v) / len(v) for v in values], marker="o", ms=3,
-                    label=f"{shown} ({len(names)} seeds: mean, min to max)")
+                    label=f"{shown} ({what}: mean, min to max)")
     ax.fill_between(steps, [min(v) for v in values], [max(v) for v in values], color=line.get_color(), alpha=0.2)
 
 
