@@ -84,6 +84,18 @@ def test_a_resume_says_when_metrics_jsonl_held_a_line_cut_short(tmp_path, capsys
     assert [row["step"] for row in RunDir(run).read_metrics()] == [0, 30, 90]
 
 
+@pytest.mark.parametrize("lost", ["deleted", "emptied"])
+def test_a_resume_says_when_metrics_jsonl_lost_its_rows(tmp_path, capsys, lost):
+    """A metrics.jsonl deleted before a resume lost the run's history without a word."""
+    run = tmp_path / "run"
+    train(load_config("dqn-cartpole", TINY), run, progress=False)
+    (run / "metrics.jsonl").unlink() if lost == "deleted" else (run / "metrics.jsonl").write_text("")
+    capsys.readouterr()
+    train(load_config(str(run / "config.toml"), ["train.total_steps=90"]), run, resume=True, progress=False)
+    assert "metrics.jsonl held no row (deleted or emptied?): the evaluation rows before env step 60 are lost" \
+        in capsys.readouterr().err
+
+
 def test_a_run_with_a_checkpoint_is_kept_unless_overwrite(tmp_path, cli):
     run = tmp_path / "run"
     train(load_config("dqn-cartpole", TINY), run, progress=False)

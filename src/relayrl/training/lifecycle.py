@@ -216,6 +216,9 @@ class RunCore:
         if torn:
             self.say(f"metrics.jsonl held {plural(torn, 'line')} cut short (a crash or a full disk while it was "
                      "written), now left out: the evaluation rows written there are lost")
+        if not kept and steps > 0 and self.config.eval.interval > 0:  # a run's rows start at step 0
+            self.say(f"metrics.jsonl held no row (deleted or emptied?): the evaluation rows before env step "
+                     f"{steps:,} are lost (TensorBoard's tb/ keeps their scalars); the rows go on from here")
         if kept and kept[-1].get("step") == steps:
             self.report.last_eval = kept[-1]  # a finished run resumed again needs no second final eval
         for trigger in self.triggers:
