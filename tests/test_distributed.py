@@ -754,6 +754,7 @@ def fake_eval_driver(calls: list[str], losses: dict[str, float]):
 
     from relayrl.distributed.driver import RayDriver
     from relayrl.seeding import RunSeeds
+    from relayrl.training.triggers import EvalSeeds
 
     class Pusher:
         last_ref = "push"
@@ -773,7 +774,7 @@ def fake_eval_driver(calls: list[str], losses: dict[str, float]):
     d.config = relayrl.load_config("dqn-cartpole-fast", ["distributed.num_actors=1"])
     d.ray = SimpleNamespace(get=lambda ref: calls.append(f"get {ref}") or {"policy_version": 1},
                             wait=lambda refs, timeout: (refs, []))
-    d.pusher, d.seeds, d.evals, d.eval_count = Pusher(), RunSeeds(0), deque(), 0
+    d.pusher, d.seeds, d.evals, d.eval_seeds = Pusher(), RunSeeds(0), deque(), EvalSeeds(d.config.eval.interval)
     d.pool = SimpleNamespace(eval_workers=[SimpleNamespace(evaluate=SimpleNamespace(remote=evaluate))], alive=1)
     d.collection = SimpleNamespace(eval_extra=dict)
     d.core = SimpleNamespace(report=report, wall_time=lambda: 0.0)

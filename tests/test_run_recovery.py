@@ -1,6 +1,7 @@
 """Runs that fail are recoverable: nothing blocks a retry, --overwrite, --resume checks what it
 resumes, total_steps is a hard end, and a bad --run-dir is one line."""
 
+import json
 import os
 import subprocess
 import sys
@@ -82,6 +83,19 @@ def test_a_resume_says_when_metrics_jsonl_held_a_line_cut_short(tmp_path, capsys
     assert "metrics.jsonl held 1 line cut short (a crash or a full disk while it was written), now left out: the " \
            "evaluation rows written there are lost" in capsys.readouterr().err
     assert [row["step"] for row in RunDir(run).read_metrics()] == [0, 30, 90]
+
+
+def test_a_finished_runs_lost_last_row_is_evaluated_again_as_it_was(tmp_path):
+    """The final checkpoint is written after the final evaluation counted its seed index: the
+    rebuilt row took the next index and differed from the one lost (357.8 -> 348.5)."""
+    run = tmp_path / "run"
+    train(load_config("dqn-cartpole", TINY + ["env.id=CartPole-v1"]), run, progress=False)  # returns vary by seed
+    rows = (run / "metrics.jsonl").read_text().splitlines(keepends=True)
+    (run / "metrics.jsonl").write_text("".join(rows[:-1]) + rows[-1][:20])
+    train(None, run, resume=True, progress=False)
+    drop = ("wall_time_s", "eval_s")
+    again = [{k: v for k, v in r.items() if k not in drop} for r in RunDir(run).read_metrics()]
+    assert again == [{k: v for k, v in json.loads(r).items() if k not in drop} for r in rows]
 
 
 @pytest.mark.parametrize("lost", ["deleted", "emptied"])

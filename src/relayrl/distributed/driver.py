@@ -32,7 +32,7 @@ from relayrl.training.process import start_process
 from relayrl.training.replay_setup import replay_path
 from relayrl.training.report import Callback, plural, say
 from relayrl.training.run_dir import RunDir
-from relayrl.training.triggers import IntervalTrigger, Progress, covers_boundary
+from relayrl.training.triggers import EvalSeeds, IntervalTrigger, Progress
 
 
 class Collection(Protocol):
@@ -57,7 +57,7 @@ class RayDriver:
         self.rd = rd
         self.seeds, self.device = start_process(c)
         ray = self.ray = require_ray()
-        self.eval_count = 0
+        self.eval_seeds = EvalSeeds(self.config.eval.interval)
         # in flight, oldest first: (call, progress, start, wall time, eval actor, seed, the row's training state)
         self.evals: deque[tuple[Any, Progress, float, float, int, int, dict[str, Any]]] = deque()
         check_user_env(c, None, say)
@@ -129,14 +129,14 @@ class RayDriver:
             # the container before the push and evaluate older weights (at step 0 its own
             # untrained network, policy version 0, not the learner's).
             self.ray.get(self.pusher.last_ref)
-        seed = self.seeds.base("evaluation") + EVAL_STRIDE * self.eval_count
-        w = self.eval_count % len(workers)
+        index = self.eval_seeds.index(p.env_steps)
+        seed = self.seeds.base("evaluation") + EVAL_STRIDE * index
+        w = index % len(workers)
         # The row's training returns and losses are this step's: training goes on while the
         # eval actor runs, and the row is written when it answers.
         state = {**self.core.report.training_state(), **self.collection.eval_extra()}
         self.evals.append((workers[w].evaluate.remote(seed), p, time.perf_counter(), self.core.wall_time(), w, seed,
                            state))
-        self.eval_count += covers_boundary(p.env_steps, self.config.eval.interval, self.eval_count)
 
     def settle_evals(self) -> None:
         self._finish_evals(until=0)
@@ -164,13 +164,13 @@ class RayDriver:
 
     def checkpoint_state(self) -> dict[str, Any]:
         # the weights' version the actors and eval rows (policy_version) count in: a resume goes on counting
-        return {**self.core.checkpoint_common(self.eval_count), "distributed": {"num_actors": self.pool.num_actors},
+        return {**self.core.checkpoint_common(self.eval_seeds), "distributed": {"num_actors": self.pool.num_actors},
                 "variables_version": self.pusher.version, **self.collection.state_dict()}
 
     def restore(self) -> None:
         core, k = self.core, self.pool.num_actors
         state = load_latest_checkpoint(self.rd.checkpoints)
-        self.eval_count = core.restore_common(state)
+        core.restore_common(state, self.eval_seeds)
         # weights None: the actors keep theirs until the first push, which is version + 1
         self.pusher.version = int(state.get("variables_version", 0))
         self.ray.get(self.pool.variables.load_state_dict.remote({"version": self.pusher.version, "weights": None}))

@@ -35,7 +35,7 @@ from relayrl.training.replay_setup import collect_only
 from relayrl.training.report import Callback, RunReport, log_config, log_finished, plural
 from relayrl.training.resume import check_checkpoint_config, saved_config
 from relayrl.training.run_dir import RunDir, checkpoint_step
-from relayrl.training.triggers import Checkpointer, IntervalTrigger, PolicySaver, Progress, StepsPerSecondLog
+from relayrl.training.triggers import Checkpointer, EvalSeeds, IntervalTrigger, PolicySaver, Progress, StepsPerSecondLog
 
 
 @dataclass
@@ -163,12 +163,12 @@ class RunCore:
             return f"nothing was saved in {self.rd.root}"
         return f"{' and '.join(parts)} {'are' if len(parts) > 1 else 'is'} kept in {self.rd.root}"
 
-    def checkpoint_common(self, eval_count: int) -> dict[str, Any]:
+    def checkpoint_common(self, eval_seeds: EvalSeeds) -> dict[str, Any]:
         """What every driver's checkpoint holds."""
         self.report.log_episodes()
         return {"version": 2, "config": to_dict(self.config), "spaces": self.spaces(),
                 "agent": self.agent.state_dict(), "episode_stats": self.stats.state_dict(),
-                "eval_count": eval_count, "wall_time_s": self.wall_time(),
+                **eval_seeds.state_dict(), "wall_time_s": self.wall_time(),
                 # the global RNGs (a user's env may draw from them) and the latest losses
                 "global_rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
                                "python": random.getstate()},
@@ -177,9 +177,9 @@ class RunCore:
     def spaces(self) -> dict[str, Any]:
         return {"observation": spec_state(self.agent.obs_spec), "action": spec_state(self.agent.action_spec)}
 
-    def restore_common(self, state: dict[str, Any]) -> int:
-        """Load `checkpoint_common`'s parts but the process's state (the driver's to load, once its
-        envs are back); returns the evaluations so far."""
+    def restore_common(self, state: dict[str, Any], eval_seeds: EvalSeeds) -> None:
+        """Load `checkpoint_common`'s parts (the evaluations' seed indices into `eval_seeds`) but the
+        process's state (the driver's to load, once its envs are back)."""
         check_checkpoint_config(self.config, state, self.rd.config)  # dispatch's did where the build could harm
         self.restored_config = state.get("config", {})
         saved = state.get("spaces")  # checkpoints before spaces were recorded: only their frames' layout
@@ -202,7 +202,7 @@ class RunCore:
                             "space)") from None
         self.stats.load_state_dict(state["episode_stats"])
         self.wall_offset = float(state["wall_time_s"])
-        return int(state["eval_count"])
+        eval_seeds.load_state_dict(state)
 
     def load_process_state(self, state: dict[str, Any]) -> None:
         rng = state["global_rng"]

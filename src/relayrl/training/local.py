@@ -169,7 +169,7 @@ class LocalDriver:
             # said once, when the first checkpoint is written (the end of a short run)
             self._say_no_env_state("a resumed run starts new episodes (README: Run directory)")
         return {
-            **self.core.checkpoint_common(self.evaluator.count),
+            **self.core.checkpoint_common(self.evaluator.seeds),
             # Very large tables may be left out (train.checkpoint_replay = false): a resumed
             # run then refills its replay before learning again.
             "replay": self.replay.state_dict() if self.config.train.checkpoint_replay else None,
@@ -186,7 +186,7 @@ class LocalDriver:
     def restore(self) -> None:
         core = self.core
         state = load_latest_checkpoint(self.rd.checkpoints)
-        self.evaluator.count = core.restore_common(state)
+        core.restore_common(state, self.evaluator.seeds)
         files_moved_on = False
         if state["replay"] is not None:
             lost = self.replay.load_state_dict(state["replay"])  # drops items whose memmap rows were overwritten

@@ -108,9 +108,38 @@ def covers_boundary(steps: int, interval: int, evaluations: int) -> bool:
     return interval <= 0 or steps // interval + 1 > evaluations
 
 
+class EvalSeeds:
+    """The seed index of each evaluation on the `interval` grid (`covers_boundary`), and of the
+    latest one, which a checkpoint keeps: a resume whose metrics.jsonl lost the row of the
+    checkpoint's step evaluates that step again with the index it had, not the next one."""
+
+    def __init__(self, interval: int) -> None:
+        self.interval = interval
+        self.count = 0  # indices used up
+        self.last: tuple[int, int] | None = None  # (step, index) of the latest evaluation
+
+    def index(self, steps: int) -> int:
+        """The index of an evaluation at `steps`, used up where it covers a new boundary."""
+        if self.last is not None and self.last[0] == steps:  # the same step again
+            return self.last[1]
+        index = self.count
+        self.count += covers_boundary(steps, self.interval, self.count)
+        self.last = (steps, index)
+        return index
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"eval_count": self.count, "eval_last": None if self.last is None else list(self.last)}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """A checkpoint's; one written before `eval_last` was kept has only the count."""
+        self.count = int(state["eval_count"])
+        last = state.get("eval_last")
+        self.last = None if last is None else (int(last[0]), int(last[1]))
+
+
 class Evaluate(IntervalTrigger):
     """Runs `episodes` episodes of `policy_fn()` on `env`; results go to `on_result`.
-    Evaluation k (`count`, which a resumed run restores) resets the env with seed + EVAL_STRIDE * k;
+    Evaluation k (`seeds`, which a resumed run restores) resets the env with seed + EVAL_STRIDE * k;
     one that covers no new boundary of the interval grid (`covers_boundary`) takes the next one's
     seed without using it up. `seconds` is how long the latest one took."""
 
@@ -120,16 +149,16 @@ class Evaluate(IntervalTrigger):
         super().__init__(interval, self.evaluate, unit)
         self.env, self.policy_fn, self.episodes, self.seed = env, policy_fn, episodes, seed
         self.on_result = on_result
-        self.count = 0
+        self.seeds = EvalSeeds(interval)
         self.seconds = 0.0
 
     def evaluate(self, progress: Progress) -> None:
         from relayrl.training.evaluate import evaluate
 
         t0 = time.perf_counter()
-        result = evaluate(self.env, self.policy_fn(), self.episodes, seed=self.seed + EVAL_STRIDE * self.count)
+        index = self.seeds.index(self._count(progress))
+        result = evaluate(self.env, self.policy_fn(), self.episodes, seed=self.seed + EVAL_STRIDE * index)
         self.seconds = time.perf_counter() - t0
-        self.count += covers_boundary(self._count(progress), self.interval, self.count)
         if self.on_result is not None:
             self.on_result(progress, result)
 
