@@ -130,6 +130,11 @@ def test_overrides_are_typed():
     ("replay.beta=0.4", "did you mean 'replay.importance_exponent'?"),
     ("sac:agent.hidden=[64]", "did you mean 'agent.actor_hidden' and 'agent.critic_hidden'?"),
     ("sac:agent.lr=0.001", "did you mean 'agent.actor_lr', 'agent.critic_lr' and 'agent.alpha_lr'?"),
+    ("agent.lr=.5", "expected float (TOML writes a digit on both sides of the point: 0.5)"),
+    ("agent.lr=5.", "(TOML writes a digit on both sides of the point: 5.0)"),
+    # a preset of one algorithm turned into another keeps its [agent] keys
+    ("algo=ppo", "--set algo=ppo: the preset 'dqn-cartpole' is dqn's, and its [agent] settings are not all ppo's "
+                 "(unknown config key 'agent."),
 ])
 def test_bad_overrides_fail_with_a_clear_message(override, fragment):
     preset, _, override = (override.partition(":") if override.startswith(("sac:", "ppo:"))
@@ -160,6 +165,12 @@ def test_a_section_assigned_a_dict_or_none_in_python_is_one_clear_line(value):
     with pytest.raises(ConfigError, match=r"^env=.* has the wrong type; expected the section's EnvConfig: set its "
                                           r"keys one by one \(config.env.<key> = value\)$"):
         c.env = value
+
+
+def test_a_dotted_key_in_a_dict_says_dicts_nest_their_sections():
+    with pytest.raises(ConfigError, match=r"^unknown config key 'env.id': a dict nests its sections, "
+                                          r"\{'env': \{'id': ...\}\}"):
+        load_config({"algo": "ppo", "env.id": "CartPole-v1"})
 
 
 def test_a_section_assigned_another_sections_object_is_one_clear_line():

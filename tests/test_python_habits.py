@@ -898,3 +898,8 @@ def test_a_callbacks_row_holds_none_where_metrics_jsonl_holds_null(tmp_path):
     assert logs and all(r["train/average_return"] is None for r in logs)
     for r in rows:
         json.dumps(r, allow_nan=False)
+
+
+def test_a_run_dir_that_is_no_path_is_one_line():
+    with pytest.raises(UserError, match=r"^run_dir=5 is not a folder's path: give a str or a Path"):
+        relayrl.train(TINY, 5)

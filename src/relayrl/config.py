@@ -305,6 +305,11 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str, algo: str) -> None:
         key = fold_key(given)  # env.ID, agent.learning-rate: looked up as TOML's keys are written
         if given not in names and key in names:  # before the notes below, which would read it as another's
             raise ConfigError(unknown_key(path, [prefix + n for n in names]))
+        if given not in names and "." in given and given.split(".")[0] in names:  # {"env.id": ...}, --set's way
+            section, rest = given.split(".", 1)
+            raise ConfigError(f"unknown config key {path!r}: a dict nests its sections, "
+                              f"{{{section!r}: {{{rest!r}: ...}}}} (--set and load_config's overrides take "
+                              f"{path}=...)")
         if given not in names:
             home = [f"{n}.{key}" for n in names if dataclasses.is_dataclass(section := getattr(obj, n))
                     and key in {f.name for f in dataclasses.fields(section)}]

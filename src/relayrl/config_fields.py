@@ -407,6 +407,8 @@ def _tip(value: Any, hint: Any, path: str) -> str:
     if hint is float and isinstance(value, str) and value.startswith("lin_"):  # RL Zoo's linear schedules
         return (f" (RL Zoo's {value}, linear from {value[4:]} to 0, is this key = {value[4:]} with its end key = 0: "
                 "agent.lr_end or agent.clip_range_end)")
+    if hint is float and isinstance(value, str) and re.fullmatch(r"[+-]?(\.\d+|\d+\.)([eE][+-]?\d+)?", value):
+        return f" (TOML writes a digit on both sides of the point: {float(value)!r})"  # .5, 5.
     if hint is int and isinstance(value, float) and value.is_integer():
         return f" (write {int(value)}: TOML reads 1e4 and 10000.0 as floats)"
     if hint is str and callable(value) and path.rsplit(".", 1)[-1] not in _CODE_KEYS:  # SB3's activation_fn=nn.ReLU

@@ -9,6 +9,7 @@ import contextlib
 import copy
 import inspect
 import itertools
+import os
 import sys
 import threading
 import time
@@ -245,6 +246,9 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
 def _train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Path | None, resume: bool,
            progress: bool, env: Callable[[], Any] | None, overwrite: bool,
            callbacks: Sequence[Callback] | None) -> RunResult:
+    if run_dir is not None and not isinstance(run_dir, str | os.PathLike):
+        raise UserError(f"run_dir={run_dir!r} is not a folder's path: give a str or a Path (None: a new folder "
+                        "under ./runs)")
     if config is None:
         if not resume or run_dir is None:
             raise UserError("config=None continues a run with its own config.toml: give run_dir and resume=True "

@@ -107,6 +107,7 @@ def load_config(name_or_path: str | os.PathLike[str] | dict[str, Any], overrides
     else:
         data = preset_dict(name_or_path)
     overrides = _override_list(overrides)
+    was_algo = data.get("algo")
     data = apply_overrides(data, overrides)
     if seed is not None:
         if any(parse_override(o)[0] == ["seed"] for o in overrides) and data.get("seed") != seed:
@@ -115,6 +116,14 @@ def load_config(name_or_path: str | os.PathLike[str] | dict[str, Any], overrides
     try:
         return from_dict(data)
     except ConfigError as e:
+        if was_algo is not None and data.get("algo") != was_algo and str(e).startswith("unknown config key 'agent."):
+            source = ("config" if isinstance(name_or_path, dict) else
+                      f"config file {name_or_path!r}" if file_data is not None else f"preset {name_or_path!r}")
+            first = str(e).split(";")[0].split(":")[0]  # "unknown config key 'agent.loss'"
+            algo = data.get("algo")
+            raise ConfigError(f"--set algo={algo}: the {source} is {was_algo}'s, and its [agent] settings are not "
+                              f"all {algo}'s ({first}); start from {algo}'s defaults (relayrl train {algo}) or one "
+                              f"of its presets") from None
         if file_data is None or not _fails_alone(file_data, str(e)):
             raise
         raise ConfigError(f"config file {name_or_path!r}: {e}") from None
