@@ -123,7 +123,8 @@ class DistributedConfig(Section):
 @dataclass
 class Config(Section):
     """A run's settings: one section per TOML table (env, train, replay, eval, distributed, and
-    agent, the algorithm's own class), each key checked as it is set. `Config(algo="ppo")` and
+    agent, the algorithm's own class), each key's name and type checked as it is set, its value
+    (ranges, choices, how keys combine) by `validate`, which `relayrl.train` calls. `Config(algo="ppo")` and
     `relayrl.load_config("ppo")` are PPO's defaults (the section classes' own, shown in their
     signatures, are only a starting point); `relayrl config ALGO` lists every key with its
     meaning. Setting `config.algo` later re-bases the config: keys still at the old algorithm's
