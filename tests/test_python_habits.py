@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import os
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -461,7 +462,7 @@ def test_several_runs_plot_in_one_panel(run_dir, tmp_path, capsys):
         relayrl.plot_run([stopped, stopped])
 
 
-def test_a_seed_groups_curve_says_where_it_ends_early_and_when_runs_share_a_seed(tmp_path, capsys):
+def test_a_seed_groups_curve_says_where_it_ends_early_and_when_runs_share_a_seed(tmp_path, capsys, monkeypatch):
     """A seed still running cut the group's mean back to its last step without a word, and copies
     of one run (one seed) were labelled as several seeds."""
     import shutil
@@ -477,6 +478,8 @@ def test_a_seed_groups_curve_says_where_it_ends_early_and_when_runs_share_a_seed
     relayrl.plot_run([tmp_path / n for n in ("s1", "s2", "s3")])
     assert "s1, s2, s3: their mean is drawn to env step 54, the last all 3 evaluated at (the longest goes to 200)" \
         in capsys.readouterr().err
+    monkeypatch.chdir(tmp_path)  # relative paths give a relative one back, as one run's plot does
+    assert relayrl.plot_run(["s1", "s2"]) == Path("compare.png")
     shutil.copytree(tmp_path / "s1", tmp_path / "copy")
     relayrl.plot_run([tmp_path / "s1", tmp_path / "copy"])
     assert "s1, copy share a seed (1, 1): their band is not a spread over seeds" in capsys.readouterr().err

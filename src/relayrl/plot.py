@@ -117,7 +117,7 @@ def _compare(runs: list[RunDir], out: str | Path | None) -> Path:
     ax.set_ylabel("average return (eval)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize="small")
-    return _save(fig, output_path(out, parents.pop() / "compare.png"))
+    return _save(fig, output_path(out, runs[0].root.parent / "compare.png"))  # as given: relative stays relative
 
 
 def _saved_toml(rd: RunDir) -> dict[str, Any] | None:
