@@ -153,8 +153,7 @@ class PPOAgent(Agent):
             self.net.policy.obs_norm.update(obs)  # after training: the next rollout's policy
         means = sums / steps
         return {"policy_loss": means[0], "value_loss": means[1], "entropy": means[2], "approx_kl": means[3],
-                "clip_fraction": means[4], "loss": means[5], "explained_variance": explained_variance(values, returns),
-                "clip_range": torch.tensor(self.clip_range), "lr": torch.tensor(self.opt.lr)}
+                "clip_fraction": means[4], "loss": means[5], "explained_variance": explained_variance(values, returns)}
 
     def policy_state(self) -> dict[str, Any]:
         p = self.net.policy
