@@ -1,6 +1,7 @@
 """The `relayrl` command: bad input gives one line and exit 2; the quick start works."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -415,3 +416,17 @@ def test_a_resume_naming_its_preset_without_a_seed_keeps_the_runs_seed(tmp_path,
     for seeded in (["--seed", "2"], ["--set", "seed=2"]):
         assert cli.main(["train", "dqn-cartpole-fast", "--run-dir", run, "--resume", *seeded, *longer]) == 2
         assert "--resume: seed=2 but the run in" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("closed", ["stdout", "stderr"])
+def test_a_command_whose_output_was_closed_at_start_runs(closed):
+    """`relayrl presets >&-` (a daemon's closed descriptor): Python's sys.stdout is None, which
+    print() writes nothing to; wrapping it for a reader gone made every command fail."""
+    fd = 1 if closed == "stdout" else 2
+    r = subprocess.run(RELAYRL + ["presets"], pass_fds=(), timeout=120,
+                       preexec_fn=lambda: os.close(fd), capture_output=False,
+                       stdout=subprocess.DEVNULL if fd == 2 else None, stderr=subprocess.DEVNULL if fd == 1 else None)
+    assert r.returncode == 0
+    bad = subprocess.run(RELAYRL + ["train", "nosuch"], timeout=120, preexec_fn=lambda: os.close(fd),
+                         stdout=subprocess.DEVNULL if fd == 2 else None, stderr=subprocess.DEVNULL if fd == 1 else None)
+    assert bad.returncode == 2

@@ -869,6 +869,9 @@ def test_evaluating_a_model_that_samples_from_torch_repeats_with_the_seed_and_le
     assert torch.equal(torch.get_rng_state(), before)
     assert relayrl.evaluate(Sampler(), "CartPole-v1", episodes=4, deterministic=False,
                             return_episode_rewards=True) == first
+    # unseeded: the draws go on from the caller's stream, neither repeated nor put back
+    relayrl.evaluate(Sampler(), "CartPole-v1", episodes=2, deterministic=False, seed=None)
+    assert not torch.equal(torch.get_rng_state(), before)
 
 
 @pytest.mark.parametrize("progress", [False, True])  # True: no terminal under pytest, so no bar either

@@ -514,6 +514,17 @@ def test_resume_refuses_another_rollout_length_in_one_line(tmp_path):
     assert (tmp_path / "r" / "config.toml").read_text() == before
 
 
+def test_a_run_whose_checkpoints_hold_no_rollout_table_resumes_with_another_rollout_length(tmp_path):
+    """train.checkpoint_replay = false: the checkpoint holds no rollout table, and a new length
+    works (as on Ray, whose actors size their shares from the config)."""
+    small = ["train.total_steps=128", "train.collect_steps=64", "agent.batch_size=32", "agent.n_epochs=1",
+             "eval.interval=0", "eval.episodes=1", "train.checkpoint_replay=false"]
+    relayrl.train(relayrl.load_config("ppo-cartpole", small), tmp_path / "r", progress=False)
+    more = relayrl.load_config(str(tmp_path / "r" / "config.toml"),
+                               ["train.total_steps=384", "train.collect_steps=128"])
+    assert relayrl.train(more, tmp_path / "r", resume=True, progress=False).final["step"] == 384
+
+
 @pytest.mark.parametrize("key, edit", [("seed", ("seed = 0 ", "seed = 5 ")),
                                        ("env.num_envs", ("num_envs = 1 ", "num_envs = 2 "))])
 def test_a_config_toml_edited_by_hand_is_checked_against_the_checkpoint(key, edit, tmp_path):
@@ -762,8 +773,8 @@ def test_sighup_stops_a_run_with_a_checkpoint_also_when_its_terminal_is_gone(tmp
         assert "relayrl: hung up (the terminal closed); resume with --resume" in said and "Traceback" not in said
 
 
-@pytest.mark.parametrize("stop", ["ctrl-c", "none"])
-def test_a_run_whose_output_pipe_loses_its_reader_goes_on(tmp_path, stop):
+@pytest.mark.parametrize("stop, output", [("ctrl-c", "pipe"), ("none", "pipe"), ("none", "terminal")])
+def test_a_run_whose_output_pipe_loses_its_reader_goes_on(tmp_path, stop, output):
     """`relayrl train ... | head -3`: the reader closes, and the run died at its next line (EPIPE),
     exit 1, no checkpoint. `... | tee log` and Ctrl-C: tee ends with the same SIGINT, and the stop's
     own lines failed the stop. The run's lines go nowhere now: it trains to its end, or stops
@@ -776,10 +787,19 @@ def test_a_run_whose_output_pipe_loses_its_reader_goes_on(tmp_path, stop):
     def as_in_a_terminal() -> None:  # a test run in the background of a script passes SIGINT on ignored
         signal.signal(signal.SIGINT, signal.SIG_DFL)
 
-    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                         preexec_fn=as_in_a_terminal)
-    p.stdout.readline()  # its first line, as head -1 reads it
-    p.stdout.close()
+    if output == "terminal":  # a terminal closed without SIGHUP (its session kept): writes fail with EIO
+        import pty
+
+        reader, slave = pty.openpty()
+        p = subprocess.Popen(cmd, stdout=slave, stderr=slave, stdin=subprocess.DEVNULL, preexec_fn=as_in_a_terminal)
+        os.close(slave)
+        os.read(reader, 100)
+        os.close(reader)
+    else:
+        p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                             preexec_fn=as_in_a_terminal)
+        p.stdout.readline()  # its first line, as head -1 reads it
+        p.stdout.close()
     checkpoints = tmp_path / "run" / "checkpoints"
     if stop == "none":
         assert p.wait(timeout=120) == 0

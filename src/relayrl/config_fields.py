@@ -412,8 +412,7 @@ def _tip(value: Any, hint: Any, path: str) -> str:
     if hint is int and isinstance(value, float) and value.is_integer():
         return f" (write {int(value)}: TOML reads 1e4 and 10000.0 as floats)"
     if hint is str and callable(value) and path.rsplit(".", 1)[-1] not in _CODE_KEYS:  # SB3's activation_fn=nn.ReLU
-        name = getattr(value, "__name__", "")
-        return f" (name it as a string, as {name.lower()!r})" if name.isidentifier() else ""
+        return " (a name, as a string: one of those `relayrl config` lists for it, e.g. 'relu' for nn.ReLU)"
     if hint is str and callable(value):  # agent.encoder = make: configs name code, as env.id does
         module, name = getattr(value, "__module__", "package.module"), getattr(value, "__qualname__", "name")
         if not isinstance(value, type | types.FunctionType) or not name.isidentifier():  # a lambda, a module built

@@ -85,13 +85,13 @@ def identity_overrides(overrides: Sequence[str]) -> list[str]:
     return [text for text in overrides if touches(parse_override(text)[0])]
 
 
-def check_resume_matches(config: Config, rd: RunDir, identity: Sequence[str] = ()) -> None:
+def check_resume_matches(config: Config, rd: RunDir, identity: Sequence[str] | None = None) -> None:
     """A resumed run is the run in `rd`: a config that changes one of the keys it keeps
     (`resume.kept_on_resume`; with `identity`, those of algo, env.id and seed it names) is one line."""
     saved = dotted(load_toml(rd.config))
     defaults, now = dotted(to_dict(algo_defaults(saved.get("algo", config.algo)))), dotted(to_dict(config))
     replay = saved.get("train.checkpoint_replay", defaults["train.checkpoint_replay"])
-    checked = {k: IDENTITY[k] for k in identity} if identity else kept_on_resume(config, replay)
+    checked = kept_on_resume(config, replay) if identity is None else {k: IDENTITY[k] for k in identity}
     for key, advice in checked.items():
         if now[key] != (was := saved.get(key, defaults[key])):
             raise UserError(f"--resume: {key}={now[key]!r} but the run in {str(rd.root)!r} has {was!r}; {advice}")

@@ -58,7 +58,7 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
     (its id, kwargs, wrappers and time limit). The env copies (up to 16, one for an
     instance) are reset with seed, seed + 1, ... (None: unseeded), as a run's evaluations are, and a
     loaded policy's samples (`deterministic=False`) are drawn from `seed` too, as are an SB3 model's
-    or a function's draws from torch's global generator, which is put back after. Episodes are cut
+    or a function's draws from torch's CPU generator, which is put back after. Episodes are cut
     at `max_episode_steps` where it is > 0 (an instance's own time limit may end them sooner); 0:
     the env's time limit, and an env without one is cut at 1,000 steps (Atari games end their own
     episodes).
@@ -92,12 +92,15 @@ def evaluate(policy: Any, env: Any = None, episodes: int = 10, deterministic: bo
 
 @contextlib.contextmanager
 def _torch_draws_from(seed: int | None) -> Iterator[None]:
-    """torch's global generator seeded with `seed` inside and put back after: what an SB3 model's
-    `predict(deterministic=False)` (or a function's torch.rand) draws repeats with the seed and
-    leaves the caller's stream alone, as a loaded policy's own generator does."""
+    """torch's CPU generator seeded with `seed` inside and put back after: what an SB3 model's
+    `predict(deterministic=False)` (or a function's torch.rand) draws on the CPU repeats with the
+    seed and leaves the caller's stream alone, as a loaded policy's own generator does. Unseeded
+    (None), the draws go on from the caller's stream."""
+    if seed is None:
+        yield
+        return
     with torch.random.fork_rng(devices=[]):
-        if seed is not None:
-            torch.manual_seed(seed)
+        torch.manual_seed(seed)
         yield
 
 

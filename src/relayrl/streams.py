@@ -53,12 +53,14 @@ class PipeSafe:
 def pipe_safe() -> Iterator[None]:
     """sys.stdout and sys.stderr as `PipeSafe` streams inside, put back after."""
     out, err = sys.stdout, sys.stderr
-    safe = PipeSafe(out), PipeSafe(err)
+    # None: the descriptor was closed at start (`>&-`, a daemon), where print() writes nothing
+    safe = [None if s is None else PipeSafe(s) for s in (out, err)]
     sys.stdout, sys.stderr = safe  # type: ignore[assignment]
     try:
         yield
     finally:
         for stream in safe:  # what is buffered for a pipe goes now, not at exit where no one catches EPIPE
             with contextlib.suppress(OSError, ValueError):  # ValueError: a stream the work closed
-                stream.flush()
+                if stream is not None:
+                    stream.flush()
         sys.stdout, sys.stderr = out, err

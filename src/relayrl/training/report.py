@@ -50,15 +50,18 @@ HPARAMS_METRIC = "eval/average_return"
 
 
 def log_config(tb: Any, config: Config, step: int = 0) -> None:
-    """The run's config in TensorBoard at env step `step` (a resume's settings from there on): as
-    TOML text (with each key's meaning) and as hparams, written into the run's own event file
-    (SummaryWriter.add_hparams writes a second one, and W&B's sync_tensorboard read the run's
-    scalars twice). The hparams session is marked finished by `log_finished` at the run's end
-    only: one that failed or stopped shows as not finished."""
+    """The run's config in TensorBoard: as TOML text (with each key's meaning) at env step `step`
+    (a resume's settings from there on), and at the start as hparams, written into the run's own
+    event file (SummaryWriter.add_hparams writes a second one, and W&B's sync_tensorboard read the
+    run's scalars twice). TensorBoard keeps the first hparams it reads for a run: a resume's would
+    not show. The hparams session is marked finished by `log_finished` at the run's end only: one
+    that failed or stopped shows as not finished."""
     from torch.utils.tensorboard.summary import hparams
 
     text = config_toml(config)
     tb.add_text("config", "\n".join("    " + line for line in text.splitlines()), step)  # a markdown code block
+    if step:
+        return
     data = to_dict(config)
     if algorithm(config.algo).replay != "transitions":  # as its listing (config_toml): no replay keys
         data.pop("replay")

@@ -30,11 +30,13 @@ def kept_on_resume(config: Config, replay_in_checkpoint: bool) -> dict[str, str]
     """The keys a resumed run keeps, each with the advice its refusal gives: its identity, its
     env copies and actors (its replay and envs are laid out per copy), an off-policy run's replay
     size where its checkpoint holds the table (train.checkpoint_replay), an on-policy run's rollout
-    length (its rollout table's), and the agent's network keys."""
+    length where its checkpoint holds its rollout table (one process), and the agent's network keys."""
     kind = algorithm(config.algo).replay
     replay = replay_in_checkpoint and kind == "transitions"
+    # a rollout table only in one process's checkpoint (Ray's actors size their shares anew)
+    rollouts = replay_in_checkpoint and kind == "rollouts" and config.distributed.num_actors == 0
     keys = (*IDENTITY_KEYS, "env.num_envs", "distributed.num_actors", *["replay.size"] * replay,
-            *["train.collect_steps"] * (kind == "rollouts"))
+            *["train.collect_steps"] * rollouts)
     kept = {k: _ADVICE[k] for k in keys}
     networks = "a resumed run keeps its networks (leave out --set {}; in Python, load the run's config.toml)"
     return kept | {f"agent.{k}": networks.format(f"agent.{k}") for k in config.agent.NETWORK}
