@@ -909,3 +909,15 @@ def test_a_callbacks_row_holds_none_where_metrics_jsonl_holds_null(tmp_path):
 def test_a_run_dir_that_is_no_path_is_one_line():
     with pytest.raises(UserError, match=r"^run_dir=5 is not a folder's path: give a str or a Path"):
         relayrl.train(TINY, 5)
+
+
+def test_a_run_result_gives_every_evaluation_and_the_best_for_a_sweeps_objective(tmp_path):
+    """An Optuna objective had the last evaluation only (one noisy point) and parsed metrics.jsonl
+    for the rest; the exceptions a study catches were not under relayrl."""
+    result = relayrl.train({**TINY, "env": {"id": "CartPole-v1"}}, tmp_path / "r", progress=False)
+    rows = RunDir(tmp_path / "r").read_metrics()
+    assert result.evaluations == rows and result.final == rows[-1]
+    assert result.best["average_return"] == max(r["average_return"] for r in rows)
+    assert issubclass(relayrl.ConfigError, relayrl.UserError) and relayrl.NonFiniteError is not None
+    with pytest.raises(relayrl.UserError):
+        relayrl.train({**TINY, "agent": {"lr": -1}}, tmp_path / "bad", progress=False)

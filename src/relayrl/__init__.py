@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 __version__ = "0.1.0"
 
 __all__ = ["load_config", "list_presets", "train", "evaluate", "load_policy", "export_policy", "plot_run",
-           "record_video", "Config", "EvalResult", "RunResult"]
+           "record_video", "Config", "EvalResult", "RunResult", "UserError", "ConfigError", "NonFiniteError"]
 
 _LAZY = {
     "load_config": "relayrl.presets",
@@ -35,11 +35,16 @@ _LAZY = {
     "record_video": "relayrl.video",
     "Config": "relayrl.config",
     "RunResult": "relayrl.training.lifecycle",
+    # what a sweep catches: bad settings or input (ConfigError is one), a run that diverged
+    "UserError": "relayrl.errors",
+    "ConfigError": "relayrl.errors",
+    "NonFiniteError": "relayrl.errors",
 }
 
 if TYPE_CHECKING:
     from relayrl.config import Config
     from relayrl.dispatch import train
+    from relayrl.errors import ConfigError, NonFiniteError, UserError
     from relayrl.evaluation import EvalResult, evaluate
     from relayrl.export import export_policy, load_policy
     from relayrl.plot import plot_run

@@ -43,11 +43,24 @@ class RunResult:
     """What `relayrl.train` returns: `run_dir`, the run directory (plot_run, record_video and
     load_policy take it); `final`, the run's last evaluation row as metrics.jsonl has it (step,
     average_return, average_episode_length, train/..., losses/...; {} where the run logged
-    none); `stopped_early`, True where a callback stopped the run before train.total_steps."""
+    none); `stopped_early`, True where a callback stopped the run before train.total_steps;
+    `evaluations` and `best`, every evaluation row and the one with the highest return."""
 
     run_dir: Path
     final: dict[str, Any]  # the last evaluation row of metrics.jsonl
     stopped_early: bool = False  # a callback returned False before train.total_steps
+
+    @property
+    def evaluations(self) -> list[dict[str, Any]]:
+        """Every evaluation row of the run's metrics.jsonl, in step order."""
+        return RunDir(self.run_dir).read_metrics()
+
+    @property
+    def best(self) -> dict[str, Any]:
+        """The evaluation row with the highest average_return (the latest of equals; {} where there
+        is none): a sweep's objective, where the last evaluation is one noisy point."""
+        rows = [r for r in self.evaluations if r.get("average_return") is not None]
+        return max(reversed(rows), key=lambda r: r["average_return"]) if rows else {}
 
 
 def make_learner(config: Config, agent: Agent, table: Any, device: torch.device, variables: Any,
