@@ -859,3 +859,23 @@ def test_what_listens_at_distributed_address_is_told_apart_by_its_answer_to_http
         thread.join(timeout=5)
         server.close()
     assert got == [HTTP2_PREFACE]
+
+
+def test_a_run_inside_a_running_ray_says_its_address_is_not_joined():
+    """Inside a Ray Tune trial (or after the user's ray.init), distributed.address was ignored
+    without a word."""
+    from types import SimpleNamespace
+
+    from relayrl.distributed.actors import ActorPool
+
+    said: list[str] = []
+
+    def stop(*args, **kwargs):
+        raise RuntimeError("stop here")
+
+    fake = SimpleNamespace(is_initialized=lambda: True, remote=stop)
+    config = relayrl.load_config("ppo-cartpole", ["distributed.num_actors=1", "distributed.address='10.0.0.1:6379'"])
+    with pytest.raises(RuntimeError, match="stop here"):
+        ActorPool(fake, config, said.append).start(object, None)
+    assert said == ["distributed.address='10.0.0.1:6379' is not joined: Ray is running in this process already "
+                    "(ray.init was called), and the run's actors go on that instance"]

@@ -166,6 +166,9 @@ class ActorPool:
             where = f"joining the Ray cluster at {d.address!r}" if d.address else "starting a local Ray instance"
             evals = f" and {plural(d.num_eval_actors, 'eval actor')}" if d.num_eval_actors else ""
             self.say(f"{where}, then {plural(self.num_actors, 'rollout actor')}{evals}")
+        elif d.address:  # a Ray Tune trial's, or the user's own ray.init(): its cluster is the one there is
+            self.say(f"distributed.address={d.address!r} is not joined: Ray is running in this process already "
+                     "(ray.init was called), and the run's actors go on that instance")
         init_ray(ray, c)
         cfg, home = to_dict(c), DriverHome.of(c.env.id)
         # Restartable actors find the server and the container by name: Ray cannot promise to
