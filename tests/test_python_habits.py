@@ -921,3 +921,28 @@ def test_a_run_result_gives_every_evaluation_and_the_best_for_a_sweeps_objective
     assert issubclass(relayrl.ConfigError, relayrl.UserError) and relayrl.NonFiniteError is not None
     with pytest.raises(relayrl.UserError):
         relayrl.train({**TINY, "agent": {"lr": -1}}, tmp_path / "bad", progress=False)
+
+
+def test_a_quiet_run_says_nothing_and_leaves_other_threads_output(tmp_path, capsys):
+    """README advised contextlib.redirect_stderr to silence a sweep's trials: with Optuna's
+    n_jobs > 1 threads it swapped sys.stderr for every thread and left it a StringIO."""
+    import sys
+    import threading
+
+    before = sys.stderr
+    result = relayrl.train(TINY, tmp_path / "q", quiet=True)
+    assert result.final["step"] == 200 and capsys.readouterr().err == ""
+    errors: list[BaseException] = []
+
+    def loud() -> None:
+        try:
+            relayrl.train(TINY, tmp_path / "loud", progress=False)
+        except BaseException as e:  # noqa: BLE001  (the test's thread reports it)
+            errors.append(e)
+
+    thread = threading.Thread(target=loud)
+    thread.start()
+    relayrl.train(TINY, tmp_path / "q2", quiet=True)
+    thread.join()
+    assert not errors and sys.stderr is before
+    assert "eval return" in capsys.readouterr().err  # the other thread's lines

@@ -10,7 +10,6 @@ import copy
 import inspect
 import itertools
 import os
-import sys
 import threading
 import time
 import types
@@ -20,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import gymnasium as gym
 
+from relayrl import console
 from relayrl.agents.registry import ALGORITHMS, Algorithm, algorithm, ray_algorithms
 from relayrl.config import Config, algo_defaults, dotted, from_dict, load_toml, parse_override, save_toml, to_dict
 from relayrl.envs.resolve import names_python_factory
@@ -205,7 +205,7 @@ def _finished(rd: RunDir) -> bool:
 
 def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Path | None = None, resume: bool = False,
           progress: bool = True, env: Callable[[], Any] | None = None, overwrite: bool = False,
-          callbacks: Sequence[Callback] | None = None) -> RunResult:
+          callbacks: Sequence[Callback] | None = None, quiet: bool = False) -> RunResult:
     """Train from a Config (or a nested dict of config values, a preset's name or a config
     TOML's path, as `load_config` takes them) into a run directory; returns a `RunResult`
     (`.run_dir`, `.final`: the last evaluation's metrics row, `.stopped_early`).
@@ -237,10 +237,12 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
     time (`runs/dqn-CartPole-v1-s0-20261129-101500`; `result.run_dir` says which).
 
     `progress=False` turns the progress bar off; the run's lines (evaluations, notes) still go
-    to stderr, which `contextlib.redirect_stderr(io.StringIO())` silences (a sweep's trials).
+    to stderr. `quiet=True` keeps them all back too (a sweep's trials; what goes wrong is still
+    raised), in this thread only: other threads' output, Optuna's with n_jobs > 1, stays.
     """
-    with _one_run_at_a_time():  # from the run directory's checks on: another thread's run may be writing it
-        return _train(config, run_dir, resume, progress, env, overwrite, callbacks)
+    # one run at a time from the run directory's checks on: another thread's run may be writing it
+    with console.quiet(bool(quiet)), _one_run_at_a_time():
+        return _train(config, run_dir, resume, progress and not quiet, env, overwrite, callbacks)
 
 
 def _train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Path | None, resume: bool,
@@ -309,9 +311,8 @@ _RUNNING = threading.RLock()
 def _one_run_at_a_time() -> Iterator[None]:
     """Runs started in several threads take turns; a run that waits says why, once."""
     if not _RUNNING.acquire(blocking=False):
-        print("relayrl: another relayrl.train is running in this process: this one starts when it ends (a run "
-              "sets torch's global generator and thread count; run trials in processes to run them side by side)",
-              file=sys.stderr, flush=True)
+        console.say("relayrl: another relayrl.train is running in this process: this one starts when it ends (a run "
+            "sets torch's global generator and thread count; run trials in processes to run them side by side)")
         _RUNNING.acquire()
     try:
         yield
@@ -337,11 +338,10 @@ def _build_and_train(entry: Algorithm, config: Config, rd: RunDir, resume: bool,
     result: RunResult | None = None
     try:
         if takeover:
-            print(f"relayrl: {takeover}", file=sys.stderr, flush=True)
+            console.say(f"relayrl: {takeover}")
             rd.clear()
         elif beside:
-            print(f"relayrl: run directory {str(rd.root)!r} holds other files: the run is written beside them",
-                  file=sys.stderr, flush=True)
+            console.say(f"relayrl: run directory {str(rd.root)!r} holds other files: the run is written beside them")
         rd.create()
         rd.hold_lock()
         try:
@@ -364,8 +364,8 @@ def _close(driver: Any, finished: bool) -> None:
     except Exception as e:
         if not finished:
             raise
-        print(f"relayrl: the run finished and its files are written; then closing its envs raised "
-              f"{type(e).__name__}: {e}", file=sys.stderr, flush=True)
+        console.say(f"relayrl: the run finished and its files are written; then closing its envs raised "
+            f"{type(e).__name__}: {e}")
 
 
 def out_of_memory(e: BaseException) -> str | None:

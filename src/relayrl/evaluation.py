@@ -177,7 +177,7 @@ def _batch_env(env: Any, policy: Any, run_dir: Any, episodes: int, max_episode_s
                             "policy give env (a Gymnasium env, a callable returning one, or an env id)")
         return recorded_env(run_dir if run_dir is not None else policy, episodes, max_episode_steps)[0], True
     if isinstance(env, str):
-        from relayrl.training.report import say
+        from relayrl.console import say
 
         # a run directory's config.toml imports its wrappers anyway: they are the policy's input
         return named_env(env, policy, episodes, max_episode_steps, say=say, run_code=run_dir is not None), True

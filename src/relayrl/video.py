@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from relayrl import atomic
+from relayrl.console import say
 from relayrl.envs.gym import GymBatchEnv
 from relayrl.envs.make import gl_hint, making
 from relayrl.envs.resolve import no_display, resolve_env_fn
@@ -22,7 +23,6 @@ from relayrl.export import load_policy
 from relayrl.paths import output_path, writing
 from relayrl.presets import load_config
 from relayrl.seeding import check_seed
-from relayrl.training.report import say
 
 if TYPE_CHECKING:
     from relayrl.training.run_dir import RunDir

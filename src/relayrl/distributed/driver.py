@@ -13,6 +13,7 @@ from typing import Any, Protocol
 from relayrl import interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config
+from relayrl.console import say
 from relayrl.core import Agent
 from relayrl.distributed import require_ray
 from relayrl.distributed.actors import ActorPool
@@ -30,7 +31,7 @@ from relayrl.training.lifecycle import RunCore, RunResult, make_learner, run_to_
 from relayrl.training.notes import check_user_env
 from relayrl.training.process import start_process
 from relayrl.training.replay_setup import replay_path
-from relayrl.training.report import Callback, plural, say
+from relayrl.training.report import Callback, plural
 from relayrl.training.run_dir import RunDir
 from relayrl.training.triggers import EvalSeeds, IntervalTrigger, Progress
 

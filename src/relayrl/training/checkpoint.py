@@ -3,13 +3,13 @@ is complete, and a corrupt newest checkpoint falls back to the one before it."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from relayrl import atomic, interrupts
+from relayrl.console import say
 from relayrl.errors import CheckpointError
 from relayrl.training.run_dir import list_checkpoints
 
@@ -58,7 +58,6 @@ def load_latest_checkpoint(folder: Path) -> dict[str, Any]:
             if len(detail) > 120:  # torch's explanations run long: cut at a word
                 detail = detail[:120].rsplit(" ", 1)[0] + " ..."
             then = "trying an older one" if n + 1 < len(candidates) else "no older one is left"
-            print(f"relayrl: checkpoint {path} is unreadable ({type(e).__name__}: {detail}); {then}",
-                  file=sys.stderr, flush=True)
+            say(f"relayrl: checkpoint {path} is unreadable ({type(e).__name__}: {detail}); {then}")
     raise CheckpointError(f"every checkpoint in {folder} is unreadable: start the run again with --overwrite "
                           "(in Python: overwrite=True)")

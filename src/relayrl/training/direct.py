@@ -17,13 +17,14 @@ from relayrl import atomic, interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config
 from relayrl.config_checks import TrainerSection
+from relayrl.console import say
 from relayrl.errors import UserError
 from relayrl.policy_file import save_policy_file
 from relayrl.seeding import RunSeeds
 from relayrl.training.evaluate import make_eval_env
 from relayrl.training.lifecycle import RunResult
 from relayrl.training.process import resolve_device
-from relayrl.training.report import close_logs, eval_legend, eval_line, log_config, log_finished, say
+from relayrl.training.report import close_logs, eval_legend, eval_line, log_config, log_finished
 from relayrl.training.run_dir import MetricsLog, RunDir
 from relayrl.training.triggers import Evaluate, Progress
 

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any
 from relayrl import interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config, to_dict
+from relayrl.console import say
 from relayrl.envs import make_env
 from relayrl.envs.gym import GymBatchEnv
 from relayrl.envs.stateless.adapter import StatelessBatchEnv
@@ -33,7 +34,7 @@ from relayrl.training.replay_setup import (
     replay_device,
     replay_note,
 )
-from relayrl.training.report import Callback, say
+from relayrl.training.report import Callback
 from relayrl.training.run_dir import RunDir
 from relayrl.training.triggers import Evaluate, Progress
 from relayrl.training.variables import VariableContainer, WeightPuller, network_variables

@@ -15,6 +15,7 @@ from typing import Any
 from relayrl import atomic, interrupts
 from relayrl.agents.registry import algorithm
 from relayrl.config import Config, config_toml, dotted, to_dict
+from relayrl.console import say
 from relayrl.errors import UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.training.heartbeat import ProgressLines
@@ -33,11 +34,6 @@ def step_means(finished: list[tuple[int, float, int]]) -> list[tuple[int, float,
         episodes = list(group)
         out.append((step, sum(e[1] for e in episodes) / len(episodes), sum(e[2] for e in episodes) / len(episodes)))
     return out
-
-
-def say(text: str) -> None:
-    """A line for the user where no report is open (a driver being built)."""
-    print(text, file=sys.stderr, flush=True)
 
 
 def plural(n: int, noun: str) -> str:
