@@ -98,7 +98,8 @@ class EvalConfig(Section):
     SECTION = "eval"
 
     # env steps between evaluations, each at the first collect boundary at or past its multiple
-    # (dqn-cartpole-fast: 5,096, 10,216, ...); 0: only the final one (no step-0 evaluation)
+    # after the random warm-up (dqn-cartpole-fast: 5,096, 10,216, ...); 0: only the final one (no
+    # step-0 evaluation)
     interval: int = 5_000
     episodes: int = 10  # episodes per evaluation
     # keyword arguments evaluation envs take in place of env.kwargs' (the other keys stay), e.g.
