@@ -539,3 +539,19 @@ def test_an_encoder_given_as_a_lambda_or_a_built_module_is_told_to_name_a_maker(
         with pytest.raises(ConfigError, match=r"expected str \(name a function or class in a module that builds it "
                                               r"from the observation space, as a string: 'package.module:make'\)"):
             c.agent.encoder = value
+
+
+@pytest.mark.parametrize("algo, overrides, said", [
+    ("dqn", ["agent.lr_end=0.1"], "agent.lr_end=0.1 is above agent.lr=0.0001: it rises over the run, not decays"),
+    ("dqn", ["agent.epsilon_start=0.01", "agent.epsilon_end=0.5"], "agent.epsilon_end=0.5 is above agent.epsilon_"),
+    ("ppo", ["agent.clip_range_end=0.3"], "agent.clip_range_end=0.3 is above agent.clip_range=0.2"),
+    ("sac", ["agent.lr_end=0.001"], "agent.lr_end=0.001 is above agent.actor_lr=0.0003; agent.lr_end=0.001 is above "
+                                    "agent.critic_lr"),
+    ("ppo", ["agent.lr_end=0"], None),  # a decay: nothing to say
+])
+def test_a_schedule_whose_end_is_above_its_start_is_said_at_the_start(tmp_path, algo, overrides, said):
+    """A sweep that draws lr and lr_end apart trained with a rising learning rate without a word."""
+    from relayrl.training.notes import start_notes
+
+    notes = [n for n in start_notes(load_config(algo, overrides), tmp_path / "config.toml", False) if "above" in n]
+    assert (notes[0].startswith(said) if said else notes == [])
