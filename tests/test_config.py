@@ -98,7 +98,7 @@ def test_overrides_are_typed():
     ("agent.lr=true", "agent.lr=true has the wrong type; expected float"),  # TOML's true, as it was written
     ("env.kwargs=abc", "env.kwargs='abc' has the wrong type; expected a table, e.g. env.kwargs={mode = 'fast'}"),
     ("agent.double=True", "expected bool (true or false, in lower case: true)"),  # written as in Python
-    ("train.total_steps=1e4", "expected int (write 10000: TOML reads 1e4 and 10000.0 as floats)"),
+    ("train.total_steps=1e4", "expected int (write 10000: 1e4 and 10000.0 are floats, in TOML as in Python)"),
     ("agent.hidden=(64,64)", "expected a list of int (in brackets: [64, 64])"),
     ("agent.hidden={pi=[64], vf=[64]}", "expected a list of int (SB3's net_arch dict: here one list of sizes"),
     ("train.total_steps=abc", "expected int, e.g. train.total_steps=50000"),  # the key's default shows the form

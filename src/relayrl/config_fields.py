@@ -410,7 +410,7 @@ def _tip(value: Any, hint: Any, path: str) -> str:
     if hint is float and isinstance(value, str) and re.fullmatch(r"[+-]?(\.\d+|\d+\.)([eE][+-]?\d+)?", value):
         return f" (TOML writes a digit on both sides of the point: {float(value)!r})"  # .5, 5.
     if hint is int and isinstance(value, float) and value.is_integer():
-        return f" (write {int(value)}: TOML reads 1e4 and 10000.0 as floats)"
+        return f" (write {int(value)}: 1e4 and 10000.0 are floats, in TOML as in Python)"
     if hint is str and callable(value) and path.rsplit(".", 1)[-1] not in _CODE_KEYS:  # SB3's activation_fn=nn.ReLU
         return " (a name, as a string: one of those `relayrl config` lists for it, e.g. 'relu' for nn.ReLU)"
     if hint is str and callable(value):  # agent.encoder = make: configs name code, as env.id does
