@@ -218,8 +218,11 @@ def test_load_config_takes_a_dict_or_a_path_object_as_train_does(tmp_path):
     path = tmp_path / "mine.toml"
     path.write_text('algo = "ppo"\n[env]\nid = "CartPole-v1"\n')
     assert load_config(path).algo == "ppo"
-    with pytest.raises(ConfigError, match="^load_config takes a preset name, a path to a .toml file or a dict"):
+    with pytest.raises(ConfigError, match="^load_config takes a preset name, a path to a .toml file, a dict"):
         load_config(3)
+    base = load_config("ppo-cartpole")  # a sweep's base config, the trial's overrides over a copy
+    trial = load_config(base, ["agent.lr=5e-4", "seed=4"])
+    assert (trial.agent.lr, trial.seed, trial.env.id) == (5e-4, 4, "CartPole-v1") and base.agent.lr != 5e-4
     with pytest.raises(ConfigError, match="unknown config key 'agent.lr'"):
         load_config({"algo": "sac", "agent": {"lr": 0.1}})
 

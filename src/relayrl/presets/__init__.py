@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from relayrl.agents.registry import ALGORITHMS, DEFAULT_ALGO
-from relayrl.config import Config, ReplayConfig, apply_overrides, from_dict, load_toml, parse_override
+from relayrl.config import Config, ReplayConfig, apply_overrides, from_dict, load_toml, parse_override, to_dict
 from relayrl.config_fields import did_you_mean
 from relayrl.errors import ConfigError
 
@@ -88,19 +88,22 @@ def _override_list(overrides: Any) -> list[str]:
     return list(overrides)
 
 
-def load_config(name_or_path: str | os.PathLike[str] | dict[str, Any], overrides: list[str] | None = None,
+def load_config(name_or_path: str | os.PathLike[str] | dict[str, Any] | Config, overrides: list[str] | None = None,
                 seed: int | None = None) -> Config:
-    """A preset name, a path to a config TOML or a dict of settings (`{"algo": "sac", "env":
-    {"id": ...}}`, the rest the algorithm's defaults), with `--set` overrides applied and checked.
+    """A preset name, a path to a config TOML, a dict of settings (`{"algo": "sac", "env":
+    {"id": ...}}`, the rest the algorithm's defaults) or a Config (a copy), with `--set` overrides
+    applied and checked.
 
     `overrides`: `KEY=VALUE` strings as `--set` takes them (`["agent.lr=1e-3"]`; one string is
     one override); `seed`: the run's seed, as `--seed` (the same as the override `seed=N`)."""
     file_data: dict[str, Any] | None = None  # a config file's own settings: an error in them names the file
-    if isinstance(name_or_path, dict):
+    if isinstance(name_or_path, Config):  # a base config with a sweep's overrides over it
+        data = to_dict(name_or_path)
+    elif isinstance(name_or_path, dict):
         data = copy.deepcopy(name_or_path)
     elif not isinstance(name_or_path, (str, os.PathLike)):
-        raise ConfigError(f"load_config takes a preset name, a path to a .toml file or a dict of settings, not "
-                          f"{type(name_or_path).__name__}")
+        raise ConfigError(f"load_config takes a preset name, a path to a .toml file, a dict of settings or a Config, "
+                          f"not {type(name_or_path).__name__}")
     elif (name_or_path := os.fspath(name_or_path)).endswith(".toml"):
         file_data = _without_unused_replay(load_toml(name_or_path), name_or_path)
         data = copy.deepcopy(file_data)
