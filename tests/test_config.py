@@ -551,10 +551,14 @@ def test_an_encoder_given_as_a_lambda_or_a_built_module_is_told_to_name_a_maker(
     ("sac", ["agent.lr_end=0.001"], "agent.lr_end=0.001 is above agent.actor_lr=0.0003; agent.lr_end=0.001 is above "
                                     "agent.critic_lr"),
     ("ppo", ["agent.lr_end=0"], None),  # a decay: nothing to say
+    ("sac", ["agent.batch_size=512", "replay.size=256", "train.initial_collect_steps=100"],
+     "agent.batch_size=512 is larger than replay.size=256: every batch holds items more than once"),
 ])
 def test_a_schedule_whose_end_is_above_its_start_is_said_at_the_start(tmp_path, algo, overrides, said):
-    """A sweep that draws lr and lr_end apart trained with a rising learning rate without a word."""
+    """A sweep that draws lr and lr_end apart trained with a rising learning rate without a word
+    (and one that draws a batch larger than the replay, on batches of repeats)."""
     from relayrl.training.notes import start_notes
 
-    notes = [n for n in start_notes(load_config(algo, overrides), tmp_path / "config.toml", False) if "above" in n]
+    notes = [n for n in start_notes(load_config(algo, overrides), tmp_path / "config.toml", False)
+             if "above" in n or "larger" in n]
     assert (notes[0].startswith(said) if said else notes == [])

@@ -31,6 +31,10 @@ def start_notes(config: Config, config_file: Path, resume: bool) -> list[str]:
     if c.distributed.address and c.distributed.num_actors == 0:
         out.append(f"distributed.address={c.distributed.address!r} with distributed.num_actors=0: the run trains "
                    "in this process (set distributed.num_actors=K for K rollout actors on Ray)")
+    batch = getattr(c.agent, "batch_size", 0)
+    if algorithm(c.algo).replay == "transitions" and batch > c.replay.size:  # a sweep's draw, or a typo
+        out.append(f"agent.batch_size={batch:,} is larger than replay.size={c.replay.size:,}: every batch holds "
+                   "items more than once")
     if rising := rising_schedules(c.agent):  # a sweep that draws a schedule's two ends apart
         out.append(f"{'; '.join(rising)}: it rises over the run, not decays (a schedule decays to a lower end)")
     if c.env.num_workers > 0 and c.env.vectorization == "sync":  # an SB3 user's n_envs + SubprocVecEnv
