@@ -486,6 +486,8 @@ def test_a_seed_groups_curve_says_where_it_ends_early_and_when_runs_share_a_seed
 
 
 def test_the_progress_bar_ends_at_the_last_step_with_the_last_evaluation(tmp_path, monkeypatch):
+    import io
+
     import tqdm
 
     bars = []
@@ -507,7 +509,12 @@ def test_the_progress_bar_ends_at_the_last_step_with_the_last_evaluation(tmp_pat
         def close(self):
             pass
 
+    class Terminal(io.StringIO):  # a bar is made on a terminal only
+        def isatty(self):
+            return True
+
     monkeypatch.setattr(tqdm, "tqdm", Bar)
+    monkeypatch.setattr("sys.stderr", Terminal())
     cfg = {**TINY, "train": {**TINY["train"], "total_steps": 130, "log_interval": 50}}
     result = relayrl.train(cfg, tmp_path / "run", progress=True)
     assert bars[0].n == 130  # not the last log boundary (100)

@@ -20,7 +20,7 @@ from procs import children_running, running
 
 import relayrl
 from relayrl.training.checkpoint import list_checkpoints, load_latest_checkpoint
-from relayrl.training.run_dir import RunDir
+from relayrl.training.run_dir import RunDir, checkpoint_step
 
 DQN = ["env.id=CartPole-v1", "train.total_steps=1500", "train.initial_collect_steps=200",
        "eval.interval=500", "eval.episodes=3", "train.checkpoint_interval=500",
@@ -761,12 +761,12 @@ def test_sighup_stops_a_run_with_a_checkpoint_also_when_its_terminal_is_gone(tmp
         os.close(reader)  # the terminal is gone: every write to it now fails with EIO
     elif output == "pipe-reader-gone":
         p.stdout.close()  # tee ended with the terminal: every write now fails with EPIPE
-    before = {c.name: c.stat().st_mtime_ns for c in list_checkpoints(checkpoints)}
     p.send_signal(signal.SIGHUP)
     assert p.wait(timeout=60) == 128 + signal.SIGHUP
-    # a checkpoint written after the signal: the one at the step the run stopped at
-    newest = list_checkpoints(checkpoints)[-1]
-    assert before.get(newest.name) != newest.stat().st_mtime_ns, "no checkpoint at the stop"
+    # a checkpoint at the step the run stopped at (where it saved its policy), which may be a
+    # periodic one's step where the signal came right after it
+    stopped = RunDir(tmp_path / "run").trained_to()
+    assert checkpoint_step(list_checkpoints(checkpoints)[-1]) == stopped, "no checkpoint at the stop"
     assert RunDir(tmp_path / "run").read_metrics()  # its log is whole
     if output == "log-file":
         said = log.read_text()
@@ -808,11 +808,10 @@ def test_a_run_whose_output_pipe_loses_its_reader_goes_on(tmp_path, stop, output
     while not list_checkpoints(checkpoints) and p.poll() is None:
         time.sleep(0.02)
     time.sleep(0.5)
-    before = {c.name: c.stat().st_mtime_ns for c in list_checkpoints(checkpoints)}
     p.send_signal(signal.SIGINT)
     assert p.wait(timeout=60) == 130
-    newest = list_checkpoints(checkpoints)[-1]
-    assert before.get(newest.name) != newest.stat().st_mtime_ns, "no checkpoint at the stop"
+    stopped = RunDir(tmp_path / "run").trained_to()  # where it saved its policy at the stop
+    assert checkpoint_step(list_checkpoints(checkpoints)[-1]) == stopped, "no checkpoint at the stop"
 
 
 @pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="no SIGHUP")
