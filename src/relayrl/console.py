@@ -19,10 +19,6 @@ def say(text: str) -> None:
         print(text, file=sys.stderr, flush=True)
 
 
-def is_quiet() -> bool:
-    return _QUIET.get()
-
-
 @contextlib.contextmanager
 def quiet(on: bool = True) -> Iterator[None]:
     """`say` prints nothing inside (where `on`)."""

@@ -311,8 +311,9 @@ _RUNNING = threading.RLock()
 def _one_run_at_a_time() -> Iterator[None]:
     """Runs started in several threads take turns; a run that waits says why, once."""
     if not _RUNNING.acquire(blocking=False):
-        console.say("relayrl: another relayrl.train is running in this process: this one starts when it ends (a run "
-            "sets torch's global generator and thread count; run trials in processes to run them side by side)")
+        console.say("relayrl: another relayrl.train is running in this process: this one starts when it ends "
+                    "(a run sets torch's global generator and thread count; run trials in processes to run them "
+                    "side by side)")
         _RUNNING.acquire()
     try:
         yield
@@ -365,7 +366,7 @@ def _close(driver: Any, finished: bool) -> None:
         if not finished:
             raise
         console.say(f"relayrl: the run finished and its files are written; then closing its envs raised "
-            f"{type(e).__name__}: {e}")
+                    f"{type(e).__name__}: {e}")
 
 
 def out_of_memory(e: BaseException) -> str | None:
