@@ -39,6 +39,15 @@ def run(args, env, cwd=None):
     (["train", "dqn-cartpole", "--dir", "x"], "unrecognized arguments: --dir x; did you mean --run-dir?"),
     (["train", "dqn-cartpole", "--foo"], "unrecognized arguments: --foo (see 'relayrl train --help')"),
     (["plot", "x", "--episodes", "3"], "unrecognized arguments: --episodes 3 (see 'relayrl plot --help')"),  # eval's
+    # CleanRL's and SB3's flags: the --set that gives them
+    (["train", "ppo", "--env-id", "CartPole-v1"], "unrecognized arguments: --env-id CartPole-v1; relayrl takes "
+     "settings as --set KEY=VALUE (--set env.id=CartPole-v1): CleanRL's env_id is env.id"),
+    (["train", "ppo", "--total-timesteps=10000"], "(--set train.total_steps=10000): Stable-Baselines3's "
+                                                  "total_timesteps is train.total_steps"),
+    (["train", "ppo", "--cuda", "false"], "relayrl takes settings as --set KEY=VALUE: CleanRL's cuda is device"),
+    (["config", "ppo", "--seed", "1"], "unrecognized arguments: --seed 1; this command takes it as --set seed=1"),
+    (["config", "ppo", "--set", "vf_coef=0.5"], "did you mean 'agent.vf_coef'? (keys sit in their sections); "
+                                                "CleanRL's vf_coef is agent.vf_coef at half CleanRL's value"),
     (["train", "dqn", "--set", "train.total_steps", "100"], "--set train.total_steps 100: --set takes KEY=VALUE as "
                                                             "one word (--set train.total_steps=100)"),
     (["config", "dqn", "--set", "agent.lr", "0.1"], "(--set agent.lr=0.1)"),

@@ -9,6 +9,7 @@ import argparse
 import contextlib
 import json
 import os
+import re
 import signal
 import sys
 from pathlib import Path
@@ -40,16 +41,42 @@ class _Parser(argparse.ArgumentParser):
         import difflib
 
         message = f"unrecognized arguments: {' '.join(extra)}"
-        for word in extra:
-            near = difflib.get_close_matches(word.split("=")[0], sorted(self.options), n=1, cutoff=0.7)
+        for i, word in enumerate(extra):
+            flag = word.split("=")[0]
+            if flag in ("--seed", "--device") and "--set" in self.options:  # `relayrl config`'s: no --seed of its own
+                value = word.split("=", 1)[1] if "=" in word else next(iter(extra[i + 1:]), "VALUE")
+                message += f"; this command takes it as --set {flag[2:]}={value}"
+                break
+            near = difflib.get_close_matches(flag, sorted(self.options), n=1, cutoff=0.7)
             if word.startswith("--") and near:
                 message += f"; did you mean {near[0]}?"
+                break
+            if word.startswith("--") and "--set" in self.options and (said := _ported_flag(flag, word, extra[i + 1:])):
+                message += f"; {said}"
                 break
         self.error(message)
 
     def error(self, message: str) -> NoReturn:
         print(f"relayrl: error: {message} (see '{self.prog} --help')", file=sys.stderr)  # prog: "relayrl train"
         sys.exit(EXIT_USAGE)
+
+
+def _ported_flag(flag: str, word: str, rest: list[str]) -> str | None:
+    """Another library's flag (CleanRL's --env-id, --total-timesteps) as relayrl's setting: its
+    mapping line and the --set that gives it, where the flag names one."""
+    from relayrl.config_fields import CLEANRL_NAMES, SB3_NAMES
+
+    key = flag[2:].lower().replace("-", "_")
+    meaning = next((f"{who}'s {key} is {names[key]}" for who, names in (("CleanRL", CLEANRL_NAMES),
+                    ("Stable-Baselines3", SB3_NAMES), ("RL Zoo", {"n_timesteps": SB3_NAMES.get("n_timesteps")}))
+                    if names.get(key)), None)
+    if meaning is None:
+        return None
+    value = word.split("=", 1)[1] if "=" in word else rest[0] if rest and not rest[0].startswith("-") else "VALUE"
+    target = re.match(r"(?:\S+'s \S+ is )([a-z_]+\.[a-z_]+|device|seed)\b", meaning)
+    # a flag's true / false (CleanRL's --cuda false) is no value of the key it maps to
+    example = f" (--set {target.group(1)}={value})" if target and value not in ("VALUE", "true", "false") else ""
+    return f"relayrl takes settings as --set KEY=VALUE{example}: {meaning}"
 
 
 def _seed(text: str) -> int:

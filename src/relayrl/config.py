@@ -318,8 +318,9 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str, algo: str) -> None:
             # SB3's env_kwargs is env.kwargs, not the eval.env_kwargs its name sits in: SB3's own line
             sb3_elsewhere = key in SB3_NAMES and not any(h in SB3_NAMES[key] for h in home)
             if home and not sb3_elsewhere:  # {"total_steps": ...} at the top: the key sits in a section
+                differs = f"; CleanRL's {key} is {CLEANRL_NAMES[key]}" if key in CLEANRL_NAMES else ""  # vf_coef
                 raise ConfigError(f"unknown config key {path!r}; did you mean {' or '.join(map(repr, home))}? "
-                                  f"({HOME_ELSEWHERE})")
+                                  f"({HOME_ELSEWHERE}){differs}")
             owners = sorted(a for a, entry in ALGORITHMS.items() if prefix == "agent."
                             and key in {f.name for f in dataclasses.fields(entry.config)})
             ported = key in SB3_NAMES or key in CLEANRL_NAMES  # their own lines say more

@@ -234,7 +234,9 @@ CLEANRL_NAMES = {
     "update_epochs": "agent.n_epochs",
     "clip_coef": "agent.clip_range (with clip_vloss, as CleanRL's default: agent.clip_range_vf = the same value)",
     "clip_vloss": "agent.clip_range_vf = CleanRL's clip_coef (0, the default: no value clipping)",
-    "anneal_lr": "agent.lr_end = 0 (linear in env steps to 0 at train.total_steps)",
+    "anneal_lr": "agent.lr_end = 0 (linear in env steps to 0 at train.total_steps, as SB3 anneals: each update "
+                 "takes the rate at the env step its rollout ends, so the last rollout's is 0; CleanRL's takes the "
+                 "rate where its rollout starts)",
     "norm_adv": "agent.normalize_advantage",
     "train_frequency": "train.collect_steps (env steps between gradient steps over all env.num_envs copies)",
     "target_network_frequency": "agent.target_update_period (counted in gradient steps: DQN's CleanRL value / "
@@ -251,7 +253,10 @@ CLEANRL_NAMES = {
                            "Seeding and reproducibility)",
     "cuda": "device (cpu, cuda or auto)",
     "capture_video": "the command relayrl video RUN_DIR (the saved policy playing)",
-    "track": "none: TensorBoard scalars go to RUN_DIR/tb under CleanRL's names, metrics.jsonl beside them",
+    "track": "none: TensorBoard scalars go to RUN_DIR/tb, most under CleanRL's names (README: Results), "
+             "metrics.jsonl beside them",
+    "vf_coef": "agent.vf_coef at half CleanRL's value (CleanRL's value loss carries a factor 0.5, relayrl's and "
+               "SB3's do not: its 0.5 is 0.25 here)",
     "exp_name": "the --run-dir flag",
 }
 
