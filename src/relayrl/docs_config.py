@@ -104,7 +104,14 @@ def _cleanrl_names() -> list[str]:
                         "loss carries a factor 0.5: CleanRL's `vf_coef = 0.5` is `agent.vf_coef = 0.25`. "
                         "CleanRL's `dqn.py` takes the mean squared TD error without a gradient clip, where "
                         "relayrl's DQN (as SB3's) takes the Huber loss with the norm clipped at 10: "
-                        "`agent.loss = \"mse\"` and `agent.grad_clip = 0` port it.")
+                        "`agent.loss = \"mse\"` and `agent.grad_clip = 0` port it. CleanRL's `ppo.py` ends an "
+                        "episode's returns at a time limit as at a terminal state; relayrl (as SB3) bootstraps "
+                        "through it: `env.time_limit_terminates = true` ports it. `ppo_continuous_action.py`'s "
+                        "wrappers (ClipAction, NormalizeObservation and NormalizeReward, each clipped at 10) are "
+                        "`agent.normalize_obs = true` and `agent.normalize_reward = true` with the default "
+                        "`agent.squash = \"clip\"`. SAC follows SB3 where CleanRL differs: the entropy "
+                        "temperature's loss is in log alpha, and the log-std is clamped to [-20, 2] (CleanRL: "
+                        "tanh-squashed into [-5, 2]). TensorBoard's names: README, Results.")
 
 
 def _names_table(title: str, column: str, names: dict[str, str], intro: str) -> list[str]:
