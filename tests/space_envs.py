@@ -147,6 +147,21 @@ class WithSpareLayer(FlatEncoder):
         self.spare = nn.Linear(4, 4)
 
 
+class NormedEncoder(nn.Module):
+    """A user's encoder with BatchNorm1d and Dropout, which act otherwise in train and eval mode;
+    `calls` records (training, grad enabled, batch) of each forward pass."""
+
+    calls: list[tuple[bool, bool, int]] = []
+
+    def __init__(self, space: gym.Space) -> None:
+        super().__init__()
+        self.net = nn.Sequential(nn.Flatten(), nn.LazyLinear(8), nn.BatchNorm1d(8), nn.Dropout(0.1), nn.ReLU())
+
+    def forward(self, obs):
+        NormedEncoder.calls.append((self.training, torch.is_grad_enabled(), obs.shape[0]))
+        return self.net(obs.float())
+
+
 def takes_no_space() -> nn.Module:  # make() written without the observation space
     return nn.Identity()
 

@@ -738,3 +738,34 @@ def test_a_loaded_policy_on_cuda_takes_a_multidiscrete_batch_on_cuda(tmp_path):
     assert policy(obs).device.type == "cuda"
     with pytest.raises(UserError, match="outside this policy's"):
         policy(torch.tensor([[0, 3]], device="cuda"))
+
+
+@pytest.mark.parametrize("algo", ["dqn", "ppo"])
+def test_a_users_encoder_acts_and_is_evaluated_in_eval_mode_and_learns_in_train_mode(tmp_path, algo):
+    """Acting and a run's evaluations ran a user's encoder in train mode (Dropout on, BatchNorm
+    updating its statistics on the evaluation's episodes), while relayrl eval ran it in eval mode;
+    a BatchNorm1d encoder failed at once on its probe's batch of one."""
+    from space_envs import NormedEncoder
+
+    small = {"train": {"total_steps": 512, "initial_collect_steps": 0 if algo == "ppo" else 128,
+                       "collect_steps": 128, "policy_save_interval": 0, "checkpoint_interval": 0},
+             "eval": {"interval": 256, "episodes": 2}, "env": {"id": "CartPole-v1", "num_envs": 2},
+             "agent": {"encoder": "space_envs:NormedEncoder", "batch_size": 32}}
+    NormedEncoder.calls.clear()
+    relayrl.train({"algo": algo, **small}, tmp_path / "a", progress=False)
+    # batches of 2: acting (2 env copies) and evaluating (2 episodes), in eval mode; the learner's
+    # batches (32 transitions, a rollout of 128) learn in train mode
+    assert {training for training, _, b in NormedEncoder.calls if b == 2} == {False}
+    assert (True, True) in {(training, grad) for training, grad, b in NormedEncoder.calls if b != 2}
+    # evaluations leave the weights and statistics alone: a run without them saves the same policy
+    relayrl.train({"algo": algo, **small, "eval": {"interval": 0, "episodes": 2}}, tmp_path / "b", progress=False)
+    a, b = (torch.load(tmp_path / r / "policy" / "policy.pt", weights_only=True) for r in ("a", "b"))
+    assert _equal_tensors(a, b)
+
+
+def _equal_tensors(a, b) -> bool:
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_equal_tensors(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return len(a) == len(b) and all(_equal_tensors(x, y) for x, y in zip(a, b, strict=True))
+    return torch.equal(a, b) if isinstance(a, torch.Tensor) else a == b

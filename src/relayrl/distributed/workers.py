@@ -159,7 +159,7 @@ class _RolloutActor:
                                                        torch.device("cpu"), self.seeds.generator("exploration"),
                                                        c.train.total_steps)
         self.index, self.token = index, uuid.uuid4().hex  # one token per incarnation: the driver tells restarts by it
-        self.net = self.agent.policy_network().requires_grad_(False)
+        self.net = self.agent.policy_network().requires_grad_(False).eval()  # it acts: eval mode, as in one process
         self.episodes = EpisodeLog()
         self.finite = FiniteWatch(c.env.num_envs, self.env.observation_spec, where=f"rollout actor {index}'s ")
         interval = c.distributed.pull_interval if pull_interval is None else pull_interval
@@ -243,7 +243,7 @@ class EvalWorker:
                                                   torch.device("cpu"), RunSeeds(c.seed).generator("evaluation"),
                                                   c.train.total_steps)
         self.puller = WeightPuller(RemoteVariables(named_actor(names, "variables")),
-                                   self.agent.policy_network().requires_grad_(False))
+                                   self.agent.policy_network().requires_grad_(False).eval())  # evaluated: eval mode
 
     def evaluate(self, seed: int) -> dict[str, Any]:
         self.puller.maybe_pull(0)

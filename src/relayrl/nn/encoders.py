@@ -23,6 +23,7 @@ from relayrl.config_fields import ENCODERS, is_user_encoder
 from relayrl.errors import UserError, note_where
 from relayrl.frames import image_layout, image_size
 from relayrl.nn.mlp import MLP
+from relayrl.nn.modes import evaluating
 from relayrl.specs import (
     ArraySpec,
     DiscreteSpec,
@@ -174,7 +175,8 @@ class UserEncoder(nn.Module):
         self.packed = spec if isinstance(spec, PackedSpec) else None
         features: set[int] = set()
         for b in (1, 2):  # a batch of one too: a squeeze() would pass a batch of two alone
-            with torch.no_grad():
+            # in eval mode: a BatchNorm takes a batch of one there, and keeps its statistics
+            with torch.no_grad(), evaluating(module):
                 zeros = spec.zeros(b)
                 try:
                     out = module(unpack(zeros, spec) if isinstance(spec, PackedSpec) else zeros)

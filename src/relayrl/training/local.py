@@ -103,7 +103,8 @@ class LocalDriver:
         self.actor = Actor(self.env, RandomPolicy(act_spec, self.random_rng),
                            [self.steps, self.stats, self.writer, self.finite], seed=seeds.base("envs"))
         self.variables = VariableContainer(copy=False)
-        acting_net = copy.deepcopy(self.agent.policy_network()).requires_grad_(False)
+        # in eval mode, as it acts (a user's encoder: Dropout off, BatchNorm on its statistics)
+        acting_net = copy.deepcopy(self.agent.policy_network()).requires_grad_(False).eval()
         self.actor.puller = WeightPuller(self.variables, acting_net, c.train.pull_interval)
         on_device = self.agent.device_collect_policy(acting_net) if stateless else None
         self.collect_policy = (on_device if on_device is not None
@@ -111,7 +112,8 @@ class LocalDriver:
 
         learner = make_learner(c, self.agent, self.replay, device, self.variables, whole_rollouts)
         self.evaluator = Evaluate(c.eval.interval, self.eval_env, self.agent.eval_policy, c.eval.episodes,
-                                  seed=seeds.base("evaluation"), on_result=self._record_eval)
+                                  seed=seeds.base("evaluation"), on_result=self._record_eval,
+                                  network=self.agent.policy_network())
         self.cap_said = self.env_state_said = False  # the notes said once a run
         self.core = RunCore(c, self.rd, self.agent, learner, self.stats, self.finite,
                             env_steps=lambda: self.actor.env_steps, checkpoint_state=self.checkpoint_state,

@@ -4,6 +4,7 @@ so a trigger fires once per interval boundary crossed, never more."""
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 from collections.abc import Callable
@@ -145,19 +146,23 @@ class Evaluate(IntervalTrigger):
 
     def __init__(self, interval: int, env: Any, policy_fn: Callable[[], Any], episodes: int = 10,
                  unit: str = "env_steps", seed: int = 0,
-                 on_result: Callable[[Progress, dict[str, float]], None] | None = None) -> None:
+                 on_result: Callable[[Progress, dict[str, float]], None] | None = None,
+                 network: Any = None) -> None:
         super().__init__(interval, self.evaluate, unit)
         self.env, self.policy_fn, self.episodes, self.seed = env, policy_fn, episodes, seed
+        self.network = network  # the module policy_fn's policy runs: in eval mode while it is evaluated
         self.on_result = on_result
         self.seeds = EvalSeeds(interval)
         self.seconds = 0.0
 
     def evaluate(self, progress: Progress) -> None:
+        from relayrl.nn.modes import evaluating
         from relayrl.training.evaluate import evaluate
 
         t0 = time.perf_counter()
         index = self.seeds.index(self._count(progress))
-        result = evaluate(self.env, self.policy_fn(), self.episodes, seed=self.seed + EVAL_STRIDE * index)
+        with contextlib.nullcontext() if self.network is None else evaluating(self.network):
+            result = evaluate(self.env, self.policy_fn(), self.episodes, seed=self.seed + EVAL_STRIDE * index)
         self.seconds = time.perf_counter() - t0
         if self.on_result is not None:
             self.on_result(progress, result)

@@ -48,7 +48,7 @@ class DQNAgent(Agent):
         # A target updated by a full copy after every step equals the online net at every
         # loss evaluation: keep none and let the loss share one forward pass.
         self.target = (None if cfg.target_update_period == 1 and cfg.tau >= 1.0
-                       else copy.deepcopy(self.online).requires_grad_(False))
+                       else copy.deepcopy(self.online).requires_grad_(False).eval())  # as SB3's: eval mode
         self.optimizer = FastAdam(self.online.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
         self.train_step = 0
         self._eval_policy: GreedyPolicy | None = None

@@ -31,6 +31,7 @@ from relayrl.agents.ppo.policy import PPOCollectPolicy, PPOPolicy
 from relayrl.agents.ppo.update import make_update
 from relayrl.core import Agent
 from relayrl.errors import UserError
+from relayrl.nn.modes import evaluating
 from relayrl.optim import FastAdam
 from relayrl.schedules import linear_schedule
 from relayrl.specs import ArraySpec, Spec, describe, spec_state
@@ -133,7 +134,9 @@ class PPOAgent(Agent):
         t, b = r["reward"].shape
         n = t * b
         obs, action = r["obs"].flatten(0, 1), r["action"].flatten(0, 1)  # [T * B, ...]
-        with torch.no_grad():
+        # the rollout's log-probs and values in eval mode, as its actions were taken (a user's
+        # encoder: Dropout off), as SB3 stores them while it collects
+        with torch.no_grad(), evaluating(self.net):
             old_logp, _, values = self.evaluate_actions(obs, action)
             next_values = self.net(r["next_obs"].flatten(0, 1))[1]
         reward = r["reward"].float()

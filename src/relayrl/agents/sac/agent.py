@@ -35,7 +35,7 @@ class SACAgent(Agent):
         self.actor = actor_network(obs_spec, self.action_spec, cfg.actor_hidden, cfg.activation, cfg.encoder).to(device)
         self.critic = critic_network(obs_spec, self.action_spec, cfg.critic_hidden, cfg.activation,
                                      cfg.encoder).to(device)
-        self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
+        self.target_critic = copy.deepcopy(self.critic).requires_grad_(False).eval()  # as SB3's: eval mode
         self.log_alpha = torch.tensor(float(np.log(cfg.init_alpha)), device=device, requires_grad=True)
         self.actor_opt = FastAdam(self.actor.parameters(), lr=cfg.actor_lr)
         self.critic_opt = FastAdam(self.critic.parameters(), lr=cfg.critic_lr)
