@@ -162,6 +162,21 @@ class NormedEncoder(nn.Module):
         return self.net(obs.float())
 
 
+class Branching(FlatEncoder):
+    """A Python branch on a tensor's value: it trains, but torch.export cannot trace it."""
+
+    def forward(self, obs):
+        out = super().forward(obs)
+        return out * 2 if out.abs().max() > 3 else out
+
+
+class NoFeatures(FlatEncoder):
+    """A slice that leaves no feature: [B, 0]."""
+
+    def forward(self, obs):
+        return super().forward(obs)[:, :0]
+
+
 def takes_no_space() -> nn.Module:  # make() written without the observation space
     return nn.Identity()
 

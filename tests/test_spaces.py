@@ -227,12 +227,16 @@ def test_a_users_encoder_is_built_from_the_observation_space_and_checked():
                                                     "torch.nn.Module"),
                         ("space_envs:wrong_shape", r"its module gave dict for a batch of 1 observation of Dict\(.*"
                                                    r"it must give \[B, features\]"),
-                        ("space_envs:Squeezed", r"its module gave \(8,\) for a batch of 1 observation of ")):
+                        ("space_envs:Squeezed", r"its module gave \(8,\) for a batch of 1 observation of "),
+                        ("space_envs:NoFeatures", r"its module gave \(1, 0\) for a batch of 1 observation of .*"
+                                                  r"features >= 1")):
         with pytest.raises(UserError, match=words):
             make_encoder(spec, name)
     with pytest.raises(UserError, match=r"agent.encoder='my encoder' is not valid; valid: auto, flatten, nature_cnn, "
                                         r"small_cnn, or package.module:callable"):
         relayrl.load_config("ppo", ["agent.encoder='my encoder'"])
+    with pytest.raises(UserError, match=r"agent.encoder='mymodule.make' is not valid; did you mean 'mymodule:make'"):
+        relayrl.load_config("ppo", ["agent.encoder='mymodule.make'"])
     with pytest.raises(UserError, match=r"names a function of the script being run, .*'mymodule:make'"):
         relayrl.load_config("ppo", ["agent.encoder='__main__:make'"])
     config = relayrl.load_config("ppo")
@@ -769,3 +773,21 @@ def _equal_tensors(a, b) -> bool:
     if isinstance(a, (list, tuple)):
         return len(a) == len(b) and all(_equal_tensors(x, y) for x, y in zip(a, b, strict=True))
     return torch.equal(a, b) if isinstance(a, torch.Tensor) else a == b
+
+
+def test_a_policy_torch_export_cannot_trace_is_one_line_for_either_format(tmp_path, capsys):
+    """An encoder with a Python branch on a tensor's value trained, then pt2 export printed ~300
+    lines of torch's, and ONNX's line carried terminal colours and advised pt2, which fails too."""
+    relayrl.train({"algo": "ppo", "env": {"id": "CartPole-v1"}, "agent": {"encoder": "space_envs:Branching"},
+                   "train": {"total_steps": 128, "collect_steps": 64}, "eval": {"interval": 0, "episodes": 1}},
+                  tmp_path / "r", progress=False)
+    for fmt in ("pt2", "onnx"):
+        if fmt == "onnx":
+            pytest.importorskip("onnxscript")
+        capsys.readouterr()
+        with pytest.raises(UserError) as e:
+            relayrl.export_policy(tmp_path / "r", tmp_path / f"p.{fmt}")
+        assert "def forward" not in capsys.readouterr().err  # torch's graph dump, ~300 lines
+        said = str(e.value)
+        assert "\n" not in said and "\x1b" not in said and "use --format pt2" not in said, said
+        assert said.startswith("this policy cannot be exported") and "torch.where" in said, said

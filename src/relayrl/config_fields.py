@@ -103,8 +103,10 @@ class Section:
                               "relayrl eval and load_policy cannot import: put it in a module (mymodule.py beside "
                               "the script) and name it 'mymodule:make'")
         if value not in ENCODERS and not is_user_encoder(value):
-            raise ConfigError(f"{self.SECTION}.encoder={value!r} is not valid; valid: {', '.join(ENCODERS)}, or "
-                              "package.module:callable (your own encoder, called with the observation space)")
+            colon = ".".join(value.split(".")[:-1]) + ":" + value.split(".")[-1]  # mymodule.make: mymodule:make
+            near = f"; did you mean {colon!r}?" if "." in value and ":" not in value and is_user_encoder(colon) else ""
+            raise ConfigError(f"{self.SECTION}.encoder={value!r} is not valid{near}; valid: {', '.join(ENCODERS)}, "
+                              "or package.module:callable (your own encoder, called with the observation space)")
 
     def require_sizes(self, *keys: str, linear_ok: bool = False) -> None:
         """ConfigError for the first of `keys` (lists of layer sizes) that holds a size < 1, or is

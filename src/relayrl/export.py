@@ -19,9 +19,11 @@ shapes). Beside either, `policy.<format>.json` records the inputs' and output's 
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import logging
 import os
+import re
 import warnings
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -136,6 +138,20 @@ def load_policy(path: str | Path, device: str | torch.device = "cpu", determinis
 FORMATS = ("pt2", "onnx")
 
 
+_UNTRACEABLE = ("; torch.export traces the network: a Python branch on a tensor's value (`if x.max() > 3`, in a "
+                "user's agent.encoder) cannot be traced: write it with torch.where")
+
+
+def _cause(e: BaseException) -> str:
+    """The innermost cause of an export failure, as its type and first line (the exporters' own
+    lines run long and carry terminal colours)."""
+    while e.__cause__ is not None:
+        e = e.__cause__
+    lines = [line.strip() for line in re.sub(r"\x1b\[[0-9;]*m", "", str(e)).splitlines() if line.strip()]
+    first = lines[0] if lines else "no details"
+    return f"{type(e).__name__}: {first[:200]}"
+
+
 def export_policy(path: str | Path, out: str | Path | None = None, format: str | None = None,
                   trust_code: bool = False) -> Path:
     """Write the deterministic policy as a `torch.export` program (`policy.pt2`) or, with
@@ -188,17 +204,23 @@ def _export(path: str | Path, out: str | Path | None, format: str, trust_code: b
     # never a half-written program under the real name; torch.export wants the .pt2 suffix
     with writing(target), atomic.replacing(target, ".tmp-" + target.name) as tmp:
         if format == "pt2":
-            torch.export.save(torch.export.export(module, examples, dynamic_shapes=dynamic), tmp)
+            try:
+                with _quiet_export():
+                    program_pt2 = torch.export.export(module, examples, dynamic_shapes=dynamic)
+            except Exception as e:  # a network torch.export cannot trace (a user's encoder's Python branch)
+                raise UserError(f"this policy cannot be exported ({_cause(e)}){_UNTRACEABLE}") from None
+            torch.export.save(program_pt2, tmp)
         else:
             try:
-                with _quiet_onnx():
+                with _quiet_export():
                     program = torch.onnx.export(module, examples, input_names=[n for n, _ in inputs],
                                                 output_names=["action"], dynamic_shapes=dynamic, dynamo=True,
                                                 verbose=False)
-            except Exception as e:  # an op the ONNX exporter cannot write: one line, pt2 still works
-                raise UserError(f"this policy cannot be exported to ONNX ({type(e).__name__}: "
-                                f"{str(e).strip().splitlines()[0] if str(e).strip() else 'no details'}); "
-                                "use --format pt2") from None
+            except Exception as e:  # an op the ONNX exporter cannot write: one line
+                # the exporter's first step is torch.export: where that failed, pt2 fails too
+                traced = type(e).__name__ != "TorchExportError"
+                raise UserError(f"this policy cannot be exported to ONNX ({_cause(e)})"
+                                f"{'; use --format pt2' if traced else _UNTRACEABLE}") from None
             assert program is not None  # dynamo=True returns the program (None is the legacy exporter's)
             program.save(str(tmp))
     with torch.no_grad():
@@ -211,21 +233,25 @@ def _export(path: str | Path, out: str | Path | None, format: str, trust_code: b
 
 
 @contextlib.contextmanager
-def _quiet_onnx() -> Iterator[None]:
+def _quiet_export() -> Iterator[None]:
     """torch's ONNX exporter notes what it skips ("torchvision is not installed") and warns of its
-    own deprecations: noise for a user who asked for a file. Errors still show."""
-    log = logging.getLogger("torch.onnx")
-    level = log.level
-    log.setLevel(logging.ERROR)
+    own deprecations, and torch.export warns of the symbols it cannot trace and prints the graph it
+    failed on to stderr before it raises: noise for a user who asked for a file. Its errors still
+    come (relayrl's line names the cause)."""
+    logs = [logging.getLogger(name) for name in ("torch.onnx", "torch.fx.experimental.symbolic_shapes")]
+    levels = [log.level for log in logs]
+    for log in logs:
+        log.setLevel(logging.ERROR)
     try:
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), contextlib.redirect_stderr(io.StringIO()):
             warnings.simplefilter("ignore", FutureWarning)
             warnings.simplefilter("ignore", DeprecationWarning)
             # one batch Dim over several inputs (a Dict space's entries) is noted as a rename
             warnings.filterwarnings("ignore", message=".*axis name: batch will not be used")
             yield
     finally:
-        log.setLevel(level)
+        for log, level in zip(logs, levels, strict=True):
+            log.setLevel(level)
 
 
 class EnvShaped(torch.nn.Module):

@@ -184,10 +184,10 @@ class UserEncoder(nn.Module):
                     note_where(e, f"by the module of agent.encoder={name!r} on a batch of {b} zero observation"
                                   f"{'s' * (b > 1)}: {_as_given(spec, b)}")
                     raise
-            if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != b:
+            if not isinstance(out, torch.Tensor) or out.dim() != 2 or out.shape[0] != b or out.shape[1] == 0:
                 shape = tuple(out.shape) if isinstance(out, torch.Tensor) else type(out).__name__
                 raise UserError(f"agent.encoder={name!r}: its module gave {shape} for a batch of {b} observation"
-                                f"{'s' * (b > 1)} of {describe(spec)}; it must give [B, features]")
+                                f"{'s' * (b > 1)} of {describe(spec)}; it must give [B, features], features >= 1")
             features.add(int(out.shape[1]))
         if len(features) > 1:
             raise UserError(f"agent.encoder={name!r}: its module gave {sorted(features)} features for batches of 1 "
