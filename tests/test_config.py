@@ -130,6 +130,9 @@ def test_overrides_are_typed():
     ("replay.beta=0.4", "did you mean 'replay.importance_exponent'?"),
     ("sac:agent.hidden=[64]", "did you mean 'agent.actor_hidden' and 'agent.critic_hidden'?"),
     ("sac:agent.lr=0.001", "did you mean 'agent.actor_lr', 'agent.critic_lr' and 'agent.alpha_lr'?"),
+    # another library's name at the top, for another algorithm's key: whose it is
+    ("sac:start_e=1", "unknown config key 'start_e'; here, CleanRL's start_e is agent.epsilon_start: a setting of "
+                      "dqn's, not of sac's"),
     ("agent.lr=.5", "expected float (TOML writes a digit on both sides of the point: 0.5)"),
     ("agent.lr=5.", "(TOML writes a digit on both sides of the point: 5.0)"),
     # a preset of one algorithm turned into another keeps its [agent] keys

@@ -330,10 +330,12 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str, algo: str) -> None:
                 homes = " or ".join(map(repr, elsewhere))
                 raise ConfigError(f"unknown config key {path!r}; did you mean {homes}?{tail}")
             said = unknown_key(path, [prefix + n for n in names])
-            if ported and prefix == "agent." and not owners and "; here, " in said and (
+            if ported and prefix in ("agent.", "") and not owners and "; here, " in said and (
                     others := _owners_instead(SB3_NAMES.get(key) or CLEANRL_NAMES[key], algo)):
-                said = (f"{said}: a setting of {' and '.join(o + chr(39) + 's' for o in others)}, not of {algo}'s; "
-                        f"{algo}'s keys here: {', '.join(prefix + n for n in names)}")
+                # the agent's keys listed where the key was given in its section; at the top, only whose it is
+                listed = f"; {algo}'s keys here: {', '.join(prefix + n for n in names)}" if prefix else ""
+                whose = " and ".join(o + "'s" for o in others)
+                said = f"{said}: a setting of {whose}, not of {algo}'s{listed}"
             if owners:  # agent.normalize_obs on a SAC run
                 who = owners[0] + "'s" if len(owners) == 1 else f"{', '.join(owners[:-1])}'s and {owners[-1]}'s"
                 said = (f"unknown config key {path!r}: a setting of {who} agent, not of this "
