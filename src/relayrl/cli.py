@@ -64,12 +64,9 @@ class _Parser(argparse.ArgumentParser):
 def _ported_flag(flag: str, word: str, rest: list[str]) -> str | None:
     """Another library's flag (CleanRL's --env-id, --total-timesteps) as relayrl's setting: its
     mapping line and the --set that gives it, where the flag names one."""
-    from relayrl.config_fields import CLEANRL_NAMES, SB3_NAMES
+    from relayrl.config_fields import fold_key, ported_name
 
-    key = flag[2:].lower().replace("-", "_")
-    meaning = next((f"{who}'s {key} is {names[key]}" for who, names in (("CleanRL", CLEANRL_NAMES),
-                    ("Stable-Baselines3", SB3_NAMES), ("RL Zoo", {"n_timesteps": SB3_NAMES.get("n_timesteps")}))
-                    if names.get(key)), None)
+    meaning = ported_name(fold_key(flag[2:]))
     if meaning is None:
         return None
     value = word.split("=", 1)[1] if "=" in word else rest[0] if rest and not rest[0].startswith("-") else "VALUE"

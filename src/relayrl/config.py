@@ -20,7 +20,15 @@ from typing import Any
 from relayrl import atomic
 from relayrl.agents.registry import ALGORITHMS, DEFAULT_ALGO, algorithm
 from relayrl.config_checks import check_config
-from relayrl.config_fields import CLEANRL_NAMES, SB3_NAMES, Section, commented_toml, fold_key, unknown_key
+from relayrl.config_fields import (
+    CLEANRL_NAMES,
+    SB3_NAMES,
+    Section,
+    commented_toml,
+    fold_key,
+    ported_name,
+    unknown_key,
+)
 from relayrl.errors import ConfigError
 
 
@@ -318,7 +326,7 @@ def _merge(obj: Any, data: dict[str, Any], prefix: str, algo: str) -> None:
             # SB3's env_kwargs is env.kwargs, not the eval.env_kwargs its name sits in: SB3's own line
             sb3_elsewhere = key in SB3_NAMES and not any(h in SB3_NAMES[key] for h in home)
             if home and not sb3_elsewhere:  # {"total_steps": ...} at the top: the key sits in a section
-                differs = f"; CleanRL's {key} is {CLEANRL_NAMES[key]}" if key in CLEANRL_NAMES else ""  # vf_coef
+                differs = f"; {ported_name(key)}" if key in CLEANRL_NAMES else ""  # vf_coef: CleanRL's is another scale
                 raise ConfigError(f"unknown config key {path!r}; did you mean {' or '.join(map(repr, home))}? "
                                   f"({HOME_ELSEWHERE}){differs}")
             owners = sorted(a for a, entry in ALGORITHMS.items() if prefix == "agent."

@@ -44,6 +44,8 @@ class Section:
     SECTION: ClassVar[str] = ""
     # An agent section's keys that shape its networks (or what they take): a resumed run keeps them.
     NETWORK: ClassVar[tuple[str, ...]] = ()
+    # An agent section's linear schedules as (start key, end key); an end below 0 keeps the start.
+    SCHEDULES: ClassVar[tuple[tuple[str, str], ...]] = ()
 
     def __setattr__(self, name: str, value: Any) -> None:
         hints = _hints(type(self))  # type: ignore[arg-type]  # classes hash; mypy reads __hash__ unbound
@@ -282,11 +284,18 @@ def unknown_key(path: str, valid: list[str]) -> str:
     close = difflib.get_close_matches(key, list(names), n=1, cutoff=0.8 if known else 0.6)
     if close:  # a near miss of the section's own key first (replay.n_steps: replay.n_step)
         return f"unknown config key {path!r}; did you mean {names[close[0]]!r}?"
-    if key in SB3_NAMES:
-        return f"unknown config key {path!r}; here, Stable-Baselines3's {key} is {SB3_NAMES[key]}"
-    if key in CLEANRL_NAMES:
-        return f"unknown config key {path!r}; here, CleanRL's {key} is {CLEANRL_NAMES[key]}"
+    if (ported := ported_name(key)) is not None:
+        return f"unknown config key {path!r}; here, {ported}"
     return f"unknown config key {path!r}; valid: {', '.join(valid)}"
+
+
+def ported_name(key: str) -> str | None:
+    """Another library's name as relayrl's setting ("Stable-Baselines3's n_steps is ..."), for a
+    key or flag written as that library writes it; None for a name neither library uses."""
+    for library, names in (("Stable-Baselines3", SB3_NAMES), ("CleanRL", CLEANRL_NAMES)):
+        if key in names:
+            return f"{library}'s {key} is {names[key]}"
+    return None
 
 
 def fold_key(key: str) -> str:
