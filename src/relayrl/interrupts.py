@@ -13,6 +13,8 @@ import threading
 from collections.abc import Callable, Iterator
 from typing import Any
 
+from relayrl.streams import to_devnull
+
 HANGUP: int | None = getattr(signal, "SIGHUP", None)  # the terminal closed (an SSH session lost); not on Windows
 # delivered in this order: the exception of the last, SIGTERM's or SIGHUP's, wins
 WANTED: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM, *([HANGUP] if HANGUP is not None else []))
@@ -25,16 +27,12 @@ def heard(signum: int) -> None:
     the checkpoint is written. A file stays, and so does a terminal still open (`kill -HUP`)."""
     if signum != HANGUP:
         return
-    null = os.open(os.devnull, os.O_WRONLY)
-    try:
-        for fd in (1, 2):
-            with contextlib.suppress(OSError):
-                mode = os.fstat(fd).st_mode
-                # a closed terminal: still a character device, but no longer a tty (/dev/null is neither)
-                if stat.S_ISFIFO(mode) or stat.S_ISCHR(mode) and not os.isatty(fd) and not _is_null(fd):
-                    os.dup2(null, fd)
-    finally:
-        os.close(null)
+    for fd in (1, 2):
+        with contextlib.suppress(OSError):
+            mode = os.fstat(fd).st_mode
+            # a closed terminal: still a character device, but no longer a tty (/dev/null is neither)
+            if stat.S_ISFIFO(mode) or stat.S_ISCHR(mode) and not os.isatty(fd) and not _is_null(fd):
+                to_devnull(fd)
 
 
 def _is_null(fd: int) -> bool:

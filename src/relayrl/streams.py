@@ -39,14 +39,19 @@ class PipeSafe:
     def _drop_reader(self, error: OSError) -> None:
         if error.errno not in _GONE:
             raise error
-        null = os.open(os.devnull, os.O_WRONLY)
-        try:
-            os.dup2(null, self.stream.fileno())  # the buffered lines go there too, at the retry
-        finally:
-            os.close(null)
+        to_devnull(self.stream.fileno())  # the buffered lines go there too, at the retry
 
     def __getattr__(self, name: str) -> Any:  # isatty, fileno, encoding, ...: the stream's own
         return getattr(self.stream, name)
+
+
+def to_devnull(fd: int) -> None:
+    """File descriptor `fd` pointed at /dev/null: what is written to it from now on goes nowhere."""
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, fd)
+    finally:
+        os.close(null)
 
 
 @contextlib.contextmanager
