@@ -104,14 +104,15 @@ def _compare(runs: list[RunDir], out: str | Path | None) -> Path:
     names = [rd.root.name for rd in runs]
     if len(set(names)) < len(names):  # the same name in several folders: their paths tell them apart
         names = [str(rd.root) for rd in runs]
-    envs = {name: env for name, rd in zip(names, runs, strict=True) if (env := _env_id(rd)) is not None}
+    saved = [_saved_toml(rd) for rd in runs]  # each config.toml read once: envs, seed groups, seeds
+    envs = {name: env for name, toml in zip(names, saved, strict=True) if (env := _env_id(toml)) is not None}
     if len(set(envs.values())) > 1:  # returns of different envs share no scale
         print(f"the runs are on different envs ({', '.join(f'{n}: {e}' for n, e in envs.items())}): their "
               "returns are drawn on one axis all the same", file=sys.stderr)
     fig = _figure(figsize=(8, 5))
     ax = fig.subplots()
-    for group in seed_groups(runs):
-        seeds = [(_saved_toml(runs[i]) or {}).get("seed") for i in group]
+    for group in seed_groups(runs, saved):
+        seeds = [(saved[i] or {}).get("seed") for i in group]
         _group_curve(ax, [names[i] for i in group], [rows[i] for i in group], seeds)
     _steps_axis(ax, [r["step"] for run_rows in rows for r in run_rows])
     ax.set_ylabel("average return (eval)")
@@ -128,21 +129,21 @@ def _saved_toml(rd: RunDir) -> dict[str, Any] | None:
         return None
 
 
-def _env_id(rd: RunDir) -> str | None:
-    """The env.id config.toml records, or None where it cannot be read."""
-    env = (_saved_toml(rd) or {}).get("env", {})
+def _env_id(saved: dict[str, Any] | None) -> str | None:
+    """The env.id a config.toml as read (`_saved_toml`) records, or None."""
+    env = (saved or {}).get("env", {})
     return str(env["id"]) if isinstance(env, dict) and "id" in env else None
 
 
-def seed_groups(runs: list[RunDir]) -> list[list[int]]:
+def seed_groups(runs: list[RunDir], saved: list[dict[str, Any] | None] | None = None) -> list[list[int]]:
     """The runs (by index, in order of first appearance) whose config.toml are the same but for
     their seed: one setting's seeds, drawn as one curve. A run without a readable config is its
-    own group."""
+    own group. `saved`: their config.toml as read already (`_saved_toml`), else read here."""
+    tomls = saved if saved is not None else [_saved_toml(rd) for rd in runs]
     groups: dict[str, list[int]] = {}
-    for i, rd in enumerate(runs):
-        saved = _saved_toml(rd)
-        key = f"run {i}" if saved is None else json.dumps({k: v for k, v in saved.items() if k != "seed"},
-                                                           sort_keys=True, default=str)
+    for i, toml in enumerate(tomls):
+        key = f"run {i}" if toml is None else json.dumps({k: v for k, v in toml.items() if k != "seed"},
+                                                          sort_keys=True, default=str)
         groups.setdefault(key, []).append(i)
     return list(groups.values())
 
