@@ -120,7 +120,7 @@ def load_config(name_or_path: str | os.PathLike[str] | dict[str, Any] | Config, 
         return from_dict(data)
     except ConfigError as e:
         if was_algo is not None and data.get("algo") != was_algo and str(e).startswith("unknown config key 'agent."):
-            source = ("config" if isinstance(name_or_path, dict) else
+            source = ("config" if isinstance(name_or_path, dict | Config) else
                       f"config file {name_or_path!r}" if file_data is not None else f"preset {name_or_path!r}")
             first = str(e).split(";")[0].split(":")[0]  # "unknown config key 'agent.loss'"
             algo = data.get("algo")
