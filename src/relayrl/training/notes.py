@@ -31,10 +31,9 @@ def start_notes(config: Config, config_file: Path, resume: bool) -> list[str]:
     if c.distributed.address and c.distributed.num_actors == 0:
         out.append(f"distributed.address={c.distributed.address!r} with distributed.num_actors=0: the run trains "
                    "in this process (set distributed.num_actors=K for K rollout actors on Ray)")
-    batch = getattr(c.agent, "batch_size", 0)
-    if algorithm(c.algo).replay == "transitions" and batch > c.replay.size:  # a sweep's draw, or a typo
-        out.append(f"agent.batch_size={batch:,} is larger than replay.size={c.replay.size:,}: every batch holds "
-                   "items more than once")
+    if algorithm(c.algo).replay == "transitions" and c.agent.batch_size > c.replay.size:  # a sweep's draw
+        out.append(f"agent.batch_size={c.agent.batch_size:,} is larger than replay.size={c.replay.size:,}: every "
+                   "batch holds items more than once")
     if rising := rising_schedules(c.agent):  # a sweep that draws a schedule's two ends apart
         out.append(f"{'; '.join(rising)}: it rises over the run, not decays (a schedule decays to a lower end)")
     if c.env.num_workers > 0 and c.env.vectorization == "sync":  # an SB3 user's n_envs + SubprocVecEnv
@@ -43,16 +42,11 @@ def start_notes(config: Config, config_file: Path, resume: bool) -> list[str]:
     return out
 
 
-# (start key, end key) of the agents' schedules; an end below 0 turns a learning rate's off
-_SCHEDULES = (("lr", "lr_end"), ("actor_lr", "lr_end"), ("critic_lr", "lr_end"), ("alpha_lr", "lr_end"),
-              ("clip_range", "clip_range_end"), ("epsilon_start", "epsilon_end"))
-
-
 def rising_schedules(agent: Any) -> list[str]:
-    """"agent.lr_end=0.1 is above agent.lr=0.001" for each schedule whose end is above its start."""
+    """"agent.lr_end=0.1 is above agent.lr=0.001" for each of the agent section's `SCHEDULES`
+    whose end is above its start."""
     return [f"agent.{end}={getattr(agent, end)} is above agent.{start}={getattr(agent, start)}"
-            for start, end in _SCHEDULES if hasattr(agent, start) and hasattr(agent, end)
-            and getattr(agent, end) >= 0 and getattr(agent, end) > getattr(agent, start)]
+            for start, end in agent.SCHEDULES if getattr(agent, start) < getattr(agent, end)]
 
 
 def check_user_env(config: Config, env_factory: Callable[[], Any] | None, say: Callable[[str], None]) -> None:

@@ -13,6 +13,7 @@ from relayrl.errors import ConfigError
 class DQNConfig(Section):
     SECTION = "agent"
     NETWORK = ("hidden", "activation", "encoder", "network")
+    SCHEDULES = (("lr", "lr_end"), ("epsilon_start", "epsilon_end"))
 
     hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of the Q-network MLP
     activation: str = "relu"  # relu | tanh | elu

@@ -18,6 +18,7 @@ from relayrl.errors import ConfigError
 class PPOConfig(Section):
     SECTION = "agent"
     NETWORK = ("hidden", "activation", "encoder", "shared", "squash", "normalize_obs")
+    SCHEDULES = (("lr", "lr_end"), ("clip_range", "clip_range_end"))
 
     hidden: list[int] = field(default_factory=lambda: [64, 64])  # hidden sizes of actor and critic; []: linear heads
     activation: str = "tanh"  # relu | tanh | elu

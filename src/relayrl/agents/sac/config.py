@@ -13,6 +13,7 @@ from relayrl.errors import ConfigError
 class SACConfig(Section):
     SECTION = "agent"
     NETWORK = ("actor_hidden", "critic_hidden", "activation", "encoder")
+    SCHEDULES = (("actor_lr", "lr_end"), ("critic_lr", "lr_end"), ("alpha_lr", "lr_end"))
 
     actor_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of the actor MLP
     critic_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of each critic MLP
