@@ -565,3 +565,8 @@ def test_a_schedule_whose_end_is_above_its_start_is_said_at_the_start(tmp_path, 
     notes = [n for n in start_notes(load_config(algo, overrides), tmp_path / "config.toml", False)
              if "above" in n or "larger" in n]
     assert (notes[0].startswith(said) if said else notes == [])
+
+
+def test_a_config_object_turned_into_another_algorithm_is_called_the_config():
+    with pytest.raises(ConfigError, match=r"^--set algo=ppo: the config is dqn's, and its \[agent\] settings"):
+        load_config(load_config("dqn-cartpole"), ["algo=ppo"])
