@@ -43,7 +43,7 @@ def test_overrides_are_typed():
     ("agent.target_update_interval=10", "and no less than train.gradient_steps, as SB3 copies the target only between"),
     ("agent.n_timesteps=1000", "here, Stable-Baselines3's n_timesteps is train.total_steps"),
     # RL Zoo's hyperparameter files name these too
-    ("activation_fn=1", "here, Stable-Baselines3's activation_fn is agent.activation (relu, tanh or elu)"),
+    ("activation_fn=1", "here, Stable-Baselines3's activation_fn is agent.activation (relu, tanh, elu, leaky_relu, "),
     ("agent.use_sde=true", "here, Stable-Baselines3's use_sde is none: relayrl has no gSDE"),
     ("frame_stack=4", "here, Stable-Baselines3's frame_stack is an env wrapper in env.wrappers"),
     ("policy=1", "here, Stable-Baselines3's policy is none: the networks follow the observation space"),

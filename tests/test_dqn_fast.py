@@ -10,6 +10,7 @@ import torch
 from relayrl.agents.dqn import DQNAgent, DQNConfig, dqn_loss
 from relayrl.agents.dqn.losses_fast import dqn_loss_and_grads
 from relayrl.agents.dqn.update import DQNUpdate, HandWrittenDQNUpdate
+from relayrl.config_fields import ACTIVATION_NAMES
 from relayrl.nn import MLP
 from relayrl.nn.mlp_fast import clip_flat_grad_norm_, grad_buffers
 from relayrl.specs import ArraySpec, DiscreteSpec
@@ -40,7 +41,7 @@ def nets(activation, with_target, hidden=(16, 8)):
     return online, target
 
 
-@pytest.mark.parametrize("activation", ["relu", "tanh", "elu"])
+@pytest.mark.parametrize("activation", ACTIVATION_NAMES)
 @pytest.mark.parametrize("loss", ["mse", "huber"])
 @pytest.mark.parametrize("weighted", [False, True])
 @pytest.mark.parametrize("mode", ["dqn", "double", "no_target"])

@@ -6,6 +6,7 @@ import copy
 import pytest
 import torch
 
+from relayrl.config_fields import ACTIVATION_NAMES
 from relayrl.nn import ACTIVATIONS, MLP, TwinMLP
 from relayrl.nn.mlp_fast import (
     MLPFast,
@@ -124,8 +125,12 @@ def test_only_plain_networks_with_registered_activations_are_supported():
     assert supports(MLP(4, [8], 2, "elu")) and supports(TwinMLP(4, [8], "tanh"))
     assert not supports(torch.nn.Sequential(torch.nn.Linear(4, 2)))
     net = MLP(4, [8], 2)
-    net.activation = "gelu"
+    net.activation = "softsign"
     assert not supports(net)
+
+
+def test_the_registry_holds_the_names_configs_offer():
+    assert tuple(ACTIVATIONS) == ACTIVATION_NAMES
 
 
 def test_grad_buffers_are_views_of_one_flat_buffer_in_parameter_order():

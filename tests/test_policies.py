@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from relayrl.config_fields import ACTIVATION_NAMES
 from relayrl.nn import MLP
 from relayrl.nn.mlp_fast import MLPInference
 from relayrl.policies import EpsilonGreedyPolicy, GreedyPolicy, RandomPolicy
@@ -17,7 +18,7 @@ def test_linear_schedule_end_points_and_constant():
     assert linear_schedule(1.0, 0.2, 0)(0) == 0.2
 
 
-@pytest.mark.parametrize("activation", ["relu", "tanh", "elu"])
+@pytest.mark.parametrize("activation", ACTIVATION_NAMES)
 @pytest.mark.parametrize("rows", [7, 50])  # the NumPy path and the addmm path (see MLPInference)
 def test_cpu_inference_matches_the_module(activation, rows):
     torch.manual_seed(0)

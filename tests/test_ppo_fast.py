@@ -42,6 +42,7 @@ def rollout(discrete: bool, seed: int, t: int = 5, b: int = 4):
     {},
     {"activation": "relu", "ent_coef": 0.01},
     {"activation": "elu", "normalize_advantage": False, "ent_coef": 0.1},
+    {"activation": "leaky_relu"}, {"activation": "silu"}, {"activation": "gelu"},
     {"max_grad_norm": 0.0, "lr": 1e-2},
     {"max_grad_norm": 0.05, "clip_range": 0.02, "lr": 3e-2},  # clipped norms and many clipped ratios
     {"hidden": [], "ent_coef": 0.01},  # linear heads: no hidden layer to backpropagate through

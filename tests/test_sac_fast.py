@@ -7,6 +7,7 @@ import torch
 
 from relayrl.agents.sac import SACAgent, SACConfig
 from relayrl.agents.sac.update import HandWrittenSACUpdate, SACUpdate
+from relayrl.config_fields import ACTIVATION_NAMES
 from relayrl.specs import ArraySpec
 from relayrl.types import Batch
 
@@ -40,7 +41,7 @@ def params(agent):
                                          *agent.target_critic.parameters(), agent.log_alpha]]
 
 
-@pytest.mark.parametrize("activation", ["relu", "tanh", "elu"])
+@pytest.mark.parametrize("activation", ACTIVATION_NAMES)
 @pytest.mark.parametrize("options", [
     {},
     {"weighted": True},

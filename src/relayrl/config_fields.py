@@ -24,6 +24,8 @@ from relayrl.errors import ConfigError
 
 # `agent.encoder` of every algorithm on observations (nn/encoders.py builds them)
 ENCODERS = ("auto", "flatten", "nature_cnn", "small_cnn")
+# `agent.activation`: the names of nn/activations.py's registry, here so that configs load without torch
+ACTIVATION_NAMES = ("relu", "tanh", "elu", "leaky_relu", "silu", "gelu")
 
 
 # A float setting reaches float32 tensors; an int one NumPy's and torch's int64 (sizes, counts, seeds).
@@ -185,7 +187,7 @@ SB3_NAMES = {
                 "agent.init_alpha = 1 or X, tuned; a number X: agent.init_alpha = X with agent.autotune_alpha = "
                 "false); DQN has none",
     "max_grad_norm": "PPO's agent.max_grad_norm; DQN's and SAC's agent.grad_clip",
-    "activation_fn": "agent.activation (relu, tanh or elu)",
+    "activation_fn": f"agent.activation ({', '.join(ACTIVATION_NAMES)})",
     "ortho_init": "none: PPO's networks are always orthogonally initialised (SB3's ortho_init = true)",
     "use_sde": "none: relayrl has no gSDE (state-dependent exploration); PPO and SAC draw fresh Gaussian noise "
                "each step, as SB3 without use_sde",

@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from relayrl.config_fields import Section
+from relayrl.config_fields import ACTIVATION_NAMES, Section
 from relayrl.errors import ConfigError
 
 
@@ -16,7 +16,7 @@ class DQNConfig(Section):
     SCHEDULES = (("lr", "lr_end"), ("epsilon_start", "epsilon_end"))
 
     hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of the Q-network MLP
-    activation: str = "relu"  # relu | tanh | elu
+    activation: str = "relu"  # relu | tanh | elu | leaky_relu | silu | gelu
     # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images 0..255,
     # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn |
     # package.module:make (your own: make(observation_space) returns a torch module, batch -> [B, features])
@@ -54,7 +54,7 @@ class DQNConfig(Section):
 
     def validate(self) -> None:
         self.require_encoder(self.encoder)
-        self.require_choice(activation=("relu", "tanh", "elu"), init=("torch", "tf-agents"),
+        self.require_choice(activation=ACTIVATION_NAMES, init=("torch", "tf-agents"),
                             loss=("huber", "mse"), network=("mlp", "nature_cnn", "mario_cnn"),
                             epsilon_schedule=("linear", "exponential"))
         if self.network != "mlp" and self.encoder not in ("auto", "nature_cnn"):

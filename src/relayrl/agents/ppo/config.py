@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from relayrl.config_fields import Section
+from relayrl.config_fields import ACTIVATION_NAMES, Section
 from relayrl.errors import ConfigError
 
 
@@ -21,7 +21,7 @@ class PPOConfig(Section):
     SCHEDULES = (("lr", "lr_end"), ("clip_range", "clip_range_end"))
 
     hidden: list[int] = field(default_factory=lambda: [64, 64])  # hidden sizes of actor and critic; []: linear heads
-    activation: str = "tanh"  # relu | tanh | elu
+    activation: str = "tanh"  # relu | tanh | elu | leaky_relu | silu | gelu
     # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images 0..255,
     # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn |
     # package.module:make (your own: make(observation_space) returns a torch module, batch -> [B, features])
@@ -52,7 +52,7 @@ class PPOConfig(Section):
 
     def validate(self) -> None:
         self.require_encoder(self.encoder)
-        self.require_choice(squash=("clip", "tanh"), activation=("relu", "tanh", "elu"))
+        self.require_choice(squash=("clip", "tanh"), activation=ACTIVATION_NAMES)
         self.require_sizes("hidden", linear_ok=True)
         self.require("> 0", "lr", "clip_range")
         self.require(">= 0", "clip_range_vf", note=" (0: unclipped)")

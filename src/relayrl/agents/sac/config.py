@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from relayrl.config_fields import Section
+from relayrl.config_fields import ACTIVATION_NAMES, Section
 from relayrl.errors import ConfigError
 
 
@@ -17,7 +17,7 @@ class SACConfig(Section):
 
     actor_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of the actor MLP
     critic_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of each critic MLP
-    activation: str = "relu"  # relu | tanh | elu
+    activation: str = "relu"  # relu | tanh | elu | leaky_relu | silu | gelu
     # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images 0..255,
     # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn |
     # package.module:make (your own: make(observation_space) returns a torch module, batch -> [B, features])
@@ -45,7 +45,7 @@ class SACConfig(Section):
 
     def validate(self) -> None:
         self.require_encoder(self.encoder)
-        self.require_choice(activation=("relu", "tanh", "elu"))
+        self.require_choice(activation=ACTIVATION_NAMES)
         self.require_sizes("actor_hidden", "critic_hidden")
         self.require("> 0", "actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale")
         self.require("in (0, 1]", "tau")
