@@ -62,6 +62,18 @@ def test_gradients_equal_autograd(activation, loss, weighted, mode):
         assert torch.allclose(g, p.grad, rtol=1e-5, atol=1e-7)
 
 
+@pytest.mark.parametrize("mode", ["dqn", "double"])
+def test_a_linear_q_networks_gradients_equal_autograd(mode):
+    online, target = nets("relu", with_target=True, hidden=())  # agent.hidden=[]: one linear layer
+    batch = make_batch()
+    ref_loss, _ = dqn_loss(online, target, batch, double=mode == "double")
+    ref_loss.backward()
+    _, _, grads = dqn_loss_and_grads(online, target, batch, double=mode == "double")
+    assert [g.shape for g in grads] == [(3, 5), (3,)]
+    for g, p in zip(grads, online.parameters(), strict=True):
+        assert torch.allclose(g, p.grad, rtol=1e-5, atol=1e-7)
+
+
 @pytest.mark.parametrize("max_norm", [1e-3, 1e3])  # clipping active / inactive
 def test_clipping_equals_torch(max_norm):
     online, target = nets("relu", with_target=True)

@@ -572,6 +572,9 @@ def test_an_image_policy_takes_the_envs_frames_as_numbers_and_bits_in_range(tmp_
     ("dqn-cartpole-fast", ["train.total_steps=5000", "train.initial_collect_steps=500",
                            "agent.epsilon_decay_steps=4000"]),
     ("ppo-cartpole", ["train.total_steps=4096"]),
+    # a linear Q on one-hot states is tabular Q-learning
+    ("dqn-cartpole-fast", ["agent.hidden=[]", "agent.lr=0.01", "agent.target_update_period=25",
+                           "train.total_steps=10000", "agent.epsilon_decay_steps=5000"]),
 ])
 def test_frozen_lake_is_learnt_from_its_discrete_observations(preset, over, tmp_path):
     """FrozenLake (not slippery) is learnt only when its one integer observation is one-hot:

@@ -15,7 +15,7 @@ class DQNConfig(Section):
     NETWORK = ("hidden", "activation", "encoder", "network")
     SCHEDULES = (("lr", "lr_end"), ("epsilon_start", "epsilon_end"))
 
-    hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of the Q-network MLP
+    hidden: list[int] = field(default_factory=lambda: [256, 256])  # Q-network MLP hidden sizes; []: linear
     activation: str = "relu"  # relu | tanh | elu | leaky_relu | silu | gelu
     # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images 0..255,
     # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn |
@@ -62,7 +62,7 @@ class DQNConfig(Section):
             raise ConfigError(f"agent.encoder={self.encoder!r} does not apply with agent.network={self.network!r}, "
                               "a conv net of its own; set agent.network='mlp' to use agent.encoder, or leave "
                               "agent.encoder='auto'")
-        self.require_sizes("hidden")
+        self.require_sizes("hidden", linear_ok=True)
         self.require("in (0, 1]", "tau")
         self.require(">= 1", "target_update_period", "batch_size")
         self.require("in [0, 1]", "epsilon_start", "epsilon_end")
