@@ -181,6 +181,10 @@ def takes_no_space() -> nn.Module:  # make() written without the observation spa
     return nn.Identity()
 
 
+def reads_a_missing_entry(space: gym.spaces.Dict) -> nn.Module:  # a bug of the maker's own
+    return nn.Linear(space["missing"].shape[0], 4)
+
+
 class FloatConv(nn.Module):
     """A conv net ported from SB3, which scales frames to floats before its extractor."""
 

@@ -201,7 +201,7 @@ def test_a_policy_whose_encoder_code_changed_since_the_run_says_so(tmp_path, mon
 
 
 @pytest.mark.parametrize("name, error, note", [
-    ("takes_no_space", TypeError, "called as make(observation_space) with Dict("),
+    ("reads_a_missing_entry", KeyError, "called as make(observation_space) with Dict("),
     ("FloatConv", RuntimeError, "on a batch of 1 zero observation: a dict of tensors by entry key ('cell': int64 [1], "
                                 "'frame': uint8 [1, 1, 8, 8], 'pos': float32 [1, 2]) (uint8 frames as 0..255"),
 ])
@@ -223,6 +223,9 @@ def test_a_users_encoder_is_built_from_the_observation_space_and_checked():
     flags = make_encoder(spec_from_space(Spaces("box_bool").observation_space), "space_envs:FlatEncoder")
     assert flags.module.space == gym.spaces.Box(0, 1, (3,), bool) and flags.out_dim == 8
     for name, words in (("nosuch_pkg.mod:make", "agent.encoder: 'nosuch_pkg.mod:make': no module 'nosuch_pkg'"),
+                        ("space_envs:takes_no_space", r"^agent.encoder='space_envs:takes_no_space' cannot be called "
+                                                      r"with the observation space alone \(too many positional "
+                                                      r"arguments\); give a function make\(observation_space\)"),
                         ("space_envs:not_a_module", "agent.encoder='space_envs:not_a_module' returned int, not a "
                                                     "torch.nn.Module"),
                         ("space_envs:wrong_shape", r"its module gave dict for a batch of 1 observation of Dict\(.*"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import difflib
 import importlib
+import inspect
 import os
 import sys
 import traceback
@@ -51,6 +52,18 @@ def load_callable(path: str, what: str) -> Callable[..., Any]:
         raise UserError(f"{what}: {path!r}: module {module_name!r} has no callable {name!r}"
                         f"{near_callable(module, module_name, name)}")
     return target
+
+
+def bind_error(fn: Callable[..., Any], *args: Any) -> str | None:
+    """Why `fn(*args)` cannot bind to fn's parameters (the TypeError's words), or None; None too
+    where fn has no signature to read (a builtin: the call itself says)."""
+    try:
+        inspect.signature(fn).bind(*args)
+    except TypeError as e:
+        return str(e)
+    except ValueError:
+        pass
+    return None
 
 
 def near_callable(module: Any, module_name: str, name: str) -> str:

@@ -18,7 +18,7 @@ import gymnasium as gym
 
 from relayrl.envs.atari import missing_ale_hint, register_on_demand
 from relayrl.errors import UserError
-from relayrl.user_code import import_user_module, load_callable, near_callable
+from relayrl.user_code import bind_error, import_user_module, load_callable, near_callable
 
 EnvFn = Callable[[], gym.Env]
 TYPO = 0.85  # difflib's ratio above which an unregistered id is read as a typo of a registered one
@@ -214,11 +214,6 @@ def _wrapper_name(wrapper: Callable[..., Any]) -> str:
 
 def _check_takes_an_env(wrapper: Callable[..., Any], env: gym.Env) -> None:
     """One line for a wrapper that needs more than the env (its own errors stay its own)."""
-    try:
-        inspect.signature(wrapper).bind(env)
-    except TypeError as e:
-        raise UserError(f"env.wrappers: {_wrapper_name(wrapper)} cannot be called with the env alone ({e}); give a "
-                        "function of the env that passes the rest, e.g. def wrap(env): return TimeLimit(env, 500)"
-                        ) from None
-    except ValueError:  # no signature to read (a builtin): the call itself says
-        pass
+    if (why := bind_error(wrapper, env)) is not None:
+        raise UserError(f"env.wrappers: {_wrapper_name(wrapper)} cannot be called with the env alone ({why}); give "
+                        "a function of the env that passes the rest, e.g. def wrap(env): return TimeLimit(env, 500)")

@@ -40,7 +40,7 @@ from relayrl.specs import (
     to_space,
     unpack,
 )
-from relayrl.user_code import load_callable
+from relayrl.user_code import bind_error, load_callable
 
 # (out_channels, kernel, stride, padding) per conv, then the dense width: Mnih et al. 2015's Nature
 # CNN (the Mario tutorial's net is the same, layer for layer)
@@ -164,6 +164,9 @@ class UserEncoder(nn.Module):
         super().__init__()
         make = load_callable(name, "agent.encoder")
         space = to_space(spec_from_state(spec_state(spec)), stored=True)  # as a policy file rebuilds it
+        if (why := bind_error(make, space)) is not None:
+            raise UserError(f"agent.encoder={name!r} cannot be called with the observation space alone ({why}); "
+                            "give a function make(observation_space) that returns your torch module")
         try:  # its own errors are its own: their traceback, and what relayrl called it with
             module = make(space)
         except Exception as e:
