@@ -190,6 +190,7 @@ def test_a_policy_file_on_its_own_runs_no_encoder_code_unless_trusted(tmp_path, 
 def test_a_policy_whose_encoder_code_changed_since_the_run_says_so(tmp_path, monkeypatch):
     config = short_config("ppo", "dict", "discrete")
     config.agent.encoder = "space_envs:FlatEncoder"
+    config.train.checkpoint_interval = 96
     relayrl.train(config, tmp_path, progress=False)
     import space_envs
 
@@ -198,6 +199,11 @@ def test_a_policy_whose_encoder_code_changed_since_the_run_says_so(tmp_path, mon
     with pytest.raises(UserError, match=r"its encoder 'space_envs:FlatEncoder' now builds other parameters than the "
                                         r"ones saved \(did its code change since the run\?\)"):
         relayrl.load_policy(tmp_path)
+    config.train.total_steps = 192
+    with pytest.raises(UserError, match=r"though the run's network settings are the same: agent.encoder='space_envs:"
+                                        r"FlatEncoder' now builds other parameters than the run's \(did its code "):
+        relayrl.train(config, tmp_path, progress=False, resume=True)
+
 
 
 @pytest.mark.parametrize("name, error, note", [

@@ -210,6 +210,12 @@ class RunCore:
             lines = [line.strip() for line in str(e).splitlines() if line.strip()]
             detail = next((line for line in lines if "mismatch" in line or "key" in line.lower()), lines[0] if lines
                           else type(e).__name__)
+            agent, then = self.config.agent, self.restored_config.get("agent", {})
+            if is_user_encoder(encoder) and all(then.get(k) == getattr(agent, k) for k in agent.NETWORK):
+                raise UserError(f"the checkpoint's networks do not fit ({detail[:240]}) though the run's network "
+                                f"settings are the same: agent.encoder={encoder!r} now builds other parameters than "
+                                "the run's (did its code change since the run?); resume with the code the run was "
+                                "trained with") from None
             raise UserError(f"the checkpoint's networks do not fit this config ({detail[:240]}): resume with the "
                             "settings the run started with (leave out the --set keys that change a network or a "
                             "space)") from None
