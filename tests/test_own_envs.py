@@ -72,6 +72,16 @@ def test_console_script_finds_the_users_package_in_the_current_directory(project
     assert not env_id.endswith("-v0") or "are cut at" not in r.stderr
 
 
+@pytest.mark.parametrize("env_id", ["mygame.envs:Corridor", "mygame.envs:Corridor-v0"])
+def test_a_python_script_in_another_folder_finds_the_users_package_in_the_current_directory(project, env_id):
+    """`python scripts/train.py` from the project: the script's folder starts the import path, as
+    the console script's does; the current directory is tried last, as the CLI puts it."""
+    proj, script, env = project
+    script.write_text(f"from relayrl.envs import make_env\nprint(make_env({env_id!r}).observation_spec)\n")
+    r = subprocess.run([sys.executable, str(script)], cwd=proj, env=env, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and "ArraySpec" in r.stdout, r.stderr
+
+
 def test_a_missing_package_is_one_line_saying_what_was_tried(project):
     proj, script, env = project
     r = subprocess.run([sys.executable, str(script), "train", "dqn-cartpole", "--set", "env.id=nopkg.envs:Corridor"],

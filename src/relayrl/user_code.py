@@ -18,7 +18,15 @@ from relayrl.errors import UserError
 def import_user_module(module_name: str, what: str) -> Any:
     """Import a user's module, or fail in one line that says what was tried and how to fix it."""
     try:
-        return importlib.import_module(module_name)
+        try:
+            return importlib.import_module(module_name)
+        except ModuleNotFoundError as e:
+            # A script run from a subfolder has that folder on the path, not the current one: the
+            # current one is tried last, as the CLI puts it (last: no library finds its modules there).
+            if e.name != module_name.split(".")[0] or "" in sys.path or os.getcwd() in sys.path:
+                raise
+            sys.path.append(os.getcwd())
+            return importlib.import_module(module_name)
     except ModuleNotFoundError as e:
         if e.name is None or not module_name.startswith(e.name):
             raise UserError(f"{what}: importing {module_name!r} failed: it imports {e.name!r}, which is "
