@@ -444,6 +444,20 @@ def test_async_envs_may_keep_the_action_they_were_given():
         asyn.close()
 
 
+@pytest.mark.parametrize("vectorization", ["sync", "async"])
+def test_an_env_writing_into_its_action_leaves_the_callers_as_it_was(vectorization):
+    env = make_env("toy_envs:doubled_keeps_action", 3, vectorization=vectorization, num_workers=1)
+    try:
+        env.reset(seed=0)
+        action = torch.tensor([[0.25], [-0.5], [0.125]])
+        env.step(action)
+        assert action.tolist() == [[0.25], [-0.5], [0.125]]  # what a Transition stores as taken
+        # the env kept its doubled copy: the next step's reward is -|a - 2 * previous a|
+        assert env.step(torch.zeros(3, 1)).reward.tolist() == [-0.5, -1.0, -0.25]
+    finally:
+        env.close()
+
+
 def test_workers_draw_their_own_global_random_numbers_repeatably():
     def draws() -> np.ndarray:
         np.random.seed(0)

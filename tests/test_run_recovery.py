@@ -352,13 +352,17 @@ def test_an_evaluation_envs_reset_error_says_it_came_from_an_evaluation(tmp_path
     assert "relayrl: raised by reset() of env copy 0" in note and "relayrl: raised in an evaluation episode" in note
 
 
-@pytest.mark.parametrize("vectorization", ["sync", "async"])
-def test_an_observation_that_stops_fitting_mid_run_is_one_line(tmp_path, cli, vectorization):
+@pytest.mark.parametrize("vectorization, late, shape", [
+    ("sync", "wider", "(3,)"), ("async", "wider", "(3,)"),
+    ("sync", "scalar", "()"), ("sync", "row", "(1, 2)"),  # ones NumPy would broadcast into the row without a word
+])
+def test_an_observation_that_stops_fitting_mid_run_is_one_line(tmp_path, cli, vectorization, late, shape):
     run = tmp_path / "run"
-    over = TINY + ["env.id=toy_envs:ShapeShifts", "env.kwargs={at = 45}", f"env.vectorization={vectorization}"]
+    over = TINY + ["env.id=toy_envs:ShapeShifts", f"env.kwargs={{at = 45, late = '{late}'}}",
+                   f"env.vectorization={vectorization}"]
     r = cli(["train", "dqn-cartpole", "--run-dir", str(run), "--no-progress", *sets(over)])
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
-    assert "the observation from step() of env copy 0 has shape (3,) but observation_space is Box(" in r.stderr
+    assert f"the observation from step() of env copy 0 has shape {shape} but observation_space is Box(" in r.stderr
 
 
 @pytest.mark.parametrize("vectorization", ["sync", "async"])

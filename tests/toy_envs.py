@@ -200,12 +200,19 @@ class ResetBreaksAt(Countdown):
 
 
 class ShapeShifts(BrokenAt):
-    """Countdown whose observations turn (3,) from its `at`-th step on."""
+    """Countdown whose observations turn `late` from its `at`-th step on: "wider" (3,), "scalar"
+    (a float32 NumPy scalar) or "row" ([1, 2]: NumPy would broadcast the last two into (2,))."""
+
+    def __init__(self, late: str = "wider", **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.late = late
 
     def step(self, action):
         self.steps += 1
         obs, reward, terminated, truncated, info = Countdown.step(self, action)
-        return (np.zeros(3, np.float32) if self.steps >= self.at else obs), reward, terminated, truncated, info
+        if self.steps >= self.at:
+            obs = {"wider": np.zeros(3, np.float32), "scalar": np.float32(0.4), "row": obs[None]}[self.late]
+        return obs, reward, terminated, truncated, info
 
 
 class CastsAt(BrokenAt):
@@ -342,6 +349,18 @@ class KeepsAction(gym.Env):
         reward = -float(np.abs(action - self.previous).sum())
         self.previous = action  # no copy, as an env may
         return np.zeros(1, np.float32), reward, False, False, {}
+
+
+class Doubles(gym.ActionWrapper):
+    """An action wrapper that scales in place, as a user's may: `a *= 2`."""
+
+    def action(self, action):
+        action *= 2.0
+        return action
+
+
+def doubled_keeps_action(**kwargs) -> gym.Env:
+    return Doubles(KeepsAction(**kwargs))
 
 
 class GlobalDraws(Countdown):

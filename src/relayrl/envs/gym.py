@@ -298,6 +298,9 @@ class GymBatchEnv(BatchEnvBase):
         # Tuple's integer entries are checked by `pack`.
         self._int_obs = self._obs_dtype if self._pack is None and self._obs_dtype.kind in "iu" else None
         self._safe_casts: dict[np.dtype, bool] = {}  # per observation dtype: whether the write keeps every value
+        # An array observation's shape, checked before its row is written: NumPy would broadcast a
+        # scalar or a [1, n] row into [n] without a word (a Dict / Tuple's entries: `pack` checks)
+        self._obs_shape = None if self._pack is not None else tuple(self.observation_spec.shape)
 
     @property
     def time_limited(self) -> bool:
@@ -343,6 +346,7 @@ class GymBatchEnv(BatchEnvBase):
                 env.action_space.seed(seed + i)
             try:
                 obs.append(o if self._pack is None else self._pack(o))
+                self._check_shape(o)
             except (ValueError, TypeError, KeyError, OverflowError) as e:
                 raise self._unfit(o, i, "reset()", e) from None
         rows = np.stack(obs).astype(self._obs_dtype, copy=False)
@@ -371,13 +375,16 @@ class GymBatchEnv(BatchEnvBase):
         # tolist() gives Python ints for discrete actions: what Gymnasium envs compare against.
         # A scalar Box's row is a 0-d array (`[i, ...]`), not a NumPy scalar: Box.contains and
         # users' envs take arrays.
+        # Each env is given its own copy (as Gymnasium's vector envs and SB3 do): an env or an
+        # ActionWrapper writing into its action (`a *= 2`) leaves the stored action as taken.
         if self._discrete:
             actions: Any = action.tolist()
         else:
+            action = action.copy()
             actions = action if action.ndim > 1 else [action[i, ...] for i in range(action.shape[0])]
         ended = []
         infos: dict[int, dict] = {}
-        pack, int_obs = self._pack, self._int_obs
+        pack, int_obs, shape = self._pack, self._int_obs, self._obs_shape
         for i, env in enumerate(self.envs):
             try:
                 out = env.step(actions[i])
@@ -389,6 +396,8 @@ class GymBatchEnv(BatchEnvBase):
             except (TypeError, ValueError):
                 raise UserError(step_problem(out, self._method("step()", i))) from None
             try:
+                if shape is not None and np.shape(o) != shape:
+                    self._check_shape(o)
                 next_obs[i] = o if pack is None else pack(o)
                 if int_obs is not None and getattr(o, "dtype", None) != int_obs and not self._kept(o):
                     self._check_cast(o, i, "step()")
@@ -415,10 +424,16 @@ class GymBatchEnv(BatchEnvBase):
         for i in ended:
             o = self._reset_obs(i, self.envs[i].reset)
             try:
+                self._check_shape(o)
                 obs[i] = o if pack is None else pack(o)
             except (ValueError, TypeError, KeyError, OverflowError) as e:
                 raise self._unfit(o, i, "reset()", e) from None
         return obs, episode_info(self.info_keys, len(self.envs), ended, infos.__getitem__)
+
+    def _check_shape(self, obs: Any) -> None:
+        """ValueError for an array observation of another shape than its space's."""
+        if self._obs_shape is not None and np.shape(obs) != self._obs_shape:
+            raise ValueError(f"shape {tuple(np.shape(obs))}, not the space's {self._obs_shape}")
 
     def _method(self, method: str, i: int) -> str:
         """`method` of copy i, named by its index in the whole batch (see first_copy)."""
