@@ -465,6 +465,8 @@ def test_the_check_leaves_the_run_as_it_would_be_without_it(tmp_path):
     ("toy_envs:OldReset", "the env's reset() takes no seed: Gymnasium envs define reset(self, *, seed=None, "
                           "options=None)"),
     ("toy_envs:NoActionSpace", "the env has no action_space (a gymnasium.spaces.Space): set self.action_space"),
+    ("toy_envs:time_limited_seed_only_reset", "the env's reset() takes no options: Gymnasium envs define "
+                                              "reset(self, *, seed=None, options=None)"),
 ])
 def test_what_will_break_the_run_stops_it_before_training_in_one_line(algo_preset, env_id, fragment, tmp_path,
                                                                         capfd):
@@ -483,6 +485,7 @@ def test_what_will_break_the_run_stops_it_before_training_in_one_line(algo_prese
 @pytest.mark.parametrize("vectorization", ["sync", "async"])
 @pytest.mark.parametrize(("env_id", "fragment"), [
     ("toy_envs:OldReset", "the env's reset() takes no seed"),
+    ("toy_envs:time_limited_seed_only_reset", "the env's reset() takes no options"),
     ("toy_envs:NoActionSpace", "the env has no action_space"),
     ("toy_envs:BareReset", "reset() of env copy 0 returned a ndarray; Gymnasium envs return (obs, info)"),
 ])

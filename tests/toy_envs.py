@@ -501,6 +501,17 @@ class OldReset(Countdown):
         return super().reset()[0]
 
 
+class SeedOnlyReset(Countdown):
+    """`reset(self, seed=None)`: no options, which Gymnasium's wrappers (a TimeLimit's) pass on."""
+
+    def reset(self, seed: int | None = None):  # type: ignore[override]
+        return super().reset(seed=seed)
+
+
+def time_limited_seed_only_reset() -> gym.Env:
+    return gym.wrappers.TimeLimit(SeedOnlyReset(), 50)
+
+
 class BareReset(Countdown):
     """Half the old Gym API: `reset` takes a seed but returns the observation alone."""
 

@@ -197,23 +197,25 @@ def missing_spaces(env: gym.Env) -> str | None:
 
 
 def reset_seeded(env: gym.Env, seed: int | None) -> tuple[Any, Any]:
-    """`env.reset(seed=seed)`; one line for an env whose reset takes no seed (the old Gym API)."""
+    """`env.reset(seed=seed)`; one line for an env whose reset takes no seed (the old Gym API) or
+    no options (which Gymnasium's wrappers, a TimeLimit's, pass on)."""
     try:
         return env.reset(seed=seed)
     except TypeError as e:
-        if "unexpected keyword argument 'seed'" not in str(e) or _takes_seed(env):
+        missing = next((k for k in ("seed", "options") if f"unexpected keyword argument '{k}'" in str(e)), None)
+        if missing is None or _reset_takes(env, missing):  # then it came from inside the env's reset
             raise
-        raise UserError("the env's reset() takes no seed: Gymnasium envs define reset(self, *, seed=None, "
+        raise UserError(f"the env's reset() takes no {missing}: Gymnasium envs define reset(self, *, seed=None, "
                         "options=None), call super().reset(seed=seed) and return (obs, info)") from None
 
 
-def _takes_seed(env: gym.Env) -> bool:
-    """Whether the env's own reset takes seed= (a TypeError about seed then came from inside it)."""
+def _reset_takes(env: gym.Env, name: str) -> bool:
+    """Whether the env's own reset takes `name`= (a TypeError about it then came from inside it)."""
     try:
         params = inspect.signature(env.unwrapped.reset).parameters.values()
     except (TypeError, ValueError):  # no signature to read (a builtin): assume the Gymnasium API
         return True
-    return any(p.name == "seed" or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
+    return any(p.name == name or p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
 
 
 def reset_problem(out: Any, method: str = "reset()") -> str | None:
