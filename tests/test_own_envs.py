@@ -465,6 +465,7 @@ def test_the_check_leaves_the_run_as_it_would_be_without_it(tmp_path):
     ("toy_envs:OldReset", "the env's reset() takes no seed: Gymnasium envs define reset(self, *, seed=None, "
                           "options=None)"),
     ("toy_envs:NoActionSpace", "the env has no action_space (a gymnasium.spaces.Space): set self.action_space"),
+    ("toy_envs:NoneReward", "the reward from step() is None; it must be a number"),
     ("toy_envs:time_limited_seed_only_reset", "the env's reset() takes no options: Gymnasium envs define "
                                               "reset(self, *, seed=None, options=None)"),
 ])
@@ -501,6 +502,8 @@ def test_an_env_off_the_gymnasium_api_is_one_line_with_the_check_off(env_id, fra
 @pytest.mark.parametrize(("env_id", "fragment"), [
     ("toy_envs:FourValueStep", "step() of env copy 0 returned 4 values; Gymnasium envs return 5"),
     ("toy_envs:ArrayReward", "the reward from step() of env copy 0 has shape (1,); it must be one number"),
+    ("toy_envs:NoneReward", "the reward from step() of env copy 0 is None; it must be a number"),
+    ("toy_envs:TextReward", "the reward from step() of env copy 0 is '1.0'; it must be a number"),
 ])
 def test_a_step_off_the_gymnasium_api_is_one_line_with_the_check_off(env_id, fragment, vectorization, tmp_path):
     """Found at the first step (the step-0 evaluation's, through the cap on an env without a

@@ -527,6 +527,22 @@ class ArrayReward(Countdown):
         return obs, np.array([reward]), terminated, truncated, info
 
 
+class NoneReward(Countdown):
+    """Rewards as None (a step() that forgot to compute one): NumPy would store NaN."""
+
+    def step(self, action):
+        obs, _, terminated, truncated, info = super().step(action)
+        return obs, None, terminated, truncated, info
+
+
+class TextReward(Countdown):
+    """Rewards as text, "1.0": NumPy would parse it."""
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = super().step(action)
+        return obs, str(reward), terminated, truncated, info
+
+
 class NoActionSpace(Countdown):
     """An env that forgot to set its action_space."""
 

@@ -238,6 +238,8 @@ def step_problem(out: Any, method: str = "step()") -> str | None:
 
 def reward_problem(reward: Any, method: str = "step()") -> str | None:
     """What is wrong with a reward an env's step returned (it must be one number), or None."""
+    if reward is None or isinstance(reward, (str, bytes)):  # NumPy reads None as NaN, "1.0" as 1.0
+        return f"the reward from {method} is {reward!r}; it must be a number"
     try:
         value = np.asarray(reward, dtype=np.float64)
     except (TypeError, ValueError):
@@ -407,6 +409,8 @@ class GymBatchEnv(BatchEnvBase):
                 raise self._unfit(o, i, "step()", e) from None
             try:
                 reward[i] = r
+                if r is None or isinstance(r, (str, bytes)):  # written as NaN, or parsed
+                    raise TypeError
             except (TypeError, ValueError):
                 method = self._method("step()", i)
                 said = reward_problem(r, method) or f"the reward from {method} is {r!r}; it must be a number"
