@@ -52,7 +52,7 @@ def assert_kept_and_finite(run_dir, before_step):
                                                 ("obs", "inf", "observation was inf")])
 def test_a_non_finite_reward_or_observation_stops_the_run_and_keeps_what_was_good(
         algo, what, value, named, tmp_path, capfd):
-    c = config(algo, "env.kwargs.at=130", f"env.kwargs.what={what!r}", f"env.kwargs.value={value!r}")
+    c = config(algo, "env.kwargs.at=130", f"env.kwargs.what={what!r}", f"env.kwargs.value={value}")  # TOML's nan, inf
     with pytest.raises(NonFiniteError) as e:
         train(c, tmp_path / "run", progress=False)
     message = str(e.value)

@@ -242,6 +242,16 @@ def test_eval_env_kwargs_apply_to_evaluations_only(tmp_path):
     assert config.eval_env_kwargs() == {"length": 7, "truncate_at": 9} and config.env.kwargs["length"] == 5
 
 
+def test_a_constructors_own_type_error_is_its_own_and_a_missing_argument_one_line(tmp_path):
+    config = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:BuggyInit", "env.kwargs={length=4}"])
+    with pytest.raises(TypeError, match=r"_grid\(\) takes 2 positional arguments but 3 were given"):
+        train(config, tmp_path / "a", progress=False)  # not blamed on env.kwargs: its traceback shows where
+    config = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:NeedsSize"])
+    with pytest.raises(UserError, match=r"^env.id='toy_envs:NeedsSize' does not take the arguments given \(missing a "
+                                        r"required argument: 'size'\); arguments passed: none$"):
+        train(config, tmp_path / "b", progress=False)
+
+
 def test_eval_env_kwargs_that_change_the_spaces_are_one_line(tmp_path):
     config = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:Countdown", "eval.env_kwargs={nope=1}"])
     with pytest.raises(UserError, match=r"does not take the arguments given .*arguments passed: \['nope'\]"):

@@ -527,6 +527,24 @@ class ArrayReward(Countdown):
         return obs, np.array([reward]), terminated, truncated, info
 
 
+class BuggyInit(Countdown):
+    """A constructor with a bug of its own: a helper called with an argument too many."""
+
+    def __init__(self, length: int = 3, **kwargs) -> None:
+        super().__init__(length=length, **kwargs)
+        self.grid = self._grid(length, 3)
+
+    def _grid(self, length: int) -> list[int]:
+        return [0] * length
+
+
+class NeedsSize(Countdown):
+    """A constructor with a required argument."""
+
+    def __init__(self, size: int, **kwargs) -> None:
+        super().__init__(length=size, **kwargs)
+
+
 class NoneReward(Countdown):
     """Rewards as None (a step() that forgot to compute one): NumPy would store NaN."""
 

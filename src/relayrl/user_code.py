@@ -62,11 +62,11 @@ def load_callable(path: str, what: str) -> Callable[..., Any]:
     return target
 
 
-def bind_error(fn: Callable[..., Any], *args: Any) -> str | None:
-    """Why `fn(*args)` cannot bind to fn's parameters (the TypeError's words), or None; None too
-    where fn has no signature to read (a builtin: the call itself says)."""
+def bind_error(fn: Callable[..., Any], *args: Any, **kwargs: Any) -> str | None:
+    """Why `fn(*args, **kwargs)` cannot bind to fn's parameters (the TypeError's words), or None;
+    None too where fn has no signature to read (a builtin: the call itself says)."""
     try:
-        inspect.signature(fn).bind(*args)
+        inspect.signature(fn).bind(*args, **kwargs)
     except TypeError as e:
         return str(e)
     except ValueError:

@@ -111,15 +111,14 @@ def _custom_fn(env_id: str, make: Callable[..., Any], kwargs: dict[str, Any], ma
     """A user's class or factory; no OrderEnforcing (see `_registered_fn`)."""
 
     def make_custom() -> gym.Env:
-        try:
-            env = make(**kwargs)
-        except TypeError as e:
-            if kwargs and "argument" in str(e):
-                why = ("; relayrl video makes the env with render_mode='rgb_array': give the class a render_mode "
-                       "argument" if "render_mode" in str(e) else "")
-                raise UserError(f"env.id={env_id!r} does not take the arguments given ({e}); "
-                                f"arguments passed: {sorted(kwargs)}{why}") from None
-            raise
+        # Arguments that do not fit its signature are one line; a TypeError from inside its own
+        # code is its bug, with its traceback.
+        if (why := bind_error(make, **kwargs)) is not None:
+            video = ("; relayrl video makes the env with render_mode='rgb_array': give the class a render_mode "
+                     "argument" if "render_mode" in why else "")
+            raise UserError(f"env.id={env_id!r} does not take the arguments given ({why}); "
+                            f"arguments passed: {sorted(kwargs) or 'none'}{video}")
+        env = make(**kwargs)
         if not isinstance(env, gym.Env):
             raise UserError(f"env.id={env_id!r} returned {type(env).__name__}, not a gymnasium.Env")
         if max_episode_steps > 0:
