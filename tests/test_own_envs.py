@@ -524,6 +524,17 @@ def test_a_step_off_the_gymnasium_api_is_one_line_with_the_check_off(env_id, fra
         train(config, tmp_path / "run", progress=False)
 
 
+def test_an_env_factory_async_envs_cannot_pickle_is_one_line(tmp_path):
+    import threading
+
+    lock = threading.Lock()
+    config = load_config("dqn-cartpole", TINY + ["env.num_envs=2", "env.vectorization=async", "env.num_workers=1"])
+    with pytest.raises(UserError, match=r"^env.vectorization='async' sends the env factory to its worker processes "
+                                        r"pickled, and it cannot be pickled \(TypeError: cannot pickle '_thread.lock"):
+        train(config, tmp_path / "run", progress=False, env=lambda: lock and toy_envs.Countdown())
+    assert not (tmp_path / "run").exists()
+
+
 def test_an_env_factorys_broken_env_is_one_line_too(tmp_path):
     config = load_config("dqn-cartpole", TINY)
     with pytest.raises(UserError, match=r"^the env from the factory given to relayrl.train: step\(\) returned 4"):
