@@ -291,8 +291,8 @@ def test_a_factory_no_import_finds_asks_for_itself_again(tmp_path, factory, caps
     saved = load_toml(tmp_path / "run" / "config.toml")["env"]["id"]
     assert saved == f"{type(factory).__module__}:<{type(factory).__qualname__}>"
     # said when the run starts, not first when the run is evaluated
-    assert (f"the env factory is recorded as env.id={saved!r}, which no import finds: `relayrl eval` and `relayrl "
-            f"video` need --env ENV_ID") in capsys.readouterr().err
+    assert (f"the env factory is recorded as env.id={saved!r}, which no import finds: `relayrl eval` needs --env "
+            "ENV_ID, a video relayrl.record_video(run_dir, env=...) in Python") in capsys.readouterr().err
     assert main(["eval", str(tmp_path / "run")]) == 2
     assert "pass the same env= again in Python" in capsys.readouterr().err
     assert main(["eval", str(tmp_path / "run"), "--env", "toy_envs:Countdown"]) == 0

@@ -125,6 +125,6 @@ def factory_note(config: Config) -> str | None:
     from config.toml alone cannot."""
     if not names_python_factory(config.env.id):
         return None
-    return (f"the env factory is recorded as env.id={config.env.id!r}, which no import finds: `relayrl eval` and "
-            "`relayrl video` need --env ENV_ID, and a resume the same env= in Python (a class or function in a "
-            "module, given as env= or named in env.id, keeps the run whole)")
+    return (f"the env factory is recorded as env.id={config.env.id!r}, which no import finds: `relayrl eval` needs "
+            "--env ENV_ID, a video relayrl.record_video(run_dir, env=...) in Python, and a resume the same env= in "
+            "Python (a class or function in a module, given as env= or named in env.id, keeps the run whole)")
