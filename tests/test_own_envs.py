@@ -428,6 +428,26 @@ def test_dict_entries_in_other_dtypes_are_named_and_the_checks_after_them_still_
     assert not any("not within the observation space" in line for line in lines)
 
 
+class _NumpyFlags(_GridOfFloats):
+    """Flags of NumPy's bool (what `pos >= goal` of arrays gives), seeded and in its spaces."""
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        return {"pos": np.zeros(2, np.int64), "goal": np.full(2, 4, np.int64)}, {}
+
+    def step(self, action):
+        pos = np.ones(2, np.int64)
+        return {"pos": pos, "goal": np.full(2, 4, np.int64)}, 0.0, np.all(pos >= 4), np.bool_(False), {}
+
+
+def test_flags_of_numpys_bool_are_no_finding():
+    """Gymnasium's checker asserts `truncated is False`: np.False_ failed it ("something has gone
+    very wrong") and its later checks never ran."""
+    from relayrl.envs.make import check_env
+
+    assert check_env("x", factory=_NumpyFlags) == []
+
+
 @pytest.mark.parametrize("env_id", ["toy_envs:Maskable", "toy_envs:MaskInInfo"])
 def test_an_env_with_action_masks_is_told_they_are_not_read(env_id):
     """MaskablePPO's masks: no relayrl algorithm reads them, which the run once left unsaid."""

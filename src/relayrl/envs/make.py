@@ -209,7 +209,7 @@ def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 try:
-                    gym_check_env(checked, skip_render_check=True, skip_close_check=True)
+                    gym_check_env(_PlainFlags(checked), skip_render_check=True, skip_close_check=True)
                 except Exception as e:  # the checker's assertions: reported, the run goes on
                     lines.append(f"{type(e).__name__}: {e}")
             for w in caught:
@@ -223,6 +223,17 @@ def check_env(env_id: str, kwargs: dict[str, Any] | None = None, wrappers: tuple
         clean.append("runs of this env with the same seed will not repeat: call super().reset(seed=seed) in its "
                      "reset and draw every random number from self.np_random (README: Seeding and reproducibility)")
     return clean
+
+
+class _PlainFlags(gym.Wrapper):
+    """Terminated / truncated flags of NumPy's bool as Python's: Gymnasium's checker asserts
+    `truncated is False` after one step, which np.False_ (a valid flag, what a comparison of
+    arrays gives) fails with "something has gone very wrong", and its later checks never run."""
+
+    def step(self, action: Any) -> tuple[Any, Any, Any, Any, Any]:
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        plain = [bool(f) if isinstance(f, np.bool_) else f for f in (terminated, truncated)]
+        return obs, reward, plain[0], plain[1], info
 
 
 def _action_masks_line(env: gym.Env, info: dict[str, Any]) -> str | None:
