@@ -85,6 +85,7 @@ def test_overrides_are_typed():
     ("agent.hidden=[64, x]", "the value is not a valid TOML list; numbers as numbers and strings quoted, "
                              "e.g. agent.hidden=[64,64]"),
     ("env.ID=CartPole-v1", "unknown config key 'env.ID'; did you mean 'env.id'?"),  # keys are lower case, with _
+    ("ppo:agent.log_std_init=100", "agent.log_std_init=100.0 is not valid; it must be in [-20, 20] (a std of e^x"),
     ("ppo:agent.Tau=0.1", "unknown config key 'agent.Tau': a setting of dqn's and sac's agent, not of this"),
     ("ppo:agent.policy-lr=1e-3", "CleanRL's policy_lr is agent.actor_lr: a setting of sac's, not of ppo's"),
     ("ppo:agent.Total_Steps=10", "did you mean 'train.total_steps'?"),

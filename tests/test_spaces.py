@@ -396,7 +396,8 @@ def test_frames_stacked_by_gymnasiums_wrapper_over_rgb_train_a_conv_net(tmp_path
                          "[1. , 0.5], shape=(2,), dtype=float32) has low == high at flat index 1"),
     ("sac", "box_unbounded", "SAC takes a Box action space of floats with finite low and high; this env's action "
                              "space is Box([-inf,  -1.], [inf,  1.], shape=(2,), dtype=float32) (PPO takes a Box "
-                             "with infinite bounds"),
+                             "with infinite bounds; SAC needs finite ones (Gymnasium's ClipAction makes them infinite: "
+                             "SAC's actions stay in the env's bounds without it"),
     ("dqn", "box", "shape=(2,), dtype=float32) (SAC and PPO take Box actions)"),
     ("dqn", "multi_discrete", "(PPO takes MultiDiscrete actions)"),
 ])

@@ -342,8 +342,9 @@ def which_algorithms(action_spec: Spec) -> str:
                 "it to the Box) trains with PPO")
     if is_bounded_box(action_spec):
         return "SAC and PPO take Box actions"
-    return ("PPO takes a Box with infinite bounds; SAC needs finite ones (ClipAction does not change the space's "
-            "bounds: a wrapper whose action_space is a finite Box, mapping it to the env's, does)")
+    return ("PPO takes a Box with infinite bounds; SAC needs finite ones (Gymnasium's ClipAction makes them "
+            "infinite: SAC's actions stay in the env's bounds without it; else a wrapper whose action_space is a "
+            "finite Box, mapping it to the env's)")
 
 
 ALIGN = 8  # every leaf starts at a multiple of its own item size (<= 8), so a view of it is a valid array

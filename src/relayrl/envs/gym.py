@@ -400,7 +400,7 @@ class GymBatchEnv(BatchEnvBase):
             except (TypeError, ValueError):
                 raise UserError(step_problem(out, self._method("step()", i))) from None
             try:
-                if shape is not None and np.shape(o) != shape:
+                if shape is not None and getattr(o, "shape", None) != shape:  # an array's: an attribute read
                     self._check_shape(o)
                 next_obs[i] = o if pack is None else pack(o)
                 if int_obs is not None and getattr(o, "dtype", None) != int_obs and not self._kept(o):
@@ -409,7 +409,7 @@ class GymBatchEnv(BatchEnvBase):
                 raise self._unfit(o, i, "step()", e) from None
             try:
                 reward[i] = r
-                if r is None or isinstance(r, (str, bytes)):  # written as NaN, or parsed
+                if r.__class__ is not float and (r is None or isinstance(r, (str, bytes))):  # written as NaN, or parsed
                     raise TypeError
             except (TypeError, ValueError):
                 method = self._method("step()", i)

@@ -13,6 +13,8 @@ from typing import Any
 from relayrl.config_fields import ACTIVATION_NAMES, Section
 from relayrl.errors import ConfigError
 
+LOG_STD_INIT_MAX = 20.0  # a std of e^20 (4.9e8) is already no policy
+
 
 @dataclass
 class PPOConfig(Section):
@@ -59,6 +61,9 @@ class PPOConfig(Section):
         self.require(">= 1", "n_epochs", "batch_size")
         self.require("in [0, 1]", "gamma", "gae_lambda")
         self.require(">= 0", "ent_coef", "vf_coef", "max_grad_norm")
+        if abs(self.log_std_init) > LOG_STD_INIT_MAX:  # exp() of more overflows float32 (or flushes to 0)
+            raise ConfigError(f"agent.log_std_init={self.log_std_init} is not valid; it must be in "
+                              f"[-{LOG_STD_INIT_MAX:g}, {LOG_STD_INIT_MAX:g}] (a std of e^x; SB3's default 0: std 1)")
 
     def check_rollout(self, steps: int) -> None:
         if self.batch_size > steps:
