@@ -571,3 +571,12 @@ def test_a_schedule_whose_end_is_above_its_start_is_said_at_the_start(tmp_path, 
 def test_a_config_object_turned_into_another_algorithm_is_called_the_config():
     with pytest.raises(ConfigError, match=r"^--set algo=ppo: the config is dqn's, and its \[agent\] settings"):
         load_config(load_config("dqn-cartpole"), ["algo=ppo"])
+
+
+def test_an_earlier_versions_renamed_key_reads_as_its_new_name():
+    """A bptt run's config.toml from before agent.fused became agent.fast still evaluates."""
+    from relayrl.config import from_dict
+
+    env = {"id": "relayrl/StatelessPendulum-v0"}
+    assert from_dict({"algo": "bptt", "env": env, "agent": {"fused": False}}).agent.fast is False
+    assert from_dict({"algo": "bptt", "env": env, "agent": {"fused": True}}).agent.fast is True

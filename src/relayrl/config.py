@@ -245,12 +245,26 @@ def _plain(value: Any) -> str:
     return json.dumps(value, sort_keys=True, default=repr)
 
 
+# Keys an earlier version's config.toml may hold under their old names: read as the new ones,
+# so that its run still evaluates, resumes and exports.
+RENAMED = {"agent.fused": "agent.fast"}
+
+
+def _renamed(data: dict[str, Any]) -> dict[str, Any]:
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
+    for old, new in RENAMED.items():
+        (section, key), name = old.split("."), new.split(".")[1]
+        if isinstance(entries := out.get(section), dict) and key in entries and name not in entries:
+            entries[name] = entries.pop(key)
+    return out
+
+
 def from_dict(data: dict[str, Any]) -> Config:
     """Build a Config from nested dicts (e.g. parsed TOML); every key is checked. A key the
     dict does not name is the algorithm's default (`algo_defaults`)."""
     config = Config(algo=algorithm(data.get("algo", DEFAULT_ALGO)).name)  # a name this version knows, first
     try:
-        _merge(config, data, "", config.algo)
+        _merge(config, _renamed(data), "", config.algo)
     except ConfigError as e:
         if "algo" in data or not str(e).startswith("unknown config key 'agent.") or HOME_ELSEWHERE in str(e):
             raise
