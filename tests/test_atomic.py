@@ -46,6 +46,41 @@ def test_a_full_disk_is_one_line_that_says_what_is_kept(tmp_path):
     assert path.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pt"]
 
 
+@pytest.mark.parametrize("cause, fix", [
+    ("EFBIG", r"File too large \(its previous version, if any, is kept\): raise the file-size limit \(ulimit -f\)$"),
+    (None, r"the write stopped short \(torch: .*unexpected pos 64 vs 0; its previous version, if any, is kept\): "
+           r"the disk is full or a file-size limit \(ulimit -f\) was reached$"),  # torch's, its OSError lost
+])
+def test_a_file_size_limit_is_one_line_that_says_what_is_kept(cause, fix, tmp_path):
+    import errno
+
+    from relayrl.errors import UserError
+
+    path = tmp_path / "ckpt.pt"
+    atomic.write_text(path, "old")
+
+    def cut(f):
+        if cause is not None:
+            raise OSError(getattr(errno, cause), "File too large")
+        raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 64 vs 0")
+
+    with pytest.raises(UserError, match=r"^cannot write '.*ckpt.pt': " + fix):
+        atomic.write_with(path, cut)
+    assert path.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["ckpt.pt"]
+
+
+def test_an_unwritable_line_says_what_to_do_for_each_cause(tmp_path):
+    import errno
+
+    full = atomic.unwritable(RuntimeError("tensorboard"))
+    assert full is None
+    for code, fix in ((errno.ENOSPC, "free some space"), (errno.EFBIG, "raise the file-size limit (ulimit -f)"),
+                      (errno.EACCES, f"make {str(tmp_path / 'tb')!r} writable")):
+        error = OSError(code, "refused", str(tmp_path / "tb" / "events"))
+        assert atomic.unwritable(error) is error
+        assert atomic.unwritable_line(error, tmp_path).endswith(f": refused: {fix}")
+
+
 @pytest.mark.parametrize("code, text", [("EROFS", "Read-only file system"), ("EACCES", "Permission denied")])
 def test_a_folder_that_cannot_be_written_is_one_line_that_says_what_is_kept(code, text, tmp_path, monkeypatch):
     import errno

@@ -62,6 +62,21 @@ def test_a_run_that_failed_before_its_first_checkpoint_is_taken_over(tmp_path, c
     assert [row["step"] for row in RunDir(run).read_metrics()] == [0, 30, 60]
 
 
+def test_each_checkpoint_comes_after_the_metrics_rows_before_it_are_on_disk(tmp_path, monkeypatch):
+    """A node's crash keeps what was fsynced: a checkpoint that outlived the rows before it would
+    resume past a gap in metrics.jsonl without a word."""
+    from relayrl.training import checkpoint
+    from relayrl.training.run_dir import MetricsLog
+
+    order: list[str] = []
+    sync, save = MetricsLog.sync, checkpoint.save_checkpoint
+    monkeypatch.setattr(MetricsLog, "sync", lambda self: (order.append("sync"), sync(self))[1])
+    monkeypatch.setattr(checkpoint, "save_checkpoint", lambda *a, **k: (order.append("checkpoint"), save(*a, **k))[1])
+    train(load_config("dqn-cartpole", TINY + ["train.checkpoint_interval=30"]), tmp_path / "run", progress=False)
+    assert order.count("checkpoint") >= 2
+    assert all(order[i - 1] == "sync" for i, what in enumerate(order) if what == "checkpoint")
+
+
 def test_metrics_lines_that_are_no_row_of_a_run_are_passed_over(tmp_path):
     (tmp_path / "config.toml").write_text("")
     (tmp_path / "metrics.jsonl").write_bytes(b'{"step": 0, "average_return": 9.0}\n'

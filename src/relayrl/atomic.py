@@ -29,29 +29,38 @@ def replacing(path: Path, tmp_name: str | None = None) -> Iterator[Path]:
         full = _os_error(e, _FULL)  # torch's writer wraps the OSError in a RuntimeError of its own
         if full is not None:
             raise UserError(f"cannot write {str(path)!r}: {full.strerror or full} (its previous version, if any, is "
-                            "kept): free some space") from None
-        denied = _os_error(e, _DENIED)  # a read-only folder (or mount) inside a writable run directory
-        if denied is not None:
-            raise UserError(f"cannot write {str(path)!r}: {denied.strerror or denied} (its previous version, if any, "
+                            f"kept): {_FULL_FIX.get(full.errno or 0, 'free some space')}") from None
+        if isinstance(e, RuntimeError) and "unexpected pos" in str(e):  # torch's writer, its bytes cut short
+            raise UserError(f"cannot write {str(path)!r}: the write stopped short (torch: {str(e).strip()}; its "
+                            "previous version, if any, is kept): the disk is full or a file-size limit (ulimit -f) "
+                            "was reached") from None
+        refused = _os_error(e, _DENIED)  # a read-only folder (or mount) inside a writable run directory
+        if refused is not None:
+            raise UserError(f"cannot write {str(path)!r}: {refused.strerror or refused} (its previous version, if any, "
                             f"is kept): make {str(path.parent)!r} writable") from None
         raise
     _fsync_folder(path.parent)
 
 
-_FULL = (errno.ENOSPC, errno.EDQUOT)
+_FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # EFBIG: a file-size limit (`ulimit -f`), Python ignoring SIGXFSZ
 _DENIED = (errno.EROFS, errno.EACCES, errno.EPERM)
+_FULL_FIX = {errno.ENOSPC: "free some space", errno.EDQUOT: "free some space", errno.EFBIG: "raise the file-size "
+             "limit (ulimit -f)"}
 
 
-def disk_full(error: BaseException | None) -> OSError | None:
-    """The "no space left" (or quota) OSError in the chain of `error`, where there is one."""
-    return _os_error(error, _FULL)
+def unwritable(error: BaseException | None) -> OSError | None:
+    """The OSError in the chain of `error` that a write cannot get past (no space left, a quota
+    or file-size limit, a folder or mount made read-only), where there is one."""
+    return _os_error(error, _FULL + _DENIED)
 
 
-def full_line(error: OSError, folder: Path) -> str:
-    """The one line for a write into `folder` a full disk stopped: the file, where the error
-    names one (TensorBoard's writer names none)."""
+def unwritable_line(error: OSError, folder: Path) -> str:
+    """The one line for a write into `folder` that `error` (`unwritable`'s) stopped: the file,
+    where the error names one (TensorBoard's writer names none), and what to do."""
     where = f" {str(error.filename)!r}" if error.filename else f" in {str(folder)!r}"
-    return f"cannot write{where}: {error.strerror or error}: free some space"
+    parent = Path(error.filename).parent if error.filename else folder
+    fix = _FULL_FIX.get(error.errno or 0) or f"make {str(parent)!r} writable"
+    return f"cannot write{where}: {error.strerror or error}: {fix}"
 
 
 def _os_error(error: BaseException | None, errnos: tuple[int, ...]) -> OSError | None:

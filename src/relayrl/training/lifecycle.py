@@ -179,6 +179,7 @@ class RunCore:
     def checkpoint_common(self, eval_seeds: EvalSeeds) -> dict[str, Any]:
         """What every driver's checkpoint holds."""
         self.report.log_episodes()
+        self.report.sync_metrics()
         return {"version": 2, "config": to_dict(self.config), "spaces": self.spaces(),
                 "agent": self.agent.state_dict(), "episode_stats": self.stats.state_dict(),
                 **eval_seeds.state_dict(), "wall_time_s": self.wall_time(),
@@ -322,14 +323,15 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         raise stop(core.with_encoder(core.finite.check() or str(e)), core.kept()) from None
     except Exception as e:  # the env's own exception, or a failure: what is kept is said with it
         _own_notes(e)
-        full = atomic.disk_full(e)  # metrics.jsonl's or TensorBoard's write (the atomic files' say it themselves)
+        failed = atomic.unwritable(e)  # metrics.jsonl's or TensorBoard's write (the atomic files' say it themselves)
         if not training:
-            if full is not None:
-                raise UserError(atomic.full_line(full, core.rd.root)) from None
+            if failed is not None:
+                raise UserError(atomic.unwritable_line(failed, core.rd.root)) from None
             raise
         stopped_at = f"the run stopped at env step {core.env_steps():,}"
-        if full is not None:
-            raise UserError(f"{atomic.full_line(full, core.rd.root)}; {stopped_at}: {crash_kept(core)}") from None
+        if failed is not None:
+            raise UserError(f"{atomic.unwritable_line(failed, core.rd.root)}; {stopped_at}: {crash_kept(core)}"
+                            ) from None
         # A UserError is one line, said by whoever catches it: the same line says what is kept
         # (where its message is its args; a class of its own making gets a note instead).
         if isinstance(e, UserError) and type(e).__str__ is BaseException.__str__:

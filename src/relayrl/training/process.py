@@ -83,15 +83,16 @@ def numpy_warnings_left_out() -> Iterator[None]:
 
 @contextlib.contextmanager
 def writer_thread_quiet() -> Iterator[None]:
-    """TensorBoard's writer thread stopped by a full disk prints no traceback of its own: its
-    error reaches the run at the next scalar, which says it in one line (`run_to_end`). Other
-    threads' errors go to the hook there was, which is put back after."""
+    """TensorBoard's writer thread stopped by a full disk or a folder made read-only prints no
+    traceback of its own: its error reaches the run at its next write, which says it in one line
+    (`run_to_end`, `atomic.replacing`). Other threads' errors go to the hook there was, which is
+    put back after."""
     import threading
 
     before = threading.excepthook
 
     def hook(args: Any) -> None:
-        if type(args.thread).__name__ == "_AsyncWriterThread" and atomic.disk_full(args.exc_value) is not None:
+        if type(args.thread).__name__ == "_AsyncWriterThread" and atomic.unwritable(args.exc_value) is not None:
             return
         before(args)
 

@@ -191,6 +191,12 @@ class RunReport:
             self.tb.add_scalar(k, v, p.env_steps)
         return scalars
 
+    def sync_metrics(self) -> None:
+        """metrics.jsonl's rows so far on disk: before a checkpoint, which a resume trusts to
+        come after them."""
+        if self.metrics_log is not None:
+            self.metrics_log.sync()
+
     def log_episodes(self) -> None:
         """The training episodes finished since the last call to TensorBoard, each step's mean at
         the env step they finished (`step_means`). Before a checkpoint too, which then holds none
@@ -300,6 +306,6 @@ def close_logs(logs: list[Any], folder: Path, failing: bool) -> None:
         except OSError as e:
             if failing:
                 continue
-            if (full := atomic.disk_full(e)) is not None:
-                raise UserError(atomic.full_line(full, folder)) from None
+            if (full := atomic.unwritable(e)) is not None:
+                raise UserError(atomic.unwritable_line(full, folder)) from None
             raise
