@@ -1,5 +1,6 @@
 """policy.pt is read without running code: crafted files are refused, every algorithm's still loads."""
 
+import json
 import os
 import shutil
 import subprocess
@@ -154,3 +155,20 @@ def test_a_checkpoint_given_as_a_policy_is_named_as_one_and_not_read(runs, tmp_p
                                         r"relayrl.load_policy, .* take the run directory or its policy/policy.pt"):
         relayrl.load_policy(tmp_path / "ckpt-000000000300.pt")
     assert not marker.exists()
+
+
+def test_an_exports_signature_names_the_env_as_trained_and_comes_with_its_program(tmp_path):
+    preset, overrides, _ = TINY["dqn"]
+    config = relayrl.load_config(preset, [*overrides, "env.max_episode_steps=50",
+                                          "env.kwargs={sutton_barto_reward = true}"], seed=0)
+    relayrl.train(config, tmp_path / "run", progress=False)
+    sig = json.loads(relayrl.export_policy(tmp_path / "run").with_suffix(".pt2.json").read_text())
+    assert (sig["env_id"], sig["env_kwargs"], sig["max_episode_steps"]) == ("CartPole-v1",
+                                                                            {"sutton_barto_reward": True}, 50)
+    assert "env_wrappers" not in sig  # none given: no empty entry
+    (tmp_path / "out" / "p.pt2.json").mkdir(parents=True)  # its signature cannot be written
+    with pytest.raises(UserError, match=r"p.pt2.json"):
+        relayrl.export_policy(tmp_path / "run", out=tmp_path / "out" / "p.pt2")
+    assert not (tmp_path / "out" / "p.pt2").exists()  # no program without its signature
+    with pytest.raises(UserError, match=r"^out=123 is not valid; give a file or folder path"):
+        relayrl.export_policy(tmp_path / "run", out=123)

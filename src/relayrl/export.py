@@ -160,6 +160,8 @@ def export_policy(path: str | Path, out: str | Path | None = None, format: str |
     into the run's `policy/` folder (beside the policy file given); an `out` that is a folder
     takes the default name. Without `format`, an `out` ending in .onnx or .pt2 names it; else
     pt2. `trust_code`: as `load_policy`'s. Returns the file's path."""
+    if out is not None and not isinstance(out, (str, os.PathLike)):
+        raise UserError(f"out={out!r} is not valid; give a file or folder path (a str or pathlib.Path), or None")
     named = Path(out).suffix.lstrip(".") if out and not is_folder(out) else ""
     if named and named not in FORMATS:  # torch.export's reader and onnxruntime go by the extension
         raise UserError(f"--out {str(out)!r}: give a file name ending in .pt2 or .onnx, or a folder (in Python: "
@@ -223,12 +225,12 @@ def _export(path: str | Path, out: str | Path | None, format: str, trust_code: b
                                 f"{'; use --format pt2' if traced else _UNTRACEABLE}") from None
             assert program is not None  # dynamo=True returns the program (None is the legacy exporter's)
             program.save(str(tmp))
-    with torch.no_grad():
-        action = module(*examples)
-    sig = signature(state, format, action)
-    sig_path = target.with_name(target.name + ".json")
-    with writing(sig_path):
-        atomic.write_text(sig_path, json.dumps(sig, indent=2) + "\n")
+        # the signature in place before the program is: a failure to write it keeps the old pair
+        with torch.no_grad():
+            action = module(*examples)
+        sig_path = target.with_name(target.name + ".json")
+        with writing(sig_path):
+            atomic.write_text(sig_path, json.dumps(signature(state, format, action), indent=2) + "\n")
     return target
 
 
@@ -302,7 +304,9 @@ def signature(state: dict[str, Any], format: str, action: torch.Tensor) -> dict[
     # "input" for the one tensor `obs`; "inputs" alone for a Dict / Tuple policy's entries, whose
     # first one under "input" would read as the whole input
     one = len(inputs) == 1 and inputs[0]["name"] == "obs"
-    return {"format": format, "kind": state["kind"], "env_id": state.get("env_id"),
+    # the env as the policy was trained on it: what a deployment must reproduce to build the input
+    env = {k: state[k] for k in ("env_kwargs", "env_wrappers", "max_episode_steps") if state.get(k)}
+    return {"format": format, "kind": state["kind"], "env_id": state.get("env_id"), **env,
             "env_steps": state.get("env_steps"), **({"input": inputs[0]} if one else {"inputs": inputs}),
             "output": {"name": "action", "dtype": str(action.dtype).removeprefix("torch."),
                        "shape": ["batch", *action.shape[1:]]}}
