@@ -331,20 +331,38 @@ def test_overwriting_a_memmap_run_keeps_the_new_runs_replay_files(tmp_path, caps
     assert "replay files were overwritten" not in capsys.readouterr().err
 
 
-def test_an_env_error_mid_run_says_what_is_kept_and_a_fixed_env_resumes(tmp_path):
+def test_an_env_error_mid_run_says_what_is_kept_and_a_fixed_env_resumes(tmp_path, capfd):
     """The env's own exception propagates (it is the user's to read), ending with what the run
-    keeps and how it goes on; a resume with the env setting fixed trains to the end."""
+    keeps and how it goes on: a checkpoint at the step it reached, without the envs' state; a
+    resume with the env setting fixed trains on from there to the end."""
     run = tmp_path / "run"
     flaky = TINY + ["env.id=toy_envs:BrokenAt", "env.kwargs={at = 45}", "train.checkpoint_interval=20"]
     with pytest.raises(RuntimeError, match="simulator lost connection") as caught:
         train(load_config("dqn-cartpole", flaky), run, progress=False)
     note = " ".join(getattr(caught.value, "__notes__", []))
-    assert "the run stopped at env step 4" in note and "checkpoint (env step 40)" in note
+    assert "the run stopped at env step 44" in note and "checkpoint (env step 44)" in note
+    assert ("checkpoint written at env step 44, where the env failed, without the envs' state: a resume starts new "
+            "episodes there") in capfd.readouterr().err
+    assert [p.name for p in list_checkpoints(run / "checkpoints")] == ["ckpt-000000000040.pt", "ckpt-000000000044.pt"]
     # which copy and which env step raised it: the env's traceback says neither
     assert "relayrl: raised by step() of env copy 0" in note and "relayrl: raised at env step 45 of training" in note
     assert f"relayrl train --run-dir {run} --resume" in note
     fixed = load_config(str(run / "config.toml"), ["env.kwargs={at = 0}"])
     assert train(fixed, run, resume=True, progress=False).final["step"] == 60
+    assert "resumed from env step 44" in capfd.readouterr().err
+
+
+def test_a_failure_outside_the_env_writes_no_checkpoint_of_its_own(tmp_path, monkeypatch):
+    """An update that raised may have left the weights half-changed: the last checkpoint stays."""
+    from relayrl.agents.dqn.agent import DQNAgent
+
+    def broken(self, *args, **kwargs):
+        raise RuntimeError("an update's bug")
+
+    monkeypatch.setattr(DQNAgent, "train", broken)
+    with pytest.raises(RuntimeError, match="an update's bug"):
+        train(load_config("dqn-cartpole", TINY + ["train.checkpoint_interval=20"]), tmp_path / "run", progress=False)
+    assert not list_checkpoints(tmp_path / "run" / "checkpoints")
 
 
 def test_an_evaluation_envs_error_says_it_came_from_an_evaluation(tmp_path):
@@ -434,10 +452,11 @@ def test_an_env_whose_close_raises_after_the_run_finished_leaves_a_finished_run(
 
 
 def test_a_crash_leaves_no_policy_older_than_the_last_checkpoint(tmp_path):
-    """policy_save_interval 0 (no periodic saves): the checkpoint at step 30 saved the policy with it."""
+    """policy_save_interval 0 (no periodic saves): the checkpoints at step 30 and where the env
+    failed (44) saved the policy with them."""
     run = tmp_path / "run"
     c = load_config("dqn-cartpole", TINY + ["env.id=toy_envs:BrokenAt", "env.kwargs.at=45", "eval.interval=0"])
     with pytest.raises(RuntimeError, match="simulator lost connection"):
         train(c, run, progress=False)
-    assert [int(p.stem.split("-")[1]) for p in list_checkpoints(run / "checkpoints")] == [30]
-    assert load_policy(run).env_steps == 30
+    assert [int(p.stem.split("-")[1]) for p in list_checkpoints(run / "checkpoints")] == [30, 44]
+    assert load_policy(run).env_steps == 44

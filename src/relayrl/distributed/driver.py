@@ -139,6 +139,10 @@ class RayDriver:
         self.evals.append((workers[w].evaluate.remote(seed), p, time.perf_counter(), self.core.wall_time(), w, seed,
                            state))
 
+    def save_after_failure(self) -> None:
+        """Nothing more: an actor's env fails in its actor, which Ray restarts, and the loop writes
+        the checkpoint due by the steps the actors reported (`RunCore.checkpoint_if_due`)."""
+
     def settle_evals(self) -> None:
         self._finish_evals(until=0)
 

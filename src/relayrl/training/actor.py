@@ -53,13 +53,20 @@ class Actor:
                 taken += b
         finally:  # after a failure (a Ctrl-C too) the run's message counts the steps taken before it
             self.env_steps += taken
-        for observer in self.observers:
-            observer.flush()  # staged steps reach the replay before anyone samples
+        self.flush()
 
-    def state_dict(self) -> dict[str, Any]:
+    def flush(self) -> None:
+        """Staged steps to the observers' ends (the replay, the episode statistics): at the end
+        of each collect call, before anyone samples, and after the env failed mid-call, before
+        the checkpoint of the steps it took."""
+        for observer in self.observers:
+            observer.flush()
+
+    def state_dict(self, envs: bool = True) -> dict[str, Any]:
         """Env steps, the observation the next step acts on, and the envs' own state (None
-        when the env cannot be pickled: see `envs.gym.env_snapshot`)."""
-        return {"env_steps": self.env_steps, "obs": self._obs.clone(), "env": self.env.get_state(),
+        when the env cannot be pickled, see `envs.gym.env_snapshot`, or not asked for: `envs`
+        False after the env failed; a resume then starts new episodes)."""
+        return {"env_steps": self.env_steps, "obs": self._obs.clone(), "env": self.env.get_state() if envs else None,
                 "puller": self.puller.state_dict() if self.puller is not None else None}
 
     def load_state_dict(self, state: dict[str, Any], reset_seed: int | None = None) -> bool:
