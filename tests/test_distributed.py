@@ -334,6 +334,10 @@ def test_two_rollout_actors_train_sac_and_write_the_run_directory(tmp_path, envs
     assert r[-1]["train/episodes"] >= 2 and r[-1]["actors_alive"] == 2
     assert (tmp_path / "run" / "policy" / "policy.pt").exists()
     assert relayrl.load_policy(tmp_path / "run").env_steps == 800
+    # best.pt: an evaluated policy as it was evaluated (the learner moved on while the eval actor ran)
+    best = torch.load(tmp_path / "run" / "policy" / "best.pt", weights_only=True)
+    assert (best["env_steps"], best["average_return"]) in [(row["step"], row["average_return"]) for row in r]
+    assert relayrl.load_policy(tmp_path / "run" / "policy" / "best.pt").env_steps == best["env_steps"]
     assert list((tmp_path / "run" / "checkpoints").glob("ckpt-*.pt"))
     import ray
 

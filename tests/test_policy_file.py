@@ -150,8 +150,8 @@ def test_a_checkpoint_given_as_a_policy_is_named_as_one_and_not_read(runs, tmp_p
     marker = tmp_path / "ran"
     torch.save({"env": _Payload(marker)}, tmp_path / "ckpt-000000000300.pt")  # checkpoints hold pickles
     with pytest.raises(UserError, match=r"is a training checkpoint \(what --resume reads\), not a policy file \(a "
-                                        r"run keeps its latest policy; a callback that copies it at the best "
-                                        r"evaluation keeps the best: README, In Python\); "
+                                        r"run keeps its latest policy in policy/policy.pt and its best "
+                                        r"evaluation's in policy/best.pt\); "
                                         r"relayrl.load_policy, .* take the run directory or its policy/policy.pt"):
         relayrl.load_policy(tmp_path / "ckpt-000000000300.pt")
     assert not marker.exists()

@@ -460,3 +460,20 @@ def test_a_crash_leaves_no_policy_older_than_the_last_checkpoint(tmp_path):
         train(c, run, progress=False)
     assert [int(p.stem.split("-")[1]) for p in list_checkpoints(run / "checkpoints")] == [30, 44]
     assert load_policy(run).env_steps == 44
+
+
+def test_a_run_keeps_the_policy_of_its_best_evaluation_as_it_was_evaluated(tmp_path):
+    import torch
+
+    config = load_config("dqn-cartpole-fast", ["train.total_steps=4000", "eval.interval=1000", "eval.episodes=2",
+                                               "train.checkpoint_interval=0"], seed=0)
+    train(config, tmp_path / "run", progress=False)
+    rows = RunDir(tmp_path / "run").read_metrics()
+    top = max(rows, key=lambda row: row["average_return"])  # the first of equal ones
+    saved = torch.load(tmp_path / "run" / "policy" / "best.pt", weights_only=True)
+    assert (saved["env_steps"], saved["average_return"]) == (top["step"], top["average_return"])
+    policy = load_policy(tmp_path / "run" / "policy" / "best.pt")
+    assert policy.env_steps == top["step"]
+    config.eval.keep_best = False
+    train(config, tmp_path / "off", progress=False)
+    assert not (tmp_path / "off" / "policy" / "best.pt").exists()

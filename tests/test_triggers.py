@@ -64,3 +64,31 @@ def test_train_step_triggers_fire_inside_learner_run(tmp_path):
     assert len(logs) == 4 and logs[0].startswith("step 20 | train step 3 |")
     assert [p.name for p in list_checkpoints(tmp_path / "ck")] == ["ckpt-000000000020.pt"]  # same env step
     assert load_policy(tmp_path)(torch.zeros(3, 4)).shape == (3,)
+
+
+def test_best_pt_keeps_the_highest_evaluation_and_a_resume_goes_on_from_its_bar(tmp_path):
+    import torch
+
+    from relayrl.training.triggers import BestPolicy, PolicySaver, Progress, recorded_return
+
+    class Agent:
+        weight = 0.0
+
+        def policy_state(self):
+            return {"kind": "test", "weight": torch.tensor(self.weight)}
+
+    agent = Agent()
+    best = BestPolicy(PolicySaver(0, agent, tmp_path, name="best.pt"))
+    assert best.best is None and recorded_return(tmp_path / "best.pt") is None
+    for step, weight, ret in ((0, 0.0, 10.0), (100, 1.0, 30.0), (200, 2.0, 20.0), (300, 3.0, float("nan"))):
+        agent.weight = weight
+        best.offer(Progress(step, step), ret)
+    saved = torch.load(tmp_path / "best.pt", weights_only=True)
+    assert (saved["env_steps"], saved["average_return"], float(saved["weight"])) == (100, 30.0, 1.0)
+    again = BestPolicy(PolicySaver(0, agent, tmp_path, name="best.pt"))  # a resumed run's
+    assert again.best == 30.0
+    again.offer(Progress(400, 400), 25.0)
+    assert torch.load(tmp_path / "best.pt", weights_only=True)["env_steps"] == 100
+    again.offer(Progress(500, 500), 31.0, state={"kind": "test", "weight": torch.tensor(9.0)})  # one evaluated earlier
+    saved = torch.load(tmp_path / "best.pt", weights_only=True)
+    assert (saved["env_steps"], float(saved["weight"])) == (500, 9.0)

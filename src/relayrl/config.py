@@ -110,6 +110,9 @@ class EvalConfig(Section):
     # step-0 evaluation)
     interval: int = 5_000
     episodes: int = 10  # episodes per evaluation
+    # write policy/best.pt, the policy of the evaluation with the highest average return so far
+    # (SB3's best_model; `relayrl eval RUN_DIR/policy/best.pt` evaluates it)
+    keep_best: bool = True
     # keyword arguments evaluation envs take in place of env.kwargs' (the other keys stay), e.g.
     # {terminal_on_life_loss = false} for whole Atari games where training ends episodes at a life lost
     env_kwargs: dict[str, Any] = field(default_factory=dict)

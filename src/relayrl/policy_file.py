@@ -121,8 +121,8 @@ def _other_relayrl_file(path: Path) -> str | None:
     if run:
         return f"a program written by relayrl export, not a policy file: run it with {run}"
     if CHECKPOINT_NAME.match(path.name):
-        return ("a training checkpoint (what --resume reads), not a policy file (a run keeps its latest policy; a "
-                "callback that copies it at the best evaluation keeps the best: README, In Python)")
+        return ("a training checkpoint (what --resume reads), not a policy file (a run keeps its latest policy in "
+                "policy/policy.pt and its best evaluation's in policy/best.pt)")
     return None
 
 

@@ -4,10 +4,12 @@ has the same schema as in one process."""
 
 from __future__ import annotations
 
+import copy
 import signal
 import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 from relayrl import interrupts
@@ -36,6 +38,21 @@ from relayrl.training.run_dir import RunDir
 from relayrl.training.triggers import EvalSeeds, IntervalTrigger, Progress
 
 
+@dataclass
+class _Pending:
+    """An evaluation in flight on an eval actor: what its row and best.pt need when it answers."""
+
+    ref: Any  # the eval actor's answer
+    progress: Progress
+    t0: float
+    wall: float  # the run's wall time when it started
+    worker: int
+    seed: int
+    state: dict[str, Any]  # the row's training state at its step
+    version: int  # the weights' version pushed for it
+    policy: dict[str, Any] | None  # the policy state of those weights (for best.pt)
+
+
 class Collection(Protocol):
     """What the driver asks of an algorithm's collection on Ray (offpolicy.ReplayCollection,
     onpolicy.RolloutCollection)."""
@@ -60,7 +77,7 @@ class RayDriver:
         ray = self.ray = require_ray()
         self.eval_seeds = EvalSeeds(self.config.eval.interval)
         # in flight, oldest first: (call, progress, start, wall time, eval actor, seed, the row's training state)
-        self.evals: deque[tuple[Any, Progress, float, float, int, int, dict[str, Any]]] = deque()
+        self.evals: deque[_Pending] = deque()
         check_user_env(c, None, say)
         # The specs, from one copy of the env here (a bad env id fails before any actor starts).
         probe = make_env(c.env.id, 1, c.env.max_episode_steps, kwargs=c.env.kwargs, wrappers=c.env.wrappers)
@@ -136,8 +153,10 @@ class RayDriver:
         # The row's training returns and losses are this step's: training goes on while the
         # eval actor runs, and the row is written when it answers.
         state = {**self.core.report.training_state(), **self.collection.eval_extra()}
-        self.evals.append((workers[w].evaluate.remote(seed), p, time.perf_counter(), self.core.wall_time(), w, seed,
-                           state))
+        # the evaluated policy, for best.pt: the learner's weights move on while the eval actor runs
+        policy = copy.deepcopy(self.core.agent.policy_state()) if self.core.best_policy is not None else None
+        self.evals.append(_Pending(workers[w].evaluate.remote(seed), p, time.perf_counter(), self.core.wall_time(), w,
+                                   seed, state, self.pusher.version, policy))
 
     def save_after_failure(self) -> None:
         """Nothing more: an actor's env fails in its actor, which Ray restarts, and the loop writes
@@ -151,21 +170,24 @@ class RayDriver:
         are in flight (None: never wait)."""
         ray = self.ray
         while self.evals:
-            ref, p, t0, wall, w, seed, state = self.evals[0]
+            e = self.evals[0]
             must = until is not None and len(self.evals) > until
-            if not must and not ray.wait([ref], timeout=0)[0]:
+            if not must and not ray.wait([e.ref], timeout=0)[0]:
                 return
             try:
-                result = ray.get(ref)
-            except ray.exceptions.RayActorError as e:  # restarted by Ray: evaluate again
-                self.core.say(f"eval actor {w} died ({type(e).__name__}); Ray restarts it and the evaluation "
-                              "is repeated")
-                self.evals[0] = (self.pool.eval_workers[w].evaluate.remote(seed), p, t0, wall, w, seed, state)
+                result = ray.get(e.ref)
+            except ray.exceptions.RayActorError as error:  # restarted by Ray: evaluate again
+                self.core.say(f"eval actor {e.worker} died ({type(error).__name__}); Ray restarts it and the "
+                              "evaluation is repeated")
+                e.ref = self.pool.eval_workers[e.worker].evaluate.remote(e.seed)
                 continue
             self.evals.popleft()
             version = result.pop("policy_version")
-            self.core.report.record_eval(p, result, time.perf_counter() - t0, wall_time_s=wall, at_step=state,
-                                         extra={"policy_version": version, "actors_alive": self.pool.alive})
+            self.core.report.record_eval(e.progress, result, time.perf_counter() - e.t0, wall_time_s=e.wall,
+                                         at_step=e.state, extra={"policy_version": version,
+                                                                 "actors_alive": self.pool.alive})
+            if self.core.best_policy is not None and version == e.version:  # else newer weights were evaluated
+                self.core.best_policy.offer(e.progress, result["average_return"], e.policy)
 
     def checkpoint_state(self) -> dict[str, Any]:
         # the weights' version the actors and eval rows (policy_version) count in: a resume goes on counting

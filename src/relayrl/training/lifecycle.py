@@ -35,7 +35,15 @@ from relayrl.training.replay_setup import collect_only
 from relayrl.training.report import Callback, RunReport, log_config, log_finished, plural
 from relayrl.training.resume import check_checkpoint_config, saved_config
 from relayrl.training.run_dir import RunDir, checkpoint_step
-from relayrl.training.triggers import Checkpointer, EvalSeeds, IntervalTrigger, PolicySaver, Progress, StepsPerSecondLog
+from relayrl.training.triggers import (
+    BestPolicy,
+    Checkpointer,
+    EvalSeeds,
+    IntervalTrigger,
+    PolicySaver,
+    Progress,
+    StepsPerSecondLog,
+)
 
 
 @dataclass
@@ -95,6 +103,8 @@ class RunCore:
         self.collect_only = collect_only(c)
         self.policy_saver = PolicySaver(c.train.policy_save_interval, agent, rd.policy,
                                         extra={**env_entries(c), **env_action_entries(agent.action_spec)})
+        best = PolicySaver(0, agent, rd.policy, extra=self.policy_saver.extra, name="best.pt")
+        self.best_policy = BestPolicy(best) if c.eval.keep_best else None
         self.checkpointer = Checkpointer(c.train.checkpoint_interval, checkpoint_state, rd.checkpoints,
                                          keep=c.train.checkpoint_keep, after=self.policy_saver.save)
         self.sps_log = StepsPerSecondLog(c.train.log_interval, report=self.report.log_progress)

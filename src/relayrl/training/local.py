@@ -130,6 +130,8 @@ class LocalDriver:
             self.core.check_finite(p, weights=True)  # nothing non-finite is saved
             self.core.policy_saver.save(p)
         self.core.report.record_eval(p, result, self.evaluator.seconds)
+        if self.core.best_policy is not None:  # the agent's policy is the evaluated one here
+            self.core.best_policy.offer(p, result["average_return"])
         note = None if self.cap_said else eval_cap_note(self.eval_env, self.config.env.id)
         if note:  # once, the first time the cap ends an episode
             self.cap_said = True

@@ -5,6 +5,7 @@ so a trigger fires once per interval boundary crossed, never more."""
 from __future__ import annotations
 
 import contextlib
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -56,25 +57,59 @@ class IntervalTrigger:
 
 
 class PolicySaver(IntervalTrigger):
-    """Writes `folder/policy.pt` (what `relayrl.load_policy` reads), atomically."""
+    """Writes `folder/name` (policy.pt: what `relayrl.load_policy` reads), atomically."""
 
     def __init__(self, interval: int, agent: Any, folder: str | Path, unit: str = "env_steps",
-                 extra: dict[str, Any] | None = None) -> None:
+                 extra: dict[str, Any] | None = None, name: str = "policy.pt") -> None:
         super().__init__(interval, self.save, unit)
-        self.agent, self.folder, self.extra = agent, Path(folder), dict(extra or {})
+        self.agent, self.folder, self.extra, self.name = agent, Path(folder), dict(extra or {}), name
         self.saved_progress: Progress | None = None  # where the policy this saver last wrote was
 
     def save(self, progress: Progress) -> None:
         """Write the policy as it is at `progress` (once: an evaluation, the interval and the
         run's end may all fall on one step)."""
-        from relayrl.policy_file import save_policy_file
-
         if progress == self.saved_progress:
             return
-        self.folder.mkdir(parents=True, exist_ok=True)
-        state = {**self.agent.policy_state(), "env_steps": progress.env_steps, **self.extra}
-        save_policy_file(state, self.folder / "policy.pt")
+        self.write(progress)
         self.saved_progress = Progress(progress.env_steps, progress.train_step)
+
+    def write(self, progress: Progress, state: dict[str, Any] | None = None,
+              extra: dict[str, Any] | None = None) -> None:
+        """Write `state` (the agent's policy now where None), with `extra` entries."""
+        from relayrl.policy_file import save_policy_file
+
+        self.folder.mkdir(parents=True, exist_ok=True)
+        state = {**(self.agent.policy_state() if state is None else state), "env_steps": progress.env_steps,
+                 **self.extra, **(extra or {})}
+        save_policy_file(state, self.folder / self.name)
+
+
+class BestPolicy:
+    """policy/best.pt: the policy of the evaluation with the highest average return so far
+    (SB3's best_model). The file records that return, the bar a resumed run goes on from."""
+
+    def __init__(self, saver: PolicySaver) -> None:
+        self.saver = saver
+        self.best = recorded_return(saver.folder / saver.name)
+
+    def offer(self, progress: Progress, average_return: float, state: dict[str, Any] | None = None) -> None:
+        """Keep the evaluated policy (`state`; the agent's now where None) if its return is the best."""
+        if math.isfinite(average_return) and (self.best is None or average_return > self.best):
+            self.saver.write(progress, state, {"average_return": float(average_return)})
+            self.best = float(average_return)
+
+
+def recorded_return(path: Path) -> float | None:
+    """The evaluation return a best.pt records, or None (no file, or one this cannot read)."""
+    import torch
+
+    if not path.is_file():
+        return None
+    try:
+        value = torch.load(path, map_location="cpu", weights_only=True).get("average_return")
+    except Exception:  # a damaged file is replaced at the next evaluation
+        return None
+    return float(value) if isinstance(value, (int, float)) else None
 
 
 class Checkpointer(IntervalTrigger):
