@@ -761,7 +761,7 @@ def fake_eval_driver(calls: list[str], losses: dict[str, float]):
     from relayrl.training.triggers import EvalSeeds
 
     class Pusher:
-        last_ref = "push"
+        last_ref, version = "push", 1
 
         def push(self, force: bool = False) -> None:
             calls.append("push")
@@ -781,7 +781,7 @@ def fake_eval_driver(calls: list[str], losses: dict[str, float]):
     d.pusher, d.seeds, d.evals, d.eval_seeds = Pusher(), RunSeeds(0), deque(), EvalSeeds(d.config.eval.interval)
     d.pool = SimpleNamespace(eval_workers=[SimpleNamespace(evaluate=SimpleNamespace(remote=evaluate))], alive=1)
     d.collection = SimpleNamespace(eval_extra=dict)
-    d.core = SimpleNamespace(report=report, wall_time=lambda: 0.0)
+    d.core = SimpleNamespace(report=report, wall_time=lambda: 0.0, best_policy=None)
     return d, rows
 
 

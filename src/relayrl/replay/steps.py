@@ -61,6 +61,7 @@ class StepStore:
         self.rows = rows  # per env: the length of its ring
         self.frame_stack = frame_stack
         frame_shape = obs_shape[1:] if frame_stack > 1 else obs_shape
+        self.obs_shape, self.action_shape = tuple(obs_shape), tuple(action_shape)  # one env's, as written
         sig: Signature = {
             "frame": (frame_shape, obs_dtype), "action": (action_shape, action_dtype),
             "reward": ((), np.float32), "stamp": ((), np.int64), "start": ((), np.int64),

@@ -67,6 +67,9 @@ class _Writer(Observer):
         self._keep_tensors = storage.store.on_device  # staged tensors stay on the store's device
         self._one_step = storage.one_step is not None
         self._staged: list[Transition] = []
+        # a step's rows, checked as staged: the one-step path copies a row's columns unchecked
+        self._obs_row = (storage.num_envs, *storage.store.obs_shape)
+        self._action_size = storage.num_envs * int(np.prod(storage.store.action_shape))
         table.set_storage(storage)  # the table owns the steps from here on
         self.table = table
 
@@ -93,6 +96,11 @@ class _Writer(Observer):
         env steps, and whenever the Actor ends a collect call), like Reverb's chunked writers.
         The step's tensors are held, not copied, until then: an env must not write into
         tensors it has already returned."""
+        actions = t.action.numel() if isinstance(t.action, torch.Tensor) else np.size(t.action)
+        if t.obs.shape != self._obs_row or actions != self._action_size:
+            raise ValueError(f"a step of observations {list(t.obs.shape)} and actions {list(t.action.shape)}, but "
+                             f"this writer takes observations {list(self._obs_row)} and {self._action_size} action "
+                             "values (num_envs rows of its specs' shapes)")
         self._staged.append(t)
         if len(self._staged) >= self._stage_limit:
             self.flush()
