@@ -95,3 +95,23 @@ def test_the_collect_policys_device_noise_generator_resumes_where_it_was():
     assert torch.equal(a.act_on_device(obs), b.act_on_device(obs))
     c = policy()  # without the state: a fresh generator, other noise
     assert not torch.equal(a.act_on_device(obs), c.act_on_device(obs))
+
+
+def test_a_generator_state_from_another_kind_of_device_seeds_it_instead():
+    """A checkpoint written on a GPU (a CUDA generator's state is 16 bytes, a CPU's 5,056)
+    resumes on a CPU: the generator is seeded from the state, the same way each time."""
+    import struct
+
+    import torch
+
+    from relayrl.seeding import restore_generator
+
+    gen = torch.Generator().manual_seed(3)
+    saved = gen.get_state()
+    expected = torch.rand(3, generator=gen)
+    assert restore_generator(gen, saved) and torch.equal(torch.rand(3, generator=gen), expected)
+    cuda_state = torch.tensor(list(struct.pack("<QQ", 12345, 0)), dtype=torch.uint8)
+    assert not restore_generator(gen, cuda_state)
+    first = torch.rand(3, generator=gen)
+    restore_generator(gen, cuda_state)
+    assert torch.equal(torch.rand(3, generator=gen), first)

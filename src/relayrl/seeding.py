@@ -21,7 +21,8 @@ spawned streams, and two drawn bases are 2**62 apart on average.
 
 from __future__ import annotations
 
-from typing import SupportsInt, cast
+import hashlib
+from typing import Any, SupportsInt, cast
 
 import numpy as np
 
@@ -30,6 +31,18 @@ from relayrl.errors import UserError
 STREAMS = ("envs", "exploration", "replay", "warmup", "evaluation", "resume", "torch", "actors")
 MAX_SEED = 2**63 - 1  # what every consumer of a seed accepts (torch.manual_seed, SeedSequence, JSON)
 EVAL_STRIDE = 10_000  # evaluation k resets its copies from base + EVAL_STRIDE * k
+
+
+def restore_generator(gen: Any, state: Any) -> bool:
+    """Put a torch generator's saved state (`state`, a uint8 tensor) back; True where it was. A
+    state saved on another kind of device (a CUDA generator's 16 bytes, a CPU's 5,056) cannot
+    be: the generator is seeded from it instead, so a run moved between a GPU and a CPU resumes
+    (its draws differ from the run's there, as every number computed on another device does)."""
+    if state.numel() == gen.get_state().numel():
+        gen.set_state(state)
+        return True
+    gen.manual_seed(int.from_bytes(hashlib.sha256(state.cpu().numpy().tobytes()).digest()[:8], "little") & MAX_SEED)
+    return False
 
 
 def seed_problem(seed: object, name: str | None = "seed") -> str | None:

@@ -34,6 +34,7 @@ from relayrl.errors import UserError
 from relayrl.nn.modes import evaluating
 from relayrl.optim import FastAdam
 from relayrl.schedules import linear_schedule
+from relayrl.seeding import restore_generator
 from relayrl.specs import ArraySpec, Spec, describe, spec_state
 
 
@@ -186,6 +187,6 @@ class PPOAgent(Agent):
         self.train_step = int(state["train_step"])
         self.clip_range = float(state["clip_range"])
         self.rng.bit_generator.state = state["rng"]
-        self.gen.set_state(state["gen"])
+        restore_generator(self.gen, state["gen"])  # saved on a GPU, resumed on a CPU too
         if self.reward_scaler is not None:
             self.reward_scaler.load_state_dict(state["reward_scaler"])

@@ -15,6 +15,7 @@ from torch import nn
 from relayrl.agents.ppo.distributions import EnvBounds
 from relayrl.core import Policy
 from relayrl.nn.graphed import GraphedStep, cuda_graphs_enabled
+from relayrl.seeding import restore_generator
 
 
 class PPODevicePolicy(Policy):
@@ -54,4 +55,4 @@ class PPODevicePolicy(Policy):
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if "gen" in state:
-            self.gen.set_state(state["gen"])
+            restore_generator(self.gen, state["gen"])  # saved on a GPU, resumed on a CPU too

@@ -17,6 +17,7 @@ from relayrl.core import Agent
 from relayrl.optim import FastAdam
 from relayrl.policies import TanhGaussianPolicy, network_state
 from relayrl.schedules import linear_schedule
+from relayrl.seeding import restore_generator
 from relayrl.specs import Spec, flat_dim
 from relayrl.types import Batch
 
@@ -139,4 +140,4 @@ class SACAgent(Agent):
                 opt.lr = lr
         self.train_step = int(state["train_step"])
         self.rng.bit_generator.state = state["rng"]
-        self.gen.set_state(state["gen"])
+        restore_generator(self.gen, state["gen"])  # saved on a GPU, resumed on a CPU too
