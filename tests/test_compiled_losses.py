@@ -46,6 +46,19 @@ def test_compiled_is_the_function_itself_unless_asked(monkeypatch):
             compiled(losses)
 
 
+def test_cuda_graphs_take_0_or_1_and_any_other_value_is_one_line(monkeypatch):
+    from relayrl.nn.graphed import cuda_graphs_enabled
+
+    cpu, cuda = torch.device("cpu"), torch.device("cuda")
+    monkeypatch.delenv("RELAYRL_CUDA_GRAPHS", raising=False)
+    assert cuda_graphs_enabled(cuda) and not cuda_graphs_enabled(cpu)
+    monkeypatch.setenv("RELAYRL_CUDA_GRAPHS", "0")
+    assert not cuda_graphs_enabled(cuda)
+    monkeypatch.setenv("RELAYRL_CUDA_GRAPHS", "false")  # was read as on
+    with pytest.raises(UserError, match=r"^RELAYRL_CUDA_GRAPHS='false' is not valid; valid: 1 \(capture CUDA graphs, "):
+        cuda_graphs_enabled(cpu)
+
+
 def test_compiling_leaves_room_for_the_variants_of_many_agents(monkeypatch):
     name = recompile_limit_name()
     with torch._dynamo.config.patch(**{name: 8}):  # torch's default, restored after

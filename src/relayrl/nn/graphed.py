@@ -43,8 +43,13 @@ F = TypeVar("F", bound=Callable)
 
 
 def cuda_graphs_enabled(device: torch.device) -> bool:
-    """True where steps on `device` are captured: a CUDA device and `RELAYRL_CUDA_GRAPHS` not 0."""
-    return device.type == "cuda" and os.environ.get("RELAYRL_CUDA_GRAPHS", "1") != "0"
+    """True where steps on `device` are captured: a CUDA device and `RELAYRL_CUDA_GRAPHS` 1 (the
+    default) rather than 0; another value is one line, not a setting left on without a word."""
+    setting = os.environ.get("RELAYRL_CUDA_GRAPHS", "1")
+    if setting not in ("0", "1"):
+        raise UserError(f"RELAYRL_CUDA_GRAPHS={setting!r} is not valid; valid: 1 (capture CUDA graphs, the default) "
+                        "or 0 (launch each kernel)")
+    return device.type == "cuda" and setting == "1"
 
 
 def compiled(losses: F) -> F:
