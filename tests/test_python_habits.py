@@ -158,6 +158,26 @@ def test_load_policy_takes_a_configs_device_names_and_says_which_it_cannot_use(r
             relayrl.load_policy(run_dir, device="cuda")
 
 
+def test_a_cuda_index_past_the_machines_gpus_is_one_line(monkeypatch):
+    """A cluster's `device = "cuda:1"` on a one-GPU workstation (torch: "invalid device ordinal")."""
+    from relayrl.training.process import resolve_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert resolve_device("cuda:0") == torch.device("cuda:0")
+    with pytest.raises(UserError, match=r"^device='cuda:1' but this machine has 1 CUDA device; valid: cuda:0 to "
+                                        r"cuda:0, cuda, cpu, auto$"):
+        resolve_device("cuda:1")
+
+
+def test_device_auto_without_a_gpu_says_the_run_trains_on_the_cpu(tmp_path, capfd):
+    config = relayrl.load_config("dqn-cartpole-fast", ["train.total_steps=200", "train.initial_collect_steps=100",
+                                                       "eval.interval=0", "eval.episodes=1", "device=auto"])
+    relayrl.train(config, tmp_path / "run", progress=False)
+    said = 'device = "auto" finds no CUDA GPU here (torch.cuda.is_available() is False): the run trains on the CPU'
+    assert (said in capfd.readouterr().err) == (not torch.cuda.is_available())
+
+
 def test_record_video_with_env(run_dir, tmp_path):
     factory = lambda render_mode=None: Countdown(render_mode=render_mode)  # noqa: E731
     out = relayrl.record_video(run_dir, tmp_path / "a.mp4", env=factory)

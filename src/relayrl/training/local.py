@@ -196,6 +196,9 @@ class LocalDriver:
                 core.fire_triggers()
 
     def announce(self) -> None:
+        if self.config.device == "auto" and self.device.type == "cpu":  # a GPU preset on a laptop: hours, not minutes
+            self.core.say('device = "auto" finds no CUDA GPU here (torch.cuda.is_available() is False): the run '
+                          "trains on the CPU")
         if self.replay_note:
             self.core.say(self.replay_note)
 
