@@ -330,3 +330,23 @@ def test_squashed_and_clipped_actions_stay_inside_float32_bounds():
         a = to_bounds(u, low, high, tanh)
         assert a.dtype == torch.float32 and bool(((a >= low) & (a <= high)).all()), (tanh, a)
     assert to_bounds(u, low, high, True)[:2, 0].tolist() == [low.item(), high.item()]
+
+
+def test_a_rollout_of_one_step_per_env_copy_is_said():
+    """env.num_envs raised to train.collect_steps (a cluster node's 256 copies): PPO learnt
+    nothing without a word (SB3's n_steps is per copy, relayrl's collect_steps all copies')."""
+    from relayrl.training.notes import short_rollout_note
+
+    said = short_rollout_note(relayrl.load_config("ppo", ["env.num_envs=256", "train.collect_steps=256"]))
+    assert said is not None and said.startswith("train.collect_steps=256 with env.num_envs=256: each rollout is one "
+                                                "step of each env copy")
+    assert short_rollout_note(relayrl.load_config("ppo", ["env.num_envs=8", "train.collect_steps=1024"])) is None
+    assert short_rollout_note(relayrl.load_config("ppo-cartpole")) is None
+
+
+def test_a_resume_past_a_lower_total_says_nothing_of_a_warm_up(tmp_path):
+    from relayrl.training.notes import start_notes
+
+    config = relayrl.load_config("dqn-cartpole", ["train.total_steps=1000", "train.initial_collect_steps=1000"])
+    assert any("takes random actions only" in n for n in start_notes(config, tmp_path / "config.toml", False))
+    assert not any("takes random actions only" in n for n in start_notes(config, tmp_path / "config.toml", True))

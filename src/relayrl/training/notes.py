@@ -22,10 +22,11 @@ def start_notes(config: Config, config_file: Path, resume: bool) -> list[str]:
     out = []
     if not c.train.checkpoint_replay and c.train.checkpoint_interval > 0:
         out.append("train.checkpoint_replay = false: checkpoints leave the replay out; a resumed run refills it")
-    if 0 < c.train.total_steps <= c.train.initial_collect_steps:
+    if 0 < c.train.total_steps <= c.train.initial_collect_steps and not resume:  # a resume is past its warm-up
         out.append(f"train.initial_collect_steps={c.train.initial_collect_steps:,} >= train.total_steps="
                    f"{c.train.total_steps:,}: the run takes random actions only and learns nothing")
-    notes = (minibatch_note(c), partial_rollout_note(c), raw_screen_note(c.env.id, c.env.kwargs, c.env.wrappers),
+    notes = (minibatch_note(c), partial_rollout_note(c), short_rollout_note(c),
+             raw_screen_note(c.env.id, c.env.kwargs, c.env.wrappers),
              None if resume else defaults_note(c, config_file), None if resume else factory_note(c))
     out.extend(note for note in notes if note is not None)
     if c.distributed.address and c.distributed.num_actors == 0:
@@ -85,6 +86,21 @@ def minibatch_note(config: Config) -> str | None:
     return (f"agent.batch_size={size} does not divide a rollout of {steps:,} env steps (train.collect_steps in "
             f"whole batched steps of env.num_envs={config.env.num_envs}): each epoch ends with a minibatch of "
             f"{steps % size}, which takes a whole gradient step; a batch_size that divides {steps:,} avoids it")
+
+
+def short_rollout_note(config: Config) -> str | None:
+    """A line where an on-policy rollout is a single batched step per env copy (env.num_envs
+    raised to train.collect_steps or past it): advantages then see one step of each episode,
+    and PPO learns next to nothing. SB3's n_steps counts per copy, relayrl's collect_steps all."""
+    if algorithm(config.algo).replay != "rollouts" or config.env.num_envs < 2:
+        return None
+    per_copy = config.steps_per_iteration() // config.env.num_envs
+    if per_copy > 1:
+        return None
+    return (f"train.collect_steps={config.train.collect_steps:,} with env.num_envs={config.env.num_envs:,}: each "
+            f"rollout is one step of each env copy, too short for advantages to see what an action led to; "
+            f"collect_steps counts all copies' steps (SB3's n_steps is per copy: collect_steps = n_steps x "
+            f"num_envs), e.g. train.collect_steps={128 * config.env.num_envs:,}")
 
 
 def partial_rollout_note(config: Config) -> str | None:
