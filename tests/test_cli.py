@@ -439,3 +439,12 @@ def test_a_command_whose_output_was_closed_at_start_runs(closed):
     bad = subprocess.run(RELAYRL + ["train", "nosuch"], timeout=120, preexec_fn=lambda: os.close(fd),
                          stdout=subprocess.DEVNULL if fd == 2 else None, stderr=subprocess.DEVNULL if fd == 1 else None)
     assert bad.returncode == 2
+
+
+def test_a_policy_file_that_is_not_there_is_named_as_one(tmp_path, capsys):
+    from relayrl.cli import main
+
+    best = str(tmp_path / "run" / "policy" / "best.pt")
+    assert main(["eval", best]) == 2
+    assert capsys.readouterr().err.strip() == (f"relayrl: error: policy file {best!r} does not exist (runs made "
+                                               "before eval.keep_best have no policy/best.pt)")

@@ -936,6 +936,18 @@ def test_a_callbacks_row_holds_none_where_metrics_jsonl_holds_null(tmp_path):
 def test_a_run_dir_that_is_no_path_is_one_line():
     with pytest.raises(UserError, match=r"^run_dir=5 is not a folder's path: give a str or a Path"):
         relayrl.train(TINY, 5)
+    with pytest.raises(UserError, match=r"^run_dir='' is not a folder's path"):  # a shell variable left unset
+        relayrl.train(TINY, "")
+
+
+def test_an_empty_run_dir_flag_is_one_line_and_starts_nothing(tmp_path, monkeypatch, capsys):
+    from relayrl.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["train", "ppo", "--run-dir", ""]) == 2
+    assert capsys.readouterr().err.strip() == ("relayrl: error: --run-dir '' is empty: give a folder (or leave "
+                                               "--run-dir out for a new one under ./runs)")
+    assert not (tmp_path / "runs").exists()
 
 
 def test_a_run_result_gives_every_evaluation_and_the_best_for_a_sweeps_objective(tmp_path):

@@ -178,6 +178,9 @@ def _train(args: argparse.Namespace) -> None:
     from relayrl.training.resume import IDENTITY_KEYS
     from relayrl.training.run_dir import RunDir
 
+    if args.run_dir is not None and not args.run_dir.strip():  # `--run-dir "$DIR"` with DIR unset
+        raise UserError(f"--run-dir {args.run_dir!r} is empty: give a folder (or leave --run-dir out for a new one "
+                        "under ./runs)")
     if args.resume:
         if args.overwrite:
             raise UserError(RESUME_OR_OVERWRITE)

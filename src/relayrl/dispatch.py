@@ -248,7 +248,7 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
 def _train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Path | None, resume: bool,
            progress: bool, env: Callable[[], Any] | None, overwrite: bool,
            callbacks: Sequence[Callback] | None) -> RunResult:
-    if run_dir is not None and not isinstance(run_dir, str | os.PathLike):
+    if run_dir is not None and (not isinstance(run_dir, str | os.PathLike) or not str(run_dir).strip()):
         raise UserError(f"run_dir={run_dir!r} is not a folder's path: give a str or a Path (None: a new folder "
                         "under ./runs)")
     if config is None:

@@ -131,6 +131,9 @@ class RunDir:
         if self.root.is_file():
             raise UserError(f"{str(self.root)!r} is a file, not a run directory (give the run's folder)")
         if not self.root.is_dir():
+            if self.root.suffix == ".pt":  # a policy file named, not a folder
+                older = " (runs made before eval.keep_best have no policy/best.pt)" * (self.root.name == "best.pt")
+                raise UserError(f"policy file {str(self.root)!r} does not exist{older}")
             raise UserError(f"run directory {str(self.root)!r} does not exist")
         if not self.config.is_file():
             raise UserError(f"{str(self.root)!r} is not a relayrl run directory (no config.toml)")
