@@ -116,8 +116,7 @@ def _custom_fn(env_id: str, make: Callable[..., Any], kwargs: dict[str, Any], ma
         if (why := bind_error(make, **kwargs)) is not None:
             video = ("; relayrl video makes the env with render_mode='rgb_array': give the class a render_mode "
                      "argument" if "render_mode" in why else "")
-            raise UserError(f"env.id={env_id!r} does not take the arguments given ({why}); "
-                            f"arguments passed: {sorted(kwargs) or 'none'}{video}")
+            raise UserError(_arguments_line(env_id, make, why, kwargs, kwargs) + video)
         env = make(**kwargs)
         if not isinstance(env, gym.Env):
             raise UserError(f"env.id={env_id!r} returned {type(env).__name__}, not a gymnasium.Env")
@@ -147,7 +146,7 @@ def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, 
             return gym.make(spec, disable_env_checker=True, **kwargs)
         except (TypeError, KeyError, ValueError, ArithmeticError, AssertionError, IndexError) as e:
             if isinstance(e, TypeError) and "argument" in str(e):
-                raise UserError(_arguments_line(env_id, spec, e, kwargs, given)) from None
+                raise UserError(_arguments_line(env_id, spec.entry_point, str(e), kwargs, given)) from None
             # a registered env that fails on a value it was given (FrozenLake's map_name="8X8": a
             # KeyError of its map table; Hopper's frame_skip=0: a ZeroDivisionError) has a typo in
             # env.kwargs, not a bug; without env.kwargs, or from a user's module, it is their
@@ -161,15 +160,16 @@ def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, 
     return make_registered
 
 
-def _arguments_line(env_id: str, spec: Any, error: TypeError, kwargs: dict[str, Any], given: dict[str, Any]) -> str:
-    """A registered env's refusal of an argument: which one, the near miss among the env
-    class's own arguments, or, for an argument none is near, that env.kwargs a preset set stay
-    when --set env.id changes the env (ppo-lunarlander-continuous's continuous=true on Hopper-v5)."""
-    named = re.search(r"unexpected keyword argument '(\w+)'", str(error))
+def _arguments_line(env_id: str, entry_point: Any, error: str, kwargs: dict[str, Any], given: dict[str, Any]) -> str:
+    """An env's refusal of an argument (`error`, the TypeError's words): which one, the near miss
+    among the env class's own arguments, or, for an argument none is near, that env.kwargs a
+    preset set stay when --set env.id changes the env (ppo-lunarlander-continuous's
+    continuous=true on Hopper-v5)."""
+    named = re.search(r"unexpected keyword argument '(\w+)'", error)
     if named is None:
         return (f"env.id={env_id!r} does not take the arguments given ({error}); arguments passed (env.kwargs, and "
-                f"eval.env_kwargs to evaluation envs): {sorted(kwargs)}")
-    own = _own_arguments(spec.entry_point)
+                f"eval.env_kwargs to evaluation envs): {sorted(kwargs) or 'none'}")
+    own = _own_arguments(entry_point)
     close = difflib.get_close_matches(named[1], own, n=1, cutoff=0.6)
     line = f"env.id={env_id!r} takes no argument {named[1]!r} (env.kwargs, or eval.env_kwargs for evaluation)"
     line += f"; did you mean {close[0]!r}?" if close else ""
