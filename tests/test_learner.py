@@ -129,3 +129,28 @@ def test_a_prepared_chunk_keeps_its_type_when_moved_to_the_device():
     assert all(type(b) is PreparedBatch for b in agent.batches[1:])  # the first draws one batch alone
     assert all(x.device.type == "meta" for b in agent.batches for x in b if x is not None)
     assert agent.batches[-1].target_q.shape == (16, 2)
+
+
+def test_available_steps_of_a_table_without_a_rate_is_refused_not_astronomical():
+    """MinSize (the Table's default) allows any number of samples: `learn(available_steps())`
+    ran 2**62 // batch steps, without end."""
+    learner = Learner(Recorder(), table(), batch_size=32, device=torch.device("cpu"))
+    with pytest.raises(ValueError, match=r"^the table's rate limiter sets no samples-per-insert rate \(MinSize"):
+        learner.available_steps()
+    learner.learn(3)
+    assert learner.agent.train_step == 3
+
+
+def test_an_actor_takes_plain_functions_as_its_policy_and_observers():
+    """TF-Agents' observers are plain callables: they lacked the Policy's env_action and the
+    Observer's flush."""
+    from relayrl.envs import make_env
+    from relayrl.training.actor import Actor
+
+    seen = []
+    actor = Actor(make_env("CartPole-v1", 2), lambda obs: torch.zeros(obs.shape[0], dtype=torch.int64),
+                  [seen.append], seed=0)
+    actor.collect(10)
+    assert len(seen) == 5 and actor.env_steps == 10 and seen[0].action.tolist() == [0, 0]
+    with pytest.raises(TypeError, match=r"^a policy is a callable obs -> action .*, not int$"):
+        Actor(make_env("CartPole-v1", 1), 5, [])

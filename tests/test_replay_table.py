@@ -337,3 +337,15 @@ def test_inserts_that_would_wait_go_through_when_inserts_do_not_wait():
     t.inserts_wait = True
     with pytest.raises(RateLimiterTimeout):
         t.insert_batch(np.zeros((1, 1)), timeout=0.01)
+
+
+def test_a_selector_serves_one_table_and_a_minimum_past_the_capacity_is_refused():
+    from relayrl.replay import MinSize, Table, Uniform
+
+    shared = Uniform()
+    Table("a", 8, sampler=shared)
+    with pytest.raises(ValueError, match=r"^this Uniform already selects for another table: give each table its own"):
+        Table("b", 8, sampler=shared)  # both tables' samples went wrong
+    with pytest.raises(ValueError, match=r"^Table 'c': its rate limiter waits for 1,000 items before sampling, more "
+                                        r"than max_size=100 holds"):
+        Table("c", 100, rate_limiter=MinSize(1000))  # sampling would wait forever

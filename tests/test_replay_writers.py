@@ -1,5 +1,7 @@
 """Writers, table-driven (as Acme's adder tests): a stream of steps and the exact items it gives."""
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -475,3 +477,18 @@ def test_compiled_row_sort_matches_argsort():
         want[:m] = items[:m][np.argsort(items[:m, 0])]
         _sort_rows(items, m)
         assert np.array_equal(items, want)
+
+
+@pytest.mark.parametrize("obs_shape, action_shape", [((1, 200_000), (1,)), ((1, 3), (1,)), ((1, 8), (1,)),
+                                                     ((2, 4), (2,)), ((1, 4), (2,))])
+def test_a_step_that_does_not_fit_the_writers_specs_is_refused_before_it_is_written(obs_shape, action_shape):
+    """The one-step path copied a row's columns unchecked: a segfault for a wide row, the next
+    row overwritten for [B, 8], zeros for [B, 3]."""
+    table = Table("t", 100)
+    writer = TransitionWriter(table, 1, ArraySpec((4,), torch.float32), DiscreteSpec(3), gamma=0.9)
+    no = torch.zeros(1, dtype=torch.bool)
+    obs = torch.full(obs_shape, 9.0)
+    said = f"a step of observations {list(obs_shape)} and actions {list(action_shape)}, but this writer takes "
+    with pytest.raises(ValueError, match="^" + re.escape(said + "observations [1, 4] and 1 action values")):
+        writer(Transition(obs, torch.zeros(action_shape, dtype=torch.int64), torch.ones(1), obs, no, no))
+    assert table.size == 0

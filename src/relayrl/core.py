@@ -9,7 +9,7 @@ instead of probing for it.
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 from torch import nn
@@ -56,6 +56,7 @@ class BatchedEnv(Protocol):
         raise NotImplementedError(f"{name} cannot restore its copies' state")
 
 
+@runtime_checkable
 class Policy(Protocol):
     """Maps a batch of observations to a batch of actions."""
 
@@ -77,6 +78,7 @@ class Policy(Protocol):
         return None
 
 
+@runtime_checkable
 class Observer(Protocol):
     """Sees every batched transition the actor produces (metrics, replay writers)."""
 
@@ -86,6 +88,37 @@ class Observer(Protocol):
         """Hand on what is staged, at the end of every collect call, before anyone samples
         (replay writers). The default: nothing is staged."""
         return None
+
+
+class CallablePolicy(Policy):
+    """A plain function obs -> action as a Policy (its defaults: actions reach the env as they
+    are, no state), for an Actor given a function, as TF-Agents' py_policy users write them."""
+
+    def __init__(self, fn: Any) -> None:
+        self.fn = fn
+
+    def __call__(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.fn(obs)
+
+
+def as_policy(policy: Any) -> Policy:
+    """`policy` as a Policy: itself where it is one, a plain function wrapped (`CallablePolicy`)."""
+    if isinstance(policy, Policy):
+        return policy
+    if not callable(policy):
+        raise TypeError(f"a policy is a callable obs -> action (a relayrl Policy, or a function), not "
+                        f"{type(policy).__name__}")
+    return CallablePolicy(policy)
+
+
+class CallableObserver(Observer):
+    """A plain function of a Transition as an Observer (nothing staged), as TF-Agents' observers."""
+
+    def __init__(self, fn: Any) -> None:
+        self.fn = fn
+
+    def __call__(self, transition: Transition) -> None:
+        self.fn(transition)
 
 
 class Agent(Saveable, Protocol):

@@ -13,6 +13,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+UNLIMITED = 2**62  # samples or inserts a limiter without a rate (MinSize) allows: any number
+
 
 class RateLimiter:
     def __init__(self, samples_per_insert: float, min_size_to_sample: int,
@@ -41,14 +43,14 @@ class RateLimiter:
         if self.inserts - self.deletes < self.min_size_to_sample:
             return 0
         room = self.inserts * self.samples_per_insert - self.samples - self.min_diff
-        return max(0, math.floor(room + 1e-9)) if math.isfinite(room) else 2**62
+        return max(0, math.floor(room + 1e-9)) if math.isfinite(room) else UNLIMITED
 
     def inserts_available(self) -> int:
         """How many items could be inserted now without blocking (no samples in between)."""
         free = max(0, self.min_size_to_sample - (self.inserts - self.deletes))
         room = (self.max_diff + self.samples) / self.samples_per_insert - self.inserts
         if not math.isfinite(room):
-            return 2**62
+            return UNLIMITED
         return max(free, math.floor(room + 1e-9))
 
     def state_dict(self) -> dict[str, Any]:

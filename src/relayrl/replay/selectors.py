@@ -33,6 +33,9 @@ class Selector:
     """Base class. `slot_key[slot]` is the live key in a slot (-1 when empty)."""
 
     def bind(self, capacity: int, slot_key: np.ndarray, priority: np.ndarray) -> None:
+        if getattr(self, "slot_key", None) is not None:  # two tables' items in one index: both sample wrong
+            raise ValueError(f"this {type(self).__name__} already selects for another table: give each table its "
+                             f"own (sampler={type(self).__name__}(), ...)")
         self.capacity = capacity
         self.slot_key = slot_key
         self.priority = priority

@@ -49,6 +49,9 @@ class Table:
         self.sampler = sampler
         self.remover = remover
         self.rate_limiter = rate_limiter if rate_limiter is not None else MinSize(1)
+        if self.rate_limiter.min_size_to_sample > max_size:  # sampling would wait forever
+            raise ValueError(f"Table {name!r}: its rate limiter waits for {self.rate_limiter.min_size_to_sample:,} "
+                             f"items before sampling, more than max_size={max_size:,} holds")
         self.max_times_sampled = max_times_sampled
         self.rng = np.random.default_rng(seed)
         self.slot_key = np.full(max_size, -1, dtype=np.int64)

@@ -7,7 +7,7 @@ from typing import Any
 
 import torch
 
-from relayrl.core import BatchedEnv, Observer, Policy
+from relayrl.core import BatchedEnv, CallableObserver, Observer, Policy, as_policy
 from relayrl.errors import note_where
 from relayrl.training.variables import WeightPuller
 from relayrl.types import Transition
@@ -22,9 +22,9 @@ class Actor:
     def __init__(self, env: BatchedEnv, policy: Policy, observers: Sequence[Observer],
                  seed: int | None = None, puller: WeightPuller | None = None, whose: str = "training") -> None:
         self.env = env
-        self.policy = policy
+        self.policy = as_policy(policy)
         self.puller = puller  # refreshes the policy's weights from a VariableContainer
-        self.observers = list(observers)
+        self.observers = [o if isinstance(o, Observer) else CallableObserver(o) for o in observers]
         self.env_steps = 0
         # whose env steps these are, as an env's exception names them: the run's, or on Ray one
         # rollout actor's own (the run's are the sum over the actors)

@@ -11,6 +11,7 @@ import torch
 from relayrl.core import Agent
 from relayrl.errors import NonFiniteError
 from relayrl.replay import SampleInfo, Table
+from relayrl.replay.rate_limiters import UNLIMITED
 from relayrl.training.finite import DIVERGED, describe
 from relayrl.training.triggers import IntervalTrigger, Progress
 from relayrl.training.variables import VariableContainer, network_variables
@@ -47,8 +48,15 @@ class Learner:
         self._chunk: int | None = None  # batches per `sample` call in a uniform burst, set at the first
 
     def available_steps(self) -> int:
-        """Gradient steps the table's rate limiter allows now."""
-        return self.table.samples_available() // self.batch_size
+        """Gradient steps the table's rate limiter allows now. A limiter that sets no rate
+        (MinSize, the Table's default, once the table holds its minimum) allows any number:
+        there `learn(n)` takes the steps wanted, and asking this is refused in one line."""
+        available = self.table.samples_available()
+        if available >= UNLIMITED:
+            raise ValueError("the table's rate limiter sets no samples-per-insert rate (MinSize: any number of "
+                             "samples once it holds its minimum), so no number of steps is 'available': call "
+                             "learn(n) with the gradient steps wanted, or give the table a SampleToInsertRatio")
+        return available // self.batch_size
 
     def _batches(self, iterations: int) -> Iterator[tuple[Any, SampleInfo]]:
         """`iterations` sampled batches. From a uniform local table, a burst is drawn with one
