@@ -112,6 +112,12 @@ def test_an_error_inside_the_users_module_is_one_line(project):
     assert r.returncode == 2 and "Traceback" not in r.stderr
     (line,) = r.stderr.strip().splitlines()
     assert "raised RuntimeError: oops" in line and "bad.py:2" in line
+    (proj / "mygame" / "typo.py").write_text("def step(self)\n    pass\n")  # a SyntaxError names its own place
+    r = subprocess.run([sys.executable, str(script), "train", "dqn-cartpole", "--set", "env.id=mygame.typo:Env"],
+                       cwd=proj, env=env, capture_output=True, text=True, timeout=120)
+    (line,) = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and "raised SyntaxError: " in line and "(typo.py, line 1)" in line
+    assert "frozen" not in line
 
 
 def test_module_colon_registered_id_and_module_colon_factory_function():

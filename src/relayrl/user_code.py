@@ -44,9 +44,17 @@ def import_user_module(module_name: str, what: str) -> Any:
             f"packages; run relayrl from the folder that holds {top}.py (or {top}/), add that folder "
             "to PYTHONPATH, or pip install -e your project") from None
     except Exception as e:  # the user's module raised while it was imported
-        where = traceback.extract_tb(e.__traceback__)[-1]
-        raise UserError(f"{what}: importing {module_name!r} raised {type(e).__name__}: {e} "
-                        f"({where.filename}:{where.lineno})") from None
+        raise UserError(f"{what}: importing {module_name!r} raised {type(e).__name__}: {e}{_place(e)}") from None
+
+
+def _place(e: Exception) -> str:
+    """" (file:line)" of the user's code that raised: the last frame outside importlib's frozen
+    ones; "" for a SyntaxError (its message names the file and line; its traceback ends in
+    importlib's frames) or where no frame is the user's."""
+    if isinstance(e, SyntaxError):
+        return ""
+    frames = [f for f in traceback.extract_tb(e.__traceback__) if not f.filename.startswith("<frozen")]
+    return f" ({frames[-1].filename}:{frames[-1].lineno})" if frames else ""
 
 
 def load_callable(path: str, what: str) -> Callable[..., Any]:
