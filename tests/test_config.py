@@ -81,6 +81,8 @@ def test_overrides_are_typed():
     ("train=3", "train is a section"),
     ("novalue", "is not KEY=VALUE"),
     ("env.kwargs={kind=md0}", "the value is not a valid TOML table; quote the strings in it, e.g. env.kwargs={mode"),
+    ("env.kwargs={length:8}", "the value is not a valid TOML table; TOML tables write key = value, not key: value"),
+    ("env.kwargs={url=http://x}", "the value is not a valid TOML table; quote the strings in it"),
     ("agent.hidden=[64,", "agent.hidden='[64,' has the wrong type; expected a list of int"),
     ("agent.hidden=[64, x]", "the value is not a valid TOML list; numbers as numbers and strings quoted, "
                              "e.g. agent.hidden=[64,64]"),

@@ -436,8 +436,11 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     except tomllib.TOMLDecodeError:
         bare = raw.strip()
         if bare[:1] == "{":
-            raise ConfigError(f"--set {text!r}: the value is not a valid TOML table; quote the strings in it, "
-                              "e.g. env.kwargs={mode = 'fast'}") from None
+            # {length: 8} (Python's and JSON's colon) is the mistake the table's own syntax hides
+            fix = ("TOML tables write key = value, not key: value" if re.search(r"[{,]\s*\w+\s*:", bare)
+                   else "quote the strings in it")
+            raise ConfigError(f"--set {text!r}: the value is not a valid TOML table; {fix}, e.g. "
+                              "env.kwargs={mode = 'fast'}") from None
         if bare[:1] + bare[-1:] == "[]":  # a list, not a bare word ([::1]:6379 is one)
             raise ConfigError(f"--set {text!r}: the value is not a valid TOML list; numbers as numbers and strings "
                               "quoted, e.g. agent.hidden=[64,64] or env.info_keys=['x_pos']") from None
