@@ -227,3 +227,18 @@ def test_an_interrupt_in_a_write_inside_a_write_is_said_once(tmp_path, capsys):
         atomic.write_with(tmp_path / "f", lambda f: (f.write(b"x"), signal.raise_signal(signal.SIGINT)))
     assert capsys.readouterr().err.count("stopping once the file being written is complete") == 1
     assert (tmp_path / "f").read_bytes() == b"x"
+
+
+def test_a_refusal_outside_the_run_directory_is_not_taken_for_the_runs_write(tmp_path):
+    """A user's env reading a file it may not: its own error with its traceback, not "make the
+    folder writable"; a full disk counts wherever it is met."""
+    import errno
+
+    run = tmp_path / "run"
+    inside = OSError(errno.EACCES, "Permission denied", str(run / "tb" / "events"))
+    outside = OSError(errno.EACCES, "Permission denied", str(tmp_path / "data" / "map.json"))
+    unnamed = OSError(errno.EROFS, "Read-only file system")  # TensorBoard's writer names no file
+    full = OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "data" / "cache"))
+    assert atomic.unwritable(inside, run) is inside and atomic.unwritable(unnamed, run) is unnamed
+    assert atomic.unwritable(outside, run) is None and atomic.unwritable(outside) is outside
+    assert atomic.unwritable(full, run) is full

@@ -154,3 +154,13 @@ def test_an_actor_takes_plain_functions_as_its_policy_and_observers():
     assert len(seen) == 5 and actor.env_steps == 10 and seen[0].action.tolist() == [0, 0]
     with pytest.raises(TypeError, match=r"^a policy is a callable obs -> action .*, not int$"):
         Actor(make_env("CartPole-v1", 1), 5, [])
+
+    class Squashing:  # a Policy's env_action without its other methods: a wrapper would drop it
+        def __call__(self, obs):
+            return torch.zeros(obs.shape[0], dtype=torch.int64)
+
+        def env_action(self, action):
+            return action
+
+    with pytest.raises(TypeError, match=r"^Squashing has env_action but is not a relayrl Policy: subclass"):
+        Actor(make_env("CartPole-v1", 1), Squashing(), [])

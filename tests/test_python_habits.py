@@ -168,6 +168,9 @@ def test_a_cuda_index_past_the_machines_gpus_is_one_line(monkeypatch):
     with pytest.raises(UserError, match=r"^device='cuda:1' but this machine has 1 CUDA device; valid: cuda:0 to "
                                         r"cuda:0, cuda, cpu, auto$"):
         resolve_device("cuda:1")
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 0)
+    with pytest.raises(UserError, match=r"^device='cuda:0' but this machine has 0 CUDA devices; valid: cpu, auto$"):
+        resolve_device("cuda:0")
 
 
 def test_device_auto_without_a_gpu_says_the_run_trains_on_the_cpu(tmp_path, capfd):

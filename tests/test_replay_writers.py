@@ -492,3 +492,5 @@ def test_a_step_that_does_not_fit_the_writers_specs_is_refused_before_it_is_writ
     with pytest.raises(ValueError, match="^" + re.escape(said + "observations [1, 4] and 1 action values")):
         writer(Transition(obs, torch.zeros(action_shape, dtype=torch.int64), torch.ones(1), obs, no, no))
     assert table.size == 0
+    with pytest.raises(ValueError, match=r"and actions \[2\], but this writer takes"):  # not the message's own error
+        writer(Transition(torch.zeros(1, 4), [0, 1], torch.ones(1), torch.zeros(1, 4), no, no))

@@ -334,22 +334,38 @@ def test_overwriting_a_memmap_run_keeps_the_new_runs_replay_files(tmp_path, caps
 def test_an_env_error_mid_run_says_what_is_kept_and_a_fixed_env_resumes(tmp_path, capfd):
     """The env's own exception propagates (it is the user's to read), ending with what the run
     keeps and how it goes on: a checkpoint at the step it reached, without the envs' state; a
-    resume with the env setting fixed trains on from there to the end."""
+    resume trains on from there to the end with new episodes."""
     run = tmp_path / "run"
     flaky = TINY + ["env.id=toy_envs:BrokenAt", "env.kwargs={at = 45}", "train.checkpoint_interval=20"]
     with pytest.raises(RuntimeError, match="simulator lost connection") as caught:
         train(load_config("dqn-cartpole", flaky), run, progress=False)
     note = " ".join(getattr(caught.value, "__notes__", []))
     assert "the run stopped at env step 44" in note and "checkpoint (env step 44)" in note
-    assert ("checkpoint written at env step 44, where the env failed, without the envs' state: a resume starts new "
-            "episodes there") in capfd.readouterr().err
+    assert ("the env failed at env step 44: writing a checkpoint there, without the envs' state (a resume starts "
+            "new episodes)") in capfd.readouterr().err
     assert [p.name for p in list_checkpoints(run / "checkpoints")] == ["ckpt-000000000040.pt", "ckpt-000000000044.pt"]
     # which copy and which env step raised it: the env's traceback says neither
     assert "relayrl: raised by step() of env copy 0" in note and "relayrl: raised at env step 45 of training" in note
     assert f"relayrl train --run-dir {run} --resume" in note
-    fixed = load_config(str(run / "config.toml"), ["env.kwargs={at = 0}"])
-    assert train(fixed, run, resume=True, progress=False).final["step"] == 60
-    assert "resumed from env step 44" in capfd.readouterr().err
+    # new envs count their steps from 0 again: this one fails again only past the run's end
+    assert train(None, run, resume=True, progress=False).final["step"] == 60
+    err = capfd.readouterr().err
+    assert "resumed from env step 44" in err
+    assert ("this checkpoint was written where the env failed, without the envs' state: the resumed run starts new "
+            "episodes") in err
+
+
+@pytest.mark.parametrize("preset, over", [
+    ("ppo-cartpole", ["train.collect_steps=16", "agent.batch_size=8", "env.num_envs=1",
+                      "train.initial_collect_steps=0"]),  # the rollout gathered so far is its writer's alone
+    ("dqn-cartpole", ["train.initial_collect_steps=50"]),  # inside the random warm-up: a resume would not finish it
+])
+def test_no_checkpoint_is_written_where_the_env_failed_if_a_resume_would_not_go_on_from_it(tmp_path, preset, over):
+    broken = ["env.id=toy_envs:BrokenAt", "env.kwargs={at = 45}", "train.checkpoint_interval=1000"]
+    c = load_config(preset, TINY + broken + over)
+    with pytest.raises(RuntimeError, match="simulator lost connection"):
+        train(c, tmp_path / "run", progress=False)
+    assert not list_checkpoints(tmp_path / "run" / "checkpoints")
 
 
 def test_a_failure_outside_the_env_writes_no_checkpoint_of_its_own(tmp_path, monkeypatch):

@@ -85,7 +85,9 @@ def test_best_pt_keeps_the_highest_evaluation_and_a_resume_goes_on_from_its_bar(
         best.offer(Progress(step, step), ret)
     saved = torch.load(tmp_path / "best.pt", weights_only=True)
     assert (saved["env_steps"], saved["average_return"], float(saved["weight"])) == (100, 30.0, 1.0)
-    again = BestPolicy(PolicySaver(0, agent, tmp_path, name="best.pt"))  # a resumed run's
+    again = BestPolicy(PolicySaver(0, agent, tmp_path, name="best.pt"))
+    assert again.best is None  # a new run in a folder taken over: the old file's bar is not its
+    again.resume()  # a resumed run's
     assert again.best == 30.0
     again.offer(Progress(400, 400), 25.0)
     assert torch.load(tmp_path / "best.pt", weights_only=True)["env_steps"] == 100

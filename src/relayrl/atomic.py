@@ -48,10 +48,15 @@ _FULL_FIX = {errno.ENOSPC: "free some space", errno.EDQUOT: "free some space", e
              "limit (ulimit -f)"}
 
 
-def unwritable(error: BaseException | None) -> OSError | None:
+def unwritable(error: BaseException | None, folder: Path | None = None) -> OSError | None:
     """The OSError in the chain of `error` that a write cannot get past (no space left, a quota
-    or file-size limit, a folder or mount made read-only), where there is one."""
-    return _os_error(error, _FULL + _DENIED)
+    or file-size limit, a folder or mount made read-only), where there is one. With `folder`,
+    a refusal counts only for a file inside it, or one unnamed (TensorBoard's writer names
+    none): a user's env refused a file of its own is the env's error, with its traceback."""
+    found = _os_error(error, _FULL + _DENIED)
+    if found is None or folder is None or found.errno not in _DENIED or not found.filename:
+        return found
+    return found if Path(os.path.abspath(found.filename)).is_relative_to(os.path.abspath(folder)) else None
 
 
 def unwritable_line(error: OSError, folder: Path) -> str:

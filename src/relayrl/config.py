@@ -111,7 +111,7 @@ class EvalConfig(Section):
     interval: int = 5_000
     episodes: int = 10  # episodes per evaluation
     # write policy/best.pt, the policy of the evaluation with the highest average return so far
-    # (SB3's best_model; `relayrl eval RUN_DIR/policy/best.pt` evaluates it)
+    # (SB3's best_model; `relayrl eval RUN_DIR/policy/best.pt` evaluates it); not bptt's runs
     keep_best: bool = True
     # keyword arguments evaluation envs take in place of env.kwargs' (the other keys stay), e.g.
     # {terminal_on_life_loss = false} for whole Atari games where training ends episodes at a life lost

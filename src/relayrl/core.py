@@ -105,6 +105,9 @@ def as_policy(policy: Any) -> Policy:
     """`policy` as a Policy: itself where it is one, a plain function wrapped (`CallablePolicy`)."""
     if isinstance(policy, Policy):
         return policy
+    if hasattr(policy, "env_action"):  # a Policy's method, without the rest: wrapping would drop it
+        raise TypeError(f"{type(policy).__name__} has env_action but is not a relayrl Policy: subclass "
+                        "relayrl.core.Policy (its state_dict and load_state_dict have defaults)")
     if not callable(policy):
         raise TypeError(f"a policy is a callable obs -> action (a relayrl Policy, or a function), not "
                         f"{type(policy).__name__}")

@@ -76,8 +76,7 @@ class RayDriver:
         self.seeds, self.device = start_process(c)
         ray = self.ray = require_ray()
         self.eval_seeds = EvalSeeds(self.config.eval.interval)
-        # in flight, oldest first: (call, progress, start, wall time, eval actor, seed, the row's training state)
-        self.evals: deque[_Pending] = deque()
+        self.evals: deque[_Pending] = deque()  # in flight, oldest first
         check_user_env(c, None, say)
         # The specs, from one copy of the env here (a bad env id fails before any actor starts).
         probe = make_env(c.env.id, 1, c.env.max_episode_steps, kwargs=c.env.kwargs, wrappers=c.env.wrappers)

@@ -116,7 +116,7 @@ def _custom_fn(env_id: str, make: Callable[..., Any], kwargs: dict[str, Any], ma
         if (why := bind_error(make, **kwargs)) is not None:
             video = ("; relayrl video makes the env with render_mode='rgb_array': give the class a render_mode "
                      "argument" if "render_mode" in why else "")
-            raise UserError(_arguments_line(env_id, make, why, kwargs, kwargs) + video)
+            raise UserError(_arguments_line(env_id, make, why, kwargs, {}) + video)  # no preset's kwargs to blame
         env = make(**kwargs)
         if not isinstance(env, gym.Env):
             raise UserError(f"env.id={env_id!r} returned {type(env).__name__}, not a gymnasium.Env")

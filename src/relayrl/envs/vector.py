@@ -100,15 +100,15 @@ class AsyncGymBatchEnv(BatchEnvBase):
             raw = {k: ctx.RawArray("b", max(1, int(np.prod(shape)) * dtype.itemsize))
                    for k, (shape, dtype) in layout.items()}
             self._arrays = shared_views(raw, layout)
-            for lo, hi in self.slices[1:]:
+            try:  # before any pipe or process is made
+                pickled = [cloudpickle.dumps(env_fns[lo:hi]) for lo, hi in self.slices[1:]]
+            except Exception as e:  # what a factory holds: a lock, an open file, a simulator's handle
+                raise UserError(f"env.vectorization='async' sends the env factory to its worker processes "
+                                f"pickled, and it cannot be pickled ({type(e).__name__}: {e}): make what it "
+                                "holds inside it, or use env.vectorization='sync'") from None
+            for (lo, hi), fns in zip(self.slices[1:], pickled, strict=True):
                 parent, child = ctx.Pipe()
                 MAIN_ENDS.add(parent)  # before the fork: the worker closes its copy of it too
-                try:
-                    fns = cloudpickle.dumps(env_fns[lo:hi])
-                except Exception as e:  # what a factory holds: a lock, an open file, a simulator's handle
-                    raise UserError(f"env.vectorization='async' sends the env factory to its worker processes "
-                                    f"pickled, and it cannot be pickled ({type(e).__name__}: {e}): make what it "
-                                    "holds inside it, or use env.vectorization='sync'") from None
                 seed = global_rng_seed(lo)
                 proc = ctx.Process(target=serve, name=f"relayrl-env-{lo}-{hi}", daemon=True,
                                    args=(child, fns, lo, hi, raw, layout, time_limit_terminates, seed))

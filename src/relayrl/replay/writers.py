@@ -98,7 +98,7 @@ class _Writer(Observer):
         tensors it has already returned."""
         actions = t.action.numel() if isinstance(t.action, torch.Tensor) else np.size(t.action)
         if t.obs.shape != self._obs_row or actions != self._action_size:
-            raise ValueError(f"a step of observations {list(t.obs.shape)} and actions {list(t.action.shape)}, but "
+            raise ValueError(f"a step of observations {list(t.obs.shape)} and actions {list(np.shape(t.action))}, but "
                              f"this writer takes observations {list(self._obs_row)} and {self._action_size} action "
                              "values (num_envs rows of its specs' shapes)")
         self._staged.append(t)

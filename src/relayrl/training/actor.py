@@ -29,6 +29,7 @@ class Actor:
         # whose env steps these are, as an env's exception names them: the run's, or on Ray one
         # rollout actor's own (the run's are the sum over the actors)
         self.whose = whose
+        self.env_failed = False  # the env raised in a step (a run then checkpoints without its state)
         self._obs: torch.Tensor = env.reset(seed=seed)
 
     def collect(self, num_steps: int) -> None:
@@ -45,6 +46,7 @@ class Actor:
                     out = self.env.step(policy.env_action(action))
                 except Exception as e:  # the env's own: which env steps it broke, beside the step the run is kept at
                     note_where(e, f"at {_steps(self.env_steps + taken, b, self.whose)}")
+                    self.env_failed = True
                     raise
                 t = Transition(obs, action, out.reward, out.next_obs, out.terminated, out.truncated, out.episode_info)
                 for observer in self.observers:

@@ -110,7 +110,7 @@ class DirectDriver:
                 state = self.trainer.train(c.agent, iterations, c.seed, device, c.train.torch_threads, on_iteration,
                                            lambda: bool(signals))
         except Exception as e:
-            if (full := atomic.unwritable(e)) is not None:  # metrics.jsonl's or TensorBoard's write
+            if (full := atomic.unwritable(e, self.rd.root)) is not None:  # metrics.jsonl's or TensorBoard's write
                 raise UserError(f"{atomic.unwritable_line(full, self.rd.root)}; algo={c.algo!r} runs have no "
                                 "checkpoints: a new run starts over") from None
             raise

@@ -233,6 +233,8 @@ class RunCore:
         self.stats.load_state_dict(state["episode_stats"])
         self.wall_offset = float(state["wall_time_s"])
         eval_seeds.load_state_dict(state)
+        if self.best_policy is not None:
+            self.best_policy.resume()
 
     def load_process_state(self, state: dict[str, Any]) -> None:
         rng = state["global_rng"]
@@ -334,7 +336,8 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         raise stop(core.with_encoder(core.finite.check() or str(e)), core.kept()) from None
     except Exception as e:  # the env's own exception, or a failure: what is kept is said with it
         _own_notes(e)
-        failed = atomic.unwritable(e)  # metrics.jsonl's or TensorBoard's write (the atomic files' say it themselves)
+        # metrics.jsonl's or TensorBoard's write (the atomic files' say it themselves)
+        failed = atomic.unwritable(e, core.rd.root)
         if not training:
             if failed is not None:
                 raise UserError(atomic.unwritable_line(failed, core.rd.root)) from None

@@ -77,7 +77,7 @@ class LocalDriver:
         self.agent = entry.make_agent(c.agent, obs_spec, act_spec, device, seeds.generator("exploration"),
                                      c.train.total_steps)
         self.finite = FiniteWatch(c.env.num_envs, obs_spec)
-        whole_rollouts = entry.replay == "rollouts"
+        self.whole_rollouts = whole_rollouts = entry.replay == "rollouts"
         self.replay_note: str | None = None
         self.writer: RolloutWriter | TransitionWriter
         if whole_rollouts:
@@ -115,9 +115,7 @@ class LocalDriver:
                                   seed=seeds.base("evaluation"), on_result=self._record_eval,
                                   network=self.agent.policy_network())
         self.cap_said = self.env_state_said = False  # the notes said once a run
-        self.collecting = False  # inside a collect call: a failure there is the env's (`save_after_failure`)
-        self.failed_in: str | None = None
-        self.envs_in_checkpoint = True
+        self.envs_in_checkpoint = True  # False while `save_after_failure` writes its checkpoint
         self.core = RunCore(c, self.rd, self.agent, learner, self.stats, self.finite,
                             env_steps=lambda: self.actor.env_steps, checkpoint_state=self.checkpoint_state,
                             evaluation=self.evaluator, show_progress=progress, callbacks=callbacks)
@@ -140,45 +138,37 @@ class LocalDriver:
     def train(self, resume: bool = False) -> RunResult:
         return run_to_end(self, resume)
 
-    def iterate(self) -> None:
-        try:
-            self._iterate()
-        except Exception:
-            self.failed_in = "collect" if self.collecting else "learn"
-            raise
-
-    def _collect(self, steps: int) -> None:
-        self.collecting = True
-        self.actor.collect(steps)
-        self.collecting = False
-
     def save_after_failure(self) -> None:
-        """After the env failed mid-collection (its exception, a broken observation, a worker
-        process that died): a checkpoint at the step the run reached, without the envs' state
-        (the failed copy's is not to be trusted: a resume starts new episodes), so the run goes
-        on from there once the env is mended. Collection changes no weights, and the steps it
-        took reach the replay first. A failure elsewhere (an update's) leaves the last checkpoint."""
+        """After the env failed in a step (its exception or broken return, a worker process that
+        died: `Actor.env_failed`): a checkpoint at the step the run reached, without the envs'
+        state (the failed copy's is not to be trusted: a resume starts new episodes), so the run
+        goes on from there once the env is mended; the steps taken reach the replay first. Not
+        for PPO (the rollout gathered so far is its writer's alone) nor inside the random warm-up
+        (a resume would not finish it); a failure elsewhere (the replay's, the policy's, an
+        update's) leaves the last checkpoint."""
+        c = self.config
         p, ckpts = self.core.progress(), list_checkpoints(self.rd.checkpoints)
-        if self.failed_in != "collect" or not self.config.train.checkpoint_interval \
-                or p.env_steps <= (checkpoint_step(ckpts[-1]) if ckpts else 0):  # nothing collected since
+        if (not self.actor.env_failed or not c.train.checkpoint_interval or self.whole_rollouts
+                or p.env_steps < c.train.initial_collect_steps
+                or p.env_steps <= (checkpoint_step(ckpts[-1]) if ckpts else 0)):  # nothing collected since
             return
+        self.core.say(f"the env failed at env step {p.env_steps:,}: writing a checkpoint there, without the envs' "
+                      "state (a resume starts new episodes)")
         self.envs_in_checkpoint = False
         try:
             self.actor.flush()
             self.core.check_finite(p, weights=True)
             self.core.checkpointer.save(p)
-            self.core.say(f"checkpoint written at env step {p.env_steps:,}, where the env failed, without the envs' "
-                          "state: a resume starts new episodes there")
-        except Exception as e:  # the failure stays the run's error
-            self.core.say(f"no checkpoint at env step {p.env_steps:,}, where the env failed: {e}")
+        except BaseException as e:  # a full disk, a Ctrl-C during the write: the env's error stays the run's
+            self.core.say(f"no checkpoint at env step {p.env_steps:,}: {e or type(e).__name__}")
         finally:
             self.envs_in_checkpoint = True
 
-    def _iterate(self) -> None:
+    def iterate(self) -> None:
         c, core = self.config, self.core
         total = c.train.total_steps
         if self.actor.env_steps == 0:  # the random warm-up: nothing is learned in it, so Ctrl-C stops it at once
-            self._collect(min(c.train.initial_collect_steps, total))  # never past total_steps
+            self.actor.collect(min(c.train.initial_collect_steps, total))  # never past total_steps
         core.sps_log.reset(core.progress())
         self.variables.push(network_variables(self.agent.policy_network()))  # fresh or restored weights
         self.actor.policy = self.collect_policy
@@ -189,7 +179,7 @@ class LocalDriver:
         graceful = (signal.SIGINT,) if c.env.vectorization == "async" else interrupts.WANTED
         with interrupts.stop_request(core.report.request_stop, graceful):
             while self.actor.env_steps < total and not core.report.stop_requested:
-                self._collect(min(c.train.collect_steps, total - self.actor.env_steps))
+                self.actor.collect(min(c.train.collect_steps, total - self.actor.env_steps))
                 core.step_schedules(self.actor.env_steps)
                 if not core.collect_only:
                     core.learner.learn(core.learner.available_steps())  # the rate limiter decides
@@ -209,7 +199,7 @@ class LocalDriver:
         """Evaluations run in turn here: none is in flight."""
 
     def checkpoint_state(self) -> dict[str, Any]:
-        actor = self.actor.state_dict(envs=self.envs_in_checkpoint)
+        actor = {**self.actor.state_dict(envs=self.envs_in_checkpoint), "env_failed": not self.envs_in_checkpoint}
         if actor["env"] is None and self.envs_in_checkpoint and not self.env_state_said:  # said when it happens
             # said once, when the first checkpoint is written (the end of a short run)
             self._say_no_env_state("a resumed run starts new episodes (README: Run directory)")
@@ -275,6 +265,9 @@ class LocalDriver:
                 self.core.say("this checkpoint (format 1) holds no env state: the resumed run starts new episodes")
             elif changed:
                 self.core.say(f"{', '.join(changed)} changed: the envs start new episodes with the new settings")
+            elif state["actor"].get("env_failed"):
+                self.core.say("this checkpoint was written where the env failed, without the envs' state: the "
+                              "resumed run starts new episodes")
             elif not files_moved_on:
                 self._say_no_env_state("the resumed run starts new episodes")
 

@@ -29,8 +29,8 @@ def resolve_device(name: str) -> torch.device:
     if device.type not in ("cpu", "cuda"):  # meta, mps, xpu: torch's own error at the first call
         raise UserError(f"device={name!r}: relayrl runs on the CPU or a CUDA GPU; valid: cpu, cuda, cuda:N, auto")
     if device.type == "cuda" and device.index is not None and device.index >= (n := torch.cuda.device_count()):
-        raise UserError(f"device={name!r} but this machine has {n} CUDA device{'s' * (n != 1)}; valid: "
-                        f"cuda:0 to cuda:{n - 1}, cuda, cpu, auto")
+        valid = f"cuda:0 to cuda:{n - 1}, cuda, cpu, auto" if n else "cpu, auto"
+        raise UserError(f"device={name!r} but this machine has {n} CUDA device{'s' * (n != 1)}; valid: {valid}")
     return device
 
 

@@ -306,6 +306,6 @@ def close_logs(logs: list[Any], folder: Path, failing: bool) -> None:
         except OSError as e:
             if failing:
                 continue
-            if (full := atomic.unwritable(e)) is not None:
+            if (full := atomic.unwritable(e, folder)) is not None:
                 raise UserError(atomic.unwritable_line(full, folder)) from None
             raise

@@ -86,11 +86,15 @@ class PolicySaver(IntervalTrigger):
 
 class BestPolicy:
     """policy/best.pt: the policy of the evaluation with the highest average return so far
-    (SB3's best_model). The file records that return, the bar a resumed run goes on from."""
+    (SB3's best_model). The file records that return, the bar a resumed run goes on from
+    (`resume`); a new run starts without one (a run directory taken over may hold an old file)."""
 
     def __init__(self, saver: PolicySaver) -> None:
         self.saver = saver
-        self.best = recorded_return(saver.folder / saver.name)
+        self.best: float | None = None
+
+    def resume(self) -> None:
+        self.best = recorded_return(self.saver.folder / self.saver.name)
 
     def offer(self, progress: Progress, average_return: float, state: dict[str, Any] | None = None) -> None:
         """Keep the evaluated policy (`state`; the agent's now where None) if its return is the best."""
