@@ -152,7 +152,8 @@ def test_an_actor_takes_plain_functions_as_its_policy_and_observers():
                   [seen.append], seed=0)
     actor.collect(10)
     assert len(seen) == 5 and actor.env_steps == 10 and seen[0].action.tolist() == [0, 0]
-    with pytest.raises(TypeError, match=r"^a policy is a callable obs -> action .*, not int$"):
+    with pytest.raises(TypeError, match=r"^a policy is a relayrl.core.Policy .* or a plain function obs -> action, "
+                                        r"not int$"):
         Actor(make_env("CartPole-v1", 1), 5, [])
 
     class Squashing:  # a Policy's env_action without its other methods: a wrapper would drop it
@@ -162,5 +163,5 @@ def test_an_actor_takes_plain_functions_as_its_policy_and_observers():
         def env_action(self, action):
             return action
 
-    with pytest.raises(TypeError, match=r"^Squashing has env_action but is not a relayrl Policy: subclass"):
+    with pytest.raises(TypeError, match=r"^a policy is a relayrl.core.Policy \(subclass it: .*, not Squashing$"):
         Actor(make_env("CartPole-v1", 1), Squashing(), [])

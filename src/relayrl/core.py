@@ -8,6 +8,8 @@ instead of probing for it.
 
 from __future__ import annotations
 
+import functools
+import types
 from collections.abc import Callable
 from typing import Any, Protocol, runtime_checkable
 
@@ -102,16 +104,18 @@ class CallablePolicy(Policy):
 
 
 def as_policy(policy: Any) -> Policy:
-    """`policy` as a Policy: itself where it is one, a plain function wrapped (`CallablePolicy`)."""
+    """`policy` as a Policy: itself where it is one, a plain function wrapped (`CallablePolicy`).
+    An object of another class is refused: one with an `env_action` of its own would lose it."""
     if isinstance(policy, Policy):
         return policy
-    if hasattr(policy, "env_action"):  # a Policy's method, without the rest: wrapping would drop it
-        raise TypeError(f"{type(policy).__name__} has env_action but is not a relayrl Policy: subclass "
-                        "relayrl.core.Policy (its state_dict and load_state_dict have defaults)")
-    if not callable(policy):
-        raise TypeError(f"a policy is a callable obs -> action (a relayrl Policy, or a function), not "
+    if not isinstance(policy, FUNCTIONS):
+        raise TypeError(f"a policy is a relayrl.core.Policy (subclass it: its env_action, state_dict and "
+                        f"load_state_dict have defaults) or a plain function obs -> action, not "
                         f"{type(policy).__name__}")
     return CallablePolicy(policy)
+
+
+FUNCTIONS = (types.FunctionType, types.MethodType, types.BuiltinFunctionType, functools.partial)
 
 
 class CallableObserver(Observer):

@@ -160,7 +160,7 @@ class LocalDriver:
             self.core.check_finite(p, weights=True)
             self.core.checkpointer.save(p)
         except BaseException as e:  # a full disk, a Ctrl-C during the write: the env's error stays the run's
-            self.core.say(f"no checkpoint at env step {p.env_steps:,}: {e or type(e).__name__}")
+            self.core.say(f"no checkpoint at env step {p.env_steps:,}: {str(e) or type(e).__name__}")
         finally:
             self.envs_in_checkpoint = True
 
