@@ -206,7 +206,8 @@ def test_table_agrees_with_the_reference_model(sampler, remover, ops, max_size, 
     make = {k: (lambda c=c: c(exponent)) if k == "prioritized" else c for k, c in SELECTORS.items()}
     # max_times_sampled only with deterministic samplers, whose deletes the model can predict
     mts = 2 if counted and sampler in DETERMINISTIC else 0
-    limiter = SampleToInsertRatio(2.0, 2, 4.0) if ratio else MinSize(1)
+    # a minimum past max_size never samples: Table refuses it
+    limiter = SampleToInsertRatio(2.0, min(2, max_size), 4.0) if ratio else MinSize(1)
     table = Table("t", max_size, make[sampler](), make[remover](), limiter, max_times_sampled=mts, seed=0)
     model = Model(max_size, sampler, remover, exponent, mts, limiter.samples_per_insert,
                   limiter.min_size_to_sample, limiter.min_diff, limiter.max_diff)
