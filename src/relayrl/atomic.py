@@ -29,7 +29,7 @@ def replacing(path: Path, tmp_name: str | None = None) -> Iterator[Path]:
         full = _os_error(e, _FULL)  # torch's writer wraps the OSError in a RuntimeError of its own
         if full is not None:
             raise UserError(f"cannot write {str(path)!r}: {full.strerror or full} (its previous version, if any, is "
-                            f"kept): {_FULL_FIX.get(full.errno or 0, 'free some space')}") from None
+                            f"kept): {_advice(full, path.parent)}") from None
         if isinstance(e, RuntimeError) and "unexpected pos" in str(e):  # torch's writer, its bytes cut short
             raise UserError(f"cannot write {str(path)!r}: the write stopped short (torch: {str(e).strip()}; its "
                             "previous version, if any, is kept): the disk is full or a file-size limit (ulimit -f) "
@@ -37,7 +37,7 @@ def replacing(path: Path, tmp_name: str | None = None) -> Iterator[Path]:
         refused = _os_error(e, _DENIED)  # a read-only folder (or mount) inside a writable run directory
         if refused is not None:
             raise UserError(f"cannot write {str(path)!r}: {refused.strerror or refused} (its previous version, if any, "
-                            f"is kept): make {str(path.parent)!r} writable") from None
+                            f"is kept): {_advice(refused, path.parent)}") from None
         raise
     _fsync_folder(path.parent)
 
@@ -64,8 +64,12 @@ def unwritable_line(error: OSError, folder: Path) -> str:
     where the error names one (TensorBoard's writer names none), and what to do."""
     where = f" {str(error.filename)!r}" if error.filename else f" in {str(folder)!r}"
     parent = Path(error.filename).parent if error.filename else folder
-    fix = _FULL_FIX.get(error.errno or 0) or f"make {str(parent)!r} writable"
-    return f"cannot write{where}: {error.strerror or error}: {fix}"
+    return f"cannot write{where}: {error.strerror or error}: {_advice(error, parent)}"
+
+
+def _advice(error: OSError, parent: Path) -> str:
+    """What to do about a write into `parent` that `error` (full, limited or refused) stopped."""
+    return _FULL_FIX.get(error.errno or 0) or f"make {str(parent)!r} writable"
 
 
 def _os_error(error: BaseException | None, errnos: tuple[int, ...]) -> OSError | None:
