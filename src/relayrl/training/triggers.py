@@ -105,12 +105,12 @@ class BestPolicy:
 
 def recorded_return(path: Path) -> float | None:
     """The evaluation return a best.pt records, or None (no file, or one this cannot read)."""
-    import torch
+    from relayrl.policy_file import load_policy_file
 
     if not path.is_file():
         return None
     try:
-        value = torch.load(path, map_location="cpu", weights_only=True).get("average_return")
+        value = load_policy_file(path).get("average_return")
     except Exception:  # a damaged file is replaced at the next evaluation
         return None
     return float(value) if isinstance(value, (int, float)) else None
