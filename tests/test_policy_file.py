@@ -123,6 +123,20 @@ def test_a_file_that_is_not_a_torch_file_is_one_line_error(tmp_path):
         relayrl.load_policy(tmp_path / "policy.pt")
 
 
+def test_a_policy_file_whose_bytes_changed_is_refused_in_one_line(runs, tmp_path):
+    source = runs / "dqn" / "policy" / "policy.pt"
+    data = bytearray(source.read_bytes())
+    weights = torch.load(source, weights_only=True)["state_dict"]
+    first = next(iter(weights.values()))
+    at = data.find(first.numpy().tobytes())
+    data[at + 3] ^= 0x01  # bit rot, or a copy gone wrong
+    (tmp_path / "policy.pt").write_bytes(bytes(data))
+    with pytest.raises(UserError, match=r"^policy file '.*policy.pt' is damaged: its bytes changed after it was "
+                                        r"written \(Bad CRC-32 for file '.*'\); copy it again from where "
+                                        r"it came from$"):
+        relayrl.load_policy(tmp_path / "policy.pt")
+
+
 def test_a_stable_baselines3_model_file_says_how_to_evaluate_it(tmp_path):
     import zipfile
 

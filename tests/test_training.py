@@ -86,6 +86,42 @@ def test_checkpoints_are_atomic_and_fall_back_past_a_corrupt_one(tmp_path, capsy
     assert all(len(line) < 300 for line in lines)  # torch's long explanation cut at a word
 
 
+def _flip_a_bit_of_the_tensor(path, tensor):
+    """Flip one bit of `tensor`'s bytes where torch.save stored them in `path` (bit rot)."""
+    data = bytearray(path.read_bytes())
+    at = data.find(tensor.numpy().tobytes())
+    assert at > 0
+    data[at + 5] ^= 0x10
+    path.write_bytes(bytes(data))
+
+
+def test_a_checkpoint_whose_bytes_changed_is_passed_over_for_the_one_before(tmp_path, capsys):
+    folder = tmp_path / "ck"
+    first, second = torch.arange(64.0), torch.arange(64.0) * 3
+    save_checkpoint(folder, 100, {"x": first, "env_steps": 100})
+    save_checkpoint(folder, 200, {"x": second, "env_steps": 200})
+    _flip_a_bit_of_the_tensor(folder / "ckpt-000000000200.pt", second)
+    assert torch.load(folder / "ckpt-000000000200.pt")["x"].ne(second).sum() == 1  # torch reads it without a word
+    state = load_latest_checkpoint(folder)
+    assert state["env_steps"] == 100 and torch.equal(state["x"], first)
+    err = capsys.readouterr().err
+    assert "ckpt-000000000200.pt is unreadable (ValueError: its bytes changed after it was written (Bad CRC-32" in err
+    assert err.endswith("; trying an older one\n")
+
+
+def test_a_file_written_without_checksums_is_read_unchecked(tmp_path):
+    from torch.utils.serialization import config
+
+    folder = tmp_path / "ck"
+    saved = config.save.compute_crc32
+    config.save.compute_crc32 = False  # each record's CRC stored as 0
+    try:
+        save_checkpoint(folder, 100, {"x": torch.ones(3), "env_steps": 100})
+    finally:
+        config.save.compute_crc32 = saved
+    assert load_latest_checkpoint(folder)["env_steps"] == 100
+
+
 @pytest.mark.parametrize("other", [[1, 2], {"weights": 1}])
 def test_a_file_that_is_no_checkpoint_under_a_checkpoints_name_is_passed_over(tmp_path, capsys, other):
     folder = tmp_path / "ck"

@@ -92,6 +92,10 @@ def load_policy_file(path: Path) -> dict[str, Any]:
     if not _torch_saved(path):  # a text or JSON file: torch's own errors (KeyError: 105) say nothing
         raise UserError(f"{str(path)!r} is not a relayrl policy file (not a file torch.save wrote): give a run "
                         "directory or its policy/policy.pt")
+    bad = atomic.damaged(path)
+    if bad:
+        raise UserError(f"policy file {str(path)!r} is damaged: {bad}; copy it again from where it came "
+                        "from")
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:

@@ -49,6 +49,9 @@ def load_latest_checkpoint(folder: Path) -> dict[str, Any]:
                               "(overwrite=True)")
     for n, path in enumerate(reversed(candidates)):
         try:
+            bad = atomic.damaged(path)
+            if bad:
+                raise ValueError(bad)
             state = torch.load(path, map_location="cpu", weights_only=False)
             if not isinstance(state, dict) or "env_steps" not in state:  # another program's file under its name
                 raise ValueError(f"it holds a {type(state).__name__} that is not a relayrl checkpoint")
