@@ -140,3 +140,39 @@ def test_error_buffer_as_a_range_is_used_without_offset():
 def test_error_buffer_ranges_that_would_deadlock_are_refused(buffer, match):
     with pytest.raises(ValueError, match=match):
         SampleToInsertRatio(2.0, 5, buffer)
+
+
+# ---- refused inserts --------------------------------------------------------------------
+@pytest.mark.parametrize("item, match", [
+    ({"obs": np.zeros(4, np.float32), "extra": np.zeros(1)}, r"item fields \['extra', 'obs'\] differ"),
+    ({"obs": np.zeros(1, np.float32)}, r"item field 'obs' has shape \(1,\) per item, the table's is \(4,\)"),
+    ({"obs": np.zeros((2, 2), np.float32)}, r"item field 'obs' has shape \(2, 2\) per item, the table's is \(4,\)"),
+    (np.zeros(4, np.float32), r"the table holds dicts of arrays, this item is not a dict"),
+    ({"obs": np.full(4, 0.5)}, None),  # float64 into float32: same kind, taken
+    ({"obs": np.array(["a", "b", "c", "d"])}, r"item field 'obs' is <U1, which the table's float32 column cannot"),
+], ids=["fields", "narrow", "2-d", "not-a-dict", "float64", "text"])
+def test_a_refused_insert_leaves_the_table_as_it_was(item, match):
+    t = Table("t", 3, Uniform(), Fifo(), MinSize(1))
+    t.insert({"obs": np.arange(4, dtype=np.float32)})
+    before = (t.size, t.slot_key.copy(), t.rate_limiter.inserts)
+    if match is None:
+        t.insert(item)
+        assert t.size == 2
+        return
+    with pytest.raises(ValueError, match=r"^Table 't': " + match):
+        t.insert(item)
+    assert (t.size, t.rate_limiter.inserts) == (before[0], before[2]) and np.array_equal(t.slot_key, before[1])
+    t.insert({"obs": np.ones(4, np.float32)})  # the slot a refused insert would have taken is free
+    t.insert({"obs": np.ones(4, np.float32)})
+    assert t.size == 3
+    assert sorted(t.storage.read(np.flatnonzero(t.slot_key >= 0))["obs"].sum(1).tolist()) == [4.0, 4.0, 6.0]
+
+
+def test_a_refused_insert_of_single_arrays_leaves_the_table_as_it_was():
+    t = Table("t", 2, Uniform(), Fifo(), MinSize(1))
+    t.insert_batch(np.zeros((2, 3), np.int64))
+    with pytest.raises(ValueError, match=r"^Table 't': item field 'item' is float64, which the table's int64 column"):
+        t.insert_batch(np.full((2, 3), 0.5))  # 0.5 would be stored as 0
+    with pytest.raises(ValueError, match=r"^Table 't': the table holds single arrays, this item is a dict"):
+        t.insert({"x": np.zeros(3)})
+    assert t.size == 2 and t.rate_limiter.inserts == 2

@@ -42,6 +42,11 @@ class Storage(Protocol):
         """Take the table's key map (read-only, as its selectors get it); the default needs none."""
         return None
 
+    def check(self, items: Any, n: int) -> None:
+        """Raise where `items` (`n` of them, batched) cannot be written: a table calls it before
+        it gives them slots, so a refused insert leaves the table as it was. The default takes all."""
+        return None
+
     @property
     def appending(self) -> StepStorage | None:
         """The StepStorage that takes appended steps, for a storage of steps (see step_storage);
@@ -133,13 +138,32 @@ class ItemStorage(Storage):
         sig: Signature = {k: (to_numpy(v).shape[1:], to_numpy(v).dtype) for k, v in fields.items()}
         self.columns = Columns(sig, (self.capacity,))
 
+    def check(self, items: Any, n: int) -> None:
+        """Items of other fields, of another shape than the table's first (NumPy would broadcast
+        a [n, 1] field into its [n, 4] rows) or of a dtype its columns would cast across kinds
+        (floats truncated into integers) are refused."""
+        if self.columns is None:
+            return  # the first insert sets the layout
+        if self.single == isinstance(items, dict):
+            raise ValueError(f"the table holds {'single arrays' if self.single else 'dicts of arrays'}, this item is "
+                             f"{'a dict' if self.single else 'not a dict'}")
+        fields = {"item": items} if self.single else items
+        if set(fields) != set(self.columns.signature):
+            raise ValueError(f"item fields {sorted(fields)} differ from the table's {sorted(self.columns.signature)}")
+        for name, value in fields.items():
+            shape, dtype = self.columns.signature[name]
+            array = to_numpy(value)
+            if array.shape != (n, *shape):
+                raise ValueError(f"item field {name!r} has shape {array.shape[1:]} per item, the table's is {shape} "
+                                 f"(the table's first insert set it)")
+            if not np.can_cast(array.dtype, dtype, "same_kind"):
+                raise ValueError(f"item field {name!r} is {array.dtype}, which the table's {dtype} column cannot hold")
+
     def write(self, slots: np.ndarray, items: Any) -> None:
         if self.columns is None:
             self._build(items)
         assert self.columns is not None
         fields = {"item": items} if self.single else items
-        if set(fields) != set(self.columns.signature):
-            raise ValueError(f"item fields {sorted(fields)} differ from the table's {sorted(self.columns.signature)}")
         for name, value in fields.items():
             self.columns.arrays[name][slots] = to_numpy(value)
 

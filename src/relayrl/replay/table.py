@@ -142,6 +142,10 @@ class Table:
             priorities = np.asarray(priorities, dtype=np.float64).reshape(-1)
             if priorities.size != n or not _valid_priorities(priorities):
                 raise ValueError(f"Table {self.name!r}: need {n} finite priorities >= 0")
+        try:
+            self.storage.check(items, n)
+        except ValueError as e:
+            raise ValueError(f"Table {self.name!r}: {e}") from None
         with self._cv:
             if n <= self.max_size and (not self.inserts_wait or self.rate_limiter.inserts_available() >= n):
                 keys = self._insert_locked(items, priorities, n)  # the usual case: no split, no wait
