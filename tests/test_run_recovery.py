@@ -415,6 +415,15 @@ def test_an_observation_that_stops_fitting_mid_run_is_one_line(tmp_path, cli, ve
 
 
 @pytest.mark.parametrize("vectorization", ["sync", "async"])
+def test_a_dict_observation_that_loses_a_key_mid_run_names_the_copy_and_method(tmp_path, cli, vectorization):
+    over = TINY + ["env.id=toy_envs:KeyLost", "env.kwargs={at = 45}", f"env.vectorization={vectorization}"]
+    r = cli(["train", "dqn-cartpole", "--run-dir", str(tmp_path / "run"), "--no-progress", *sets(over)])
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert ("relayrl: error: the observation from step() of env copy 0 is ['x']; observation_space is a Dict with "
+            "keys ['x', 'y']; the run stopped at env step 44") in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("vectorization", ["sync", "async"])
 @pytest.mark.parametrize("late, entry, fragment", [
     ("fraction", "", "step() of env copy 0 holds float32 values that are not whole numbers (such as "),
     ("negative", "", "step() of env copy 0 holds -"),

@@ -215,6 +215,24 @@ class ShapeShifts(BrokenAt):
         return obs, reward, terminated, truncated, info
 
 
+class KeyLost(BrokenAt):
+    """Countdown in a Dict {"x": its Box, "y": Discrete(2)} whose observations lose "y" from its
+    `at`-th step on."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__(**kwargs)
+        self.observation_space = gym.spaces.Dict({"x": self.observation_space, "y": gym.spaces.Discrete(2)})
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        obs, info = super().reset(seed=seed, options=options)
+        return {"x": obs, "y": 0}, info
+
+    def step(self, action):
+        self.steps += 1
+        obs, reward, terminated, truncated, info = Countdown.step(self, action)
+        return {"x": obs} if self.steps >= self.at else {"x": obs, "y": 1}, reward, terminated, truncated, info
+
+
 class CastsAt(BrokenAt):
     """Countdown in a uint8 Box (with `entry`, the entry of that name of a Dict) whose observations
     come as int64 (values it keeps) and, from its `at`-th step on, as `late`: "fraction" (float32

@@ -38,6 +38,10 @@ from relayrl.specs import (
 )
 from relayrl.types import EpisodeInfo, StepOutput
 
+# What writing an observation that does not fit its space raises (packing a Dict without one of
+# its keys: the pack's UserError, which names neither the copy nor the method)
+_UNFIT = (ValueError, TypeError, KeyError, OverflowError, UserError)
+
 
 def episode_info(keys: tuple[str, ...], num_envs: int, ended: list[int],
                  info_of: Callable[[int], dict]) -> EpisodeInfo | None:
@@ -351,7 +355,7 @@ class GymBatchEnv(BatchEnvBase):
             try:
                 obs.append(o if self._pack is None else self._pack(o))
                 self._check_shape(o)
-            except (ValueError, TypeError, KeyError, OverflowError) as e:
+            except _UNFIT as e:
                 raise self._unfit(o, i, "reset()", e) from None
         rows = np.stack(obs).astype(self._obs_dtype, copy=False)
         self._check_observations(rows, "reset")
@@ -405,7 +409,7 @@ class GymBatchEnv(BatchEnvBase):
                 next_obs[i] = o if pack is None else pack(o)
                 if int_obs is not None and getattr(o, "dtype", None) != int_obs and not self._kept(o):
                     self._check_cast(o, i, "step()")
-            except (ValueError, TypeError, KeyError, OverflowError) as e:  # observations that change mid-run
+            except _UNFIT as e:  # observations that change mid-run
                 raise self._unfit(o, i, "step()", e) from None
             try:
                 reward[i] = r
@@ -432,7 +436,7 @@ class GymBatchEnv(BatchEnvBase):
             try:
                 self._check_shape(o)
                 obs[i] = o if pack is None else pack(o)
-            except (ValueError, TypeError, KeyError, OverflowError) as e:
+            except _UNFIT as e:
                 raise self._unfit(o, i, "reset()", e) from None
         return obs, episode_info(self.info_keys, len(self.envs), ended, infos.__getitem__)
 
