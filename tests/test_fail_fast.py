@@ -388,15 +388,22 @@ def test_a_full_disk_under_metrics_or_tensorboard_is_one_line_and_keeps_the_chec
     assert [int(p.stem.split("-")[1]) for p in list_checkpoints(run / "checkpoints")] == [40]
 
 
-def test_tensorboards_writer_thread_stopped_by_a_full_disk_prints_nothing_of_its_own(capsys):
+@pytest.mark.parametrize("cause", ["full", "deleted"])
+def test_tensorboards_writer_thread_stopped_by_a_full_disk_prints_nothing_of_its_own(capsys, tmp_path, cause):
+    """Nor where its folder was deleted (the run directory removed mid-run): the run's next
+    write says either in one line."""
     import errno
     import threading
 
     from relayrl.training.process import writer_thread_quiet
 
+    gone = tmp_path / "run" / "tb" / "events.out.tfevents.1"
+
     class _AsyncWriterThread(threading.Thread):  # tensorboard's name for its writer thread
         def run(self):
-            raise OSError(errno.ENOSPC, "No space left on device")
+            if cause == "full":
+                raise OSError(errno.ENOSPC, "No space left on device")
+            open(gone, "ab")  # as its gfile appends; a missing file of an existing folder is not quiet
 
     seen = []
     before = threading.excepthook

@@ -3,6 +3,7 @@ resumes, total_steps is a hard end, and a bad --run-dir is one line."""
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -502,3 +503,30 @@ def test_a_run_keeps_the_policy_of_its_best_evaluation_as_it_was_evaluated(tmp_p
     config.eval.keep_best = False
     train(config, tmp_path / "off", progress=False)
     assert not (tmp_path / "off" / "policy" / "best.pt").exists()
+
+
+@pytest.mark.parametrize("then", ["deleted", "replaced"])
+def test_a_run_directory_deleted_mid_run_stops_the_run_writing_nothing_more(tmp_path, capfd, then):
+    """A user's `rm -rf` of a run under way (a callback here, at the first evaluation after step 0;
+    "replaced": another run started in the same place since): the run stops in one line and
+    recreates nothing (its checkpoint and policy writes made the folders again)."""
+    run = tmp_path / "run"
+
+    def remove(row):
+        if row.get("step") == 30:
+            shutil.rmtree(run)
+            if then == "replaced":
+                run.mkdir()
+                (run / ".lock").touch()
+                (run / "config.toml").write_text("# another run's\n")
+
+    with pytest.raises(UserError) as caught:
+        train(load_config("dqn-cartpole", TINY), run, progress=False, callbacks=[remove])
+    assert str(caught.value) == (f"the run directory {str(run)!r} was deleted (or replaced by another run's) while "
+                                 "this run trained: nothing more is written there; the run stopped at env step 30")
+    if then == "deleted":
+        assert not run.exists()
+    else:  # the other run's files as it left them
+        assert sorted(p.name for p in run.iterdir()) == [".lock", "config.toml"]
+        assert (run / "config.toml").read_text() == "# another run's\n"
+    assert "Traceback" not in capfd.readouterr().err

@@ -110,6 +110,8 @@ class DirectDriver:
                 state = self.trainer.train(c.agent, iterations, c.seed, device, c.train.torch_threads, on_iteration,
                                            lambda: bool(signals))
         except Exception as e:
+            if gone := self.rd.gone_line():  # whatever failed for it (TensorBoard's next write)
+                raise UserError(gone) from None
             if (full := atomic.unwritable(e, self.rd.root)) is not None:  # metrics.jsonl's or TensorBoard's write
                 raise UserError(f"{atomic.unwritable_line(full, self.rd.root)}; algo={c.algo!r} runs have no "
                                 "checkpoints: a new run starts over") from None
@@ -120,6 +122,8 @@ class DirectDriver:
             if not failing and not signals:
                 log_finished(tb, state["env_steps"])
             close_logs([log, tb], self.rd.root, failing=failing)
+        if gone := self.rd.gone_line():
+            raise UserError(gone)
         save_policy_file(state, self.rd.policy / "policy.pt")
         if signals:  # one in the last iteration too: the run is whole, and the caller's loop still stops
             interrupts.redeliver(signals[0], f"the run stopped at env step {state['env_steps']:,}; its policy and "

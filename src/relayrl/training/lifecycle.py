@@ -132,6 +132,8 @@ class RunCore:
         if due or self.finite.due():
             self.check_finite(p, weights=self.policy_saver in due or self.checkpointer in due)
         for trigger in due:  # the others would find nothing due
+            if gone := self.rd.gone_line():  # each writes into the run directory (an evaluation's callbacks run)
+                raise UserError(gone)
             trigger(p)
 
     def checkpoint_if_due(self) -> None:
@@ -335,6 +337,8 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
         # the cause, where it was collected: a NaN reward is named, not the TD error it made
         raise stop(core.with_encoder(core.finite.check() or str(e)), core.kept()) from None
     except Exception as e:  # the env's own exception, or a failure: what is kept is said with it
+        if gone := core.rd.gone_line():  # whatever failed for it (TensorBoard's next write): nothing is kept
+            raise UserError(f"{gone}; the run stopped at env step {core.env_steps():,}") from None
         _own_notes(e)
         # metrics.jsonl's or TensorBoard's write (the atomic files' say it themselves)
         failed = atomic.unwritable(e, core.rd.root)
@@ -453,6 +457,8 @@ def _save(core: RunCore, p: Progress, changed: bool) -> None:
     """The policy and a checkpoint at `p`. A checkpoint the loop wrote at `p` is written again
     only where the run `changed` since (its final evaluation's count): with a large replay
     the write takes a while and as much disk again."""
+    if gone := core.rd.gone_line():  # the saves would recreate its folders
+        raise UserError(gone)
     core.policy_saver.save(p)
     if core.config.train.checkpoint_interval > 0 and (changed or core.checkpointer.saved_progress != p):
         core.checkpointer.save(p)

@@ -4,8 +4,10 @@ default dtype, warning filters, the thread exception hook, and the device it run
 from __future__ import annotations
 
 import contextlib
+import os
 import warnings
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any, cast
 
 import torch
@@ -68,6 +70,14 @@ def caller_state_kept() -> Iterator[None]:
             torch.cuda.set_rng_state_all(cuda)
 
 
+def _folder_gone(error: BaseException | None) -> bool:
+    """Whether `error` is a FileNotFoundError for a file whose folder is gone (the run directory
+    deleted under the run, which the run's next write says in one line)."""
+    if not isinstance(error, FileNotFoundError) or not error.filename:
+        return False
+    return not Path(os.fsdecode(error.filename)).parent.exists()
+
+
 @contextlib.contextmanager
 def numpy_warnings_left_out() -> Iterator[None]:
     """NumPy's overflow and invalid-value warnings from relayrl's own code left out: an
@@ -95,7 +105,8 @@ def writer_thread_quiet() -> Iterator[None]:
     before = threading.excepthook
 
     def hook(args: Any) -> None:
-        if type(args.thread).__name__ == "_AsyncWriterThread" and atomic.unwritable(args.exc_value) is not None:
+        if type(args.thread).__name__ == "_AsyncWriterThread" and (atomic.unwritable(args.exc_value) is not None
+                                                                   or _folder_gone(args.exc_value)):
             return
         before(args)
 

@@ -64,6 +64,26 @@ class RunDir:
                             "wait for it, stop it, or choose another --run-dir") from None
         self._lock_fd = fd
 
+    def gone(self) -> bool:
+        """Whether the run directory was deleted, or replaced by another run's, while this process
+        held its lock (without one, as on Windows: whether it is missing): a run writing on would
+        recreate folders in it or write into another run's."""
+        if self._lock_fd is None:
+            return not self.root.is_dir()
+        try:
+            now = os.stat(self.lock_file)
+        except OSError:
+            return True
+        held = os.fstat(self._lock_fd)
+        return (now.st_ino, now.st_dev) != (held.st_ino, held.st_dev)
+
+    def gone_line(self) -> str | None:
+        """The line for a run directory that is `gone`; None where it is not."""
+        if not self.gone():
+            return None
+        return (f"the run directory {str(self.root)!r} was deleted (or replaced by another run's) while this run "
+                "trained: nothing more is written there")
+
     def release_lock(self) -> None:
         if self._lock_fd is not None:
             os.close(self._lock_fd)
