@@ -448,3 +448,46 @@ def test_a_policy_file_that_is_not_there_is_named_as_one(tmp_path, capsys):
     assert main(["eval", best]) == 2
     assert capsys.readouterr().err.strip() == (f"relayrl: error: policy file {best!r} does not exist (runs made "
                                                "before eval.keep_best have no policy/best.pt)")
+
+
+def test_text_the_output_encoding_cannot_spell_is_written_escaped():
+    """A run directory named in Chinese, printed to a file redirected under Windows' cp1252: the
+    run had trained and saved, then the command failed on its last line."""
+    import io
+
+    from relayrl.streams import PipeSafe
+
+    raw = io.BytesIO()
+    stream = PipeSafe(io.TextIOWrapper(raw, encoding="cp1252"))
+    stream.write("run directory: runs/\u8bad\u7ec3 caf\u00e9\n")
+    stream.flush()
+    assert raw.getvalue().decode("cp1252") == "run directory: runs/\\u8bad\\u7ec3 caf\u00e9\n"
+
+
+_CTRL_C_IN_TORCHS_IMPORT = """
+import os, signal, sys
+class CtrlC:  # a notebook's interrupt while torch.fx is being imported
+    def find_spec(self, name, path=None, target=None):
+        if name == "torch.fx":
+            sys.meta_path.remove(self)
+            os.kill(os.getpid(), signal.SIGINT)
+sys.meta_path.insert(0, CtrlC())
+import relayrl
+try:
+    relayrl.train
+except KeyboardInterrupt:
+    print("interrupted", file=sys.stderr)
+relayrl.train(relayrl.load_config("dqn-cartpole", ["train.total_steps=100", "train.initial_collect_steps=50",
+                                                   "eval.episodes=1"]), sys.argv[1], progress=False)
+print("trained")
+"""
+
+
+def test_ctrl_c_while_torch_is_first_imported_leaves_it_whole_for_the_next_call(cli_env, tmp_path):
+    """A notebook's first `relayrl.train` interrupted in torch's import: the next call segfaulted or
+    met 'partially initialized module torch'."""
+    r = subprocess.run([sys.executable, "-c", _CTRL_C_IN_TORCHS_IMPORT, str(tmp_path / "run")], capture_output=True,
+                       text=True, env=cli_env, timeout=120)
+    assert r.returncode == 0 and r.stdout == "trained\n", r.stderr
+    assert r.stderr.startswith("relayrl: stopping once the import of torch is complete (one cut short breaks it in "
+                               "this process)\ninterrupted\n"), r.stderr

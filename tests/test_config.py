@@ -5,7 +5,7 @@ import tomllib
 
 import pytest
 
-from relayrl.config import from_dict, load_toml, save_toml, to_dict
+from relayrl.config import config_toml, from_dict, load_toml, save_toml, to_dict
 from relayrl.errors import ConfigError
 from relayrl.presets import list_presets, load_config
 
@@ -362,8 +362,9 @@ def test_another_librarys_algorithm_names_relayrls_nearest_not_the_closest_spell
 
 def test_a_config_file_that_is_not_text_or_not_a_file_is_one_line(tmp_path):
     damaged = tmp_path / "config.toml"
-    damaged.write_bytes(b"\xff\xfe\x00seed = 0")  # a run's config.toml overwritten with binary bytes
-    with pytest.raises(ConfigError, match=r"^config file '.*config.toml' is not valid TOML: 'utf-8' codec can't "):
+    damaged.write_bytes(b"\x80\x00seed = 0")  # a run's config.toml overwritten with binary bytes
+    with pytest.raises(ConfigError, match=r"^config file '.*config.toml' is not UTF-8 text \(byte 0x80 on line 1\): "
+                                          r"TOML files are UTF-8; save it as UTF-8$"):
         load_config(str(damaged))
     (tmp_path / "dir.toml").mkdir()
     with pytest.raises(ConfigError, match=r"^config file '.*dir.toml' cannot be read: Is a directory$"):
@@ -582,3 +583,19 @@ def test_an_earlier_versions_renamed_key_reads_as_its_new_name():
     env = {"id": "relayrl/StatelessPendulum-v0"}
     assert from_dict({"algo": "bptt", "env": env, "agent": {"fused": False}}).agent.fast is False
     assert from_dict({"algo": "bptt", "env": env, "agent": {"fused": True}}).agent.fast is True
+
+
+@pytest.mark.parametrize("encoding", ["utf-8-sig", "utf-16", "utf-8"])
+def test_config_files_as_windows_tools_save_them_load(tmp_path, encoding):
+    """Notepad's "UTF-8 with BOM", PowerShell 5's `>` (UTF-16 with a BOM), CRLF line endings."""
+    text = config_toml(load_config("dqn-cartpole", ["seed=7"])) + "# caf\u00e9\n"
+    path = tmp_path / "config.toml"
+    path.write_bytes(text.replace("\n", "\r\n").encode(encoding))
+    assert load_config(str(path)) == load_config("dqn-cartpole", ["seed=7"])
+
+
+def test_a_config_file_in_another_encoding_names_its_line(tmp_path):
+    path = tmp_path / "config.toml"
+    path.write_bytes('algo = "dqn"\n\n# r\u00e9glages\nseed = 3\n'.encode("cp1252"))  # Windows' "ANSI"
+    with pytest.raises(ConfigError, match=r"^config file '.*config.toml' is not UTF-8 text \(byte 0xe9 on line 3\)"):
+        load_config(str(path))

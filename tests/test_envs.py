@@ -12,6 +12,7 @@ import time
 import traceback
 from collections.abc import Callable, Iterator
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
@@ -627,3 +628,41 @@ def test_a_failing_registered_id_names_its_newest_version(env_id, said, hint):
     from relayrl.envs.make import newer_hint
 
     assert newer_hint(env_id, ImportError(said)) == hint
+
+
+def test_a_spawned_worker_that_dies_before_it_answers_says_what_spawn_needs_of_a_script(monkeypatch):
+    """macOS and Windows start workers by spawn, which runs the main script's top level again: a
+    script without `if __name__ == "__main__":` ended in 'died (exit code 1)' alone."""
+    from relayrl.envs import vector
+
+    monkeypatch.setattr(vector, "START_METHOD", "spawn")
+    with pytest.raises(RuntimeError, match=r"env worker 0 \(copy 1\) died \(exit code 1\) before it made its env "
+                                           r"copies: a worker process started by spawn \(macOS, Windows\) runs the "
+                                           r"main script's top level again, so a script must start the run under "
+                                           r"`if __name__ == \"__main__\":`"):
+        make_env("toy_envs:DiesBeforeItStarts", 2, vectorization="async", num_workers=1)
+
+
+def test_an_id_registered_in_this_process_only_is_made_by_spawned_workers(monkeypatch):
+    """A notebook's `gymnasium.register`: a spawned worker's registry is fresh."""
+    from toy_envs import Countdown
+
+    from relayrl.envs import vector
+
+    monkeypatch.setattr(vector, "START_METHOD", "spawn")
+    gym.register("OnlyHere-v0", entry_point=Countdown, kwargs={"length": 5})
+    try:
+        env = make_env("OnlyHere-v0", 2, vectorization="async", num_workers=1)
+        try:
+            env.reset(seed=0)
+            assert env.step(torch.zeros(2, dtype=torch.int64)).next_obs[:, 0].tolist() == [1.0, 1.0]
+        finally:
+            env.close()
+    finally:
+        del gym.registry["OnlyHere-v0"]
+
+
+def test_why_async_envs_cannot_be_checkpointed_is_asked_of_their_workers():
+    with async_env("toy_envs:UnpicklableInWorker", 3) as env:
+        assert env.get_state() is None
+        assert env.state_problem() == "the env cannot be pickled mid-episode: cannot pickle the simulator's handle"

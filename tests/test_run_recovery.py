@@ -530,3 +530,16 @@ def test_a_run_directory_deleted_mid_run_stops_the_run_writing_nothing_more(tmp_
         assert sorted(p.name for p in run.iterdir()) == [".lock", "config.toml"]
         assert (run / "config.toml").read_text() == "# another run's\n"
     assert "Traceback" not in capfd.readouterr().err
+
+
+def test_a_run_directory_too_long_for_the_files_a_run_writes_is_one_line_before_the_run(tmp_path):
+    """Near PATH_MAX the directory could be made but TensorBoard's log file could not: two
+    tracebacks (its writer thread's too) and a half-made run directory."""
+    limit = os.pathconf(tmp_path, "PC_PATH_MAX")
+    run = tmp_path / "d"
+    while len(str(run)) < limit - 40:
+        run = run / ("d" * min(200, limit - 40 - len(str(run))))
+    with pytest.raises(UserError, match=rf"^--run-dir is {len(str(run)):,} characters long: the files a run writes "
+                                        rf"in it .* would pass the system's limit of {limit:,} characters for a path"):
+        train(load_config("dqn-cartpole", TINY), run, progress=False)
+    assert not (tmp_path / "d").exists()

@@ -734,3 +734,22 @@ class SlowStart(gym.Env):
 
     def step(self, action):
         return np.zeros(1, np.float32), 0.0, False, False, {}
+
+
+class DiesBeforeItStarts(Countdown):
+    """Countdown whose process dies as it makes the env in a worker process (as a spawned worker
+    re-running an unguarded script's top level does, before its first answer)."""
+
+    def __init__(self, **kwargs) -> None:
+        if multiprocessing.parent_process() is not None:
+            os._exit(1)
+        super().__init__(**kwargs)
+
+
+class UnpicklableInWorker(Countdown):
+    """Countdown that cannot be pickled in a worker process (a simulator handle of its own there)."""
+
+    def __getstate__(self):
+        if multiprocessing.parent_process() is not None:
+            raise TypeError("cannot pickle the simulator's handle")
+        return self.__dict__

@@ -57,8 +57,16 @@ def __getattr__(name: str) -> Any:
     # Lazy imports keep `relayrl presets` and error messages fast (no torch import needed).
     if name in _LAZY:
         import importlib
+        import sys
 
-        return getattr(importlib.import_module(_LAZY[name]), name)
+        if "torch" in sys.modules:
+            return getattr(importlib.import_module(_LAZY[name]), name)
+        from relayrl import interrupts
+
+        # A notebook's interrupt inside torch's first import leaves torch half-made for the rest of
+        # the process (the next call segfaults, or misses torch._utils): it waits for the import.
+        with interrupts.deferred("the import of torch is complete (one cut short breaks it in this process)"):
+            return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'relayrl' has no attribute {name!r}")
 
 

@@ -6,6 +6,7 @@ closest key), from TOML, --set or an assignment in Python (`config_fields.Sectio
 
 from __future__ import annotations
 
+import codecs
 import contextlib
 import copy
 import dataclasses
@@ -469,13 +470,29 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
 def load_toml(path: str | Path) -> dict[str, Any]:
     try:
         with open(path, "rb") as f:
-            return tomllib.load(f)
+            data = f.read()
     except FileNotFoundError:
         raise ConfigError(f"config file {str(path)!r} does not exist") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:  # a damaged file: its bytes need not be UTF-8
-        raise ConfigError(f"config file {str(path)!r} is not valid TOML: {e}") from None
     except OSError as e:  # a folder of that name, a file this user may not read
         raise ConfigError(f"config file {str(path)!r} cannot be read: {e.strerror or e}") from None
+    try:
+        return tomllib.loads(_toml_text(data))
+    except UnicodeDecodeError as e:  # an editor's other encoding (Windows' "ANSI"), or a damaged file
+        line = data[:e.start].count(b"\n") + 1
+        raise ConfigError(f"config file {str(path)!r} is not UTF-8 text (byte 0x{data[e.start]:02x} on line {line}): "
+                          "TOML files are UTF-8; save it as UTF-8") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"config file {str(path)!r} is not valid TOML: {e}") from None
+
+
+def _toml_text(data: bytes) -> str:
+    """A TOML file's text. Besides plain UTF-8, what Windows' tools write: UTF-8 after a byte-order
+    mark (Notepad's "UTF-8 with BOM"), and UTF-16 after one (PowerShell 5's `>`)."""
+    if data.startswith(codecs.BOM_UTF8):
+        return data[len(codecs.BOM_UTF8):].decode("utf-8")
+    if data.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+        return data.decode("utf-16")
+    return data.decode("utf-8")
 
 
 def config_toml(config: Config) -> str:

@@ -50,6 +50,11 @@ class BatchedEnv(Protocol):
         be saved (simulator handles), and a resumed run starts new episodes."""
         return None
 
+    def state_problem(self) -> str | None:
+        """Why `get_state` gives None, where the env knows (a copy that cannot be pickled says
+        why); None otherwise."""
+        return None
+
     def set_state(self, states: list[bytes]) -> None:
         """Restore what `get_state` returned. Only called with a state `get_state` gave."""
         # The name first: mypy reads a body that only raises NotImplementedError as abstract, and

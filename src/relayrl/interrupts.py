@@ -49,10 +49,11 @@ def _handlers() -> dict[int, Any] | None:
 
 
 @contextlib.contextmanager
-def deferred() -> Iterator[None]:
+def deferred(until: str = "the file being written is complete") -> Iterator[None]:
     """SIGINT, SIGTERM and SIGHUP received inside wait for its end, then act as they would have. An
     interrupt raised inside a writer (torch's zip writer) made it fail with an error of its own
-    instead, and the clean stop became a traceback. Only the main thread handles signals."""
+    instead, and the clean stop became a traceback. Only the main thread handles signals.
+    `until`: what the stop waits for, as the line printed at the first signal says."""
     previous = _handlers()
     if previous is None:
         yield
@@ -62,7 +63,7 @@ def deferred() -> Iterator[None]:
     def hold(signum: int, frame: object) -> None:
         heard(signum)
         if not _Deferring.said:  # a large checkpoint takes a while: say why the stop waits, once
-            print("relayrl: stopping once the file being written is complete", file=sys.stderr, flush=True)
+            print(f"relayrl: stopping once {until}", file=sys.stderr, flush=True)
             _Deferring.said = True
         pending.append(signum)
 

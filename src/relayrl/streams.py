@@ -2,7 +2,9 @@
 closes), `... | tee log` stopped by Ctrl-C (the terminal's SIGINT ends tee too), a closed
 terminal. A write then fails with EPIPE or EIO, and a run would die at its next progress line,
 before the checkpoint a stop writes. `pipe_safe` points such a stream's file descriptor at
-/dev/null at the first failure and goes on: no one can read those lines any more."""
+/dev/null at the first failure and goes on: no one can read those lines any more. Text its
+encoding cannot spell (a run directory's name in another script, redirected on Windows) is
+written escaped, as Python writes it to stderr, not raised after the work is done."""
 
 from __future__ import annotations
 
@@ -28,6 +30,9 @@ class PipeSafe:
         except OSError as e:
             self._drop_reader(e)
             return self.stream.write(text)
+        except UnicodeEncodeError:  # a path the stream's code page cannot spell (Windows' cp1252, redirected)
+            encoding = self.stream.encoding or "utf-8"
+            return self.stream.write(text.encode(encoding, "backslashreplace").decode(encoding))
 
     def flush(self) -> None:
         try:

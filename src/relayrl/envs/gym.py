@@ -99,7 +99,11 @@ def _snapshot(env: gym.Env) -> tuple[bytes | None, str | None]:
     try:
         return pickle.dumps(env), None
     except Exception as e:  # pickling runs arbitrary user code: any failure means "not checkpointable"
-        return None, f"the env cannot be pickled mid-episode: {one_line(str(e) or type(e).__name__, 160)}"
+        why = f"the env cannot be pickled mid-episode: {one_line(str(e) or type(e).__name__, 160)}"
+        if "__main__" in str(e):  # a worker process started by spawn rebuilt the script's class by value
+            why += ("; a class defined in the main script or a notebook is not the same object in a worker "
+                    "process started by spawn (macOS, Windows): define the env in a module of its own")
+        return None, why
 
 
 class BatchEnvBase(BatchedEnv):

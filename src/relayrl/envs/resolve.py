@@ -131,12 +131,17 @@ def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, 
     given = dict(kwargs)  # the user's env.kwargs, without the time limit added below
     if max_episode_steps > 0:
         kwargs = {**kwargs, "max_episode_steps": max_episode_steps}
+    # An id the user's script or notebook registered (`gymnasium.register`) is in this process's
+    # registry only: a worker process started by spawn (macOS, Windows) has a fresh one.
+    known = gym.registry.get(env_id)
 
     def make_registered() -> gym.Env:
         # Again in a worker process that starts with a fresh registry.
         if module:
             importlib.import_module(module)
         register_on_demand(env_id)
+        if env_id not in gym.registry and known is not None:
+            gym.registry[env_id] = known
         # disable_env_checker: the passive checker costs a measurable share of a tiny env's step
         # and only warns. No OrderEnforcing either (as for a user's class above): it only raises
         # on a step or render before the first reset, which the batched envs never do, and it

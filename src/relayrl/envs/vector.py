@@ -63,6 +63,9 @@ from relayrl.types import EpisodeInfo, StepOutput
 # some simulators take many seconds to start; without a limit a worker that never answers would
 # make the run wait without end.
 WORKER_START_S = 300.0
+# fork on Linux: workers start in milliseconds and inherit what they need. Elsewhere spawn: macOS
+# has fork, but its system libraries are not safe to use after one.
+START_METHOD = "fork" if sys.platform.startswith("linux") else "spawn"
 
 class AsyncGymBatchEnv(BatchEnvBase):
     """`len(env_fns)` copies: the first slice stepped in this process, the others by
@@ -87,9 +90,7 @@ class AsyncGymBatchEnv(BatchEnvBase):
             # whatever the dtype of the actions given (an int or float64 Box included).
             space_dtype = getattr(first.action_space, "dtype", None)
             act_dtype = np.dtype(space_dtype if space_dtype is not None else numpy_dtype(self.action_spec))
-            # fork on Linux: workers start in milliseconds and inherit what they need. Elsewhere
-            # spawn: macOS has fork, but its system libraries are not safe to use after one.
-            ctx = mp.get_context("fork") if sys.platform.startswith("linux") else mp.get_context("spawn")
+            ctx = mp.get_context("spawn") if START_METHOD == "spawn" else mp.get_context("fork")
             # actions in the env's own shape, as `_actions` hands them on
             act_shape = tuple(self.action_spec.shape) if self._env_action_shape is None else self._env_action_shape
             b, obs = self.num_envs, ((self.num_envs, *self.observation_spec.shape), np.dtype(self._obs_dtype))
@@ -220,6 +221,12 @@ class AsyncGymBatchEnv(BatchEnvBase):
         """Marks the pipes unusable because worker w died; the message."""
         self._procs[w].join(timeout=2)  # reaped, so its exit code is known
         self._broken = f"env worker {w} ({self._copies(w)}) died (exit code {self._procs[w].exitcode})"
+        if self._seq == 0 and START_METHOD == "spawn":  # before its first answer
+            # A spawned worker runs the main script's top level again first: one that starts the
+            # run unguarded starts another run there, which multiprocessing refuses, above.
+            self._broken += (" before it made its env copies: a worker process started by spawn (macOS, Windows) "
+                             "runs the main script's top level again, so a script must start the run under "
+                             "`if __name__ == \"__main__\":`; its own error is printed above")
         return self._broken
 
     def _copies(self, w: int) -> str:
@@ -292,6 +299,10 @@ class AsyncGymBatchEnv(BatchEnvBase):
         """As `GymBatchEnv.get_state`: this process's copies, then each worker's, pickled there."""
         parts = [self._local.get_state(), *self._command("get_state")]
         return None if any(p is None for p in parts) else [s for p in parts for s in p]
+
+    def state_problem(self) -> str | None:
+        """As `GymBatchEnv.state_problem`: this process's copies first, then each worker's."""
+        return self._local.state_problem() or next((why for why in self._command("state_problem") if why), None)
 
     def set_state(self, states: list[bytes]) -> None:
         self._local.set_state(states[:self._k])

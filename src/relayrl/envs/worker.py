@@ -87,7 +87,7 @@ LENGTH = struct.Struct("!i")  # multiprocessing's Connection length header
 
 def serve(conn: Connection, fns_pickled: bytes, lo: int, hi: int, raw: dict[str, Any], layout: SharedLayout,
             time_limit_terminates: bool, rng_seed: int) -> None:
-    """Serve commands until "close": step, reset, info_keys, get_state, set_state."""
+    """Serve commands until "close": step, reset, info_keys, get_state, state_problem, set_state."""
     for end in list(MAIN_ENDS):  # see MAIN_ENDS
         end.close()
     # Ctrl-C reaches the terminal's whole process group: the main process reports it and closes
@@ -175,6 +175,8 @@ def _serve(env: GymBatchEnv, a: dict[str, np.ndarray], lo: int, hi: int, cmd: st
         env.info_keys = arg
     elif cmd == "get_state":
         return env.get_state()
+    elif cmd == "state_problem":
+        return env.state_problem()
     elif cmd == "set_state":
         env.set_state(arg)
     elif cmd != "sync":  # "sync" only answers: see AsyncGymBatchEnv._resync

@@ -15,7 +15,6 @@ from relayrl.agents.registry import algorithm
 from relayrl.config import Config, to_dict
 from relayrl.console import say
 from relayrl.envs import make_env
-from relayrl.envs.gym import GymBatchEnv
 from relayrl.envs.stateless.adapter import StatelessBatchEnv
 from relayrl.metrics import EnvironmentSteps, EpisodeStats
 from relayrl.policies import RandomPolicy
@@ -272,12 +271,10 @@ class LocalDriver:
                 self._say_no_env_state("the resumed run starts new episodes")
 
     def _say_no_env_state(self, consequence: str) -> None:
-        """Once a process: checkpoints hold no env state, with the env copies' own reason where
-        they step in this process (a wrapper's lambda, an EzPickle env; worker processes' copies
-        are not asked)."""
+        """Once a process: checkpoints hold no env state, with the env copies' own reason (a
+        wrapper's lambda, an EzPickle env) where the env gives one."""
         self.env_state_said = True
-        why = self.env.state_problem() if isinstance(self.env, GymBatchEnv) else None
-        why = why or "the env cannot be pickled mid-episode, as MuJoCo, Box2D and Atari envs"
+        why = self.env.state_problem() or "the env cannot be pickled mid-episode, as MuJoCo, Box2D and Atari envs"
         self.core.say(f"checkpoints hold no env state ({why}): {consequence}")
 
     def _env_settings_changed(self, state: dict[str, Any]) -> list[str]:

@@ -6,6 +6,7 @@ import json
 import math
 import os
 import shutil
+import socket
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +33,19 @@ def checkpoint_step(path: Path) -> int:
     match = CHECKPOINT_NAME.match(path.name)
     assert match is not None, path
     return int(match[1])
+
+
+# The longest path a run writes below its directory, less the host name TensorBoard puts in it
+# (`tb/events.out.tfevents.<time>.<host>.<pid>.<n>`; checkpoints' temp names are shorter)
+_LONGEST_NAME = "tb/events.out.tfevents.1234567890..4194304.99"
+
+
+def _path_limit(folder: Path) -> int | None:
+    """The longest path the system takes in `folder` (PATH_MAX); None where it does not say."""
+    try:
+        return os.pathconf(folder, "PC_PATH_MAX")
+    except (AttributeError, ValueError, OSError):  # Windows has no pathconf
+        return None
 
 
 class RunDir:
@@ -100,6 +114,12 @@ class RunDir:
             raise UserError(f"--run-dir {str(self.root)!r}: {str(existing)!r} is a file, not a directory")
         if not os.access(existing, os.W_OK | os.X_OK):
             raise UserError(f"--run-dir {str(self.root)!r}: no permission to write in {str(existing)!r}")
+        longest = len(str(self.root.absolute() / _LONGEST_NAME)) + len(socket.gethostname())
+        limit = _path_limit(existing)
+        if limit is not None and longest >= limit:
+            raise UserError(f"--run-dir is {len(str(self.root.absolute())):,} characters long: the files a run "
+                            f"writes in it (its TensorBoard log's, with this machine's name) would pass the "
+                            f"system's limit of {limit:,} characters for a path; choose a shorter one")
         for path, folder in ((self.config, False), (self.metrics, False), (self.tb, True), (self.checkpoints, True),
                              (self.policy, True)):
             if path.exists() and path.is_dir() != folder:
