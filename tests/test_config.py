@@ -432,6 +432,8 @@ def test_every_validation_message_names_the_one_key_that_is_wrong(preset):
     ("dqn-cartpole", "agent.lr=0", "agent.lr=0.0 is not valid; it must be > 0"),
     ("dqn-cartpole", "agent.gamma=2", "agent.gamma=2.0 is not valid; it must be in [0, 1]"),
     ("ppo-cartpole", "agent.clip_range=0", "agent.clip_range=0.0 is not valid; it must be > 0"),
+    ("dqn-cartpole", "replay.importance_exponent=2", "replay.importance_exponent=2.0 is not valid; it must be in "
+                                                     "[0, 1] (it rises to 1 by the run's end)"),
     ("sac-pendulum", "agent.log_std_min=5", "agent.log_std_min=5.0 is not valid; it must be below agent.log_std_max"),
 ])
 def test_combined_checks_are_split_per_key(preset, override, message):
@@ -599,3 +601,29 @@ def test_a_config_file_in_another_encoding_names_its_line(tmp_path):
     path.write_bytes('algo = "dqn"\n\n# r\u00e9glages\nseed = 3\n'.encode("cp1252"))  # Windows' "ANSI"
     with pytest.raises(ConfigError, match=r"^config file '.*config.toml' is not UTF-8 text \(byte 0xe9 on line 3\)"):
         load_config(str(path))
+
+
+@pytest.mark.parametrize("name, hint", [
+    ("dqn-acrobot", "; to train dqn on Acrobot-v1: `relayrl train dqn --set env.id=Acrobot-v1` (valid: "),
+    ("PPO-mountaincarcontinuous", "; to train ppo on MountainCarContinuous-v0: `relayrl train ppo --set "
+                                  "env.id=MountainCarContinuous-v0`"),
+    ("Acrobot", "; Acrobot-v1 is an env: `relayrl train ALGO --set env.id=Acrobot-v1` trains an algorithm's own "
+                "defaults on it (dqn, ppo, sac) (valid: "),
+    ("sac-pendulm", "; did you mean 'sac-pendulum'? (valid: "),
+])
+def test_a_preset_name_made_of_an_algorithm_and_an_env_says_how_to_train_that(name, hint):
+    """`dqn-acrobot` was answered "did you mean 'ddqn-mario'?"."""
+    with pytest.raises(ConfigError) as caught:
+        load_config(name)
+    assert str(caught.value).startswith(f"unknown preset {name!r}{hint}")
+
+
+@pytest.mark.parametrize("algo", ["dqn", "ppo", "sac"])
+def test_a_run_that_takes_no_gradient_step_says_so_at_its_start(tmp_path, algo):
+    """A sweep's range that includes train.gradient_steps=0 trained runs that never learnt, silently."""
+    from relayrl.training.notes import start_notes
+
+    said = "train.gradient_steps=0: the run collects and evaluates only; it takes no gradient step"
+    notes = start_notes(load_config(algo, ["train.gradient_steps=0"]), tmp_path / "config.toml", False)
+    assert any(n.startswith(said) for n in notes)
+    assert not any(n.startswith(said) for n in start_notes(load_config(algo), tmp_path / "config.toml", False))

@@ -3,6 +3,7 @@ learning-rate schedule, dir(relayrl)."""
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from pathlib import Path
@@ -15,6 +16,7 @@ from space_envs import Spaces
 from toy_envs import Countdown, Repeated
 
 import relayrl
+from relayrl.config import load_toml
 from relayrl.errors import UserError
 from relayrl.plot import seed_groups
 from relayrl.training.run_dir import RunDir
@@ -508,6 +510,38 @@ def test_a_seed_groups_curve_says_where_it_ends_early_and_when_runs_share_a_seed
     assert "s1, copy share a seed (1, 1): their band is not a spread over seeds" in capsys.readouterr().err
 
 
+def test_a_nested_sweep_folder_plots_and_partial_env_factories_are_told_apart(tmp_path, capsys):
+    """`relayrl plot nest` of nest/lr1/s0 ... said 'not a relayrl run directory'; runs of
+    functools.partial(Env, length=L) were recorded alike and drawn as one setting's seeds."""
+    import functools
+    import shutil
+
+    from toy_envs import Countdown
+
+    from relayrl.cli import main
+
+    for length in (2, 4):
+        relayrl.train({**TINY, "seed": length}, tmp_path / f"len{length}", progress=False,
+                      env=functools.partial(Countdown, length=length))
+    saved = [load_toml(tmp_path / f"len{n}" / "config.toml")["env"]["id"] for n in (2, 4)]
+    assert saved == ["toy_envs:<partial(Countdown, length=2)>", "toy_envs:<partial(Countdown, length=4)>"]
+    assert seed_groups([RunDir(tmp_path / "len2"), RunDir(tmp_path / "len4")]) == [[0], [1]]
+    nest = tmp_path / "nest"
+    for lr, run in (("lr1", "len2"), ("lr2", "len4")):
+        shutil.copytree(tmp_path / run, nest / lr / "s0")
+    capsys.readouterr()
+    assert main(["plot", str(nest)]) == 0 and capsys.readouterr().out.strip() == str(nest / "compare.png")
+    for lr in ("lr1", "lr2"):  # two seeds of one lambda: drawn as one setting, said to be a guess
+        shutil.copytree(tmp_path / "len2", nest / lr / "s1")
+        config = nest / lr / "s1" / "config.toml"
+        config.write_text(config.read_text().replace("<partial(Countdown, length=2)>", "<lambda>")
+                          .replace("seed = 2", "seed = 9"))
+        (nest / lr / "s0" / "config.toml").write_text(config.read_text().replace("seed = 9", "seed = 8"))
+    relayrl.plot_run(nest)
+    assert ("lr1/s0, lr1/s1, lr2/s0, lr2/s1 were trained on env factories given in Python "
+            "(env.id='toy_envs:<lambda>') that their config.toml cannot tell apart") in capsys.readouterr().err
+
+
 def test_the_progress_bar_ends_at_the_last_step_with_the_last_evaluation(tmp_path, monkeypatch):
     import io
 
@@ -960,6 +994,19 @@ def test_a_run_result_gives_every_evaluation_and_the_best_for_a_sweeps_objective
     rows = RunDir(tmp_path / "r").read_metrics()
     assert result.evaluations == rows and result.final == rows[-1]
     assert result.best["average_return"] == max(r["average_return"] for r in rows)
+    best = relayrl.load_policy(tmp_path / "r" / "policy" / "best.pt")
+    assert best.env_steps == result.best["step"]
+
+
+def test_the_best_row_of_equal_returns_is_the_one_best_pt_keeps(tmp_path):
+    """Returns tie at a capped env's maximum: `result.best` named the latest, best.pt the first."""
+    from relayrl.training.lifecycle import RunResult
+
+    (tmp_path / "config.toml").write_text("")
+    rows = [{"step": 0, "average_return": 9.0}, {"step": 10, "average_return": 500.0},
+            {"step": 20, "average_return": 500.0}]
+    (tmp_path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert RunResult(tmp_path, rows[-1]).best["step"] == 10
     assert issubclass(relayrl.ConfigError, relayrl.UserError) and relayrl.NonFiniteError is not None
     with pytest.raises(relayrl.UserError):
         relayrl.train({**TINY, "agent": {"lr": -1}}, tmp_path / "bad", progress=False)
@@ -988,3 +1035,26 @@ def test_a_quiet_run_says_nothing_and_leaves_other_threads_output(tmp_path, caps
     thread.join()
     assert not errors and sys.stderr is before
     assert "eval return" in capsys.readouterr().err  # the other thread's lines
+
+
+def test_a_bad_config_fails_at_once_while_another_threads_run_trains(tmp_path):
+    """Optuna's n_jobs > 1: a trial's ConfigError waited for the other thread's run to end."""
+    import threading
+
+    started, release = threading.Event(), threading.Event()
+
+    def hold(row):  # the other run, held inside its first evaluation until the bad trial has failed
+        started.set()
+        release.wait(timeout=20)
+
+    other = threading.Thread(target=relayrl.train, args=(TINY, tmp_path / "other"),
+                             kwargs={"progress": False, "callbacks": [hold]})
+    other.start()
+    try:
+        assert started.wait(timeout=60)
+        with pytest.raises(relayrl.ConfigError, match="agent.lr=-1"):
+            relayrl.train({**TINY, "agent": {"lr": -1}}, tmp_path / "bad", progress=False)
+        assert other.is_alive()  # it failed while the other run was still held, not after it
+    finally:
+        release.set()
+        other.join(timeout=60)

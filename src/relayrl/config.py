@@ -70,7 +70,7 @@ class TrainConfig(Section):
     total_steps: int = 50_000  # env steps
     initial_collect_steps: int = 1_000  # env steps with the random policy before learning
     collect_steps: int = 1  # env steps per iteration
-    gradient_steps: int = 1  # gradient steps per iteration
+    gradient_steps: int = 1  # gradient steps per iteration (0: collect only, no learning)
     checkpoint_interval: int = 10_000  # env steps; 0 disables
     checkpoint_replay: bool = True  # false: checkpoints leave the replay out (huge tables)
     checkpoint_keep: int = 2  # the newest checkpoints kept; 0 keeps every one (each holds the replay)

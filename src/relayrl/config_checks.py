@@ -73,8 +73,8 @@ def check_config(config: Config, defaults_of: Callable[[str], Config]) -> None:
     if r.storage == "memmap" and r.device not in ("auto", "numpy"):
         raise ConfigError(f"replay.device={r.device!r} with replay.storage='memmap': memmap tables live on "
                           "disk; use replay.device=numpy (or auto)")
-    r.require(">= 0", "priority_exponent", "importance_exponent", "priority_eps", "samples_per_insert",
-              "error_buffer", "min_size_to_sample")
+    r.require(">= 0", "priority_exponent", "priority_eps", "samples_per_insert", "error_buffer", "min_size_to_sample")
+    r.require("in [0, 1]", "importance_exponent", note=" (it rises to 1 by the run's end)")
     if r.samples_per_insert > 0 and config.train.gradient_steps == 0:  # the ratio sets the gradient steps
         raise ConfigError(f"replay.samples_per_insert={r.samples_per_insert:g} sets how many gradient steps follow "
                           "each collect iteration, but train.gradient_steps=0 asks for none (collect only): set "

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import functools
 import inspect
 import itertools
 import os
@@ -23,7 +24,7 @@ from relayrl import console
 from relayrl.agents.registry import ALGORITHMS, Algorithm, algorithm, ray_algorithms
 from relayrl.config import Config, algo_defaults, dotted, from_dict, load_toml, parse_override, save_toml, to_dict
 from relayrl.envs.resolve import names_python_factory
-from relayrl.errors import CheckpointError, UserError
+from relayrl.errors import CheckpointError, UserError, one_line
 from relayrl.presets import load_config
 from relayrl.training.direct import DirectDriver
 from relayrl.training.lifecycle import RunResult
@@ -66,6 +67,10 @@ def factory_env_id(factory: Callable[[], Any]) -> str:
     """The env.id a factory given in Python is recorded as: `module:name` for a module-level
     function or class, which a later `relayrl eval` or resume can import; `module:<...>` for
     anything else, which no import finds, so those commands ask for the same env=."""
+    if isinstance(factory, functools.partial):  # a sweep over an env's arguments: each run's are its own
+        given = [repr(a) for a in factory.args] + [f"{k}={v!r}" for k, v in factory.keywords.items()]
+        module, _, func = factory_env_id(factory.func).partition(":")
+        return f"{module}:<partial({one_line(', '.join([func.strip('<>'), *given]), 200)})>"
     module = getattr(factory, "__module__", None) or type(factory).__module__
     name: str | None = getattr(factory, "__qualname__", None)
     if isinstance(factory, (types.FunctionType, type)) and name is not None and name.isidentifier():
@@ -240,14 +245,18 @@ def train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Pa
     to stderr. `quiet=True` keeps them all back too (a sweep's trials; what goes wrong is still
     raised), in this thread only: other threads' output, Optuna's with n_jobs > 1, stays.
     """
-    # one run at a time from the run directory's checks on: another thread's run may be writing it
-    with console.quiet(bool(quiet)), _one_run_at_a_time():
-        return _train(config, run_dir, resume, progress and not quiet, env, overwrite, callbacks)
+    # The config is checked first: a sweep's bad trial fails at once, not after another thread's run.
+    # One run at a time from the run directory's checks on: another thread's run may be writing it.
+    with console.quiet(bool(quiet)):
+        checked, taken = _checked_config(config, run_dir, resume, env, callbacks)
+        with _one_run_at_a_time():
+            return _train(checked, run_dir, resume, progress and not quiet, env, overwrite, taken)
 
 
-def _train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Path | None, resume: bool,
-           progress: bool, env: Callable[[], Any] | None, overwrite: bool,
-           callbacks: Sequence[Callback] | None) -> RunResult:
+def _checked_config(config: Config | dict[str, Any] | str | Path | None, run_dir: str | Path | None, resume: bool,
+                    env: Callable[[], Any] | None,
+                    callbacks: Sequence[Callback] | None) -> tuple[Config, list[Callback]]:
+    """The run's config (a copy, checked, an env factory recorded in it) and its callbacks, checked."""
     if run_dir is not None and (not isinstance(run_dir, str | os.PathLike) or not str(run_dir).strip()):
         raise UserError(f"run_dir={run_dir!r} is not a folder's path: give a str or a Path (None: a new folder "
                         "under ./runs)")
@@ -277,6 +286,12 @@ def _train(config: Config | dict[str, Any] | str | Path | None, run_dir: str | P
         raise UserError(f"env.id={config.env.id!r} names an env made in the script itself (a lambda, a local "
                         "function or __main__), which Ray's workers cannot import: put it in a module beside the "
                         "script and name it in env.id as module:name")
+    return config, callbacks
+
+
+def _train(config: Config, run_dir: str | Path | None, resume: bool, progress: bool, env: Callable[[], Any] | None,
+           overwrite: bool, callbacks: list[Callback]) -> RunResult:
+    entry = algorithm(config.algo)
     with contextlib.ExitStack() as stack:  # a folder of default_run_dir's goes again where the run wrote nothing
         rd = RunDir(run_dir if run_dir is not None else stack.enter_context(default_run_dir(config)))
         rd.check_writable()

@@ -31,7 +31,7 @@ def plot_run(run_dir: str | Path | Sequence[str | Path], out: str | Path | None 
         return _compare(_given_runs(run_dir), out)
     rd = RunDir(run_dir)
     if rd.root.is_dir() and not rd.config.exists() and (inside := _runs_inside(rd.root)):  # a sweep's folder
-        return _compare(inside, out)
+        return _compare(inside, out if out is not None else rd.root / "compare.png", base=rd.root)
     if out is not None and Path(out).resolve() != rd.root.resolve() and RunDir(out).metrics.is_file():
         # plot_run(a, b), as `relayrl plot A B` is written: b's returns.png was replaced by a's plot
         raise UserError(f"out={str(out)!r} is another run's directory: to plot several runs in one panel give "
@@ -62,9 +62,18 @@ def plot_run(run_dir: str | Path | Sequence[str | Path], out: str | Path | None 
     return _save(fig, output_path(out, rd.root / "returns.png"))
 
 
-def _runs_inside(folder: Path) -> list[RunDir]:
-    """The run directories directly inside `folder`, by name."""
-    return [RunDir(d) for d in sorted(folder.iterdir()) if d.is_dir() and (d / "config.toml").is_file()]
+def _runs_inside(folder: Path, depth: int = 3) -> list[RunDir]:
+    """The run directories inside `folder`, by path: a sweep's `lr1/seed0` too, `depth` levels
+    down at most (a run directory's own folders are not searched)."""
+    found: list[RunDir] = []
+    for d in sorted(folder.iterdir()):
+        if not d.is_dir():
+            continue
+        if (d / "config.toml").is_file():
+            found.append(RunDir(d))
+        elif depth > 1:
+            found += _runs_inside(d, depth - 1)
+    return found
 
 
 # Files a plot is written as: `relayrl plot sweep/*` also matches the compare.png plotted before.
@@ -84,8 +93,9 @@ def _given_runs(given: Sequence[str | Path]) -> list[RunDir]:
     return list(runs.values())
 
 
-def _compare(runs: list[RunDir], out: str | Path | None) -> Path:
-    """One panel: each run's evaluation returns against env steps."""
+def _compare(runs: list[RunDir], out: str | Path | None, base: Path | None = None) -> Path:
+    """One panel: each run's evaluation returns against env steps; named by their paths below
+    `base` (a sweep's folder) where given, else by their folders' names."""
     if not runs:
         raise UserError("no run directory given: give one or more")
     for rd in runs:
@@ -101,7 +111,7 @@ def _compare(runs: list[RunDir], out: str | Path | None) -> Path:
     parents = {rd.root.resolve().parent for rd in runs}
     if out is None and len(parents) > 1:
         raise UserError("the run directories are in different folders: give --out PATH for the plot")
-    names = [rd.root.name for rd in runs]
+    names = [rd.root.relative_to(base).as_posix() if base is not None else rd.root.name for rd in runs]
     if len(set(names)) < len(names):  # the same name in several folders: their paths tell them apart
         names = [str(rd.root) for rd in runs]
     saved = [_saved_toml(rd) for rd in runs]  # each config.toml read once: envs, seed groups, seeds
@@ -113,12 +123,24 @@ def _compare(runs: list[RunDir], out: str | Path | None) -> Path:
     ax = fig.subplots()
     for group in seed_groups(runs, saved):
         seeds = [(saved[i] or {}).get("seed") for i in group]
+        _say_factories_alike([names[i] for i in group], _env_id(saved[group[0]]))
         _group_curve(ax, [names[i] for i in group], [rows[i] for i in group], seeds)
     _steps_axis(ax, [r["step"] for run_rows in rows for r in run_rows])
     ax.set_ylabel("average return (eval)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize="small")
     return _save(fig, output_path(out, runs[0].root.parent / "compare.png"))  # as given: relative stays relative
+
+
+def _say_factories_alike(names: list[str], env_id: str | None) -> None:
+    """A line where runs drawn as one setting's seeds were trained on an env factory given in
+    Python that their config.toml records without its contents (a lambda, a closure): they may
+    be different envs."""
+    from relayrl.envs.resolve import names_python_factory
+
+    if len(names) > 1 and env_id is not None and names_python_factory(env_id):
+        print(f"{', '.join(names)} were trained on env factories given in Python (env.id={env_id!r}) that their "
+              "config.toml cannot tell apart: drawn as seeds of one setting", file=sys.stderr)
 
 
 def _saved_toml(rd: RunDir) -> dict[str, Any] | None:

@@ -51,10 +51,36 @@ def preset_dict(name: str) -> dict[str, Any]:
                               f"{name} --resume` (in Python: resume=True), or start a new run from its settings "
                               f"with {str(Path(name) / 'config.toml')!r}")
         valid = [*algorithm_configs(), *files]
-        raise ConfigError(f"unknown preset {name!r}{did_you_mean(name, valid)} "
+        hint = _env_hint(name) or did_you_mean(name, valid)
+        raise ConfigError(f"unknown preset {name!r}{hint} "
                           f"(valid: {', '.join(sorted(valid))}; a config file's name ends in .toml)")
     with files[name].open("rb") as f:
         return tomllib.load(f)
+
+
+def _env_hint(name: str) -> str:
+    """Where a preset name is an algorithm and an env (`dqn-acrobot`), or an env alone
+    (`Acrobot`, `CartPole-v1`): how an algorithm's own defaults train on that env. "" otherwise."""
+    algo, _, rest = name.partition("-")
+    if algo.lower() not in algorithm_configs() or not rest:
+        algo, rest = "", name
+    env_id = _registered_id(rest)
+    if env_id is None:
+        return ""
+    if algo:
+        return f"; to train {algo.lower()} on {env_id}: `relayrl train {algo.lower()} --set env.id={env_id}`"
+    return (f"; {env_id} is an env: `relayrl train ALGO --set env.id={env_id}` trains an algorithm's own defaults "
+            f"on it ({', '.join(sorted(algorithm_configs()))})")
+
+
+def _registered_id(name: str) -> str | None:
+    """The Gymnasium id `name` names, case and version aside (`acrobot`: Acrobot-v1, its newest
+    version); None where there is none."""
+    import gymnasium as gym
+
+    wanted = name.lower()
+    found = [i for i in gym.registry if i.lower() == wanted or i.lower().rsplit("-v", 1)[0] == wanted]
+    return max(found, key=lambda i: (len(i), i)) if found else None
 
 
 def _without_unused_replay(data: dict[str, Any], path: str) -> dict[str, Any]:

@@ -65,10 +65,11 @@ class RunResult:
 
     @property
     def best(self) -> dict[str, Any]:
-        """The evaluation row with the highest average_return (the latest of equals; {} where there
-        is none): a sweep's objective, where the last evaluation is one noisy point."""
+        """The evaluation row with the highest average_return (the first of equals, as
+        policy/best.pt keeps; {} where there is none): a sweep's objective, where the last
+        evaluation is one noisy point."""
         rows = [r for r in self.evaluations if r.get("average_return") is not None]
-        return max(reversed(rows), key=lambda r: r["average_return"]) if rows else {}
+        return max(rows, key=lambda r: r["average_return"]) if rows else {}
 
 
 def make_learner(config: Config, agent: Agent, table: Any, device: torch.device, variables: Any,

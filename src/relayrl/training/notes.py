@@ -25,6 +25,9 @@ def start_notes(config: Config, config_file: Path, resume: bool) -> list[str]:
     if 0 < c.train.total_steps <= c.train.initial_collect_steps and not resume:  # a resume is past its warm-up
         out.append(f"train.initial_collect_steps={c.train.initial_collect_steps:,} >= train.total_steps="
                    f"{c.train.total_steps:,}: the run takes random actions only and learns nothing")
+    if c.train.gradient_steps == 0 and c.replay.samples_per_insert == 0 and algorithm(c.algo).replay != "none":
+        out.append("train.gradient_steps=0: the run collects and evaluates only; it takes no gradient step, so its "
+                   "policy stays as it starts")
     notes = (minibatch_note(c), partial_rollout_note(c), short_rollout_note(c),
              raw_screen_note(c.env.id, c.env.kwargs, c.env.wrappers),
              None if resume else defaults_note(c, config_file), None if resume else factory_note(c))
