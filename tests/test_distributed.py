@@ -883,3 +883,59 @@ def test_a_run_inside_a_running_ray_says_its_address_is_not_joined():
         ActorPool(fake, config, said.append).start(object, None)
     assert said == ["distributed.address='10.0.0.1:6379' is not joined: Ray is running in this process already "
                     "(ray.init was called), and the run's actors go on that instance"]
+
+
+@needs_ray
+def test_a_replay_server_that_dies_is_one_line_that_says_what_is_kept(tmp_path):
+    """Killing the replay server's process printed Ray's 80-line traceback through the learner's poll."""
+    import ray
+
+    def kill_the_server(row):
+        if row.get("step") == 400:
+            server = next(a["name"] for a in ray.util.list_named_actors(all_namespaces=True)
+                          if a["name"].endswith("-replay"))
+            ray.kill(ray.get_actor(server), no_restart=True)
+
+    config = relayrl.load_config("sac-pendulum", SAC_SMALL + ["distributed.num_actors=1", "train.total_steps=4000"])
+    with pytest.raises(relayrl.UserError) as caught:
+        relayrl.train(config, tmp_path / "run", progress=False, callbacks=[kill_the_server])
+    said = str(caught.value)
+    assert said.startswith("the run's replay server (ReplayServer, a Ray actor) died: its process was killed or its "
+                           "node lost; the run stopped at env step "), said
+    assert "the last good checkpoint (env step 400)" in said and "--resume" in said
+
+
+@needs_ray
+def test_an_env_module_missing_on_a_ray_worker_says_so_for_that_node(tmp_path, monkeypatch):
+    """The one-process advice ("run relayrl from the folder that holds it", naming the worker's own
+    folder) sent a cluster user to the wrong place."""
+    monkeypatch.setenv("RELAYRL_DRIVER_PID", str(os.getpid()))
+    over = ["env.id=driver_only_env:Env", "env.check=false", "train.total_steps=400", "train.initial_collect_steps=100",
+            "eval.interval=0", "eval.episodes=1", "distributed.num_actors=1", "train.checkpoint_interval=0"]
+    with pytest.raises(relayrl.UserError) as caught:
+        relayrl.train(relayrl.load_config("dqn-cartpole-fast", over), tmp_path / "run", progress=False)
+    assert str(caught.value).startswith("an actor could not start on a Ray worker: env.id='driver_only_env:Env': "
+                                        "module 'driver_only_env' does not import on the Ray worker on node "), \
+        str(caught.value)
+    assert "(ModuleNotFoundError: No module named 'simulator'): every node needs the driver's code" in str(caught.value)
+
+
+@needs_ray
+@pytest.mark.parametrize("address", ["auto", ""])
+def test_a_cluster_file_left_by_a_killed_head_is_one_line_not_a_wait(tmp_path, monkeypatch, address):
+    """A head killed without `ray stop` leaves Ray's file naming it: an empty address was told a
+    cluster "is running" and to use auto, and auto waited for it for minutes."""
+    import socket
+
+    with socket.socket() as s:  # a port nothing listens on once closed
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    (tmp_path / "ray").mkdir()
+    (tmp_path / "ray" / "ray_current_cluster").write_text(f"127.0.0.1:{port}\n")
+    monkeypatch.setenv("RAY_TMPDIR", str(tmp_path))
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    over = ["distributed.num_actors=1", f"distributed.address={address!r}", "train.total_steps=400"]
+    with pytest.raises(relayrl.UserError, match=rf"joins the cluster that Ray's file '.*ray_current_cluster' names "
+                                                rf"\(127.0.0.1:{port}\), where nothing answers: a head stopped without "
+                                                r"`ray stop` leaves it; `ray stop --force` clears it"):
+        relayrl.train(relayrl.load_config("dqn-cartpole-fast", over), tmp_path / "run", progress=False)

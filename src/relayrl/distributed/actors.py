@@ -10,9 +10,12 @@ import os
 import re
 import signal
 import socket
+import sys
+import tempfile
 import time
 import uuid
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from relayrl.config import Config, to_dict
@@ -60,6 +63,9 @@ def _init(ray: Any, config: Config) -> None:
     if d.address:
         no_head = (f"no Ray cluster answers at distributed.address={d.address!r}: start one (`ray start --head` on "
                    "its head node), or leave distributed.address empty to start a local Ray instance")
+        if d.address == "auto" and not os.environ.get("RAY_ADDRESS") and (stale := _stale_cluster()):
+            raise UserError(f"distributed.address='auto' joins the cluster {stale}; or start a Ray head (`ray "
+                            "start --head`), or leave distributed.address empty for a local Ray instance")
         # host:port (auto: RAY_ADDRESS's where it names one): a head that is not there is waited for at length
         target = os.environ.get("RAY_ADDRESS", "") if d.address == "auto" else d.address
         if re.fullmatch(RAY_ADDRESS, target):
@@ -103,10 +109,37 @@ def _init(ray: Any, config: Config) -> None:
                 raise
             # Ray refuses num_cpus for RAY_ADDRESS before it tries to reach it: a cluster is named, not found
             named = os.environ.get("RAY_ADDRESS")
+            if not named and (stale := _stale_cluster()):  # Ray would join it, and `auto` wait for it at length
+                raise UserError(f"distributed.address is empty (a local Ray instance of the run's own), but Ray "
+                                f"joins the cluster {stale}") from None
             where, other = (f"RAY_ADDRESS={named!r} names a Ray cluster to join", "unset RAY_ADDRESS") if named else \
                 ("a Ray cluster is running on this machine", "stop it (ray stop)")
             raise UserError(f"{where}, and distributed.address is empty (a local Ray instance of the run's own): "
                             f"set distributed.address=auto to join that cluster, or {other}") from None
+
+
+def _stale_cluster() -> str | None:
+    """Where the address of this machine's latest cluster, which Ray joins for an empty or `auto`
+    address, answers nothing (a head killed without `ray stop`, whose file stays): what to say
+    of it and what to do; None where it answers or there is none. Ray's own rule finds the file:
+    RAY_TMPDIR, else TMPDIR on Linux, else /tmp; ray/ray_current_cluster in it."""
+    linux = sys.platform.startswith("linux")
+    root = os.environ.get("RAY_TMPDIR") or (os.environ.get("TMPDIR") if linux else None) or (
+        "/tmp" if linux or sys.platform == "darwin" else tempfile.gettempdir())
+    file = Path(root) / "ray" / "ray_current_cluster"
+    try:
+        address = file.read_text().strip()
+    except OSError:
+        return None
+    if not re.fullmatch(RAY_ADDRESS, address):
+        return None
+    host, port = address.rsplit(":", 1)
+    try:
+        speaks_http2(host.strip("[]"), int(port), timeout=2.0)
+    except OSError:
+        return (f"that Ray's file {str(file)!r} names ({address}), where nothing answers: a head stopped without "
+                "`ray stop` leaves it; `ray stop --force` clears it")
+    return None
 
 
 # HTTP/2's client preface and an empty SETTINGS frame (length 0, type 4, no flags, stream 0)

@@ -5,6 +5,7 @@ has the same schema as in one process."""
 from __future__ import annotations
 
 import copy
+import re
 import signal
 import time
 from collections import deque
@@ -23,6 +24,7 @@ from relayrl.distributed.offpolicy import ReplayCollection
 from relayrl.distributed.onpolicy import RolloutCollection
 from relayrl.distributed.remote import RemotePusher
 from relayrl.envs import make_env
+from relayrl.errors import UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.seeding import EVAL_STRIDE
 from relayrl.specs import Spec
@@ -66,6 +68,10 @@ class Collection(Protocol):
     def iterate(self, core: RunCore, finish_evals: Callable[[], None]) -> None: ...
     def state_dict(self) -> dict[str, Any]: ...
     def load_state_dict(self, state: dict[str, Any], say: Callable[[str], None]) -> None: ...
+
+
+# The actors a run cannot go on without (Ray restarts none of them), by their class's name
+_SHARED_ACTORS = {"ReplayServer": "replay server", "VariableContainer": "weights' container"}
 
 
 class RayDriver:
@@ -122,7 +128,15 @@ class RayDriver:
         # up. SIGTERM, which a scheduler sends to the whole group, ends a local Ray instance at
         # once: it stops the run at once too.
         with interrupts.stop_request(self.core.report.request_stop, (signal.SIGINT,)):
-            self.collection.iterate(self.core, self._finish_evals)
+            try:
+                self.collection.iterate(self.core, self._finish_evals)
+            except self.ray.exceptions.RayActorError as e:  # a rollout actor's death is the pool's, said there
+                died = re.search(r"class_name: (\w+)", str(e))
+                if died is None or died.group(1) not in _SHARED_ACTORS:
+                    raise
+                # run_to_end adds where the run stopped and what it keeps
+                raise UserError(f"the run's {_SHARED_ACTORS[died.group(1)]} ({died.group(1)}, a Ray actor) died: its "
+                                "process was killed or its node lost") from None
 
     def announce(self) -> None:
         self.core.say(f"distributed: {self.collection.layout()}, {plural(len(self.pool.eval_workers), 'eval actor')}, "

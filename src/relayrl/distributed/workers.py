@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import socket
 import sys
 import uuid
 import warnings
@@ -18,6 +19,7 @@ from relayrl.agents.registry import algorithm
 from relayrl.config import Config, from_dict
 from relayrl.core import Observer
 from relayrl.envs import make_env
+from relayrl.errors import UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.policies import RandomPolicy
 from relayrl.replay import Table
@@ -60,7 +62,28 @@ def _setup(config: dict[str, Any], home: DriverHome) -> Config:
             gym.registry[env_id] = spec
     c = from_dict(config)
     torch.set_num_threads(max(1, c.train.torch_threads))
+    _check_user_modules(c)
     return c
+
+
+def _check_user_modules(c: Config) -> None:
+    """One line where a module of the user's that the config names (its env, wrappers, encoder)
+    does not import on this worker's node: the advice for one process (run from the folder that
+    holds it) does not fit a node that lacks it."""
+    import importlib
+
+    named = [("env.id", c.env.id), *(("env.wrappers", w) for w in c.env.wrappers), ("agent.encoder", c.agent.encoder)]
+    for key, value in named:
+        module = value.split(":", 1)[0] if ":" in value and "/" not in value.split(":", 1)[0] else ""
+        if not module or module == "__main__":
+            continue
+        try:
+            importlib.import_module(module)
+        except ImportError as e:
+            raise UserError(f"{key}={value!r}: module {module!r} does not import on the Ray worker on node "
+                            f"{socket.gethostname()!r} ({type(e).__name__}: {e}): every node needs the driver's "
+                            "code at the same path as the driver (its import path is passed on) or installed "
+                            "(pip install -e your project there), and the packages it imports") from None
 
 
 def actor_name(prefix: str, role: str) -> str:
