@@ -1,6 +1,8 @@
 """Reverb's edge cases: heap ties, removers that must not repeat a slot, zero priorities,
 max_times_sampled under the rate limiter, Stack and error_buffer ranges."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -176,3 +178,19 @@ def test_a_refused_insert_of_single_arrays_leaves_the_table_as_it_was():
     with pytest.raises(ValueError, match=r"^Table 't': the table holds single arrays, this item is a dict"):
         t.insert({"x": np.zeros(3)})
     assert t.size == 2 and t.rate_limiter.inserts == 2
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/sys/vm/overcommit_memory")
+                    or open("/proc/sys/vm/overcommit_memory").read().strip() == "2",
+                    reason="Linux with its default overcommit policy")
+def test_a_host_table_larger_than_the_machine_is_made_and_takes_memory_as_rows_are_written():
+    """SAC's 1M-row default replay of 100x100 images (29.7 GiB) was refused for a 1,000-step run on
+    a 16 GB machine: np.zeros asks for it all at once."""
+    from relayrl.replay.storage import Columns
+
+    twice = 2 * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    cols = Columns({"frame": ((100, 100, 3), np.uint8)}, (twice // 30_000,))
+    frames = cols.arrays["frame"]
+    frames[:1000] = 7
+    assert frames.nbytes >= twice - 30_000 and frames[999, 0, 0, 0] == 7 and frames[1000, 0, 0, 0] == 0
+    assert cols.state_dict(used=1000)["arrays"]["frame"].sum() == 7 * 1000 * 30_000

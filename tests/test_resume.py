@@ -1057,3 +1057,22 @@ def test_ctrl_c_in_the_last_iteration_of_a_run_without_checkpoints_still_evaluat
     with pytest.raises(KeyboardInterrupt, match=r"^the run stopped at env step 600; its policy and metrics are in"):
         relayrl.train(cfg, tmp_path / "r", progress=False, callbacks=[ctrl_c_at_the_end])
     assert [r["step"] for r in RunDir(tmp_path / "r").read_metrics()][-1] == 600
+
+
+def test_a_memmap_replay_the_disk_cannot_hold_is_one_line_before_its_files_are_made(tmp_path, monkeypatch):
+    """The files are sparse: a full disk killed the run with SIGBUS mid-write, hours in, with no line."""
+    from relayrl.training import replay_setup
+
+    real = shutil.disk_usage
+
+    def small(path):  # 1 KiB free: the run's 1,500 CartPole transitions take ~36 KiB
+        return real(path)._replace(free=1024)
+
+    monkeypatch.setattr(replay_setup.shutil, "disk_usage", small)
+    config = relayrl.load_config("dqn-cartpole-fast", DQN + ["replay.storage=memmap"])
+    with pytest.raises(relayrl.UserError, match=r"^replay.storage=memmap: 1,500 transitions of .* take ~0.0 GiB in "
+                                                r"'.*replay', whose disk has 0.0 GiB free \(a full disk would kill"):
+        relayrl.train(config, tmp_path / "run", progress=False)
+    assert not (tmp_path / "run" / "replay").exists()
+    monkeypatch.setattr(replay_setup.shutil, "disk_usage", real)
+    relayrl.train(config, tmp_path / "run", progress=False)

@@ -349,8 +349,9 @@ def _build_and_train(entry: Algorithm, config: Config, rd: RunDir, resume: bool,
         data = (f"replay.size={config.replay.size:,}" if entry.replay == "transitions"
                 else f"train.collect_steps={config.train.collect_steps:,}")
         envs = f", env.num_envs={config.env.num_envs:,}" if config.env.num_envs > 1 else ""
+        memmap = ", or keep the replay in files (replay.storage=memmap)" if entry.replay == "transitions" else ""
         raise UserError(f"not enough memory to build the run ({detail}): lower {data}{envs} or the networks' sizes "
-                        "(the agent's hidden sizes)") from None
+                        f"(the agent's hidden sizes){memmap}") from None
     result: RunResult | None = None
     try:
         if takeover:

@@ -10,6 +10,9 @@ store keeps the columns that live on a torch device itself); memmap columns are 
 from __future__ import annotations
 
 import json
+import mmap
+import platform
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -88,7 +91,7 @@ class Columns:
             meta_file.write_text(json.dumps(meta))
         else:
             for name, (shape, dtype) in self.signature.items():
-                self.arrays[name] = np.zeros(self.leading + shape, dtype=dtype)
+                self.arrays[name] = lazy_zeros(self.leading + shape, dtype)
 
     def nbytes(self) -> int:
         return sum(int(np.prod(self.leading + s)) * d.itemsize for s, d in self.signature.values())
@@ -118,6 +121,30 @@ class Columns:
             return  # the files were reopened in __init__
         for k, v in state["arrays"].items():
             self.arrays[k][self.used_rows(v.shape[len(self.leading) - 1])] = to_numpy(v)
+
+
+# Linux's MAP_NORESERVE where it is 0x4000 (x86, Arm and RISC-V; Python's mmap does not name it)
+_NORESERVE = 0x4000 if sys.platform.startswith("linux") and platform.machine() in ("x86_64", "aarch64",
+                                                                                   "riscv64") else 0
+_LAZY_FROM = 64 * 2**20  # smaller arrays: np.zeros
+
+
+def lazy_zeros(shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+    """np.zeros whose memory is taken as its rows are written, however large: Linux's default
+    overcommit refuses one allocation larger than memory and swap (np.zeros' "Unable to allocate
+    29.7 GiB") even where a run writes a few of its rows (SAC's 1M-row default replay of
+    images, for 1,000 steps). Anonymous pages mapped without a reservation are only counted
+    once written; a run that writes more than the machine holds is said at its start
+    (`replay_setup.host_memory_note`)."""
+    nbytes = int(np.prod(shape)) * dtype.itemsize
+    if not _NORESERVE or nbytes < _LAZY_FROM:
+        return np.zeros(shape, dtype=dtype)
+    try:
+        pages = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | _NORESERVE)
+    except OSError as e:  # past the address space, or a strict overcommit policy: as NumPy says it
+        raise MemoryError(f"Unable to allocate {nbytes / 2**30:.1f} GiB for an array with shape {shape} and data "
+                          f"type {dtype} ({e.strerror or e})") from None
+    return np.frombuffer(pages, dtype=dtype).reshape(shape)
 
 
 class ItemStorage(Storage):

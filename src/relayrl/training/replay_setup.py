@@ -8,6 +8,7 @@ collect_steps, and the error buffer to one iteration's worth of samples, so
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import torch
@@ -67,12 +68,19 @@ def build_table(c: Config, burst_steps: int | None = None) -> Table:
 REPLAY_OWNER = "run.txt"  # in a memmap replay folder: the run directory whose steps it holds
 
 
+def memmap_folder(c: Config, run_root: Path) -> Path | None:
+    """Where a memmap replay keeps its files (replay.path, else <run_dir>/replay); None for one in memory."""
+    if c.replay.storage != "memmap":
+        return None
+    return Path(c.replay.path) if c.replay.path else run_root / "replay"
+
+
 def replay_path(c: Config, run_root: Path) -> Path | None:
     """The memmap replay's folder, claimed for this run: a folder another run still holds is
     refused, since two runs writing one folder overwrite each other's steps unnoticed."""
-    if c.replay.storage != "memmap":
+    path = memmap_folder(c, run_root)
+    if path is None:
         return None
-    path = Path(c.replay.path) if c.replay.path else run_root / "replay"
     owner_file, me = path / REPLAY_OWNER, str(Path(run_root).resolve())
     if c.replay.path and owner_file.is_file():  # <run_dir>/replay is its run's own, a copied run's too
         owner = owner_file.read_text().strip()
@@ -180,10 +188,32 @@ def build_replay(c: Config, obs_spec: Spec, action_spec: Spec, run_root: Path,
                  device: torch.device | None = None) -> tuple[Table, TransitionWriter]:
     """`device`: where frames and actions live (see `replay_device`); None: NumPy arrays."""
     table = build_table(c)
+    check_replay_disk(c, obs_spec, action_spec, memmap_folder(c, run_root))
+    path = replay_path(c, run_root)
     writer = TransitionWriter(table, c.env.num_envs, obs_spec, action_spec, gamma=c.agent.gamma,
-                              n_step=c.replay.n_step, frame_stack=frame_stack(obs_spec),
-                              path=replay_path(c, run_root), device=device)
+                              n_step=c.replay.n_step, frame_stack=frame_stack(obs_spec), path=path, device=device)
     return table, writer
+
+
+def check_replay_disk(c: Config, obs_spec: Spec, action_spec: Spec, path: Path | None) -> None:
+    """One line, before the files are made, where a memmap replay's files would outgrow the disk's
+    free space as the run writes its rows: the files are made sparse, and the write that finds
+    the disk full kills the process (SIGBUS) without a line or a checkpoint, hours in. Blocks its
+    files already hold (a resume's) count as written."""
+    if path is None:
+        return
+    items = min(c.replay.size, c.train.total_steps)  # what this run writes, at most
+    need = replay_bytes(c, obs_spec, action_spec, items)
+    held = sum(f.stat().st_blocks * 512 for f in path.glob("*.npy")) if path.is_dir() else 0
+    existing = path
+    while not existing.exists() and existing.parent != existing:  # the folder is made later
+        existing = existing.parent
+    free = shutil.disk_usage(existing).free
+    if need - held > free:
+        raise UserError(f"replay.storage=memmap: {items:,} transitions of {describe(obs_spec)} take ~"
+                        f"{need / 2**30:.1f} GiB in {str(path)!r}, whose disk has {free / 2**30:.1f} GiB free (a "
+                        "full disk would kill the run mid-write): free space, lower replay.size, or set replay.path "
+                        "to a folder on a larger disk")
 
 
 def build_rollouts(c: Config, device: torch.device | None = None) -> tuple[Table, RolloutWriter]:
@@ -220,4 +250,5 @@ def build_shared_replay(c: Config, obs_spec: Spec, action_spec: Spec, run_root: 
         return TransitionWriter(t, b, obs_spec, action_spec, gamma=c.agent.gamma, n_step=c.replay.n_step,
                                 frame_stack=k, path=path, rows=rows)
 
+    check_replay_disk(c, obs_spec, action_spec, memmap_folder(c, run_root))
     return table, WriterGroup(table, num_writers, make_writer, replay_path(c, run_root))
