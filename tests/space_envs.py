@@ -32,6 +32,7 @@ def observation_space(kind: str) -> gym.Space:
         "image_hwc": spaces.Box(0, 255, (10, 10, 3), np.uint8),
         "image_chw": spaces.Box(0, 255, (3, 10, 10), np.uint8),  # image_hwc's conv weights: not in OBS_KINDS
         "board": spaces.Box(0, 2, (8, 8), np.uint8),  # cell codes, not pixels: an MLP on the numbers
+        "image_float": spaces.Box(0.0, 1.0, (12, 12, 1), np.float32),  # frames scaled already: not in OBS_KINDS
         "dict": spaces.Dict({"frame": spaces.Box(0, 255, (1, 8, 8), np.uint8), "cell": spaces.Discrete(4),
                              "pos": spaces.Box(-1.0, 1.0, (2,), np.float32)}),
         "tuple": spaces.Tuple((spaces.Discrete(2), spaces.Box(-1.0, 1.0, (2,), np.float64))),
@@ -86,6 +87,10 @@ class Spaces(gym.Env):
             img[..., :4, :] = 255 * g if k != "image_hwc" else 0
             if k == "image_hwc":
                 img[:4] = 255 * g
+            return img
+        if k == "image_float":
+            img = np.zeros(self.observation_space.shape, np.float32)
+            img[:4] = g
             return img
         if k == "board":
             board = np.zeros((8, 8), np.uint8)

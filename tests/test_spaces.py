@@ -135,6 +135,26 @@ def test_trained_policy_takes_the_envs_own_observations(algo, obs, act, tmp_path
 
 
 @pytest.mark.parametrize("algo", sorted(ACTIONS))
+def test_float_images_train_a_conv_net_when_asked_for_by_name_and_auto_says_it_flattens(algo, tmp_path, capsys):
+    """Frames scaled to [0, 1] (a wrapper dividing by 255): 'auto' flattened them without a word, and
+    asking for a conv net was refused, its advice pointing back at 'auto'."""
+    config = short_config(algo, "image_float", ACTIONS[algo][0])
+    relayrl.train(config, tmp_path / "auto", progress=False)
+    assert ("agent.encoder='auto' flattens the float images Box(0, 1, shape=(12, 12, 1), dtype=float32) into the "
+            "MLP") in capsys.readouterr().err
+    config.agent.encoder = "small_cnn"
+    relayrl.train(config, tmp_path / "cnn", progress=False)
+    assert "flattens" not in capsys.readouterr().err
+    weights = torch.load(tmp_path / "cnn" / "policy" / "policy.pt", weights_only=True)["state_dict"]
+    assert any("convs.0.weight" in k for k in weights), sorted(weights)
+    policy = relayrl.load_policy(tmp_path / "cnn")
+    env = Spaces("image_float", ACTIONS[algo][0])
+    o, _ = env.reset(seed=0)
+    program = torch.export.load(relayrl.export_policy(tmp_path / "cnn", format="pt2")).module()
+    np.testing.assert_allclose(program(torch.from_numpy(o[None])).numpy()[0], np.asarray(policy(o)), atol=1e-5)
+
+
+@pytest.mark.parametrize("algo", sorted(ACTIONS))
 def test_a_users_own_encoder_trains_and_its_policy_loads_and_exports(algo, tmp_path):
     act = ACTIONS[algo][0]
     config = short_config(algo, "dict", act)

@@ -223,6 +223,13 @@ def is_image(spec: Spec, any_bounds: bool = False) -> bool:
     return any_bounds or _pixel_bounds(spec)
 
 
+def is_float_frames(spec: Spec) -> bool:
+    """A float Box laid out as frames (`frame_layout`): images already scaled (to [0, 1], say),
+    which the conv encoders take as they are where asked for by name; "auto" flattens them, as
+    only uint8 frames 0..255 tell images from other grids of floats."""
+    return type(spec) is ArraySpec and spec.dtype.is_floating_point and frame_layout(spec.shape) is not None
+
+
 def _pixel_bounds(spec: ArraySpec) -> bool:
     return spec.low is None or spec.high is None or bool((spec.low == 0).all() and (spec.high == 255).all())
 

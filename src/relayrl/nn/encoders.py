@@ -9,7 +9,8 @@ put before their MLPs, so any Gymnasium space reaches them as a float vector [B,
 - Dict and Tuple: each entry encoded as above, concatenated (as SB3's CombinedExtractor)
 
 `agent.encoder` picks: "auto" (the above), "flatten" (every leaf flattened as floats, images
-unscaled), "nature_cnn" or "small_cnn" (that conv net for images).
+unscaled), "nature_cnn" or "small_cnn" (that conv net for images: uint8 frames scaled by 1/255,
+float ones, already scaled, as they are).
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ from relayrl.specs import (
     describe,
     flat_dim,
     is_flat_vector,
+    is_float_frames,
     is_image,
     spec_from_state,
     spec_state,
@@ -81,7 +83,8 @@ class OneHot(nn.Module):
 
 
 class ConvEncoder(nn.Module):
-    """uint8 frames -> [B, hidden]: convs + ReLU, flatten, one dense layer + ReLU."""
+    """Frames -> [B, hidden]: convs + ReLU, flatten, one dense layer + ReLU. uint8 frames are
+    scaled by 1/255, float ones taken as they are."""
 
     def __init__(self, spec: ArraySpec, convs: tuple[tuple[int, ...], ...], hidden: int) -> None:
         super().__init__()
@@ -141,7 +144,7 @@ def leaf_encoder(spec: Spec, kind: str) -> nn.Module:
         return Flatten(spec)
     if isinstance(spec, (DiscreteSpec, MultiDiscreteSpec)):
         return OneHot((spec.n,) if isinstance(spec, DiscreteSpec) else spec.nvec)
-    if not is_image(spec, any_bounds=kind != "auto"):
+    if not is_image(spec, any_bounds=kind != "auto") and not (kind != "auto" and is_float_frames(spec)):
         return Flatten(spec)
     tiny = min(image_size(spec)) < NATURE_MIN_SIDE
     if kind == "nature_cnn" and tiny:
@@ -227,8 +230,8 @@ def make_encoder(spec: Spec, kind: str = "auto") -> nn.Module | None:
     if isinstance(spec, PackedSpec):
         return DictEncoder(spec, kind)  # `kind` applies to its image entries
     if kind in ("nature_cnn", "small_cnn"):
-        if not is_image(spec, any_bounds=True):
-            raise UserError(f"agent.encoder={kind!r} needs image observations (uint8 [H, W], [C, H, W] or "
+        if not is_image(spec, any_bounds=True) and not is_float_frames(spec):
+            raise UserError(f"agent.encoder={kind!r} needs image observations (uint8 or float [H, W], [C, H, W] or "
                             f"[H, W, C], sides >= 8), got {describe(spec)}; use agent.encoder='auto'")
         return leaf_encoder(spec, kind)
     if is_flat_vector(spec) or (kind == "flatten" and type(spec) is ArraySpec):

@@ -30,7 +30,7 @@ from relayrl.specs import check_trained_layout, describe, spec_from_state, spec_
 from relayrl.training.checkpoint import list_checkpoints
 from relayrl.training.finite import CHECK_LR, DIVERGED, FiniteWatch, non_finite_metrics, non_finite_tensor, stop
 from relayrl.training.learner import Learner
-from relayrl.training.notes import start_notes
+from relayrl.training.notes import float_frames_note, start_notes
 from relayrl.training.replay_setup import collect_only
 from relayrl.training.report import Callback, RunReport, log_config, log_finished, plural
 from relayrl.training.resume import check_checkpoint_config, saved_config
@@ -304,6 +304,8 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
                      f"key applies to)")
         report.open(core.env_steps())
         driver.announce()
+        if not resume and (flattened := float_frames_note(c, core.agent.obs_spec)):
+            core.say(flattened)
         if resume:  # TensorBoard's config is the resumed run's from its step on
             log_config(report.tb, c, core.env_steps())
         if core.env_steps() == 0 and not resume:  # a run a callback stopped at step 0 has evaluated it

@@ -13,6 +13,7 @@ from relayrl.config import Config, algo_defaults
 from relayrl.envs.atari import raw_screen_note
 from relayrl.envs.make import check_env, is_user_env, reward_wrappers, statistics_wrappers, wrapper_layers
 from relayrl.envs.resolve import names_python_factory
+from relayrl.specs import PackedSpec, Spec, describe, is_float_frames
 
 
 def start_notes(config: Config, config_file: Path, resume: bool) -> list[str]:
@@ -44,6 +45,19 @@ def start_notes(config: Config, config_file: Path, resume: bool) -> list[str]:
         out.append(f"env.num_workers={c.env.num_workers} with env.vectorization='sync': the {c.env.num_envs:,} env "
                    "copies step in this process, none in worker processes (env.vectorization='async' uses them)")
     return out
+
+
+def float_frames_note(config: Config, obs_spec: Spec) -> str | None:
+    """A line where agent.encoder = "auto" flattens float images into the MLP (a conv net is its
+    choice for uint8 frames 0..255 only, which tell images from other grids of floats): the conv
+    encoders take them when named."""
+    leaves = [f.spec for f in obs_spec.fields] if isinstance(obs_spec, PackedSpec) else [obs_spec]
+    floats = [s for s in leaves if is_float_frames(s)]
+    if config.agent.encoder != "auto" or not floats:
+        return None
+    return (f"agent.encoder='auto' flattens the float images {', '.join(describe(s) for s in floats)} into the MLP "
+            "(its conv net is for uint8 frames 0..255): agent.encoder='nature_cnn' (or 'small_cnn' below 36x36) "
+            "takes them as they are")
 
 
 def rising_schedules(agent: Any) -> list[str]:

@@ -18,7 +18,7 @@ class DQNConfig(Section):
     hidden: list[int] = field(default_factory=lambda: [256, 256])  # Q-network MLP hidden sizes; []: linear
     activation: str = "relu"  # relu | tanh | elu | leaky_relu | silu | gelu
     # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images 0..255,
-    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn |
+    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn (float images too) |
     # package.module:make (your own: make(observation_space) returns a torch module, batch -> [B, features])
     encoder: str = "auto"
     init: str = "torch"  # torch | tf-agents (VarianceScaling hidden, small uniform head, bias -0.2)

@@ -25,7 +25,7 @@ class PPOConfig(Section):
     hidden: list[int] = field(default_factory=lambda: [64, 64])  # hidden sizes of actor and critic; []: linear heads
     activation: str = "tanh"  # relu | tanh | elu | leaky_relu | silu | gelu
     # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images 0..255,
-    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn |
+    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn (float images too) |
     # package.module:make (your own: make(observation_space) returns a torch module, batch -> [B, features])
     encoder: str = "auto"
     shared: bool = False  # true: one MLP whose last layer holds the policy and value heads

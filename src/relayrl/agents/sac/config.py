@@ -19,7 +19,7 @@ class SACConfig(Section):
     critic_hidden: list[int] = field(default_factory=lambda: [256, 256])  # hidden layer sizes of each critic MLP
     activation: str = "relu"  # relu | tanh | elu | leaky_relu | silu | gelu
     # observation encoder: auto (one-hot for Discrete / MultiDiscrete, a conv net for uint8 images 0..255,
-    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn |
+    # each entry of a Dict / Tuple as that, flattened otherwise) | flatten | nature_cnn | small_cnn (float images too) |
     # package.module:make (your own: make(observation_space) returns a torch module, batch -> [B, features])
     encoder: str = "auto"
     actor_lr: float = 3e-4  # Adam learning rate of the actor
