@@ -12,10 +12,10 @@ import torch
 from test_resume import assert_same_state, comparable, cut_back
 
 import relayrl
+from relayrl.agents.ppo.advantages import gae
 from relayrl.agents.ppo.agent import PPOAgent
 from relayrl.agents.ppo.config import PPOConfig
 from relayrl.agents.ppo.distributions import log_prob_entropy
-from relayrl.agents.ppo.gae import gae
 from relayrl.agents.ppo.losses import explained_variance, normalize, policy_loss, value_loss
 from relayrl.errors import ConfigError, UserError
 from relayrl.policy_file import load_policy_file
@@ -350,3 +350,12 @@ def test_a_resume_past_a_lower_total_says_nothing_of_a_warm_up(tmp_path):
     config = relayrl.load_config("dqn-cartpole", ["train.total_steps=1000", "train.initial_collect_steps=1000"])
     assert any("takes random actions only" in n for n in start_notes(config, tmp_path / "config.toml", False))
     assert not any("takes random actions only" in n for n in start_notes(config, tmp_path / "config.toml", True))
+
+
+def test_gae_from_the_package_is_the_function_whatever_was_imported_first():
+    """Its module was named gae too: once the agent had imported it, the package's `gae` was the module."""
+    import relayrl.agents.ppo.agent  # noqa: F401  (imports the function's module)
+    from relayrl.agents.ppo import gae as from_package
+    from relayrl.agents.ppo.advantages import gae as own
+
+    assert from_package is own

@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from relayrl.agents.ppo.advantages import gae
 from relayrl.agents.ppo.config import PPOConfig
 from relayrl.agents.ppo.device_policy import PPODevicePolicy
 from relayrl.agents.ppo.distributions import log_prob_entropy
-from relayrl.agents.ppo.gae import gae
 from relayrl.agents.ppo.losses import explained_variance
 from relayrl.agents.ppo.networks import PolicyNet, PPONetworks
 from relayrl.agents.ppo.normalize import RewardScaler
