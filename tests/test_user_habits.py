@@ -271,5 +271,13 @@ def test_progress_lines_without_a_terminal(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.startswith("step ") and "/1,500 (" in line]
     assert lines and "env steps/s" in lines[0], err
+    # the rate since the line before, and the time left at it (not the run's since its start, warm-up included)
+    assert any(re.search(r" env steps/s \| ~\d+ (s|min|h) left \| train return", line) for line in lines), lines
     # the latest training episodes' mean return, once there are some (CartPole's end within 1,500 steps)
     assert re.search(r"\| train return \d+\.\d\d \|", lines[-1]), lines[-1]
+
+
+def test_the_time_left_reads_in_its_largest_readable_unit():
+    from relayrl.training.report import duration
+
+    assert [duration(n, 10.0) for n in (450, 6_000, 1_980_000)] == ["45 s", "10 min", "55.0 h"]

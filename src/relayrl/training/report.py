@@ -36,6 +36,16 @@ def step_means(finished: list[tuple[int, float, int]]) -> list[tuple[int, float,
     return out
 
 
+def duration(steps: int, per_second: float) -> str:
+    """How long `steps` take at `per_second`, in the largest unit that keeps it readable."""
+    seconds = steps / per_second
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 2 * 3600:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
 def plural(n: int, noun: str) -> str:
     """"1 eval actor", "2 eval actors": a count for the console."""
     return f"{n} {noun}{'s' * (n != 1)}"
@@ -101,6 +111,7 @@ class RunReport:
         self.bar_fields: dict[str, Any] = {}
         self.next_tick = 0.0  # time.monotonic() from which `tick` moves the bar again
         self.lines: ProgressLines | None = None
+        self.line_from = self.started  # where the last progress line's rate began: the next measures from it
 
     def open(self, initial_steps: int) -> None:
         """TensorBoard, metrics.jsonl (appended to) and the progress bar, from `initial_steps`."""
@@ -118,7 +129,7 @@ class RunReport:
         if self.show_progress and sys.stderr.isatty():
             self.bar = tqdm(total=self.config.train.total_steps, unit="step", dynamic_ncols=True,
                             initial=initial_steps)
-        self.started = (time.perf_counter(), self.progress())
+        self.started = self.line_from = (time.perf_counter(), self.progress())
         if self.show_progress and self.bar is None:  # no terminal: a line every 30 s instead
             self.lines = ProgressLines(self.progress_line, self.say).start()
 
@@ -230,14 +241,19 @@ class RunReport:
         return {**self.training_summary(), **self.losses()}
 
     def progress_line(self) -> str:
-        """The line printed every 30 s where there is no progress bar (no terminal)."""
+        """The line printed every 30 s where there is no progress bar (no terminal): the rate since
+        the line before (the run's since its start, a random warm-up's included, said a learning
+        phase's ten times over) and the time left at it."""
         p, total = self.progress(), self.config.train.total_steps
-        sps, _ = self.run_sps(p)
+        now, (t0, p0) = time.perf_counter(), self.line_from
+        self.line_from = (now, p)
+        sps = (p.env_steps - p0.env_steps) / max(now - t0, 1e-9)
+        left = f" | ~{duration(total - p.env_steps, sps)} left" if sps > 0 and p.env_steps < total else ""
         train, last = self.train_return(), self.last_eval.get("average_return")
         train_shown = "-" if math.isnan(train) else f"{rounded(train):.2f}"
         last_shown = "-" if last is None else f"{rounded(last):.2f}"
         extra = "".join(f" | {k} {v}" for k, v in self.postfix().items())  # the bar's own fields (Ray's actors alive)
-        return (f"step {p.env_steps:,}/{total:,} ({100 * p.env_steps / total:.0f}%) | {sps:,.0f} env steps/s "
+        return (f"step {p.env_steps:,}/{total:,} ({100 * p.env_steps / total:.0f}%) | {sps:,.0f} env steps/s{left} "
                 f"| train return {train_shown} | last eval return {last_shown}{extra} | {self.wall_time():.0f}s")
 
     def record_eval(self, p: Progress, result: dict[str, Any], eval_s: float, wall_time_s: float | None = None,
