@@ -613,7 +613,10 @@ def test_a_run_that_fails_while_it_is_built_leaves_no_env_worker(tmp_path):
 
 
 @pytest.mark.parametrize("size", [10**15, 2**63 - 1])  # 8 PB of keys alone; more bytes than NumPy can address
-def test_a_run_too_large_for_memory_is_one_line_and_writes_nothing(size, tmp_path):
+def test_a_run_too_large_for_memory_is_one_line_and_writes_nothing(size, tmp_path, monkeypatch):
+    from relayrl.training import replay_setup
+
+    monkeypatch.setattr(replay_setup, "available_host_memory", lambda: None)  # as off Linux: the allocation says it
     huge = relayrl.load_config("dqn-cartpole-fast", DQN + [f"replay.size={size}"])
     with pytest.raises(relayrl.errors.UserError, match=r"not enough memory to build the run \(.*\): lower "
                                                        rf"replay.size={size:,} or the networks' sizes"):
@@ -1076,3 +1079,18 @@ def test_a_memmap_replay_the_disk_cannot_hold_is_one_line_before_its_files_are_m
     assert not (tmp_path / "run" / "replay").exists()
     monkeypatch.setattr(replay_setup.shutil, "disk_usage", real)
     relayrl.train(config, tmp_path / "run", progress=False)
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/meminfo"), reason="Linux's MemAvailable")
+def test_a_replay_size_whose_bookkeeping_outgrows_memory_is_one_line_before_the_table_is_made(tmp_path):
+    """replay.size=3e9 (a typo on a shared server) took 13 GB in the table's constructor, before any
+    line or run directory, and went on."""
+    from relayrl.training.replay_setup import available_host_memory
+
+    size = available_host_memory() // 50  # 96 bytes a slot: about twice what is available
+    config = relayrl.load_config("dqn-cartpole-fast", DQN + [f"replay.size={size}"])
+    with pytest.raises(relayrl.UserError, match=rf"^replay.size={size:,} keeps ~.* GiB of host memory for its slots "
+                                                r"from the start \(96 bytes each, however few items it holds\), more "
+                                                r"than the .* GiB available here: lower replay.size$"):
+        relayrl.train(config, tmp_path / "r", progress=False)
+    assert not (tmp_path / "r").exists()

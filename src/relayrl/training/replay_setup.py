@@ -59,6 +59,7 @@ def rate_limiter(c: Config, burst_steps: int | None = None) -> RateLimiter:
 
 
 def build_table(c: Config, burst_steps: int | None = None) -> Table:
+    check_table_memory(c, available_host_memory())
     r = c.replay
     sampler = Prioritized(r.priority_exponent) if r.sampler == "prioritized" else Uniform()
     return Table("replay", r.size, sampler=sampler, remover=Fifo(), rate_limiter=rate_limiter(c, burst_steps),
@@ -127,6 +128,25 @@ def available_host_memory() -> int | None:
     return None
 
 
+# Host bytes a replay keeps per slot of replay.size besides its observations and actions, an upper
+# bound: the Table's key, priority, sample count and free-list entry (28), a Uniform sampler's two
+# indexes and a Fifo remover's queue entry (24), the step storage's slot map (32), and the rows'
+# rewards, discounts and flags. Most of it is written when the table is made, however few items
+# the run then inserts.
+BOOKKEEPING_BYTES = 96
+
+
+def check_table_memory(c: Config, available: int | None) -> None:
+    """One line, before the table is made, where its bookkeeping alone outgrows the memory
+    available (`available` bytes): a replay.size of billions (a typo) took the machine's memory
+    in the table's constructor, before any line."""
+    need = BOOKKEEPING_BYTES * c.replay.size
+    if available is not None and need > available:
+        raise UserError(f"replay.size={c.replay.size:,} keeps ~{need / 2**30:.1f} GiB of host memory for its slots "
+                        f"from the start ({BOOKKEEPING_BYTES} bytes each, however few items it holds), more than the "
+                        f"{available / 2**30:.1f} GiB available here: lower replay.size")
+
+
 def host_memory_note(c: Config, chosen: torch.device | None, obs_spec: Spec, action_spec: Spec,
                      available: int | None) -> str | None:
     """The log line warning that a host-memory replay outgrows the memory available (`available`
@@ -136,7 +156,7 @@ def host_memory_note(c: Config, chosen: torch.device | None, obs_spec: Spec, act
     if available is None or c.replay.storage != "ram" or (chosen is not None and chosen.type != "cpu"):
         return None
     items = min(c.replay.size, c.train.total_steps)  # what this run writes, at most
-    need = replay_bytes(c, obs_spec, action_spec, items)
+    need = replay_bytes(c, obs_spec, action_spec, items) + BOOKKEEPING_BYTES * c.replay.size
     if need <= available:
         return None
     return (f"replay: {items:,} transitions of {describe(obs_spec)} take ~{need / 2**30:.1f} GiB of host memory, "
