@@ -491,3 +491,31 @@ def test_ctrl_c_while_torch_is_first_imported_leaves_it_whole_for_the_next_call(
     assert r.returncode == 0 and r.stdout == "trained\n", r.stderr
     assert r.stderr.startswith("relayrl: stopping once the import of torch is complete (one cut short breaks it in "
                                "this process)\ninterrupted\n"), r.stderr
+
+
+@pytest.mark.parametrize("words, said", [
+    ("train.total_steps 2000", "--set train.total_steps 2000: --set takes KEY=VALUE as one word "
+                               "(--set train.total_steps=2000)"),
+    ("train.total_steps = 2000", "--set train.total_steps = 2000: --set takes KEY=VALUE as one word "
+                                 "(--set train.total_steps=2000)"),
+    ("train.total_steps =2000", "--set train.total_steps =2000: --set takes KEY=VALUE as one word "
+                                "(--set train.total_steps=2000)"),
+    ("train.total_steps= 2000", "--set train.total_steps= 2000: --set takes KEY=VALUE as one word "
+                                "(--set train.total_steps=2000)"),
+    ("agent.hidden=[128 64]", "--set agent.hidden=[128 64]: the shell split the list at its spaces; quote it, with "
+                              "commas between the entries (--set 'agent.hidden=[128, 64]')"),
+])
+def test_a_set_the_shell_split_into_words_says_the_one_word_meant(words, said, tmp_path, capsys):
+    """`= 2000` was answered --set train.total_steps==, and `[128 128]` unquoted 'unrecognized arguments: 128]'."""
+    from relayrl.cli import main
+
+    assert main(["train", "dqn-cartpole-fast", "--run-dir", str(tmp_path / "r"), "--set", *words.split()]) == 2
+    assert capsys.readouterr().err == f"relayrl: error: {said}\n"
+    assert not (tmp_path / "r").exists()
+
+
+def test_an_empty_value_before_another_set_is_a_value_not_a_split_word(tmp_path, capsys):
+    from relayrl.cli import main
+
+    args = ["config", "dqn-cartpole-fast", "--set", "distributed.address=", "--set", "train.total_steps=100"]
+    assert main(args) == 0 and "total_steps = 100" in capsys.readouterr().out

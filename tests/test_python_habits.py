@@ -1058,3 +1058,14 @@ def test_a_bad_config_fails_at_once_while_another_threads_run_trains(tmp_path):
     finally:
         release.set()
         other.join(timeout=60)
+
+
+def test_a_run_that_names_its_own_folder_says_where_when_it_starts(tmp_path, monkeypatch, capsys):
+    """A class of students starting runs without a run directory could not tell, mid-run, which
+    folder under ./runs was theirs: the command said it at the end, Python never."""
+    monkeypatch.chdir(tmp_path)
+    result = relayrl.train({**TINY, "env": {"id": "CartPole-v1"}}, progress=False)
+    err = capsys.readouterr().err
+    assert err.splitlines()[0] == f"relayrl: the run is written to {str(result.run_dir)!r}", err
+    relayrl.train({**TINY, "env": {"id": "CartPole-v1"}}, tmp_path / "given", progress=False)
+    assert "the run is written to" not in capsys.readouterr().err  # a folder given is known

@@ -989,10 +989,13 @@ def test_ctrl_c_in_the_random_warm_up_says_where_the_run_stopped(tmp_path):
     timer = threading.Timer(1.5, lambda: os.kill(os.getpid(), signal.SIGINT))
     timer.start()
     try:
-        with pytest.raises(KeyboardInterrupt, match=r"before its first checkpoint: nothing to resume; a new run in"):
+        with pytest.raises(KeyboardInterrupt, match=r"before its first checkpoint: nothing to resume; a new run in "
+                                                    r"'.*r' starts over in it$"):
             relayrl.train(cfg, tmp_path / "r", progress=False)
     finally:
         timer.cancel()
+    # as said: a new run takes the folder over without overwrite=True
+    relayrl.train(relayrl.load_config("dqn-cartpole-fast", DQN), tmp_path / "r", progress=False)
 
 
 def test_a_resume_with_kwargs_given_as_tuples_in_python_changes_nothing(tmp_path, capsys):

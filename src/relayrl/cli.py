@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import json
 import os
 import re
@@ -59,6 +60,35 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> NoReturn:
         print(f"relayrl: error: {message} (see '{self.prog} --help')", file=sys.stderr)  # prog: "relayrl train"
         sys.exit(EXIT_USAGE)
+
+
+def _split_set(tokens: list[str], extra: list[str]) -> str | None:
+    """The line for the first `--set KEY=VALUE` the shell split into words (`KEY VALUE`, `KEY =
+    VALUE`, `KEY =VALUE`, `KEY= VALUE`, an unquoted `KEY=[1 2]`), saying the one word meant;
+    None where there is none. `extra`: the words argparse left over."""
+    for i, word in enumerate(tokens[:-1]):
+        if word != "--set":
+            continue
+        key, rest = tokens[i + 1], tokens[i + 2:]
+        nxt = rest[0] if rest else ""
+        if "=" not in key and nxt == "=" and len(rest) > 1:
+            said, meant = f"{key} = {rest[1]}", f"{key}={rest[1]}"
+        elif "=" not in key and nxt.startswith("=") and len(nxt) > 1:
+            said, meant = f"{key} {nxt}", f"{key}{nxt}"
+        elif "=" not in key and nxt and not nxt.startswith("-"):
+            said, meant = f"{key} {nxt}", f"{key}={nxt}"
+        elif key.endswith("=") and nxt in extra and not nxt.startswith("-"):  # KEY= alone is an empty value
+            said, meant = f"{key} {nxt}", f"{key}{nxt}"
+        elif "=" in key and key.split("=", 1)[1].startswith("[") and "]" not in key and nxt in extra:
+            parts = [key.split("=", 1)[1]] + list(itertools.takewhile(lambda w: "]" not in w, rest))
+            parts += rest[len(parts) - 1:len(parts)]  # the word that closes the list
+            items = ", ".join(p.strip("[],") for p in parts if p.strip("[],"))
+            return (f"--set {key} {' '.join(parts[1:])}: the shell split the list at its spaces; quote it, with "
+                    f"commas between the entries (--set '{key.split('=', 1)[0]}=[{items}]')")
+        else:
+            continue
+        return f"--set {said}: --set takes KEY=VALUE as one word (--set {meant})"
+    return None
 
 
 def _ported_flag(flag: str, word: str, rest: list[str]) -> str | None:
@@ -337,12 +367,8 @@ def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     tokens = sys.argv[1:] if argv is None else argv
-    spaced = [(tokens[i + 1], tokens[i + 2]) for i in range(len(tokens) - 2)
-              if tokens[i] == "--set" and "=" not in tokens[i + 1] and not tokens[i + 2].startswith("-")]
-    if spaced:  # `--set KEY VALUE`: the shell split one word (argparse took VALUE as the preset, or left it over)
-        key, value = spaced[0]
-        print(f"relayrl: error: --set {key} {value}: --set takes KEY=VALUE as one word (--set {key}={value})",
-              file=sys.stderr)
+    if split := _split_set(tokens, extra):  # argparse took a piece as the preset, or left it over
+        print(f"relayrl: error: {split}", file=sys.stderr)
         return EXIT_USAGE
     if extra:
         (args.parsers.get(args.command) or parser).unrecognized(extra)

@@ -38,6 +38,9 @@ if TYPE_CHECKING:
     from relayrl.distributed.driver import RayDriver
 
 
+_NAMED: set[Path] = set()  # the folders `default_run_dir` named, which a run says it writes to
+
+
 @contextlib.contextmanager
 def default_run_dir(config: Config) -> Iterator[Path]:
     """runs/<algo>-<env>-s<seed>-<date>-<time>, with -2, -3, ... where runs started within the same
@@ -55,9 +58,11 @@ def default_run_dir(config: Config) -> Iterator[Path]:
             continue
         except OSError:  # not writable here: the run's own check says so in one line
             break
+    _NAMED.add(path)
     try:
         yield path
     finally:
+        _NAMED.discard(path)
         for made in (path, base.parent) if made_runs else (path,):
             with contextlib.suppress(OSError):  # only an empty folder goes
                 made.rmdir()
@@ -360,6 +365,8 @@ def _build_and_train(entry: Algorithm, config: Config, rd: RunDir, resume: bool,
         elif beside:
             console.say(f"relayrl: run directory {str(rd.root)!r} holds other files: the run is written beside them")
         rd.create()
+        if rd.root in _NAMED:  # a folder the run named itself: where it goes, now (the command's last line too)
+            console.say(f"relayrl: the run is written to {str(rd.root)!r}")
         rd.hold_lock()
         try:
             if not resume:

@@ -183,6 +183,8 @@ def _group_curve(ax: Any, names: list[str], rows: list[Rows], seeds: list[Any]) 
         return
     values = [[by_step[s] for by_step in returns] for s in steps]
     shown = ", ".join(names if len(names) <= 3 else [*names[:2], "..."])
+    if len(shown) > 48:  # runs/<algo>-<env>-s<seed>-<date>-<time> names: a legend wider than the axes
+        shown = f"{names[0]} and {len(names) - 1} more"
     distinct = len(set(map(str, seeds))) == len(seeds)
     what = f"{len(names)} seeds" if distinct else f"{len(names)} runs, seeds {', '.join(map(str, seeds))}"
     if not distinct:

@@ -406,8 +406,11 @@ def _stopped_at(core: RunCore) -> str:
         return (f"the run stopped at env step {step:,} with a checkpoint{since} in {root!r}: "
                 f"{_python_resume(core)} continues it")
     if core.config.train.checkpoint_interval > 0:
+        # as a new run there decides (dispatch's takeover): by the steps its files record
+        again = ("starts over in it" if core.rd.trained_to() == 0 else
+                 f"needs overwrite=True (its policy and metrics to env step {core.rd.trained_to():,} are kept there)")
         return (f"the run stopped at env step {step:,}, before its first checkpoint: nothing to resume; a new run "
-                f"in {root!r} starts over (overwrite=True where it trained past step 0)")
+                f"in {root!r} {again}")
     return (f"the run stopped at env step {step:,}; its policy and metrics are in {root!r} "
             "(train.checkpoint_interval = 0: no checkpoint to resume from)")
 
