@@ -85,12 +85,43 @@ def test_best_pt_keeps_the_highest_evaluation_and_a_resume_goes_on_from_its_bar(
         best.offer(Progress(step, step), ret)
     saved = torch.load(tmp_path / "best.pt", weights_only=True)
     assert (saved["env_steps"], saved["average_return"], float(saved["weight"])) == (100, 30.0, 1.0)
+    at_checkpoint = best.state_dict()
     again = BestPolicy(PolicySaver(0, agent, tmp_path, name="best.pt"))
     assert again.best is None  # a new run in a folder taken over: the old file's bar is not its
-    again.resume()  # a resumed run's
+    again.resume(None)  # a resumed run's, from a checkpoint that holds no best: the file's record
     assert again.best == 30.0
+    again.resume(at_checkpoint)  # from one that holds it
+    assert again.best == 30.0 and torch.load(tmp_path / "best.pt", weights_only=True)["env_steps"] == 100
     again.offer(Progress(400, 400), 25.0)
     assert torch.load(tmp_path / "best.pt", weights_only=True)["env_steps"] == 100
     again.offer(Progress(500, 500), 31.0, state={"kind": "test", "weight": torch.tensor(9.0)})  # one evaluated earlier
     saved = torch.load(tmp_path / "best.pt", weights_only=True)
     assert (saved["env_steps"], float(saved["weight"])) == (500, 9.0)
+
+
+def test_a_resume_puts_back_the_best_pt_of_its_checkpoint_not_one_a_killed_run_wrote_after_it(tmp_path):
+    """A run killed after a better evaluation than its last checkpoint's: best.pt held a policy of a
+    trajectory the resume (not bit for bit: an env that cannot be pickled, a --set) did not repeat."""
+    import torch
+
+    from relayrl.training.triggers import BestPolicy, PolicySaver, Progress
+
+    class Agent:
+        weight = 0.0
+
+        def policy_state(self):
+            return {"kind": "test", "weight": torch.tensor(self.weight)}
+
+    agent = Agent()
+    best = BestPolicy(PolicySaver(0, agent, tmp_path, name="best.pt"))
+    best.offer(Progress(100, 100), 10.0)
+    agent.weight = 5.0  # trained on: the kept policy is the one evaluated, not the agent's tensors now
+    at_checkpoint = best.state_dict()
+    best.offer(Progress(200, 200), 50.0)  # after the checkpoint, then killed
+    resumed = BestPolicy(PolicySaver(0, agent, tmp_path, name="best.pt"))
+    resumed.resume(at_checkpoint)
+    saved = torch.load(tmp_path / "best.pt", weights_only=True)
+    assert (resumed.best, saved["env_steps"], saved["average_return"], float(saved["weight"])) == (10.0, 100, 10.0, 0.0)
+    none_yet = BestPolicy(PolicySaver(0, agent, tmp_path, name="best.pt"))
+    none_yet.resume({"best": None, "file": None})  # a checkpoint before any evaluation
+    assert none_yet.best is None and not (tmp_path / "best.pt").exists()

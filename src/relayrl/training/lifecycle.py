@@ -199,7 +199,8 @@ class RunCore:
                 # the global RNGs (a user's env may draw from them) and the latest losses
                 "global_rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(),
                                "python": random.getstate()},
-                "last_metrics": {k: v.detach().cpu() for k, v in self.learner.last_metrics.items()}}
+                "last_metrics": {k: v.detach().cpu() for k, v in self.learner.last_metrics.items()},
+                **({"best_policy": self.best_policy.state_dict()} if self.best_policy is not None else {})}
 
     def spaces(self) -> dict[str, Any]:
         return {"observation": spec_state(self.agent.obs_spec), "action": spec_state(self.agent.action_spec)}
@@ -237,7 +238,7 @@ class RunCore:
         self.wall_offset = float(state["wall_time_s"])
         eval_seeds.load_state_dict(state)
         if self.best_policy is not None:
-            self.best_policy.resume()
+            self.best_policy.resume(state.get("best_policy"))
 
     def load_process_state(self, state: dict[str, Any]) -> None:
         rng = state["global_rng"]

@@ -5,6 +5,7 @@ so a trigger fires once per interval boundary crossed, never more."""
 from __future__ import annotations
 
 import contextlib
+import copy
 import math
 import sys
 import time
@@ -74,32 +75,55 @@ class PolicySaver(IntervalTrigger):
         self.saved_progress = Progress(progress.env_steps, progress.train_step)
 
     def write(self, progress: Progress, state: dict[str, Any] | None = None,
-              extra: dict[str, Any] | None = None) -> None:
-        """Write `state` (the agent's policy now where None), with `extra` entries."""
+              extra: dict[str, Any] | None = None) -> dict[str, Any]:
+        """Write `state` (the agent's policy now where None), with `extra` entries; returns what
+        was written (its tensors the agent's own: copy them to keep it)."""
+        state = {**(self.agent.policy_state() if state is None else state), "env_steps": progress.env_steps,
+                 **self.extra, **(extra or {})}
+        self.write_file(state)
+        return state
+
+    def write_file(self, state: dict[str, Any]) -> None:
         from relayrl.policy_file import save_policy_file
 
         self.folder.mkdir(parents=True, exist_ok=True)
-        state = {**(self.agent.policy_state() if state is None else state), "env_steps": progress.env_steps,
-                 **self.extra, **(extra or {})}
         save_policy_file(state, self.folder / self.name)
 
 
 class BestPolicy:
     """policy/best.pt: the policy of the evaluation with the highest average return so far
-    (SB3's best_model). The file records that return, the bar a resumed run goes on from
-    (`resume`); a new run starts without one (a run directory taken over may hold an old file)."""
+    (SB3's best_model), recording that return. Checkpoints hold it (`state_dict`): a resumed run
+    goes on from the checkpoint's best, not from a file a killed run wrote after that checkpoint,
+    whose trajectory the resume need not repeat; a new run starts without one (a run directory
+    taken over may hold an old file)."""
 
     def __init__(self, saver: PolicySaver) -> None:
         self.saver = saver
         self.best: float | None = None
+        self.kept: dict[str, Any] | None = None  # what best.pt holds, for checkpoints
 
-    def resume(self) -> None:
-        self.best = recorded_return(self.saver.folder / self.saver.name)
+    def state_dict(self) -> dict[str, Any]:
+        return {"best": self.best, "file": self.kept}
+
+    def resume(self, saved: dict[str, Any] | None) -> None:
+        """best.pt as it was at the checkpoint resumed from (`saved`, its `state_dict`), written
+        again (removed where there was none yet); a checkpoint from before checkpoints held it
+        (None): the file's own record is the bar."""
+        path = self.saver.folder / self.saver.name
+        if saved is None:
+            self.best = recorded_return(path)
+            return
+        self.best, self.kept = saved["best"], saved["file"]
+        if self.kept is None:
+            path.unlink(missing_ok=True)
+        else:
+            self.saver.write_file(self.kept)
 
     def offer(self, progress: Progress, average_return: float, state: dict[str, Any] | None = None) -> None:
         """Keep the evaluated policy (`state`; the agent's now where None) if its return is the best."""
         if math.isfinite(average_return) and (self.best is None or average_return > self.best):
-            self.saver.write(progress, state, {"average_return": float(average_return)})
+            written = self.saver.write(progress, state, {"average_return": float(average_return)})
+            self.kept = copy.deepcopy(written)  # the agent's tensors train on
             self.best = float(average_return)
 
 
