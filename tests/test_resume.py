@@ -1097,3 +1097,19 @@ def test_a_replay_size_whose_bookkeeping_outgrows_memory_is_one_line_before_the_
                                                 r"than the .* GiB available here: lower replay.size$"):
         relayrl.train(config, tmp_path / "r", progress=False)
     assert not (tmp_path / "r").exists()
+
+
+def test_history_json_records_each_process_its_software_and_what_a_resume_changed(tmp_path):
+    """config.toml said nothing of the torch build, machine or thread count a bit-exact repeat needs,
+    and held the settings of the last resume only."""
+    import json
+
+    relayrl.train(relayrl.load_config("dqn-cartpole-fast", DQN), tmp_path / "r", progress=False)
+    longer = relayrl.load_config(str(tmp_path / "r" / "config.toml"), ["train.total_steps=2000", "agent.lr=0.01"])
+    relayrl.train(longer, tmp_path / "r", resume=True, progress=False)
+    first, second = json.loads((tmp_path / "r" / "history.json").read_text())
+    assert (first["env_step"], second["env_step"]) == (0, 1500) and "changed" not in first
+    assert second["changed"] == ["agent.lr: 0.0023 -> 0.01", "train.total_steps: 1500 -> 2000"]
+    for entry in (first, second):
+        assert entry["versions"]["torch"] == torch.__version__ and entry["versions"]["relayrl"] == relayrl.__version__
+        assert entry["torch_threads"] == 1 and entry["cpu"] and entry["platform"]

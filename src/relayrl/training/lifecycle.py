@@ -29,6 +29,7 @@ from relayrl.schedules import linear_schedule
 from relayrl.specs import check_trained_layout, describe, spec_from_state, spec_state
 from relayrl.training.checkpoint import list_checkpoints
 from relayrl.training.finite import CHECK_LR, DIVERGED, FiniteWatch, non_finite_metrics, non_finite_tensor, stop
+from relayrl.training.history import record_process
 from relayrl.training.learner import Learner
 from relayrl.training.notes import float_frames_note, start_notes
 from relayrl.training.replay_setup import collect_only
@@ -285,6 +286,7 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
     c, report = core.config, core.report
     core.t0 = time.perf_counter()
     training = False
+    changed: list[str] = []
     try:
         for note in start_notes(c, core.rd.config, resume):
             core.say(note)
@@ -294,7 +296,7 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
             left = core.env_steps() < c.train.total_steps
             # also with nothing left: the checkpoint written at the end holds these settings, and a
             # later resume that extends the run goes on with them
-            record_resumed_config(core, saved, schedules=left)
+            changed = record_resumed_config(core, saved, schedules=left)
             if not left:
                 where = "past" if core.env_steps() > c.train.total_steps else "the end of"
                 core.say(f"the run is at env step {core.env_steps():,}, {where} train.total_steps="
@@ -303,6 +305,7 @@ def run_to_end(driver: Driver, resume: bool = False) -> RunResult:
             said = ", ".join(f"{k}={v!r}" for k, v in dotted(to_dict(c)).items() if k in unused)
             core.say(f"{said}: no effect with this run's other settings (see `relayrl config` for what each "
                      f"key applies to)")
+        record_process(core.rd.history, core.env_steps(), changed)
         report.open(core.env_steps())
         driver.announce()
         if not resume and (flattened := float_frames_note(c, core.agent.obs_spec)):
@@ -416,11 +419,12 @@ def _stopped_at(core: RunCore) -> str:
             "(train.checkpoint_interval = 0: no checkpoint to resume from)")
 
 
-def record_resumed_config(core: RunCore, saved: Config | None, schedules: bool = True) -> None:
+def record_resumed_config(core: RunCore, saved: Config | None, schedules: bool = True) -> list[str]:
     """config.toml becomes the config the resumed run goes on with (`--set` overrides
     included), so that `relayrl eval` and a later resume use it; written once the checkpoint
     has been restored, so a config it refused is not kept. What changed is said, and
-    (`schedules`: steps are left to train) which schedules follow a changed total."""
+    (`schedules`: steps are left to train) which schedules follow a changed total. Returns what
+    changed."""
     changed = changes(saved, core.config) if saved is not None else ["config.toml rewritten in this version's form"]
     if saved is not None and (edited := changes_between(core.restored_config, to_dict(saved), fields_in_both=True)):
         core.say(f"config.toml differs from the settings its checkpoint was written with (edited by hand, or a "
@@ -438,6 +442,7 @@ def record_resumed_config(core: RunCore, saved: Config | None, schedules: bool =
         core.say(f"the schedules over train.total_steps ({', '.join(stretched)}) now run to env step {total:,}: "
                  f"from env step {core.env_steps():,} on they follow the new length (a learning rate or epsilon "
                  "that had decayed rises again where the run is extended)")
+    return changed
 
 
 def finish(driver: Driver, p: Progress, evaluate: bool = True) -> None:

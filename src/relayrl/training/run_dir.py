@@ -57,6 +57,7 @@ class RunDir:
         self.checkpoints = self.root / "checkpoints"
         self.policy = self.root / "policy"
         self.lock_file = self.root / ".lock"  # held (flock) by the process whose run writes here
+        self.history = self.root / "history.json"  # each process that trained the run (training.history)
         self._lock_fd: int | None = None
 
     def check_not_running(self) -> None:
@@ -138,7 +139,7 @@ class RunDir:
 
     def clear(self) -> None:
         """Remove what a run writes here (a new run replaces it); other files are left alone."""
-        for path in (self.config, self.metrics):
+        for path in (self.config, self.metrics, self.history):
             path.unlink(missing_ok=True)
         # Not replay/: a memmap replay's files are made while the new run is built, before this
         # runs; they are rewritten as the run goes and a new table never reads an old row.
