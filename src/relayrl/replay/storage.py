@@ -144,6 +144,8 @@ def lazy_zeros(shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
     except OSError as e:  # past the address space, or a strict overcommit policy: as NumPy says it
         raise MemoryError(f"Unable to allocate {nbytes / 2**30:.1f} GiB for an array with shape {shape} and data "
                           f"type {dtype} ({e.strerror or e})") from None
+    if hasattr(mmap, "MADV_HUGEPAGE"):  # as NumPy asks for its large arrays: fewer TLB misses in random gathers
+        pages.madvise(mmap.MADV_HUGEPAGE)
     return np.frombuffer(pages, dtype=dtype).reshape(shape)
 
 
