@@ -1028,6 +1028,7 @@ def test_an_interrupted_runs_end_evaluates_only_a_boundary_no_evaluation_covered
     report = SimpleNamespace(last_eval={"step": last_eval}, write_scalars=lambda *a: None, run_sps=lambda p: (0.0, 0.0),
                              scalars_step=-1)
     core = SimpleNamespace(check_finite=lambda p, weights: None, evaluation=evaluation, report=report,
+                           rd=SimpleNamespace(gone_line=lambda: None),
                            policy_saver=SimpleNamespace(save=lambda p: calls.append("policy")),
                            config=SimpleNamespace(train=SimpleNamespace(checkpoint_interval=0)))
     driver = SimpleNamespace(core=core, evaluate_now=lambda p: calls.append(("evaluate", p.env_steps)),
