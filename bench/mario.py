@@ -56,6 +56,8 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _workers import report, run_worker  # noqa: E402
 
+from relayrl.training import history  # noqa: E402
+
 PRESET = "ddqn-mario"
 OBS = (4, 84, 84)
 FLOAT_STACK = 4 * 84 * 84 * 4  # bytes of one float32 [4,84,84] stack, the tutorial's state
@@ -714,17 +716,6 @@ def versions(python: str) -> str:
     return subprocess.run([python, "-c", code], capture_output=True, text=True).stdout.strip()
 
 
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
-
-
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--worker":
         which, kw = sys.argv[2], json.loads(sys.argv[3])
@@ -753,7 +744,7 @@ def main() -> None:
     peer = a.peer_python if "tutorial" not in a.skip and os.path.exists(a.peer_python) else None
     started = datetime.datetime.now(datetime.UTC)
     print(f"# bench/mario.py {' '.join(sys.argv[1:])}")
-    print(f"date {started:%Y-%m-%d %H:%M} UTC; cpu count {os.cpu_count()} ({cpu_model()}); "
+    print(f"date {started:%Y-%m-%d %H:%M} UTC; cpu count {os.cpu_count()} ({history.cpu_model()}); "
           f"python {platform.python_version()}")
     print(f"relayrl venv: {versions(me)}")
     if peer:

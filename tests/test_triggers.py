@@ -66,18 +66,23 @@ def test_train_step_triggers_fire_inside_learner_run(tmp_path):
     assert load_policy(tmp_path)(torch.zeros(3, 4)).shape == (3,)
 
 
+class _WeightAgent:
+    """An agent whose policy is one number, `weight`."""
+
+    weight = 0.0
+
+    def policy_state(self):
+        import torch
+
+        return {"kind": "test", "weight": torch.tensor(self.weight)}
+
+
 def test_best_pt_keeps_the_highest_evaluation_and_a_resume_goes_on_from_its_bar(tmp_path):
     import torch
 
     from relayrl.training.triggers import BestPolicy, PolicySaver, Progress, recorded_return
 
-    class Agent:
-        weight = 0.0
-
-        def policy_state(self):
-            return {"kind": "test", "weight": torch.tensor(self.weight)}
-
-    agent = Agent()
+    agent = _WeightAgent()
     best = BestPolicy(PolicySaver(0, agent, tmp_path, name="best.pt"))
     assert best.best is None and recorded_return(tmp_path / "best.pt") is None
     for step, weight, ret in ((0, 0.0, 10.0), (100, 1.0, 30.0), (200, 2.0, 20.0), (300, 3.0, float("nan"))):
@@ -106,13 +111,7 @@ def test_a_resume_puts_back_the_best_pt_of_its_checkpoint_not_one_a_killed_run_w
 
     from relayrl.training.triggers import BestPolicy, PolicySaver, Progress
 
-    class Agent:
-        weight = 0.0
-
-        def policy_state(self):
-            return {"kind": "test", "weight": torch.tensor(self.weight)}
-
-    agent = Agent()
+    agent = _WeightAgent()
     best = BestPolicy(PolicySaver(0, agent, tmp_path, name="best.pt"))
     best.offer(Progress(100, 100), 10.0)
     agent.weight = 5.0  # trained on: the kept policy is the one evaluated, not the agent's tensors now

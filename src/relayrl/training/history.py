@@ -48,10 +48,11 @@ def machine() -> dict[str, Any]:
             continue
     gpu = torch.cuda.get_device_name() if torch.cuda.is_initialized() else None
     return {"versions": {"python": sys.version.split()[0], **versions}, "platform": platform.platform(),
-            "cpu": _cpu_model(), "torch_threads": torch.get_num_threads(), **({"gpu": gpu} if gpu else {})}
+            "cpu": cpu_model(), "torch_threads": torch.get_num_threads(), **({"gpu": gpu} if gpu else {})}
 
 
-def _cpu_model() -> str:
+def cpu_model() -> str:
+    """The CPU's model name (Linux's /proc/cpuinfo), else what the platform says."""
     try:
         with open("/proc/cpuinfo") as f:
             for line in f:
