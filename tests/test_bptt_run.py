@@ -1,4 +1,5 @@
 """algo = "bptt" as a run (the bptt-pendulum preset) and stateless envs in the train loop."""
+import json
 import os
 import re
 import signal
@@ -17,6 +18,8 @@ SHORT = ["train.total_steps=96000", "eval.interval=32000"]  # 30 iterations, a r
 
 def test_bptt_run_writes_rows_a_loadable_policy_and_improves(tmp_path):
     result = relayrl.train(relayrl.load_config("bptt-pendulum", SHORT), tmp_path / "b", progress=False)
+    (process,) = json.loads((tmp_path / "b" / "history.json").read_text())  # its runs' one process, recorded
+    assert process["env_step"] == 0 and process["versions"]["torch"] == torch.__version__
     rows = RunDir(tmp_path / "b").read_metrics()
     # every run's evaluations: at step 0, every eval.interval env steps and at the end, each of
     # eval.episodes whole episodes of the env (Pendulum's 200 steps), as relayrl eval runs them

@@ -596,9 +596,10 @@ def test_config_files_as_windows_tools_save_them_load(tmp_path, encoding):
     assert load_config(str(path)) == load_config("dqn-cartpole", ["seed=7"])
 
 
-def test_a_config_file_in_another_encoding_names_its_line(tmp_path):
+@pytest.mark.parametrize("bom", [b"", b"\xef\xbb\xbf"])
+def test_a_config_file_in_another_encoding_names_its_line(tmp_path, bom):
     path = tmp_path / "config.toml"
-    path.write_bytes('algo = "dqn"\n\n# r\u00e9glages\nseed = 3\n'.encode("cp1252"))  # Windows' "ANSI"
+    path.write_bytes(bom + 'algo = "dqn"\n\n# r\u00e9glages\nseed = 3\n'.encode("cp1252"))  # Windows' "ANSI"
     with pytest.raises(ConfigError, match=r"^config file '.*config.toml' is not UTF-8 text \(byte 0xe9 on line 3\)"):
         load_config(str(path))
 

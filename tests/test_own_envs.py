@@ -17,7 +17,7 @@ import toy_envs
 
 from relayrl.cli import main
 from relayrl.config import from_dict, load_toml, save_toml
-from relayrl.dispatch import train
+from relayrl.dispatch import factory_env_id, train
 from relayrl.envs import make_env
 from relayrl.errors import UserError
 from relayrl.presets import load_config
@@ -666,3 +666,25 @@ def test_an_env_id_naming_a_class_of_the_script_itself_says_to_give_it_as_env(mo
         resolve_env_fn("__main__:Corridor")
     with pytest.raises(UserError, match="records an env factory given to relayrl.train"):
         resolve_env_fn("__main__:Other")  # not there: a factory recorded by another process
+
+
+class _Settings:
+    """An object without a repr of its own: its default one names its address, another in every process."""
+
+
+def test_a_partials_recorded_arguments_leave_out_addresses_and_an_earlier_versions_record_resumes(tmp_path):
+    settings = _Settings()
+    factory = functools.partial(toy_envs.Countdown, length=6)
+    assert "0x" not in factory_env_id(functools.partial(toy_envs.Countdown, settings))
+    config = load_config("dqn-cartpole", TINY)
+    train(config, tmp_path / "run", progress=False, env=factory)
+    old = (tmp_path / "run" / "config.toml").read_text().replace("toy_envs:<partial(Countdown, length=6)>",
+                                                                   "functools:<partial>")
+    (tmp_path / "run" / "config.toml").write_text(old)  # as the version before recorded every partial
+    for path in (tmp_path / "run" / "checkpoints").glob("ckpt-*.pt"):  # in its checkpoints too
+        state = torch.load(path, weights_only=False)
+        state["config"]["env"]["id"] = "functools:<partial>"
+        torch.save(state, path)
+    longer = load_config(str(tmp_path / "run" / "config.toml"), ["train.total_steps=120"])
+    train(longer, tmp_path / "run", resume=True, progress=False, env=factory)
+    assert load_toml(tmp_path / "run" / "config.toml")["env"]["id"] == "functools:<partial>"

@@ -824,3 +824,16 @@ def test_a_policy_torch_export_cannot_trace_is_one_line_for_either_format(tmp_pa
         said = str(e.value)
         assert "\n" not in said and "\x1b" not in said and "use --format pt2" not in said, said
         assert said.startswith("this policy cannot be exported") and "torch.where" in said, said
+
+
+def test_a_dicts_float_grid_stays_flattened_when_a_conv_net_is_named():
+    """Float images take a conv net as a whole observation only: a Dict's stacked vector entry
+    ([10, 8]) is flattened under nature_cnn / small_cnn, as runs before float images were taken
+    built it (their checkpoints and policy files load)."""
+    space = gym.spaces.Dict({"image": gym.spaces.Box(0, 255, (84, 84, 3), np.uint8),
+                             "history": gym.spaces.Box(-1.0, 1.0, (10, 8), np.float32)})
+    for kind in ("nature_cnn", "small_cnn"):
+        parts = make_encoder(spec_from_space(space), kind).parts
+        assert (type(parts["image"]), type(parts["history"]).__name__) == (ConvEncoder, "Flatten")
+    with pytest.raises(UserError, match="needs image observations"):  # nor is it an image on its own
+        make_encoder(spec_from_space(space["history"]), "small_cnn")

@@ -124,3 +124,20 @@ def test_a_resume_puts_back_the_best_pt_of_its_checkpoint_not_one_a_killed_run_w
     none_yet = BestPolicy(PolicySaver(0, agent, tmp_path, name="best.pt"))
     none_yet.resume({"best": None, "file": None})  # a checkpoint before any evaluation
     assert none_yet.best is None and not (tmp_path / "best.pt").exists()
+
+
+def test_a_second_resume_after_a_checkpoint_of_an_earlier_version_keeps_best_pt(tmp_path):
+    """Resumed from a checkpoint without best.pt's contents, the run kept the bar only: its next
+    checkpoint held no file, and a resume from that one deleted best.pt."""
+    import torch
+
+    from relayrl.training.triggers import BestPolicy, PolicySaver, Progress
+
+    agent = _WeightAgent()
+    BestPolicy(PolicySaver(0, agent, tmp_path, name="best.pt")).offer(Progress(100, 100), 10.0)
+    first = BestPolicy(PolicySaver(0, agent, tmp_path, name="best.pt"))
+    first.resume(None)  # an earlier version's checkpoint
+    second = BestPolicy(PolicySaver(0, agent, tmp_path, name="best.pt"))
+    second.resume(first.state_dict())  # this version's, written after the first resume
+    saved = torch.load(tmp_path / "best.pt", weights_only=True)
+    assert (second.best, saved["env_steps"], saved["average_return"]) == (10.0, 100, 10.0)

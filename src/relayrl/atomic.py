@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from relayrl import interrupts
-from relayrl.errors import UserError
+from relayrl.errors import UserError, one_line
 
 
 @contextlib.contextmanager
@@ -111,6 +111,12 @@ def damaged(path: Path) -> str | None:
     legacy format (no zip) or one written without checksums (torch's `compute_crc32` turned
     off: each stored as 0) is not checked."""
     try:
+        with open(path, "rb") as f:
+            if f.read(4) != b"PK\x03\x04":  # not a zip: torch.load says what it is
+                return None
+    except OSError:  # torch.load's own error says it
+        return None
+    try:
         with zipfile.ZipFile(path) as archive:
             for record in archive.infolist():
                 if record.CRC == 0:
@@ -118,8 +124,10 @@ def damaged(path: Path) -> str | None:
                 with archive.open(record) as data:  # zipfile checks the CRC as the last bytes are read
                     while data.read(1 << 22):
                         pass
-    except zipfile.BadZipFile as e:
-        return f"its bytes changed after it was written ({e})" if zipfile.is_zipfile(path) else None
+    except OSError:  # unreadable midway: torch.load's own error says it
+        return None
+    except Exception as e:  # zipfile's reading of a changed byte: a bad CRC, or headers it cannot parse
+        return f"its bytes changed after it was written ({type(e).__name__}: {one_line(str(e), 120)})"
     return None
 
 

@@ -478,8 +478,9 @@ def load_toml(path: str | Path) -> dict[str, Any]:
     try:
         return tomllib.loads(_toml_text(data))
     except UnicodeDecodeError as e:  # an editor's other encoding (Windows' "ANSI"), or a damaged file
-        line = data[:e.start].count(b"\n") + 1
-        raise ConfigError(f"config file {str(path)!r} is not UTF-8 text (byte 0x{data[e.start]:02x} on line {line}): "
+        at = e.start + (len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0)  # decoded past a BOM
+        line = data[:at].count(b"\n") + 1
+        raise ConfigError(f"config file {str(path)!r} is not UTF-8 text (byte 0x{data[at]:02x} on line {line}): "
                           "TOML files are UTF-8; save it as UTF-8") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"config file {str(path)!r} is not valid TOML: {e}") from None

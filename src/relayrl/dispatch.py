@@ -11,6 +11,7 @@ import functools
 import inspect
 import itertools
 import os
+import re
 import threading
 import time
 import types
@@ -24,7 +25,7 @@ from relayrl import console
 from relayrl.agents.registry import ALGORITHMS, Algorithm, algorithm, ray_algorithms
 from relayrl.config import Config, algo_defaults, dotted, from_dict, load_toml, parse_override, save_toml, to_dict
 from relayrl.envs.resolve import names_python_factory
-from relayrl.errors import CheckpointError, UserError, one_line
+from relayrl.errors import CheckpointError, ConfigError, UserError, one_line
 from relayrl.presets import load_config
 from relayrl.training.direct import DirectDriver
 from relayrl.training.lifecycle import RunResult
@@ -73,7 +74,9 @@ def factory_env_id(factory: Callable[[], Any]) -> str:
     function or class, which a later `relayrl eval` or resume can import; `module:<...>` for
     anything else, which no import finds, so those commands ask for the same env=."""
     if isinstance(factory, functools.partial):  # a sweep over an env's arguments: each run's are its own
-        given = [repr(a) for a in factory.args] + [f"{k}={v!r}" for k, v in factory.keywords.items()]
+        # an object's repr names its address, another in every process: left out
+        given = [re.sub(r" at 0x[0-9a-fA-F]+", "", text) for text in
+                 [repr(a) for a in factory.args] + [f"{k}={v!r}" for k, v in factory.keywords.items()]]
         module, _, func = factory_env_id(factory.func).partition(":")
         return f"{module}:<partial({one_line(', '.join([func.strip('<>'), *given]), 200)})>"
     module = getattr(factory, "__module__", None) or type(factory).__module__
@@ -175,6 +178,16 @@ def _takes_one_argument(fn: Callable[..., Any]) -> bool:
 
 
 _REPLACE = "pass --overwrite to replace it, or choose another --run-dir (in Python: overwrite=True, or another run_dir)"
+
+
+def _keep_recorded_factory(config: Config, rd: RunDir) -> None:
+    """A resume given a functools.partial env factory of a run an earlier version recorded as
+    `functools:<partial>` (without its arguments) keeps that env.id, so the resume is not refused
+    as another env's."""
+    with contextlib.suppress(ConfigError, OSError):
+        recorded = str(load_toml(rd.config).get("env", {}).get("id", ""))
+        if recorded == "functools:<partial>" and ":<partial(" in config.env.id:
+            config.env.id = recorded
 
 
 def _takeover_notice(rd: RunDir, overwrite: bool) -> str | None:
@@ -305,6 +318,8 @@ def _train(config: Config, run_dir: str | Path | None, resume: bool, progress: b
             if overwrite:
                 raise UserError(RESUME_OR_OVERWRITE + " (in Python: overwrite=True or resume=True)")
             rd.require()
+            if env is not None:
+                _keep_recorded_factory(config, rd)
             check_resume_matches(config, rd)
             _check_memmap_checkpoint(config, rd)
         takeover = None if resume else _takeover_notice(rd, overwrite)

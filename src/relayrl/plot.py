@@ -134,11 +134,11 @@ def _compare(runs: list[RunDir], out: str | Path | None, base: Path | None = Non
 
 def _say_factories_alike(names: list[str], env_id: str | None) -> None:
     """A line where runs drawn as one setting's seeds were trained on an env factory given in
-    Python that their config.toml records without its contents (a lambda, a closure): they may
-    be different envs."""
+    Python that their config.toml records without its contents (a lambda, a closure; a partial
+    is recorded with its arguments): they may be different envs."""
     from relayrl.envs.resolve import names_python_factory
 
-    if len(names) > 1 and env_id is not None and names_python_factory(env_id):
+    if len(names) > 1 and env_id is not None and names_python_factory(env_id) and ":<partial(" not in env_id:
         print(f"{', '.join(names)} were trained on env factories given in Python (env.id={env_id!r}) that their "
               "config.toml cannot tell apart: drawn as seeds of one setting", file=sys.stderr)
 

@@ -224,10 +224,15 @@ def is_image(spec: Spec, any_bounds: bool = False) -> bool:
 
 
 def is_float_frames(spec: Spec) -> bool:
-    """A float Box laid out as frames (`frame_layout`): images already scaled (to [0, 1], say),
-    which the conv encoders take as they are where asked for by name; "auto" flattens them, as
-    only uint8 frames 0..255 tell images from other grids of floats."""
-    return type(spec) is ArraySpec and spec.dtype.is_floating_point and frame_layout(spec.shape) is not None
+    """A float Box laid out as one frame of 1, 3 or 4 channels ([C, H, W] or [H, W, C], sides
+    >= 8): an image already scaled (to [0, 1], say), which the conv encoders take as it is where
+    asked for by name; "auto" flattens it, as only uint8 frames 0..255 tell images from other
+    grids of floats (a [10, 8] stack of vectors is not one)."""
+    if type(spec) is not ArraySpec or not spec.dtype.is_floating_point or len(spec.shape) != 3:
+        return False
+    layout = frame_layout(spec.shape)
+    channels = spec.shape[0] if layout == "CHW" else spec.shape[-1] if layout == "HWC" else 0
+    return channels in (1, 3, 4)
 
 
 def _pixel_bounds(spec: ArraySpec) -> bool:

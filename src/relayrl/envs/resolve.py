@@ -14,6 +14,7 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
+import cloudpickle
 import gymnasium as gym
 
 from relayrl.envs.atari import missing_ale_hint, register_on_demand
@@ -134,6 +135,11 @@ def _registered_fn(env_id: str, kwargs: dict[str, Any], max_episode_steps: int, 
     # An id the user's script or notebook registered (`gymnasium.register`) is in this process's
     # registry only: a worker process started by spawn (macOS, Windows) has a fresh one.
     known = gym.registry.get(env_id)
+    if known is not None:
+        try:  # the spec travels with the factory to worker processes: one holding what cannot stays home
+            cloudpickle.dumps(known)
+        except Exception:
+            known = None
 
     def make_registered() -> gym.Env:
         # Again in a worker process that starts with a fresh registry.

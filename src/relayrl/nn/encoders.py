@@ -138,13 +138,15 @@ def encoder_dim(encoder: nn.Module) -> int:
     return int(cast(int, encoder.out_dim))
 
 
-def leaf_encoder(spec: Spec, kind: str) -> nn.Module:
-    """The encoder of one non-structured spec (Flatten where nothing more is needed)."""
+def leaf_encoder(spec: Spec, kind: str, float_frames: bool = False) -> nn.Module:
+    """The encoder of one non-structured spec (Flatten where nothing more is needed).
+    `float_frames`: float images take the conv net `kind` names (a whole observation's; a Dict's
+    float entries stay flattened, as they were before float images were taken)."""
     if kind == "flatten" or isinstance(spec, MultiBinarySpec):
         return Flatten(spec)
     if isinstance(spec, (DiscreteSpec, MultiDiscreteSpec)):
         return OneHot((spec.n,) if isinstance(spec, DiscreteSpec) else spec.nvec)
-    if not is_image(spec, any_bounds=kind != "auto") and not (kind != "auto" and is_float_frames(spec)):
+    if not is_image(spec, any_bounds=kind != "auto") and not (float_frames and is_float_frames(spec)):
         return Flatten(spec)
     tiny = min(image_size(spec)) < NATURE_MIN_SIDE
     if kind == "nature_cnn" and tiny:
@@ -231,9 +233,10 @@ def make_encoder(spec: Spec, kind: str = "auto") -> nn.Module | None:
         return DictEncoder(spec, kind)  # `kind` applies to its image entries
     if kind in ("nature_cnn", "small_cnn"):
         if not is_image(spec, any_bounds=True) and not is_float_frames(spec):
-            raise UserError(f"agent.encoder={kind!r} needs image observations (uint8 or float [H, W], [C, H, W] or "
-                            f"[H, W, C], sides >= 8), got {describe(spec)}; use agent.encoder='auto'")
-        return leaf_encoder(spec, kind)
+            raise UserError(f"agent.encoder={kind!r} needs image observations (uint8 [H, W], [C, H, W] or [H, W, C], "
+                            f"or float [C, H, W] or [H, W, C] of 1, 3 or 4 channels; sides >= 8), got "
+                            f"{describe(spec)}; use agent.encoder='auto'")
+        return leaf_encoder(spec, kind, float_frames=True)
     if is_flat_vector(spec) or (kind == "flatten" and type(spec) is ArraySpec):
         return None
     return leaf_encoder(spec, kind)

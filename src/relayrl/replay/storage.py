@@ -9,6 +9,7 @@ store keeps the columns that live on a torch device itself); memmap columns are 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import mmap
 import platform
@@ -145,7 +146,8 @@ def lazy_zeros(shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
         raise MemoryError(f"Unable to allocate {nbytes / 2**30:.1f} GiB for an array with shape {shape} and data "
                           f"type {dtype} ({e.strerror or e})") from None
     if hasattr(mmap, "MADV_HUGEPAGE"):  # as NumPy asks for its large arrays: fewer TLB misses in random gathers
-        pages.madvise(mmap.MADV_HUGEPAGE)
+        with contextlib.suppress(OSError):  # a kernel without transparent huge pages refuses it, as NumPy ignores
+            pages.madvise(mmap.MADV_HUGEPAGE)
     return np.frombuffer(pages, dtype=dtype).reshape(shape)
 
 

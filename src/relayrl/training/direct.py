@@ -22,6 +22,7 @@ from relayrl.errors import UserError
 from relayrl.policy_file import save_policy_file
 from relayrl.seeding import RunSeeds
 from relayrl.training.evaluate import make_eval_env
+from relayrl.training.history import record_process
 from relayrl.training.lifecycle import RunResult
 from relayrl.training.process import resolve_device
 from relayrl.training.report import close_logs, eval_legend, eval_line, log_config, log_finished
@@ -105,6 +106,7 @@ class DirectDriver:
                 f"algo={c.algo!r}; {interrupts.again(signum)})")
 
         try:
+            record_process(self.rd.history, 0, [])  # its runs start at step 0: they are not resumed
             log_config(tb, c)
             with interrupts.stop_request(on_signal):
                 state = self.trainer.train(c.agent, iterations, c.seed, device, c.train.torch_threads, on_iteration,

@@ -13,7 +13,7 @@ from relayrl.config import Config, algo_defaults
 from relayrl.envs.atari import raw_screen_note
 from relayrl.envs.make import check_env, is_user_env, reward_wrappers, statistics_wrappers, wrapper_layers
 from relayrl.envs.resolve import names_python_factory
-from relayrl.specs import PackedSpec, Spec, describe, is_float_frames
+from relayrl.specs import Spec, describe, is_float_frames
 
 
 def start_notes(config: Config, config_file: Path, resume: bool) -> list[str]:
@@ -48,16 +48,13 @@ def start_notes(config: Config, config_file: Path, resume: bool) -> list[str]:
 
 
 def float_frames_note(config: Config, obs_spec: Spec) -> str | None:
-    """A line where agent.encoder = "auto" flattens float images into the MLP (a conv net is its
+    """A line where agent.encoder = "auto" flattens a float image into the MLP (a conv net is its
     choice for uint8 frames 0..255 only, which tell images from other grids of floats): the conv
-    encoders take them when named."""
-    leaves = [f.spec for f in obs_spec.fields] if isinstance(obs_spec, PackedSpec) else [obs_spec]
-    floats = [s for s in leaves if is_float_frames(s)]
-    if config.agent.encoder != "auto" or not floats:
+    encoders take it when named."""
+    if config.agent.encoder != "auto" or not is_float_frames(obs_spec):  # a whole observation's (not a Dict's)
         return None
-    return (f"agent.encoder='auto' flattens the float images {', '.join(describe(s) for s in floats)} into the MLP "
-            "(its conv net is for uint8 frames 0..255): agent.encoder='nature_cnn' (or 'small_cnn' below 36x36) "
-            "takes them as they are")
+    return (f"agent.encoder='auto' flattens the float images {describe(obs_spec)} into the MLP (its conv net is for "
+            "uint8 frames 0..255): agent.encoder='nature_cnn' (or 'small_cnn' below 36x36) takes them as they are")
 
 
 def rising_schedules(agent: Any) -> list[str]:

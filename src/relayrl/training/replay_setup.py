@@ -215,6 +215,14 @@ def build_replay(c: Config, obs_spec: Spec, action_spec: Spec, run_root: Path,
     return table, writer
 
 
+def _allocated(file: Path) -> int:
+    """Bytes the disk holds for `file` (a sparse file's written blocks; its size where the system
+    does not say, as on Windows)."""
+    st = file.stat()
+    blocks = getattr(st, "st_blocks", None)
+    return st.st_size if blocks is None else blocks * 512
+
+
 def check_replay_disk(c: Config, obs_spec: Spec, action_spec: Spec, path: Path | None) -> None:
     """One line, before the files are made, where a memmap replay's files would outgrow the disk's
     free space as the run writes its rows: the files are made sparse, and the write that finds
@@ -224,7 +232,7 @@ def check_replay_disk(c: Config, obs_spec: Spec, action_spec: Spec, path: Path |
         return
     items = min(c.replay.size, c.train.total_steps)  # what this run writes, at most
     need = replay_bytes(c, obs_spec, action_spec, items)
-    held = sum(f.stat().st_blocks * 512 for f in path.glob("*.npy")) if path.is_dir() else 0
+    held = sum(_allocated(f) for f in path.glob("*.npy")) if path.is_dir() else 0
     existing = path
     while not existing.exists() and existing.parent != existing:  # the folder is made later
         existing = existing.parent

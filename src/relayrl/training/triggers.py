@@ -111,13 +111,14 @@ class BestPolicy:
         (None): the file's own record is the bar."""
         path = self.saver.folder / self.saver.name
         if saved is None:
-            self.best = recorded_return(path)
+            self.kept = _read(path)  # kept from here on, so the next checkpoint holds it
+            self.best = _return_of(self.kept)
             return
         self.best, self.kept = saved["best"], saved["file"]
-        if self.kept is None:
-            path.unlink(missing_ok=True)
-        else:
+        if self.kept is not None:
             self.saver.write_file(self.kept)
+        elif self.best is None:  # no evaluation before the checkpoint: a file is of the run it left
+            path.unlink(missing_ok=True)
 
     def offer(self, progress: Progress, average_return: float, state: dict[str, Any] | None = None) -> None:
         """Keep the evaluated policy (`state`; the agent's now where None) if its return is the best."""
@@ -127,16 +128,23 @@ class BestPolicy:
             self.best = float(average_return)
 
 
-def recorded_return(path: Path) -> float | None:
-    """The evaluation return a best.pt records, or None (no file, or one this cannot read)."""
+def _read(path: Path) -> dict[str, Any] | None:
+    """A best.pt's contents, or None (no file, or one this cannot read)."""
     from relayrl.policy_file import load_policy_file
 
-    if not path.is_file():
-        return None
     try:
-        value = load_policy_file(path).get("average_return")
+        return load_policy_file(path) if path.is_file() else None
     except Exception:  # a damaged file is replaced at the next evaluation
         return None
+
+
+def recorded_return(path: Path) -> float | None:
+    """The evaluation return a best.pt records, or None (no file, or one this cannot read)."""
+    return _return_of(_read(path))
+
+
+def _return_of(state: dict[str, Any] | None) -> float | None:
+    value = (state or {}).get("average_return")
     return float(value) if isinstance(value, (int, float)) else None
 
 
