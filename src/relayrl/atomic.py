@@ -117,7 +117,11 @@ def damaged(path: Path) -> str | None:
     except OSError:  # torch.load's own error says it
         return None
     try:
-        with zipfile.ZipFile(path) as archive:
+        archive = zipfile.ZipFile(path)
+    except Exception:  # no directory to read (a write cut short) or one zipfile cannot parse: torch.load says it
+        return None
+    try:
+        with archive:
             for record in archive.infolist():
                 if record.CRC == 0:
                     continue
@@ -126,7 +130,7 @@ def damaged(path: Path) -> str | None:
                         pass
     except OSError:  # unreadable midway: torch.load's own error says it
         return None
-    except Exception as e:  # zipfile's reading of a changed byte: a bad CRC, or headers it cannot parse
+    except Exception as e:  # zipfile's reading of a changed byte: a bad CRC, or a record's header
         return f"its bytes changed after it was written ({type(e).__name__}: {one_line(str(e), 120)})"
     return None
 

@@ -160,5 +160,5 @@ def _is_sb3_model(path: Path) -> bool:
     try:
         with zipfile.ZipFile(path) as z:
             return {"data", "policy.pth"} <= set(z.namelist())
-    except (OSError, zipfile.BadZipFile):
+    except Exception:  # not a zip, or one whose directory zipfile cannot read (a changed byte): no SB3 model
         return False
