@@ -27,6 +27,15 @@ def user_path(path: str | os.PathLike[str]) -> Path:
     return Path(path).expanduser()
 
 
+def existing_ancestor(path: Path) -> Path:
+    """`path` (made absolute) or the nearest of its parent folders that exists: where a folder
+    still to be made would go, for its permission or its disk's free space."""
+    existing = path.absolute()
+    while not existing.exists() and existing.parent != existing:
+        existing = existing.parent
+    return existing
+
+
 def output_path(out: str | Path | None, default: Path) -> Path:
     """`out` (or `default`) with its parent folder created; one-line UserError where it cannot be
     (a file in the way, a folder that is not writable, no file extension), before any work is

@@ -19,6 +19,7 @@ from relayrl.agents.registry import algorithm
 from relayrl.config import Config, from_dict
 from relayrl.core import Observer
 from relayrl.envs import make_env
+from relayrl.envs.resolve import names_module, names_python_factory
 from relayrl.errors import UserError
 from relayrl.metrics import EpisodeStats
 from relayrl.policies import RandomPolicy
@@ -74,9 +75,9 @@ def _check_user_modules(c: Config) -> None:
 
     named = [("env.id", c.env.id), *(("env.wrappers", w) for w in c.env.wrappers), ("agent.encoder", c.agent.encoder)]
     for key, value in named:
-        module = value.split(":", 1)[0] if ":" in value and "/" not in value.split(":", 1)[0] else ""
-        if not module or module == "__main__":
+        if not names_module(value) or names_python_factory(value):  # a Gymnasium id, a name; the script's own
             continue
+        module = value.split(":", 1)[0]
         try:
             importlib.import_module(module)
         except ImportError as e:

@@ -411,8 +411,9 @@ def _stopped_at(core: RunCore) -> str:
                 f"{_python_resume(core)} continues it")
     if core.config.train.checkpoint_interval > 0:
         # as a new run there decides (dispatch's takeover): by the steps its files record
-        again = ("starts over in it" if core.rd.trained_to() == 0 else
-                 f"needs overwrite=True (its policy and metrics to env step {core.rd.trained_to():,} are kept there)")
+        reached = core.rd.trained_to()
+        again = ("starts over in it" if reached == 0 else
+                 f"needs overwrite=True (its policy and metrics to env step {reached:,} are kept there)")
         return (f"the run stopped at env step {step:,}, before its first checkpoint: nothing to resume; a new run "
                 f"in {root!r} {again}")
     return (f"the run stopped at env step {step:,}; its policy and metrics are in {root!r} "

@@ -16,6 +16,7 @@ import torch
 from relayrl import atomic
 from relayrl.config import Config
 from relayrl.errors import ConfigError, UserError
+from relayrl.paths import existing_ancestor
 from relayrl.replay import Fifo, Prioritized, Table, TransitionWriter, Uniform
 from relayrl.replay.group import WriterGroup
 from relayrl.replay.rate_limiters import MinSize, RateLimiter, SampleToInsertRatio
@@ -233,10 +234,7 @@ def check_replay_disk(c: Config, obs_spec: Spec, action_spec: Spec, path: Path |
     items = min(c.replay.size, c.train.total_steps)  # what this run writes, at most
     need = replay_bytes(c, obs_spec, action_spec, items)
     held = sum(_allocated(f) for f in path.glob("*.npy")) if path.is_dir() else 0
-    existing = path
-    while not existing.exists() and existing.parent != existing:  # the folder is made later
-        existing = existing.parent
-    free = shutil.disk_usage(existing).free
+    free = shutil.disk_usage(existing_ancestor(path)).free  # the folder is made later
     if need - held > free:
         raise UserError(f"replay.storage=memmap: {items:,} transitions of {describe(obs_spec)} take ~"
                         f"{need / 2**30:.1f} GiB in {str(path)!r}, whose disk has {free / 2**30:.1f} GiB free (a "

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from relayrl.errors import UserError
-from relayrl.paths import CHECKPOINT_NAME, user_path
+from relayrl.paths import CHECKPOINT_NAME, existing_ancestor, user_path
 
 try:
     import fcntl
@@ -108,9 +108,7 @@ class RunDir:
         """One line, before anything is built or written, where the run directory cannot be made."""
         if self.root.exists() and not self.root.is_dir():
             raise UserError(f"--run-dir {str(self.root)!r} is a file, not a directory")
-        existing = self.root.absolute()
-        while not existing.exists() and existing.parent != existing:
-            existing = existing.parent
+        existing = existing_ancestor(self.root)
         if not existing.is_dir():
             raise UserError(f"--run-dir {str(self.root)!r}: {str(existing)!r} is a file, not a directory")
         if not os.access(existing, os.W_OK | os.X_OK):
