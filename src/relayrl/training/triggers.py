@@ -138,12 +138,8 @@ def _read(path: Path) -> dict[str, Any] | None:
         return None
 
 
-def recorded_return(path: Path) -> float | None:
-    """The evaluation return a best.pt records, or None (no file, or one this cannot read)."""
-    return _return_of(_read(path))
-
-
 def _return_of(state: dict[str, Any] | None) -> float | None:
+    """The evaluation return a best.pt's contents record, or None."""
     value = (state or {}).get("average_return")
     return float(value) if isinstance(value, (int, float)) else None
 
